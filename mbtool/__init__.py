@@ -1,0 +1,3 @@
+"""mbtool: a command-line Modbus master."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,5 @@
+"""``python -m mbtool`` runs the same command line as the ``mbtool`` script."""
+
+from mbtool.cli import main
+
+main()

@@ -1,0 +1,340 @@
+"""Bit and register access: FC 01, 02, 03, 04, 05, 06, 15, 16 (spec §3).
+
+Limits are those of the current spec: 2000 bits and 125 registers read,
+1968 coils and 123 registers written (seed 000's 0x78 for FC16 is wrong).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import ClassVar
+
+from mbtool.codec.pdu import (
+    ExceptionCode,
+    Request,
+    Response,
+    check_quantity,
+    check_span,
+    check_u16,
+    counted,
+    fixed,
+    need,
+    pack_bits,
+    pack_registers,
+    register,
+    unpack_bits,
+    unpack_registers,
+)
+from mbtool.errors import DecodeError, MismatchError, RequestError
+
+MAX_READ_BITS = 2000
+MAX_READ_REGISTERS = 125
+MAX_WRITE_COILS = 1968  # 0x7B0
+MAX_WRITE_REGISTERS = 123  # 0x7B
+
+COIL_ON = 0xFF00
+COIL_OFF = 0x0000
+
+
+def _address_and_count(pdu: bytes, name: str) -> tuple[int, int]:
+    need(pdu, 5, name)
+    return struct.unpack_from(">HH", pdu, 1)
+
+
+# --- reads: FC 01 / 02 (bits) and 03 / 04 (registers) ----------------------------
+
+
+@dataclass(frozen=True)
+class BitsResponse(Response):
+    """FC 01 / 02 reply: byte count, then bits packed LSB first."""
+
+    function_code: int
+    bits: tuple[bool, ...]  # every bit of the data bytes; the request trims to its count
+
+    def encode(self) -> bytes:
+        data = pack_bits(self.bits)
+        return bytes([self.function_code, len(data)]) + data
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> BitsResponse:
+        if len(pdu) < 2:
+            raise DecodeError("bits reply is shorter than its byte count field", pdu)
+        need(pdu, 2 + pdu[1], "bits reply")
+        return cls(pdu[0], unpack_bits(pdu[2:]))
+
+
+@dataclass(frozen=True)
+class RegistersResponse(Response):
+    """FC 03 / 04 / 23 reply: byte count, then registers high byte first."""
+
+    function_code: int
+    registers: tuple[int, ...]
+
+    def encode(self) -> bytes:
+        return bytes([self.function_code, 2 * len(self.registers)]) + pack_registers(self.registers)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> RegistersResponse:
+        if len(pdu) < 2:
+            raise DecodeError("registers reply is shorter than its byte count field", pdu)
+        need(pdu, 2 + pdu[1], "registers reply")
+        return cls(pdu[0], unpack_registers(pdu[2:]))
+
+
+@dataclass(frozen=True)
+class _ReadBits(Request):
+    address: int
+    count: int = 1
+
+    request_size: ClassVar = fixed(5)
+    response_size: ClassVar = counted(1)
+    response_type: ClassVar = BitsResponse
+
+    def __post_init__(self) -> None:
+        check_quantity(self.count, MAX_READ_BITS, self.name.lower().removeprefix("read "))
+        check_span(self.address, self.count)
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">HH", self.address, self.count)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> _ReadBits:
+        return cls(*_address_and_count(pdu, cls.name))
+
+    def decode_response(self, pdu: bytes):
+        response = super().decode_response(pdu)
+        if isinstance(response, BitsResponse):
+            # The reply carries whole bytes; only the first `count` bits were asked for.
+            padding = response.bits[self.count :]
+            warnings = ("unused high bits of the last byte are not zero",) if any(padding) else ()
+            response = BitsResponse(response.function_code, response.bits[: self.count], warnings=warnings)
+        return response
+
+    def check_response(self, response: BitsResponse) -> None:
+        expected = (self.count + 7) // 8
+        if len(response.bits) != 8 * expected:
+            raise MismatchError(
+                f"byte count {len(response.bits) // 8} does not fit {self.count} bits (expected {expected})"
+            )
+
+
+@register
+@dataclass(frozen=True)
+class ReadCoils(_ReadBits):
+    function_code: ClassVar = 0x01
+    name: ClassVar = "Read Coils"
+
+
+@register
+@dataclass(frozen=True)
+class ReadDiscreteInputs(_ReadBits):
+    function_code: ClassVar = 0x02
+    name: ClassVar = "Read Discrete Inputs"
+
+
+@dataclass(frozen=True)
+class _ReadRegisters(Request):
+    address: int
+    count: int = 1
+
+    request_size: ClassVar = fixed(5)
+    response_size: ClassVar = counted(1)
+    response_type: ClassVar = RegistersResponse
+
+    def __post_init__(self) -> None:
+        check_quantity(self.count, MAX_READ_REGISTERS, "registers")
+        check_span(self.address, self.count)
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">HH", self.address, self.count)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> _ReadRegisters:
+        return cls(*_address_and_count(pdu, cls.name))
+
+    def check_response(self, response: RegistersResponse) -> None:
+        if len(response.registers) != self.count:
+            raise MismatchError(
+                f"byte count {2 * len(response.registers)} does not fit {self.count} registers"
+                f" (expected {2 * self.count})"
+            )
+
+
+@register
+@dataclass(frozen=True)
+class ReadHoldingRegisters(_ReadRegisters):
+    function_code: ClassVar = 0x03
+    name: ClassVar = "Read Holding Registers"
+
+
+@register
+@dataclass(frozen=True)
+class ReadInputRegisters(_ReadRegisters):
+    function_code: ClassVar = 0x04
+    name: ClassVar = "Read Input Registers"
+
+
+# --- single writes: FC 05 / 06, answered by an echo --------------------------------
+
+
+@register
+@dataclass(frozen=True)
+class WriteSingleCoil(Request, Response):
+    """FC 05: value FF00 = ON, 0000 = OFF; anything else is exception 03."""
+
+    function_code: ClassVar = 0x05
+    name: ClassVar = "Write Single Coil"
+    request_size: ClassVar = fixed(5)
+    response_size: ClassVar = fixed(5)
+    broadcastable: ClassVar = True
+
+    address: int
+    on: bool
+
+    def __post_init__(self) -> None:
+        check_u16(self.address, "address")
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">HH", self.address, COIL_ON if self.on else COIL_OFF)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> WriteSingleCoil:
+        address, value = _address_and_count(pdu, cls.name)
+        if value not in (COIL_ON, COIL_OFF):
+            raise RequestError(f"coil value {value:04X} is neither FF00 nor 0000", ExceptionCode.ILLEGAL_DATA_VALUE)
+        return cls(address, value == COIL_ON)
+
+    def check_response(self, response: Response) -> None:
+        self._echo_check(response)
+
+
+WriteSingleCoil.response_type = WriteSingleCoil  # the reply is an echo of the request
+
+
+@register
+@dataclass(frozen=True)
+class WriteSingleRegister(Request, Response):
+    function_code: ClassVar = 0x06
+    name: ClassVar = "Write Single Register"
+    request_size: ClassVar = fixed(5)
+    response_size: ClassVar = fixed(5)
+    broadcastable: ClassVar = True
+
+    address: int
+    value: int
+
+    def __post_init__(self) -> None:
+        check_u16(self.address, "address")
+        check_u16(self.value, "register value")
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">HH", self.address, self.value)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> WriteSingleRegister:
+        return cls(*_address_and_count(pdu, cls.name))
+
+    def check_response(self, response: Response) -> None:
+        self._echo_check(response)
+
+
+WriteSingleRegister.response_type = WriteSingleRegister
+
+
+# --- multiple writes: FC 15 / 16 --------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WriteMultipleResponse(Response):
+    """FC 15 / 16 reply: starting address and quantity written."""
+
+    function_code: int
+    address: int
+    count: int
+
+    def encode(self) -> bytes:
+        return struct.pack(">BHH", self.function_code, self.address, self.count)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> WriteMultipleResponse:
+        address, count = _address_and_count(pdu, "write multiple reply")
+        return cls(pdu[0], address, count)
+
+
+@dataclass(frozen=True)
+class _WriteMultiple(Request):
+    request_size: ClassVar = counted(5)
+    response_size: ClassVar = fixed(5)
+    response_type: ClassVar = WriteMultipleResponse
+    broadcastable: ClassVar = True
+
+    def check_response(self, response: WriteMultipleResponse) -> None:
+        count = len(self.values)  # type: ignore[attr-defined]
+        if (response.address, response.count) != (self.address, count):  # type: ignore[attr-defined]
+            raise MismatchError(
+                f"reply confirms {response.count} at {response.address},"
+                f" expected {count} at {self.address}"  # type: ignore[attr-defined]
+            )
+
+    @classmethod
+    def _split(cls, pdu: bytes) -> tuple[int, int, bytes]:
+        if len(pdu) < 6:
+            raise DecodeError(f"{cls.name}: request is shorter than its byte count field", pdu)
+        need(pdu, 6 + pdu[5], cls.name)
+        address, count = struct.unpack_from(">HH", pdu, 1)
+        return address, count, pdu[6:]
+
+
+@register
+@dataclass(frozen=True)
+class WriteMultipleCoils(_WriteMultiple):
+    function_code: ClassVar = 0x0F
+    name: ClassVar = "Write Multiple Coils"
+
+    address: int
+    values: tuple[bool, ...]
+
+    def __post_init__(self) -> None:
+        check_quantity(len(self.values), MAX_WRITE_COILS, "coils")
+        check_span(self.address, len(self.values))
+
+    def encode_data(self) -> bytes:
+        data = pack_bits(self.values)
+        return struct.pack(">HHB", self.address, len(self.values), len(data)) + data
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> WriteMultipleCoils:
+        address, count, data = cls._split(pdu)
+        check_quantity(count, MAX_WRITE_COILS, "coils")
+        if len(data) != (count + 7) // 8:
+            raise RequestError(f"byte count {len(data)} does not fit {count} coils")
+        return cls(address, unpack_bits(data, count))
+
+
+@register
+@dataclass(frozen=True)
+class WriteMultipleRegisters(_WriteMultiple):
+    function_code: ClassVar = 0x10
+    name: ClassVar = "Write Multiple Registers"
+
+    address: int
+    values: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        check_quantity(len(self.values), MAX_WRITE_REGISTERS, "registers")
+        check_span(self.address, len(self.values))
+        for value in self.values:
+            check_u16(value, "register value")
+
+    def encode_data(self) -> bytes:
+        n = len(self.values)
+        return struct.pack(">HHB", self.address, n, 2 * n) + pack_registers(self.values)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> WriteMultipleRegisters:
+        address, count, data = cls._split(pdu)
+        check_quantity(count, MAX_WRITE_REGISTERS, "registers")
+        if len(data) != 2 * count:
+            raise RequestError(f"byte count {len(data)} does not fit {count} registers")
+        return cls(address, unpack_registers(data))

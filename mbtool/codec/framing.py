@@ -1,0 +1,343 @@
+"""The three envelopes around a PDU (spec §2): RTU, ASCII and Modbus TCP (MBAP).
+
+Sans-IO, after h11: ``feed(data)`` whatever arrived, then call
+``next_event()`` until it returns None (more bytes needed).  An event is a
+``Frame`` or a ``Rejected`` run of bytes with the reason it is not a frame, so
+the caller can trace garbage and explain a failure instead of only timing out.
+A framer reads either replies (a master) or requests (a device): the implicit
+length of a PDU depends on which.
+
+The framers differ only in their envelope (tokio-modbus ``frame/{rtu,tcp}.rs``).
+"""
+
+from __future__ import annotations
+
+import binascii
+import struct
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from mbtool.codec.checksum import crc16, lrc
+from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, pdu_length
+from mbtool.errors import ChecksumError, FrameError
+
+RTU_MAX_ADU = 256
+ASCII_MAX_CHARS = 513  # ':' + 2 × 255 hex + CR LF (spec §2)
+MBAP_HEADER = 7
+
+
+@dataclass(frozen=True)
+class Frame:
+    unit: int
+    pdu: bytes
+    adu: bytes  # the exact bytes on the wire
+    transaction_id: int | None = None
+
+
+@dataclass(frozen=True)
+class Rejected:
+    data: bytes
+    error: FrameError
+
+
+Event = Frame | Rejected
+
+
+class Framer(ABC):
+    """What every framer shares: the buffer, the garbage run and the event loop."""
+
+    name = ""
+    checksum_name = ""
+
+    def __init__(self, responses: bool = True) -> None:
+        self.responses = responses  # reading replies (a master) or requests (a device)
+        self.expect: Request | None = None  # the request being answered, for lengths that depend on it
+        self._buffer = bytearray()
+        self._garbage = bytearray()
+        self._garbage_error: FrameError | None = None
+
+    # -- input -------------------------------------------------------------------
+
+    def feed(self, data: bytes) -> None:
+        self._buffer += data
+
+    def reset(self) -> None:
+        self._buffer.clear()
+        self._garbage.clear()
+        self._garbage_error = None
+
+    @property
+    def buffered(self) -> int:
+        return len(self._buffer) + len(self._garbage)
+
+    @property
+    def waiting_for_silence(self) -> bool:
+        """True when only a pause on the line can end the frame in the buffer (RTU, unknown length)."""
+        return False
+
+    def next_event(self) -> Event | None:
+        while True:
+            result = self._parse()
+            if result is None:
+                # Out of bytes: hand over the garbage so far, so the caller sees it now.
+                return self._flush_garbage()
+            if isinstance(result, Frame):
+                return self._flush_garbage() or self._take(result)
+            # An int: this many bytes at the front are no frame; fold them into the garbage run.
+            skip, error = result
+            if not self._garbage:
+                self._garbage_error = error
+            self._garbage += self._buffer[:skip]
+            del self._buffer[:skip]
+
+    def silence(self) -> Event | None:
+        """The line has gone quiet (or the deadline passed): end whatever is buffered."""
+        event = self.next_event()
+        if event is not None:
+            return event
+        while self._buffer:
+            frame = self._whole(bytes(self._buffer))
+            if isinstance(frame, Frame):
+                self._buffer.clear()
+                return self._flush_garbage() or frame
+            # The front byte starts no frame that ends here: drop it and look again,
+            # since a whole frame may still sit behind it.
+            if not self._garbage:
+                self._garbage_error = frame
+            self._garbage.append(self._buffer.pop(0))
+            event = self.next_event()
+            if event is not None:
+                return event
+        return self._flush_garbage()
+
+    # -- for subclasses --------------------------------------------------------------
+
+    @abstractmethod
+    def _parse(self) -> Frame | tuple[int, FrameError] | None:
+        """Look at the front of the buffer: a Frame, (bytes to skip, why), or None for more."""
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        """After silence: the buffered bytes taken as one frame, or why they are not one."""
+        return FrameError(f"truncated frame ({len(data)} bytes)", data)
+
+    @abstractmethod
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes: ...
+
+    @abstractmethod
+    def check(self, adu: bytes) -> str:
+        """A short verdict on the frame's checksum, for the hex trace."""
+
+    # -- helpers ---------------------------------------------------------------------
+
+    def _take(self, frame: Frame) -> Frame:
+        del self._buffer[: len(frame.adu)]
+        return frame
+
+    def _flush_garbage(self) -> Rejected | None:
+        if not self._garbage:
+            return None
+        data = bytes(self._garbage)
+        error = self._garbage_error or FrameError(f"{len(data)} bytes of garbage", data)
+        if len(data) > len(error.data) and not isinstance(error, ChecksumError):
+            error = FrameError(f"{len(data)} bytes of garbage, starting with: {error}", data)
+        self._garbage.clear()
+        self._garbage_error = None
+        return Rejected(data, error)
+
+    def _pdu_length(self, pdu: bytes) -> int | None:
+        return pdu_length(pdu, self.responses, self.expect)
+
+
+class RtuFramer(Framer):
+    """``[unit][PDU][CRC lo][CRC hi]``, ended by implicit length (or by silence)."""
+
+    name = "rtu"
+    checksum_name = "CRC"
+
+    @property
+    def waiting_for_silence(self) -> bool:
+        return len(self._buffer) >= 2 and self._pdu_length(bytes(self._buffer[1:])) == UNKNOWN
+
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+        body = bytes([unit]) + pdu
+        return body + crc16(body).to_bytes(2, "little")
+
+    def check(self, adu: bytes) -> str:
+        if len(adu) < 3:
+            return "CRC missing"
+        received = int.from_bytes(adu[-2:], "little")
+        expected = crc16(adu[:-2])
+        if received == expected:
+            return f"CRC {adu[-2]:02X} {adu[-1]:02X} ok"
+        return f"CRC {adu[-2]:02X} {adu[-1]:02X} BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
+
+    def _parse(self):
+        buf = self._buffer
+        if len(buf) < 2:
+            return None
+        # A window of one maximal ADU is all a length can depend on; never copy the
+        # whole buffer per byte (64 KiB of garbage would cost quadratic time).
+        length = self._pdu_length(bytes(buf[1:RTU_MAX_ADU]))
+        if length is None:
+            return None
+        if length == UNKNOWN:
+            code = buf[1]
+            if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
+                return None  # an unknown function code we asked for (raw): wait for silence
+            return 1, FrameError(f"function code {code:02X} is unknown", bytes(buf[:2]))
+        if length > MAX_PDU:
+            return 1, FrameError(f"PDU length {length} exceeds {MAX_PDU}", bytes(buf[:2]))
+        size = 1 + length + 2
+        if len(buf) < size:
+            return self._frame_behind(size)
+        candidate = bytes(buf[:size])
+        frame = self._whole(candidate)
+        if isinstance(frame, Frame):
+            return frame
+        return 1, frame
+
+    def _frame_behind(self, size: int):
+        """The front looks like the start of a longer frame: is a whole, valid frame behind it?
+
+        Noise before a reply can look like the head of a long frame; without this
+        the real reply would wait inside that phantom frame until the deadline.
+        """
+        buf = self._buffer
+        for start in range(1, min(len(buf), size) - 3):
+            length = self._pdu_length(bytes(buf[start + 1 : start + RTU_MAX_ADU]))
+            if length is None or length == UNKNOWN or length > MAX_PDU:
+                continue
+            end = start + 1 + length + 2
+            if end <= len(buf) and isinstance(self._whole(bytes(buf[start:end])), Frame):
+                return start, FrameError(f"{start} bytes of noise before a frame", bytes(buf[:start]))
+        return None
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        if len(data) < 4:
+            return FrameError(f"truncated frame ({len(data)} bytes)", data)
+        received = int.from_bytes(data[-2:], "little")
+        expected = crc16(data[:-2])
+        if received != expected:
+            return ChecksumError(
+                f"CRC error: frame {data.hex(' ').upper()} carries {data[-2]:02X} {data[-1]:02X},"
+                f" expected {expected & 0xFF:02X} {expected >> 8:02X}",
+                data,
+                received,
+                expected,
+            )
+        return Frame(data[0], data[1:-2], data)
+
+
+class AsciiFramer(Framer):
+    """``:`` hex(unit PDU) hex(LRC) CR LF; LF may be changed by FC08 sub-function 03."""
+
+    name = "ascii"
+    checksum_name = "LRC"
+
+    def __init__(self, responses: bool = True, delimiter: int = 0x0A) -> None:
+        super().__init__(responses)
+        self.delimiter = delimiter
+
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+        body = bytes([unit]) + pdu
+        text = (body + bytes([lrc(body)])).hex().upper().encode()
+        return b":" + text + b"\r" + bytes([self.delimiter])
+
+    def check(self, adu: bytes) -> str:
+        try:
+            body = binascii.unhexlify(adu.strip(b":\r\n" + bytes([self.delimiter])))
+        except (binascii.Error, ValueError):
+            return "LRC unreadable (not hex)"
+        if len(body) < 2:
+            return "LRC missing"
+        expected = lrc(body[:-1])
+        if body[-1] == expected:
+            return f"LRC {expected:02X} ok"
+        return f"LRC {body[-1]:02X} BAD, expected {expected:02X}"
+
+    def _parse(self):
+        buf = self._buffer
+        if not buf:
+            return None
+        start = buf.find(b":")
+        if start < 0:
+            return len(buf), FrameError(f"{len(buf)} bytes before any ':'", bytes(buf))
+        if start > 0:
+            return start, FrameError(f"{start} bytes before ':'", bytes(buf[:start]))
+        end = buf.find(bytes([self.delimiter]))
+        restart = buf.find(b":", 1)
+        if 0 < restart and (end < 0 or restart < end):
+            # A new ':' before the end: the device restarts on ':' (spec §2), and so do we.
+            return restart, FrameError("frame abandoned by a new ':'", bytes(buf[:restart]))
+        if end < 0:
+            if len(buf) > ASCII_MAX_CHARS:
+                return len(buf), FrameError(f"no end of frame within {ASCII_MAX_CHARS} characters", bytes(buf))
+            return None
+        frame = self._whole(bytes(buf[: end + 1]))
+        if isinstance(frame, Frame):
+            return frame
+        return end + 1, frame
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        if not data.startswith(b":") or not data.endswith(b"\r" + bytes([self.delimiter])):
+            return FrameError("ASCII frame not ended by CR LF", data)
+        text = data[1:-2]
+        if len(text) % 2:
+            return FrameError(f"odd number of hex characters ({len(text)})", data)
+        try:
+            body = binascii.unhexlify(text)
+        except (binascii.Error, ValueError):
+            return FrameError("non-hex characters in ASCII frame", data)
+        if len(body) < 3:
+            return FrameError(f"ASCII frame too short ({len(body)} bytes)", data)
+        expected = lrc(body[:-1])
+        if body[-1] != expected:
+            return ChecksumError(
+                f"LRC error: frame {data!r} carries {body[-1]:02X}, expected {expected:02X}",
+                data,
+                body[-1],
+                expected,
+            )
+        return Frame(body[0], body[1:-1], data)
+
+
+class TcpFramer(Framer):
+    """MBAP: transaction id, protocol id 0, length (unit + PDU), unit; no checksum."""
+
+    name = "tcp"
+    checksum_name = "MBAP"
+
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+        return struct.pack(">HHHB", transaction_id, 0, len(pdu) + 1, unit) + pdu
+
+    def check(self, adu: bytes) -> str:
+        if len(adu) < MBAP_HEADER:
+            return "MBAP header truncated"
+        tid, pid, length = struct.unpack_from(">HHH", adu)
+        verdict = "ok" if pid == 0 and length == len(adu) - 6 else "BAD"
+        return f"MBAP tid {tid} length {length} {verdict}"
+
+    def _parse(self):
+        buf = self._buffer
+        if len(buf) < MBAP_HEADER:
+            return None
+        tid, pid, length = struct.unpack_from(">HHH", buf)
+        if pid != 0:
+            return 1, FrameError(f"MBAP protocol id {pid}, expected 0", bytes(buf[:MBAP_HEADER]))
+        if not 2 <= length <= MAX_PDU + 1:
+            return 1, FrameError(f"MBAP length {length} is outside 2..{MAX_PDU + 1}", bytes(buf[:MBAP_HEADER]))
+        size = 6 + length
+        if len(buf) < size:
+            return None
+        adu = bytes(buf[:size])
+        return Frame(adu[6], adu[7:], adu, tid)
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        return FrameError(f"truncated MBAP frame ({len(data)} bytes)", data)
+
+
+FRAMERS = {"rtu": RtuFramer, "ascii": AsciiFramer, "tcp": TcpFramer}
+
+
+def make_framer(name: str, responses: bool = True) -> Framer:
+    return FRAMERS[name](responses)

@@ -1,0 +1,283 @@
+"""The PDU layer: what every function code has in common (spec §3).
+
+A PDU is the function code followed by its data.  Each function code is a
+pair of small frozen dataclasses: a ``Request`` that knows its spec limits,
+how to encode itself, how long the reply will be and how to check the reply
+against itself; and a ``Response`` that encodes and decodes the reply on its
+own (the server side and the offline decoder need that).
+
+Lengths are implicit in Modbus: a reader must know from the function code and
+the byte-count fields how long a PDU is (spec §2, RTU).  ``Size`` describes
+that once per function code.
+"""
+
+from __future__ import annotations
+
+import struct
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import ClassVar
+
+from mbtool.errors import DecodeError, MismatchError, RequestError
+
+MAX_PDU = 253  # RTU: 256 bytes - unit - CRC; MBAP: length field ≤ 254 incl. unit
+
+
+class ExceptionCode(IntEnum):
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_DATA_ADDRESS = 0x02
+    ILLEGAL_DATA_VALUE = 0x03
+    SERVER_DEVICE_FAILURE = 0x04
+    ACKNOWLEDGE = 0x05
+    SERVER_DEVICE_BUSY = 0x06
+    NEGATIVE_ACKNOWLEDGE = 0x07
+    MEMORY_PARITY_ERROR = 0x08
+    GATEWAY_PATH_UNAVAILABLE = 0x0A
+    GATEWAY_TARGET_FAILED_TO_RESPOND = 0x0B
+
+
+EXCEPTION_NAMES = {
+    0x01: "Illegal Function",
+    0x02: "Illegal Data Address",
+    0x03: "Illegal Data Value",
+    0x04: "Server Device Failure",
+    0x05: "Acknowledge",
+    0x06: "Server Device Busy",
+    0x07: "Negative Acknowledge",
+    0x08: "Memory Parity Error",
+    0x0A: "Gateway Path Unavailable",
+    0x0B: "Gateway Target Failed to Respond",
+}
+
+
+def exception_name(code: int) -> str:
+    return EXCEPTION_NAMES.get(code, "Undefined Exception Code")
+
+
+# --- checks shared by the function codes -------------------------------------
+
+
+def check_u16(value: int, what: str) -> None:
+    if not 0 <= value <= 0xFFFF:
+        raise RequestError(f"{what} {value} is out of range 0..65535", ExceptionCode.ILLEGAL_DATA_VALUE)
+
+
+def check_quantity(count: int, limit: int, what: str) -> None:
+    if not 1 <= count <= limit:
+        raise RequestError(
+            f"quantity of {what} {count} is out of range 1..{limit}",
+            ExceptionCode.ILLEGAL_DATA_VALUE,
+        )
+
+
+def check_span(address: int, count: int) -> None:
+    """Address and address + quantity must stay inside the 65536-item table (spec §1)."""
+    check_u16(address, "address")
+    if address + count > 0x10000:
+        raise RequestError(
+            f"address {address} + quantity {count} runs past 65535",
+            ExceptionCode.ILLEGAL_DATA_ADDRESS,
+        )
+
+
+def pack_bits(bits: tuple[bool, ...] | list[bool]) -> bytes:
+    """Bits LSB first, first bit in bit 0 of the first byte; unused high bits 0 (spec §1)."""
+    out = bytearray((len(bits) + 7) // 8)
+    for i, bit in enumerate(bits):
+        if bit:
+            out[i // 8] |= 1 << (i % 8)
+    return bytes(out)
+
+
+def unpack_bits(data: bytes, count: int | None = None) -> tuple[bool, ...]:
+    n = len(data) * 8 if count is None else count
+    return tuple(bool(data[i // 8] >> (i % 8) & 1) for i in range(n))
+
+
+def pack_registers(registers: tuple[int, ...] | list[int]) -> bytes:
+    return struct.pack(f">{len(registers)}H", *registers)
+
+
+def unpack_registers(data: bytes) -> tuple[int, ...]:
+    if len(data) % 2:
+        raise DecodeError(f"odd number of register bytes ({len(data)})", data)
+    return struct.unpack(f">{len(data) // 2}H", data)
+
+
+def need(pdu: bytes, length: int, what: str) -> None:
+    """A PDU must be exactly as long as its fields say."""
+    if len(pdu) != length:
+        raise DecodeError(f"{what}: PDU is {len(pdu)} bytes, expected {length}", pdu)
+
+
+# --- sizes --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Size:
+    """How long a PDU is: fixed, or given by a byte-count field of ``width`` bytes at ``at``.
+
+    With a count field the PDU is ``at + width + count`` bytes long.
+    """
+
+    fixed: int | None = None
+    at: int = 0
+    width: int = 1
+
+    def of(self, pdu: bytes) -> int | None:
+        """Total PDU length, or None while the bytes that tell it have not arrived."""
+        if self.fixed is not None:
+            return self.fixed
+        if len(pdu) < self.at + self.width:
+            return None
+        return self.at + self.width + int.from_bytes(pdu[self.at : self.at + self.width], "big")
+
+
+def fixed(n: int) -> Size:
+    return Size(fixed=n)
+
+
+def counted(at: int, width: int = 1) -> Size:
+    return Size(at=at, width=width)
+
+
+# --- the base types -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Response(ABC):
+    """A normal reply.  ``warnings`` holds what a strict reader notices but can live with."""
+
+    function_code: ClassVar[int]
+    warnings: tuple[str, ...] = field(default=(), kw_only=True, compare=False)
+
+    @abstractmethod
+    def encode(self) -> bytes: ...
+
+    @classmethod
+    @abstractmethod
+    def decode(cls, pdu: bytes) -> Response: ...
+
+
+@dataclass(frozen=True)
+class ExceptionResponse:
+    """The device's 'no': function code | 0x80 and one exception code (spec §3)."""
+
+    function_code: int
+    exception_code: int
+
+    @property
+    def name(self) -> str:
+        return exception_name(self.exception_code)
+
+    def encode(self) -> bytes:
+        return bytes([self.function_code | 0x80, self.exception_code])
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> ExceptionResponse:
+        need(pdu, 2, "exception response")
+        return cls(pdu[0] & 0x7F, pdu[1])
+
+
+@dataclass(frozen=True)
+class Request(ABC):
+    """A request PDU.  Subclasses set the class attributes and the codec methods."""
+
+    function_code: ClassVar[int]
+    name: ClassVar[str]
+    request_size: ClassVar[Size]
+    response_size: ClassVar[Size]
+    response_type: ClassVar[type]
+    broadcastable: ClassVar[bool] = False  # writes may go to unit 0 (spec §2)
+    serial_only: ClassVar[bool] = False
+
+    def encode(self) -> bytes:
+        return bytes([self.function_code]) + self.encode_data()
+
+    @abstractmethod
+    def encode_data(self) -> bytes: ...
+
+    @classmethod
+    @abstractmethod
+    def decode(cls, pdu: bytes) -> Request:
+        """Server side: parse a request PDU.  Raises DecodeError or RequestError."""
+
+    @property
+    def expects_response(self) -> bool:
+        return True
+
+    def response_length(self, pdu: bytes) -> int | None:
+        """Length of the reply to this request; the request may refine the generic rule."""
+        return self.response_size.of(pdu)
+
+    def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
+        """Client side: decode a reply PDU and check that it answers this request."""
+        if not pdu:
+            raise DecodeError("empty response PDU", pdu)
+        if pdu[0] == self.function_code | 0x80:
+            return ExceptionResponse.decode(pdu)
+        if pdu[0] != self.function_code:
+            raise MismatchError(
+                f"reply has function code {pdu[0]:02X}, expected {self.function_code:02X}", pdu
+            )
+        response = self.response_type.decode(pdu)
+        self.check_response(response)
+        return response
+
+    def check_response(self, response: Response) -> None:
+        """Does the reply fit the request (byte count vs quantity, echo)?  Raise if not."""
+
+    def _echo_check(self, response: Response) -> None:
+        if response != self:
+            raise MismatchError(f"reply {response.encode().hex(' ')} does not echo the request", b"")
+
+
+# The registry: function code -> request type.  Filled by the function modules.
+FUNCTIONS: dict[int, type[Request]] = {}
+
+
+def register(cls: type[Request]) -> type[Request]:
+    FUNCTIONS[cls.function_code] = cls
+    return cls
+
+
+UNKNOWN = -1  # pdu_length() of a function code the codec does not know
+
+
+def pdu_length(pdu: bytes, response: bool, request: Request | None = None) -> int | None:
+    """The full length of the PDU that starts with ``pdu``.
+
+    None: more bytes are needed to tell.  UNKNOWN: the function code is not one
+    the codec knows, so only silence (RTU) or a delimiter (ASCII) can end it.
+    """
+    if not pdu:
+        return None
+    code = pdu[0]
+    if response and code & 0x80:
+        return 2
+    if request is not None and request.function_code == code:
+        return request.response_length(pdu) if response else request.request_size.of(pdu)
+    kind = FUNCTIONS.get(code)
+    if kind is None:
+        return UNKNOWN
+    return (kind.response_size if response else kind.request_size).of(pdu)
+
+
+def decode_request(pdu: bytes) -> Request:
+    kind = FUNCTIONS.get(pdu[0]) if pdu else None
+    if kind is None:
+        raise DecodeError(f"unknown function code {pdu[0]:02X}" if pdu else "empty PDU", pdu)
+    return kind.decode(pdu)
+
+
+def decode_response(pdu: bytes) -> Response | ExceptionResponse:
+    """Decode a reply with no request to check it against (offline decoding)."""
+    if not pdu:
+        raise DecodeError("empty PDU", pdu)
+    if pdu[0] & 0x80:
+        return ExceptionResponse.decode(pdu)
+    kind = FUNCTIONS.get(pdu[0])
+    if kind is None:
+        raise DecodeError(f"unknown function code {pdu[0]:02X}", pdu)
+    return kind.response_type.decode(pdu)
