@@ -1,7 +1,7 @@
 """The sans-IO Modbus codec: checksums, PDUs of every function code, and framers.
 
-Never imports socket, serial, time, click or rich (design notes, "The codec is sans-IO").
-Importing this package registers every function code.
+Never imports socket, serial, time, click or rich (design notes, "The codec is
+sans-IO").  Function-code modules register themselves when imported;
+``pdu.function_type`` imports the rest on demand, so a one-shot command pays
+only for the function codes it uses.
 """
-
-from mbtool.codec import data_access  # noqa: F401  (registers FC 01-06, 15, 16)

@@ -1,7 +1,8 @@
-"""Bit and register access: FC 01, 02, 03, 04, 05, 06, 15, 16 (spec §3).
+"""Bit and register access: FC 01, 02, 03, 04, 05, 06, 15, 16, 22, 23, 24 (spec §3).
 
 Limits are those of the current spec: 2000 bits and 125 registers read,
-1968 coils and 123 registers written (seed 000's 0x78 for FC16 is wrong).
+1968 coils and 123 registers written (seed 000's 0x78 for FC16 is wrong),
+121 registers written by FC23, 31 entries in a FIFO queue (FC24).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ MAX_READ_BITS = 2000
 MAX_READ_REGISTERS = 125
 MAX_WRITE_COILS = 1968  # 0x7B0
 MAX_WRITE_REGISTERS = 123  # 0x7B
+MAX_READ_WRITE_REGISTERS = 121  # FC23's write part: 0x79
+MAX_FIFO_COUNT = 31
 
 COIL_ON = 0xFF00
 COIL_OFF = 0x0000
@@ -193,7 +196,7 @@ class WriteSingleCoil(Request, Response):
     on: bool
 
     def __post_init__(self) -> None:
-        check_u16(self.address, "address")
+        check_u16(self.address, "address", ExceptionCode.ILLEGAL_DATA_ADDRESS)
 
     def encode_data(self) -> bytes:
         return struct.pack(">HH", self.address, COIL_ON if self.on else COIL_OFF)
@@ -225,7 +228,7 @@ class WriteSingleRegister(Request, Response):
     value: int
 
     def __post_init__(self) -> None:
-        check_u16(self.address, "address")
+        check_u16(self.address, "address", ExceptionCode.ILLEGAL_DATA_ADDRESS)
         check_u16(self.value, "register value")
 
     def encode_data(self) -> bytes:
@@ -338,3 +341,163 @@ class WriteMultipleRegisters(_WriteMultiple):
         if len(data) != 2 * count:
             raise RequestError(f"byte count {len(data)} does not fit {count} registers")
         return cls(address, unpack_registers(data))
+
+
+# --- FC 22: mask write, answered by an echo ----------------------------------------
+
+
+def mask_write_result(current: int, and_mask: int, or_mask: int) -> int:
+    """What FC22 leaves in the register: (current AND and_mask) OR (or_mask AND NOT and_mask).
+
+    Spec §3: seed 002 prints ``or_mask AND and_mask``; its own example (0x12, F2, 25 -> 17)
+    only holds with the complement.
+    """
+    return ((current & and_mask) | (or_mask & ~and_mask)) & 0xFFFF
+
+
+@register
+@dataclass(frozen=True)
+class MaskWriteRegister(Request, Response):
+    function_code: ClassVar = 0x16
+    name: ClassVar = "Mask Write Register"
+    request_size: ClassVar = fixed(7)
+    response_size: ClassVar = fixed(7)
+    broadcastable: ClassVar = True
+
+    address: int
+    and_mask: int
+    or_mask: int
+
+    def __post_init__(self) -> None:
+        check_u16(self.address, "address", ExceptionCode.ILLEGAL_DATA_ADDRESS)
+        check_u16(self.and_mask, "AND mask")
+        check_u16(self.or_mask, "OR mask")
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">HHH", self.address, self.and_mask, self.or_mask)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> MaskWriteRegister:
+        need(pdu, 7, cls.name)
+        return cls(*struct.unpack_from(">HHH", pdu, 1))
+
+    def result(self, current: int) -> int:
+        """The register's new value, given its current one."""
+        return mask_write_result(current, self.and_mask, self.or_mask)
+
+    def check_response(self, response: Response) -> None:
+        self._echo_check(response)
+
+
+MaskWriteRegister.response_type = MaskWriteRegister
+
+
+# --- FC 23: write, then read, in one transaction ----------------------------------
+
+
+@register
+@dataclass(frozen=True)
+class ReadWriteMultipleRegisters(Request):
+    """FC 23: the write is done before the read (spec §3); the reply is FC03's layout."""
+
+    function_code: ClassVar = 0x17
+    name: ClassVar = "Read/Write Multiple Registers"
+    request_size: ClassVar = counted(9)
+    response_size: ClassVar = counted(1)
+    response_type: ClassVar = RegistersResponse
+
+    read_address: int
+    read_count: int
+    write_address: int
+    values: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        check_quantity(self.read_count, MAX_READ_REGISTERS, "registers to read")
+        check_span(self.read_address, self.read_count)
+        check_quantity(len(self.values), MAX_READ_WRITE_REGISTERS, "registers to write")
+        check_span(self.write_address, len(self.values))
+        for value in self.values:
+            check_u16(value, "register value")
+
+    def encode_data(self) -> bytes:
+        n = len(self.values)
+        head = struct.pack(">HHHHB", self.read_address, self.read_count, self.write_address, n, 2 * n)
+        return head + pack_registers(self.values)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> ReadWriteMultipleRegisters:
+        if len(pdu) < 10:
+            raise DecodeError(f"{cls.name}: request is shorter than its byte count field", pdu)
+        need(pdu, 10 + pdu[9], cls.name)
+        read_address, read_count, write_address, write_count = struct.unpack_from(">HHHH", pdu, 1)
+        check_quantity(read_count, MAX_READ_REGISTERS, "registers to read")
+        check_quantity(write_count, MAX_READ_WRITE_REGISTERS, "registers to write")
+        if pdu[9] != 2 * write_count:
+            raise RequestError(f"byte count {pdu[9]} does not fit {write_count} registers")
+        return cls(read_address, read_count, write_address, unpack_registers(pdu[10:]))
+
+    def check_response(self, response: RegistersResponse) -> None:
+        if len(response.registers) != self.read_count:
+            raise MismatchError(
+                f"byte count {2 * len(response.registers)} does not fit {self.read_count} registers"
+                f" (expected {2 * self.read_count})"
+            )
+
+
+# --- FC 24: read a FIFO queue ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReadFifoQueueResponse(Response):
+    """FC 24 reply: byte count (2 bytes) = 2 + 2 × FIFO count, FIFO count (2 bytes), registers."""
+
+    function_code: ClassVar = 0x18
+
+    registers: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        # A server with more than 31 entries answers exception 03 instead (spec §3).
+        if len(self.registers) > MAX_FIFO_COUNT:
+            raise RequestError(
+                f"FIFO count {len(self.registers)} exceeds {MAX_FIFO_COUNT}",
+                ExceptionCode.ILLEGAL_DATA_VALUE,
+            )
+
+    def encode(self) -> bytes:
+        n = len(self.registers)
+        return struct.pack(">BHH", self.function_code, 2 + 2 * n, n) + pack_registers(self.registers)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> ReadFifoQueueResponse:
+        if len(pdu) < 5:
+            raise DecodeError("FIFO reply is shorter than its byte count and FIFO count fields", pdu)
+        byte_count, fifo_count = struct.unpack_from(">HH", pdu, 1)
+        need(pdu, 3 + byte_count, "FIFO reply")
+        if byte_count != 2 + 2 * fifo_count:
+            raise DecodeError(f"byte count {byte_count} does not fit FIFO count {fifo_count}", pdu)
+        if fifo_count > MAX_FIFO_COUNT:
+            raise DecodeError(f"FIFO count {fifo_count} exceeds {MAX_FIFO_COUNT}", pdu)
+        return cls(unpack_registers(pdu[5:]))
+
+
+@register
+@dataclass(frozen=True)
+class ReadFifoQueue(Request):
+    function_code: ClassVar = 0x18
+    name: ClassVar = "Read FIFO Queue"
+    request_size: ClassVar = fixed(3)
+    response_size: ClassVar = counted(1, width=2)
+    response_type: ClassVar = ReadFifoQueueResponse
+
+    address: int  # the FIFO pointer register
+
+    def __post_init__(self) -> None:
+        check_u16(self.address, "FIFO pointer address", ExceptionCode.ILLEGAL_DATA_ADDRESS)
+
+    def encode_data(self) -> bytes:
+        return struct.pack(">H", self.address)
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> ReadFifoQueue:
+        need(pdu, 3, cls.name)
+        return cls(*struct.unpack_from(">H", pdu, 1))

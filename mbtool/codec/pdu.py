@@ -58,9 +58,9 @@ def exception_name(code: int) -> str:
 # --- checks shared by the function codes -------------------------------------
 
 
-def check_u16(value: int, what: str) -> None:
+def check_u16(value: int, what: str, exception_code: int = ExceptionCode.ILLEGAL_DATA_VALUE) -> None:
     if not 0 <= value <= 0xFFFF:
-        raise RequestError(f"{what} {value} is out of range 0..65535", ExceptionCode.ILLEGAL_DATA_VALUE)
+        raise RequestError(f"{what} {value} is out of range 0..65535", exception_code)
 
 
 def check_quantity(count: int, limit: int, what: str) -> None:
@@ -73,7 +73,7 @@ def check_quantity(count: int, limit: int, what: str) -> None:
 
 def check_span(address: int, count: int) -> None:
     """Address and address + quantity must stay inside the 65536-item table (spec §1)."""
-    check_u16(address, "address")
+    check_u16(address, "address", ExceptionCode.ILLEGAL_DATA_ADDRESS)
     if address + count > 0x10000:
         raise RequestError(
             f"address {address} + quantity {count} runs past 65535",
@@ -233,13 +233,26 @@ class Request(ABC):
             raise MismatchError(f"reply {response.encode().hex(' ')} does not echo the request", b"")
 
 
-# The registry: function code -> request type.  Filled by the function modules.
+# The registry: function code -> request type.  Filled by the function modules as
+# they are imported; a one-shot read imports only the module it needs (start-up
+# time is what a cron job pays), and a look-up of any other code loads them all.
 FUNCTIONS: dict[int, type[Request]] = {}
+FUNCTION_MODULES = ("data_access", "serial_line", "file_record", "device_id")
 
 
 def register(cls: type[Request]) -> type[Request]:
     FUNCTIONS[cls.function_code] = cls
     return cls
+
+
+def function_type(code: int) -> type[Request] | None:
+    """The request type of a function code, or None if the codec does not know it."""
+    if code not in FUNCTIONS:
+        from importlib import import_module
+
+        for module in FUNCTION_MODULES:
+            import_module(f"mbtool.codec.{module}")
+    return FUNCTIONS.get(code)
 
 
 UNKNOWN = -1  # pdu_length() of a function code the codec does not know
@@ -258,14 +271,14 @@ def pdu_length(pdu: bytes, response: bool, request: Request | None = None) -> in
         return 2
     if request is not None and request.function_code == code:
         return request.response_length(pdu) if response else request.request_size.of(pdu)
-    kind = FUNCTIONS.get(code)
+    kind = function_type(code)
     if kind is None:
         return UNKNOWN
     return (kind.response_size if response else kind.request_size).of(pdu)
 
 
 def decode_request(pdu: bytes) -> Request:
-    kind = FUNCTIONS.get(pdu[0]) if pdu else None
+    kind = function_type(pdu[0]) if pdu else None
     if kind is None:
         raise DecodeError(f"unknown function code {pdu[0]:02X}" if pdu else "empty PDU", pdu)
     return kind.decode(pdu)
@@ -277,7 +290,7 @@ def decode_response(pdu: bytes) -> Response | ExceptionResponse:
         raise DecodeError("empty PDU", pdu)
     if pdu[0] & 0x80:
         return ExceptionResponse.decode(pdu)
-    kind = FUNCTIONS.get(pdu[0])
+    kind = function_type(pdu[0])
     if kind is None:
         raise DecodeError(f"unknown function code {pdu[0]:02X}", pdu)
     return kind.response_type.decode(pdu)

@@ -1,0 +1,214 @@
+"""The transaction layer: the client owns time (design notes, "The client owns time").
+
+One ``execute`` is one Modbus transaction: wait out the inter-frame silence,
+send, strip a half-duplex adapter's echo, then read until a reply that answers
+this request arrives or the deadline passes.  Replies for someone else (another
+unit, another function, a stale transaction id) are discarded; garbage is
+skipped.  When the deadline passes, the most telling problem seen is raised,
+so a user learns "CRC error" rather than only "timeout".
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from mbtool.codec.framing import Frame, Framer, Rejected
+from mbtool.codec.pdu import ExceptionResponse, Request, Response
+from mbtool.errors import ChecksumError, FrameError, MbtoolError, MismatchError, ModbusException, NoResponse
+from mbtool.transport import Transport
+
+CHAR_BITS = 11  # spec §2: every RTU character is 11 bits on the line
+FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
+# After a complete frame with a bad checksum, how long to wait for a good one
+# before calling the reply corrupt (it is nearly always the reply itself).
+SETTLE_AFTER_BAD_FRAME = 0.1
+# How long a pause ends an RTU frame whose length the codec cannot know
+# (an unknown function code, e.g. from `raw`).  USB adapters deliver in bursts.
+UNKNOWN_LENGTH_GAP = 0.05
+
+
+def silent_interval(baud: int) -> float:
+    """t3.5: 3.5 characters of 11 bits; 1.75 ms above 19200 baud (spec §2)."""
+    return FAST_T35 if baud > 19200 else 3.5 * CHAR_BITS / baud
+
+
+class Trace:
+    """Where the client reports the frames it sends and receives (the --hex trace)."""
+
+    def sent(self, adu: bytes, framer: Framer) -> None:
+        """A frame went out."""
+
+    def received(self, adu: bytes, framer: Framer, note: str = "") -> None:
+        """A frame came in."""
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        """Bytes came in that are not a frame."""
+
+
+@dataclass
+class Client:
+    transport: Transport
+    framer: Framer
+    timeout: float = 1.0
+    retries: int = 0
+    echo: bool = False  # the adapter echoes what it sends (half-duplex RS-485)
+    baud: int = 19200
+    trace: Trace = Trace()
+    clock: Callable[[], float] = time.monotonic
+    sleep: Callable[[float], None] = time.sleep
+
+    def __post_init__(self) -> None:
+        self._transaction_id = 0
+        self._line_free_at = 0.0  # when the last frame on the line ended (plus t3.5)
+        self._char_time = CHAR_BITS / self.baud
+
+    def execute(self, unit: int, request: Request) -> Response | None:
+        """Send the request and return the reply; None for broadcast or a request with no reply.
+
+        Raises ModbusException for an exception reply, NoResponse, FrameError or
+        ConnectionFailed otherwise.
+        """
+        attempts = 1 if unit == 0 else self.retries + 1
+        error: MbtoolError | None = None
+        for _ in range(attempts):
+            try:
+                reply = self._transact(unit, request)
+            except (NoResponse, FrameError) as failure:
+                error = failure
+                continue
+            if isinstance(reply, ExceptionResponse):
+                raise ModbusException(reply.function_code, reply.exception_code)
+            return reply
+        assert error is not None
+        raise error
+
+    # -- one attempt ------------------------------------------------------------
+
+    def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
+        self._transaction_id = (self._transaction_id + 1) & 0xFFFF
+        adu = self.framer.build(unit, request.encode(), self._transaction_id)
+        self._wait_for_silence()
+        stale = self.transport.discard_input()
+        if stale:
+            self.trace.rejected(stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale))
+        self.framer.reset()
+        self.framer.expect = request
+        self.transport.write(adu)
+        self.trace.sent(adu, self.framer)
+        sent_at = self.clock()
+        on_wire = len(adu) * self._char_time if self.transport.serial_line else 0.0
+        self._line_free_at = sent_at + on_wire
+        if unit == 0 or not request.expects_response:
+            return None
+        deadline = sent_at + on_wire + self.timeout
+        if self.echo:
+            self._strip_echo(adu, deadline)
+        return self._await_reply(unit, request, deadline)
+
+    def _wait_for_silence(self) -> None:
+        if not self.transport.serial_line:
+            return
+        wait = self._line_free_at + silent_interval(self.baud) - self.clock()
+        if wait > 0:
+            self.sleep(wait)
+
+    def _strip_echo(self, adu: bytes, deadline: float) -> None:
+        echo = b""
+        while len(echo) < len(adu):
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                raise NoResponse(
+                    f"the adapter echoed {len(echo)} of {len(adu)} bytes (--echo: is this adapter echoing?)"
+                )
+            echo += self.transport.read(remaining)
+        head, rest = echo[: len(adu)], echo[len(adu) :]
+        if head != adu:
+            raise FrameError(f"the adapter's echo {head.hex(' ').upper()} differs from the frame sent", head)
+        self.framer.feed(rest)
+
+    def _await_reply(self, unit: int, request: Request, deadline: float) -> Response | ExceptionResponse:
+        problem: FrameError | None = None
+        while True:
+            for event in self._events():
+                reply, problem = self._judge(event, unit, request, problem)
+                if reply is not None:
+                    return reply
+                if isinstance(problem, ChecksumError) and not self.framer.buffered:
+                    deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
+            now = self.clock()
+            if now >= deadline:
+                break
+            waiting = self.framer.waiting_for_silence
+            wait = min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
+            try:
+                data = self.transport.read(wait)
+            except NoResponse as closed:
+                problem = problem or self._truncation() or None
+                if problem:
+                    raise problem from None
+                raise closed from None
+            if data:
+                self.framer.feed(data)
+                self._line_free_at = self.clock()
+            elif waiting:
+                event = self.framer.silence()
+                if event is not None:
+                    reply, problem = self._judge(event, unit, request, problem)
+                    if reply is not None:
+                        return reply
+        # The deadline passed: whatever is still buffered is explained, not ignored.
+        truncated = self._truncation()
+        problem = problem or truncated
+        if problem is not None:
+            raise problem
+        raise NoResponse(f"no response from unit {unit} within {self.timeout:g} s")
+
+    def _events(self):
+        while (event := self.framer.next_event()) is not None:
+            yield event
+
+    def _truncation(self) -> FrameError | None:
+        event = self.framer.silence()
+        problem = None
+        while event is not None:
+            if isinstance(event, Rejected):
+                self.trace.rejected(event.data, event.error)
+                problem = problem or event.error
+            event = self.framer.next_event()
+        return problem
+
+    def _judge(
+        self, event: Frame | Rejected, unit: int, request: Request, problem: FrameError | None
+    ) -> tuple[Response | ExceptionResponse | None, FrameError | None]:
+        """Is this event our reply?  Otherwise keep the most telling problem seen so far."""
+        if isinstance(event, Rejected):
+            self.trace.rejected(event.data, event.error)
+            return None, _worse(problem, event.error)
+        mismatch = self._mismatch(event, unit, request)
+        self.trace.received(event.adu, self.framer, mismatch)
+        if mismatch:
+            return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
+        return request.decode_response(event.pdu), problem
+
+    def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
+        if frame.transaction_id is not None and frame.transaction_id != self._transaction_id:
+            return f"reply has transaction id {frame.transaction_id}, expected {self._transaction_id}"
+        if frame.unit != unit:
+            return f"reply from unit {frame.unit}, expected unit {unit}"
+        code = frame.pdu[0] if frame.pdu else None
+        if code not in (request.function_code, request.function_code | 0x80):
+            shown = "none" if code is None else f"{code:02X}"
+            return f"reply has function code {shown}, expected {request.function_code:02X}"
+        return ""
+
+
+def _worse(current: FrameError | None, new: FrameError) -> FrameError:
+    """A checksum error or a mismatched reply tells more than a run of garbage."""
+    if current is None:
+        return new
+    telling = (ChecksumError, MismatchError)
+    if isinstance(new, telling) and not isinstance(current, telling):
+        return new
+    return current

@@ -1,0 +1,149 @@
+"""Typed values carried in 16-bit registers, in any of the four byte orders (spec §1).
+
+Registers are big-endian on the wire, but devices disagree on how a 32- or
+64-bit value spreads over several registers.  The order names the bytes of a
+32-bit value ABCD as they sit in the registers:
+
+* ABCD: big-endian words, big-endian bytes (the Modbus default)
+* CDAB: words swapped (the low word first), bytes big-endian
+* BADC: bytes swapped inside each word, words big-endian
+* DCBA: everything little-endian
+
+For 64-bit types the same two swaps apply (word order reversed, bytes swapped).
+For 16-bit types only the byte swap means anything.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+from mbtool.errors import RequestError
+
+ORDERS = ("ABCD", "CDAB", "BADC", "DCBA")
+
+
+@dataclass(frozen=True)
+class ValueType:
+    name: str
+    registers: int  # registers per value; 0 for string (as many as asked)
+    fmt: str  # struct format of the big-endian value ("" for hex/string)
+
+
+TYPES = {
+    t.name: t
+    for t in (
+        ValueType("uint16", 1, "H"),
+        ValueType("int16", 1, "h"),
+        ValueType("uint32", 2, "I"),
+        ValueType("int32", 2, "i"),
+        ValueType("float32", 2, "f"),
+        ValueType("uint64", 4, "Q"),
+        ValueType("int64", 4, "q"),
+        ValueType("float64", 4, "d"),
+        ValueType("hex", 1, ""),
+        ValueType("string", 0, ""),
+    )
+}
+
+Value = int | float | str
+
+
+def _swap_words(words: list[int], order: str) -> list[int]:
+    if order in ("CDAB", "DCBA"):
+        words = words[::-1]
+    if order in ("BADC", "DCBA"):
+        words = [((w & 0xFF) << 8) | (w >> 8) for w in words]
+    return words
+
+
+def _bytes_only(order: str) -> str:
+    """Types of one register at a time (hex, string): only the byte swap applies."""
+    return "BADC" if order in ("BADC", "DCBA") else "ABCD"
+
+
+def _registers_of(data: bytes, order: str) -> list[int]:
+    words = list(struct.unpack(f">{len(data) // 2}H", data))
+    return _swap_words(words, order)
+
+
+def _bytes_of(registers: list[int] | tuple[int, ...], order: str) -> bytes:
+    # The swaps are their own inverse, so the same function undoes them.
+    return struct.pack(f">{len(registers)}H", *_swap_words(list(registers), order))
+
+
+def _printable(data: bytes) -> str:
+    """Text as latin-1, with control bytes shown as \\xNN so a terminal is never garbled."""
+    return "".join(chr(b) if 32 <= b < 127 or b >= 160 else f"\\x{b:02x}" for b in data)
+
+
+def registers_needed(type_name: str, count: int) -> int:
+    """Registers to read for ``count`` values; a string counts registers (2 characters each)."""
+    per = TYPES[type_name].registers
+    return count if per == 0 else count * per
+
+
+def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD") -> list[tuple[int, Value]]:
+    """(register offset, value) for each value in the registers."""
+    kind = TYPES[type_name]
+    if kind.name == "string":
+        text = _bytes_of(registers, _bytes_only(order))
+        return [(0, _printable(text.rstrip(b"\x00")))]
+    if kind.name == "hex":
+        return [(i, f"0x{w:04X}") for i, w in enumerate(_swap_words(list(registers), _bytes_only(order)))]
+    out: list[tuple[int, Value]] = []
+    for i in range(0, len(registers) - kind.registers + 1, kind.registers):
+        data = _bytes_of(registers[i : i + kind.registers], order)
+        out.append((i, struct.unpack(">" + kind.fmt, data)[0]))
+    return out
+
+
+def parse_value(text: str, type_name: str) -> Value:
+    """A value typed by the user, checked against the type's range; RequestError if not."""
+    kind = TYPES[type_name]
+    if kind.name == "string":
+        return text
+    try:
+        if kind.fmt in ("f", "d"):
+            value: Value = float(text)
+            if kind.fmt == "f" and math.isfinite(value) and abs(value) > 3.4028234663852886e38:
+                raise RequestError(f"{text} does not fit in float32")
+            return value
+        value = int(text, 0)
+    except ValueError:
+        raise RequestError(f"{text!r} is not a valid {type_name} value") from None
+    bits = 16 * kind.registers
+    low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if kind.fmt.islower() else (0, (1 << bits) - 1)
+    if kind.name == "hex":
+        low = 0
+    if not low <= value <= high:
+        raise RequestError(f"{text} is out of range {low}..{high} for {type_name}")
+    return value
+
+
+def encode_values(values: list[Value], type_name: str, order: str = "ABCD") -> list[int]:
+    """Registers that carry the values, in the given order."""
+    kind = TYPES[type_name]
+    if kind.name == "string":
+        data = "".join(str(v) for v in values).encode("latin-1", errors="replace")
+        if len(data) % 2:
+            data += b"\x00"
+        return _registers_of(data, _bytes_only(order))
+    if kind.name == "hex":
+        return _swap_words([int(v) for v in values], _bytes_only(order))
+    registers: list[int] = []
+    for value in values:
+        registers += _registers_of(struct.pack(">" + kind.fmt, value), order)
+    return registers
+
+
+def parse_register(text: str) -> int:
+    """A plain register value: -32768..65535, negatives stored as two's complement."""
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise RequestError(f"{text!r} is not a valid register value") from None
+    if not -0x8000 <= value <= 0xFFFF:
+        raise RequestError(f"register value {text} is out of range -32768..65535")
+    return value & 0xFFFF

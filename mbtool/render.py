@@ -1,0 +1,138 @@
+"""Renderers: turn a result into table, plain, JSON or CSV text.  They never talk to a device.
+
+The default follows the terminal (httpie's rule): a rich table when stdout is a
+TTY, plain ``ADDRESS VALUE`` lines in a pipe.  rich is imported only when a
+table is drawn: it costs tens of milliseconds a cron job should not pay.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from typing import TextIO
+
+from mbtool.codec.framing import Framer
+from mbtool.errors import FrameError
+
+FORMATS = ("table", "plain", "json", "csv")
+
+
+@dataclass
+class Result:
+    """What a command learned (or wrote): items of (address, value) and their context."""
+
+    unit: int
+    function: int
+    name: str
+    address: int
+    items: list[tuple[int, object]]
+    type: str | None = None  # None for bits; a register type from codec.values otherwise
+    registers: list[int] | None = None  # the raw registers behind typed values
+    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
+    extra: dict = field(default_factory=dict)
+
+
+def default_format(stream: TextIO = sys.stdout) -> str:
+    return "table" if stream.isatty() else "plain"
+
+
+def render(result: Result, fmt: str, out: TextIO = sys.stdout) -> None:
+    {"table": _table, "plain": _plain, "json": _json, "csv": _csv}[fmt](result, out)
+
+
+def _text(value: object) -> str:
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+def _plain(result: Result, out: TextIO) -> None:
+    out.write("".join(f"{address} {_text(value)}\n" for address, value in result.items))
+
+
+def _json_value(value: object) -> object:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # NaN and infinities are not JSON; jq would choke on them
+    return value
+
+
+def as_dict(result: Result) -> dict:
+    data: dict = {
+        "unit": result.unit,
+        "function": result.function,
+        "name": result.name,
+        "address": result.address,
+    }
+    if result.type:
+        data["type"] = result.type
+    data["values"] = [_json_value(value) for _, value in result.items]
+    data["addresses"] = [address for address, _ in result.items]
+    if result.registers is not None and result.type not in (None, "uint16"):
+        data["registers"] = result.registers
+    data.update(result.extra)
+    return data
+
+
+def _json(result: Result, out: TextIO) -> None:
+    import json
+
+    out.write(json.dumps(as_dict(result)) + "\n")
+
+
+def _csv(result: Result, out: TextIO) -> None:
+    import csv
+
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["address", "value"])
+    for address, value in result.items:
+        writer.writerow([address, _text(value)])
+
+
+def _table(result: Result, out: TextIO) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    bits = result.type is None
+    table = Table()
+    table.add_column("Address", justify="right")
+    table.add_column("Value", justify="right")
+    plain_registers = result.type == "uint16"
+    if plain_registers:
+        table.add_column("Hex", justify="right")
+    for address, value in result.items:
+        if bits:
+            table.add_row(str(address), "[green]ON[/]" if value else "[dim]OFF[/]")
+        elif plain_registers:
+            table.add_row(str(address), str(value), f"0x{value:04X}")
+        else:
+            table.add_row(str(address), _text(value))
+    console = Console(file=out) if out is not sys.stdout else Console()
+    console.print(f"[bold]{result.name}[/] (FC {result.function:02d}) · unit {result.unit}", highlight=False)
+    console.print(table)
+    if result.note:
+        console.print(result.note, style="dim")
+
+
+class HexTrace:
+    """``--hex``: every frame sent and received, in hex on stderr, its checksum judged."""
+
+    def __init__(self, out: TextIO = sys.stderr) -> None:
+        self.out = out
+
+    def sent(self, adu: bytes, framer: Framer) -> None:
+        self._line("TX", adu, framer.check(adu))
+
+    def received(self, adu: bytes, framer: Framer, note: str = "") -> None:
+        verdict = framer.check(adu)
+        self._line("RX", adu, f"{verdict}; {note}" if note else verdict)
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        self._line("RX", data, f"rejected: {error}")
+
+    def _line(self, direction: str, data: bytes, verdict: str) -> None:
+        shown = data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
+        self.out.write(f"{direction} {shown}  {verdict}\n")
+        self.out.flush()

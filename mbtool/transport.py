@@ -1,0 +1,220 @@
+"""Thin transports: bytes in, bytes out, and nothing about Modbus.
+
+* Serial lines through ``serial.serial_for_url``: device paths, ``socket://``
+  and ``rfc2217://`` TCP-bridged serial ports, ``loop://`` (pyserial url handlers).
+* Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
+* ``sim://``: the built-in simulated device, answering in-process.
+
+Every read waits at most the time it is given; the client owns the clock.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from dataclasses import dataclass
+from urllib.parse import urlsplit
+
+from mbtool.errors import ConnectionFailed, NoResponse, RequestError
+
+MODBUS_TCP_PORT = 502
+
+
+@dataclass(frozen=True)
+class SerialSettings:
+    baud: int = 19200
+    parity: str = "E"
+    bytesize: int = 8
+    stopbits: int = 1
+
+    @property
+    def bits_per_char(self) -> int:
+        return 1 + self.bytesize + (self.parity != "N") + self.stopbits
+
+
+class ConnectionClosed(NoResponse):
+    """The peer closed the connection; no (further) reply can come."""
+
+
+class Transport:
+    """What the client needs of a link.  ``serial_line`` links keep t3.5 silences."""
+
+    serial_line = True
+    default_framer = "rtu"
+    description = ""
+
+    def write(self, data: bytes) -> None:
+        raise ConnectionFailed(f"{self.description}: not writable")
+
+    def read(self, timeout: float) -> bytes:
+        """Wait up to ``timeout`` seconds for bytes; return what arrived (b"" if none)."""
+        time.sleep(max(timeout, 0))
+        return b""
+
+    def discard_input(self) -> bytes:
+        """Drop (and return) bytes that arrived before a request: stale replies, noise."""
+        return b""
+
+    def close(self) -> None:
+        """Release the link."""
+
+
+class SerialTransport(Transport):
+    def __init__(self, url: str, settings: SerialSettings) -> None:
+        import serial  # pyserial costs an import only when a serial line is used
+
+        self.description = url
+        try:
+            self.port = serial.serial_for_url(
+                url,
+                baudrate=settings.baud,
+                parity=settings.parity,
+                bytesize=settings.bytesize,
+                stopbits=settings.stopbits,
+                timeout=0,
+                write_timeout=5,
+            )
+        except (serial.SerialException, OSError, ValueError) as error:
+            raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
+        self._serial_error = serial.SerialException
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+            self.port.flush()  # a real UART: return when the bytes have left
+        except (self._serial_error, OSError) as error:
+            raise ConnectionFailed(f"cannot write to {self.description}: {_reason(error)}") from None
+
+    def read(self, timeout: float) -> bytes:
+        try:
+            self.port.timeout = max(timeout, 0)
+            data = self.port.read(1)
+            if data and self.port.in_waiting:
+                data += self.port.read(self.port.in_waiting)
+            return data
+        except (self._serial_error, OSError) as error:
+            raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
+
+    def discard_input(self) -> bytes:
+        try:
+            waiting = self.port.in_waiting
+            if waiting:
+                self.port.timeout = 0
+                return self.port.read(waiting)
+        except (self._serial_error, OSError):
+            pass
+        return b""
+
+    def close(self) -> None:
+        self.port.close()
+
+
+class TcpTransport(Transport):
+    serial_line = False
+    default_framer = "tcp"
+
+    def __init__(self, host: str, port: int, timeout: float) -> None:
+        self.description = f"tcp://{host}:{port}"
+        try:
+            self.sock = socket.create_connection((host, port), timeout=timeout)
+        except OSError as error:
+            raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.sock.sendall(data)
+        except OSError as error:
+            raise ConnectionFailed(f"cannot send to {self.description}: {_reason(error)}") from None
+
+    def read(self, timeout: float) -> bytes:
+        self.sock.settimeout(max(timeout, 1e-6))
+        try:
+            data = self.sock.recv(4096)
+        except TimeoutError:
+            return b""
+        except OSError as error:
+            raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
+        if not data:
+            raise ConnectionClosed(f"{self.description} closed the connection")
+        return data
+
+    def discard_input(self) -> bytes:
+        self.sock.setblocking(False)
+        stale = b""
+        try:
+            while chunk := self.sock.recv(4096):
+                stale += chunk
+        except (BlockingIOError, OSError):
+            pass
+        finally:
+            self.sock.setblocking(True)
+        return stale
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class SimTransport(Transport):
+    """The built-in device, answering in-process through the same framer as a real one."""
+
+    description = "sim://"
+
+    def __init__(self, framer_name: str) -> None:
+        from mbtool.codec.framing import make_framer
+        from mbtool.device import Device, demo_model
+
+        self.device = Device(demo_model())
+        self.framer = make_framer(framer_name, responses=False)
+        self._pending = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self.framer.feed(data)
+        while (event := self.framer.next_event()) is not None:
+            reply = self.device.answer_frame(event, self.framer)
+            if reply:
+                self._pending += reply
+
+    def read(self, timeout: float) -> bytes:
+        if not self._pending:
+            return super().read(timeout)  # a device with nothing to say stays silent
+        data = bytes(self._pending)
+        self._pending.clear()
+        return data
+
+
+def open_transport(target: str, settings: SerialSettings, timeout: float, framer: str | None) -> Transport:
+    """Open the link a ``--port`` target names."""
+    scheme = target.split("://", 1)[0].lower() if "://" in target else ""
+    if scheme == "tcp":
+        host, port = parse_tcp_target(target)
+        return TcpTransport(host, port, timeout)
+    if scheme == "sim":
+        return SimTransport(framer or "rtu")
+    return SerialTransport(target, settings)
+
+
+def parse_tcp_target(target: str) -> tuple[str, int]:
+    parts = urlsplit(target)
+    try:
+        port = parts.port or MODBUS_TCP_PORT
+    except ValueError:
+        raise RequestError(f"bad port in {target!r}") from None
+    if not parts.hostname:
+        raise RequestError(f"no host in {target!r} (expected tcp://HOST[:PORT])")
+    return parts.hostname, port
+
+
+def default_framer(target: str) -> str:
+    """tcp for tcp://, rtu for everything else (serial lines, bridges, sim://)."""
+    return "tcp" if target.lower().startswith("tcp://") else "rtu"
+
+
+def _reason(error: BaseException) -> str:
+    import os
+
+    number = getattr(error, "errno", None)
+    if isinstance(number, int) and number > 0:
+        return os.strerror(number)
+    text = getattr(error, "strerror", None) or str(error) or type(error).__name__
+    return text.split("\n")[0]
