@@ -92,7 +92,9 @@ class Client:
         self._wait_for_silence()
         stale = self.transport.discard_input()
         if stale:
-            self.trace.rejected(stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale))
+            self.trace.rejected(
+                stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
+            )
         self.framer.reset()
         self.framer.expect = request
         self.transport.write(adu)

@@ -105,7 +105,9 @@ class Device:
             return ExceptionResponse(code, error.exception_code)
         except DecodeError:
             known = function_type(code) is not None
-            return ExceptionResponse(code, ExceptionCode.ILLEGAL_DATA_VALUE if known else ExceptionCode.ILLEGAL_FUNCTION)
+            return ExceptionResponse(
+                code, ExceptionCode.ILLEGAL_DATA_VALUE if known else ExceptionCode.ILLEGAL_FUNCTION
+            )
         handler = self._handlers.get(type(request))
         if handler is None:
             return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)
@@ -123,7 +125,9 @@ class Device:
 
     @staticmethod
     def _read_registers(request, table: array) -> RegistersResponse:
-        return RegistersResponse(request.function_code, tuple(table[request.address : request.address + request.count]))
+        return RegistersResponse(
+            request.function_code, tuple(table[request.address : request.address + request.count])
+        )
 
     def _write_single_coil(self, request: WriteSingleCoil) -> WriteSingleCoil:
         self.model.coils[request.address] = request.on

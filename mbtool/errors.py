@@ -85,9 +85,7 @@ class ModbusException(MbtoolError):
         self.function_code = function_code
         self.exception_code = exception_code
         self.name = exception_name(exception_code)
-        super().__init__(
-            f"exception {exception_code:02X} {self.name} (function {function_code:02X})"
-        )
+        super().__init__(f"exception {exception_code:02X} {self.name} (function {function_code:02X})")
 
 
 def exit_code_for(error: BaseException) -> ExitCode:

@@ -205,7 +205,9 @@ class WriteSingleCoil(Request, Response):
     def decode(cls, pdu: bytes) -> WriteSingleCoil:
         address, value = _address_and_count(pdu, cls.name)
         if value not in (COIL_ON, COIL_OFF):
-            raise RequestError(f"coil value {value:04X} is neither FF00 nor 0000", ExceptionCode.ILLEGAL_DATA_VALUE)
+            raise RequestError(
+                f"coil value {value:04X} is neither FF00 nor 0000", ExceptionCode.ILLEGAL_DATA_VALUE
+            )
         return cls(address, value == COIL_ON)
 
     def check_response(self, response: Response) -> None:
@@ -276,8 +278,7 @@ class _WriteMultiple(Request):
         count = len(self.values)  # type: ignore[attr-defined]
         if (response.address, response.count) != (self.address, count):  # type: ignore[attr-defined]
             raise MismatchError(
-                f"reply confirms {response.count} at {response.address},"
-                f" expected {count} at {self.address}"  # type: ignore[attr-defined]
+                f"reply confirms {response.count} at {response.address}, expected {count} at {self.address}"  # type: ignore[attr-defined]
             )
 
     @classmethod

@@ -182,7 +182,10 @@ class RtuFramer(Framer):
             return None
         if length == UNKNOWN:
             code = buf[1]
-            if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
+            if self.expect is not None and code in (
+                self.expect.function_code,
+                self.expect.function_code | 0x80,
+            ):
                 return None  # an unknown function code we asked for (raw): wait for silence
             return 1, FrameError(f"function code {code:02X} is unknown", bytes(buf[:2]))
         if length > MAX_PDU:
@@ -271,7 +274,9 @@ class AsciiFramer(Framer):
             return restart, FrameError("frame abandoned by a new ':'", bytes(buf[:restart]))
         if end < 0:
             if len(buf) > ASCII_MAX_CHARS:
-                return len(buf), FrameError(f"no end of frame within {ASCII_MAX_CHARS} characters", bytes(buf))
+                return len(buf), FrameError(
+                    f"no end of frame within {ASCII_MAX_CHARS} characters", bytes(buf)
+                )
             return None
         frame = self._whole(bytes(buf[: end + 1]))
         if isinstance(frame, Frame):
@@ -325,7 +330,9 @@ class TcpFramer(Framer):
         if pid != 0:
             return 1, FrameError(f"MBAP protocol id {pid}, expected 0", bytes(buf[:MBAP_HEADER]))
         if not 2 <= length <= MAX_PDU + 1:
-            return 1, FrameError(f"MBAP length {length} is outside 2..{MAX_PDU + 1}", bytes(buf[:MBAP_HEADER]))
+            return 1, FrameError(
+                f"MBAP length {length} is outside 2..{MAX_PDU + 1}", bytes(buf[:MBAP_HEADER])
+            )
         size = 6 + length
         if len(buf) < size:
             return None

@@ -225,7 +225,7 @@ class Request(ABC):
         self.check_response(response)
         return response
 
-    def check_response(self, response: Response) -> None:
+    def check_response(self, response: Response) -> None:  # noqa: B027 - optional hook, not abstract
         """Does the reply fit the request (byte count vs quantity, echo)?  Raise if not."""
 
     def _echo_check(self, response: Response) -> None:

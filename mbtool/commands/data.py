@@ -1,0 +1,185 @@
+"""Bit and register access commands: FC 01, 02, 03, 04, 05, 06, 15, 16."""
+
+from __future__ import annotations
+
+import click
+
+from mbtool.connection import Connection, execute, show
+from mbtool.errors import RequestError
+from mbtool.options import ADDRESS, COUNT, device_command
+
+# --- reads: FC 01-04 -------------------------------------------------------------------
+
+
+def _read_bits(connection: Connection, kind, address: int, count: int) -> None:
+    from mbtool.render import Result
+
+    reply = execute(connection, kind(address, count))
+    items = [(address + i, bit) for i, bit in enumerate(reply.bits)]
+    show(connection, Result(connection.unit, kind.function_code, kind.name, address, items))
+
+
+def _read_registers(
+    connection: Connection, kind, address: int, count: int, value_type: str, order: str
+) -> None:
+    from mbtool.codec.values import decode_values, registers_needed
+    from mbtool.render import Result
+
+    reply = execute(connection, kind(address, registers_needed(value_type, count)))
+    items = [
+        (address + offset, value)
+        for offset, value in decode_values(reply.registers, value_type, order.upper())
+    ]
+    show(
+        connection,
+        Result(
+            connection.unit, kind.function_code, kind.name, address, items, value_type, list(reply.registers)
+        ),
+    )
+
+
+@device_command("read-coils")
+@click.argument("address", type=ADDRESS)
+@click.argument("count", type=COUNT, default=1)
+def read_coils(connection, address, count):
+    """Read coils (FC 01). COUNT bits from ADDRESS, at most 2000."""
+    from mbtool.codec.data_access import ReadCoils
+
+    _read_bits(connection, ReadCoils, address, count)
+
+
+@device_command("read-discrete-inputs")
+@click.argument("address", type=ADDRESS)
+@click.argument("count", type=COUNT, default=1)
+def read_discrete_inputs(connection, address, count):
+    """Read discrete inputs (FC 02). COUNT bits from ADDRESS, at most 2000."""
+    from mbtool.codec.data_access import ReadDiscreteInputs
+
+    _read_bits(connection, ReadDiscreteInputs, address, count)
+
+
+@device_command("read-holding-registers", typed=True)
+@click.argument("address", type=ADDRESS)
+@click.argument("count", type=COUNT, default=1)
+def read_holding_registers(connection, address, count, value_type, order):
+    """Read holding registers (FC 03). COUNT from ADDRESS, at most 125.
+
+    With --type, COUNT counts values of that type (float32: 2 registers each);
+    for --type string it counts registers (2 characters each).
+    """
+    from mbtool.codec.data_access import ReadHoldingRegisters
+
+    _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order)
+
+
+@device_command("read-input-registers", typed=True)
+@click.argument("address", type=ADDRESS)
+@click.argument("count", type=COUNT, default=1)
+def read_input_registers(connection, address, count, value_type, order):
+    """Read input registers (FC 04). COUNT from ADDRESS, at most 125.
+
+    With --type, COUNT counts values of that type (float32: 2 registers each);
+    for --type string it counts registers (2 characters each).
+    """
+    from mbtool.codec.data_access import ReadInputRegisters
+
+    _read_registers(connection, ReadInputRegisters, address, count, value_type, order)
+
+
+# --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
+
+BIT_WORDS = {"1": True, "on": True, "true": True, "0": False, "off": False, "false": False}
+
+
+def parse_bit(text: str) -> bool:
+    try:
+        return BIT_WORDS[text.lower()]
+    except KeyError:
+        raise RequestError(f"{text!r} is not a bit: use on|off|1|0") from None
+
+
+def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> list[int]:
+    """The registers for the values the user typed, each checked against its type."""
+    from mbtool.codec.values import encode_values, parse_register, parse_value
+
+    if value_type == "uint16":
+        return [parse_register(text) for text in values]  # -32768..65535, as the contract says
+    return encode_values([parse_value(text, value_type) for text in values], value_type, order.upper())
+
+
+@device_command("write-coil")
+@click.argument("address", type=ADDRESS)
+@click.argument("state", metavar="on|off|1|0")
+def write_coil(connection, address, state):
+    """Write one coil (FC 05). Switch the coil at ADDRESS on or off."""
+    from mbtool.codec.data_access import WriteSingleCoil
+    from mbtool.render import Result
+
+    request = WriteSingleCoil(address, parse_bit(state))
+    execute(connection, request)
+    show(
+        connection,
+        Result(connection.unit, request.function_code, request.name, address, [(address, request.on)]),
+    )
+
+
+@device_command("write-register", typed=True)
+@click.argument("address", type=ADDRESS)
+@click.argument("value")
+def write_register(connection, address, value, value_type, order):
+    """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
+    from mbtool.codec.data_access import WriteSingleRegister
+    from mbtool.codec.values import TYPES
+    from mbtool.render import Result
+
+    if TYPES[value_type].registers != 1:
+        raise RequestError(f"--type {value_type} needs more than one register: use write-registers")
+    (register,) = parse_registers((value,), value_type, order)
+    request = WriteSingleRegister(address, register)
+    execute(connection, request)
+    show(
+        connection,
+        Result(
+            connection.unit, request.function_code, request.name, address, [(address, register)], "uint16"
+        ),
+    )
+
+
+@device_command("write-coils")
+@click.argument("address", type=ADDRESS)
+@click.argument("bits", nargs=-1, required=True, metavar="BIT...")
+def write_coils(connection, address, bits):
+    """Write coils (FC 15). BITs (on|off|1|0) from ADDRESS, at most 1968."""
+    from mbtool.codec.data_access import WriteMultipleCoils
+    from mbtool.render import Result
+
+    values = tuple(parse_bit(bit) for bit in bits)
+    request = WriteMultipleCoils(address, values)
+    execute(connection, request)
+    items = [(address + i, bit) for i, bit in enumerate(values)]
+    show(connection, Result(connection.unit, request.function_code, request.name, address, items))
+
+
+@device_command("write-registers", typed=True)
+@click.argument("address", type=ADDRESS)
+@click.argument("values", nargs=-1, required=True, metavar="VALUE...")
+def write_registers(connection, address, values, value_type, order):
+    """Write registers (FC 16). VALUEs from ADDRESS, at most 123 registers.
+
+    Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
+    fills 2 registers in --order).
+    """
+    from mbtool.codec.data_access import WriteMultipleRegisters
+    from mbtool.codec.values import decode_values
+    from mbtool.render import Result
+
+    registers = parse_registers(values, value_type, order)
+    request = WriteMultipleRegisters(address, tuple(registers))
+    execute(connection, request)
+    # Report the values as the device now holds them, read back through the same type.
+    typed = decode_values(tuple(registers), value_type, order.upper())
+    items = [(address + offset, value) for offset, value in typed]
+    show(
+        connection,
+        Result(connection.unit, request.function_code, request.name, address, items, value_type, registers),
+    )

@@ -1,0 +1,234 @@
+"""Options and argument types shared by the commands: defined once (pip-tools' options.py)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import click
+
+from mbtool.connection import Connection
+from mbtool.errors import RequestError
+
+# --- parameter types --------------------------------------------------------------
+
+
+def parse_int(text: str, what: str = "number") -> int:
+    """Decimal or 0x hex (also 0o / 0b); leading zeros are decimal, as a user means them."""
+    text = text.strip()
+    try:
+        if text.lstrip("+-").isdigit():
+            return int(text, 10)
+        return int(text, 0)
+    except ValueError:
+        raise RequestError(f"{what} {text!r} is not a number (decimal or 0x hex)") from None
+
+
+class Number(click.ParamType):
+    """An integer in decimal or hex within [low, high]."""
+
+    name = "number"
+
+    def __init__(self, low: int, high: int, what: str) -> None:
+        self.low, self.high, self.what = low, high, what
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, int):
+            number = value
+        else:
+            try:
+                number = parse_int(value, self.what)
+            except RequestError as error:
+                self.fail(str(error), param, ctx)
+        if not self.low <= number <= self.high:
+            self.fail(f"{self.what} {number} is out of range {self.low}..{self.high}", param, ctx)
+        return number
+
+
+ADDRESS = Number(0, 0xFFFF, "address")
+COUNT = Number(0, 0xFFFF, "count")  # the spec limit is the codec's to check, per function code
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token) if not token.lower().lstrip("+-").startswith("0x") else int(token, 16)
+    except ValueError:
+        return False
+    return True
+
+
+class DeviceCommand(click.Command):
+    """Takes negative numbers as arguments (write-register 100 -5) yet still refuses unknown options."""
+
+    def parse_args(self, ctx, args):
+        known = {name for param in self.get_params(ctx) for name in param.opts + param.secondary_opts}
+        for token in args:
+            if token == "--":
+                break
+            if token.startswith("-") and len(token) > 1 and not _is_number(token):
+                name = token.split("=", 1)[0]
+                if name not in known and not (name[:2] in known and not name.startswith("--")):
+                    raise click.NoSuchOption(name, ctx=ctx)
+        return super().parse_args(ctx, args)
+
+
+class PositiveFloat(click.ParamType):
+    name = "seconds"
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+        if not number > 0 or number != number or number == float("inf"):
+            self.fail(f"must be more than 0 seconds, not {value}", param, ctx)
+        return number
+
+
+# --- shared options ------------------------------------------------------------------
+
+
+CONNECTION_OPTIONS = [
+    click.option(
+        "-p",
+        "--port",
+        envvar="MBTOOL_PORT",
+        metavar="TARGET",
+        help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
+        "loop:// or sim:// (the built-in device). [env: MBTOOL_PORT]",
+    ),
+    click.option(
+        "-u",
+        "--unit",
+        envvar="MBTOOL_UNIT",
+        type=Number(0, 255, "unit"),
+        default=1,
+        show_default=True,
+        help="Unit (slave) id; 0 broadcasts a write. [env: MBTOOL_UNIT]",
+    ),
+    click.option(
+        "--framer",
+        type=click.Choice(["rtu", "ascii", "tcp"]),
+        help="Framing: tcp for tcp:// targets, rtu otherwise.",
+    ),
+    click.option(
+        "-b",
+        "--baud",
+        type=Number(1, 4_000_000, "baud rate"),
+        default=19200,
+        show_default=True,
+        help="Serial baud rate.",
+    ),
+    click.option(
+        "--parity",
+        type=click.Choice(["N", "E", "O"], case_sensitive=False),
+        default="E",
+        show_default=True,
+        help="Serial parity.",
+    ),
+    click.option(
+        "--bytesize",
+        type=click.Choice(["7", "8"]),
+        default="8",
+        show_default=True,
+        help="Serial data bits (ASCII mode classically uses 7).",
+    ),
+    click.option(
+        "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
+    ),
+    click.option(
+        "-t",
+        "--timeout",
+        type=PositiveFloat(),
+        default=1.0,
+        show_default=True,
+        help="Seconds to wait for each reply.",
+    ),
+    click.option(
+        "--retries",
+        type=Number(0, 100, "retries"),
+        default=0,
+        show_default=True,
+        help="Times to resend after a timeout or a bad reply.",
+    ),
+    click.option("--echo", is_flag=True, help="Strip the local echo of a half-duplex adapter."),
+    click.option(
+        "--hex",
+        "hex_trace",
+        is_flag=True,
+        help="Print every frame sent and received (stderr), checksum checked.",
+    ),
+    click.option(
+        "-o",
+        "--format",
+        "output_format",
+        type=click.Choice(["table", "plain", "json", "csv"]),
+        help="Output format: table on a terminal, plain in a pipe.",
+    ),
+]
+
+TYPE_OPTIONS = [
+    click.option(
+        "--type",
+        "value_type",
+        type=click.Choice(
+            ["uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string"]
+        ),
+        default="uint16",
+        show_default=True,
+        help="How to read the registers.",
+    ),
+    click.option(
+        "--order",
+        type=click.Choice(["ABCD", "CDAB", "BADC", "DCBA"], case_sensitive=False),
+        default="ABCD",
+        show_default=True,
+        help="Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
+        "BADC byte-swapped, DCBA little-endian.",
+    ),
+]
+
+
+def device_command(name: str, *, typed: bool = False, **settings) -> Callable:
+    """A command that talks to a device: the shared options, then a Connection as first argument."""
+
+    def decorate(function: Callable) -> Callable:
+        @functools.wraps(function)
+        def run(
+            port,
+            unit,
+            framer,
+            baud,
+            parity,
+            bytesize,
+            stopbits,
+            timeout,
+            retries,
+            echo,
+            hex_trace,
+            output_format,
+            **kwargs,
+        ):
+            connection = Connection(
+                port,
+                unit,
+                framer,
+                baud,
+                parity.upper(),
+                int(bytesize),
+                int(stopbits),
+                timeout,
+                retries,
+                echo,
+                hex_trace,
+                output_format,
+            )
+            return function(connection, **kwargs)
+
+        for option in reversed(CONNECTION_OPTIONS + (TYPE_OPTIONS if typed else [])):
+            run = option(run)
+        # Negative register values (write-register 100 -5) must not be taken for options.
+        context = {"ignore_unknown_options": True, **settings.pop("context_settings", {})}
+        return click.command(name, cls=DeviceCommand, context_settings=context, **settings)(run)
+
+    return decorate
