@@ -10,6 +10,8 @@ Every read waits at most the time it is given; the client owns the clock.
 
 from __future__ import annotations
 
+import errno
+import select
 import socket
 import time
 from dataclasses import dataclass
@@ -27,9 +29,8 @@ class SerialSettings:
     bytesize: int = 8
     stopbits: int = 1
 
-    @property
-    def bits_per_char(self) -> int:
-        return 1 + self.bytesize + (self.parity != "N") + self.stopbits
+    def __str__(self) -> str:
+        return f"{self.baud} {self.bytesize}{self.parity}{self.stopbits}"
 
 
 class ConnectionClosed(NoResponse):
@@ -74,9 +75,15 @@ class SerialTransport(Transport):
                 timeout=0,
                 write_timeout=5,
             )
-        except (serial.SerialException, OSError, ValueError) as error:
+        except (serial.SerialException, OSError, ValueError, *_termios_error()) as error:
+            if _errno(error) == errno.EINVAL:
+                # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
+                raise ConnectionFailed(f"cannot open {url}: it refused {settings}: {_reason(error)}") from None
             raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
         self._serial_error = serial.SerialException
+        # A local serial port has a descriptor to wait on; url handlers (socket://,
+        # rfc2217://, loop://) wait inside pyserial with their own timeout.
+        self._fd = self.port.fileno() if type(self.port).__module__ == "serial.serialposix" else None
 
     def write(self, data: bytes) -> None:
         try:
@@ -87,8 +94,14 @@ class SerialTransport(Transport):
 
     def read(self, timeout: float) -> bytes:
         try:
-            self.port.timeout = max(timeout, 0)
-            data = self.port.read(1)
+            if self._fd is None:
+                self.port.timeout = max(timeout, 0)
+                data = self.port.read(1)
+            else:
+                # Wait on the descriptor: setting port.timeout would re-run tcsetattr on
+                # every read, which some drivers (and Linux ptys) refuse or glitch on.
+                ready, _, _ = select.select([self._fd], [], [], max(timeout, 0))
+                data = self.port.read(1) if ready else b""
             if data and self.port.in_waiting:
                 data += self.port.read(self.port.in_waiting)
             return data
@@ -99,11 +112,14 @@ class SerialTransport(Transport):
         try:
             waiting = self.port.in_waiting
             if waiting:
-                self.port.timeout = 0
-                return self.port.read(waiting)
+                return self.port.read(waiting) if self._fd is not None else self._read_now(waiting)
         except (self._serial_error, OSError):
             pass
         return b""
+
+    def _read_now(self, size: int) -> bytes:
+        self.port.timeout = 0
+        return self.port.read(size)
 
     def close(self) -> None:
         self.port.close()
@@ -210,10 +226,26 @@ def default_framer(target: str) -> str:
     return "tcp" if target.lower().startswith("tcp://") else "rtu"
 
 
+def _termios_error() -> tuple[type[Exception], ...]:
+    """termios.error: what pyserial lets through when a port refuses its settings."""
+    try:
+        import termios
+    except ImportError:  # not on Windows
+        return ()
+    return (termios.error,)
+
+
+def _errno(error: BaseException) -> int | None:
+    number = getattr(error, "errno", None)
+    if number is None and error.args and isinstance(error.args[0], int):
+        number = error.args[0]  # termios.error carries (errno, text) as plain args
+    return number
+
+
 def _reason(error: BaseException) -> str:
     import os
 
-    number = getattr(error, "errno", None)
+    number = _errno(error)
     if isinstance(number, int) and number > 0:
         return os.strerror(number)
     text = getattr(error, "strerror", None) or str(error) or type(error).__name__
