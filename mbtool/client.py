@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionResponse, Request, Response
@@ -47,22 +46,32 @@ class Trace:
         """Bytes came in that are not a frame."""
 
 
-@dataclass
 class Client:
-    transport: Transport
-    framer: Framer
-    timeout: float = 1.0
-    retries: int = 0
-    echo: bool = False  # the adapter echoes what it sends (half-duplex RS-485)
-    baud: int = 19200
-    trace: Trace = Trace()
-    clock: Callable[[], float] = time.monotonic
-    sleep: Callable[[float], None] = time.sleep
-
-    def __post_init__(self) -> None:
+    def __init__(
+        self,
+        transport: Transport,
+        framer: Framer,
+        *,
+        timeout: float = 1.0,
+        retries: int = 0,
+        echo: bool = False,
+        baud: int = 19200,
+        trace: Trace | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.transport = transport
+        self.framer = framer
+        self.timeout = timeout
+        self.retries = retries
+        self.echo = echo  # the adapter echoes what it sends (half-duplex RS-485)
+        self.baud = baud
+        self.trace = trace or Trace()
+        self.clock = clock
+        self.sleep = sleep
         self._transaction_id = 0
-        self._line_free_at = 0.0  # when the last frame on the line ended (plus t3.5)
-        self._char_time = CHAR_BITS / self.baud
+        self._line_free_at = 0.0  # when the last frame on the line ended
+        self._char_time = CHAR_BITS / baud
 
     def execute(self, unit: int, request: Request) -> Response | None:
         """Send the request and return the reply; None for broadcast or a request with no reply.

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
 
+from mbtool.codec.record import record, replace
 from mbtool.errors import RequestError
 
 
-@dataclass
+@record
 class Connection:
     port: str | None
     unit: int
@@ -62,6 +62,6 @@ def show(connection: Connection, result) -> None:
     from mbtool.render import default_format, render
 
     if connection.unit == 0:
-        result.note = "broadcast: no device confirms a write to unit 0"
+        result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)
     render(result, connection.output_format or default_format())

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from array import array
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 from mbtool.codec.data_access import (
     BitsResponse,
@@ -38,14 +37,14 @@ from mbtool.errors import DecodeError, RequestError
 TABLE_SIZE = 0x10000  # every table spans the whole 16-bit address space (spec §1)
 
 
-@dataclass
 class DataModel:
     """The four tables of spec §1."""
 
-    coils: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
-    discrete_inputs: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
-    holding_registers: array = field(default_factory=lambda: array("H", bytes(2 * TABLE_SIZE)))
-    input_registers: array = field(default_factory=lambda: array("H", bytes(2 * TABLE_SIZE)))
+    def __init__(self) -> None:
+        self.coils = bytearray(TABLE_SIZE)
+        self.discrete_inputs = bytearray(TABLE_SIZE)
+        self.holding_registers = array("H", bytes(2 * TABLE_SIZE))
+        self.input_registers = array("H", bytes(2 * TABLE_SIZE))
 
 
 def demo_model() -> DataModel:

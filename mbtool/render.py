@@ -9,16 +9,16 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, field
 from typing import TextIO
 
 from mbtool.codec.framing import Framer
+from mbtool.codec.record import record
 from mbtool.errors import FrameError
 
 FORMATS = ("table", "plain", "json", "csv")
 
 
-@dataclass
+@record
 class Result:
     """What a command learned (or wrote): items of (address, value) and their context."""
 
@@ -30,7 +30,7 @@ class Result:
     type: str | None = None  # None for bits; a register type from codec.values otherwise
     registers: list[int] | None = None  # the raw registers behind typed values
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
-    extra: dict = field(default_factory=dict)
+    extra: dict | None = None  # more keys for JSON
 
 
 def default_format(stream: TextIO = sys.stdout) -> str:
@@ -72,7 +72,7 @@ def as_dict(result: Result) -> dict:
     data["addresses"] = [address for address, _ in result.items]
     if result.registers is not None and result.type not in (None, "uint16"):
         data["registers"] = result.registers
-    data.update(result.extra)
+    data.update(result.extra or {})
     return data
 
 

@@ -14,15 +14,15 @@ import errno
 import select
 import socket
 import time
-from dataclasses import dataclass
 from urllib.parse import urlsplit
 
+from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse, RequestError
 
 MODBUS_TCP_PORT = 502
 
 
-@dataclass(frozen=True)
+@record
 class SerialSettings:
     baud: int = 19200
     parity: str = "E"
