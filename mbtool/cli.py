@@ -50,10 +50,10 @@ def cli() -> None:
     """A Modbus master for the command line: RTU, ASCII and TCP, every function code,
     and the frames on the wire shown as they are.
 
-    Try it without hardware:  mbtool read-holding-registers 0 10 -p sim://
+    Try it without hardware: mbtool read-holding-registers 0 10 -p sim://
 
-    Exit codes: 0 ok, 2 bad input (nothing sent), 3 no response, 4 Modbus exception,
-    5 invalid response, 6 cannot open or connect, 130 interrupted.
+    Exit codes: 0 ok, 1 internal error, 2 bad input (nothing sent), 3 no response,
+    4 Modbus exception, 5 invalid response, 6 cannot open or connect, 130 interrupted.
     """
 
 
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"mbtool: {error}", err=True)
         code = error.exit_code
     except Exception as error:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
-        if os.environ.get("MBTOOL_DEBUG"):
+        if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
             raise
         click.echo(
             f"mbtool: internal error: {type(error).__name__}: {error} (set MBTOOL_DEBUG=1 for details)",

@@ -36,11 +36,11 @@ def silent_interval(baud: int) -> float:
 class Trace:
     """Where the client reports the frames it sends and receives (the --hex trace)."""
 
-    def sent(self, adu: bytes, framer: Framer) -> None:
+    def sent(self, adu: bytes) -> None:
         """A frame went out."""
 
-    def received(self, adu: bytes, framer: Framer, note: str = "") -> None:
-        """A frame came in."""
+    def received(self, adu: bytes, note: str = "") -> None:
+        """A frame came in; ``note`` says why it is not the reply, if it is not."""
 
     def rejected(self, data: bytes, error: FrameError) -> None:
         """Bytes came in that are not a frame."""
@@ -107,7 +107,7 @@ class Client:
         self.framer.reset()
         self.framer.expect = request
         self.transport.write(adu)
-        self.trace.sent(adu, self.framer)
+        self.trace.sent(adu)
         sent_at = self.clock()
         on_wire = len(adu) * self._char_time if self.transport.serial_line else 0.0
         self._line_free_at = sent_at + on_wire
@@ -198,7 +198,7 @@ class Client:
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
         mismatch = self._mismatch(event, unit, request)
-        self.trace.received(event.adu, self.framer, mismatch)
+        self.trace.received(event.adu, mismatch)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return request.decode_response(event.pdu), problem

@@ -43,16 +43,17 @@ def execute(connection: Connection, request) -> object:
     settings = SerialSettings(connection.baud, connection.parity, connection.bytesize, connection.stopbits)
     transport = open_transport(connection.port, settings, connection.timeout, framer_name)
     try:
+        framer = make_framer(framer_name)
         client = Client(
             transport,
-            make_framer(framer_name),
+            framer,
             timeout=connection.timeout,
             retries=connection.retries,
             echo=connection.echo,
             baud=connection.baud,
         )
         if connection.hex:
-            client.trace = HexTrace()
+            client.trace = HexTrace(framer)
         return client.execute(connection.unit, request)
     finally:
         transport.close()

@@ -95,7 +95,8 @@ CONNECTION_OPTIONS = [
         envvar="MBTOOL_PORT",
         metavar="TARGET",
         help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
-        "loop:// or sim:// (the built-in device). [env: MBTOOL_PORT]",
+        "loop:// or sim:// (the built-in device).",
+        show_envvar=True,
     ),
     click.option(
         "-u",
@@ -104,7 +105,8 @@ CONNECTION_OPTIONS = [
         type=Number(0, 255, "unit"),
         default=1,
         show_default=True,
-        help="Unit (slave) id; 0 broadcasts a write. [env: MBTOOL_UNIT]",
+        help="Unit (slave) id; 0 broadcasts a write.",
+        show_envvar=True,
     ),
     click.option(
         "--framer",
@@ -167,30 +169,36 @@ CONNECTION_OPTIONS = [
     ),
 ]
 
-TYPE_OPTIONS = [
-    click.option(
-        "--type",
-        "value_type",
-        type=click.Choice(
-            ["uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string"]
+VALUE_TYPES = ("uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string")
+ONE_REGISTER_TYPES = ("uint16", "int16", "hex")
+
+
+def type_options(choices: tuple[str, ...]) -> list[Callable]:
+    return [
+        click.option(
+            "--type",
+            "value_type",
+            type=click.Choice(choices),
+            default="uint16",
+            show_default=True,
+            help="How values map to registers.",
         ),
-        default="uint16",
-        show_default=True,
-        help="How to read the registers.",
-    ),
-    click.option(
-        "--order",
-        type=click.Choice(["ABCD", "CDAB", "BADC", "DCBA"], case_sensitive=False),
-        default="ABCD",
-        show_default=True,
-        help="Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
-        "BADC byte-swapped, DCBA little-endian.",
-    ),
-]
+        click.option(
+            "--order",
+            type=click.Choice(["ABCD", "CDAB", "BADC", "DCBA"], case_sensitive=False),
+            default="ABCD",
+            show_default=True,
+            help="Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
+            "BADC byte-swapped, DCBA little-endian.",
+        ),
+    ]
 
 
-def device_command(name: str, *, typed: bool = False, **settings) -> Callable:
-    """A command that talks to a device: the shared options, then a Connection as first argument."""
+def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Callable:
+    """A command that talks to a device: the shared options, then a Connection as first argument.
+
+    ``types``: the --type choices the command offers (none: no --type/--order).
+    """
 
     def decorate(function: Callable) -> Callable:
         @functools.wraps(function)
@@ -225,10 +233,14 @@ def device_command(name: str, *, typed: bool = False, **settings) -> Callable:
             )
             return function(connection, **kwargs)
 
-        for option in reversed(CONNECTION_OPTIONS + (TYPE_OPTIONS if typed else [])):
+        for option in reversed(CONNECTION_OPTIONS + (type_options(types) if types else [])):
             run = option(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
-        context = {"ignore_unknown_options": True, **settings.pop("context_settings", {})}
+        context = {
+            "ignore_unknown_options": True,
+            "help_option_names": ["-h", "--help"],
+            **settings.pop("context_settings", {}),
+        }
         return click.command(name, cls=DeviceCommand, context_settings=context, **settings)(run)
 
     return decorate

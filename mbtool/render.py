@@ -13,7 +13,7 @@ from typing import TextIO
 
 from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
-from mbtool.errors import FrameError
+from mbtool.errors import ChecksumError, FrameError
 
 FORMATS = ("table", "plain", "json", "csv")
 
@@ -119,22 +119,23 @@ def _table(result: Result, out: TextIO) -> None:
 class HexTrace:
     """``--hex``: every frame sent and received, in hex on stderr, its checksum judged."""
 
-    def __init__(self, out: TextIO = sys.stderr) -> None:
-        self.out = out
+    def __init__(self, framer: Framer, out: TextIO | None = None) -> None:
+        self.framer = framer
+        self.out = out or sys.stderr
 
-    def sent(self, adu: bytes, framer: Framer) -> None:
-        self._line("TX", adu, framer.check(adu))
+    def sent(self, adu: bytes) -> None:
+        self._line("TX", adu, self.framer.check(adu))
 
-    def received(self, adu: bytes, framer: Framer, note: str = "") -> None:
-        verdict = framer.check(adu)
+    def received(self, adu: bytes, note: str = "") -> None:
+        verdict = self.framer.check(adu)
         self._line("RX", adu, f"{verdict}; {note}" if note else verdict)
 
     def rejected(self, data: bytes, error: FrameError) -> None:
-        self._line("RX", data, f"rejected: {error}")
+        # A whole frame with a bad checksum is judged like any frame; other bytes say why not.
+        verdict = self.framer.check(data) if isinstance(error, ChecksumError) else f"rejected: {error}"
+        self._line("RX", data, verdict)
 
     def _line(self, direction: str, data: bytes, verdict: str) -> None:
-        shown = (
-            data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
-        )
+        shown = data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
         self.out.write(f"{direction} {shown}  {verdict}\n")
         self.out.flush()

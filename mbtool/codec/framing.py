@@ -173,47 +173,65 @@ class RtuFramer(Framer):
 
     def _parse(self):
         buf = self._buffer
-        if len(buf) < 2:
+        size = self._frame_size(0)
+        if size is None:
+            return None
+        if isinstance(size, FrameError):
+            return 1, size
+        if len(buf) < size:
+            # Noise before a reply can look like the head of a long frame; without
+            # this the real reply would wait inside that phantom frame until the deadline.
+            return self._skip_to_frame(min(len(buf), size))
+        frame = self._whole(bytes(buf[:size]))
+        if isinstance(frame, Frame):
+            return frame
+        # A bad checksum: either noise before a good frame that starts inside, or
+        # a corrupted frame, reported whole (one line in the trace, not fragments).
+        skip = self._skip_to_frame(size)
+        if skip is not None:
+            return skip
+        if any(self._awaited(start) for start in range(1, size)):
+            return None  # the reply we wait for may be starting inside: wait for the rest
+        return size, frame
+
+    def _frame_size(self, start: int) -> int | None | FrameError:
+        """Size of the frame that would start at ``start``: None for more bytes, or why none can."""
+        buf = self._buffer
+        if len(buf) < start + 2:
             return None
         # A window of one maximal ADU is all a length can depend on; never copy the
         # whole buffer per byte (64 KiB of garbage would cost quadratic time).
-        length = self._pdu_length(bytes(buf[1:RTU_MAX_ADU]))
+        length = self._pdu_length(bytes(buf[start + 1 : start + RTU_MAX_ADU]))
         if length is None:
             return None
+        code = buf[start + 1]
         if length == UNKNOWN:
-            code = buf[1]
-            if self.expect is not None and code in (
-                self.expect.function_code,
-                self.expect.function_code | 0x80,
-            ):
-                return None  # an unknown function code we asked for (raw): wait for silence
-            return 1, FrameError(f"function code {code:02X} is unknown", bytes(buf[:2]))
+            if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
+                return None  # an unknown function code we asked for (raw): only silence ends it
+            return FrameError(f"function code {code:02X} is unknown", bytes(buf[start : start + 2]))
         if length > MAX_PDU:
-            return 1, FrameError(f"PDU length {length} exceeds {MAX_PDU}", bytes(buf[:2]))
-        size = 1 + length + 2
-        if len(buf) < size:
-            return self._frame_behind(size)
-        candidate = bytes(buf[:size])
-        frame = self._whole(candidate)
-        if isinstance(frame, Frame):
-            return frame
-        return 1, frame
+            return FrameError(f"PDU length {length} exceeds {MAX_PDU}", bytes(buf[start : start + 2]))
+        return 1 + length + 2
 
-    def _frame_behind(self, size: int):
-        """The front looks like the start of a longer frame: is a whole, valid frame behind it?
-
-        Noise before a reply can look like the head of a long frame; without this
-        the real reply would wait inside that phantom frame until the deadline.
-        """
+    def _skip_to_frame(self, end: int):
+        """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1."""
         buf = self._buffer
-        for start in range(1, min(len(buf), size) - 3):
-            length = self._pdu_length(bytes(buf[start + 1 : start + RTU_MAX_ADU]))
-            if length is None or length == UNKNOWN or length > MAX_PDU:
-                continue
-            end = start + 1 + length + 2
-            if end <= len(buf) and isinstance(self._whole(bytes(buf[start:end])), Frame):
-                return start, FrameError(f"{start} bytes of noise before a frame", bytes(buf[:start]))
+        for start in range(1, end):
+            size = self._frame_size(start)
+            if isinstance(size, int) and start + size <= len(buf):
+                if isinstance(self._whole(bytes(buf[start : start + size])), Frame):
+                    return start, FrameError(f"{start} bytes of noise before a frame", bytes(buf[:start]))
         return None
+
+    def _awaited(self, start: int) -> bool:
+        """Does the reply to the expected request seem to start here, not yet complete?"""
+        if self.expect is None or start + 1 >= len(self._buffer):
+            return False
+        code = self._buffer[start + 1]
+        if code not in (self.expect.function_code, self.expect.function_code | 0x80):
+            return False
+        size = self._frame_size(start)
+        return size is None or (isinstance(size, int) and start + size > len(self._buffer))
 
     def _whole(self, data: bytes) -> Frame | FrameError:
         if len(data) < 4:

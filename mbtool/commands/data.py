@@ -6,7 +6,7 @@ import click
 
 from mbtool.connection import Connection, execute, show
 from mbtool.errors import RequestError
-from mbtool.options import ADDRESS, COUNT, device_command
+from mbtool.options import ADDRESS, COUNT, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
 
 # --- reads: FC 01-04 -------------------------------------------------------------------
 
@@ -42,7 +42,7 @@ def _read_registers(
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 def read_coils(connection, address, count):
-    """Read coils (FC 01). COUNT bits from ADDRESS, at most 2000."""
+    """Read coils (FC 01). COUNT (default 1, at most 2000) bits from ADDRESS."""
     from mbtool.codec.data_access import ReadCoils
 
     _read_bits(connection, ReadCoils, address, count)
@@ -52,17 +52,17 @@ def read_coils(connection, address, count):
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 def read_discrete_inputs(connection, address, count):
-    """Read discrete inputs (FC 02). COUNT bits from ADDRESS, at most 2000."""
+    """Read discrete inputs (FC 02). COUNT (default 1, at most 2000) bits from ADDRESS."""
     from mbtool.codec.data_access import ReadDiscreteInputs
 
     _read_bits(connection, ReadDiscreteInputs, address, count)
 
 
-@device_command("read-holding-registers", typed=True)
+@device_command("read-holding-registers", types=VALUE_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 def read_holding_registers(connection, address, count, value_type, order):
-    """Read holding registers (FC 03). COUNT from ADDRESS, at most 125.
+    """Read holding registers (FC 03). COUNT (default 1) from ADDRESS, at most 125.
 
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
@@ -72,11 +72,11 @@ def read_holding_registers(connection, address, count, value_type, order):
     _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order)
 
 
-@device_command("read-input-registers", typed=True)
+@device_command("read-input-registers", types=VALUE_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 def read_input_registers(connection, address, count, value_type, order):
-    """Read input registers (FC 04). COUNT from ADDRESS, at most 125.
+    """Read input registers (FC 04). COUNT (default 1) from ADDRESS, at most 125.
 
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
@@ -111,7 +111,7 @@ def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> lis
 @click.argument("address", type=ADDRESS)
 @click.argument("state", metavar="on|off|1|0")
 def write_coil(connection, address, state):
-    """Write one coil (FC 05). Switch the coil at ADDRESS on or off."""
+    """Write one coil (FC 05). Switch the coil at ADDRESS on or off (also 1|0|true|false)."""
     from mbtool.codec.data_access import WriteSingleCoil
     from mbtool.render import Result
 
@@ -123,17 +123,14 @@ def write_coil(connection, address, state):
     )
 
 
-@device_command("write-register", typed=True)
+@device_command("write-register", types=ONE_REGISTER_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("value")
 def write_register(connection, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
     from mbtool.codec.data_access import WriteSingleRegister
-    from mbtool.codec.values import TYPES
     from mbtool.render import Result
 
-    if TYPES[value_type].registers != 1:
-        raise RequestError(f"--type {value_type} needs more than one register: use write-registers")
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
     execute(connection, request)
@@ -149,7 +146,7 @@ def write_register(connection, address, value, value_type, order):
 @click.argument("address", type=ADDRESS)
 @click.argument("bits", nargs=-1, required=True, metavar="BIT...")
 def write_coils(connection, address, bits):
-    """Write coils (FC 15). BITs (on|off|1|0) from ADDRESS, at most 1968."""
+    """Write coils (FC 15). BITs (on|off|1|0|true|false) from ADDRESS, at most 1968."""
     from mbtool.codec.data_access import WriteMultipleCoils
     from mbtool.render import Result
 
@@ -160,7 +157,7 @@ def write_coils(connection, address, bits):
     show(connection, Result(connection.unit, request.function_code, request.name, address, items))
 
 
-@device_command("write-registers", typed=True)
+@device_command("write-registers", types=VALUE_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
 def write_registers(connection, address, values, value_type, order):

@@ -1,0 +1,257 @@
+"""The man page and shell completions are generated from the click tree and kept current.
+
+If a test here fails after a command or option changed: run python scripts/gen_docs.py
+(and commit man/mbtool.1 and completions/*).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import click
+import pytest
+
+from mbtool.cli import cli
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+GEN_DOCS = REPO_ROOT / "scripts" / "gen_docs.py"
+REGENERATE = "run python scripts/gen_docs.py"
+MAN_PAGE = "man/mbtool.1"
+BASH = "completions/mbtool.bash"
+COMPLETIONS = ("completions/mbtool.bash", "completions/mbtool.zsh", "completions/mbtool.fish")
+
+
+def _load_gen_docs():
+    spec = importlib.util.spec_from_file_location("gen_docs", GEN_DOCS)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["gen_docs"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+gen_docs = _load_gen_docs()
+
+
+def _commands(group: click.Group = cli) -> dict[str, click.Command]:
+    """The visible commands of the tree, walked with click itself (not with the generator)."""
+    ctx = click.Context(group, info_name="mbtool", **group.context_settings)
+    commands = {}
+    for name in group.list_commands(ctx):
+        command = group.get_command(ctx, name)
+        if command is not None and not command.hidden:
+            commands[name] = command
+    return commands
+
+
+def _option_names(group: click.Group, name: str, command: click.Command) -> list[str]:
+    root = click.Context(group, info_name="mbtool", **group.context_settings)
+    ctx = click.Context(command, info_name=name, parent=root, **command.context_settings)
+    return [
+        opt
+        for param in command.get_params(ctx)
+        if isinstance(param, click.Option) and not param.hidden
+        for opt in param.opts + param.secondary_opts
+    ]
+
+
+COMMANDS = _commands()
+OPTIONS = sorted(
+    {(name, opt) for name, command in COMMANDS.items() for opt in _option_names(cli, name, command)}
+)
+
+
+def _read(path: str) -> str:
+    return (REPO_ROOT / path).read_text(encoding="utf-8")
+
+
+def _has_word(text: str, word: str) -> bool:
+    """``word`` as a whole word: read-coils must not be found inside read-coils-x, nor --hex in --hexdump."""
+    return re.search(r"(?<![\w-])" + re.escape(word) + r"(?![\w-])", text) is not None
+
+
+def _man_text() -> str:
+    """The man page source with roff's escapes for hyphens and no-hyphenation undone."""
+    return re.sub(r"\\f[BIRP]", " ", _read(MAN_PAGE)).replace("\\%", "").replace("\\-", "-")
+
+
+# --- (a) the committed files are what the generator makes now ---------------------------------
+
+
+def test_generated_files_are_current():
+    outputs = gen_docs.generate(cli)
+    assert set(outputs) == {MAN_PAGE, *COMPLETIONS}
+    stale = gen_docs.stale(outputs, REPO_ROOT)
+    assert not stale, f"out of date: {', '.join(stale)}: {REGENERATE}"
+
+
+def test_check_mode_passes():
+    assert gen_docs.main(["--check"]) == 0, f"gen_docs.py --check failed: {REGENERATE}"
+
+
+def test_output_is_deterministic():
+    assert gen_docs.generate(cli) == gen_docs.generate(cli)
+
+
+# --- (b) every command and option of the tree is in the files ----------------------------------
+
+
+def test_the_tree_has_commands():
+    assert len(COMMANDS) >= 8  # the eight data-access commands at least
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_command_in_man_page(name):
+    man = _man_text()
+    assert re.search(r"^\.SS " + re.escape(name) + "$", man, re.M), (
+        f"command {name} has no section in {MAN_PAGE}: {REGENERATE}"
+    )
+
+
+@pytest.mark.parametrize("path", COMPLETIONS)
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_command_in_completion(path, name):
+    assert _has_word(_read(path), name), f"command {name} is missing from {path}: {REGENERATE}"
+
+
+@pytest.mark.parametrize(("name", "option"), OPTIONS)
+def test_option_in_bash_completion(name, option):
+    bash = _read(BASH)
+    block = re.search(r"^        " + re.escape(name) + r"\)\n(.*?)^            ;;$", bash, re.M | re.S)
+    assert block, f"command {name} has no case in {BASH}: {REGENERATE}"
+    assert _has_word(block.group(1), option), f"{name} {option} is missing from {BASH}: {REGENERATE}"
+
+
+@pytest.mark.parametrize("option", sorted({option for _, option in OPTIONS}))
+def test_option_in_man_page(option):
+    assert _has_word(_man_text(), option), f"option {option} is missing from {MAN_PAGE}: {REGENERATE}"
+
+
+def test_man_page_sections():
+    man = _read(MAN_PAGE)
+    sections = re.findall(r"^\.SH (.*)$", man, re.M)
+    assert sections == [
+        "NAME",
+        "SYNOPSIS",
+        "DESCRIPTION",
+        "COMMANDS",
+        "OPTIONS",
+        "ENVIRONMENT",
+        "EXIT STATUS",
+        "EXAMPLES",
+        "SEE ALSO",
+    ]
+    environment = man.split(".SH ENVIRONMENT", 1)[1].split(".SH ", 1)[0]
+    for name in ("MBTOOL_PORT", "MBTOOL_UNIT", "NO_COLOR", "MBTOOL_DEBUG"):
+        assert name in environment
+    exit_status = man.split(".SH EXIT STATUS", 1)[1].split(".SH ", 1)[0]
+    for code in (0, 1, 2, 3, 4, 5, 6, 130):
+        assert f"\\fB\\%{code}\\fR" in exit_status
+
+
+def test_man_page_is_valid_roff():
+    for number, row in enumerate(_read(MAN_PAGE).splitlines(), 1):
+        # A text line must not start a request by accident, nor carry a lone backslash.
+        if row.startswith((".", "'")):
+            assert re.match(r'^\.(\\"|(TH|SH|SS|PP|TP|IP|RS|RE|nf|fi|br|BR)\b)', row), (
+                f"line {number}: {row!r}"
+            )
+        assert not re.search(r"\\(?![-e&%fBIR\"(\[])", row), f"line {number}: stray backslash in {row!r}"
+
+
+@pytest.mark.parametrize("example", gen_docs.EXAMPLES, ids=lambda example: example.argv[0])
+def test_man_page_examples_parse(example, monkeypatch):
+    """The examples are real command lines: the command exists and click accepts the arguments."""
+    for name in ("MBTOOL_PORT", "MBTOOL_UNIT"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in example.env:
+        monkeypatch.setenv(name, value)
+    name, *args = example.argv
+    assert name in COMMANDS, f"example uses unknown command {name}"
+    root = cli.make_context("mbtool", [name], resilient_parsing=True)
+    with COMMANDS[name].make_context(name, list(args), parent=root) as ctx:
+        assert ctx.params["port"]
+
+
+# --- (c) the bash script is valid and completes --------------------------------------------
+
+
+def _bash(script: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        ["bash", "--norc", "--noprofile", "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO_ROOT,
+    )
+
+
+def test_bash_syntax():
+    result = _bash(f"bash -n {BASH}")
+    assert result.returncode == 0, result.stderr
+
+
+def _complete(line: str) -> list[str]:
+    script = f'source {BASH}\nCOMP_LINE=$1 COMP_POINT=${{#1}}\n_mbtool\nprintf "%s\\n" "${{COMPREPLY[@]}}"\n'
+    result = subprocess.run(
+        ["bash", "--norc", "--noprofile", "-c", script, "bash", line],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO_ROOT,
+    )
+    assert result.returncode == 0, result.stderr
+    return [row for row in result.stdout.split("\n") if row]
+
+
+def test_bash_completes_commands_options_and_choices():
+    assert _complete("mbtool ") == list(COMMANDS)
+    assert _complete("mbtool read-holding-registers --f") == ["--framer", "--format"]
+    assert _complete("mbtool read-coils --framer ") == ["rtu", "ascii", "tcp"]
+    assert _complete("mbtool read-coils --framer=a") == ["ascii"]
+    assert _complete("mbtool read-coils --parity ") == ["N", "E", "O"]
+    assert _complete("mbtool read-coils -o ") == ["table", "plain", "json", "csv"]
+    assert _complete("mbtool write-registers 0 1 --order c") == ["CDAB"]
+    # Port: URL schemes; after the colon bash keeps "tcp:", so only the rest is given.
+    assert "tcp://" in _complete("mbtool read-coils -p ")
+    assert _complete("mbtool read-coils -p so") == ["socket://"]
+    assert _complete("mbtool read-coils -p tcp:") == ["//"]
+
+
+# --- (d) the check fails when the tree changes ---------------------------------------------
+
+
+def _tree_with_extra_command() -> click.Group:
+    extra = click.Command(
+        "frobnicate-registers",
+        help="Frobnicate registers (FC 99).",
+        params=[
+            click.Argument(["address"]),
+            click.Option(["--zap-level"], type=click.Choice(["low", "high"])),
+        ],
+    )
+    return click.Group(
+        "mbtool",
+        commands={**_commands(cli), "frobnicate-registers": extra},
+        params=list(cli.params),
+        help=cli.help,
+        context_settings=dict(cli.context_settings),
+    )
+
+
+def test_check_reports_stale_files_when_a_command_is_added():
+    outputs = gen_docs.generate(_tree_with_extra_command())
+    assert sorted(gen_docs.stale(outputs, REPO_ROOT)) == sorted([MAN_PAGE, *COMPLETIONS])
+    for path, text in outputs.items():
+        assert "frobnicate-registers" in text.replace("\\-", "-"), path
+    assert _has_word(outputs[BASH], "--zap-level")
+    assert "high" in outputs[BASH]
+
+
+def test_check_reports_a_changed_file(monkeypatch):
+    outputs = gen_docs.generate(cli)
+    outputs[BASH] += "# edited by hand\n"
+    assert gen_docs.stale(outputs, REPO_ROOT) == [BASH]
