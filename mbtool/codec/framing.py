@@ -153,10 +153,21 @@ class RtuFramer(Framer):
 
     name = "rtu"
     checksum_name = "CRC"
+    _held = False  # a corrupted frame is held: the awaited reply may begin in its last bytes
+    _quiet = False  # inside silence(): no more bytes are coming
 
     @property
     def waiting_for_silence(self) -> bool:
+        if self._held and self._buffer:
+            return True
         return len(self._buffer) >= 2 and self._pdu_length(bytes(self._buffer[1:])) == UNKNOWN
+
+    def silence(self) -> Event | None:
+        self._quiet = True
+        try:
+            return super().silence()
+        finally:
+            self._quiet = False
 
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         body = bytes([unit]) + pdu
@@ -173,9 +184,11 @@ class RtuFramer(Framer):
 
     def _parse(self):
         buf = self._buffer
+        self._held = False
         size = self._frame_size(0)
         if size is None:
-            return None
+            # The front does not tell its length yet: a whole frame may already sit behind it.
+            return self._skip_to_frame(len(buf))
         if isinstance(size, FrameError):
             return 1, size
         if len(buf) < size:
@@ -191,6 +204,7 @@ class RtuFramer(Framer):
         if skip is not None:
             return skip
         if any(self._awaited(start) for start in range(1, size)):
+            self._held = True
             return None  # the reply we wait for may be starting inside: wait for the rest
         return size, frame
 
@@ -225,8 +239,10 @@ class RtuFramer(Framer):
 
     def _awaited(self, start: int) -> bool:
         """Does the reply to the expected request seem to start here, not yet complete?"""
-        if self.expect is None or start + 1 >= len(self._buffer):
+        if self.expect is None or self._quiet:
             return False
+        if start + 1 >= len(self._buffer):
+            return True  # its function code has not arrived: only more bytes or silence can tell
         code = self._buffer[start + 1]
         if code not in (self.expect.function_code, self.expect.function_code | 0x80):
             return False
@@ -316,7 +332,7 @@ class AsciiFramer(Framer):
         expected = lrc(body[:-1])
         if body[-1] != expected:
             return ChecksumError(
-                f"LRC error: frame {data!r} carries {body[-1]:02X}, expected {expected:02X}",
+                f"LRC error: frame {data.decode('ascii', 'replace').strip()} carries {body[-1]:02X}, expected {expected:02X}",
                 data,
                 body[-1],
                 expected,

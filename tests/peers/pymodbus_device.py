@@ -1,0 +1,118 @@
+#!/usr/bin/env python3
+"""Independent Modbus device for mbtool's end-to-end tests, built on pymodbus 3.16.
+
+Run as a subprocess by tests/conftest.py:
+
+    python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15020 --framer socket --units 1
+    python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15021 --framer rtu
+    python tests/peers/pymodbus_device.py --serial /dev/pts/7 --framer ascii
+
+Data served (per unit, separate blocks for the four tables, addresses 0..TABLE_SIZE-1):
+    holding registers 0..19 = 100..119, input registers 0..19 = 200..219,
+    coils 0..19 alternate True/False starting True, discrete inputs 0..19 all True,
+    everything else 0/False.  Reads beyond the table answer exception 02.
+
+Prints "READY" (flushed) on stdout once listening; exits cleanly on SIGTERM/SIGINT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+
+TABLE_SIZE = 1000
+
+HOLDING = [100 + i for i in range(20)]
+INPUT = [200 + i for i in range(20)]
+COILS = [i % 2 == 0 for i in range(20)]
+DISCRETE = [True] * 20
+
+
+def build_device(unit: int):
+    from pymodbus.simulator import DataType, SimData, SimDevice
+
+    def bits(first):
+        return [SimData(0, values=list(first) + [False] * (TABLE_SIZE - len(first)), datatype=DataType.BITS)]
+
+    def regs(first):
+        return [SimData(0, values=list(first) + [0] * (TABLE_SIZE - len(first)), datatype=DataType.REGISTERS)]
+
+    # (<coils>, <discrete inputs>, <holding registers>, <input registers>): non-shared blocks,
+    # coils/discrete inputs addressed bit by bit.
+    return SimDevice(id=unit, simdata=(bits(COILS), bits(DISCRETE), regs(HOLDING), regs(INPUT)))
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--tcp", metavar="HOST:PORT")
+    where.add_argument("--serial", metavar="PATH")
+    p.add_argument("--framer", choices=["socket", "rtu", "ascii"], default=None)
+    p.add_argument("--units", default="1", help="comma separated device ids (default 1)")
+    p.add_argument("--baud", type=int, default=19200)
+    # Default N: Linux pseudo-terminals (kernel 6.x) reject PARENB and CS7 with EINVAL, and the
+    # e2e tests run the serial device on a pty.  Parity does not exist on a pty anyway.
+    p.add_argument("--parity", default="N", choices=["N", "E", "O"])
+    p.add_argument("--verbose", action="store_true")
+    args = p.parse_args(argv)
+    if args.framer is None:
+        args.framer = "socket" if args.tcp else "rtu"
+    if args.serial and args.framer == "socket":
+        p.error("--framer socket needs --tcp")
+    args.unit_list = [int(u, 0) for u in args.units.split(",") if u.strip()]
+    return args
+
+
+async def run(args) -> int:
+    from pymodbus import FramerType
+    from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+
+    devices = [build_device(u) for u in args.unit_list]
+    framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[args.framer]
+    if args.tcp:
+        host, _, port = args.tcp.rpartition(":")
+        server = ModbusTcpServer(devices, framer=framer, address=(host or "127.0.0.1", int(port)))
+    else:
+        server = ModbusSerialServer(
+            devices,
+            framer=framer,
+            port=args.serial,
+            baudrate=args.baud,
+            parity=args.parity,
+            bytesize=8,
+            stopbits=1,
+            timeout=1,
+            reconnect_delay=0.1,
+        )
+
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+
+    await server.serve_forever(background=True)
+    print("READY", flush=True)
+    await stop.wait()
+    await server.shutdown()
+    return 0
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.ERROR, stream=sys.stderr)
+    from pymodbus import pymodbus_apply_logging_config
+
+    # pymodbus logs through its own logger; keep the device quiet unless asked
+    pymodbus_apply_logging_config(logging.DEBUG if args.verbose else logging.CRITICAL)
+    try:
+        return asyncio.run(run(args))
+    except Exception as exc:  # startup failure: say so on stderr, never print READY
+        print(f"pymodbus_device: {exc!r}", file=sys.stderr, flush=True)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
