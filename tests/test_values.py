@@ -1,0 +1,90 @@
+"""Typed register values and the four byte orders (spec §1)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mbtool.codec.values import ORDERS, decode_values, encode_values, parse_register, parse_value, registers_needed
+from mbtool.errors import RequestError
+
+# 0x11223344 as uint32 in each order: the bytes A B C D are 11 22 33 44.
+UINT32_ORDERS = {
+    "ABCD": [0x1122, 0x3344],
+    "CDAB": [0x3344, 0x1122],
+    "BADC": [0x2211, 0x4433],
+    "DCBA": [0x4433, 0x2211],
+}
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_uint32_in_every_order(order):
+    assert encode_values([0x11223344], "uint32", order) == UINT32_ORDERS[order]
+    assert decode_values(tuple(UINT32_ORDERS[order]), "uint32", order) == [(0, 0x11223344)]
+
+
+def test_float32_abcd_is_big_endian():
+    assert encode_values([1.5], "float32") == [0x3FC0, 0x0000]
+    assert encode_values([1.5], "float32", "CDAB") == [0x0000, 0x3FC0]
+
+
+def test_uint64_word_order_reverses_all_four_words():
+    value = 0x1122334455667788
+    assert encode_values([value], "uint64", "ABCD") == [0x1122, 0x3344, 0x5566, 0x7788]
+    assert encode_values([value], "uint64", "CDAB") == [0x7788, 0x5566, 0x3344, 0x1122]
+
+
+def test_offsets_step_by_the_width_of_the_type():
+    registers = tuple(encode_values([1.0, 2.0, 3.0], "float32"))
+    assert decode_values(registers, "float32") == [(0, 1.0), (2, 2.0), (4, 3.0)]
+
+
+def test_registers_needed():
+    assert registers_needed("uint16", 5) == 5
+    assert registers_needed("float32", 5) == 10
+    assert registers_needed("float64", 2) == 8
+    assert registers_needed("string", 4) == 4
+
+
+def test_strings_pack_two_characters_a_register_and_escape_control_bytes():
+    assert encode_values(["Hello"], "string") == [0x4865, 0x6C6C, 0x6F00]
+    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string") == [(0, "Hello")]
+    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string", "BADC") == [(0, "eHll\\x00o")]
+    assert decode_values((0x0001,), "string") == [(0, "\\x00\\x01")]
+
+
+def test_hex_type_shows_each_register():
+    assert decode_values((0x00FF, 0x1234), "hex") == [(0, "0x00FF"), (1, "0x1234")]
+
+
+@pytest.mark.parametrize(
+    ("text", "kind"),
+    [("65536", "uint16"), ("-1", "uint32"), ("2147483648", "int32"), ("32768", "int16"), ("1e39", "float32"),
+     ("abc", "int32"), ("1.5", "uint16")],
+)
+def test_out_of_range_or_malformed_values_are_refused(text, kind):
+    with pytest.raises(RequestError):
+        parse_value(text, kind)
+
+
+def test_plain_register_values_accept_negatives_as_twos_complement():
+    assert parse_register("-5") == 65531
+    assert parse_register("0xFFFF") == 65535
+    assert parse_register("-32768") == 0x8000
+    for bad in ("-32769", "65536", "12x"):
+        with pytest.raises(RequestError):
+            parse_register(bad)
+
+
+@given(st.integers(-(2**31), 2**31 - 1), st.sampled_from(ORDERS))
+def test_int32_round_trip(value, order):
+    assert decode_values(tuple(encode_values([value], "int32", order)), "int32", order) == [(0, value)]
+
+
+@given(st.floats(width=64), st.sampled_from(ORDERS))
+def test_float64_round_trip(value, order):
+    ((_, back),) = decode_values(tuple(encode_values([value], "float64", order)), "float64", order)
+    assert back == value or (math.isnan(back) and math.isnan(value))
