@@ -106,6 +106,7 @@ class Client:
             )
         self.framer.reset()
         self.framer.expect = request
+        self.framer.expect_unit = unit
         self.transport.write(adu)
         self.trace.sent(adu)
         sent_at = self.clock()
@@ -141,54 +142,50 @@ class Client:
 
     def _await_reply(self, unit: int, request: Request, deadline: float) -> Response | ExceptionResponse:
         problem: FrameError | None = None
+        events = self._drain(self.framer.next_event())  # bytes left after an echo may hold the reply
         while True:
-            for event in self._events():
+            for event in events:
                 reply, problem = self._judge(event, unit, request, problem)
                 if reply is not None:
                     return reply
-                if isinstance(problem, ChecksumError) and not self.framer.buffered:
-                    deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
+            if isinstance(problem, ChecksumError) and not self.framer.buffered:
+                deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
             now = self.clock()
             if now >= deadline:
                 break
             waiting = self.framer.waiting_for_silence
-            wait = min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
             try:
-                data = self.transport.read(wait)
-            except NoResponse as closed:
-                problem = problem or self._truncation() or None
-                if problem:
-                    raise problem from None
-                raise closed from None
+                data = self.transport.read(
+                    min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
+                )
+            except NoResponse as closed:  # the peer hung up: judge what it sent before that
+                return self._last_word(unit, request, problem, closed)
             if data:
                 self.framer.feed(data)
                 self._line_free_at = self.clock()
-            elif waiting:
-                event = self.framer.silence()
-                if event is not None:
-                    reply, problem = self._judge(event, unit, request, problem)
-                    if reply is not None:
-                        return reply
-        # The deadline passed: whatever is still buffered is explained, not ignored.
-        truncated = self._truncation()
-        problem = problem or truncated
-        if problem is not None:
-            raise problem
-        raise NoResponse(f"no response from unit {unit} within {self.timeout:g} s")
+                events = self._drain(self.framer.next_event())
+            else:
+                events = self._drain(self.framer.silence()) if waiting else []
+        return self._last_word(
+            unit, request, problem, NoResponse(f"no response from unit {unit} within {self.timeout:g} s")
+        )
 
-    def _events(self):
-        while (event := self.framer.next_event()) is not None:
-            yield event
+    def _drain(self, first: Frame | Rejected | None) -> list[Frame | Rejected]:
+        events = []
+        while first is not None:
+            events.append(first)
+            first = self.framer.next_event()
+        return events
 
-    def _truncation(self) -> FrameError | None:
-        event = self.framer.silence()
-        problem = None
-        while event is not None:
-            if isinstance(event, Rejected):
-                self.trace.rejected(event.data, event.error)
-                problem = problem or event.error
-            event = self.framer.next_event()
-        return problem
+    def _last_word(
+        self, unit: int, request: Request, problem: FrameError | None, silence: NoResponse
+    ) -> Response | ExceptionResponse:
+        """Nothing more will come: judge what is still buffered, then raise the most telling problem."""
+        for event in self._drain(self.framer.silence()):
+            reply, problem = self._judge(event, unit, request, problem)
+            if reply is not None:
+                return reply
+        raise problem or silence
 
     def _judge(
         self, event: Frame | Rejected, unit: int, request: Request, problem: FrameError | None

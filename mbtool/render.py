@@ -136,6 +136,8 @@ class HexTrace:
         self._line("RX", data, verdict)
 
     def _line(self, direction: str, data: bytes, verdict: str) -> None:
-        shown = data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
+        shown = (
+            data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
+        )
         self.out.write(f"{direction} {shown}  {verdict}\n")
         self.out.flush()

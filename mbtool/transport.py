@@ -78,7 +78,9 @@ class SerialTransport(Transport):
         except (serial.SerialException, OSError, ValueError, *_termios_error()) as error:
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
-                raise ConnectionFailed(f"cannot open {url}: it refused {settings}: {_reason(error)}") from None
+                raise ConnectionFailed(
+                    f"cannot open {url}: it refused {settings}: {_reason(error)}"
+                ) from None
             raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
         self._serial_error = serial.SerialException
         # A local serial port has a descriptor to wait on; url handlers (socket://,

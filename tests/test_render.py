@@ -9,8 +9,9 @@ import sys
 
 from mbtool.render import Result, as_dict, render
 
-REGISTERS = Result(1, 3, "Read Holding Registers", 100, [(100, 21.5), (102, float("nan"))], "float32",
-                   [0x41AC, 0, 0x7FC0, 0])
+REGISTERS = Result(
+    1, 3, "Read Holding Registers", 100, [(100, 21.5), (102, float("nan"))], "float32", [0x41AC, 0, 0x7FC0, 0]
+)
 BITS = Result(17, 1, "Read Coils", 19, [(19, True), (20, False)])
 
 
@@ -28,8 +29,14 @@ def test_plain_is_address_value_lines():
 def test_json_has_the_contract_keys_and_no_nan():
     data = json.loads(rendered(REGISTERS, "json"))
     assert data == {
-        "unit": 1, "function": 3, "name": "Read Holding Registers", "address": 100, "type": "float32",
-        "values": [21.5, None], "addresses": [100, 102], "registers": [0x41AC, 0, 0x7FC0, 0],
+        "unit": 1,
+        "function": 3,
+        "name": "Read Holding Registers",
+        "address": 100,
+        "type": "float32",
+        "values": [21.5, None],
+        "addresses": [100, 102],
+        "registers": [0x41AC, 0, 0x7FC0, 0],
     }
     assert as_dict(BITS)["values"] == [True, False]
 

@@ -8,7 +8,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mbtool.codec.values import ORDERS, decode_values, encode_values, parse_register, parse_value, registers_needed
+from mbtool.codec.values import (
+    ORDERS,
+    decode_values,
+    encode_values,
+    parse_register,
+    parse_value,
+    registers_needed,
+)
 from mbtool.errors import RequestError
 
 # 0x11223344 as uint32 in each order: the bytes A B C D are 11 22 33 44.
@@ -62,8 +69,15 @@ def test_hex_type_shows_each_register():
 
 @pytest.mark.parametrize(
     ("text", "kind"),
-    [("65536", "uint16"), ("-1", "uint32"), ("2147483648", "int32"), ("32768", "int16"), ("1e39", "float32"),
-     ("abc", "int32"), ("1.5", "uint16")],
+    [
+        ("65536", "uint16"),
+        ("-1", "uint32"),
+        ("2147483648", "int32"),
+        ("32768", "int16"),
+        ("1e39", "float32"),
+        ("abc", "int32"),
+        ("1.5", "uint16"),
+    ],
 )
 def test_out_of_range_or_malformed_values_are_refused(text, kind):
     with pytest.raises(RequestError):

@@ -189,7 +189,9 @@ class ReadDeviceIdentification(Request):
 
     def check_response(self, response: DeviceIdentificationResponse) -> None:
         if response.read_code != self.read_code:
-            raise MismatchError(f"reply has read code {response.read_code:02X}, expected {self.read_code:02X}")
+            raise MismatchError(
+                f"reply has read code {response.read_code:02X}, expected {self.read_code:02X}"
+            )
         if self.read_code == ReadDeviceIdCode.SPECIFIC:
             ids = tuple(object_id for object_id, _ in response.objects)
             if ids != (self.object_id,):

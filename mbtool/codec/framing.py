@@ -52,6 +52,7 @@ class Framer(ABC):
     def __init__(self, responses: bool = True) -> None:
         self.responses = responses  # reading replies (a master) or requests (a device)
         self.expect: Request | None = None  # the request being answered, for lengths that depend on it
+        self.expect_unit: int | None = None  # and the unit it went to
         self._buffer = bytearray()
         self._garbage = bytearray()
         self._garbage_error: FrameError | None = None
@@ -220,7 +221,10 @@ class RtuFramer(Framer):
             return None
         code = buf[start + 1]
         if length == UNKNOWN:
-            if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
+            if self.expect is not None and code in (
+                self.expect.function_code,
+                self.expect.function_code | 0x80,
+            ):
                 return None  # an unknown function code we asked for (raw): only silence ends it
             return FrameError(f"function code {code:02X} is unknown", bytes(buf[start : start + 2]))
         if length > MAX_PDU:
@@ -240,6 +244,8 @@ class RtuFramer(Framer):
     def _awaited(self, start: int) -> bool:
         """Does the reply to the expected request seem to start here, not yet complete?"""
         if self.expect is None or self._quiet:
+            return False
+        if self.expect_unit is not None and self._buffer[start] != self.expect_unit:
             return False
         if start + 1 >= len(self._buffer):
             return True  # its function code has not arrived: only more bytes or silence can tell

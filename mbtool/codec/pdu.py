@@ -221,7 +221,7 @@ class Request(ABC):
             raise MismatchError(
                 f"reply has function code {pdu[0]:02X}, expected {self.function_code:02X}", pdu
             )
-        response = self.response_type.decode(pdu)
+        response = _decode_reply(self.response_type, pdu)
         self.check_response(response)
         return response
 
@@ -293,4 +293,12 @@ def decode_response(pdu: bytes) -> Response | ExceptionResponse:
     kind = function_type(pdu[0])
     if kind is None:
         raise DecodeError(f"unknown function code {pdu[0]:02X}", pdu)
-    return kind.response_type.decode(pdu)
+    return _decode_reply(kind.response_type, pdu)
+
+
+def _decode_reply(response_type: type, pdu: bytes) -> Response:
+    """An echo decodes with its request's checks, but in a reply a bad value is a bad reply, not bad usage."""
+    try:
+        return response_type.decode(pdu)
+    except RequestError as error:
+        raise DecodeError(f"invalid reply: {error}", pdu) from error

@@ -1,0 +1,187 @@
+"""The transaction layer against a scripted fake link and a fake clock (unit tests may use fakes)."""
+
+from __future__ import annotations
+
+import pytest
+
+from mbtool.client import Client, silent_interval
+from mbtool.codec.checksum import crc_bytes
+from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
+from mbtool.codec.framing import RtuFramer, TcpFramer
+from mbtool.errors import ChecksumError, FrameError, MismatchError, ModbusException, NoResponse
+from mbtool.transport import Transport
+
+
+def rtu(hex_text: str) -> bytes:
+    body = bytes.fromhex(hex_text)
+    return body + crc_bytes(body)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds
+
+
+class ScriptedLink(Transport):
+    """Answers each request with the next scripted list of chunks; time passes on silence."""
+
+    def __init__(self, clock: FakeClock, replies: list[list[bytes]], serial_line: bool = True) -> None:
+        self.clock = clock
+        self.replies = replies
+        self.serial_line = serial_line
+        self.written: list[bytes] = []
+        self.pending: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.written.append(data)
+        self.pending = list(self.replies.pop(0)) if self.replies else []
+
+    def read(self, timeout: float) -> bytes:
+        if self.pending:
+            return self.pending.pop(0)
+        self.clock.now += timeout
+        return b""
+
+
+def client(link: ScriptedLink, clock: FakeClock, framer=None, **options) -> Client:
+    return Client(link, framer or RtuFramer(), clock=clock, sleep=clock.sleep, **options)
+
+
+REQUEST = ReadHoldingRegisters(0x6B, 3)
+REPLY = rtu("11 03 06 02 2B 00 00 00 64")  # seed 002 fig. 15
+
+
+def test_reply_in_one_chunk():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[REPLY]])
+    assert client(link, clock).execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert link.written == [rtu("11 03 00 6B 00 03")]
+
+
+def test_reply_dripped_byte_by_byte():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[bytes([b]) for b in REPLY]])
+    assert client(link, clock).execute(0x11, REQUEST).registers == (555, 0, 100)
+
+
+def test_noise_before_the_reply_is_skipped():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[b"\x00\xff\x11", REPLY]])
+    assert client(link, clock).execute(0x11, REQUEST).registers == (555, 0, 100)
+
+
+def test_silence_is_a_timeout_at_the_deadline():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[]])
+    start = clock.now
+    with pytest.raises(NoResponse, match="no response from unit 17 within 0.5 s"):
+        client(link, clock, timeout=0.5).execute(0x11, REQUEST)
+    assert 0.5 <= clock.now - start < 0.6
+
+
+def test_retries_resend_and_the_second_answer_counts():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[], [REPLY]])
+    assert client(link, clock, retries=1).execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert len(link.written) == 2
+
+
+def test_bad_crc_is_an_invalid_response_not_a_timeout():
+    clock = FakeClock()
+    corrupted = REPLY[:-1] + bytes([REPLY[-1] ^ 0xFF])
+    link = ScriptedLink(clock, [[corrupted]])
+    start = clock.now
+    with pytest.raises(ChecksumError):
+        client(link, clock, timeout=5).execute(0x11, REQUEST)
+    assert clock.now - start < 1, "a complete bad frame should not wait out the whole timeout"
+
+
+def test_reply_from_another_unit_is_discarded_then_reported():
+    clock = FakeClock()
+    other = rtu("12 03 06 02 2B 00 00 00 64")
+    link = ScriptedLink(clock, [[other]])
+    with pytest.raises(MismatchError, match="unit 18, expected unit 17"):
+        client(link, clock).execute(0x11, REQUEST)
+
+
+def test_stale_reply_then_the_right_one():
+    clock = FakeClock()
+    stale = rtu("11 03 02 00 01")  # a reply to an earlier, shorter request
+    link = ScriptedLink(clock, [[rtu("12 06 00 01 00 03"), REPLY]])
+    assert client(link, clock).execute(0x11, REQUEST).registers == (555, 0, 100)
+    link = ScriptedLink(clock, [[stale]])
+    with pytest.raises(MismatchError):
+        client(link, clock).execute(0x11, REQUEST)
+
+
+def test_exception_reply_raises_with_its_name():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[rtu("11 83 02")]])
+    with pytest.raises(ModbusException, match="02 Illegal Data Address"):
+        client(link, clock).execute(0x11, REQUEST)
+
+
+def test_broadcast_returns_once_sent():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[]])
+    start = clock.now
+    assert client(link, clock).execute(0, WriteSingleRegister(1, 3)) is None
+    assert clock.now - start < 0.01
+
+
+def test_t35_silence_between_frames():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[REPLY], [REPLY]])
+    c = client(link, clock, baud=9600)
+    c.execute(0x11, REQUEST)
+    c.execute(0x11, REQUEST)
+    # 3.5 characters of 11 bits at 9600 baud, measured from the end of the reply
+    assert clock.sleeps and clock.sleeps[-1] == pytest.approx(3.5 * 11 / 9600, rel=0.01)
+    assert silent_interval(115200) == 0.00175
+
+
+def test_echo_is_stripped():
+    clock = FakeClock()
+    sent = rtu("11 03 00 6B 00 03")
+    link = ScriptedLink(clock, [[sent[:3], sent[3:] + REPLY[:4], REPLY[4:]]])
+    assert client(link, clock, echo=True).execute(0x11, REQUEST).registers == (555, 0, 100)
+
+
+def test_echo_that_differs_is_invalid():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[b"\x00" * 8]])
+    with pytest.raises(FrameError, match="echo"):
+        client(link, clock, echo=True).execute(0x11, REQUEST)
+
+
+def test_tcp_transaction_ids_are_matched():
+    clock = FakeClock()
+    framer = TcpFramer()
+    old = framer.build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 63"), 7)
+    ours = framer.build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 64"), 1)
+    link = ScriptedLink(clock, [[old + ours]], serial_line=False)
+    assert client(link, clock, framer=TcpFramer()).execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert clock.sleeps == [], "no t3.5 on TCP"
+
+
+def test_endless_garbage_ends_at_the_deadline():
+    clock = FakeClock()
+
+    class Garbage(ScriptedLink):
+        def read(self, timeout: float) -> bytes:
+            clock.now += 0.01
+            return bytes(range(0x20, 0x60))
+
+    link = Garbage(clock, [[]])
+    start = clock.now
+    with pytest.raises(FrameError):
+        client(link, clock, timeout=0.5).execute(0x11, REQUEST)
+    assert clock.now - start < 0.6
