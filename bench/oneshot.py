@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import socket
 import statistics
 import subprocess
 import sys
+import sysconfig
 import time
 from pathlib import Path
 
@@ -58,11 +58,18 @@ def main() -> None:
     parser.add_argument("-n", type=int, default=40, help="runs of each command")
     args = parser.parse_args()
 
+    # A wheel install compiles .pyc files, as click's were; an editable checkout
+    # (or PYTHONDONTWRITEBYTECODE) would otherwise recompile mbtool on every run.
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mbtool")], check=True)
     port = free_port()
     device = start_device(port)
-    mbtool = shutil.which("mbtool") or sys.exit("bench: install mbtool first (pip install -e .)")
+    # The console script beside this interpreter, not a version manager's shim on PATH
+    # (pyenv's shims are bash scripts that would be timed too).
+    mbtool = Path(sysconfig.get_path("scripts")) / "mbtool"
+    if not mbtool.exists():
+        sys.exit(f"bench: {mbtool} not found: install mbtool first (pip install -e .)")
     baseline = [sys.executable, "-c", "import click"]
-    oneshot = [mbtool, "read-holding-registers", "0", "10", "-p", f"tcp://127.0.0.1:{port}", "-o", "json"]
+    oneshot = [str(mbtool), "read-holding-registers", "0", "10", "-p", f"tcp://127.0.0.1:{port}", "-o", "json"]
     try:
         for command in (baseline, oneshot):  # warm the page cache and .pyc files
             timed(command)

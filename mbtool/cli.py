@@ -17,21 +17,29 @@ import click
 
 from mbtool import __version__
 from mbtool.errors import ExitCode, MbtoolError, exit_code_for
+from mbtool.options import QuickHelp
 
 # command name -> the module that defines it (as a function named like the command)
 COMMANDS = {
-    "read-coils": "data",
-    "read-discrete-inputs": "data",
-    "read-holding-registers": "data",
-    "read-input-registers": "data",
-    "write-coil": "data",
-    "write-register": "data",
-    "write-coils": "data",
-    "write-registers": "data",
+    "read-coils": "read",
+    "read-discrete-inputs": "read",
+    "read-holding-registers": "read",
+    "read-input-registers": "read",
+    "write-coil": "write",
+    "write-register": "write",
+    "write-coils": "write",
+    "write-registers": "write",
 }
 
 
-class LazyGroup(click.Group):
+def _show_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    # Not click.version_option: it runs gettext (and imports locale) on every start.
+    if value and not ctx.resilient_parsing:
+        click.echo(f"mbtool {__version__}")
+        ctx.exit()
+
+
+class LazyGroup(QuickHelp, click.Group):
     def list_commands(self, ctx):
         return list(COMMANDS)
 
@@ -45,7 +53,15 @@ class LazyGroup(click.Group):
 @click.group(
     cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100}
 )
-@click.version_option(__version__, "-V", "--version", prog_name="mbtool")
+@click.option(
+    "-V",
+    "--version",
+    is_flag=True,
+    expose_value=False,
+    is_eager=True,
+    callback=_show_version,
+    help="Show the version and exit.",
+)
 def cli() -> None:
     """A Modbus master for the command line: RTU, ASCII and TCP, every function code,
     and the frames on the wire shown as they are.

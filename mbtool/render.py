@@ -53,12 +53,6 @@ def _plain(result: Result, out: TextIO) -> None:
     out.write("".join(f"{address} {_text(value)}\n" for address, value in result.items))
 
 
-def _json_value(value: object) -> object:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None  # NaN and infinities are not JSON; jq would choke on them
-    return value
-
-
 def as_dict(result: Result) -> dict:
     data: dict = {
         "unit": result.unit,
@@ -68,7 +62,7 @@ def as_dict(result: Result) -> dict:
     }
     if result.type:
         data["type"] = result.type
-    data["values"] = [_json_value(value) for _, value in result.items]
+    data["values"] = [value for _, value in result.items]
     data["addresses"] = [address for address, _ in result.items]
     if result.registers is not None and result.type not in (None, "uint16"):
         data["registers"] = result.registers
@@ -76,10 +70,38 @@ def as_dict(result: Result) -> dict:
     return data
 
 
-def _json(result: Result, out: TextIO) -> None:
-    import json
+def to_json(value: object) -> str:
+    """JSON text of plain data (dict, list, tuple, str, int, float, bool, None).
 
-    out.write(json.dumps(as_dict(result)) + "\n")
+    Not the json module: importing it costs ~2 ms (its decoder too) that every
+    one-shot ``-o json`` from cron would pay; strings are escaped by the same C
+    function json itself uses.
+    """
+    from _json import encode_basestring_ascii
+
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "null"  # NaN and infinities are not JSON; jq would choke on them
+    if value is True:
+        return "true"
+    if value is False:
+        return "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return encode_basestring_ascii(value)
+    if isinstance(value, dict):
+        return (
+            "{"
+            + ", ".join(f"{encode_basestring_ascii(str(k))}: {to_json(v)}" for k, v in value.items())
+            + "}"
+        )
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(to_json(item) for item in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def _json(result: Result, out: TextIO) -> None:
+    out.write(to_json(as_dict(result)) + "\n")
 
 
 def _csv(result: Result, out: TextIO) -> None:

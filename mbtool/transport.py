@@ -134,7 +134,9 @@ class TcpTransport(Transport):
     def __init__(self, host: str, port: int, timeout: float) -> None:
         self.description = f"tcp://{host}:{port}"
         try:
-            self.sock = socket.create_connection((host, port), timeout=timeout)
+            # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
+            address = host.encode("ascii") if host.isascii() else host
+            self.sock = socket.create_connection((address, port), timeout=timeout)
         except OSError as error:
             raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from mbtool.render import Result, as_dict, render
+from mbtool.render import Result, as_dict, render, to_json
 
 REGISTERS = Result(
     1, 3, "Read Holding Registers", 100, [(100, 21.5), (102, float("nan"))], "float32", [0x41AC, 0, 0x7FC0, 0]
@@ -39,6 +39,12 @@ def test_json_has_the_contract_keys_and_no_nan():
         "registers": [0x41AC, 0, 0x7FC0, 0],
     }
     assert as_dict(BITS)["values"] == [True, False]
+
+
+def test_to_json_agrees_with_the_json_module():
+    data = {"a": [1, -2.5, 1e300, True, False, None], "s": 'quote " back\\ nl\n é \x00', "t": (1, 2), "n": {}}
+    assert json.loads(to_json(data)) == json.loads(json.dumps(data))
+    assert to_json(float("inf")) == "null"
 
 
 def test_csv_has_a_header():

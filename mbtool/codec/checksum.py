@@ -10,6 +10,7 @@ from __future__ import annotations
 
 
 def _crc_table() -> tuple[int, ...]:
+    """The byte-at-a-time table, built on first use (Modbus TCP never needs it)."""
     table = []
     for byte in range(256):
         crc = byte
@@ -19,13 +20,14 @@ def _crc_table() -> tuple[int, ...]:
     return tuple(table)
 
 
-_CRC_TABLE = _crc_table()
+_CRC_TABLE: tuple[int, ...] = ()
 
 
 def crc16(data: bytes) -> int:
     """CRC-16/MODBUS of data; crc16(b"\\x11\\x03\\x00\\x6b\\x00\\x03") == 0x8776."""
+    global _CRC_TABLE
+    table = _CRC_TABLE or (_CRC_TABLE := _crc_table())
     crc = 0xFFFF
-    table = _CRC_TABLE
     for byte in data:
         crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
     return crc

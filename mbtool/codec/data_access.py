@@ -8,7 +8,6 @@ Limits are those of the current spec: 2000 bits and 125 registers read,
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
 from typing import ClassVar
 
 from mbtool.codec.pdu import (
@@ -27,6 +26,7 @@ from mbtool.codec.pdu import (
     unpack_bits,
     unpack_registers,
 )
+from mbtool.codec.record import record
 from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_READ_BITS = 2000
@@ -48,7 +48,7 @@ def _address_and_count(pdu: bytes, name: str) -> tuple[int, int]:
 # --- reads: FC 01 / 02 (bits) and 03 / 04 (registers) ----------------------------
 
 
-@dataclass(frozen=True)
+@record
 class BitsResponse(Response):
     """FC 01 / 02 reply: byte count, then bits packed LSB first."""
 
@@ -67,7 +67,7 @@ class BitsResponse(Response):
         return cls(pdu[0], unpack_bits(pdu[2:]))
 
 
-@dataclass(frozen=True)
+@record
 class RegistersResponse(Response):
     """FC 03 / 04 / 23 reply: byte count, then registers high byte first."""
 
@@ -85,7 +85,7 @@ class RegistersResponse(Response):
         return cls(pdu[0], unpack_registers(pdu[2:]))
 
 
-@dataclass(frozen=True)
+@record
 class _ReadBits(Request):
     address: int
     count: int = 1
@@ -123,20 +123,20 @@ class _ReadBits(Request):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadCoils(_ReadBits):
     function_code: ClassVar = 0x01
     name: ClassVar = "Read Coils"
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadDiscreteInputs(_ReadBits):
     function_code: ClassVar = 0x02
     name: ClassVar = "Read Discrete Inputs"
 
 
-@dataclass(frozen=True)
+@record
 class _ReadRegisters(Request):
     address: int
     count: int = 1
@@ -165,14 +165,14 @@ class _ReadRegisters(Request):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadHoldingRegisters(_ReadRegisters):
     function_code: ClassVar = 0x03
     name: ClassVar = "Read Holding Registers"
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadInputRegisters(_ReadRegisters):
     function_code: ClassVar = 0x04
     name: ClassVar = "Read Input Registers"
@@ -182,7 +182,7 @@ class ReadInputRegisters(_ReadRegisters):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class WriteSingleCoil(Request, Response):
     """FC 05: value FF00 = ON, 0000 = OFF; anything else is exception 03."""
 
@@ -218,7 +218,7 @@ WriteSingleCoil.response_type = WriteSingleCoil  # the reply is an echo of the r
 
 
 @register
-@dataclass(frozen=True)
+@record
 class WriteSingleRegister(Request, Response):
     function_code: ClassVar = 0x06
     name: ClassVar = "Write Single Register"
@@ -250,7 +250,7 @@ WriteSingleRegister.response_type = WriteSingleRegister
 # --- multiple writes: FC 15 / 16 --------------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class WriteMultipleResponse(Response):
     """FC 15 / 16 reply: starting address and quantity written."""
 
@@ -267,7 +267,7 @@ class WriteMultipleResponse(Response):
         return cls(pdu[0], address, count)
 
 
-@dataclass(frozen=True)
+@record
 class _WriteMultiple(Request):
     request_size: ClassVar = counted(5)
     response_size: ClassVar = fixed(5)
@@ -291,7 +291,7 @@ class _WriteMultiple(Request):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class WriteMultipleCoils(_WriteMultiple):
     function_code: ClassVar = 0x0F
     name: ClassVar = "Write Multiple Coils"
@@ -317,7 +317,7 @@ class WriteMultipleCoils(_WriteMultiple):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class WriteMultipleRegisters(_WriteMultiple):
     function_code: ClassVar = 0x10
     name: ClassVar = "Write Multiple Registers"
@@ -357,7 +357,7 @@ def mask_write_result(current: int, and_mask: int, or_mask: int) -> int:
 
 
 @register
-@dataclass(frozen=True)
+@record
 class MaskWriteRegister(Request, Response):
     function_code: ClassVar = 0x16
     name: ClassVar = "Mask Write Register"
@@ -397,7 +397,7 @@ MaskWriteRegister.response_type = MaskWriteRegister
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadWriteMultipleRegisters(Request):
     """FC 23: the write is done before the read (spec §3); the reply is FC03's layout."""
 
@@ -448,7 +448,7 @@ class ReadWriteMultipleRegisters(Request):
 # --- FC 24: read a FIFO queue ------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class ReadFifoQueueResponse(Response):
     """FC 24 reply: byte count (2 bytes) = 2 + 2 × FIFO count, FIFO count (2 bytes), registers."""
 
@@ -482,7 +482,7 @@ class ReadFifoQueueResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadFifoQueue(Request):
     function_code: ClassVar = 0x18
     name: ClassVar = "Read FIFO Queue"

@@ -8,11 +8,11 @@ objects in one reply sets more-follows and the id to ask for next.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from enum import IntEnum
 from typing import ClassVar
 
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, ExceptionCode, Request, Response, need, register
+from mbtool.codec.record import record
 from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MEI_TYPE = 0x0E  # Read Device Identification; 0x0D (CANopen) is not supported
@@ -56,7 +56,7 @@ def object_name(object_id: int) -> str:
     return f"Reserved{object_id:02X}"
 
 
-@dataclass(frozen=True)
+@record
 class _RequestSize:
     """FC43 requests are 4 bytes for MEI type 0x0E; any other MEI type is not ours to measure."""
 
@@ -66,7 +66,7 @@ class _RequestSize:
         return 4 if pdu[1] == MEI_TYPE else UNKNOWN
 
 
-@dataclass(frozen=True)
+@record
 class _ResponseSize:
     """An FC43/0E reply's length is the header plus each object's id, length and value.
 
@@ -91,7 +91,7 @@ class _ResponseSize:
         return at
 
 
-@dataclass(frozen=True)
+@record
 class DeviceIdentificationResponse(Response):
     """FC 43/0E reply: read code, conformity level, more follows, next object id, objects."""
 
@@ -153,7 +153,7 @@ class DeviceIdentificationResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadDeviceIdentification(Request):
     """FC 43 / MEI 0x0E.  Stream access (codes 1-3) starts at ``object_id``; code 4 reads one object."""
 

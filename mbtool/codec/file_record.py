@@ -9,7 +9,6 @@ The byte count bounds the number of groups: 0x07..0xF5 for a read request,
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
 from typing import ClassVar
 
 from mbtool.codec.pdu import (
@@ -23,6 +22,7 @@ from mbtool.codec.pdu import (
     register,
     unpack_registers,
 )
+from mbtool.codec.record import record
 from mbtool.errors import DecodeError, MismatchError, RequestError
 
 REFERENCE_TYPE = 6
@@ -78,7 +78,7 @@ def _reference_type(ref: int) -> None:
 # --- FC 20: Read File Record -------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class FileRecordRequest:
     """One group of a read: ``length`` registers from ``record`` of ``file``."""
 
@@ -90,7 +90,7 @@ class FileRecordRequest:
         _check_place(self.file, self.record, self.length)
 
 
-@dataclass(frozen=True)
+@record
 class ReadFileRecordResponse(Response):
     """FC 20 reply: byte count, then per group: length (1 + 2n), reference type 6, n registers."""
 
@@ -129,7 +129,7 @@ class ReadFileRecordResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadFileRecord(Request):
     function_code: ClassVar = 0x14
     name: ClassVar = "Read File Record"
@@ -179,7 +179,7 @@ class ReadFileRecord(Request):
 # --- FC 21: Write File Record, answered by an echo ------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class FileRecord:
     """One group of a write: ``values`` into ``file`` from ``record`` on."""
 
@@ -199,7 +199,7 @@ class FileRecord:
 
 
 @register
-@dataclass(frozen=True)
+@record
 class WriteFileRecord(Request, Response):
     function_code: ClassVar = 0x15
     name: ClassVar = "Write File Record"

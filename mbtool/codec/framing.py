@@ -15,10 +15,10 @@ from __future__ import annotations
 import binascii
 import struct
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
 from mbtool.codec.checksum import crc16, lrc
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, pdu_length
+from mbtool.codec.record import record
 from mbtool.errors import ChecksumError, FrameError
 
 RTU_MAX_ADU = 256
@@ -26,7 +26,7 @@ ASCII_MAX_CHARS = 513  # ':' + 2 × 255 hex + CR LF (spec §2)
 MBAP_HEADER = 7
 
 
-@dataclass(frozen=True)
+@record
 class Frame:
     unit: int
     pdu: bytes
@@ -34,7 +34,7 @@ class Frame:
     transaction_id: int | None = None
 
 
-@dataclass(frozen=True)
+@record
 class Rejected:
     data: bytes
     error: FrameError

@@ -1,7 +1,7 @@
 """The PDU layer: what every function code has in common (spec §3).
 
 A PDU is the function code followed by its data.  Each function code is a
-pair of small frozen dataclasses: a ``Request`` that knows its spec limits,
+pair of small frozen records (codec.record): a ``Request`` that knows its spec limits,
 how to encode itself, how long the reply will be and how to check the reply
 against itself; and a ``Response`` that encodes and decodes the reply on its
 own (the server side and the offline decoder need that).
@@ -14,17 +14,17 @@ that once per function code.
 from __future__ import annotations
 
 import struct
-from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import ClassVar
 
+from mbtool.codec.record import field, record
 from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_PDU = 253  # RTU: 256 bytes - unit - CRC; MBAP: length field ≤ 254 incl. unit
 
 
-class ExceptionCode(IntEnum):
+class ExceptionCode:
+    """Exception codes of spec §3 (plain ints: an enum would cost start-up time for nothing)."""
+
     ILLEGAL_FUNCTION = 0x01
     ILLEGAL_DATA_ADDRESS = 0x02
     ILLEGAL_DATA_VALUE = 0x03
@@ -114,7 +114,7 @@ def need(pdu: bytes, length: int, what: str) -> None:
 # --- sizes --------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class Size:
     """How long a PDU is: fixed, or given by a byte-count field of ``width`` bytes at ``at``.
 
@@ -145,22 +145,20 @@ def counted(at: int, width: int = 1) -> Size:
 # --- the base types -------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Response(ABC):
-    """A normal reply.  ``warnings`` holds what a strict reader notices but can live with."""
+@record
+class Response:
+    """A normal reply.  ``warnings`` holds what a strict reader notices but can live with.
+
+    Every concrete response defines ``encode(self) -> bytes`` (the server side)
+    and the classmethod ``decode(cls, pdu) -> Response`` (no ABC: its metaclass
+    costs start-up time on every class, and a missing method fails the tests).
+    """
 
     function_code: ClassVar[int]
     warnings: tuple[str, ...] = field(default=(), kw_only=True, compare=False)
 
-    @abstractmethod
-    def encode(self) -> bytes: ...
 
-    @classmethod
-    @abstractmethod
-    def decode(cls, pdu: bytes) -> Response: ...
-
-
-@dataclass(frozen=True)
+@record
 class ExceptionResponse:
     """The device's 'no': function code | 0x80 and one exception code (spec §3)."""
 
@@ -180,9 +178,11 @@ class ExceptionResponse:
         return cls(pdu[0] & 0x7F, pdu[1])
 
 
-@dataclass(frozen=True)
-class Request(ABC):
-    """A request PDU.  Subclasses set the class attributes and the codec methods."""
+@record
+class Request:
+    """A request PDU.  Subclasses set the class attributes and define ``encode_data(self)``
+    (the data after the function code) and the classmethod ``decode(cls, pdu)`` (the
+    server side: parse a request PDU, raising DecodeError or RequestError)."""
 
     function_code: ClassVar[int]
     name: ClassVar[str]
@@ -194,14 +194,6 @@ class Request(ABC):
 
     def encode(self) -> bytes:
         return bytes([self.function_code]) + self.encode_data()
-
-    @abstractmethod
-    def encode_data(self) -> bytes: ...
-
-    @classmethod
-    @abstractmethod
-    def decode(cls, pdu: bytes) -> Request:
-        """Server side: parse a request PDU.  Raises DecodeError or RequestError."""
 
     @property
     def expects_response(self) -> bool:

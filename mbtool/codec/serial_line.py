@@ -8,7 +8,6 @@ device's identity), so the spec marks them serial only.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import ClassVar
 
@@ -23,6 +22,7 @@ from mbtool.codec.pdu import (
     need,
     register,
 )
+from mbtool.codec.record import field, record
 from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_EVENTS = 64  # FC12: the log holds at most 64 event bytes (spec §3)
@@ -39,7 +39,7 @@ def _no_data(pdu: bytes, name: str) -> None:
 # --- FC 07: Read Exception Status ----------------------------------------------------
 
 
-@dataclass(frozen=True)
+@record
 class ExceptionStatusResponse(Response):
     """FC 07 reply: one byte, eight device-defined status bits (seed 002: coils 1-8 on a 984)."""
 
@@ -62,7 +62,7 @@ class ExceptionStatusResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReadExceptionStatus(Request):
     function_code: ClassVar = 0x07
     name: ClassVar = "Read Exception Status"
@@ -139,7 +139,7 @@ def _sub(value: int) -> int:
         return value
 
 
-@dataclass(frozen=True)
+@record
 class _DiagnosticsResponseSize:
     """How long an FC08 reply is when all we have is its first bytes (no request at hand).
 
@@ -162,7 +162,7 @@ class _DiagnosticsResponseSize:
         return 6 + pdu[5]
 
 
-@dataclass(frozen=True)
+@record
 class DiagnosticsResponse(Response):
     """FC 08 reply: sub-function, then data (an echo, a 16-bit register or count, or statistics)."""
 
@@ -209,7 +209,7 @@ class DiagnosticsResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class Diagnostics(Request):
     """FC 08 (spec §4).
 
@@ -301,7 +301,7 @@ def _status_warnings(status: int) -> tuple[str, ...]:
     return (f"status word {status:04X} is neither 0000 (idle) nor FFFF (busy)",)
 
 
-@dataclass(frozen=True)
+@record
 class CommEventCounterResponse(Response):
     """FC 11 reply: status word (FFFF busy, 0000 idle) and the event counter."""
 
@@ -325,7 +325,7 @@ class CommEventCounterResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class GetCommEventCounter(Request):
     function_code: ClassVar = 0x0B
     name: ClassVar = "Get Comm Event Counter"
@@ -383,7 +383,7 @@ def describe_event(byte: int) -> str:
     return f"{kind}: {', '.join(parts)}" if parts else kind
 
 
-@dataclass(frozen=True)
+@record
 class CommEventLogResponse(Response):
     """FC 12 reply: byte count (6 + events), status, event count, message count, events.
 
@@ -431,7 +431,7 @@ class CommEventLogResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class GetCommEventLog(Request):
     function_code: ClassVar = 0x0C
     name: ClassVar = "Get Comm Event Log"
@@ -454,7 +454,7 @@ class GetCommEventLog(Request):
 MODICON_SLAVE_IDS = {0: "Micro 84", 1: "484", 2: "184/384", 3: "584", 8: "884", 9: "984"}  # spec §6
 
 
-@dataclass(frozen=True)
+@record
 class ReportSlaveIdResponse(Response):
     """FC 17 reply: byte count, slave id, run indicator (00 off / FF on), device-specific bytes.
 
@@ -492,7 +492,7 @@ class ReportSlaveIdResponse(Response):
 
 
 @register
-@dataclass(frozen=True)
+@record
 class ReportSlaveId(Request):
     function_code: ClassVar = 0x11
     name: ClassVar = "Report Slave ID"

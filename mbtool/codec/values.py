@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
 
+from mbtool.codec.record import record
 from mbtool.errors import RequestError
 
 ORDERS = ("ABCD", "CDAB", "BADC", "DCBA")
 
 
-@dataclass(frozen=True)
+@record
 class ValueType:
     name: str
     registers: int  # registers per value; 0 for string (as many as asked)
