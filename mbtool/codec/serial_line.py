@@ -36,6 +36,18 @@ def _no_data(pdu: bytes, name: str) -> None:
     need(pdu, 1, name)
 
 
+class _NoDataRequest(Request):
+    """FC 07, 11, 12, 17: the function code alone is the whole request."""
+
+    def encode_data(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode(cls, pdu: bytes) -> _NoDataRequest:
+        _no_data(pdu, cls.name)
+        return cls()
+
+
 # --- FC 07: Read Exception Status ----------------------------------------------------
 
 
@@ -63,21 +75,13 @@ class ExceptionStatusResponse(Response):
 
 @register
 @record
-class ReadExceptionStatus(Request):
+class ReadExceptionStatus(_NoDataRequest):
     function_code: ClassVar = 0x07
     name: ClassVar = "Read Exception Status"
     request_size: ClassVar = fixed(1)
     response_size: ClassVar = fixed(2)
     response_type: ClassVar = ExceptionStatusResponse
     serial_only: ClassVar = True
-
-    def encode_data(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode(cls, pdu: bytes) -> ReadExceptionStatus:
-        _no_data(pdu, cls.name)
-        return cls()
 
 
 # --- FC 08: Diagnostics --------------------------------------------------------------
@@ -326,21 +330,13 @@ class CommEventCounterResponse(Response):
 
 @register
 @record
-class GetCommEventCounter(Request):
+class GetCommEventCounter(_NoDataRequest):
     function_code: ClassVar = 0x0B
     name: ClassVar = "Get Comm Event Counter"
     request_size: ClassVar = fixed(1)
     response_size: ClassVar = fixed(5)
     response_type: ClassVar = CommEventCounterResponse
     serial_only: ClassVar = True
-
-    def encode_data(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode(cls, pdu: bytes) -> GetCommEventCounter:
-        _no_data(pdu, cls.name)
-        return cls()
 
 
 # --- FC 12: Get Comm Event Log -------------------------------------------------------
@@ -432,21 +428,13 @@ class CommEventLogResponse(Response):
 
 @register
 @record
-class GetCommEventLog(Request):
+class GetCommEventLog(_NoDataRequest):
     function_code: ClassVar = 0x0C
     name: ClassVar = "Get Comm Event Log"
     request_size: ClassVar = fixed(1)
     response_size: ClassVar = counted(1)
     response_type: ClassVar = CommEventLogResponse
     serial_only: ClassVar = True
-
-    def encode_data(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode(cls, pdu: bytes) -> GetCommEventLog:
-        _no_data(pdu, cls.name)
-        return cls()
 
 
 # --- FC 17: Report Slave ID ----------------------------------------------------------
@@ -493,18 +481,10 @@ class ReportSlaveIdResponse(Response):
 
 @register
 @record
-class ReportSlaveId(Request):
+class ReportSlaveId(_NoDataRequest):
     function_code: ClassVar = 0x11
     name: ClassVar = "Report Slave ID"
     request_size: ClassVar = fixed(1)
     response_size: ClassVar = counted(1)
     response_type: ClassVar = ReportSlaveIdResponse
     serial_only: ClassVar = True
-
-    def encode_data(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode(cls, pdu: bytes) -> ReportSlaveId:
-        _no_data(pdu, cls.name)
-        return cls()
