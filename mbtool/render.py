@@ -124,11 +124,22 @@ def _table(result: Result, out: TextIO) -> None:
     plain_registers = result.type == "uint16"
     if plain_registers:
         table.add_column("Hex", justify="right")
+    typed_registers = not bits and not plain_registers and result.registers is not None
+    if typed_registers:
+        from mbtool.codec.values import TYPES
+
+        width = TYPES[result.type].registers
+        table.add_column("Registers", justify="right")
     for address, value in result.items:
         if bits:
             table.add_row(str(address), "[green]ON[/]" if value else "[dim]OFF[/]")
         elif plain_registers:
             table.add_row(str(address), str(value), f"0x{value:04X}")
+        elif typed_registers:
+            # The words behind each value: when a float looks wrong, they show the word order.
+            start = address - result.address
+            words = result.registers[start : start + (width or len(result.registers))]
+            table.add_row(str(address), _text(value), " ".join(f"{w:04X}" for w in words))
         else:
             table.add_row(str(address), _text(value))
     console = Console(file=out) if out is not sys.stdout else Console()

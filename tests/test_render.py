@@ -65,6 +65,13 @@ def test_table_golden(monkeypatch):
     )
 
 
+def test_typed_table_shows_the_registers_behind_each_value(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "60")
+    text = rendered(REGISTERS, "table")
+    assert "│     100 │  21.5 │ 41AC 0000 │" in text
+    assert "│     102 │   nan │ 7FC0 0000 │" in text
+
+
 def test_rich_is_imported_only_for_tables():
     code = (
         "import sys; from mbtool.cli import main; sys.argv = ['mbtool', 'read-holding-registers', '0', '3',"
