@@ -20,6 +20,7 @@ from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse, RequestError
 
 MODBUS_TCP_PORT = 502
+WRITE_TIMEOUT = 5.0  # seconds a serial write may block before the port counts as broken
 
 
 @record
@@ -73,9 +74,11 @@ class SerialTransport(Transport):
                 bytesize=settings.bytesize,
                 stopbits=settings.stopbits,
                 timeout=0,
-                write_timeout=5,
+                # A stuck UART (flow control) must not hang a write forever; url
+                # handlers have no write timeout (rfc2217:// refuses the setting).
+                **({} if "://" in url else {"write_timeout": WRITE_TIMEOUT}),
             )
-        except (serial.SerialException, OSError, ValueError, *_termios_error()) as error:
+        except (serial.SerialException, OSError, ValueError, NotImplementedError, *_termios_error()) as error:
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
                 raise ConnectionFailed(
