@@ -82,3 +82,41 @@ def test_rich_is_imported_only_for_tables():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
     assert result.returncode == 0, result.stderr
     assert "NO RICH" in result.stderr
+
+
+def _on_a_terminal(env_extra: dict[str, str]) -> str:
+    """Run mbtool with stdout on a pseudo-terminal, as a user at a shell would."""
+    import os
+
+    main_fd, tty_fd = os.openpty()
+    env = {k: v for k, v in os.environ.items() if k not in ("NO_COLOR", "FORCE_COLOR")}
+    env.update({"TERM": "xterm-256color", "COLUMNS": "80", **env_extra})
+    proc = subprocess.run(
+        [sys.executable, "-m", "mbtool", "read-coils", "0", "2", "-p", "sim://"],
+        stdout=tty_fd,
+        stderr=subprocess.PIPE,
+        env=env,
+        timeout=30,
+    )
+    os.close(tty_fd)
+    chunks = []
+    while True:
+        try:
+            chunk = os.read(main_fd, 4096)
+        except OSError:  # EIO: the terminal's other end is closed and drained
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    os.close(main_fd)
+    assert proc.returncode == 0, proc.stderr
+    return b"".join(chunks).decode()
+
+
+def test_a_terminal_gets_a_coloured_table_unless_no_color():
+    coloured = _on_a_terminal({})
+    assert "┏━━━━━━━━━┳━━━━━━━┓" in coloured  # the default on a terminal is the table
+    assert "\x1b[32m" in coloured  # ON in green
+    plain = _on_a_terminal({"NO_COLOR": "1"})
+    assert "┏━━━━━━━━━┳━━━━━━━┓" in plain
+    assert "\x1b[32m" not in plain
