@@ -69,7 +69,7 @@ _mbtool()
             if [[ $cur == -* ]]; then
                 _mbtool_words "$cur" -V --version -h --help
             else
-                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers
+                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc
             fi
             ;;
         read-coils)
@@ -204,6 +204,233 @@ _mbtool()
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        read-exception-status)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        diag)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --controller) _mbtool_words "$cur" 184/384 484 584/984 884 ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --clear-log --controller -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        event-counter)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        event-log)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        report-id)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        read-file-record)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        write-file-record)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        mask-write-register)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        read-write-registers)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --type) _mbtool_words "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
+                --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        fifo)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        device-id)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--object) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --level) _mbtool_words "$cur" basic regular extended ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --level --object -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        raw)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --adu -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        decode)
+            case $prev in
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" --framer --request --response -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        crc)
+            case $prev in
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        lrc)
+            case $prev in
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -o --format -h --help
                     fi
                     ;;
             esac

@@ -25,6 +25,21 @@ _mbtool_commands() {
     'write-register:Write one register (FC 06)'
     'write-coils:Write coils (FC 15)'
     'write-registers:Write registers (FC 16)'
+    'read-exception-status:Read exception status (FC 07, serial line): eight device-defined bits, each ON or OFF'
+    'diag:Diagnostics (FC 08, serial line)'
+    'event-counter:Get the comm event counter (FC 11): status (busy/idle) and the event count'
+    'event-log:Get the comm event log (FC 12): status, counts, and each event (0 = newest) in words'
+    'report-id:Report server (slave) ID (FC 17): id, run indicator and the device'\''s own bytes'
+    'read-file-record:Read file records (FC 20): LENGTH registers from RECORD (0..9999) of FILE (1..65535)'
+    'write-file-record:Write file records (FC 21): VALUEs from RECORD (0..9999) of FILE (1..65535)'
+    'mask-write-register:Mask write register (FC 22): the register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT AND_MASK)'
+    'read-write-registers:Read/write registers (FC 23): write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS'
+    'fifo:Read a FIFO queue (FC 24): the entries queued behind the pointer register at ADDRESS'
+    'device-id:Read device identification (FC 43 / MEI 14): vendor, product code, revision and more'
+    'raw:Send a unit and PDU in hex (mbtool adds the CRC, LRC or MBAP header); show the reply decoded'
+    'decode:Decode frames offline, field by field, checking their CRC, LRC or MBAP header'
+    'crc:CRC-16/MODBUS of the bytes, and the RTU frame with it appended (low byte first)'
+    'lrc:LRC of the bytes (unit through last data byte), and the ASCII frame with it'
   )
   _describe -t commands 'mbtool command' commands
 }
@@ -193,6 +208,239 @@ _mbtool() {
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '*:VALUE...: ' && ret=0
+          ;;
+        (read-exception-status)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (diag)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--clear-log[restart-comms: also clear the event log (data FF00)]' \
+            '--controller=[diagnostic-register: name the bits as this Modicon family does]:controller:(184/384 484 584/984 884)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            ':SUBFUNCTION: ' \
+            '::DATA: ' && ret=0
+          ;;
+        (event-counter)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (event-log)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (report-id)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (read-file-record)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:FILE RECORD LENGTH [FILE RECORD LENGTH]...: ' && ret=0
+          ;;
+        (write-file-record)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:FILE RECORD VALUE... [, FILE RECORD VALUE...]...: ' && ret=0
+          ;;
+        (mask-write-register)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            ':ADDRESS: ' \
+            ':AND_MASK: ' \
+            ':OR_MASK: ' && ret=0
+          ;;
+        (read-write-registers)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
+            '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            ':READ_ADDRESS: ' \
+            ':READ_COUNT: ' \
+            ':WRITE_ADDRESS: ' \
+            '*:VALUE...: ' && ret=0
+          ;;
+        (fifo)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            ':ADDRESS: ' && ret=0
+          ;;
+        (device-id)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--level=[Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF]:level:(basic regular extended)' \
+            '--object=[Read this one object only]:NUMBER: ' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (raw)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--adu[Send HEX exactly as given (checksum or MBAP header included)]' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:HEX...: ' && ret=0
+          ;;
+        (decode)
+          _arguments -s -S \
+            '--framer=[Framing (default: detected)]:framer:(rtu ascii tcp)' \
+            '--request[Read the frame as a request]' \
+            '--response[Read the frame as a response]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:[HEX...|-]: ' && ret=0
+          ;;
+        (crc)
+          _arguments -s -S \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:HEX...: ' && ret=0
+          ;;
+        (lrc)
+          _arguments -s -S \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '(- *)'{-h,--help}'[Show this message and exit]' \
+            '*:HEX...: ' && ret=0
           ;;
       esac
       ;;

@@ -37,7 +37,12 @@ def default_format(stream: TextIO = sys.stdout) -> str:
     return "table" if stream.isatty() else "plain"
 
 
-def render(result: Result, fmt: str, out: TextIO = sys.stdout) -> None:
+def render(result: Result | Report, fmt: str, out: TextIO = sys.stdout) -> None:
+    if isinstance(result, Report):
+        {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}[fmt](
+            result, out
+        )
+        return
     {"table": _table, "plain": _plain, "json": _json, "csv": _csv}[fmt](result, out)
 
 
@@ -147,6 +152,106 @@ def _table(result: Result, out: TextIO) -> None:
     console.print(table)
     if result.note:
         console.print(result.note, style="dim")
+
+
+# --- structured results: fields, counters, event lists, decoded frames -----------------
+
+
+@record
+class Row:
+    """One named item of a Report.
+
+    ``name`` is one token (a script splits the plain line at the first space);
+    ``value`` is plain data for JSON; ``text`` is how a person reads it (default:
+    the value); ``raw`` the bytes on the wire it came from (offline decoding).
+    """
+
+    name: str
+    value: object
+    text: str | None = None
+    raw: bytes | None = None
+
+    @property
+    def shown(self) -> str:
+        return _text(self.value) if self.text is None else self.text
+
+
+@record
+class Report:
+    """What a command learned that is not a run of addressed values: named rows.
+
+    Plain: one ``NAME VALUE`` line per row.  JSON: ``unit``, ``function``, ``name``,
+    then ``data`` (default: each row's name and value).  CSV: ``name,value`` rows
+    (plus ``bytes`` when rows carry them).  Table: one rich table.
+    """
+
+    unit: int | None
+    function: int | None
+    name: str
+    rows: list[Row]
+    data: dict | None = None
+    note: str = ""
+    title: str = ""  # the table's heading; default name, function code and unit
+    header: bool = True  # CSV header (off for the second and later of several reports)
+
+
+def report_dict(report: Report) -> dict:
+    head: dict = {"unit": report.unit, "function": report.function, "name": report.name}
+    body = report.data if report.data is not None else {row.name: row.value for row in report.rows}
+    return {**head, **body}
+
+
+def _report_plain(report: Report, out: TextIO) -> None:
+    out.write("".join(f"{row.name} {row.shown}\n" for row in report.rows))
+
+
+def _report_json(report: Report, out: TextIO) -> None:
+    out.write(to_json(report_dict(report)) + "\n")
+
+
+def _report_csv(report: Report, out: TextIO) -> None:
+    import csv
+
+    writer = csv.writer(out, lineterminator="\n")
+    with_raw = any(row.raw is not None for row in report.rows)
+    if report.header:
+        writer.writerow(["name", "value", "bytes"] if with_raw else ["name", "value"])
+    for row in report.rows:
+        cells = [row.name, row.shown]
+        if with_raw:
+            cells.append("" if row.raw is None else row.raw.hex(" ").upper())
+        writer.writerow(cells)
+
+
+def _report_table(report: Report, out: TextIO) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    with_raw = any(row.raw is not None for row in report.rows)
+    table = Table()
+    table.add_column("Field")
+    if with_raw:
+        table.add_column("Bytes")
+    table.add_column("Value")
+    for row in report.rows:
+        cells = [row.name.replace("_", " ")]
+        if with_raw:
+            cells.append("" if row.raw is None else row.raw.hex(" ").upper())
+        cells.append(escape(row.shown))
+        table.add_row(*cells)
+    console = Console(file=out) if out is not sys.stdout else Console()
+    title = report.title
+    if not title:
+        title = f"[bold]{escape(report.name)}[/]"
+        if report.function is not None:
+            title += f" (FC {report.function:02d})"
+        if report.unit is not None:
+            title += f" · unit {report.unit}"
+    console.print(title, highlight=False)
+    console.print(table)
+    if report.note:
+        console.print(escape(report.note), style="dim")
 
 
 class HexTrace:

@@ -45,6 +45,29 @@ def build_device(unit: int):
     return SimDevice(id=unit, simdata=(bits(COILS), bits(DISCRETE), regs(HOLDING), regs(INPUT)))
 
 
+# FC43/14 objects: the seven standard ones, and extended ones long enough that the
+# extended stream needs more than one reply (more-follows, spec §3).
+IDENTITY = {
+    0x00: "Pymodbus",
+    0x01: "PM-TEST",
+    0x02: "3.16",
+    0x03: "https://example.invalid/pymodbus",
+    0x04: "pymodbus test device",
+    0x05: "peer",
+    0x06: "mbtool e2e",
+}
+EXTENDED = {0x80 + i: f"extended object {i} " + "x" * 60 for i in range(5)}
+
+
+def build_identity():
+    from pymodbus.pdu.device import ModbusDeviceIdentification
+
+    identity = ModbusDeviceIdentification()
+    for object_id, value in {**IDENTITY, **EXTENDED}.items():
+        identity[object_id] = value
+    return identity
+
+
 def parse_args(argv):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     where = p.add_mutually_exclusive_group(required=True)
@@ -74,11 +97,14 @@ async def run(args) -> int:
     framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[args.framer]
     if args.tcp:
         host, _, port = args.tcp.rpartition(":")
-        server = ModbusTcpServer(devices, framer=framer, address=(host or "127.0.0.1", int(port)))
+        server = ModbusTcpServer(
+            devices, framer=framer, address=(host or "127.0.0.1", int(port)), identity=build_identity()
+        )
     else:
         server = ModbusSerialServer(
             devices,
             framer=framer,
+            identity=build_identity(),
             port=args.serial,
             baudrate=args.baud,
             parity=args.parity,

@@ -1,0 +1,201 @@
+"""FC 08 Diagnostics: every sub-function of spec §4 by name or number, and all counters at once."""
+
+from __future__ import annotations
+
+import click
+
+from mbtool.errors import RequestError
+from mbtool.options import device_command, parse_int
+
+# command-line name -> sub-function (spec §4)
+SUB_FUNCTIONS = {
+    "return-query-data": 0x00,
+    "restart-comms": 0x01,
+    "diagnostic-register": 0x02,
+    "change-ascii-delimiter": 0x03,
+    "force-listen-only": 0x04,
+    "clear-counters": 0x0A,
+    "bus-message-count": 0x0B,
+    "bus-comm-error-count": 0x0C,
+    "bus-exception-count": 0x0D,
+    "slave-message-count": 0x0E,
+    "slave-no-response-count": 0x0F,
+    "slave-nak-count": 0x10,
+    "slave-busy-count": 0x11,
+    "bus-char-overrun-count": 0x12,
+    "iop-overrun-count": 0x13,
+    "clear-overrun": 0x14,
+    "modbus-plus-stats": 0x15,
+}
+NAMES = {code: name for name, code in SUB_FUNCTIONS.items()}
+COUNTERS = tuple(range(0x0B, 0x13))  # bus message .. bus character overrun: every controller family's set
+DEFAULT_QUERY = b"\xa5\x37"  # seed 002's example query data
+
+
+def _sub_function(text: str) -> int:
+    if text.lower() in SUB_FUNCTIONS:
+        return SUB_FUNCTIONS[text.lower()]
+    try:
+        number = parse_int(text, "sub-function")
+    except RequestError:
+        raise RequestError(
+            f"unknown sub-function {text!r}: use counters, a number, or one of {', '.join(SUB_FUNCTIONS)}"
+        ) from None
+    if not 0 <= number <= 0xFFFF:
+        raise RequestError(f"sub-function {number} is out of range 0..65535")
+    return number
+
+
+def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
+    from mbtool.codec.describe import parse_hex
+
+    if sub == 0x01:
+        if text is not None:
+            raise RequestError("restart-comms takes no DATA: use --clear-log to also clear the event log")
+        return b"\xff\x00" if clear_log else b"\x00\x00"
+    if clear_log:
+        raise RequestError("--clear-log belongs to restart-comms")
+    if sub == 0x03:
+        # CHAR 00: the new end-of-frame character replacing LF (spec §4).
+        if text is None:
+            raise RequestError("change-ascii-delimiter needs the new delimiter: a character or 0xNN")
+        char = ord(text) if len(text) == 1 else parse_int(text, "delimiter")
+        if not 0 <= char <= 0xFF:
+            raise RequestError(f"delimiter {char} is not a byte")
+        return bytes([char, 0])
+    if sub == 0x15 and text is not None and text.lower() in ("get", "clear"):
+        return b"\x00\x03" if text.lower() == "get" else b"\x00\x04"
+    if text is None:
+        if sub == 0x00:
+            return DEFAULT_QUERY
+        return b"\x00\x03" if sub == 0x15 else b"\x00\x00"
+    data = parse_hex(text[2:] if text.lower().startswith("0x") else text)
+    if sub != 0x00 and len(data) != 2:
+        raise RequestError(f"DATA for sub-function {sub:02X} is 2 bytes (4 hex digits), not {len(data)}")
+    return data
+
+
+@device_command("diag")
+@click.argument("sub_function", metavar="SUBFUNCTION")
+@click.argument("data", required=False)
+@click.option("--clear-log", is_flag=True, help="restart-comms: also clear the event log (data FF00).")
+@click.option(
+    "--controller",
+    type=click.Choice(["184/384", "484", "584/984", "884"]),
+    help="diagnostic-register: name the bits as this Modicon family does.",
+)
+def diag(connection, sub_function, data, clear_log, controller):
+    """Diagnostics (FC 08, serial line). SUBFUNCTION by name or number, DATA in hex.
+
+    Names: return-query-data [HEX] (checks the echo), restart-comms [--clear-log],
+    diagnostic-register [--controller], change-ascii-delimiter CHAR, force-listen-only
+    (no reply), clear-counters, bus-message-count, bus-comm-error-count,
+    bus-exception-count, slave-message-count, slave-no-response-count, slave-nak-count,
+    slave-busy-count, bus-char-overrun-count, iop-overrun-count, clear-overrun,
+    modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
+    """
+    from mbtool.render import Report
+
+    if connection.unit == 0:
+        raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
+    if sub_function.lower() == "counters":
+        if data is not None or clear_log:
+            raise RequestError("diag counters takes no DATA")
+        report = _counters(connection)
+    else:
+        sub = _sub_function(sub_function)
+        report = _one(connection, sub, _data(sub, data, clear_log), controller)
+    assert isinstance(report, Report)
+    from mbtool.connection import show
+
+    show(connection, report)
+
+
+def _one(connection, sub: int, data: bytes, controller: str | None):
+    from mbtool.codec.serial_line import Diagnostics
+    from mbtool.connection import execute
+    from mbtool.errors import MismatchError
+    from mbtool.render import Report, Row
+
+    request = Diagnostics(sub, data)
+    name = NAMES.get(sub, f"sub-function {sub:04X}")
+    title = f"Diagnostics: {name}"
+    rows = [Row("sub_function", sub, f"{sub:02d} {name}")]
+    if sub == 0x00:
+        # Our own echo check, to say "matched" or show both sides rather than only fail.
+        from mbtool.codec.raw import RawRequest
+
+        reply = execute(connection, RawRequest(request.encode()))
+        echoed = bytes(reply.pdu[3:])
+        matched = reply.pdu[:3] == request.encode()[:3] and echoed == data
+        rows += [
+            Row("sent", data.hex(" ").upper()),
+            Row("received", echoed.hex(" ").upper()),
+            Row("echo", matched, "matched" if matched else "MISMATCH"),
+        ]
+        if not matched:
+            from mbtool.connection import show
+
+            show(connection, Report(connection.unit, 8, title, rows))
+            raise MismatchError(
+                f"return-query-data echo {echoed.hex(' ').upper()} differs from {data.hex(' ').upper()}"
+            )
+        return Report(connection.unit, 8, title, rows)
+    reply = execute(connection, request)
+    if not request.expects_response:
+        rows.append(
+            Row("reply", "none expected: the device is now in listen-only mode (restart-comms ends it)")
+        )
+        return Report(connection.unit, 8, title, rows)
+    if sub == 0x02:
+        rows += _register_rows(reply.value, controller)
+    elif sub in COUNTERS or sub == 0x13:
+        rows.append(Row(name.replace("-", "_"), reply.value))
+    elif sub == 0x15 and reply.statistics is not None:
+        rows += [Row(f"word{i}", word) for i, word in enumerate(reply.statistics)]
+    else:
+        rows.append(Row("data", reply.data.hex(" ").upper()))
+        rows.append(Row("echo", True, "matched"))
+    return Report(connection.unit, 8, title, rows)
+
+
+def _register_rows(value: int, controller: str | None):
+    from mbtool.codec.modicon import diagnostic_register_bits
+    from mbtool.render import Row
+
+    rows = [Row("diagnostic_register", value, f"0x{value:04X}")]
+    if controller:
+        found = diagnostic_register_bits(value, controller)
+        rows += [Row(f"bit{bit}", True, text) for bit, text in found]
+        if not found:
+            rows.append(Row("bits", "none set"))
+    else:
+        rows.append(Row("bits", " ".join(str(b) for b in range(16) if value >> b & 1) or "none set"))
+    return rows
+
+
+def _counters(connection):
+    from mbtool.codec.serial_line import Diagnostics
+    from mbtool.commands.session import open_client
+    from mbtool.errors import ModbusException
+    from mbtool.render import Report, Row
+
+    rows, data, answered, refused = [], {}, 0, None
+    with open_client(connection) as client:
+        for sub in COUNTERS:
+            key = NAMES[sub].replace("-", "_")
+            try:
+                reply = client.execute(connection.unit, Diagnostics(sub))
+            except ModbusException as error:
+                refused = error
+                rows.append(
+                    Row(key, None, f"not supported: exception {error.exception_code:02X} {error.name}")
+                )
+                data[key] = None
+                continue
+            answered += 1
+            rows.append(Row(key, reply.value))
+            data[key] = reply.value
+    if not answered and refused is not None:
+        raise refused  # not one counter: the device does not do FC08 counters at all
+    return Report(connection.unit, 8, "Diagnostics: counters", rows, data)

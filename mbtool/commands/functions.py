@@ -1,0 +1,360 @@
+"""The other function codes: FC 07, 11, 12, 17, 20-24 and 43/14 (spec §3, §5, §6).
+
+FC 08 (diagnostics) has its own module, diagnostics.py.
+"""
+
+from __future__ import annotations
+
+import click
+
+from mbtool.connection import execute, show
+from mbtool.errors import RequestError
+from mbtool.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, parse_int
+
+# --- FC 07 ---------------------------------------------------------------------------------
+
+
+@device_command("read-exception-status")
+def read_exception_status(connection):
+    """Read exception status (FC 07, serial line): eight device-defined bits, each ON or OFF.
+
+    On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
+    """
+    from mbtool.codec.serial_line import ReadExceptionStatus
+    from mbtool.render import Report, Row
+
+    request = ReadExceptionStatus()
+    reply = execute(connection, request)
+    rows = [Row("status", reply.status, f"0x{reply.status:02X}")]
+    rows += [Row(f"bit{i}", bit, "ON" if bit else "OFF") for i, bit in enumerate(reply.bits)]
+    data = {"status": reply.status, "bits": list(reply.bits)}
+    show(connection, Report(connection.unit, request.function_code, request.name, rows, data))
+
+
+# --- FC 11 / 12 ---------------------------------------------------------------------------
+
+
+def _status_text(status: int) -> str:
+    return {0xFFFF: "busy", 0x0000: "idle"}.get(status, f"0x{status:04X} (neither busy nor idle)")
+
+
+@device_command("event-counter")
+def event_counter(connection):
+    """Get the comm event counter (FC 11): status (busy/idle) and the event count."""
+    from mbtool.codec.serial_line import GetCommEventCounter
+    from mbtool.render import Report, Row
+
+    request = GetCommEventCounter()
+    reply = execute(connection, request)
+    rows = [Row("status", _status_text(reply.status)), Row("event_count", reply.event_count)]
+    data = {"status": _status_text(reply.status), "busy": reply.busy, "event_count": reply.event_count}
+    show(
+        connection,
+        _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
+    )
+
+
+@device_command("event-log")
+def event_log(connection):
+    """Get the comm event log (FC 12): status, counts, and each event (0 = newest) in words."""
+    from mbtool.codec.serial_line import GetCommEventLog, describe_event
+    from mbtool.render import Report, Row
+
+    request = GetCommEventLog()
+    reply = execute(connection, request)
+    rows = [
+        Row("status", _status_text(reply.status)),
+        Row("event_count", reply.event_count),
+        Row("message_count", reply.message_count),
+    ]
+    events = [{"byte": byte, "description": describe_event(byte)} for byte in reply.events]
+    rows += [
+        Row(f"event{i}", e["byte"], f"0x{e['byte']:02X} {e['description']}") for i, e in enumerate(events)
+    ]
+    data = {
+        "status": _status_text(reply.status),
+        "busy": reply.busy,
+        "event_count": reply.event_count,
+        "message_count": reply.message_count,
+        "events": events,
+    }
+    show(
+        connection,
+        _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
+    )
+
+
+def _with_warnings(report, reply):
+    """A strict reader's remarks go to stderr-free output: a note under the table, a row elsewhere."""
+    from mbtool.codec.record import replace
+    from mbtool.render import Row
+
+    warnings = list(getattr(reply, "warnings", ()))
+    if not warnings:
+        return report
+    rows = report.rows + [Row("warning", text) for text in warnings]
+    data = dict(report.data or {}, warnings=warnings)
+    return replace(report, rows=rows, data=data)
+
+
+# --- FC 17 ------------------------------------------------------------------------------------
+
+
+@device_command("report-id")
+def report_id(connection):
+    """Report server (slave) ID (FC 17): id, run indicator and the device's own bytes.
+
+    The extra bytes are shown in hex and as text; replies of Modicon 184/384,
+    584 and 984 controllers are decoded field by field (status word, machine
+    state, stop code).
+    """
+    from mbtool.codec.describe import printable
+    from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
+    from mbtool.codec.serial_line import ReportSlaveId
+    from mbtool.render import Report, Row
+
+    request = ReportSlaveId()
+    reply = execute(connection, request)
+    layout = modicon_layout(reply.slave_id, reply.extra)
+    run = "ON" if reply.run_indicator else "OFF"
+    rows = [
+        Row(
+            "slave_id",
+            reply.slave_id,
+            f"{reply.slave_id}" + (f" (Modicon {SLAVE_IDS[reply.slave_id]})" if layout else ""),
+        ),
+        Row("run_indicator", run),
+    ]
+    data: dict = {"slave_id": reply.slave_id, "run_indicator": reply.run_indicator}
+    if layout:
+        data["layout"] = f"Modicon {layout}"
+        for name, value, text in modicon_fields(layout, reply.extra):
+            rows.append(Row(name, value, text))
+            data[name] = value
+    extra_hex = reply.extra.hex(" ").upper()
+    rows += [Row("extra_hex", extra_hex or "-"), Row("extra_text", printable(reply.extra) or "-")]
+    data.update(extra_hex=extra_hex, extra_text=printable(reply.extra))
+    show(
+        connection,
+        _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
+    )
+
+
+# --- FC 20 / 21 --------------------------------------------------------------------------------
+
+
+def _groups(tokens: tuple[str, ...]) -> list[list[str]]:
+    """Split arguments at lone commas: the groups of one file-record request."""
+    groups: list[list[str]] = [[]]
+    for token in tokens:
+        if token == ",":
+            groups.append([])
+        else:
+            groups[-1].append(token)
+    if any(not group for group in groups):
+        raise RequestError("an empty group: put one ',' between groups, not at either end")
+    return groups
+
+
+@device_command("read-file-record")
+@click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD LENGTH [FILE RECORD LENGTH]...")
+def read_file_record(connection, groups):
+    """Read file records (FC 20): LENGTH registers from RECORD (0..9999) of FILE (1..65535).
+
+    Several groups go in one request: read-file-record 4 1 2 3 9 2.
+    Output lines are FILE:RECORD VALUE.
+    """
+    from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
+    from mbtool.render import Report, Row
+
+    numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
+    if len(numbers) % 3:
+        raise RequestError(f"give FILE RECORD LENGTH in threes, not {len(numbers)} numbers")
+    parts = tuple(FileRecordRequest(*numbers[i : i + 3]) for i in range(0, len(numbers), 3))
+    request = ReadFileRecord(parts)
+    reply = execute(connection, request)
+    rows, data = [], []
+    for part, values in zip(parts, reply.records, strict=True):
+        rows += [Row(f"{part.file}:{part.record + i}", value) for i, value in enumerate(values)]
+        data.append({"file": part.file, "record": part.record, "values": list(values)})
+    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+
+
+@device_command("write-file-record")
+@click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD VALUE... [, FILE RECORD VALUE...]...")
+def write_file_record(connection, groups):
+    """Write file records (FC 21): VALUEs from RECORD (0..9999) of FILE (1..65535).
+
+    Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
+    Each VALUE is -32768..65535 or 0x hex.
+    """
+    from mbtool.codec.file_record import FileRecord, WriteFileRecord
+    from mbtool.codec.values import parse_register
+    from mbtool.render import Report, Row
+
+    parts = []
+    for group in _groups(groups):
+        if len(group) < 3:
+            raise RequestError(f"group {' '.join(group)!r} needs FILE RECORD and at least one VALUE")
+        file, record = parse_int(group[0], "file number"), parse_int(group[1], "record number")
+        parts.append(FileRecord(file, record, tuple(parse_register(text) for text in group[2:])))
+    request = WriteFileRecord(tuple(parts))
+    execute(connection, request)
+    rows = [Row(f"{p.file}:{p.record + i}", value) for p in parts for i, value in enumerate(p.values)]
+    data = [{"file": p.file, "record": p.record, "values": list(p.values)} for p in parts]
+    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+
+
+# --- FC 22 / 23 / 24 ------------------------------------------------------------------------------
+
+MASK = Number(0, 0xFFFF, "mask")
+
+
+@device_command("mask-write-register")
+@click.argument("address", type=ADDRESS)
+@click.argument("and_mask", type=MASK)
+@click.argument("or_mask", type=MASK)
+def mask_write_register(connection, address, and_mask, or_mask):
+    """Mask write register (FC 22): the register at ADDRESS becomes
+    (current AND AND_MASK) OR (OR_MASK AND NOT AND_MASK).
+
+    E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
+    """
+    from mbtool.codec.data_access import MaskWriteRegister
+    from mbtool.codec.describe import mask_formula
+    from mbtool.render import Report, Row
+
+    request = MaskWriteRegister(address, and_mask, or_mask)
+    execute(connection, request)
+    rows = [
+        Row("address", address),
+        Row("and_mask", and_mask, f"0x{and_mask:04X}"),
+        Row("or_mask", or_mask, f"0x{or_mask:04X}"),
+        Row("result", mask_formula(and_mask, or_mask)),
+    ]
+    show(connection, Report(connection.unit, request.function_code, request.name, rows))
+
+
+@device_command("read-write-registers", types=VALUE_TYPES)
+@click.argument("read_address", type=ADDRESS)
+@click.argument("read_count", type=COUNT)
+@click.argument("write_address", type=ADDRESS)
+@click.argument("values", nargs=-1, required=True, metavar="VALUE...")
+def read_write_registers(connection, read_address, read_count, write_address, values, value_type, order):
+    """Read/write registers (FC 23): write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS.
+
+    The device writes before it reads (spec). At most 121 registers written and
+    125 read; with --type both sides count values of that type.
+    """
+    from mbtool.codec.data_access import ReadWriteMultipleRegisters
+    from mbtool.codec.values import decode_values, registers_needed
+    from mbtool.commands.write import parse_registers
+    from mbtool.render import Result
+
+    registers = parse_registers(values, value_type, order)
+    request = ReadWriteMultipleRegisters(
+        read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
+    )
+    reply = execute(connection, request)
+    items = [
+        (read_address + offset, value)
+        for offset, value in decode_values(reply.registers, value_type, order.upper())
+    ]
+    result = Result(
+        connection.unit,
+        request.function_code,
+        request.name,
+        read_address,
+        items,
+        value_type,
+        list(reply.registers),
+        extra={"written": {"address": write_address, "registers": registers}},
+    )
+    show(connection, result)
+
+
+@device_command("fifo")
+@click.argument("address", type=ADDRESS)
+def fifo(connection, address):
+    """Read a FIFO queue (FC 24): the entries queued behind the pointer register at ADDRESS.
+
+    Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
+    """
+    from mbtool.codec.data_access import ReadFifoQueue
+    from mbtool.render import Report, Row
+
+    request = ReadFifoQueue(address)
+    reply = execute(connection, request)
+    rows = [Row("count", len(reply.registers))]
+    rows += [Row(str(i), value) for i, value in enumerate(reply.registers)]
+    data = {"address": address, "count": len(reply.registers), "values": list(reply.registers)}
+    report = Report(
+        connection.unit,
+        request.function_code,
+        request.name,
+        rows,
+        data,
+        note=f"{len(reply.registers)} entries queued at pointer address {address}",
+    )
+    show(connection, report)
+
+
+# --- FC 43 / 14 --------------------------------------------------------------------------------------
+
+LEVELS = {"basic": 1, "regular": 2, "extended": 3}
+
+
+@device_command("device-id")
+@click.option(
+    "--level",
+    type=click.Choice(list(LEVELS)),
+    default="basic",
+    show_default=True,
+    help="Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF.",
+)
+@click.option("--object", "object_id", type=Number(0, 255, "object id"), help="Read this one object only.")
+def device_id(connection, level, object_id):
+    """Read device identification (FC 43 / MEI 14): vendor, product code, revision and more.
+
+    Follows more-follows across requests until every object of the level is read.
+    """
+    from mbtool.codec.describe import text_of
+    from mbtool.codec.device_id import ReadDeviceIdentification, object_name
+    from mbtool.commands.session import open_client
+    from mbtool.errors import FrameError
+    from mbtool.render import Report, Row
+
+    objects: dict[int, bytes] = {}
+    conformity = None
+    with open_client(connection) as client:
+        if object_id is not None:
+            request = ReadDeviceIdentification(4, object_id)
+            reply = client.execute(connection.unit, request)
+            conformity = reply.conformity_name
+            objects.update(reply.objects)
+        else:
+            next_id, asked = 0, set()
+            while True:
+                asked.add(next_id)
+                request = ReadDeviceIdentification(LEVELS[level], next_id)
+                reply = client.execute(connection.unit, request)
+                conformity = reply.conformity_name
+                objects.update(reply.objects)
+                if not reply.more_follows:
+                    break
+                next_id = reply.next_object_id
+                if next_id in asked:
+                    raise FrameError(f"more-follows points back to object 0x{next_id:02X}, already asked for")
+    rows = [Row(object_name(i), text_of(value)) for i, value in objects.items()]
+    if not rows:
+        rows = [Row("objects", "none: the device answered with no objects")]
+    data = {
+        "conformity": conformity,
+        "objects": {object_name(i): text_of(value) for i, value in objects.items()},
+    }
+    show(
+        connection,
+        Report(
+            connection.unit, 0x2B, "Read Device Identification", rows, data, note=f"conformity: {conformity}"
+        ),
+    )

@@ -1,0 +1,299 @@
+"""Frames by hand: raw (send any PDU or exact bytes), decode (offline), crc and lrc (spec §2)."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from mbtool.errors import RequestError
+from mbtool.options import QuickHelp, device_command
+
+FORMAT_OPTION = click.option(
+    "-o",
+    "--format",
+    "output_format",
+    type=click.Choice(["table", "plain", "json", "csv"]),
+    help="Output format: table on a terminal, plain in a pipe.",
+)
+
+
+class OfflineCommand(QuickHelp, click.Command):
+    """A command that talks to no device."""
+
+
+def _render(report, output_format: str | None) -> None:
+    from mbtool.render import default_format, render
+
+    render(report, output_format or default_format())
+
+
+# --- decoded frames as a Report --------------------------------------------------------------
+
+
+def frame_report(described, header: bool = True):
+    """The rows of a decoded frame: envelope, fields, checksum, warnings; JSON with every field."""
+    from mbtool.render import Report, Row
+
+    d = described
+    rows = [Row("frame", f"{d.framing} {d.kind}")]
+    if d.framing == "tcp":
+        adu = d.adu
+        rows += [
+            Row("transaction_id", int.from_bytes(adu[0:2], "big"), raw=adu[0:2]),
+            Row("protocol_id", int.from_bytes(adu[2:4], "big"), raw=adu[2:4]),
+            Row("length", int.from_bytes(adu[4:6], "big"), raw=adu[4:6]),
+            Row("unit_id", d.unit, raw=adu[6:7]),
+        ]
+    else:
+        rows.append(Row("slave_address", d.unit, raw=d.adu[0:1]))
+    rows += [Row(f.name, f.value, f.text, f.raw) for f in d.fields]
+    verdict = d.checksum.split(" ", 1)[1]  # "CRC 0E 84 ok" -> the row is named crc already
+    if d.framing == "rtu":
+        rows.append(Row("crc", d.checksum_ok, verdict, d.adu[-2:]))
+    elif d.framing == "ascii":
+        rows.append(Row("lrc", d.checksum_ok, verdict, d.adu[-1:]))
+    else:
+        rows.append(Row("mbap", d.checksum_ok, verdict))
+    rows += [Row("warning", text) for text in d.warnings]
+    if d.error:
+        rows.append(Row("error", d.error))
+    frame = d.adu.hex(" ").upper()
+    if d.framing == "ascii":
+        frame = ":" + d.adu.hex().upper() + "\r\n"
+    data = {
+        "framing": d.framing,
+        "kind": d.kind,
+        "frame": frame,
+        "checksum": {"ok": d.checksum_ok, "verdict": d.checksum},
+        "fields": [
+            {
+                "name": r.name,
+                "bytes": None if r.raw is None else r.raw.hex(" ").upper(),
+                "value": r.value,
+                "text": r.shown,
+            }
+            for r in rows
+        ],
+        "warnings": d.warnings,
+        "error": d.error or None,
+    }
+    title = f"[bold]{d.framing.upper()} {d.kind}[/]: {d.name}"
+    if d.function is not None:
+        title += f" (FC {d.function & 0x7F:02d})"
+    if d.unit is not None:
+        title += f" · unit {d.unit}"
+    return Report(d.unit, d.function, d.name, rows, data, title=title, header=header)
+
+
+def _problem(described) -> str:
+    if described.checksum_ok is False:
+        return described.checksum
+    return described.error
+
+
+# --- decode ----------------------------------------------------------------------------------
+
+
+@click.command("decode", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("frame", nargs=-1, metavar="[HEX...|-]")
+@click.option("--framer", type=click.Choice(["rtu", "ascii", "tcp"]), help="Framing (default: detected).")
+@click.option("--request", "direction", flag_value="request", help="Read the frame as a request.")
+@click.option("--response", "direction", flag_value="response", help="Read the frame as a response.")
+@FORMAT_OPTION
+def decode(frame, framer, direction, output_format):
+    """Decode frames offline, field by field, checking their CRC, LRC or MBAP header.
+
+    HEX is one frame (RTU bytes, an ASCII ':...' frame, or a Modbus TCP frame);
+    with no HEX or '-', one frame per line is read from stdin. A reply after
+    its request is checked against it. Exit 5 when a checksum or a field is wrong.
+    """
+    from mbtool.codec.describe import describe
+    from mbtool.errors import FrameError
+
+    if not frame or frame == ("-",):
+        lines = [line.strip() for line in sys.stdin]
+        texts = [line for line in lines if line and not line.startswith("#")]
+        if not texts:
+            raise RequestError("no frame on stdin")
+    else:
+        texts = [" ".join(frame)]
+    problems = []
+    previous = None
+    for index, text in enumerate(texts):
+        described = describe(text, framer, direction, previous)
+        _render(frame_report(described, header=index == 0), output_format)
+        if len(texts) > 1 and index + 1 < len(texts) and (output_format or "") not in ("json", "csv"):
+            sys.stdout.write("\n")
+        problem = _problem(described)
+        if problem:
+            problems.append(f"frame {index + 1}: {problem}" if len(texts) > 1 else problem)
+        previous = described
+    sys.stdout.flush()
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise FrameError(problems[0] + more)
+
+
+# --- crc / lrc -----------------------------------------------------------------------------------
+
+
+@click.command("crc", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("data", nargs=-1, required=True, metavar="HEX...")
+@FORMAT_OPTION
+def crc(data, output_format):
+    """CRC-16/MODBUS of the bytes, and the RTU frame with it appended (low byte first)."""
+    from mbtool.codec.checksum import crc16
+    from mbtool.codec.describe import parse_hex
+    from mbtool.render import Report, Row
+
+    body = parse_hex(" ".join(data))
+    value = crc16(body)
+    wire = value.to_bytes(2, "little")
+    rows = [
+        Row("crc", value, wire.hex(" ").upper()),
+        Row("frame", (body + wire).hex(" ").upper()),
+    ]
+    data_out = {"crc": value, "crc_bytes": wire.hex(" ").upper(), "frame": (body + wire).hex(" ").upper()}
+    _render(
+        Report(None, None, "CRC-16/MODBUS", rows, data_out, note=f"0x{value:04X}, sent low byte first"),
+        output_format,
+    )
+
+
+@click.command("lrc", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("data", nargs=-1, required=True, metavar="HEX...")
+@FORMAT_OPTION
+def lrc(data, output_format):
+    """LRC of the bytes (unit through last data byte), and the ASCII frame with it."""
+    from mbtool.codec.checksum import lrc as lrc8
+    from mbtool.codec.describe import parse_hex
+    from mbtool.render import Report, Row
+
+    body = parse_hex(" ".join(data))
+    value = lrc8(body)
+    text = ":" + (body + bytes([value])).hex().upper()
+    rows = [Row("lrc", value, f"{value:02X}"), Row("frame", text + "\r\n", text)]
+    data_out = {"lrc": value, "frame": text + "\r\n"}
+    _render(Report(None, None, "LRC", rows, data_out, note="the frame ends with CR LF"), output_format)
+
+
+# --- raw -------------------------------------------------------------------------------------------
+
+
+@device_command("raw")
+@click.argument("data", nargs=-1, required=True, metavar="HEX...")
+@click.option("--adu", is_flag=True, help="Send HEX exactly as given (checksum or MBAP header included).")
+def raw(connection, data, adu):
+    """Send a unit and PDU in hex (mbtool adds the CRC, LRC or MBAP header); show the reply decoded.
+
+    The first byte is the unit (-u is not used). Any function code may be sent;
+    a reply of unknown length ends when the line goes quiet. With --adu the
+    bytes go out exactly as typed, a wrong checksum too.
+    """
+    from mbtool.client import Trace
+    from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
+    from mbtool.codec.raw import RawRequest
+    from mbtool.commands.session import framer_name, open_client
+    from mbtool.errors import FrameError, ModbusException
+
+    name = framer_name(connection)
+    text = " ".join(data)
+    exact = None
+    if adu:
+        framing, sent, unit, pdu, _, _ = split_frame(text, name)
+        exact = text.strip().encode() if text.strip().startswith(":") else sent
+        if framing == "ascii" and not exact.endswith(b"\r\n"):
+            exact = (exact if exact.startswith(b":") else b":" + sent.hex().upper().encode()) + b"\r\n"
+    else:
+        body = parse_hex(text)
+        if len(body) < 2:
+            raise RequestError("give the unit and at least a function code, e.g. raw 01 03 00 00 00 01")
+        unit, pdu = body[0], body[1:]
+    request = RawRequest(pdu)
+
+    class Capture(Trace):
+        """Keeps the reply frame (and any corrupted one) while passing everything to --hex."""
+
+        def __init__(self, inner: Trace) -> None:
+            self.inner = inner
+            self.reply: bytes | None = None
+            self.other: bytes | None = None  # the last frame that was not the reply, or a corrupted one
+
+        def sent(self, frame: bytes) -> None:
+            self.inner.sent(frame)
+
+        def received(self, frame: bytes, note: str = "") -> None:
+            self.inner.received(frame, note)
+            if not note:
+                self.reply = frame
+            else:
+                self.other = frame
+
+        def rejected(self, frame: bytes, error) -> None:
+            self.inner.rejected(frame, error)
+            from mbtool.errors import ChecksumError
+
+            if isinstance(error, ChecksumError):
+                self.other = frame
+
+    failure = None
+    with open_client(connection, broadcastable=True, framer=_exact_framer(name, exact)) as client:
+        capture = Capture(client.trace)
+        client.trace = capture
+        try:
+            client.execute(unit, request)
+        except (ModbusException, FrameError) as error:
+            failure = error
+    from mbtool.render import Report, Row, default_format, render
+
+    heard = capture.reply or capture.other
+    if heard is None:
+        if unit == 0:
+            why = "broadcast: no reply expected"
+        elif failure is None:
+            why = "none expected (force listen only)"
+        else:
+            why = f"none: {failure}"
+        rows = [Row("sent", request.encode().hex(" ").upper()), Row("reply", why)]
+        render(
+            Report(unit, request.function_code, request.name, rows),
+            connection.output_format or default_format(),
+        )
+        if failure is not None:
+            raise failure
+        return
+    shown = heard.decode("ascii", "replace") if name == "ascii" else heard.hex(" ")
+    framing, got, got_unit, got_pdu, ok, verdict = split_frame(shown, name)
+    asked = describe_pdu(name, b"", unit, request.encode(), None, "", "request")
+    described = describe_pdu(framing, got, got_unit, got_pdu, ok, verdict, "response", asked)
+    render(frame_report(described), connection.output_format or default_format())
+    if failure is not None:
+        raise failure
+    if described.error:
+        raise FrameError(f"invalid reply: {described.error}")
+
+
+def _exact_framer(name: str, exact: bytes | None):
+    """The framer for ``name``; with ``exact``, one that sends those bytes instead of building a frame."""
+    from mbtool.codec.framing import FRAMERS, Frame
+    from mbtool.codec.record import replace
+
+    base = FRAMERS[name]
+    if exact is None:
+        return base()
+    tid = int.from_bytes(exact[0:2], "big") if name == "tcp" else None
+
+    class Exact(base):
+        def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+            return exact
+
+        def next_event(self):
+            # The client matches replies to transaction ids it chose; these bytes carry the
+            # user's, so a reply to the user's id is handed over unnumbered.
+            event = super().next_event()
+            if tid is not None and isinstance(event, Frame) and event.transaction_id == tid:
+                event = replace(event, transaction_id=None)
+            return event
+
+    return Exact()
