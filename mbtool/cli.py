@@ -44,6 +44,21 @@ COMMANDS = {
     "decode": "offline",
     "crc": "offline",
     "lrc": "offline",
+    "read-exception-status": "functions",
+    "diag": "diagnostics",
+    "event-counter": "functions",
+    "event-log": "functions",
+    "report-id": "functions",
+    "read-file-record": "functions",
+    "write-file-record": "functions",
+    "mask-write-register": "functions",
+    "read-write-registers": "functions",
+    "fifo": "functions",
+    "device-id": "functions",
+    "raw": "offline",
+    "decode": "offline",
+    "crc": "offline",
+    "lrc": "offline",
 }
 
 

@@ -112,7 +112,7 @@ def diag(connection, sub_function, data, clear_log, controller):
 
 
 def _one(connection, sub: int, data: bytes, controller: str | None):
-    from mbtool.codec.serial_line import Diagnostics
+    from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
     from mbtool.connection import execute
     from mbtool.errors import MismatchError
     from mbtool.render import Report, Row
@@ -155,7 +155,8 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
         rows += [Row(f"word{i}", word) for i, word in enumerate(reply.statistics)]
     else:
         rows.append(Row("data", reply.data.hex(" ").upper()))
-        rows.append(Row("echo", True, "matched"))
+        if sub in ECHO_SUB_FUNCTIONS or sub == 0x15:
+            rows.append(Row("echo", True, "matched"))  # Diagnostics.check_response refused any other
     return Report(connection.unit, 8, title, rows)
 
 

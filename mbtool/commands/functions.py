@@ -16,8 +16,9 @@ from mbtool.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, 
 
 @device_command("read-exception-status")
 def read_exception_status(connection):
-    """Read exception status (FC 07, serial line): eight device-defined bits, each ON or OFF.
+    """Read exception status (FC 07).
 
+    Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
     from mbtool.codec.serial_line import ReadExceptionStatus
@@ -40,7 +41,10 @@ def _status_text(status: int) -> str:
 
 @device_command("event-counter")
 def event_counter(connection):
-    """Get the comm event counter (FC 11): status (busy/idle) and the event count."""
+    """Get the comm event counter (FC 11).
+
+    The status (busy or idle) and the count of successful messages.
+    """
     from mbtool.codec.serial_line import GetCommEventCounter
     from mbtool.render import Report, Row
 
@@ -56,7 +60,10 @@ def event_counter(connection):
 
 @device_command("event-log")
 def event_log(connection):
-    """Get the comm event log (FC 12): status, counts, and each event (0 = newest) in words."""
+    """Get the comm event log (FC 12).
+
+    Status, event and message counts, and each event byte (0 = newest) in words.
+    """
     from mbtool.codec.serial_line import GetCommEventLog, describe_event
     from mbtool.render import Report, Row
 
@@ -102,9 +109,9 @@ def _with_warnings(report, reply):
 
 @device_command("report-id")
 def report_id(connection):
-    """Report server (slave) ID (FC 17): id, run indicator and the device's own bytes.
+    """Report server (slave) ID (FC 17).
 
-    The extra bytes are shown in hex and as text; replies of Modicon 184/384,
+    The id, the run indicator and the device's own bytes.  The extra bytes are shown in hex and as text; replies of Modicon 184/384,
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
@@ -159,9 +166,9 @@ def _groups(tokens: tuple[str, ...]) -> list[list[str]]:
 @device_command("read-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD LENGTH [FILE RECORD LENGTH]...")
 def read_file_record(connection, groups):
-    """Read file records (FC 20): LENGTH registers from RECORD (0..9999) of FILE (1..65535).
+    """Read file records (FC 20).
 
-    Several groups go in one request: read-file-record 4 1 2 3 9 2.
+    LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
     from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
@@ -183,9 +190,9 @@ def read_file_record(connection, groups):
 @device_command("write-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD VALUE... [, FILE RECORD VALUE...]...")
 def write_file_record(connection, groups):
-    """Write file records (FC 21): VALUEs from RECORD (0..9999) of FILE (1..65535).
+    """Write file records (FC 21).
 
-    Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
+    VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
     Each VALUE is -32768..65535 or 0x hex.
     """
     from mbtool.codec.file_record import FileRecord, WriteFileRecord
@@ -215,10 +222,10 @@ MASK = Number(0, 0xFFFF, "mask")
 @click.argument("and_mask", type=MASK)
 @click.argument("or_mask", type=MASK)
 def mask_write_register(connection, address, and_mask, or_mask):
-    """Mask write register (FC 22): the register at ADDRESS becomes
-    (current AND AND_MASK) OR (OR_MASK AND NOT AND_MASK).
+    """Mask write register (FC 22).
 
-    E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
+    The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
+    AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
     from mbtool.codec.data_access import MaskWriteRegister
     from mbtool.codec.describe import mask_formula
@@ -241,9 +248,9 @@ def mask_write_register(connection, address, and_mask, or_mask):
 @click.argument("write_address", type=ADDRESS)
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
 def read_write_registers(connection, read_address, read_count, write_address, values, value_type, order):
-    """Read/write registers (FC 23): write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS.
+    """Read/write registers (FC 23).
 
-    The device writes before it reads (spec). At most 121 registers written and
+    Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
@@ -276,9 +283,9 @@ def read_write_registers(connection, read_address, read_count, write_address, va
 @device_command("fifo")
 @click.argument("address", type=ADDRESS)
 def fifo(connection, address):
-    """Read a FIFO queue (FC 24): the entries queued behind the pointer register at ADDRESS.
+    """Read a FIFO queue (FC 24).
 
-    Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
+    The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
     """
     from mbtool.codec.data_access import ReadFifoQueue
     from mbtool.render import Report, Row
@@ -314,9 +321,9 @@ LEVELS = {"basic": 1, "regular": 2, "extended": 3}
 )
 @click.option("--object", "object_id", type=Number(0, 255, "object id"), help="Read this one object only.")
 def device_id(connection, level, object_id):
-    """Read device identification (FC 43 / MEI 14): vendor, product code, revision and more.
+    """Read device identification (FC 43/14).
 
-    Follows more-follows across requests until every object of the level is read.
+    Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
     from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name

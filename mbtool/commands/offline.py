@@ -102,9 +102,9 @@ def _problem(described) -> str:
 @click.option("--response", "direction", flag_value="response", help="Read the frame as a response.")
 @FORMAT_OPTION
 def decode(frame, framer, direction, output_format):
-    """Decode frames offline, field by field, checking their CRC, LRC or MBAP header.
+    """Decode frames offline.
 
-    HEX is one frame (RTU bytes, an ASCII ':...' frame, or a Modbus TCP frame);
+    Field by field, checking the CRC, LRC or MBAP header. HEX is one frame (RTU bytes, an ASCII ':...' frame, or a Modbus TCP frame);
     with no HEX or '-', one frame per line is read from stdin. A reply after
     its request is checked against it. Exit 5 when a checksum or a field is wrong.
     """
@@ -112,6 +112,8 @@ def decode(frame, framer, direction, output_format):
     from mbtool.errors import FrameError
 
     if not frame or frame == ("-",):
+        if sys.stdin.isatty():
+            print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
         lines = [line.strip() for line in sys.stdin]
         texts = [line for line in lines if line and not line.startswith("#")]
         if not texts:
@@ -142,7 +144,10 @@ def decode(frame, framer, direction, output_format):
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
 def crc(data, output_format):
-    """CRC-16/MODBUS of the bytes, and the RTU frame with it appended (low byte first)."""
+    """CRC-16/MODBUS of bytes.
+
+    The CRC of HEX, and the RTU frame with it appended (low byte first).
+    """
     from mbtool.codec.checksum import crc16
     from mbtool.codec.describe import parse_hex
     from mbtool.render import Report, Row
@@ -165,7 +170,10 @@ def crc(data, output_format):
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
 def lrc(data, output_format):
-    """LRC of the bytes (unit through last data byte), and the ASCII frame with it."""
+    """LRC of bytes.
+
+    The LRC of HEX (unit through last data byte), and the ASCII frame with it.
+    """
     from mbtool.codec.checksum import lrc as lrc8
     from mbtool.codec.describe import parse_hex
     from mbtool.render import Report, Row
@@ -185,9 +193,10 @@ def lrc(data, output_format):
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @click.option("--adu", is_flag=True, help="Send HEX exactly as given (checksum or MBAP header included).")
 def raw(connection, data, adu):
-    """Send a unit and PDU in hex (mbtool adds the CRC, LRC or MBAP header); show the reply decoded.
+    """Send any PDU, or exact frame bytes.
 
-    The first byte is the unit (-u is not used). Any function code may be sent;
+    HEX is a unit and a PDU; mbtool adds the CRC, LRC or MBAP header and shows
+    the reply decoded, with its checksum verdict. The first byte is the unit (-u is not used). Any function code may be sent;
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """
