@@ -69,7 +69,7 @@ _mbtool()
             if [[ $cur == -* ]]; then
                 _mbtool_words "$cur" -V --version -h --help
             else
-                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc
+                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc serve
             fi
             ;;
         read-coils)
@@ -431,6 +431,21 @@ _mbtool()
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -o --format -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        serve)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|-b|--baud|--data|--delay|--drop|--corrupt|--exception|--busy|--seed) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --delay --drop --corrupt --exception --busy --seed -q --quiet -h --help
                     fi
                     ;;
             esac

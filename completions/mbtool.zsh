@@ -40,6 +40,7 @@ _mbtool_commands() {
     'decode:Decode frames offline'
     'crc:CRC-16/MODBUS of bytes'
     'lrc:LRC of bytes'
+    'serve:Simulate a Modbus device (slave) for testing masters: every function code of the spec'
   )
   _describe -t commands 'mbtool command' commands
 }
@@ -441,6 +442,25 @@ _mbtool() {
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:HEX...: ' && ret=0
+          ;;
+        (serve)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[Where to listen: tcp://HOST:PORT (PORT 0 picks a free one), or a serial device or pyserial URL]:TARGET:_mbtool_ports' \
+            '(-u --unit)'{-u+,--unit=}'[Unit ids to answer for: 1,17 or 1-10 or both]:UNITS: ' \
+            '--framer=[Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// serves like a serial device server]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '--data=[Initial tables and device identity from a JSON or TOML file (see README)]:FILE: ' \
+            '--delay=[Fault: wait SECONDS before every reply]:SECONDS: ' \
+            '--drop=[Fault: never send this fraction of replies (0..1)]:FRACTION: ' \
+            '--corrupt=[Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)]:FRACTION: ' \
+            '*--exception=[Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable)]:FC\:CODE: ' \
+            '--busy=[Fault: answer every request with exception 06 (server device busy) for the first SECONDS after start]:SECONDS: ' \
+            '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
+            '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
       esac
       ;;

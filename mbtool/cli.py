@@ -59,6 +59,7 @@ COMMANDS = {
     "decode": "offline",
     "crc": "offline",
     "lrc": "offline",
+    "serve": "serve",
 }
 
 

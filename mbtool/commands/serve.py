@@ -1,0 +1,323 @@
+"""``mbtool serve``: a Modbus device simulator on TCP or a serial line, for testing masters.
+
+Its -p and -u differ from the other commands' (a place to listen on, a set of
+unit ids to answer for), so it defines its own options here; the number and
+choice types are the shared ones.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import time
+
+import click
+
+from mbtool.errors import RequestError
+from mbtool.options import Number, PositiveFloat, QuickHelp, parse_int
+
+DEFAULT_TARGET = "tcp://127.0.0.1:5020"
+
+
+class ServeCommand(QuickHelp, click.Command):
+    pass
+
+
+def parse_units(text: str) -> frozenset[int]:
+    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears)."""
+    units: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            raise RequestError(f"empty unit id in {text!r}")
+        low_text, dash, high_text = part.partition("-")
+        low = parse_int(low_text, "unit")
+        high = parse_int(high_text, "unit") if dash else low
+        if low > high:
+            raise RequestError(f"unit range {part!r} runs backwards")
+        for unit in (low, high):
+            if not 1 <= unit <= 255:
+                raise RequestError(
+                    f"unit {unit} is out of range 1..255 (unit 0 is broadcast: every unit hears it)"
+                )
+        units.update(range(low, high + 1))
+    return frozenset(units)
+
+
+def parse_exception(text: str) -> tuple[int, int]:
+    function, colon, code = text.partition(":")
+    if not colon:
+        raise RequestError(f"--exception {text!r}: expected FC:CODE, e.g. 3:2 or 0x10:0x06")
+    fc = parse_int(function, "function code")
+    ex = parse_int(code, "exception code")
+    if not 1 <= fc <= 0x7F:
+        raise RequestError(f"function code {fc} is out of range 1..127")
+    if not 1 <= ex <= 0xFF:
+        raise RequestError(f"exception code {ex} is out of range 1..255")
+    return fc, ex
+
+
+class Fraction(click.ParamType):
+    name = "fraction"
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number between 0 and 1", param, ctx)
+        if not 0 <= number <= 1:
+            self.fail(f"{value} is not between 0 and 1", param, ctx)
+        return number
+
+
+@click.command("serve", cls=ServeCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option(
+    "-p",
+    "--port",
+    "target",
+    metavar="TARGET",
+    default=DEFAULT_TARGET,
+    show_default=True,
+    help="Where to listen: tcp://HOST:PORT (PORT 0 picks a free one), or a serial device or "
+    "pyserial URL. Only loopback by default: binding another address (tcp://0.0.0.0:502) "
+    "exposes the device to the network and is a choice you type.",
+)
+@click.option(
+    "-u",
+    "--unit",
+    "units",
+    metavar="UNITS",
+    default="1",
+    show_default=True,
+    help="Unit ids to answer for: 1,17 or 1-10 or both. Frames for other ids are ignored, "
+    "like a slave on a shared bus; unit 0 (broadcast) writes reach every unit and are never answered.",
+)
+@click.option(
+    "--framer",
+    type=click.Choice(["rtu", "ascii", "tcp"]),
+    help="Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// "
+    "serves like a serial device server.",
+)
+@click.option(
+    "-b",
+    "--baud",
+    type=Number(1, 4_000_000, "baud rate"),
+    default=19200,
+    show_default=True,
+    help="Serial baud rate (also sets the t3.5 silence).",
+)
+@click.option(
+    "--parity",
+    type=click.Choice(["N", "E", "O"], case_sensitive=False),
+    default="E",
+    show_default=True,
+    help="Serial parity.",
+)
+@click.option(
+    "--bytesize", type=click.Choice(["7", "8"]), default="8", show_default=True, help="Serial data bits."
+)
+@click.option(
+    "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
+)
+@click.option(
+    "--data",
+    "data_file",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="Initial tables and device identity from a JSON or TOML file (see README). "
+    "Without it the device starts with the sim:// demo data.",
+)
+@click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
+@click.option(
+    "--drop", type=Fraction(), default=0.0, help="Fault: never send this fraction of replies (0..1)."
+)
+@click.option(
+    "--corrupt",
+    type=Fraction(),
+    default=0.0,
+    help="Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing).",
+)
+@click.option(
+    "--exception",
+    "exceptions",
+    metavar="FC:CODE",
+    multiple=True,
+    help="Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable).",
+)
+@click.option(
+    "--busy",
+    type=PositiveFloat(),
+    help="Fault: answer every request with exception 06 "
+    "(server device busy) for the first SECONDS after start.",
+)
+@click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
+@click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
+def serve(
+    target,
+    units,
+    framer,
+    baud,
+    parity,
+    bytesize,
+    stopbits,
+    data_file,
+    delay,
+    drop,
+    corrupt,
+    exceptions,
+    busy,
+    seed,
+    quiet,
+):
+    """Simulate a Modbus device (slave) for testing masters: every function code of the spec.
+
+    On a terminal a live view shows requests, counters and the last frames; in a
+    pipe every frame is logged on stdout; with -q only the first line ("serving
+    ...") is printed. Ctrl-C or SIGTERM stops it cleanly with exit status 0.
+
+    \b
+    Try it:
+      mbtool serve                                   (in one terminal)
+      mbtool read-holding-registers 0 10 -p tcp://127.0.0.1:5020
+    """
+    from mbtool.device import Device, Faults, demo_model, load_data
+    from mbtool.server import IoFaults, Server, parse_target
+    from mbtool.transport import SerialSettings
+
+    unit_set = parse_units(units)
+    where = parse_target(target)
+    framer = framer or ("tcp" if where.kind == "tcp" else "rtu")
+    if where.kind == "serial" and framer == "tcp":
+        raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
+    if corrupt and framer == "tcp":
+        raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
+    injected = dict(parse_exception(text) for text in exceptions)
+    if data_file:
+        model, unit_models = load_data(data_file, unit_set)
+    else:
+        model, unit_models = demo_model(), {}
+    device = Device(model, unit_set, unit_models)
+    device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
+    settings = SerialSettings(baud, parity.upper(), int(bytesize), int(stopbits))
+    mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
+    log = _log_line if mode == "log" else None
+    server = Server(
+        device,
+        where,
+        framer,
+        faults=IoFaults(delay or 0.0, drop, corrupt),
+        seed=seed,
+        settings=settings,
+        log=log,
+    )
+    server.open()
+    unit_text = _units_text(unit_set)
+    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}")
+    sys.stdout.flush()
+
+    def stop(signum, frame):
+        server.stop()
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        if mode == "live":
+            _run_live(server, device, framer, unit_text, unit_set)
+        else:
+            server.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if mode != "quiet":
+        stats = server.stats
+        click.echo(
+            f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} connections"
+        )
+
+
+def _units_text(units: frozenset[int]) -> str:
+    """1,2,3,17 -> 1-3,17."""
+    runs: list[list[int]] = []
+    for unit in sorted(units):
+        if runs and unit == runs[-1][1] + 1:
+            runs[-1][1] = unit
+        else:
+            runs.append([unit, unit])
+    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def _log_line(direction: str, peer: str, data: bytes, note: str) -> None:
+    stamp = time.strftime("%H:%M:%S")
+    hex_text = data.hex(" ").upper()
+    text = " ".join(part for part in (stamp, peer, direction, hex_text, note) if part)
+    click.echo(text)
+    sys.stdout.flush()
+
+
+def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]) -> None:
+    from rich.console import Console, Group
+    from rich.live import Live
+    from rich.table import Table
+
+    console = Console()
+    shown_units = sorted(units)[:4]
+
+    def view():
+        stats = server.stats
+        uptime = time.monotonic() - stats.started
+        head = Table.grid(padding=(0, 2))
+        head.add_row(
+            f"[b]mbtool serve[/b] {stats.listening}",
+            f"framer {framer}",
+            f"units {unit_text}",
+            f"up {uptime:.0f} s",
+            f"clients {stats.clients}",
+        )
+        head.add_row(
+            f"requests {stats.requests}",
+            f"replies {stats.replies}",
+            f"dropped {stats.dropped}",
+            f"corrupted {stats.corrupted}",
+            "Ctrl-C stops",
+        )
+        counters = Table(title="FC08 counters", title_justify="left")
+        counters.add_column("counter")
+        for unit in shown_units:
+            counters.add_column(f"unit {unit}", justify="right")
+        names = list(device.counters(shown_units[0])) if shown_units else []
+        values = {unit: device.counters(unit) if unit in device.stations else None for unit in shown_units}
+        for name in names:
+            counters.add_row(name, *(str(values[u][name]) if values[u] else "-" for u in shown_units))
+        counters.add_row(
+            "listen only",
+            *(
+                "yes" if u in device.stations and device.stations[u].listen_only else "no"
+                for u in shown_units
+            ),
+        )
+        served = Table(title="served", title_justify="left")
+        served.add_column("FC", justify="right")
+        served.add_column("requests", justify="right")
+        for code, count in sorted(device.served.items()):
+            served.add_row(f"{code:02X}", str(count))
+        frames = Table(title="last frames", title_justify="left")
+        frames.add_column("t", justify="right")
+        frames.add_column("dir")
+        frames.add_column("peer")
+        frames.add_column("bytes", overflow="fold")
+        frames.add_column("note", overflow="fold")
+        for at, direction, peer, data, note in stats.frames:
+            frames.add_row(f"{at:.3f}", direction, peer, data.hex(" ").upper(), note)
+        side = Table.grid(padding=(0, 4))
+        side.add_row(counters, served)
+        return Group(head, side, frames)
+
+    last = [0.0]
+    with Live(view(), console=console, auto_refresh=False, transient=False) as live:
+
+        def tick() -> None:
+            now = time.monotonic()
+            if now - last[0] >= 0.25:
+                last[0] = now
+                live.update(view(), refresh=True)
+
+        server.run(tick)

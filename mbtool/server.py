@@ -1,0 +1,448 @@
+"""``mbtool serve``'s I/O: the device of ``mbtool.device`` on a TCP port or a serial line.
+
+* TCP: one thread, ``selectors`` over the listener and every client connection,
+  each connection with its own framer (MBAP, or RTU/ASCII over TCP for masters
+  that talk to serial device servers).  A client that sends bytes that are not
+  MBAP is disconnected (what pymodbus and most devices do: after a bad header
+  the stream cannot be resynchronised); the other clients never notice.
+* Serial: pyserial (device path or URL), frames ended by implicit length or by
+  t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
+* Faults of the I/O layer: delay, drop and checksum corruption of replies.
+
+Every wait is bounded by ``TICK`` so a stop request (Ctrl-C, SIGTERM) is seen
+within a tenth of a second.
+"""
+
+from __future__ import annotations
+
+import heapq
+import random
+import selectors
+import socket
+import time
+from collections import deque
+from collections.abc import Callable
+
+from mbtool.codec.framing import Frame, Framer, Rejected, RtuFramer, make_framer
+from mbtool.codec.pdu import UNKNOWN, pdu_length
+from mbtool.codec.record import record
+from mbtool.device import Device
+from mbtool.errors import ConnectionFailed, NoResponse, RequestError
+
+TICK = 0.1  # longest wait before the loop looks at the stop flag again
+TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is unknown
+# On a serial line t3.5 ends a frame (spec §2), but ptys and USB adapters deliver bytes in
+# bursts with pauses of several ms inside one frame; a frame whose length is known never
+# waits for it, so only an unknown function code or a broken frame pays this.
+MIN_SERIAL_GAP = 0.01
+MAX_CLIENTS = 64
+FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
+
+
+def silent_interval(baud: int) -> float:
+    """t3.5: 3.5 characters of 11 bits; 1.75 ms above 19200 baud (spec §2)."""
+    return FAST_T35 if baud > 19200 else 3.5 * 11 / baud
+
+
+@record
+class IoFaults:
+    delay: float = 0.0  # seconds before each reply
+    drop: float = 0.0  # fraction of replies never sent
+    corrupt: float = 0.0  # fraction of replies sent with a wrong CRC/LRC
+
+
+@record
+class Target:
+    kind: str  # "tcp" or "serial"
+    host: str = ""
+    port: int = 0
+    path: str = ""
+
+
+def parse_target(text: str) -> Target:
+    """tcp://HOST[:PORT] (PORT 0: any free port) or a serial device path / pyserial URL."""
+    if text.lower().startswith("tcp://"):
+        rest = text[6:].rstrip("/")
+        if rest.startswith("["):  # [::1]:5020
+            host, _, port_text = rest[1:].partition("]")
+            port_text = port_text.removeprefix(":")
+        else:
+            host, _, port_text = rest.rpartition(":") if ":" in rest else (rest, "", "")
+        if not host:
+            raise RequestError(f"no host in {text!r} (expected tcp://HOST[:PORT])")
+        try:
+            port = int(port_text) if port_text else 502
+        except ValueError:
+            raise RequestError(f"bad port in {text!r}") from None
+        if not 0 <= port <= 65535:
+            raise RequestError(f"port {port} in {text!r} is out of range 0..65535")
+        return Target("tcp", host=host, port=port)
+    if text.lower().startswith("sim://"):
+        raise RequestError("sim:// is the in-process device; serve on tcp://HOST:PORT or a serial port")
+    return Target("serial", path=text)
+
+
+class Stats:
+    """What the live view and the log show: requests, clients, the last frames."""
+
+    def __init__(self) -> None:
+        self.started = time.monotonic()
+        self.requests = 0
+        self.replies = 0
+        self.dropped = 0
+        self.corrupted = 0
+        self.clients = 0
+        self.connections = 0
+        self.frames: deque[tuple[float, str, str, bytes, str]] = deque(maxlen=12)
+        self.listening = ""
+
+    def frame(self, direction: str, peer: str, adu: bytes, note: str = "") -> None:
+        self.frames.append((time.monotonic() - self.started, direction, peer, adu, note))
+
+
+class Responder:
+    """Turns framer events into (when, reply bytes): the device's answer with the faults applied."""
+
+    def __init__(
+        self,
+        device: Device,
+        faults: IoFaults,
+        stats: Stats,
+        rng: random.Random,
+        log: Callable[[str, str, bytes, str], None],
+    ) -> None:
+        self.device = device
+        self.faults = faults
+        self.stats = stats
+        self.rng = rng
+        self.log = log
+
+    def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
+        if isinstance(event, Rejected):
+            self.stats.frame("bad", peer, event.data, str(event.error))
+            self.log("bad", peer, event.data, str(event.error))
+            self.device.rejected(event)
+            return None
+        self.stats.requests += 1
+        self.stats.frame("RX", peer, event.adu)
+        self.log("RX", peer, event.adu, "")
+        reply = self.device.answer_frame(event, framer)
+        if reply is None:
+            why = self._why_silent(event.unit)
+            self.stats.frame("--", peer, b"", why)
+            self.log("--", peer, b"", why)
+            return None
+        if self.faults.drop and self.rng.random() < self.faults.drop:
+            self.stats.dropped += 1
+            self.stats.frame("--", peer, b"", "reply dropped (--drop)")
+            self.log("drop", peer, reply, "reply dropped (--drop)")
+            return None
+        if self.faults.corrupt and self.rng.random() < self.faults.corrupt:
+            reply = corrupt_checksum(reply, framer.name)
+            self.stats.corrupted += 1
+            note = "checksum corrupted (--corrupt)"
+        else:
+            note = ""
+        self.stats.replies += 1
+        self.stats.frame("TX", peer, reply, note)
+        self.log("TX", peer, reply, note)
+        return reply
+
+    def _why_silent(self, unit: int) -> str:
+        if unit == 0:
+            return "broadcast: applied, never answered"
+        if unit not in self.device.units:
+            return f"unit {unit} is not served: ignored"
+        station = self.device.stations.get(unit)
+        if station is not None and station.listen_only:
+            return "listen-only mode: no reply"
+        return "no reply due"
+
+
+def corrupt_checksum(adu: bytes, framer_name: str) -> bytes:
+    """The reply with its CRC (RTU) or LRC (ASCII) made wrong; the rest untouched."""
+    if framer_name == "rtu":
+        return adu[:-1] + bytes([adu[-1] ^ 0xFF])
+    if framer_name == "ascii":
+        # ':' ... LRC(2 hex) CR LF: replace the LRC by another valid hex pair.
+        lrc_text = adu[-4:-2]
+        wrong = (int(lrc_text, 16) ^ 0x5A) & 0xFF
+        return adu[:-4] + f"{wrong:02X}".encode() + adu[-2:]
+    return adu
+
+
+class DeviceRtuFramer(RtuFramer):
+    """Reads requests like a slave: a frame with a function code the codec does not know is
+    ended by silence and answered with exception 01, not skipped byte by byte as noise."""
+
+    def __init__(self) -> None:
+        super().__init__(responses=False)
+
+    def _frame_size(self, start: int):
+        size = super()._frame_size(start)
+        if not isinstance(size, int) and size is not None:
+            if pdu_length(bytes(self._buffer[start + 1 : start + 2]), False) == UNKNOWN:
+                return None
+        return size
+
+
+def device_framer(name: str) -> Framer:
+    return DeviceRtuFramer() if name == "rtu" else make_framer(name, responses=False)
+
+
+class Server:
+    """Runs until ``stop()`` (called from a signal handler) or a fatal error on the port."""
+
+    def __init__(
+        self,
+        device: Device,
+        target: Target,
+        framer_name: str,
+        *,
+        faults: IoFaults | None = None,
+        seed: int | None = None,
+        settings=None,
+        log: Callable[[str, str, bytes, str], None] | None = None,
+    ) -> None:
+        self.device = device
+        self.target = target
+        self.framer_name = framer_name
+        from mbtool.transport import SerialSettings
+
+        self.settings = settings or SerialSettings()
+        self.baud = self.settings.baud
+        self.faults = faults or IoFaults()
+        self.stats = Stats()
+        self._stop = False
+        self._log = log or (lambda direction, peer, data, note: None)
+        self.responder = Responder(device, self.faults, self.stats, random.Random(seed), self._log)
+        self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
+        self._seq = 0
+        self._tick: Callable[[], None] = lambda: None
+
+    def stop(self) -> None:
+        self._stop = True
+
+    def _later(self, due: float, send: Callable[[], None]) -> None:
+        self._seq += 1
+        heapq.heappush(self._pending, (due, self._seq, send))
+
+    def _send_due(self) -> None:
+        now = time.monotonic()
+        while self._pending and self._pending[0][0] <= now:
+            _, _, send = heapq.heappop(self._pending)
+            send()
+
+    def _wait(self, default: float) -> float:
+        if not self._pending:
+            return default
+        return max(0.0, min(default, self._pending[0][0] - time.monotonic()))
+
+    # -- TCP ------------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Bind the port or open the serial line; ConnectionFailed (exit 6) if it cannot be."""
+        if self.target.kind == "tcp":
+            self._open_tcp()
+        else:
+            self._open_serial()
+
+    def _open_tcp(self) -> None:
+        host, port = self.target.host, self.target.port
+        try:
+            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+            family, kind, proto, _, address = infos[0]
+            listener = socket.socket(family, kind, proto)
+        except OSError as error:
+            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+        try:
+            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            listener.bind(address)
+            listener.listen(16)
+        except OSError as error:
+            listener.close()
+            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+        listener.setblocking(False)
+        self.listener = listener
+        bound = listener.getsockname()
+        shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
+        self.stats.listening = f"tcp://{shown}:{bound[1]}"
+        self.selector = selectors.DefaultSelector()
+        self.selector.register(listener, selectors.EVENT_READ, None)
+
+    def _accept(self) -> None:
+        try:
+            conn, address = self.listener.accept()
+        except OSError:
+            return
+        if self.stats.clients >= MAX_CLIENTS:
+            conn.close()  # refuse politely rather than run out of descriptors
+            return
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        peer = f"{address[0]}:{address[1]}"
+        client = _Client(conn, peer, device_framer(self.framer_name))
+        self.selector.register(conn, selectors.EVENT_READ, client)
+        self.stats.clients += 1
+        self.stats.connections += 1
+        self._log("open", peer, b"", "connected")
+
+    def _close(self, client: _Client, why: str) -> None:
+        if client.closed:
+            return
+        client.closed = True
+        self.selector.unregister(client.sock)
+        client.sock.close()
+        self.stats.clients -= 1
+        self._log("close", client.peer, b"", why)
+
+    def _receive(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as error:
+            self._close(client, error.strerror or str(error))
+            return
+        if not data:
+            self._close(client, "closed by the client")
+            return
+        client.framer.feed(data)
+        client.last_data = time.monotonic()
+        self._events(client, client.framer.next_event)
+
+    def _events(self, client: _Client, first: Callable[[], Frame | Rejected | None]) -> None:
+        event = first()
+        while event is not None and not client.closed:
+            if isinstance(event, Rejected) and self.framer_name == "tcp":
+                self.responder.answer(event, client.framer, client.peer)
+                self._close(client, f"not Modbus TCP: {event.error}")
+                return
+            reply = self.responder.answer(event, client.framer, client.peer)
+            if reply:
+                self._queue(client, reply)
+            event = client.framer.next_event()
+
+    def _queue(self, client: _Client, reply: bytes) -> None:
+        def send() -> None:
+            if client.closed:
+                return
+            try:
+                client.sock.sendall(reply)
+            except OSError as error:
+                self._close(client, error.strerror or str(error))
+
+        if self.faults.delay:
+            self._later(time.monotonic() + self.faults.delay, send)
+        else:
+            send()
+
+    def _serve_tcp(self) -> None:
+        while not self._stop:
+            for key, _ in self.selector.select(self._wait(TICK)):
+                if key.data is None:
+                    self._accept()
+                else:
+                    self._receive(key.data)
+            self._send_due()
+            self._tick()
+            if self.framer_name != "tcp":
+                # RTU/ASCII over TCP: no silence to see, but a long pause ends what is buffered.
+                now = time.monotonic()
+                for key in list(self.selector.get_map().values()):
+                    client = key.data
+                    if client and client.framer.buffered and now - client.last_data > TCP_GAP:
+                        self._events(client, client.framer.silence)
+
+    def _close_tcp(self) -> None:
+        for key in list(self.selector.get_map().values()):
+            if key.data is not None:
+                self._close(key.data, "server stopped")
+        self.selector.close()
+        self.listener.close()
+
+    # -- serial ----------------------------------------------------------------------------
+
+    def _open_serial(self) -> None:
+        import serial
+
+        from mbtool.transport import SerialTransport
+
+        settings = self.settings
+        transport = SerialTransport(self.target.path, settings)  # ConnectionFailed if it cannot
+        self.transport = transport
+        self._serial_error = serial.SerialException
+        self.framer = device_framer(self.framer_name)
+        self.stats.listening = f"{self.target.path} {settings}"
+        self.stats.clients = 1
+
+    def _serve_serial(self) -> None:
+        t35 = silent_interval(self.baud)
+        gap = max(t35, MIN_SERIAL_GAP) if self.framer_name == "rtu" else 1.0  # ASCII: 1 s between chars (§2)
+        last_rx = 0.0
+        peer = self.target.path
+        while not self._stop:
+            waiting = self.framer.buffered > 0
+            try:
+                data = self.transport.read(self._wait(min(gap, TICK) if waiting else TICK))
+            except NoResponse as lost:  # the port went away (USB adapter unplugged)
+                raise ConnectionFailed(f"lost the serial line: {lost}") from None
+            now = time.monotonic()
+            if data:
+                last_rx = now
+                self.framer.feed(data)
+                events = self._drain(self.framer.next_event)
+            elif waiting and now - last_rx >= gap:
+                events = self._drain(self.framer.silence)
+            else:
+                events = []
+            for event in events:
+                reply = self.responder.answer(event, self.framer, peer)
+                if reply:
+                    # Keep the line quiet for t3.5 after the request before answering (spec §2).
+                    due = max(now, last_rx + t35) + self.faults.delay
+                    self._later(due, lambda reply=reply: self._write(reply))
+            self._send_due()
+            self._tick()
+
+    def _drain(self, first: Callable[[], Frame | Rejected | None]) -> list[Frame | Rejected]:
+        events = []
+        event = first()
+        while event is not None:
+            events.append(event)
+            event = self.framer.next_event()
+        return events
+
+    def _write(self, data: bytes) -> None:
+        self.transport.write(data)
+
+    # -- the loop ----------------------------------------------------------------------------
+
+    def run(self, tick: Callable[[], None] | None = None) -> None:
+        """Serve until stopped; ``tick`` is called after every turn of the loop (at most TICK apart)."""
+        self._tick = tick or (lambda: None)
+        try:
+            if self.target.kind == "tcp":
+                self._serve_tcp()
+            else:
+                self._serve_serial()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self.target.kind == "tcp":
+            if hasattr(self, "selector"):
+                self._close_tcp()
+        elif hasattr(self, "transport"):
+            self.transport.close()
+
+
+class _Client:
+    __slots__ = ("sock", "peer", "framer", "last_data", "closed")
+
+    def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
+        self.sock = sock
+        self.peer = peer
+        self.framer = framer
+        self.last_data = time.monotonic()
+        self.closed = False
