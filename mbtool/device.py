@@ -262,7 +262,10 @@ class Device:
             return None  # a real slave ignores a frame with a bad checksum (spec §2)
         if not isinstance(event, Frame):
             return None
-        reply = self.handle(event.unit, event.pdu)
+        unit = event.unit
+        if unit == 0xFF and framer.name == "tcp" and unit not in self.units:
+            unit = min(self.units)  # spec §2: on Modbus TCP, unit FF addresses the device itself
+        reply = self.handle(unit, event.pdu)
         if reply is None:
             return None
         adu = framer.build(event.unit, reply, event.transaction_id or 0)

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import struct
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -369,14 +367,15 @@ def test_sim_answers_every_function_code_in_process():
 
 
 def test_sim_device_startup_is_cheap():
-    """Building the demo device must cost milliseconds, not the 65536-object tables of a naive model."""
-    code = (
-        "import time; t=time.perf_counter(); from mbtool.device import Device, demo_model;"
-        "d=Device(demo_model()); d.handle(1, bytes.fromhex('0300000001'));"
-        "print(time.perf_counter()-t)"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=20)
-    assert float(out.stdout) < 0.05, out
+    """Building the demo device costs well under a millisecond or two: bytearray/array tables,
+    not 65536 Python objects per table (a one-shot -p sim:// command pays this every run)."""
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        d = Device(demo_model())
+        d.handle(1, H("0300000001"))
+        best = min(best, time.perf_counter() - t0)
+    assert best < 0.005, best
 
 
 def test_readme_example_data_file_loads(tmp_path):
@@ -392,3 +391,21 @@ def test_readme_example_data_file_loads(tmp_path):
     assert ask(d, "18 00C8") == H("18 0006 0002 1111 2222")
     assert ask(d, "03 0000 0001", unit=17) == H("03 02 0011")
     assert ask(d, "11")[2:4] == H("42 FF")
+
+
+def test_character_overrun_is_counted():
+    from mbtool.codec.framing import Rejected
+    from mbtool.errors import FrameError
+
+    d = dev()
+    d.rejected(Rejected(b"\xff" * 300, FrameError("garbage", b"")))
+    assert counter(d, 0x12) == 1
+    assert ask(d, "08 0014 0000") == H("08 0014 0000")  # clear overrun counter and flag
+    assert counter(d, 0x12) == 0
+
+
+def test_tcp_unit_ff_is_the_device_itself():
+    d = dev(units=(3,))
+    framer = make_framer("tcp", responses=False)
+    framer.feed(H("0007 0000 0006 FF 03 0000 0001"))
+    assert d.answer_frame(framer.next_event(), framer) == H("0007 0000 0005 FF 03 02 0000")

@@ -542,3 +542,31 @@ def test_port_in_use_is_exit_6():
         res = run_mbtool("serve", "-p", f"tcp://127.0.0.1:{server.port}", "-q", timeout=10)
         line = assert_one_error_line(res, 6)
         assert "cannot listen" in line
+
+
+def test_garbage_stream_over_rtu_tcp_does_not_stop_the_server():
+    with serve("--framer", "rtu") as server:
+        with _raw(server) as s:
+            s.sendall(b"\xff" * 5000 + bytes(range(256)) * 4)
+            time.sleep(0.2)
+            request = bytes.fromhex("010300010001")
+            s.sendall(request + crc16(request))
+            body = bytes.fromhex("0103020001")
+            assert s.recv(100) == body + crc16(body)
+        res = expect_ok(mb(server.socket_target, "read-holding-registers", "2", "--framer", "rtu"))
+        assert plain_pairs(res) == [(2, "2")]
+
+
+def test_rtu_frames_are_ended_by_silence_when_their_length_misleads():
+    """A reply from another slave on the bus is no CRC error, and a longer FC08 query is echoed."""
+    with serve("--framer", "rtu") as server:
+        with _raw(server) as s:
+            other = bytes.fromhex("020304000100 02".replace(" ", ""))  # unit 2 answering FC03
+            s.sendall(other + crc16(other))
+            time.sleep(0.2)
+            query = bytes.fromhex("01080000A5370102")  # return query data, 4 bytes
+            s.sendall(query + crc16(query))
+            assert s.recv(100) == query + crc16(query)
+            errors = bytes.fromhex("0108000C0000")
+            s.sendall(errors + crc16(errors))
+            assert s.recv(100) == bytes.fromhex("0108000C0000") + crc16(bytes.fromhex("0108000C0000"))
