@@ -369,3 +369,58 @@ def test_malformed_replies_exit_5(raw_responder, command):
         res = run_mbtool(*command, "-p", srv.socket_target, "-t", "0.3")
         line = assert_one_error_line(res, 5)
         assert len(line) > len("mbtool: ") + 10, f"{pdu}: {line}"
+
+
+# ----------------------------------------------------------------------------- Modicon decoding end to end
+
+
+def test_diag_register_bits_named_per_controller(raw_responder):
+    srv = raw_responder(_answer("08 0002 8001"))
+    res = expect_ok(
+        run_mbtool("diag", "diagnostic-register", "--controller", "584/984", "-p", srv.socket_target)
+    )
+    got = pairs(res)
+    assert got["diagnostic_register"] == "0x8001"
+    assert got["bit0"] == "illegal configuration"
+    assert got["bit15"] == "peripheral port stop executed (not an error)"
+
+
+def test_diag_register_without_controller_lists_set_bits(raw_responder):
+    srv = raw_responder(_answer("08 0002 0012"))
+    res = expect_ok(run_mbtool("diag", "diagnostic-register", "-p", srv.socket_target))
+    assert pairs(res)["bits"] == "1 4"
+
+
+def test_report_id_modicon_984_layout(raw_responder):
+    srv = raw_responder(_answer("11 09 09 FF 04 08 02 0081 4000"))
+    res = expect_ok(run_mbtool("report-id", "-p", srv.socket_target, "-o", "json"))
+    data = json.loads(res.stdout)
+    assert data["layout"] == "Modicon 984" and data["slave_id"] == 9 and data["run_indicator"] is True
+    assert data["machine_state"] == 0x0081 and data["stop_code"] == 0x4000
+    res = expect_ok(run_mbtool("report-id", "-p", srv.socket_target))
+    got = pairs(res)
+    assert got["slave_id"] == "9 (Modicon 984)"
+    assert "extended memory partially failed" in got["stop_code"]
+
+
+def test_event_log_events_in_words(raw_responder):
+    srv = raw_responder(_answer("0C 09 FFFF 0108 0121 C2 42 04"))
+    res = expect_ok(run_mbtool("event-log", "-p", srv.socket_target))
+    got = pairs(res)
+    assert got["status"] == "busy"
+    assert got["event0"] == "0xC2 receive event: communication error, broadcast received"
+    assert got["event1"] == "0x42 send event: slave abort exception sent (code 4)"
+    assert got["event2"] == "0x04 entered listen-only mode"
+
+
+def test_diag_counters_tolerate_an_unsupported_counter(raw_responder):
+    def reply(request: bytes) -> bytes:
+        sub = request[3]
+        pdu = bytes([0x88, 0x01]) if sub == 0x0E else bytes([0x08, 0, sub, 0, sub])
+        return rtu(request[:1] + pdu)
+
+    srv = raw_responder(reply)
+    res = expect_ok(run_mbtool("diag", "counters", "-p", srv.socket_target))
+    got = pairs(res)
+    assert got["bus_message_count"] == "11"
+    assert got["slave_message_count"] == "not supported: exception 01 Illegal Function"

@@ -367,6 +367,17 @@ def printable(data: bytes) -> str:
     return "".join(chr(b) if 0x20 <= b < 0x7F else "." for b in data)
 
 
+# Where each Modicon field sits in the device-specific bytes (seed 002, FC17 byte tables).
+_MODICON_BYTES = {
+    "status_word": (0, 2),
+    "page0_memory_4k": (0, 1),
+    "state_ram_1k": (1, 1),
+    "segments": (2, 1),
+    "machine_state": (3, 2),
+    "stop_code": (5, 2),
+}
+
+
 def _slave_id(pdu: bytes) -> list[Field]:
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
 
@@ -382,7 +393,8 @@ def _slave_id(pdu: bytes) -> list[Field]:
     ]
     if layout:
         for name, value, text in modicon_fields(layout, extra):
-            fields.append(Field(name, b"", value, text))
+            at, size = _MODICON_BYTES.get(name) or (2 + 2 * int(name.removeprefix("pib_")), 2)
+            fields.append(Field(name, extra[at : at + size], value, text))
     elif extra:
         fields.append(
             Field("extra", extra, extra.hex(" ").upper(), f'{extra.hex(" ").upper()} "{printable(extra)}"')
@@ -531,8 +543,12 @@ def describe_pdu(
     else:
         chosen = direction or "request"
         if direction is None:
-            # Neither reading holds: report the one that got further, the longer error tends to be it.
-            chosen = "response" if asked is not None and asked.function_code == code else "request"
+            # Neither reading holds: a reply to the request just seen, else whichever the
+            # length fits (a request's length is fixed or counted by the PDU itself).
+            if asked is not None and asked.function_code == code:
+                chosen = "response"
+            else:
+                chosen = "request" if kind.request_size.of(pdu) == len(pdu) else "response"
     error = ""
     if chosen == "response":
         warnings += reply_warnings
