@@ -205,3 +205,10 @@ def test_report_table_has_title_and_fields():
     text = rendered("table")
     assert "Get Comm Event Log (FC 12) · unit 1" in text
     assert "event count" in text and "264" in text
+
+
+def test_modbus_plus_words_cover_the_54_of_the_reply():
+    from mbtool.codec.modicon import MODBUS_PLUS_WORDS
+
+    assert len(MODBUS_PLUS_WORDS) == 54
+    assert MODBUS_PLUS_WORDS[53].endswith("path C8")

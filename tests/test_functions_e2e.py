@@ -424,3 +424,14 @@ def test_diag_counters_tolerate_an_unsupported_counter(raw_responder):
     got = pairs(res)
     assert got["bus_message_count"] == "11"
     assert got["slave_message_count"] == "not supported: exception 01 Illegal Function"
+
+
+def test_diag_modbus_plus_statistics_named(raw_responder):
+    words = "0001 0123 0005" + " 0000" * 51
+    srv = raw_responder(_answer("08 0015 0003 6C " + words))
+    res = expect_ok(run_mbtool("diag", "modbus-plus-stats", "-p", srv.socket_target, "-o", "json"))
+    data = json.loads(res.stdout)
+    assert data["word0"] == 1 and data["word2"] == 5 and "word53" in data
+    got = pairs(expect_ok(run_mbtool("diag", "modbus-plus-stats", "get", "-p", srv.socket_target)))
+    assert got["word0"].startswith("1 (0x0001) node type ID")
+    assert got["word2"] == "5 (0x0005) network address of this station"

@@ -253,3 +253,75 @@ def modicon_fields(layout: str, extra: bytes) -> list[tuple[str, int, str]]:
         ),
         ("stop_code", stop, f"0x{stop:04X}: {_bit_list(stop, stop_names) if stop else 'running (no stop)'}"),
     ]
+
+
+# --- FC08 sub-function 21: the 54 words of Modbus Plus statistics (seed 002) -------------------
+
+
+def _pair(low: str, high: str) -> str:
+    return f"LO: {low}; HI: {high}"
+
+
+def _bitmap_words(what: str) -> tuple[str, ...]:
+    return tuple(
+        _pair(f"{what}, nodes {n}-{n + 7}", f"{what}, nodes {n + 8}-{n + 15}") for n in range(1, 64, 16)
+    )
+
+
+def _path_words(what: str, first: int, count: int, digits: str = "d") -> tuple[str, ...]:
+    def label(n: int) -> str:
+        return f"{n:X}" if digits == "X" else str(n)
+
+    return tuple(
+        _pair(f"{what} {label(first + 2 * i)}", f"{what} {label(first + 2 * i + 1)}") for i in range(count)
+    )
+
+
+MODBUS_PLUS_WORDS: tuple[str, ...] = (
+    (
+        "node type ID (0 unknown, 1 PLC, 2 Modbus bridge, 3 host, 4 bridge plus, 5 peer I/O)",
+        "software version in bits 0-11 (hex); bit 15 selects the meaning of word 15",
+        "network address of this station",
+        "MAC state (0 power up, 1 monitor offline, 2 duplicate offline, 3 idle, 4 use token,"
+        " 5 work response, 6 pass token, 7 solicit response, 8 check pass, 9 claim token,"
+        " 10 claim response)",
+        "peer status, LED code (0 monitor link, 32 normal link, 64 never getting token,"
+        " 96 sole station, 128 duplicate station)",
+        "token pass counter",
+        "token rotation time (ms)",
+        _pair("data master failed during token ownership", "program master failed during token ownership"),
+        _pair("data master token owner bitmap", "program master token owner bitmap"),
+        _pair("data slave token owner bitmap", "program slave token owner bitmap"),
+        _pair("not named in seed 002", "data slave / get slave command transfer request bitmap"),
+        _pair(
+            "program master / get master response transfer request bitmap",
+            "program slave / get slave command transfer request bitmap",
+        ),
+        _pair("program master connect status bitmap", "program slave automatic logout request bitmap"),
+        _pair("pretransmit deferral error counter", "receive buffer time-out error counter"),
+        _pair("repeated command received counter", "frame error counter"),
+        _pair(
+            "receiver collision-abort error counter (cable A error if word 1 bit 15 is set)",
+            "receiver alignment error counter (cable B error if word 1 bit 15 is set)",
+        ),
+        _pair("receiver CRC error counter", "bad packet-length error counter"),
+        _pair("bad link-address error counter", "transmit buffer DMA-underrun error counter"),
+        _pair("bad internal packet length error counter", "bad MAC function code error counter"),
+        _pair("communication retry counter", "communication failed error counter"),
+        _pair("good receive packet counter", "no response received error counter"),
+        _pair("exception response received counter", "unexpected path error counter"),
+        _pair("unexpected response error counter", "forgotten transaction error counter"),
+    )
+    + _bitmap_words("active station table")
+    + _bitmap_words("token station table")
+    + _bitmap_words("global data present table")
+    + (
+        _pair("receive buffer in use, buffers 1-8", "receive buffer in use, buffers 9-16"),
+        _pair("receive buffer in use, buffers 17-24", "receive buffer in use, buffers 25-32"),
+        _pair("receive buffer in use, buffers 33-40", "station management command initiated counter"),
+    )
+    + _path_words("master data output path command initiated counter, path", 1, 4)
+    + _path_words("slave data input path command processed counter, path", 0x41, 4, "X")
+    + _path_words("master program output path command initiated counter, path", 0x81, 4, "X")
+    + _path_words("slave program input path command processed counter, path", 0xC1, 4, "X")
+)

@@ -152,12 +152,28 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
     elif sub in COUNTERS or sub == 0x13:
         rows.append(Row(name.replace("-", "_"), reply.value))
     elif sub == 0x15 and reply.statistics is not None:
-        rows += [Row(f"word{i}", word) for i, word in enumerate(reply.statistics)]
+        rows += _statistics_rows(reply.statistics)
     else:
         rows.append(Row("data", reply.data.hex(" ").upper()))
         if sub in ECHO_SUB_FUNCTIONS or sub == 0x15:
             rows.append(Row("echo", True, "matched"))  # Diagnostics.check_response refused any other
     return Report(connection.unit, 8, title, rows)
+
+
+def _statistics_rows(words: tuple[int, ...]):
+    """Modbus Plus statistics, each word named as seed 002 does; byte pairs shown as LO/HI."""
+    from mbtool.codec.modicon import MODBUS_PLUS_WORDS
+    from mbtool.render import Row
+
+    rows = []
+    for i, word in enumerate(words):
+        name = MODBUS_PLUS_WORDS[i] if i < len(MODBUS_PLUS_WORDS) else "not named in seed 002"
+        if name.startswith("LO: "):
+            text = f"LO {word & 0xFF}, HI {word >> 8} ({name})"
+        else:
+            text = f"{word} (0x{word:04X}) {name}"
+        rows.append(Row(f"word{i}", word, text))
+    return rows
 
 
 def _register_rows(value: int, controller: str | None):
