@@ -524,6 +524,7 @@ def test_live_view_on_a_terminal():
         (("--exception", "3"), 2, "FC:CODE"),
         (("--drop", "2"), 2, "between 0 and 1"),
         (("--corrupt", "0.5"), 2, "MBAP"),
+        (("-p", "/dev/ttyS0", "--bytesize", "7"), 2, "8 data bits"),
         (("--data", "/nonexistent/plant.toml"), 2, "cannot read"),
         (("-p", "/dev/nonexistent-tty"), 6, "cannot open"),
         (("-p", "/dev/nonexistent-tty", "--framer", "tcp"), 2, "tcp://"),

@@ -189,6 +189,8 @@ def serve(
     framer = framer or ("tcp" if where.kind == "tcp" else "rtu")
     if where.kind == "serial" and framer == "tcp":
         raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
+    if framer == "rtu" and bytesize == "7":
+        raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
     if corrupt and framer == "tcp":
         raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)
