@@ -321,13 +321,18 @@ def test_mbtool_client_over_tcp():
 @pytest.mark.parametrize("framer", ["rtu", "ascii"])
 def test_mbtool_client_serial_line_over_tcp(framer):
     """RTU/ASCII framing over a TCP listener: what a master sees through a serial device server."""
-    with serve("--framer", framer) as server:
+    with serve("--framer", framer, quiet=False) as server:
         res = expect_ok(
             mb(server.socket_target, "read-holding-registers", "0", "3", "--framer", framer, "--hex")
         )
         assert plain_pairs(res) == [(0, "0"), (1, "1"), (2, "2")]
         assert "ok" in res.stderr
         expect_ok(mb(server.socket_target, "write-register", "9", "99", "--framer", framer))
+        code, out, _ = server.stop()
+        assert code == 0
+        # the log shows frames as they are on the wire: ASCII as text, RTU as hex
+        shown = ":010300000003F9\\r\\n" if framer == "ascii" else "RX 01 03 00 00 00 03 05 CB"
+        assert shown in out, out
 
 
 def test_mbtool_client_over_serial_rtu():

@@ -7,6 +7,7 @@ choice types are the shared ones.
 
 from __future__ import annotations
 
+import functools
 import signal
 import sys
 import time
@@ -202,7 +203,7 @@ def serve(
     device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
     settings = SerialSettings(baud, parity.upper(), int(bytesize), int(stopbits))
     mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
-    log = _log_line if mode == "log" else None
+    log = functools.partial(_log_line, framer) if mode == "log" else None
     server = Server(
         device,
         where,
@@ -247,10 +248,16 @@ def _units_text(units: frozenset[int]) -> str:
     return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def _log_line(direction: str, peer: str, data: bytes, note: str) -> None:
+def _shown(data: bytes, framer: str) -> str:
+    """A frame as the trace shows it: hex pairs, or the characters of an ASCII frame."""
+    if framer == "ascii" and data.isascii():
+        return data.decode("ascii").replace("\r", "\\r").replace("\n", "\\n")
+    return data.hex(" ").upper()
+
+
+def _log_line(framer: str, direction: str, peer: str, data: bytes, note: str) -> None:
     stamp = time.strftime("%H:%M:%S")
-    hex_text = data.hex(" ").upper()
-    text = " ".join(part for part in (stamp, peer, direction, hex_text, note) if part)
+    text = " ".join(part for part in (stamp, peer, direction, _shown(data, framer), note) if part)
     click.echo(text)
     sys.stdout.flush()
 
@@ -308,7 +315,7 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         frames.add_column("bytes", overflow="fold")
         frames.add_column("note", overflow="fold")
         for at, direction, peer, data, note in stats.frames:
-            frames.add_row(f"{at:.3f}", direction, peer, data.hex(" ").upper(), note)
+            frames.add_row(f"{at:.3f}", direction, peer, _shown(data, framer), note)
         side = Table.grid(padding=(0, 4))
         side.add_row(counters, served)
         return Group(head, side, frames)
