@@ -49,8 +49,7 @@ EVENT_SEND = 0x40
 EVENT_SEND_READ_EXCEPTION = 0x01  # codes 1-3
 EVENT_SEND_ABORT = 0x02  # code 4
 EVENT_SEND_BUSY = 0x04  # codes 5-6
-EVENT_SEND_NAK = 0x08  # code 7
-EVENT_SEND_LISTEN_ONLY = 0x20
+EVENT_SEND_NAK = 0x08  # code 7 (bit 5, "in listen-only mode", never applies: nothing is sent then)
 EVENT_LISTEN_ONLY = 0x04
 EVENT_RESTART = 0x00
 
