@@ -94,7 +94,7 @@ def diag(connection, sub_function, data, clear_log, controller):
     slave-busy-count, bus-char-overrun-count, iop-overrun-count, clear-overrun,
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
-    from mbtool.render import Report
+    from mbtool.connection import show
 
     if connection.unit == 0:
         raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
@@ -105,9 +105,6 @@ def diag(connection, sub_function, data, clear_log, controller):
     else:
         sub = _sub_function(sub_function)
         report = _one(connection, sub, _data(sub, data, clear_log), controller)
-    assert isinstance(report, Report)
-    from mbtool.connection import show
-
     show(connection, report)
 
 

@@ -92,7 +92,8 @@ def event_log(connection):
 
 
 def _with_warnings(report, reply):
-    """A strict reader's remarks go to stderr-free output: a note under the table, a row elsewhere."""
+    """What a strict reader noticed in the reply (e.g. a status word neither busy nor idle):
+    a ``warning`` row, and a ``warnings`` list in JSON; stderr stays for the one error line."""
     from mbtool.codec.record import replace
     from mbtool.render import Row
 
