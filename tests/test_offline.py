@@ -253,3 +253,8 @@ def assert_one_error_line_in_stderr(res, code: int) -> None:
     assert "Traceback" not in res.stderr
     errors = [line for line in res.stderr.splitlines() if line.startswith("mbtool: ")]
     assert len(errors) == 1, str(res)
+
+
+def test_decode_warns_about_padding_bits_of_an_fc15_request():
+    res = expect_ok(run_mbtool("decode", rtu(bytes.fromhex("11 0F 00 13 00 0A 02 CD 41")).hex()))
+    assert pairs(res)["warning"] == "unused high bits of the last byte are not zero"

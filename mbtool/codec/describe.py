@@ -431,6 +431,12 @@ def text_of(value: bytes) -> str:
     return text if text.isprintable() else value.hex(" ").upper()
 
 
+def _padding_set(data: bytes, count: int) -> bool:
+    """Bits past ``count`` in the last byte must be zero (spec §1)."""
+    used = count % 8
+    return bool(used) and len(data) == (count + 7) // 8 and data[-1] >> used != 0
+
+
 # --- the whole frame ------------------------------------------------------------------------
 
 
@@ -565,6 +571,8 @@ def describe_pdu(
             fields = request_fields(pdu)
         except IndexError:
             fields = []
+        if code == 0x0F and len(pdu) > 6 and _padding_set(pdu[6:], int.from_bytes(pdu[3:5], "big")):
+            warnings.append("unused high bits of the last byte are not zero")
     if error:
         shown = sum(len(f.raw) for f in fields) + 1
         if shown < len(pdu):
