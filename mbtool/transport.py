@@ -184,19 +184,27 @@ class SimTransport(Transport):
     description = "sim://"
 
     def __init__(self, framer_name: str) -> None:
-        from mbtool.codec.framing import make_framer
+        from mbtool.codec.framing import device_framer
         from mbtool.device import Device, demo_model
 
         self.device = Device(demo_model())
-        self.framer = make_framer(framer_name, responses=False)
+        self.framer = device_framer(framer_name)
         self._pending = bytearray()
 
     def write(self, data: bytes) -> None:
         self.framer.feed(data)
         while (event := self.framer.next_event()) is not None:
-            reply = self.device.answer_frame(event, self.framer)
-            if reply:
-                self._pending += reply
+            self._answer(event)
+        # One write is one whole frame, and the line falls silent after it: that ends a
+        # request whose length the framer cannot tell (an unknown function code, a long
+        # return-query-data), as t3.5 would on a real bus.
+        while (event := self.framer.silence()) is not None:
+            self._answer(event)
+
+    def _answer(self, event) -> None:
+        reply = self.device.answer_frame(event, self.framer)
+        if reply:
+            self._pending += reply
 
     def read(self, timeout: float) -> bytes:
         if not self._pending:

@@ -388,3 +388,50 @@ FRAMERS = {"rtu": RtuFramer, "ascii": AsciiFramer, "tcp": TcpFramer}
 
 def make_framer(name: str, responses: bool = True) -> Framer:
     return FRAMERS[name](responses)
+
+
+class DeviceRtuFramer(RtuFramer):
+    """Reads requests like a slave: a frame with a function code the codec does not know is
+    ended by silence and answered with exception 01, not skipped byte by byte as noise."""
+
+    def __init__(self) -> None:
+        super().__init__(responses=False)
+
+    def _frame_size(self, start: int):
+        size = super()._frame_size(start)
+        if (
+            size is not None
+            and not isinstance(size, int)
+            # Beyond one maximal ADU it cannot be a frame: skip it as noise, which also keeps
+            # the buffer (and the work silence() does on it) bounded.
+            and len(self._buffer) - start <= RTU_MAX_ADU
+            and pdu_length(bytes(self._buffer[start + 1 : start + 2]), False) == UNKNOWN
+        ):
+            return None
+        return size
+
+    def _parse(self):
+        result = super()._parse()
+        if (
+            isinstance(result, tuple)
+            and isinstance(result[1], ChecksumError)
+            and not self._quiet
+            and len(self._buffer) <= RTU_MAX_ADU
+        ):
+            # A bad CRC at the length a request would have: on a shared bus it is as likely
+            # a reply from another slave, or a longer FC08 query; only silence tells (spec §2).
+            return None
+        return result
+
+    def silence(self):
+        if self._buffer and not self._garbage:
+            frame = self._whole(bytes(self._buffer))
+            if isinstance(frame, Frame):
+                self._buffer.clear()
+                return frame
+        return super().silence()
+
+
+def device_framer(name: str) -> Framer:
+    """The framer a device reads requests with (mbtool serve and sim://)."""
+    return DeviceRtuFramer() if name == "rtu" else make_framer(name, responses=False)

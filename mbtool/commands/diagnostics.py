@@ -111,7 +111,7 @@ def diag(connection, sub_function, data, clear_log, controller):
 def _one(connection, sub: int, data: bytes, controller: str | None):
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
     from mbtool.connection import execute
-    from mbtool.errors import MismatchError
+    from mbtool.errors import MismatchError, NoResponse
     from mbtool.render import Report, Row
 
     request = Diagnostics(sub, data)
@@ -138,7 +138,15 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
                 f"return-query-data echo {echoed.hex(' ').upper()} differs from {data.hex(' ').upper()}"
             )
         return Report(connection.unit, 8, title, rows)
-    reply = execute(connection, request)
+    try:
+        reply = execute(connection, request)
+    except NoResponse as silence:
+        if sub == 0x01:
+            # Spec §4: a device in listen-only mode restarts without answering.
+            raise NoResponse(
+                f"{silence}; a device in listen-only mode restarts on restart-comms without a reply"
+            ) from None
+        raise
     if not request.expects_response:
         rows.append(
             Row("reply", "none expected: the device is now in listen-only mode (restart-comms ends it)")
