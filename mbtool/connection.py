@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from mbtool.codec.record import record, replace
 from mbtool.errors import RequestError
+
+if TYPE_CHECKING:
+    from mbtool.client import Client
 
 
 @record
@@ -24,26 +30,31 @@ class Connection:
     output_format: str | None
 
 
-def execute(connection: Connection, request) -> object:
-    """Open the link, run one transaction, close it; the reply (None for broadcast)."""
+@contextmanager
+def open_client(connection: Connection, needs: str = "", framer=None) -> Iterator[Client]:
+    """A Client on the connection's link, closed afterwards.
+
+    ``needs``: what the command does, named when it may not go to unit 0 (broadcast
+    is for writes only; an empty ``needs`` allows it).  ``framer`` replaces the default.
+    Several transactions can share the link (diag counters, device-id's more-follows;
+    sim:// keeps its state only as long as its link).
+    """
     from mbtool.client import Client
     from mbtool.codec.framing import make_framer
     from mbtool.render import HexTrace
-    from mbtool.transport import SerialSettings, default_framer, open_transport
+    from mbtool.transport import SerialSettings, open_transport
 
     if not connection.port:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
-    if connection.unit == 0 and not request.broadcastable:
-        raise RequestError(
-            f"unit 0 is broadcast, which only writes may use; {request.name} needs a unit 1..255"
-        )
-    framer_name = connection.framer or default_framer(connection.port)
+    if connection.unit == 0 and needs:
+        raise RequestError(f"unit 0 is broadcast, which only writes may use; {needs} needs a unit 1..255")
+    name = framer_name(connection)
     settings = SerialSettings(connection.baud, connection.parity, connection.bytesize, connection.stopbits)
-    transport = open_transport(connection.port, settings, connection.timeout, framer_name)
+    transport = open_transport(connection.port, settings, connection.timeout, name)
     try:
-        framer = make_framer(framer_name)
+        framer = framer or make_framer(name)
         client = Client(
             transport,
             framer,
@@ -54,9 +65,21 @@ def execute(connection: Connection, request) -> object:
         )
         if connection.hex:
             client.trace = HexTrace(framer)
-        return client.execute(connection.unit, request)
+        yield client
     finally:
         transport.close()
+
+
+def framer_name(connection: Connection) -> str:
+    from mbtool.transport import default_framer
+
+    return connection.framer or default_framer(connection.port or "")
+
+
+def execute(connection: Connection, request) -> object:
+    """Open the link, run one transaction, close it; the reply (None for broadcast)."""
+    with open_client(connection, "" if request.broadcastable else request.name) as client:
+        return client.execute(connection.unit, request)
 
 
 def show(connection: Connection, result) -> None:

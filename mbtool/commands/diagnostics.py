@@ -198,12 +198,12 @@ def _register_rows(value: int, controller: str | None):
 
 def _counters(connection):
     from mbtool.codec.serial_line import Diagnostics
-    from mbtool.commands.session import open_client
+    from mbtool.connection import open_client
     from mbtool.errors import ModbusException
     from mbtool.render import Report, Row
 
     rows, data, answered, refused = [], {}, 0, None
-    with open_client(connection) as client:
+    with open_client(connection, "diag counters") as client:
         for sub in COUNTERS:
             key = NAMES[sub].replace("-", "_")
             try:

@@ -328,13 +328,13 @@ def device_id(connection, level, object_id):
     """
     from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
-    from mbtool.commands.session import open_client
+    from mbtool.connection import open_client
     from mbtool.errors import FrameError
     from mbtool.render import Report, Row
 
     objects: dict[int, bytes] = {}
     conformity = None
-    with open_client(connection) as client:
+    with open_client(connection, ReadDeviceIdentification.name) as client:
         if object_id is not None:
             request = ReadDeviceIdentification(4, object_id)
             reply = client.execute(connection.unit, request)

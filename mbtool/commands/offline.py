@@ -203,7 +203,7 @@ def raw(connection, data, adu):
     from mbtool.client import Trace
     from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
     from mbtool.codec.raw import RawRequest
-    from mbtool.commands.session import framer_name, open_client
+    from mbtool.connection import framer_name, open_client
     from mbtool.errors import FrameError, ModbusException
 
     name = framer_name(connection)
@@ -247,7 +247,7 @@ def raw(connection, data, adu):
                 self.other = frame
 
     failure = None
-    with open_client(connection, broadcastable=True, framer=_exact_framer(name, exact)) as client:
+    with open_client(connection, framer=_exact_framer(name, exact)) as client:
         capture = Capture(client.trace)
         client.trace = capture
         try:
