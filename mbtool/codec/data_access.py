@@ -136,6 +136,14 @@ class ReadDiscreteInputs(_ReadBits):
     name: ClassVar = "Read Discrete Inputs"
 
 
+def _check_register_count(response: RegistersResponse, count: int) -> None:
+    """The byte count must fit the quantity asked for (libmodbus CVE-2019-14462/3 were this check)."""
+    if len(response.registers) != count:
+        raise MismatchError(
+            f"byte count {2 * len(response.registers)} does not fit {count} registers (expected {2 * count})"
+        )
+
+
 @record
 class _ReadRegisters(Request):
     address: int
@@ -157,11 +165,7 @@ class _ReadRegisters(Request):
         return cls(*_address_and_count(pdu, cls.name))
 
     def check_response(self, response: RegistersResponse) -> None:
-        if len(response.registers) != self.count:
-            raise MismatchError(
-                f"byte count {2 * len(response.registers)} does not fit {self.count} registers"
-                f" (expected {2 * self.count})"
-            )
+        _check_register_count(response, self.count)
 
 
 @register
@@ -438,11 +442,7 @@ class ReadWriteMultipleRegisters(Request):
         return cls(read_address, read_count, write_address, unpack_registers(pdu[10:]))
 
     def check_response(self, response: RegistersResponse) -> None:
-        if len(response.registers) != self.read_count:
-            raise MismatchError(
-                f"byte count {2 * len(response.registers)} does not fit {self.read_count} registers"
-                f" (expected {2 * self.read_count})"
-            )
+        _check_register_count(response, self.read_count)
 
 
 # --- FC 24: read a FIFO queue ------------------------------------------------------

@@ -150,14 +150,9 @@ MACHINE_STATE_584 = {
     5: "memory protect off",
     4: "battery not OK",
 }
+# The 984 keeps the 584's bits 4-10 and adds bit 0; it has no port set-up bits.
 MACHINE_STATE_984 = {
-    10: "constant sweep on",
-    9: "single sweep on",
-    8: "16-bit nodes (else 24-bit)",
-    7: "power on",
-    6: "RUN light off",
-    5: "memory protect off",
-    4: "battery not OK",
+    **{bit: name for bit, name in MACHINE_STATE_584.items() if bit <= 10},
     0: "memory downsized (see configuration words 99, 100, 175)",
 }
 
