@@ -83,7 +83,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -99,7 +99,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -117,7 +117,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -h --help
                     fi
                     ;;
             esac
@@ -135,7 +135,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -h --help
                     fi
                     ;;
             esac
@@ -151,7 +151,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -169,7 +169,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -h --help
                     fi
                     ;;
             esac
@@ -185,7 +185,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -203,7 +203,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -h --help
                     fi
                     ;;
             esac
@@ -219,7 +219,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -236,7 +236,7 @@ _mbtool()
                 --controller) _mbtool_words "$cur" 184/384 484 584/984 884 ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --clear-log --controller -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --clear-log --controller -h --help
                     fi
                     ;;
             esac
@@ -252,7 +252,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -268,7 +268,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -284,7 +284,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -300,7 +300,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -316,7 +316,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -332,7 +332,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -350,7 +350,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --type --order -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -h --help
                     fi
                     ;;
             esac
@@ -366,7 +366,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -h --help
                     fi
                     ;;
             esac
@@ -383,7 +383,7 @@ _mbtool()
                 --level) _mbtool_words "$cur" basic regular extended ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --level --object -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --level --object -h --help
                     fi
                     ;;
             esac
@@ -399,7 +399,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --adu -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --adu -h --help
                     fi
                     ;;
             esac

@@ -72,6 +72,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -90,6 +91,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -108,6 +110,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -128,6 +131,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -148,6 +152,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             ':on|off|1|0: ' && ret=0
@@ -166,6 +171,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 hex)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -186,6 +192,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '*:BIT...: ' && ret=0
@@ -204,6 +211,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -224,6 +232,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (diag)
@@ -240,6 +249,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--clear-log[restart-comms: also clear the event log (data FF00)]' \
             '--controller=[diagnostic-register: name the bits as this Modicon family does]:controller:(184/384 484 584/984 884)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -260,6 +270,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (event-log)
@@ -276,6 +287,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (report-id)
@@ -292,6 +304,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (read-file-record)
@@ -308,6 +321,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:FILE RECORD LENGTH [FILE RECORD LENGTH]...: ' && ret=0
           ;;
@@ -325,6 +339,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:FILE RECORD VALUE... [, FILE RECORD VALUE...]...: ' && ret=0
           ;;
@@ -342,6 +357,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             ':AND_MASK: ' \
@@ -361,6 +377,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -383,6 +400,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' && ret=0
           ;;
@@ -400,6 +418,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--level=[Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF]:level:(basic regular extended)' \
             '--object=[Read this one object only]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -418,6 +437,7 @@ _mbtool() {
             '--echo[Strip the local echo of a half-duplex adapter]' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--adu[Send HEX exactly as given (checksum or MBAP header included)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:HEX...: ' && ret=0

@@ -28,14 +28,16 @@ class Connection:
     echo: bool
     hex: bool
     output_format: str | None
+    dry_run: bool = False  # show the frames, open nothing, send nothing
 
 
 @contextmanager
-def open_client(connection: Connection, needs: str = "", framer=None) -> Iterator[Client]:
+def open_client(connection: Connection, needs: str = "", framer=None, then: str = "") -> Iterator[Client]:
     """A Client on the connection's link, closed afterwards.
 
     ``needs``: what the command does, named when it may not go to unit 0 (broadcast
     is for writes only; an empty ``needs`` allows it).  ``framer`` replaces the default.
+    ``then``: with --dry-run, what the command would send after the first reply.
     Several transactions can share the link (diag counters, device-id's more-follows;
     sim:// keeps its state only as long as its link).
     """
@@ -44,13 +46,18 @@ def open_client(connection: Connection, needs: str = "", framer=None) -> Iterato
     from mbtool.render import HexTrace
     from mbtool.transport import SerialSettings, open_transport
 
-    if not connection.port:
+    if not connection.port and not connection.dry_run:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
     if connection.unit == 0 and needs:
         raise RequestError(f"unit 0 is broadcast, which only writes may use; {needs} needs a unit 1..255")
     name = framer_name(connection)
+    if connection.dry_run:
+        from mbtool.dryrun import DryRunClient
+
+        yield DryRunClient(framer or make_framer(name), connection.output_format, then)
+        return
     settings = SerialSettings(connection.baud, connection.parity, connection.bytesize, connection.stopbits)
     transport = open_transport(connection.port, settings, connection.timeout, name)
     try:

@@ -203,6 +203,11 @@ CONNECTION_OPTIONS = [
         type=click.Choice(["table", "plain", "json", "csv"]),
         help="Output format: table on a terminal, plain in a pipe.",
     ),
+    click.option(
+        "--dry-run",
+        is_flag=True,
+        help="Print the frame that would be sent, decoded, and send nothing (the port is not opened).",
+    ),
 ]
 
 VALUE_TYPES = ("uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string")
@@ -251,6 +256,7 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
             echo,
             hex_trace,
             output_format,
+            dry_run,
             **kwargs,
         ):
             connection = Connection(
@@ -266,6 +272,7 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
                 echo,
                 hex_trace,
                 output_format,
+                dry_run,
             )
             return function(connection, **kwargs)
 

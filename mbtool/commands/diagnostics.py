@@ -204,6 +204,11 @@ def _counters(connection):
 
     rows, data, answered, refused = [], {}, 0, None
     with open_client(connection, "diag counters") as client:
+        if connection.dry_run:
+            # Every request is known in advance: show them all, then stop as a dry run does.
+            for sub in COUNTERS:
+                client.show(connection.unit, Diagnostics(sub))
+            client.finish(connection.unit)
         for sub in COUNTERS:
             key = NAMES[sub].replace("-", "_")
             try:

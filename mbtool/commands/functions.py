@@ -334,7 +334,8 @@ def device_id(connection, level, object_id):
 
     objects: dict[int, bytes] = {}
     conformity = None
-    with open_client(connection, ReadDeviceIdentification.name) as client:
+    follows = "" if object_id is not None else "any further request depends on the reply's more-follows"
+    with open_client(connection, ReadDeviceIdentification.name, then=follows) as client:
         if object_id is not None:
             request = ReadDeviceIdentification(4, object_id)
             reply = client.execute(connection.unit, request)

@@ -260,6 +260,8 @@ def raw(connection, data, adu):
     if heard is None:
         if unit == 0:
             why = "broadcast: no reply expected"
+            # As every write to unit 0 does: a script reading stdout alone must not take it as confirmed.
+            print("mbtool: broadcast: no device confirms a write to unit 0", file=sys.stderr)
         elif failure is None:
             why = "none expected (force listen only)"
         else:

@@ -1,0 +1,54 @@
+"""--dry-run: the frames a command would send, decoded field by field, and nothing sent.
+
+A user about to write to a live plant checks the frame first (issue 6).  The
+port is never opened, so a dry run needs no hardware.  A command that cannot go
+on without a reply (every one: it needs the reply to print) stops after its
+first request with ``DryRunDone``, which leaves through exit 0.
+"""
+
+from __future__ import annotations
+
+from mbtool.errors import ExitCode, MbtoolError
+
+
+class DryRunDone(MbtoolError):
+    """The dry run has shown what it can know before any reply: success, one stderr line."""
+
+    exit_code = ExitCode.OK
+
+
+class DryRunClient:
+    """Stands in for a Client: builds and shows each frame instead of sending it."""
+
+    def __init__(self, framer, output_format: str | None, then: str = "") -> None:
+        self.framer = framer
+        self.output_format = output_format
+        self.then = then  # what a multi-request command would do next, for the closing line
+        self.shown = 0
+        self.trace = None  # raw wraps the trace; nothing is ever traced here
+
+    def show(self, unit: int, request) -> None:
+        """Print the frame that would go out for this request."""
+        from mbtool.codec.describe import describe
+        from mbtool.commands.offline import frame_report
+        from mbtool.render import default_format, render
+
+        # Transaction id 1: the first one a real Client would use.
+        adu = self.framer.build(unit, request.encode(), 1)
+        name = self.framer.name
+        text = adu.decode("ascii", "replace") if name == "ascii" else adu.hex(" ")
+        described = describe(text, name, "request")
+        render(frame_report(described, header=self.shown == 0), self.output_format or default_format())
+        self.shown += 1
+
+    def execute(self, unit: int, request):
+        self.show(unit, request)
+        self.finish(unit)
+
+    def finish(self, unit: int) -> None:
+        note = "dry run: nothing sent (the port was not opened)"
+        if unit == 0:
+            note += "; broadcast: no device would confirm this write to unit 0"
+        if self.then:
+            note += f"; {self.then}"
+        raise DryRunDone(note)

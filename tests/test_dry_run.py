@@ -1,0 +1,125 @@
+"""--dry-run: every device command prints its frame decoded and opens nothing (issue 6);
+every write to unit 0 says on stderr that no device confirms it."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+
+import pytest
+
+import mbtool.render
+import mbtool.transport
+from mbtool.cli import COMMANDS, main
+
+# One valid invocation of every command that talks to a device.
+EXAMPLES = {
+    "read-coils": "read-coils 0 16",
+    "read-discrete-inputs": "read-discrete-inputs 0 8",
+    "read-holding-registers": "read-holding-registers 100 1 --type float32",
+    "read-input-registers": "read-input-registers 0x10 4",
+    "write-coil": "write-coil 173 on",
+    "write-register": "write-register 100 -5",
+    "write-coils": "write-coils 20 1 0 1 1",
+    "write-registers": "write-registers 0 1.5 --type float32 --order CDAB",
+    "read-exception-status": "read-exception-status",
+    "diag": "diag return-query-data A537",
+    "event-counter": "event-counter",
+    "event-log": "event-log",
+    "report-id": "report-id",
+    "read-file-record": "read-file-record 4 1 2",
+    "write-file-record": "write-file-record 4 7 0x6AF 0x4BE",
+    "mask-write-register": "mask-write-register 4 0xF2 0x25",
+    "read-write-registers": "read-write-registers 0 3 10 7 8",
+    "fifo": "fifo 200",
+    "device-id": "device-id",
+    "raw": "raw 01 03 00 00 00 02",
+}
+OFFLINE = {"decode", "crc", "lrc", "serve"}
+
+
+def run(capsys, line: str) -> tuple[int, str, str]:
+    # render() and default_format() bind sys.stdout at import: give them this test's capture.
+    mbtool.render.render.__defaults__ = (sys.stdout,)
+    mbtool.render.default_format.__defaults__ = (sys.stdout,)
+    with pytest.raises(SystemExit) as done:
+        main(shlex.split(line))
+    out, err = capsys.readouterr()
+    return done.value.code, out, err
+
+
+@pytest.fixture
+def no_port(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("a dry run opened the port")
+
+    monkeypatch.setattr(mbtool.transport, "open_transport", refuse)
+
+
+def test_every_device_command_has_an_example():
+    assert set(EXAMPLES) == set(COMMANDS) - OFFLINE
+
+
+@pytest.mark.parametrize("framing", ["rtu", "ascii", "tcp"])
+@pytest.mark.parametrize("command", sorted(EXAMPLES))
+def test_dry_run_prints_the_frame_and_opens_nothing(capsys, no_port, command, framing):
+    code, out, err = run(capsys, f"{EXAMPLES[command]} --dry-run -p /dev/ttyUSB0 --framer {framing} -o plain")
+    assert code == 0, err
+    assert out.startswith(f"frame {framing} request") or command == "raw" and framing == "tcp"
+    assert "function" in out
+    verdict = {"rtu": "crc", "ascii": "lrc", "tcp": "mbap"}[framing]
+    assert f"\n{verdict} " in out and " ok" in out.rsplit(verdict, 1)[1]
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mbtool: dry run: nothing sent"), err
+
+
+def test_dry_run_shows_the_exact_rtu_frame(capsys, no_port):
+    code, out, _ = run(capsys, "read-holding-registers 107 3 -u 17 --dry-run -p /dev/ttyUSB0 -o json")
+    assert code == 0
+    assert '"frame": "11 03 00 6B 00 03 76 87"' in out
+
+
+def test_dry_run_needs_no_port(capsys, no_port, monkeypatch):
+    monkeypatch.delenv("MBTOOL_PORT", raising=False)
+    code, out, _ = run(capsys, "write-coil 0 on --dry-run -o plain")
+    assert code == 0 and "crc" in out
+
+
+def test_dry_run_of_multi_request_commands_says_what_follows(capsys, no_port):
+    code, out, err = run(capsys, "device-id --level regular --dry-run -p /dev/ttyUSB0 -o plain")
+    assert code == 0 and out.count("frame rtu request") == 1
+    assert "further request depends on the reply" in err
+    code, out, err = run(capsys, "diag counters --dry-run -p /dev/ttyUSB0 -o plain")
+    assert code == 0 and out.count("frame rtu request") == 8  # FC08 0B..12, all known in advance
+
+
+def test_dry_run_keeps_the_checksum_typed_by_the_user(capsys, no_port):
+    code, out, _ = run(capsys, "raw --adu 01 03 00 00 00 02 00 00 --dry-run -p /dev/ttyUSB0 -o plain")
+    assert code == 0 and "crc 00 00 BAD, expected C4 0B" in out
+
+
+def test_dry_run_still_refuses_bad_input(capsys, no_port):
+    code, _, err = run(capsys, "read-coils 0 1 -u 0 --dry-run -p /dev/ttyUSB0")
+    assert code == 2 and "broadcast" in err
+
+
+def test_dry_run_of_a_broadcast_says_nobody_confirms(capsys, no_port):
+    code, _, err = run(capsys, "write-register 5 0 -u 0 --dry-run -p /dev/ttyUSB0")
+    assert code == 0 and "no device would confirm" in err
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        "write-coil 1 on",
+        "write-register 1 5",
+        "write-coils 1 1 0",
+        "write-registers 1 5 6",
+        "mask-write-register 4 0xF2 0x25",
+        "raw 00 06 00 01 00 03",
+    ],
+)
+def test_every_broadcast_write_says_nobody_confirms_it(capsys, line):
+    code, _, err = run(capsys, f"{line} -u 0 -p sim://")
+    assert code == 0, err
+    assert err.splitlines() == ["mbtool: broadcast: no device confirms a write to unit 0"]
