@@ -1,0 +1,192 @@
+"""Polling: the same read again and again over one link, each poll stamped, failures counted.
+
+Imported only when --interval or --polls is given, so a one-shot read pays nothing
+for it.  Polls are scheduled on the monotonic clock (poll k starts at
+start + k * interval), so a slow poll or a changed wall clock never makes the
+schedule drift; a poll that overruns its slot skips the slots it missed, and
+says how many in the summary.
+
+The summary leaves as one ``mbtool:`` line through cli.main, like every error,
+carrying the exit code: 0 when every poll got its reply, otherwise the code of
+the last failure; 130 only when interrupted before any poll finished.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from datetime import datetime
+
+from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse
+
+DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
+
+
+class PollSummary(MbtoolError):
+    """The end of a polling run: the counts on one stderr line, the verdict in the exit code."""
+
+    def __init__(self, message: str, exit_code: ExitCode) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def stamp() -> str:
+    """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants."""
+    return datetime.now().astimezone().isoformat(timespec="milliseconds")
+
+
+class Output:
+    """Writes each poll in the chosen format, flushed at once (cron appends to a log)."""
+
+    def __init__(self, fmt: str, out=None) -> None:
+        self.fmt = fmt
+        self.out = out or sys.stdout
+        self.header_done = False
+        self.live = None
+
+    def result(self, when: str, result) -> None:
+        from mbtool.render import _text, as_dict, to_json
+
+        if self.fmt == "json":
+            self.out.write(to_json({"time": when, **as_dict(result)}) + "\n")
+        elif self.fmt == "csv":
+            if not self.header_done:
+                self.out.write("time,address,value\n")
+                self.header_done = True
+            self.out.write("".join(f"{when},{a},{_csv_cell(_text(v))}\n" for a, v in result.items))
+        elif self.fmt == "plain":
+            self.out.write("".join(f"{when} {a} {_text(v)}\n" for a, v in result.items))
+        else:
+            self._table(when, result)
+        self.out.flush()
+
+    def failure(self, when: str, number: int, error: BaseException) -> None:
+        print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
+        if self.fmt == "json":
+            # jq consumers read stdout only: a failed poll must show up there too.
+            from mbtool.render import to_json
+
+            code = int(getattr(error, "exit_code", ExitCode.INTERNAL))
+            self.out.write(to_json({"time": when, "error": str(error), "exit_code": code}) + "\n")
+            self.out.flush()
+
+    def _table(self, when: str, result) -> None:
+        from rich.console import Group
+        from rich.live import Live
+        from rich.table import Table
+
+        from mbtool.render import _text
+
+        table = Table(title=f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        table.add_column("Address", justify="right")
+        table.add_column("Value", justify="right")
+        for address, value in result.items:
+            table.add_row(str(address), _text(value))
+        if self.live is None:
+            self.live = Live(Group(table), auto_refresh=False)
+            self.live.start()
+        self.live.update(Group(table), refresh=True)
+
+    def close(self) -> None:
+        if self.live is not None:
+            self.live.stop()
+            self.live = None
+
+
+def _csv_cell(text: str) -> str:
+    # Values are numbers except for --type string; quote those the CSV way.
+    if any(c in text for c in ',"\n\r'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def poll(
+    connection,
+    request,
+    to_result: Callable[[object], object],
+    interval: float | None,
+    polls: int | None,
+) -> None:
+    """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted)."""
+    from mbtool.connection import open_client
+    from mbtool.render import default_format
+    from mbtool.transport import ConnectionClosed
+
+    if interval is None:
+        interval = DEFAULT_INTERVAL
+    if polls is None:
+        polls = 0
+    output = Output(connection.output_format or default_format())
+    done = replies = timeouts = errors = skipped = 0
+    latencies: list[float] = []
+    last_failure = ExitCode.OK
+    interrupted = False
+    link = None  # the open_client context; reopened only after the link itself failed
+    client = None
+    try:
+        start = time.monotonic()
+        slot = 0
+        while polls == 0 or done < polls:
+            delay = start + slot * interval - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            when = stamp()
+            try:
+                if client is None:
+                    link = open_client(connection, request.name)
+                    client = link.__enter__()
+                began = time.monotonic()
+                reply = client.execute(connection.unit, request)
+                latencies.append((time.monotonic() - began) * 1000)
+                output.result(when, to_result(reply))
+                replies += 1
+            except (MbtoolError, OSError) as error:
+                if isinstance(error, NoResponse):
+                    timeouts += 1
+                else:
+                    errors += 1
+                if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
+                    # The link is gone (device restarted, cable pulled): open it anew next poll.
+                    _close(link)
+                    link = client = None
+                if isinstance(error, OSError):
+                    error = ConnectionFailed(str(error))
+                last_failure = error.exit_code
+                output.failure(when, done + 1, error)
+            done += 1
+            slot += 1
+            behind = time.monotonic() - (start + slot * interval)
+            if behind > 0 and (polls == 0 or done < polls):
+                missed = math.ceil(behind / interval)
+                skipped += missed
+                slot += missed
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        output.close()
+        _close(link)
+    latency = (
+        f"{min(latencies):.1f}/{sum(latencies) / len(latencies):.1f}/{max(latencies):.1f} ms"
+        if latencies
+        else "-"
+    )
+    summary = (
+        f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
+        f"skipped {skipped}, latency min/avg/max {latency}"
+    )
+    if interrupted:
+        summary = "interrupted; " + summary
+    code = last_failure
+    if interrupted and done == 0:
+        code = ExitCode.INTERRUPTED
+    raise PollSummary(summary, code)
+
+
+def _close(link) -> None:
+    if link is not None:
+        try:
+            link.__exit__(None, None, None)
+        except (MbtoolError, OSError):
+            pass  # closing a link that already broke: nothing left to report

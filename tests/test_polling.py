@@ -1,0 +1,231 @@
+"""Polling (--interval, --polls): output per format, failures counted, summary and exit codes."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+from datetime import datetime
+
+from conftest import HOLDING, REPO_ROOT, expect_ok, mbtool_env, start_device
+
+
+def summary(res) -> dict:
+    line = res.stderr.strip().splitlines()[-1]
+    match = re.match(
+        r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), timeouts (\d+), errors (\d+), skipped (\d+), "
+        r"latency min/avg/max (.+)$",
+        line,
+    )
+    assert match, f"no summary line\n{res}"
+    polls, replies, timeouts, errors, skipped = (int(g) for g in match.groups()[:5])
+    return {"polls": polls, "replies": replies, "timeouts": timeouts, "errors": errors, "skipped": skipped}
+
+
+def stamp(text: str) -> datetime:
+    # ISO 8601 with milliseconds and a UTC offset
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d\d:\d\d", text), text
+    return datetime.fromisoformat(text)
+
+
+def test_json_lines_one_per_poll(mbtool):
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers",
+            "0",
+            "3",
+            "-p",
+            "sim://",
+            "--polls",
+            "3",
+            "--interval",
+            "0.05",
+            "-o",
+            "json",
+        )
+    )
+    lines = res.stdout.splitlines()
+    assert len(lines) == 3
+    for line in lines:
+        data = json.loads(line)
+        stamp(data["time"])
+        assert data["values"] == [0, 1, 2] and data["addresses"] == [0, 1, 2] and data["function"] == 3
+    assert summary(res) == {"polls": 3, "replies": 3, "timeouts": 0, "errors": 0, "skipped": 0}
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_csv_header_once(mbtool):
+    res = expect_ok(
+        mbtool("read-coils", "0", "2", "-p", "sim://", "--polls", "3", "--interval", "0.05", "-o", "csv")
+    )
+    lines = res.stdout.splitlines()
+    assert lines[0] == "time,address,value"
+    assert lines.count("time,address,value") == 1
+    rows = [line.split(",") for line in lines[1:]]
+    assert len(rows) == 6
+    assert [(a, v) for _, a, v in rows] == [("0", "1"), ("1", "0")] * 3
+    for when, _, _ in rows:
+        stamp(when)
+
+
+def test_plain_lines_prefixed_by_time(mbtool, tcp_device):
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers", "0", "2", "-p", tcp_device.target, "--polls", "2", "--interval", "0.05"
+        )
+    )
+    lines = res.stdout.splitlines()
+    assert len(lines) == 4
+    for line, (address, value) in zip(lines, [(0, HOLDING[0]), (1, HOLDING[1])] * 2, strict=True):
+        when, a, v = line.split()
+        stamp(when)
+        assert (int(a), int(v)) == (address, value)
+
+
+def test_polls_alone_means_one_second_and_interval_respected(mbtool):
+    res = expect_ok(mbtool("read-discrete-inputs", "0", "1", "-p", "sim://", "--polls", "2", "-o", "json"))
+    times = [stamp(json.loads(line)["time"]) for line in res.stdout.splitlines()]
+    gap = (times[1] - times[0]).total_seconds()
+    assert 0.8 <= gap <= 1.6, gap
+    res = expect_ok(
+        mbtool(
+            "read-input-registers",
+            "0",
+            "1",
+            "-p",
+            "sim://",
+            "--polls",
+            "5",
+            "--interval",
+            "0.2",
+            "-o",
+            "json",
+        )
+    )
+    times = [stamp(json.loads(line)["time"]) for line in res.stdout.splitlines()]
+    # scheduled on start + k * interval: no drift over the run
+    total = (times[-1] - times[0]).total_seconds()
+    assert 0.7 <= total <= 1.2, total
+
+
+def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server):
+    res = mbtool(
+        "read-holding-registers",
+        "0",
+        "1",
+        "-p",
+        f"tcp://127.0.0.1:{silent_server.port}",
+        "-t",
+        "0.2",
+        "--polls",
+        "2",
+        "--interval",
+        "0.3",
+        "-o",
+        "json",
+    )
+    assert res.returncode == 3, str(res)
+    assert "Traceback" not in res.stderr
+    lines = [json.loads(line) for line in res.stdout.splitlines()]
+    assert len(lines) == 2 and all("error" in line and "time" in line for line in lines)
+    errors = [line for line in res.stderr.splitlines() if " poll " in line]
+    assert len(errors) == 2 and all(line.startswith("mbtool: ") for line in errors)
+    assert summary(res) == {"polls": 2, "replies": 0, "timeouts": 2, "errors": 0, "skipped": 0}
+
+
+def test_device_killed_mid_run_polling_goes_on():
+    with start_device(tcp=True, framer="socket") as device:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "mbtool",
+                "read-holding-registers",
+                "0",
+                "1",
+                "-p",
+                device.target,
+                "-t",
+                "0.2",
+                "--polls",
+                "6",
+                "--interval",
+                "0.3",
+                "-o",
+                "json",
+            ],
+            cwd=REPO_ROOT,
+            env=mbtool_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        first = proc.stdout.readline()
+        assert json.loads(first)["values"] == [HOLDING[0]]
+        device.proc.kill()
+        out, err = proc.communicate(timeout=15)
+    lines = [json.loads(line) for line in (first + out).splitlines()]
+    assert len(lines) == 6
+    assert "error" in lines[-1]
+    assert proc.returncode in (3, 5, 6), err
+    assert "Traceback" not in err
+    counts = re.search(r"polls (\d+), replies (\d+), timeouts (\d+), errors (\d+)", err)
+    polls, replies, timeouts, errors = (int(g) for g in counts.groups())
+    assert polls == 6 and replies >= 1 and replies + timeouts + errors == 6 and timeouts + errors >= 1
+
+
+def _interrupt_after(args, wait_lines: int, sig=signal.SIGTERM):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    got = [proc.stdout.readline() for _ in range(wait_lines)]
+    if not wait_lines:
+        time.sleep(1.0)  # past start-up, into the wait before the first slot
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=10)
+    return proc.returncode, "".join(got) + out, err
+
+
+def test_sigterm_ends_with_summary_and_status_of_the_polls():
+    code, out, err = _interrupt_after(
+        ["read-coils", "0", "1", "-p", "sim://", "--interval", "0.1", "-o", "json"], 2
+    )
+    assert code == 0, err
+    assert len(out.splitlines()) >= 2
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("mbtool: interrupted; polls "), err
+    assert "Traceback" not in err
+
+
+def test_interrupted_before_any_poll_is_130(tmp_path):
+    # The first poll waits for its connection to time out, so SIGTERM comes before it finishes.
+    import socket
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        port = listener.getsockname()[1]
+        code, out, err = _interrupt_after(
+            ["read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{port}", "-t", "5", "--interval", "1"], 0
+        )
+    assert code == 130, err
+    assert "interrupted; polls 0" in err
+
+
+def test_one_shot_unchanged_without_polling_options(mbtool):
+    res = expect_ok(mbtool("read-holding-registers", "0", "2", "-p", "sim://", "-o", "json"))
+    assert "time" not in json.loads(res.stdout) and res.stderr == ""
+
+
+def test_polling_help_documents_exit_status(mbtool):
+    res = expect_ok(mbtool("read-coils", "--help"))
+    assert "--interval" in res.stdout and "--polls" in res.stdout
+    assert "130 only if interrupted before any poll finished" in " ".join(res.stdout.split())
