@@ -235,6 +235,22 @@ def type_options(choices: tuple[str, ...]) -> list[Callable]:
     ]
 
 
+def _remember_profile(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
+    # Kept aside, not passed on: the profile fills in options only after all are parsed.
+    ctx.meta["mbtool.profile"] = value
+
+
+PROFILE_OPTION = click.option(
+    "-P",
+    "--profile",
+    metavar="NAME",
+    expose_value=False,
+    callback=_remember_profile,
+    help="Connection settings from [profiles.NAME] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; "
+    "options and MBTOOL_PORT/MBTOOL_UNIT override them.",
+)
+
+
 def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Callable:
     """A command that talks to a device: the shared options, then a Connection as first argument.
 
@@ -274,8 +290,14 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
                 output_format,
                 dry_run,
             )
+            profile = click.get_current_context().meta.get("mbtool.profile")
+            if profile:
+                from mbtool.profiles import apply
+
+                connection = apply(connection, profile)
             return function(connection, **kwargs)
 
+        run = PROFILE_OPTION(run)
         for option in reversed(CONNECTION_OPTIONS + (type_options(types) if types else [])):
             run = option(run)
         # Negative register values (write-register 100 -5) must not be taken for options.

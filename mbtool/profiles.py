@@ -1,0 +1,100 @@
+"""Profiles: named connection settings in a TOML file, chosen with -P/--profile NAME.
+
+Imported only when a profile is named, so a one-shot read without one pays
+nothing for it (tomllib included).  Precedence: an option on the command line
+> its environment variable (MBTOOL_PORT, MBTOOL_UNIT) > the profile > the
+default; click's ParameterSource says which options were left at their default.
+
+The file is ``$MBTOOL_CONFIG``, else ``$XDG_CONFIG_HOME/mbtool/config.toml``
+(``~/.config/mbtool/config.toml``)::
+
+    [profiles.boiler]
+    port = "/dev/ttyUSB0"
+    unit = 17
+    baud = 9600
+    parity = "N"
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+
+from mbtool.codec.record import replace
+from mbtool.errors import RequestError
+
+# profile key -> the option's parameter name (the same) and the Connection field it sets
+KEYS = ("port", "unit", "framer", "baud", "parity", "bytesize", "stopbits", "timeout", "retries", "echo")
+
+
+def config_path() -> Path:
+    explicit = os.environ.get("MBTOOL_CONFIG")
+    if explicit:
+        return Path(explicit)
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "mbtool" / "config.toml"
+
+
+def load(name: str, path: Path | None = None) -> dict:
+    """The settings of profile ``name``; RequestError (exit 2) naming the file for any problem."""
+    import tomllib
+
+    path = path or config_path()
+    try:
+        with open(path, "rb") as file:
+            data = tomllib.load(file)
+    except OSError as error:
+        raise RequestError(f"cannot read profile file {path}: {error.strerror or error}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise RequestError(f"{path}: not valid TOML: {error}") from None
+    profiles = data.get("profiles", {})
+    if not isinstance(profiles, dict) or not isinstance(profiles.get(name, {}), dict):
+        raise RequestError(f"{path}: [profiles.{name}] must be a table")
+    if name not in profiles:
+        known = ", ".join(sorted(profiles)) or "none"
+        raise RequestError(f"{path}: no profile {name!r} (profiles: {known})")
+    settings = profiles[name]
+    for key in settings:
+        if key not in KEYS:
+            raise RequestError(f"{path}: profiles.{name}.{key}: unknown key (known: {', '.join(KEYS)})")
+    return settings
+
+
+def apply(connection, name: str):
+    """``connection`` with the profile's values for every option left at its default."""
+    ctx = click.get_current_context()
+    path = config_path()
+    settings = load(name, path)
+    params = {param.name: param for param in ctx.command.params}
+    changes = {}
+    for key, raw in settings.items():
+        source = ctx.get_parameter_source(key)
+        if source not in (None, click.core.ParameterSource.DEFAULT):
+            continue  # given on the command line or in the environment: that wins
+        changes[key] = _convert(params[key], key, raw, ctx, f"{path}: profiles.{name}.{key}")
+    return replace(connection, **changes) if changes else connection
+
+
+def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
+    if key == "echo":
+        if not isinstance(raw, bool):
+            raise RequestError(f"{where}: {raw!r} is not true or false")
+        return raw
+    if isinstance(raw, bool) or not isinstance(raw, str | int | float):
+        raise RequestError(f"{where}: {raw!r} is not a string or number")
+    if key in ("bytesize", "stopbits", "parity", "framer", "port"):
+        raw = str(raw)
+    elif key in ("unit", "baud", "retries") and isinstance(raw, float):
+        raise RequestError(f"{where}: {raw!r} is not a whole number")
+    try:
+        value = param.type.convert(raw, None, ctx)
+    except click.BadParameter as error:
+        raise RequestError(f"{where}: {error.message}") from None
+    # The same conversions device_command makes from the option values.
+    if key == "parity":
+        return value.upper()
+    if key in ("bytesize", "stopbits"):
+        return int(value)
+    return value
