@@ -73,6 +73,9 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -92,6 +95,9 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -113,6 +119,9 @@ _mbtool() {
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -134,6 +143,9 @@ _mbtool() {
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '::COUNT: ' && ret=0
@@ -153,6 +165,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             ':on|off|1|0: ' && ret=0
@@ -174,6 +187,7 @@ _mbtool() {
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 hex)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             ':VALUE: ' && ret=0
@@ -193,6 +207,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '*:BIT...: ' && ret=0
@@ -214,6 +229,7 @@ _mbtool() {
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             '*:VALUE...: ' && ret=0
@@ -233,6 +249,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (diag)
@@ -250,6 +267,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--clear-log[restart-comms: also clear the event log (data FF00)]' \
             '--controller=[diagnostic-register: name the bits as this Modicon family does]:controller:(184/384 484 584/984 884)' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -271,6 +289,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (event-log)
@@ -288,6 +307,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (report-id)
@@ -305,6 +325,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (read-file-record)
@@ -322,6 +343,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:FILE RECORD LENGTH [FILE RECORD LENGTH]...: ' && ret=0
           ;;
@@ -340,6 +362,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:FILE RECORD VALUE... [, FILE RECORD VALUE...]...: ' && ret=0
           ;;
@@ -358,6 +381,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
             ':AND_MASK: ' \
@@ -380,6 +404,7 @@ _mbtool() {
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':READ_ADDRESS: ' \
             ':READ_COUNT: ' \
@@ -401,6 +426,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' && ret=0
           ;;
@@ -419,6 +445,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--level=[Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF]:level:(basic regular extended)' \
             '--object=[Read this one object only]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -438,6 +465,7 @@ _mbtool() {
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--adu[Send HEX exactly as given (checksum or MBAP header included)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:HEX...: ' && ret=0
