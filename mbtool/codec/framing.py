@@ -17,7 +17,7 @@ import struct
 from abc import ABC, abstractmethod
 
 from mbtool.codec.checksum import crc16, lrc
-from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, pdu_length
+from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
 from mbtool.errors import ChecksumError, FrameError
 
@@ -157,6 +157,22 @@ class RtuFramer(Framer):
     _held = False  # a corrupted frame is held: the awaited reply may begin in its last bytes
     _quiet = False  # inside silence(): no more bytes are coming
 
+    def __init__(self, responses: bool = True) -> None:
+        super().__init__(responses)
+        # The resync scan's memory, in absolute stream positions (bytes are only ever
+        # appended at the end and dropped at the front, so a position's bytes never
+        # change): every position below _scanned has been looked at, and those that
+        # may still start a frame once more bytes arrive are in _pending.  Without it
+        # each byte of garbage rescanned the whole buffer: 64 KiB took a second.
+        self._fed = 0
+        self._scanned = 0
+        self._pending: list[int] = []
+        self._scan_expect: Request | None = None
+
+    def feed(self, data: bytes) -> None:
+        super().feed(data)
+        self._fed += len(data)
+
     @property
     def waiting_for_silence(self) -> bool:
         if self._held and self._buffer:
@@ -232,14 +248,66 @@ class RtuFramer(Framer):
         return 1 + length + 2
 
     def _skip_to_frame(self, end: int):
-        """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1."""
+        """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.
+
+        Each offset is judged once for good (no frame can start there, whatever follows)
+        or kept pending until the bytes that decide it arrive, so garbage costs linear time.
+        """
         buf = self._buffer
-        for start in range(1, end):
-            size = self._frame_size(start)
-            if isinstance(size, int) and start + size <= len(buf):
-                if isinstance(self._whole(bytes(buf[start : start + size])), Frame):
-                    return start, FrameError(f"{start} bytes of noise before a frame", bytes(buf[:start]))
+        base = self._fed - len(buf)  # the absolute position of buf[0]
+        if self._scan_expect is not self.expect:
+            # Lengths depend on the request being answered: judge everything afresh.
+            self._scan_expect = self.expect
+            self._scanned = 0
+            self._pending = []
+        if self._pending and self._pending[0] <= base:
+            self._pending = [p for p in self._pending if p > base]
+        still = []
+        for index, position in enumerate(self._pending):
+            if position >= base + end:
+                still += self._pending[index:]
+                break
+            verdict = self._frame_at(position - base)
+            if verdict is True:
+                self._pending = still + self._pending[index + 1 :]
+                return self._noise(position - base)
+            if verdict is None:
+                still.append(position)
+        self._pending = still
+        for position in range(max(self._scanned, base + 1), base + end):
+            verdict = self._frame_at(position - base)
+            if verdict is True:
+                self._scanned = position + 1
+                return self._noise(position - base)
+            if verdict is None:
+                self._pending.append(position)
+        self._scanned = max(self._scanned, base + end)
         return None
+
+    def _frame_at(self, start: int) -> bool | None:
+        """Does a whole, valid frame start here: True, False for good, None until more bytes tell."""
+        buf = self._buffer
+        if self.responses and start + 2 <= len(buf):
+            code = buf[start + 1]
+            if code & 0x80:
+                # An exception reply, half of all garbage bytes: 5 bytes, whatever was asked.
+                if start + 5 > len(buf):
+                    return None
+                return crc16(bytes(buf[start : start + 3])) == buf[start + 3] | buf[start + 4] << 8
+            if function_type(code) is None and (self.expect is None or code != self.expect.function_code):
+                return False  # a code nobody knows or asked for starts no frame
+        size = self._frame_size(start)
+        if size is None:
+            return None
+        if not isinstance(size, int):
+            return False
+        if start + size > len(buf):
+            return None
+        data = buf[start : start + size]
+        return len(data) >= 4 and crc16(bytes(data[:-2])) == int.from_bytes(data[-2:], "little")
+
+    def _noise(self, start: int):
+        return start, FrameError(f"{start} bytes of noise before a frame", bytes(self._buffer[:start]))
 
     def _awaited(self, start: int) -> bool:
         """Does the reply to the expected request seem to start here, not yet complete?"""

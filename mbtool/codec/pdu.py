@@ -237,13 +237,20 @@ def register(cls: type[Request]) -> type[Request]:
     return cls
 
 
+_ALL_LOADED = False
+
+
 def function_type(code: int) -> type[Request] | None:
     """The request type of a function code, or None if the codec does not know it."""
-    if code not in FUNCTIONS:
+    global _ALL_LOADED
+    if code not in FUNCTIONS and not _ALL_LOADED:
+        # Once: an RTU framer resyncing through garbage asks about unknown codes at
+        # every byte, and re-importing per byte made 64 KiB of garbage cost seconds.
         from importlib import import_module
 
         for module in FUNCTION_MODULES:
             import_module(f"mbtool.codec.{module}")
+        _ALL_LOADED = True
     return FUNCTIONS.get(code)
 
 
