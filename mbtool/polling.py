@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from datetime import datetime
 
-from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse
+from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -76,18 +76,21 @@ class Output:
         from rich.console import Group
         from rich.live import Live
         from rich.table import Table
+        from rich.text import Text
 
         from mbtool.render import _text
 
-        table = Table(title=f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        # The heading above, not as the table's title: a title wraps to the table's width.
+        heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        table = Table()
         table.add_column("Address", justify="right")
         table.add_column("Value", justify="right")
         for address, value in result.items:
             table.add_row(str(address), _text(value))
         if self.live is None:
-            self.live = Live(Group(table), auto_refresh=False)
+            self.live = Live(Group(heading, table), auto_refresh=False)
             self.live.start()
-        self.live.update(Group(table), refresh=True)
+        self.live.update(Group(heading, table), refresh=True)
 
     def close(self) -> None:
         if self.live is not None:
@@ -126,6 +129,10 @@ def poll(
     link = None  # the open_client context; reopened only after the link itself failed
     client = None
     try:
+        # Opened before the first poll: a bad port or unit is one error and its exit code,
+        # not a failed poll repeated for ever.
+        link = open_client(connection, request.name)
+        client = link.__enter__()
         start = time.monotonic()
         slot = 0
         while polls == 0 or done < polls:
@@ -143,6 +150,8 @@ def poll(
                 output.result(when, to_result(reply))
                 replies += 1
             except (MbtoolError, OSError) as error:
+                if isinstance(error, RequestError):
+                    raise  # the request itself is wrong: no later poll can do better
                 if isinstance(error, NoResponse):
                     timeouts += 1
                 else:

@@ -229,3 +229,11 @@ def test_polling_help_documents_exit_status(mbtool):
     res = expect_ok(mbtool("read-coils", "--help"))
     assert "--interval" in res.stdout and "--polls" in res.stdout
     assert "130 only if interrupted before any poll finished" in " ".join(res.stdout.split())
+
+
+def test_a_link_that_cannot_open_is_one_error_not_a_failed_poll_for_ever(mbtool, refused_port):
+    from conftest import assert_one_error_line
+
+    res = mbtool("read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{refused_port}", "--interval", "0.1")
+    assert_one_error_line(res, 6)
+    assert_one_error_line(mbtool("read-coils", "0", "1", "--interval", "0.1"), 2)
