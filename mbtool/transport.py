@@ -78,6 +78,8 @@ class SerialTransport(Transport):
                 # handlers have no write timeout (rfc2217:// refuses the setting).
                 **({} if "://" in url else {"write_timeout": WRITE_TIMEOUT}),
             )
+        # pyserial raises NotImplementedError for a setting a url handler does not support:
+        # the port cannot be opened as asked, which is the user's to change (exit 6).
         except (serial.SerialException, OSError, ValueError, NotImplementedError, *_termios_error()) as error:
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused

@@ -553,3 +553,26 @@ def expect_ok(res: Result) -> Result:
     assert res.returncode == 0, str(res)
     assert "Traceback" not in res.stderr, str(res)
     return res
+
+
+# --- framer event helpers (codec tests) ----------------------------------------------
+
+
+def drain_events(framer) -> list:
+    """Every event the framer has now."""
+    events = []
+    while (event := framer.next_event()) is not None:
+        events.append(event)
+    return events
+
+
+def settle_events(framer) -> list:
+    """next_event until it has nothing, then silence until it has nothing; nothing may stay buffered."""
+    events = drain_events(framer)
+    for _ in range(2000):
+        event = framer.silence()
+        if event is None:
+            break
+        events.append(event)
+    assert framer.buffered == 0
+    return events

@@ -12,28 +12,11 @@ from mbtool.codec import serial_line as sl
 from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
 from mbtool.codec.pdu import UNKNOWN
 from mbtool.errors import ChecksumError, FrameError
+from tests.conftest import drain_events, settle_events
 
 REQUEST = da.ReadHoldingRegisters(107, 3)
 REPLY = da.RegistersResponse(3, (555, 0, 100))
 UNIT = 0x11
-
-
-def drain(framer) -> list:
-    events = []
-    while (event := framer.next_event()) is not None:
-        events.append(event)
-    return events
-
-
-def settle(framer) -> list:
-    events = drain(framer)
-    for _ in range(2000):
-        event = framer.silence()
-        if event is None:
-            break
-        events.append(event)
-    assert framer.buffered == 0
-    return events
 
 
 def frames(events) -> list[Frame]:
@@ -54,7 +37,7 @@ def test_garbage_before_a_frame(framer_type, responses, n, seed):
     adu = framer.build(UNIT, pdu)
     noise = garbage(n, seed)
     framer.feed(noise + adu)
-    events = drain(framer)  # no silence needed: the frame ends by its own length
+    events = drain_events(framer)  # no silence needed: the frame ends by its own length
     assert frames(events) == [Frame(UNIT, pdu, adu)]
     assert events[-1] == Frame(UNIT, pdu, adu)
     rejected = b"".join(event.data for event in events if isinstance(event, Rejected))
@@ -72,7 +55,7 @@ def test_garbage_before_a_frame_fed_byte_by_byte(framer_type, seed):
     events = []
     for byte in noise + adu:
         framer.feed(bytes([byte]))
-        events += drain(framer)
+        events += drain_events(framer)
     assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
     assert len(frames(events)) == 1
 
@@ -83,7 +66,7 @@ def test_garbage_whose_length_cannot_be_told_does_not_hold_up_a_frame():
     framer = RtuFramer(responses=False)
     adu = framer.build(0x17, REQUEST.encode())
     framer.feed(b"\x42" + adu)
-    events = drain(framer)
+    events = drain_events(framer)
     assert events[-1] == Frame(0x17, REQUEST.encode(), adu)
 
 
@@ -93,7 +76,7 @@ def test_two_frames_back_to_back(framer_type):
     first = framer.build(UNIT, REPLY.encode(), 1)
     second = framer.build(UNIT + 1, da.RegistersResponse(3, (1,)).encode(), 2)
     framer.feed(first + second)
-    events = drain(framer)
+    events = drain_events(framer)
     assert [event.adu for event in events] == [first, second]
     assert all(isinstance(event, Frame) for event in events)
 
@@ -105,7 +88,7 @@ def test_a_frame_after_a_bad_one(framer_type):
     bad = bytearray(good)
     bad[-3] ^= 0x01  # a data byte (RTU) or an LRC digit (ASCII) changed on the way
     framer.feed(bytes(bad) + good)
-    events = drain(framer)
+    events = drain_events(framer)
     assert events[-1] == Frame(UNIT, REPLY.encode(), good)
     assert isinstance(events[0], Rejected)
 
@@ -116,8 +99,8 @@ def test_truncated_frame_is_rejected_on_silence(framer_type, cut):
     framer = framer_type(responses=True)
     adu = framer.build(UNIT, REPLY.encode(), 5)
     framer.feed(adu[:-cut])
-    assert drain(framer) == []  # waiting for the rest
-    events = settle(framer)
+    assert drain_events(framer) == []  # waiting for the rest
+    events = settle_events(framer)
     assert events and all(isinstance(event, Rejected) for event in events)
     assert all(isinstance(event.error, FrameError) for event in events)
     assert b"".join(event.data for event in events) == adu[:-cut]
@@ -135,7 +118,7 @@ def test_rtu_frame_with_an_unknown_function_code_ends_on_silence():
 
     framer.expect = Raw(0)
     framer.feed(adu)
-    assert drain(framer) == []
+    assert drain_events(framer) == []
     assert framer.waiting_for_silence
     assert framer.silence() == Frame(UNIT, bytes.fromhex("41 01 02 03"), adu)
 
@@ -156,7 +139,7 @@ def test_rtu_device_identification_reply_in_pieces():
     adu = framer.build(UNIT, reply.encode())
     for i in range(0, len(adu), 3):
         framer.feed(adu[i : i + 3])
-        events = drain(framer)
+        events = drain_events(framer)
         if i + 3 < len(adu):
             assert events == []
     assert events == [Frame(UNIT, reply.encode(), adu)]
@@ -172,7 +155,7 @@ def test_exception_reply_is_framed_for_every_function_code():
 def test_bad_crc_carries_received_and_expected():
     framer = RtuFramer(responses=False)
     framer.feed(bytes.fromhex("11 03 00 6B 00 03 87 76"))  # CRC sent high byte first: wrong
-    event = settle(framer)[0]
+    event = settle_events(framer)[0]
     assert isinstance(event.error, ChecksumError)
     assert (event.error.expected, event.error.received) == (0x8776, 0x7687)
 
@@ -188,7 +171,7 @@ def test_ascii_with_a_changed_delimiter():
 def test_tcp_length_field_out_of_range_is_rejected():
     framer = TcpFramer(responses=True)
     framer.feed(bytes.fromhex("0001 0000 0001 11"))  # length 1: a unit id and no PDU
-    events = settle(framer)
+    events = settle_events(framer)
     assert events and all(isinstance(event, Rejected) for event in events)
 
 
@@ -199,7 +182,7 @@ def test_corrupted_reply_is_held_until_silence_then_rejected_whole():
     good = framer.build(UNIT, REPLY.encode())
     bad = good[:-1] + bytes([good[-1] ^ 0xFF])
     framer.feed(bad)
-    assert drain(framer) == []
+    assert drain_events(framer) == []
     assert framer.waiting_for_silence
     event = framer.silence()
     assert isinstance(event, Rejected) and isinstance(event.error, ChecksumError)
@@ -214,8 +197,8 @@ def test_reply_starting_on_the_last_byte_of_a_phantom_frame_is_kept():
     adu = framer.build(UNIT, REPLY.encode())
     noise = bytes.fromhex("61 16 C6 E9 C9 2D 99 BF 35")
     framer.feed(noise + adu[:1])
-    assert drain(framer) == []
+    assert drain_events(framer) == []
     framer.feed(adu[1:])
-    events = drain(framer)
+    events = drain_events(framer)
     assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
     assert b"".join(event.data for event in events[:-1]) == noise

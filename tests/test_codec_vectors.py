@@ -50,6 +50,7 @@ from mbtool.codec.serial_line import (
     ReportSlaveId,
 )
 from mbtool.errors import ChecksumError
+from tests.conftest import drain_events, settle_events
 
 VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
 SERIAL = {v["name"]: v for v in VECTORS["serial"]}
@@ -131,38 +132,19 @@ def _unit(vector) -> int:
     return bytes.fromhex(vector["unit_and_pdu"])[0]
 
 
-def _drain(framer) -> list:
-    events = []
-    while (event := framer.next_event()) is not None:
-        events.append(event)
-    return events
-
-
-def _settle(framer) -> list:
-    """next_event until it has nothing, then silence until it has nothing."""
-    events = _drain(framer)
-    for _ in range(1000):
-        event = framer.silence()
-        if event is None:
-            break
-        events.append(event)
-    assert framer.buffered == 0
-    return events
-
-
 def feed(framer, data: bytes, how: str) -> list:
     if how == "whole":
         framer.feed(data)
-        return _drain(framer)
+        return drain_events(framer)
     if how == "bytewise":
         events = []
         for i in range(len(data)):
             framer.feed(data[i : i + 1])
-            events += _drain(framer)
+            events += drain_events(framer)
         return events
     assert how == "trailing"
     framer.feed(data + TRAILING)
-    return _settle(framer)
+    return settle_events(framer)
 
 
 HOW = ["whole", "bytewise", "trailing"]
@@ -223,7 +205,7 @@ def test_reply_answers_its_request(request_name, reply_name):
     framer = RtuFramer(responses=True)
     framer.expect = request
     framer.feed(_rtu(SERIAL[reply_name]))
-    assert _drain(framer) == [Frame(_unit(SERIAL[reply_name]), reply_pdu, _rtu(SERIAL[reply_name]))]
+    assert drain_events(framer) == [Frame(_unit(SERIAL[reply_name]), reply_pdu, _rtu(SERIAL[reply_name]))]
 
 
 @pytest.mark.parametrize("name", sorted(ECHOES))
@@ -299,7 +281,7 @@ def test_bad_crc_is_rejected_with_the_expected_crc(vector, responses):
     frame = bytes.fromhex(vector["frame"])
     framer = RtuFramer(responses=responses)
     framer.feed(frame)
-    events = _settle(framer)
+    events = settle_events(framer)
     assert events and all(isinstance(event, Rejected) for event in events)
     error = events[0].error
     assert isinstance(error, ChecksumError)
