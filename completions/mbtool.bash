@@ -75,7 +75,7 @@ _mbtool()
         read-coils)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile|--interval|--polls) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -83,7 +83,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -91,7 +91,7 @@ _mbtool()
         read-discrete-inputs)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile|--interval|--polls) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -99,7 +99,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -107,7 +107,7 @@ _mbtool()
         read-holding-registers)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile|--interval|--polls) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -117,7 +117,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -125,7 +125,7 @@ _mbtool()
         read-input-registers)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile|--interval|--polls) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -135,7 +135,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -143,7 +143,7 @@ _mbtool()
         write-coil)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -151,7 +151,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -159,7 +159,7 @@ _mbtool()
         write-register)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -169,7 +169,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -177,7 +177,7 @@ _mbtool()
         write-coils)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -185,7 +185,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -193,7 +193,7 @@ _mbtool()
         write-registers)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -203,7 +203,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -211,7 +211,7 @@ _mbtool()
         read-exception-status)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -219,7 +219,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -227,7 +227,7 @@ _mbtool()
         diag)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -236,7 +236,7 @@ _mbtool()
                 --controller) _mbtool_words "$cur" 184/384 484 584/984 884 ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile --clear-log --controller -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --clear-log --controller -h --help
                     fi
                     ;;
             esac
@@ -244,7 +244,7 @@ _mbtool()
         event-counter)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -252,7 +252,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -260,7 +260,7 @@ _mbtool()
         event-log)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -268,7 +268,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -276,7 +276,7 @@ _mbtool()
         report-id)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -284,7 +284,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -292,7 +292,7 @@ _mbtool()
         read-file-record)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -300,7 +300,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -308,7 +308,7 @@ _mbtool()
         write-file-record)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -316,7 +316,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -324,7 +324,7 @@ _mbtool()
         mask-write-register)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -332,7 +332,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -340,7 +340,7 @@ _mbtool()
         read-write-registers)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -350,7 +350,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -358,7 +358,7 @@ _mbtool()
         fifo)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -366,7 +366,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -374,7 +374,7 @@ _mbtool()
         device-id)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile|--object) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--object) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -383,7 +383,7 @@ _mbtool()
                 --level) _mbtool_words "$cur" basic regular extended ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile --level --object -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --level --object -h --help
                     fi
                     ;;
             esac
@@ -391,7 +391,7 @@ _mbtool()
         raw)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|-t|--timeout|--retries|-P|--profile) : ;;
+                -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
@@ -399,7 +399,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --hex -o --format --dry-run -P --profile --adu -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --adu -h --help
                     fi
                     ;;
             esac

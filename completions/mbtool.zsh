@@ -70,6 +70,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -92,6 +94,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -114,6 +118,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -138,6 +144,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -162,6 +170,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -182,6 +192,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -204,6 +216,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -224,6 +238,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -246,6 +262,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -264,6 +282,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -286,6 +306,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -304,6 +326,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -322,6 +346,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -340,6 +366,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -359,6 +387,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -378,6 +408,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -399,6 +431,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -423,6 +457,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -442,6 +478,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
@@ -462,6 +500,8 @@ _mbtool() {
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
             '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
             '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \

@@ -29,6 +29,8 @@ class Connection:
     hex: bool
     output_format: str | None
     dry_run: bool = False  # show the frames, open nothing, send nothing
+    rs485: bool = False  # drive RTS for the direction of a two-wire RS-485 line
+    rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
 
 
 @contextmanager
@@ -58,7 +60,13 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
 
         yield DryRunClient(framer or make_framer(name), connection.output_format, then)
         return
-    settings = SerialSettings(connection.baud, connection.parity, connection.bytesize, connection.stopbits)
+    settings = SerialSettings(
+        connection.baud,
+        connection.parity,
+        connection.bytesize,
+        connection.stopbits,
+        rs485_direction(connection),
+    )
     transport = open_transport(connection.port, settings, connection.timeout, name)
     try:
         framer = framer or make_framer(name)
@@ -75,6 +83,18 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
         yield client
     finally:
         transport.close()
+
+
+def rs485_direction(connection: Connection) -> tuple[float, float] | None:
+    """RTS lead and trail in seconds when RTS switches the line's direction, else None.
+
+    Delays alone turn the mode on: nobody sets them without meaning it.
+    """
+    if not (connection.rs485 or connection.rs485_delays):
+        return None
+    if (connection.port or "").lower().startswith("tcp://"):
+        raise RequestError("--rs485 drives the RTS line of a serial port; a tcp:// target has none")
+    return connection.rs485_delays or (0.0, 0.0)
 
 
 def framer_name(connection: Connection) -> str:

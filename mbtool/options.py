@@ -121,6 +121,26 @@ class PositiveFloat(click.ParamType):
         return number
 
 
+class Rs485Delays(click.ParamType):
+    """BEFORE[,AFTER] in milliseconds, as modpoll's -4 takes them; kept in seconds."""
+
+    name = "ms[,ms]"
+    LIMIT_MS = 1000  # the kernel keeps these in milliseconds; a second is already absurd
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).split(",")
+        try:
+            delays = [float(part) for part in parts]
+        except ValueError:
+            self.fail(f"{value!r} is not BEFORE[,AFTER] in milliseconds", param, ctx)
+        if len(delays) > 2 or not all(0 <= d <= self.LIMIT_MS for d in delays):
+            self.fail(f"{value!r}: give BEFORE[,AFTER], each 0..{self.LIMIT_MS} ms", param, ctx)
+        before, after = (delays + [0.0])[:2]
+        return (before / 1000, after / 1000)
+
+
 # --- shared options ------------------------------------------------------------------
 
 
@@ -190,6 +210,18 @@ CONNECTION_OPTIONS = [
         help="Times to resend after a timeout or a bad reply.",
     ),
     click.option("--echo", is_flag=True, help="Strip the local echo of a half-duplex adapter."),
+    click.option(
+        "--rs485",
+        is_flag=True,
+        help="Drive RTS high while sending, for an RS-485 adapter without automatic direction "
+        "(the kernel driver's RS-485 mode where it has one, else mbtool switches RTS).",
+    ),
+    click.option(
+        "--rs485-delays",
+        type=Rs485Delays(),
+        metavar="MS[,MS]",
+        help="RTS raised this long before the frame and held this long after it; implies --rs485.",
+    ),
     click.option(
         "--hex",
         "hex_trace",
@@ -270,6 +302,8 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
             timeout,
             retries,
             echo,
+            rs485,
+            rs485_delays,
             hex_trace,
             output_format,
             dry_run,
@@ -289,6 +323,8 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
                 hex_trace,
                 output_format,
                 dry_run,
+                rs485,
+                rs485_delays,
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
             if profile:

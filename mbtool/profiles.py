@@ -26,7 +26,7 @@ from mbtool.codec.record import replace
 from mbtool.errors import RequestError
 
 # profile key -> the option's parameter name (the same) and the Connection field it sets
-KEYS = ("port", "unit", "framer", "baud", "parity", "bytesize", "stopbits", "timeout", "retries", "echo")
+KEYS = ("port", "unit", "framer", "baud", "parity", "bytesize", "stopbits", "timeout", "retries", "echo", "rs485", "rs485_delays")
 
 
 def config_path() -> Path:
@@ -78,13 +78,13 @@ def apply(connection, name: str):
 
 
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
-    if key == "echo":
+    if key in ("echo", "rs485"):
         if not isinstance(raw, bool):
             raise RequestError(f"{where}: {raw!r} is not true or false")
         return raw
     if isinstance(raw, bool) or not isinstance(raw, str | int | float):
         raise RequestError(f"{where}: {raw!r} is not a string or number")
-    if key in ("bytesize", "stopbits", "parity", "framer", "port"):
+    if key in ("bytesize", "stopbits", "parity", "framer", "port", "rs485_delays"):
         raw = str(raw)
     elif key in ("unit", "baud", "retries") and isinstance(raw, float):
         raise RequestError(f"{where}: {raw!r} is not a whole number")

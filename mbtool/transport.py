@@ -29,6 +29,7 @@ class SerialSettings:
     parity: str = "E"
     bytesize: int = 8
     stopbits: int = 1
+    rs485: tuple[float, float] | None = None  # RTS lead and trail (s) when RTS sets the direction
 
     def __str__(self) -> str:
         return f"{self.baud} {self.bytesize}{self.parity}{self.stopbits}"
@@ -88,14 +89,52 @@ class SerialTransport(Transport):
                 ) from None
             raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
         self._serial_error = serial.SerialException
+        self._rts_switching: tuple[float, float] | None = None
+        if settings.rs485 is not None:
+            self._drive_direction(url, settings.rs485)
         # A local serial port has a descriptor to wait on; url handlers (socket://,
         # rfc2217://, loop://) wait inside pyserial with their own timeout.
         self._fd = self.port.fileno() if type(self.port).__module__ == "serial.serialposix" else None
 
+    def _drive_direction(self, url: str, delays: tuple[float, float]) -> None:
+        """RS-485 direction by RTS: the kernel driver's RS-485 mode switches it in time with
+        the UART's last stop bit; where the driver has none, mbtool switches RTS around each
+        write, which costs the OS's timing slack (pyserial's serial.rs485 does the same)."""
+        import serial.rs485
+
+        before, after = delays
+        if type(self.port).__module__ == "serial.serialposix":
+            try:
+                self.port.rs485_mode = serial.rs485.RS485Settings(
+                    rts_level_for_tx=True, rts_level_for_rx=False, delay_before_tx=before, delay_before_rx=after
+                )
+                return
+            except (ValueError, OSError):
+                # No kernel RS-485 on this driver (most USB adapters): forget the setting,
+                # or every later reconfiguration of the port would fail on it again.
+                self.port.rs485_mode = None
+        try:
+            self.port.rts = False  # receive until there is something to send
+        except (self._serial_error, OSError, ValueError) as error:
+            self.port.close()
+            raise ConnectionFailed(f"cannot drive RTS of {url} for --rs485: {_reason(error)}") from None
+        self._rts_switching = delays
+
     def write(self, data: bytes) -> None:
         try:
-            self.port.write(data)
-            self.port.flush()  # a real UART: return when the bytes have left
+            if self._rts_switching is None:
+                self.port.write(data)
+                self.port.flush()  # a real UART: return when the bytes have left
+                return
+            before, after = self._rts_switching
+            self.port.rts = True
+            time.sleep(before)
+            try:
+                self.port.write(data)
+                self.port.flush()  # the last stop bit must leave before RTS drops
+                time.sleep(after)
+            finally:
+                self.port.rts = False  # never leave the line driven: it would silence the bus
         except (self._serial_error, OSError) as error:
             raise ConnectionFailed(f"cannot write to {self.description}: {_reason(error)}") from None
 
