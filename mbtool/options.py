@@ -109,15 +109,21 @@ class DeviceCommand(QuickHelp, click.Command):
 
 
 class PositiveFloat(click.ParamType):
+    """Seconds, more than 0; with ``zero_ok`` also 0 (poll back to back)."""
+
     name = "seconds"
+
+    def __init__(self, zero_ok: bool = False) -> None:
+        self.zero_ok = zero_ok
 
     def convert(self, value, param, ctx):
         try:
             number = float(value)
         except (TypeError, ValueError):
             self.fail(f"{value!r} is not a number of seconds", param, ctx)
-        if not number > 0 or number != number or number == float("inf"):
-            self.fail(f"must be more than 0 seconds, not {value}", param, ctx)
+        if number != number or number == float("inf") or number < 0 or (number == 0 and not self.zero_ok):
+            least = "0 or more" if self.zero_ok else "more than 0"
+            self.fail(f"must be {least} seconds, not {value}", param, ctx)
         return number
 
 

@@ -167,7 +167,7 @@ def poll(
             done += 1
             slot += 1
             behind = time.monotonic() - (start + slot * interval)
-            if behind > 0 and (polls == 0 or done < polls):
+            if interval > 0 and behind > 0 and (polls == 0 or done < polls):
                 missed = math.ceil(behind / interval)
                 skipped += missed
                 slot += missed

@@ -10,7 +10,7 @@ import sys
 import time
 from datetime import datetime
 
-from conftest import HOLDING, REPO_ROOT, expect_ok, mbtool_env, start_device
+from conftest import HOLDING, REPO_ROOT, assert_one_error_line, expect_ok, mbtool_env, start_device
 
 
 def summary(res) -> dict:
@@ -237,3 +237,22 @@ def test_a_link_that_cannot_open_is_one_error_not_a_failed_poll_for_ever(mbtool,
     res = mbtool("read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{refused_port}", "--interval", "0.1")
     assert_one_error_line(res, 6)
     assert_one_error_line(mbtool("read-coils", "0", "1", "--interval", "0.1"), 2)
+
+
+def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers", "0", "10", "-p", tcp_device.target, "--interval", "0", "--polls", "50",
+            "-o", "json",
+        )
+    )
+    lines = [json.loads(line) for line in res.stdout.splitlines()]
+    assert len(lines) == 50
+    assert all(line["values"] == HOLDING[:10] for line in lines)
+    # back to back: no slot to miss, so nothing is counted as skipped
+    assert summary(res) == {"polls": 50, "replies": 50, "timeouts": 0, "errors": 0, "skipped": 0}
+
+
+def test_negative_interval_is_refused(mbtool):
+    res = mbtool("read-coils", "0", "1", "-p", "sim://", "--interval", "-1", "--polls", "2")
+    assert "0 or more seconds" in assert_one_error_line(res, 2)

@@ -12,7 +12,7 @@ import serial
 
 from mbtool.errors import ConnectionFailed
 from mbtool.transport import SerialSettings, SerialTransport
-from tests.conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
+from conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
 
 
 class FakePort:

@@ -28,8 +28,9 @@ def polling_options(function):
     )(function)
     return click.option(
         "--interval",
-        type=PositiveFloat(),
-        help="Poll every SECONDS over one open link (until interrupted unless --polls).",
+        type=PositiveFloat(zero_ok=True),
+        help="Poll every SECONDS over one open link (until interrupted unless --polls); "
+        "0 polls back to back.",
     )(function)
 
 
