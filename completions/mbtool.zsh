@@ -76,7 +76,7 @@ _mbtool() {
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
             '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
@@ -100,7 +100,7 @@ _mbtool() {
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
             '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
@@ -126,7 +126,7 @@ _mbtool() {
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
             '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
@@ -152,7 +152,7 @@ _mbtool() {
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls)]:SECONDS: ' \
+            '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
             '--polls=[Poll N times (0: until interrupted); interval 1 s unless --interval]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             ':ADDRESS: ' \
@@ -546,6 +546,8 @@ _mbtool() {
             '--corrupt=[Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)]:FRACTION: ' \
             '*--exception=[Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable)]:FC\:CODE: ' \
             '--busy=[Fault: answer every request with exception 06 (server device busy) for the first SECONDS after start]:SECONDS: ' \
+            '--max-clients=[TCP: clients served at once; a connection past them is closed at once and logged]:NUMBER: ' \
+            '--idle-timeout=[TCP: close a client that completes no request and takes no reply for SECONDS (one that never sends, sends a byte now and then, or does not read); 0 for never]:SECONDS: ' \
             '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
             '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0

@@ -5,6 +5,15 @@
   that talk to serial device servers).  A client that sends bytes that are not
   MBAP is disconnected (what pymodbus and most devices do: after a bad header
   the stream cannot be resynchronised); the other clients never notice.
+  No client can hold the others up or make memory grow: sockets never block,
+  at most ``max_clients`` are served (more are accepted and closed at once),
+  each is read ``RECV_SIZE`` bytes a turn, its framer keeps at most one frame
+  (the framers drop what cannot be one), its unsent replies are capped at
+  ``OUT_LIMIT`` (past it its requests are no longer read: the kernel's buffers
+  and then the client's own sends take the back-pressure), and a client that
+  completes no request and takes no reply for ``idle_timeout`` seconds is
+  closed, so one that never sends, drips a byte a minute or never reads its
+  replies gives its slot back.
 * Serial: pyserial (device path or URL), frames ended by implicit length or by
   t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
 * Faults of the I/O layer: delay, drop and checksum corruption of replies.
@@ -35,6 +44,13 @@ TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is u
 # waits for it, so only an unknown function code or a broken frame pays this.
 MIN_SERIAL_GAP = 0.01
 MAX_CLIENTS = 64
+IDLE_TIMEOUT = 60.0  # seconds without a whole request or a reply taken before a client is closed
+RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others get their turn
+# Replies queued for a client that does not read them; past this its requests wait in the
+# kernel.  One turn's read can still add a burst (at most 4096 / 8 requests of 260-byte
+# replies, 133 KB), so a client costs at most about 200 KB.
+OUT_LIMIT = 64 * 1024
+ACCEPTS_PER_TURN = 16  # a burst of connections cannot starve the clients already served
 FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
 
 
@@ -92,6 +108,8 @@ class Stats:
         self.corrupted = 0
         self.clients = 0
         self.connections = 0
+        self.refused = 0  # connections closed at once because max_clients were connected
+        self.expired = 0  # clients closed by the idle timeout
         self.frames: deque[tuple[float, str, str, bytes, str]] = deque(maxlen=12)
         self.listening = ""
 
@@ -183,6 +201,8 @@ class Server:
         seed: int | None = None,
         settings=None,
         log: Callable[[str, str, bytes, str], None] | None = None,
+        max_clients: int = MAX_CLIENTS,
+        idle_timeout: float | None = IDLE_TIMEOUT,
     ) -> None:
         self.device = device
         self.target = target
@@ -199,6 +219,10 @@ class Server:
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
         self._seq = 0
         self._tick: Callable[[], None] = lambda: None
+        self.max_clients = max_clients
+        self.idle_timeout = idle_timeout or None  # 0 or None: never
+        self._clients: set[_Client] = set()
+        self._swept = 0.0
 
     def stop(self) -> None:
         self._stop = True
@@ -238,7 +262,9 @@ class Server:
         try:
             listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             listener.bind(address)
-            listener.listen(16)
+            # Room for a burst of connections: past max_clients they are accepted and closed
+            # at once, which beats leaving them to time out on a full backlog.
+            listener.listen(128)
         except OSError as error:
             listener.close()
             raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
@@ -251,21 +277,29 @@ class Server:
         self.selector.register(listener, selectors.EVENT_READ, None)
 
     def _accept(self) -> None:
-        try:
-            conn, address = self.listener.accept()
-        except OSError:
-            return
-        if self.stats.clients >= MAX_CLIENTS:
-            conn.close()  # refuse politely rather than run out of descriptors
-            return
-        conn.setblocking(False)
-        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        peer = f"{address[0]}:{address[1]}"
-        client = _Client(conn, peer, device_framer(self.framer_name))
-        self.selector.register(conn, selectors.EVENT_READ, client)
-        self.stats.clients += 1
-        self.stats.connections += 1
-        self._log("open", peer, b"", "connected")
+        for _ in range(ACCEPTS_PER_TURN):
+            try:
+                conn, address = self.listener.accept()
+            except OSError:  # nothing left to accept, or out of descriptors: try next turn
+                return
+            peer = f"{address[0]}:{address[1]}"
+            if len(self._clients) >= self.max_clients:
+                # Close at once rather than run out of descriptors or keep the master waiting
+                # for a reply that will never come; the clients already served never notice.
+                conn.close()
+                self.stats.refused += 1
+                why = f"refused: {self.max_clients} clients already connected (--max-clients)"
+                self.stats.frame("refuse", peer, b"", why)
+                self._log("refuse", peer, b"", why)
+                continue
+            conn.setblocking(False)
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            client = _Client(conn, peer, device_framer(self.framer_name))
+            self.selector.register(conn, client.events, client)
+            self._clients.add(client)
+            self.stats.clients += 1
+            self.stats.connections += 1
+            self._log("open", peer, b"", "connected")
 
     def _close(self, client: _Client, why: str) -> None:
         if client.closed:
@@ -273,12 +307,14 @@ class Server:
         client.closed = True
         self.selector.unregister(client.sock)
         client.sock.close()
+        self._clients.discard(client)
+        client.out.clear()
         self.stats.clients -= 1
         self._log("close", client.peer, b"", why)
 
     def _receive(self, client: _Client) -> None:
         try:
-            data = client.sock.recv(4096)
+            data = client.sock.recv(RECV_SIZE)
         except (BlockingIOError, InterruptedError):
             return
         except OSError as error:
@@ -298,46 +334,96 @@ class Server:
                 self.responder.answer(event, client.framer, client.peer)
                 self._close(client, f"not Modbus TCP: {event.error}")
                 return
+            if isinstance(event, Frame):
+                # Only a whole request counts as activity: bytes that never make one
+                # (a drip, garbage) do not keep a client's slot.
+                client.last_active = time.monotonic()
             reply = self.responder.answer(event, client.framer, client.peer)
             if reply:
                 self._queue(client, reply)
             event = client.framer.next_event()
+        self._flush(client)
 
     def _queue(self, client: _Client, reply: bytes) -> None:
+        if not self.faults.delay:
+            client.out += reply  # sent by _flush once the whole read is answered
+            return
+
         def send() -> None:
-            if client.closed:
-                return
+            client.owed -= 1
+            if not client.closed:
+                client.out += reply
+                self._flush(client)
+
+        client.owed += 1  # a reply the server owes is not the client's idleness
+        self._later(time.monotonic() + self.faults.delay, send)
+
+    def _flush(self, client: _Client) -> None:
+        """Send what the socket takes now, never wait; read requests only while replies fit."""
+        if client.closed:
+            return
+        if client.out:
             try:
-                client.sock.sendall(reply)
+                sent = client.sock.send(client.out)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
             except OSError as error:
                 self._close(client, error.strerror or str(error))
+                return
+            if sent:
+                del client.out[:sent]
+                client.last_active = time.monotonic()
+        events = selectors.EVENT_READ if len(client.out) < OUT_LIMIT else 0
+        if client.out:
+            events |= selectors.EVENT_WRITE
+        if events != client.events:
+            client.events = events
+            self.selector.modify(client.sock, events, client)
 
-        if self.faults.delay:
-            self._later(time.monotonic() + self.faults.delay, send)
-        else:
-            send()
+    def _expire(self, now: float) -> None:
+        """Close the clients that completed no request and took no reply for idle_timeout."""
+        limit = self.idle_timeout
+        if limit is None or now - self._swept < TICK / 2:
+            return
+        self._swept = now
+        for client in [c for c in self._clients if not c.owed and now - c.last_active > limit]:
+            idle = f"{now - client.last_active:.1f} s"
+            if client.out:
+                why = f"idle timeout: took no reply for {idle}, {len(client.out)} bytes unsent"
+            elif client.last_data > client.last_active:
+                why = f"idle timeout: bytes but no whole request for {idle}"
+                if client.framer.buffered:
+                    why += f", {client.framer.buffered} bytes of one buffered"
+            else:
+                why = f"idle timeout: nothing received for {idle}"
+            self.stats.expired += 1
+            self.stats.frame("close", client.peer, b"", why)
+            self._close(client, why)
 
     def _serve_tcp(self) -> None:
         while not self._stop:
-            for key, _ in self.selector.select(self._wait(TICK)):
-                if key.data is None:
+            for key, mask in self.selector.select(self._wait(TICK)):
+                client = key.data
+                if client is None:
                     self._accept()
-                else:
-                    self._receive(key.data)
+                    continue
+                if mask & selectors.EVENT_WRITE:
+                    self._flush(client)
+                if mask & selectors.EVENT_READ and not client.closed:
+                    self._receive(client)
             self._send_due()
-            self._tick()
+            now = time.monotonic()
             if self.framer_name != "tcp":
                 # RTU/ASCII over TCP: no silence to see, but a long pause ends what is buffered.
-                now = time.monotonic()
-                for key in list(self.selector.get_map().values()):
-                    client = key.data
-                    if client and client.framer.buffered and now - client.last_data > TCP_GAP:
+                for client in list(self._clients):
+                    if client.framer.buffered and now - client.last_data > TCP_GAP:
                         self._events(client, client.framer.silence)
+            self._expire(now)
+            self._tick()
 
     def _close_tcp(self) -> None:
-        for key in list(self.selector.get_map().values()):
-            if key.data is not None:
-                self._close(key.data, "server stopped")
+        for client in list(self._clients):
+            self._close(client, "server stopped")
         self.selector.close()
         self.listener.close()
 
@@ -418,11 +504,15 @@ class Server:
 
 
 class _Client:
-    __slots__ = ("sock", "peer", "framer", "last_data", "closed")
+    __slots__ = ("sock", "peer", "framer", "last_data", "last_active", "out", "owed", "events", "closed")
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
         self.sock = sock
         self.peer = peer
         self.framer = framer
-        self.last_data = time.monotonic()
+        self.last_data = time.monotonic()  # the last bytes received (RTU/ASCII over TCP: the gap)
+        self.last_active = self.last_data  # connected, a whole request, or a reply taken
+        self.out = bytearray()  # replies the socket has not taken yet
+        self.owed = 0  # replies held back by --delay
+        self.events = selectors.EVENT_READ
         self.closed = False

@@ -58,6 +58,21 @@ def parse_exception(text: str) -> tuple[int, int]:
     return fc, ex
 
 
+class Seconds(click.ParamType):
+    """Seconds, 0 for never."""
+
+    name = "seconds"
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+        if not 0 <= number < float("inf"):  # also refuses nan
+            self.fail(f"{value} is not a number of seconds (0 for never)", param, ctx)
+        return number
+
+
 class Fraction(click.ParamType):
     name = "fraction"
 
@@ -151,6 +166,21 @@ class Fraction(click.ParamType):
     help="Fault: answer every request with exception 06 "
     "(server device busy) for the first SECONDS after start.",
 )
+@click.option(
+    "--max-clients",
+    type=Number(1, 1000, "client count"),
+    default=64,
+    show_default=True,
+    help="TCP: clients served at once; a connection past them is closed at once and logged.",
+)
+@click.option(
+    "--idle-timeout",
+    type=Seconds(),
+    default=60.0,
+    show_default=True,
+    help="TCP: close a client that completes no request and takes no reply for SECONDS "
+    "(one that never sends, sends a byte now and then, or does not read); 0 for never.",
+)
 @click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
 def serve(
@@ -167,6 +197,8 @@ def serve(
     corrupt,
     exceptions,
     busy,
+    max_clients,
+    idle_timeout,
     seed,
     quiet,
 ):
@@ -212,6 +244,8 @@ def serve(
         seed=seed,
         settings=settings,
         log=log,
+        max_clients=max_clients,
+        idle_timeout=idle_timeout,
     )
     server.open()
     unit_text = _units_text(unit_set)
