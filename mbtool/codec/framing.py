@@ -13,6 +13,7 @@ The framers differ only in their envelope (tokio-modbus ``frame/{rtu,tcp}.rs``).
 from __future__ import annotations
 
 import binascii
+import re
 import struct
 from abc import ABC, abstractmethod
 
@@ -149,6 +150,11 @@ class Framer(ABC):
         return pdu_length(pdu, self.responses, self.expect)
 
 
+# Which offsets an RTU framer judges as frame starts, per (framer class, responses,
+# function code asked, unit asked): see RtuFramer._judge_starts_for.
+_START_RULES: dict[tuple, tuple[bytes, bytes, re.Pattern[bytes]]] = {}
+
+
 class RtuFramer(Framer):
     """``[unit][PDU][CRC lo][CRC hi]``, ended by implicit length (or by silence)."""
 
@@ -156,6 +162,7 @@ class RtuFramer(Framer):
     checksum_name = "CRC"
     _held = False  # a corrupted frame is held: the awaited reply may begin in its last bytes
     _quiet = False  # inside silence(): no more bytes are coming
+    _starved: tuple | None = None  # the state in which _parse last needed more bytes
 
     def __init__(self, responses: bool = True) -> None:
         super().__init__(responses)
@@ -168,6 +175,8 @@ class RtuFramer(Framer):
         self._scanned = 0
         self._pending: list[int] = []
         self._scan_expect: Request | None = None
+        self._scan_unit: int | None = None
+        self._judge_starts_for(None, None)
 
     def feed(self, data: bytes) -> None:
         super().feed(data)
@@ -200,14 +209,25 @@ class RtuFramer(Framer):
         return f"CRC {adu[-2]:02X} {adu[-1]:02X} BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
 
     def _parse(self):
+        # next_event() asks again after handing over the garbage; until bytes come or go
+        # (or the request changes) the answer is the same: do not judge it all twice.
+        state = (self._fed, len(self._buffer), self.expect, self.expect_unit, self._quiet)
+        if state == self._starved:
+            return None
+        result = self._judge_front()
+        self._starved = state if result is None else None
+        return result
+
+    def _judge_front(self):
         buf = self._buffer
         self._held = False
+        self._rescan_if_expecting_anew()
         size = self._frame_size(0)
         if size is None:
             # The front does not tell its length yet: a whole frame may already sit behind it.
             return self._skip_to_frame(len(buf))
         if isinstance(size, FrameError):
-            return 1, size
+            return self._garbage_up_to_a_start(1, size)
         if len(buf) < size:
             # Noise before a reply can look like the head of a long frame; without
             # this the real reply would wait inside that phantom frame until the deadline.
@@ -220,10 +240,79 @@ class RtuFramer(Framer):
         skip = self._skip_to_frame(size)
         if skip is not None:
             return skip
-        if any(self._awaited(start) for start in range(1, size)):
+        if self._awaited_inside(size):
             self._held = True
             return None  # the reply we wait for may be starting inside: wait for the rest
-        return size, frame
+        return self._garbage_up_to_a_start(size, frame)
+
+    # -- resync (spec §2: an RTU frame has no start mark; only its length rule and CRC tell) --
+
+    def _judge_starts_for(self, expect: Request | None, unit: int | None) -> None:
+        """Decide which offsets are worth judging as the start of a frame.
+
+        While a request is outstanding: an offset holding its unit, or one byte before its
+        function code (or code | 0x80).  That finds the reply, and a reply from the wrong
+        unit or with the wrong function, reported as a mismatch; any other frame amid
+        garbage cannot answer the request and stays garbage.  Judging every offset in
+        Python made 64 KiB of garbage cost over 100 ms.
+
+        With no request outstanding: one byte before any function code that can start a
+        frame (an exception reply too).  The offsets left out are those the front would
+        reject one by one as an unknown function code, so skipping them changes nothing.
+        """
+        code = None if expect is None else expect.function_code
+        key = (type(self), self.responses, code, unit)
+        if key not in _START_RULES:  # once per request kind, not per request: a poll repeats them
+            if code is not None:
+                codes = {code, code | 0x80}
+                units = set() if unit is None else {unit}
+            else:
+                codes = {code for code in range(256) if self._can_start(code)}
+                units = set()
+            # One character class finds both kinds of byte in C, never byte by byte in Python.
+            marks = b"".join(re.escape(bytes([byte])) for byte in sorted(codes | units))
+            _START_RULES[key] = (
+                bytes(byte in codes for byte in range(256)),
+                bytes(byte in units for byte in range(256)),
+                re.compile(b"[" + marks + b"]"),
+            )
+        self._start_codes, self._start_units, self._marks = _START_RULES[key]
+
+    def _can_start(self, code: int) -> bool:
+        """Can a frame whose function code is ``code`` start here, with no request outstanding?"""
+        if self.responses and code & 0x80:
+            return True  # an exception reply, whatever its function
+        return function_type(code) is not None
+
+    def _starts(self, lo: int, hi: int):
+        """The offsets in lo..hi-1 worth judging as the start of a frame, in order."""
+        buf, codes, units = self._buffer, self._start_codes, self._start_units
+        last = lo - 1
+        # Up to hi inclusive: the function code of an offset at hi - 1 lies at hi.
+        for found in self._marks.finditer(buf, lo, hi + 1):
+            at = found.start()
+            if codes[buf[at]] and at - 1 > last:
+                last = at - 1
+                yield last
+            if units[buf[at]] and last < at < hi:
+                last = at
+                yield at
+
+    def _rescan_if_expecting_anew(self) -> None:
+        if self._scan_expect is not self.expect or self._scan_unit != self.expect_unit:
+            # Lengths and the offsets worth judging depend on the request: judge afresh.
+            self._scan_expect, self._scan_unit = self.expect, self.expect_unit
+            self._judge_starts_for(self.expect, self.expect_unit)
+            self._scanned = 0
+            self._pending = []
+
+    def _garbage_up_to_a_start(self, skip: int, error: FrameError):
+        """(bytes to skip, why) for a rejected front, stretched over the offsets behind it
+        that are not worth judging, so garbage goes in one step, not byte by byte."""
+        last = len(self._buffer) - 1  # its function code has not arrived: it may yet start a frame
+        if skip < last:
+            skip = next(self._starts(skip, last), last)
+        return skip, error
 
     def _frame_size(self, start: int) -> int | None | FrameError:
         """Size of the frame that would start at ``start``: None for more bytes, or why none can."""
@@ -251,15 +340,11 @@ class RtuFramer(Framer):
         """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.
 
         Each offset is judged once for good (no frame can start there, whatever follows)
-        or kept pending until the bytes that decide it arrive, so garbage costs linear time.
+        or kept pending until the bytes that decide it arrive, so garbage costs linear time;
+        only the offsets _starts picks out are judged at all.
         """
         buf = self._buffer
         base = self._fed - len(buf)  # the absolute position of buf[0]
-        if self._scan_expect is not self.expect:
-            # Lengths depend on the request being answered: judge everything afresh.
-            self._scan_expect = self.expect
-            self._scanned = 0
-            self._pending = []
         if self._pending and self._pending[0] <= base:
             self._pending = [p for p in self._pending if p > base]
         still = []
@@ -274,14 +359,19 @@ class RtuFramer(Framer):
             if verdict is None:
                 still.append(position)
         self._pending = still
-        for position in range(max(self._scanned, base + 1), base + end):
-            verdict = self._frame_at(position - base)
-            if verdict is True:
-                self._scanned = position + 1
-                return self._noise(position - base)
-            if verdict is None:
-                self._pending.append(position)
-        self._scanned = max(self._scanned, base + end)
+        # An offset is picked out by its byte and the next one: the last byte waits for its
+        # follower (no whole frame can start there yet anyway).
+        stop = min(end, len(buf) - 1)
+        first = max(self._scanned - base, 1)
+        if first < stop:
+            for start in self._starts(first, stop):
+                verdict = self._frame_at(start)
+                if verdict is True:
+                    self._scanned = base + start + 1
+                    return self._noise(start)
+                if verdict is None:
+                    self._pending.append(base + start)
+            self._scanned = base + stop
         return None
 
     def _frame_at(self, start: int) -> bool | None:
@@ -308,6 +398,22 @@ class RtuFramer(Framer):
 
     def _noise(self, start: int):
         return start, FrameError(f"{start} bytes of noise before a frame", bytes(self._buffer[:start]))
+
+    def _awaited_inside(self, end: int) -> bool:
+        """Does the awaited reply seem to start at an offset in 1..end-1, not yet complete?"""
+        if self.expect is None or self._quiet:
+            return False
+        if self.expect_unit is None:
+            # Offsets are picked out by the function code after them, which the last byte lacks.
+            last = end == len(self._buffer) and self._awaited(end - 1)
+            return last or any(self._awaited(start) for start in self._starts(1, end))
+        unit = bytes([self.expect_unit])  # the reply starts with it: find it in C
+        start = self._buffer.find(unit, 1, end)
+        while start >= 0:
+            if self._awaited(start):
+                return True
+            start = self._buffer.find(unit, start + 1, end)
+        return False
 
     def _awaited(self, start: int) -> bool:
         """Does the reply to the expected request seem to start here, not yet complete?"""
@@ -464,6 +570,9 @@ class DeviceRtuFramer(RtuFramer):
 
     def __init__(self) -> None:
         super().__init__(responses=False)
+
+    def _can_start(self, code: int) -> bool:
+        return True  # an unknown function code starts a frame too, ended by silence
 
     def _frame_size(self, start: int):
         size = super()._frame_size(start)
