@@ -61,6 +61,7 @@ REQUESTS = [
     "2B 0E 04 01",
 ]
 UNIT = 1
+PROGRESS_EVERY = 50_000  # frames between progress lines on stderr
 TRANSACTION_ID = 1  # the id a new Client gives its first request
 
 
@@ -207,8 +208,12 @@ def through_client(framing: str, request, parts: list[bytes]) -> str:
     return "reply"
 
 
-def run(framing: str, frames: int, seed: int) -> dict:
-    """Fuzz one framing; the counts of outcomes per path and kind, and the crashing inputs."""
+def run(framing: str, frames: int, seed: int, progress=None) -> dict:
+    """Fuzz one framing; the counts of outcomes per path and kind, and the crashing inputs.
+
+    ``progress(kind, done, crashes)``, if given, is called every PROGRESS_EVERY frames and
+    at once on a crash: a long run is watched from its log, not only judged at its end.
+    """
     rng = random.Random(f"{seed}/{framing}")
     pairs = seeds()
     framer = make_framer(framing)
@@ -217,7 +222,9 @@ def run(framing: str, frames: int, seed: int) -> dict:
     outcomes: dict[str, Counter] = {}
     crashes: list[tuple[str, str, str, str]] = []
     for kind in ("random", "mutated"):
-        for _ in range(frames):
+        for done in range(frames):
+            if progress and done and done % PROGRESS_EVERY == 0:
+                progress(kind, done, crashes)
             request, adu = rng.choice(valid)
             data = random_frame(rng, framing) if kind == "random" else mutate(rng, adu, adus)
             parts = chunks(rng, data)
@@ -227,6 +234,8 @@ def run(framing: str, frames: int, seed: int) -> dict:
                 except Exception as error:  # the very thing this harness hunts for
                     outcome = "CRASH"
                     crashes.append((path, bytes(request.encode()).hex(" "), data.hex(" "), repr(error)))
+                    if progress:
+                        progress(kind, done, crashes)
                 outcomes.setdefault(f"{kind} {path}", Counter())[outcome] += 1
     return {"outcomes": outcomes, "crashes": crashes}
 
@@ -244,7 +253,16 @@ def main() -> int:
     failed = False
     for framing in args.framer or ("rtu", "ascii", "tcp"):
         start = time.perf_counter()
-        result = run(framing, args.frames, args.seed)
+
+        def progress(kind: str, done: int, crashes: list, framing=framing, start=start) -> None:
+            print(
+                f"{framing}: {kind} {done}/{args.frames}, {time.perf_counter() - start:.0f} s,"
+                f" {len(crashes)} crashes" + (f"; last: {crashes[-1]}" if crashes else ""),
+                file=sys.stderr,
+                flush=True,
+            )
+
+        result = run(framing, args.frames, args.seed, progress)
         elapsed = time.perf_counter() - start
         print(
             f"{framing}: {args.frames} random + {args.frames} mutated frames, seed {args.seed},"
