@@ -7,7 +7,11 @@ in chunks of CHUNK bytes (a serial read delivers what has arrived).  For each:
 was the reply recovered, how long did consuming everything take, and the peak
 number of bytes the framer held.  Target: 64 KiB of garbage in well under 50 ms.
 
-    python bench/resync.py [--chunk 256] [--seed 1] [--repeat 5]
+With --no-request the framer expects nothing (as when decoding a capture): every offset
+before a known function code is judged then, not only those that may concern the
+request, so it is slower.
+
+    python bench/resync.py [--chunk 256] [--seed 1] [--repeat 5] [--no-request]
 """
 
 from __future__ import annotations
@@ -37,8 +41,9 @@ def garbage(rng: random.Random, size: int, reply: bytes) -> bytes:
 
 def feed(stream: bytes, chunk: int, request) -> tuple[bool, float, int]:
     framer = RtuFramer()
-    framer.expect = request
-    framer.expect_unit = UNIT
+    if request is not None:
+        framer.expect = request
+        framer.expect_unit = UNIT
     recovered, peak = False, 0
     start = time.perf_counter()
     for i in range(0, len(stream), chunk):
@@ -57,13 +62,15 @@ def main() -> int:
     parser.add_argument("--chunk", type=int, default=256, help="bytes per read")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--repeat", type=int, default=5, help="runs per size; the best is shown")
+    parser.add_argument("--no-request", action="store_true", help="the framer expects no reply")
     args = parser.parse_args()
     rng = random.Random(args.seed)
-    request = ReadHoldingRegisters(0, 10)
+    request = None if args.no_request else ReadHoldingRegisters(0, 10)
     body = bytes([UNIT, 3, 20]) + bytes(range(20))
     reply = RtuFramer().build(UNIT, body[1:])
     ok = True
-    print(f"RTU resync, chunks of {args.chunk} bytes, seed {args.seed}, best of {args.repeat}")
+    expecting = "no request" if request is None else "a reply to FC03 expected"
+    print(f"RTU resync, {expecting}, chunks of {args.chunk} bytes, seed {args.seed}, best of {args.repeat}")
     for size in SIZES:
         stream = garbage(rng, size, reply) + reply
         runs = [feed(stream, args.chunk, request) for _ in range(args.repeat)]
