@@ -69,7 +69,7 @@ _mbtool()
             if [[ $cur == -* ]]; then
                 _mbtool_words "$cur" -V --version -h --help
             else
-                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc serve
+                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc serve scan
             fi
             ;;
         read-coils)
@@ -446,6 +446,23 @@ _mbtool()
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --seed -q --quiet -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        scan)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|--units|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--address|--count|--bauds|--parities) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --function) _mbtool_words "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
                     fi
                     ;;
             esac
