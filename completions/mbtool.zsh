@@ -41,6 +41,7 @@ _mbtool_commands() {
     'crc:CRC-16/MODBUS of bytes'
     'lrc:LRC of bytes'
     'serve:Simulate a Modbus device (slave) for testing masters: every function code of the spec'
+    'monitor:Watch a serial bus and decode every frame; never transmits'
     'scan:Find the unit ids that answer on a bus, and optionally the serial settings'
   )
   _describe -t commands 'mbtool command' commands
@@ -551,6 +552,23 @@ _mbtool() {
             '--idle-timeout=[TCP: close a client that completes no request and takes no reply for SECONDS (one that never sends, sends a byte now and then, or does not read); 0 for never]:SECONDS: ' \
             '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
             '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (monitor)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[The serial line to listen on: a serial device, socket://HOST:PORT or rfc2217://HOST:PORT]:TARGET:_mbtool_ports' \
+            '--framer=[Framing on the line]:framer:(rtu ascii)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '--silence=[Seconds without a byte that end a frame whose length is not known (default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii)]:SECONDS: ' \
+            '--response-timeout=[Seconds after which a request counts as unanswered]:SECONDS: ' \
+            '--duration=[Stop after this many seconds]:SECONDS: ' \
+            '--frames=[Stop after N frames]:NUMBER: ' \
+            '--capture=[Also write every frame to a pcap file that Wireshark decodes as Modbus RTU]:FILE: ' \
+            '--from-file=[Analyse bytes recorded from a line (raw binary) instead of listening; no timing, frames split by their implicit length]:FILE: ' \
+            '(-o --format)'{-o+,--format=}'[Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line]:format:(table plain json)' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
         (scan)

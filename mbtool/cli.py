@@ -45,6 +45,7 @@ COMMANDS = {
     "crc": "offline",
     "lrc": "offline",
     "serve": "serve",
+    "monitor": "monitor",
     "scan": "scan",
 }
 

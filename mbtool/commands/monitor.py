@@ -1,0 +1,437 @@
+"""monitor: a passive bus monitor on a serial line; it never transmits (spec §2).
+
+The splitting, pairing and flagging are sans-IO in mbtool.sniffer; this module owns
+the port, the clock and the output.  The port is opened read-only in spirit: nothing
+is ever written to it, and RTS is dropped at once, since an RS-485 adapter that
+switches direction by RTS would otherwise drive the bus and silence it.
+
+The summary leaves as one ``mbtool:`` line through cli.main, like polling's: exit 0
+when stopped by --duration, --frames, the end of --from-file, or Ctrl-C/SIGTERM after
+frames were seen; 130 only when interrupted before any frame (as polling does before
+any poll).  Checksum errors and exceptions on the bus are observations, counted in the
+summary, not failures of the monitor.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from datetime import datetime
+
+import click
+
+from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError
+from mbtool.options import Number, PositiveFloat, QuickHelp
+
+TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
+# On a UART t3.5 ends a frame (spec §2), but ptys and USB adapters deliver one frame in
+# bursts with pauses of several ms (an FTDI chip's latency timer is 16 ms by default), so a
+# shorter pause must not cut a frame.  A frame of known length never waits for the pause.
+MIN_RTU_SILENCE = 0.02
+ASCII_SILENCE = 1.0  # spec §2: up to 1 s may pass between the characters of an ASCII frame
+SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
+
+
+class MonitorSummary(MbtoolError):
+    """The end of a monitoring run: the counts on one stderr line, the verdict in the exit code."""
+
+    def __init__(self, message: str, exit_code: ExitCode) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class MonitorCommand(QuickHelp, click.Command):
+    """Listens; sends nothing."""
+
+
+def default_silence(framer: str, baud: int) -> float:
+    from mbtool.client import silent_interval
+
+    return ASCII_SILENCE if framer == "ascii" else max(silent_interval(baud), MIN_RTU_SILENCE)
+
+
+@click.command("monitor", cls=MonitorCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option(
+    "-p",
+    "--port",
+    envvar="MBTOOL_PORT",
+    metavar="TARGET",
+    show_envvar=True,
+    help="The serial line to listen on: a serial device, socket://HOST:PORT or rfc2217://HOST:PORT.",
+)
+@click.option(
+    "--framer",
+    type=click.Choice(["rtu", "ascii"]),
+    default="rtu",
+    show_default=True,
+    help="Framing on the line.",
+)
+@click.option(
+    "-b",
+    "--baud",
+    type=Number(1, 4_000_000, "baud rate"),
+    default=19200,
+    show_default=True,
+    help="Serial baud rate (also sets the t3.5 silence).",
+)
+@click.option(
+    "--parity",
+    type=click.Choice(["N", "E", "O"], case_sensitive=False),
+    default="E",
+    show_default=True,
+    help="Serial parity.",
+)
+@click.option(
+    "--bytesize", type=click.Choice(["7", "8"]), default="8", show_default=True, help="Serial data bits."
+)
+@click.option(
+    "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
+)
+@click.option(
+    "--silence",
+    type=PositiveFloat(),
+    help="Seconds without a byte that end a frame whose length is not known "
+    "(default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii).",
+)
+@click.option(
+    "--response-timeout",
+    type=PositiveFloat(),
+    default=1.0,
+    show_default=True,
+    help="Seconds after which a request counts as unanswered.",
+)
+@click.option("--duration", type=PositiveFloat(), help="Stop after this many seconds.")
+@click.option("--frames", "frame_limit", type=Number(1, 2**31, "frames"), help="Stop after N frames.")
+@click.option(
+    "--capture",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="Also write every frame to a pcap file that Wireshark decodes as Modbus RTU.",
+)
+@click.option(
+    "--from-file",
+    metavar="FILE",
+    type=click.Path(exists=True, dir_okay=False),
+    help="Analyse bytes recorded from a line (raw binary) instead of listening; no timing, "
+    "frames split by their implicit length.",
+)
+@click.option(
+    "-o",
+    "--format",
+    "output_format",
+    type=click.Choice(["table", "plain", "json"]),
+    help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
+)
+def monitor(
+    port,
+    framer,
+    baud,
+    parity,
+    bytesize,
+    stopbits,
+    silence,
+    response_timeout,
+    duration,
+    frame_limit,
+    capture,
+    from_file,
+    output_format,
+):
+    """Watch a serial bus and decode every frame; never transmits.
+
+    Frames are split by their implicit length and by silence, checked (CRC or LRC),
+    decoded, and each response is paired with its request, with the latency. Flags:
+    bad-checksum, exception, invalid, unsolicited (a response to no request seen),
+    late, broadcast, garbage; a request with no response gets an "unanswered" line.
+    Each line has the time (ms) and the gap before the frame. Ctrl-C, SIGTERM,
+    --duration or --frames stop it, with a summary line on stderr.
+    """
+    from mbtool.render import default_format
+    from mbtool.sniffer import BusMonitor, Tally
+
+    ctx = click.get_current_context()
+    port_given = port and ctx.get_parameter_source("port") is not click.core.ParameterSource.ENVIRONMENT
+    if from_file and port_given:
+        raise RequestError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
+    if not from_file:
+        _check_port(port)
+    sniffer = BusMonitor(framer, silence or default_silence(framer, baud), response_timeout)
+    output = Output(output_format or default_format())
+    tally = Tally()
+    recorder = None
+    if capture:
+        from mbtool.pcap import BusCapture
+
+        try:
+            recorder = BusCapture.create(capture)
+        except OSError as error:
+            raise RequestError(f"cannot write capture file {capture}: {error.strerror or error}") from None
+
+    def show(seen) -> bool:
+        """Show what the sniffer found; False once --frames is reached."""
+        from mbtool.sniffer import BusFrame
+
+        for item in seen:
+            if frame_limit and tally.frames >= frame_limit:
+                return False
+            tally.count(item)
+            output.write(item)
+            if recorder is not None and isinstance(item, BusFrame):
+                recorder.frame(item)
+        return not (frame_limit and tally.frames >= frame_limit)
+
+    interrupted = False
+    lost = None
+    try:
+        if from_file:
+            _replay(from_file, sniffer, show)
+        else:
+            lost = _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        output.close()
+        if recorder is not None:
+            recorder.close()
+    summary = str(tally)
+    if lost is not None:
+        raise ConnectionFailed(f"{lost}; {summary}")
+    if interrupted:
+        raise MonitorSummary(
+            "interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK
+        )
+    raise MonitorSummary(summary, ExitCode.OK)
+
+
+def _check_port(port: str | None) -> None:
+    if not port:
+        raise RequestError("no port given: use -p TARGET or set MBTOOL_PORT, or --from-file FILE")
+    scheme = port.split("://", 1)[0].lower() if "://" in port else ""
+    if scheme in ("tcp", "sim"):
+        raise RequestError(
+            f"monitor listens on a serial line, not {scheme}:// (a serial device, socket:// or rfc2217://)"
+        )
+
+
+def _replay(path: str, sniffer, show) -> None:
+    try:
+        with open(path, "rb") as file:
+            data = file.read()
+    except OSError as error:
+        raise RequestError(f"cannot read {path}: {error.strerror or error}") from None
+    now = time.time()
+    if show(sniffer.feed(now, data)):
+        show(sniffer.finish(now))
+
+
+def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show) -> str | None:
+    """Read the line until --duration, --frames or an interrupt; the reason if the port was lost."""
+    from mbtool.transport import SerialSettings, SerialTransport
+
+    settings = SerialSettings(
+        baud=baud, parity=parity.upper(), bytesize=int(bytesize), stopbits=int(stopbits)
+    )
+    transport = SerialTransport(port, settings)  # ConnectionFailed (exit 6) if it cannot be opened
+    try:
+        _stop_driving(transport)
+        # One write: a signal between the text and its newline would run them on to the summary.
+        sys.stderr.write(
+            f"mbtool: listening on {port} ({settings}, {framer}, silence "
+            f"{1000 * sniffer.silence:g} ms); nothing is sent\n"
+        )
+        sys.stderr.flush()
+        deadline = time.monotonic() + duration if duration else None
+        wait = min(sniffer.silence, TICK)
+        looked = time.time()  # when the last read returned: bytes found later came after it
+        while True:
+            if deadline is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                wait = min(wait, left)
+            try:
+                data = transport.read(wait)
+            except NoResponse as error:  # the port went away (USB adapter unplugged, bridge closed)
+                show(sniffer.finish(time.time()))
+                return f"lost the serial line: {error}"
+            now = time.time()
+            if not show(sniffer.feed(now, data, since=looked) if data else sniffer.idle(now)):
+                return None
+            looked = now
+        show(sniffer.finish(time.time()))
+        return None
+    finally:
+        transport.close()
+
+
+def _stop_driving(transport) -> None:
+    """RTS low: an adapter whose driver RTS enables would otherwise hold the bus (never transmit)."""
+    try:
+        transport.port.rts = False
+    except Exception:  # noqa: BLE001 - ptys and url handlers have no RTS to drop; nothing to drive then
+        pass
+
+
+# --- output --------------------------------------------------------------------------------
+
+
+def iso_time(when: float) -> str:
+    """Local time, ISO 8601 with milliseconds and UTC offset (as polling stamps its polls)."""
+    return datetime.fromtimestamp(when).astimezone().isoformat(timespec="milliseconds")
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds * 1000, 1)
+
+
+def wire_text(frame) -> str:
+    """The bytes as a person reads them: ASCII frames as their text, everything else in hex."""
+    if frame.framing == "ascii" and frame.direction != "garbage":
+        return frame.wire.decode("ascii", "replace").strip()
+    return frame.wire.hex(" ").upper()
+
+
+def summary(frame) -> str:
+    """The decoded frame in one line: its name and the first fields after the function code."""
+    described = frame.described
+    fields = [f for f in described.fields if f.name != "function"]
+    parts = [
+        f"{f.name}={f.value}" if isinstance(f.value, int) else f"{f.name}={f.text or f.value}" for f in fields
+    ]
+    if len(parts) > SUMMARY_FIELDS:
+        parts = parts[:SUMMARY_FIELDS] + [f"... ({len(fields) - SUMMARY_FIELDS} more)"]
+    text = described.name + (": " + " ".join(parts) if parts else "")
+    if described.error:
+        text += f" (invalid: {described.error})"
+    return text
+
+
+def as_dict(item) -> dict:
+    """One JSON object per frame, garbage run or unanswered request."""
+    from mbtool.sniffer import Unanswered
+
+    if isinstance(item, Unanswered):
+        request = item.request
+        return {
+            "time": iso_time(item.time),
+            "event": "unanswered",
+            "request": request.number,
+            "unit": request.unit,
+            "function": request.function,
+            "name": request.described.name if request.described else None,
+            "reason": item.reason,
+        }
+    data = {
+        "time": iso_time(item.time),
+        "event": "garbage" if item.direction == "garbage" else "frame",
+        "number": item.number,
+        "gap_ms": _ms(item.gap),
+        "direction": item.direction,
+        "unit": item.unit,
+        "function": item.function,
+        "name": item.described.name if item.described else None,
+        "frame": item.wire.decode("ascii", "replace")
+        if item.framing == "ascii" and item.direction != "garbage"
+        else item.wire.hex(" ").upper(),
+        "checksum": None if item.checksum_ok is None else {"ok": item.checksum_ok, "verdict": item.checksum},
+        "summary": summary(item) if item.described else item.note,
+        "latency_ms": _ms(item.latency),
+        "request": item.request,
+        "flags": list(item.flags),
+    }
+    if item.described is not None:
+        from mbtool.commands.offline import frame_report
+
+        decoded = frame_report(item.described).data
+        data["fields"] = decoded["fields"]
+        data["warnings"] = decoded["warnings"]
+    return data
+
+
+def plain_line(item) -> str:
+    from mbtool.sniffer import Unanswered
+
+    if isinstance(item, Unanswered):
+        request = item.request
+        name = request.described.name if request.described else ""
+        return (
+            f"{iso_time(item.time)} unanswered #{request.number} unit={request.unit} "
+            f"fc={request.function:02X} {name} | {item.reason}"
+        )
+    gap = "-" if item.gap is None else f"{item.gap * 1000:.1f}ms"
+    head = f"{iso_time(item.time)} gap={gap} #{item.number} {item.direction}"
+    if item.direction == "garbage":
+        return f"{head} {len(item.wire)} bytes [{wire_text(item)}] | {item.note}"
+    line = f"{head} unit={item.unit} fc={item.function:02X} [{wire_text(item)}] {item.checksum} | {summary(item)}"
+    if item.latency is not None:
+        line += f" | latency={item.latency * 1000:.1f}ms request=#{item.request}"
+    if item.flags:
+        line += " | flags=" + ",".join(item.flags)
+    return line
+
+
+class Output:
+    """Each frame the moment it is seen, flushed: a terminal gets coloured lines."""
+
+    COLOURS = {"request": "cyan", "response": "green", "garbage": "red"}
+
+    def __init__(self, fmt: str, out=None) -> None:
+        self.fmt = fmt
+        self.out = out or sys.stdout
+        self.console = None
+        # Imported now, not while the first frame arrives: a read delayed by an import
+        # stamps its bytes late and shrinks the gap and latency shown.
+        if fmt == "table":
+            from rich.console import Console
+
+            self.console = Console(file=self.out, highlight=False, soft_wrap=True)
+        elif fmt == "json":
+            import mbtool.commands.offline  # noqa: F401 - frame_report, for the fields
+
+    def write(self, item) -> None:
+        if self.fmt == "json":
+            from mbtool.render import to_json
+
+            self.out.write(to_json(as_dict(item)) + "\n")
+        elif self.fmt == "plain":
+            self.out.write(plain_line(item) + "\n")
+        else:
+            self._coloured(item)
+        self.out.flush()
+
+    def _coloured(self, item) -> None:
+        from rich.markup import escape
+
+        from mbtool.sniffer import Unanswered
+
+        if isinstance(item, Unanswered):
+            request = item.request
+            name = request.described.name if request.described else ""
+            self.console.print(
+                f"[dim]{iso_time(item.time)}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
+                f"FC{request.function:02X} {escape(name)}: {escape(item.reason)}"
+            )
+            return
+        gap = "" if item.gap is None else f"+{item.gap * 1000:.1f}ms"
+        colour = self.COLOURS.get(item.direction, "white")
+        head = f"[dim]{iso_time(item.time)} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
+        if item.direction == "garbage":
+            self.console.print(
+                f"{head} [red]{len(item.wire)} bytes, {escape(item.note)}[/] [dim]{wire_text(item)}[/]"
+            )
+            return
+        verdict = (
+            f"[green]{escape(item.checksum)}[/]"
+            if item.checksum_ok
+            else f"[bold red]{escape(item.checksum)}[/]"
+        )
+        line = f"{head} unit {item.unit:<3} FC{item.function:02X} {escape(summary(item))}"
+        if item.latency is not None:
+            line += f" [yellow]{item.latency * 1000:.1f} ms[/]"
+        flags = [flag for flag in item.flags if flag != "bad-checksum"]
+        if flags:
+            line += " [bold red]" + escape(" ".join(flags)) + "[/]"
+        self.console.print(f"{line}\n    [dim]{escape(wire_text(item))}[/] {verdict}")
+
+    def close(self) -> None:
+        self.out.flush()
