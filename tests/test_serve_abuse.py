@@ -375,7 +375,7 @@ def _ascii_garbage(total: int):
         yield chunk
 
 
-@pytest.mark.parametrize(("framer", "total"), [("ascii", 16 * MB), ("rtu", 256 * 1024)])
+@pytest.mark.parametrize(("framer", "total"), [("ascii", 8 * MB), ("rtu", 256 * 1024)])
 def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, total):
     # RTU resynchronises byte by byte (about 8 µs a byte today), so it gets less garbage;
     # ASCII gets far more than the memory bound, so a buffer that kept it would show.
@@ -435,7 +435,7 @@ def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, 
         assert sent[0] >= total * 0.9 if framer == "ascii" else sent[0] == total
         assert expected in got, got[-200:]
         assert max(latencies) < PROMPT
-        assert max(peak, after) - before < 8 * 1024, (before, peak, after)  # far less than the garbage
+        assert max(peak, after) - before < 4 * 1024, (before, peak, after)  # far less than the garbage
 
 
 def test_bad_mbap_requests_on_many_connections(tmp_path):
@@ -577,7 +577,7 @@ def test_client_that_never_reads_blocks_nobody_and_is_closed(tmp_path):
             request = mbap(1, 1, struct.pack(">BHH", 3, 0, 125))
             sent = [0]
             thread = threading.Thread(
-                target=_flood, args=(slow, (request * 1000 for _ in range(1000)), 2.0, sent), daemon=True
+                target=_flood, args=(slow, (request * 1000 for _ in range(1000)), 1.5, sent), daemon=True
             )
             thread.start()
             latencies = []
