@@ -288,7 +288,8 @@ class Server:
                 # for a reply that will never come; the clients already served never notice.
                 conn.close()
                 self.stats.refused += 1
-                why = f"refused: {self.max_clients} clients already connected (--max-clients)"
+                clients = "1 client" if self.max_clients == 1 else f"{self.max_clients} clients"
+                why = f"refused: {clients} already connected (--max-clients)"
                 self.stats.frame("refuse", peer, b"", why)
                 self._log("refuse", peer, b"", why)
                 continue

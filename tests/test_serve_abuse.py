@@ -280,11 +280,12 @@ def test_idle_and_dripping_clients_are_closed_active_ones_kept(tmp_path, framer)
         assert sent >= 3  # the drip did send bytes while it waited to be closed
         assert elapsed > 2 * idle_timeout
         assert max(latencies) < PROMPT
-        log = server.log()
+    log = server.log()  # now the server has stopped and printed its summary
     assert log.count("idle timeout: nothing received for") == 1, log
     assert log.count("idle timeout: bytes but no whole request for") == 1, log
     if framer == "tcp":  # MBAP keeps the partial frame; RTU over TCP ends each byte on the pause
         assert "bytes of one buffered" in log
+    assert ", 2 timed out (--idle-timeout)" in log.splitlines()[-1]
 
 
 def test_connection_cap_refuses_extra_clients_at_once(tmp_path):
@@ -332,8 +333,9 @@ def test_connection_cap_refuses_extra_clients_at_once(tmp_path):
                 sock.close()
         print(f"\n40 connections past a cap of {cap} closed within {refused_in * 1000:.0f} ms;"
               f" served clients' worst reply {max(latencies) * 1000:.0f} ms")
-        log = server.log()
+    log = server.log()  # now the server has stopped and printed its summary
     assert log.count(f"refused: {cap} clients already connected") >= 40
+    assert "refused (--max-clients)" in log.splitlines()[-1]
 
 
 # --- garbage and oversized frames ---------------------------------------------------------

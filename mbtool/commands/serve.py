@@ -266,8 +266,17 @@ def serve(
             signal.signal(sig, handler)
     if mode != "quiet":
         stats = server.stats
+        turned_away = "".join(
+            f", {count} {what}"
+            for count, what in (
+                (stats.refused, "refused (--max-clients)"),
+                (stats.expired, "timed out (--idle-timeout)"),
+            )
+            if count
+        )
         click.echo(
             f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} connections"
+            + turned_away
         )
 
 
@@ -313,7 +322,9 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
             f"framer {framer}",
             f"units {unit_text}",
             f"up {uptime:.0f} s",
-            f"clients {stats.clients}",
+            f"clients {stats.clients}"
+            + (f", {stats.refused} refused" if stats.refused else "")
+            + (f", {stats.expired} timed out" if stats.expired else ""),
         )
         head.add_row(
             f"requests {stats.requests}",
