@@ -16,7 +16,7 @@ from collections.abc import Callable
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionResponse, Request, Response
 from mbtool.errors import ChecksumError, FrameError, MbtoolError, MismatchError, ModbusException, NoResponse
-from mbtool.transport import Transport
+from mbtool.transport import ConnectionClosed, Transport
 
 CHAR_BITS = 11  # spec §2: every RTU character is 11 bits on the line
 FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
@@ -84,6 +84,8 @@ class Client:
         for _ in range(attempts):
             try:
                 reply = self._transact(unit, request)
+            except ConnectionClosed:
+                raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
             except (NoResponse, FrameError) as failure:
                 error = failure
                 continue
@@ -158,8 +160,8 @@ class Client:
                 data = self.transport.read(
                     min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
                 )
-            except NoResponse as closed:  # the peer hung up: judge what it sent before that
-                return self._last_word(unit, request, problem, closed)
+            except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
+                return self._last_word(unit, request, problem, closed, hung_up=True)
             if data:
                 self.framer.feed(data)
                 self._line_free_at = self.clock()
@@ -178,13 +180,24 @@ class Client:
         return events
 
     def _last_word(
-        self, unit: int, request: Request, problem: FrameError | None, silence: NoResponse
+        self,
+        unit: int,
+        request: Request,
+        problem: FrameError | None,
+        silence: NoResponse,
+        hung_up: bool = False,
     ) -> Response | ExceptionResponse:
-        """Nothing more will come: judge what is still buffered, then raise the most telling problem."""
+        """Nothing more will come: judge what is still buffered, then raise the most telling problem.
+
+        When the peer hung up (``hung_up``), that is the error, naming what came before it:
+        the link is gone, so no retry can follow, and polling reopens it (exit 3).
+        """
         for event in self._drain(self.framer.silence()):
             reply, problem = self._judge(event, unit, request, problem)
             if reply is not None:
                 return reply
+        if hung_up and problem is not None:
+            raise ConnectionClosed(f"{silence}; what it sent before: {problem}")
         raise problem or silence
 
     def _judge(

@@ -9,7 +9,7 @@ from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
 from mbtool.codec.framing import RtuFramer, TcpFramer
 from mbtool.errors import ChecksumError, FrameError, MismatchError, ModbusException, NoResponse
-from mbtool.transport import Transport
+from mbtool.transport import ConnectionClosed, Transport
 
 
 def rtu(hex_text: str) -> bytes:
@@ -185,3 +185,31 @@ def test_endless_garbage_ends_at_the_deadline():
     with pytest.raises(FrameError):
         client(link, clock, timeout=0.5).execute(0x11, REQUEST)
     assert clock.now - start < 0.6
+
+
+# -- what the misbehaving-peer matrix (test_peer_matrix.py) showed -----------------------
+
+
+class ClosingLink(ScriptedLink):
+    """Sends the scripted chunks, then hangs up."""
+
+    def read(self, timeout: float) -> bytes:
+        if self.pending:
+            return self.pending.pop(0)
+        raise ConnectionClosed("tcp://device closed the connection")
+
+
+def test_a_link_closed_mid_frame_is_not_retried_and_names_what_came():
+    clock = FakeClock()
+    link = ClosingLink(clock, [[REPLY[:3]], [REPLY]])
+    with pytest.raises(ConnectionClosed, match="closed the connection; what it sent before: truncated"):
+        client(link, clock, retries=2).execute(0x11, REQUEST)
+    assert len(link.written) == 1, "a retry on a closed link can only fail to write"
+
+
+def test_a_link_closed_before_replying_is_no_response():
+    clock = FakeClock()
+    link = ClosingLink(clock, [[], [REPLY]])
+    with pytest.raises(ConnectionClosed, match="^tcp://device closed the connection$"):
+        client(link, clock, retries=2).execute(0x11, REQUEST)
+    assert len(link.written) == 1
