@@ -208,10 +208,25 @@ class Client:
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
         mismatch = self._mismatch(event, unit, request)
+        reply = None
+        if not mismatch:
+            try:
+                reply = request.decode_response(event.pdu)
+            except MismatchError as misfit:
+                if event.transaction_id is not None:
+                    self.trace.received(event.adu)
+                    raise  # it carries our transaction id: it is the reply, and a bad one
+                # Without a transaction id (RTU, ASCII), a frame from our unit whose byte count
+                # does not fit is most likely the late reply to an earlier request: discard it
+                # and keep waiting, as for another unit (its error is reported if nothing fits).
+                mismatch = str(misfit)
+            except FrameError:
+                self.trace.received(event.adu)
+                raise
         self.trace.received(event.adu, mismatch)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
-        return request.decode_response(event.pdu), problem
+        return reply, problem
 
     def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
         if frame.transaction_id is not None and frame.transaction_id != self._transaction_id:

@@ -190,6 +190,27 @@ def test_endless_garbage_ends_at_the_deadline():
 # -- what the misbehaving-peer matrix (test_peer_matrix.py) showed -----------------------
 
 
+def test_stale_reply_of_our_unit_with_another_count_is_discarded():
+    """RTU has no transaction id: a reply that does not fit (two registers for three asked)
+    is the late answer to an earlier request, not the end of this one."""
+    clock = FakeClock()
+    stale = rtu("11 03 04 00 0A 00 0B")
+    link = ScriptedLink(clock, [[stale, REPLY]])
+    assert client(link, clock, timeout=0.5).execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert len(link.written) == 1
+
+
+def test_tcp_reply_with_our_transaction_id_and_a_wrong_byte_count_fails_at_once():
+    clock = FakeClock()
+    framer = TcpFramer()
+    wrong = framer.build(0x11, bytes.fromhex("03 02 00 01"), 1)
+    link = ScriptedLink(clock, [[wrong]], serial_line=False)
+    start = clock.now
+    with pytest.raises(MismatchError, match="byte count 2 does not fit 3 registers"):
+        client(link, clock, framer=TcpFramer(), timeout=5).execute(0x11, REQUEST)
+    assert clock.now - start < 1
+
+
 class ClosingLink(ScriptedLink):
     """Sends the scripted chunks, then hangs up."""
 
