@@ -119,7 +119,10 @@ class Client:
         deadline = sent_at + on_wire + self.timeout
         if self.echo:
             self._strip_echo(adu, deadline)
-        return self._await_reply(unit, request, deadline)
+            watch = None
+        else:
+            watch = _EchoWatch.for_request(adu, request) if self.transport.serial_line else None
+        return self._await_reply(unit, request, deadline, watch)
 
     def _wait_for_silence(self) -> None:
         if not self.transport.serial_line:
@@ -142,7 +145,9 @@ class Client:
             raise FrameError(f"the adapter's echo {head.hex(' ').upper()} differs from the frame sent", head)
         self.framer.feed(rest)
 
-    def _await_reply(self, unit: int, request: Request, deadline: float) -> Response | ExceptionResponse:
+    def _await_reply(
+        self, unit: int, request: Request, deadline: float, watch: _EchoWatch | None = None
+    ) -> Response | ExceptionResponse:
         problem: FrameError | None = None
         events = self._drain(self.framer.next_event())  # bytes left after an echo may hold the reply
         while True:
@@ -161,16 +166,33 @@ class Client:
                     min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
                 )
             except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
+                self._release(watch)
                 return self._last_word(unit, request, problem, closed, hung_up=True)
             if data:
-                self.framer.feed(data)
                 self._line_free_at = self.clock()
+                if watch is not None:
+                    data = watch.filter(data)
+                    if watch.seen:
+                        self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
+                        watch.seen = False  # traced once; echoed stays True
+                self.framer.feed(data)
                 events = self._drain(self.framer.next_event())
             else:
-                events = self._drain(self.framer.silence()) if waiting else []
+                self._release(watch)  # a pause: bytes held as a possible echo were not one
+                events = self._drain(self.framer.silence() if waiting else self.framer.next_event())
+        self._release(watch)
+        if watch is not None and watch.echoed and problem is None:
+            # Bytes came back, but only the request's: an echo, or a device parroting a request
+            # it cannot answer.  Either way an invalid response, not silence.
+            problem = FrameError("the only reply was a copy of the request (an echoing adapter? try --echo)")
         return self._last_word(
             unit, request, problem, NoResponse(f"no response from unit {unit} within {self.timeout:g} s")
         )
+
+    def _release(self, watch: _EchoWatch | None) -> None:
+        """Hand the framer the bytes the watch held back as a possible echo: they were not one."""
+        if watch is not None:
+            self.framer.feed(watch.release())
 
     def _drain(self, first: Frame | Rejected | None) -> list[Frame | Rejected]:
         events = []
@@ -238,6 +260,54 @@ class Client:
             shown = "none" if code is None else f"{code:02X}"
             return f"reply has function code {shown}, expected {request.function_code:02X}"
         return ""
+
+
+class _EchoWatch:
+    """Without --echo: the request's own bytes coming back first are an adapter's echo.
+
+    A half-duplex RS-485 adapter that hears itself puts the request before the reply;
+    taken for a reply it reads as a CRC error or a nonsense byte count.  The watch holds
+    back bytes while they repeat the request, drops an exact copy of it, and hands back
+    anything else untouched.  Requests whose reply may be an exact copy of them (FC05,
+    FC06, FC08) are not watched: there an echo and a reply cannot be told apart.
+    """
+
+    def __init__(self, adu: bytes) -> None:
+        self.adu = adu
+        self.held = b""
+        self.watching = True
+        self.seen = False  # the echo just went by (for the trace)
+        self.echoed = False  # the echo went by in this transaction
+
+    @classmethod
+    def for_request(cls, adu: bytes, request: Request) -> _EchoWatch | None:
+        try:
+            request.decode_response(request.encode())
+        except Exception:  # whatever the reason, the request does not read as its own reply
+            return cls(adu)
+        return None
+
+    def filter(self, data: bytes) -> bytes:
+        """What of ``data`` the framer should see now."""
+        if not self.watching:
+            return data
+        self.held += data
+        size = min(len(self.held), len(self.adu))
+        if self.held[:size] != self.adu[:size]:
+            return self.release()
+        if len(self.held) < len(self.adu):
+            return b""  # so far a copy of the request: wait for the rest
+        rest = self.held[len(self.adu) :]
+        self.held = b""
+        self.watching = False
+        self.seen = self.echoed = True
+        return rest
+
+    def release(self) -> bytes:
+        """Stop watching; the bytes held back, which were not an echo after all."""
+        held, self.held = self.held, b""
+        self.watching = False
+        return held
 
 
 def _worse(current: FrameError | None, new: FrameError) -> FrameError:

@@ -7,7 +7,7 @@ import pytest
 from mbtool.client import Client, silent_interval
 from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
-from mbtool.codec.framing import RtuFramer, TcpFramer
+from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
 from mbtool.errors import ChecksumError, FrameError, MismatchError, ModbusException, NoResponse
 from mbtool.transport import ConnectionClosed, Transport
 
@@ -209,6 +209,60 @@ def test_tcp_reply_with_our_transaction_id_and_a_wrong_byte_count_fails_at_once(
     with pytest.raises(MismatchError, match="byte count 2 does not fit 3 registers"):
         client(link, clock, framer=TcpFramer(), timeout=5).execute(0x11, REQUEST)
     assert clock.now - start < 1
+
+
+class PausingLink(ScriptedLink):
+    """A float among the chunks is a pause of that many seconds on the line."""
+
+    def read(self, timeout: float) -> bytes:
+        if self.pending and isinstance(self.pending[0], float):
+            pause = self.pending.pop(0)
+            self.clock.now += min(pause, timeout)
+            if pause > timeout:
+                self.pending.insert(0, pause - timeout)
+            return b""
+        return super().read(timeout)
+
+
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer])
+def test_echo_without_the_option_is_skipped_and_the_reply_taken(framer_type):
+    """The echo at once, the reply after the device's turnaround: the echo is not judged as a reply
+    (RTU: a CRC error; ASCII: a valid frame whose byte count is nonsense)."""
+    clock = FakeClock()
+    sent = framer_type().build(0x11, REQUEST.encode())
+    reply = framer_type().build(0x11, REPLY[1:-2])
+    link = PausingLink(clock, [[sent[:3], sent[3:], 0.2, reply[:2], reply[2:]]])
+    c = client(link, clock, framer=framer_type(), timeout=0.5)
+    assert c.execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert len(link.written) == 1
+
+
+def test_only_the_echo_is_an_invalid_response_and_says_so():
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[rtu("11 03 00 6B 00 03")]])
+    with pytest.raises(FrameError, match="the only reply was a copy of the request.*--echo"):
+        client(link, clock, timeout=0.5).execute(0x11, REQUEST)
+
+
+def test_a_write_whose_reply_is_a_copy_of_the_request_is_not_taken_for_an_echo():
+    clock = FakeClock()
+    request = WriteSingleRegister(1, 3)
+    sent = rtu("11 06 00 01 00 03")
+    link = ScriptedLink(clock, [[sent]])
+    start = clock.now
+    assert client(link, clock, timeout=0.5).execute(0x11, request) == request.decode_response(sent[1:-2])
+    assert clock.now - start < 0.1, "the reply was held back as if it were an echo"
+
+
+def test_a_reply_that_starts_like_the_request_is_not_held_back():
+    """Bytes held as a possible echo go to the framer as soon as they differ from the request."""
+    clock = FakeClock()
+    request = ReadHoldingRegisters(0x0200, 1)  # request 11 03 02 00 ..., reply 11 03 02 ...
+    reply = rtu("11 03 02 00 07")
+    link = ScriptedLink(clock, [[reply[:3], reply[3:]]])
+    start = clock.now
+    assert client(link, clock, timeout=0.5).execute(0x11, request).registers == (7,)
+    assert clock.now - start < 0.1
 
 
 class ClosingLink(ScriptedLink):
