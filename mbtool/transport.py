@@ -204,15 +204,18 @@ class TcpTransport(Transport):
         return data
 
     def discard_input(self) -> bytes:
-        self.sock.setblocking(False)
+        # One select per look, not switching the socket's blocking mode off and on around
+        # a recv on every transaction of a polling loop (a socket with a timeout would wait
+        # that timeout out before even a MSG_DONTWAIT recv).
         stale = b""
         try:
-            while chunk := self.sock.recv(4096):
+            while select.select([self.sock], [], [], 0)[0]:
+                chunk = self.sock.recv(4096)  # readable: returns at once
+                if not chunk:
+                    break  # closed: the read that follows says so
                 stale += chunk
-        except (BlockingIOError, OSError):
+        except OSError:  # the next read reports a broken link
             pass
-        finally:
-            self.sock.setblocking(True)
         return stale
 
     def close(self) -> None:

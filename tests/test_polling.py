@@ -123,7 +123,7 @@ def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server
         "--polls",
         "2",
         "--interval",
-        "0.3",
+        "0.8",  # well beyond the 0.2 s timeout, so a loaded machine does not skip a slot
         "-o",
         "json",
     )

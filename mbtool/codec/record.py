@@ -56,6 +56,15 @@ def _own_fields(cls: type) -> list[Field]:
 
 def _init(self, *args: Any, **kwargs: Any) -> None:
     cls = type(self)
+    names = cls.__record_names__
+    if not kwargs and len(args) == len(names):
+        # Every field given in order, the common case: one dict update, not a loop of
+        # checks, since a polling loop makes several records a transaction.
+        self.__dict__.update(zip(names, args))
+        post_init = getattr(self, "__post_init__", None)
+        if post_init is not None:
+            post_init()
+        return
     positional = cls.__record_positional__
     if len(args) > len(positional):
         raise TypeError(f"{cls.__name__}() takes {len(positional)} positional arguments, {len(args)} given")
@@ -114,6 +123,9 @@ def record(cls: type) -> type:
     cls.__record_own__ = tuple(own)
     cls.__record_fields__ = tuple(all_fields)
     cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
+    # Names for the fast path of _init: only when all fields can be given by position.
+    names = tuple(f.name for f in all_fields)
+    cls.__record_names__ = names if len(cls.__record_positional__) == len(all_fields) else ()
     cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
     cls.__init__ = _init
     cls.__eq__ = _eq

@@ -92,6 +92,12 @@ def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD
         return [(0, _printable(text.rstrip(b"\x00")))]
     if kind.name == "hex":
         return [(i, f"0x{w:04X}") for i, w in enumerate(_swap_words(list(registers), _bytes_only(order)))]
+    size = kind.registers
+    if (_bytes_only(order) if size == 1 else order) == "ABCD":
+        # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
+        count = len(registers) // size
+        data = struct.pack(f">{count * size}H", *registers[: count * size])
+        return list(zip(range(0, count * size, size), struct.unpack(f">{count}{kind.fmt}", data)))
     out: list[tuple[int, Value]] = []
     for i in range(0, len(registers) - kind.registers + 1, kind.registers):
         data = _bytes_of(registers[i : i + kind.registers], order)

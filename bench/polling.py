@@ -1,0 +1,183 @@
+#!/usr/bin/env python3
+"""Sustained polling: mbtool's transactions per second beside pymodbus's synchronous client.
+
+Target (issue: field tools): polling 10 holding registers back to back
+(``--interval 0``) over TCP loopback, mbtool at least matches pymodbus's
+synchronous client doing the same reads in a loop against the same server.
+On a serial line a transaction should cost the wire time plus the required
+silences and little else: over a pseudo-terminal (which carries bytes at once,
+so the wire time is nil) the cost above one t3.5 silence is mbtool's overhead.
+
+Both peers poll the same pymodbus server (tests/peers/pymodbus_device.py), in
+alternating rounds, so a noisy machine hurts both alike.  mbtool runs as the
+real command, writing JSON lines to a pipe; its rate is taken from the poll
+time stamps, so Python's start-up is not counted against it.
+
+Run by hand:  python bench/polling.py [--polls 2000] [--rounds 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import select
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+import tty
+from datetime import datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DEVICE = ROOT / "tests" / "peers" / "pymodbus_device.py"
+COUNT = 10  # holding registers per read
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def device(*where: str):
+    proc = subprocess.Popen(
+        [sys.executable, str(DEVICE), *where, "--units", "1"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            if proc.stdout.readline().strip() == "READY":
+                break
+        else:
+            sys.exit("bench: the pymodbus device did not start")
+        yield proc
+    finally:
+        proc.terminate()
+        proc.wait(timeout=5)
+
+
+class PtyCable:
+    """Two pty pairs joined by a relay thread: a serial cable with no baud rate."""
+
+    def __init__(self) -> None:
+        self.fds = [os.openpty(), os.openpty()]
+        for master, slave in self.fds:
+            tty.setraw(master)
+            tty.setraw(slave)
+        self.device_path, self.master_path = (os.ttyname(slave) for _, slave in self.fds)
+        self._stop = False
+        self._thread = threading.Thread(target=self._relay, daemon=True)
+        self._thread.start()
+
+    def _relay(self) -> None:
+        a, b = self.fds[0][0], self.fds[1][0]
+        other = {a: b, b: a}
+        while not self._stop:
+            ready, _, _ = select.select([a, b], [], [], 0.05)
+            for fd in ready:
+                with contextlib.suppress(OSError):
+                    os.write(other[fd], os.read(fd, 4096))
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(2)
+        for pair in self.fds:
+            for fd in pair:
+                os.close(fd)
+
+
+def mbtool_rate(target: str, polls: int, *options: str) -> float:
+    """Transactions per second of mbtool's polling loop, from its poll time stamps."""
+    command = [sys.executable, "-m", "mbtool", "read-holding-registers", "0", str(COUNT), "-p", target]
+    command += ["--interval", "0", "--polls", str(polls), "-o", "json", *options]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    failed = [line for line in lines if "error" in line]
+    if result.returncode != 0 or failed or len(lines) != polls:
+        sys.exit(f"bench: mbtool failed ({result.returncode}): {result.stderr.strip()}")
+    first, last = (datetime.fromisoformat(lines[i]["time"]) for i in (0, -1))
+    return (polls - 1) / (last - first).total_seconds()
+
+
+def pymodbus_rate(client, polls: int) -> float:
+    client.read_holding_registers(0, count=COUNT, device_id=1)  # connected and warm, as mbtool is
+    start = time.perf_counter()
+    for _ in range(polls):
+        reply = client.read_holding_registers(0, count=COUNT, device_id=1)
+        if reply.isError() or len(reply.registers) != COUNT:
+            sys.exit(f"bench: pymodbus read failed: {reply}")
+    return polls / (time.perf_counter() - start)
+
+
+def side_by_side(title: str, mbtool_run, pymodbus_run, rounds: int) -> tuple[float, float]:
+    ours, theirs = [], []
+    for _ in range(rounds):
+        ours.append(mbtool_run())
+        theirs.append(pymodbus_run())
+    mb, pm = statistics.median(ours), statistics.median(theirs)
+    print(f"{title}")
+    print(f"  mbtool    {mb:8.0f} transactions/s  ({1000 / mb:.3f} ms each)  rounds: {fmt(ours)}")
+    print(f"  pymodbus  {pm:8.0f} transactions/s  ({1000 / pm:.3f} ms each)  rounds: {fmt(theirs)}")
+    print(f"  mbtool / pymodbus: {mb / pm:.2f}")
+    return mb, pm
+
+
+def fmt(rates: list[float]) -> str:
+    return " ".join(f"{r:.0f}" for r in rates)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--polls", type=int, default=2000, help="reads per round (default 2000)")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per peer (default 3)")
+    parser.add_argument("--baud", type=int, default=115200, help="baud rate mbtool assumes on the pty")
+    args = parser.parse_args()
+
+    from pymodbus import FramerType
+    from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+    port = free_port()
+    with device("--tcp", f"127.0.0.1:{port}", "--framer", "socket"):
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        client.connect()
+        side_by_side(
+            f"TCP loopback, FC03 x {COUNT} registers, {args.polls} polls a round",
+            lambda: mbtool_rate(f"tcp://127.0.0.1:{port}", args.polls),
+            lambda: pymodbus_rate(client, args.polls),
+            args.rounds,
+        )
+        client.close()
+
+    cable = PtyCable()
+    try:
+        with device("--serial", cable.device_path, "--framer", "rtu"):
+            client = ModbusSerialClient(cable.master_path, framer=FramerType.RTU, baudrate=args.baud, timeout=2)
+            client.connect()
+            polls = max(args.polls // 4, 50)
+            mb, _ = side_by_side(
+                f"RTU over a pseudo-terminal at a nominal {args.baud} baud, {polls} polls a round",
+                lambda: mbtool_rate(cable.master_path, polls, "-b", str(args.baud), "--parity", "N"),
+                lambda: pymodbus_rate(client, polls),
+                args.rounds,
+            )
+            client.close()
+    finally:
+        cable.close()
+    # spec §2: t3.5 is 3.5 characters of 11 bits, fixed at 1.75 ms above 19200 baud
+    t35 = 0.00175 if args.baud > 19200 else 3.5 * 11 / args.baud
+    each = 1 / mb
+    print(
+        f"  mbtool on the pty: {each * 1000:.3f} ms a transaction = t3.5 {t35 * 1000:.3f} ms"
+        f" + {(each - t35) * 1000:.3f} ms overhead (a pty has no wire time; the device's"
+        " own turnaround is in the overhead)"
+    )
+
+
+if __name__ == "__main__":
+    main()
