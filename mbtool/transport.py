@@ -121,9 +121,11 @@ class SerialTransport(Transport):
         self._rts_switching = delays
 
     def write(self, data: bytes) -> None:
+        written = False
         try:
             if self._rts_switching is None:
                 self.port.write(data)
+                written = True
                 self.port.flush()  # a real UART: return when the bytes have left
                 return
             before, after = self._rts_switching
@@ -131,11 +133,19 @@ class SerialTransport(Transport):
             time.sleep(before)
             try:
                 self.port.write(data)
+                written = True
                 self.port.flush()  # the last stop bit must leave before RTS drops
                 time.sleep(after)
             finally:
                 self.port.rts = False  # never leave the line driven: it would silence the bus
-        except (self._serial_error, OSError) as error:
+        # pyserial's flush lets termios.error through (tcdrain on a port that went away).
+        except (self._serial_error, OSError, *_termios_error()) as error:
+            if written:
+                # The frame was handed over, then the port went away (a pty's other end
+                # closed, an adapter unplugged): a hang-up, like one during the reply.
+                raise ConnectionClosed(
+                    f"{self.description} went away while sending ({_reason(error)})"
+                ) from None
             raise ConnectionFailed(f"cannot write to {self.description}: {_reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
