@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import binascii
 import contextlib
+import functools
 import os
 import re
 import select
@@ -161,7 +162,13 @@ class Peer:
                     conn, _ = self._server.accept()
                     conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                     with conn:
-                        self._serve(conn.fileno(), conn.recv, conn.sendall, lambda: _hang_up(conn), deadline)
+                        self._serve(
+                            conn.fileno(),
+                            conn.recv,
+                            conn.sendall,
+                            functools.partial(_hang_up, conn),
+                            deadline,
+                        )
             else:
                 read = lambda n: os.read(self._master, n)  # noqa: E731
                 self._serve(self._master, read, self._write_pty, self._close_master, deadline)
@@ -473,6 +480,7 @@ CASES = [
     ),
     Case("only the echo, with --echo", echo_only, PTYS, 3, r"no response from unit 1", options=("--echo",)),
 ]
+
 
 def _param(case: Case, link: str):
     bug = (case.known_bug or {}).get(LINKS[link].framing)
