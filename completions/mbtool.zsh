@@ -65,7 +65,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -89,7 +89,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -113,7 +113,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -139,7 +139,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -165,7 +165,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -187,7 +187,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -211,7 +211,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -233,7 +233,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -257,7 +257,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -277,7 +277,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -301,7 +301,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -321,7 +321,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -341,7 +341,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -361,7 +361,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -382,7 +382,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -403,7 +403,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -426,7 +426,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -452,7 +452,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -473,7 +473,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -495,7 +495,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
@@ -540,7 +540,7 @@ _mbtool() {
             '--framer=[Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// serves like a serial device server]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
-            '--bytesize=[Serial data bits]:bytesize:(7 8)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '--data=[Initial tables and device identity from a JSON or TOML file (see README)]:FILE: ' \
             '--delay=[Fault: wait SECONDS before every reply]:SECONDS: ' \
@@ -560,7 +560,7 @@ _mbtool() {
             '--framer=[Framing on the line]:framer:(rtu ascii)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
-            '--bytesize=[Serial data bits]:bytesize:(7 8)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '--silence=[Seconds without a byte that end a frame whose length is not known (default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii)]:SECONDS: ' \
             '--response-timeout=[Seconds after which a request counts as unanswered]:SECONDS: ' \
@@ -576,7 +576,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
             '(-u --unit --units)'{-u+,--unit=,--units=}'[Unit ids to probe: 1-247, 1,5,10-20]:UNITS: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate]:NUMBER: ' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \

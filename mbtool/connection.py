@@ -85,6 +85,17 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
         transport.close()
 
 
+def close_quietly(link) -> None:
+    """Leave an open_client context whose link may already have broken (polling, scan)."""
+    from mbtool.errors import MbtoolError
+
+    if link is not None:
+        try:
+            link.__exit__(None, None, None)
+        except (MbtoolError, OSError):
+            pass  # closing a link that already broke: nothing left to report
+
+
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     """RTS lead and trail in seconds when RTS switches the line's direction, else None.
 

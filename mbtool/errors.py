@@ -66,6 +66,15 @@ class MismatchError(FrameError):
     """A well-formed reply that answers another request (unit, function or transaction id)."""
 
 
+class Summary(MbtoolError):
+    """The end of a run (polling, scan, monitor): the counts on one stderr line, the verdict
+    in the exit code, leaving through cli.main like every error."""
+
+    def __init__(self, message: str, exit_code: ExitCode) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
 class NoResponse(MbtoolError):
     exit_code = ExitCode.TIMEOUT
 

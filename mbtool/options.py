@@ -24,6 +24,38 @@ def parse_int(text: str, what: str = "number") -> int:
         raise RequestError(f"{what} {text!r} is not a number (decimal or 0x hex)") from None
 
 
+def parse_units(text: str) -> frozenset[int]:
+    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears)."""
+    units: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            raise RequestError(f"empty unit id in {text!r}")
+        low_text, dash, high_text = part.partition("-")
+        low = parse_int(low_text, "unit")
+        high = parse_int(high_text, "unit") if dash else low
+        if low > high:
+            raise RequestError(f"unit range {part!r} runs backwards")
+        for unit in (low, high):
+            if not 1 <= unit <= 255:
+                raise RequestError(
+                    f"unit {unit} is out of range 1..255 (unit 0 is broadcast: every unit hears it)"
+                )
+        units.update(range(low, high + 1))
+    return frozenset(units)
+
+
+def units_text(units: frozenset[int]) -> str:
+    """1,2,3,17 -> 1-3,17."""
+    runs: list[list[int]] = []
+    for unit in sorted(units):
+        if runs and unit == runs[-1][1] + 1:
+            runs[-1][1] = unit
+        else:
+            runs.append([unit, unit])
+    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
 class Number(click.ParamType):
     """An integer in decimal or hex within [low, high]."""
 
@@ -150,6 +182,42 @@ class Rs485Delays(click.ParamType):
 # --- shared options ------------------------------------------------------------------
 
 
+# The serial line's settings, shared by the master commands, serve and monitor.
+SERIAL_LINE_OPTIONS = [
+    click.option(
+        "-b",
+        "--baud",
+        type=Number(1, 4_000_000, "baud rate"),
+        default=19200,
+        show_default=True,
+        help="Serial baud rate (also sets the t3.5 silence).",
+    ),
+    click.option(
+        "--parity",
+        type=click.Choice(["N", "E", "O"], case_sensitive=False),
+        default="E",
+        show_default=True,
+        help="Serial parity.",
+    ),
+    click.option(
+        "--bytesize",
+        type=click.Choice(["7", "8"]),
+        default="8",
+        show_default=True,
+        help="Serial data bits (ASCII mode classically uses 7).",
+    ),
+    click.option(
+        "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
+    ),
+]
+
+
+def serial_line_options(function: Callable) -> Callable:
+    for option in reversed(SERIAL_LINE_OPTIONS):
+        function = option(function)
+    return function
+
+
 CONNECTION_OPTIONS = [
     click.option(
         "-p",
@@ -175,31 +243,7 @@ CONNECTION_OPTIONS = [
         type=click.Choice(["rtu", "ascii", "tcp"]),
         help="Framing: tcp for tcp:// targets, rtu otherwise.",
     ),
-    click.option(
-        "-b",
-        "--baud",
-        type=Number(1, 4_000_000, "baud rate"),
-        default=19200,
-        show_default=True,
-        help="Serial baud rate.",
-    ),
-    click.option(
-        "--parity",
-        type=click.Choice(["N", "E", "O"], case_sensitive=False),
-        default="E",
-        show_default=True,
-        help="Serial parity.",
-    ),
-    click.option(
-        "--bytesize",
-        type=click.Choice(["7", "8"]),
-        default="8",
-        show_default=True,
-        help="Serial data bits (ASCII mode classically uses 7).",
-    ),
-    click.option(
-        "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
-    ),
+    *SERIAL_LINE_OPTIONS,
     click.option(
         "-t",
         "--timeout",

@@ -18,33 +18,10 @@ import sys
 import time
 from collections.abc import Callable
 
-from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError
+from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError, Summary
+from mbtool.render import local_time
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
-
-
-class PollSummary(MbtoolError):
-    """The end of a polling run: the counts on one stderr line, the verdict in the exit code."""
-
-    def __init__(self, message: str, exit_code: ExitCode) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
-def stamp(when: float | None = None) -> str:
-    """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.
-
-    Built from time.localtime, which knows the offset in force (a day-long poll crosses
-    daylight saving time), at a third of datetime.astimezone's cost a poll.
-    """
-    when = time.time() if when is None else when
-    local = time.localtime(when)
-    offset = local.tm_gmtoff // 60
-    sign = "-" if offset < 0 else "+"
-    return (
-        time.strftime("%Y-%m-%dT%H:%M:%S", local)
-        + f".{int(when % 1 * 1000):03d}{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
-    )
 
 
 class Output:
@@ -144,7 +121,7 @@ def poll(
     polls: int | None,
 ) -> None:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted)."""
-    from mbtool.connection import open_client
+    from mbtool.connection import close_quietly, open_client
     from mbtool.render import default_format
     from mbtool.transport import ConnectionClosed
 
@@ -170,7 +147,7 @@ def poll(
             delay = start + slot * interval - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            when = stamp()
+            when = local_time()
             try:
                 if client is None:
                     link = open_client(connection, request.name)
@@ -189,7 +166,7 @@ def poll(
                     errors += 1
                 if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
                     # The link is gone (device restarted, cable pulled): open it anew next poll.
-                    _close(link)
+                    close_quietly(link)
                     link = client = None
                 if isinstance(error, OSError):
                     error = ConnectionFailed(str(error))
@@ -206,7 +183,7 @@ def poll(
         interrupted = True
     finally:
         output.close()
-        _close(link)
+        close_quietly(link)
     latency = (
         f"{min(latencies):.1f}/{sum(latencies) / len(latencies):.1f}/{max(latencies):.1f} ms"
         if latencies
@@ -221,12 +198,4 @@ def poll(
     code = last_failure
     if interrupted and done == 0:
         code = ExitCode.INTERRUPTED
-    raise PollSummary(summary, code)
-
-
-def _close(link) -> None:
-    if link is not None:
-        try:
-            link.__exit__(None, None, None)
-        except (MbtoolError, OSError):
-            pass  # closing a link that already broke: nothing left to report
+    raise Summary(summary, code)

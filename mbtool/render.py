@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from typing import TextIO
 
 from mbtool.codec.framing import Framer
@@ -31,6 +32,22 @@ class Result:
     registers: list[int] | None = None  # the raw registers behind typed values
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
+
+
+def local_time(when: float | None = None) -> str:
+    """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.
+
+    Built from time.localtime, which knows the offset in force (a day-long poll crosses
+    daylight saving time), at a third of datetime.astimezone's cost a poll.
+    """
+    when = time.time() if when is None else when
+    local = time.localtime(when)
+    offset = local.tm_gmtoff // 60
+    sign = "-" if offset < 0 else "+"
+    return (
+        time.strftime("%Y-%m-%dT%H:%M:%S", local)
+        + f".{int(when % 1 * 1000):03d}{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
+    )
 
 
 def default_format(stream: TextIO = sys.stdout) -> str:

@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
+from mbtool.client import silent_interval
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
 from mbtool.device import Device
@@ -52,11 +53,6 @@ RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others 
 OUT_LIMIT = 64 * 1024
 ACCEPTS_PER_TURN = 16  # a burst of connections cannot starve the clients already served
 FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
-
-
-def silent_interval(baud: int) -> float:
-    """t3.5: 3.5 characters of 11 bits; 1.75 ms above 19200 baud (spec §2)."""
-    return FAST_T35 if baud > 19200 else 3.5 * 11 / baud
 
 
 @record

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import pytest
 import serial
+from conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
 
 from mbtool.errors import ConnectionFailed
 from mbtool.transport import SerialSettings, SerialTransport
-from conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
 
 
 class FakePort:

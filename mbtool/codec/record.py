@@ -60,7 +60,7 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
     if not kwargs and len(args) == len(names):
         # Every field given in order, the common case: one dict update, not a loop of
         # checks, since a polling loop makes several records a transaction.
-        self.__dict__.update(zip(names, args))
+        self.__dict__.update(zip(names, args, strict=True))
         post_init = getattr(self, "__post_init__", None)
         if post_init is not None:
             post_init()

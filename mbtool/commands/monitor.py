@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import sys
 import time
-from datetime import datetime
 
 import click
 
-from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError
-from mbtool.options import Number, PositiveFloat, QuickHelp
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
+from mbtool.options import Number, PositiveFloat, QuickHelp, serial_line_options
+from mbtool.render import local_time
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
 # On a UART t3.5 ends a frame (spec §2), but ptys and USB adapters deliver one frame in
@@ -30,14 +30,6 @@ TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --dur
 MIN_RTU_SILENCE = 0.02
 ASCII_SILENCE = 1.0  # spec §2: up to 1 s may pass between the characters of an ASCII frame
 SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
-
-
-class MonitorSummary(MbtoolError):
-    """The end of a monitoring run: the counts on one stderr line, the verdict in the exit code."""
-
-    def __init__(self, message: str, exit_code: ExitCode) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
 
 
 class MonitorCommand(QuickHelp, click.Command):
@@ -66,27 +58,7 @@ def default_silence(framer: str, baud: int) -> float:
     show_default=True,
     help="Framing on the line.",
 )
-@click.option(
-    "-b",
-    "--baud",
-    type=Number(1, 4_000_000, "baud rate"),
-    default=19200,
-    show_default=True,
-    help="Serial baud rate (also sets the t3.5 silence).",
-)
-@click.option(
-    "--parity",
-    type=click.Choice(["N", "E", "O"], case_sensitive=False),
-    default="E",
-    show_default=True,
-    help="Serial parity.",
-)
-@click.option(
-    "--bytesize", type=click.Choice(["7", "8"]), default="8", show_default=True, help="Serial data bits."
-)
-@click.option(
-    "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
-)
+@serial_line_options
 @click.option(
     "--silence",
     type=PositiveFloat(),
@@ -197,10 +169,8 @@ def monitor(
     if lost is not None:
         raise ConnectionFailed(f"{lost}; {summary}")
     if interrupted:
-        raise MonitorSummary(
-            "interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK
-        )
-    raise MonitorSummary(summary, ExitCode.OK)
+        raise Summary("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
+    raise Summary(summary, ExitCode.OK)
 
 
 def _check_port(port: str | None) -> None:
@@ -275,11 +245,6 @@ def _stop_driving(transport) -> None:
 # --- output --------------------------------------------------------------------------------
 
 
-def iso_time(when: float) -> str:
-    """Local time, ISO 8601 with milliseconds and UTC offset (as polling stamps its polls)."""
-    return datetime.fromtimestamp(when).astimezone().isoformat(timespec="milliseconds")
-
-
 def _ms(seconds: float | None) -> float | None:
     return None if seconds is None else round(seconds * 1000, 1)
 
@@ -313,7 +278,7 @@ def as_dict(item) -> dict:
     if isinstance(item, Unanswered):
         request = item.request
         return {
-            "time": iso_time(item.time),
+            "time": local_time(item.time),
             "event": "unanswered",
             "request": request.number,
             "unit": request.unit,
@@ -322,7 +287,7 @@ def as_dict(item) -> dict:
             "reason": item.reason,
         }
     data = {
-        "time": iso_time(item.time),
+        "time": local_time(item.time),
         "event": "garbage" if item.direction == "garbage" else "frame",
         "number": item.number,
         "gap_ms": _ms(item.gap),
@@ -355,11 +320,11 @@ def plain_line(item) -> str:
         request = item.request
         name = request.described.name if request.described else ""
         return (
-            f"{iso_time(item.time)} unanswered #{request.number} unit={request.unit} "
+            f"{local_time(item.time)} unanswered #{request.number} unit={request.unit} "
             f"fc={request.function:02X} {name} | {item.reason}"
         )
     gap = "-" if item.gap is None else f"{item.gap * 1000:.1f}ms"
-    head = f"{iso_time(item.time)} gap={gap} #{item.number} {item.direction}"
+    head = f"{local_time(item.time)} gap={gap} #{item.number} {item.direction}"
     if item.direction == "garbage":
         return f"{head} {len(item.wire)} bytes [{wire_text(item)}] | {item.note}"
     line = f"{head} unit={item.unit} fc={item.function:02X} [{wire_text(item)}] {item.checksum} | {summary(item)}"
@@ -408,13 +373,13 @@ class Output:
             request = item.request
             name = request.described.name if request.described else ""
             self.console.print(
-                f"[dim]{iso_time(item.time)}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
+                f"[dim]{local_time(item.time)}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
                 f"FC{request.function:02X} {escape(name)}: {escape(item.reason)}"
             )
             return
         gap = "" if item.gap is None else f"+{item.gap * 1000:.1f}ms"
         colour = self.COLOURS.get(item.direction, "white")
-        head = f"[dim]{iso_time(item.time)} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
+        head = f"[dim]{local_time(item.time)} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
         if item.direction == "garbage":
             self.console.print(
                 f"{head} [red]{len(item.wire)} bytes, {escape(item.note)}[/] [dim]{wire_text(item)}[/]"

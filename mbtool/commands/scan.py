@@ -23,7 +23,7 @@ import time
 import click
 
 from mbtool.codec.record import record, replace
-from mbtool.commands.serve import _units_text, parse_units
+from mbtool.connection import close_quietly
 from mbtool.errors import (
     ConnectionFailed,
     ExitCode,
@@ -33,8 +33,9 @@ from mbtool.errors import (
     ModbusException,
     NoResponse,
     RequestError,
+    Summary,
 )
-from mbtool.options import ADDRESS, COUNT, device_command
+from mbtool.options import ADDRESS, COUNT, device_command, parse_units, units_text
 from mbtool.transport import SerialSettings
 
 SCAN_TIMEOUT = 0.2  # seconds per unit: a reply at 1200 baud plus a slow device's turnaround
@@ -44,14 +45,6 @@ GATEWAY_EXCEPTIONS = (0x0A, 0x0B)  # spec §3: path unavailable, target failed t
 
 READS = ("read-holding-registers", "read-input-registers", "read-coils", "read-discrete-inputs")
 PROBES = READS + ("report-id", "device-id", "return-query-data")
-
-
-class ScanSummary(MbtoolError):
-    """The end of a scan: the counts on one stderr line, the verdict in the exit code."""
-
-    def __init__(self, message: str, exit_code: ExitCode) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
 
 
 # --- options ------------------------------------------------------------------------------
@@ -419,7 +412,7 @@ class Scan:
                 except (ConnectionFailed, ConnectionClosed, OSError) as error:
                     # The link broke (a gateway hanging up on an unknown unit, a cable
                     # pulled): count this unit silent and go on over a new link.
-                    _close(link)
+                    close_quietly(link)
                     link = None
                     try:
                         link, client = self._open(setting)
@@ -447,7 +440,7 @@ class Scan:
                     return True
             return False
         finally:
-            _close(link)
+            close_quietly(link)
 
     def _record(self, answer: Answer, here: int, found: set[int]) -> None:
         """Keep an answer: garbled ones apart, each unit found once per setting."""
@@ -468,14 +461,6 @@ class Scan:
         self.tally.settings[-1] = replace(setting, error=error)
         self.output.note(f"{setting}: {error}" if self.sweeping else error)
         self.progress.advance(skipped)
-
-
-def _close(link) -> None:
-    if link is not None:
-        try:
-            link.__exit__(None, None, None)
-        except (MbtoolError, OSError):
-            pass  # closing a link that already broke: nothing left to report
 
 
 # --- output -------------------------------------------------------------------------------
@@ -729,13 +714,13 @@ def _check_sweepable(port: str | None) -> None:
 def _dry_run(connection, request, units: list[int], settings: list[Setting], sweeping: bool) -> None:
     from mbtool.connection import open_client
 
-    then = f"then the same probe to units {_units_text(frozenset(units))} ({len(units)} probes"
+    then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
     then += f" at each of {len(settings)} serial settings)" if sweeping else ")"
     with open_client(replace(connection, unit=units[0]), request.name, then=then) as client:
         client.execute(units[0], request)
 
 
-def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> ScanSummary:
+def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Summary:
     """One stderr line with the counts (like polling's), and the exit code the scan earned."""
     found = len(tally.found)
     text = (
@@ -748,15 +733,15 @@ def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Sc
         text += f", settings opened {opened} of {len(tally.settings)}"
     text += f", {seconds:.1f} s"
     if tally.interrupted:
-        return ScanSummary("interrupted; " + text, ExitCode.INTERRUPTED)
+        return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
     if found:
-        return ScanSummary("scan: " + text, ExitCode.OK)
+        return Summary("scan: " + text, ExitCode.OK)
     if tally.garbled:
         # Something is on the line but nothing checked out: the settings are the suspects.
-        return ScanSummary(
+        return Summary(
             f"no unit answered cleanly ({text}): try other --baud/--parity/--framer",
             ExitCode.INVALID_RESPONSE,
         )
     if tally.settings and all(setting.error for setting in tally.settings):
-        return ScanSummary(f"no setting could be opened ({text})", ExitCode.CONNECTION)
-    return ScanSummary(f"no unit answered within {timeout:g} s ({text})", ExitCode.TIMEOUT)
+        return Summary(f"no setting could be opened ({text})", ExitCode.CONNECTION)
+    return Summary(f"no unit answered within {timeout:g} s ({text})", ExitCode.TIMEOUT)

@@ -15,34 +15,21 @@ import time
 import click
 
 from mbtool.errors import RequestError
-from mbtool.options import Number, PositiveFloat, QuickHelp, parse_int
+from mbtool.options import (
+    Number,
+    PositiveFloat,
+    QuickHelp,
+    parse_int,
+    parse_units,
+    serial_line_options,
+    units_text,
+)
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 
 
 class ServeCommand(QuickHelp, click.Command):
     pass
-
-
-def parse_units(text: str) -> frozenset[int]:
-    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears)."""
-    units: set[int] = set()
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            raise RequestError(f"empty unit id in {text!r}")
-        low_text, dash, high_text = part.partition("-")
-        low = parse_int(low_text, "unit")
-        high = parse_int(high_text, "unit") if dash else low
-        if low > high:
-            raise RequestError(f"unit range {part!r} runs backwards")
-        for unit in (low, high):
-            if not 1 <= unit <= 255:
-                raise RequestError(
-                    f"unit {unit} is out of range 1..255 (unit 0 is broadcast: every unit hears it)"
-                )
-        units.update(range(low, high + 1))
-    return frozenset(units)
 
 
 def parse_exception(text: str) -> tuple[int, int]:
@@ -114,27 +101,7 @@ class Fraction(click.ParamType):
     help="Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// "
     "serves like a serial device server.",
 )
-@click.option(
-    "-b",
-    "--baud",
-    type=Number(1, 4_000_000, "baud rate"),
-    default=19200,
-    show_default=True,
-    help="Serial baud rate (also sets the t3.5 silence).",
-)
-@click.option(
-    "--parity",
-    type=click.Choice(["N", "E", "O"], case_sensitive=False),
-    default="E",
-    show_default=True,
-    help="Serial parity.",
-)
-@click.option(
-    "--bytesize", type=click.Choice(["7", "8"]), default="8", show_default=True, help="Serial data bits."
-)
-@click.option(
-    "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
-)
+@serial_line_options
 @click.option(
     "--data",
     "data_file",
@@ -248,7 +215,7 @@ def serve(
         idle_timeout=idle_timeout,
     )
     server.open()
-    unit_text = _units_text(unit_set)
+    unit_text = units_text(unit_set)
     click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}")
     sys.stdout.flush()
 
@@ -278,17 +245,6 @@ def serve(
             f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} connections"
             + turned_away
         )
-
-
-def _units_text(units: frozenset[int]) -> str:
-    """1,2,3,17 -> 1-3,17."""
-    runs: list[list[int]] = []
-    for unit in sorted(units):
-        if runs and unit == runs[-1][1] + 1:
-            runs[-1][1] = unit
-        else:
-            runs.append([unit, unit])
-    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _shown(data: bytes, framer: str) -> str:
