@@ -63,7 +63,8 @@ class Transport:
 
 
 class SerialTransport(Transport):
-    def __init__(self, url: str, settings: SerialSettings) -> None:
+    def __init__(self, url: str, settings: SerialSettings, listen_only: bool = False) -> None:
+        """``listen_only``: a monitor's port, opened with RTS low and never written to."""
         import serial  # pyserial costs an import only when a serial line is used
 
         self.description = url
@@ -78,7 +79,13 @@ class SerialTransport(Transport):
                 # A stuck UART (flow control) must not hang a write forever; url
                 # handlers have no write timeout (rfc2217:// refuses the setting).
                 **({} if "://" in url else {"write_timeout": WRITE_TIMEOUT}),
+                do_not_open=True,
             )
+            if listen_only or settings.rs485 is not None:
+                # RTS low as the port opens, not just after: where RTS enables the RS-485
+                # driver, a raised RTS would hold the bus (pyserial raises it by default).
+                self.port.rts = False
+            self.port.open()
         # pyserial raises NotImplementedError for a setting a url handler does not support:
         # the port cannot be opened as asked, which is the user's to change (exit 6).
         except (serial.SerialException, OSError, ValueError, NotImplementedError, *_termios_error()) as error:

@@ -24,6 +24,7 @@ class FakePort:
     def __init__(self, log: list) -> None:
         self.log = log
         self._mode = None
+        self.opened = False
 
     @property
     def rs485_mode(self):
@@ -42,7 +43,7 @@ class FakePort:
 
     @rts.setter
     def rts(self, level: bool) -> None:
-        if self.rts_refused:
+        if self.rts_refused and self.opened:  # pyserial only keeps the level until the port opens
             raise OSError(25, "Inappropriate ioctl for device")
         self.log.append(("rts", level))
 
@@ -52,6 +53,10 @@ class FakePort:
 
     def flush(self) -> None:
         self.log.append(("flush",))
+
+    def open(self) -> None:
+        self.opened = True
+        self.log.append(("open",))
 
     def fileno(self) -> int:
         return -1
@@ -89,7 +94,9 @@ def test_without_kernel_mode_mbtool_raises_rts_around_each_frame(opened):
     transport, log, _ = opened(FakePort, (0.002, 0.003))
     transport.write(b"\x01\x03")
     assert log == [
-        ("rts", False),  # receiving from the start
+        ("rts", False),  # low as the port opens: a raised RTS would hold the bus
+        ("open",),
+        ("rts", False),  # receiving until there is something to send
         ("rts", True),
         ("sleep", 0.002),
         ("write", b"\x01\x03"),
@@ -117,7 +124,7 @@ def test_kernel_mode_takes_the_delays_and_mbtool_leaves_rts_alone(opened):
     (mode,) = [entry[1] for entry in log if entry[0] == "mode"]
     assert (mode.rts_level_for_tx, mode.rts_level_for_rx) == (True, False)
     assert (mode.delay_before_tx, mode.delay_before_rx) == (0.001, 0.004)
-    assert not [entry for entry in log if entry[0] == "rts"]
+    assert [entry for entry in log if entry[0] == "rts"] == [("rts", False)]  # only as it opened
     assert sleeps == []
 
 
@@ -126,6 +133,7 @@ def test_a_driver_without_kernel_mode_falls_back_to_switching_rts(opened):
     assert transport.port.rs485_mode is None  # forgotten, so later reconfigurations do not fail on it
     transport.write(b"\x01")
     assert [e for e in log if e[0] in ("rts", "write")] == [
+        ("rts", False),
         ("rts", False),
         ("rts", True),
         ("write", b"\x01"),
@@ -142,7 +150,7 @@ def test_without_rs485_rts_is_never_touched(monkeypatch):
     log: list = []
     monkeypatch.setattr(serial, "serial_for_url", lambda url, **settings: FakePort(log))
     SerialTransport("/dev/ttyFAKE", SerialSettings()).write(b"\x01")
-    assert log == [("write", b"\x01"), ("flush",)]
+    assert log == [("open",), ("write", b"\x01"), ("flush",)]
 
 
 # --- the command line ----------------------------------------------------------------
@@ -177,3 +185,10 @@ def test_a_profile_can_turn_rs485_on(mbtool, pty_pair, tmp_path):
     config.write_text(f'[profiles.bus]\nport = "{pty_pair.mbtool_path}"\nparity = "N"\nrs485 = true\n')
     res = mbtool("read-holding-registers", "0", "2", "-P", "bus", env={"MBTOOL_CONFIG": str(config)})
     assert "cannot drive RTS" in assert_one_error_line(res, 6)
+
+
+def test_a_monitor_port_opens_with_rts_low(monkeypatch):
+    log: list = []
+    monkeypatch.setattr(serial, "serial_for_url", lambda url, **settings: FakePort(log))
+    SerialTransport("/dev/ttyFAKE", SerialSettings(), listen_only=True)
+    assert log == [("rts", False), ("open",)]  # never driving the bus, not even as it opens

@@ -201,9 +201,9 @@ def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, s
     settings = SerialSettings(
         baud=baud, parity=parity.upper(), bytesize=int(bytesize), stopbits=int(stopbits)
     )
-    transport = SerialTransport(port, settings)  # ConnectionFailed (exit 6) if it cannot be opened
+    # Opened with RTS low: it never drives the bus. ConnectionFailed (exit 6) if it cannot open.
+    transport = SerialTransport(port, settings, listen_only=True)
     try:
-        _stop_driving(transport)
         # One write: a signal between the text and its newline would run them on to the summary.
         sys.stderr.write(
             f"mbtool: listening on {port} ({settings}, {framer}, silence "
@@ -232,14 +232,6 @@ def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, s
         return None
     finally:
         transport.close()
-
-
-def _stop_driving(transport) -> None:
-    """RTS low: an adapter whose driver RTS enables would otherwise hold the bus (never transmit)."""
-    try:
-        transport.port.rts = False
-    except Exception:  # noqa: BLE001 - ptys and url handlers have no RTS to drop; nothing to drive then
-        pass
 
 
 # --- output --------------------------------------------------------------------------------
