@@ -454,14 +454,14 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 --framer) _mbtool_words "$cur" rtu ascii ;;
-                -b|--baud|--silence|--response-timeout|--duration|--frames|--capture|--from-file) : ;;
+                -b|--baud|--silence|--response-timeout|--duration|--frames|--capture|--from-file|-P|--profile) : ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
                 --stopbits) _mbtool_words "$cur" 1 2 ;;
                 -o|--format) _mbtool_words "$cur" table plain json ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port --framer -b --baud --parity --bytesize --stopbits --silence --response-timeout --duration --frames --capture --from-file -o --format -h --help
+                        _mbtool_words "$cur" -p --port --framer -b --baud --parity --bytesize --stopbits --silence --response-timeout --duration --frames --capture --from-file -o --format -P --profile -h --help
                     fi
                     ;;
             esac

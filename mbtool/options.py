@@ -322,7 +322,7 @@ def _remember_profile(ctx: click.Context, param: click.Parameter, value: str | N
     ctx.meta["mbtool.profile"] = value
 
 
-PROFILE_OPTION = click.option(
+PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a command itself
     "-P",
     "--profile",
     metavar="NAME",

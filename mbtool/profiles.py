@@ -26,7 +26,20 @@ from mbtool.codec.record import replace
 from mbtool.errors import RequestError
 
 # profile key -> the option's parameter name (the same) and the Connection field it sets
-KEYS = ("port", "unit", "framer", "baud", "parity", "bytesize", "stopbits", "timeout", "retries", "echo", "rs485", "rs485_delays")
+KEYS = (
+    "port",
+    "unit",
+    "framer",
+    "baud",
+    "parity",
+    "bytesize",
+    "stopbits",
+    "timeout",
+    "retries",
+    "echo",
+    "rs485",
+    "rs485_delays",
+)
 
 
 def config_path() -> Path:
@@ -64,17 +77,29 @@ def load(name: str, path: Path | None = None) -> dict:
 
 def apply(connection, name: str):
     """``connection`` with the profile's values for every option left at its default."""
+    changes = defaults(name)
+    return replace(connection, **changes) if changes else connection
+
+
+def defaults(name: str) -> dict:
+    """The profile's values for the current command's options that were left at their default.
+
+    Keys the command has no option for are passed over: monitor takes a device's profile
+    for its line settings and has no use for its unit or timeout.
+    """
     ctx = click.get_current_context()
     path = config_path()
     settings = load(name, path)
     params = {param.name: param for param in ctx.command.params}
     changes = {}
     for key, raw in settings.items():
+        if key not in params:
+            continue
         source = ctx.get_parameter_source(key)
         if source not in (None, click.core.ParameterSource.DEFAULT):
             continue  # given on the command line or in the environment: that wins
         changes[key] = _convert(params[key], key, raw, ctx, f"{path}: profiles.{name}.{key}")
-    return replace(connection, **changes) if changes else connection
+    return changes
 
 
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):

@@ -27,7 +27,7 @@ import tty
 import pytest
 
 from mbtool.sniffer import BusFrame, BusMonitor, Tally, Unanswered
-from tests.conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
+from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
 
 DEADLINE = 20.0  # seconds for any one monitor run
 
@@ -340,7 +340,7 @@ def test_a_port_that_cannot_be_opened_is_exit_6():
 
 
 def _as_result(completed: subprocess.CompletedProcess, args):
-    from tests.conftest import Result
+    from conftest import Result
 
     return Result(list(args), completed.returncode, completed.stdout, completed.stderr, 0.0)
 
@@ -382,12 +382,12 @@ def line():
     pair.close()
 
 
-def start_monitor(*args: str) -> subprocess.Popen:
+def start_monitor(*args: str, env: dict | None = None) -> subprocess.Popen:
     """The CLI, started and listening (it says so on stderr): only then are bytes sent."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "mbtool", "monitor", *args],
         cwd=REPO_ROOT,
-        env=mbtool_env(),
+        env=mbtool_env(env),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         stdin=subprocess.DEVNULL,
@@ -586,6 +586,25 @@ def test_plain_lines_and_duration(line):
     lines = out.splitlines()
     assert len(lines) == 2 and " #1 request " in lines[0] and " #2 response " in lines[1]
     assert err.splitlines()[-1].startswith("mbtool: frames 2, requests 1, responses 1, unanswered 0")
+    assert line.written_by_monitor() == b""
+
+
+@pytest.mark.parametrize(("options", "settings"), [((), "9600 8N1"), (("-b", "19200"), "19200 8N1")])
+def test_a_device_profile_gives_the_line_and_options_override_it(line, tmp_path, options, settings):
+    config = tmp_path / "config.toml"
+    # A device's profile: monitor takes the line settings and passes over unit and timeout.
+    config.write_text(f'[profiles.bus]\nport = "{line.path}"\nbaud = 9600\nparity = "N"\nunit = 17\ntimeout = 0.5\n')
+    proc = start_monitor(
+        "-P", "bus", *options, "--duration", "1.5", "--silence", SILENCE, "-o", "json",
+        env={"MBTOOL_CONFIG": str(config)},
+    )
+    assert f"listening on {line.path} ({settings}, rtu" in proc.listening
+    line.send(READ_REQ)
+    time.sleep(0.05)
+    line.send(READ_RSP)
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert [json.loads(text)["direction"] for text in out.splitlines()] == ["request", "response"]
     assert line.written_by_monitor() == b""
 
 

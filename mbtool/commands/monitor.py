@@ -20,7 +20,7 @@ import time
 import click
 
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
-from mbtool.options import Number, PositiveFloat, QuickHelp, serial_line_options
+from mbtool.options import PROFILE_OPTION, Number, PositiveFloat, QuickHelp, serial_line_options
 from mbtool.render import local_time
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
@@ -94,6 +94,7 @@ def default_silence(framer: str, baud: int) -> float:
     type=click.Choice(["table", "plain", "json"]),
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
+@PROFILE_OPTION
 def monitor(
     port,
     framer,
@@ -122,6 +123,15 @@ def monitor(
     from mbtool.sniffer import BusMonitor, Tally
 
     ctx = click.get_current_context()
+    profile = ctx.meta.get("mbtool.profile")
+    if profile:
+        from mbtool.profiles import defaults
+
+        line = defaults(profile)  # port, framer and the serial settings of a device's profile
+        port = port if from_file else line.get("port", port)  # a recording needs no port
+        framer = line.get("framer", framer)
+        baud, parity = line.get("baud", baud), line.get("parity", parity)
+        bytesize, stopbits = line.get("bytesize", bytesize), line.get("stopbits", stopbits)
     port_given = port and ctx.get_parameter_source("port") is not click.core.ParameterSource.ENVIRONMENT
     if from_file and port_given:
         raise RequestError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
