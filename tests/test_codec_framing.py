@@ -106,6 +106,15 @@ def test_truncated_frame_is_rejected_on_silence(framer_type, cut):
     assert b"".join(event.data for event in events) == adu[:-cut]
 
 
+def test_rtu_frame_cut_short_is_called_truncated_not_a_crc_error():
+    framer = RtuFramer(responses=True)
+    framer.expect = da.ReadHoldingRegisters(0, 1)
+    framer.feed(bytes.fromhex("01 03 02 00 64"))  # a 7-byte reply whose CRC never came
+    (event,) = settle_events(framer)
+    assert isinstance(event, Rejected) and not isinstance(event.error, ChecksumError)
+    assert str(event.error) == "truncated frame (5 of 7 bytes)"
+
+
 def test_rtu_frame_with_an_unknown_function_code_ends_on_silence():
     framer = RtuFramer(responses=True)
     adu = framer.build(UNIT, bytes.fromhex("41 01 02 03"))

@@ -435,6 +435,11 @@ class RtuFramer(Framer):
         received = int.from_bytes(data[-2:], "little")
         expected = crc16(data[:-2])
         if received != expected:
+            length = self._pdu_length(data[1:RTU_MAX_ADU])
+            if length is not None and length != UNKNOWN and 1 + length + 2 > len(data):
+                # Silence came before the length the frame announces: its end never came,
+                # and "CRC error" would send the user looking for noise.
+                return FrameError(f"truncated frame ({len(data)} of {1 + length + 2} bytes)", data)
             return ChecksumError(
                 f"CRC error: frame {data.hex(' ').upper()} carries {data[-2]:02X} {data[-1]:02X},"
                 f" expected {expected & 0xFF:02X} {expected >> 8:02X}",
