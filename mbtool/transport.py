@@ -10,6 +10,7 @@ Every read waits at most the time it is given; the client owns the clock.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import select
 import socket
@@ -185,6 +186,16 @@ class SerialTransport(Transport):
         return self.port.read(size)
 
     def close(self) -> None:
+        bridge = getattr(self.port, "_socket", None)
+        if type(self.port).__module__ == "serial.urlhandler.protocol_socket" and bridge is not None:
+            # pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects", which
+            # every one-shot command would pay on exit; close the bridge's socket at once.
+            with contextlib.suppress(OSError):
+                bridge.shutdown(socket.SHUT_RDWR)
+            bridge.close()
+            self.port._socket = None
+            self.port.is_open = False
+            return
         self.port.close()
 
 

@@ -208,3 +208,26 @@ def test_socket_exception_02(socket_rtu_device):
     res = sock(socket_rtu_device, "read-coils", "5000", "8")
     assert res.returncode == 4, str(res)
     assert "02 Illegal Data Address" in res.stderr, str(res)
+
+
+def test_closing_a_socket_bridge_does_not_sleep(monkeypatch):
+    """pyserial's socket:// close sleeps 0.3 s; a one-shot command would pay it on every run."""
+    import socket as sockets
+
+    import serial.urlhandler.protocol_socket as bridge_module
+
+    from mbtool.transport import SerialSettings, SerialTransport
+
+    def no_sleep(seconds):
+        raise AssertionError(f"close slept {seconds} s")
+
+    with sockets.create_server(("127.0.0.1", 0)) as server:
+        server.settimeout(5)
+        transport = SerialTransport(f"socket://127.0.0.1:{server.getsockname()[1]}", SerialSettings())
+        peer, _ = server.accept()
+        monkeypatch.setattr(bridge_module.time, "sleep", no_sleep)
+        transport.close()
+        peer.settimeout(5)
+        assert peer.recv(1) == b""  # the bridge saw the connection end
+        assert not transport.port.is_open
+        peer.close()
