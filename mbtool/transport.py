@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import re
 import select
 import socket
 import time
@@ -336,4 +337,8 @@ def _reason(error: BaseException) -> str:
     if isinstance(number, int) and number > 0:
         return os.strerror(number)
     text = getattr(error, "strerror", None) or str(error) or type(error).__name__
-    return text.split("\n")[0]
+    text = text.split("\n")[0]
+    if text.startswith("Could not open port "):
+        # pyserial's wrapping repeats the port the message already names: keep its reason
+        text = re.sub(r"^\[Errno -?\d+\] ", "", text.rsplit(": ", 1)[-1])
+    return text
