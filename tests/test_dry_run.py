@@ -34,8 +34,10 @@ EXAMPLES = {
     "fifo": "fifo 200",
     "device-id": "device-id",
     "raw": "raw 01 03 00 00 00 02",
+    "scan": "scan -u 1-5",
 }
-OFFLINE = {"decode", "crc", "lrc", "serve"}
+# Commands that never send a request: offline tools, the simulator, and the passive monitor.
+OFFLINE = {"decode", "crc", "lrc", "serve", "monitor"}
 
 
 def run(capsys, line: str) -> tuple[int, str, str]:
