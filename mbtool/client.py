@@ -71,6 +71,10 @@ class Client:
         self.sleep = sleep
         self._transaction_id = 0
         self._line_free_at = 0.0  # when the last frame on the line ended
+        # Run once, right after the next request has left: work that can overlap the
+        # device's turnaround (polling writes the previous poll's output there).
+        self.while_waiting: Callable[[], None] | None = None
+        self.round_trip = 0.0  # seconds from the last request sent to its reply
         self._char_time = CHAR_BITS / baud
 
     def execute(self, unit: int, request: Request) -> Response | None:
@@ -112,6 +116,9 @@ class Client:
         self.transport.write(adu)
         self.trace.sent(adu)
         sent_at = self.clock()
+        if self.while_waiting is not None:
+            work, self.while_waiting = self.while_waiting, None
+            work()
         on_wire = len(adu) * self._char_time if self.transport.serial_line else 0.0
         self._line_free_at = sent_at + on_wire
         if unit == 0 or not request.expects_response:
@@ -122,7 +129,9 @@ class Client:
             watch = None
         else:
             watch = _EchoWatch.for_request(adu, request) if self.transport.serial_line else None
-        return self._await_reply(unit, request, deadline, watch)
+        reply = self._await_reply(unit, request, deadline, watch)
+        self.round_trip = self.clock() - sent_at
+        return reply
 
     def _wait_for_silence(self) -> None:
         if not self.transport.serial_line:

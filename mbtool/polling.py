@@ -13,6 +13,7 @@ the last failure; 130 only when interrupted before any poll finished.
 
 from __future__ import annotations
 
+import gc
 import math
 import sys
 import time
@@ -24,40 +25,58 @@ from mbtool.render import local_time
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
 
+FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
+
+
 class Output:
-    """Writes each poll in the chosen format, flushed at once (cron appends to a log)."""
+    """Writes each poll in the chosen format, at once (cron appends to a log); polls closer
+    together than FLUSH_GAP (--interval 0) share one write, not a system call each, which
+    PYTHONUNBUFFERED or a pipe would otherwise make of every line."""
 
     def __init__(self, fmt: str, out=None) -> None:
         self.fmt = fmt
         self.out = out or sys.stdout
         self.header_done = False
         self.live = None
+        self._pending: list[str] = []
+        self._flush_at = 0.0
 
     def result(self, when: str, result) -> None:
         from mbtool.render import _text, as_dict
 
         if self.fmt == "json":
-            self.out.write(_json_line({"time": when, **as_dict(result)}))
+            self._emit(_json_line({"time": when, **as_dict(result)}))
         elif self.fmt == "csv":
             if not self.header_done:
-                self.out.write("time,address,value\n")
+                self._emit("time,address,value\n")
                 self.header_done = True
-            self.out.write("".join(f"{when},{a},{_csv_cell(_text(v))}\n" for a, v in result.items))
+            self._emit("".join(f"{when},{a},{_csv_cell(_text(v))}\n" for a, v in result.items))
         elif self.fmt == "plain":
-            self.out.write("".join(f"{when} {a} {_text(v)}\n" for a, v in result.items))
+            self._emit("".join(f"{when} {a} {_text(v)}\n" for a, v in result.items))
         else:
             self._table(when, result)
-        self.out.flush()
 
     def failure(self, when: str, number: int, error: BaseException) -> None:
+        self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt == "json":
             # jq consumers read stdout only: a failed poll must show up there too.
             from mbtool.render import to_json
 
             code = int(getattr(error, "exit_code", ExitCode.INTERNAL))
-            self.out.write(to_json({"time": when, "error": str(error), "exit_code": code}) + "\n")
-            self.out.flush()
+            self._emit(to_json({"time": when, "error": str(error), "exit_code": code}) + "\n", now=True)
+
+    def _emit(self, text: str, now: bool = False) -> None:
+        self._pending.append(text)
+        if now or time.monotonic() >= self._flush_at:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._pending:
+            self.out.write("".join(self._pending))
+            self._pending.clear()
+        self.out.flush()
+        self._flush_at = time.monotonic() + FLUSH_GAP
 
     def _table(self, when: str, result) -> None:
         from rich.console import Group
@@ -80,9 +99,49 @@ class Output:
         self.live.update(Group(heading, table), refresh=True)
 
     def close(self) -> None:
+        self.flush()
         if self.live is not None:
             self.live.stop()
             self.live = None
+
+
+class Deferred:
+    """A poll's reply, shown while the next request is on its way when polls run back to
+    back: decoding and writing it then overlaps the device's turnaround instead of
+    adding to every transaction (sustained polling keeps pace with a bare client loop)."""
+
+    def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
+        self.output = output
+        self.to_result = to_result
+        self.held: tuple[str, object] | None = None
+
+    def hold(self, when: str, reply) -> None:
+        self.write()
+        self.held = (when, reply)
+
+    def write(self) -> None:
+        if self.held is not None:
+            when, reply = self.held
+            self.held = None
+            self.output.result(when, self.to_result(reply))
+
+
+class Latency:
+    """Min, average and max in constant memory: a poll left running for weeks keeps no list."""
+
+    def __init__(self) -> None:
+        self.count, self.total, self.low, self.high = 0, 0.0, math.inf, 0.0
+
+    def add(self, ms: float) -> None:
+        self.count += 1
+        self.total += ms
+        self.low = min(self.low, ms)
+        self.high = max(self.high, ms)
+
+    def __str__(self) -> str:
+        if not self.count:
+            return "-"
+        return f"{self.low:.1f}/{self.total / self.count:.1f}/{self.high:.1f} ms"
 
 
 def _json_line(data: dict) -> str:
@@ -130,8 +189,9 @@ def poll(
     if polls is None:
         polls = 0
     output = Output(connection.output_format or default_format())
+    shown = Deferred(output, to_result)
     done = replies = timeouts = errors = skipped = 0
-    latencies: list[float] = []
+    latency = Latency()
     last_failure = ExitCode.OK
     interrupted = False
     link = None  # the open_client context; reopened only after the link itself failed
@@ -141,6 +201,9 @@ def poll(
         # not a failed poll repeated for ever.
         link = open_client(connection, request.name)
         client = link.__enter__()
+        # What start-up made (click, the codec's types) lives as long as the loop: keep the
+        # garbage collector from walking it again every few hundred polls.
+        gc.freeze()
         start = time.monotonic()
         slot = 0
         while polls == 0 or done < polls:
@@ -152,12 +215,12 @@ def poll(
                 if client is None:
                     link = open_client(connection, request.name)
                     client = link.__enter__()
-                began = time.monotonic()
+                client.while_waiting = shown.write
                 reply = client.execute(connection.unit, request)
-                latencies.append((time.monotonic() - began) * 1000)
-                output.result(when, to_result(reply))
+                latency.add(client.round_trip * 1000)
                 replies += 1
             except (MbtoolError, OSError) as error:
+                shown.write()  # the poll before it, if the request never left
                 if isinstance(error, RequestError):
                     raise  # the request itself is wrong: no later poll can do better
                 if isinstance(error, NoResponse):
@@ -172,8 +235,12 @@ def poll(
                     error = ConnectionFailed(str(error))
                 last_failure = error.exit_code
                 output.failure(when, done + 1, error)
+            else:
+                shown.hold(when, reply)
             done += 1
             slot += 1
+            if start + slot * interval > time.monotonic():
+                shown.write()  # the next poll is not due yet: no reason to hold this one
             behind = time.monotonic() - (start + slot * interval)
             if interval > 0 and behind > 0 and (polls == 0 or done < polls):
                 missed = math.ceil(behind / interval)
@@ -182,13 +249,9 @@ def poll(
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        shown.write()
         output.close()
         close_quietly(link)
-    latency = (
-        f"{min(latencies):.1f}/{sum(latencies) / len(latencies):.1f}/{max(latencies):.1f} ms"
-        if latencies
-        else "-"
-    )
     summary = (
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
         f"skipped {skipped}, latency min/avg/max {latency}"

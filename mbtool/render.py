@@ -41,13 +41,17 @@ def local_time(when: float | None = None) -> str:
     daylight saving time), at a third of datetime.astimezone's cost a poll.
     """
     when = time.time() if when is None else when
-    local = time.localtime(when)
-    offset = local.tm_gmtoff // 60
-    sign = "-" if offset < 0 else "+"
-    return (
-        time.strftime("%Y-%m-%dT%H:%M:%S", local)
-        + f".{int(when % 1 * 1000):03d}{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
-    )
+    second = int(when)
+    if second != _SECOND[0]:  # one strftime a second, however fast the polls come
+        local = time.localtime(second)
+        offset = local.tm_gmtoff // 60
+        sign = "-" if offset < 0 else "+"
+        zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
+        _SECOND[:] = [second, time.strftime("%Y-%m-%dT%H:%M:%S", local), zone]
+    return f"{_SECOND[1]}.{int((when - second) * 1000):03d}{_SECOND[2]}"
+
+
+_SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)
 
 
 def default_format(stream: TextIO = sys.stdout) -> str:

@@ -213,18 +213,31 @@ class TcpTransport(Transport):
         except OSError as error:
             raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        # Non-blocking from here on, waits done with select: a socket timeout would cost a
+        # mode-switching ioctl on every read of a polling loop, and a poll before every call.
+        self.sock.setblocking(False)
 
     def write(self, data: bytes) -> None:
         try:
-            self.sock.sendall(data)
+            try:
+                sent = self.sock.send(data)  # a Modbus frame fits an idle socket's buffer at once
+            except BlockingIOError:
+                sent = 0
+            if sent < len(data):  # a peer that stopped reading: wait for room, but not for ever
+                self.sock.settimeout(WRITE_TIMEOUT)
+                try:
+                    self.sock.sendall(data[sent:])
+                finally:
+                    self.sock.setblocking(False)
         except OSError as error:
             raise ConnectionFailed(f"cannot send to {self.description}: {_reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
-        self.sock.settimeout(max(timeout, 1e-6))
         try:
+            if not select.select([self.sock], [], [], max(timeout, 0))[0]:
+                return b""
             data = self.sock.recv(4096)
-        except TimeoutError:
+        except BlockingIOError:
             return b""
         except OSError as error:
             raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
@@ -233,17 +246,11 @@ class TcpTransport(Transport):
         return data
 
     def discard_input(self) -> bytes:
-        # One select per look, not switching the socket's blocking mode off and on around
-        # a recv on every transaction of a polling loop (a socket with a timeout would wait
-        # that timeout out before even a MSG_DONTWAIT recv).
         stale = b""
         try:
-            while select.select([self.sock], [], [], 0)[0]:
-                chunk = self.sock.recv(4096)  # readable: returns at once
-                if not chunk:
-                    break  # closed: the read that follows says so
+            while chunk := self.sock.recv(4096):  # non-blocking: BlockingIOError when none
                 stale += chunk
-        except OSError:  # the next read reports a broken link
+        except OSError:  # BlockingIOError: nothing stale; anything else the next read reports
             pass
         return stale
 

@@ -57,13 +57,16 @@ def _own_fields(cls: type) -> list[Field]:
 def _init(self, *args: Any, **kwargs: Any) -> None:
     cls = type(self)
     names = cls.__record_names__
-    if not kwargs and len(args) == len(names):
-        # Every field given in order, the common case: one dict update, not a loop of
-        # checks, since a polling loop makes several records a transaction.
-        self.__dict__.update(zip(names, args, strict=True))
-        post_init = getattr(self, "__post_init__", None)
-        if post_init is not None:
-            post_init()
+    if not kwargs and 0 < len(args) <= len(names):
+        # Fields given in order, the rest left at their defaults: the common case, done
+        # with one dict update, since a polling loop makes several records a transaction.
+        values = self.__dict__
+        values.update(zip(names, args, strict=False))
+        for name, default in cls.__record_defaults__[len(args) :]:
+            if default is ...:
+                raise TypeError(f"{cls.__name__}() missing argument {name!r}")
+            values[name] = default
+        self.__post_init__()
         return
     positional = cls.__record_positional__
     if len(args) > len(positional):
@@ -79,9 +82,12 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
             object.__setattr__(self, spec.name, spec.default)
     if kwargs:
         raise TypeError(f"{cls.__name__}() got unexpected arguments {sorted(kwargs)}")
-    post_init = getattr(self, "__post_init__", None)
-    if post_init is not None:
-        post_init()
+    self.__post_init__()
+
+
+def _no_post_init(self) -> None:
+    """Every record has a __post_init__, so _init need not look one up (a failed getattr
+    raises and catches AttributeError: most of a record's cost in a polling loop)."""
 
 
 def _key(self) -> tuple:
@@ -126,8 +132,11 @@ def record(cls: type) -> type:
     # Names for the fast path of _init: only when all fields can be given by position.
     names = tuple(f.name for f in all_fields)
     cls.__record_names__ = names if len(cls.__record_positional__) == len(all_fields) else ()
+    cls.__record_defaults__ = tuple((f.name, f.default) for f in all_fields)
     cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
     cls.__init__ = _init
+    if not hasattr(cls, "__post_init__"):
+        cls.__post_init__ = _no_post_init
     cls.__eq__ = _eq
     cls.__hash__ = _hash
     cls.__repr__ = _repr
