@@ -242,8 +242,17 @@ def test_a_link_that_cannot_open_is_one_error_not_a_failed_poll_for_ever(mbtool,
 def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
     res = expect_ok(
         mbtool(
-            "read-holding-registers", "0", "10", "-p", tcp_device.target, "--interval", "0", "--polls", "50",
-            "-o", "json",
+            "read-holding-registers",
+            "0",
+            "10",
+            "-p",
+            tcp_device.target,
+            "--interval",
+            "0",
+            "--polls",
+            "50",
+            "-o",
+            "json",
         )
     )
     lines = [json.loads(line) for line in res.stdout.splitlines()]
@@ -256,3 +265,37 @@ def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
 def test_negative_interval_is_refused(mbtool):
     res = mbtool("read-coils", "0", "1", "-p", "sim://", "--interval", "-1", "--polls", "2")
     assert "0 or more seconds" in assert_one_error_line(res, 2)
+
+
+def test_back_to_back_polls_keep_their_order_when_a_reply_stops(mbtool, raw_responder):
+    """With --interval 0 a poll's line is written while the next request is out: a failure
+    after it must still come after it, on stdout and on stderr."""
+    answered = []
+
+    def first_only(request: bytes) -> bytes | None:
+        if answered:
+            return None  # the device falls silent after one reply
+        answered.append(request)
+        return request[:4] + b"\x00\x07" + request[6:8] + b"\x04\x00\x2a\x00\x2b"
+
+    device = raw_responder(first_only)
+    res = mbtool(
+        "read-holding-registers",
+        "0",
+        "2",
+        "-p",
+        device.tcp_target,
+        "-t",
+        "0.2",
+        "--interval",
+        "0",
+        "--polls",
+        "3",
+        "-o",
+        "json",
+    )
+    assert res.returncode == 3, str(res)
+    lines = [json.loads(line) for line in res.stdout.splitlines()]
+    assert [line.get("values") for line in lines] == [[42, 43], None, None]
+    assert [line.get("exit_code") for line in lines] == [None, 3, 3]
+    assert summary(res) == {"polls": 3, "replies": 1, "timeouts": 2, "errors": 0, "skipped": 0}
