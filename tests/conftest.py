@@ -35,8 +35,9 @@ TESTS_DIR = Path(__file__).resolve().parent
 REPO_ROOT = TESTS_DIR.parent
 DEVICE_SCRIPT = TESTS_DIR / "peers" / "pymodbus_device.py"
 
-# Linux pseudo-terminals (kernel 6.x, as here) refuse PARENB and CS7 with EINVAL, so every
-# mbtool run on a pty passes these (mbtool's default parity is E).
+# Linux pseudo-terminals (kernel 6.x, as here) may refuse PARENB and CS7 with EINVAL (whether
+# they do depends on the settings the pty had before), so every mbtool run on a pty passes
+# these (mbtool's default parity is E): a pty has no parity to set anyway.
 PTY_SERIAL_OPTS = ("--parity", "N")
 
 READY_DEADLINE = 20.0  # seconds for the pymodbus device to start listening
