@@ -360,6 +360,20 @@ def _flood(sock: socket.socket, chunks, seconds: float, sent: list[int]) -> None
             return
 
 
+def _watch_flood(server, good, rss_before: int, sock, chunks, seconds: float, sent: list[int]):
+    """Flood from a thread while another client reads: (its latencies, the server's peak RSS)."""
+    thread = threading.Thread(target=_flood, args=(sock, chunks, seconds, sent), daemon=True)
+    thread.start()
+    latencies = []
+    peak = rss_before
+    while thread.is_alive():
+        latencies.append(timed_read(good))
+        peak = max(peak, server.rss_kb())
+        time.sleep(0.05)
+    thread.join(timeout=1)
+    return latencies, peak
+
+
 def _ascii_garbage(total: int):
     """Random bytes, runs of hex after ':' that never end (oversized frames), bad LRCs."""
     rng = random.Random(7)
@@ -394,16 +408,8 @@ def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, 
                 rng = random.Random(3)
                 chunks = (rng.randbytes(65536) for _ in range(total // 65536))
             sent = [0]
-            thread = threading.Thread(target=_flood, args=(flooder, chunks, 20.0, sent), daemon=True)
             t0 = time.monotonic()
-            thread.start()
-            latencies = []
-            peak = before
-            while thread.is_alive():
-                latencies.append(timed_read(good))
-                peak = max(peak, server.rss_kb())
-                time.sleep(0.05)
-            thread.join(timeout=1)
+            latencies, peak = _watch_flood(server, good, before, flooder, chunks, 20.0, sent)
             flood_time = time.monotonic() - t0
             # The flooder's own stream resynchronises: after a pause, a good request is answered
             # once the server has chewed through the garbage the kernel still holds; the other
@@ -578,16 +584,8 @@ def test_client_that_never_reads_blocks_nobody_and_is_closed(tmp_path):
             # Requests for 125 registers: 259-byte replies for 12-byte requests.
             request = mbap(1, 1, struct.pack(">BHH", 3, 0, 125))
             sent = [0]
-            thread = threading.Thread(
-                target=_flood, args=(slow, (request * 1000 for _ in range(1000)), 1.5, sent), daemon=True
-            )
-            thread.start()
-            latencies = []
-            peak = before
-            while thread.is_alive():
-                latencies.append(timed_read(good))
-                peak = max(peak, server.rss_kb())
-                time.sleep(0.05)
+            chunks = (request * 1000 for _ in range(1000))
+            latencies, peak = _watch_flood(server, good, before, slow, chunks, 1.5, sent)
             # The server owes it thousands of replies and it takes none: after the idle
             # timeout it is closed.  Reading first would be taking replies, so wait, then
             # drain: a closed socket ends in EOF or a reset, an open one never ends.
