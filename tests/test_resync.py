@@ -1,8 +1,9 @@
 """RTU resync through garbage (spec §2: an RTU frame has no start mark, only its length rule
 and CRC tell where it is).  bench/resync.py measures the speed; issue 6.
 
-The reply behind 1 to 65536 bytes of garbage is recovered with a bounded buffer; offsets the
-framer leaves unjudged change nothing when no request is outstanding; with one outstanding,
+The reply behind 1 to 65536 bytes of garbage is recovered with a bounded buffer, and so is a
+request by the device's framer; offsets the framer leaves unjudged change nothing when no
+request is outstanding, nor on the device's side; with one outstanding,
 frames that could answer it (or be reported as mismatches) are still found amid garbage; and
 endless garbage ends at the deadline.  Speed is measured, not asserted: the time bound here
 only catches a return to quadratic time, which took seconds.
@@ -23,7 +24,7 @@ import pytest
 from mbtool.codec import data_access as da
 from mbtool.codec import serial_line as sl
 from mbtool.codec.data_access import ReadHoldingRegisters
-from mbtool.codec.framing import RTU_MAX_ADU, Frame, Rejected, RtuFramer
+from mbtool.codec.framing import RTU_MAX_ADU, DeviceRtuFramer, Frame, Rejected, RtuFramer
 from tests.conftest import assert_one_error_line, drain_events, run_mbtool, settle_events
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -51,6 +52,16 @@ def test_reply_behind_garbage_is_recovered_with_a_bounded_buffer(size, chunk):
     assert recovered
     assert peak <= 2 * RTU_MAX_ADU + chunk
     assert elapsed < 2.0
+
+
+@pytest.mark.parametrize(("size", "chunk"), [(1, 1), (300, 1), (4096, 7), (65536, 256)])
+def test_request_behind_garbage_is_found_by_the_device_framer_with_a_bounded_buffer(size, chunk):
+    # mbtool serve and sim:// read requests with it: garbage on the line must not hide the next poll.
+    request = RtuFramer().build(UNIT, REQUEST.encode())
+    stream = resync.garbage(random.Random(size), size, request) + request
+    recovered, _, peak = resync.feed(stream, chunk, REQUEST, device=True)
+    assert recovered
+    assert peak <= 2 * RTU_MAX_ADU + chunk
 
 
 # --- which offsets are judged -------------------------------------------------------------------
@@ -106,6 +117,60 @@ def test_offsets_left_unjudged_change_nothing_without_a_request(responses):
             for piece in pieces:
                 framer.feed(piece)
                 events += drain_events(framer)
+            outlines.append(outline(events + settle_events(framer)))
+        assert outlines[0] == outlines[1], stream.hex(" ")
+
+
+class EveryOffsetDevice(DeviceRtuFramer):
+    """Judges every offset as a request start, an unknown function code's too, as the device's
+    framer once did (each one pending until an ADU followed it)."""
+
+    def _can_start(self, code: int) -> bool:
+        return True
+
+
+def requests_amid_garbage(rng: random.Random) -> bytes:
+    """Garbage (some of it longer than an ADU), valid and corrupted requests, and requests
+    with function codes the codec does not know, which only silence ends."""
+    pdus = [
+        REQUEST.encode(),
+        da.WriteMultipleRegisters(1, (2, 3)).encode(),
+        bytes.fromhex("41 01 02"),
+        b"\x64",
+    ]
+    out = bytearray()
+    for _ in range(rng.randint(1, 6)):
+        kind = rng.randrange(4)
+        if kind == 0:
+            out += rng.randbytes(rng.choice((1, 3, 40, 255, 256, 257, 300)))
+        elif kind == 1:
+            out += bytes(rng.choice((3, 0x10, 0x41, 0x17)) for _ in range(rng.randint(1, 40)))
+        else:
+            frame = bytearray(RtuFramer().build(rng.choice((1, UNIT)), rng.choice(pdus)))
+            if kind == 3:
+                frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
+            out += frame
+    return bytes(out)
+
+
+def test_the_device_framer_leaves_unjudged_only_offsets_that_change_nothing():
+    # An unknown function code never makes a whole frame before silence, so the framer never
+    # judges it behind the front, and garbage is skipped over it in one step only where more
+    # than an ADU follows it: the events must be those of judging every offset, byte by byte.
+    rng = random.Random(7)
+    for _ in range(150):
+        stream = requests_amid_garbage(rng)
+        cuts = sorted(rng.sample(range(1, len(stream)), min(4, len(stream) - 1)))
+        pieces = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True)]
+        quiet = {index for index in range(len(pieces)) if rng.random() < 0.3}  # silence after these
+        outlines = []
+        for framer in (DeviceRtuFramer(), EveryOffsetDevice()):
+            events = []
+            for index, piece in enumerate(pieces):
+                framer.feed(piece)
+                events += drain_events(framer)
+                while index in quiet and (event := framer.silence()) is not None:
+                    events.append(event)
             outlines.append(outline(events + settle_events(framer)))
         assert outlines[0] == outlines[1], stream.hex(" ")
 

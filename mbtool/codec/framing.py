@@ -152,7 +152,16 @@ class Framer(ABC):
 
 # Which offsets an RTU framer judges as frame starts, per (framer class, responses,
 # function code asked, unit asked): see RtuFramer._judge_starts_for.
-_START_RULES: dict[tuple, tuple[bytes, bytes, re.Pattern[bytes]]] = {}
+_START_RULES: dict[tuple, re.Pattern[bytes]] = {}
+
+# The size of a frame whose function code alone tells it, by code (0: the bytes after it or
+# the request tell it), per (responses, function code asked): see RtuFramer._sizes_for.
+_FIXED_SIZES: dict[tuple, tuple[int, ...]] = {}
+
+
+def _byte_class(values: set[int]) -> bytes:
+    """A regex character class matching exactly these byte values."""
+    return b"[" + b"".join(re.escape(bytes([value])) for value in sorted(values)) + b"]"
 
 
 class RtuFramer(Framer):
@@ -173,10 +182,11 @@ class RtuFramer(Framer):
         # each byte of garbage rescanned the whole buffer: 64 KiB took a second.
         self._fed = 0
         self._scanned = 0
-        self._pending: list[int] = []
+        self._pending: list[tuple[int, int]] = []  # (position, bytes fed before it can tell)
         self._scan_expect: Request | None = None
         self._scan_unit: int | None = None
         self._judge_starts_for(None, None)
+        self._sizes_for(None)
 
     def feed(self, data: bytes) -> None:
         super().feed(data)
@@ -232,9 +242,8 @@ class RtuFramer(Framer):
             # Noise before a reply can look like the head of a long frame; without
             # this the real reply would wait inside that phantom frame until the deadline.
             return self._skip_to_frame(min(len(buf), size))
-        frame = self._whole(bytes(buf[:size]))
-        if isinstance(frame, Frame):
-            return frame
+        if self._crc_ok(0, size):
+            return self._whole(bytes(buf[:size]))
         # A bad checksum: either noise before a good frame that starts inside, or
         # a corrupted frame, reported whole (one line in the trace, not fragments).
         skip = self._skip_to_frame(size)
@@ -243,7 +252,23 @@ class RtuFramer(Framer):
         if self._awaited_inside(size):
             self._held = True
             return None  # the reply we wait for may be starting inside: wait for the rest
-        return self._garbage_up_to_a_start(size, frame)
+        if self._silence_tells_corrupted():
+            return None
+        # Only the first rejection of a garbage run is reported (next_event folds the rest
+        # into it): say what this one is only then.  Formatting the reason for every
+        # corrupted would-be frame amid garbage cost as much as judging it.
+        error = self._garbage_error if self._garbage else self._whole(bytes(buf[:size]))
+        return self._garbage_up_to_a_start(size, error)
+
+    def _silence_tells_corrupted(self) -> bool:
+        """A whole frame with a bad CRC at the front: is it held until silence, not skipped?"""
+        return False
+
+    def _crc_ok(self, start: int, size: int) -> bool:
+        """Does the frame of ``size`` bytes at ``start`` end with its right CRC (low byte first)?"""
+        buf = self._buffer
+        end = start + size - 2
+        return size >= 4 and crc16(buf[start:end]) == buf[end] | buf[end + 1] << 8
 
     # -- resync (spec §2: an RTU frame has no start mark; only its length rule and CRC tell) --
 
@@ -258,7 +283,8 @@ class RtuFramer(Framer):
 
         With no request outstanding: one byte before any function code that can start a
         frame (an exception reply too).  The offsets left out are those the front would
-        reject one by one as an unknown function code, so skipping them changes nothing.
+        reject one by one as an unknown function code, so skipping them changes nothing
+        (a device holds one until an ADU follows it: see DeviceRtuFramer._first_unsettled).
         """
         code = None if expect is None else expect.function_code
         key = (type(self), self.responses, code, unit)
@@ -269,14 +295,32 @@ class RtuFramer(Framer):
             else:
                 codes = {code for code in range(256) if self._can_start(code)}
                 units = set()
-            # One character class finds both kinds of byte in C, never byte by byte in Python.
-            marks = b"".join(re.escape(bytes([byte])) for byte in sorted(codes | units))
-            _START_RULES[key] = (
-                bytes(byte in codes for byte in range(256)),
-                bytes(byte in units for byte in range(256)),
-                re.compile(b"[" + marks + b"]"),
-            )
-        self._start_codes, self._start_units, self._marks = _START_RULES[key]
+            # A look-ahead matches, at each offset worth judging, its unit or the function code
+            # after it: the offsets are found in C, never byte by byte in Python.
+            marks = [b"." + _byte_class(codes)] if codes else []
+            if units:
+                marks.insert(0, _byte_class(units) + b".")  # a unit byte with a function code after it
+            _START_RULES[key] = re.compile(b"(?s)(?=" + b"|".join(marks) + b")")
+        self._marks = _START_RULES[key]
+
+    def _sizes_for(self, expect: Request | None) -> None:
+        """Learn which function codes tell their frame's size alone: most do, and looking it up
+        spares _frame_size the general rule for each offset judged amid garbage."""
+        code = None if expect is None else expect.function_code
+        key = (self.responses, code)
+        if key not in _FIXED_SIZES:
+            sizes = []
+            for byte in range(256):
+                if self.responses and byte & 0x80:
+                    length = 2  # an exception reply (pdu_length)
+                elif byte == code or (kind := function_type(byte)) is None:
+                    length = 0  # the request asked may refine its rule; an unknown code has none
+                else:
+                    rule = kind.response_size if self.responses else kind.request_size
+                    length = getattr(rule, "fixed", None) or 0  # a Size, or a rule of its own
+                sizes.append(1 + length + 2 if 0 < length <= MAX_PDU else 0)
+            _FIXED_SIZES[key] = tuple(sizes)
+        self._fixed_sizes = _FIXED_SIZES[key]
 
     def _can_start(self, code: int) -> bool:
         """Can a frame whose function code is ``code`` start here, with no request outstanding?"""
@@ -286,78 +330,86 @@ class RtuFramer(Framer):
 
     def _starts(self, lo: int, hi: int):
         """The offsets in lo..hi-1 worth judging as the start of a frame, in order."""
-        buf, codes, units = self._buffer, self._start_codes, self._start_units
-        last = lo - 1
         # Up to hi inclusive: the function code of an offset at hi - 1 lies at hi.
-        for found in self._marks.finditer(buf, lo, hi + 1):
-            at = found.start()
-            if codes[buf[at]] and at - 1 > last:
-                last = at - 1
-                yield last
-            if units[buf[at]] and last < at < hi:
-                last = at
-                yield at
+        return map(re.Match.start, self._marks.finditer(self._buffer, lo, hi + 1))
 
     def _rescan_if_expecting_anew(self) -> None:
         if self._scan_expect is not self.expect or self._scan_unit != self.expect_unit:
             # Lengths and the offsets worth judging depend on the request: judge afresh.
             self._scan_expect, self._scan_unit = self.expect, self.expect_unit
             self._judge_starts_for(self.expect, self.expect_unit)
+            self._sizes_for(self.expect)
             self._scanned = 0
             self._pending = []
 
     def _garbage_up_to_a_start(self, skip: int, error: FrameError):
         """(bytes to skip, why) for a rejected front, stretched over the offsets behind it
         that are not worth judging, so garbage goes in one step, not byte by byte."""
-        last = len(self._buffer) - 1  # its function code has not arrived: it may yet start a frame
+        last = self._first_unsettled()
         if skip < last:
             skip = next(self._starts(skip, last), last)
         return skip, error
+
+    def _first_unsettled(self) -> int:
+        """Where stretching garbage stops: from this offset on, one that _starts leaves out may
+        still start a frame once more bytes come.  Here only the last byte, whose function
+        code has not arrived."""
+        return len(self._buffer) - 1
 
     def _frame_size(self, start: int) -> int | None | FrameError:
         """Size of the frame that would start at ``start``: None for more bytes, or why none can."""
         buf = self._buffer
         if len(buf) < start + 2:
             return None
+        size = self._fixed_sizes[buf[start + 1]]
+        if size:
+            return size  # the function code alone tells it
         # A window of one maximal ADU is all a length can depend on; never copy the
         # whole buffer per byte (64 KiB of garbage would cost quadratic time).
         length = self._pdu_length(bytes(buf[start + 1 : start + RTU_MAX_ADU]))
         if length is None:
             return None
-        code = buf[start + 1]
         if length == UNKNOWN:
-            if self.expect is not None and code in (
-                self.expect.function_code,
-                self.expect.function_code | 0x80,
-            ):
-                return None  # an unknown function code we asked for (raw): only silence ends it
-            return FrameError(f"function code {code:02X} is unknown", bytes(buf[start : start + 2]))
+            return self._unknown_function_size(start)
         if length > MAX_PDU:
             return FrameError(f"PDU length {length} exceeds {MAX_PDU}", bytes(buf[start : start + 2]))
         return 1 + length + 2
+
+    def _unknown_function_size(self, start: int) -> None | FrameError:
+        """_frame_size for a function code the codec does not know: None if only silence can end
+        the frame, or why none starts here."""
+        code = self._buffer[start + 1]
+        if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
+            return None  # an unknown function code we asked for (raw): only silence ends it
+        return FrameError(f"function code {code:02X} is unknown", bytes(self._buffer[start : start + 2]))
 
     def _skip_to_frame(self, end: int):
         """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.
 
         Each offset is judged once for good (no frame can start there, whatever follows)
-        or kept pending until the bytes that decide it arrive, so garbage costs linear time;
-        only the offsets _starts picks out are judged at all.
+        or kept pending until the bytes that decide it arrive, and only judged again then,
+        so garbage costs linear time; only the offsets _starts picks out are judged at all.
         """
         buf = self._buffer
         base = self._fed - len(buf)  # the absolute position of buf[0]
-        if self._pending and self._pending[0] <= base:
-            self._pending = [p for p in self._pending if p > base]
+        pending = self._pending
+        if pending and pending[0][0] <= base:
+            pending = [entry for entry in pending if entry[0] > base]
         still = []
-        for index, position in enumerate(self._pending):
+        for index, entry in enumerate(pending):
+            position, wake = entry
             if position >= base + end:
-                still += self._pending[index:]
+                still += pending[index:]
                 break
+            if wake > self._fed:
+                still.append(entry)  # the bytes that decide it have not all come
+                continue
             verdict = self._frame_at(position - base)
             if verdict is True:
-                self._pending = still + self._pending[index + 1 :]
+                self._pending = still + pending[index + 1 :]
                 return self._noise(position - base)
-            if verdict is None:
-                still.append(position)
+            if verdict is not False:
+                still.append((position, verdict))
         self._pending = still
         # An offset is picked out by its byte and the next one: the last byte waits for its
         # follower (no whole frame can start there yet anyway).
@@ -369,32 +421,33 @@ class RtuFramer(Framer):
                 if verdict is True:
                     self._scanned = base + start + 1
                     return self._noise(start)
-                if verdict is None:
-                    self._pending.append(base + start)
+                if verdict is not False:
+                    self._pending.append((base + start, verdict))
             self._scanned = base + stop
         return None
 
-    def _frame_at(self, start: int) -> bool | None:
-        """Does a whole, valid frame start here: True, False for good, None until more bytes tell."""
+    def _frame_at(self, start: int) -> bool | int:
+        """Does a whole, valid frame start here: True, False for good, or (an int) how many
+        bytes must have been fed before more bytes can tell."""
         buf = self._buffer
+        base = self._fed - len(buf)
         if self.responses and start + 2 <= len(buf):
             code = buf[start + 1]
             if code & 0x80:
                 # An exception reply, half of all garbage bytes: 5 bytes, whatever was asked.
                 if start + 5 > len(buf):
-                    return None
-                return crc16(bytes(buf[start : start + 3])) == buf[start + 3] | buf[start + 4] << 8
+                    return base + start + 5
+                return self._crc_ok(start, 5)
             if function_type(code) is None and (self.expect is None or code != self.expect.function_code):
                 return False  # a code nobody knows or asked for starts no frame
         size = self._frame_size(start)
         if size is None:
-            return None
+            return self._fed + 1  # the bytes that tell its length have not all come
         if not isinstance(size, int):
             return False
         if start + size > len(buf):
-            return None
-        data = buf[start : start + size]
-        return len(data) >= 4 and crc16(bytes(data[:-2])) == int.from_bytes(data[-2:], "little")
+            return base + start + size
+        return self._crc_ok(start, size)
 
     def _noise(self, start: int):
         return start, FrameError(f"{start} bytes of noise before a frame", bytes(self._buffer[:start]))
@@ -576,34 +629,30 @@ class DeviceRtuFramer(RtuFramer):
     def __init__(self) -> None:
         super().__init__(responses=False)
 
-    def _can_start(self, code: int) -> bool:
-        return True  # an unknown function code starts a frame too, ended by silence
+    # Resync: an unknown function code may start a request that only silence ends (spec §2:
+    # 3.5 character times end an RTU frame), until more than one maximal ADU has come behind
+    # it.  Behind the front it is not judged at all (_can_start is RtuFramer's): before
+    # silence it is never a whole frame, so never the frame found behind noise.  Judging it
+    # kept nearly every offset pending, each rechecked at every step: 64 KiB took seconds.
 
-    def _frame_size(self, start: int):
-        size = super()._frame_size(start)
-        if (
-            size is not None
-            and not isinstance(size, int)
-            # Beyond one maximal ADU it cannot be a frame: skip it as noise, which also keeps
-            # the buffer (and the work silence() does on it) bounded.
-            and len(self._buffer) - start <= RTU_MAX_ADU
-            and pdu_length(bytes(self._buffer[start + 1 : start + 2]), False) == UNKNOWN
-        ):
-            return None
-        return size
+    def _first_unsettled(self) -> int:
+        # Garbage is stretched over unknown function codes only where an ADU follows them:
+        # the front rejects those one by one (_unknown_function_size), not the later ones.
+        return len(self._buffer) - RTU_MAX_ADU
 
-    def _parse(self):
-        result = super()._parse()
-        if (
-            isinstance(result, tuple)
-            and isinstance(result[1], ChecksumError)
-            and not self._quiet
-            and len(self._buffer) <= RTU_MAX_ADU
-        ):
-            # A bad CRC at the length a request would have: on a shared bus it is as likely
-            # a reply from another slave, or a longer FC08 query; only silence tells (spec §2).
+    def _unknown_function_size(self, start: int) -> None | FrameError:
+        # A function code the codec does not know starts a request that silence will end,
+        # answered with exception 01.  Beyond one maximal ADU it cannot be a frame: skip it as
+        # noise, which also keeps the buffer (and the work silence() does on it) bounded.
+        # (A known code with a length the codec cannot tell, FC43 with another MEI type, is noise.)
+        if len(self._buffer) - start <= RTU_MAX_ADU and function_type(self._buffer[start + 1]) is None:
             return None
-        return result
+        return super()._unknown_function_size(start)
+
+    def _silence_tells_corrupted(self) -> bool:
+        # A bad CRC at the length a request would have: on a shared bus it is as likely
+        # a reply from another slave, or a longer FC08 query; only silence tells (spec §2).
+        return not self._quiet and len(self._buffer) <= RTU_MAX_ADU
 
     def silence(self):
         if self._buffer and not self._garbage:
