@@ -11,7 +11,7 @@ so a user learns "CRC error" rather than only "timeout".
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionResponse, Request, Response
@@ -75,6 +75,8 @@ class Client:
         # device's turnaround (polling writes the previous poll's output there).
         self.while_waiting: Callable[[], None] | None = None
         self.round_trip = 0.0  # seconds from the last request sent to its reply
+        self._settled = False  # the last transaction ended with its reply: nothing stale left
+        self._encoded: tuple[Request | None, bytes] = (None, b"")  # the last request and its PDU
         self._char_time = CHAR_BITS / baud
 
     def execute(self, unit: int, request: Request) -> Response | None:
@@ -86,8 +88,10 @@ class Client:
         attempts = 1 if unit == 0 else self.retries + 1
         error: MbtoolError | None = None
         for _ in range(attempts):
+            self._settled = False
             try:
                 reply = self._transact(unit, request)
+                self._settled = reply is not None
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
             except (NoResponse, FrameError) as failure:
@@ -103,9 +107,14 @@ class Client:
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
         self._transaction_id = (self._transaction_id + 1) & 0xFFFF
-        adu = self.framer.build(unit, request.encode(), self._transaction_id)
+        if request is not self._encoded[0]:  # a polling loop sends the same request every time
+            self._encoded = (request, request.encode())
+        adu = self.framer.build(unit, self._encoded[1], self._transaction_id)
         self._wait_for_silence()
-        stale = self.transport.discard_input()
+        # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
+        # a polling loop spares itself the look (a system call a poll); a serial line has no
+        # ids, and after a timeout a late reply may be on its way anyway.
+        stale = b"" if self._settled and not self.transport.serial_line else self.transport.discard_input()
         if stale:
             self.trace.rejected(
                 stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
@@ -203,12 +212,11 @@ class Client:
         if watch is not None:
             self.framer.feed(watch.release())
 
-    def _drain(self, first: Frame | Rejected | None) -> list[Frame | Rejected]:
-        events = []
+    def _drain(self, first: Frame | Rejected | None) -> Iterator[Frame | Rejected]:
+        """The framer's events, one at a time: judging stops at the reply, with no look for more."""
         while first is not None:
-            events.append(first)
+            yield first
             first = self.framer.next_event()
-        return events
 
     def _last_word(
         self,
