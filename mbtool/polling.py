@@ -113,9 +113,9 @@ class Deferred:
     def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
         self.output = output
         self.to_result = to_result
-        self.held: tuple[str, object] | None = None
+        self.held: tuple[float, object] | None = None
 
-    def hold(self, when: str, reply) -> None:
+    def hold(self, when: float, reply) -> None:
         self.write()
         self.held = (when, reply)
 
@@ -123,7 +123,7 @@ class Deferred:
         if self.held is not None:
             when, reply = self.held
             self.held = None
-            self.output.result(when, self.to_result(reply))
+            self.output.result(local_time(when), self.to_result(reply))
 
 
 class Latency:
@@ -210,7 +210,7 @@ def poll(
             delay = start + slot * interval - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            when = local_time()
+            when = time.time()  # formatted when shown, off the request's path
             try:
                 if client is None:
                     link = open_client(connection, request.name)
@@ -234,7 +234,7 @@ def poll(
                 if isinstance(error, OSError):
                     error = ConnectionFailed(str(error))
                 last_failure = error.exit_code
-                output.failure(when, done + 1, error)
+                output.failure(local_time(when), done + 1, error)
             else:
                 shown.hold(when, reply)
             done += 1
