@@ -69,7 +69,7 @@ _mbtool()
             if [[ $cur == -* ]]; then
                 _mbtool_words "$cur" -V --version -h --help
             else
-                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id raw decode crc lrc serve monitor scan
+                _mbtool_words "$cur" read-coils read-discrete-inputs read-holding-registers read-input-registers write-coil write-register write-coils write-registers read-exception-status diag event-counter event-log report-id read-file-record write-file-record mask-write-register read-write-registers fifo device-id scan monitor raw decode crc lrc serve
             fi
             ;;
         read-coils)
@@ -388,6 +388,39 @@ _mbtool()
                     ;;
             esac
             ;;
+        scan)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                -u|--unit|--units|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--address|--count|--bauds|--parities) : ;;
+                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --function) _mbtool_words "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
+                    fi
+                    ;;
+            esac
+            ;;
+        monitor)
+            case $prev in
+                -p|--port) _mbtool_port "$cur" ;;
+                --framer) _mbtool_words "$cur" rtu ascii ;;
+                -b|--baud|--silence|--response-timeout|--duration|--frames|--capture|--from-file|-P|--profile) : ;;
+                --parity) _mbtool_words_i "$cur" N E O ;;
+                --bytesize) _mbtool_words "$cur" 7 8 ;;
+                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                -o|--format) _mbtool_words "$cur" table plain json ;;
+                *)
+                    if [[ $cur == -* ]]; then
+                        _mbtool_words "$cur" -p --port --framer -b --baud --parity --bytesize --stopbits --silence --response-timeout --duration --frames --capture --from-file -o --format -P --profile -h --help
+                    fi
+                    ;;
+            esac
+            ;;
         raw)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
@@ -446,39 +479,6 @@ _mbtool()
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --seed -q --quiet -h --help
-                    fi
-                    ;;
-            esac
-            ;;
-        monitor)
-            case $prev in
-                -p|--port) _mbtool_port "$cur" ;;
-                --framer) _mbtool_words "$cur" rtu ascii ;;
-                -b|--baud|--silence|--response-timeout|--duration|--frames|--capture|--from-file|-P|--profile) : ;;
-                --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json ;;
-                *)
-                    if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port --framer -b --baud --parity --bytesize --stopbits --silence --response-timeout --duration --frames --capture --from-file -o --format -P --profile -h --help
-                    fi
-                    ;;
-            esac
-            ;;
-        scan)
-            case $prev in
-                -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|--units|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--address|--count|--bauds|--parities) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
-                --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --function) _mbtool_words "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
-                *)
-                    if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
                     fi
                     ;;
             esac

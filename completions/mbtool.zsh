@@ -36,13 +36,13 @@ _mbtool_commands() {
     'read-write-registers:Read/write registers (FC 23)'
     'fifo:Read a FIFO queue (FC 24)'
     'device-id:Read device identification (FC 43/14)'
+    'scan:Find the units that answer, and the bus settings'
+    'monitor:Watch a bus and decode every frame; never sends'
     'raw:Send any PDU, or exact frame bytes'
     'decode:Decode frames offline'
     'crc:CRC-16/MODBUS of bytes'
     'lrc:LRC of bytes'
-    'serve:Simulate a Modbus device (slave) for testing masters: every function code of the spec'
-    'monitor:Watch a serial bus and decode every frame; never transmits'
-    'scan:Find the unit ids that answer on a bus, and optionally the serial settings'
+    'serve:Simulate a device (slave) for testing masters'
   )
   _describe -t commands 'mbtool command' commands
 }
@@ -490,6 +490,50 @@ _mbtool() {
             '--object=[Read this one object only]:NUMBER: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
+        (scan)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
+            '(-u --unit --units)'{-u+,--unit=,--units=}'[Unit ids to probe: 1-247, 1,5,10-20]:UNITS: ' \
+            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each unit'\''s reply (raise it for slow devices or gateways)]:SECONDS: ' \
+            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
+            '--echo[Strip the local echo of a half-duplex adapter]' \
+            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
+            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
+            '--hex[Print every frame sent and received (stderr), checksum checked]' \
+            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '--function=[What each unit is asked]:function:(read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data)' \
+            '--address=[Address the read probes start at]:NUMBER: ' \
+            '--count=[How many items the read probes ask for]:NUMBER: ' \
+            '--bauds=[Sweep these baud rates (9600,19200 or common: 9600,19200,38400,115200,57600,4800,2400,1200) instead of -b]:BAUDS: ' \
+            '--parities=[Sweep these parities (N,E,O) instead of --parity]:PARITIES: ' \
+            '--first[Stop at the first unit that answers]' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
+        (monitor)
+          _arguments -s -S \
+            '(-p --port)'{-p+,--port=}'[The serial line to listen on: a serial device, socket://HOST:PORT or rfc2217://HOST:PORT]:TARGET:_mbtool_ports' \
+            '--framer=[Framing on the line]:framer:(rtu ascii)' \
+            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
+            '--parity=[Serial parity]:parity:(N E O)' \
+            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
+            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
+            '--silence=[Seconds without a byte that end a frame whose length is not known (default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii)]:SECONDS: ' \
+            '--response-timeout=[Seconds after which a request counts as unanswered]:SECONDS: ' \
+            '--duration=[Stop after this many seconds]:SECONDS: ' \
+            '--frames=[Stop after N frames]:NUMBER: ' \
+            '--capture=[Also write every frame to a pcap file that Wireshark decodes as Modbus RTU]:FILE: ' \
+            '--from-file=[Analyse bytes recorded from a line (raw binary) instead of listening; no timing, frames split by their implicit length]:FILE: ' \
+            '(-o --format)'{-o+,--format=}'[Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line]:format:(table plain json)' \
+            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
+            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
+          ;;
         (raw)
           _arguments -s -S \
             '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
@@ -552,50 +596,6 @@ _mbtool() {
             '--idle-timeout=[TCP: close a client that completes no request and takes no reply for SECONDS (one that never sends, sends a byte now and then, or does not read); 0 for never]:SECONDS: ' \
             '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
             '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
-            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
-          ;;
-        (monitor)
-          _arguments -s -S \
-            '(-p --port)'{-p+,--port=}'[The serial line to listen on: a serial device, socket://HOST:PORT or rfc2217://HOST:PORT]:TARGET:_mbtool_ports' \
-            '--framer=[Framing on the line]:framer:(rtu ascii)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
-            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
-            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
-            '--silence=[Seconds without a byte that end a frame whose length is not known (default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii)]:SECONDS: ' \
-            '--response-timeout=[Seconds after which a request counts as unanswered]:SECONDS: ' \
-            '--duration=[Stop after this many seconds]:SECONDS: ' \
-            '--frames=[Stop after N frames]:NUMBER: ' \
-            '--capture=[Also write every frame to a pcap file that Wireshark decodes as Modbus RTU]:FILE: ' \
-            '--from-file=[Analyse bytes recorded from a line (raw binary) instead of listening; no timing, frames split by their implicit length]:FILE: ' \
-            '(-o --format)'{-o+,--format=}'[Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line]:format:(table plain json)' \
-            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
-          ;;
-        (scan)
-          _arguments -s -S \
-            '(-p --port)'{-p+,--port=}'[tcp://HOST\[:PORT\], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, loop:// or sim:// (the built-in device)]:TARGET:_mbtool_ports' \
-            '(-u --unit --units)'{-u+,--unit=,--units=}'[Unit ids to probe: 1-247, 1,5,10-20]:UNITS: ' \
-            '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
-            '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
-            '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
-            '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
-            '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each unit'\''s reply (raise it for slow devices or gateways)]:SECONDS: ' \
-            '--retries=[Times to resend after a timeout or a bad reply]:NUMBER: ' \
-            '--echo[Strip the local echo of a half-duplex adapter]' \
-            '--rs485[Drive RTS high while sending, for an RS-485 adapter without automatic direction (the kernel driver'\''s RS-485 mode where it has one, else mbtool switches RTS)]' \
-            '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
-            '--hex[Print every frame sent and received (stderr), checksum checked]' \
-            '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
-            '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
-            '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
-            '--function=[What each unit is asked]:function:(read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data)' \
-            '--address=[Address the read probes start at]:NUMBER: ' \
-            '--count=[How many items the read probes ask for]:NUMBER: ' \
-            '--bauds=[Sweep these baud rates (9600,19200 or common: 9600,19200,38400,115200,57600,4800,2400,1200) instead of -b]:BAUDS: ' \
-            '--parities=[Sweep these parities (N,E,O) instead of --parity]:PARITIES: ' \
-            '--first[Stop at the first unit that answers]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
           ;;
       esac

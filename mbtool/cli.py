@@ -40,13 +40,13 @@ COMMANDS = {
     "read-write-registers": "functions",
     "fifo": "functions",
     "device-id": "functions",
+    "scan": "scan",
+    "monitor": "monitor",
     "raw": "offline",
     "decode": "offline",
     "crc": "offline",
     "lrc": "offline",
     "serve": "serve",
-    "monitor": "monitor",
-    "scan": "scan",
 }
 
 

@@ -42,7 +42,12 @@ def default_silence(framer: str, baud: int) -> float:
     return ASCII_SILENCE if framer == "ascii" else max(silent_interval(baud), MIN_RTU_SILENCE)
 
 
-@click.command("monitor", cls=MonitorCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(
+    "monitor",
+    cls=MonitorCommand,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="Watch a bus and decode every frame; never sends.",
+)
 @click.option(
     "-p",
     "--port",

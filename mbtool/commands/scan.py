@@ -623,7 +623,7 @@ class Output:
 
 
 @_scan_options
-@device_command("scan")
+@device_command("scan", short_help="Find the units that answer, and the bus settings.")
 @click.option(
     "--function",
     "probe",

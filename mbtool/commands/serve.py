@@ -73,7 +73,12 @@ class Fraction(click.ParamType):
         return number
 
 
-@click.command("serve", cls=ServeCommand, context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(
+    "serve",
+    cls=ServeCommand,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="Simulate a device (slave) for testing masters.",
+)
 @click.option(
     "-p",
     "--port",
