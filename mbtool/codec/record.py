@@ -54,8 +54,18 @@ def _own_fields(cls: type) -> list[Field]:
     return out
 
 
+# A record made this many times gets an __init__ of its own, compiled for its fields: a
+# polling loop makes a few records a transaction, while a one-shot command, which makes
+# each only a few times, never pays for the compiling.
+COMPILE_AFTER = 64
+
+
 def _init(self, *args: Any, **kwargs: Any) -> None:
     cls = type(self)
+    made = cls.__dict__.get("__record_made__", 0) + 1
+    cls.__record_made__ = made
+    if made == COMPILE_AFTER:
+        _compile_init(cls)
     names = cls.__record_names__
     if not kwargs and 0 < len(args) <= len(names):
         # Fields given in order, the rest left at their defaults: the common case, done
@@ -83,6 +93,38 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
     if kwargs:
         raise TypeError(f"{cls.__name__}() got unexpected arguments {sorted(kwargs)}")
     self.__post_init__()
+
+
+def _compile_init(cls: type) -> None:
+    """Give ``cls`` an __init__ with its fields as parameters, as dataclasses write one.
+
+    Only where a signature can say what _init does: positional fields with defaults
+    after those without, keyword-only ones last, and no field named like the function's
+    own names."""
+    positional = cls.__record_positional__
+    keyword = [spec for spec in cls.__record_fields__ if spec.kw_only]
+    defaulted = [spec.default is not ... for spec in positional]
+    own = {"self", "_record_dict"}
+    if defaulted != sorted(defaulted) or any(
+        spec.name in own or spec.name.startswith("_default_") for spec in cls.__record_fields__
+    ):
+        return
+    defaults = {f"_default_{spec.name}": spec.default for spec in cls.__record_fields__}
+
+    def parameter(spec: Field) -> str:
+        return spec.name if spec.default is ... else f"{spec.name}=_default_{spec.name}"
+
+    parameters = ["self", *map(parameter, positional)]
+    if keyword:
+        parameters += ["*", *map(parameter, keyword)]
+    body = "".join(f"    _record_dict[{spec.name!r}] = {spec.name}\n" for spec in cls.__record_fields__)
+    source = (
+        f"def __init__({', '.join(parameters)}):\n    _record_dict = self.__dict__\n{body}"
+        "    self.__post_init__()\n"
+    )
+    namespace: dict = {}
+    exec(source, defaults, namespace)  # the source holds only this record's own field names
+    cls.__init__ = namespace["__init__"]
 
 
 def _no_post_init(self) -> None:
