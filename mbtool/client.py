@@ -77,6 +77,7 @@ class Client:
         self.round_trip = 0.0  # seconds from the last request sent to its reply
         self._settled = False  # the last transaction ended with its reply: nothing stale left
         self._encoded: tuple[Request | None, bytes] = (None, b"")  # the last request and its PDU
+        self._echo_judged: tuple[Request | None, bool] = (None, False)  # and whether to watch for its echo
         self._char_time = CHAR_BITS / baud
 
     def execute(self, unit: int, request: Request) -> Response | None:
@@ -137,10 +138,16 @@ class Client:
             self._strip_echo(adu, deadline)
             watch = None
         else:
-            watch = _EchoWatch.for_request(adu, request) if self.transport.serial_line else None
+            watch = self._echo_watch(adu, request) if self.transport.serial_line else None
         reply = self._await_reply(unit, request, deadline, watch)
         self.round_trip = self.clock() - sent_at
         return reply
+
+    def _echo_watch(self, adu: bytes, request: Request) -> _EchoWatch | None:
+        # Whether a request could pass for its own reply is the same for every poll of it.
+        if request is not self._echo_judged[0]:
+            self._echo_judged = (request, _EchoWatch.for_request(adu, request) is not None)
+        return _EchoWatch(adu) if self._echo_judged[1] else None
 
     def _wait_for_silence(self) -> None:
         if not self.transport.serial_line:

@@ -116,7 +116,7 @@ class Deferred:
         self.held: tuple[float, object] | None = None
 
     def hold(self, when: float, reply) -> None:
-        self.write()
+        """Keep a reply to show later; the one before it went out with the request."""
         self.held = (when, reply)
 
     def write(self) -> None:
@@ -206,6 +206,7 @@ def poll(
         gc.freeze()
         start = time.monotonic()
         slot = 0
+        show_previous = shown.write  # bound once, not a method object a poll
         while polls == 0 or done < polls:
             delay = start + slot * interval - time.monotonic()
             if delay > 0:
@@ -215,7 +216,7 @@ def poll(
                 if client is None:
                     link = open_client(connection, request.name)
                     client = link.__enter__()
-                client.while_waiting = shown.write
+                client.while_waiting = show_previous
                 reply = client.execute(connection.unit, request)
                 latency.add(client.round_trip * 1000)
                 replies += 1
