@@ -66,18 +66,6 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
     cls.__record_made__ = made
     if made == COMPILE_AFTER:
         _compile_init(cls)
-    names = cls.__record_names__
-    if not kwargs and 0 < len(args) <= len(names):
-        # Fields given in order, the rest left at their defaults: the common case, done
-        # with one dict update, since a polling loop makes several records a transaction.
-        values = self.__dict__
-        values.update(zip(names, args, strict=False))
-        for name, default in cls.__record_defaults__[len(args) :]:
-            if default is ...:
-                raise TypeError(f"{cls.__name__}() missing argument {name!r}")
-            values[name] = default
-        self.__post_init__()
-        return
     positional = cls.__record_positional__
     if len(args) > len(positional):
         raise TypeError(f"{cls.__name__}() takes {len(positional)} positional arguments, {len(args)} given")
@@ -128,8 +116,8 @@ def _compile_init(cls: type) -> None:
 
 
 def _no_post_init(self) -> None:
-    """Every record has a __post_init__, so _init need not look one up (a failed getattr
-    raises and catches AttributeError: most of a record's cost in a polling loop)."""
+    """Every record has a __post_init__, so _init and a compiled __init__ call it without
+    looking it up."""
 
 
 def _key(self) -> tuple:
@@ -171,10 +159,6 @@ def record(cls: type) -> type:
     cls.__record_own__ = tuple(own)
     cls.__record_fields__ = tuple(all_fields)
     cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
-    # Names for the fast path of _init: only when all fields can be given by position.
-    names = tuple(f.name for f in all_fields)
-    cls.__record_names__ = names if len(cls.__record_positional__) == len(all_fields) else ()
-    cls.__record_defaults__ = tuple((f.name, f.default) for f in all_fields)
     cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
     cls.__init__ = _init
     if not hasattr(cls, "__post_init__"):
