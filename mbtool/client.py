@@ -76,8 +76,9 @@ class Client:
         self.while_waiting: Callable[[], None] | None = None
         self.round_trip = 0.0  # seconds from the last request sent to its reply
         self._settled = False  # the last transaction ended with its reply: nothing stale left
-        self._encoded: tuple[Request | None, bytes] = (None, b"")  # the last request and its PDU
-        self._echo_judged: tuple[Request | None, bool] = (None, False)  # and whether to watch for its echo
+        # The last request, its PDU and whether its echo could pass for a reply: the same for
+        # every poll of it, so worked out once.
+        self._prepared: tuple[Request | None, bytes, bool] = (None, b"", False)
         self._char_time = CHAR_BITS / baud
 
     def execute(self, unit: int, request: Request) -> Response | None:
@@ -108,9 +109,10 @@ class Client:
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
         self._transaction_id = (self._transaction_id + 1) & 0xFFFF
-        if request is not self._encoded[0]:  # a polling loop sends the same request every time
-            self._encoded = (request, request.encode())
-        adu = self.framer.build(unit, self._encoded[1], self._transaction_id)
+        if request is not self._prepared[0]:
+            self._prepared = (request, request.encode(), _EchoWatch.needed(request))
+        _, pdu, echo_watched = self._prepared
+        adu = self.framer.build(unit, pdu, self._transaction_id)
         self._wait_for_silence()
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
         # a polling loop spares itself the look (a system call a poll); a serial line has no
@@ -138,16 +140,10 @@ class Client:
             self._strip_echo(adu, deadline)
             watch = None
         else:
-            watch = self._echo_watch(adu, request) if self.transport.serial_line else None
+            watch = _EchoWatch(adu) if echo_watched and self.transport.serial_line else None
         reply = self._await_reply(unit, request, deadline, watch)
         self.round_trip = self.clock() - sent_at
         return reply
-
-    def _echo_watch(self, adu: bytes, request: Request) -> _EchoWatch | None:
-        # Whether a request could pass for its own reply is the same for every poll of it.
-        if request is not self._echo_judged[0]:
-            self._echo_judged = (request, _EchoWatch.for_request(adu, request) is not None)
-        return _EchoWatch(adu) if self._echo_judged[1] else None
 
     def _wait_for_silence(self) -> None:
         if not self.transport.serial_line:
@@ -303,13 +299,14 @@ class _EchoWatch:
         self.seen = False  # the echo just went by (for the trace)
         self.echoed = False  # the echo went by in this transaction
 
-    @classmethod
-    def for_request(cls, adu: bytes, request: Request) -> _EchoWatch | None:
+    @staticmethod
+    def needed(request: Request) -> bool:
+        """Whether an echo of ``request`` can be told from its reply (it cannot pass for one)."""
         try:
             request.decode_response(request.encode())
         except Exception:  # whatever the reason, the request does not read as its own reply
-            return cls(adu)
-        return None
+            return True
+        return False
 
     def filter(self, data: bytes) -> bytes:
         """What of ``data`` the framer should see now."""

@@ -240,9 +240,9 @@ def poll(
                 shown.hold(when, reply)
             done += 1
             slot += 1
-            if start + slot * interval > time.monotonic():
-                shown.write()  # the next poll is not due yet: no reason to hold this one
             behind = time.monotonic() - (start + slot * interval)
+            if behind < 0:
+                shown.write()  # the next poll is not due yet: no reason to hold this one
             if interval > 0 and behind > 0 and (polls == 0 or done < polls):
                 missed = math.ceil(behind / interval)
                 skipped += missed
