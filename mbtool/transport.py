@@ -131,22 +131,20 @@ class SerialTransport(Transport):
 
     def write(self, data: bytes) -> None:
         written = False
+        switching = self._rts_switching
         try:
-            if self._rts_switching is None:
-                self.port.write(data)
-                written = True
-                self.port.flush()  # a real UART: return when the bytes have left
-                return
-            before, after = self._rts_switching
-            self.port.rts = True
-            time.sleep(before)
+            if switching:
+                self.port.rts = True
+                time.sleep(switching[0])
             try:
                 self.port.write(data)
                 written = True
-                self.port.flush()  # the last stop bit must leave before RTS drops
-                time.sleep(after)
+                self.port.flush()  # a real UART: return when the last stop bit has left
+                if switching:
+                    time.sleep(switching[1])
             finally:
-                self.port.rts = False  # never leave the line driven: it would silence the bus
+                if switching:
+                    self.port.rts = False  # never leave the line driven: it would silence the bus
         # pyserial's flush lets termios.error through (tcdrain on a port that went away).
         except (self._serial_error, OSError, *_termios_error()) as error:
             if written:
