@@ -90,7 +90,6 @@ class Client:
         attempts = 1 if unit == 0 else self.retries + 1
         error: MbtoolError | None = None
         for _ in range(attempts):
-            self._settled = False
             try:
                 reply = self._transact(unit, request)
                 self._settled = reply is not None
@@ -118,6 +117,7 @@ class Client:
         # a polling loop spares itself the look (a system call a poll); a serial line has no
         # ids, and after a timeout a late reply may be on its way anyway.
         stale = b"" if self._settled and not self.transport.serial_line else self.transport.discard_input()
+        self._settled = False  # until this attempt ends with its reply
         if stale:
             self.trace.rejected(
                 stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)

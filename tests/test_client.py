@@ -172,6 +172,38 @@ def test_tcp_transaction_ids_are_matched():
     assert clock.sleeps == [], "no t3.5 on TCP"
 
 
+
+def test_tcp_looks_for_stale_bytes_only_after_a_transaction_that_did_not_end_cleanly():
+    """MBAP tells a stale reply by its transaction id, so a polling loop skips the look
+    (a system call a poll) after a clean transaction; after a timeout it looks again."""
+    clock = FakeClock()
+    framer = TcpFramer()
+
+    def reply(tid):
+        return [framer.build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 64"), tid)]
+
+    class CountingLink(ScriptedLink):
+        looks = 0
+
+        def discard_input(self) -> bytes:
+            self.looks += 1
+            return b""
+
+    link = CountingLink(clock, [reply(1), reply(2), [], reply(4), reply(5)], serial_line=False)
+    tcp = client(link, clock, framer=TcpFramer(), timeout=0.5)
+    looks = []
+    for _ in range(2):
+        tcp.execute(0x11, REQUEST)
+        looks.append(link.looks)
+    with pytest.raises(NoResponse):
+        tcp.execute(0x11, REQUEST)
+    looks.append(link.looks)
+    for _ in range(2):
+        tcp.execute(0x11, REQUEST)
+        looks.append(link.looks)
+    assert looks == [1, 1, 1, 2, 2]
+
+
 def test_endless_garbage_ends_at_the_deadline():
     clock = FakeClock()
 
