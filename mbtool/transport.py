@@ -15,6 +15,8 @@ import errno
 import re
 import select
 import socket
+import struct
+import sys
 import time
 from urllib.parse import urlsplit
 
@@ -22,7 +24,15 @@ from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse, RequestError
 
 MODBUS_TCP_PORT = 502
-WRITE_TIMEOUT = 5.0  # seconds a serial write may block before the port counts as broken
+WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
+# The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
+# this goes by select, which is exact; a longer one may end a tick or two late.
+KERNEL_TIMER_MIN = 0.05
+# A read's time left differs from the last by the work between reads: within this, the
+# socket's timeout is left as it is rather than set again (a system call).
+KERNEL_TIMER_SLACK = 0.005
+# Windows leaves a socket whose receive timed out in an undefined state: waits go by select.
+KERNEL_TIMED_READS = sys.platform != "win32"
 
 
 @record
@@ -211,31 +221,39 @@ class TcpTransport(Transport):
         except OSError as error:
             raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        # Non-blocking from here on, waits done with select: a socket timeout would cost a
-        # mode-switching ioctl on every read of a polling loop, and a poll before every call.
-        self.sock.setblocking(False)
+        # Blocking, with the kernel keeping time (SO_RCVTIMEO, SO_SNDTIMEO): a reply's wait is
+        # then one recv system call, where select and recv, or Python's socket timeout (poll
+        # and recv), make two a read -- a polling loop's largest cost after the device itself.
+        self.sock.settimeout(None)
+        # A struct timeval's fields are as wide as the kernel says: two longs, or two 64-bit
+        # counts on a 32-bit system built with a 64-bit time_t.
+        wide = len(self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16)) == 16
+        self._timeval = "@qq" if wide else "@ll"
+        self._set_timeout(socket.SO_SNDTIMEO, WRITE_TIMEOUT)
+        self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
 
     def write(self, data: bytes) -> None:
         try:
-            try:
-                sent = self.sock.send(data)  # a Modbus frame fits an idle socket's buffer at once
-            except BlockingIOError:
-                sent = 0
-            if sent < len(data):  # a peer that stopped reading: wait for room, but not for ever
-                self.sock.settimeout(WRITE_TIMEOUT)
-                try:
-                    self.sock.sendall(data[sent:])
-                finally:
-                    self.sock.setblocking(False)
+            self.sock.sendall(data)  # a Modbus frame fits an idle socket's buffer at once
+        except BlockingIOError:  # SO_SNDTIMEO passed: a peer that stopped reading
+            raise ConnectionFailed(
+                f"cannot send to {self.description}: the peer has not read for {WRITE_TIMEOUT:g} s"
+            ) from None
         except OSError as error:
             raise ConnectionFailed(f"cannot send to {self.description}: {_reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
         try:
-            if not select.select([self.sock], [], [], max(timeout, 0))[0]:
+            if timeout >= KERNEL_TIMER_MIN and KERNEL_TIMED_READS:
+                if abs(timeout - self._read_timeout) > KERNEL_TIMER_SLACK:
+                    self._set_timeout(socket.SO_RCVTIMEO, timeout)
+                    self._read_timeout = timeout
+                data = self.sock.recv(4096)
+            elif select.select([self.sock], [], [], max(timeout, 0))[0]:
+                data = self.sock.recv(4096)  # readable: data or the end, so no wait
+            else:
                 return b""
-            data = self.sock.recv(4096)
-        except BlockingIOError:
+        except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
             raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
@@ -246,11 +264,20 @@ class TcpTransport(Transport):
     def discard_input(self) -> bytes:
         stale = b""
         try:
-            while chunk := self.sock.recv(4096):  # non-blocking: BlockingIOError when none
+            while select.select([self.sock], [], [], 0)[0] and (chunk := self.sock.recv(4096)):
                 stale += chunk
-        except OSError:  # BlockingIOError: nothing stale; anything else the next read reports
+        except OSError:  # the next read reports it
             pass
         return stale
+
+    def _set_timeout(self, option: int, seconds: float) -> None:
+        """SO_RCVTIMEO or SO_SNDTIMEO: milliseconds on Windows, else a struct timeval."""
+        if sys.platform == "win32":
+            value = struct.pack("@L", max(1, round(seconds * 1000)))
+        else:
+            whole = int(seconds)
+            value = struct.pack(self._timeval, whole, int((seconds - whole) * 1e6))
+        self.sock.setsockopt(socket.SOL_SOCKET, option, value)
 
     def close(self) -> None:
         self.sock.close()

@@ -1,0 +1,95 @@
+"""The Modbus TCP transport against a real loopback socket: every wait ends on time.
+
+Reads of 50 ms or more are timed by the kernel (SO_RCVTIMEO on a blocking socket, one
+system call a read); shorter ones by select.  Writes to a peer that stopped reading end
+after WRITE_TIMEOUT.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from mbtool import transport
+from mbtool.errors import ConnectionFailed
+from mbtool.transport import ConnectionClosed, TcpTransport
+
+pytestmark = pytest.mark.timeout(30)
+
+
+@pytest.fixture
+def link():
+    """A connected (transport, server-side socket) pair."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        host, port = listener.getsockname()
+        tcp = TcpTransport(host, port, timeout=2)
+        peer, _ = listener.accept()
+    yield tcp, peer
+    tcp.close()
+    peer.close()
+
+
+@pytest.mark.parametrize("timeout", [0.0, 0.02, 0.3, 1.0])
+def test_a_read_with_nothing_coming_ends_at_its_timeout(link, timeout):
+    tcp, _ = link
+    start = time.monotonic()
+    assert tcp.read(timeout) == b""
+    assert timeout <= time.monotonic() - start + 0.001 < timeout + 0.1
+
+
+def test_a_shorter_timeout_after_a_longer_one_is_kept(link):
+    """The socket's timeout is set again when a read's time left changes by more than slack."""
+    tcp, _ = link
+    assert tcp.read(1.0) == b""
+    start = time.monotonic()
+    assert tcp.read(0.2) == b""
+    assert 0.2 <= time.monotonic() - start + 0.001 < 0.3
+
+
+def test_a_read_returns_as_soon_as_bytes_arrive(link):
+    tcp, peer = link
+    threading.Timer(0.05, peer.sendall, [b"\x00\x01reply"]).start()
+    start = time.monotonic()
+    assert tcp.read(5.0) == b"\x00\x01reply"
+    assert time.monotonic() - start < 1
+
+
+def test_the_peer_hanging_up_is_connection_closed(link):
+    tcp, peer = link
+    peer.close()
+    with pytest.raises(ConnectionClosed, match="closed the connection"):
+        tcp.read(1.0)
+
+
+def test_stale_bytes_are_discarded_without_waiting(link):
+    tcp, peer = link
+    peer.sendall(b"stale reply")
+    time.sleep(0.05)
+    start = time.monotonic()
+    assert tcp.discard_input() == b"stale reply"
+    assert tcp.discard_input() == b""
+    assert time.monotonic() - start < 0.05
+
+
+def test_a_peer_that_stops_reading_fails_the_write_after_the_write_timeout(monkeypatch):
+    monkeypatch.setattr(transport, "WRITE_TIMEOUT", 0.3)
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        tcp = TcpTransport(*listener.getsockname(), timeout=2)
+        peer, _ = listener.accept()  # and never reads
+        try:
+            chunk = bytes(65536)
+            start = time.monotonic()
+            with pytest.raises(ConnectionFailed, match="has not read for 0.3 s"):
+                while time.monotonic() - start < 20:
+                    tcp.write(chunk)
+            assert time.monotonic() - start < 10
+        finally:
+            tcp.close()
+            peer.close()
