@@ -11,7 +11,7 @@ so a user learns "CRC error" rather than only "timeout".
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionResponse, Request, Response
@@ -112,11 +112,13 @@ class Client:
             self._prepared = (request, request.encode(), _EchoWatch.needed(request))
         _, pdu, echo_watched = self._prepared
         adu = self.framer.build(unit, pdu, self._transaction_id)
-        self._wait_for_silence()
+        serial_line = self.transport.serial_line
+        if serial_line:
+            self._wait_for_silence()
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
         # a polling loop spares itself the look (a system call a poll); a serial line has no
         # ids, and after a timeout a late reply may be on its way anyway.
-        stale = b"" if self._settled and not self.transport.serial_line else self.transport.discard_input()
+        stale = b"" if self._settled and not serial_line else self.transport.discard_input()
         self._settled = False  # until this attempt ends with its reply
         if stale:
             self.trace.rejected(
@@ -131,7 +133,7 @@ class Client:
         if self.while_waiting is not None:
             work, self.while_waiting = self.while_waiting, None
             work()
-        on_wire = len(adu) * self._char_time if self.transport.serial_line else 0.0
+        on_wire = len(adu) * self._char_time if serial_line else 0.0
         self._line_free_at = sent_at + on_wire
         if unit == 0 or not request.expects_response:
             return None
@@ -140,14 +142,13 @@ class Client:
             self._strip_echo(adu, deadline)
             watch = None
         else:
-            watch = _EchoWatch(adu) if echo_watched and self.transport.serial_line else None
+            watch = _EchoWatch(adu) if echo_watched and serial_line else None
         reply = self._await_reply(unit, request, deadline, watch)
         self.round_trip = self.clock() - sent_at
         return reply
 
     def _wait_for_silence(self) -> None:
-        if not self.transport.serial_line:
-            return
+        """A serial line: t3.5 since the last frame ended before the next may start (spec §2)."""
         wait = self._line_free_at + silent_interval(self.baud) - self.clock()
         if wait > 0:
             self.sleep(wait)
@@ -170,12 +171,12 @@ class Client:
         self, unit: int, request: Request, deadline: float, watch: _EchoWatch | None = None
     ) -> Response | ExceptionResponse:
         problem: FrameError | None = None
-        events = self._drain(self.framer.next_event())  # bytes left after an echo may hold the reply
+        # What followed an adapter's echo (--echo) may hold the reply already.
+        event = self.framer.next_event() if self.echo else None
         while True:
-            for event in events:
-                reply, problem = self._judge(event, unit, request, problem)
-                if reply is not None:
-                    return reply
+            reply, problem = self._judge_events(event, unit, request, problem)
+            if reply is not None:
+                return reply
             if isinstance(problem, ChecksumError) and not self.framer.buffered:
                 deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
             now = self.clock()
@@ -197,10 +198,10 @@ class Client:
                         self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
                         watch.seen = False  # traced once; echoed stays True
                 self.framer.feed(data)
-                events = self._drain(self.framer.next_event())
+                event = self.framer.next_event()
             else:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
-                events = self._drain(self.framer.silence() if waiting else self.framer.next_event())
+                event = self.framer.silence() if waiting else self.framer.next_event()
         self._release(watch)
         if watch is not None and watch.echoed and problem is None:
             # Bytes came back, but only the request's: an echo, or a device parroting a request
@@ -215,11 +216,16 @@ class Client:
         if watch is not None:
             self.framer.feed(watch.release())
 
-    def _drain(self, first: Frame | Rejected | None) -> Iterator[Frame | Rejected]:
-        """The framer's events, one at a time: judging stops at the reply, with no look for more."""
-        while first is not None:
-            yield first
-            first = self.framer.next_event()
+    def _judge_events(
+        self, event: Frame | Rejected | None, unit: int, request: Request, problem: FrameError | None
+    ) -> tuple[Response | ExceptionResponse | None, FrameError | None]:
+        """Judge the framer's events from ``event`` on; judging stops at the reply, with no look for more."""
+        while event is not None:
+            reply, problem = self._judge(event, unit, request, problem)
+            if reply is not None:
+                return reply, problem
+            event = self.framer.next_event()
+        return None, problem
 
     def _last_word(
         self,
@@ -234,10 +240,9 @@ class Client:
         When the peer hung up (``hung_up``), that is the error, naming what came before it:
         the link is gone, so no retry can follow, and polling reopens it (exit 3).
         """
-        for event in self._drain(self.framer.silence()):
-            reply, problem = self._judge(event, unit, request, problem)
-            if reply is not None:
-                return reply
+        reply, problem = self._judge_events(self.framer.silence(), unit, request, problem)
+        if reply is not None:
+            return reply
         if hung_up and problem is not None:
             raise ConnectionClosed(f"{silence}; what it sent before: {problem}")
         raise problem or silence

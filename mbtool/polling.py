@@ -135,8 +135,11 @@ class Latency:
     def add(self, ms: float) -> None:
         self.count += 1
         self.total += ms
-        self.low = min(self.low, ms)
-        self.high = max(self.high, ms)
+        # Comparisons, not min() and max(): this runs between a reply and the next request.
+        if ms < self.low:
+            self.low = ms
+        if ms > self.high:
+            self.high = ms
 
     def __str__(self) -> str:
         if not self.count:
@@ -208,9 +211,10 @@ def poll(
         slot = 0
         show_previous = shown.write  # bound once, not a method object a poll
         while polls == 0 or done < polls:
-            delay = start + slot * interval - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            if interval > 0:  # back to back (0) keeps no schedule
+                delay = start + slot * interval - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
             when = time.time()  # formatted when shown, off the request's path
             try:
                 if client is None:
@@ -239,14 +243,15 @@ def poll(
             else:
                 shown.hold(when, reply)
             done += 1
-            slot += 1
-            behind = time.monotonic() - (start + slot * interval)
-            if behind < 0:
-                shown.write()  # the next poll is not due yet: no reason to hold this one
-            if interval > 0 and behind > 0 and (polls == 0 or done < polls):
-                missed = math.ceil(behind / interval)
-                skipped += missed
-                slot += missed
+            if interval > 0:
+                slot += 1
+                behind = time.monotonic() - (start + slot * interval)
+                if behind < 0:
+                    shown.write()  # the next poll is not due yet: no reason to hold this one
+                elif behind > 0 and (polls == 0 or done < polls):
+                    missed = math.ceil(behind / interval)
+                    skipped += missed
+                    slot += missed
     except KeyboardInterrupt:
         interrupted = True
     finally:

@@ -25,9 +25,9 @@ import time
 import tty
 
 import pytest
+from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
 
 from mbtool.sniffer import BusFrame, BusMonitor, Tally, Unanswered
-from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
 
 DEADLINE = 20.0  # seconds for any one monitor run
 
