@@ -125,7 +125,10 @@ class SerialTransport(Transport):
         if type(self.port).__module__ == "serial.serialposix":
             try:
                 self.port.rs485_mode = serial.rs485.RS485Settings(
-                    rts_level_for_tx=True, rts_level_for_rx=False, delay_before_tx=before, delay_before_rx=after
+                    rts_level_for_tx=True,
+                    rts_level_for_rx=False,
+                    delay_before_tx=before,
+                    delay_before_rx=after,
                 )
                 return
             except (ValueError, OSError):

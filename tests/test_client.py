@@ -172,7 +172,6 @@ def test_tcp_transaction_ids_are_matched():
     assert clock.sleeps == [], "no t3.5 on TCP"
 
 
-
 def test_tcp_looks_for_stale_bytes_only_after_a_transaction_that_did_not_end_cleanly():
     """MBAP tells a stale reply by its transaction id, so a polling loop skips the look
     (a system call a poll) after a clean transaction; after a timeout it looks again."""

@@ -593,9 +593,19 @@ def test_plain_lines_and_duration(line):
 def test_a_device_profile_gives_the_line_and_options_override_it(line, tmp_path, options, settings):
     config = tmp_path / "config.toml"
     # A device's profile: monitor takes the line settings and passes over unit and timeout.
-    config.write_text(f'[profiles.bus]\nport = "{line.path}"\nbaud = 9600\nparity = "N"\nunit = 17\ntimeout = 0.5\n')
+    config.write_text(
+        f'[profiles.bus]\nport = "{line.path}"\nbaud = 9600\nparity = "N"\nunit = 17\ntimeout = 0.5\n'
+    )
     proc = start_monitor(
-        "-P", "bus", *options, "--duration", "1.5", "--silence", SILENCE, "-o", "json",
+        "-P",
+        "bus",
+        *options,
+        "--duration",
+        "1.5",
+        "--silence",
+        SILENCE,
+        "-o",
+        "json",
         env={"MBTOOL_CONFIG": str(config)},
     )
     assert f"listening on {line.path} ({settings}, rtu" in proc.listening

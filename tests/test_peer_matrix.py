@@ -401,7 +401,11 @@ class Case:
 
 
 CHECKSUM = {"rtu": r"CRC error", "ascii": r"LRC error"}
-TRUNCATED = {"tcp": r"truncated MBAP frame \(9 bytes\)", "rtu": r"truncated frame \(5 of 7 bytes\)", "ascii": r"not ended by CR LF"}
+TRUNCATED = {
+    "tcp": r"truncated MBAP frame \(9 bytes\)",
+    "rtu": r"truncated frame \(5 of 7 bytes\)",
+    "ascii": r"not ended by CR LF",
+}
 
 CASES = [
     Case("silence", silence, ALL, 3, r"no response from unit 1 within 0\.3 s"),

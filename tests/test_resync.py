@@ -282,9 +282,7 @@ def babbler():
 
 def test_endless_garbage_ends_at_the_deadline_with_one_error(babbler):
     start = time.monotonic()
-    res = run_mbtool(
-        "read-holding-registers", "0", "-p", f"socket://127.0.0.1:{babbler.port}", "-t", "0.5"
-    )
+    res = run_mbtool("read-holding-registers", "0", "-p", f"socket://127.0.0.1:{babbler.port}", "-t", "0.5")
     elapsed = time.monotonic() - start
     assert res.returncode in (3, 5), str(res)
     assert_one_error_line(res, res.returncode)

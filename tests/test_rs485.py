@@ -83,7 +83,9 @@ def opened(monkeypatch):
         for name, value in flags.items():
             setattr(port, name, value)
         monkeypatch.setattr(serial, "serial_for_url", lambda url, **settings: port)
-        monkeypatch.setattr("mbtool.transport.time.sleep", lambda s: (sleeps.append(s), log.append(("sleep", s))))
+        monkeypatch.setattr(
+            "mbtool.transport.time.sleep", lambda s: (sleeps.append(s), log.append(("sleep", s)))
+        )
         transport = SerialTransport("/dev/ttyFAKE", SerialSettings(rs485=delays))
         return transport, log, sleeps
 
@@ -176,7 +178,9 @@ def test_bad_delays_are_refused(mbtool, delays):
 
 
 def test_sim_accepts_rs485_so_a_cron_line_can_be_tried_first(mbtool):
-    res = expect_ok(mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", "1,2", "-o", "json"))
+    res = expect_ok(
+        mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", "1,2", "-o", "json")
+    )
     assert '"values"' in res.stdout
 
 

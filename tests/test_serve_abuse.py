@@ -272,8 +272,10 @@ def test_idle_and_dripping_clients_are_closed_active_ones_kept(tmp_path, framer)
             active.close()
             for sock in (silent, drip):
                 sock.close()
-        print(f"\n{framer}: closed after {closed_at} s (timeout {idle_timeout} s), drip sent {sent} bytes,"
-              f" active client kept {elapsed:.1f} s, worst reply {max(latencies) * 1000:.0f} ms")
+        print(
+            f"\n{framer}: closed after {closed_at} s (timeout {idle_timeout} s), drip sent {sent} bytes,"
+            f" active client kept {elapsed:.1f} s, worst reply {max(latencies) * 1000:.0f} ms"
+        )
         assert set(closed_at) == {"silent", "drip"}, closed_at
         for name, at in closed_at.items():
             assert idle_timeout * 0.9 <= at <= idle_timeout + 3, (name, at)
@@ -331,8 +333,10 @@ def test_connection_cap_refuses_extra_clients_at_once(tmp_path):
                 client.close()
             for sock in extra:
                 sock.close()
-        print(f"\n40 connections past a cap of {cap} closed within {refused_in * 1000:.0f} ms;"
-              f" served clients' worst reply {max(latencies) * 1000:.0f} ms")
+        print(
+            f"\n40 connections past a cap of {cap} closed within {refused_in * 1000:.0f} ms;"
+            f" served clients' worst reply {max(latencies) * 1000:.0f} ms"
+        )
     log = server.log()  # now the server has stopped and printed its summary
     assert log.count(f"refused: {cap} clients already connected") >= 40
     assert "refused (--max-clients)" in log.splitlines()[-1]
@@ -436,10 +440,12 @@ def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, 
         finally:
             good.close()
             flooder.close()
-        print(f"\n{framer}: {sent[0] / MB:.1f} MB of garbage sent in {flood_time:.1f} s, resync reply"
-              f" after {chewed:.1f} s; RSS {before} kB before,"
-              f" peak {peak} kB, {after} kB after; other client's worst reply"
-              f" {max(latencies) * 1000:.0f} ms over {len(latencies)} reads")
+        print(
+            f"\n{framer}: {sent[0] / MB:.1f} MB of garbage sent in {flood_time:.1f} s, resync reply"
+            f" after {chewed:.1f} s; RSS {before} kB before,"
+            f" peak {peak} kB, {after} kB after; other client's worst reply"
+            f" {max(latencies) * 1000:.0f} ms over {len(latencies)} reads"
+        )
         assert sent[0] >= total * 0.9 if framer == "ascii" else sent[0] == total
         assert expected in got, got[-200:]
         assert max(latencies) < PROMPT
@@ -478,8 +484,10 @@ def test_bad_mbap_requests_on_many_connections(tmp_path):
             after = server.rss_kb()
         finally:
             good.close()
-        print(f"\n{15 * len(abuses)} bad connections: RSS {before} kB -> {after} kB;"
-              f" good client's worst reply {max(latencies) * 1000:.0f} ms")
+        print(
+            f"\n{15 * len(abuses)} bad connections: RSS {before} kB -> {after} kB;"
+            f" good client's worst reply {max(latencies) * 1000:.0f} ms"
+        )
         assert answers == {1: mbap(2, 1, b"\x83\x03"), 6: mbap(6, 1, b"\xc1\x01")}
         assert max(latencies) < PROMPT
         assert after - before < 8 * 1024
@@ -539,8 +547,10 @@ def test_bad_frames_on_a_serial_line(tmp_path, framer):
                 errors = client.diag_read_bus_comm_error_count().message
             finally:
                 client.close()
-            print(f"\n{framer} on a pty: answered {elapsed * 1000:.0f} ms after the abuse;"
-                  f" bus error counter {errors}")
+            print(
+                f"\n{framer} on a pty: answered {elapsed * 1000:.0f} ms after the abuse;"
+                f" bus error counter {errors}"
+            )
             assert elapsed < PROMPT
             assert (errors[0] if isinstance(errors, list | tuple) else errors) >= 1
             assert server.alive()
@@ -597,10 +607,12 @@ def test_client_that_never_reads_blocks_nobody_and_is_closed(tmp_path):
             good.close()
             slow.close()
         requests_sent = sent[0] // len(request)
-        print(f"\nslow consumer: {requests_sent} requests accepted before its sends stalled"
-              f" ({requests_sent * 259 / MB:.1f} MB of replies owed); RSS {before} kB before, peak {peak} kB,"
-              f" {after} kB after;"
-              f" other client's worst reply {max(latencies) * 1000:.0f} ms")
+        print(
+            f"\nslow consumer: {requests_sent} requests accepted before its sends stalled"
+            f" ({requests_sent * 259 / MB:.1f} MB of replies owed); RSS {before} kB before, peak {peak} kB,"
+            f" {after} kB after;"
+            f" other client's worst reply {max(latencies) * 1000:.0f} ms"
+        )
         assert closed
         assert max(latencies) < PROMPT
         # Back-pressure: the kernel's buffers, not the server's memory, hold what it would not take.

@@ -97,7 +97,9 @@ def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD
         # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
         count = len(registers) // size
         data = struct.pack(f">{count * size}H", *registers[: count * size])
-        return list(zip(range(0, count * size, size), struct.unpack(f">{count}{kind.fmt}", data), strict=True))
+        return list(
+            zip(range(0, count * size, size), struct.unpack(f">{count}{kind.fmt}", data), strict=True)
+        )
     out: list[tuple[int, Value]] = []
     for i in range(0, len(registers) - kind.registers + 1, kind.registers):
         data = _bytes_of(registers[i : i + kind.registers], order)
