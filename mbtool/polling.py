@@ -156,7 +156,8 @@ def _json_line(data: dict) -> str:
     if _ENCODER is None:
         import json
 
-        _ENCODER = json.JSONEncoder(allow_nan=False)  # made once: json.dumps makes one a call
+        # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
+        _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
     try:
         return _ENCODER.encode(data) + "\n"
     except ValueError:

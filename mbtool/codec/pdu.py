@@ -102,7 +102,14 @@ def pack_registers(registers: tuple[int, ...] | list[int]) -> bytes:
 def unpack_registers(data: bytes) -> tuple[int, ...]:
     if len(data) % 2:
         raise DecodeError(f"odd number of register bytes ({len(data)})", data)
-    return struct.unpack(f">{len(data) // 2}H", data)
+    size = len(data) // 2
+    unpack = _UNPACK_REGISTERS.get(size)
+    if unpack is None:  # one Struct a size, not a format string built and looked up a reply
+        unpack = _UNPACK_REGISTERS[size] = struct.Struct(f">{size}H").unpack
+    return unpack(data)
+
+
+_UNPACK_REGISTERS: dict = {}
 
 
 def need(pdu: bytes, length: int, what: str) -> None:

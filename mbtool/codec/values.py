@@ -93,6 +93,8 @@ def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD
     if kind.name == "hex":
         return [(i, f"0x{w:04X}") for i, w in enumerate(_swap_words(list(registers), _bytes_only(order)))]
     size = kind.registers
+    if kind.fmt == "H" and _bytes_only(order) == "ABCD":
+        return list(enumerate(registers))  # uint16 as on the wire: the registers themselves
     if (_bytes_only(order) if size == 1 else order) == "ABCD":
         # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
         count = len(registers) // size
