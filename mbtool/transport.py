@@ -5,7 +5,8 @@
 * Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
 * ``sim://``: the built-in simulated device, answering in-process.
 
-Every read waits at most the time it is given; the client owns the clock.
+Every read waits at most the time it is given (over TCP a wait of 50 ms or more,
+timed by the kernel, may end a scheduler tick late); the client owns the clock.
 """
 
 from __future__ import annotations
