@@ -169,6 +169,11 @@ def _json_line(data: dict) -> str:
 _ENCODER = None
 
 
+def _rate(per_second: float) -> str:
+    """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
+    return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
+
+
 def _csv_cell(text: str) -> str:
     # Values are numbers except for --type string; quote those the CSV way.
     if any(c in text for c in ',"\n\r'):
@@ -217,6 +222,8 @@ def poll(
                 if delay > 0:
                     time.sleep(delay)
             when = time.time()  # formatted when shown, off the request's path
+            if done == 0:
+                first_when = when
             try:
                 if client is None:
                     link = open_client(connection, request.name)
@@ -263,6 +270,8 @@ def poll(
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
         f"skipped {skipped}, latency min/avg/max {latency}"
     )
+    if done > 1 and when > first_when:
+        summary += f", {_rate((done - 1) / (when - first_when))} polls/s"
     if interrupted:
         summary = "interrupted; " + summary
     code = last_failure

@@ -17,12 +17,19 @@ def summary(res) -> dict:
     line = res.stderr.strip().splitlines()[-1]
     match = re.match(
         r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), timeouts (\d+), errors (\d+), skipped (\d+), "
-        r"latency min/avg/max (.+)$",
+        r"latency min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-)(?:, [\d.]+ polls/s)?$",
         line,
     )
     assert match, f"no summary line\n{res}"
     polls, replies, timeouts, errors, skipped = (int(g) for g in match.groups()[:5])
     return {"polls": polls, "replies": replies, "timeouts": timeouts, "errors": errors, "skipped": skipped}
+
+
+def rate(res) -> float:
+    """The summary's polls a second, first poll to last."""
+    match = re.search(r", ([\d.]+) polls/s$", res.stderr.strip().splitlines()[-1])
+    assert match, f"no rate in the summary\n{res}"
+    return float(match.group(1))
 
 
 def stamp(text: str) -> datetime:
@@ -109,6 +116,7 @@ def test_polls_alone_means_one_second_and_interval_respected(mbtool):
     # scheduled on start + k * interval: no drift over the run
     total = (times[-1] - times[0]).total_seconds()
     assert 0.7 <= total <= 1.2, total
+    assert 4 <= rate(res) <= 5.5  # the polls a second the interval asks for
 
 
 def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server):
@@ -260,6 +268,10 @@ def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
     assert all(line["values"] == HOLDING[:10] for line in lines)
     # back to back: no slot to miss, so nothing is counted as skipped
     assert summary(res) == {"polls": 50, "replies": 50, "timeouts": 0, "errors": 0, "skipped": 0}
+    # the rate the time stamps show (to their millisecond)
+    span = (stamp(lines[-1]["time"]) - stamp(lines[0]["time"])).total_seconds()
+    assert span > 0
+    assert 49 / (span + 0.002) <= rate(res) <= 49 / max(span - 0.002, 0.001)
 
 
 def test_negative_interval_is_refused(mbtool):
