@@ -96,7 +96,8 @@ class Client:
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
             except (NoResponse, FrameError) as failure:
-                error = failure
+                # Bytes that came (a CRC error, a wrong reply) tell more than a later silence.
+                error = _worse(error, failure)
                 continue
             if isinstance(reply, ExceptionResponse):
                 raise ModbusException(reply.function_code, reply.exception_code)
@@ -336,11 +337,15 @@ class _EchoWatch:
         return held
 
 
-def _worse(current: FrameError | None, new: FrameError) -> FrameError:
-    """A checksum error or a mismatched reply tells more than a run of garbage."""
+def _worse(current: MbtoolError | None, new: MbtoolError) -> MbtoolError:
+    """The more telling of two problems: a checksum error or a mismatched reply tells more than
+    a run of garbage, and anything that came tells more than silence (NoResponse); between
+    equals, the first seen."""
     if current is None:
         return new
-    telling = (ChecksumError, MismatchError)
-    if isinstance(new, telling) and not isinstance(current, telling):
-        return new
+    for telling in ((ChecksumError, MismatchError), FrameError):
+        if isinstance(new, telling) and not isinstance(current, telling):
+            return new
+        if isinstance(current, telling):
+            return current
     return current

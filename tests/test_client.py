@@ -319,3 +319,16 @@ def test_a_link_closed_before_replying_is_no_response():
     with pytest.raises(ConnectionClosed, match="^tcp://device closed the connection$"):
         client(link, clock, retries=2).execute(0x11, REQUEST)
     assert len(link.written) == 1
+
+
+def test_after_retries_the_most_telling_problem_is_reported_not_the_last():
+    """A CRC error on the first attempt says more about the bus than silence on the retry."""
+    clock = FakeClock()
+    corrupted = REPLY[:-1] + bytes([REPLY[-1] ^ 0xFF])
+    link = ScriptedLink(clock, [[corrupted], []])
+    with pytest.raises(ChecksumError):
+        client(link, clock, retries=1, timeout=0.5).execute(0x11, REQUEST)
+    assert len(link.written) == 2
+    link = ScriptedLink(clock, [[], [corrupted]])
+    with pytest.raises(ChecksumError):
+        client(link, clock, retries=1, timeout=0.5).execute(0x11, REQUEST)
