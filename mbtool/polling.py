@@ -208,6 +208,7 @@ def poll(
     try:
         # Opened before the first poll: a bad port or unit is one error and its exit code,
         # not a failed poll repeated for ever.
+        opened_at = time.monotonic()
         link = open_client(connection, request.name)
         client = link.__enter__()
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
@@ -221,11 +222,19 @@ def poll(
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+            if client is None:
+                # The link failed: open it again at most once a timeout, as if a refusal had
+                # waited the timeout out, so a device that is restarting or unplugged is not
+                # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
+                wait = opened_at + connection.timeout - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
             when = time.time()  # formatted when shown, off the request's path
             if done == 0:
                 first_when = when
             try:
                 if client is None:
+                    opened_at = time.monotonic()
                     link = open_client(connection, request.name)
                     client = link.__enter__()
                 client.while_waiting = show_previous

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from datetime import datetime
 
@@ -311,3 +314,32 @@ def test_back_to_back_polls_keep_their_order_when_a_reply_stops(mbtool, raw_resp
     assert [line.get("values") for line in lines] == [[42, 43], None, None]
     assert [line.get("exit_code") for line in lines] == [None, 3, 3]
     assert summary(res) == {"polls": 3, "replies": 1, "timeouts": 2, "errors": 0, "skipped": 0}
+
+
+def test_a_lost_link_is_reopened_at_most_once_a_timeout(mbtool):
+    """--interval 0 against a device that hangs up and then refuses: one failed poll a
+    timeout, not a flood of refusals as fast as connect() fails."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+
+    def hang_up_then_refuse():
+        conn, _ = listener.accept()
+        time.sleep(0.2)
+        conn.close()
+        listener.close()
+
+    threading.Thread(target=hang_up_then_refuse, daemon=True).start()
+    start = time.monotonic()
+    res = mbtool(
+        "read-coils", "0", "-p", f"tcp://127.0.0.1:{port}", "--interval", "0", "--polls", "5", "-t", "0.3"
+    )
+    took = time.monotonic() - start
+    assert res.returncode == 6, res
+    refusals = [line for line in res.stderr.splitlines() if "Connection refused" in line]
+    assert len(refusals) == 4, res.stderr
+    stamps = [stamp(line.split()[1]) for line in refusals]
+    assert all((b - a).total_seconds() >= 0.25 for a, b in itertools.pairwise(stamps)), stamps
+    assert took < 5
+    assert summary(res) == {"polls": 5, "replies": 0, "timeouts": 1, "errors": 4, "skipped": 0}
