@@ -6,7 +6,7 @@
 * ``sim://``: the built-in simulated device, answering in-process.
 
 Every read waits at most the time it is given (over TCP a wait of 50 ms or more,
-timed by the kernel, may end a scheduler tick late); the client owns the clock.
+timed by the kernel, may end a few milliseconds late); the client owns the clock.
 """
 
 from __future__ import annotations
