@@ -174,7 +174,8 @@ def side_by_side(title: str, mbtool_run, pymodbus_run, rounds: int) -> tuple[flo
     print(f"{title}")
     print(f"  mbtool    {mb:8.0f} transactions/s  ({1000 / mb:.3f} ms each)  rounds: {fmt(ours)}")
     print(f"  pymodbus  {pm:8.0f} transactions/s  ({1000 / pm:.3f} ms each)  rounds: {fmt(theirs)}")
-    print(f"  mbtool / pymodbus: {mb / pm:.2f}")
+    ahead = sum(o > t for o, t in zip(ours, theirs, strict=True))
+    print(f"  mbtool / pymodbus: {mb / pm:.2f}  (mbtool ahead in {ahead} of {rounds} rounds)")
     return mb, pm
 
 
