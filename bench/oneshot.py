@@ -69,7 +69,16 @@ def main() -> None:
     if not mbtool.exists():
         sys.exit(f"bench: {mbtool} not found: install mbtool first (pip install -e .)")
     baseline = [sys.executable, "-c", "import click"]
-    oneshot = [str(mbtool), "read-holding-registers", "0", "10", "-p", f"tcp://127.0.0.1:{port}", "-o", "json"]
+    oneshot = [
+        str(mbtool),
+        "read-holding-registers",
+        "0",
+        "10",
+        "-p",
+        f"tcp://127.0.0.1:{port}",
+        "-o",
+        "json",
+    ]
     try:
         for command in (baseline, oneshot):  # warm the page cache and .pyc files
             timed(command)
