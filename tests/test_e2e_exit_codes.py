@@ -197,6 +197,22 @@ def test_invalid_rtu_response_exit_5(raw_responder, reply):
     assert time.monotonic() - t0 < 3.0
 
 
+def test_an_rtu_over_tcp_gateway_read_as_modbus_tcp_is_named(raw_responder):
+    """The commonest mix-up on site: tcp:// (MBAP) to a gateway that speaks RTU over TCP."""
+    srv = raw_responder(GOOD_RTU_REPLY)
+    res = run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
+    line = assert_one_error_line(res, 5)
+    assert "an RTU frame with a good CRC" in line and "--framer rtu" in line
+    expect_ok(run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "--framer", "rtu", "-t", "0.3"))
+
+
+def test_a_bad_mbap_header_that_is_no_rtu_frame_gets_no_gateway_hint(raw_responder):
+    srv = raw_responder(corrupt_crc(GOOD_RTU_REPLY))
+    res = run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
+    line = assert_one_error_line(res, 5)
+    assert "MBAP protocol id" in line and "gateway" not in line
+
+
 def test_corrupted_crc_hex_says_bad(raw_responder):
     """Contract: the RX line's checksum verdict contains "BAD" (and the error is one 'mbtool: ' line)."""
     srv = raw_responder(corrupt_crc(GOOD_RTU_REPLY))

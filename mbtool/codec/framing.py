@@ -17,7 +17,7 @@ import re
 import struct
 from abc import ABC, abstractmethod
 
-from mbtool.codec.checksum import crc16, lrc
+from mbtool.codec.checksum import crc16, crc_bytes, lrc
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
 from mbtool.errors import ChecksumError, FrameError
@@ -600,11 +600,9 @@ class TcpFramer(Framer):
             return None
         tid, pid, length = struct.unpack_from(">HHH", buf)
         if pid != 0:
-            return 1, FrameError(f"MBAP protocol id {pid}, expected 0", bytes(buf[:MBAP_HEADER]))
+            return 1, self._not_mbap(f"MBAP protocol id {pid}, expected 0")
         if not 2 <= length <= MAX_PDU + 1:
-            return 1, FrameError(
-                f"MBAP length {length} is outside 2..{MAX_PDU + 1}", bytes(buf[:MBAP_HEADER])
-            )
+            return 1, self._not_mbap(f"MBAP length {length} is outside 2..{MAX_PDU + 1}")
         size = 6 + length
         if len(buf) < size:
             return None
@@ -613,6 +611,17 @@ class TcpFramer(Framer):
 
     def _whole(self, data: bytes) -> Frame | FrameError:
         return FrameError(f"truncated MBAP frame ({len(data)} bytes)", data)
+
+    def _not_mbap(self, why: str) -> FrameError:
+        """A bad MBAP header at the front.  When the bytes there are a whole RTU frame with a
+        good CRC, say so: the peer is an RTU-over-TCP gateway, the commonest reason for it."""
+        buf = self._buffer
+        if not self._garbage:  # only the first bad byte of a run is reported: look only there
+            size = pdu_length(bytes(buf[1:]), self.responses, self.expect)
+            if size is not None and size != UNKNOWN and len(buf) >= size + 3:
+                if crc_bytes(bytes(buf[: size + 1])) == buf[size + 1 : size + 3]:
+                    why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
+        return FrameError(why, bytes(buf[:MBAP_HEADER]))
 
 
 FRAMERS = {"rtu": RtuFramer, "ascii": AsciiFramer, "tcp": TcpFramer}
