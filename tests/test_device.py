@@ -264,6 +264,10 @@ def test_broadcast_reaches_every_unit_and_is_not_answered():
     assert ask(d, "03 0000 0001", unit=2) == H("03 02 0007")
     assert ask(d, "03 0000 0001", unit=3) == H("03 02 0000")  # units keep their own tables
     assert ask(d, "03 0000 0001", unit=4) is None  # not served: silent, like a slave on a bus
+    # FC21 is a write too: file 4, records 7-8 reach every unit, unanswered
+    assert ask(d, "15 0B 06 0004 0007 0002 06AF 04BE", unit=0) is None
+    for unit in (1, 2, 3):
+        assert ask(d, "14 07 06 0004 0007 0002", unit=unit) == H("14 06 05 06 06AF 04BE")
 
 
 def test_injected_exception_and_busy():

@@ -118,6 +118,7 @@ def test_dry_run_of_a_broadcast_says_nobody_confirms(capsys, no_port):
         "write-coils 1 1 0",
         "write-registers 1 5 6",
         "mask-write-register 4 0xF2 0x25",
+        "write-file-record 4 7 0x6AF 0x4BE",
         "raw 00 06 00 01 00 03",
     ],
 )

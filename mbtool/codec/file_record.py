@@ -203,6 +203,7 @@ class FileRecord:
 class WriteFileRecord(Request, Response):
     function_code: ClassVar = 0x15
     name: ClassVar = "Write File Record"
+    broadcastable: ClassVar = True  # a write: unit 0 reaches every device (spec §2)
     request_size: ClassVar = counted(1)
     response_size: ClassVar = counted(1)
 
