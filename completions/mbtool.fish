@@ -81,7 +81,7 @@ complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l response-timeout 
 complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l duration -x -d 'Stop after this many seconds'
 complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l frames -x -d 'Stop after N frames'
 complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l capture -x -d 'Also write every frame to a pcap file that Wireshark decodes as Modbus RTU'
-complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l from-file -x -d 'Analyse bytes recorded from a line (raw binary) instead of listening; no timing, frames split by their implicit length'
+complete -c mbtool -n '__fish_seen_subcommand_from monitor' -l from-file -x -d 'Analyse a recording instead of listening: a pcap file (as --capture writes), with its time stamps, or raw bytes from a line, with no timing (frames split by their implicit length)'
 complete -c mbtool -n '__fish_seen_subcommand_from monitor' -s o -l format -x -a 'table plain json' -d 'Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line'
 complete -c mbtool -n '__fish_seen_subcommand_from raw' -l adu -d 'Send HEX exactly as given (checksum or MBAP header included)'
 complete -c mbtool -n '__fish_seen_subcommand_from decode' -l framer -x -a 'rtu ascii tcp' -d 'Framing (default: detected)'

@@ -529,7 +529,7 @@ _mbtool() {
             '--duration=[Stop after this many seconds]:SECONDS: ' \
             '--frames=[Stop after N frames]:NUMBER: ' \
             '--capture=[Also write every frame to a pcap file that Wireshark decodes as Modbus RTU]:FILE: ' \
-            '--from-file=[Analyse bytes recorded from a line (raw binary) instead of listening; no timing, frames split by their implicit length]:FILE: ' \
+            '--from-file=[Analyse a recording instead of listening: a pcap file (as --capture writes), with its time stamps, or raw bytes from a line, with no timing (frames split by their implicit length)]:FILE: ' \
             '(-o --format)'{-o+,--format=}'[Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line]:format:(table plain json)' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0

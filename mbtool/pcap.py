@@ -1,4 +1,5 @@
-"""Capture files of a monitored bus that Wireshark opens and decodes as Modbus unconfigured.
+"""Capture files of a monitored bus that Wireshark opens and decodes as Modbus unconfigured,
+and read back (``monitor --from-file``) with their time stamps.
 
 Classic libpcap format (the one every version of Wireshark and tcpdump reads),
 written with struct: a 24-byte file header, then per packet a 16-byte record header
@@ -25,11 +26,14 @@ LRC is stored as its text under "data", so nothing shows as valid that was not.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
 from typing import BinaryIO
 
 from mbtool.codec.checksum import crc_bytes
 
 PCAP_MAGIC = 0xA1B2C3D4  # microsecond timestamps
+PCAP_NANO_MAGIC = 0xA1B23C4D  # nanosecond timestamps (read, never written)
+PCAPNG_MAGIC = 0x0A0D0D0A  # Wireshark's default format since 1.8 (not read)
 PCAP_VERSION = (2, 4)
 SNAPLEN = 65535
 LINKTYPE_WIRESHARK_UPPER_PDU = 252
@@ -88,3 +92,55 @@ class BusCapture(PcapWriter):
             self.packet(frame.time, exported_pdu(RTU_DISSECTOR, body + crc_bytes(body)))
         else:
             self.packet(frame.time, exported_pdu(RAW_DISSECTOR, frame.wire))
+
+
+def is_pcap(data: bytes) -> bool:
+    """Whether ``data`` starts like a capture file (classic pcap or pcapng) rather than raw bytes."""
+    magics = (PCAP_MAGIC, PCAP_NANO_MAGIC, PCAPNG_MAGIC)
+    return len(data) >= 4 and any(struct.unpack(order + "I", data[:4])[0] in magics for order in "<>")
+
+
+def packets(data: bytes) -> Iterator[tuple[float, bytes]]:
+    """(time stamp, bytes) of each packet of a classic pcap file, either byte order.
+
+    Exported-PDU packets (what BusCapture writes) give the bytes behind their tags; packets
+    of any other link type are taken whole.  ValueError, after the packets before it, for
+    a pcapng file, a truncated header or a truncated packet.
+    """
+    if len(data) < 24:
+        raise ValueError("not a pcap file: shorter than a pcap header")
+    for order in "<>":
+        magic = struct.unpack(order + "I", data[:4])[0]
+        if magic in (PCAP_MAGIC, PCAP_NANO_MAGIC):
+            break
+        if magic == PCAPNG_MAGIC:
+            raise ValueError("a pcapng file: save it as pcap (Wireshark: File > Export, format pcap)")
+    else:
+        raise ValueError("not a pcap file")
+    scale = 1e-9 if magic == PCAP_NANO_MAGIC else 1e-6
+    linktype = struct.unpack_from(order + "I", data, 20)[0] & 0x0FFFFFFF  # the top bits are flags
+    at, count = 24, 0
+    while at < len(data):
+        if at + 16 > len(data):
+            raise ValueError(f"truncated after {count} packets (a capture cut short?)")
+        seconds, fraction, size, _ = struct.unpack_from(order + "IIII", data, at)
+        body = data[at + 16 : at + 16 + size]
+        if len(body) < size:
+            raise ValueError(f"truncated after {count} packets (a capture cut short?)")
+        at += 16 + size
+        count += 1
+        yield (
+            seconds + fraction * scale,
+            _behind_tags(body) if linktype == LINKTYPE_WIRESHARK_UPPER_PDU else body,
+        )
+
+
+def _behind_tags(packet: bytes) -> bytes:
+    """The payload of an exported-PDU packet: what follows its end-of-options tag."""
+    at = 0
+    while at + 4 <= len(packet):
+        tag, length = struct.unpack_from(">HH", packet, at)
+        at += 4 + length + (-length % 4)
+        if tag == TAG_END_OF_OPT:
+            return packet[at:]
+    return b""  # no end tag: no payload

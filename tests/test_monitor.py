@@ -23,6 +23,7 @@ import sys
 import threading
 import time
 import tty
+from datetime import datetime
 
 import pytest
 from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
@@ -302,6 +303,107 @@ def test_from_file_plain_and_json(tmp_path):
         "value": 2,
         "text": "02 Illegal Data Address",
     } in records[4]["fields"]
+
+
+def _pcap(packets, order="<", magic=0xA1B2C3D4, linktype=147, scale=1_000_000) -> bytes:
+    """A classic pcap written here by hand: (time, bytes) packets, raw on a user link type."""
+    out = struct.pack(order + "IHHiIII", magic, 2, 4, 0, 0, 65535, linktype)
+    for when, data in packets:
+        seconds = int(when)
+        out += struct.pack(order + "IIII", seconds, round((when - seconds) * scale), len(data), len(data))
+        out += data
+    return out
+
+
+T0 = 1_700_000_000.0
+
+
+@pytest.mark.parametrize(
+    ("order", "magic", "scale"),
+    [("<", 0xA1B2C3D4, 1_000_000), (">", 0xA1B2C3D4, 1_000_000), ("<", 0xA1B23C4D, 1_000_000_000)],
+    ids=["little-endian-us", "big-endian-us", "nanoseconds"],
+)
+def test_from_file_pcap_keeps_its_time_stamps(tmp_path, order, magic, scale):
+    """A pcap replays with its timing: gaps, latency and an unanswered request, all from the
+    packets' time stamps (each a frame's first byte)."""
+    recording = tmp_path / "bus.pcap"
+    recording.write_bytes(
+        _pcap(
+            [
+                (T0, READ_REQ),
+                (T0 + 0.0123, READ_RSP),
+                (T0 + 0.5, GARBAGE),
+                (T0 + 1.0, INPUT_REQ),  # never answered: the next request comes 2 s later
+                (T0 + 3.0, INPUT_REQ),
+                (T0 + 3.0081, EXCEPTION_RSP),
+            ],
+            order,
+            magic,
+            scale=scale,
+        )
+    )
+    result = run_cli("--from-file", str(recording), "-o", "json")
+    assert result.returncode == 0, result.stderr
+    records = json_lines(result.stdout)
+    assert [(r["event"], r.get("direction")) for r in records] == [
+        ("frame", "request"),
+        ("frame", "response"),
+        ("garbage", "garbage"),
+        ("frame", "request"),
+        ("unanswered", None),
+        ("frame", "request"),
+        ("frame", "response"),
+    ]
+    assert records[1]["latency_ms"] == 12.3 and records[1]["gap_ms"] == 12.3
+    assert records[6]["latency_ms"] == 8.1 and records[6]["flags"] == ["exception"]
+    assert records[5]["gap_ms"] == 2000.0
+    assert records[4]["request"] == 4 and records[4]["reason"] == "no response within 1000 ms"
+    assert [datetime.fromisoformat(r["time"]).timestamp() for r in records] == pytest.approx(
+        [T0, T0 + 0.012, T0 + 0.5, T0 + 1.0, T0 + 2.0, T0 + 3.0, T0 + 3.008], abs=0.0011
+    )
+    assert result.stderr.splitlines() == [
+        "mbtool: frames 5, requests 3, responses 2, unanswered 1, exceptions 1, checksum errors 0, garbage bytes 3"
+    ]
+
+
+def test_a_capture_replays_as_the_frames_it_recorded(tmp_path):
+    """--capture's file read back by --from-file: the same frames, bytes and verdicts."""
+    raw, capture = tmp_path / "bus.bin", tmp_path / "bus.pcap"
+    raw.write_bytes(READ_REQ + READ_RSP + GARBAGE + INPUT_REQ + EXCEPTION_RSP + READ_RSP[:-1] + b"\x00")
+    first = run_cli("--from-file", str(raw), "--capture", str(capture), "-o", "json")
+    assert first.returncode == 0, first.stderr
+    again = run_cli("--from-file", str(capture), "-o", "json")
+    assert again.returncode == 0, again.stderr
+
+    def seen(stdout):
+        return [(r["event"], r.get("direction"), r.get("frame"), r.get("flags")) for r in json_lines(stdout)]
+
+    assert seen(again.stdout) == seen(first.stdout)
+    assert again.stderr == first.stderr
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        (struct.pack("<I", 0x0A0D0D0A) + bytes(28), "pcapng"),
+        (_pcap([(T0, READ_REQ)])[:-3], "truncated after 0 packets"),
+    ],
+    ids=["pcapng", "truncated"],
+)
+def test_a_pcap_that_cannot_be_read_is_one_line_and_exit_2(tmp_path, content, words):
+    recording = tmp_path / "bus.pcap"
+    recording.write_bytes(content)
+    args = ("--from-file", str(recording))
+    line = assert_one_error_line(_as_result(run_cli(*args), args), 2)
+    assert words in line
+
+
+def test_a_pcap_replays_only_as_rtu(tmp_path):
+    recording = tmp_path / "bus.pcap"
+    recording.write_bytes(_pcap([(T0, READ_REQ)]))
+    args = ("--from-file", str(recording), "--framer", "ascii")
+    line = assert_one_error_line(_as_result(run_cli(*args), args), 2)
+    assert "holds RTU frames" in line
 
 
 def test_frames_option_stops_after_n_frames(tmp_path):

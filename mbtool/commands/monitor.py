@@ -89,8 +89,8 @@ def default_silence(framer: str, baud: int) -> float:
     "--from-file",
     metavar="FILE",
     type=click.Path(exists=True, dir_okay=False),
-    help="Analyse bytes recorded from a line (raw binary) instead of listening; no timing, "
-    "frames split by their implicit length.",
+    help="Analyse a recording instead of listening: a pcap file (as --capture writes), with its "
+    "time stamps, or raw bytes from a line, with no timing (frames split by their implicit length).",
 )
 @click.option(
     "-o",
@@ -199,14 +199,33 @@ def _check_port(port: str | None) -> None:
 
 
 def _replay(path: str, sniffer, show) -> None:
+    """A recording: a pcap file (--capture's) with its time stamps, else raw bytes with none."""
+    from mbtool.pcap import is_pcap, packets
+
     try:
         with open(path, "rb") as file:
             data = file.read()
     except OSError as error:
         raise RequestError(f"cannot read {path}: {error.strerror or error}") from None
-    now = time.time()
-    if show(sniffer.feed(now, data)):
-        show(sniffer.finish(now))
+    if not is_pcap(data):
+        now = time.time()
+        if show(sniffer.feed(now, data)):
+            show(sniffer.finish(now))
+        return
+    if sniffer.framing != "rtu":
+        raise RequestError(
+            f"{path} is a pcap file, which holds RTU frames (--capture writes ASCII ones as RTU)"
+        )
+    last = None
+    try:
+        for when, payload in packets(data):
+            if not show(sniffer.feed(when, payload)):
+                return
+            last = when
+    except ValueError as error:
+        raise RequestError(f"{path}: {error}") from None
+    if last is not None:
+        show(sniffer.finish(last))
 
 
 def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show) -> str | None:
