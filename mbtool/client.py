@@ -209,7 +209,12 @@ class Client:
             # it cannot answer.  Either way an invalid response, not silence.
             problem = FrameError("the only reply was a copy of the request (an echoing adapter? try --echo)")
         return self._last_word(
-            unit, request, problem, NoResponse(f"no response from unit {unit} within {self.timeout:g} s")
+            unit,
+            request,
+            problem,
+            NoResponse(
+                f"no response from unit {unit} within {self.timeout:g} s{self.transport.silence_hint}"
+            ),
         )
 
     def _release(self, watch: _EchoWatch | None) -> None:

@@ -74,6 +74,9 @@ class Transport:
     def close(self) -> None:
         """Release the link."""
 
+    # Appended to "no response" and "closed the connection": what may explain them on this link.
+    silence_hint = ""
+
 
 class SerialTransport(Transport):
     def __init__(self, url: str, settings: SerialSettings, listen_only: bool = False) -> None:
@@ -81,6 +84,12 @@ class SerialTransport(Transport):
         import serial  # pyserial costs an import only when a serial line is used
 
         self.description = url
+        if url.lower().startswith("socket://") and _port_of(url) == MODBUS_TCP_PORT:
+            # socket:// carries serial frames (RTU, ASCII); on Modbus TCP's own port the peer
+            # is more likely a Modbus TCP device, which ignores them or hangs up.
+            self.silence_hint = (
+                f" (port {MODBUS_TCP_PORT} is Modbus TCP's: for a Modbus TCP device use tcp://)"
+            )
         try:
             self.port = serial.serial_for_url(
                 url,
@@ -183,7 +192,7 @@ class SerialTransport(Transport):
                 data += self.port.read(self.port.in_waiting)
             return data
         except (self._serial_error, OSError) as error:
-            raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
+            raise ConnectionClosed(f"{self.description}: {_reason(error)}{self.silence_hint}") from None
 
     def discard_input(self) -> bytes:
         try:
@@ -343,6 +352,13 @@ def parse_tcp_target(target: str) -> tuple[str, int]:
     if not parts.hostname:
         raise RequestError(f"no host in {target!r} (expected tcp://HOST[:PORT])")
     return parts.hostname, port
+
+
+def _port_of(url: str) -> int | None:
+    try:
+        return urlsplit(url).port
+    except ValueError:  # pyserial says what is wrong with the URL
+        return None
 
 
 def default_framer(target: str) -> str:

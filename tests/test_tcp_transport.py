@@ -93,3 +93,55 @@ def test_a_peer_that_stops_reading_fails_the_write_after_the_write_timeout(monke
         finally:
             tcp.close()
             peer.close()
+
+
+# --- socket:// (RTU over TCP) aimed at Modbus TCP's port ------------------------------------
+
+
+@pytest.mark.parametrize("hang_up", [False, True], ids=["silent", "hangs-up"])
+def test_socket_url_on_the_modbus_tcp_port_says_tcp_may_be_meant(monkeypatch, hang_up):
+    """A Modbus TCP device ignores RTU frames or hangs up on them: on port 502 the error says
+    what is probably wrong.  (The test moves "502" to a free port rather than bind 502.)"""
+    from mbtool.client import Client
+    from mbtool.codec.data_access import ReadHoldingRegisters
+    from mbtool.codec.framing import RtuFramer
+    from mbtool.errors import NoResponse
+    from mbtool.transport import SerialSettings, SerialTransport
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        monkeypatch.setattr(transport, "MODBUS_TCP_PORT", port)
+        link = SerialTransport(f"socket://127.0.0.1:{port}", SerialSettings())
+        peer, _ = listener.accept()
+        try:
+            if hang_up:
+                peer.close()
+            client = Client(link, RtuFramer(), timeout=0.3)
+            with pytest.raises(NoResponse, match=r"is Modbus TCP's: for a Modbus TCP device use tcp://"):
+                client.execute(1, ReadHoldingRegisters(0, 1))
+        finally:
+            link.close()
+            peer.close()
+
+
+def test_socket_url_on_another_port_gives_no_such_hint():
+    from mbtool.client import Client
+    from mbtool.codec.data_access import ReadHoldingRegisters
+    from mbtool.codec.framing import RtuFramer
+    from mbtool.errors import NoResponse
+    from mbtool.transport import SerialSettings, SerialTransport
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        link = SerialTransport(f"socket://127.0.0.1:{listener.getsockname()[1]}", SerialSettings())
+        peer, _ = listener.accept()
+        try:
+            with pytest.raises(NoResponse) as failure:
+                Client(link, RtuFramer(), timeout=0.3).execute(1, ReadHoldingRegisters(0, 1))
+            assert "tcp://" not in str(failure.value)
+        finally:
+            link.close()
+            peer.close()
