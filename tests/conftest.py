@@ -507,6 +507,15 @@ def refused_port():
     s.close()
 
 
+def signals_as_from_a_shell() -> None:
+    """preexec_fn for a child a test will interrupt: SIGINT and SIGTERM at their defaults and
+    unblocked, as a shell starts a command, whatever the test runner's worker did with them
+    (a child inherits an ignored signal and the blocked mask across exec)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 # ----------------------------------------------------------------------------- assertions shared by tests
 
 

@@ -13,7 +13,15 @@ import threading
 import time
 from datetime import datetime
 
-from conftest import HOLDING, REPO_ROOT, assert_one_error_line, expect_ok, mbtool_env, start_device
+from conftest import (
+    HOLDING,
+    REPO_ROOT,
+    assert_one_error_line,
+    expect_ok,
+    mbtool_env,
+    signals_as_from_a_shell,
+    start_device,
+)
 
 
 def summary(res) -> dict:
@@ -193,6 +201,7 @@ def _interrupt_after(args, wait_lines: int, sig=signal.SIGTERM):
         [sys.executable, "-m", "mbtool", *args],
         cwd=REPO_ROOT,
         env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -27,6 +27,7 @@ from conftest import (
     expect_ok,
     mbtool_env,
     rtu,
+    signals_as_from_a_shell,
     start_device,
 )
 
@@ -485,6 +486,7 @@ def test_ctrl_c_stops_and_still_prints_what_was_found():
         [sys.executable, "-m", "mbtool", "scan", "-p", "sim://", "-t", "0.5", "--hex", "-o", "json"],
         cwd=REPO_ROOT,
         env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -28,6 +28,7 @@ from conftest import (
     mbtool_env,
     plain_pairs,
     run_mbtool,
+    signals_as_from_a_shell,
 )
 
 pytestmark = pytest.mark.timeout(60)
@@ -69,6 +70,7 @@ def serve(*args: str, target: str = "tcp://127.0.0.1:0", quiet: bool = True):
         argv,
         cwd=REPO_ROOT,
         env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
