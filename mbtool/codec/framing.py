@@ -17,7 +17,7 @@ import re
 import struct
 from abc import ABC, abstractmethod
 
-from mbtool.codec.checksum import crc16, crc_bytes, lrc
+from mbtool.codec.checksum import crc16, lrc
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
 from mbtool.errors import ChecksumError, FrameError
@@ -149,6 +149,12 @@ class Framer(ABC):
     def _pdu_length(self, pdu: bytes) -> int | None:
         return pdu_length(pdu, self.responses, self.expect)
 
+    def _crc_ok(self, start: int, size: int) -> bool:
+        """Does the frame of ``size`` bytes at ``start`` end with its right CRC (low byte first)?"""
+        buf = self._buffer
+        end = start + size - 2
+        return size >= 4 and crc16(buf[start:end]) == buf[end] | buf[end + 1] << 8
+
 
 # Which offsets an RTU framer judges as frame starts, per (framer class, responses,
 # function code asked, unit asked): see RtuFramer._judge_starts_for.
@@ -263,12 +269,6 @@ class RtuFramer(Framer):
     def _silence_tells_corrupted(self) -> bool:
         """A whole frame with a bad CRC at the front: is it held until silence, not skipped?"""
         return False
-
-    def _crc_ok(self, start: int, size: int) -> bool:
-        """Does the frame of ``size`` bytes at ``start`` end with its right CRC (low byte first)?"""
-        buf = self._buffer
-        end = start + size - 2
-        return size >= 4 and crc16(buf[start:end]) == buf[end] | buf[end + 1] << 8
 
     # -- resync (spec §2: an RTU frame has no start mark; only its length rule and CRC tell) --
 
@@ -617,10 +617,9 @@ class TcpFramer(Framer):
         good CRC, say so: the peer is an RTU-over-TCP gateway, the commonest reason for it."""
         buf = self._buffer
         if not self._garbage:  # only the first bad byte of a run is reported: look only there
-            size = pdu_length(bytes(buf[1:]), self.responses, self.expect)
-            if size is not None and size != UNKNOWN and len(buf) >= size + 3:
-                if crc_bytes(bytes(buf[: size + 1])) == buf[size + 1 : size + 3]:
-                    why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
+            size = self._pdu_length(bytes(buf[1:]))
+            if size is not None and size != UNKNOWN and len(buf) >= size + 3 and self._crc_ok(0, size + 3):
+                why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
         return FrameError(why, bytes(buf[:MBAP_HEADER]))
 
 
