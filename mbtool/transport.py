@@ -261,11 +261,9 @@ class TcpTransport(Transport):
                 if abs(timeout - self._read_timeout) > KERNEL_TIMER_SLACK:
                     self._set_timeout(socket.SO_RCVTIMEO, timeout)
                     self._read_timeout = timeout
-                data = self.sock.recv(4096)
-            elif select.select([self.sock], [], [], max(timeout, 0))[0]:
-                data = self.sock.recv(4096)  # readable: data or the end, so no wait
-            else:
-                return b""
+            elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
+                return b""  # else readable: data or the end, so the recv does not wait
+            data = self.sock.recv(4096)
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
