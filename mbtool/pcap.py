@@ -94,10 +94,20 @@ class BusCapture(PcapWriter):
             self.packet(frame.time, exported_pdu(RAW_DISSECTOR, frame.wire))
 
 
+def _magic(data: bytes) -> tuple[str, int] | None:
+    """The byte order and magic number a capture file starts with, or None for raw bytes."""
+    if len(data) < 4:
+        return None
+    for order in "<>":
+        magic = struct.unpack(order + "I", data[:4])[0]
+        if magic in (PCAP_MAGIC, PCAP_NANO_MAGIC, PCAPNG_MAGIC):
+            return order, magic
+    return None
+
+
 def is_pcap(data: bytes) -> bool:
     """Whether ``data`` starts like a capture file (classic pcap or pcapng) rather than raw bytes."""
-    magics = (PCAP_MAGIC, PCAP_NANO_MAGIC, PCAPNG_MAGIC)
-    return len(data) >= 4 and any(struct.unpack(order + "I", data[:4])[0] in magics for order in "<>")
+    return _magic(data) is not None
 
 
 def packets(data: bytes) -> Iterator[tuple[float, bytes]]:
@@ -107,16 +117,14 @@ def packets(data: bytes) -> Iterator[tuple[float, bytes]]:
     of any other link type are taken whole.  ValueError, after the packets before it, for
     a pcapng file, a truncated header or a truncated packet.
     """
+    found = _magic(data)
+    if found is None:
+        raise ValueError("not a pcap file")
+    order, magic = found
+    if magic == PCAPNG_MAGIC:
+        raise ValueError("a pcapng file: save it as pcap (Wireshark: File > Export, format pcap)")
     if len(data) < 24:
         raise ValueError("not a pcap file: shorter than a pcap header")
-    for order in "<>":
-        magic = struct.unpack(order + "I", data[:4])[0]
-        if magic in (PCAP_MAGIC, PCAP_NANO_MAGIC):
-            break
-        if magic == PCAPNG_MAGIC:
-            raise ValueError("a pcapng file: save it as pcap (Wireshark: File > Export, format pcap)")
-    else:
-        raise ValueError("not a pcap file")
     scale = 1e-9 if magic == PCAP_NANO_MAGIC else 1e-6
     linktype = struct.unpack_from(order + "I", data, 20)[0] & 0x0FFFFFFF  # the top bits are flags
     at, count = 24, 0
