@@ -56,6 +56,7 @@ EVENT_RESTART = 0x00
 # FC08 sub-functions (spec §4), as plain ints: the device must not pay for the enum.
 SUB_QUERY = 0x00
 SUB_RESTART = 0x01
+RESTART_DATA = (b"\x00\x00", b"\xff\x00")  # sub 01: keep the event log, or clear it too
 SUB_DIAG_REGISTER = 0x02
 SUB_ASCII_DELIMITER = 0x03
 SUB_LISTEN_ONLY = 0x04
@@ -183,10 +184,10 @@ class Station:
         self.events.appendleft(event)
 
     def clear_counters(self) -> None:
+        """The communication event counters (FC08 sub 01 and 0A); not the diagnostic register."""
         for name in self.counters:
             self.counters[name] = 0
         self.event_count = 0
-        self.model.diagnostic_register = 0
 
 
 class Device:
@@ -385,7 +386,8 @@ class Device:
             )
         if station.listen_only:
             # Listen-only: nothing is done and nothing answered, except a restart (spec §4 sub 04).
-            if request is not None and code == 0x08 and request.sub_function == SUB_RESTART:
+            restart = request is not None and code == 0x08 and request.sub_function == SUB_RESTART
+            if restart and request.data in RESTART_DATA:  # other data would get exception 03
                 self._restart(station, request.data)
             return None
         if request is None:
@@ -520,7 +522,7 @@ class Device:
             return DiagnosticsResponse(sub, data)
         zero = data == b"\x00\x00"
         if sub == SUB_RESTART:
-            if data not in (b"\x00\x00", b"\xff\x00"):
+            if data not in RESTART_DATA:
                 raise RequestError("restart data is neither 0000 nor FF00")
             self._restart(station, data)
             return DiagnosticsResponse(sub, data)
@@ -554,9 +556,8 @@ class Device:
             station.log(EVENT_LISTEN_ONLY)
             return None  # never answered (spec §4)
         if sub == SUB_CLEAR_COUNTERS:
-            station.clear_counters()
-            for name in BUS_COUNTERS:
-                self.bus[name] = 0
+            self._clear_counters(station)
+            station.model.diagnostic_register = 0  # sub 0A alone clears it too (spec §4)
             return DiagnosticsResponse(sub, data)
         if sub == SUB_CLEAR_OVERRUN:
             self.bus["bus_char_overruns"] = 0
@@ -567,12 +568,16 @@ class Device:
             value = self.counters(station.unit)[COUNTER_SUBS[sub]]
         return DiagnosticsResponse(sub, struct.pack(">H", value))
 
-    def _restart(self, station: Station, data: bytes) -> None:
-        """Sub 01: leave listen-only, clear the counters (and the log with FF00), log a restart."""
-        station.listen_only = False
+    def _clear_counters(self, station: Station) -> None:
         station.clear_counters()
         for name in BUS_COUNTERS:
             self.bus[name] = 0
+
+    def _restart(self, station: Station, data: bytes) -> None:
+        """Sub 01: leave listen-only, clear the communication event counters (and the log with
+        FF00), log a restart.  The diagnostic register stays: only sub 0A clears it (spec §4)."""
+        station.listen_only = False
+        self._clear_counters(station)
         if data == b"\xff\x00":
             station.events.clear()
         station.log(EVENT_RESTART)
