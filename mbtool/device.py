@@ -263,8 +263,15 @@ class Device:
         if not isinstance(event, Frame):
             return None
         unit = event.unit
-        if unit == 0xFF and framer.name == "tcp" and unit not in self.units:
-            unit = min(self.units)  # spec §2: on Modbus TCP, unit FF addresses the device itself
+        if framer.name == "tcp" and unit in (0, 0xFF) and unit not in self.units:
+            # Spec §2: on Modbus TCP the unit id is for gateways; 0 and FF address the server
+            # itself, which is no broadcast (Modbus TCP implementation guide).  With several
+            # units that is the lowest one served.  libmodbus's TCP server answers every unit
+            # id from its one set of tables; pymodbus's answers unit 0 from a single device but
+            # among several answers exception 0B (or takes it as a broadcast if told to): we
+            # follow the guide and libmodbus.  With RTU or ASCII framing unit 0 stays the
+            # broadcast of handle().
+            unit = min(self.units)
         reply = self.handle(unit, event.pdu)
         if reply is None:
             return None

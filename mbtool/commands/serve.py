@@ -98,7 +98,9 @@ class Fraction(click.ParamType):
     default="1",
     show_default=True,
     help="Unit ids to answer for: 1,17 or 1-10 or both. Frames for other ids are ignored, "
-    "like a slave on a shared bus; unit 0 (broadcast) writes reach every unit and are never answered.",
+    "like a slave on a shared bus. With rtu or ascii framing unit 0 (broadcast) writes reach every "
+    "unit and are never answered; on Modbus TCP units 0 and 255 address the device itself, "
+    "answered as the lowest unit.",
 )
 @click.option(
     "--framer",
