@@ -113,6 +113,9 @@ class DataModel:
         self.run_indicator = True
         self.slave_id_extra = b"mbtool"
         self.objects: dict[int, bytes] = dict(DEFAULT_OBJECTS)  # FC43/14
+        # A sparse data file (README, "Simulating a device"): what it defines, per table name
+        # and per file number, 1 for each address it lists.  None: every address exists.
+        self.defined: dict[str | int, bytearray] | None = None
 
     def copy(self) -> DataModel:
         other = DataModel.__new__(DataModel)
@@ -127,6 +130,7 @@ class DataModel:
         other.run_indicator = self.run_indicator
         other.slave_id_extra = self.slave_id_extra
         other.objects = dict(self.objects)
+        other.defined = None if self.defined is None else {k: bytearray(v) for k, v in self.defined.items()}
         return other
 
     def file(self, number: int, create: bool) -> array | None:
@@ -134,6 +138,25 @@ class DataModel:
         if values is None and create:
             values = self.files[number] = array("H", bytes(2 * FILE_SIZE))
         return values
+
+    def defines(self, key: str | int, size: int) -> bytearray | None:
+        """The mask a sparse data file marks its addresses in (a table name or a file number);
+        None when the model is not sparse."""
+        if self.defined is None:
+            return None
+        return self.defined.setdefault(key, bytearray(size))
+
+    def require(self, key: str | int, start: int, count: int) -> None:
+        """Exception 02 unless ``count`` addresses from ``start`` exist: all do, unless a sparse
+        data file left some undefined, as a real device has gaps in its address map."""
+        if self.defined is None:
+            return
+        mask = self.defined.get(key)
+        if mask is None or mask.find(0, start, start + count) != -1:
+            table = f"file {key}" if isinstance(key, int) else key.replace("_", " ")
+            raise RequestError(
+                f"{table} {start}..{start + count - 1} is not all defined", ExceptionCode.ILLEGAL_DATA_ADDRESS
+            )
 
 
 def demo_model() -> DataModel:
@@ -209,10 +232,10 @@ class Device:
         self.served: dict[int, int] = {}  # function code -> requests answered, for the live view
         self.clock: Callable[[], float] = time.monotonic
         self._handlers: dict[int, Callable] = {
-            0x01: lambda s, r: self._read_bits(r, s.model.coils),
-            0x02: lambda s, r: self._read_bits(r, s.model.discrete_inputs),
-            0x03: lambda s, r: self._read_registers(r, s.model.holding_registers),
-            0x04: lambda s, r: self._read_registers(r, s.model.input_registers),
+            0x01: lambda s, r: self._read_bits(s.model, r, "coils"),
+            0x02: lambda s, r: self._read_bits(s.model, r, "discrete_inputs"),
+            0x03: lambda s, r: self._read_registers(s.model, r, "holding_registers"),
+            0x04: lambda s, r: self._read_registers(s.model, r, "input_registers"),
             0x05: self._write_single_coil,
             0x06: self._write_single_register,
             0x07: self._read_exception_status,
@@ -376,7 +399,10 @@ class Device:
         handler = self._handlers[request.function_code]
         for model in models.values():
             # Stations not yet made share the template: writing it once reaches them all.
-            handler(Station(0, model), request)
+            try:
+                handler(Station(0, model), request)
+            except RequestError:
+                pass  # addresses a sparse unit does not have: nothing to write, nobody to tell
 
     def _reply(self, station: Station, pdu: bytes) -> Response | ExceptionResponse | None:
         code = pdu[0] if pdu else 0
@@ -420,27 +446,33 @@ class Device:
     # -- FC 01-06, 15, 16, 22, 23, 24: the tables ------------------------------------
 
     @staticmethod
-    def _read_bits(request, table: bytearray):
+    def _read_bits(model: DataModel, request, name: str):
         from mbtool.codec.data_access import BitsResponse
 
+        model.require(name, request.address, request.count)
+        table = getattr(model, name)
         bits = tuple(bool(b) for b in table[request.address : request.address + request.count])
         return BitsResponse(request.function_code, bits)
 
     @staticmethod
-    def _read_registers(request, table: array):
+    def _read_registers(model: DataModel, request, name: str):
         from mbtool.codec.data_access import RegistersResponse
 
+        model.require(name, request.address, request.count)
+        table = getattr(model, name)
         return RegistersResponse(
             request.function_code, tuple(table[request.address : request.address + request.count])
         )
 
     @staticmethod
     def _write_single_coil(station: Station, request):
+        station.model.require("coils", request.address, 1)
         station.model.coils[request.address] = request.on
         return request
 
     @staticmethod
     def _write_single_register(station: Station, request):
+        station.model.require("holding_registers", request.address, 1)
         station.model.holding_registers[request.address] = request.value
         return request
 
@@ -448,6 +480,7 @@ class Device:
     def _write_multiple_coils(station: Station, request):
         from mbtool.codec.data_access import WriteMultipleResponse
 
+        station.model.require("coils", request.address, len(request.values))
         station.model.coils[request.address : request.address + len(request.values)] = bytes(request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
@@ -455,22 +488,27 @@ class Device:
     def _write_multiple_registers(station: Station, request):
         from mbtool.codec.data_access import WriteMultipleResponse
 
+        station.model.require("holding_registers", request.address, len(request.values))
         end = request.address + len(request.values)
         station.model.holding_registers[request.address : end] = array("H", request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
     @staticmethod
     def _mask_write_register(station: Station, request):
+        station.model.require("holding_registers", request.address, 1)
         table = station.model.holding_registers
         table[request.address] = request.result(table[request.address])
         return request
 
     @staticmethod
     def _read_write_registers(station: Station, request):
-        """FC23: the write is done before the read (spec §3)."""
+        """FC23: the write is done before the read (spec §3), once both ranges are known to exist."""
         from mbtool.codec.data_access import RegistersResponse
 
-        table = station.model.holding_registers
+        model = station.model
+        model.require("holding_registers", request.write_address, len(request.values))
+        model.require("holding_registers", request.read_address, request.read_count)
+        table = model.holding_registers
         table[request.write_address : request.write_address + len(request.values)] = array(
             "H", request.values
         )
@@ -482,13 +520,16 @@ class Device:
         """FC24: the FIFO pointer register holds the count, the entries follow it (README)."""
         from mbtool.codec.data_access import MAX_FIFO_COUNT, ReadFifoQueueResponse
 
-        table = station.model.holding_registers
+        model = station.model
+        model.require("holding_registers", request.address, 1)
+        table = model.holding_registers
         count = table[request.address]
         if count > MAX_FIFO_COUNT:
             raise RequestError(f"FIFO count {count} exceeds 31", ExceptionCode.ILLEGAL_DATA_VALUE)
         start = request.address + 1
         if start + count > TABLE_SIZE:
             raise RequestError("FIFO runs past 65535", ExceptionCode.ILLEGAL_DATA_ADDRESS)
+        model.require("holding_registers", start, count)
         return ReadFifoQueueResponse(tuple(table[start : start + count]))
 
     # -- FC 20, 21: file records --------------------------------------------------------
@@ -497,6 +538,8 @@ class Device:
     def _read_file_record(station: Station, request):
         from mbtool.codec.file_record import ReadFileRecordResponse
 
+        for group in request.groups:
+            station.model.require(group.file, group.record, group.length)
         records = []
         for group in request.groups:
             values = station.model.file(group.file, create=False)
@@ -508,6 +551,8 @@ class Device:
 
     @staticmethod
     def _write_file_record(station: Station, request):
+        for group in request.groups:  # every group exists before any is written
+            station.model.require(group.file, group.record, len(group.values))
         for group in request.groups:
             values = station.model.file(group.file, create=True)
             values[group.record : group.record + len(group.values)] = array("H", group.values)
@@ -671,10 +716,15 @@ def load_data(path: str, units: frozenset[int]) -> tuple[DataModel, dict[int, Da
     if not isinstance(data, dict):
         raise RequestError(f"data file {path}: the top level must be a table of sections")
     template = DataModel()
+    sparse = data.get("sparse", False)
+    if not isinstance(sparse, bool):
+        raise RequestError(f"data file {path}: sparse must be true or false")
+    if sparse:
+        template.defined = {}  # only what the file lists exists; units.N add their own
     per_unit_sections = data.get("units", {})
     if not isinstance(per_unit_sections, dict):
         raise RequestError(f"data file {path}: 'units' must map unit ids to sections")
-    apply_data(template, {k: v for k, v in data.items() if k != "units"}, path)
+    apply_data(template, {k: v for k, v in data.items() if k not in ("units", "sparse")}, path)
     unit_models = {}
     for key, section in per_unit_sections.items():
         unit = _int(key, f"{path}: units", 1, 255)
@@ -715,7 +765,8 @@ def _bytes(value, where: str) -> bytes:
     raise RequestError(f"data file {where}: expected a string or a list of bytes")
 
 
-def _fill(table, section, where: str, high: int, size: int) -> None:
+def _fill(table, section, where: str, high: int, size: int, defined: bytearray | None) -> None:
+    """ADDRESS = value or [values] into ``table``; ``defined`` (sparse) marks each address set."""
     if not isinstance(section, dict):
         raise RequestError(f"data file {where}: expected a table of ADDRESS = value(s)")
     for key, values in section.items():
@@ -725,6 +776,8 @@ def _fill(table, section, where: str, high: int, size: int) -> None:
             raise RequestError(f"data file {where}.{key}: {len(values)} values run past {size - 1}")
         for offset, value in enumerate(values):
             table[start + offset] = _int(value, f"{where}.{key}", 0, high)
+        if defined is not None:
+            defined[start : start + len(values)] = b"\x01" * len(values)
 
 
 def apply_data(model: DataModel, data: dict, where: str) -> None:
@@ -737,13 +790,27 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
     for name in TABLES:
         if name in data:
             bits = name in ("coils", "discrete_inputs")
-            _fill(getattr(model, name), data[name], f"{where}: {name}", 1 if bits else 0xFFFF, TABLE_SIZE)
+            _fill(
+                getattr(model, name),
+                data[name],
+                f"{where}: {name}",
+                1 if bits else 0xFFFF,
+                TABLE_SIZE,
+                model.defines(name, TABLE_SIZE),
+            )
     files = data.get("files", {})
     if not isinstance(files, dict):
         raise RequestError(f"data file {where}: files must map file numbers to records")
     for key, section in files.items():
         number = _int(key, f"{where}: files", 1, 0xFFFF)
-        _fill(model.file(number, create=True), section, f"{where}: files.{key}", 0xFFFF, FILE_SIZE)
+        _fill(
+            model.file(number, create=True),
+            section,
+            f"{where}: files.{key}",
+            0xFFFF,
+            FILE_SIZE,
+            model.defines(number, FILE_SIZE),
+        )
     if "exception_status" in data:
         model.exception_status = _int(data["exception_status"], f"{where}: exception_status", 0, 0xFF)
     if "diagnostic_register" in data:

@@ -2,6 +2,7 @@
 
 * unit 0 on Modbus TCP addresses the device itself (libmodbus's and pymodbus's clients get
   answers), while with RTU/ASCII framing it stays a broadcast;
+* a sparse ``--data`` file defines only the addresses it lists: exception 02 elsewhere;
 * FC08 sub 01 (restart) keeps the diagnostic register, only sub 0A clears it.
 
 The device itself is checked PDU by PDU first; then pymodbus's client (over TCP and a pty)
@@ -16,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import run_mbtool
+from conftest import PtyPair, run_mbtool
 from test_serve_abuse import PROMPT, mbap, serve
 
 from mbtool.codec.framing import make_framer
@@ -175,6 +176,210 @@ def test_libmodbus_unit_0_over_tcp_gets_answers(tmp_path, libmodbus_client, unit
             "read-holding-registers", "40", "-u", "1", "-p", f"tcp://{server.host}:{server.port}"
         )
         assert res.returncode == 0 and res.stdout.split() == ["40", "4321"], str(res)
+
+
+# --- sparse data files: exception 02 where nothing was defined ---------------------------------
+
+
+SPARSE = """
+sparse = true
+diagnostic_register = 0x1234
+
+[holding_registers]
+0 = [10, 11, 12]
+100 = 7
+200 = [2, 0x1111, 0x2222]        # a FIFO queue: count, entries
+300 = 1                          # a FIFO pointer whose entry is not defined
+
+[coils]
+5 = [1, 0]
+
+[files.4]
+7 = [0x06AF, 0x04BE]
+
+[units.17.input_registers]
+0 = 99
+"""
+
+
+def sparse_device(tmp_path) -> Device:
+    path = tmp_path / "sparse.toml"
+    path.write_text(SPARSE)
+    model, unit_models = load_data(str(path), frozenset({1, 17}))
+    return Device(model, frozenset({1, 17}), unit_models)
+
+
+@pytest.mark.parametrize(
+    ("pdu", "reply"),
+    [
+        ("03 0000 0003", "03 06 000A 000B 000C"),
+        ("03 0000 0004", "83 02"),  # one past what was defined
+        ("03 0003 0001", "83 02"),
+        ("03 0064 0001", "03 02 0007"),
+        ("04 0000 0001", "84 02"),  # input registers: none defined for unit 1
+        ("01 0005 0002", "01 01 01"),
+        ("01 0004 0002", "81 02"),
+        ("02 0000 0001", "82 02"),
+        ("06 0064 0009", "06 0064 0009"),
+        ("06 0065 0009", "86 02"),
+        ("05 0006 FF00", "05 0006 FF00"),
+        ("05 0007 FF00", "85 02"),
+        ("0F 0005 0002 01 03", "0F 0005 0002"),
+        ("0F 0005 0003 01 07", "8F 02"),
+        ("10 0001 0002 04 00150016", "10 0001 0002"),
+        ("10 0002 0002 04 00150016", "90 02"),
+        ("16 0000 00F2 0025", "16 0000 00F2 0025"),
+        ("16 0063 00F2 0025", "96 02"),
+        ("17 0000 0001 0064 0001 02 0008", "17 02 000A"),  # both ranges defined
+        ("17 0000 0001 0065 0001 02 0008", "97 02"),  # the write range is not
+        ("17 0063 0001 0064 0001 02 0008", "97 02"),  # the read range is not
+        ("18 00C8", "18 0006 0002 1111 2222"),
+        ("18 00C7", "98 02"),  # no pointer there
+        ("18 012C", "98 02"),  # a pointer whose entry is not defined
+        ("14 07 06 0004 0007 0002", "14 06 05 06 06AF 04BE"),
+        ("14 07 06 0004 0007 0003", "94 02"),  # record 9 is not defined
+        ("14 07 06 0005 0000 0001", "94 02"),  # file 5 is not listed
+        ("15 09 06 0004 0008 0001 0001", "15 09 06 0004 0008 0001 0001"),
+        ("15 09 06 0004 0009 0001 0001", "95 02"),
+        ("15 09 06 0006 0000 0001 0001", "95 02"),
+        ("07", "07 00"),  # not an address: answered
+        ("08 0002 0000", "08 0002 1234"),
+    ],
+)
+def test_sparse_device_answers_02_where_nothing_was_defined(tmp_path, pdu, reply):
+    assert ask(sparse_device(tmp_path), pdu) == H(reply.replace(" ", ""))
+
+
+def test_sparse_refusals_change_nothing_and_units_add_their_own(tmp_path):
+    d = sparse_device(tmp_path)
+    assert ask(d, "17 0000 0001 0065 0001 02 0008") == H("97 02")
+    assert ask(d, "17 0063 0001 0064 0001 02 0008") == H("97 02")
+    assert ask(d, "03 0064 0001") == H("03 02 0007")  # neither refused FC23 wrote
+    assert ask(d, "15 12 06 0004 0008 0001 0009 06 0006 0000 0001 0001") == H("95 02")
+    assert ask(d, "14 07 06 0004 0008 0001") == H("14 04 03 06 04BE")  # nor did the FC21
+    assert ask(d, "04 0000 0001", unit=17) == H("04 02 0063")  # unit 17's own section
+    assert ask(d, "03 0000 0001", unit=17) == H("03 02 000A")  # and the file's common tables
+    assert ask(d, "04 0001 0001", unit=17) == H("84 02")
+
+
+def test_sparse_broadcast_reaches_only_defined_addresses(tmp_path):
+    d = sparse_device(tmp_path)
+    assert over(d, "rtu", 0, "06 0064 0009") is None
+    assert over(d, "rtu", 0, "06 0065 0009") is None  # not defined: nothing happens
+    for unit in (1, 17):
+        assert ask(d, "03 0064 0001", unit=unit) == H("03 02 0009")
+        assert ask(d, "03 0065 0001", unit=unit) == H("83 02")
+
+
+def test_not_sparse_stays_as_it_was(tmp_path):
+    path = tmp_path / "dense.toml"
+    path.write_text(SPARSE.replace("sparse = true", "sparse = false"))
+    model, unit_models = load_data(str(path), frozenset({1, 17}))
+    d = Device(model, frozenset({1, 17}), unit_models)
+    assert ask(d, "03 0003 0001") == H("03 02 0000")
+    assert ask(d, "14 07 06 0005 0000 0001") == H("14 04 03 06 0000")
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('{"sparse": 1}', "sparse must be true or false"),
+        ('{"units": {"1": {"sparse": true}}}', "unknown section 'sparse'"),
+    ],
+)
+def test_bad_sparse_keys(tmp_path, text, message):
+    from mbtool.errors import RequestError
+
+    path = tmp_path / "bad.json"
+    path.write_text(text)
+    with pytest.raises(RequestError, match=message):
+        load_data(str(path), frozenset({1}))
+
+
+def test_readme_sparse_example(tmp_path):
+    """The sparse TOML example of README's "Simulating a device" does what the text says."""
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
+    blocks = [text.split("```", 1)[0] for text in section.split("```toml\n")[1:]]
+    path = tmp_path / "sparse.toml"
+    path.write_text(next(block for block in blocks if "sparse = true" in block))
+    model, _ = load_data(str(path), frozenset({1}))
+    d = Device(model)
+    assert ask(d, "03 0000 0003") == H("03 06 00E6 00E7 00E5")
+    assert ask(d, "03 0003 0001") == H("83 02")
+    assert ask(d, "14 07 06 0004 0007 0002") == H("14 06 05 06 06AF 04BE")
+    assert ask(d, "14 07 06 0003 0007 0001") == H("94 02")
+
+
+def _check_sparse_with_pymodbus(client) -> None:
+    """What an independent master sees of SPARSE: values where defined, exception 02 elsewhere."""
+    from pymodbus.pdu.file_message import FileRecord
+
+    assert client.read_holding_registers(0, count=3).registers == [10, 11, 12]
+    for address, count in ((0, 4), (3, 1), (99, 1), (65535, 1)):
+        r = client.read_holding_registers(address, count=count)
+        assert r.isError() and r.exception_code == 2, (address, count)
+    assert client.read_holding_registers(100, count=1).registers == [7]
+    assert not client.write_register(100, 8).isError()
+    r = client.write_register(101, 8)
+    assert r.isError() and r.exception_code == 2
+    assert client.read_coils(5, count=2).bits[:2] == [True, False]
+    r = client.read_coils(4, count=2)
+    assert r.isError() and r.exception_code == 2
+    r = client.read_input_registers(0, count=1)
+    assert r.isError() and r.exception_code == 2
+    r = client.read_discrete_inputs(0, count=1)
+    assert r.isError() and r.exception_code == 2
+    r = client.write_registers(2, [1, 2])
+    assert r.isError() and r.exception_code == 2
+    r = client.readwrite_registers(read_address=0, read_count=1, write_address=101, values=[1])
+    assert r.isError() and r.exception_code == 2
+    r = client.mask_write_register(address=99, and_mask=0xF2, or_mask=0x25)
+    assert r.isError() and r.exception_code == 2
+    # pymodbus 3.16 takes a read's record_length in bytes (it sends record_length // 2 registers)
+    r = client.read_file_record([FileRecord(file_number=4, record_number=7, record_length=4)])
+    assert r.records[0].record_data == b"\x06\xaf\x04\xbe"
+    r = client.read_file_record([FileRecord(file_number=5, record_number=0, record_length=2)])
+    assert r.isError() and r.exception_code == 2
+    assert client.read_holding_registers(100, count=1).registers == [8]
+
+
+def test_pymodbus_reads_a_sparse_serve_over_tcp(tmp_path):
+    from pymodbus.client import ModbusTcpClient
+
+    path = tmp_path / "sparse.toml"
+    path.write_text(SPARSE)
+    with serve(tmp_path, "--data", str(path), "-u", "1,17") as server:
+        client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
+        assert client.connect()
+        try:
+            _check_sparse_with_pymodbus(client)
+            assert client.read_fifo_queue(address=200).values == [0x1111, 0x2222]
+            r = client.read_fifo_queue(address=300)
+            assert r.isError() and r.exception_code == 2
+        finally:
+            client.close()
+
+
+def test_pymodbus_reads_a_sparse_serve_over_a_serial_line(tmp_path):
+    from pymodbus import FramerType
+    from pymodbus.client import ModbusSerialClient
+
+    path = tmp_path / "sparse.toml"
+    path.write_text(SPARSE)
+    pair = PtyPair()
+    try:
+        with serve(tmp_path, "--data", str(path), "-u", "1,17", "--parity", "N", target=pair.device_path):
+            client = ModbusSerialClient(
+                pair.mbtool_path, framer=FramerType.RTU, baudrate=19200, timeout=PROMPT, retries=0
+            )
+            assert client.connect()
+            try:
+                _check_sparse_with_pymodbus(client)
+            finally:
+                client.close()
+    finally:
+        pair.close()
 
 
 # --- FC08: restart keeps the diagnostic register -------------------------------------------

@@ -114,7 +114,8 @@ class Fraction(click.ParamType):
     "data_file",
     metavar="FILE",
     type=click.Path(dir_okay=False),
-    help="Initial tables and device identity from a JSON or TOML file (see README). "
+    help="Initial tables and device identity from a JSON or TOML file (see README); with "
+    "sparse = true in it, addresses it does not list answer exception 02. "
     "Without it the device starts with the sim:// demo data.",
 )
 @click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
