@@ -478,7 +478,7 @@ _mbtool()
                 --stopbits) _mbtool_words "$cur" 1 2 ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --seed -q --quiet -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --read-only --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --seed -q --quiet -h --help
                     fi
                     ;;
             esac

@@ -91,6 +91,7 @@ complete -c mbtool -n '__fish_seen_subcommand_from serve' -s p -l port -r -F -a 
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -s u -l unit -x -d 'Unit ids to answer for: 1,17 or 1-10 or both'
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -l framer -x -a 'rtu ascii tcp' -d 'Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// serves like a serial device server'
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -l data -x -d 'Initial tables and device identity from a JSON or TOML file (see README); with sparse = true in it, addresses it does not list answer exception 02'
+complete -c mbtool -n '__fish_seen_subcommand_from serve' -l read-only -d 'Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01'
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -l delay -x -d 'Fault: wait SECONDS before every reply'
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -l drop -x -d 'Fault: never send this fraction of replies (0..1)'
 complete -c mbtool -n '__fish_seen_subcommand_from serve' -l corrupt -x -d 'Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)'

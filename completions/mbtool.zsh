@@ -587,6 +587,7 @@ _mbtool() {
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '--data=[Initial tables and device identity from a JSON or TOML file (see README); with sparse = true in it, addresses it does not list answer exception 02]:FILE: ' \
+            '--read-only[Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01]' \
             '--delay=[Fault: wait SECONDS before every reply]:SECONDS: ' \
             '--drop=[Fault: never send this fraction of replies (0..1)]:FRACTION: ' \
             '--corrupt=[Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)]:FRACTION: ' \

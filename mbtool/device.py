@@ -77,6 +77,10 @@ COUNTER_SUBS = {
 }
 BUS_COUNTERS = ("bus_messages", "bus_comm_errors", "bus_char_overruns")
 
+# The function codes that change data (spec §1's write column, and FC21 for files):
+# a read-only device (serve --read-only) answers them exception 01, a function it does not do.
+WRITE_FUNCTIONS = frozenset({0x05, 0x06, 0x0F, 0x10, 0x15, 0x16, 0x17})
+
 # Read Device Identification (FC43/14): basic 00-02, regular 03-06, extended 80-FF.
 DEFAULT_OBJECTS = {
     0x00: b"mbtool",
@@ -226,6 +230,7 @@ class Device:
         self.units = frozenset(units)
         self.unit_models = unit_models or {}  # units with data of their own (--data [units.N])
         self.faults = Faults()
+        self.read_only = False  # serve --read-only: WRITE_FUNCTIONS get exception 01
         self.stations: dict[int, Station] = {}
         # Bus-level counters are shared: every node on the line sees every message (spec §4).
         self.bus = dict.fromkeys(BUS_COUNTERS, 0)
@@ -382,7 +387,7 @@ class Device:
             request = decode_request(pdu)
         except (RequestError, DecodeError):
             return
-        if not request.broadcastable:
+        if not request.broadcastable or self.read_only:  # a broadcast is always a write
             return
         models = {id(self.model): self.model}
         for unit in self.units:
@@ -423,6 +428,10 @@ class Device:
             if restart and request.data in RESTART_DATA:  # other data would get exception 03
                 self._restart(station, request.data)
             return None
+        if self.read_only and code in WRITE_FUNCTIONS:
+            # Before the request's own checks: a device without the function answers 01 to
+            # any form of it, as it would to a function code it does not know.
+            return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)
         if request is None:
             return failure
         injected = self._injected(code)

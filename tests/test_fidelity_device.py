@@ -3,7 +3,8 @@
 * unit 0 on Modbus TCP addresses the device itself (libmodbus's and pymodbus's clients get
   answers), while with RTU/ASCII framing it stays a broadcast;
 * a sparse ``--data`` file defines only the addresses it lists: exception 02 elsewhere;
-* FC08 sub 01 (restart) keeps the diagnostic register, only sub 0A clears it.
+* FC08 sub 01 (restart) keeps the diagnostic register, only sub 0A clears it;
+* ``--read-only`` answers every function that writes data with exception 01.
 
 The device itself is checked PDU by PDU first; then pymodbus's client (over TCP and a pty)
 and a small C program built on libmodbus talk to a real ``mbtool serve``.
@@ -17,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import PtyPair, run_mbtool
+from conftest import PtyPair, assert_one_error_line, run_mbtool
 from test_serve_abuse import PROMPT, mbap, serve
 
 from mbtool.codec.framing import make_framer
@@ -425,3 +426,70 @@ def test_pymodbus_restart_keeps_the_diagnostic_register(tmp_path):
             assert client.diag_read_diagnostic_register().message in ([0], 0)
         finally:
             client.close()
+
+
+# --- --read-only ---------------------------------------------------------------------------
+
+
+WRITES = [
+    "05 0001 FF00",
+    "06 0001 0009",
+    "0F 0001 0002 01 03",
+    "10 0001 0001 02 0009",
+    "15 09 06 0004 0007 0001 0009",
+    "16 0001 00F2 0025",
+    "17 0000 0001 0001 0001 02 0009",
+    "06 0001",  # a malformed write is still a function this device does not do
+]
+
+
+@pytest.mark.parametrize("pdu", WRITES)
+def test_read_only_device_refuses_every_write_with_01(pdu):
+    d = Device(demo_model())
+    d.read_only = True
+    code = H(pdu.replace(" ", ""))[0]
+    assert ask(d, pdu) == bytes([code | 0x80, 0x01])
+    assert ask(d, "03 0001 0001") == H("03 02 0001")  # nothing was written
+    assert ask(d, "01 0001 0002") == H("01 01 02")  # the demo coils: 1 off, 2 on
+
+
+def test_read_only_device_ignores_broadcast_writes():
+    d = Device(demo_model(), frozenset({1, 2}))
+    d.read_only = True
+    assert over(d, "rtu", 0, "06 0001 0009") is None
+    assert ask(d, "03 0001 0001", unit=2) == H("03 02 0001")
+
+
+def test_read_only_serve_with_pymodbus_and_mbtool(tmp_path):
+    from pymodbus.client import ModbusTcpClient
+    from pymodbus.pdu.file_message import FileRecord
+
+    with serve(tmp_path, "--read-only") as server:
+        assert "read-only" in server.first_line, server.first_line
+        client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
+        assert client.connect()
+        try:
+            for r in (
+                client.write_coil(1, True),
+                client.write_register(1, 9),
+                client.write_coils(1, [True, False]),
+                client.write_registers(1, [9]),
+                client.write_file_record([FileRecord(file_number=4, record_number=7, record_data=b"\0\1")]),
+                client.mask_write_register(address=1, and_mask=0xF2, or_mask=0x25),
+                client.readwrite_registers(read_address=0, read_count=1, write_address=1, values=[9]),
+            ):
+                assert r.isError() and r.exception_code == 1, r
+            assert client.read_holding_registers(0, count=3).registers == [0, 1, 2]
+            assert not client.diag_clear_counters().isError()  # diagnostics are no data
+        finally:
+            client.close()
+        target = f"tcp://{server.host}:{server.port}"
+        line = assert_one_error_line(run_mbtool("write-register", "1", "9", "-p", target), 4)
+        assert "exception 01" in line, line
+
+
+def test_read_only_startup_line_in_the_log(tmp_path):
+    with serve(tmp_path, "--read-only", quiet=False) as server:
+        pass
+    first = server.log().splitlines()[0]
+    assert first.endswith("read-only: writes get exception 01"), first

@@ -118,6 +118,11 @@ class Fraction(click.ParamType):
     "sparse = true in it, addresses it does not list answer exception 02. "
     "Without it the device starts with the sim:// demo data.",
 )
+@click.option(
+    "--read-only",
+    is_flag=True,
+    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01.",
+)
 @click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
 @click.option(
     "--drop", type=Fraction(), default=0.0, help="Fault: never send this fraction of replies (0..1)."
@@ -167,6 +172,7 @@ def serve(
     bytesize,
     stopbits,
     data_file,
+    read_only,
     delay,
     drop,
     corrupt,
@@ -208,6 +214,7 @@ def serve(
         model, unit_models = demo_model(), {}
     device = Device(model, unit_set, unit_models)
     device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
+    device.read_only = read_only
     settings = SerialSettings(baud, parity.upper(), int(bytesize), int(stopbits))
     mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
     log = functools.partial(_log_line, framer) if mode == "log" else None
@@ -224,7 +231,8 @@ def serve(
     )
     server.open()
     unit_text = units_text(unit_set)
-    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}")
+    refusal = " read-only: writes get exception 01" if read_only else ""
+    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
     sys.stdout.flush()
 
     def stop(signum, frame):
@@ -283,7 +291,7 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         head = Table.grid(padding=(0, 2))
         head.add_row(
             f"[b]mbtool serve[/b] {stats.listening}",
-            f"framer {framer}",
+            f"framer {framer}" + (", read-only" if device.read_only else ""),
             f"units {unit_text}",
             f"up {uptime:.0f} s",
             f"clients {stats.clients}"
