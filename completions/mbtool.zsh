@@ -593,8 +593,9 @@ _mbtool() {
             '--corrupt=[Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)]:FRACTION: ' \
             '*--exception=[Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable)]:FC\:CODE: ' \
             '--busy=[Fault: answer every request with exception 06 (server device busy) for the first SECONDS after start]:SECONDS: ' \
-            '--max-clients=[TCP: clients served at once; a connection past them is closed at once and logged]:NUMBER: ' \
+            '--max-clients=[TCP: clients served at once]:NUMBER: ' \
             '--idle-timeout=[TCP: close a client that completes no request and takes no reply for SECONDS (one that never sends, sends a byte now and then, or does not read); 0 for never]:SECONDS: ' \
+            '--first-request-timeout=[TCP: close a client that has not completed a request SECONDS after connecting; 0 for never]:SECONDS: ' \
             '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
             '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0

@@ -151,7 +151,9 @@ class Fraction(click.ParamType):
     type=Number(1, 1000, "client count"),
     default=64,
     show_default=True,
-    help="TCP: clients served at once; a connection past them is closed at once and logged.",
+    help="TCP: clients served at once. A newcomer past them takes the slot of the least "
+    "recently used idle client (one that never completed a request first); with none idle it "
+    "is closed at once. Both are logged.",
 )
 @click.option(
     "--idle-timeout",
@@ -160,6 +162,13 @@ class Fraction(click.ParamType):
     show_default=True,
     help="TCP: close a client that completes no request and takes no reply for SECONDS "
     "(one that never sends, sends a byte now and then, or does not read); 0 for never.",
+)
+@click.option(
+    "--first-request-timeout",
+    type=Seconds(),
+    default=5.0,
+    show_default=True,
+    help="TCP: close a client that has not completed a request SECONDS after connecting; 0 for never.",
 )
 @click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
@@ -180,6 +189,7 @@ def serve(
     busy,
     max_clients,
     idle_timeout,
+    first_request_timeout,
     seed,
     quiet,
 ):
@@ -228,6 +238,7 @@ def serve(
         log=log,
         max_clients=max_clients,
         idle_timeout=idle_timeout,
+        first_request_timeout=first_request_timeout,
     )
     server.open()
     unit_text = units_text(unit_set)
@@ -253,7 +264,9 @@ def serve(
             f", {count} {what}"
             for count, what in (
                 (stats.refused, "refused (--max-clients)"),
+                (stats.evicted, "gave their slot to a newcomer (--max-clients)"),
                 (stats.expired, "timed out (--idle-timeout)"),
+                (stats.unused, "sent no request (--first-request-timeout)"),
             )
             if count
         )
@@ -296,7 +309,8 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
             f"up {uptime:.0f} s",
             f"clients {stats.clients}"
             + (f", {stats.refused} refused" if stats.refused else "")
-            + (f", {stats.expired} timed out" if stats.expired else ""),
+            + (f", {stats.evicted} gave their slot" if stats.evicted else "")
+            + (f", {stats.expired + stats.unused} timed out" if stats.expired + stats.unused else ""),
         )
         head.add_row(
             f"requests {stats.requests}",
