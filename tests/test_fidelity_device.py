@@ -281,22 +281,6 @@ def test_not_sparse_stays_as_it_was(tmp_path):
     assert ask(d, "14 07 06 0005 0000 0001") == H("14 04 03 06 0000")
 
 
-@pytest.mark.parametrize(
-    ("text", "message"),
-    [
-        ('{"sparse": 1}', "sparse must be true or false"),
-        ('{"units": {"1": {"sparse": true}}}', "unknown section 'sparse'"),
-    ],
-)
-def test_bad_sparse_keys(tmp_path, text, message):
-    from mbtool.errors import RequestError
-
-    path = tmp_path / "bad.json"
-    path.write_text(text)
-    with pytest.raises(RequestError, match=message):
-        load_data(str(path), frozenset({1}))
-
-
 def test_readme_sparse_example(tmp_path):
     """The sparse TOML example of README's "Simulating a device" does what the text says."""
     readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
