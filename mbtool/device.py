@@ -295,9 +295,9 @@ class Device:
             # Spec §2: on Modbus TCP the unit id is for gateways; 0 and FF address the server
             # itself, which is no broadcast (Modbus TCP implementation guide).  With several
             # units that is the lowest one served.  libmodbus's TCP server answers every unit
-            # id from its one set of tables; pymodbus's answers unit 0 from a single device but
-            # among several answers exception 0B (or takes it as a broadcast if told to): we
-            # follow the guide and libmodbus.  With RTU or ASCII framing unit 0 stays the
+            # id from its one set of tables; pymodbus 3.16's answers a unit it was not given,
+            # 0 and FF too, with exception 04 (its older single context answered them all):
+            # we follow the guide and libmodbus.  With RTU or ASCII framing unit 0 stays the
             # broadcast of handle().
             unit = min(self.units)
         reply = self.handle(unit, event.pdu)
