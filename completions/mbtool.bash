@@ -471,14 +471,14 @@ _mbtool()
         serve)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                -u|--unit|-b|--baud|--data|--delay|--drop|--corrupt|--exception|--busy|--max-clients|--idle-timeout|--seed) : ;;
+                -u|--unit|-b|--baud|--data|--delay|--drop|--corrupt|--exception|--busy|--max-clients|--idle-timeout|--first-request-timeout|--seed) : ;;
                 --framer) _mbtool_words "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
                 --bytesize) _mbtool_words "$cur" 7 8 ;;
                 --stopbits) _mbtool_words "$cur" 1 2 ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --seed -q --quiet -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --read-only --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --first-request-timeout --seed -q --quiet -h --help
                     fi
                     ;;
             esac

@@ -586,14 +586,16 @@ _mbtool() {
             '--parity=[Serial parity]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
-            '--data=[Initial tables and device identity from a JSON or TOML file (see README)]:FILE: ' \
+            '--data=[Initial tables and device identity from a JSON or TOML file (see README); with sparse = true in it, addresses it does not list answer exception 02]:FILE: ' \
+            '--read-only[Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01]' \
             '--delay=[Fault: wait SECONDS before every reply]:SECONDS: ' \
             '--drop=[Fault: never send this fraction of replies (0..1)]:FRACTION: ' \
             '--corrupt=[Fault: send this fraction of replies with a wrong CRC/LRC (rtu and ascii framing)]:FRACTION: ' \
             '*--exception=[Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable)]:FC\:CODE: ' \
             '--busy=[Fault: answer every request with exception 06 (server device busy) for the first SECONDS after start]:SECONDS: ' \
-            '--max-clients=[TCP: clients served at once; a connection past them is closed at once and logged]:NUMBER: ' \
+            '--max-clients=[TCP: clients served at once]:NUMBER: ' \
             '--idle-timeout=[TCP: close a client that completes no request and takes no reply for SECONDS (one that never sends, sends a byte now and then, or does not read); 0 for never]:SECONDS: ' \
+            '--first-request-timeout=[TCP: close a client that has not completed a request SECONDS after connecting; 0 for never]:SECONDS: ' \
             '--seed=[Random seed for --drop and --corrupt]:NUMBER: ' \
             '(-q --quiet)'{-q,--quiet}'[Print only the line saying where it serves (for scripts)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0

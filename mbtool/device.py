@@ -56,6 +56,7 @@ EVENT_RESTART = 0x00
 # FC08 sub-functions (spec §4), as plain ints: the device must not pay for the enum.
 SUB_QUERY = 0x00
 SUB_RESTART = 0x01
+RESTART_DATA = (b"\x00\x00", b"\xff\x00")  # sub 01: keep the event log, or clear it too
 SUB_DIAG_REGISTER = 0x02
 SUB_ASCII_DELIMITER = 0x03
 SUB_LISTEN_ONLY = 0x04
@@ -75,6 +76,10 @@ COUNTER_SUBS = {
     0x13: "iop_overruns",
 }
 BUS_COUNTERS = ("bus_messages", "bus_comm_errors", "bus_char_overruns")
+
+# The function codes that change data (spec §1's write column, and FC21 for files):
+# a read-only device (serve --read-only) answers them exception 01, a function it does not do.
+WRITE_FUNCTIONS = frozenset({0x05, 0x06, 0x0F, 0x10, 0x15, 0x16, 0x17})
 
 # Read Device Identification (FC43/14): basic 00-02, regular 03-06, extended 80-FF.
 DEFAULT_OBJECTS = {
@@ -112,6 +117,9 @@ class DataModel:
         self.run_indicator = True
         self.slave_id_extra = b"mbtool"
         self.objects: dict[int, bytes] = dict(DEFAULT_OBJECTS)  # FC43/14
+        # A sparse data file (README, "Simulating a device"): what it defines, per table name
+        # and per file number, 1 for each address it lists.  None: every address exists.
+        self.defined: dict[str | int, bytearray] | None = None
 
     def copy(self) -> DataModel:
         other = DataModel.__new__(DataModel)
@@ -126,6 +134,7 @@ class DataModel:
         other.run_indicator = self.run_indicator
         other.slave_id_extra = self.slave_id_extra
         other.objects = dict(self.objects)
+        other.defined = None if self.defined is None else {k: bytearray(v) for k, v in self.defined.items()}
         return other
 
     def file(self, number: int, create: bool) -> array | None:
@@ -133,6 +142,25 @@ class DataModel:
         if values is None and create:
             values = self.files[number] = array("H", bytes(2 * FILE_SIZE))
         return values
+
+    def defines(self, key: str | int, size: int) -> bytearray | None:
+        """The mask a sparse data file marks its addresses in (a table name or a file number);
+        None when the model is not sparse."""
+        if self.defined is None:
+            return None
+        return self.defined.setdefault(key, bytearray(size))
+
+    def require(self, key: str | int, start: int, count: int) -> None:
+        """Exception 02 unless ``count`` addresses from ``start`` exist: all do, unless a sparse
+        data file left some undefined, as a real device has gaps in its address map."""
+        if self.defined is None:
+            return
+        mask = self.defined.get(key)
+        if mask is None or mask.find(0, start, start + count) != -1:
+            table = f"file {key}" if isinstance(key, int) else key.replace("_", " ")
+            raise RequestError(
+                f"{table} {start}..{start + count - 1} is not all defined", ExceptionCode.ILLEGAL_DATA_ADDRESS
+            )
 
 
 def demo_model() -> DataModel:
@@ -183,10 +211,10 @@ class Station:
         self.events.appendleft(event)
 
     def clear_counters(self) -> None:
+        """The communication event counters (FC08 sub 01 and 0A); not the diagnostic register."""
         for name in self.counters:
             self.counters[name] = 0
         self.event_count = 0
-        self.model.diagnostic_register = 0
 
 
 class Device:
@@ -202,16 +230,17 @@ class Device:
         self.units = frozenset(units)
         self.unit_models = unit_models or {}  # units with data of their own (--data [units.N])
         self.faults = Faults()
+        self.read_only = False  # serve --read-only: WRITE_FUNCTIONS get exception 01
         self.stations: dict[int, Station] = {}
         # Bus-level counters are shared: every node on the line sees every message (spec §4).
         self.bus = dict.fromkeys(BUS_COUNTERS, 0)
         self.served: dict[int, int] = {}  # function code -> requests answered, for the live view
         self.clock: Callable[[], float] = time.monotonic
         self._handlers: dict[int, Callable] = {
-            0x01: lambda s, r: self._read_bits(r, s.model.coils),
-            0x02: lambda s, r: self._read_bits(r, s.model.discrete_inputs),
-            0x03: lambda s, r: self._read_registers(r, s.model.holding_registers),
-            0x04: lambda s, r: self._read_registers(r, s.model.input_registers),
+            0x01: lambda s, r: self._read_bits(s.model, r, "coils"),
+            0x02: lambda s, r: self._read_bits(s.model, r, "discrete_inputs"),
+            0x03: lambda s, r: self._read_registers(s.model, r, "holding_registers"),
+            0x04: lambda s, r: self._read_registers(s.model, r, "input_registers"),
             0x05: self._write_single_coil,
             0x06: self._write_single_register,
             0x07: self._read_exception_status,
@@ -262,8 +291,15 @@ class Device:
         if not isinstance(event, Frame):
             return None
         unit = event.unit
-        if unit == 0xFF and framer.name == "tcp" and unit not in self.units:
-            unit = min(self.units)  # spec §2: on Modbus TCP, unit FF addresses the device itself
+        if framer.name == "tcp" and unit in (0, 0xFF) and unit not in self.units:
+            # Spec §2: on Modbus TCP the unit id is for gateways; 0 and FF address the server
+            # itself, which is no broadcast (Modbus TCP implementation guide).  With several
+            # units that is the lowest one served.  libmodbus's TCP server answers every unit
+            # id from its one set of tables; pymodbus 3.16's answers a unit it was not given,
+            # 0 and FF too, with exception 04 (its older single context answered them all):
+            # we follow the guide and libmodbus.  With RTU or ASCII framing unit 0 stays the
+            # broadcast of handle().
+            unit = min(self.units)
         reply = self.handle(unit, event.pdu)
         if reply is None:
             return None
@@ -351,7 +387,7 @@ class Device:
             request = decode_request(pdu)
         except (RequestError, DecodeError):
             return
-        if not request.broadcastable:
+        if not request.broadcastable or self.read_only:  # a broadcast is always a write
             return
         models = {id(self.model): self.model}
         for unit in self.units:
@@ -368,7 +404,10 @@ class Device:
         handler = self._handlers[request.function_code]
         for model in models.values():
             # Stations not yet made share the template: writing it once reaches them all.
-            handler(Station(0, model), request)
+            try:
+                handler(Station(0, model), request)
+            except RequestError:
+                pass  # addresses a sparse unit does not have: nothing to write, nobody to tell
 
     def _reply(self, station: Station, pdu: bytes) -> Response | ExceptionResponse | None:
         code = pdu[0] if pdu else 0
@@ -385,9 +424,14 @@ class Device:
             )
         if station.listen_only:
             # Listen-only: nothing is done and nothing answered, except a restart (spec §4 sub 04).
-            if request is not None and code == 0x08 and request.sub_function == SUB_RESTART:
+            restart = request is not None and code == 0x08 and request.sub_function == SUB_RESTART
+            if restart and request.data in RESTART_DATA:  # other data would get exception 03
                 self._restart(station, request.data)
             return None
+        if self.read_only and code in WRITE_FUNCTIONS:
+            # Before the request's own checks: a device without the function answers 01 to
+            # any form of it, as it would to a function code it does not know.
+            return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)
         if request is None:
             return failure
         injected = self._injected(code)
@@ -411,27 +455,33 @@ class Device:
     # -- FC 01-06, 15, 16, 22, 23, 24: the tables ------------------------------------
 
     @staticmethod
-    def _read_bits(request, table: bytearray):
+    def _read_bits(model: DataModel, request, name: str):
         from mbtool.codec.data_access import BitsResponse
 
+        model.require(name, request.address, request.count)
+        table = getattr(model, name)
         bits = tuple(bool(b) for b in table[request.address : request.address + request.count])
         return BitsResponse(request.function_code, bits)
 
     @staticmethod
-    def _read_registers(request, table: array):
+    def _read_registers(model: DataModel, request, name: str):
         from mbtool.codec.data_access import RegistersResponse
 
+        model.require(name, request.address, request.count)
+        table = getattr(model, name)
         return RegistersResponse(
             request.function_code, tuple(table[request.address : request.address + request.count])
         )
 
     @staticmethod
     def _write_single_coil(station: Station, request):
+        station.model.require("coils", request.address, 1)
         station.model.coils[request.address] = request.on
         return request
 
     @staticmethod
     def _write_single_register(station: Station, request):
+        station.model.require("holding_registers", request.address, 1)
         station.model.holding_registers[request.address] = request.value
         return request
 
@@ -439,6 +489,7 @@ class Device:
     def _write_multiple_coils(station: Station, request):
         from mbtool.codec.data_access import WriteMultipleResponse
 
+        station.model.require("coils", request.address, len(request.values))
         station.model.coils[request.address : request.address + len(request.values)] = bytes(request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
@@ -446,22 +497,27 @@ class Device:
     def _write_multiple_registers(station: Station, request):
         from mbtool.codec.data_access import WriteMultipleResponse
 
+        station.model.require("holding_registers", request.address, len(request.values))
         end = request.address + len(request.values)
         station.model.holding_registers[request.address : end] = array("H", request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
     @staticmethod
     def _mask_write_register(station: Station, request):
+        station.model.require("holding_registers", request.address, 1)
         table = station.model.holding_registers
         table[request.address] = request.result(table[request.address])
         return request
 
     @staticmethod
     def _read_write_registers(station: Station, request):
-        """FC23: the write is done before the read (spec §3)."""
+        """FC23: the write is done before the read (spec §3), once both ranges are known to exist."""
         from mbtool.codec.data_access import RegistersResponse
 
-        table = station.model.holding_registers
+        model = station.model
+        model.require("holding_registers", request.write_address, len(request.values))
+        model.require("holding_registers", request.read_address, request.read_count)
+        table = model.holding_registers
         table[request.write_address : request.write_address + len(request.values)] = array(
             "H", request.values
         )
@@ -473,13 +529,16 @@ class Device:
         """FC24: the FIFO pointer register holds the count, the entries follow it (README)."""
         from mbtool.codec.data_access import MAX_FIFO_COUNT, ReadFifoQueueResponse
 
-        table = station.model.holding_registers
+        model = station.model
+        model.require("holding_registers", request.address, 1)
+        table = model.holding_registers
         count = table[request.address]
         if count > MAX_FIFO_COUNT:
             raise RequestError(f"FIFO count {count} exceeds 31", ExceptionCode.ILLEGAL_DATA_VALUE)
         start = request.address + 1
         if start + count > TABLE_SIZE:
             raise RequestError("FIFO runs past 65535", ExceptionCode.ILLEGAL_DATA_ADDRESS)
+        model.require("holding_registers", start, count)
         return ReadFifoQueueResponse(tuple(table[start : start + count]))
 
     # -- FC 20, 21: file records --------------------------------------------------------
@@ -488,6 +547,8 @@ class Device:
     def _read_file_record(station: Station, request):
         from mbtool.codec.file_record import ReadFileRecordResponse
 
+        for group in request.groups:
+            station.model.require(group.file, group.record, group.length)
         records = []
         for group in request.groups:
             values = station.model.file(group.file, create=False)
@@ -499,6 +560,8 @@ class Device:
 
     @staticmethod
     def _write_file_record(station: Station, request):
+        for group in request.groups:  # every group exists before any is written
+            station.model.require(group.file, group.record, len(group.values))
         for group in request.groups:
             values = station.model.file(group.file, create=True)
             values[group.record : group.record + len(group.values)] = array("H", group.values)
@@ -520,7 +583,7 @@ class Device:
             return DiagnosticsResponse(sub, data)
         zero = data == b"\x00\x00"
         if sub == SUB_RESTART:
-            if data not in (b"\x00\x00", b"\xff\x00"):
+            if data not in RESTART_DATA:
                 raise RequestError("restart data is neither 0000 nor FF00")
             self._restart(station, data)
             return DiagnosticsResponse(sub, data)
@@ -554,9 +617,8 @@ class Device:
             station.log(EVENT_LISTEN_ONLY)
             return None  # never answered (spec §4)
         if sub == SUB_CLEAR_COUNTERS:
-            station.clear_counters()
-            for name in BUS_COUNTERS:
-                self.bus[name] = 0
+            self._clear_counters(station)
+            station.model.diagnostic_register = 0  # sub 0A alone clears it too (spec §4)
             return DiagnosticsResponse(sub, data)
         if sub == SUB_CLEAR_OVERRUN:
             self.bus["bus_char_overruns"] = 0
@@ -567,12 +629,16 @@ class Device:
             value = self.counters(station.unit)[COUNTER_SUBS[sub]]
         return DiagnosticsResponse(sub, struct.pack(">H", value))
 
-    def _restart(self, station: Station, data: bytes) -> None:
-        """Sub 01: leave listen-only, clear the counters (and the log with FF00), log a restart."""
-        station.listen_only = False
+    def _clear_counters(self, station: Station) -> None:
         station.clear_counters()
         for name in BUS_COUNTERS:
             self.bus[name] = 0
+
+    def _restart(self, station: Station, data: bytes) -> None:
+        """Sub 01: leave listen-only, clear the communication event counters (and the log with
+        FF00), log a restart.  The diagnostic register stays: only sub 0A clears it (spec §4)."""
+        station.listen_only = False
+        self._clear_counters(station)
         if data == b"\xff\x00":
             station.events.clear()
         station.log(EVENT_RESTART)
@@ -659,10 +725,15 @@ def load_data(path: str, units: frozenset[int]) -> tuple[DataModel, dict[int, Da
     if not isinstance(data, dict):
         raise RequestError(f"data file {path}: the top level must be a table of sections")
     template = DataModel()
+    sparse = data.get("sparse", False)
+    if not isinstance(sparse, bool):
+        raise RequestError(f"data file {path}: sparse must be true or false")
+    if sparse:
+        template.defined = {}  # only what the file lists exists; units.N add their own
     per_unit_sections = data.get("units", {})
     if not isinstance(per_unit_sections, dict):
         raise RequestError(f"data file {path}: 'units' must map unit ids to sections")
-    apply_data(template, {k: v for k, v in data.items() if k != "units"}, path)
+    apply_data(template, {k: v for k, v in data.items() if k not in ("units", "sparse")}, path)
     unit_models = {}
     for key, section in per_unit_sections.items():
         unit = _int(key, f"{path}: units", 1, 255)
@@ -703,7 +774,8 @@ def _bytes(value, where: str) -> bytes:
     raise RequestError(f"data file {where}: expected a string or a list of bytes")
 
 
-def _fill(table, section, where: str, high: int, size: int) -> None:
+def _fill(table, section, where: str, high: int, size: int, defined: bytearray | None) -> None:
+    """ADDRESS = value or [values] into ``table``; ``defined`` (sparse) marks each address set."""
     if not isinstance(section, dict):
         raise RequestError(f"data file {where}: expected a table of ADDRESS = value(s)")
     for key, values in section.items():
@@ -713,6 +785,8 @@ def _fill(table, section, where: str, high: int, size: int) -> None:
             raise RequestError(f"data file {where}.{key}: {len(values)} values run past {size - 1}")
         for offset, value in enumerate(values):
             table[start + offset] = _int(value, f"{where}.{key}", 0, high)
+        if defined is not None:
+            defined[start : start + len(values)] = b"\x01" * len(values)
 
 
 def apply_data(model: DataModel, data: dict, where: str) -> None:
@@ -725,13 +799,27 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
     for name in TABLES:
         if name in data:
             bits = name in ("coils", "discrete_inputs")
-            _fill(getattr(model, name), data[name], f"{where}: {name}", 1 if bits else 0xFFFF, TABLE_SIZE)
+            _fill(
+                getattr(model, name),
+                data[name],
+                f"{where}: {name}",
+                1 if bits else 0xFFFF,
+                TABLE_SIZE,
+                model.defines(name, TABLE_SIZE),
+            )
     files = data.get("files", {})
     if not isinstance(files, dict):
         raise RequestError(f"data file {where}: files must map file numbers to records")
     for key, section in files.items():
         number = _int(key, f"{where}: files", 1, 0xFFFF)
-        _fill(model.file(number, create=True), section, f"{where}: files.{key}", 0xFFFF, FILE_SIZE)
+        _fill(
+            model.file(number, create=True),
+            section,
+            f"{where}: files.{key}",
+            0xFFFF,
+            FILE_SIZE,
+            model.defines(number, FILE_SIZE),
+        )
     if "exception_status" in data:
         model.exception_status = _int(data["exception_status"], f"{where}: exception_status", 0, 0xFF)
     if "diagnostic_register" in data:

@@ -6,14 +6,20 @@
   MBAP is disconnected (what pymodbus and most devices do: after a bad header
   the stream cannot be resynchronised); the other clients never notice.
   No client can hold the others up or make memory grow: sockets never block,
-  at most ``max_clients`` are served (more are accepted and closed at once),
-  each is read ``RECV_SIZE`` bytes a turn, its framer keeps at most one frame
-  (the framers drop what cannot be one), its unsent replies are capped at
-  ``OUT_LIMIT`` (past it its requests are no longer read: the kernel's buffers
-  and then the client's own sends take the back-pressure), and a client that
-  completes no request and takes no reply for ``idle_timeout`` seconds is
-  closed, so one that never sends, drips a byte a minute or never reads its
-  replies gives its slot back.
+  at most ``max_clients`` are served, each is read ``RECV_SIZE`` bytes a turn,
+  its framer keeps at most one frame (the framers drop what cannot be one), its
+  unsent replies are capped at ``OUT_LIMIT`` (past it its requests are no longer
+  read: the kernel's buffers and then the client's own sends take the
+  back-pressure), and a client that completes no request and takes no reply for
+  ``idle_timeout`` seconds is closed, so one that never sends, drips a byte a
+  minute or never reads its replies gives its slot back.
+* Nor can idle connections lock it: one that has completed no request
+  ``first_request_timeout`` seconds after connecting is closed, and a newcomer
+  past ``max_clients`` takes the slot of the least recently used idle client
+  (nothing owed to it or unsent), one that never completed a request first
+  (the Modbus TCP implementation guide's connection management: a server out of
+  connections closes the oldest unused one).  Only when every client is busy is
+  the newcomer closed at once.
 * Serial: pyserial (device path or URL), frames ended by implicit length or by
   t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
 * Faults of the I/O layer: delay, drop and checksum corruption of replies.
@@ -46,6 +52,7 @@ TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is u
 MIN_SERIAL_GAP = 0.01
 MAX_CLIENTS = 64
 IDLE_TIMEOUT = 60.0  # seconds without a whole request or a reply taken before a client is closed
+FIRST_REQUEST_TIMEOUT = 5.0  # seconds from connecting to a first whole request
 RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others get their turn
 # Replies queued for a client that does not read them; past this its requests wait in the
 # kernel.  One turn's read can still add a burst (at most 4096 / 8 requests of 260-byte
@@ -104,8 +111,10 @@ class Stats:
         self.corrupted = 0
         self.clients = 0
         self.connections = 0
-        self.refused = 0  # connections closed at once because max_clients were connected
+        self.refused = 0  # connections closed at once: max_clients connected, none of them idle
+        self.evicted = 0  # idle clients closed to give their slot to a newcomer
         self.expired = 0  # clients closed by the idle timeout
+        self.unused = 0  # clients closed by the first-request timeout
         self.frames: deque[tuple[float, str, str, bytes, str]] = deque(maxlen=12)
         self.listening = ""
 
@@ -199,6 +208,7 @@ class Server:
         log: Callable[[str, str, bytes, str], None] | None = None,
         max_clients: int = MAX_CLIENTS,
         idle_timeout: float | None = IDLE_TIMEOUT,
+        first_request_timeout: float | None = FIRST_REQUEST_TIMEOUT,
     ) -> None:
         self.device = device
         self.target = target
@@ -217,6 +227,7 @@ class Server:
         self._tick: Callable[[], None] = lambda: None
         self.max_clients = max_clients
         self.idle_timeout = idle_timeout or None  # 0 or None: never
+        self.first_request_timeout = first_request_timeout or None
         self._clients: set[_Client] = set()
         self._swept = 0.0
 
@@ -273,19 +284,20 @@ class Server:
         self.selector.register(listener, selectors.EVENT_READ, None)
 
     def _accept(self) -> None:
+        accepted: list[_Client] = []
         for _ in range(ACCEPTS_PER_TURN):
             try:
                 conn, address = self.listener.accept()
             except OSError:  # nothing left to accept, or out of descriptors: try next turn
                 return
             peer = f"{address[0]}:{address[1]}"
-            if len(self._clients) >= self.max_clients:
+            if len(self._clients) >= self.max_clients and not self._give_slot(accepted):
                 # Close at once rather than run out of descriptors or keep the master waiting
                 # for a reply that will never come; the clients already served never notice.
                 conn.close()
                 self.stats.refused += 1
                 clients = "1 client" if self.max_clients == 1 else f"{self.max_clients} clients"
-                why = f"refused: {clients} already connected (--max-clients)"
+                why = f"refused: {clients} already connected and busy (--max-clients)"
                 self.stats.frame("refuse", peer, b"", why)
                 self._log("refuse", peer, b"", why)
                 continue
@@ -294,9 +306,40 @@ class Server:
             client = _Client(conn, peer, device_framer(self.framer_name))
             self.selector.register(conn, client.events, client)
             self._clients.add(client)
+            accepted.append(client)
             self.stats.clients += 1
             self.stats.connections += 1
             self._log("open", peer, b"", "connected")
+            # A request already waiting is answered now: the newcomer has used its slot
+            # before the next one looks for an idle client.
+            self._receive(client)
+
+    def _give_slot(self, accepted: list[_Client]) -> bool:
+        """Close the least recently used idle client for a newcomer; False if none may go.
+
+        Idle: nothing owed to it or unsent, so no transaction is cut short.  While any client
+        has completed no request, the oldest of those goes, and a client that has used its
+        slot stays; but those accepted in this turn are spared (the newcomer is refused
+        instead), so a burst cannot push out a newcomer before its request could be read.
+        Otherwise the client longest without a request or a reply taken goes.
+        """
+        idle = [c for c in self._clients if not c.owed and not c.out]
+        unused = [c for c in idle if not c.requests]
+        if unused:
+            older = [c for c in unused if c not in accepted]
+            if not older:
+                return False
+            victim = min(older, key=lambda c: c.connected)
+            why = "gave its slot to a newcomer: no request since it connected"
+        elif idle:
+            victim = min(idle, key=lambda c: c.last_active)
+            why = f"gave its slot to a newcomer: idle for {time.monotonic() - victim.last_active:.1f} s"
+        else:
+            return False
+        self.stats.evicted += 1
+        self.stats.frame("close", victim.peer, b"", why)
+        self._close(victim, why + " (--max-clients)")
+        return True
 
     def _close(self, client: _Client, why: str) -> None:
         if client.closed:
@@ -335,6 +378,7 @@ class Server:
                 # Only a whole request counts as activity: bytes that never make one
                 # (a drip, garbage) do not keep a client's slot.
                 client.last_active = time.monotonic()
+                client.requests += 1
             reply = self.responder.answer(event, client.framer, client.peer)
             if reply:
                 self._queue(client, reply)
@@ -378,11 +422,25 @@ class Server:
             self.selector.modify(client.sock, events, client)
 
     def _expire(self, now: float) -> None:
-        """Close the clients that completed no request and took no reply for idle_timeout."""
-        limit = self.idle_timeout
-        if limit is None or now - self._swept < TICK / 2:
+        """Close the clients that completed no request and took no reply for idle_timeout,
+        and those that completed none first_request_timeout after connecting."""
+        if now - self._swept < TICK / 2:
             return
         self._swept = now
+        first = self.first_request_timeout
+        if first is not None:
+            for client in [c for c in self._clients if not c.requests and now - c.connected > first]:
+                why = (
+                    f"first-request timeout: no whole request {now - client.connected:.1f} s after connecting"
+                )
+                if client.framer.buffered:
+                    why += f", {client.framer.buffered} bytes of one buffered"
+                self.stats.unused += 1
+                self.stats.frame("close", client.peer, b"", why)
+                self._close(client, why)
+        limit = self.idle_timeout
+        if limit is None:
+            return
         for client in [c for c in self._clients if not c.owed and now - c.last_active > limit]:
             idle = f"{now - client.last_active:.1f} s"
             if client.out:
@@ -399,15 +457,20 @@ class Server:
 
     def _serve_tcp(self) -> None:
         while not self._stop:
+            newcomers = False
             for key, mask in self.selector.select(self._wait(TICK)):
                 client = key.data
                 if client is None:
-                    self._accept()
+                    newcomers = True
                     continue
                 if mask & selectors.EVENT_WRITE:
                     self._flush(client)
                 if mask & selectors.EVENT_READ and not client.closed:
                     self._receive(client)
+            if newcomers:
+                # After the clients' reads: a request already on its way makes its client
+                # busy or recently used before a newcomer looks for an idle slot.
+                self._accept()
             self._send_due()
             now = time.monotonic()
             if self.framer_name != "tcp":
@@ -501,14 +564,28 @@ class Server:
 
 
 class _Client:
-    __slots__ = ("sock", "peer", "framer", "last_data", "last_active", "out", "owed", "events", "closed")
+    __slots__ = (
+        "sock",
+        "peer",
+        "framer",
+        "connected",
+        "last_data",
+        "last_active",
+        "requests",
+        "out",
+        "owed",
+        "events",
+        "closed",
+    )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
         self.sock = sock
         self.peer = peer
         self.framer = framer
-        self.last_data = time.monotonic()  # the last bytes received (RTU/ASCII over TCP: the gap)
-        self.last_active = self.last_data  # connected, a whole request, or a reply taken
+        self.connected = time.monotonic()
+        self.last_data = self.connected  # the last bytes received (RTU/ASCII over TCP: the gap)
+        self.last_active = self.connected  # connected, a whole request, or a reply taken
+        self.requests = 0  # whole requests received
         self.out = bytearray()  # replies the socket has not taken yet
         self.owed = 0  # replies held back by --delay
         self.events = selectors.EVENT_READ

@@ -211,16 +211,18 @@ def test_pymodbus_tcp_every_function_code():
             client.close()
 
 
-def test_pymodbus_tcp_several_units_and_broadcast():
+def test_pymodbus_tcp_several_units_and_unit_0():
     with serve("-u", "1-3,17") as server:
         assert "units 1-3,17" in server.first_line
         client = tcp_client(server)
         try:
             client.write_register(50, 77, device_id=2)
-            client.write_register(51, 5, device_id=0, no_response_expected=True)
+            # Unit 0 on Modbus TCP is the device itself (the lowest unit), answered, no
+            # broadcast; test_fidelity_device.py has the broadcast with RTU framing.
+            assert not client.write_register(51, 5, device_id=0).isError()
             for unit in (1, 2, 3, 17):
                 regs = client.read_holding_registers(50, count=2, device_id=unit).registers
-                assert regs == [77 if unit == 2 else 50, 5], unit
+                assert regs == [77 if unit == 2 else 50, 5 if unit == 1 else 51], unit
             assert client.report_device_id(device_id=17).identifier[:2] == b"\x11\xff"
         finally:
             client.close()

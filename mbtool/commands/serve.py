@@ -98,7 +98,9 @@ class Fraction(click.ParamType):
     default="1",
     show_default=True,
     help="Unit ids to answer for: 1,17 or 1-10 or both. Frames for other ids are ignored, "
-    "like a slave on a shared bus; unit 0 (broadcast) writes reach every unit and are never answered.",
+    "like a slave on a shared bus. With rtu or ascii framing unit 0 (broadcast) writes reach every "
+    "unit and are never answered; on Modbus TCP units 0 and 255 address the device itself, "
+    "answered as the lowest unit.",
 )
 @click.option(
     "--framer",
@@ -112,8 +114,14 @@ class Fraction(click.ParamType):
     "data_file",
     metavar="FILE",
     type=click.Path(dir_okay=False),
-    help="Initial tables and device identity from a JSON or TOML file (see README). "
+    help="Initial tables and device identity from a JSON or TOML file (see README); with "
+    "sparse = true in it, addresses it does not list answer exception 02. "
     "Without it the device starts with the sim:// demo data.",
+)
+@click.option(
+    "--read-only",
+    is_flag=True,
+    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01.",
 )
 @click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
 @click.option(
@@ -143,7 +151,9 @@ class Fraction(click.ParamType):
     type=Number(1, 1000, "client count"),
     default=64,
     show_default=True,
-    help="TCP: clients served at once; a connection past them is closed at once and logged.",
+    help="TCP: clients served at once. A newcomer past them takes the slot of the least "
+    "recently used idle client (one that never completed a request first); with none idle it "
+    "is closed at once. Both are logged.",
 )
 @click.option(
     "--idle-timeout",
@@ -152,6 +162,13 @@ class Fraction(click.ParamType):
     show_default=True,
     help="TCP: close a client that completes no request and takes no reply for SECONDS "
     "(one that never sends, sends a byte now and then, or does not read); 0 for never.",
+)
+@click.option(
+    "--first-request-timeout",
+    type=Seconds(),
+    default=5.0,
+    show_default=True,
+    help="TCP: close a client that has not completed a request SECONDS after connecting; 0 for never.",
 )
 @click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
@@ -164,6 +181,7 @@ def serve(
     bytesize,
     stopbits,
     data_file,
+    read_only,
     delay,
     drop,
     corrupt,
@@ -171,6 +189,7 @@ def serve(
     busy,
     max_clients,
     idle_timeout,
+    first_request_timeout,
     seed,
     quiet,
 ):
@@ -205,6 +224,7 @@ def serve(
         model, unit_models = demo_model(), {}
     device = Device(model, unit_set, unit_models)
     device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
+    device.read_only = read_only
     settings = SerialSettings(baud, parity.upper(), int(bytesize), int(stopbits))
     mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
     log = functools.partial(_log_line, framer) if mode == "log" else None
@@ -218,10 +238,12 @@ def serve(
         log=log,
         max_clients=max_clients,
         idle_timeout=idle_timeout,
+        first_request_timeout=first_request_timeout,
     )
     server.open()
     unit_text = units_text(unit_set)
-    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}")
+    refusal = " read-only: writes get exception 01" if read_only else ""
+    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
     sys.stdout.flush()
 
     def stop(signum, frame):
@@ -242,7 +264,9 @@ def serve(
             f", {count} {what}"
             for count, what in (
                 (stats.refused, "refused (--max-clients)"),
+                (stats.evicted, "gave their slot to a newcomer (--max-clients)"),
                 (stats.expired, "timed out (--idle-timeout)"),
+                (stats.unused, "sent no request (--first-request-timeout)"),
             )
             if count
         )
@@ -280,12 +304,13 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         head = Table.grid(padding=(0, 2))
         head.add_row(
             f"[b]mbtool serve[/b] {stats.listening}",
-            f"framer {framer}",
+            f"framer {framer}" + (", read-only" if device.read_only else ""),
             f"units {unit_text}",
             f"up {uptime:.0f} s",
             f"clients {stats.clients}"
             + (f", {stats.refused} refused" if stats.refused else "")
-            + (f", {stats.expired} timed out" if stats.expired else ""),
+            + (f", {stats.evicted} gave their slot" if stats.evicted else "")
+            + (f", {stats.expired + stats.unused} timed out" if stats.expired + stats.unused else ""),
         )
         head.add_row(
             f"requests {stats.requests}",
