@@ -1,0 +1,1 @@
+"""Register maps: a device's points by name, with scaling, units, enums and bits (issue 15)."""

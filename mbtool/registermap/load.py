@@ -1,0 +1,302 @@
+"""Reading a register map: TOML, or CSV with a header row of the same keys plus ``name``.
+
+Everything is checked when the map is loaded, before anything is sent: an
+unknown key, a point that overlaps another, a bit of a float, a 32-bit value
+that runs past register 65535 — each is one line naming the file, the point
+and the key.
+"""
+
+from __future__ import annotations
+
+import csv
+import tomllib
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+from mbtool.codec.tables import Table, parse_reference, table_named
+from mbtool.codec.values import ORDERS, TYPES
+from mbtool.errors import MbtoolError, RequestError
+from mbtool.registermap.point import Point
+
+POINT_KEYS = {
+    "ref": 'a Modicon reference: 40108, "00001", 4x0108',
+    "table": "coils, discrete, input or holding (with address)",
+    "address": "the 0-based wire address (with table)",
+    "type": "a --type name",
+    "order": "ABCD, CDAB, BADC or DCBA",
+    "count": "registers of a string",
+    "scale": "value = raw × scale + offset",
+    "offset": "value = raw × scale + offset",
+    "unit": "the unit printed after the value",
+    "description": "free text",
+    "enum": "labels of raw values",
+    "bit": "one bit (0-15) of a register",
+    "access": "r or rw",
+}
+DEVICE_KEYS = ("type", "order", "access", "max_gap")
+NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
+
+
+class MapError(MbtoolError, ValueError):
+    """A map that cannot be used: exit 2, nothing sent."""
+
+    exit_code = RequestError.exit_code
+
+
+class RegisterMap:
+    def __init__(self, points: dict[str, Point], max_gap: int = 0, source: str = "") -> None:
+        self.points = points
+        self.max_gap = max_gap
+        self.source = source
+
+    def select(self, names: tuple[str, ...] | list[str]) -> list[Point]:
+        """The named points, in the order given; every point when none is named."""
+        if not names:
+            return list(self.points.values())
+        unknown = [name for name in names if name not in self.points]
+        if unknown:
+            known = ", ".join(self.points)
+            raise MapError(f"{self.source}: no point named {', '.join(unknown)} (the map has {known})")
+        return [self.points[name] for name in names]
+
+
+def load_map(path: str | Path) -> RegisterMap:
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as error:
+        raise MapError(f"cannot read map {path}: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise MapError(f"{path}: not UTF-8 text (byte {error.start})") from None
+    if path.suffix.lower() == ".csv":
+        device: dict = {}
+        rows = _csv_rows(path, text)
+    else:
+        try:
+            document = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as error:
+            raise MapError(f"{path}: not a valid TOML map: {error}") from None
+        unknown = set(document) - {"device", "points"}
+        if unknown:
+            raise MapError(
+                f"{path}: unknown section {sorted(unknown)[0]!r} (a map has [device] and [points.NAME])"
+            )
+        device, rows = document.get("device", {}), document.get("points", {})
+        if not isinstance(rows, dict) or not all(isinstance(row, dict) for row in rows.values()):
+            raise MapError(f"{path}: points are tables: [points.NAME] with keys such as ref and type")
+    defaults = _device(path, device)
+    max_gap = defaults.pop("max_gap", 0)
+    points = {name: _point(path, name, row, defaults) for name, row in rows.items()}
+    if not points:
+        raise MapError(f"{path}: the map has no points")
+    _check_overlaps(path, points.values())
+    return RegisterMap(points, max_gap, str(path))
+
+
+def _csv_rows(path: Path, text: str) -> dict[str, dict]:
+    reader = csv.DictReader(text.splitlines())
+    if not reader.fieldnames or "name" not in reader.fieldnames:
+        raise MapError(f"{path}: the first row names the columns, one of them name")
+    rows: dict[str, dict] = {}
+    for line, row in enumerate(reader, start=2):
+        if None in row:
+            raise MapError(f"{path}: line {line} has more cells than the header")
+        name = (row.pop("name") or "").strip()
+        if not name:
+            raise MapError(f"{path}: line {line} has no name")
+        if name in rows:
+            raise MapError(f"{path}: line {line}: point {name} is named twice")
+        cells = {key: value.strip() for key, value in row.items() if value and value.strip()}
+        if "enum" in cells:
+            cells["enum"] = _csv_enum(path, name, cells["enum"])
+        rows[name] = cells
+    return rows
+
+
+def _csv_enum(path: Path, name: str, text: str) -> dict:
+    """``0=stopped; 1=running`` in a CSV cell."""
+    labels = {}
+    for part in text.split(";"):
+        raw, sep, label = part.partition("=")
+        if not sep:
+            raise MapError(f"{path}: point {name}: key enum: write it as 0=stopped; 1=running")
+        labels[raw.strip()] = label.strip()
+    return labels
+
+
+def _device(path: Path, device: object) -> dict:
+    if not isinstance(device, dict):
+        raise MapError(f"{path}: [device] is a table of defaults ({', '.join(DEVICE_KEYS)})")
+    for key in device:
+        if key not in DEVICE_KEYS:
+            raise MapError(f"{path}: [device]: unknown key {key!r} (known: {', '.join(DEVICE_KEYS)})")
+    defaults = dict(device)
+    if "max_gap" in defaults:
+        defaults["max_gap"] = _integer(path, "[device]", "max_gap", defaults["max_gap"], 0, 2000)
+    return defaults
+
+
+def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
+    where = f"{path}: point {name}"
+
+    def fail(key: str, why: str) -> MapError:
+        return MapError(f"{where}: key {key}: {why}")
+
+    for key in row:
+        if key not in POINT_KEYS:
+            raise MapError(f"{where}: unknown key {key!r} (known: {', '.join(POINT_KEYS)})")
+    table, address = _location(path, name, row, fail)
+    # [device] defaults apply where they mean something: a type or order to registers,
+    # rw to the tables that can be written.
+    if not table.bits:
+        row = {key: defaults[key] for key in ("type", "order") if key in defaults} | row
+    if table.writable and "access" in defaults:
+        row = {"access": defaults["access"]} | row
+    kind = str(row.get("type", "bool" if table.bits else "uint16")).lower()
+    access = str(row.get("access", "r")).lower()
+    if access not in ("r", "rw"):
+        raise fail("access", f"{row['access']!r} is neither r nor rw")
+    if access == "rw" and not table.writable:
+        raise fail("access", f"{table.items} are read-only")
+    options = {
+        "unit": _string(row, "unit", fail),
+        "description": _string(row, "description", fail),
+        "writable": access == "rw",
+    }
+    if table.bits:
+        for key in ("order", "count", "scale", "offset", "enum", "bit"):
+            if key in row:
+                raise fail(key, f"{table.items} hold one bit each; {key} is for registers")
+        if kind != "bool":
+            raise fail("type", f"{table.items} hold one bit each, not {kind}")
+        return Point(name, table, address, "bool", **options)
+    if kind not in TYPES:
+        raise fail("type", f"unknown type {kind!r} (known: {', '.join(TYPES)})")
+    order = str(row.get("order", "ABCD")).upper()
+    if order not in ORDERS:
+        raise fail("order", f"unknown order {row['order']!r} (known: {', '.join(ORDERS)})")
+    count = 1
+    if kind == "string":
+        if "count" not in row:
+            raise fail("count", "a string needs count, the registers it spans (2 characters each)")
+        count = _integer(path, name, "count", row["count"], 1, 125)
+    elif "count" in row:
+        raise fail("count", f"count is for strings; a {kind} spans {TYPES[kind].registers} register(s)")
+    bit = None
+    if "bit" in row:
+        if TYPES[kind].registers != 1 or kind not in ("uint16", "int16", "hex"):
+            raise fail("bit", f"a bit is one of a 16-bit register's bits, not of a {kind}")
+        bit = _integer(path, name, "bit", row["bit"], 0, 15)
+        for key in ("scale", "offset", "enum"):
+            if key in row:
+                raise fail(key, f"a bit reads on or off; {key} does not apply")
+        kind = "bool"
+    scale = _decimal(row, "scale", fail)
+    offset = _decimal(row, "offset", fail)
+    if scale == 0:
+        raise fail("scale", "a scale of 0 makes every value the same")
+    if (scale is not None or offset is not None) and kind not in NUMERIC_TYPES:
+        raise fail("scale" if scale is not None else "offset", f"a {kind} has no number to scale")
+    enum = _enum(row, fail) if "enum" in row else None
+    if enum is not None and not kind.startswith(("uint", "int")):
+        raise fail("enum", f"labels are for integer types, not {kind}")
+    point = Point(name, table, address, kind, order, count, scale, offset, enum=enum, bit=bit, **options)
+    if point.end > 65536:
+        raise fail(
+            "ref" if "ref" in row else "address",
+            f"a {point.size}-register {kind} at {point.ref} runs past the last register (65535)",
+        )
+    return point
+
+
+def _location(path: Path, name: str, row: dict, fail) -> tuple[Table, int]:
+    if "ref" in row:
+        if "table" in row or "address" in row:
+            raise fail("ref", "give either ref or table and address, not both")
+        ref = row["ref"]
+        if isinstance(ref, bool) or not isinstance(ref, (int, str)):
+            raise fail("ref", f'{ref!r} is not a reference such as 40108 or "00001"')
+        try:
+            return parse_reference(str(ref))
+        except RequestError as error:
+            raise fail("ref", str(error)) from None
+    if "table" not in row or "address" not in row:
+        raise MapError(f"{path}: point {name}: no location: give ref, or table and address")
+    try:
+        table = table_named(str(row["table"]))
+    except RequestError as error:
+        raise fail("table", str(error)) from None
+    return table, _integer(path, name, "address", row["address"], 0, 65535)
+
+
+def _integer(path: Path, name: str, key: str, value: object, low: int, high: int) -> int:
+    where = f"{path}: {name}" if name.startswith("[") else f"{path}: point {name}"
+    try:
+        number = int(value, 0) if isinstance(value, str) else value
+    except ValueError:
+        number = None
+    if isinstance(number, bool) or not isinstance(number, int) or not low <= number <= high:
+        raise MapError(f"{where}: key {key}: {value!r} is not a whole number in {low}..{high}")
+    return number
+
+
+def _decimal(row: dict, key: str, fail) -> Decimal | None:
+    if key not in row:
+        return None
+    value = row[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise fail(key, f"{value!r} is not a number")
+    try:
+        number = Decimal(str(value))
+    except InvalidOperation:
+        raise fail(key, f"{value!r} is not a number") from None
+    if not number.is_finite():
+        raise fail(key, f"{value!r} is not a finite number")
+    return number
+
+
+def _string(row: dict, key: str, fail) -> str:
+    value = row.get(key, "")
+    if not isinstance(value, str):
+        raise fail(key, f"{value!r} is not text")
+    return value
+
+
+def _enum(row: dict, fail) -> dict[int, str]:
+    labels = row["enum"]
+    if not isinstance(labels, dict) or not labels:
+        raise fail("enum", 'a table of labels: enum = { 0 = "stopped", 1 = "running" }')
+    out: dict[int, str] = {}
+    for raw, label in labels.items():
+        try:
+            number = int(str(raw), 0)
+        except ValueError:
+            raise fail("enum", f"{raw!r} is not a whole number") from None
+        if not isinstance(label, str) or not label:
+            raise fail("enum", f"the label of {raw} is not text")
+        if label.lower() in (known.lower() for known in out.values()):
+            raise fail("enum", f"the label {label!r} is given twice")
+        out[number] = label
+    return out
+
+
+def _check_overlaps(path: Path, points) -> None:
+    """Two points may share a register only as different bits of it."""
+    by_table: dict[str, list[Point]] = {}
+    for point in points:
+        by_table.setdefault(point.table.name, []).append(point)
+    for table_points in by_table.values():
+        table_points.sort(key=lambda p: (p.address, p.end))
+        for before, after in zip(table_points, table_points[1:], strict=False):
+            if after.address >= before.end:
+                continue
+            if before.bit is not None and after.bit is not None and before.address == after.address:
+                if before.bit != after.bit:
+                    continue
+                raise MapError(
+                    f"{path}: point {after.name}: key bit: bit {after.bit} of {after.ref} is also point {before.name}"
+                )
+            raise MapError(
+                f"{path}: point {after.name}: key ref: {after.ref} overlaps point {before.name} "
+                f"({before.ref}, {before.size} {before.table.item}{'s' if before.size > 1 else ''})"
+            )

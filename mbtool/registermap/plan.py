@@ -1,0 +1,161 @@
+"""Reading and writing a map's points in as few requests as the spec allows.
+
+Points of one table that lie close together are read by one request: a block
+grows while it stays within the spec's limit for one read (125 registers,
+2000 bits; spec §3) and while the registers it reads that no point uses, in
+any one gap, are at most the map's ``max_gap``.  Growing each block as far as
+it goes, from the lowest address up, gives the fewest requests: any plan's
+first block ends no later than the greedy one's, and so on for every block.
+
+A device that answers a merged read with exception 02 (it lacks an address in
+a gap, or one point's address) is asked again point by point, and the error
+names the point at fault.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+from mbtool.codec.data_access import (
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    MaskWriteRegister,
+    ReadCoils,
+    ReadDiscreteInputs,
+    ReadHoldingRegisters,
+    ReadInputRegisters,
+    WriteMultipleCoils,
+    WriteMultipleRegisters,
+    WriteSingleCoil,
+    WriteSingleRegister,
+)
+from mbtool.codec.pdu import ExceptionCode, Request, Response
+from mbtool.codec.record import record
+from mbtool.codec.tables import COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS, Table
+from mbtool.errors import ModbusException, RequestError
+from mbtool.registermap.point import Point, PointValue
+
+READS = {
+    COILS.name: ReadCoils,
+    DISCRETE_INPUTS.name: ReadDiscreteInputs,
+    INPUT_REGISTERS.name: ReadInputRegisters,
+    HOLDING_REGISTERS.name: ReadHoldingRegisters,
+}
+
+
+@record
+class Block:
+    """One read request and the points it serves."""
+
+    table: Table
+    address: int
+    count: int
+    points: tuple[Point, ...]
+
+    def request(self) -> Request:
+        return READS[self.table.name](self.address, self.count)
+
+
+@record
+class Reading:
+    """A point's value as read, with the raw registers (or bit) it came from."""
+
+    point: Point
+    value: PointValue
+    raw: tuple
+
+
+def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
+    by_table: dict[str, list[Point]] = {}
+    for point in points:
+        by_table.setdefault(point.table.name, []).append(point)
+    blocks = []
+    for table_points in by_table.values():
+        table_points.sort(key=lambda p: (p.address, p.end))
+        table = table_points[0].table
+        limit = MAX_READ_BITS if table.bits else MAX_READ_REGISTERS
+        members = [table_points[0]]
+        start, end = table_points[0].address, table_points[0].end
+        for point in table_points[1:]:
+            if point.address - end <= max_gap and max(end, point.end) - start <= limit:
+                members.append(point)
+                end = max(end, point.end)
+                continue
+            blocks.append(Block(table, start, end - start, tuple(members)))
+            members, start, end = [point], point.address, point.end
+        blocks.append(Block(table, start, end - start, tuple(members)))
+    return blocks
+
+
+Execute = Callable[[Request], Response]
+
+
+def read_points(execute: Execute, points: list[Point], max_gap: int = 0) -> list[Reading]:
+    """Every point's reading, in the order the points were given."""
+    readings: dict[str, Reading] = {}
+    for block in plan_reads(points, max_gap):
+        try:
+            readings |= _read_block(execute, block)
+        except ModbusException as error:
+            if error.exception_code != ExceptionCode.ILLEGAL_DATA_ADDRESS:
+                raise
+            if len(block.points) == 1:
+                raise PointException(block.points[0], error) from None
+            for point in block.points:  # which point is it?
+                single = Block(point.table, point.address, point.size, (point,))
+                try:
+                    readings |= _read_block(execute, single)
+                except ModbusException as failure:
+                    raise PointException(point, failure) from None
+    return [readings[point.name] for point in points]
+
+
+def _read_block(execute: Execute, block: Block) -> dict[str, Reading]:
+    reply = execute(block.request())
+    data = reply.bits if block.table.bits else reply.registers
+    out = {}
+    for point in block.points:
+        raw = tuple(data[point.address - block.address : point.end - block.address])
+        out[point.name] = Reading(point, point.value_of(list(raw)), raw)
+    return out
+
+
+class PointException(ModbusException):
+    """An exception reply to a point's own read: the message names the point."""
+
+    def __init__(self, point: Point, error: ModbusException) -> None:
+        super().__init__(error.function_code, error.exception_code)
+        self.args = (f"{point.name} ({point.ref}): {error}",)
+
+
+def write_request(point: Point, text: str, multiple: bool = False) -> Request:
+    """The request that writes ``text`` to a point: FC05/06 for one item, FC15/16 for more
+    or when ``multiple`` (some devices accept only FC15/16); bits of a register: see ``bit_request``."""
+    if not point.writable:
+        why = (
+            f"{point.table.items} are read-only"
+            if not point.table.writable
+            else "the map does not mark it rw"
+        )
+        raise RequestError(f"{point.name} ({point.ref}) is not writable: {why}")
+    if point.bit is not None:
+        return bit_request(point.address, point.bit, bool(point.raw_for(text)))
+    if point.table.bits:
+        on = bool(point.raw_for(text))
+        return WriteMultipleCoils(point.address, (on,)) if multiple else WriteSingleCoil(point.address, on)
+    registers = point.registers_for(text)
+    if len(registers) == 1 and not multiple:
+        return WriteSingleRegister(point.address, registers[0])
+    return WriteMultipleRegisters(point.address, tuple(registers))
+
+
+def bit_request(address: int, bit: int, on: bool) -> MaskWriteRegister:
+    """FC22 that sets or clears one bit and leaves the others (spec §3: AND mask keeps,
+    OR mask sets where the AND mask is 0)."""
+    mask = 1 << bit
+    return MaskWriteRegister(address, 0xFFFF ^ mask, mask if on else 0)
+
+
+def with_bit(current: int, bit: int, on: bool) -> int:
+    """A register's value with one bit set or cleared: --rmw's modify step."""
+    return current | 1 << bit if on else current & ~(1 << bit) & 0xFFFF

@@ -1,0 +1,426 @@
+"""Modicon references and register maps (issue 15): parsing, scaling, loading, planning reads."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from mbtool.codec.pdu import ExceptionResponse
+from mbtool.codec.tables import (
+    COILS,
+    DISCRETE_INPUTS,
+    HOLDING_REGISTERS,
+    INPUT_REGISTERS,
+    parse_reference,
+    reference,
+)
+from mbtool.codec.values import encode_values
+from mbtool.device import DataModel, Device
+from mbtool.errors import ExitCode, ModbusException, RequestError
+from mbtool.registermap.load import MapError, load_map
+from mbtool.registermap.plan import bit_request, plan_reads, read_points, with_bit, write_request
+from mbtool.registermap.point import Point
+
+# --- references ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "text, table, address",
+    [
+        ("00001", COILS, 0),
+        ("09999", COILS, 9998),
+        ("10001", DISCRETE_INPUTS, 0),
+        ("30001", INPUT_REGISTERS, 0),
+        ("40108", HOLDING_REGISTERS, 107),
+        ("400108", HOLDING_REGISTERS, 107),
+        ("465536", HOLDING_REGISTERS, 65535),
+        ("000001", COILS, 0),
+        ("165536", DISCRETE_INPUTS, 65535),
+        ("4x0108", HOLDING_REGISTERS, 107),
+        ("3X0001", INPUT_REGISTERS, 0),
+        ("0x65536", COILS, 65535),
+    ],
+)
+def test_references_of_device_manuals(text, table, address):
+    assert parse_reference(text) == (table, address)
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("40000", "40001 is holding register 1, wire address 0"),
+        ("1", "a reference has 5 or 6 digits: 00001 for coil 1"),
+        ("4000", "5 or 6 digits"),
+        ("4000001", "5 or 6 digits"),
+        ("20001", "no table has the prefix 2"),
+        ("465537", "up to 65536"),
+        ("4x0", "holding registers count from 1"),
+        ("", "5 or 6 digits"),
+        ("4O001", "5 or 6 digits"),
+    ],
+)
+def test_invalid_references_say_why(text, words):
+    with pytest.raises(RequestError, match=words) as caught:
+        parse_reference(text)
+    assert caught.value.exit_code == ExitCode.USAGE
+    assert "'" not in str(caught.value)
+
+
+@pytest.mark.parametrize("address, text", [(0, "40001"), (107, "40108"), (9998, "49999"), (9999, "410000")])
+def test_reference_of_an_address_uses_five_digits_while_they_suffice(address, text):
+    assert reference(HOLDING_REGISTERS, address) == text
+    assert parse_reference(text) == (HOLDING_REGISTERS, address)
+
+
+# --- points -------------------------------------------------------------------
+
+
+def _point(**keys) -> Point:
+    return Point(
+        keys.pop("name", "p"), keys.pop("table", HOLDING_REGISTERS), keys.pop("address", 107), **keys
+    )
+
+
+def test_scaled_value_is_exact_in_decimal():
+    from decimal import Decimal
+
+    flow = _point(type="uint16", scale=Decimal("0.1"))
+    assert flow.value_of([225]) == 22.5
+    assert repr(flow.value_of([3])) == "0.3"  # not 0.30000000000000004
+    assert flow.value_of([1230]) == 123
+    assert isinstance(flow.value_of([1230]), int)
+
+
+def test_float32_in_cdab_with_scale_and_offset():
+    from decimal import Decimal
+
+    point = _point(type="float32", order="CDAB", scale=Decimal("10"), offset=Decimal("-1"))
+    registers = encode_values([2.5], "float32", "CDAB")
+    assert point.value_of(registers) == 24
+    assert point.registers_for("24") == registers
+
+
+def test_enum_labels_both_ways():
+    state = _point(enum={0: "stopped", 1: "running", 2: "fault"}, writable=True)
+    assert state.value_of([1]) == "running"
+    assert state.value_of([7]) == 7  # a value the manual does not name stays a number
+    assert state.registers_for("Running") == [1]
+    assert state.registers_for("2") == [2]
+    with pytest.raises(RequestError, match="none of stopped, running, fault"):
+        state.registers_for("paused")
+
+
+def test_bits_of_a_register():
+    alarm = _point(type="bool", bit=3)
+    assert alarm.value_of([0b1000]) is True
+    assert alarm.value_of([0b0111]) is False
+    assert alarm.raw_for("on") is True and alarm.raw_for("OFF") is False
+    with pytest.raises(RequestError, match="not on or off"):
+        alarm.raw_for("maybe")
+
+
+def test_written_value_must_be_a_whole_number_of_steps():
+    from decimal import Decimal
+
+    setpoint = _point(scale=Decimal("0.1"), writable=True)
+    assert setpoint.registers_for("22.5") == [225]
+    with pytest.raises(RequestError, match="nearest writable values are 22.5 and 22.6"):
+        setpoint.registers_for("22.53")
+
+
+def test_written_value_must_fit_the_type():
+    from decimal import Decimal
+
+    setpoint = _point(type="int16", scale=Decimal("0.1"), unit="°C", writable=True)
+    assert setpoint.registers_for("-5") == [0xFFCE]
+    with pytest.raises(RequestError, match="raw 40000.*out of range -32768..32767"):
+        setpoint.registers_for("4000")
+    with pytest.raises(RequestError, match="not a number"):
+        setpoint.registers_for("warm")
+
+
+def test_write_requests_pick_the_function_code():
+    from decimal import Decimal
+
+    single = _point(scale=Decimal("0.1"), writable=True)
+    assert write_request(single, "22.5").function_code == 0x06
+    assert write_request(single, "22.5", multiple=True).function_code == 0x10
+    wide = _point(type="float32", writable=True)
+    assert write_request(wide, "1.5").function_code == 0x10
+    coil = _point(table=COILS, address=3, type="bool", writable=True)
+    assert write_request(coil, "on").function_code == 0x05
+    assert write_request(coil, "on", multiple=True).function_code == 0x0F
+    bit = _point(type="bool", bit=3, writable=True)
+    request = write_request(bit, "on")
+    assert request.function_code == 0x16
+    assert (request.and_mask, request.or_mask) == (0xFFF7, 0x0008)
+
+
+def test_read_only_points_are_not_written():
+    with pytest.raises(RequestError, match="not writable: the map does not mark it rw"):
+        write_request(_point(), "1")
+    with pytest.raises(RequestError, match="input registers are read-only"):
+        write_request(_point(table=INPUT_REGISTERS), "1")
+
+
+def test_bit_masks_set_and_clear_one_bit_only():
+    from mbtool.codec.data_access import mask_write_result
+
+    for current in (0x0000, 0xFFFF, 0x1234):
+        for bit in (0, 7, 15):
+            for on in (True, False):
+                request = bit_request(10, bit, on)
+                assert mask_write_result(current, request.and_mask, request.or_mask) == with_bit(
+                    current, bit, on
+                )
+                assert bool(with_bit(current, bit, on) >> bit & 1) is on
+                others = ~(1 << bit) & 0xFFFF
+                assert with_bit(current, bit, on) & others == current & others
+
+
+# --- map files ----------------------------------------------------------------
+
+PUMP = """
+[device]
+order = "CDAB"
+max_gap = 0
+
+[points.flow]
+ref = 40108
+type = "float32"
+scale = 0.1
+unit = "m3/h"
+description = "Outlet flow"
+
+[points.state]
+ref = 40110
+enum = { 0 = "stopped", 1 = "running", 2 = "fault" }
+
+[points.alarm_high]
+ref = 40111
+bit = 3
+
+[points.setpoint]
+ref = 40120
+scale = 0.1
+access = "rw"
+
+[points.run]
+ref = "00001"
+access = "rw"
+
+[points.speed]
+table = "input"
+address = 4
+type = "int16"
+"""
+
+
+def _write(tmp_path, text, name="pump.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_a_toml_map_loads_with_device_defaults(tmp_path):
+    pump = load_map(_write(tmp_path, PUMP))
+    flow = pump.points["flow"]
+    assert (flow.table, flow.address, flow.type, flow.order, flow.unit) == (
+        HOLDING_REGISTERS,
+        107,
+        "float32",
+        "CDAB",
+        "m3/h",
+    )
+    assert pump.points["run"].table is COILS and pump.points["run"].writable
+    assert pump.points["speed"].table is INPUT_REGISTERS and pump.points["speed"].address == 4
+    assert not pump.points["state"].writable
+    assert pump.points["alarm_high"].bit == 3
+
+
+def test_a_csv_map_reads_as_the_toml_one(tmp_path):
+    csv_map = _write(
+        tmp_path,
+        "name,ref,type,order,scale,unit,description,enum,bit,access\n"
+        "flow,40108,float32,CDAB,0.1,m3/h,Outlet flow,,,\n"
+        "state,40110,,CDAB,,,,0=stopped; 1=running; 2=fault,,\n"
+        "alarm_high,40111,,CDAB,,,,,3,\n"
+        "run,00001,,,,,,,,rw\n",
+        "pump.csv",
+    )
+    points = load_map(csv_map).points
+    toml_points = load_map(_write(tmp_path, PUMP)).points
+    for name in ("flow", "state", "alarm_high", "run"):
+        assert points[name] == toml_points[name], name
+    assert points["state"].enum == toml_points["state"].enum
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("[points.a]\nref = 40001\ncolour = 'red'\n", "point a: unknown key 'colour'"),
+        (
+            "[points.a]\nref = 40001\ntype = 'float32'\n[points.b]\nref = 40002\n",
+            "point b: key ref: 40002 overlaps point a",
+        ),
+        ("[points.a]\nref = 40001\ntype = 'float32'\nbit = 2\n", "point a: key bit: .*not of a float32"),
+        ("[points.a]\nref = 465536\ntype = 'uint32'\n", "point a: key ref: .*runs past the last register"),
+        ("[points.a]\nref = 30001\naccess = 'rw'\n", "point a: key access: input registers are read-only"),
+        ("[points.a]\nref = 1\n", "point a: key ref: .*00001 for coil 1"),
+        ("[points.a]\nref = 40001\nbit = 16\n", "point a: key bit: 16 is not a whole number in 0..15"),
+        ("[points.a]\nref = 40001\nscale = 'x'\n", "point a: key scale: 'x' is not a number"),
+        ("[points.a]\nref = 40001\nscale = 0\n", "point a: key scale"),
+        ("[points.a]\nref = 40001\ntype = 'float16'\n", "point a: key type: unknown type"),
+        ("[points.a]\nref = 40001\norder = 'ACBD'\n", "point a: key order: unknown order"),
+        ("[points.a]\nref = 40001\ntype = 'string'\n", "point a: key count"),
+        ("[points.a]\nref = '00001'\nscale = 2\n", "point a: key scale: coils hold one bit each"),
+        ("[points.a]\nref = 40001\ntable = 'holding'\n", "point a: key ref: give either ref or table"),
+        ("[points.a]\ntable = 'holding'\n", "point a: no location"),
+        (
+            "[points.a]\nref = 40001\nbit = 1\n[points.b]\nref = 40001\nbit = 1\n",
+            "point b: key bit: bit 1 of 40001",
+        ),
+        ("[device]\nspeed = 3\n[points.a]\nref = 40001\n", r"\[device\]: unknown key 'speed'"),
+        ("[points.a]\nref = 40001\nenum = { x = 'on' }\n", "point a: key enum"),
+        ("[pointz.a]\nref = 40001\n", "unknown section 'pointz'"),
+        ("[device]\n", "the map has no points"),
+        ("[points.a\n", "not a valid TOML map"),
+    ],
+)
+def test_bad_maps_name_file_point_and_key(tmp_path, text, words):
+    path = _write(tmp_path, text)
+    with pytest.raises(MapError, match=words) as caught:
+        load_map(path)
+    assert str(caught.value).startswith(str(path))
+    assert caught.value.exit_code == ExitCode.USAGE
+
+
+def test_bits_of_one_register_do_not_overlap(tmp_path):
+    text = "[points.a]\nref = 40001\nbit = 0\n[points.b]\nref = 40001\nbit = 1\n"
+    assert set(load_map(_write(tmp_path, text)).points) == {"a", "b"}
+
+
+def test_unreadable_and_non_utf8_maps(tmp_path):
+    with pytest.raises(MapError, match="cannot read map"):
+        load_map(tmp_path / "missing.toml")
+    path = tmp_path / "latin.toml"
+    path.write_bytes(b"[points.caf\xe9]\nref = 40001\n")
+    with pytest.raises(MapError, match="not UTF-8"):
+        load_map(path)
+
+
+def test_unknown_point_names_are_listed(tmp_path):
+    pump = load_map(_write(tmp_path, PUMP))
+    with pytest.raises(MapError, match="no point named pressure"):
+        pump.select(["pressure"])
+    assert [p.name for p in pump.select(["state", "flow"])] == ["state", "flow"]
+    assert len(pump.select([])) == 6
+
+
+# --- planning and reading -----------------------------------------------------
+
+
+def _spread_map(tmp_path) -> str:
+    """50 points over the four tables, with gaps and runs, as a real device has them."""
+    lines = []
+    for i in range(15):  # holding: 0..28 step 2 (uint16) and far 1000..
+        lines.append(f"[points.h{i}]\nref = {40001 + 2 * i}\n")
+    for i in range(5):
+        lines.append(f"[points.hf{i}]\nref = {41001 + 2 * i}\ntype = 'float32'\n")
+    for i in range(10):
+        lines.append(f"[points.i{i}]\nref = {30001 + 13 * i}\n")
+    for i in range(10):
+        lines.append(f"[points.c{i}]\nref = '{1 + 250 * i:05d}'\n")
+    for i in range(10):
+        lines.append(f"[points.d{i}]\nref = {10001 + i}\n")
+    return "".join(lines)
+
+
+def test_a_map_of_50_points_over_4_tables_is_read_in_the_fewest_requests(tmp_path):
+    path = _write(tmp_path, _spread_map(tmp_path))
+    points = load_map(path).points.values()
+    assert len(points) == 50
+    # max_gap 0: every gap splits a block, so one read per run of adjacent points.
+    assert len(plan_reads(points, 0)) == 15 + 1 + 10 + 10 + 1  # hf are adjacent: one read
+    # A gap allowance bridges the gaps: holding 0..28 and 1000..1009 are 2 blocks (the
+    # second is too far), input 0..118 fits one, coils 0..2250 are two (2000 bits a read).
+    blocks = plan_reads(points, 1000)
+    assert [(b.table.name, b.address, b.count) for b in blocks] == [
+        ("holding", 0, 29),
+        ("holding", 1000, 10),
+        ("input", 0, 118),
+        ("coils", 0, 1751),
+        ("coils", 2000, 251),
+        ("discrete", 0, 10),
+    ]
+    # The fewest the limits allow: holding spans 1010 registers (> 125) and coils 2251
+    # bits (> 2000), so each needs two reads; input and discrete need one.
+    assert len(blocks) == 2 + 1 + 2 + 1
+
+
+def test_blocks_respect_the_read_limits():
+    points = [_point(name=f"p{i}", address=i, type="uint32") for i in range(0, 200, 2)]
+    blocks = plan_reads(points, 0)
+    assert [b.count for b in blocks] == [124, 76]
+    assert all(b.count <= 125 for b in blocks)
+
+
+def _execute(device: Device, requests: list):
+    def execute(request):
+        requests.append(request)
+        reply = request.decode_response(device.handle(1, request.encode()))
+        if isinstance(reply, ExceptionResponse):
+            raise ModbusException(reply.function_code, reply.exception_code)
+        return reply
+
+    return execute
+
+
+def test_read_points_decodes_every_point(tmp_path):
+    pump = load_map(_write(tmp_path, PUMP))
+    device = Device(DataModel())
+    flow = encode_values([123.4], "float32", "CDAB")
+    device.model.holding_registers[107:111] = type(device.model.holding_registers)("H", [*flow, 1, 0b1000])
+    device.model.holding_registers[119] = 225
+    device.model.coils[0] = 1
+    device.model.input_registers[4] = struct.unpack(">H", struct.pack(">h", -40))[0]
+    requests: list = []
+    readings = read_points(_execute(device, requests), list(pump.points.values()), pump.max_gap)
+    values = {r.point.name: r.value for r in readings}
+    assert values == {
+        "flow": pytest.approx(12.34, rel=1e-6),
+        "state": "running",
+        "alarm_high": True,
+        "setpoint": 22.5,
+        "run": True,
+        "speed": -40,
+    }
+    assert [r.point.name for r in readings] == list(pump.points)
+    assert len(requests) == 4  # 40108..40111, 40120, coil 1, input 5
+
+
+def test_a_merged_read_refused_with_exception_02_is_retried_point_by_point(tmp_path):
+    device = Device(DataModel())
+    device.model.defined = {"holding_registers": bytearray(65536)}
+    device.model.defined["holding_registers"][0] = 1
+    device.model.defined["holding_registers"][2] = 1
+    device.model.holding_registers[0] = 5
+    device.model.holding_registers[2] = 7
+    points = [_point(name="a", address=0), _point(name="b", address=2)]
+    requests: list = []
+    readings = read_points(_execute(device, requests), points, max_gap=5)
+    assert [r.value for r in readings] == [5, 7]
+    assert [(r.address, r.count) for r in requests] == [(0, 3), (0, 1), (2, 1)]
+
+
+def test_the_point_at_fault_is_named(tmp_path):
+    device = Device(DataModel())
+    device.model.defined = {"holding_registers": bytearray(65536)}
+    device.model.defined["holding_registers"][0] = 1
+    points = [_point(name="a", address=0), _point(name="missing", address=1)]
+    with pytest.raises(
+        ModbusException, match=r"missing \(40002\): exception 02 Illegal Data Address"
+    ) as caught:
+        read_points(_execute(device, []), points)
+    assert caught.value.exit_code == ExitCode.EXCEPTION
