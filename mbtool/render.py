@@ -33,6 +33,31 @@ class Result:
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
 
+    def __init__(
+        self,
+        unit: int,
+        function: int,
+        name: str,
+        address: int,
+        items: list[tuple[int, object]],
+        type: str | None = None,
+        registers: list[int] | None = None,
+        note: str = "",
+        extra: dict | None = None,
+    ) -> None:
+        # By hand: one a poll (codec/record.py).
+        self.__dict__.update(
+            unit=unit,
+            function=function,
+            name=name,
+            address=address,
+            items=items,
+            type=type,
+            registers=registers,
+            note=note,
+            extra=extra,
+        )
+
 
 def local_time(when: float | None = None) -> str:
     """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.

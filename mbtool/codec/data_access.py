@@ -55,6 +55,10 @@ class BitsResponse(Response):
     function_code: int
     bits: tuple[bool, ...]  # every bit of the data bytes; the request trims to its count
 
+    def __init__(self, function_code: int, bits: tuple[bool, ...], *, warnings: tuple[str, ...] = ()) -> None:
+        # By hand: one a transaction in a polling loop (codec/record.py).
+        self.__dict__.update(function_code=function_code, bits=bits, warnings=warnings)
+
     def encode(self) -> bytes:
         data = pack_bits(self.bits)
         return bytes([self.function_code, len(data)]) + data
@@ -73,6 +77,12 @@ class RegistersResponse(Response):
 
     function_code: int
     registers: tuple[int, ...]
+
+    def __init__(
+        self, function_code: int, registers: tuple[int, ...], *, warnings: tuple[str, ...] = ()
+    ) -> None:
+        # By hand: one a transaction in a polling loop (codec/record.py).
+        self.__dict__.update(function_code=function_code, registers=registers, warnings=warnings)
 
     def encode(self) -> bytes:
         return bytes([self.function_code, 2 * len(self.registers)]) + pack_registers(self.registers)

@@ -34,6 +34,14 @@ class Frame:
     adu: bytes  # the exact bytes on the wire
     transaction_id: int | None = None
 
+    def __init__(self, unit: int, pdu: bytes, adu: bytes, transaction_id: int | None = None) -> None:
+        # By hand: two frames a transaction in a polling loop (codec/record.py).
+        fields = self.__dict__
+        fields["unit"] = unit
+        fields["pdu"] = pdu
+        fields["adu"] = adu
+        fields["transaction_id"] = transaction_id
+
 
 @record
 class Rejected:

@@ -7,6 +7,10 @@ from cron pays that on every run; the issue's target (a read costs at most
 1.25 x ``python -c "import click"``) cannot be met with them.  These records
 share generic methods instead, so defining one costs microseconds.
 
+A record that is made in every transaction of a polling loop (a frame, a reply)
+writes its ``__init__`` by hand, as a plain class would: the generic one below
+costs a few microseconds more, which ``bench/polling_cpu.py`` shows.
+
 Supported: fields from annotations (``ClassVar`` ones skipped), inherited
 fields first, defaults, ``field(default=..., kw_only=True, compare=False)``,
 ``__post_init__``, equality, hashing, repr, immutability, ``fields()`` and
@@ -54,18 +58,8 @@ def _own_fields(cls: type) -> list[Field]:
     return out
 
 
-# A record made this many times gets an __init__ of its own, compiled for its fields: a
-# polling loop makes a few records a transaction, while a one-shot command, which makes
-# each only a few times, never pays for the compiling.
-COMPILE_AFTER = 64
-
-
 def _init(self, *args: Any, **kwargs: Any) -> None:
     cls = type(self)
-    made = cls.__dict__.get("__record_made__", 0) + 1
-    cls.__record_made__ = made
-    if made == COMPILE_AFTER:
-        _compile_init(cls)
     positional = cls.__record_positional__
     if len(args) > len(positional):
         raise TypeError(f"{cls.__name__}() takes {len(positional)} positional arguments, {len(args)} given")
@@ -83,41 +77,8 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
     self.__post_init__()
 
 
-def _compile_init(cls: type) -> None:
-    """Give ``cls`` an __init__ with its fields as parameters, as dataclasses write one.
-
-    Only where a signature can say what _init does: positional fields with defaults
-    after those without, keyword-only ones last, and no field named like the function's
-    own names."""
-    positional = cls.__record_positional__
-    keyword = [spec for spec in cls.__record_fields__ if spec.kw_only]
-    defaulted = [spec.default is not ... for spec in positional]
-    own = {"self", "_record_dict"}
-    if defaulted != sorted(defaulted) or any(
-        spec.name in own or spec.name.startswith("_default_") for spec in cls.__record_fields__
-    ):
-        return
-    defaults = {f"_default_{spec.name}": spec.default for spec in cls.__record_fields__}
-
-    def parameter(spec: Field) -> str:
-        return spec.name if spec.default is ... else f"{spec.name}=_default_{spec.name}"
-
-    parameters = ["self", *map(parameter, positional)]
-    if keyword:
-        parameters += ["*", *map(parameter, keyword)]
-    body = "".join(f"    _record_dict[{spec.name!r}] = {spec.name}\n" for spec in cls.__record_fields__)
-    source = (
-        f"def __init__({', '.join(parameters)}):\n    _record_dict = self.__dict__\n{body}"
-        "    self.__post_init__()\n"
-    )
-    namespace: dict = {}
-    exec(source, defaults, namespace)  # the source holds only this record's own field names
-    cls.__init__ = namespace["__init__"]
-
-
 def _no_post_init(self) -> None:
-    """Every record has a __post_init__, so _init and a compiled __init__ call it without
-    looking it up."""
+    """Every record has a __post_init__, so _init calls it without looking it up."""
 
 
 def _key(self) -> tuple:
@@ -160,7 +121,11 @@ def record(cls: type) -> type:
     cls.__record_fields__ = tuple(all_fields)
     cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
     cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
-    cls.__init__ = _init
+    if "__init__" in cls.__dict__:
+        cls.__record_own_init__ = True
+    elif own or not getattr(cls, "__record_own_init__", False):
+        cls.__init__ = _init
+    # else: no fields of its own, so the __init__ a base wrote by hand still fits
     if not hasattr(cls, "__post_init__"):
         cls.__post_init__ = _no_post_init
     cls.__eq__ = _eq
