@@ -43,6 +43,8 @@ from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
 from mbtool.device import Device
 from mbtool.errors import ConnectionFailed, NoResponse, RequestError
+from mbtool.transport import Target
+from mbtool.transport import parse_target as parse_link_target
 
 TICK = 0.1  # longest wait before the loop looks at the stop flag again
 TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is unknown
@@ -69,35 +71,12 @@ class IoFaults:
     corrupt: float = 0.0  # fraction of replies sent with a wrong CRC/LRC
 
 
-@record
-class Target:
-    kind: str  # "tcp" or "serial"
-    host: str = ""
-    port: int = 0
-    path: str = ""
-
-
 def parse_target(text: str) -> Target:
     """tcp://HOST[:PORT] (PORT 0: any free port) or a serial device path / pyserial URL."""
-    if text.lower().startswith("tcp://"):
-        rest = text[6:].rstrip("/")
-        if rest.startswith("["):  # [::1]:5020
-            host, _, port_text = rest[1:].partition("]")
-            port_text = port_text.removeprefix(":")
-        else:
-            host, _, port_text = rest.rpartition(":") if ":" in rest else (rest, "", "")
-        if not host:
-            raise RequestError(f"no host in {text!r} (expected tcp://HOST[:PORT])")
-        try:
-            port = int(port_text) if port_text else 502
-        except ValueError:
-            raise RequestError(f"bad port in {text!r}") from None
-        if not 0 <= port <= 65535:
-            raise RequestError(f"port {port} in {text!r} is out of range 0..65535")
-        return Target("tcp", host=host, port=port)
-    if text.lower().startswith("sim://"):
+    target = parse_link_target(text, listening=True)
+    if target.scheme == "sim":
         raise RequestError("sim:// is the in-process device; serve on tcp://HOST:PORT or a serial port")
-    return Target("serial", path=text)
+    return target
 
 
 class Stats:
@@ -253,7 +232,7 @@ class Server:
 
     def open(self) -> None:
         """Bind the port or open the serial line; ConnectionFailed (exit 6) if it cannot be."""
-        if self.target.kind == "tcp":
+        if self.target.scheme == "tcp":
             self._open_tcp()
         else:
             self._open_serial()
@@ -548,7 +527,7 @@ class Server:
         """Serve until stopped; ``tick`` is called after every turn of the loop (at most TICK apart)."""
         self._tick = tick or (lambda: None)
         try:
-            if self.target.kind == "tcp":
+            if self.target.scheme == "tcp":
                 self._serve_tcp()
             else:
                 self._serve_serial()
@@ -556,7 +535,7 @@ class Server:
             self.close()
 
     def close(self) -> None:
-        if self.target.kind == "tcp":
+        if self.target.scheme == "tcp":
             if hasattr(self, "selector"):
                 self._close_tcp()
         elif hasattr(self, "transport"):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import os
 import re
 import select
 import socket
@@ -32,6 +33,8 @@ KERNEL_TIMER_MIN = 0.05
 # A read's time left differs from the last by the work between reads: within this, the
 # socket's timeout is left as it is rather than set again (a system call).
 KERNEL_TIMER_SLACK = 0.005
+READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
+DISCARD_BUDGET = 65536  # stale bytes dropped before a request, at most (a flood never ends)
 # Windows leaves a socket whose receive timed out in an undefined state: waits go by select.
 KERNEL_TIMED_READS = sys.platform != "win32"
 
@@ -84,11 +87,12 @@ class SerialTransport(Transport):
         import serial  # pyserial costs an import only when a serial line is used
 
         self.description = url
-        if url.lower().startswith("socket://") and _port_of(url) == MODBUS_TCP_PORT:
-            # socket:// carries serial frames (RTU, ASCII); on Modbus TCP's own port the peer
-            # is more likely a Modbus TCP device, which ignores them or hangs up.
+        if url.lower().startswith("socket://"):
+            # socket:// carries serial frames (RTU, ASCII); a Modbus TCP device, on whatever
+            # port, ignores them or hangs up, and silence is all the user sees.
+            port = "Modbus TCP's port: " if _port_of(url) == MODBUS_TCP_PORT else ""
             self.silence_hint = (
-                f" (port {MODBUS_TCP_PORT} is Modbus TCP's: for a Modbus TCP device use tcp://)"
+                f" ({port}socket:// sends RTU or ASCII frames; for a Modbus TCP device use tcp://)"
             )
         try:
             self.port = serial.serial_for_url(
@@ -100,7 +104,9 @@ class SerialTransport(Transport):
                 timeout=0,
                 # A stuck UART (flow control) must not hang a write forever; url
                 # handlers have no write timeout (rfc2217:// refuses the setting).
-                **({} if "://" in url else {"write_timeout": WRITE_TIMEOUT}),
+                # A local port is locked (flock) so that a second mbtool, or another program
+                # that locks, cannot share it and split the replies between them.
+                **({} if "://" in url else {"write_timeout": WRITE_TIMEOUT, "exclusive": True}),
                 do_not_open=True,
             )
             if listen_only or settings.rs485 is not None:
@@ -111,6 +117,12 @@ class SerialTransport(Transport):
         # pyserial raises NotImplementedError for a setting a url handler does not support:
         # the port cannot be opened as asked, which is the user's to change (exit 6).
         except (serial.SerialException, OSError, ValueError, NotImplementedError, *_termios_error()) as error:
+            if _errno(error) in (errno.EAGAIN, errno.EWOULDBLOCK):  # the lock is another's
+                raise ConnectionFailed(
+                    f"cannot open {url}: port busy (another program has it open)"
+                ) from None
+            if _errno(error) == errno.ENOENT and "://" not in url:
+                raise ConnectionFailed(f"cannot open {url}: no such device ({_serial_ports()})") from None
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
                 raise ConnectionFailed(
@@ -183,6 +195,11 @@ class SerialTransport(Transport):
             if self._fd is None:
                 self.port.timeout = max(timeout, 0)
                 data = self.port.read(1)
+                if data:
+                    # The rest of what has come, at once: socket://'s in_waiting says 0 or 1,
+                    # so a reply behind garbage would otherwise come two bytes a read.
+                    self.port.timeout = 0
+                    return data + self.port.read(READ_CHUNK)
             else:
                 # Wait on the descriptor: setting port.timeout would re-run tcsetattr on
                 # every read, which some drivers (and Linux ptys) refuse or glitch on.
@@ -196,16 +213,13 @@ class SerialTransport(Transport):
 
     def discard_input(self) -> bytes:
         try:
-            waiting = self.port.in_waiting
-            if waiting:
-                return self.port.read(waiting) if self._fd is not None else self._read_now(waiting)
+            if self._fd is not None:
+                waiting = self.port.in_waiting
+                return self.port.read(min(waiting, DISCARD_BUDGET)) if waiting else b""
+            self.port.timeout = 0
+            return self.port.read(DISCARD_BUDGET)
         except (self._serial_error, OSError):
-            pass
-        return b""
-
-    def _read_now(self, size: int) -> bytes:
-        self.port.timeout = 0
-        return self.port.read(size)
+            return b""
 
     def close(self) -> None:
         bridge = getattr(self.port, "_socket", None)
@@ -263,7 +277,7 @@ class TcpTransport(Transport):
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
-            data = self.sock.recv(4096)
+            data = self.sock.recv(READ_CHUNK)
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
@@ -273,13 +287,18 @@ class TcpTransport(Transport):
         return data
 
     def discard_input(self) -> bytes:
-        stale = b""
+        stale = bytearray()
         try:
-            while select.select([self.sock], [], [], 0)[0] and (chunk := self.sock.recv(4096)):
+            # What is already here, up to a budget: a peer that floods would never let a
+            # drain that waits for quiet end (the client's deadline bounds what follows).
+            while len(stale) < DISCARD_BUDGET and select.select([self.sock], [], [], 0)[0]:
+                chunk = self.sock.recv(READ_CHUNK)
+                if not chunk:
+                    break
                 stale += chunk
         except OSError:  # the next read reports it
             pass
-        return stale
+        return bytes(stale)
 
     def _set_timeout(self, option: int, seconds: float) -> None:
         """SO_RCVTIMEO or SO_SNDTIMEO: milliseconds on Windows, else a struct timeval."""
@@ -330,26 +349,100 @@ class SimTransport(Transport):
         return data
 
 
-def open_transport(target: str, settings: SerialSettings, timeout: float, framer: str | None) -> Transport:
-    """Open the link a ``--port`` target names."""
-    scheme = target.split("://", 1)[0].lower() if "://" in target else ""
+@record
+class Target:
+    """What a ``--port`` names, checked before anything is opened."""
+
+    scheme: str  # "tcp", "sim", "serial" (a device path or a pyserial URL)
+    host: str = ""
+    port: int = 0
+    path: str = ""  # the device path or URL handed to pyserial
+
+    def __str__(self) -> str:
+        if self.scheme == "tcp":
+            host = f"[{self.host}]" if ":" in self.host else self.host
+            return f"tcp://{host}:{self.port}"
+        return self.path or f"{self.scheme}://"
+
+
+# pyserial's URL handlers (serial.serial_for_url) that take a host and port, and those
+# that take something else; any other scheme is a typo.
+BRIDGE_SCHEMES = ("socket", "rfc2217")
+OTHER_SERIAL_SCHEMES = ("loop", "spy", "alt", "hwgrep", "cp2110")
+TARGET_FORMS = "tcp://HOST[:PORT], socket://HOST:PORT, rfc2217://HOST:PORT, sim:// or a serial device"
+_HOST_LIKE = re.compile(
+    r"(\[[0-9A-Fa-f:.]+\]|localhost|[A-Za-z0-9-]+(\.[A-Za-z0-9-]+)+)(:[0-9]+)?|[A-Za-z0-9.-]+:[0-9]+"
+)
+
+
+def parse_target(text: str, listening: bool = False) -> Target:
+    """The target a ``--port`` names; RequestError (exit 2, nothing opened) if it names none.
+
+    ``listening``: a server's own address, where tcp:// port 0 means any free port."""
+    scheme, sep, rest = text.partition("://")
+    scheme = scheme.lower()
+    if not sep:
+        if not text:
+            raise RequestError(f"an empty target: use {TARGET_FORMS}")
+        if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
+            raise RequestError(f"{text} is not a serial device; did you mean tcp://{text}?")
+        return Target("serial", path=text)
     if scheme == "tcp":
-        host, port = parse_tcp_target(target)
-        return TcpTransport(host, port, timeout)
+        host, port = _host_and_port(text, rest, MODBUS_TCP_PORT, 0 if listening else 1)
+        return Target("tcp", host, port)
     if scheme == "sim":
+        return Target("sim", path="sim://")
+    if scheme in BRIDGE_SCHEMES:
+        # pyserial takes options after "?" (socket://host:port?logging=debug): keep them.
+        _host_and_port(text, rest.split("?", 1)[0], None, 1)
+        return Target("serial", path=text)
+    if scheme in OTHER_SERIAL_SCHEMES:
+        return Target("serial", path=text)
+    raise RequestError(f"unknown scheme {scheme}:// in {text}: use {TARGET_FORMS}")
+
+
+def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tuple[str, int]:
+    rest = rest.rstrip("/")
+    if rest.startswith("["):  # [::1]:502
+        host, bracket, port_text = rest[1:].partition("]")
+        if not bracket or port_text[:1] not in ("", ":"):
+            raise RequestError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
+        port_text = port_text[1:]
+    else:
+        host, _, port_text = rest.rpartition(":") if ":" in rest else (rest, "", "")
+        if ":" in host:
+            raise RequestError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
+    scheme = text.split("://", 1)[0].lower()
+    if not host:
+        raise RequestError(f"no host in {text} (expected {scheme}://HOST{'[:PORT]' if default else ':PORT'})")
+    if not port_text:
+        if default is None:
+            raise RequestError(f"no port in {text} (expected {scheme}://HOST:PORT)")
+        return host, default
+    if not port_text.isascii() or not port_text.isdigit() or not lowest <= int(port_text) <= 65535:
+        raise RequestError(f"bad port {port_text} in {text}: a TCP port is {lowest}..65535")
+    return host, int(port_text)
+
+
+def open_transport(target: str, settings: SerialSettings, timeout: float, framer: str | None) -> Transport:
+    """Open the link a ``--port`` target names (checked first: a bad one opens nothing)."""
+    where = parse_target(target)
+    if where.scheme == "tcp":
+        link = TcpTransport(where.host, where.port, timeout)
+        # Silence over tcp:// is often a framing mix-up: a gateway that carries RTU frames
+        # ignores MBAP, and a Modbus TCP device ignores RTU or ASCII frames.
+        if framer in (None, "tcp"):
+            link.silence_hint = (
+                " (an RTU-over-TCP gateway ignores Modbus TCP frames: if it is one, try --framer rtu)"
+            )
+        else:
+            link.silence_hint = (
+                f" (--framer {framer} sends serial frames; for a Modbus TCP device leave --framer out)"
+            )
+        return link
+    if where.scheme == "sim":
         return SimTransport(framer or "rtu")
-    return SerialTransport(target, settings)
-
-
-def parse_tcp_target(target: str) -> tuple[str, int]:
-    parts = urlsplit(target)
-    try:
-        port = parts.port or MODBUS_TCP_PORT
-    except ValueError:
-        raise RequestError(f"bad port in {target!r}") from None
-    if not parts.hostname:
-        raise RequestError(f"no host in {target!r} (expected tcp://HOST[:PORT])")
-    return parts.hostname, port
+    return SerialTransport(where.path, settings)
 
 
 def _port_of(url: str) -> int | None:
@@ -362,6 +455,20 @@ def _port_of(url: str) -> int | None:
 def default_framer(target: str) -> str:
     """tcp for tcp://, rtu for everything else (serial lines, bridges, sim://)."""
     return "tcp" if target.lower().startswith("tcp://") else "rtu"
+
+
+def _serial_ports() -> str:
+    """The serial ports this machine has, for a user who named one it has not."""
+    try:
+        from serial.tools.list_ports import comports
+
+        ports = sorted(port.device for port in comports())
+    except (ImportError, OSError):
+        ports = []
+    if not ports:
+        return "no serial ports found here"
+    shown = ", ".join(ports[:8]) + (f" and {len(ports) - 8} more" if len(ports) > 8 else "")
+    return f"serial ports here: {shown}"
 
 
 def _termios_error() -> tuple[type[Exception], ...]:

@@ -26,6 +26,7 @@ import binascii
 import contextlib
 import functools
 import os
+import random
 import re
 import select
 import socket
@@ -316,6 +317,15 @@ def garbage_before(peer, req):
     return [b"\xff\xfe\x00\x13" + peer.frame(req, GOOD)]
 
 
+# 64 KiB of noise (a gateway's buffer flushed, a line with a fault) then the reply, written
+# at once: every link reads it in large pieces and resyncs at the codec's speed (issue 13.2).
+NOISE = random.Random(13).randbytes(64 * 1024)
+
+
+def flood_before(peer, req):
+    return [NOISE + peer.frame(req, GOOD)]
+
+
 def garbage_inside(peer, req):
     frame = peer.frame(req, GOOD)
     cut = {"tcp": 8, "rtu": 3, "ascii": 5}[peer.link.framing]
@@ -433,6 +443,7 @@ CASES = [
         {"tcp": r"registers reply: PDU is 4 bytes, expected 172", "rtu": r"CRC error", "ascii": r"non-hex"},
     ),
     Case("garbage after the frame", garbage_after, ALL, 0),
+    Case("64 KiB of garbage before the frame", flood_before, ALL, 0, timeout=1.0),
     Case("bad CRC or LRC", bad_checksum, SERIAL, 5, CHECKSUM),
     Case("non-hex ASCII", ascii_non_hex, ("pty-ascii",), 5, r"non-hex characters"),
     Case("odd-length ASCII", ascii_odd_length, ("pty-ascii",), 5, r"odd number of hex characters \(11\)"),

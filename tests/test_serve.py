@@ -537,7 +537,7 @@ def test_live_view_on_a_terminal():
         (("--data", "/nonexistent/plant.toml"), 2, "cannot read"),
         (("-p", "/dev/nonexistent-tty"), 6, "cannot open"),
         (("-p", "/dev/nonexistent-tty", "--framer", "tcp"), 2, "tcp://"),
-        (("-p", "tcp://127.0.0.1:99999"), 2, "out of range"),
+        (("-p", "tcp://127.0.0.1:99999"), 2, "bad port 99999"),
         (("-p", "sim://"), 2, "sim://"),
     ],
 )

@@ -95,13 +95,13 @@ def test_a_peer_that_stops_reading_fails_the_write_after_the_write_timeout(monke
             peer.close()
 
 
-# --- socket:// (RTU over TCP) aimed at Modbus TCP's port ------------------------------------
+# --- framing mix-ups named after silence, on any port (issue 12.17) -------------------------
 
 
 @pytest.mark.parametrize("hang_up", [False, True], ids=["silent", "hangs-up"])
-def test_socket_url_on_the_modbus_tcp_port_says_tcp_may_be_meant(monkeypatch, hang_up):
-    """A Modbus TCP device ignores RTU frames or hangs up on them: on port 502 the error says
-    what is probably wrong.  (The test moves "502" to a free port rather than bind 502.)"""
+def test_socket_url_to_a_silent_peer_says_tcp_may_be_meant(hang_up):
+    """A Modbus TCP device ignores RTU frames or hangs up on them, on whatever port it
+    listens: the error says what is probably wrong."""
     from mbtool.client import Client
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.codec.framing import RtuFramer
@@ -112,36 +112,46 @@ def test_socket_url_on_the_modbus_tcp_port_says_tcp_may_be_meant(monkeypatch, ha
         listener.bind(("127.0.0.1", 0))
         listener.listen()
         port = listener.getsockname()[1]
-        monkeypatch.setattr(transport, "MODBUS_TCP_PORT", port)
         link = SerialTransport(f"socket://127.0.0.1:{port}", SerialSettings())
         peer, _ = listener.accept()
         try:
             if hang_up:
                 peer.close()
             client = Client(link, RtuFramer(), timeout=0.3)
-            with pytest.raises(NoResponse, match=r"is Modbus TCP's: for a Modbus TCP device use tcp://"):
+            with pytest.raises(
+                NoResponse, match=r"socket:// sends RTU or ASCII frames; for a Modbus TCP device use tcp://"
+            ):
                 client.execute(1, ReadHoldingRegisters(0, 1))
         finally:
             link.close()
             peer.close()
 
 
-def test_socket_url_on_another_port_gives_no_such_hint():
+@pytest.mark.parametrize(
+    "framer, hint",
+    [
+        (None, "an RTU-over-TCP gateway ignores Modbus TCP frames: if it is one, try --framer rtu"),
+        ("rtu", "--framer rtu sends serial frames; for a Modbus TCP device leave --framer out"),
+    ],
+)
+def test_tcp_url_to_a_silent_peer_names_the_other_framing(framer, hint):
     from mbtool.client import Client
     from mbtool.codec.data_access import ReadHoldingRegisters
-    from mbtool.codec.framing import RtuFramer
+    from mbtool.codec.framing import make_framer
     from mbtool.errors import NoResponse
-    from mbtool.transport import SerialSettings, SerialTransport
+    from mbtool.transport import SerialSettings, open_transport
 
     with socket.socket() as listener:
         listener.bind(("127.0.0.1", 0))
         listener.listen()
-        link = SerialTransport(f"socket://127.0.0.1:{listener.getsockname()[1]}", SerialSettings())
+        port = listener.getsockname()[1]
+        link = open_transport(f"tcp://127.0.0.1:{port}", SerialSettings(), 1, framer)
         peer, _ = listener.accept()
         try:
+            client = Client(link, make_framer(framer or "tcp"), timeout=0.3)
             with pytest.raises(NoResponse) as failure:
-                Client(link, RtuFramer(), timeout=0.3).execute(1, ReadHoldingRegisters(0, 1))
-            assert "tcp://" not in str(failure.value)
+                client.execute(1, ReadHoldingRegisters(0, 1))
+            assert str(failure.value).endswith(f"({hint})")
         finally:
             link.close()
             peer.close()

@@ -210,8 +210,8 @@ def serve(
 
     unit_set = parse_units(units)
     where = parse_target(target)
-    framer = framer or ("tcp" if where.kind == "tcp" else "rtu")
-    if where.kind == "serial" and framer == "tcp":
+    framer = framer or ("tcp" if where.scheme == "tcp" else "rtu")
+    if where.scheme == "serial" and framer == "tcp":
         raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
     if framer == "rtu" and bytesize == "7":
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
