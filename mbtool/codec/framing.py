@@ -608,7 +608,11 @@ class TcpFramer(Framer):
             return None
         tid, pid, length = struct.unpack_from(">HHH", buf)
         if pid != 0:
-            return 1, self._not_mbap(f"MBAP protocol id {pid}, expected 0")
+            # Noise: no frame starts before the next 00 00 that could be a protocol id, so
+            # skip to it at once, not byte by byte (a flooding peer must not outrun the resync).
+            found = buf.find(b"\x00\x00", 3)
+            skip = found - 2 if found != -1 else max(1, len(buf) - 3)
+            return skip, self._not_mbap(f"MBAP protocol id {pid}, expected 0")
         if not 2 <= length <= MAX_PDU + 1:
             return 1, self._not_mbap(f"MBAP length {length} is outside 2..{MAX_PDU + 1}")
         size = 6 + length

@@ -1,0 +1,113 @@
+"""A peer that floods garbage (a broken gateway streaming noise) cannot hang mbtool (issue 13.1).
+
+The flooder answers the first bytes of each connection with noise, as fast as the socket
+takes it, until the test stops it.  Every command must end within its deadlines:
+timeout × (retries + 1) a transaction, plus 0.5 s and Python's start-up.
+"""
+
+from __future__ import annotations
+
+import random
+import select
+import socket
+import threading
+import time
+
+import pytest
+from conftest import run_mbtool
+
+pytestmark = pytest.mark.timeout(60)
+
+NOISE = random.Random(131).randbytes(1 << 20)
+TIMEOUT = 0.5
+RETRIES = 2
+RATE_FLOOR = 16  # KiB/ms the flooder must reach, or the test proves nothing
+
+
+class Flooder:
+    def __init__(self) -> None:
+        self.server = socket.socket()
+        self.server.bind(("127.0.0.1", 0))
+        self.server.listen(8)
+        self.port = self.server.getsockname()[1]
+        self.stop = threading.Event()
+        self.sent = 0
+        self.busy = 0.0  # seconds spent flooding, over all connections
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            if select.select([self.server], [], [], 0.05)[0]:
+                conn, _ = self.server.accept()
+                threading.Thread(target=self._flood, args=(conn,), daemon=True).start()
+
+    def _flood(self, conn: socket.socket) -> None:
+        with conn:
+            if not select.select([conn], [], [], 5)[0]:
+                return
+            conn.recv(512)  # the first request: from now on, noise
+            conn.settimeout(0.2)
+            start = time.monotonic()
+            try:
+                while not self.stop.is_set():
+                    self.sent += conn.send(NOISE)
+            except OSError:  # mbtool closed the link, or stopped reading for 0.2 s
+                pass
+            self.busy += time.monotonic() - start
+
+    @property
+    def rate(self) -> float:
+        """KiB per millisecond while flooding."""
+        return self.sent / 1024 / max(self.busy * 1000, 1e-9)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=2)
+        self.server.close()
+
+
+@pytest.fixture
+def flooder():
+    peer = Flooder()
+    yield peer
+    peer.close()
+
+
+@pytest.fixture(scope="module")
+def start_up() -> float:
+    return max(run_mbtool("crc", "01", "03").elapsed for _ in range(2))
+
+
+@pytest.mark.parametrize(
+    "scheme, options",
+    [("tcp", ()), ("tcp", ("--framer", "rtu")), ("socket", ())],
+    ids=["mbap", "rtu-over-tcp", "socket"],
+)
+def test_a_read_under_a_garbage_flood_ends_on_time(flooder, start_up, scheme, options):
+    res = run_mbtool(
+        "read-holding-registers", "0", "2",
+        "-p", f"{scheme}://127.0.0.1:{flooder.port}",
+        "-t", str(TIMEOUT), "--retries", str(RETRIES), *options,
+    )  # fmt: skip
+    assert res.returncode == 5, str(res)
+    assert "garbage" in res.stderr or "error" in res.stderr, str(res)
+    assert res.elapsed <= TIMEOUT * (RETRIES + 1) + 0.5 + start_up, res.elapsed
+    assert flooder.rate >= RATE_FLOOR, f"the flood ran at only {flooder.rate:.1f} KiB/ms"
+
+
+def test_polling_under_a_garbage_flood_ends_on_time(flooder, start_up):
+    polls = 2
+    res = run_mbtool(
+        "read-holding-registers", "0", "2", "-p", f"tcp://127.0.0.1:{flooder.port}",
+        "-t", str(TIMEOUT), "--retries", str(RETRIES), "--interval", "0", "--polls", str(polls),
+    )  # fmt: skip
+    assert res.returncode == 5, str(res)
+    assert "polls 2, replies 0" in res.stderr, str(res)
+    assert res.elapsed <= polls * TIMEOUT * (RETRIES + 1) + 0.5 + start_up, res.elapsed
+
+
+def test_scan_under_a_garbage_flood_ends_on_time(flooder, start_up):
+    res = run_mbtool("scan", "-p", f"tcp://127.0.0.1:{flooder.port}", "--units", "1-3", "-t", str(TIMEOUT))
+    assert res.returncode == 5, str(res)  # only garbled answers came
+    assert res.elapsed <= 3 * TIMEOUT + 0.5 + start_up, res.elapsed
