@@ -70,6 +70,9 @@ class Client:
         self.clock = clock
         self.sleep = sleep
         self._transaction_id = 0
+        # The transaction ids this request went out with, one an attempt: a late reply to an
+        # earlier attempt answers the request as well as the last one's would (issue 12.2).
+        self._attempt_ids: list[int] = []
         self._line_free_at = 0.0  # when the last frame on the line ended
         # Run once, right after the next request has left: work that can overlap the
         # device's turnaround (polling writes the previous poll's output there).
@@ -87,8 +90,9 @@ class Client:
         Raises ModbusException for an exception reply, NoResponse, FrameError or
         ConnectionFailed otherwise.
         """
-        attempts = 1 if unit == 0 else self.retries + 1
+        attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
         error: MbtoolError | None = None
+        self._attempt_ids.clear()
         for _ in range(attempts):
             try:
                 reply = self._transact(unit, request)
@@ -109,6 +113,7 @@ class Client:
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
         self._transaction_id = (self._transaction_id + 1) & 0xFFFF
+        self._attempt_ids.append(self._transaction_id)
         if request is not self._prepared[0]:
             self._prepared = (request, request.encode(), _EchoWatch.needed(request))
         _, pdu, echo_watched = self._prepared
@@ -136,7 +141,7 @@ class Client:
             work()
         on_wire = len(adu) * self._char_time if serial_line else 0.0
         self._line_free_at = sent_at + on_wire
-        if unit == 0 or not request.expects_response:
+        if unit == self.framer.broadcast_unit or not request.expects_response:
             return None
         deadline = sent_at + on_wire + self.timeout
         if self.echo:
@@ -282,8 +287,8 @@ class Client:
         return reply, problem
 
     def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
-        if frame.transaction_id is not None and frame.transaction_id != self._transaction_id:
-            return f"reply has transaction id {frame.transaction_id}, expected {self._transaction_id}"
+        if frame.transaction_id is not None and frame.transaction_id not in self._attempt_ids:
+            return f"reply has transaction id {frame.transaction_id}, expected {_ids(self._attempt_ids)}"
         if frame.unit != unit:
             return f"reply from unit {frame.unit}, expected unit {unit}"
         code = frame.pdu[0] if frame.pdu else None
@@ -340,6 +345,10 @@ class _EchoWatch:
         held, self.held = self.held, b""
         self.watching = False
         return held
+
+
+def _ids(ids: list[int]) -> str:
+    return str(ids[0]) if len(ids) == 1 else ", ".join(map(str, ids[:-1])) + f" or {ids[-1]}"
 
 
 def _worse(current: MbtoolError | None, new: MbtoolError) -> MbtoolError:

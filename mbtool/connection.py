@@ -44,7 +44,7 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
     sim:// keeps its state only as long as its link).
     """
     from mbtool.client import Client
-    from mbtool.codec.framing import make_framer
+    from mbtool.codec.framing import is_broadcast, make_framer
     from mbtool.render import HexTrace
     from mbtool.transport import SerialSettings, open_transport
 
@@ -52,9 +52,11 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
-    if connection.unit == 0 and needs:
-        raise RequestError(f"unit 0 is broadcast, which only writes may use; {needs} needs a unit 1..255")
     name = framer_name(connection)
+    if needs and is_broadcast(connection.unit, name):
+        raise RequestError(
+            f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"
+        )
     if connection.dry_run:
         from mbtool.dryrun import DryRunClient
 
@@ -121,9 +123,10 @@ def execute(connection: Connection, request) -> object:
 
 
 def show(connection: Connection, result) -> None:
+    from mbtool.codec.framing import is_broadcast
     from mbtool.render import default_format, render
 
-    if connection.unit == 0:
+    if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)
     render(result, connection.output_format or default_format())

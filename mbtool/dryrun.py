@@ -47,7 +47,7 @@ class DryRunClient:
 
     def finish(self, unit: int) -> None:
         note = "dry run: nothing sent (the port was not opened)"
-        if unit == 0:
+        if unit == self.framer.broadcast_unit:
             note += "; broadcast: no device would confirm this write to unit 0"
         if self.then:
             note += f"; {self.then}"

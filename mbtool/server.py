@@ -304,8 +304,12 @@ class Server:
         """
         idle = [c for c in self._clients if not c.owed and not c.out]
         unused = [c for c in idle if not c.requests]
+        # A master sends its request whole as soon as it connects: a client holding the start
+        # of a request it never finishes goes first, even one accepted in this turn, so a burst
+        # of such connections cannot crowd out a newcomer whose request is still on its way.
+        stalled = [c for c in unused if c.framer.buffered]
         if unused:
-            older = [c for c in unused if c not in accepted]
+            older = stalled or [c for c in unused if c not in accepted]
             if not older:
                 return False
             victim = min(older, key=lambda c: c.connected)

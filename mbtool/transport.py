@@ -136,6 +136,7 @@ class SerialTransport(Transport):
         # A local serial port has a descriptor to wait on; url handlers (socket://,
         # rfc2217://, loop://) wait inside pyserial with their own timeout.
         self._fd = self.port.fileno() if type(self.port).__module__ == "serial.serialposix" else None
+        self._bridge = self.port._socket if _is_socket_url(self.port) else None
 
     def _drive_direction(self, url: str, delays: tuple[float, float]) -> None:
         """RS-485 direction by RTS: the kernel driver's RS-485 mode switches it in time with
@@ -195,11 +196,10 @@ class SerialTransport(Transport):
             if self._fd is None:
                 self.port.timeout = max(timeout, 0)
                 data = self.port.read(1)
-                if data:
+                if data and self._bridge is not None:
                     # The rest of what has come, at once: socket://'s in_waiting says 0 or 1,
                     # so a reply behind garbage would otherwise come two bytes a read.
-                    self.port.timeout = 0
-                    return data + self.port.read(READ_CHUNK)
+                    return data + self._bridge_bytes()
             else:
                 # Wait on the descriptor: setting port.timeout would re-run tcsetattr on
                 # every read, which some drivers (and Linux ptys) refuse or glitch on.
@@ -211,19 +211,24 @@ class SerialTransport(Transport):
         except (self._serial_error, OSError) as error:
             raise ConnectionClosed(f"{self.description}: {_reason(error)}{self.silence_hint}") from None
 
+    def _bridge_bytes(self) -> bytes:
+        """What socket:// holds now, in one recv (pyserial's socket.recv, without its loop)."""
+        if not select.select([self._bridge], [], [], 0)[0]:
+            return b""
+        return self._bridge.recv(READ_CHUNK)  # b"" at the end: the next read says it closed
+
     def discard_input(self) -> bytes:
         try:
-            if self._fd is not None:
-                waiting = self.port.in_waiting
-                return self.port.read(min(waiting, DISCARD_BUDGET)) if waiting else b""
-            self.port.timeout = 0
-            return self.port.read(DISCARD_BUDGET)
+            if self._bridge is not None:
+                return self._bridge_bytes()
+            waiting = self.port.in_waiting
+            return self.port.read(min(waiting, DISCARD_BUDGET)) if waiting else b""
         except (self._serial_error, OSError):
             return b""
 
     def close(self) -> None:
         bridge = getattr(self.port, "_socket", None)
-        if type(self.port).__module__ == "serial.urlhandler.protocol_socket" and bridge is not None:
+        if _is_socket_url(self.port) and bridge is not None:
             # pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects", which
             # every one-shot command would pay on exit; close the bridge's socket at once.
             with contextlib.suppress(OSError):
@@ -455,6 +460,10 @@ def _port_of(url: str) -> int | None:
 def default_framer(target: str) -> str:
     """tcp for tcp://, rtu for everything else (serial lines, bridges, sim://)."""
     return "tcp" if target.lower().startswith("tcp://") else "rtu"
+
+
+def _is_socket_url(port) -> bool:
+    return type(port).__module__ == "serial.urlhandler.protocol_socket"
 
 
 def _serial_ports() -> str:

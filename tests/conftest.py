@@ -139,6 +139,32 @@ def mbtool() -> Callable[..., Result]:
     return run_mbtool
 
 
+def build_libmodbus(tmp_path_factory, name: str, source: str) -> Path:
+    """A C program built with gcc against the system's libmodbus (Debian: libmodbus-dev);
+    the test is skipped where gcc or the library is missing."""
+    import shutil
+
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        pytest.skip("gcc is not installed: the libmodbus peer cannot be built")
+    include = next(
+        (p for p in (Path("/usr/include/modbus"), Path("/usr/local/include/modbus")) if p.is_dir()), None
+    )
+    if include is None:
+        pytest.skip("libmodbus headers are not installed (Debian: apt-get install libmodbus-dev)")
+    where = tmp_path_factory.mktemp("libmodbus")
+    (where / f"{name}.c").write_text(source)
+    build = subprocess.run(
+        [gcc, "-o", str(where / name), str(where / f"{name}.c"), f"-I{include}", "-lmodbus"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    if build.returncode != 0:
+        pytest.skip(f"the libmodbus peer does not build here: {build.stderr.strip()[-300:]}")
+    return where / name
+
+
 # ----------------------------------------------------------------------------- pty pair
 
 

@@ -12,13 +12,12 @@ and a small C program built on libmodbus talk to a real ``mbtool serve``.
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import time
 from pathlib import Path
 
 import pytest
-from conftest import PtyPair, assert_one_error_line, run_mbtool
+from conftest import PtyPair, assert_one_error_line, build_libmodbus, run_mbtool
 from test_serve_abuse import PROMPT, mbap, serve
 
 from mbtool.codec.framing import make_framer
@@ -140,25 +139,7 @@ int main(int argc, char **argv)
 @pytest.fixture(scope="module")
 def libmodbus_client(tmp_path_factory) -> Path:
     """LIBMODBUS_CLIENT built with gcc against the system's libmodbus (libmodbus-dev)."""
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        pytest.skip("gcc is not installed: the libmodbus client cannot be built")
-    include = next(
-        (p for p in (Path("/usr/include/modbus"), Path("/usr/local/include/modbus")) if p.is_dir()), None
-    )
-    if include is None:
-        pytest.skip("libmodbus headers are not installed (Debian: apt-get install libmodbus-dev)")
-    where = tmp_path_factory.mktemp("libmodbus")
-    (where / "client.c").write_text(LIBMODBUS_CLIENT)
-    build = subprocess.run(
-        [gcc, "-o", str(where / "client"), str(where / "client.c"), f"-I{include}", "-lmodbus"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    if build.returncode != 0:
-        pytest.skip(f"the libmodbus client does not build here: {build.stderr.strip()[-300:]}")
-    return where / "client"
+    return build_libmodbus(tmp_path_factory, "client", LIBMODBUS_CLIENT)
 
 
 @pytest.mark.parametrize("unit", [0, 0xFF])

@@ -326,6 +326,12 @@ def flood_before(peer, req):
     return [NOISE + peer.frame(req, GOOD)]
 
 
+def late_for_the_first_attempt(peer, req):
+    """A device slower than the timeout: the first attempt's reply comes while mbtool waits
+    for the second's; the second is never answered (issue 12.2)."""
+    return [0.45, peer.frame(req, GOOD)] if len(peer.requests) == 1 else []
+
+
 def garbage_inside(peer, req):
     frame = peer.frame(req, GOOD)
     cut = {"tcp": 8, "rtu": 3, "ascii": 5}[peer.link.framing]
@@ -433,6 +439,7 @@ CASES = [
         TRUNCATED,
     ),
     Case("reply dripped byte by byte", dripped, ALL, 0, timeout=1.0),
+    Case("the first attempt's reply, late", late_for_the_first_attempt, ALL, 0, requests=2),
     Case("garbage before the frame", garbage_before, ALL, 0),
     Case(
         "garbage inside the frame",

@@ -57,6 +57,8 @@ class Framer(ABC):
 
     name = ""
     checksum_name = ""
+    # The unit id every device on a serial line hears and none answers (spec §2).
+    broadcast_unit: int | None = 0
 
     def __init__(self, responses: bool = True) -> None:
         self.responses = responses  # reading replies (a master) or requests (a device)
@@ -591,6 +593,9 @@ class TcpFramer(Framer):
 
     name = "tcp"
     checksum_name = "MBAP"
+    # The Modbus TCP implementation guide: over TCP the unit id only routes through a
+    # gateway; 0 and FF address the server itself, which answers.  No broadcast.
+    broadcast_unit = None
 
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         return struct.pack(">HHHB", transaction_id, 0, len(pdu) + 1, unit) + pdu
@@ -636,6 +641,11 @@ class TcpFramer(Framer):
 
 
 FRAMERS = {"rtu": RtuFramer, "ascii": AsciiFramer, "tcp": TcpFramer}
+
+
+def is_broadcast(unit: int, framer_name: str) -> bool:
+    """Unit 0 is a broadcast in RTU and ASCII framing, an address like any other in MBAP."""
+    return unit == FRAMERS[framer_name].broadcast_unit
 
 
 def make_framer(name: str, responses: bool = True) -> Framer:

@@ -94,9 +94,10 @@ def diag(connection, sub_function, data, clear_log, controller):
     slave-busy-count, bus-char-overrun-count, iop-overrun-count, clear-overrun,
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
-    from mbtool.connection import show
+    from mbtool.codec.framing import is_broadcast
+    from mbtool.connection import framer_name, show
 
-    if connection.unit == 0:
+    if is_broadcast(connection.unit, framer_name(connection)):
         raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
     if sub_function.lower() == "counters":
         if data is not None or clear_log:

@@ -258,7 +258,7 @@ def raw(connection, data, adu):
 
     heard = capture.reply or capture.other
     if heard is None:
-        if unit == 0:
+        if unit == client.framer.broadcast_unit:
             why = "broadcast: no reply expected"
             # As every write to unit 0 does: a script reading stdout alone must not take it as confirmed.
             print("mbtool: broadcast: no device confirms a write to unit 0", file=sys.stderr)

@@ -1,0 +1,178 @@
+"""mbtool as a master against independent peers (issue 12, link side):
+
+* unit 0 over Modbus TCP is an address like any other (libmodbus's server answers it;
+  pymodbus 3.16's server answers it with exception 04), while with RTU or ASCII framing
+  it stays a broadcast that only writes may use (12.1);
+* a reply to an earlier attempt that arrives late, while mbtool waits for a retry's,
+  answers the request (12.2): here pymodbus's server behind a proxy that delays every reply.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import threading
+import time
+
+import pytest
+from conftest import HOLDING, assert_one_error_line, build_libmodbus, free_port, run_mbtool
+
+pytestmark = pytest.mark.timeout(60)
+
+LIBMODBUS_SERVER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <unistd.h>
+#include <modbus.h>
+
+/* libmodbus's TCP server: holding register i holds 1000 + i; one client at a time. */
+int main(int argc, char **argv)
+{
+    modbus_t *ctx = modbus_new_tcp("127.0.0.1", atoi(argv[1]));
+    modbus_mapping_t *map = modbus_mapping_new(0, 0, 100, 0);
+    uint8_t query[MODBUS_TCP_MAX_ADU_LENGTH];
+    for (int i = 0; i < 100; i++) map->tab_registers[i] = 1000 + i;
+    int listener = modbus_tcp_listen(ctx, 4);
+    if (listener < 0) { perror("listen"); return 1; }
+    printf("READY\n");
+    fflush(stdout);
+    for (;;) {
+        if (modbus_tcp_accept(ctx, &listener) < 0) continue;
+        for (;;) {
+            int rc = modbus_receive(ctx, query);
+            if (rc > 0) modbus_reply(ctx, query, rc, map);
+            else if (rc == -1) break;
+        }
+        close(modbus_get_socket(ctx));
+    }
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def libmodbus_server(tmp_path_factory):
+    program = build_libmodbus(tmp_path_factory, "server", LIBMODBUS_SERVER)
+    port = free_port()
+    proc = subprocess.Popen([str(program), str(port)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "READY"
+        yield f"tcp://127.0.0.1:{port}"
+    finally:
+        proc.kill()
+        proc.wait(timeout=5)
+
+
+@pytest.mark.parametrize("unit", ["0", "255"])
+def test_unit_0_over_modbus_tcp_reads_and_writes_libmodbus(libmodbus_server, unit):
+    res = run_mbtool("write-register", "5", "4321", "-u", unit, "-p", libmodbus_server)
+    assert res.returncode == 0, str(res)
+    assert "broadcast" not in res.stderr
+    res = run_mbtool("read-holding-registers", "4", "3", "-u", unit, "-p", libmodbus_server)
+    assert res.returncode == 0, str(res)
+    assert res.stdout.split() == ["4", "1004", "5", "4321", "6", "1006"]
+
+
+def test_unit_0_over_modbus_tcp_is_sent_to_pymodbus(tcp_device):
+    """pymodbus 3.16's server has no unit 0 and says so with exception 04 (libmodbus answers):
+    mbtool sends the request and reports the device's answer, as for any unit."""
+    res = run_mbtool("read-holding-registers", "0", "2", "-u", "0", "-p", tcp_device.target)
+    line = assert_one_error_line(res, 4)
+    assert line == "mbtool: exception 04 Server Device Failure (function 03)"
+
+
+def test_unit_0_with_serial_framing_stays_a_broadcast(socket_rtu_device):
+    res = run_mbtool("read-holding-registers", "0", "-u", "0", "-p", socket_rtu_device.target)
+    line = assert_one_error_line(res, 2)
+    assert "unit 0 is broadcast in RTU framing, which only writes may use" in line
+    res = run_mbtool("write-register", "3", "77", "-u", "0", "-p", socket_rtu_device.target)
+    assert res.returncode == 0 and "broadcast: no device confirms" in res.stderr, str(res)
+
+
+def test_unit_0_over_tcp_with_rtu_framing_stays_a_broadcast():
+    res = run_mbtool("read-holding-registers", "0", "-u", "0", "-p", "tcp://127.0.0.1:1", "--framer", "rtu")
+    assert "unit 0 is broadcast in RTU framing" in assert_one_error_line(res, 2)
+
+
+class DelayProxy:
+    """Forwards requests at once and every reply ``delay`` seconds after it came: a device
+    (or a gateway and a slow bus) slower than mbtool's timeout."""
+
+    def __init__(self, port: int, delay: float) -> None:
+        self.delay = delay
+        self.upstream = port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.target = f"tcp://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.replies: list[float] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            server = socket.create_connection(("127.0.0.1", self.upstream))
+            threading.Thread(target=self._pipe, args=(client, server, 0.0), daemon=True).start()
+            threading.Thread(target=self._pipe, args=(server, client, self.delay), daemon=True).start()
+
+    def _pipe(self, source: socket.socket, sink: socket.socket, delay: float) -> None:
+        try:
+            while data := source.recv(4096):
+                if delay:
+                    self.replies.append(time.monotonic())
+                    threading.Timer(delay, self._send, (sink, data)).start()
+                else:
+                    sink.sendall(data)
+        except OSError:
+            pass
+
+    @staticmethod
+    def _send(sink: socket.socket, data: bytes) -> None:
+        try:
+            sink.sendall(data)
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        self.listener.close()
+
+
+def test_a_late_reply_to_an_earlier_attempt_answers_the_request(tcp_device):
+    """Attempt 1 times out at 0.3 s, attempt 2 goes out, attempt 1's reply comes at 0.45 s:
+    it answers the same request, so the read succeeds (pymodbus's reply, transaction id 1)."""
+    proxy = DelayProxy(tcp_device.port, delay=0.45)
+    try:
+        res = run_mbtool(
+            "read-holding-registers", "0", "2", "-p", proxy.target, "-t", "0.3", "--retries", "1", "--hex"
+        )
+    finally:
+        proxy.close()
+    assert res.returncode == 0, str(res)
+    assert res.stdout.split() == ["0", str(HOLDING[0]), "1", str(HOLDING[1])]
+    tx = [line for line in res.stderr.splitlines() if line.startswith("TX")]
+    assert len(tx) == 2 and "tid 1 " in tx[0] and "tid 2 " in tx[1], res.stderr
+    assert any(line.startswith("RX") and "tid 1 " in line for line in res.stderr.splitlines()), res.stderr
+
+
+def test_a_reply_to_another_request_is_still_discarded(tcp_device):
+    """Only the ids of this request's own attempts count: the first poll's reply, late,
+    arrives while the second poll waits, and is discarded, not taken for the second's."""
+    proxy = DelayProxy(tcp_device.port, delay=0.45)
+    try:
+        res = run_mbtool(
+            "read-holding-registers",
+            "0",
+            "-p",
+            proxy.target,
+            "-t",
+            "0.3",
+            "--polls",
+            "2",
+            "--interval",
+            "0.35",
+        )
+    finally:
+        proxy.close()
+    assert res.returncode == 5, str(res)
+    assert "poll 2: reply has transaction id 1, expected 2, discarded" in res.stderr, str(res)
+    assert "replies 0" in res.stderr, str(res)
