@@ -141,9 +141,18 @@ class Client:
             work()
         on_wire = len(adu) * self._char_time if serial_line else 0.0
         self._line_free_at = sent_at + on_wire
-        if unit == self.framer.broadcast_unit or not request.expects_response:
+        if unit == self.framer.broadcast_unit:
             return None
         deadline = sent_at + on_wire + self.timeout
+        if not request.expects_response:
+            # No reply is the outcome asked for (FC08 sub 04), but a device that does not
+            # support the request still refuses it with an exception: wait for that.
+            try:
+                return self._await_reply(unit, request, deadline, None)
+            except ConnectionClosed:
+                raise
+            except NoResponse:
+                return None
         if self.echo:
             self._strip_echo(adu, deadline)
             watch = None

@@ -176,3 +176,31 @@ def test_a_reply_to_another_request_is_still_discarded(tcp_device):
     assert res.returncode == 5, str(res)
     assert "poll 2: reply has transaction id 1, expected 2, discarded" in res.stderr, str(res)
     assert "replies 0" in res.stderr, str(res)
+
+
+# --- FC08 sub 04: silence is the answer asked for, an exception is a refusal (12.3) -------------
+
+
+def test_force_listen_only_waits_for_a_refusal(libmodbus_server):
+    """libmodbus's server has no FC08 and answers exception 01: exit 4, as everywhere."""
+    res = run_mbtool("diag", "force-listen-only", "-p", libmodbus_server, "-t", "0.5")
+    line = assert_one_error_line(res, 4)
+    assert line == "mbtool: exception 01 Illegal Function (function 08)"
+
+
+def test_force_listen_only_silence_is_the_expected_outcome(silent_server):
+    res = run_mbtool("diag", "force-listen-only", "-p", silent_server.tcp_target, "-t", "0.4")
+    assert res.returncode == 0, str(res)
+    assert "none within 0.4 s, as expected: the device is now in listen-only mode" in res.stdout, str(res)
+    assert res.elapsed >= 0.4
+
+
+def test_a_device_that_answers_force_listen_only_is_reported(tcp_device):
+    """pymodbus 3.16 answers 08 0004 and stays online: shown, with a warning, not an error."""
+    res = run_mbtool("diag", "force-listen-only", "-p", tcp_device.target, "-t", "0.4")
+    assert res.returncode == 0, str(res)
+    assert "answered: 08 00 04" in res.stdout, str(res)
+    assert res.stderr == (
+        "mbtool: warning: the device answered force-listen-only, which the spec leaves unanswered:"
+        " it may not be in listen-only mode\n"
+    )

@@ -272,8 +272,8 @@ def test_sim(args):
 
 
 def test_sim_force_listen_only_expects_no_reply():
-    res = expect_ok(run_mbtool("diag", "force-listen-only", "-p", "sim://", "--hex"))
-    assert "none expected" in pairs(res)["reply"]
+    res = expect_ok(run_mbtool("diag", "force-listen-only", "-p", "sim://", "--hex", "-t", "0.2"))
+    assert "none within 0.2 s, as expected" in pairs(res)["reply"]
     assert [h.direction for h in parse_hex_lines(res.stderr)] == ["TX"]
 
 

@@ -290,7 +290,12 @@ class Diagnostics(Request):
         if self.sub_function == Sub.MODBUS_PLUS_STATS and self.data == MODBUS_PLUS_GET:
             if response.data[:2] != MODBUS_PLUS_GET:
                 raise MismatchError("Modbus Plus reply does not carry the get operation 0003")
-        elif isinstance(self.sub_function, Sub) and not echo and len(response.data) != 2:
+        elif (
+            isinstance(self.sub_function, Sub)
+            and not echo
+            and self.expects_response  # a reply to force-listen-only has no layout to hold it to
+            and len(response.data) != 2
+        ):
             raise MismatchError(
                 f"{sub_function_name(self.sub_function)} reply carries {len(response.data)} data bytes, expected 2"
             )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import click
 
 from mbtool.errors import RequestError
@@ -148,10 +150,23 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
                 f"{silence}; a device in listen-only mode restarts on restart-comms without a reply"
             ) from None
         raise
-    if not request.expects_response:
+    if not request.expects_response and reply is None:
         rows.append(
-            Row("reply", "none expected: the device is now in listen-only mode (restart-comms ends it)")
+            Row(
+                "reply",
+                f"none within {connection.timeout:g} s, as expected: the device is now in listen-only "
+                "mode (restart-comms ends it)",
+            )
         )
+        return Report(connection.unit, 8, title, rows)
+    if not request.expects_response:
+        # pymodbus 3.16 answers 08 0004 and stays online; libmodbus and the spec send nothing.
+        print(
+            "mbtool: warning: the device answered force-listen-only, which the spec leaves"
+            " unanswered: it may not be in listen-only mode",
+            file=sys.stderr,
+        )
+        rows.append(Row("reply", f"answered: {reply.encode().hex(' ').upper()}"))
         return Report(connection.unit, 8, title, rows)
     if sub == 0x02:
         rows += _register_rows(reply.value, controller)
