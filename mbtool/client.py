@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected
-from mbtool.codec.pdu import ExceptionResponse, Request, Response
+from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.errors import ChecksumError, FrameError, MbtoolError, MismatchError, ModbusException, NoResponse
 from mbtool.transport import ConnectionClosed, Transport
 
@@ -70,6 +70,8 @@ class Client:
         self.clock = clock
         self.sleep = sleep
         self._transaction_id = 0
+        self._sent = b""  # the last request's frame, to tell a copy of it from a reply
+        self._sent_at = 0.0  # when it left
         # The transaction ids this request went out with, one an attempt: a late reply to an
         # earlier attempt answers the request as well as the last one's would (issue 12.2).
         self._attempt_ids: list[int] = []
@@ -93,7 +95,12 @@ class Client:
         attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
         error: MbtoolError | None = None
         self._attempt_ids.clear()
-        for _ in range(attempts):
+        busy = False
+        for attempt in range(attempts):
+            if busy:
+                # Spec §3, exception 06: the device is busy, retry later: the next attempt goes
+                # when this one's timeout would have ended, as after silence.
+                self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
             try:
                 reply = self._transact(unit, request)
                 self._settled = reply is not None
@@ -102,9 +109,15 @@ class Client:
             except (NoResponse, FrameError) as failure:
                 # Bytes that came (a CRC error, a wrong reply) tell more than a later silence.
                 error = _worse(error, failure)
+                busy = False
                 continue
             if isinstance(reply, ExceptionResponse):
-                raise ModbusException(reply.function_code, reply.exception_code)
+                refusal = ModbusException(reply.function_code, reply.exception_code)
+                busy = reply.exception_code == ExceptionCode.SERVER_DEVICE_BUSY
+                if not busy or attempt + 1 == attempts:
+                    raise refusal
+                error = _worse(error, refusal)
+                continue
             return reply
         assert error is not None
         raise error
@@ -135,7 +148,7 @@ class Client:
         self.framer.expect_unit = unit
         self.transport.write(adu)
         self.trace.sent(adu)
-        sent_at = self.clock()
+        sent_at = self._sent_at = self.clock()
         if self.while_waiting is not None:
             work, self.while_waiting = self.while_waiting, None
             work()
@@ -153,11 +166,11 @@ class Client:
                 raise
             except NoResponse:
                 return None
-        if self.echo:
-            self._strip_echo(adu, deadline)
-            watch = None
-        else:
-            watch = _EchoWatch(adu) if echo_watched and serial_line else None
+        # The request's own bytes coming back first are an adapter's echo: with --echo always
+        # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
+        # pass for the reply.  Bytes that differ from the request are the reply, shown as such.
+        watch = _EchoWatch(adu) if serial_line and (self.echo or echo_watched) else None
+        self._sent = adu
         reply = self._await_reply(unit, request, deadline, watch)
         self.round_trip = self.clock() - sent_at
         return reply
@@ -168,26 +181,11 @@ class Client:
         if wait > 0:
             self.sleep(wait)
 
-    def _strip_echo(self, adu: bytes, deadline: float) -> None:
-        echo = b""
-        while len(echo) < len(adu):
-            remaining = deadline - self.clock()
-            if remaining <= 0:
-                raise NoResponse(
-                    f"the adapter echoed {len(echo)} of {len(adu)} bytes (--echo: is this adapter echoing?)"
-                )
-            echo += self.transport.read(remaining)
-        head, rest = echo[: len(adu)], echo[len(adu) :]
-        if head != adu:
-            raise FrameError(f"the adapter's echo {head.hex(' ').upper()} differs from the frame sent", head)
-        self.framer.feed(rest)
-
     def _await_reply(
         self, unit: int, request: Request, deadline: float, watch: _EchoWatch | None = None
     ) -> Response | ExceptionResponse:
         problem: FrameError | None = None
-        # What followed an adapter's echo (--echo) may hold the reply already.
-        event = self.framer.next_event() if self.echo else None
+        event = None
         while True:
             reply, problem = self._judge_events(event, unit, request, problem)
             if reply is not None:
@@ -218,7 +216,7 @@ class Client:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
                 event = self.framer.silence() if waiting else self.framer.next_event()
         self._release(watch)
-        if watch is not None and watch.echoed and problem is None:
+        if watch is not None and watch.echoed and problem is None and not self.echo:
             # Bytes came back, but only the request's: an echo, or a device parroting a request
             # it cannot answer.  Either way an invalid response, not silence.
             problem = FrameError("the only reply was a copy of the request (an echoing adapter? try --echo)")
@@ -282,6 +280,7 @@ class Client:
             except MismatchError as misfit:
                 if event.transaction_id is not None:
                     self.trace.received(event.adu)
+                    self._copy_check(event)
                     raise  # it carries our transaction id: it is the reply, and a bad one
                 # Without a transaction id (RTU, ASCII), a frame from our unit whose byte count
                 # does not fit is most likely the late reply to an earlier request: discard it
@@ -289,11 +288,21 @@ class Client:
                 mismatch = str(misfit)
             except FrameError:
                 self.trace.received(event.adu)
+                self._copy_check(event)
                 raise
         self.trace.received(event.adu, mismatch)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return reply, problem
+
+    def _copy_check(self, frame: Frame) -> None:
+        """A reply that does not decode and is the request itself: over TCP nothing echoes but a
+        misconfigured server or gateway, and that is the line to read, not the decoder's."""
+        if frame.transaction_id is not None and frame.adu == self._sent:
+            raise FrameError(
+                "the only reply was a copy of the request (the server, or a gateway on the way, echoes requests)",
+                frame.adu,
+            )
 
     def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
         if frame.transaction_id is not None and frame.transaction_id not in self._attempt_ids:

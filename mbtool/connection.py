@@ -53,6 +53,8 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
     name = framer_name(connection)
+    if connection.echo and (connection.port or "").lower().startswith("tcp://"):
+        raise RequestError("--echo strips a half-duplex serial adapter's echo; a tcp:// link has none")
     if needs and is_broadcast(connection.unit, name):
         raise RequestError(
             f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"

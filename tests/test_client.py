@@ -129,6 +129,21 @@ def test_exception_reply_raises_with_its_name():
         client(link, clock).execute(0x11, REQUEST)
 
 
+def test_busy_is_retried_when_the_timeout_would_have_ended():
+    """Exception 06 Server Device Busy: retry later (spec §3), spaced as after silence."""
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[rtu("11 83 06")], [REPLY]])
+    start = clock.now
+    assert client(link, clock, retries=1, timeout=0.5).execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert clock.now - start >= 0.5
+    link = ScriptedLink(clock, [[rtu("11 83 06")]])
+    with pytest.raises(ModbusException, match="06 Server Device Busy"):
+        client(link, clock, retries=0).execute(0x11, REQUEST)
+    link = ScriptedLink(clock, [[rtu("11 83 02")], [REPLY]])
+    with pytest.raises(ModbusException, match="02 Illegal Data Address"):  # not retried
+        client(link, clock, retries=1).execute(0x11, REQUEST)
+
+
 def test_broadcast_returns_once_sent():
     clock = FakeClock()
     link = ScriptedLink(clock, [[]])
@@ -155,11 +170,24 @@ def test_echo_is_stripped():
     assert client(link, clock, echo=True).execute(0x11, REQUEST).registers == (555, 0, 100)
 
 
-def test_echo_that_differs_is_invalid():
+def test_with_echo_bytes_that_are_not_the_echo_are_the_reply():
+    """--echo on a link that does not echo: the device's reply is the reply (issue 12.14),
+    not a bad echo that swallows it."""
     clock = FakeClock()
-    link = ScriptedLink(clock, [[b"\x00" * 8]])
-    with pytest.raises(FrameError, match="echo"):
-        client(link, clock, echo=True).execute(0x11, REQUEST)
+    link = ScriptedLink(clock, [[REPLY[:3], REPLY[3:]]])
+    assert client(link, clock, echo=True).execute(0x11, REQUEST).registers == (555, 0, 100)
+
+
+def test_with_echo_a_write_answered_by_its_copy_strips_only_the_echo():
+    """FC06's reply is a copy of the request: with --echo the first copy is the echo."""
+    clock = FakeClock()
+    write = WriteSingleRegister(1, 3)
+    sent = rtu("11 06 00 01 00 03")
+    link = ScriptedLink(clock, [[sent, sent]])
+    assert client(link, clock, echo=True).execute(0x11, write) == write
+    link = ScriptedLink(clock, [[sent]])  # only the echo: no reply
+    with pytest.raises(NoResponse):
+        client(link, clock, echo=True).execute(0x11, write)
 
 
 def test_tcp_transaction_ids_are_matched():

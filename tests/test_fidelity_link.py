@@ -204,3 +204,20 @@ def test_a_device_that_answers_force_listen_only_is_reported(tcp_device):
         "mbtool: warning: the device answered force-listen-only, which the spec leaves unanswered:"
         " it may not be in listen-only mode\n"
     )
+
+
+# --- --echo: what is not the echo is the reply; no echo on tcp:// (12.14) ----------------------
+
+
+def test_echo_on_a_link_without_echo_shows_the_reply(socket_rtu_device):
+    res = run_mbtool("read-holding-registers", "0", "-p", socket_rtu_device.target, "--echo", "--hex")
+    assert res.returncode == 0, str(res)
+    assert res.stdout.split() == ["0", str(HOLDING[0])]
+    assert [line[:2] for line in res.stderr.splitlines()] == ["TX", "RX"], res.stderr
+
+
+def test_echo_on_tcp_is_a_usage_error_and_nothing_is_sent(silent_server):
+    res = run_mbtool("read-holding-registers", "0", "-p", silent_server.tcp_target, "--echo")
+    line = assert_one_error_line(res, 2)
+    assert line == "mbtool: --echo strips a half-duplex serial adapter's echo; a tcp:// link has none"
+    assert silent_server.received_bytes() == b""

@@ -332,6 +332,11 @@ def late_for_the_first_attempt(peer, req):
     return [0.45, peer.frame(req, GOOD)] if len(peer.requests) == 1 else []
 
 
+def busy_then_good(peer, req):
+    """Exception 06 Server Device Busy, then the reply: the spec says to retry later (12.17)."""
+    return [peer.frame(req, bytes.fromhex("83 06"))] if len(peer.requests) == 1 else [peer.frame(req, GOOD)]
+
+
 def garbage_inside(peer, req):
     frame = peer.frame(req, GOOD)
     cut = {"tcp": 8, "rtu": 3, "ascii": 5}[peer.link.framing]
@@ -440,6 +445,16 @@ CASES = [
     ),
     Case("reply dripped byte by byte", dripped, ALL, 0, timeout=1.0),
     Case("the first attempt's reply, late", late_for_the_first_attempt, ALL, 0, requests=2),
+    Case("busy, then the reply", busy_then_good, ALL, 0, requests=2),
+    Case(
+        "busy, without retries",
+        busy_then_good,
+        ALL,
+        4,
+        r"exception 06 Server Device Busy",
+        options=("--retries", "0"),
+        requests=1,
+    ),
     Case("garbage before the frame", garbage_before, ALL, 0),
     Case(
         "garbage inside the frame",
@@ -497,6 +512,16 @@ CASES = [
         r"the only reply was a copy of the request \(an echoing adapter\? try --echo\)",
     ),
     Case("only the echo, with --echo", echo_only, PTYS, 3, r"no response from unit 1", options=("--echo",)),
+    # --echo on a link that does not echo: the reply is the reply, not a bad echo (issue 12.14)
+    Case("no echo, with --echo", good, PTYS + ("socket-rtu",), 0, options=("--echo",)),
+    # a TCP server or gateway that echoes the request says so, as a serial line does (13.10)
+    Case(
+        "only a copy of the request, over TCP",
+        echo_only,
+        ("tcp",),
+        5,
+        r"the only reply was a copy of the request \(the server, or a gateway on the way, echoes requests\)",
+    ),
 ]
 
 
