@@ -221,3 +221,24 @@ def test_echo_on_tcp_is_a_usage_error_and_nothing_is_sent(silent_server):
     line = assert_one_error_line(res, 2)
     assert line == "mbtool: --echo strips a half-duplex serial adapter's echo; a tcp:// link has none"
     assert silent_server.received_bytes() == b""
+
+
+# --- float32 in every output format (12.11) ---------------------------------------------------
+
+
+def test_float32_prints_as_written_in_every_format(tcp_device):
+    import json
+
+    target = ("-p", tcp_device.target)
+    res = run_mbtool("write-registers", "500", "123.456", "-1.1", "--type", "float32", *target)
+    assert res.returncode == 0, str(res)
+    read = ("read-holding-registers", "500", "2", "--type", "float32", *target)
+    assert run_mbtool(*read, "-o", "plain").stdout == "500 123.456\n502 -1.1\n"
+    assert run_mbtool(*read, "-o", "csv").stdout.splitlines()[1:] == ["500,123.456", "502,-1.1"]
+    text = run_mbtool(*read, "-o", "json").stdout
+    assert json.loads(text)["values"] == [123.456, -1.1]
+    assert '"values": [123.456, -1.1]' in text
+    table = run_mbtool(*read, "-o", "table").stdout
+    assert "123.456 " in table + " " and "123.4560012" not in table
+    polled = run_mbtool(*read, "-o", "csv", "--polls", "1").stdout
+    assert "500,123.456" in polled and "502,-1.1" in polled

@@ -102,3 +102,37 @@ def test_int32_round_trip(value, order):
 def test_float64_round_trip(value, order):
     ((_, back),) = decode_values(tuple(encode_values([value], "float64", order)), "float64", order)
     assert back == value or (math.isnan(back) and math.isnan(value))
+
+
+# --- float32 printed as the shortest decimal that reads back as it (issue 12.11) ---------------
+
+
+def test_float32_is_the_shortest_decimal_that_reads_back():
+    import random
+    import struct
+
+    from mbtool.codec.values import shortest_float32
+
+    assert repr(shortest_float32(struct.unpack(">f", struct.pack(">f", 123.456))[0])) == "123.456"
+    assert repr(shortest_float32(struct.unpack(">f", struct.pack(">f", 1e-40))[0])) == "1e-40"  # subnormal
+    rnd = random.Random(12)
+    for _ in range(20000):
+        value = struct.unpack(">f", rnd.randbytes(4))[0]
+        if value != value or value in (float("inf"), float("-inf")):
+            continue
+        short = shortest_float32(value)
+        assert struct.unpack(">f", struct.pack(">f", short))[0] == value
+        # no shorter decimal reads back as the same float32
+        digits = len(f"{short:.9e}".split("e")[0].rstrip("0").replace(".", "").replace("-", ""))
+        if digits > 1:
+            shorter = float(f"{value:.{digits - 1}g}")
+            assert struct.unpack(">f", struct.pack(">f", shorter))[0] != value, (value, short)
+
+
+def test_float64_stays_pythons_repr():
+    from mbtool.codec.values import decode_values, encode_values
+
+    assert decode_values(tuple(encode_values([0.1], "float64")), "float64") == [(0, 0.1)]
+    assert decode_values(tuple(encode_values([123.456], "float32", "CDAB")), "float32", "CDAB") == [
+        (0, 123.456)
+    ]

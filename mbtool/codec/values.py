@@ -78,6 +78,26 @@ def _printable(data: bytes) -> str:
     return "".join(chr(b) if 32 <= b < 127 or b >= 160 else f"\\x{b:02x}" for b in data)
 
 
+_FLOAT32 = struct.Struct(">f")
+FLOAT32_MIN_NORMAL = 1.1754943508222875e-38
+
+
+def shortest_float32(value: float) -> float:
+    """The float32 as the shortest decimal that reads back as it (123.456, not
+    123.45600128173828): what the device's manual and its display show.  A double whose
+    repr is that decimal, so every output format prints it alike."""
+    if not math.isfinite(value):
+        return value
+    # For a normal float32 the 6-digit rounding is the shortest form whenever 6 digits or
+    # fewer suffice (%g drops trailing zeros); a subnormal's coarse spacing may admit a
+    # shorter one, so there every length is tried.
+    for digits in (6, 7, 8) if abs(value) >= FLOAT32_MIN_NORMAL else range(1, 9):
+        short = float(f"{value:.{digits}g}")
+        if _FLOAT32.unpack(_FLOAT32.pack(short))[0] == value:
+            return short
+    return float(f"{value:.9g}")  # nine significant digits always suffice for a float32
+
+
 def registers_needed(type_name: str, count: int) -> int:
     """Registers to read for ``count`` values; a string counts registers (2 characters each)."""
     per = TYPES[type_name].registers
@@ -99,14 +119,15 @@ def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD
         # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
         count = len(registers) // size
         data = struct.pack(f">{count * size}H", *registers[: count * size])
-        return list(
-            zip(range(0, count * size, size), struct.unpack(f">{count}{kind.fmt}", data), strict=True)
+        values = struct.unpack(f">{count}{kind.fmt}", data)
+    else:
+        values = tuple(
+            struct.unpack(">" + kind.fmt, _bytes_of(registers[i : i + size], order))[0]
+            for i in range(0, len(registers) - size + 1, size)
         )
-    out: list[tuple[int, Value]] = []
-    for i in range(0, len(registers) - kind.registers + 1, kind.registers):
-        data = _bytes_of(registers[i : i + kind.registers], order)
-        out.append((i, struct.unpack(">" + kind.fmt, data)[0]))
-    return out
+    if kind.fmt == "f":
+        values = tuple(map(shortest_float32, values))
+    return list(zip(range(0, len(values) * size, size), values, strict=True))
 
 
 def parse_value(text: str, type_name: str) -> Value:
