@@ -83,7 +83,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -99,7 +99,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -117,7 +117,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run --type --order -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -135,7 +135,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile --interval --polls -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run --type --order -P --profile --interval --polls -h --help
                     fi
                     ;;
             esac
@@ -151,7 +151,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -169,7 +169,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -185,7 +185,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -203,7 +203,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -219,7 +219,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -236,7 +236,7 @@ _mbtool()
                 --controller) _mbtool_words "$cur" 184/384 484 584/984 884 ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --clear-log --controller -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --clear-log --controller -h --help
                     fi
                     ;;
             esac
@@ -252,7 +252,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -268,7 +268,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -284,7 +284,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -300,7 +300,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -316,7 +316,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -332,7 +332,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -350,7 +350,7 @@ _mbtool()
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run --type --order -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run --type --order -P --profile -h --help
                     fi
                     ;;
             esac
@@ -366,7 +366,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
                     fi
                     ;;
             esac
@@ -383,7 +383,7 @@ _mbtool()
                 --level) _mbtool_words "$cur" basic regular extended ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --level --object -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --level --object -h --help
                     fi
                     ;;
             esac
@@ -400,7 +400,7 @@ _mbtool()
                 --function) _mbtool_words "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
                     fi
                     ;;
             esac
@@ -432,7 +432,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --dry-run -P --profile --adu -h --help
+                        _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --adu -h --help
                     fi
                     ;;
             esac
@@ -443,7 +443,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" --framer --request --response -o --format -h --help
+                        _mbtool_words "$cur" --framer --request --response -o --format --no-header -h --help
                     fi
                     ;;
             esac
@@ -453,7 +453,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -o --format -h --help
+                        _mbtool_words "$cur" -o --format --no-header -h --help
                     fi
                     ;;
             esac
@@ -463,7 +463,7 @@ _mbtool()
                 -o|--format) _mbtool_words "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
-                        _mbtool_words "$cur" -o --format -h --help
+                        _mbtool_words "$cur" -o --format --no-header -h --help
                     fi
                     ;;
             esac

@@ -76,6 +76,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
@@ -100,6 +101,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--interval=[Poll every SECONDS over one open link (until interrupted unless --polls); 0 polls back to back]:SECONDS: ' \
@@ -124,6 +126,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
@@ -150,6 +153,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
@@ -176,6 +180,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -198,6 +203,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 hex)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
@@ -222,6 +228,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -244,6 +251,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
@@ -268,6 +276,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -288,6 +297,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--clear-log[restart-comms: also clear the event log (data FF00)]' \
@@ -312,6 +322,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -332,6 +343,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -352,6 +364,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' && ret=0
@@ -372,6 +385,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -393,6 +407,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -414,6 +429,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -437,6 +453,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '--type=[How values map to registers]:type:(uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string)' \
             '--order=[Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, BADC byte-swapped, DCBA little-endian]:order:(ABCD CDAB BADC DCBA)' \
@@ -463,6 +480,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
@@ -484,6 +502,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--level=[Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF]:level:(basic regular extended)' \
@@ -506,6 +525,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--function=[What each unit is asked]:function:(read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data)' \
@@ -550,6 +570,7 @@ _mbtool() {
             '--rs485-delays=[RTS raised this long before the frame and held this long after it; implies --rs485]:MS[,MS]: ' \
             '--hex[Print every frame sent and received (stderr), checksum checked]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '--dry-run[Print the frame that would be sent, decoded, and send nothing (the port is not opened)]' \
             '(-P --profile)'{-P+,--profile=}'[Connection settings from \[profiles.NAME\] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; options and MBTOOL_PORT/MBTOOL_UNIT override them]:NAME: ' \
             '--adu[Send HEX exactly as given (checksum or MBAP header included)]' \
@@ -562,18 +583,21 @@ _mbtool() {
             '--request[Read the frame as a request]' \
             '--response[Read the frame as a response]' \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:[HEX...|-]: ' && ret=0
           ;;
         (crc)
           _arguments -s -S \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:HEX...: ' && ret=0
           ;;
         (lrc)
           _arguments -s -S \
             '(-o --format)'{-o+,--format=}'[Output format: table on a terminal, plain in a pipe]:format:(table plain json csv)' \
+            '--no-header[CSV without its header row (it is left out anyway when appending to a file that has content)]' \
             '(- *)'{-h,--help}'[Show this message and exit]' \
             '*:HEX...: ' && ret=0
           ;;

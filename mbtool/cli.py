@@ -15,8 +15,8 @@ from importlib import import_module
 
 import click
 
-from mbtool import __version__
-from mbtool.errors import ExitCode, MbtoolError, exit_code_for
+from mbtool import __version__, render
+from mbtool.errors import ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
 from mbtool.options import QuickHelp
 
 # command name -> the module that defines it (as a function named like the command)
@@ -87,7 +87,8 @@ def cli() -> None:
     Try it without hardware: mbtool read-holding-registers 0 10 -p sim://
 
     Exit codes: 0 ok, 1 internal error, 2 bad input (nothing sent), 3 no response,
-    4 Modbus exception, 5 invalid response, 6 cannot open or connect, 130 interrupted.
+    4 Modbus exception, 5 invalid response, 6 cannot open or connect, 7 cannot write the
+    output (disk full), 130 interrupted, 141 the reader of stdout went away.
     """
 
 
@@ -101,33 +102,65 @@ def _terminate(signum, frame):
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every outcome leaves through one exit code and at most one stderr line."""
     signal.signal(signal.SIGTERM, _terminate)
+    error: BaseException | None = None
     try:
-        cli.main(args=argv, prog_name="mbtool", standalone_mode=False)
+        # Not cli.main: it turns a closed pipe into exit 1 before any handler here sees it.
+        with cli.make_context("mbtool", sys.argv[1:] if argv is None else list(argv)) as ctx:
+            cli.invoke(ctx)
+        sys.stdout.flush()  # here, where a full disk is still ours to report
         code = ExitCode.OK
     except click.exceptions.Exit as done:  # --help, --version
         code = done.exit_code
-    except click.ClickException as error:  # usage errors: nothing was sent
+    except click.ClickException as failure:  # usage errors: nothing was sent
         hint = ""
-        if error.ctx is not None and isinstance(error, click.UsageError):
-            hint = f" (see '{error.ctx.command_path} --help')"
-        click.echo(f"mbtool: {error.format_message()}{hint}", err=True)
+        if failure.ctx is not None and isinstance(failure, click.UsageError):
+            hint = f" (see '{failure.ctx.command_path} --help')"
+        error = MbtoolError(f"{failure.format_message()}{hint}")
         code = ExitCode.USAGE
     except (KeyboardInterrupt, click.exceptions.Abort):
         click.echo("mbtool: interrupted", err=True)
         code = ExitCode.INTERRUPTED
     except BrokenPipeError:
-        # The reader went away (| head): not an error of ours.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        code = ExitCode.OK
-    except MbtoolError as error:
-        click.echo(f"mbtool: {error}", err=True)
+        # The reader went away (| head): stop at once and quietly, with the status a shell
+        # gives a program that SIGPIPE ended (SIGPIPE itself would also end us on sockets).
+        _discard_stdout()
+        code = ExitCode.READER_GONE
+    except OSError as failure:  # what reaches here unconverted is stdout failing (disk full)
+        _discard_stdout()
+        error = OutputFailed("standard output", failure)
         code = error.exit_code
-    except Exception as error:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
+    except MbtoolError as failure:
+        if isinstance(failure, OutputFailed):
+            _discard_stdout()
+        error = failure
+        code = failure.exit_code
+    except Exception as failure:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
         if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
             raise
-        click.echo(
-            f"mbtool: internal error: {type(error).__name__}: {error} (set MBTOOL_DEBUG=1 for details)",
-            err=True,
+        error = MbtoolError(
+            f"internal error: {type(failure).__name__}: {failure} (set MBTOOL_DEBUG=1 for details)"
         )
-        code = exit_code_for(error)
+        code = exit_code_for(failure)
+    if error is not None:
+        click.echo(f"mbtool: {error}", err=True)
+        if render.errors_as_json and not isinstance(error, Summary | OutputFailed):
+            # -o json: a script reading stdout alone gets an object for every outcome
+            # (polling writes its own per poll, and its Summary is no error object).
+            _write_quietly(render.error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
+
+
+def _discard_stdout() -> None:
+    """Point stdout at /dev/null: what is still buffered must not fail again at exit."""
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
+def _write_quietly(text: str) -> None:
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except OSError:
+        _discard_stdout()

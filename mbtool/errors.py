@@ -19,7 +19,9 @@ class ExitCode(IntEnum):
     EXCEPTION = 4  # the device answered with a Modbus exception
     INVALID_RESPONSE = 5  # checksum, framing, wrong unit/function/transaction id, byte count
     CONNECTION = 6  # cannot open the port or connect
+    OUTPUT = 7  # cannot write the output: disk full, a file too large, an I/O error
     INTERRUPTED = 130  # Ctrl-C / SIGTERM
+    READER_GONE = 141  # stdout's reader went away (| head): what a shell reports for SIGPIPE
 
 
 class MbtoolError(Exception):
@@ -81,6 +83,15 @@ class NoResponse(MbtoolError):
 
 class ConnectionFailed(MbtoolError):
     exit_code = ExitCode.CONNECTION
+
+
+class OutputFailed(MbtoolError):
+    """The output could not be written (stdout, a capture file): one line naming it and why."""
+
+    exit_code = ExitCode.OUTPUT
+
+    def __init__(self, where: str, error: OSError) -> None:
+        super().__init__(f"cannot write to {where}: {error.strerror or error}")
 
 
 class ModbusException(MbtoolError):

@@ -218,6 +218,30 @@ def serial_line_options(function: Callable) -> Callable:
     return function
 
 
+def output_chosen(fmt: str | None) -> str | None:
+    """Note -o as soon as it is parsed, so that even a failure after it gets its JSON object."""
+    if fmt == "json":
+        from mbtool import render
+
+        render.errors_as_json = True
+    return fmt
+
+
+def _no_header(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value:
+        from mbtool import render
+
+        render.csv_header = False
+
+
+NO_HEADER_OPTION = click.option(
+    "--no-header",
+    is_flag=True,
+    expose_value=False,
+    callback=_no_header,
+    help="CSV without its header row (it is left out anyway when appending to a file that has content).",
+)
+
 CONNECTION_OPTIONS = [
     click.option(
         "-p",
@@ -283,8 +307,11 @@ CONNECTION_OPTIONS = [
         "--format",
         "output_format",
         type=click.Choice(["table", "plain", "json", "csv"]),
-        help="Output format: table on a terminal, plain in a pipe.",
+        callback=lambda ctx, param, value: output_chosen(value),
+        help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
+        'object too: {"error": ..., "exit_code": N}.',
     ),
+    NO_HEADER_OPTION,
     click.option(
         "--dry-run",
         is_flag=True,

@@ -25,11 +25,13 @@ LRC is stored as its text under "data", so nothing shows as valid that was not.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 from collections.abc import Iterator
 from typing import BinaryIO
 
 from mbtool.codec.checksum import crc_bytes
+from mbtool.errors import OutputFailed
 
 PCAP_MAGIC = 0xA1B2C3D4  # microsecond timestamps
 PCAP_NANO_MAGIC = 0xA1B23C4D  # nanosecond timestamps (read, never written)
@@ -58,18 +60,35 @@ def exported_pdu(dissector: str, payload: bytes) -> bytes:
 
 
 class PcapWriter:
-    """A classic pcap file; every packet is flushed, so a killed monitor leaves a readable file."""
+    """A classic pcap file that always ends on a record boundary.
 
-    def __init__(self, file: BinaryIO, linktype: int = LINKTYPE_WIRESHARK_UPPER_PDU) -> None:
+    Each record goes out whole, straight to the file (no buffer), so a killed monitor
+    leaves a readable file; a write that fails (a full disk, a file size limit) is cut
+    back to the last whole record and reported, so what was written stays readable.
+    """
+
+    def __init__(self, file: BinaryIO, linktype: int = LINKTYPE_WIRESHARK_UPPER_PDU, name: str = "") -> None:
         self.file = file
-        file.write(struct.pack("<IHHiIII", PCAP_MAGIC, *PCAP_VERSION, 0, 0, SNAPLEN, linktype))
-        file.flush()
+        self.name = name or getattr(file, "name", "the capture file")
+        self.whole = 0  # bytes of the file up to the end of its last whole record
+        self._write(struct.pack("<IHHiIII", PCAP_MAGIC, *PCAP_VERSION, 0, 0, SNAPLEN, linktype))
 
     def packet(self, when: float, data: bytes) -> None:
         seconds = int(when)
         micros = min(int(round((when - seconds) * 1_000_000)), 999_999)
-        self.file.write(struct.pack("<IIII", seconds, micros, len(data), len(data)) + data)
-        self.file.flush()
+        self._write(struct.pack("<IIII", seconds, micros, len(data), len(data)) + data)
+
+    def _write(self, record: bytes) -> None:
+        view = memoryview(record)
+        try:
+            while view:
+                view = view[self.file.write(view) :]
+            self.file.flush()
+        except OSError as error:
+            with contextlib.suppress(OSError):
+                self.file.truncate(self.whole)  # what was written stays readable
+            raise OutputFailed(f"capture file {self.name}", error) from None
+        self.whole += len(record)
 
     def close(self) -> None:
         self.file.close()
@@ -80,7 +99,8 @@ class BusCapture(PcapWriter):
 
     @classmethod
     def create(cls, path: str) -> BusCapture:
-        return cls(open(path, "wb"))  # noqa: SIM115 - closed by close()
+        # Unbuffered: a record is written whole by one write (or cut back if it cannot be).
+        return cls(open(path, "wb", buffering=0), name=path)  # noqa: SIM115 - closed by close()
 
     def frame(self, frame) -> None:
         if frame.direction == "garbage":

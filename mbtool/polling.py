@@ -19,7 +19,15 @@ import sys
 import time
 from collections.abc import Callable
 
-from mbtool.errors import ConnectionFailed, ExitCode, MbtoolError, NoResponse, RequestError, Summary
+from mbtool.errors import (
+    ConnectionFailed,
+    ExitCode,
+    MbtoolError,
+    NoResponse,
+    OutputFailed,
+    RequestError,
+    Summary,
+)
 from mbtool.render import local_time
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
@@ -48,7 +56,10 @@ class Output:
             self._emit(_json_line({"time": when, **as_dict(result)}))
         elif self.fmt == "csv":
             if not self.header_done:
-                self._emit("time,address,value\n")
+                from mbtool.render import wants_csv_header
+
+                if wants_csv_header(self.out):
+                    self._emit("time,address,value\n")
                 self.header_done = True
             self._emit("".join(f"{when},{a},{_csv_cell(_text(v))}\n" for a, v in result.items))
         elif self.fmt == "plain":
@@ -61,10 +72,10 @@ class Output:
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt == "json":
             # jq consumers read stdout only: a failed poll must show up there too.
-            from mbtool.render import to_json
+            from mbtool.render import error_json
 
             code = int(getattr(error, "exit_code", ExitCode.INTERNAL))
-            self._emit(to_json({"time": when, "error": str(error), "exit_code": code}) + "\n", now=True)
+            self._emit(error_json(str(error), code, time=when) + "\n", now=True)
 
     def _emit(self, text: str, now: bool = False) -> None:
         self._pending.append(text)
@@ -72,10 +83,16 @@ class Output:
             self.flush()
 
     def flush(self) -> None:
-        if self._pending:
-            self.out.write("".join(self._pending))
-            self._pending.clear()
-        self.out.flush()
+        try:
+            if self._pending:
+                text = "".join(self._pending)
+                self._pending.clear()
+                self.out.write(text)
+            self.out.flush()
+        except BrokenPipeError:
+            raise  # the reader went away: cli.main ends quietly
+        except OSError as error:  # a full disk: the poll cannot go on
+            raise OutputFailed("standard output", error) from None
         self._flush_at = time.monotonic() + FLUSH_GAP
 
     def _table(self, when: str, result) -> None:
@@ -241,10 +258,12 @@ def poll(
                 reply = client.execute(connection.unit, request)
                 latency.add(client.round_trip * 1000)
                 replies += 1
+            except BrokenPipeError:
+                raise  # stdout's reader went away: nothing left to poll for
             except (MbtoolError, OSError) as error:
                 shown.write()  # the poll before it, if the request never left
-                if isinstance(error, RequestError):
-                    raise  # the request itself is wrong: no later poll can do better
+                if isinstance(error, RequestError | OutputFailed):
+                    raise  # the request is wrong, or the output full: no later poll can do better
                 if isinstance(error, NoResponse):
                     timeouts += 1
                 else:

@@ -8,6 +8,8 @@ table is drawn: it costs tens of milliseconds a cron job should not pay.
 from __future__ import annotations
 
 import math
+import os
+import stat
 import sys
 import time
 from typing import TextIO
@@ -77,6 +79,32 @@ def local_time(when: float | None = None) -> str:
 
 
 _SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)
+
+
+# Set by the options as they are parsed: cli.main reads them when a command fails.
+errors_as_json = False  # -o json: a failure is also an object on stdout
+csv_header = True  # --no-header: CSV without its header row, always
+
+
+def error_json(message: str, code: int, **first: object) -> str:
+    """The object -o json writes for a failure, one-shot or a poll's: {"error", "exit_code"}."""
+    return to_json({**first, "error": message, "exit_code": code})
+
+
+def wants_csv_header(out: TextIO) -> bool:
+    """A CSV header, unless --no-header, or unless the output is a regular file that already
+    has content: cron's ``>> log.csv`` gets one header, not one a run."""
+    if not csv_header:
+        return False
+    try:
+        fd = out.fileno()
+        info = os.fstat(fd)
+    except (AttributeError, OSError, ValueError):  # not a file (a StringIO, a closed stream)
+        return True
+    if not stat.S_ISREG(info.st_mode):
+        return True
+    out.flush()
+    return info.st_size == 0 and os.lseek(fd, 0, os.SEEK_CUR) == 0
 
 
 def default_format(stream: TextIO = sys.stdout) -> str:
@@ -159,7 +187,8 @@ def _csv(result: Result, out: TextIO) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["address", "value"])
+    if wants_csv_header(out):
+        writer.writerow(["address", "value"])
     for address, value in result.items:
         writer.writerow([address, _text(value)])
 
@@ -260,7 +289,7 @@ def _report_csv(report: Report, out: TextIO) -> None:
 
     writer = csv.writer(out, lineterminator="\n")
     with_raw = any(row.raw is not None for row in report.rows)
-    if report.header:
+    if report.header and wants_csv_header(out):
         writer.writerow(["name", "value", "bytes"] if with_raw else ["name", "value"])
     for row in report.rows:
         cells = [row.name, row.shown]

@@ -20,7 +20,14 @@ import time
 import click
 
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
-from mbtool.options import PROFILE_OPTION, Number, PositiveFloat, QuickHelp, serial_line_options
+from mbtool.options import (
+    PROFILE_OPTION,
+    Number,
+    PositiveFloat,
+    QuickHelp,
+    output_chosen,
+    serial_line_options,
+)
 from mbtool.render import local_time
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
@@ -97,6 +104,7 @@ def default_silence(framer: str, baud: int) -> float:
     "--format",
     "output_format",
     type=click.Choice(["table", "plain", "json"]),
+    callback=lambda ctx, param, value: output_chosen(value),
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
 @PROFILE_OPTION

@@ -7,13 +7,14 @@ import sys
 import click
 
 from mbtool.errors import RequestError
-from mbtool.options import QuickHelp, device_command
+from mbtool.options import NO_HEADER_OPTION, QuickHelp, device_command, output_chosen
 
 FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
     type=click.Choice(["table", "plain", "json", "csv"]),
+    callback=lambda ctx, param, value: output_chosen(value),
     help="Output format: table on a terminal, plain in a pipe.",
 )
 
@@ -101,6 +102,7 @@ def _problem(described) -> str:
 @click.option("--request", "direction", flag_value="request", help="Read the frame as a request.")
 @click.option("--response", "direction", flag_value="response", help="Read the frame as a response.")
 @FORMAT_OPTION
+@NO_HEADER_OPTION
 def decode(frame, framer, direction, output_format):
     """Decode frames offline.
 
@@ -143,6 +145,7 @@ def decode(frame, framer, direction, output_format):
 @click.command("crc", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
+@NO_HEADER_OPTION
 def crc(data, output_format):
     """CRC-16/MODBUS of bytes.
 
@@ -169,6 +172,7 @@ def crc(data, output_format):
 @click.command("lrc", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
+@NO_HEADER_OPTION
 def lrc(data, output_format):
     """LRC of bytes.
 

@@ -549,8 +549,11 @@ class Output:
     def _csv_header(self) -> None:
         import csv
 
+        from mbtool.render import wants_csv_header
+
         where = ["baud", "parity"] if self.sweeping else []
-        csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
+        if wants_csv_header(sys.stdout):
+            csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
         self.header_done = True
 
     def garbled(self, answer: Answer) -> None:
