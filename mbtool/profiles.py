@@ -25,21 +25,26 @@ import click
 from mbtool.codec.record import replace
 from mbtool.errors import RequestError
 
-# profile key -> the option's parameter name (the same) and the Connection field it sets
-KEYS = (
-    "port",
-    "unit",
-    "framer",
-    "baud",
-    "parity",
-    "bytesize",
-    "stopbits",
-    "timeout",
-    "retries",
-    "echo",
-    "rs485",
-    "rs485_delays",
-)
+# profile key (the option's parameter name, and the Connection field it sets) -> the TOML
+# types it takes, and how to say so
+KEYS = {
+    "port": ((str,), 'text, such as "/dev/ttyUSB0" or "tcp://10.0.0.5"'),
+    "unit": ((int,), "a whole number, 0..255"),
+    "framer": ((str,), 'text: "rtu", "ascii" or "tcp"'),
+    "baud": ((int,), "a whole number, such as 9600"),
+    "parity": ((str,), 'text: "N", "E" or "O"'),
+    "bytesize": ((int, str), "7 or 8"),
+    "stopbits": ((int, str), "1 or 2"),
+    "timeout": ((int, float), "seconds, such as 0.5"),
+    "retries": ((int,), "a whole number"),
+    "echo": ((bool,), "true or false"),
+    "rs485": ((bool,), "true or false"),
+    "rs485_delays": ((str, int, float), 'milliseconds, such as 2 or "1,2"'),
+}
+
+
+def _kind(value: object) -> str:
+    return {bool: "true/false", int: "a number", float: "a number", str: "text"}.get(type(value), "a table or list")
 
 
 def config_path() -> Path:
@@ -57,9 +62,12 @@ def load(name: str, path: Path | None = None) -> dict:
     path = path or config_path()
     try:
         with open(path, "rb") as file:
-            data = tomllib.load(file)
+            text = file.read().decode("utf-8")
+        data = tomllib.loads(text)
     except OSError as error:
         raise RequestError(f"cannot read profile file {path}: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise RequestError(f"{path}: not UTF-8 text (byte {error.start}), as TOML must be") from None
     except tomllib.TOMLDecodeError as error:
         raise RequestError(f"{path}: not valid TOML: {error}") from None
     profiles = data.get("profiles", {})
@@ -69,9 +77,13 @@ def load(name: str, path: Path | None = None) -> dict:
         known = ", ".join(sorted(profiles)) or "none"
         raise RequestError(f"{path}: no profile {name!r} (profiles: {known})")
     settings = profiles[name]
-    for key in settings:
+    for key, value in settings.items():
         if key not in KEYS:
             raise RequestError(f"{path}: profiles.{name}.{key}: unknown key (known: {', '.join(KEYS)})")
+        types, wanted = KEYS[key]
+        # bool is an int to Python, not to TOML: true is no unit number
+        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+            raise RequestError(f"{path}: profiles.{name}.{key}: {_kind(value)}, where {key} takes {wanted}")
     return settings
 
 

@@ -95,6 +95,12 @@ def test_bad_values(mbtool, tmp_path):
         ("unit", "1.5"),
         ("framer", '"udp"'),
         ("port", "[1]"),
+        ("port", "5"),  # a number is no device path (issue 13.6)
+        ("unit", "true"),
+        ("unit", '"2"'),
+        ("baud", '"9600"'),
+        ("timeout", '"1"'),
+        ("rs485", "1"),
     ]:
         port = "" if key == "port" else 'port = "sim://"\n'
         env = config(tmp_path, f"[profiles.s]\n{port}{key} = {value}\n")
@@ -110,6 +116,30 @@ def test_unreadable_or_broken_file(mbtool, tmp_path):
     env = config(tmp_path, "[profiles.s\nport = 1\n")
     line = assert_one_error_line(mbtool("read-coils", "0", "1", "-P", "s", env=env), 2)
     assert env["MBTOOL_CONFIG"] in line and "TOML" in line
+
+
+def test_a_number_for_the_port_says_it_wants_text(mbtool, tmp_path):
+    env = config(tmp_path, "[profiles.s]\nport = 5\n")
+    line = assert_one_error_line(mbtool("read-coils", "0", "1", "-P", "s", env=env), 2)
+    assert line.endswith(
+        'profiles.s.port: a number, where port takes text, such as "/dev/ttyUSB0" or "tcp://10.0.0.5"'
+    )
+
+
+def test_keys_a_command_has_no_option_for_are_checked_too(mbtool, tmp_path):
+    """monitor has no --unit, but a bad unit is still a bad file."""
+    env = config(tmp_path, '[profiles.s]\nport = "sim://"\nunit = "x"\n')
+    line = assert_one_error_line(mbtool("monitor", "--from-file", "/dev/null", "-P", "s", env=env), 2)
+    assert "profiles.s.unit" in line
+
+
+def test_a_file_that_is_not_utf8_is_named(mbtool, tmp_path):
+    path = tmp_path / "config.toml"
+    path.write_bytes(b'[profiles.s]\nport = "/dev/tty\xe9"\n')
+    line = assert_one_error_line(
+        mbtool("read-coils", "0", "1", "-P", "s", env={"MBTOOL_CONFIG": str(path)}), 2
+    )
+    assert line == f"mbtool: {path}: not UTF-8 text (byte 29), as TOML must be"
 
 
 def test_no_profile_no_config_needed(mbtool, tmp_path):
