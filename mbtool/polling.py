@@ -110,6 +110,13 @@ class Output:
         table.add_column("Value", justify="right")
         for address, value in result.items:
             table.add_row(str(address), _text(value))
+        if not self.out.isatty():
+            # Into a file or a pipe every poll's table stays, each ending its line: a table
+            # refreshed in place would leave only the last one, without a final newline.
+            from rich.console import Console
+
+            Console(file=self.out).print(Group(heading, table))
+            return
         if self.live is None:
             self.live = Live(Group(heading, table), auto_refresh=False)
             self.live.start()

@@ -44,7 +44,9 @@ KEYS = {
 
 
 def _kind(value: object) -> str:
-    return {bool: "true/false", int: "a number", float: "a number", str: "text"}.get(type(value), "a table or list")
+    return {bool: "true/false", int: "a number", float: "a number", str: "text"}.get(
+        type(value), "a table or list"
+    )
 
 
 def config_path() -> Path:

@@ -57,9 +57,22 @@ EXIT_DESCRIPTIONS = {
     "EXCEPTION": "The device answered with a Modbus exception response.",
     "INVALID_RESPONSE": "Invalid response: CRC/LRC mismatch, framing error, wrong unit, function "
     "or transaction id, or a wrong byte count.",
-    "CONNECTION": "Cannot open the port or connect.",
+    "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
+    "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
+    "to its last whole record).",
     "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM).",
+    "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
+    "with the status of a program ended by SIGPIPE.",
 }
+FILES = [
+    (
+        "$MBTOOL_CONFIG, else $XDG_CONFIG_HOME/mbtool/config.toml (~/.config/mbtool/config.toml)",
+        "Profiles for -P/--profile NAME: a [profiles.NAME] table of connection settings (port, "
+        "unit, framer, baud, parity, bytesize, stopbits, timeout, retries, echo, rs485, rs485_delays). "
+        "An option on the command line, then MBTOOL_PORT and MBTOOL_UNIT, override them. A file "
+        "that is not UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
+    ),
+]
 FALLBACK_EXIT_CODES = {
     0: "OK",
     1: "INTERNAL",
@@ -602,6 +615,10 @@ def render_man(tree: Tree) -> str:
         if envvar in EXTRA_ENVIRONMENT:
             text.append(roff(EXTRA_ENVIRONMENT[envvar]))
         out += [".TP", bold(envvar), line(" ".join(text))]
+
+    out.append(".SH FILES")
+    for where, what in FILES:
+        out += [".TP", italic(where), line(roff(what))]
 
     out.append(".SH EXIT STATUS")
     for code, name in _exit_codes():

@@ -140,6 +140,7 @@ def test_man_page_sections():
         "COMMANDS",
         "OPTIONS",
         "ENVIRONMENT",
+        "FILES",
         "EXIT STATUS",
         "EXAMPLES",
         "SEE ALSO",
@@ -255,3 +256,14 @@ def test_check_reports_a_changed_file(monkeypatch):
     outputs = gen_docs.generate(cli)
     outputs[BASH] += "# edited by hand\n"
     assert gen_docs.stale(outputs, REPO_ROOT) == [BASH]
+
+
+def test_man_page_names_the_config_file_and_every_exit_status():
+    from mbtool.errors import ExitCode
+
+    page = (REPO_ROOT / "man" / "mbtool.1").read_text()
+    files = page.split(".SH FILES", 1)[1].split(".SH ", 1)[0]
+    assert "config.toml" in files and "MBTOOL_CONFIG" in files and "profiles.NAME" in files
+    status = page.split(".SH EXIT STATUS", 1)[1].split(".SH ", 1)[0]
+    for code in ExitCode:
+        assert f"\\fB\\%{int(code)}\\fR" in status, code

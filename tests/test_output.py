@@ -143,3 +143,34 @@ def test_a_capture_cut_short_ends_on_a_record_and_stays_readable(tmp_path):
     assert read.returncode == 0 and "cut short" not in read.stderr, read.stderr
     shown = read.stdout.splitlines()
     assert len(shown) > 100 and all("Modbus RTU" in line for line in shown)
+
+
+# --- small inconsistencies (12.17) ----------------------------------------------------------------
+
+
+def test_a_polled_table_into_a_file_keeps_every_table_and_ends_its_line(tmp_path):
+    out = tmp_path / "tables.txt"
+    assert shell(f"{MBTOOL} {' '.join(READ)} -o table --polls 3 --interval 0.01 > {out}").returncode == 0
+    text = out.read_text()
+    assert text.count("Read Holding Registers (FC 03)") == 3 and text.endswith("\n")
+
+
+def test_write_register_echoes_the_value_in_the_users_type():
+    one = json.loads(
+        run_mbtool("write-register", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
+    )
+    many = json.loads(
+        run_mbtool("write-registers", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
+    )
+    assert (one["type"], one["values"], one["registers"]) == ("int16", [-5], [65531])
+    assert (many["type"], many["values"]) == (one["type"], one["values"])
+    assert run_mbtool("write-register", "10", "-5", "--type", "int16", "-p", "sim://").stdout == "10 -5\n"
+
+
+def test_a_fraction_for_a_register_names_float32():
+    res = run_mbtool("write-registers", "20", "1.5", "-p", "sim://")
+    line = assert_one_error_line(res, 2)
+    assert (
+        line
+        == "mbtool: 1.5 is not a valid register value (a register holds a whole number: for a fraction use --type float32)"
+    )

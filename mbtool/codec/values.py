@@ -174,7 +174,13 @@ def parse_register(text: str) -> int:
     try:
         value = int(text, 0)
     except ValueError:
-        raise RequestError(f"{text!r} is not a valid register value") from None
+        hint = ""
+        try:
+            float(text)
+            hint = " (a register holds a whole number: for a fraction use --type float32)"
+        except ValueError:
+            pass
+        raise RequestError(f"{text} is not a valid register value{hint}") from None
     if not -0x8000 <= value <= 0xFFFF:
         raise RequestError(f"register value {text} is out of range -32768..65535")
     return value & 0xFFFF

@@ -51,15 +51,24 @@ def write_coil(connection, address, state):
 def write_register(connection, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
     from mbtool.codec.data_access import WriteSingleRegister
+    from mbtool.codec.values import decode_values
     from mbtool.render import Result
 
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
     execute(connection, request)
+    # As write-registers does: the value as the register now holds it, in the user's --type.
+    ((_, written),) = decode_values((register,), value_type, order.upper())
     show(
         connection,
         Result(
-            connection.unit, request.function_code, request.name, address, [(address, register)], "uint16"
+            connection.unit,
+            request.function_code,
+            request.name,
+            address,
+            [(address, written)],
+            value_type,
+            [register],
         ),
     )
 
