@@ -102,6 +102,7 @@ def _terminate(signum, frame):
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every outcome leaves through one exit code and at most one stderr line."""
     signal.signal(signal.SIGTERM, _terminate)
+    render.errors_as_json, render.csv_header = False, True  # until the options say otherwise
     error: BaseException | None = None
     try:
         # Not cli.main: it turns a closed pipe into exit 1 before any handler here sees it.
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if render.errors_as_json and not isinstance(error, Summary | OutputFailed):
+        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed):
             # -o json: a script reading stdout alone gets an object for every outcome
             # (polling writes its own per poll, and its Summary is no error object).
             _write_quietly(render.error_json(str(error), int(code)) + "\n")

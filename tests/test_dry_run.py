@@ -7,6 +7,7 @@ import shlex
 import sys
 
 import pytest
+from conftest import run_mbtool
 
 import mbtool.render
 import mbtool.transport
@@ -67,6 +68,8 @@ def test_every_device_command_has_an_example():
 def test_dry_run_prints_the_frame_and_opens_nothing(capsys, no_port, command, framing):
     code, out, err = run(capsys, f"{EXAMPLES[command]} --dry-run -p /dev/ttyUSB0 --framer {framing} -o plain")
     assert code == 0, err
+    raw, out = out.split("\n", 1)
+    assert raw.startswith("raw ")
     assert out.startswith(f"frame {framing} request") or command == "raw" and framing == "tcp"
     assert "function" in out
     verdict = {"rtu": "crc", "ascii": "lrc", "tcp": "mbap"}[framing]
@@ -126,3 +129,27 @@ def test_every_broadcast_write_says_nobody_confirms_it(capsys, line):
     code, _, err = run(capsys, f"{line} -u 0 -p sim://")
     assert code == 0, err
     assert err.splitlines() == ["mbtool: broadcast: no device confirms a write to unit 0"]
+
+
+# --- the frame's exact bytes in every format (issue 12.4) ---------------------------------------
+
+
+@pytest.mark.parametrize(
+    "framing, raw",
+    [
+        (("-p", "sim://"), "01 06 00 0A 00 05 69 CB"),
+        (("-p", "tcp://192.0.2.1"), "00 01 00 00 00 06 01 06 00 0A 00 05"),
+        (("--framer", "ascii"), ":0106000A0005EA"),
+    ],
+    ids=["rtu", "tcp", "ascii"],
+)
+def test_dry_run_shows_the_exact_bytes_in_every_format(framing, raw):
+    import json
+
+    args = ("write-register", "10", "5", *framing, "--dry-run")
+    assert f"raw {raw}\n" in run_mbtool(*args, "-o", "plain").stdout
+    data = json.loads(run_mbtool(*args, "-o", "json").stdout)
+    assert data["raw"] == raw + ("\r\n" if raw.startswith(":") else "")
+    assert f"raw,{raw}" in run_mbtool(*args, "-o", "csv").stdout
+    assert raw in run_mbtool(*args, "-o", "table").stdout
+    assert run_mbtool(*args, "--hex").stdout.startswith(f"raw {raw}\n")

@@ -37,7 +37,10 @@ def frame_report(described, header: bool = True):
     from mbtool.render import Report, Row
 
     d = described
-    rows = [Row("frame", f"{d.framing} {d.kind}")]
+    # The exact bytes first, to copy into a manual or a tester: hex for RTU and MBAP, the
+    # text line for ASCII (its CR LF left to the line's end).
+    frame = ":" + d.adu.hex().upper() + "\r\n" if d.framing == "ascii" else d.adu.hex(" ").upper()
+    rows = [Row("raw", frame, frame.rstrip("\r\n")), Row("frame", f"{d.framing} {d.kind}")]
     if d.framing == "tcp":
         adu = d.adu
         rows += [
@@ -59,12 +62,10 @@ def frame_report(described, header: bool = True):
     rows += [Row("warning", text) for text in d.warnings]
     if d.error:
         rows.append(Row("error", d.error))
-    frame = d.adu.hex(" ").upper()
-    if d.framing == "ascii":
-        frame = ":" + d.adu.hex().upper() + "\r\n"
     data = {
         "framing": d.framing,
         "kind": d.kind,
+        "raw": frame,
         "frame": frame,
         "checksum": {"ok": d.checksum_ok, "verdict": d.checksum},
         "fields": [
