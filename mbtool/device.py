@@ -758,9 +758,9 @@ def _int(value, where: str, low: int, high: int) -> int:
         try:
             value = int(value.strip(), 0) if not value.strip().isdigit() else int(value.strip())
         except ValueError:
-            raise RequestError(f"data file {where}: {value!r} is not a number") from None
+            raise RequestError(f"data file {where}: {value} is not a number") from None
     if not isinstance(value, int):
-        raise RequestError(f"data file {where}: {value!r} is not a number")
+        raise RequestError(f"data file {where}: {value} is not a number")
     if not low <= value <= high:
         raise RequestError(f"data file {where}: {value} is out of range {low}..{high}")
     return value
@@ -794,7 +794,7 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
     unknown = sorted(set(data) - known)
     if unknown:
         raise RequestError(
-            f"data file {where}: unknown section {unknown[0]!r} (expected one of {sorted(known)})"
+            f"data file {where}: unknown section {unknown[0]} (expected one of {sorted(known)})"
         )
     for name in TABLES:
         if name in data:

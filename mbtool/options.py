@@ -21,7 +21,8 @@ def parse_int(text: str, what: str = "number") -> int:
             return int(text, 10)
         return int(text, 0)
     except ValueError:
-        raise RequestError(f"{what} {text!r} is not a number (decimal or 0x hex)") from None
+        shown = text or "(empty)"
+        raise RequestError(f"{what} {shown} is not a number (decimal or 0x hex)") from None
 
 
 def parse_units(text: str) -> frozenset[int]:
@@ -30,12 +31,12 @@ def parse_units(text: str) -> frozenset[int]:
     for part in text.split(","):
         part = part.strip()
         if not part:
-            raise RequestError(f"empty unit id in {text!r}")
+            raise RequestError(f"empty unit id in {text}")
         low_text, dash, high_text = part.partition("-")
         low = parse_int(low_text, "unit")
         high = parse_int(high_text, "unit") if dash else low
         if low > high:
-            raise RequestError(f"unit range {part!r} runs backwards")
+            raise RequestError(f"unit range {part} runs backwards")
         for unit in (low, high):
             if not 1 <= unit <= 255:
                 raise RequestError(
@@ -152,7 +153,7 @@ class PositiveFloat(click.ParamType):
         try:
             number = float(value)
         except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+            self.fail(f"{value} is not a number of seconds", param, ctx)
         if number != number or number == float("inf") or number < 0 or (number == 0 and not self.zero_ok):
             least = "0 or more" if self.zero_ok else "more than 0"
             self.fail(f"must be {least} seconds, not {value}", param, ctx)
@@ -172,9 +173,9 @@ class Rs485Delays(click.ParamType):
         try:
             delays = [float(part) for part in parts]
         except ValueError:
-            self.fail(f"{value!r} is not BEFORE[,AFTER] in milliseconds", param, ctx)
+            self.fail(f"{value} is not BEFORE[,AFTER] in milliseconds", param, ctx)
         if len(delays) > 2 or not all(0 <= d <= self.LIMIT_MS for d in delays):
-            self.fail(f"{value!r}: give BEFORE[,AFTER], each 0..{self.LIMIT_MS} ms", param, ctx)
+            self.fail(f"{value}: give BEFORE[,AFTER], each 0..{self.LIMIT_MS} ms", param, ctx)
         before, after = (delays + [0.0])[:2]
         return (before / 1000, after / 1000)
 

@@ -77,7 +77,7 @@ def load(name: str, path: Path | None = None) -> dict:
         raise RequestError(f"{path}: [profiles.{name}] must be a table")
     if name not in profiles:
         known = ", ".join(sorted(profiles)) or "none"
-        raise RequestError(f"{path}: no profile {name!r} (profiles: {known})")
+        raise RequestError(f"{path}: no profile {name} (profiles: {known})")
     settings = profiles[name]
     for key, value in settings.items():
         if key not in KEYS:
@@ -119,14 +119,14 @@ def defaults(name: str) -> dict:
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
     if key in ("echo", "rs485"):
         if not isinstance(raw, bool):
-            raise RequestError(f"{where}: {raw!r} is not true or false")
+            raise RequestError(f"{where}: {raw} is not true or false")
         return raw
     if isinstance(raw, bool) or not isinstance(raw, str | int | float):
-        raise RequestError(f"{where}: {raw!r} is not a string or number")
+        raise RequestError(f"{where}: {raw} is not a string or number")
     if key in ("bytesize", "stopbits", "parity", "framer", "port", "rs485_delays"):
         raw = str(raw)
     elif key in ("unit", "baud", "retries") and isinstance(raw, float):
-        raise RequestError(f"{where}: {raw!r} is not a whole number")
+        raise RequestError(f"{where}: {raw} is not a whole number")
     try:
         value = param.type.convert(raw, None, ctx)
     except click.BadParameter as error:

@@ -342,7 +342,7 @@ def test_load_json(tmp_path):
         ("[1, 2]", "top level"),
         ("{not json", "not valid JSON"),
         ('{"sparse": 1}', "sparse must be true or false"),
-        ('{"units": {"1": {"sparse": true}}}', "unknown section 'sparse'"),  # the top level only
+        ('{"units": {"1": {"sparse": true}}}', "unknown section sparse"),  # the top level only
     ],
 )
 def test_bad_data_files(tmp_path, text, message):

@@ -76,7 +76,7 @@ def test_xdg_config_home(mbtool, tmp_path):
 def test_unknown_profile(mbtool, tmp_path):
     env = config(tmp_path, PROFILES.format(target="x"))
     line = assert_one_error_line(mbtool("read-coils", "0", "1", "-P", "nope", env=env), 2)
-    assert env["MBTOOL_CONFIG"] in line and "'nope'" in line and "dev, tcp" in line
+    assert env["MBTOOL_CONFIG"] in line and "no profile nope" in line and "dev, tcp" in line
 
 
 def test_unknown_key(mbtool, tmp_path):

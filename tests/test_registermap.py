@@ -259,7 +259,7 @@ def test_a_csv_map_reads_as_the_toml_one(tmp_path):
 @pytest.mark.parametrize(
     "text, words",
     [
-        ("[points.a]\nref = 40001\ncolour = 'red'\n", "point a: unknown key 'colour'"),
+        ("[points.a]\nref = 40001\ncolour = 'red'\n", "point a: unknown key colour"),
         (
             "[points.a]\nref = 40001\ntype = 'float32'\n[points.b]\nref = 40002\n",
             "point b: key ref: 40002 overlaps point a",
@@ -269,7 +269,7 @@ def test_a_csv_map_reads_as_the_toml_one(tmp_path):
         ("[points.a]\nref = 30001\naccess = 'rw'\n", "point a: key access: input registers are read-only"),
         ("[points.a]\nref = 1\n", "point a: key ref: .*00001 for coil 1"),
         ("[points.a]\nref = 40001\nbit = 16\n", "point a: key bit: 16 is not a whole number in 0..15"),
-        ("[points.a]\nref = 40001\nscale = 'x'\n", "point a: key scale: 'x' is not a number"),
+        ("[points.a]\nref = 40001\nscale = 'x'\n", "point a: key scale: x is not a number"),
         ("[points.a]\nref = 40001\nscale = 0\n", "point a: key scale"),
         ("[points.a]\nref = 40001\ntype = 'float16'\n", "point a: key type: unknown type"),
         ("[points.a]\nref = 40001\norder = 'ACBD'\n", "point a: key order: unknown order"),
@@ -281,9 +281,9 @@ def test_a_csv_map_reads_as_the_toml_one(tmp_path):
             "[points.a]\nref = 40001\nbit = 1\n[points.b]\nref = 40001\nbit = 1\n",
             "point b: key bit: bit 1 of 40001",
         ),
-        ("[device]\nspeed = 3\n[points.a]\nref = 40001\n", r"\[device\]: unknown key 'speed'"),
+        ("[device]\nspeed = 3\n[points.a]\nref = 40001\n", r"\[device\]: unknown key speed"),
         ("[points.a]\nref = 40001\nenum = { x = 'on' }\n", "point a: key enum"),
-        ("[pointz.a]\nref = 40001\n", "unknown section 'pointz'"),
+        ("[pointz.a]\nref = 40001\n", "unknown section pointz"),
         ("[device]\n", "the map has no points"),
         ("[points.a\n", "not a valid TOML map"),
     ],

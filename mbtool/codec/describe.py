@@ -54,11 +54,11 @@ def parse_hex(text: str) -> bytes:
             if len(tokens) > 1 and len(token) == 1:
                 token = "0" + token
             else:
-                raise RequestError(f"{token!r} is not whole bytes of hex (an odd number of digits)")
+                raise RequestError(f"{token} is not whole bytes of hex (an odd number of digits)")
         try:
             out += binascii.unhexlify(token)
         except (binascii.Error, ValueError):
-            raise RequestError(f"{token!r} is not hex") from None
+            raise RequestError(f"{token} is not hex") from None
     return bytes(out)
 
 

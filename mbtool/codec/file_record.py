@@ -173,7 +173,17 @@ class ReadFileRecord(Request):
         got = tuple(len(values) for values in response.records)
         expected = tuple(group.length for group in self.groups)
         if got != expected:
-            raise MismatchError(f"reply carries groups of {got} registers, expected {expected}")
+            raise MismatchError(
+                f"reply carries record groups of {_counts(got)} registers, expected {_counts(expected)}"
+            )
+
+
+def _counts(counts: tuple[int, ...]) -> str:
+    """Register counts of record groups in words: 10, or 2, 3 and 4."""
+    words = [str(count) for count in counts]
+    if len(words) < 2:
+        return words[0] if words else "no"
+    return ", ".join(words[:-1]) + " and " + words[-1]
 
 
 # --- FC 21: Write File Record, answered by an echo ------------------------------------------

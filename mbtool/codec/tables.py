@@ -49,7 +49,7 @@ def table_named(name: str) -> Table:
     try:
         return _BY_NAME[name.lower()]
     except KeyError:
-        raise RequestError(f"unknown table {name!r}: use one of {', '.join(_BY_NAME)}") from None
+        raise RequestError(f"unknown table {name}: use one of {', '.join(_BY_NAME)}") from None
 
 
 def parse_reference(text: str) -> tuple[Table, int]:

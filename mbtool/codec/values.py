@@ -143,7 +143,7 @@ def parse_value(text: str, type_name: str) -> Value:
             return value
         value = int(text, 0)
     except ValueError:
-        raise RequestError(f"{text!r} is not a valid {type_name} value") from None
+        raise RequestError(f"{text} is not a valid {type_name} value") from None
     bits = 16 * kind.registers
     low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if kind.fmt.islower() else (0, (1 << bits) - 1)
     if kind.name == "hex":

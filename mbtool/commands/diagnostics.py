@@ -41,7 +41,7 @@ def _sub_function(text: str) -> int:
         number = parse_int(text, "sub-function")
     except RequestError:
         raise RequestError(
-            f"unknown sub-function {text!r}: use counters, a number, or one of {', '.join(SUB_FUNCTIONS)}"
+            f"unknown sub-function {text}: use counters, a number, or one of {', '.join(SUB_FUNCTIONS)}"
         ) from None
     if not 0 <= number <= 0xFFFF:
         raise RequestError(f"sub-function {number} is out of range 0..65535")

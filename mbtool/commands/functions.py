@@ -203,7 +203,7 @@ def write_file_record(connection, groups):
     parts = []
     for group in _groups(groups):
         if len(group) < 3:
-            raise RequestError(f"group {' '.join(group)!r} needs FILE RECORD and at least one VALUE")
+            raise RequestError(f"group {' '.join(group)} needs FILE RECORD and at least one VALUE")
         file, record = parse_int(group[0], "file number"), parse_int(group[1], "record number")
         parts.append(FileRecord(file, record, tuple(parse_register(text) for text in group[2:])))
     request = WriteFileRecord(tuple(parts))

@@ -107,37 +107,85 @@ def _problem(described) -> str:
 def decode(frame, framer, direction, output_format):
     """Decode frames offline.
 
-    Field by field, checking the CRC, LRC or MBAP header. HEX is one frame (RTU bytes, an ASCII ':...' frame, or a Modbus TCP frame);
-    with no HEX or '-', one frame per line is read from stdin. A reply after
-    its request is checked against it. Exit 5 when a checksum or a field is wrong.
+    Field by field, checking the CRC, LRC or MBAP header. HEX is one frame (RTU bytes, an
+    ASCII ':...' frame, or a Modbus TCP frame); with no HEX or '-', one frame per line is
+    read from stdin and decoded as it comes (tail -f log | mbtool decode), also the TX and
+    RX lines --hex prints. A reply after its request is checked against it. A line that is
+    no frame is reported with its number and decoding goes on. Exit 5 when a checksum, a
+    field or a line is wrong.
     """
     from mbtool.codec.describe import describe
     from mbtool.errors import FrameError
 
-    if not frame or frame == ("-",):
-        if sys.stdin.isatty():
-            print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
-        lines = [line.strip() for line in sys.stdin]
-        texts = [line for line in lines if line and not line.startswith("#")]
-        if not texts:
-            raise RequestError("no frame on stdin")
-    else:
-        texts = [" ".join(frame)]
-    problems = []
-    previous = None
-    for index, text in enumerate(texts):
-        described = describe(text, framer, direction, previous)
-        _render(frame_report(described, header=index == 0), output_format)
-        if len(texts) > 1 and index + 1 < len(texts) and (output_format or "") not in ("json", "csv"):
-            sys.stdout.write("\n")
+    if frame and frame != ("-",):
+        described = describe(" ".join(frame), framer, direction)
+        _render(frame_report(described), output_format)
         problem = _problem(described)
         if problem:
-            problems.append(f"frame {index + 1}: {problem}" if len(texts) > 1 else problem)
+            raise FrameError(problem)
+        return
+    from mbtool.render import default_format
+
+    if sys.stdin.isatty():
+        print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
+    _decode_stream(sys.stdin, framer, direction, output_format or default_format())
+
+
+def _decode_stream(lines, framer, direction, fmt: str) -> None:
+    """One frame a line, each decoded and written as it comes, in constant memory."""
+    from mbtool.codec.describe import describe
+    from mbtool.codec.record import replace
+    from mbtool.errors import FrameError, MbtoolError
+    from mbtool.render import error_json
+
+    frames = unreadable = failed = 0  # frames decoded, lines that are none, lines with a problem
+    first_failure = ""
+    previous = None
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        text, kind = _trace_line(text)
+        try:
+            described = describe(text, framer, direction or kind, previous)
+        except MbtoolError as error:  # not a frame at all: say where, and go on
+            problem, described = str(error), None
+            unreadable += 1
+        else:
+            if frames and fmt in ("plain", "table"):
+                sys.stdout.write("\n")
+            report = frame_report(described, header=frames == 0)
+            if fmt == "json":
+                report = replace(report, data={"line": number, **report.data})
+            _render(report, fmt)
+            frames += 1
+            problem = _problem(described)
         previous = described
-    sys.stdout.flush()
-    if problems:
-        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise FrameError(problems[0] + more)
+        if problem:
+            failed += 1
+            first_failure = first_failure or f"line {number}: {problem}"
+            if fmt == "json":
+                if described is None:
+                    sys.stdout.write(
+                        error_json(problem, int(FrameError.exit_code), line=number, input=text) + "\n"
+                    )
+            else:
+                sys.stdout.flush()  # stdout and stderr in the order of the lines
+                print(f"mbtool: line {number}: {problem}", file=sys.stderr)
+        sys.stdout.flush()
+    if not frames and not failed:
+        raise RequestError("no frame on stdin")
+    if failed:
+        raise FrameError(f"{failed} of {frames + unreadable} lines failed; the first: {first_failure}")
+
+
+def _trace_line(text: str) -> tuple[str, str | None]:
+    """A line --hex printed ('TX 01 03 ... C4 0B  CRC C4 0B ok'): the frame and its direction."""
+    head, _, rest = text.partition(" ")
+    if head in ("TX", "RX") and rest:
+        frame = rest.strip().split("  ", 1)[0]  # the verdict follows two spaces
+        return frame, "request" if head == "TX" else "response"
+    return text, None
 
 
 # --- crc / lrc -----------------------------------------------------------------------------------

@@ -96,7 +96,7 @@ class ParityList(click.ParamType):
 def _items(text: str, param, ctx) -> list[str]:
     items = [item.strip() for item in text.split(",")]
     if not all(items):
-        raise click.BadParameter(f"empty item in {text!r}", ctx, param)
+        raise click.BadParameter(f"empty item in {text}", ctx, param)
     return items
 
 

@@ -35,7 +35,7 @@ class ServeCommand(QuickHelp, click.Command):
 def parse_exception(text: str) -> tuple[int, int]:
     function, colon, code = text.partition(":")
     if not colon:
-        raise RequestError(f"--exception {text!r}: expected FC:CODE, e.g. 3:2 or 0x10:0x06")
+        raise RequestError(f"--exception {text}: expected FC:CODE, e.g. 3:2 or 0x10:0x06")
     fc = parse_int(function, "function code")
     ex = parse_int(code, "exception code")
     if not 1 <= fc <= 0x7F:
@@ -54,7 +54,7 @@ class Seconds(click.ParamType):
         try:
             number = float(value)
         except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+            self.fail(f"{value} is not a number of seconds", param, ctx)
         if not 0 <= number < float("inf"):  # also refuses nan
             self.fail(f"{value} is not a number of seconds (0 for never)", param, ctx)
         return number
@@ -67,7 +67,7 @@ class Fraction(click.ParamType):
         try:
             number = float(value)
         except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number between 0 and 1", param, ctx)
+            self.fail(f"{value} is not a number between 0 and 1", param, ctx)
         if not 0 <= number <= 1:
             self.fail(f"{value} is not between 0 and 1", param, ctx)
         return number

@@ -17,7 +17,7 @@ def parse_bit(text: str) -> bool:
     try:
         return BIT_WORDS[text.lower()]
     except KeyError:
-        raise RequestError(f"{text!r} is not a bit: use on|off|1|0") from None
+        raise RequestError(f"{text} is not a bit: use on|off|1|0") from None
 
 
 def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> list[int]:

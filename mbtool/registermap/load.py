@@ -79,7 +79,7 @@ def load_map(path: str | Path) -> RegisterMap:
         unknown = set(document) - {"device", "points"}
         if unknown:
             raise MapError(
-                f"{path}: unknown section {sorted(unknown)[0]!r} (a map has [device] and [points.NAME])"
+                f"{path}: unknown section {sorted(unknown)[0]} (a map has [device] and [points.NAME])"
             )
         device, rows = document.get("device", {}), document.get("points", {})
         if not isinstance(rows, dict) or not all(isinstance(row, dict) for row in rows.values()):
@@ -129,7 +129,7 @@ def _device(path: Path, device: object) -> dict:
         raise MapError(f"{path}: [device] is a table of defaults ({', '.join(DEVICE_KEYS)})")
     for key in device:
         if key not in DEVICE_KEYS:
-            raise MapError(f"{path}: [device]: unknown key {key!r} (known: {', '.join(DEVICE_KEYS)})")
+            raise MapError(f"{path}: [device]: unknown key {key} (known: {', '.join(DEVICE_KEYS)})")
     defaults = dict(device)
     if "max_gap" in defaults:
         defaults["max_gap"] = _integer(path, "[device]", "max_gap", defaults["max_gap"], 0, 2000)
@@ -144,7 +144,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
 
     for key in row:
         if key not in POINT_KEYS:
-            raise MapError(f"{where}: unknown key {key!r} (known: {', '.join(POINT_KEYS)})")
+            raise MapError(f"{where}: unknown key {key} (known: {', '.join(POINT_KEYS)})")
     table, address = _location(path, name, row, fail)
     # [device] defaults apply where they mean something: a type or order to registers,
     # rw to the tables that can be written.
@@ -155,7 +155,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
     kind = str(row.get("type", "bool" if table.bits else "uint16")).lower()
     access = str(row.get("access", "r")).lower()
     if access not in ("r", "rw"):
-        raise fail("access", f"{row['access']!r} is neither r nor rw")
+        raise fail("access", f"{row['access']} is neither r nor rw")
     if access == "rw" and not table.writable:
         raise fail("access", f"{table.items} are read-only")
     options = {
@@ -171,10 +171,10 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
             raise fail("type", f"{table.items} hold one bit each, not {kind}")
         return Point(name, table, address, "bool", **options)
     if kind not in TYPES:
-        raise fail("type", f"unknown type {kind!r} (known: {', '.join(TYPES)})")
+        raise fail("type", f"unknown type {kind} (known: {', '.join(TYPES)})")
     order = str(row.get("order", "ABCD")).upper()
     if order not in ORDERS:
-        raise fail("order", f"unknown order {row['order']!r} (known: {', '.join(ORDERS)})")
+        raise fail("order", f"unknown order {row['order']} (known: {', '.join(ORDERS)})")
     count = 1
     if kind == "string":
         if "count" not in row:
@@ -215,7 +215,7 @@ def _location(path: Path, name: str, row: dict, fail) -> tuple[Table, int]:
             raise fail("ref", "give either ref or table and address, not both")
         ref = row["ref"]
         if isinstance(ref, bool) or not isinstance(ref, (int, str)):
-            raise fail("ref", f'{ref!r} is not a reference such as 40108 or "00001"')
+            raise fail("ref", f'{ref} is not a reference such as 40108 or "00001"')
         try:
             return parse_reference(str(ref))
         except RequestError as error:
@@ -236,7 +236,7 @@ def _integer(path: Path, name: str, key: str, value: object, low: int, high: int
     except ValueError:
         number = None
     if isinstance(number, bool) or not isinstance(number, int) or not low <= number <= high:
-        raise MapError(f"{where}: key {key}: {value!r} is not a whole number in {low}..{high}")
+        raise MapError(f"{where}: key {key}: {value} is not a whole number in {low}..{high}")
     return number
 
 
@@ -245,20 +245,20 @@ def _decimal(row: dict, key: str, fail) -> Decimal | None:
         return None
     value = row[key]
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise fail(key, f"{value!r} is not a number")
+        raise fail(key, f"{value} is not a number")
     try:
         number = Decimal(str(value))
     except InvalidOperation:
-        raise fail(key, f"{value!r} is not a number") from None
+        raise fail(key, f"{value} is not a number") from None
     if not number.is_finite():
-        raise fail(key, f"{value!r} is not a finite number")
+        raise fail(key, f"{value} is not a finite number")
     return number
 
 
 def _string(row: dict, key: str, fail) -> str:
     value = row.get(key, "")
     if not isinstance(value, str):
-        raise fail(key, f"{value!r} is not text")
+        raise fail(key, f"{value} is not text")
     return value
 
 
@@ -271,11 +271,11 @@ def _enum(row: dict, fail) -> dict[int, str]:
         try:
             number = int(str(raw), 0)
         except ValueError:
-            raise fail("enum", f"{raw!r} is not a whole number") from None
+            raise fail("enum", f"{raw} is not a whole number") from None
         if not isinstance(label, str) or not label:
             raise fail("enum", f"the label of {raw} is not text")
         if label.lower() in (known.lower() for known in out.values()):
-            raise fail("enum", f"the label {label!r} is given twice")
+            raise fail("enum", f"the label {label} is given twice")
         out[number] = label
     return out
 

@@ -75,20 +75,20 @@ class Point:
             try:
                 return ON_WORDS[text.strip().lower()]
             except KeyError:
-                raise RequestError(f"{self.name}: {text!r} is not on or off") from None
+                raise RequestError(f"{self.name}: {text} is not on or off") from None
         if self.enum is not None:
             for raw, label in self.enum.items():
                 if label.lower() == text.strip().lower():
                     return raw
             if not text.strip().lstrip("-").isdigit():
                 labels = ", ".join(self.enum.values())
-                raise RequestError(f"{self.name}: {text!r} is none of {labels}")
+                raise RequestError(f"{self.name}: {text} is none of {labels}")
         if self.type == "string":
             return text
         try:
             wanted = Decimal(text.strip())
         except InvalidOperation:
-            raise RequestError(f"{self.name}: {text!r} is not a number") from None
+            raise RequestError(f"{self.name}: {text} is not a number") from None
         if not wanted.is_finite():
             return parse_value(text, self.type)
         scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
@@ -115,7 +115,7 @@ class Point:
         if self.type == "string":
             if len(registers) > self.count:
                 raise RequestError(
-                    f"{self.name}: {text!r} needs {len(registers)} registers, the point has {self.count}"
+                    f"{self.name}: {text} needs {len(registers)} registers, the point has {self.count}"
                 )
             registers += [0] * (self.count - len(registers))
         return registers
