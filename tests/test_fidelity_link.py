@@ -242,3 +242,21 @@ def test_float32_prints_as_written_in_every_format(tcp_device):
     assert "123.456 " in table + " " and "123.4560012" not in table
     polled = run_mbtool(*read, "-o", "csv", "--polls", "1").stdout
     assert "500,123.456" in polled and "502,-1.1" in polled
+
+
+# --- report-id says what the bytes say (12.8) ---------------------------------------------------
+
+
+def test_report_id_never_calls_a_run_indicator_on_and_warns_otherwise(tcp_device):
+    """pymodbus 3.16 sends its identity text first and FF last: the byte where the run
+    indicator belongs is 'y' (79), which is neither ON nor OFF, and is shown so."""
+    res = run_mbtool("report-id", "-p", tcp_device.target)
+    assert res.returncode == 0, str(res)
+    rows = dict(line.split(" ", 1) for line in res.stdout.splitlines())
+    assert rows["run_indicator"] == "unknown (byte 79)"
+    assert "the last byte is FF: the device may send the run indicator last" in rows["warning"]
+
+
+def test_report_id_from_a_proper_device_is_on_without_warnings():
+    res = run_mbtool("report-id", "-p", "sim://")
+    assert res.returncode == 0 and "run_indicator ON\n" in res.stdout and "warning" not in res.stdout

@@ -150,6 +150,9 @@ MACHINE_STATE_584 = {
     5: "memory protect off",
     4: "battery not OK",
 }
+# Bits 4-6 are spelled out as the state they give (RUN light, memory protect, battery), each
+# on or off: listed again by their set-bit names they read as the opposite of the line before.
+STATE_SPELLED = (4, 5, 6)
 # The 984 keeps the 584's bits 4-10 and adds bit 0; it has no port set-up bits.
 MACHINE_STATE_984 = {
     **{bit: name for bit, name in MACHINE_STATE_584.items() if bit <= 10},
@@ -244,7 +247,7 @@ def modicon_fields(layout: str, extra: bytes) -> list[tuple[str, int, str]]:
             "machine_state",
             state,
             f"0x{state:04X}: RUN light {run_light}, memory protect {memory_protect}, battery {battery};"
-            f" set: {_bit_list(state, state_names)}",
+            f" also set: {_bit_list(state, {b: n for b, n in state_names.items() if b not in STATE_SPELLED})}",
         ),
         ("stop_code", stop, f"0x{stop:04X}: {_bit_list(stop, stop_names) if stop else 'running (no stop)'}"),
     ]

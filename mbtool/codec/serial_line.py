@@ -481,6 +481,9 @@ class ReportSlaveIdResponse(Response):
         if run in (RUN_ON, RUN_OFF):
             return cls(slave_id, run == RUN_ON, bytes(pdu[4:]))
         warning = f"run indicator byte {run:02X} is neither 00 (off) nor FF (on)"
+        if pdu[-1] in (RUN_ON, RUN_OFF) and len(pdu) > 4:
+            # pymodbus 3.16 sends its identity text first and the run indicator last
+            warning += f"; the last byte is {pdu[-1]:02X}: the device may send the run indicator last"
         return cls(slave_id, run != RUN_OFF, bytes(pdu[4:]), run_indicator_byte=run, warnings=(warning,))
 
 

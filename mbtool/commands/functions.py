@@ -125,6 +125,8 @@ def report_id(connection):
     reply = execute(connection, request)
     layout = modicon_layout(reply.slave_id, reply.extra)
     run = "ON" if reply.run_indicator else "OFF"
+    if reply.run_indicator_byte is not None:  # neither 00 nor FF: say neither, not ON
+        run = f"unknown (byte {reply.run_indicator_byte:02X})"
     rows = [
         Row(
             "slave_id",
@@ -133,7 +135,10 @@ def report_id(connection):
         ),
         Row("run_indicator", run),
     ]
-    data: dict = {"slave_id": reply.slave_id, "run_indicator": reply.run_indicator}
+    data: dict = {
+        "slave_id": reply.slave_id,
+        "run_indicator": reply.run_indicator if reply.run_indicator_byte is None else None,
+    }
     if layout:
         data["layout"] = f"Modicon {layout}"
         for name, value, text in modicon_fields(layout, reply.extra):
