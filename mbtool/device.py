@@ -609,9 +609,9 @@ class Device:
             SUB_CLEAR_COUNTERS,
             SUB_CLEAR_OVERRUN,
         ):
-            raise RequestError(f"sub-function {sub:04X} is not supported", ExceptionCode.ILLEGAL_FUNCTION)
+            raise RequestError(f"sub-function {sub:02X} is not supported", ExceptionCode.ILLEGAL_FUNCTION)
         if not zero:
-            raise RequestError(f"sub-function {sub:04X} takes data 0000")
+            raise RequestError(f"sub-function {sub:02X} takes data 0000")
         if sub == SUB_LISTEN_ONLY:
             station.listen_only = True
             station.log(EVENT_LISTEN_ONLY)

@@ -174,3 +174,23 @@ def test_a_fraction_for_a_register_names_float32():
         line
         == "mbtool: 1.5 is not a valid register value (a register holds a whole number: for a fraction use --type float32)"
     )
+
+
+def test_monitor_shows_coils_as_bits_and_exceptions_by_name(tmp_path):
+    """As decode does (12.17): not data[0]=205 and exception_code=2."""
+    frames = ["01 01 00 00 00 0A BC 0D", "01 01 02 CD 01 2C AC", "01 03 00 00 00 01 84 0A", "01 83 02 C0 F1"]
+    recording = tmp_path / "bus.bin"
+    recording.write_bytes(bytes.fromhex(" ".join(frames)))
+    out = run_mbtool("monitor", "--from-file", str(recording), "-o", "plain").stdout.splitlines()
+    assert "data[0]=0xCD coils 0-7: ON OFF ON ON OFF OFF ON ON" in out[1]
+    assert "exception_code=02 Illegal Data Address" in out[3]
+    assert "starting_address=0 quantity=1" in out[2]
+
+
+def test_sub_functions_are_written_one_way():
+    """Two hex digits, as function codes are, and the name diag takes: never 15, 000F or 0x0F."""
+    assert run_mbtool("diag", "15", "-p", "sim://").stdout.startswith(
+        "sub_function 0F slave-no-response-count\n"
+    )
+    decoded = run_mbtool("decode", "01 08 00 0F 00 00 D0 08").stdout
+    assert "sub_function 0F slave-no-response-count" in decoded

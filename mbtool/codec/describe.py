@@ -264,10 +264,17 @@ def request_fields(pdu: bytes) -> list[Field]:
 
 
 def _diagnostics(pdu: bytes) -> list[Field]:
-    from mbtool.codec.serial_line import sub_function_name
+    from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
 
     sub = int.from_bytes(pdu[1:3], "big")
-    fields = [_u16(pdu, 1, "sub_function", f"{sub:04X} {sub_function_name(sub).lower().replace('_', ' ')}")]
+    fields = [
+        _u16(
+            pdu,
+            1,
+            "sub_function",
+            f"{sub_function_number(sub)} {SUB_FUNCTION_NAMES.get(sub, 'not in the spec')}",
+        )
+    ]
     if len(pdu) > 3:
         data = bytes(pdu[3:])
         text = data.hex(" ").upper()

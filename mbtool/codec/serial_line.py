@@ -128,11 +128,37 @@ MODBUS_PLUS_CLEAR = b"\x00\x04"
 MODBUS_PLUS_WORDS = 54  # a "get" reply: operation 0003, byte count 0x6C, 54 words
 
 
+# The names a user types (diag NAME) and reads, one per sub-function of spec §4.
+SUB_FUNCTION_NAMES = {
+    0x00: "return-query-data",
+    0x01: "restart-comms",
+    0x02: "diagnostic-register",
+    0x03: "change-ascii-delimiter",
+    0x04: "force-listen-only",
+    0x0A: "clear-counters",
+    0x0B: "bus-message-count",
+    0x0C: "bus-comm-error-count",
+    0x0D: "bus-exception-count",
+    0x0E: "slave-message-count",
+    0x0F: "slave-no-response-count",
+    0x10: "slave-nak-count",
+    0x11: "slave-busy-count",
+    0x12: "bus-char-overrun-count",
+    0x13: "iop-overrun-count",
+    0x14: "clear-overrun",
+    0x15: "modbus-plus-stats",
+}
+
+
+def sub_function_number(sub: int) -> str:
+    """A sub-function number as function codes are written everywhere: hex, two digits (0F)."""
+    return f"{sub:02X}"
+
+
 def sub_function_name(sub: int) -> str:
-    try:
-        return Sub(sub).name
-    except ValueError:
-        return f"sub-function {sub:04X}"
+    """'sub-function 0F slave-no-response-count': the one way messages name a sub-function."""
+    name = SUB_FUNCTION_NAMES.get(sub)
+    return f"sub-function {sub_function_number(sub)}" + (f" {name}" if name else "")
 
 
 def _sub(value: int) -> int:

@@ -6,29 +6,12 @@ import sys
 
 import click
 
+from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
 from mbtool.errors import RequestError
 from mbtool.options import device_command, parse_int
 
 # command-line name -> sub-function (spec §4)
-SUB_FUNCTIONS = {
-    "return-query-data": 0x00,
-    "restart-comms": 0x01,
-    "diagnostic-register": 0x02,
-    "change-ascii-delimiter": 0x03,
-    "force-listen-only": 0x04,
-    "clear-counters": 0x0A,
-    "bus-message-count": 0x0B,
-    "bus-comm-error-count": 0x0C,
-    "bus-exception-count": 0x0D,
-    "slave-message-count": 0x0E,
-    "slave-no-response-count": 0x0F,
-    "slave-nak-count": 0x10,
-    "slave-busy-count": 0x11,
-    "bus-char-overrun-count": 0x12,
-    "iop-overrun-count": 0x13,
-    "clear-overrun": 0x14,
-    "modbus-plus-stats": 0x15,
-}
+SUB_FUNCTIONS = {name: code for code, name in SUB_FUNCTION_NAMES.items()}
 NAMES = {code: name for name, code in SUB_FUNCTIONS.items()}
 COUNTERS = tuple(range(0x0B, 0x13))  # bus message .. bus character overrun: every controller family's set
 DEFAULT_QUERY = b"\xa5\x37"  # seed 002's example query data
@@ -118,9 +101,9 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
     from mbtool.render import Report, Row
 
     request = Diagnostics(sub, data)
-    name = NAMES.get(sub, f"sub-function {sub:04X}")
+    name = NAMES.get(sub, f"sub-function {sub_function_number(sub)}")
     title = f"Diagnostics: {name}"
-    rows = [Row("sub_function", sub, f"{sub:02d} {name}")]
+    rows = [Row("sub_function", sub, f"{sub_function_number(sub)} {name}")]
     if sub == 0x00:
         # Our own echo check, to say "matched" or show both sides rather than only fail.
         from mbtool.codec.raw import RawRequest

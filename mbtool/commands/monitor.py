@@ -294,15 +294,24 @@ def summary(frame) -> str:
     """The decoded frame in one line: its name and the first fields after the function code."""
     described = frame.described
     fields = [f for f in described.fields if f.name != "function"]
-    parts = [
-        f"{f.name}={f.value}" if isinstance(f.value, int) else f"{f.name}={f.text or f.value}" for f in fields
-    ]
+    parts = [f"{f.name}={_shown(f)}" for f in fields]
     if len(parts) > SUMMARY_FIELDS:
         parts = parts[:SUMMARY_FIELDS] + [f"... ({len(fields) - SUMMARY_FIELDS} more)"]
     text = described.name + (": " + " ".join(parts) if parts else "")
     if described.error:
         text += f" (invalid: {described.error})"
     return text
+
+
+def _shown(field) -> str:
+    """A field as decode shows it where its words say more than its number (coils as ON/OFF,
+    an exception by name); a plain number stays a number."""
+    number = str(field.value)
+    if isinstance(field.value, int) and (
+        field.text in (None, number) or field.text.startswith(f"{number} (0x")
+    ):
+        return number
+    return field.text or number
 
 
 def as_dict(item) -> dict:
