@@ -37,33 +37,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 COUNT = 10  # holding registers per read
 
-SERVER_C = r"""
-#include <errno.h>
-#include <stdio.h>
-#include <stdlib.h>
-#include <unistd.h>
-#include <modbus.h>
-
-int main(int argc, char **argv) {
-    modbus_t *ctx = modbus_new_tcp("127.0.0.1", atoi(argv[1]));
-    modbus_mapping_t *map = modbus_mapping_new(0, 0, 1000, 0);
-    uint8_t query[MODBUS_TCP_MAX_ADU_LENGTH];
-    for (int i = 0; i < 1000; i++) map->tab_registers[i] = i;
-    int listener = modbus_tcp_listen(ctx, 4);
-    if (listener < 0) { perror("listen"); return 1; }
-    printf("READY\n");
-    fflush(stdout);
-    for (;;) {
-        if (modbus_tcp_accept(ctx, &listener) < 0) continue;
-        for (;;) {
-            int rc = modbus_receive(ctx, query);
-            if (rc > 0) modbus_reply(ctx, query, rc, map);
-            else if (rc == -1) break;
-        }
-        close(modbus_get_socket(ctx));
-    }
-}
-"""
+# libmodbus's own TCP server, shared with the tests' peers.
+SERVER_C = (ROOT / "tests" / "peers" / "libmodbus_server.c").read_text()
 
 CLIENT_C = r"""
 #include <stdio.h>

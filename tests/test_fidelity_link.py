@@ -13,40 +13,14 @@ import socket
 import subprocess
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from conftest import HOLDING, assert_one_error_line, build_libmodbus, free_port, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
-LIBMODBUS_SERVER = r"""
-#include <stdio.h>
-#include <stdlib.h>
-#include <unistd.h>
-#include <modbus.h>
-
-/* libmodbus's TCP server: holding register i holds 1000 + i; one client at a time. */
-int main(int argc, char **argv)
-{
-    modbus_t *ctx = modbus_new_tcp("127.0.0.1", atoi(argv[1]));
-    modbus_mapping_t *map = modbus_mapping_new(0, 0, 100, 0);
-    uint8_t query[MODBUS_TCP_MAX_ADU_LENGTH];
-    for (int i = 0; i < 100; i++) map->tab_registers[i] = 1000 + i;
-    int listener = modbus_tcp_listen(ctx, 4);
-    if (listener < 0) { perror("listen"); return 1; }
-    printf("READY\n");
-    fflush(stdout);
-    for (;;) {
-        if (modbus_tcp_accept(ctx, &listener) < 0) continue;
-        for (;;) {
-            int rc = modbus_receive(ctx, query);
-            if (rc > 0) modbus_reply(ctx, query, rc, map);
-            else if (rc == -1) break;
-        }
-        close(modbus_get_socket(ctx));
-    }
-}
-"""
+LIBMODBUS_SERVER = (Path(__file__).parent / "peers" / "libmodbus_server.c").read_text()
 
 
 @pytest.fixture(scope="module")
