@@ -28,11 +28,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mbtool.client import Client  # noqa: E402
 from mbtool.codec.framing import Frame, make_framer  # noqa: E402
 from mbtool.codec.pdu import decode_request  # noqa: E402
 from mbtool.errors import MbtoolError  # noqa: E402
-from mbtool.transport import Transport  # noqa: E402
+from mbtool.link.client import Client  # noqa: E402
+from mbtool.link.transport import Transport  # noqa: E402
 
 # One request of every function code, as PDUs; the built-in device answers them.
 REQUESTS = [
@@ -67,7 +67,7 @@ TRANSACTION_ID = 1  # the id a new Client gives its first request
 
 def seeds() -> list[tuple[object, bytes]]:
     """(request, reply PDU) pairs: the device's answer to each request, and an exception reply."""
-    from mbtool.device import Device, demo_model
+    from mbtool.device.model import Device, demo_model
 
     device = Device(demo_model())
     pairs = []

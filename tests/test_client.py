@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from mbtool.client import Client, silent_interval
 from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
 from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
 from mbtool.errors import ChecksumError, FrameError, MismatchError, ModbusException, NoResponse
-from mbtool.transport import ConnectionClosed, Transport
+from mbtool.link.client import Client, silent_interval
+from mbtool.link.transport import ConnectionClosed, Transport
 
 
 def rtu(hex_text: str) -> bytes:

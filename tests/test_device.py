@@ -1,4 +1,4 @@
-"""The simulated device (mbtool.device) PDU by PDU: every function code of the spec,
+"""The simulated device (mbtool.device.model) PDU by PDU: every function code of the spec,
 its exception codes, the FC08 counters, the FC12 event log, broadcast and --data files."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from mbtool.codec.framing import make_framer
-from mbtool.device import Device, Faults, demo_model, load_data
+from mbtool.device.model import Device, Faults, demo_model, load_data
 from mbtool.errors import RequestError
 
 H = bytes.fromhex
@@ -361,7 +361,7 @@ def test_missing_data_file(tmp_path):
 
 
 def test_sim_answers_every_function_code_in_process():
-    from mbtool.transport import SimTransport
+    from mbtool.link.transport import SimTransport
 
     sim = SimTransport("rtu")
     framer = make_framer("rtu")

@@ -9,8 +9,8 @@ import sys
 import pytest
 from conftest import run_mbtool
 
-import mbtool.render
-import mbtool.transport
+import mbtool.cli.render
+import mbtool.link.transport
 from mbtool.cli import COMMANDS, main
 
 # One valid invocation of every command that talks to a device.
@@ -43,8 +43,8 @@ OFFLINE = {"decode", "crc", "lrc", "serve", "monitor"}
 
 def run(capsys, line: str) -> tuple[int, str, str]:
     # render() and default_format() bind sys.stdout at import: give them this test's capture.
-    mbtool.render.render.__defaults__ = (sys.stdout,)
-    mbtool.render.default_format.__defaults__ = (sys.stdout,)
+    mbtool.cli.render.render.__defaults__ = (sys.stdout,)
+    mbtool.cli.render.default_format.__defaults__ = (sys.stdout,)
     with pytest.raises(SystemExit) as done:
         main(shlex.split(line))
     out, err = capsys.readouterr()
@@ -56,7 +56,7 @@ def no_port(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("a dry run opened the port")
 
-    monkeypatch.setattr(mbtool.transport, "open_transport", refuse)
+    monkeypatch.setattr(mbtool.link.transport, "open_transport", refuse)
 
 
 def test_every_device_command_has_an_example():

@@ -216,7 +216,7 @@ def test_closing_a_socket_bridge_does_not_sleep(monkeypatch):
 
     import serial.urlhandler.protocol_socket as bridge_module
 
-    from mbtool.transport import SerialSettings, SerialTransport
+    from mbtool.link.transport import SerialSettings, SerialTransport
 
     def no_sleep(seconds):
         raise AssertionError(f"close slept {seconds} s")

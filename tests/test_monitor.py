@@ -28,7 +28,7 @@ from datetime import datetime
 import pytest
 from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
 
-from mbtool.sniffer import BusFrame, BusMonitor, Tally, Unanswered
+from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
 
 DEADLINE = 20.0  # seconds for any one monitor run
 

@@ -577,7 +577,7 @@ def test_a_serial_port_that_goes_away_while_draining_is_a_hang_up_not_a_crash():
     the 'closed before replying' case over a pty ended in exit 1 whenever the peer was quick."""
     import termios
 
-    from mbtool.transport import ConnectionClosed, ConnectionFailed, SerialTransport
+    from mbtool.link.transport import ConnectionClosed, ConnectionFailed, SerialTransport
 
     class GoneAfterWrite:
         def __init__(self, fail_write: bool) -> None:

@@ -16,7 +16,7 @@ from mbtool.codec.tables import (
     reference,
 )
 from mbtool.codec.values import encode_values
-from mbtool.device import DataModel, Device
+from mbtool.device.model import DataModel, Device
 from mbtool.errors import ExitCode, ModbusException, RequestError
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import bit_request, plan_reads, read_points, with_bit, write_request

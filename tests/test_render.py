@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from mbtool.render import Result, as_dict, render, to_json
+from mbtool.cli.render import Result, as_dict, render, to_json
 
 REGISTERS = Result(
     1, 3, "Read Holding Registers", 100, [(100, 21.5), (102, float("nan"))], "float32", [0x41AC, 0, 0x7FC0, 0]

@@ -12,7 +12,7 @@ import serial
 from conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
 
 from mbtool.errors import ConnectionFailed
-from mbtool.transport import SerialSettings, SerialTransport
+from mbtool.link.transport import SerialSettings, SerialTransport
 
 
 class FakePort:
@@ -84,7 +84,7 @@ def opened(monkeypatch):
             setattr(port, name, value)
         monkeypatch.setattr(serial, "serial_for_url", lambda url, **settings: port)
         monkeypatch.setattr(
-            "mbtool.transport.time.sleep", lambda s: (sleeps.append(s), log.append(("sleep", s)))
+            "mbtool.link.transport.time.sleep", lambda s: (sleeps.append(s), log.append(("sleep", s)))
         )
         transport = SerialTransport("/dev/ttyFAKE", SerialSettings(rs485=delays))
         return transport, log, sleeps

@@ -181,7 +181,7 @@ def _scan_in_process(monkeypatch, capsys, refused: str, *args: str) -> tuple[int
     Linux ptys refuse some settings (EINVAL) but not consistently (it depends on the
     settings they had before), so the refusal is made here, where pyserial's is raised.
     """
-    import mbtool.transport as transport
+    import mbtool.link.transport as transport
     from mbtool.cli import main
     from mbtool.errors import ConnectionFailed
 

@@ -16,7 +16,7 @@ import pytest
 from conftest import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
 
 from mbtool.errors import RequestError
-from mbtool.transport import parse_target
+from mbtool.link.transport import parse_target
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
-from mbtool import transport
 from mbtool.errors import ConnectionFailed
-from mbtool.transport import ConnectionClosed, TcpTransport
+from mbtool.link import transport
+from mbtool.link.transport import ConnectionClosed, TcpTransport
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -102,11 +102,11 @@ def test_a_peer_that_stops_reading_fails_the_write_after_the_write_timeout(monke
 def test_socket_url_to_a_silent_peer_says_tcp_may_be_meant(hang_up):
     """A Modbus TCP device ignores RTU frames or hangs up on them, on whatever port it
     listens: the error says what is probably wrong."""
-    from mbtool.client import Client
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.codec.framing import RtuFramer
     from mbtool.errors import NoResponse
-    from mbtool.transport import SerialSettings, SerialTransport
+    from mbtool.link.client import Client
+    from mbtool.link.transport import SerialSettings, SerialTransport
 
     with socket.socket() as listener:
         listener.bind(("127.0.0.1", 0))
@@ -135,11 +135,11 @@ def test_socket_url_to_a_silent_peer_says_tcp_may_be_meant(hang_up):
     ],
 )
 def test_tcp_url_to_a_silent_peer_names_the_other_framing(framer, hint):
-    from mbtool.client import Client
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.codec.framing import make_framer
     from mbtool.errors import NoResponse
-    from mbtool.transport import SerialSettings, open_transport
+    from mbtool.link.client import Client
+    from mbtool.link.transport import SerialSettings, open_transport
 
     with socket.socket() as listener:
         listener.bind(("127.0.0.1", 0))

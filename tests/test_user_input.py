@@ -11,7 +11,7 @@ import shlex
 
 import pytest
 
-import mbtool.transport
+import mbtool.link.transport
 from mbtool.cli import main
 
 SENT: list[bytes] = []
@@ -19,7 +19,7 @@ SENT: list[bytes] = []
 
 @pytest.fixture(autouse=True)
 def recording_transport(monkeypatch):
-    real = mbtool.transport.open_transport
+    real = mbtool.link.transport.open_transport
 
     def open_recording(target, settings, timeout, framer):
         inner = real("sim://", settings, timeout, framer)
@@ -33,19 +33,19 @@ def recording_transport(monkeypatch):
         return inner
 
     SENT.clear()
-    monkeypatch.setattr(mbtool.transport, "open_transport", open_recording)
+    monkeypatch.setattr(mbtool.link.transport, "open_transport", open_recording)
     yield
 
 
 def run(capsys, line: str) -> tuple[int, str, str]:
     import sys
 
-    import mbtool.render
+    import mbtool.cli.render
 
-    # render() and default_format() bind sys.stdout when mbtool.render is first imported, which in one pytest
+    # render() and default_format() bind sys.stdout when mbtool.cli.render is first imported, which in one pytest
     # process may be an earlier test's (closed) capture: point it at this test's.
-    mbtool.render.render.__defaults__ = (sys.stdout,)
-    mbtool.render.default_format.__defaults__ = (sys.stdout,)
+    mbtool.cli.render.render.__defaults__ = (sys.stdout,)
+    mbtool.cli.render.default_format.__defaults__ = (sys.stdout,)
     with pytest.raises(SystemExit) as done:
         main(shlex.split(line) + ["-p", "/dev/ttyNOWHERE"])
     out, err = capsys.readouterr()

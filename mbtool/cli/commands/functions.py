@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import click
 
-from mbtool.connection import execute, show
+from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, parse_int
 from mbtool.errors import RequestError
-from mbtool.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, parse_int
+from mbtool.link.connection import execute, show
 
 # --- FC 07 ---------------------------------------------------------------------------------
 
@@ -21,8 +21,8 @@ def read_exception_status(connection):
     Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.serial_line import ReadExceptionStatus
-    from mbtool.render import Report, Row
 
     request = ReadExceptionStatus()
     reply = execute(connection, request)
@@ -45,8 +45,8 @@ def event_counter(connection):
 
     The status (busy or idle) and the count of successful messages.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.serial_line import GetCommEventCounter
-    from mbtool.render import Report, Row
 
     request = GetCommEventCounter()
     reply = execute(connection, request)
@@ -64,8 +64,8 @@ def event_log(connection):
 
     Status, event and message counts, and each event byte (0 = newest) in words.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.serial_line import GetCommEventLog, describe_event
-    from mbtool.render import Report, Row
 
     request = GetCommEventLog()
     reply = execute(connection, request)
@@ -94,8 +94,8 @@ def event_log(connection):
 def _with_warnings(report, reply):
     """What a strict reader noticed in the reply (e.g. a status word neither busy nor idle):
     a ``warning`` row, and a ``warnings`` list in JSON; stderr stays for the one error line."""
+    from mbtool.cli.render import Row
     from mbtool.codec.record import replace
-    from mbtool.render import Row
 
     warnings = list(getattr(reply, "warnings", ()))
     if not warnings:
@@ -116,10 +116,10 @@ def report_id(connection):
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.describe import printable
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
     from mbtool.codec.serial_line import ReportSlaveId
-    from mbtool.render import Report, Row
 
     request = ReportSlaveId()
     reply = execute(connection, request)
@@ -177,8 +177,8 @@ def read_file_record(connection, groups):
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
-    from mbtool.render import Report, Row
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
     if len(numbers) % 3:
@@ -201,9 +201,9 @@ def write_file_record(connection, groups):
     VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
     Each VALUE is -32768..65535 or 0x hex.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.file_record import FileRecord, WriteFileRecord
     from mbtool.codec.values import parse_register
-    from mbtool.render import Report, Row
 
     parts = []
     for group in _groups(groups):
@@ -233,9 +233,9 @@ def mask_write_register(connection, address, and_mask, or_mask):
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.data_access import MaskWriteRegister
     from mbtool.codec.describe import mask_formula
-    from mbtool.render import Report, Row
 
     request = MaskWriteRegister(address, and_mask, or_mask)
     execute(connection, request)
@@ -259,10 +259,10 @@ def read_write_registers(connection, read_address, read_count, write_address, va
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
+    from mbtool.cli.commands.write import parse_registers
+    from mbtool.cli.render import Result
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
     from mbtool.codec.values import decode_values, registers_needed
-    from mbtool.commands.write import parse_registers
-    from mbtool.render import Result
 
     registers = parse_registers(values, value_type, order)
     request = ReadWriteMultipleRegisters(
@@ -293,8 +293,8 @@ def fifo(connection, address):
 
     The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.data_access import ReadFifoQueue
-    from mbtool.render import Report, Row
 
     request = ReadFifoQueue(address)
     reply = execute(connection, request)
@@ -331,11 +331,11 @@ def device_id(connection, level, object_id):
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
-    from mbtool.connection import open_client
     from mbtool.errors import FrameError
-    from mbtool.render import Report, Row
+    from mbtool.link.connection import open_client
 
     objects: dict[int, bytes] = {}
     conformity = None

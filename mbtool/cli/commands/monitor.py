@@ -1,6 +1,6 @@
 """monitor: a passive bus monitor on a serial line; it never transmits (spec §2).
 
-The splitting, pairing and flagging are sans-IO in mbtool.sniffer; this module owns
+The splitting, pairing and flagging are sans-IO in mbtool.monitor.bus; this module owns
 the port, the clock and the output.  The port is opened read-only in spirit: nothing
 is ever written to it, and RTS is dropped at once, since an RS-485 adapter that
 switches direction by RTS would otherwise drive the bus and silence it.
@@ -19,8 +19,7 @@ import time
 
 import click
 
-from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
-from mbtool.options import (
+from mbtool.cli.options import (
     PROFILE_OPTION,
     Number,
     PositiveFloat,
@@ -28,7 +27,8 @@ from mbtool.options import (
     output_chosen,
     serial_line_options,
 )
-from mbtool.render import local_time
+from mbtool.cli.render import local_time
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
 # On a UART t3.5 ends a frame (spec §2), but ptys and USB adapters deliver one frame in
@@ -44,7 +44,7 @@ class MonitorCommand(QuickHelp, click.Command):
 
 
 def default_silence(framer: str, baud: int) -> float:
-    from mbtool.client import silent_interval
+    from mbtool.link.client import silent_interval
 
     return ASCII_SILENCE if framer == "ascii" else max(silent_interval(baud), MIN_RTU_SILENCE)
 
@@ -132,13 +132,13 @@ def monitor(
     Each line has the time (ms) and the gap before the frame. Ctrl-C, SIGTERM,
     --duration or --frames stop it, with a summary line on stderr.
     """
-    from mbtool.render import default_format
-    from mbtool.sniffer import BusMonitor, Tally
+    from mbtool.cli.render import default_format
+    from mbtool.monitor.bus import BusMonitor, Tally
 
     ctx = click.get_current_context()
     profile = ctx.meta.get("mbtool.profile")
     if profile:
-        from mbtool.profiles import defaults
+        from mbtool.cli.profiles import defaults
 
         line = defaults(profile)  # port, framer and the serial settings of a device's profile
         port = port if from_file else line.get("port", port)  # a recording needs no port
@@ -155,7 +155,7 @@ def monitor(
     tally = Tally()
     recorder = None
     if capture:
-        from mbtool.pcap import BusCapture
+        from mbtool.monitor.pcap import BusCapture
 
         try:
             recorder = BusCapture.create(capture)
@@ -164,7 +164,7 @@ def monitor(
 
     def show(seen) -> bool:
         """Show what the sniffer found; False once --frames is reached."""
-        from mbtool.sniffer import BusFrame
+        from mbtool.monitor.bus import BusFrame
 
         for item in seen:
             if frame_limit and tally.frames >= frame_limit:
@@ -208,7 +208,7 @@ def _check_port(port: str | None) -> None:
 
 def _replay(path: str, sniffer, show) -> None:
     """A recording: a pcap file (--capture's) with its time stamps, else raw bytes with none."""
-    from mbtool.pcap import is_pcap, packets
+    from mbtool.monitor.pcap import is_pcap, packets
 
     try:
         with open(path, "rb") as file:
@@ -238,7 +238,7 @@ def _replay(path: str, sniffer, show) -> None:
 
 def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show) -> str | None:
     """Read the line until --duration, --frames or an interrupt; the reason if the port was lost."""
-    from mbtool.transport import SerialSettings, SerialTransport
+    from mbtool.link.transport import SerialSettings, SerialTransport
 
     settings = SerialSettings(
         baud=baud, parity=parity.upper(), bytesize=int(bytesize), stopbits=int(stopbits)
@@ -316,7 +316,7 @@ def _shown(field) -> str:
 
 def as_dict(item) -> dict:
     """One JSON object per frame, garbage run or unanswered request."""
-    from mbtool.sniffer import Unanswered
+    from mbtool.monitor.bus import Unanswered
 
     if isinstance(item, Unanswered):
         request = item.request
@@ -348,7 +348,7 @@ def as_dict(item) -> dict:
         "flags": list(item.flags),
     }
     if item.described is not None:
-        from mbtool.commands.offline import frame_report
+        from mbtool.cli.commands.offline import frame_report
 
         decoded = frame_report(item.described).data
         data["fields"] = decoded["fields"]
@@ -357,7 +357,7 @@ def as_dict(item) -> dict:
 
 
 def plain_line(item) -> str:
-    from mbtool.sniffer import Unanswered
+    from mbtool.monitor.bus import Unanswered
 
     if isinstance(item, Unanswered):
         request = item.request
@@ -394,11 +394,11 @@ class Output:
 
             self.console = Console(file=self.out, highlight=False, soft_wrap=True)
         elif fmt == "json":
-            import mbtool.commands.offline  # noqa: F401 - frame_report, for the fields
+            import mbtool.cli.commands.offline  # noqa: F401 - frame_report, for the fields
 
     def write(self, item) -> None:
         if self.fmt == "json":
-            from mbtool.render import to_json
+            from mbtool.cli.render import to_json
 
             self.out.write(to_json(as_dict(item)) + "\n")
         elif self.fmt == "plain":
@@ -410,7 +410,7 @@ class Output:
     def _coloured(self, item) -> None:
         from rich.markup import escape
 
-        from mbtool.sniffer import Unanswered
+        from mbtool.monitor.bus import Unanswered
 
         if isinstance(item, Unanswered):
             request = item.request

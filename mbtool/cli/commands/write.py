@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import click
 
-from mbtool.connection import execute, show
+from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
 from mbtool.errors import RequestError
-from mbtool.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
+from mbtool.link.connection import execute, show
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
 
@@ -34,8 +34,8 @@ def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> lis
 @click.argument("state", metavar="on|off|1|0")
 def write_coil(connection, address, state):
     """Write one coil (FC 05). Switch the coil at ADDRESS on or off (also 1|0|true|false)."""
+    from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteSingleCoil
-    from mbtool.render import Result
 
     request = WriteSingleCoil(address, parse_bit(state))
     execute(connection, request)
@@ -50,9 +50,9 @@ def write_coil(connection, address, state):
 @click.argument("value")
 def write_register(connection, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
+    from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteSingleRegister
     from mbtool.codec.values import decode_values
-    from mbtool.render import Result
 
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
@@ -78,8 +78,8 @@ def write_register(connection, address, value, value_type, order):
 @click.argument("bits", nargs=-1, required=True, metavar="BIT...")
 def write_coils(connection, address, bits):
     """Write coils (FC 15). BITs (on|off|1|0|true|false) from ADDRESS, at most 1968."""
+    from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteMultipleCoils
-    from mbtool.render import Result
 
     values = tuple(parse_bit(bit) for bit in bits)
     request = WriteMultipleCoils(address, values)
@@ -97,9 +97,9 @@ def write_registers(connection, address, values, value_type, order):
     Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
     fills 2 registers in --order).
     """
+    from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteMultipleRegisters
     from mbtool.codec.values import decode_values
-    from mbtool.render import Result
 
     registers = parse_registers(values, value_type, order)
     request = WriteMultipleRegisters(address, tuple(registers))

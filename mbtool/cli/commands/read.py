@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from mbtool.connection import Connection, execute, show
-from mbtool.options import ADDRESS, COUNT, VALUE_TYPES, Number, PositiveFloat, device_command
+from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, PositiveFloat, device_command
+from mbtool.link.connection import Connection, execute, show
 
 POLL_HELP = """
 
@@ -38,7 +38,7 @@ def _run(connection: Connection, request, to_result, interval, polls) -> None:
     if (interval is None and polls is None) or getattr(connection, "dry_run", False):
         show(connection, to_result(execute(connection, request)))
         return
-    from mbtool.polling import poll
+    from mbtool.link.polling import poll
 
     poll(connection, request, to_result, interval, polls)
 
@@ -47,7 +47,7 @@ def _run(connection: Connection, request, to_result, interval, polls) -> None:
 
 
 def _read_bits(connection: Connection, kind, address: int, count: int, interval=None, polls=None) -> None:
-    from mbtool.render import Result
+    from mbtool.cli.render import Result
 
     def to_result(reply):
         items = [(address + i, bit) for i, bit in enumerate(reply.bits)]
@@ -66,8 +66,8 @@ def _read_registers(
     interval=None,
     polls=None,
 ) -> None:
+    from mbtool.cli.render import Result
     from mbtool.codec.values import decode_values, registers_needed
-    from mbtool.render import Result
 
     def to_result(reply):
         items = [

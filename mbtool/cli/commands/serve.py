@@ -14,8 +14,7 @@ import time
 
 import click
 
-from mbtool.errors import RequestError
-from mbtool.options import (
+from mbtool.cli.options import (
     Number,
     PositiveFloat,
     QuickHelp,
@@ -24,6 +23,7 @@ from mbtool.options import (
     serial_line_options,
     units_text,
 )
+from mbtool.errors import RequestError
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 
@@ -204,9 +204,9 @@ def serve(
       mbtool serve                                   (in one terminal)
       mbtool read-holding-registers 0 10 -p tcp://127.0.0.1:5020
     """
-    from mbtool.device import Device, Faults, demo_model, load_data
-    from mbtool.server import IoFaults, Server, parse_target
-    from mbtool.transport import SerialSettings
+    from mbtool.device.model import Device, Faults, demo_model, load_data
+    from mbtool.device.server import IoFaults, Server, parse_target
+    from mbtool.link.transport import SerialSettings
 
     unit_set = parse_units(units)
     where = parse_target(target)

@@ -6,8 +6,8 @@ import sys
 
 import click
 
+from mbtool.cli.options import NO_HEADER_OPTION, QuickHelp, device_command, output_chosen
 from mbtool.errors import RequestError
-from mbtool.options import NO_HEADER_OPTION, QuickHelp, device_command, output_chosen
 
 FORMAT_OPTION = click.option(
     "-o",
@@ -24,7 +24,7 @@ class OfflineCommand(QuickHelp, click.Command):
 
 
 def _render(report, output_format: str | None) -> None:
-    from mbtool.render import default_format, render
+    from mbtool.cli.render import default_format, render
 
     render(report, output_format or default_format())
 
@@ -34,7 +34,7 @@ def _render(report, output_format: str | None) -> None:
 
 def frame_report(described, header: bool = True):
     """The rows of a decoded frame: envelope, fields, checksum, warnings; JSON with every field."""
-    from mbtool.render import Report, Row
+    from mbtool.cli.render import Report, Row
 
     d = described
     # The exact bytes first, to copy into a manual or a tester: hex for RTU and MBAP, the
@@ -124,7 +124,7 @@ def decode(frame, framer, direction, output_format):
         if problem:
             raise FrameError(problem)
         return
-    from mbtool.render import default_format
+    from mbtool.cli.render import default_format
 
     if sys.stdin.isatty():
         print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
@@ -133,10 +133,10 @@ def decode(frame, framer, direction, output_format):
 
 def _decode_stream(lines, framer, direction, fmt: str) -> None:
     """One frame a line, each decoded and written as it comes, in constant memory."""
+    from mbtool.cli.render import error_json
     from mbtool.codec.describe import describe
     from mbtool.codec.record import replace
     from mbtool.errors import FrameError, MbtoolError
-    from mbtool.render import error_json
 
     frames = unreadable = failed = 0  # frames decoded, lines that are none, lines with a problem
     first_failure = ""
@@ -200,9 +200,9 @@ def crc(data, output_format):
 
     The CRC of HEX, and the RTU frame with it appended (low byte first).
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.checksum import crc16
     from mbtool.codec.describe import parse_hex
-    from mbtool.render import Report, Row
 
     body = parse_hex(" ".join(data))
     value = crc16(body)
@@ -227,9 +227,9 @@ def lrc(data, output_format):
 
     The LRC of HEX (unit through last data byte), and the ASCII frame with it.
     """
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.checksum import lrc as lrc8
     from mbtool.codec.describe import parse_hex
-    from mbtool.render import Report, Row
 
     body = parse_hex(" ".join(data))
     value = lrc8(body)
@@ -253,11 +253,11 @@ def raw(connection, data, adu):
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """
-    from mbtool.client import Trace
     from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
     from mbtool.codec.raw import RawRequest
-    from mbtool.connection import framer_name, open_client
     from mbtool.errors import FrameError, ModbusException
+    from mbtool.link.client import Trace
+    from mbtool.link.connection import framer_name, open_client
 
     name = framer_name(connection)
     text = " ".join(data)
@@ -307,7 +307,7 @@ def raw(connection, data, adu):
             client.execute(unit, request)
         except (ModbusException, FrameError) as error:
             failure = error
-    from mbtool.render import Report, Row, default_format, render
+    from mbtool.cli.render import Report, Row, default_format, render
 
     heard = capture.reply or capture.other
     if heard is None:

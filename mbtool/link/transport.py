@@ -325,7 +325,7 @@ class SimTransport(Transport):
 
     def __init__(self, framer_name: str) -> None:
         from mbtool.codec.framing import device_framer
-        from mbtool.device import Device, demo_model
+        from mbtool.device.model import Device, demo_model
 
         self.device = Device(demo_model())
         self.framer = device_framer(framer_name)

@@ -29,9 +29,9 @@ class DryRunClient:
 
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
+        from mbtool.cli.commands.offline import frame_report
+        from mbtool.cli.render import default_format, render
         from mbtool.codec.describe import describe
-        from mbtool.commands.offline import frame_report
-        from mbtool.render import default_format, render
 
         # Transaction id 1: the first one a real Client would use.
         adu = self.framer.build(unit, request.encode(), 1)

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.errors import ChecksumError, FrameError, MbtoolError, MismatchError, ModbusException, NoResponse
-from mbtool.transport import ConnectionClosed, Transport
+from mbtool.link.transport import ConnectionClosed, Transport
 
 CHAR_BITS = 11  # spec §2: every RTU character is 11 bits on the line
 FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud

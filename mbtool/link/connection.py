@@ -11,7 +11,7 @@ from mbtool.codec.record import record, replace
 from mbtool.errors import RequestError
 
 if TYPE_CHECKING:
-    from mbtool.client import Client
+    from mbtool.link.client import Client
 
 
 @record
@@ -43,10 +43,10 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
     Several transactions can share the link (diag counters, device-id's more-follows;
     sim:// keeps its state only as long as its link).
     """
-    from mbtool.client import Client
+    from mbtool.cli.render import HexTrace
     from mbtool.codec.framing import is_broadcast, make_framer
-    from mbtool.render import HexTrace
-    from mbtool.transport import SerialSettings, open_transport
+    from mbtool.link.client import Client
+    from mbtool.link.transport import SerialSettings, open_transport
 
     if not connection.port and not connection.dry_run:
         raise RequestError(
@@ -60,7 +60,7 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
             f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"
         )
     if connection.dry_run:
-        from mbtool.dryrun import DryRunClient
+        from mbtool.cli.dryrun import DryRunClient
 
         yield DryRunClient(framer or make_framer(name), connection.output_format, then)
         return
@@ -113,7 +113,7 @@ def rs485_direction(connection: Connection) -> tuple[float, float] | None:
 
 
 def framer_name(connection: Connection) -> str:
-    from mbtool.transport import default_framer
+    from mbtool.link.transport import default_framer
 
     return connection.framer or default_framer(connection.port or "")
 
@@ -125,8 +125,8 @@ def execute(connection: Connection, request) -> object:
 
 
 def show(connection: Connection, result) -> None:
+    from mbtool.cli.render import default_format, render
     from mbtool.codec.framing import is_broadcast
-    from mbtool.render import default_format, render
 
     if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")

@@ -1,6 +1,6 @@
 """The command line: the only layer that imports everything (design notes).
 
-Commands live in ``mbtool.commands.*`` and are imported only when named, so a
+Commands live in ``mbtool.cli.commands.*`` and are imported only when named, so a
 one-shot read from cron pays for its own command and nothing else.  Every
 error reaches ``main``, which prints one line on stderr and exits with the
 code of ``errors.ExitCode``.
@@ -15,9 +15,10 @@ from importlib import import_module
 
 import click
 
-from mbtool import __version__, render
+from mbtool import __version__
+from mbtool.cli import render
+from mbtool.cli.options import QuickHelp
 from mbtool.errors import ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
-from mbtool.options import QuickHelp
 
 # command name -> the module that defines it (as a function named like the command)
 COMMANDS = {
@@ -65,7 +66,7 @@ class LazyGroup(QuickHelp, click.Group):
         module = COMMANDS.get(name)
         if module is None:
             return None
-        return getattr(import_module(f"mbtool.commands.{module}"), name.replace("-", "_"))
+        return getattr(import_module(f"mbtool.cli.commands.{module}"), name.replace("-", "_"))
 
 
 @click.group(

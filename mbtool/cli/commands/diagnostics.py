@@ -6,9 +6,9 @@ import sys
 
 import click
 
+from mbtool.cli.options import device_command, parse_int
 from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
 from mbtool.errors import RequestError
-from mbtool.options import device_command, parse_int
 
 # command-line name -> sub-function (spec §4)
 SUB_FUNCTIONS = {name: code for code, name in SUB_FUNCTION_NAMES.items()}
@@ -80,7 +80,7 @@ def diag(connection, sub_function, data, clear_log, controller):
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
     from mbtool.codec.framing import is_broadcast
-    from mbtool.connection import framer_name, show
+    from mbtool.link.connection import framer_name, show
 
     if is_broadcast(connection.unit, framer_name(connection)):
         raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
@@ -95,10 +95,10 @@ def diag(connection, sub_function, data, clear_log, controller):
 
 
 def _one(connection, sub: int, data: bytes, controller: str | None):
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
-    from mbtool.connection import execute
     from mbtool.errors import MismatchError, NoResponse
-    from mbtool.render import Report, Row
+    from mbtool.link.connection import execute
 
     request = Diagnostics(sub, data)
     name = NAMES.get(sub, f"sub-function {sub_function_number(sub)}")
@@ -117,7 +117,7 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
             Row("echo", matched, "matched" if matched else "MISMATCH"),
         ]
         if not matched:
-            from mbtool.connection import show
+            from mbtool.link.connection import show
 
             show(connection, Report(connection.unit, 8, title, rows))
             raise MismatchError(
@@ -166,8 +166,8 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
 
 def _statistics_rows(words: tuple[int, ...]):
     """Modbus Plus statistics, each word named as seed 002 does; byte pairs shown as LO/HI."""
+    from mbtool.cli.render import Row
     from mbtool.codec.modicon import MODBUS_PLUS_WORDS
-    from mbtool.render import Row
 
     rows = []
     for i, word in enumerate(words):
@@ -181,8 +181,8 @@ def _statistics_rows(words: tuple[int, ...]):
 
 
 def _register_rows(value: int, controller: str | None):
+    from mbtool.cli.render import Row
     from mbtool.codec.modicon import diagnostic_register_bits
-    from mbtool.render import Row
 
     rows = [Row("diagnostic_register", value, f"0x{value:04X}")]
     if controller:
@@ -196,10 +196,10 @@ def _register_rows(value: int, controller: str | None):
 
 
 def _counters(connection):
+    from mbtool.cli.render import Report, Row
     from mbtool.codec.serial_line import Diagnostics
-    from mbtool.connection import open_client
     from mbtool.errors import ModbusException
-    from mbtool.render import Report, Row
+    from mbtool.link.connection import open_client
 
     rows, data, answered, refused = [], {}, 0, None
     with open_client(connection, "diag counters") as client:

@@ -7,8 +7,8 @@ from collections.abc import Callable
 
 import click
 
-from mbtool.connection import Connection
 from mbtool.errors import RequestError
+from mbtool.link.connection import Connection
 
 # --- parameter types --------------------------------------------------------------
 
@@ -222,7 +222,7 @@ def serial_line_options(function: Callable) -> Callable:
 def output_chosen(fmt: str | None) -> str | None:
     """Note -o as soon as it is parsed, so that even a failure after it gets its JSON object."""
     if fmt == "json":
-        from mbtool import render
+        from mbtool.cli import render
 
         render.errors_as_json = True
     return fmt
@@ -230,7 +230,7 @@ def output_chosen(fmt: str | None) -> str | None:
 
 def _no_header(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     if value:
-        from mbtool import render
+        from mbtool.cli import render
 
         render.csv_header = False
 
@@ -406,7 +406,7 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
             if profile:
-                from mbtool.profiles import apply
+                from mbtool.cli.profiles import apply
 
                 connection = apply(connection, profile)
             return function(connection, **kwargs)

@@ -22,8 +22,8 @@ import time
 
 import click
 
+from mbtool.cli.options import ADDRESS, COUNT, device_command, parse_units, units_text
 from mbtool.codec.record import record, replace
-from mbtool.connection import close_quietly
 from mbtool.errors import (
     ConnectionFailed,
     ExitCode,
@@ -35,8 +35,8 @@ from mbtool.errors import (
     RequestError,
     Summary,
 )
-from mbtool.options import ADDRESS, COUNT, device_command, parse_units, units_text
-from mbtool.transport import SerialSettings
+from mbtool.link.connection import close_quietly
+from mbtool.link.transport import SerialSettings
 
 SCAN_TIMEOUT = 0.2  # seconds per unit: a reply at 1200 baud plus a slow device's turnaround
 DEFAULT_UNITS = "1-247"  # spec §2: 1..247 are the individual addresses, 248..255 reserved
@@ -193,8 +193,8 @@ def probe_request(function: str, address: int, count: int):
         from mbtool.codec.device_id import ReadDeviceIdCode, ReadDeviceIdentification
 
         return ReadDeviceIdentification(ReadDeviceIdCode.BASIC, 0)
+    from mbtool.cli.commands.diagnostics import DEFAULT_QUERY
     from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
-    from mbtool.commands.diagnostics import DEFAULT_QUERY
 
     return Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, DEFAULT_QUERY)
 
@@ -285,7 +285,7 @@ def ask(client, unit: int, request, framer_name: str) -> Answer | str:
 
     Link failures (ConnectionFailed, a closed connection, OSError) are the caller's.
     """
-    from mbtool.transport import ConnectionClosed
+    from mbtool.link.transport import ConnectionClosed
 
     began = time.monotonic()
     try:
@@ -377,7 +377,7 @@ class Scan:
         return tally
 
     def _open(self, setting: Setting):
-        from mbtool.connection import framer_name, open_client
+        from mbtool.link.connection import framer_name, open_client
 
         # unit: a real one, for open_client's broadcast check (the option holds the whole set).
         connection = replace(self.connection, baud=setting.baud, parity=setting.parity, unit=self.units[0])
@@ -388,8 +388,8 @@ class Scan:
 
     def _link(self, setting: Setting) -> bool:
         """Probe every unit at one setting; True when the scan should stop (--first)."""
-        from mbtool.connection import framer_name
-        from mbtool.transport import ConnectionClosed
+        from mbtool.link.connection import framer_name
+        from mbtool.link.transport import ConnectionClosed
 
         tally = self.tally
         name = framer_name(self.connection)
@@ -549,7 +549,7 @@ class Output:
     def _csv_header(self) -> None:
         import csv
 
-        from mbtool.render import wants_csv_header
+        from mbtool.cli.render import wants_csv_header
 
         where = ["baud", "parity"] if self.sweeping else []
         if wants_csv_header(sys.stdout):
@@ -565,7 +565,7 @@ class Output:
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
         if self.fmt == "json":
-            from mbtool.render import to_json
+            from mbtool.cli.render import to_json
 
             data = {
                 **head,
@@ -687,7 +687,7 @@ def scan(connection, probe, address, count, bauds, parities, first):
     if connection.dry_run:
         _dry_run(connection, request, units, settings, sweeping)
         return
-    from mbtool.render import default_format
+    from mbtool.cli.render import default_format
 
     fmt = connection.output_format or default_format()
     output = Output(fmt, sweeping)
@@ -715,7 +715,7 @@ def _check_sweepable(port: str | None) -> None:
 
 
 def _dry_run(connection, request, units: list[int], settings: list[Setting], sweeping: bool) -> None:
-    from mbtool.connection import open_client
+    from mbtool.link.connection import open_client
 
     then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
     then += f" at each of {len(settings)} serial settings)" if sweeping else ")"

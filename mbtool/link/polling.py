@@ -19,6 +19,7 @@ import sys
 import time
 from collections.abc import Callable
 
+from mbtool.cli.render import local_time
 from mbtool.errors import (
     ConnectionFailed,
     ExitCode,
@@ -28,7 +29,6 @@ from mbtool.errors import (
     RequestError,
     Summary,
 )
-from mbtool.render import local_time
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -50,13 +50,13 @@ class Output:
         self._flush_at = 0.0
 
     def result(self, when: str, result) -> None:
-        from mbtool.render import _text, as_dict
+        from mbtool.cli.render import _text, as_dict
 
         if self.fmt == "json":
             self._emit(_json_line({"time": when, **as_dict(result)}))
         elif self.fmt == "csv":
             if not self.header_done:
-                from mbtool.render import wants_csv_header
+                from mbtool.cli.render import wants_csv_header
 
                 if wants_csv_header(self.out):
                     self._emit("time,address,value\n")
@@ -72,7 +72,7 @@ class Output:
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt == "json":
             # jq consumers read stdout only: a failed poll must show up there too.
-            from mbtool.render import error_json
+            from mbtool.cli.render import error_json
 
             code = int(getattr(error, "exit_code", ExitCode.INTERNAL))
             self._emit(error_json(str(error), code, time=when) + "\n", now=True)
@@ -101,7 +101,7 @@ class Output:
         from rich.table import Table
         from rich.text import Text
 
-        from mbtool.render import _text
+        from mbtool.cli.render import _text
 
         # The heading above, not as the table's title: a title wraps to the table's width.
         heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
@@ -185,7 +185,7 @@ def _json_line(data: dict) -> str:
     try:
         return _ENCODER.encode(data) + "\n"
     except ValueError:
-        from mbtool.render import to_json
+        from mbtool.cli.render import to_json
 
         return to_json(data) + "\n"
 
@@ -213,9 +213,9 @@ def poll(
     polls: int | None,
 ) -> None:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted)."""
-    from mbtool.connection import close_quietly, open_client
-    from mbtool.render import default_format
-    from mbtool.transport import ConnectionClosed
+    from mbtool.cli.render import default_format
+    from mbtool.link.connection import close_quietly, open_client
+    from mbtool.link.transport import ConnectionClosed
 
     if interval is None:
         interval = DEFAULT_INTERVAL

@@ -1,4 +1,4 @@
-"""``mbtool serve``'s I/O: the device of ``mbtool.device`` on a TCP port or a serial line.
+"""``mbtool serve``'s I/O: the device of ``mbtool.device.model`` on a TCP port or a serial line.
 
 * TCP: one thread, ``selectors`` over the listener and every client connection,
   each connection with its own framer (MBAP, or RTU/ASCII over TCP for masters
@@ -38,13 +38,13 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from mbtool.client import silent_interval
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
-from mbtool.device import Device
+from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse, RequestError
-from mbtool.transport import Target
-from mbtool.transport import parse_target as parse_link_target
+from mbtool.link.client import silent_interval
+from mbtool.link.transport import Target
+from mbtool.link.transport import parse_target as parse_link_target
 
 TICK = 0.1  # longest wait before the loop looks at the stop flag again
 TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is unknown
@@ -192,7 +192,7 @@ class Server:
         self.device = device
         self.target = target
         self.framer_name = framer_name
-        from mbtool.transport import SerialSettings
+        from mbtool.link.transport import SerialSettings
 
         self.settings = settings or SerialSettings()
         self.baud = self.settings.baud
@@ -475,7 +475,7 @@ class Server:
     def _open_serial(self) -> None:
         import serial
 
-        from mbtool.transport import SerialTransport
+        from mbtool.link.transport import SerialTransport
 
         settings = self.settings
         transport = SerialTransport(self.target.path, settings)  # ConnectionFailed if it cannot

@@ -1,0 +1,1 @@
+"""The simulated device: data model, function handlers, data files, the server (``mbtool serve``)."""

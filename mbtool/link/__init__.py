@@ -1,0 +1,1 @@
+"""Master side I/O: transports, the client (time, retries, id matching), connections, the poll loop."""
