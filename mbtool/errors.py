@@ -1,14 +1,15 @@
 """Exit codes and the errors that lead to them: the one place that maps one to the other.
 
-Two layers of failure are kept apart (design notes, "Two layers of failure"):
-a transport or protocol fault (timeout, checksum, framing, mismatched ids,
-cannot open the port) is mbtool's problem with the link, while a Modbus
-exception response is a valid answer from the device.
+The codec's protocol errors (``mbtool.codec.errors``) carry no exit code; the
+process-level errors here (no response, cannot connect, cannot write the
+output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 """
 
 from __future__ import annotations
 
 from enum import IntEnum
+
+from mbtool.codec.errors import FrameError, ModbusException, ProtocolError, RequestError
 
 
 class ExitCode(IntEnum):
@@ -28,44 +29,6 @@ class MbtoolError(Exception):
     """Base of every error mbtool raises on purpose; str() is the one line the user sees."""
 
     exit_code = ExitCode.INTERNAL
-
-
-class RequestError(MbtoolError, ValueError):
-    """A request that breaks the spec (quantity, address, value): refused before sending."""
-
-    exit_code = ExitCode.USAGE
-
-    def __init__(self, message: str, exception_code: int = 0x03) -> None:
-        super().__init__(message)
-        # What a server answers to such a request: 02 for addresses, 03 for values.
-        self.exception_code = exception_code
-
-
-class FrameError(MbtoolError):
-    """Bytes that do not make a valid frame or PDU (checksum, framing, length, byte count)."""
-
-    exit_code = ExitCode.INVALID_RESPONSE
-
-    def __init__(self, message: str, data: bytes = b"") -> None:
-        super().__init__(message)
-        self.data = data  # the offending bytes, for the hex trace
-
-
-class ChecksumError(FrameError):
-    """A frame whose CRC or LRC does not match its contents."""
-
-    def __init__(self, message: str, data: bytes, received: int, expected: int) -> None:
-        super().__init__(message, data)
-        self.received = received
-        self.expected = expected
-
-
-class DecodeError(FrameError):
-    """A PDU that does not decode as its function code says it should."""
-
-
-class MismatchError(FrameError):
-    """A well-formed reply that answers another request (unit, function or transaction id)."""
 
 
 class Summary(MbtoolError):
@@ -94,24 +57,25 @@ class OutputFailed(MbtoolError):
         super().__init__(f"cannot write to {where}: {error.strerror or error}")
 
 
-class ModbusException(MbtoolError):
-    """The device answered with an exception response (function code | 0x80, code)."""
+# The codec's errors, by kind.  Two layers of failure (design notes): a frame that is
+# wrong is the link's fault (5), an exception response is the device's answer (4).
+PROTOCOL_EXIT_CODES = (
+    (RequestError, ExitCode.USAGE),  # refused before sending: nothing was sent
+    (FrameError, ExitCode.INVALID_RESPONSE),  # checksum, framing, ids, byte count
+    (ModbusException, ExitCode.EXCEPTION),
+)
 
-    exit_code = ExitCode.EXCEPTION
-
-    def __init__(self, function_code: int, exception_code: int) -> None:
-        from mbtool.codec.pdu import exception_name
-
-        self.function_code = function_code
-        self.exception_code = exception_code
-        self.name = exception_name(exception_code)
-        super().__init__(f"exception {exception_code:02X} {self.name} (function {function_code:02X})")
+# Everything mbtool raises on purpose: its message is the one line the user sees.
+KNOWN_ERRORS = (MbtoolError, ProtocolError)
 
 
 def exit_code_for(error: BaseException) -> ExitCode:
     """Map any error to its exit code; anything not raised on purpose is a bug."""
     if isinstance(error, MbtoolError):
         return error.exit_code
+    for kind, code in PROTOCOL_EXIT_CODES:
+        if isinstance(error, kind):
+            return code
     if isinstance(error, KeyboardInterrupt):
         return ExitCode.INTERRUPTED
     return ExitCode.INTERNAL

@@ -10,7 +10,7 @@ For each framing (RTU, ASCII, TCP), N random and N mutated frames go through
 
 Mutations start from valid replies to requests of every function code, built by
 the codec and answered by the built-in device (sim://), exception replies too.
-Every outcome must be a decoded reply or an MbtoolError; anything else is a
+Every outcome must be a decoded reply or one of mbtool's own errors; anything else is a
 crash, printed with its input (hex) so it can become a regression test.
 
     python scripts/fuzz.py --frames 2000 --seed 1            # every framer
@@ -28,9 +28,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from mbtool.codec.errors import ProtocolError  # noqa: E402
 from mbtool.codec.framing import Frame, make_framer  # noqa: E402
 from mbtool.codec.pdu import decode_request  # noqa: E402
-from mbtool.errors import MbtoolError  # noqa: E402
+from mbtool.errors import KNOWN_ERRORS  # noqa: E402
 from mbtool.link.client import Client  # noqa: E402
 from mbtool.link.transport import Transport  # noqa: E402
 
@@ -189,7 +190,7 @@ def through_decoder(framing: str, request, parts: list[bytes]) -> str:
             try:
                 request.decode_response(event.pdu)
                 outcome = "decoded"
-            except MbtoolError as error:
+            except ProtocolError as error:
                 outcome = type(error).__name__
         elif outcome == "no frame":
             outcome = "rejected"
@@ -203,7 +204,7 @@ def through_client(framing: str, request, parts: list[bytes]) -> str:
     )
     try:
         client.execute(UNIT, request)
-    except MbtoolError as error:
+    except KNOWN_ERRORS as error:
         return type(error).__name__
     return "reply"
 

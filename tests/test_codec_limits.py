@@ -14,8 +14,8 @@ from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
 from mbtool.codec import file_record as fr
 from mbtool.codec import serial_line as sl
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import MAX_PDU, ExceptionCode, decode_request, decode_response
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 ADDRESS = ExceptionCode.ILLEGAL_DATA_ADDRESS
 VALUE = ExceptionCode.ILLEGAL_DATA_VALUE

@@ -14,6 +14,7 @@ from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
 from mbtool.codec import file_record as fr
 from mbtool.codec import serial_line as sl
+from mbtool.codec.errors import ProtocolError
 from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
 from mbtool.codec.pdu import (
     FUNCTIONS,
@@ -25,7 +26,6 @@ from mbtool.codec.pdu import (
     unpack_bits,
     unpack_registers,
 )
-from mbtool.errors import MbtoolError
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -318,7 +318,7 @@ pdus = st.one_of(
 def _only_our_errors(call, *args):
     try:
         return call(*args)
-    except MbtoolError:
+    except ProtocolError:
         return None
 
 
@@ -389,7 +389,7 @@ def test_arbitrary_bytes_into_framers_give_only_events(framer_type, responses):
             while (event := framer.next_event()) is not None:
                 assert isinstance(event, Frame | Rejected)
                 if isinstance(event, Rejected):
-                    assert isinstance(event.error, MbtoolError) and event.data
+                    assert isinstance(event.error, ProtocolError) and event.data
                 out += len(event.adu if isinstance(event, Frame) else event.data)
             assert isinstance(framer.waiting_for_silence, bool)
         for _ in range(len(fed) + 2):

@@ -29,6 +29,7 @@ from mbtool.codec.data_access import (
     WriteSingleCoil,
     WriteSingleRegister,
 )
+from mbtool.codec.errors import ChecksumError
 from mbtool.codec.file_record import (
     FileRecord,
     FileRecordRequest,
@@ -49,7 +50,6 @@ from mbtool.codec.serial_line import (
     ReadExceptionStatus,
     ReportSlaveId,
 )
-from mbtool.errors import ChecksumError
 from tests.conftest import drain_events, settle_events
 
 VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer
 from mbtool.device.model import Device, Faults, demo_model, load_data
-from mbtool.errors import RequestError
 
 H = bytes.fromhex
 
@@ -400,8 +400,8 @@ def test_readme_example_data_file_loads(tmp_path):
 
 
 def test_character_overrun_is_counted():
+    from mbtool.codec.errors import FrameError
     from mbtool.codec.framing import Rejected
-    from mbtool.errors import FrameError
 
     d = dev()
     d.rejected(Rejected(b"\xff" * 300, FrameError("garbage", b"")))

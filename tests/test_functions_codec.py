@@ -10,6 +10,7 @@ import pytest
 
 from mbtool.cli.render import Report, Row, render
 from mbtool.codec.describe import describe, mask_formula, parse_hex, split_frame
+from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import RtuFramer
 from mbtool.codec.modicon import (
     CONTROLLERS,
@@ -20,7 +21,6 @@ from mbtool.codec.modicon import (
 )
 from mbtool.codec.pdu import UNKNOWN
 from mbtool.codec.raw import RawRequest, RawResponse
-from mbtool.errors import RequestError
 
 # ----------------------------------------------------------------------------- Modicon (seed 002)
 

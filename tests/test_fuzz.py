@@ -1,5 +1,5 @@
 """A short run of scripts/fuzz.py (the long one is run by hand): random and mutated reply frames
-through every framer and the client's receive path end in a reply or an MbtoolError, never a crash."""
+through every framer and the client's receive path end in a reply or one of mbtool's own errors, never a crash."""
 
 from __future__ import annotations
 

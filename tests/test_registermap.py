@@ -6,6 +6,7 @@ import struct
 
 import pytest
 
+from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionResponse
 from mbtool.codec.tables import (
     COILS,
@@ -17,7 +18,7 @@ from mbtool.codec.tables import (
 )
 from mbtool.codec.values import encode_values
 from mbtool.device.model import DataModel, Device
-from mbtool.errors import ExitCode, ModbusException, RequestError
+from mbtool.errors import ExitCode, exit_code_for
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import bit_request, plan_reads, read_points, with_bit, write_request
 from mbtool.registermap.point import Point
@@ -63,7 +64,7 @@ def test_references_of_device_manuals(text, table, address):
 def test_invalid_references_say_why(text, words):
     with pytest.raises(RequestError, match=words) as caught:
         parse_reference(text)
-    assert caught.value.exit_code == ExitCode.USAGE
+    assert exit_code_for(caught.value) == ExitCode.USAGE
     assert "'" not in str(caught.value)
 
 
@@ -293,7 +294,7 @@ def test_bad_maps_name_file_point_and_key(tmp_path, text, words):
     with pytest.raises(MapError, match=words) as caught:
         load_map(path)
     assert str(caught.value).startswith(str(path))
-    assert caught.value.exit_code == ExitCode.USAGE
+    assert exit_code_for(caught.value) == ExitCode.USAGE
 
 
 def test_bits_of_one_register_do_not_overlap(tmp_path):
@@ -423,4 +424,4 @@ def test_the_point_at_fault_is_named(tmp_path):
         ModbusException, match=r"missing \(40002\): exception 02 Illegal Data Address"
     ) as caught:
         read_points(_execute(device, []), points)
-    assert caught.value.exit_code == ExitCode.EXCEPTION
+    assert exit_code_for(caught.value) == ExitCode.EXCEPTION

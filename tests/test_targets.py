@@ -15,7 +15,7 @@ import tty
 import pytest
 from conftest import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
 
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 from mbtool.link.transport import parse_target
 
 pytestmark = pytest.mark.timeout(60)

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.values import (
     ORDERS,
     decode_values,
@@ -16,7 +17,6 @@ from mbtool.codec.values import (
     parse_value,
     registers_needed,
 )
-from mbtool.errors import RequestError
 
 # 0x11223344 as uint32 in each order: the bytes A B C D are 11 22 33 44.
 UINT32_ORDERS = {

@@ -18,7 +18,7 @@ import click
 from mbtool import __version__
 from mbtool.cli import render
 from mbtool.cli.options import QuickHelp
-from mbtool.errors import ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
 
 # command name -> the module that defines it (as a function named like the command)
 COMMANDS = {
@@ -131,11 +131,11 @@ def main(argv: list[str] | None = None) -> None:
         _discard_stdout()
         error = OutputFailed("standard output", failure)
         code = error.exit_code
-    except MbtoolError as failure:
+    except KNOWN_ERRORS as failure:
         if isinstance(failure, OutputFailed):
             _discard_stdout()
         error = failure
-        code = failure.exit_code
+        code = exit_code_for(failure)
     except Exception as failure:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
         if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
             raise

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import click
 
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
 
 # --- parameter types --------------------------------------------------------------

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import click
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
-from mbtool.errors import RequestError
 
 # profile key (the option's parameter name, and the Connection field it sets) -> the TOML
 # types it takes, and how to say so

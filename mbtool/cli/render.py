@@ -14,9 +14,9 @@ import sys
 import time
 from typing import TextIO
 
+from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
-from mbtool.errors import ChecksumError, FrameError
 
 FORMATS = ("table", "plain", "json", "csv")
 

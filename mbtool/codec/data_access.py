@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
     Request,
@@ -27,7 +28,6 @@ from mbtool.codec.pdu import (
     unpack_registers,
 )
 from mbtool.codec.record import record
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_READ_BITS = 2000
 MAX_READ_REGISTERS = 125

@@ -13,9 +13,9 @@ import binascii
 import struct
 
 from mbtool.codec.checksum import crc16, lrc
-from mbtool.codec.pdu import ExceptionResponse, Request, exception_name, function_type
+from mbtool.codec.errors import ProtocolError, RequestError, exception_name
+from mbtool.codec.pdu import ExceptionResponse, Request, function_type
 from mbtool.codec.record import record
-from mbtool.errors import MbtoolError, RequestError
 
 
 @record
@@ -452,7 +452,7 @@ def _try_request(pdu: bytes) -> tuple[Request | None, str]:
 
     try:
         return decode_request(pdu), ""
-    except MbtoolError as error:
+    except ProtocolError as error:
         return None, str(error)
 
 
@@ -464,7 +464,7 @@ def _try_response(pdu: bytes, request: Request | None) -> tuple[object | None, s
             reply = request.decode_response(pdu)
         else:
             reply = decode_response(pdu)
-    except MbtoolError as error:
+    except ProtocolError as error:
         return None, str(error), []
     return reply, "", list(getattr(reply, "warnings", ()))
 

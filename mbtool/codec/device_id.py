@@ -11,9 +11,9 @@ from __future__ import annotations
 from enum import IntEnum
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, ExceptionCode, Request, Response, need, register
 from mbtool.codec.record import record
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MEI_TYPE = 0x0E  # Read Device Identification; 0x0D (CANopen) is not supported
 MORE_FOLLOWS = 0xFF

@@ -11,6 +11,7 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
     Request,
@@ -23,7 +24,6 @@ from mbtool.codec.pdu import (
     unpack_registers,
 )
 from mbtool.codec.record import record
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 REFERENCE_TYPE = 6
 MAX_FILE = 0xFFFF

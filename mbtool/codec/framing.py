@@ -18,9 +18,9 @@ import struct
 from abc import ABC, abstractmethod
 
 from mbtool.codec.checksum import crc16, lrc
+from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
-from mbtool.errors import ChecksumError, FrameError
 
 RTU_MAX_ADU = 256
 ASCII_MAX_CHARS = 513  # ':' + 2 × 255 hex + CR LF (spec §2)

@@ -16,8 +16,8 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name
 from mbtool.codec.record import field, record
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_PDU = 253  # RTU: 256 bytes - unit - CRC; MBAP: length field ≤ 254 incl. unit
 
@@ -35,24 +35,6 @@ class ExceptionCode:
     MEMORY_PARITY_ERROR = 0x08
     GATEWAY_PATH_UNAVAILABLE = 0x0A
     GATEWAY_TARGET_FAILED_TO_RESPOND = 0x0B
-
-
-EXCEPTION_NAMES = {
-    0x01: "Illegal Function",
-    0x02: "Illegal Data Address",
-    0x03: "Illegal Data Value",
-    0x04: "Server Device Failure",
-    0x05: "Acknowledge",
-    0x06: "Server Device Busy",
-    0x07: "Negative Acknowledge",
-    0x08: "Memory Parity Error",
-    0x0A: "Gateway Path Unavailable",
-    0x0B: "Gateway Target Failed to Respond",
-}
-
-
-def exception_name(code: int) -> str:
-    return EXCEPTION_NAMES.get(code, "Undefined Exception Code")
 
 
 # --- checks shared by the function codes -------------------------------------

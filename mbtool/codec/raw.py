@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, ProtocolError, RequestError
 from mbtool.codec.pdu import UNKNOWN, ExceptionResponse, Request, Response, function_type
 from mbtool.codec.record import record
-from mbtool.errors import DecodeError, MbtoolError, RequestError
 
 
 @record
@@ -67,7 +67,7 @@ class RawRequest(Request):
             return None
         try:
             return kind.decode(self.pdu)
-        except MbtoolError:
+        except ProtocolError:
             return None
 
     @property

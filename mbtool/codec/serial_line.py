@@ -11,6 +11,7 @@ import struct
 from enum import IntEnum
 from typing import ClassVar
 
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     MAX_PDU,
     ExceptionCode,
@@ -23,7 +24,6 @@ from mbtool.codec.pdu import (
     register,
 )
 from mbtool.codec.record import field, record
-from mbtool.errors import DecodeError, MismatchError, RequestError
 
 MAX_EVENTS = 64  # FC12: the log holds at most 64 event bytes (spec §3)
 BUSY = 0xFFFF  # FC11/12 status word: a program command is still being processed

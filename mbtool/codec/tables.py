@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import re
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
-from mbtool.errors import RequestError
 
 
 @record

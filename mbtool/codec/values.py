@@ -18,8 +18,8 @@ from __future__ import annotations
 import math
 import struct
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
-from mbtool.errors import RequestError
 
 ORDERS = ("ABCD", "CDAB", "BADC", "DCBA")
 

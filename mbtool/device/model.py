@@ -23,6 +23,7 @@ from array import array
 from collections import deque
 from collections.abc import Callable
 
+from mbtool.codec.errors import ChecksumError, DecodeError, RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import (
     ExceptionCode,
@@ -32,7 +33,6 @@ from mbtool.codec.pdu import (
     function_type,
 )
 from mbtool.codec.record import record
-from mbtool.errors import ChecksumError, DecodeError, RequestError
 
 TABLE_SIZE = 0x10000  # every table spans the whole 16-bit address space (spec §1)
 FILE_SIZE = 10000  # records 0..9999 per file (spec §1, FC20/21)

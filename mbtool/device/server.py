@@ -38,10 +38,11 @@ import time
 from collections import deque
 from collections.abc import Callable
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
 from mbtool.device.model import Device
-from mbtool.errors import ConnectionFailed, NoResponse, RequestError
+from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.client import silent_interval
 from mbtool.link.transport import Target
 from mbtool.link.transport import parse_target as parse_link_target

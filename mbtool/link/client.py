@@ -13,9 +13,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
-from mbtool.errors import ChecksumError, FrameError, MbtoolError, MismatchError, ModbusException, NoResponse
+from mbtool.errors import MbtoolError, NoResponse
 from mbtool.link.transport import ConnectionClosed, Transport
 
 CHAR_BITS = 11  # spec §2: every RTU character is 11 bits on the line

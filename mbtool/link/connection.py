@@ -7,8 +7,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
-from mbtool.errors import RequestError
 
 if TYPE_CHECKING:
     from mbtool.link.client import Client
@@ -91,12 +91,12 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
 
 def close_quietly(link) -> None:
     """Leave an open_client context whose link may already have broken (polling, scan)."""
-    from mbtool.errors import MbtoolError
+    from mbtool.errors import KNOWN_ERRORS
 
     if link is not None:
         try:
             link.__exit__(None, None, None)
-        except (MbtoolError, OSError):
+        except (*KNOWN_ERRORS, OSError):
             pass  # closing a link that already broke: nothing left to report
 
 

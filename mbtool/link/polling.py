@@ -20,14 +20,15 @@ import time
 from collections.abc import Callable
 
 from mbtool.cli.render import local_time
+from mbtool.codec.errors import RequestError
 from mbtool.errors import (
+    KNOWN_ERRORS,
     ConnectionFailed,
     ExitCode,
-    MbtoolError,
     NoResponse,
     OutputFailed,
-    RequestError,
     Summary,
+    exit_code_for,
 )
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
@@ -74,7 +75,7 @@ class Output:
             # jq consumers read stdout only: a failed poll must show up there too.
             from mbtool.cli.render import error_json
 
-            code = int(getattr(error, "exit_code", ExitCode.INTERNAL))
+            code = int(exit_code_for(error))
             self._emit(error_json(str(error), code, time=when) + "\n", now=True)
 
     def _emit(self, text: str, now: bool = False) -> None:
@@ -267,7 +268,7 @@ def poll(
                 replies += 1
             except BrokenPipeError:
                 raise  # stdout's reader went away: nothing left to poll for
-            except (MbtoolError, OSError) as error:
+            except (*KNOWN_ERRORS, OSError) as error:
                 shown.write()  # the poll before it, if the request never left
                 if isinstance(error, RequestError | OutputFailed):
                     raise  # the request is wrong, or the output full: no later poll can do better
@@ -281,7 +282,7 @@ def poll(
                     link = client = None
                 if isinstance(error, OSError):
                     error = ConnectionFailed(str(error))
-                last_failure = error.exit_code
+                last_failure = exit_code_for(error)
                 output.failure(local_time(when), done + 1, error)
             else:
                 shown.hold(when, reply)

@@ -22,8 +22,9 @@ import sys
 import time
 from urllib.parse import urlsplit
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
-from mbtool.errors import ConnectionFailed, NoResponse, RequestError
+from mbtool.errors import ConnectionFailed, NoResponse
 
 MODBUS_TCP_PORT = 502
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken

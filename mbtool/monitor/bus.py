@@ -25,10 +25,10 @@ from heapq import heappop, heappush
 
 from mbtool.codec.checksum import crc16
 from mbtool.codec.describe import Described, describe_pdu, split_frame
+from mbtool.codec.errors import ChecksumError, ProtocolError
 from mbtool.codec.framing import RTU_MAX_ADU, AsciiFramer, Frame
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, function_type, pdu_length
 from mbtool.codec.record import record
-from mbtool.errors import ChecksumError, MbtoolError
 
 MIN_RTU_FRAME = 4  # unit, function code, CRC: the FC07/11/12/17 requests (spec §2, §3)
 GARBAGE_RUN = RTU_MAX_ADU  # a garbage run is reported at the latest when it is this long
@@ -407,7 +407,7 @@ class BusMonitor:
         try:
             text = wire.decode("ascii") if self.framing == "ascii" else wire.hex()
             framing, adu, unit, pdu, ok, verdict = split_frame(text, self.framing)
-        except (MbtoolError, UnicodeDecodeError) as error:
+        except (ProtocolError, UnicodeDecodeError) as error:
             return [self._frame(start, end, wire, "garbage", flags=("garbage",), note=str(error))]
         out: list[BusFrame | Unanswered] = []
         # A response that comes later than the timeout: its request is unanswered first.

@@ -13,9 +13,10 @@ import tomllib
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES
-from mbtool.errors import MbtoolError, RequestError
+from mbtool.errors import ExitCode, MbtoolError
 from mbtool.registermap.point import Point
 
 POINT_KEYS = {
@@ -40,7 +41,7 @@ NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
 class MapError(MbtoolError, ValueError):
     """A map that cannot be used: exit 2, nothing sent."""
 
-    exit_code = RequestError.exit_code
+    exit_code = ExitCode.USAGE
 
 
 class RegisterMap:

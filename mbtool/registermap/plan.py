@@ -29,10 +29,10 @@ from mbtool.codec.data_access import (
     WriteSingleCoil,
     WriteSingleRegister,
 )
+from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionCode, Request, Response
 from mbtool.codec.record import record
 from mbtool.codec.tables import COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS, Table
-from mbtool.errors import ModbusException, RequestError
 from mbtool.registermap.point import Point, PointValue
 
 READS = {

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from decimal import Decimal, InvalidOperation
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import Table, reference
 from mbtool.codec.values import TYPES, Value, decode_values, encode_values, parse_value
-from mbtool.errors import RequestError
 
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 

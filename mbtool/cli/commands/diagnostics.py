@@ -7,8 +7,8 @@ import sys
 import click
 
 from mbtool.cli.options import device_command, parse_int
+from mbtool.codec.errors import RequestError
 from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
-from mbtool.errors import RequestError
 
 # command-line name -> sub-function (spec §4)
 SUB_FUNCTIONS = {name: code for code, name in SUB_FUNCTION_NAMES.items()}
@@ -96,8 +96,9 @@ def diag(connection, sub_function, data, clear_log, controller):
 
 def _one(connection, sub: int, data: bytes, controller: str | None):
     from mbtool.cli.render import Report, Row
+    from mbtool.codec.errors import MismatchError
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
-    from mbtool.errors import MismatchError, NoResponse
+    from mbtool.errors import NoResponse
     from mbtool.link.connection import execute
 
     request = Diagnostics(sub, data)
@@ -197,8 +198,8 @@ def _register_rows(value: int, controller: str | None):
 
 def _counters(connection):
     from mbtool.cli.render import Report, Row
+    from mbtool.codec.errors import ModbusException
     from mbtool.codec.serial_line import Diagnostics
-    from mbtool.errors import ModbusException
     from mbtool.link.connection import open_client
 
     rows, data, answered, refused = [], {}, 0, None

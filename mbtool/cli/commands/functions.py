@@ -8,7 +8,7 @@ from __future__ import annotations
 import click
 
 from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, parse_int
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 from mbtool.link.connection import execute, show
 
 # --- FC 07 ---------------------------------------------------------------------------------
@@ -334,7 +334,7 @@ def device_id(connection, level, object_id):
     from mbtool.cli.render import Report, Row
     from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
-    from mbtool.errors import FrameError
+    from mbtool.codec.errors import FrameError
     from mbtool.link.connection import open_client
 
     objects: dict[int, bytes] = {}

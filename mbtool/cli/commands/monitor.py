@@ -28,7 +28,8 @@ from mbtool.cli.options import (
     serial_line_options,
 )
 from mbtool.cli.render import local_time
-from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, RequestError, Summary
+from mbtool.codec.errors import RequestError
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
 # On a UART t3.5 ends a frame (spec §2), but ptys and USB adapters deliver one frame in

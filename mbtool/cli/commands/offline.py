@@ -7,7 +7,7 @@ import sys
 import click
 
 from mbtool.cli.options import NO_HEADER_OPTION, QuickHelp, device_command, output_chosen
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 
 FORMAT_OPTION = click.option(
     "-o",
@@ -115,7 +115,7 @@ def decode(frame, framer, direction, output_format):
     field or a line is wrong.
     """
     from mbtool.codec.describe import describe
-    from mbtool.errors import FrameError
+    from mbtool.codec.errors import FrameError
 
     if frame and frame != ("-",):
         described = describe(" ".join(frame), framer, direction)
@@ -135,8 +135,9 @@ def _decode_stream(lines, framer, direction, fmt: str) -> None:
     """One frame a line, each decoded and written as it comes, in constant memory."""
     from mbtool.cli.render import error_json
     from mbtool.codec.describe import describe
+    from mbtool.codec.errors import FrameError
     from mbtool.codec.record import replace
-    from mbtool.errors import FrameError, MbtoolError
+    from mbtool.errors import KNOWN_ERRORS, ExitCode
 
     frames = unreadable = failed = 0  # frames decoded, lines that are none, lines with a problem
     first_failure = ""
@@ -148,7 +149,7 @@ def _decode_stream(lines, framer, direction, fmt: str) -> None:
         text, kind = _trace_line(text)
         try:
             described = describe(text, framer, direction or kind, previous)
-        except MbtoolError as error:  # not a frame at all: say where, and go on
+        except KNOWN_ERRORS as error:  # not a frame at all: say where, and go on
             problem, described = str(error), None
             unreadable += 1
         else:
@@ -167,7 +168,7 @@ def _decode_stream(lines, framer, direction, fmt: str) -> None:
             if fmt == "json":
                 if described is None:
                     sys.stdout.write(
-                        error_json(problem, int(FrameError.exit_code), line=number, input=text) + "\n"
+                        error_json(problem, int(ExitCode.INVALID_RESPONSE), line=number, input=text) + "\n"
                     )
             else:
                 sys.stdout.flush()  # stdout and stderr in the order of the lines
@@ -254,8 +255,8 @@ def raw(connection, data, adu):
     bytes go out exactly as typed, a wrong checksum too.
     """
     from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
+    from mbtool.codec.errors import FrameError, ModbusException
     from mbtool.codec.raw import RawRequest
-    from mbtool.errors import FrameError, ModbusException
     from mbtool.link.client import Trace
     from mbtool.link.connection import framer_name, open_client
 
@@ -294,7 +295,7 @@ def raw(connection, data, adu):
 
         def rejected(self, frame: bytes, error) -> None:
             self.inner.rejected(frame, error)
-            from mbtool.errors import ChecksumError
+            from mbtool.codec.errors import ChecksumError
 
             if isinstance(error, ChecksumError):
                 self.other = frame

@@ -23,18 +23,9 @@ import time
 import click
 
 from mbtool.cli.options import ADDRESS, COUNT, device_command, parse_units, units_text
+from mbtool.codec.errors import FrameError, MismatchError, ModbusException, ProtocolError, RequestError
 from mbtool.codec.record import record, replace
-from mbtool.errors import (
-    ConnectionFailed,
-    ExitCode,
-    FrameError,
-    MbtoolError,
-    MismatchError,
-    ModbusException,
-    NoResponse,
-    RequestError,
-    Summary,
-)
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
 from mbtool.link.connection import close_quietly
 from mbtool.link.transport import SerialSettings
 
@@ -320,7 +311,7 @@ def _late(frame, request, probed: set[int], found: set[int]) -> Answer | None:
         return None
     try:
         reply = request.decode_response(frame.pdu)
-    except MbtoolError:
+    except ProtocolError:
         return None  # not an answer to this probe (another function, or garbled)
     if isinstance(reply, ExceptionResponse):
         answer = _exception_answer(frame.unit, reply.exception_code, None)
@@ -333,7 +324,7 @@ def _late(frame, request, probed: set[int], found: set[int]) -> Answer | None:
 
 def _exception_answer(unit: int, code: int, ms: float | None) -> Answer | None:
     """An exception proves a device is there, except a gateway's 0A/0B: nobody behind it answered."""
-    from mbtool.codec.pdu import exception_name
+    from mbtool.codec.errors import exception_name
 
     if code in GATEWAY_EXCEPTIONS:
         return None

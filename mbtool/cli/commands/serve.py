@@ -23,7 +23,7 @@ from mbtool.cli.options import (
     serial_line_options,
     units_text,
 )
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
-from mbtool.errors import RequestError
+from mbtool.codec.errors import RequestError
 from mbtool.link.connection import execute, show
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
