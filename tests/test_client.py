@@ -8,8 +8,9 @@ from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
+from mbtool.codec.timing import silent_interval
 from mbtool.errors import NoResponse
-from mbtool.link.client import Client, silent_interval
+from mbtool.link.client import Client
 from mbtool.link.transport import ConnectionClosed, Transport
 
 

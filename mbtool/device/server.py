@@ -41,9 +41,9 @@ from collections.abc import Callable
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
+from mbtool.codec.timing import silent_interval
 from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.client import silent_interval
 from mbtool.link.transport import Target
 from mbtool.link.transport import parse_target as parse_link_target
 
@@ -62,7 +62,6 @@ RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others 
 # replies, 133 KB), so a client costs at most about 200 KB.
 OUT_LIMIT = 64 * 1024
 ACCEPTS_PER_TURN = 16  # a burst of connections cannot starve the clients already served
-FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
 
 
 @record

@@ -16,22 +16,16 @@ from collections.abc import Callable
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
+from mbtool.codec.timing import char_time, silent_interval
 from mbtool.errors import MbtoolError, NoResponse
 from mbtool.link.transport import ConnectionClosed, Transport
 
-CHAR_BITS = 11  # spec §2: every RTU character is 11 bits on the line
-FAST_T35 = 0.00175  # spec §2: fixed t3.5 above 19200 baud
 # After a complete frame with a bad checksum, how long to wait for a good one
 # before calling the reply corrupt (it is nearly always the reply itself).
 SETTLE_AFTER_BAD_FRAME = 0.1
 # How long a pause ends an RTU frame whose length the codec cannot know
 # (an unknown function code, e.g. from `raw`).  USB adapters deliver in bursts.
 UNKNOWN_LENGTH_GAP = 0.05
-
-
-def silent_interval(baud: int) -> float:
-    """t3.5: 3.5 characters of 11 bits; 1.75 ms above 19200 baud (spec §2)."""
-    return FAST_T35 if baud > 19200 else 3.5 * CHAR_BITS / baud
 
 
 class Trace:
@@ -85,7 +79,7 @@ class Client:
         # The last request, its PDU and whether its echo could pass for a reply: the same for
         # every poll of it, so worked out once.
         self._prepared: tuple[Request | None, bytes, bool] = (None, b"", False)
-        self._char_time = CHAR_BITS / baud
+        self._char_time = char_time(baud)
 
     def execute(self, unit: int, request: Request) -> Response | None:
         """Send the request and return the reply; None for broadcast or a request with no reply.

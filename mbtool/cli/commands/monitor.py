@@ -45,7 +45,7 @@ class MonitorCommand(QuickHelp, click.Command):
 
 
 def default_silence(framer: str, baud: int) -> float:
-    from mbtool.link.client import silent_interval
+    from mbtool.codec.timing import silent_interval
 
     return ASCII_SILENCE if framer == "ascii" else max(silent_interval(baud), MIN_RTU_SILENCE)
 
