@@ -361,7 +361,7 @@ def test_missing_data_file(tmp_path):
 
 
 def test_sim_answers_every_function_code_in_process():
-    from mbtool.link.transport import SimTransport
+    from mbtool.device.sim import SimTransport
 
     sim = SimTransport("rtu")
     framer = make_framer("rtu")

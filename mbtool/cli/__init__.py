@@ -19,6 +19,7 @@ from mbtool import __version__
 from mbtool.cli import render
 from mbtool.cli.options import QuickHelp
 from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
+from mbtool.link.transport import register_scheme
 
 # command name -> the module that defines it (as a function named like the command)
 COMMANDS = {
@@ -49,6 +50,16 @@ COMMANDS = {
     "lrc": "offline",
     "serve": "serve",
 }
+
+
+def _open_sim(framer_name: str):
+    from mbtool.device.sim import SimTransport  # the device loads only when sim:// is used
+
+    return SimTransport(framer_name)
+
+
+# The master side knows no device: sim:// reaches the simulated one through this.
+register_scheme("sim", _open_sim)
 
 
 def _show_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:

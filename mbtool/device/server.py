@@ -44,7 +44,7 @@ from mbtool.codec.record import record
 from mbtool.codec.timing import silent_interval
 from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.transport import Target
+from mbtool.link.transport import IN_PROCESS, Target
 from mbtool.link.transport import parse_target as parse_link_target
 
 TICK = 0.1  # longest wait before the loop looks at the stop flag again
@@ -74,8 +74,8 @@ class IoFaults:
 def parse_target(text: str) -> Target:
     """tcp://HOST[:PORT] (PORT 0: any free port) or a serial device path / pyserial URL."""
     target = parse_link_target(text, listening=True)
-    if target.scheme == "sim":
-        raise RequestError("sim:// is the in-process device; serve on tcp://HOST:PORT or a serial port")
+    if target.scheme in IN_PROCESS:
+        raise RequestError(f"{target} is the in-process device; serve on tcp://HOST:PORT or a serial port")
     return target
 
 

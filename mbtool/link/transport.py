@@ -3,7 +3,8 @@
 * Serial lines through ``serial.serial_for_url``: device paths, ``socket://``
   and ``rfc2217://`` TCP-bridged serial ports, ``loop://`` (pyserial url handlers).
 * Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
-* ``sim://``: the built-in simulated device, answering in-process.
+* ``sim://``: the built-in simulated device, answering in-process (registered by
+  the CLI: ``register_scheme``).
 
 Every read waits at most the time it is given (over TCP a wait of 50 ms or more,
 timed by the kernel, may end a few milliseconds late); the client owns the clock.
@@ -20,6 +21,7 @@ import socket
 import struct
 import sys
 import time
+from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
@@ -319,47 +321,20 @@ class TcpTransport(Transport):
         self.sock.close()
 
 
-class SimTransport(Transport):
-    """The built-in device, answering in-process through the same framer as a real one."""
+# Links that answer in-process, by scheme: ``opener(framer_name)`` opens one.  The master
+# side knows no device; the CLI registers ``sim://`` (mbtool.device's simulated device).
+IN_PROCESS: dict[str, Callable[[str], Transport]] = {}
 
-    description = "sim://"
 
-    def __init__(self, framer_name: str) -> None:
-        from mbtool.codec.framing import device_framer
-        from mbtool.device.model import Device, demo_model
-
-        self.device = Device(demo_model())
-        self.framer = device_framer(framer_name)
-        self._pending = bytearray()
-
-    def write(self, data: bytes) -> None:
-        self.framer.feed(data)
-        while (event := self.framer.next_event()) is not None:
-            self._answer(event)
-        # One write is one whole frame, and the line falls silent after it: that ends a
-        # request whose length the framer cannot tell (an unknown function code, a long
-        # return-query-data), as t3.5 would on a real bus.
-        while (event := self.framer.silence()) is not None:
-            self._answer(event)
-
-    def _answer(self, event) -> None:
-        reply = self.device.answer_frame(event, self.framer)
-        if reply:
-            self._pending += reply
-
-    def read(self, timeout: float) -> bytes:
-        if not self._pending:
-            return super().read(timeout)  # a device with nothing to say stays silent
-        data = bytes(self._pending)
-        self._pending.clear()
-        return data
+def register_scheme(scheme: str, opener: Callable[[str], Transport]) -> None:
+    IN_PROCESS[scheme] = opener
 
 
 @record
 class Target:
     """What a ``--port`` names, checked before anything is opened."""
 
-    scheme: str  # "tcp", "sim", "serial" (a device path or a pyserial URL)
+    scheme: str  # "tcp", "serial" (a device path or a pyserial URL), or an in-process scheme ("sim")
     host: str = ""
     port: int = 0
     path: str = ""  # the device path or URL handed to pyserial
@@ -375,7 +350,14 @@ class Target:
 # that take something else; any other scheme is a typo.
 BRIDGE_SCHEMES = ("socket", "rfc2217")
 OTHER_SERIAL_SCHEMES = ("loop", "spy", "alt", "hwgrep", "cp2110")
-TARGET_FORMS = "tcp://HOST[:PORT], socket://HOST:PORT, rfc2217://HOST:PORT, sim:// or a serial device"
+
+
+def target_forms() -> str:
+    """What a ``--port`` may be, for messages."""
+    in_process = "".join(f"{scheme}://, " for scheme in IN_PROCESS)
+    return f"tcp://HOST[:PORT], socket://HOST:PORT, rfc2217://HOST:PORT, {in_process}or a serial device"
+
+
 _HOST_LIKE = re.compile(
     r"(\[[0-9A-Fa-f:.]+\]|localhost|[A-Za-z0-9-]+(\.[A-Za-z0-9-]+)+)(:[0-9]+)?|[A-Za-z0-9.-]+:[0-9]+"
 )
@@ -389,22 +371,22 @@ def parse_target(text: str, listening: bool = False) -> Target:
     scheme = scheme.lower()
     if not sep:
         if not text:
-            raise RequestError(f"an empty target: use {TARGET_FORMS}")
+            raise RequestError(f"an empty target: use {target_forms()}")
         if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
             raise RequestError(f"{text} is not a serial device; did you mean tcp://{text}?")
         return Target("serial", path=text)
     if scheme == "tcp":
         host, port = _host_and_port(text, rest, MODBUS_TCP_PORT, 0 if listening else 1)
         return Target("tcp", host, port)
-    if scheme == "sim":
-        return Target("sim", path="sim://")
+    if scheme in IN_PROCESS:
+        return Target(scheme, path=f"{scheme}://")
     if scheme in BRIDGE_SCHEMES:
         # pyserial takes options after "?" (socket://host:port?logging=debug): keep them.
         _host_and_port(text, rest.split("?", 1)[0], None, 1)
         return Target("serial", path=text)
     if scheme in OTHER_SERIAL_SCHEMES:
         return Target("serial", path=text)
-    raise RequestError(f"unknown scheme {scheme}:// in {text}: use {TARGET_FORMS}")
+    raise RequestError(f"unknown scheme {scheme}:// in {text}: use {target_forms()}")
 
 
 def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tuple[str, int]:
@@ -446,8 +428,8 @@ def open_transport(target: str, settings: SerialSettings, timeout: float, framer
                 f" (--framer {framer} sends serial frames; for a Modbus TCP device leave --framer out)"
             )
         return link
-    if where.scheme == "sim":
-        return SimTransport(framer or "rtu")
+    if where.scheme in IN_PROCESS:
+        return IN_PROCESS[where.scheme](framer or "rtu")
     return SerialTransport(where.path, settings)
 
 
