@@ -76,11 +76,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --interval --polls -h --help
@@ -92,11 +92,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --interval --polls -h --help
@@ -108,12 +108,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --type) _mbtool_words "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --type) _mbtool_words_i "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
@@ -126,12 +126,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--interval|--polls) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --type) _mbtool_words "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --type) _mbtool_words_i "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
@@ -144,11 +144,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -160,12 +160,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --type) _mbtool_words "$cur" uint16 int16 hex ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --type) _mbtool_words_i "$cur" uint16 int16 hex ;;
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
@@ -178,11 +178,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -194,12 +194,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --type) _mbtool_words "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --type) _mbtool_words_i "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
@@ -212,11 +212,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -228,12 +228,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --controller) _mbtool_words "$cur" 184/384 484 584/984 884 ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --controller) _mbtool_words_i "$cur" 184/384 484 584/984 884 ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --clear-log --controller -h --help
@@ -245,11 +245,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -261,11 +261,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -277,11 +277,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -293,11 +293,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -309,11 +309,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -325,11 +325,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -341,12 +341,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --type) _mbtool_words "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --type) _mbtool_words_i "$cur" uint16 int16 uint32 int32 float32 uint64 int64 float64 hex string ;;
                 --order) _mbtool_words_i "$cur" ABCD CDAB BADC DCBA ;;
                 *)
                     if [[ $cur == -* ]]; then
@@ -359,11 +359,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile -h --help
@@ -375,12 +375,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--object) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --level) _mbtool_words "$cur" basic regular extended ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --level) _mbtool_words_i "$cur" basic regular extended ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --level --object -h --help
@@ -392,12 +392,12 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|--units|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile|--address|--count|--bauds|--parities) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
-                --function) _mbtool_words "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
+                --function) _mbtool_words_i "$cur" read-holding-registers read-input-registers read-coils read-discrete-inputs report-id device-id return-query-data ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --units --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --function --address --count --bauds --parities --first -h --help
@@ -408,12 +408,12 @@ _mbtool()
         monitor)
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
-                --framer) _mbtool_words "$cur" rtu ascii ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii ;;
                 -b|--baud|--silence|--response-timeout|--duration|--frames|--capture|--from-file|-P|--profile) : ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port --framer -b --baud --parity --bytesize --stopbits --silence --response-timeout --duration --frames --capture --from-file -o --format -P --profile -h --help
@@ -425,11 +425,11 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|-t|--timeout|--retries|--rs485-delays|-P|--profile) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits -t --timeout --retries --echo --rs485 --rs485-delays --hex -o --format --no-header --dry-run -P --profile --adu -h --help
@@ -439,8 +439,8 @@ _mbtool()
             ;;
         decode)
             case $prev in
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" --framer --request --response -o --format --no-header -h --help
@@ -450,7 +450,7 @@ _mbtool()
             ;;
         crc)
             case $prev in
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -o --format --no-header -h --help
@@ -460,7 +460,7 @@ _mbtool()
             ;;
         lrc)
             case $prev in
-                -o|--format) _mbtool_words "$cur" table plain json csv ;;
+                -o|--format) _mbtool_words_i "$cur" table plain json csv ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -o --format --no-header -h --help
@@ -472,10 +472,10 @@ _mbtool()
             case $prev in
                 -p|--port) _mbtool_port "$cur" ;;
                 -u|--unit|-b|--baud|--data|--delay|--drop|--corrupt|--exception|--busy|--max-clients|--idle-timeout|--first-request-timeout|--seed) : ;;
-                --framer) _mbtool_words "$cur" rtu ascii tcp ;;
+                --framer) _mbtool_words_i "$cur" rtu ascii tcp ;;
                 --parity) _mbtool_words_i "$cur" N E O ;;
-                --bytesize) _mbtool_words "$cur" 7 8 ;;
-                --stopbits) _mbtool_words "$cur" 1 2 ;;
+                --bytesize) _mbtool_words_i "$cur" 7 8 ;;
+                --stopbits) _mbtool_words_i "$cur" 1 2 ;;
                 *)
                     if [[ $cur == -* ]]; then
                         _mbtool_words "$cur" -p --port -u --unit --framer -b --baud --parity --bytesize --stopbits --data --read-only --delay --drop --corrupt --exception --busy --max-clients --idle-timeout --first-request-timeout --seed -q --quiet -h --help

@@ -66,7 +66,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -91,7 +91,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -116,7 +116,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -143,7 +143,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -170,7 +170,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -193,7 +193,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -218,7 +218,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -241,7 +241,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -266,7 +266,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -287,7 +287,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -312,7 +312,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -333,7 +333,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -354,7 +354,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -375,7 +375,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -397,7 +397,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -419,7 +419,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -443,7 +443,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -470,7 +470,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -492,7 +492,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -515,7 +515,7 @@ _mbtool() {
             '(-u --unit --units)'{-u+,--unit=,--units=}'[Unit ids to probe: 1-247, 1,5,10-20]:UNITS: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each unit'\''s reply (raise it for slow devices or gateways)]:SECONDS: ' \
@@ -541,7 +541,7 @@ _mbtool() {
             '(-p --port)'{-p+,--port=}'[The serial line to listen on: a serial device, socket://HOST:PORT or rfc2217://HOST:PORT]:TARGET:_mbtool_ports' \
             '--framer=[Framing on the line]:framer:(rtu ascii)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '--silence=[Seconds without a byte that end a frame whose length is not known (default: t3.5 at --baud, at least 0.02 for USB adapters; 1 for ascii)]:SECONDS: ' \
@@ -560,7 +560,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit (slave) id; 0 broadcasts a write]:NUMBER: ' \
             '--framer=[Framing: tcp for tcp:// targets, rtu otherwise]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '(-t --timeout)'{-t+,--timeout=}'[Seconds to wait for each reply]:SECONDS: ' \
@@ -607,7 +607,7 @@ _mbtool() {
             '(-u --unit)'{-u+,--unit=}'[Unit ids to answer for: 1,17 or 1-10 or both]:UNITS: ' \
             '--framer=[Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// serves like a serial device server]:framer:(rtu ascii tcp)' \
             '(-b --baud)'{-b+,--baud=}'[Serial baud rate (also sets the t3.5 silence)]:NUMBER: ' \
-            '--parity=[Serial parity]:parity:(N E O)' \
+            '--parity=[Serial parity: N, E or O (none, even, odd)]:parity:(N E O)' \
             '--bytesize=[Serial data bits (ASCII mode classically uses 7)]:bytesize:(7 8)' \
             '--stopbits=[Serial stop bits]:stopbits:(1 2)' \
             '--data=[Initial tables and device identity from a JSON or TOML file (see README); with sparse = true in it, addresses it does not list answer exception 02]:FILE: ' \

@@ -29,7 +29,7 @@ class DryRunClient:
 
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
-        from mbtool.cli.commands.offline import frame_report
+        from mbtool.cli.frames import frame_report
         from mbtool.cli.render import default_format, render
         from mbtool.codec.describe import describe
 

@@ -180,6 +180,24 @@ class Rs485Delays(click.ParamType):
         return (before / 1000, after / 1000)
 
 
+class Choice(click.Choice):
+    """One case rule for every choice: any case is accepted (--type FLOAT32, --order cdab,
+    --framer RTU) and the listed spelling is what the command gets.  ``aliases`` are other
+    words for a choice, as a field engineer says them (parity none, even, odd)."""
+
+    def __init__(self, choices, aliases: dict[str, str] | None = None) -> None:
+        super().__init__(choices, case_sensitive=False)
+        self.aliases = {word.lower(): choice for word, choice in (aliases or {}).items()}
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str):
+            value = self.aliases.get(value.lower(), value)
+        return super().convert(value, param, ctx)
+
+
+PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
+
+
 # --- shared options ------------------------------------------------------------------
 
 
@@ -189,26 +207,30 @@ SERIAL_LINE_OPTIONS = [
         "-b",
         "--baud",
         type=Number(1, 4_000_000, "baud rate"),
-        default=19200,
+        default=Connection.baud,
         show_default=True,
         help="Serial baud rate (also sets the t3.5 silence).",
     ),
     click.option(
         "--parity",
-        type=click.Choice(["N", "E", "O"], case_sensitive=False),
-        default="E",
+        type=PARITY,
+        default=Connection.parity,
         show_default=True,
-        help="Serial parity.",
+        help="Serial parity: N, E or O (none, even, odd).",
     ),
     click.option(
         "--bytesize",
-        type=click.Choice(["7", "8"]),
-        default="8",
+        type=Choice(["7", "8"]),
+        default=str(Connection.bytesize),
         show_default=True,
         help="Serial data bits (ASCII mode classically uses 7).",
     ),
     click.option(
-        "--stopbits", type=click.Choice(["1", "2"]), default="1", show_default=True, help="Serial stop bits."
+        "--stopbits",
+        type=Choice(["1", "2"]),
+        default=str(Connection.stopbits),
+        show_default=True,
+        help="Serial stop bits.",
     ),
 ]
 
@@ -258,14 +280,14 @@ CONNECTION_OPTIONS = [
         "--unit",
         envvar="MBTOOL_UNIT",
         type=Number(0, 255, "unit"),
-        default=1,
+        default=Connection.unit,
         show_default=True,
         help="Unit (slave) id; 0 broadcasts a write.",
         show_envvar=True,
     ),
     click.option(
         "--framer",
-        type=click.Choice(["rtu", "ascii", "tcp"]),
+        type=Choice(["rtu", "ascii", "tcp"]),
         help="Framing: tcp for tcp:// targets, rtu otherwise.",
     ),
     *SERIAL_LINE_OPTIONS,
@@ -273,14 +295,14 @@ CONNECTION_OPTIONS = [
         "-t",
         "--timeout",
         type=PositiveFloat(),
-        default=1.0,
+        default=Connection.timeout,
         show_default=True,
         help="Seconds to wait for each reply.",
     ),
     click.option(
         "--retries",
         type=Number(0, 100, "retries"),
-        default=0,
+        default=Connection.retries,
         show_default=True,
         help="Times to resend after a timeout or a bad reply.",
     ),
@@ -307,7 +329,7 @@ CONNECTION_OPTIONS = [
         "-o",
         "--format",
         "output_format",
-        type=click.Choice(["table", "plain", "json", "csv"]),
+        type=Choice(["table", "plain", "json", "csv"]),
         callback=lambda ctx, param, value: output_chosen(value),
         help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
         'object too: {"error": ..., "exit_code": N}.',
@@ -329,14 +351,14 @@ def type_options(choices: tuple[str, ...]) -> list[Callable]:
         click.option(
             "--type",
             "value_type",
-            type=click.Choice(choices),
+            type=Choice(choices),
             default="uint16",
             show_default=True,
             help="How values map to registers.",
         ),
         click.option(
             "--order",
-            type=click.Choice(["ABCD", "CDAB", "BADC", "DCBA"], case_sensitive=False),
+            type=Choice(["ABCD", "CDAB", "BADC", "DCBA"]),
             default="ABCD",
             show_default=True,
             help="Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
@@ -388,21 +410,21 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
             **kwargs,
         ):
             connection = Connection(
-                port,
-                unit,
-                framer,
-                baud,
-                parity.upper(),
-                int(bytesize),
-                int(stopbits),
-                timeout,
-                retries,
-                echo,
-                hex_trace,
-                output_format,
-                dry_run,
-                rs485,
-                rs485_delays,
+                port=port,
+                unit=unit,
+                framer=framer,
+                baud=baud,
+                parity=parity,
+                bytesize=int(bytesize),
+                stopbits=int(stopbits),
+                timeout=timeout,
+                retries=retries,
+                echo=echo,
+                hex=hex_trace,
+                output_format=output_format,
+                dry_run=dry_run,
+                rs485=rs485,
+                rs485_delays=rs485_delays,
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
             if profile:

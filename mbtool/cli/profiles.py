@@ -32,7 +32,7 @@ KEYS = {
     "unit": ((int,), "a whole number, 0..255"),
     "framer": ((str,), 'text: "rtu", "ascii" or "tcp"'),
     "baud": ((int,), "a whole number, such as 9600"),
-    "parity": ((str,), 'text: "N", "E" or "O"'),
+    "parity": ((str,), 'text: "N", "E" or "O" (or none, even, odd)'),
     "bytesize": ((int, str), "7 or 8"),
     "stopbits": ((int, str), "1 or 2"),
     "timeout": ((int, float), "seconds, such as 0.5"),
@@ -132,8 +132,6 @@ def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: s
     except click.BadParameter as error:
         raise RequestError(f"{where}: {error.message}") from None
     # The same conversions device_command makes from the option values.
-    if key == "parity":
-        return value.upper()
     if key in ("bytesize", "stopbits"):
         return int(value)
     return value

@@ -120,7 +120,7 @@ def render(result: Result | Report, fmt: str, out: TextIO = sys.stdout) -> None:
     {"table": _table, "plain": _plain, "json": _json, "csv": _csv}[fmt](result, out)
 
 
-def _text(value: object) -> str:
+def value_text(value: object) -> str:
     if isinstance(value, bool):
         return "1" if value else "0"
     if isinstance(value, float):
@@ -129,7 +129,7 @@ def _text(value: object) -> str:
 
 
 def _plain(result: Result, out: TextIO) -> None:
-    out.write("".join(f"{address} {_text(value)}\n" for address, value in result.items))
+    out.write("".join(f"{address} {value_text(value)}\n" for address, value in result.items))
 
 
 def as_dict(result: Result) -> dict:
@@ -190,7 +190,7 @@ def _csv(result: Result, out: TextIO) -> None:
     if wants_csv_header(out):
         writer.writerow(["address", "value"])
     for address, value in result.items:
-        writer.writerow([address, _text(value)])
+        writer.writerow([address, value_text(value)])
 
 
 def _table(result: Result, out: TextIO) -> None:
@@ -219,9 +219,9 @@ def _table(result: Result, out: TextIO) -> None:
             # The words behind each value: when a float looks wrong, they show the word order.
             start = address - result.address
             words = result.registers[start : start + (width or len(result.registers))]
-            table.add_row(str(address), _text(value), " ".join(f"{w:04X}" for w in words))
+            table.add_row(str(address), value_text(value), " ".join(f"{w:04X}" for w in words))
         else:
-            table.add_row(str(address), _text(value))
+            table.add_row(str(address), value_text(value))
     console = Console(file=out) if out is not sys.stdout else Console()
     console.print(f"[bold]{result.name}[/] (FC {result.function:02d}) · unit {result.unit}", highlight=False)
     console.print(table)
@@ -248,7 +248,7 @@ class Row:
 
     @property
     def shown(self) -> str:
-        return _text(self.value) if self.text is None else self.text
+        return value_text(self.value) if self.text is None else self.text
 
 
 @record

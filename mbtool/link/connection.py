@@ -1,52 +1,53 @@
-"""A connection as the options describe it, and running one request over it."""
+"""A connection as the options describe it, checked, and a Client opened over it."""
 
 from __future__ import annotations
 
-import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import record, replace
+from mbtool.codec.record import record
 
 if TYPE_CHECKING:
-    from mbtool.link.client import Client
+    from mbtool.codec.framing import Framer
+    from mbtool.link.client import Client, Trace
 
 
 @record
 class Connection:
-    port: str | None
-    unit: int
-    framer: str | None
-    baud: int
-    parity: str
-    bytesize: int
-    stopbits: int
-    timeout: float
-    retries: int
-    echo: bool
-    hex: bool
-    output_format: str | None
+    """Built from keywords: what -p, -u and the line options say, and how to show the result."""
+
+    port: str | None = None
+    unit: int = 1
+    framer: str | None = None  # None: tcp for tcp://, rtu for everything else
+    baud: int = 19200
+    parity: str = "E"
+    bytesize: int = 8
+    stopbits: int = 1
+    timeout: float = 1.0
+    retries: int = 0
+    echo: bool = False  # a half-duplex adapter echoes every byte sent
+    hex: bool = False  # --hex: trace every frame on stderr
+    output_format: str | None = None  # None: table on a terminal, plain in a pipe
     dry_run: bool = False  # show the frames, open nothing, send nothing
     rs485: bool = False  # drive RTS for the direction of a two-wire RS-485 line
     rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
 
 
-@contextmanager
-def open_client(connection: Connection, needs: str = "", framer=None, then: str = "") -> Iterator[Client]:
-    """A Client on the connection's link, closed afterwards.
+def framer_name(connection: Connection) -> str:
+    from mbtool.link.transport import default_framer
 
-    ``needs``: what the command does, named when it may not go to unit 0 (broadcast
-    is for writes only; an empty ``needs`` allows it).  ``framer`` replaces the default.
-    ``then``: with --dry-run, what the command would send after the first reply.
-    Several transactions can share the link (diag counters, device-id's more-follows;
-    sim:// keeps its state only as long as its link).
+    return connection.framer or default_framer(connection.port or "")
+
+
+def check(connection: Connection, needs: str = "") -> str:
+    """The framing's name, once the connection makes sense; RequestError (nothing sent) if not.
+
+    ``needs``: what the command does, named when it may not go to unit 0 (broadcast is
+    for writes only, spec §2; an empty ``needs`` allows it).
     """
-    from mbtool.cli.render import HexTrace
-    from mbtool.codec.framing import is_broadcast, make_framer
-    from mbtool.link.client import Client
-    from mbtool.link.transport import SerialSettings, open_transport
+    from mbtool.codec.framing import is_broadcast
 
     if not connection.port and not connection.dry_run:
         raise RequestError(
@@ -59,11 +60,27 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
         raise RequestError(
             f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"
         )
-    if connection.dry_run:
-        from mbtool.cli.dryrun import DryRunClient
+    return name
 
-        yield DryRunClient(framer or make_framer(name), connection.output_format, then)
-        return
+
+@contextmanager
+def open_client(
+    connection: Connection,
+    needs: str = "",
+    framer: Framer | None = None,
+    trace: Callable[[Framer], Trace] | None = None,
+) -> Iterator[Client]:
+    """A Client on the connection's link, closed afterwards.
+
+    ``framer`` replaces the default one; ``trace`` makes the Client's trace from the framer
+    (--hex).  Several transactions can share the link (diag counters, device-id's
+    more-follows; sim:// keeps its state only as long as its link).
+    """
+    from mbtool.codec.framing import make_framer
+    from mbtool.link.client import Client
+    from mbtool.link.transport import SerialSettings, open_transport
+
+    name = check(connection, needs)
     settings = SerialSettings(
         connection.baud,
         connection.parity,
@@ -82,22 +99,21 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
             echo=connection.echo,
             baud=connection.baud,
         )
-        if connection.hex:
-            client.trace = HexTrace(framer)
+        if trace is not None:
+            client.trace = trace(framer)
         yield client
     finally:
         transport.close()
 
 
-def close_quietly(link) -> None:
-    """Leave an open_client context whose link may already have broken (polling, scan)."""
+def close_quietly(link: ExitStack) -> None:
+    """Close a link that may already have broken (polling, scan): nothing left to report."""
     from mbtool.errors import KNOWN_ERRORS
 
-    if link is not None:
-        try:
-            link.__exit__(None, None, None)
-        except (*KNOWN_ERRORS, OSError):
-            pass  # closing a link that already broke: nothing left to report
+    try:
+        link.close()
+    except (*KNOWN_ERRORS, OSError):
+        pass
 
 
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
@@ -110,25 +126,3 @@ def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     if (connection.port or "").lower().startswith("tcp://"):
         raise RequestError("--rs485 drives the RTS line of a serial port; a tcp:// target has none")
     return connection.rs485_delays or (0.0, 0.0)
-
-
-def framer_name(connection: Connection) -> str:
-    from mbtool.link.transport import default_framer
-
-    return connection.framer or default_framer(connection.port or "")
-
-
-def execute(connection: Connection, request) -> object:
-    """Open the link, run one transaction, close it; the reply (None for broadcast)."""
-    with open_client(connection, "" if request.broadcastable else request.name) as client:
-        return client.execute(connection.unit, request)
-
-
-def show(connection: Connection, result) -> None:
-    from mbtool.cli.render import default_format, render
-    from mbtool.codec.framing import is_broadcast
-
-    if is_broadcast(connection.unit, framer_name(connection)):
-        result = replace(result, note="broadcast: no device confirms a write to unit 0")
-        print(f"mbtool: {result.note}", file=sys.stderr)
-    render(result, connection.output_format or default_format())

@@ -6,6 +6,9 @@ start + k * interval), so a slow poll or a changed wall clock never makes the
 schedule drift; a poll that overruns its slot skips the slots it missed, and
 says how many in the summary.
 
+What a poll shows is not decided here: the loop hands each reply and failure to a
+``Shown`` (the CLI's writes them in the chosen format).
+
 The summary leaves as one ``mbtool:`` line through cli.main, like every error,
 carrying the exit code: 0 when every poll got its reply, otherwise the code of
 the last failure; 130 only when interrupted before any poll finished.
@@ -15,11 +18,11 @@ from __future__ import annotations
 
 import gc
 import math
-import sys
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
+from typing import Protocol
 
-from mbtool.cli.render import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import (
     KNOWN_ERRORS,
@@ -34,121 +37,16 @@ from mbtool.errors import (
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
 
-FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
+class Shown(Protocol):
+    """Where the loop puts what it gets: a reply held to show later, or a failed poll."""
 
+    def hold(self, when: float, reply) -> None: ...  # when: time.time() of the poll
 
-class Output:
-    """Writes each poll in the chosen format, at once (cron appends to a log); polls closer
-    together than FLUSH_GAP (--interval 0) share one write, not a system call each, which
-    PYTHONUNBUFFERED or a pipe would otherwise make of every line."""
+    def write(self) -> None: ...  # show the reply held, if any
 
-    def __init__(self, fmt: str, out=None) -> None:
-        self.fmt = fmt
-        self.out = out or sys.stdout
-        self.header_done = False
-        self.live = None
-        self._pending: list[str] = []
-        self._flush_at = 0.0
+    def failure(self, when: float, number: int, error: BaseException) -> None: ...
 
-    def result(self, when: str, result) -> None:
-        from mbtool.cli.render import _text, as_dict
-
-        if self.fmt == "json":
-            self._emit(_json_line({"time": when, **as_dict(result)}))
-        elif self.fmt == "csv":
-            if not self.header_done:
-                from mbtool.cli.render import wants_csv_header
-
-                if wants_csv_header(self.out):
-                    self._emit("time,address,value\n")
-                self.header_done = True
-            self._emit("".join(f"{when},{a},{_csv_cell(_text(v))}\n" for a, v in result.items))
-        elif self.fmt == "plain":
-            self._emit("".join(f"{when} {a} {_text(v)}\n" for a, v in result.items))
-        else:
-            self._table(when, result)
-
-    def failure(self, when: str, number: int, error: BaseException) -> None:
-        self.flush()  # the polls before it first, so stdout and stderr stay in order
-        print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
-        if self.fmt == "json":
-            # jq consumers read stdout only: a failed poll must show up there too.
-            from mbtool.cli.render import error_json
-
-            code = int(exit_code_for(error))
-            self._emit(error_json(str(error), code, time=when) + "\n", now=True)
-
-    def _emit(self, text: str, now: bool = False) -> None:
-        self._pending.append(text)
-        if now or time.monotonic() >= self._flush_at:
-            self.flush()
-
-    def flush(self) -> None:
-        try:
-            if self._pending:
-                text = "".join(self._pending)
-                self._pending.clear()
-                self.out.write(text)
-            self.out.flush()
-        except BrokenPipeError:
-            raise  # the reader went away: cli.main ends quietly
-        except OSError as error:  # a full disk: the poll cannot go on
-            raise OutputFailed("standard output", error) from None
-        self._flush_at = time.monotonic() + FLUSH_GAP
-
-    def _table(self, when: str, result) -> None:
-        from rich.console import Group
-        from rich.live import Live
-        from rich.table import Table
-        from rich.text import Text
-
-        from mbtool.cli.render import _text
-
-        # The heading above, not as the table's title: a title wraps to the table's width.
-        heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
-        table = Table()
-        table.add_column("Address", justify="right")
-        table.add_column("Value", justify="right")
-        for address, value in result.items:
-            table.add_row(str(address), _text(value))
-        if not self.out.isatty():
-            # Into a file or a pipe every poll's table stays, each ending its line: a table
-            # refreshed in place would leave only the last one, without a final newline.
-            from rich.console import Console
-
-            Console(file=self.out).print(Group(heading, table))
-            return
-        if self.live is None:
-            self.live = Live(Group(heading, table), auto_refresh=False)
-            self.live.start()
-        self.live.update(Group(heading, table), refresh=True)
-
-    def close(self) -> None:
-        self.flush()
-        if self.live is not None:
-            self.live.stop()
-            self.live = None
-
-
-class Deferred:
-    """A poll's reply, shown while the next request is on its way when polls run back to
-    back: decoding and writing it then overlaps the device's turnaround instead of
-    adding to every transaction (sustained polling keeps pace with a bare client loop)."""
-
-    def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
-        self.output = output
-        self.to_result = to_result
-        self.held: tuple[float, object] | None = None
-
-    def hold(self, when: float, reply) -> None:
-        """Keep a reply to show later; the one before it went out with the request."""
-        self.held = (when, reply)
-
-    def write(self) -> None:
-        if self.held is not None:
-            when, reply = self.held
-            self.held = None
-            self.output.result(local_time(when), self.to_result(reply))
+    def close(self) -> None: ...
 
 
 class Latency:
@@ -172,49 +70,22 @@ class Latency:
         return f"{self.low:.1f}/{self.total / self.count:.1f}/{self.high:.1f} ms"
 
 
-def _json_line(data: dict) -> str:
-    """The json module's C encoder: a sustained poll spends more on JSON than on Modbus
-    with render.to_json, and json's import is nothing to a loop.  The same text, since
-    to_json keeps json's separators; NaN and infinities, which json would write as
-    invalid JSON, go the to_json way (null)."""
-    global _ENCODER
-    if _ENCODER is None:
-        import json
-
-        # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
-        _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
-    try:
-        return _ENCODER.encode(data) + "\n"
-    except ValueError:
-        from mbtool.cli.render import to_json
-
-        return to_json(data) + "\n"
-
-
-_ENCODER = None
-
-
 def _rate(per_second: float) -> str:
     """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
     return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
 
 
-def _csv_cell(text: str) -> str:
-    # Values are numbers except for --type string; quote those the CSV way.
-    if any(c in text for c in ',"\n\r'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
-
-
 def poll(
     connection,
     request,
-    to_result: Callable[[object], object],
+    shown: Shown,
     interval: float | None,
     polls: int | None,
+    trace: Callable | None = None,
 ) -> None:
-    """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted)."""
-    from mbtool.cli.render import default_format
+    """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
+
+    ``trace``: makes each link's Client trace from its framer (--hex)."""
     from mbtool.link.connection import close_quietly, open_client
     from mbtool.link.transport import ConnectionClosed
 
@@ -222,20 +93,17 @@ def poll(
         interval = DEFAULT_INTERVAL
     if polls is None:
         polls = 0
-    output = Output(connection.output_format or default_format())
-    shown = Deferred(output, to_result)
     done = replies = timeouts = errors = skipped = 0
     latency = Latency()
     last_failure = ExitCode.OK
     interrupted = False
-    link = None  # the open_client context; reopened only after the link itself failed
+    link = ExitStack()  # holds the open link; reopened only after the link itself failed
     client = None
     try:
         # Opened before the first poll: a bad port or unit is one error and its exit code,
         # not a failed poll repeated for ever.
         opened_at = time.monotonic()
-        link = open_client(connection, request.name)
-        client = link.__enter__()
+        client = link.enter_context(open_client(connection, request.name, trace=trace))
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
@@ -260,8 +128,8 @@ def poll(
             try:
                 if client is None:
                     opened_at = time.monotonic()
-                    link = open_client(connection, request.name)
-                    client = link.__enter__()
+                    link = ExitStack()
+                    client = link.enter_context(open_client(connection, request.name, trace=trace))
                 client.while_waiting = show_previous
                 reply = client.execute(connection.unit, request)
                 latency.add(client.round_trip * 1000)
@@ -279,11 +147,11 @@ def poll(
                 if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
                     # The link is gone (device restarted, cable pulled): open it anew next poll.
                     close_quietly(link)
-                    link = client = None
+                    client = None
                 if isinstance(error, OSError):
                     error = ConnectionFailed(str(error))
                 last_failure = exit_code_for(error)
-                output.failure(local_time(when), done + 1, error)
+                shown.failure(when, done + 1, error)
             else:
                 shown.hold(when, reply)
             done += 1
@@ -299,8 +167,7 @@ def poll(
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        shown.write()
-        output.close()
+        shown.close()
         close_quietly(link)
     summary = (
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "

@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from mbtool.cli.options import device_command, parse_int
+from mbtool.cli.options import Choice, device_command, parse_int
 from mbtool.codec.errors import RequestError
 from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
 
@@ -66,7 +66,7 @@ def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
 @click.option("--clear-log", is_flag=True, help="restart-comms: also clear the event log (data FF00).")
 @click.option(
     "--controller",
-    type=click.Choice(["184/384", "484", "584/984", "884"]),
+    type=Choice(["184/384", "484", "584/984", "884"]),
     help="diagnostic-register: name the bits as this Modicon family does.",
 )
 def diag(connection, sub_function, data, clear_log, controller):
@@ -79,8 +79,9 @@ def diag(connection, sub_function, data, clear_log, controller):
     slave-busy-count, bus-char-overrun-count, iop-overrun-count, clear-overrun,
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
+    from mbtool.cli.session import show
     from mbtool.codec.framing import is_broadcast
-    from mbtool.link.connection import framer_name, show
+    from mbtool.link.connection import framer_name
 
     if is_broadcast(connection.unit, framer_name(connection)):
         raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
@@ -96,10 +97,10 @@ def diag(connection, sub_function, data, clear_log, controller):
 
 def _one(connection, sub: int, data: bytes, controller: str | None):
     from mbtool.cli.render import Report, Row
+    from mbtool.cli.session import execute
     from mbtool.codec.errors import MismatchError
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
     from mbtool.errors import NoResponse
-    from mbtool.link.connection import execute
 
     request = Diagnostics(sub, data)
     name = NAMES.get(sub, f"sub-function {sub_function_number(sub)}")
@@ -118,7 +119,7 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
             Row("echo", matched, "matched" if matched else "MISMATCH"),
         ]
         if not matched:
-            from mbtool.link.connection import show
+            from mbtool.cli.session import show
 
             show(connection, Report(connection.unit, 8, title, rows))
             raise MismatchError(
@@ -198,9 +199,9 @@ def _register_rows(value: int, controller: str | None):
 
 def _counters(connection):
     from mbtool.cli.render import Report, Row
+    from mbtool.cli.session import open_client
     from mbtool.codec.errors import ModbusException
     from mbtool.codec.serial_line import Diagnostics
-    from mbtool.link.connection import open_client
 
     rows, data, answered, refused = [], {}, 0, None
     with open_client(connection, "diag counters") as client:

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, device_command, parse_int
+from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Choice, Number, device_command, parse_int
+from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
-from mbtool.link.connection import execute, show
 
 # --- FC 07 ---------------------------------------------------------------------------------
 
@@ -270,8 +270,7 @@ def read_write_registers(connection, read_address, read_count, write_address, va
     )
     reply = execute(connection, request)
     items = [
-        (read_address + offset, value)
-        for offset, value in decode_values(reply.registers, value_type, order.upper())
+        (read_address + offset, value) for offset, value in decode_values(reply.registers, value_type, order)
     ]
     result = Result(
         connection.unit,
@@ -320,7 +319,7 @@ LEVELS = {"basic": 1, "regular": 2, "extended": 3}
 @device_command("device-id")
 @click.option(
     "--level",
-    type=click.Choice(list(LEVELS)),
+    type=Choice(list(LEVELS)),
     default="basic",
     show_default=True,
     help="Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF.",
@@ -332,10 +331,10 @@ def device_id(connection, level, object_id):
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
     from mbtool.cli.render import Report, Row
+    from mbtool.cli.session import open_client
     from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
     from mbtool.codec.errors import FrameError
-    from mbtool.link.connection import open_client
 
     objects: dict[int, bytes] = {}
     conformity = None

@@ -21,6 +21,7 @@ import click
 
 from mbtool.cli.options import (
     PROFILE_OPTION,
+    Choice,
     Number,
     PositiveFloat,
     QuickHelp,
@@ -66,7 +67,7 @@ def default_silence(framer: str, baud: int) -> float:
 )
 @click.option(
     "--framer",
-    type=click.Choice(["rtu", "ascii"]),
+    type=Choice(["rtu", "ascii"]),
     default="rtu",
     show_default=True,
     help="Framing on the line.",
@@ -104,7 +105,7 @@ def default_silence(framer: str, baud: int) -> float:
     "-o",
     "--format",
     "output_format",
-    type=click.Choice(["table", "plain", "json"]),
+    type=Choice(["table", "plain", "json"]),
     callback=lambda ctx, param, value: output_chosen(value),
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
@@ -241,9 +242,7 @@ def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, s
     """Read the line until --duration, --frames or an interrupt; the reason if the port was lost."""
     from mbtool.link.transport import SerialSettings, SerialTransport
 
-    settings = SerialSettings(
-        baud=baud, parity=parity.upper(), bytesize=int(bytesize), stopbits=int(stopbits)
-    )
+    settings = SerialSettings(baud=baud, parity=parity, bytesize=int(bytesize), stopbits=int(stopbits))
     # Opened with RTS low: it never drives the bus. ConnectionFailed (exit 6) if it cannot open.
     transport = SerialTransport(port, settings, listen_only=True)
     try:
@@ -349,7 +348,7 @@ def as_dict(item) -> dict:
         "flags": list(item.flags),
     }
     if item.described is not None:
-        from mbtool.cli.commands.offline import frame_report
+        from mbtool.cli.frames import frame_report
 
         decoded = frame_report(item.described).data
         data["fields"] = decoded["fields"]
@@ -395,7 +394,7 @@ class Output:
 
             self.console = Console(file=self.out, highlight=False, soft_wrap=True)
         elif fmt == "json":
-            import mbtool.cli.commands.offline  # noqa: F401 - frame_report, for the fields
+            import mbtool.cli.frames  # noqa: F401 - frame_report, for the fields
 
     def write(self, item) -> None:
         if self.fmt == "json":

@@ -6,14 +6,15 @@ import sys
 
 import click
 
-from mbtool.cli.options import NO_HEADER_OPTION, QuickHelp, device_command, output_chosen
+from mbtool.cli.frames import frame_report
+from mbtool.cli.options import NO_HEADER_OPTION, Choice, QuickHelp, device_command, output_chosen
 from mbtool.codec.errors import RequestError
 
 FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
-    type=click.Choice(["table", "plain", "json", "csv"]),
+    type=Choice(["table", "plain", "json", "csv"]),
     callback=lambda ctx, param, value: output_chosen(value),
     help="Output format: table on a terminal, plain in a pipe.",
 )
@@ -29,65 +30,6 @@ def _render(report, output_format: str | None) -> None:
     render(report, output_format or default_format())
 
 
-# --- decoded frames as a Report --------------------------------------------------------------
-
-
-def frame_report(described, header: bool = True):
-    """The rows of a decoded frame: envelope, fields, checksum, warnings; JSON with every field."""
-    from mbtool.cli.render import Report, Row
-
-    d = described
-    # The exact bytes first, to copy into a manual or a tester: hex for RTU and MBAP, the
-    # text line for ASCII (its CR LF left to the line's end).
-    frame = ":" + d.adu.hex().upper() + "\r\n" if d.framing == "ascii" else d.adu.hex(" ").upper()
-    rows = [Row("raw", frame, frame.rstrip("\r\n")), Row("frame", f"{d.framing} {d.kind}")]
-    if d.framing == "tcp":
-        adu = d.adu
-        rows += [
-            Row("transaction_id", int.from_bytes(adu[0:2], "big"), raw=adu[0:2]),
-            Row("protocol_id", int.from_bytes(adu[2:4], "big"), raw=adu[2:4]),
-            Row("length", int.from_bytes(adu[4:6], "big"), raw=adu[4:6]),
-            Row("unit_id", d.unit, raw=adu[6:7]),
-        ]
-    else:
-        rows.append(Row("slave_address", d.unit, raw=d.adu[0:1]))
-    rows += [Row(f.name, f.value, f.text, f.raw) for f in d.fields]
-    verdict = d.checksum.split(" ", 1)[1]  # "CRC 0E 84 ok" -> the row is named crc already
-    if d.framing == "rtu":
-        rows.append(Row("crc", d.checksum_ok, verdict, d.adu[-2:]))
-    elif d.framing == "ascii":
-        rows.append(Row("lrc", d.checksum_ok, verdict, d.adu[-1:]))
-    else:
-        rows.append(Row("mbap", d.checksum_ok, verdict))
-    rows += [Row("warning", text) for text in d.warnings]
-    if d.error:
-        rows.append(Row("error", d.error))
-    data = {
-        "framing": d.framing,
-        "kind": d.kind,
-        "raw": frame,
-        "frame": frame,
-        "checksum": {"ok": d.checksum_ok, "verdict": d.checksum},
-        "fields": [
-            {
-                "name": r.name,
-                "bytes": None if r.raw is None else r.raw.hex(" ").upper(),
-                "value": r.value,
-                "text": r.shown,
-            }
-            for r in rows
-        ],
-        "warnings": d.warnings,
-        "error": d.error or None,
-    }
-    title = f"[bold]{d.framing.upper()} {d.kind}[/]: {d.name}"
-    if d.function is not None:
-        title += f" (FC {d.function & 0x7F:02d})"
-    if d.unit is not None:
-        title += f" · unit {d.unit}"
-    return Report(d.unit, d.function, d.name, rows, data, title=title, header=header)
-
-
 def _problem(described) -> str:
     if described.checksum_ok is False:
         return described.checksum
@@ -99,7 +41,7 @@ def _problem(described) -> str:
 
 @click.command("decode", cls=OfflineCommand, context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("frame", nargs=-1, metavar="[HEX...|-]")
-@click.option("--framer", type=click.Choice(["rtu", "ascii", "tcp"]), help="Framing (default: detected).")
+@click.option("--framer", type=Choice(["rtu", "ascii", "tcp"]), help="Framing (default: detected).")
 @click.option("--request", "direction", flag_value="request", help="Read the frame as a request.")
 @click.option("--response", "direction", flag_value="response", help="Read the frame as a response.")
 @FORMAT_OPTION
@@ -254,11 +196,12 @@ def raw(connection, data, adu):
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """
+    from mbtool.cli.session import open_client
     from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
     from mbtool.codec.errors import FrameError, ModbusException
     from mbtool.codec.raw import RawRequest
     from mbtool.link.client import Trace
-    from mbtool.link.connection import framer_name, open_client
+    from mbtool.link.connection import framer_name
 
     name = framer_name(connection)
     text = " ".join(data)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import click
 
 from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, PositiveFloat, device_command
-from mbtool.link.connection import Connection, execute, show
+from mbtool.cli.session import execute, show
+from mbtool.link.connection import Connection
 
 POLL_HELP = """
 
@@ -38,9 +39,13 @@ def _run(connection: Connection, request, to_result, interval, polls) -> None:
     if (interval is None and polls is None) or getattr(connection, "dry_run", False):
         show(connection, to_result(execute(connection, request)))
         return
+    from mbtool.cli.poll_output import Deferred, Output
+    from mbtool.cli.render import default_format
+    from mbtool.cli.session import trace_for
     from mbtool.link.polling import poll
 
-    poll(connection, request, to_result, interval, polls)
+    shown = Deferred(Output(connection.output_format or default_format()), to_result)
+    poll(connection, request, shown, interval, polls, trace_for(connection))
 
 
 # --- reads: FC 01-04 -------------------------------------------------------------------
@@ -71,8 +76,7 @@ def _read_registers(
 
     def to_result(reply):
         items = [
-            (address + offset, value)
-            for offset, value in decode_values(reply.registers, value_type, order.upper())
+            (address + offset, value) for offset, value in decode_values(reply.registers, value_type, order)
         ]
         return Result(
             connection.unit, kind.function_code, kind.name, address, items, value_type, list(reply.registers)

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import ExitStack
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, device_command, parse_units, units_text
+from mbtool.cli.options import ADDRESS, COUNT, Choice, device_command, parse_units, units_text
 from mbtool.codec.errors import FrameError, MismatchError, ModbusException, ProtocolError, RequestError
 from mbtool.codec.record import record, replace
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
@@ -81,7 +82,7 @@ class ParityList(click.ParamType):
         if isinstance(value, tuple):
             return value
         parity = _shared_param(ctx, "parity").type
-        return tuple(_unique(parity.convert(item, param, ctx).upper() for item in _items(value, param, ctx)))
+        return tuple(_unique(parity.convert(item, param, ctx) for item in _items(value, param, ctx)))
 
 
 def _items(text: str, param, ctx) -> list[str]:
@@ -368,12 +369,13 @@ class Scan:
         return tally
 
     def _open(self, setting: Setting):
-        from mbtool.link.connection import framer_name, open_client
+        from mbtool.cli.session import open_client
+        from mbtool.link.connection import framer_name
 
         # unit: a real one, for open_client's broadcast check (the option holds the whole set).
         connection = replace(self.connection, baud=setting.baud, parity=setting.parity, unit=self.units[0])
-        link = open_client(connection, self.request.name)
-        client = link.__enter__()
+        link = ExitStack()
+        client = link.enter_context(open_client(connection, self.request.name))
         client.trace = Listener(client.trace, framer_name(connection))
         return link, client
 
@@ -384,7 +386,7 @@ class Scan:
 
         tally = self.tally
         name = framer_name(self.connection)
-        link = None
+        link = ExitStack()
         try:
             try:
                 link, client = self._open(setting)
@@ -404,7 +406,6 @@ class Scan:
                     # The link broke (a gateway hanging up on an unknown unit, a cable
                     # pulled): count this unit silent and go on over a new link.
                     close_quietly(link)
-                    link = None
                     try:
                         link, client = self._open(setting)
                     except ConnectionFailed as again:
@@ -621,7 +622,7 @@ class Output:
 @click.option(
     "--function",
     "probe",
-    type=click.Choice(PROBES),
+    type=Choice(PROBES),
     default="read-holding-registers",
     show_default=True,
     help="What each unit is asked. Any reply or exception means a device is there.",
@@ -706,7 +707,7 @@ def _check_sweepable(port: str | None) -> None:
 
 
 def _dry_run(connection, request, units: list[int], settings: list[Setting], sweeping: bool) -> None:
-    from mbtool.link.connection import open_client
+    from mbtool.cli.session import open_client
 
     then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
     then += f" at each of {len(settings)} serial settings)" if sweeping else ")"

@@ -15,6 +15,7 @@ import time
 import click
 
 from mbtool.cli.options import (
+    Choice,
     Number,
     PositiveFloat,
     QuickHelp,
@@ -104,7 +105,7 @@ class Fraction(click.ParamType):
 )
 @click.option(
     "--framer",
-    type=click.Choice(["rtu", "ascii", "tcp"]),
+    type=Choice(["rtu", "ascii", "tcp"]),
     help="Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// "
     "serves like a serial device server.",
 )
@@ -225,7 +226,7 @@ def serve(
     device = Device(model, unit_set, unit_models)
     device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
     device.read_only = read_only
-    settings = SerialSettings(baud, parity.upper(), int(bytesize), int(stopbits))
+    settings = SerialSettings(baud, parity, int(bytesize), int(stopbits))
     mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
     log = functools.partial(_log_line, framer) if mode == "log" else None
     server = Server(

@@ -5,8 +5,8 @@ from __future__ import annotations
 import click
 
 from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
+from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
-from mbtool.link.connection import execute, show
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
 
@@ -26,7 +26,7 @@ def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> lis
 
     if value_type == "uint16":
         return [parse_register(text) for text in values]  # -32768..65535, as the contract says
-    return encode_values([parse_value(text, value_type) for text in values], value_type, order.upper())
+    return encode_values([parse_value(text, value_type) for text in values], value_type, order)
 
 
 @device_command("write-coil")
@@ -58,7 +58,7 @@ def write_register(connection, address, value, value_type, order):
     request = WriteSingleRegister(address, register)
     execute(connection, request)
     # As write-registers does: the value as the register now holds it, in the user's --type.
-    ((_, written),) = decode_values((register,), value_type, order.upper())
+    ((_, written),) = decode_values((register,), value_type, order)
     show(
         connection,
         Result(
@@ -105,7 +105,7 @@ def write_registers(connection, address, values, value_type, order):
     request = WriteMultipleRegisters(address, tuple(registers))
     execute(connection, request)
     # Report the values as the device now holds them, read back through the same type.
-    typed = decode_values(tuple(registers), value_type, order.upper())
+    typed = decode_values(tuple(registers), value_type, order)
     items = [(address + offset, value) for offset, value in typed]
     show(
         connection,

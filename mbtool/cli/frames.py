@@ -1,0 +1,59 @@
+"""A decoded frame as a Report: what decode, raw, --dry-run and monitor print for one frame."""
+
+from __future__ import annotations
+
+from mbtool.cli.render import Report, Row
+
+
+def frame_report(described, header: bool = True):
+    """The rows of a decoded frame: envelope, fields, checksum, warnings; JSON with every field."""
+    d = described
+    # The exact bytes first, to copy into a manual or a tester: hex for RTU and MBAP, the
+    # text line for ASCII (its CR LF left to the line's end).
+    frame = ":" + d.adu.hex().upper() + "\r\n" if d.framing == "ascii" else d.adu.hex(" ").upper()
+    rows = [Row("raw", frame, frame.rstrip("\r\n")), Row("frame", f"{d.framing} {d.kind}")]
+    if d.framing == "tcp":
+        adu = d.adu
+        rows += [
+            Row("transaction_id", int.from_bytes(adu[0:2], "big"), raw=adu[0:2]),
+            Row("protocol_id", int.from_bytes(adu[2:4], "big"), raw=adu[2:4]),
+            Row("length", int.from_bytes(adu[4:6], "big"), raw=adu[4:6]),
+            Row("unit_id", d.unit, raw=adu[6:7]),
+        ]
+    else:
+        rows.append(Row("slave_address", d.unit, raw=d.adu[0:1]))
+    rows += [Row(f.name, f.value, f.text, f.raw) for f in d.fields]
+    verdict = d.checksum.split(" ", 1)[1]  # "CRC 0E 84 ok" -> the row is named crc already
+    if d.framing == "rtu":
+        rows.append(Row("crc", d.checksum_ok, verdict, d.adu[-2:]))
+    elif d.framing == "ascii":
+        rows.append(Row("lrc", d.checksum_ok, verdict, d.adu[-1:]))
+    else:
+        rows.append(Row("mbap", d.checksum_ok, verdict))
+    rows += [Row("warning", text) for text in d.warnings]
+    if d.error:
+        rows.append(Row("error", d.error))
+    data = {
+        "framing": d.framing,
+        "kind": d.kind,
+        "raw": frame,
+        "frame": frame,
+        "checksum": {"ok": d.checksum_ok, "verdict": d.checksum},
+        "fields": [
+            {
+                "name": r.name,
+                "bytes": None if r.raw is None else r.raw.hex(" ").upper(),
+                "value": r.value,
+                "text": r.shown,
+            }
+            for r in rows
+        ],
+        "warnings": d.warnings,
+        "error": d.error or None,
+    }
+    title = f"[bold]{d.framing.upper()} {d.kind}[/]: {d.name}"
+    if d.function is not None:
+        title += f" (FC {d.function & 0x7F:02d})"
+    if d.unit is not None:
+        title += f" · unit {d.unit}"
+    return Report(d.unit, d.function, d.name, rows, data, title=title, header=header)

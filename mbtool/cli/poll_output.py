@@ -1,0 +1,167 @@
+"""What polling shows: each poll's reply in the chosen format, stamped, and failed polls.
+
+The loop itself (schedule, reconnects, the summary) is ``link.polling``; it hands
+replies and failures to a ``Deferred`` made here.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+
+from mbtool.cli.render import local_time
+from mbtool.errors import OutputFailed, exit_code_for
+
+FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
+
+
+class Output:
+    """Writes each poll in the chosen format, at once (cron appends to a log); polls closer
+    together than FLUSH_GAP (--interval 0) share one write, not a system call each, which
+    PYTHONUNBUFFERED or a pipe would otherwise make of every line."""
+
+    def __init__(self, fmt: str, out=None) -> None:
+        self.fmt = fmt
+        self.out = out or sys.stdout
+        self.header_done = False
+        self.live = None
+        self._pending: list[str] = []
+        self._flush_at = 0.0
+
+    def result(self, when: str, result) -> None:
+        from mbtool.cli.render import as_dict, value_text
+
+        if self.fmt == "json":
+            self._emit(_json_line({"time": when, **as_dict(result)}))
+        elif self.fmt == "csv":
+            if not self.header_done:
+                from mbtool.cli.render import wants_csv_header
+
+                if wants_csv_header(self.out):
+                    self._emit("time,address,value\n")
+                self.header_done = True
+            self._emit("".join(f"{when},{a},{_csv_cell(value_text(v))}\n" for a, v in result.items))
+        elif self.fmt == "plain":
+            self._emit("".join(f"{when} {a} {value_text(v)}\n" for a, v in result.items))
+        else:
+            self._table(when, result)
+
+    def failure(self, when: str, number: int, error: BaseException) -> None:
+        self.flush()  # the polls before it first, so stdout and stderr stay in order
+        print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
+        if self.fmt == "json":
+            # jq consumers read stdout only: a failed poll must show up there too.
+            from mbtool.cli.render import error_json
+
+            code = int(exit_code_for(error))
+            self._emit(error_json(str(error), code, time=when) + "\n", now=True)
+
+    def _emit(self, text: str, now: bool = False) -> None:
+        self._pending.append(text)
+        if now or time.monotonic() >= self._flush_at:
+            self.flush()
+
+    def flush(self) -> None:
+        try:
+            if self._pending:
+                text = "".join(self._pending)
+                self._pending.clear()
+                self.out.write(text)
+            self.out.flush()
+        except BrokenPipeError:
+            raise  # the reader went away: cli.main ends quietly
+        except OSError as error:  # a full disk: the poll cannot go on
+            raise OutputFailed("standard output", error) from None
+        self._flush_at = time.monotonic() + FLUSH_GAP
+
+    def _table(self, when: str, result) -> None:
+        from rich.console import Group
+        from rich.live import Live
+        from rich.table import Table
+        from rich.text import Text
+
+        from mbtool.cli.render import value_text
+
+        # The heading above, not as the table's title: a title wraps to the table's width.
+        heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        table = Table()
+        table.add_column("Address", justify="right")
+        table.add_column("Value", justify="right")
+        for address, value in result.items:
+            table.add_row(str(address), value_text(value))
+        if not self.out.isatty():
+            # Into a file or a pipe every poll's table stays, each ending its line: a table
+            # refreshed in place would leave only the last one, without a final newline.
+            from rich.console import Console
+
+            Console(file=self.out).print(Group(heading, table))
+            return
+        if self.live is None:
+            self.live = Live(Group(heading, table), auto_refresh=False)
+            self.live.start()
+        self.live.update(Group(heading, table), refresh=True)
+
+    def close(self) -> None:
+        self.flush()
+        if self.live is not None:
+            self.live.stop()
+            self.live = None
+
+
+class Deferred:
+    """What the poll loop shows (link.polling.Shown): a poll's reply is shown while the next
+    request is on its way when polls run back to back, so decoding and writing it
+    overlaps the device's turnaround instead of adding to every transaction (sustained
+    polling keeps pace with a bare client loop)."""
+
+    def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
+        self.output = output
+        self.to_result = to_result
+        self.held: tuple[float, object] | None = None
+
+    def hold(self, when: float, reply) -> None:
+        """Keep a reply to show later; the one before it went out with the request."""
+        self.held = (when, reply)
+
+    def write(self) -> None:
+        if self.held is not None:
+            when, reply = self.held
+            self.held = None
+            self.output.result(local_time(when), self.to_result(reply))
+
+    def failure(self, when: float, number: int, error: BaseException) -> None:
+        self.output.failure(local_time(when), number, error)
+
+    def close(self) -> None:
+        self.write()
+        self.output.close()
+
+
+def _json_line(data: dict) -> str:
+    """The json module's C encoder: a sustained poll spends more on JSON than on Modbus
+    with render.to_json, and json's import is nothing to a loop.  The same text, since
+    to_json keeps json's separators; NaN and infinities, which json would write as
+    invalid JSON, go the to_json way (null)."""
+    global _ENCODER
+    if _ENCODER is None:
+        import json
+
+        # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
+        _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
+    try:
+        return _ENCODER.encode(data) + "\n"
+    except ValueError:
+        from mbtool.cli.render import to_json
+
+        return to_json(data) + "\n"
+
+
+_ENCODER = None
+
+
+def _csv_cell(text: str) -> str:
+    # Values are numbers except for --type string; quote those the CSV way.
+    if any(c in text for c in ',"\n\r'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
