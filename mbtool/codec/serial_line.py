@@ -87,6 +87,9 @@ class ReadExceptionStatus(_NoDataRequest):
 # --- FC 08: Diagnostics --------------------------------------------------------------
 
 
+DEFAULT_QUERY_DATA = b"\xa5\x37"  # return-query-data's data when none is given: seed 002's example
+
+
 class DiagnosticSubFunction(IntEnum):
     """Spec §4.  Seed 002 mislabels BUS_CHAR_OVERRUN_COUNT as 00 11; it is 00 12."""
 

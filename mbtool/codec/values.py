@@ -184,3 +184,10 @@ def parse_register(text: str) -> int:
     if not -0x8000 <= value <= 0xFFFF:
         raise RequestError(f"register value {text} is out of range -32768..65535")
     return value & 0xFFFF
+
+
+def parse_registers(texts, type_name: str, order: str = "ABCD") -> list[int]:
+    """The registers for values as a user types them, each checked against its type."""
+    if type_name == "uint16":
+        return [parse_register(text) for text in texts]  # -32768..65535, as the contract says
+    return encode_values([parse_value(text, type_name) for text in texts], type_name, order)

@@ -8,13 +8,12 @@ import click
 
 from mbtool.cli.options import Choice, device_command, parse_int
 from mbtool.codec.errors import RequestError
-from mbtool.codec.serial_line import SUB_FUNCTION_NAMES, sub_function_number
+from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, SUB_FUNCTION_NAMES, sub_function_number
 
 # command-line name -> sub-function (spec §4)
 SUB_FUNCTIONS = {name: code for code, name in SUB_FUNCTION_NAMES.items()}
 NAMES = {code: name for name, code in SUB_FUNCTIONS.items()}
 COUNTERS = tuple(range(0x0B, 0x13))  # bus message .. bus character overrun: every controller family's set
-DEFAULT_QUERY = b"\xa5\x37"  # seed 002's example query data
 
 
 def _sub_function(text: str) -> int:
@@ -52,7 +51,7 @@ def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
         return b"\x00\x03" if text.lower() == "get" else b"\x00\x04"
     if text is None:
         if sub == 0x00:
-            return DEFAULT_QUERY
+            return DEFAULT_QUERY_DATA
         return b"\x00\x03" if sub == 0x15 else b"\x00\x00"
     data = parse_hex(text[2:] if text.lower().startswith("0x") else text)
     if sub != 0x00 and len(data) != 2:

@@ -259,10 +259,9 @@ def read_write_registers(connection, read_address, read_count, write_address, va
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
-    from mbtool.cli.commands.write import parse_registers
     from mbtool.cli.render import Result
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
-    from mbtool.codec.values import decode_values, registers_needed
+    from mbtool.codec.values import decode_values, parse_registers, registers_needed
 
     registers = parse_registers(values, value_type, order)
     request = ReadWriteMultipleRegisters(

@@ -185,10 +185,9 @@ def probe_request(function: str, address: int, count: int):
         from mbtool.codec.device_id import ReadDeviceIdCode, ReadDeviceIdentification
 
         return ReadDeviceIdentification(ReadDeviceIdCode.BASIC, 0)
-    from mbtool.cli.commands.diagnostics import DEFAULT_QUERY
-    from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
+    from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, Diagnostics, DiagnosticSubFunction
 
-    return Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, DEFAULT_QUERY)
+    return Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, DEFAULT_QUERY_DATA)
 
 
 def _reply_answer(unit: int, reply, ms: float | None) -> Answer:

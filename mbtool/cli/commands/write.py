@@ -20,15 +20,6 @@ def parse_bit(text: str) -> bool:
         raise RequestError(f"{text} is not a bit: use on|off|1|0") from None
 
 
-def parse_registers(values: tuple[str, ...], value_type: str, order: str) -> list[int]:
-    """The registers for the values the user typed, each checked against its type."""
-    from mbtool.codec.values import encode_values, parse_register, parse_value
-
-    if value_type == "uint16":
-        return [parse_register(text) for text in values]  # -32768..65535, as the contract says
-    return encode_values([parse_value(text, value_type) for text in values], value_type, order)
-
-
 @device_command("write-coil")
 @click.argument("address", type=ADDRESS)
 @click.argument("state", metavar="on|off|1|0")
@@ -52,7 +43,7 @@ def write_register(connection, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
     from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteSingleRegister
-    from mbtool.codec.values import decode_values
+    from mbtool.codec.values import decode_values, parse_registers
 
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
@@ -99,7 +90,7 @@ def write_registers(connection, address, values, value_type, order):
     """
     from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteMultipleRegisters
-    from mbtool.codec.values import decode_values
+    from mbtool.codec.values import decode_values, parse_registers
 
     registers = parse_registers(values, value_type, order)
     request = WriteMultipleRegisters(address, tuple(registers))

@@ -1,0 +1,70 @@
+"""The rooms by role (issue 14): import-linter's contracts in pyproject.toml hold, and they bite.
+
+The contracts are import-linter's own, run by its own command; these tests run it on
+the tree as it is, and on a copy with one forbidden import or one cycle added, which
+must break the contract that forbids it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+LINT = [sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())"]
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def lint(where: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [*LINT, "--config", str(where / "pyproject.toml"), "--no-cache"],
+        cwd=where,
+        env={"PYTHONPATH": str(where), "PATH": "/usr/bin:/bin"},
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+
+
+def test_the_tree_keeps_every_contract():
+    res = lint(ROOT)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "BROKEN" not in res.stdout and " kept, 0 broken" in res.stdout
+
+
+@pytest.fixture
+def copy(tmp_path):
+    shutil.copytree(ROOT / "mbtool", tmp_path / "mbtool", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    return tmp_path
+
+
+def _add_to_function(path: Path, line: str) -> None:
+    path.write_text(path.read_text() + f"\n\ndef _added():\n    {line}\n")
+
+
+@pytest.mark.parametrize(
+    "module, line, contract",
+    [
+        ("codec/checksum.py", "import click", "codec is sans-IO"),
+        ("codec/pdu.py", "from mbtool.errors import ExitCode", "codec is sans-IO"),
+        ("link/transport.py", "from mbtool.device.model import Device", "link (the master's I/O)"),
+        ("link/polling.py", "from mbtool.cli.render import render", "link (the master's I/O)"),
+        ("device/server.py", "from mbtool.link.client import Client", "device (the simulated device)"),
+        ("monitor/bus.py", "import rich", "monitor (the passive bus monitor)"),
+        ("cli/commands/scan.py", "from mbtool.cli.commands import read", "commands do not import one another"),
+        # link.client imports link.transport: the reverse, even inside a function, is a cycle.
+        ("link/transport.py", "from mbtool.link import client", "no import cycles"),
+    ],
+)
+def test_a_forbidden_import_inside_a_function_breaks_its_contract(copy, module, line, contract):
+    _add_to_function(copy / "mbtool" / module, line)
+    res = lint(copy)
+    assert res.returncode == 1, res.stdout + res.stderr
+    broken = res.stdout.split("Broken contracts", 1)[1]
+    assert contract in broken
