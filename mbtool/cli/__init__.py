@@ -21,6 +21,8 @@ from mbtool.cli.options import QuickHelp
 from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
 from mbtool.link.transport import register_scheme
 
+COMPLETE_VAR = "_MBTOOL_COMPLETE"  # Click's name for it: _{PROG}_COMPLETE
+
 # command name -> the module that defines it (as a function named like the command)
 COMMANDS = {
     "read-coils": "read",
@@ -113,6 +115,10 @@ def _terminate(signum, frame):
 
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every outcome leaves through one exit code and at most one stderr line."""
+    if COMPLETE_VAR in os.environ:  # the shell asks for completions (completions/, Click's scripts)
+        from click.shell_completion import shell_complete
+
+        sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
     signal.signal(signal.SIGTERM, _terminate)
     render.errors_as_json, render.csv_header = False, True  # until the options say otherwise
     error: BaseException | None = None

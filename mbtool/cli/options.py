@@ -198,6 +198,32 @@ class Choice(click.Choice):
 PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
 
 
+# Where serial adapters appear (Linux, macOS); completion offers the ones present.
+SERIAL_DEVICE_GLOBS = ("/dev/ttyUSB*", "/dev/ttyACM*", "/dev/ttyAMA*", "/dev/ttyS*", "/dev/tty.usb*", "/dev/serial/by-id/*")
+
+
+def complete_port(ctx: click.Context, param: click.Parameter, incomplete: str) -> list:
+    """-p TAB: the URL schemes, the serial devices there are, and file names for other paths."""
+    import glob
+
+    from click.shell_completion import CompletionItem
+
+    from mbtool.link.transport import schemes
+
+    offers = [f"{scheme}://" for scheme in schemes()]
+    offers += sorted(path for pattern in SERIAL_DEVICE_GLOBS for path in glob.glob(pattern))
+    found = [CompletionItem(offer) for offer in offers if offer.startswith(incomplete)]
+    if not found and "://" not in incomplete:
+        return [CompletionItem(incomplete, type="file")]  # a device path typed by hand
+    return found
+
+
+def complete_profile(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
+    from mbtool.cli.profiles import names
+
+    return [name for name in names() if name.startswith(incomplete)]
+
+
 # --- shared options ------------------------------------------------------------------
 
 
@@ -271,6 +297,7 @@ CONNECTION_OPTIONS = [
         "--port",
         envvar="MBTOOL_PORT",
         metavar="TARGET",
+        shell_complete=complete_port,
         help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
         "loop:// or sim:// (the built-in device).",
         show_envvar=True,
@@ -378,6 +405,7 @@ PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a
     metavar="NAME",
     expose_value=False,
     callback=_remember_profile,
+    shell_complete=complete_profile,
     help="Connection settings from [profiles.NAME] in $MBTOOL_CONFIG or ~/.config/mbtool/config.toml; "
     "options and MBTOOL_PORT/MBTOOL_UNIT override them.",
 )

@@ -57,6 +57,18 @@ def config_path() -> Path:
     return Path(base) / "mbtool" / "config.toml"
 
 
+def names() -> list[str]:
+    """The profiles the config file defines, for completion: none if it cannot be read."""
+    import tomllib
+
+    try:
+        with config_path().open("rb") as file:
+            profiles = tomllib.load(file).get("profiles", {})
+    except (OSError, ValueError):
+        return []
+    return sorted(profiles) if isinstance(profiles, dict) else []
+
+
 def load(name: str, path: Path | None = None) -> dict:
     """The settings of profile ``name``; RequestError (exit 2) naming the file for any problem."""
     import tomllib

@@ -352,6 +352,11 @@ BRIDGE_SCHEMES = ("socket", "rfc2217")
 OTHER_SERIAL_SCHEMES = ("loop", "spy", "alt", "hwgrep", "cp2110")
 
 
+def schemes() -> list[str]:
+    """Every scheme a --port may start with, for completion and messages."""
+    return ["tcp", *BRIDGE_SCHEMES, *IN_PROCESS, *OTHER_SERIAL_SCHEMES]
+
+
 def target_forms() -> str:
     """What a ``--port`` may be, for messages."""
     in_process = "".join(f"{scheme}://, " for scheme in IN_PROCESS)

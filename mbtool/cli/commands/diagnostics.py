@@ -60,7 +60,13 @@ def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
 
 
 @device_command("diag")
-@click.argument("sub_function", metavar="SUBFUNCTION")
+@click.argument(
+    "sub_function",
+    metavar="SUBFUNCTION",
+    shell_complete=lambda ctx, param, incomplete: [
+        name for name in ("counters", *SUB_FUNCTIONS) if name.startswith(incomplete.lower())
+    ],
+)
 @click.argument("data", required=False)
 @click.option("--clear-log", is_flag=True, help="restart-comms: also clear the event log (data FF00).")
 @click.option(
