@@ -17,7 +17,7 @@ import click
 
 from mbtool import __version__
 from mbtool.cli import render
-from mbtool.cli.options import QuickHelp
+from mbtool.cli.options import QuickHelp, did_you_mean
 from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
 from mbtool.link.transport import register_scheme
 
@@ -74,6 +74,29 @@ def _show_version(ctx: click.Context, param: click.Parameter, value: bool) -> No
 class LazyGroup(QuickHelp, click.Group):
     def list_commands(self, ctx):
         return list(COMMANDS)
+
+    def parse_args(self, ctx, args):
+        # `mbtool -p sim:// read-coils 0`: the group has no connection options; say where they go.
+        group_options = {"-h", "--help", "-V", "--version"}
+        first = next((arg for arg in args if not arg.startswith("-") or arg in group_options), None)
+        given = [arg for arg in args[: args.index(first) if first in args else len(args)] if arg.startswith("-")]
+        stray = [arg for arg in given if arg not in group_options]
+        command = next((arg for arg in args if arg in COMMANDS), None)
+        if stray and command:
+            before = args[: args.index(command)]
+            after = args[args.index(command) + 1 :]
+            fixed = " ".join(["mbtool", command, *after, *before])
+            raise click.UsageError(f"options follow the command: {fixed}", ctx)
+        return super().parse_args(ctx, args)
+
+    def resolve_command(self, ctx, args):
+        name = args[0] if args else ""
+        if name and not name.startswith("-") and name not in COMMANDS:
+            import difflib  # only for a mistyped command
+
+            close = difflib.get_close_matches(name, COMMANDS, n=3, cutoff=0.6)
+            raise click.UsageError(f"no such command {name}{did_you_mean(close)}", ctx)
+        return super().resolve_command(ctx, args)
 
     def get_command(self, ctx, name):
         module = COMMANDS.get(name)

@@ -96,6 +96,14 @@ def _show_help(ctx: click.Context, param: click.Parameter, value: bool) -> None:
         ctx.exit()
 
 
+def did_you_mean(close: list[str]) -> str:
+    """"; did you mean a, b or c?" for the close matches of a mistyped name, best first."""
+    if not close:
+        return ""
+    words = close[0] if len(close) == 1 else f"{', '.join(close[:-1])} or {close[-1]}"
+    return f"; did you mean {words}?"
+
+
 class QuickHelp:
     """A --help option made without click's gettext look-up, which imports locale on every run."""
 
@@ -137,7 +145,10 @@ class DeviceCommand(QuickHelp, click.Command):
             elif token.startswith("-") and len(token) > 1 and not _is_number(token):
                 name = token.split("=", 1)[0]
                 if name not in known and not (name[:2] in known and not name.startswith("--")):
-                    raise click.NoSuchOption(name, ctx=ctx)
+                    import difflib  # only for a mistyped option
+
+                    close = difflib.get_close_matches(name, sorted(known), n=3, cutoff=0.6)
+                    raise click.UsageError(f"no such option {name}{did_you_mean(close)}", ctx)
         return super().parse_args(ctx, args)
 
 

@@ -1,0 +1,61 @@
+"""One command-line convention (issue 14): choices in any case, "did you mean", and options
+that came before the command are told where they go."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import assert_one_error_line, run_mbtool
+
+
+def test_choices_take_any_case_and_mean_the_same():
+    lower = run_mbtool(
+        "read-holding-registers", "100", "1", "-p", "sim://", "--type", "float32", "--order", "abcd"
+    )
+    upper = run_mbtool(
+        "read-holding-registers", "100", "1", "-p", "sim://", "--type", "FLOAT32", "--order", "ABCD"
+    )
+    assert lower.returncode == upper.returncode == 0, str(lower) + str(upper)
+    assert lower.stdout == upper.stdout and "21.5" in upper.stdout
+    res = run_mbtool("read-coils", "0", "-p", "sim://", "--framer", "RTU", "-o", "JSON")
+    assert res.returncode == 0 and res.stdout.startswith("{"), str(res)
+
+
+@pytest.mark.parametrize("word", ["none", "NONE", "n", "N"])
+def test_parity_none_is_n_on_the_command_line(word):
+    res = run_mbtool("read-coils", "0", "-p", "sim://", "--parity", word, "--dry-run")
+    assert res.returncode == 0, str(res)
+
+
+def test_parity_none_is_n_in_a_profile(tmp_path):
+    config = tmp_path / "config.toml"
+    config.write_text('[profiles.s]\nport = "sim://"\nparity = "none"\n')
+    res = run_mbtool("read-coils", "0", "-P", "s", env={"MBTOOL_CONFIG": str(config)})
+    assert res.returncode == 0, str(res)
+    config.write_text('[profiles.s]\nport = "sim://"\nparity = "space"\n')
+    line = assert_one_error_line(
+        run_mbtool("read-coils", "0", "-P", "s", env={"MBTOOL_CONFIG": str(config)}), 2
+    )
+    assert "profiles.s.parity" in line
+
+
+def test_a_mistyped_command_gets_the_close_ones():
+    line = assert_one_error_line(run_mbtool("read-holding-register", "0", "-p", "sim://"), 2)
+    assert line.startswith(
+        "mbtool: no such command read-holding-register; did you mean read-holding-registers"
+    )
+    line = assert_one_error_line(run_mbtool("frobnicate"), 2)
+    assert "no such command frobnicate" in line and "did you mean" not in line
+
+
+def test_a_mistyped_option_gets_the_close_ones():
+    line = assert_one_error_line(run_mbtool("read-coils", "0", "-p", "sim://", "--framr", "rtu"), 2)
+    assert "no such option --framr; did you mean --framer" in line
+
+
+def test_options_before_the_command_are_told_where_they_go():
+    res = run_mbtool("-p", "sim://", "-u", "1", "read-holding-registers", "0", "2")
+    line = assert_one_error_line(res, 2)
+    assert "options follow the command: mbtool read-holding-registers 0 2 -p sim:// -u 1" in line
+    assert res.stdout == ""
+    # What it suggests works.
+    assert run_mbtool("read-holding-registers", "0", "2", "-p", "sim://", "-u", "1").returncode == 0
