@@ -79,7 +79,9 @@ class LazyGroup(QuickHelp, click.Group):
         # `mbtool -p sim:// read-coils 0`: the group has no connection options; say where they go.
         group_options = {"-h", "--help", "-V", "--version"}
         first = next((arg for arg in args if not arg.startswith("-") or arg in group_options), None)
-        given = [arg for arg in args[: args.index(first) if first in args else len(args)] if arg.startswith("-")]
+        given = [
+            arg for arg in args[: args.index(first) if first in args else len(args)] if arg.startswith("-")
+        ]
         stray = [arg for arg in given if arg not in group_options]
         command = next((arg for arg in args if arg in COMMANDS), None)
         if stray and command:

@@ -97,7 +97,7 @@ def _show_help(ctx: click.Context, param: click.Parameter, value: bool) -> None:
 
 
 def did_you_mean(close: list[str]) -> str:
-    """"; did you mean a, b or c?" for the close matches of a mistyped name, best first."""
+    """ "; did you mean a, b or c?" for the close matches of a mistyped name, best first."""
     if not close:
         return ""
     words = close[0] if len(close) == 1 else f"{', '.join(close[:-1])} or {close[-1]}"
@@ -210,7 +210,14 @@ PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
 
 
 # Where serial adapters appear (Linux, macOS); completion offers the ones present.
-SERIAL_DEVICE_GLOBS = ("/dev/ttyUSB*", "/dev/ttyACM*", "/dev/ttyAMA*", "/dev/ttyS*", "/dev/tty.usb*", "/dev/serial/by-id/*")
+SERIAL_DEVICE_GLOBS = (
+    "/dev/ttyUSB*",
+    "/dev/ttyACM*",
+    "/dev/ttyAMA*",
+    "/dev/ttyS*",
+    "/dev/tty.usb*",
+    "/dev/serial/by-id/*",
+)
 
 
 def complete_port(ctx: click.Context, param: click.Parameter, incomplete: str) -> list:

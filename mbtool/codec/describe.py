@@ -497,9 +497,24 @@ def describe_pdu(
     previous: Described | None = None,
 ) -> Described:
     warnings: list[str] = []
+    # What the envelope says, the same whatever the PDU turns out to be.
+    envelope = {
+        "framing": framing,
+        "adu": adu,
+        "unit": unit,
+        "pdu": pdu,
+        "checksum_ok": ok,
+        "checksum": verdict,
+    }
     if not pdu:
         return Described(
-            framing, adu, unit, pdu, "unknown", None, "empty PDU", [], ok, verdict, [], "no function code"
+            **envelope,
+            kind="unknown",
+            function=None,
+            name="empty PDU",
+            fields=[],
+            warnings=[],
+            error="no function code",
         )
     code = pdu[0]
     asked = previous.request if previous is not None and previous.unit == unit else None
@@ -517,24 +532,25 @@ def describe_pdu(
         kind_type = function_type(code & 0x7F)
         title = f"exception to {kind_type.name}" if kind_type else f"exception to function {code & 0x7F:02X}"
         return Described(
-            framing, adu, unit, pdu, "exception", code, title, fields, ok, verdict, warnings, error
+            **envelope,
+            kind="exception",
+            function=code,
+            name=title,
+            fields=fields,
+            warnings=warnings,
+            error=error,
         )
     kind = function_type(code)
     if kind is None:
         fields = [Field("data", bytes(pdu[1:]), bytes(pdu[1:]).hex(" ").upper())] if len(pdu) > 1 else []
         return Described(
-            framing,
-            adu,
-            unit,
-            pdu,
-            "unknown",
-            code,
-            f"function {code:02X}",
-            fields,
-            ok,
-            verdict,
-            [f"function code {code:02X} is not one the codec knows"],
-            "",
+            **envelope,
+            kind="unknown",
+            function=code,
+            name=f"function {code:02X}",
+            fields=fields,
+            warnings=[f"function code {code:02X} is not one the codec knows"],
+            error="",
         )
     request, request_error = _try_request(pdu) if direction != "response" else (None, "not tried")
     reply, reply_error, reply_warnings = (None, "not tried", [])
@@ -587,17 +603,12 @@ def describe_pdu(
             fields.append(Field("undecoded", rest, rest.hex(" ").upper()))
     head = [Field("function", pdu[:1], code, f"{code:02X} {kind.name}")]
     return Described(
-        framing,
-        adu,
-        unit,
-        pdu,
-        chosen,
-        code,
-        kind.name,
-        head + fields,
-        ok,
-        verdict,
-        warnings,
-        error,
-        request if chosen in ("request", "request or echo") else None,
+        **envelope,
+        kind=chosen,
+        function=code,
+        name=kind.name,
+        fields=head + fields,
+        warnings=warnings,
+        error=error,
+        request=request if chosen in ("request", "request or echo") else None,
     )
