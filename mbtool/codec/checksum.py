@@ -54,6 +54,20 @@ def crc16(data: bytes) -> int:
     return crc
 
 
+def crc_ok(buffer, start: int = 0, size: int | None = None) -> bool:
+    """Do the ``size`` bytes at ``start`` (all of them by default) end with their CRC, low byte
+    first?  The one CRC check of every RTU reader: framers, resync, monitor, decode.
+    A frame has at least 4 bytes: unit, function code, CRC (spec §2)."""
+    if size is None:
+        size = len(buffer) - start
+    end = start + size - 2
+    return (
+        size >= 4
+        and start + size <= len(buffer)
+        and crc16(buffer[start:end]) == buffer[end] | buffer[end + 1] << 8
+    )
+
+
 def crc_bytes(data: bytes) -> bytes:
     """The CRC as it goes on the wire: low byte first."""
     return crc16(data).to_bytes(2, "little")

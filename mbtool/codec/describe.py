@@ -12,7 +12,7 @@ from __future__ import annotations
 import binascii
 import struct
 
-from mbtool.codec.checksum import crc16, lrc
+from mbtool.codec.checksum import crc_ok, lrc
 from mbtool.codec.errors import ProtocolError, RequestError, exception_name
 from mbtool.codec.pdu import ExceptionResponse, Request, function_type
 from mbtool.codec.record import record
@@ -69,10 +69,6 @@ def _looks_tcp(data: bytes) -> bool:
     return len(data) >= 8 and data[2:4] == b"\x00\x00" and int.from_bytes(data[4:6], "big") == len(data) - 6
 
 
-def _crc_ok(data: bytes) -> bool:
-    return len(data) >= 4 and crc16(data[:-2]) == int.from_bytes(data[-2:], "little")
-
-
 def split_frame(
     text: str, framing: str | None = None
 ) -> tuple[str, bytes, int | None, bytes, bool | None, str]:
@@ -94,7 +90,7 @@ def split_frame(
         return "ascii", body, body[0], body[1:-1], ok, verdict
     data = parse_hex(stripped)
     if framing is None:
-        framing = "rtu" if _crc_ok(data) or not _looks_tcp(data) else "tcp"
+        framing = "rtu" if crc_ok(data) or not _looks_tcp(data) else "tcp"
     if framing == "tcp":
         if len(data) < 8:
             raise RequestError(f"MBAP frame too short: {len(data)} bytes (7-byte header and a function code)")
@@ -111,12 +107,9 @@ def split_frame(
         raise RequestError(
             f"RTU frame too short: {len(data)} bytes (unit, function and 2 CRC bytes at least)"
         )
-    expected = crc16(data[:-2])
-    ok = expected == int.from_bytes(data[-2:], "little")
-    verdict = f"CRC {data[-2]:02X} {data[-1]:02X} " + (
-        "ok" if ok else f"BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
-    )
-    return "rtu", data, data[0], data[1:-2], ok, verdict
+    from mbtool.codec.framing import crc_verdict
+
+    return "rtu", data, data[0], data[1:-2], crc_ok(data), crc_verdict(data)
 
 
 # --- field helpers ----------------------------------------------------------------------------

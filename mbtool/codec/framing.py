@@ -16,8 +16,9 @@ import binascii
 import re
 import struct
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable
 
-from mbtool.codec.checksum import crc16, lrc
+from mbtool.codec.checksum import crc16, crc_ok, lrc
 from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
@@ -159,11 +160,95 @@ class Framer(ABC):
     def _pdu_length(self, pdu: bytes) -> int | None:
         return pdu_length(pdu, self.responses, self.expect)
 
-    def _crc_ok(self, start: int, size: int) -> bool:
-        """Does the frame of ``size`` bytes at ``start`` end with its right CRC (low byte first)?"""
-        buf = self._buffer
-        end = start + size - 2
-        return size >= 4 and crc16(buf[start:end]) == buf[end] | buf[end + 1] << 8
+
+def crc_verdict(adu: bytes) -> str:
+    """An RTU frame's CRC in words, as --hex, decode and monitor show it: "CRC 0E 84 ok"."""
+    if len(adu) < 3:
+        return "CRC missing"
+    if crc_ok(adu):
+        return f"CRC {adu[-2]:02X} {adu[-1]:02X} ok"
+    expected = crc16(adu[:-2])
+    return f"CRC {adu[-2]:02X} {adu[-1]:02X} BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
+
+
+class Verdict:
+    """What judging one offset as a frame start tells, when it tells for good."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+FRAME = Verdict("FRAME")  # a whole frame with a good CRC starts here
+NO_FRAME = Verdict("NO_FRAME")  # none starts here, whatever bytes follow
+# Any other verdict is an int: the stream position the bytes must reach before it can tell.
+
+
+class FrameSearch:
+    """Where a whole RTU frame with a good CRC starts inside a buffer: resync (spec §2: an
+    RTU frame has no start mark; only its length rule and its CRC tell one).  The master's
+    and the device's framers and the bus monitor all search with it.
+
+    Positions are absolute stream positions (bytes are only ever appended at the end and
+    dropped at the front, so a position's bytes never change).  Each offset is judged once
+    for good, or kept pending until the bytes that decide it have come, and only judged
+    again then: garbage costs linear time (without it each byte of garbage rescanned the
+    whole buffer, and 64 KiB took a second).
+    """
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every judgement: what decides a verdict has changed (another request)."""
+        self.scanned = 0  # every position below it has been judged...
+        self.pending: list[tuple[int, int]] = []  # ...and these may still start a frame: (position, wake)
+
+    def find(
+        self,
+        base: int,
+        fed: int,
+        end: int,
+        last: int,
+        judge: Callable[[int], Verdict | int],
+        starts: Callable[[int, int], Iterable[int]],
+    ) -> int | None:
+        """The first offset in 1..end-1 where ``judge`` (given an offset into the buffer, whose
+        first byte is at stream position ``base``; ``fed`` bytes so far) finds a frame.
+        New offsets are taken from ``starts(lo, hi)`` up to ``last``: the others are not worth
+        judging (yet)."""
+        pending = self.pending
+        if pending and pending[0][0] <= base:
+            pending = [entry for entry in pending if entry[0] > base]
+        still = []
+        for index, entry in enumerate(pending):
+            position, wake = entry
+            if position >= base + end:
+                still += pending[index:]
+                break
+            if wake > fed:
+                still.append(entry)  # the bytes that decide it have not all come
+                continue
+            verdict = judge(position - base)
+            if verdict is FRAME:
+                self.pending = still + pending[index + 1 :]
+                return position - base
+            if verdict is not NO_FRAME:
+                still.append((position, verdict))
+        self.pending = still
+        first = max(self.scanned - base, 1)
+        if first < last:
+            for start in starts(first, last):
+                verdict = judge(start)
+                if verdict is FRAME:
+                    self.scanned = base + start + 1
+                    return start
+                if verdict is not NO_FRAME:
+                    self.pending.append((base + start, verdict))
+            self.scanned = base + last
+        return None
 
 
 # Which offsets an RTU framer judges as frame starts, per (framer class, responses,
@@ -191,14 +276,8 @@ class RtuFramer(Framer):
 
     def __init__(self, responses: bool = True) -> None:
         super().__init__(responses)
-        # The resync scan's memory, in absolute stream positions (bytes are only ever
-        # appended at the end and dropped at the front, so a position's bytes never
-        # change): every position below _scanned has been looked at, and those that
-        # may still start a frame once more bytes arrive are in _pending.  Without it
-        # each byte of garbage rescanned the whole buffer: 64 KiB took a second.
-        self._fed = 0
-        self._scanned = 0
-        self._pending: list[tuple[int, int]] = []  # (position, bytes fed before it can tell)
+        self._fed = 0  # bytes fed so far: the resync's positions are absolute
+        self._search = FrameSearch()
         self._scan_expect: Request | None = None
         self._scan_unit: int | None = None
         self._judge_starts_for(None, None)
@@ -226,13 +305,7 @@ class RtuFramer(Framer):
         return body + crc16(body).to_bytes(2, "little")
 
     def check(self, adu: bytes) -> str:
-        if len(adu) < 3:
-            return "CRC missing"
-        received = int.from_bytes(adu[-2:], "little")
-        expected = crc16(adu[:-2])
-        if received == expected:
-            return f"CRC {adu[-2]:02X} {adu[-1]:02X} ok"
-        return f"CRC {adu[-2]:02X} {adu[-1]:02X} BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
+        return crc_verdict(adu)
 
     def _parse(self):
         # next_event() asks again after handing over the garbage; until bytes come or go
@@ -258,7 +331,7 @@ class RtuFramer(Framer):
             # Noise before a reply can look like the head of a long frame; without
             # this the real reply would wait inside that phantom frame until the deadline.
             return self._skip_to_frame(min(len(buf), size))
-        if self._crc_ok(0, size):
+        if crc_ok(self._buffer, 0, size):
             return self._whole(bytes(buf[:size]))
         # A bad checksum: either noise before a good frame that starts inside, or
         # a corrupted frame, reported whole (one line in the trace, not fragments).
@@ -349,8 +422,7 @@ class RtuFramer(Framer):
             self._scan_expect, self._scan_unit = self.expect, self.expect_unit
             self._judge_starts_for(self.expect, self.expect_unit)
             self._sizes_for(self.expect)
-            self._scanned = 0
-            self._pending = []
+            self._search.reset()
 
     def _garbage_up_to_a_start(self, skip: int, error: FrameError):
         """(bytes to skip, why) for a rejected front, stretched over the offsets behind it
@@ -396,49 +468,18 @@ class RtuFramer(Framer):
     def _skip_to_frame(self, end: int):
         """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.
 
-        Each offset is judged once for good (no frame can start there, whatever follows)
-        or kept pending until the bytes that decide it arrive, and only judged again then,
-        so garbage costs linear time; only the offsets _starts picks out are judged at all.
+        Only the offsets _starts picks out are judged.  An offset is picked out by its byte
+        and the next one: the last byte waits for its follower (no whole frame can start
+        there yet anyway).
         """
         buf = self._buffer
         base = self._fed - len(buf)  # the absolute position of buf[0]
-        pending = self._pending
-        if pending and pending[0][0] <= base:
-            pending = [entry for entry in pending if entry[0] > base]
-        still = []
-        for index, entry in enumerate(pending):
-            position, wake = entry
-            if position >= base + end:
-                still += pending[index:]
-                break
-            if wake > self._fed:
-                still.append(entry)  # the bytes that decide it have not all come
-                continue
-            verdict = self._frame_at(position - base)
-            if verdict is True:
-                self._pending = still + pending[index + 1 :]
-                return self._noise(position - base)
-            if verdict is not False:
-                still.append((position, verdict))
-        self._pending = still
-        # An offset is picked out by its byte and the next one: the last byte waits for its
-        # follower (no whole frame can start there yet anyway).
-        stop = min(end, len(buf) - 1)
-        first = max(self._scanned - base, 1)
-        if first < stop:
-            for start in self._starts(first, stop):
-                verdict = self._frame_at(start)
-                if verdict is True:
-                    self._scanned = base + start + 1
-                    return self._noise(start)
-                if verdict is not False:
-                    self._pending.append((base + start, verdict))
-            self._scanned = base + stop
-        return None
+        found = self._search.find(base, self._fed, end, min(end, len(buf) - 1), self._frame_at, self._starts)
+        return None if found is None else self._noise(found)
 
-    def _frame_at(self, start: int) -> bool | int:
-        """Does a whole, valid frame start here: True, False for good, or (an int) how many
-        bytes must have been fed before more bytes can tell."""
+    def _frame_at(self, start: int) -> Verdict | int:
+        """Does a whole, valid frame start here: FRAME, NO_FRAME, or (an int) how many bytes
+        must have been fed before more bytes can tell (FrameSearch)."""
         buf = self._buffer
         base = self._fed - len(buf)
         if self.responses and start + 2 <= len(buf):
@@ -447,17 +488,17 @@ class RtuFramer(Framer):
                 # An exception reply, half of all garbage bytes: 5 bytes, whatever was asked.
                 if start + 5 > len(buf):
                     return base + start + 5
-                return self._crc_ok(start, 5)
+                return FRAME if crc_ok(buf, start, 5) else NO_FRAME
             if function_type(code) is None and (self.expect is None or code != self.expect.function_code):
-                return False  # a code nobody knows or asked for starts no frame
+                return NO_FRAME  # a code nobody knows or asked for starts no frame
         size = self._frame_size(start)
         if size is None:
             return self._fed + 1  # the bytes that tell its length have not all come
         if not isinstance(size, int):
-            return False
+            return NO_FRAME
         if start + size > len(buf):
             return base + start + size
-        return self._crc_ok(start, size)
+        return FRAME if crc_ok(buf, start, size) else NO_FRAME
 
     def _noise(self, start: int):
         return start, FrameError(f"{start} bytes of noise before a frame", bytes(self._buffer[:start]))
@@ -635,7 +676,12 @@ class TcpFramer(Framer):
         buf = self._buffer
         if not self._garbage:  # only the first bad byte of a run is reported: look only there
             size = self._pdu_length(bytes(buf[1:]))
-            if size is not None and size != UNKNOWN and len(buf) >= size + 3 and self._crc_ok(0, size + 3):
+            if (
+                size is not None
+                and size != UNKNOWN
+                and len(buf) >= size + 3
+                and crc_ok(self._buffer, 0, size + 3)
+            ):
                 why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
         return FrameError(why, bytes(buf[:MBAP_HEADER]))
 

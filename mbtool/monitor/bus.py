@@ -21,12 +21,11 @@ exactly one BusFrame.
 from __future__ import annotations
 
 from bisect import bisect_right
-from heapq import heappop, heappush
 
-from mbtool.codec.checksum import crc16
+from mbtool.codec.checksum import crc_ok
 from mbtool.codec.describe import Described, describe_pdu, split_frame
 from mbtool.codec.errors import ChecksumError, ProtocolError
-from mbtool.codec.framing import RTU_MAX_ADU, AsciiFramer, Frame
+from mbtool.codec.framing import FRAME, NO_FRAME, RTU_MAX_ADU, AsciiFramer, Frame, FrameSearch, Verdict
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, function_type, pdu_length
 from mbtool.codec.record import record
 
@@ -117,10 +116,9 @@ class BusMonitor:
         self._garbage_note = ""
         self._pending: BusFrame | None = None  # the request waiting for its response
         self._late: BusFrame | None = None  # timed out; its response may still come before the next request
-        # The inner-frame search's memory (_frame_inside): offsets waiting for bytes, as
+        # Where a good frame starts inside the buffer: the framers' resync (FrameSearch).
         # (stream position that decides them, offset), and where unseen offsets begin.
-        self._waiting: list[tuple[int, int]] = []
-        self._scan_from = 0
+        self._search = FrameSearch()
         # Every function module loaded now, not while the first frame is being read: the
         # codec loads them on the first look-up of a code it has not seen.
         function_type(0)
@@ -265,9 +263,9 @@ class BusMonitor:
         for direction, size in readings:
             if size is None or size > n:
                 waiting = True
-            elif size != UNKNOWN and self._crc_ok(0, size):
+            elif size != UNKNOWN and crc_ok(self._buffer, 0, size):
                 return size, direction, ""
-        if quiet and n >= MIN_RTU_FRAME and n <= RTU_MAX_ADU and self._crc_ok(0, n):
+        if quiet and n >= MIN_RTU_FRAME and n <= RTU_MAX_ADU and crc_ok(self._buffer, 0, n):
             # Only silence ends a function code the codec does not know (spec §2).
             return n, self._guess(0), ""
         if quiet or not waiting:
@@ -318,41 +316,14 @@ class BusMonitor:
                 readings.append((direction, 1 + length + 2))
         return readings
 
-    def _crc_ok(self, start: int, size: int) -> bool:
-        data = self._buffer[start : start + size]
-        return len(data) == size >= MIN_RTU_FRAME and crc16(bytes(data[:-2])) == data[-2] | data[-1] << 8
-
     def _frame_inside(self) -> int | None:
-        """The first offset past 0 where a whole frame with a good CRC sits in the buffer.
-
-        Each offset is judged once: for good (no frame starts there), or it waits in a heap
-        until the bytes that decide it have come, so garbage costs linear time, not a
-        rescan of the buffer per byte (as the codec's RTU framer does it).
-        """
+        """The first offset past 0 where a whole frame with a good CRC sits in the buffer."""
         n = len(self._buffer)
-        base = self._fed - n  # the absolute stream position of the buffer's first byte
-        end = base + n
-        ready = []
-        while self._waiting and self._waiting[0][0] <= end:
-            position = heappop(self._waiting)[1]
-            if position > base:
-                ready.append(position)
-        first_new = max(self._scan_from, base + 1)
-        self._scan_from = max(first_new, end - MIN_RTU_FRAME + 1)
-        ready = sorted(ready) + list(range(first_new, end - MIN_RTU_FRAME + 1))
-        for index, position in enumerate(ready):
-            wake = self._frame_at(position - base)
-            if wake is True:
-                for later in ready[index + 1 :]:
-                    heappush(self._waiting, (end, later))  # not judged yet: at the next look
-                return position - base
-            if wake is not None:
-                heappush(self._waiting, (wake, position))
-        return None
+        return self._search.find(self._fed - n, self._fed, n, n - 1, self._frame_at, range)
 
-    def _frame_at(self, start: int) -> bool | int | None:
-        """True: a whole frame with a good CRC starts here; None: none ever will; else the
-        absolute stream position up to which bytes must come before it can be told."""
+    def _frame_at(self, start: int) -> Verdict | int:
+        """FRAME: a whole frame with a good CRC starts here; NO_FRAME: none ever will; else
+        the absolute stream position up to which bytes must come before it can be told."""
         n = len(self._buffer)
         base = self._fed - n
         wake = None
@@ -362,9 +333,9 @@ class BusMonitor:
             if size is None or start + size > n:
                 need = base + n + 1 if size is None else base + start + size
                 wake = need if wake is None else min(wake, need)
-            elif self._crc_ok(start, size):
-                return True
-        return wake
+            elif crc_ok(self._buffer, start, size):
+                return FRAME
+        return NO_FRAME if wake is None else wake
 
     def _plausible(self, start: int) -> bool:
         """Could a damaged frame start here: a function code (or its exception) the codec knows."""
@@ -459,5 +430,5 @@ class BusMonitor:
         if direction == "request" and ok and unit != 0:
             # A slave answers neither a broadcast nor a frame with a bad checksum (spec §2).
             self._pending = frame
-        self._waiting, self._scan_from = [], 0  # readings depend on the request waiting: judge afresh
+        self._search.reset()  # readings depend on the request waiting: judge afresh
         return out + [frame]
