@@ -9,7 +9,8 @@ import json
 import pytest
 
 from mbtool.cli.render import Report, Row, render
-from mbtool.codec.describe import describe, mask_formula, parse_hex, split_frame
+from mbtool.codec.data_access import mask_formula
+from mbtool.codec.describe import describe, parse_hex, split_frame
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import RtuFramer
 from mbtool.codec.modicon import (

@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
+from mbtool.codec.dissect import Field, bit_fields, count16, register_fields, u8, u16
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
@@ -45,6 +46,17 @@ def _address_and_count(pdu: bytes, name: str) -> tuple[int, int]:
     return struct.unpack_from(">HH", pdu, 1)
 
 
+def mask_formula(and_mask: int, or_mask: int) -> str:
+    """FC22 in words: (current AND and) OR (or AND NOT and), spec §3 (not seed 002's formula)."""
+    forced_on = or_mask & ~and_mask & 0xFFFF
+    forced_off = ~and_mask & ~or_mask & 0xFFFF
+    return (
+        f"(current AND 0x{and_mask:04X}) OR (0x{or_mask:04X} AND NOT 0x{and_mask:04X})"
+        f" = (current AND 0x{and_mask:04X}) OR 0x{forced_on:04X}: keeps bits 0x{and_mask:04X},"
+        f" sets 0x{forced_on:04X}, clears 0x{forced_off:04X}"
+    )
+
+
 # --- reads: FC 01 / 02 (bits) and 03 / 04 (registers) ----------------------------
 
 
@@ -62,6 +74,12 @@ class BitsResponse(Response):
     def encode(self) -> bytes:
         data = pack_bits(self.bits)
         return bytes([self.function_code, len(data)]) + data
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        count, first = getattr(request, "count", None), getattr(request, "address", None)
+        what = "coils" if pdu[0] == 0x01 else "inputs"
+        return [u8(pdu, 1, "byte_count")] + bit_fields(pdu, 2, len(pdu), first, count, what)
 
     @classmethod
     def decode(cls, pdu: bytes) -> BitsResponse:
@@ -88,6 +106,11 @@ class RegistersResponse(Response):
         return bytes([self.function_code, 2 * len(self.registers)]) + pack_registers(self.registers)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        first = getattr(request, "address", getattr(request, "read_address", None))
+        return [u8(pdu, 1, "byte_count")] + register_fields(pdu, 2, len(pdu), first)
+
+    @classmethod
     def decode(cls, pdu: bytes) -> RegistersResponse:
         if len(pdu) < 2:
             raise DecodeError("registers reply is shorter than its byte count field", pdu)
@@ -110,6 +133,10 @@ class _ReadBits(Request):
 
     def encode_data(self) -> bytes:
         return struct.pack(">HH", self.address, self.count)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
 
     @classmethod
     def decode(cls, pdu: bytes) -> _ReadBits:
@@ -171,6 +198,10 @@ class _ReadRegisters(Request):
         return struct.pack(">HH", self.address, self.count)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
+
+    @classmethod
     def decode(cls, pdu: bytes) -> _ReadRegisters:
         return cls(*_address_and_count(pdu, cls.name))
 
@@ -216,6 +247,12 @@ class WriteSingleCoil(Request, Response):
         return struct.pack(">HH", self.address, COIL_ON if self.on else COIL_OFF)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        value = int.from_bytes(pdu[3:5], "big")
+        state = {COIL_ON: "ON", COIL_OFF: "OFF"}.get(value, "invalid: neither FF00 nor 0000")
+        return [u16(pdu, 1, "output_address"), u16(pdu, 3, "output_value", f"0x{value:04X} {state}")]
+
+    @classmethod
     def decode(cls, pdu: bytes) -> WriteSingleCoil:
         address, value = _address_and_count(pdu, cls.name)
         if value not in (COIL_ON, COIL_OFF):
@@ -251,6 +288,10 @@ class WriteSingleRegister(Request, Response):
         return struct.pack(">HH", self.address, self.value)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [u16(pdu, 1, "register_address"), u16(pdu, 3, "register_value")]
+
+    @classmethod
     def decode(cls, pdu: bytes) -> WriteSingleRegister:
         return cls(*_address_and_count(pdu, cls.name))
 
@@ -274,6 +315,10 @@ class WriteMultipleResponse(Response):
 
     def encode(self) -> bytes:
         return struct.pack(">BHH", self.function_code, self.address, self.count)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
 
     @classmethod
     def decode(cls, pdu: bytes) -> WriteMultipleResponse:
@@ -322,6 +367,12 @@ class WriteMultipleCoils(_WriteMultiple):
         return struct.pack(">HHB", self.address, len(self.values), len(data)) + data
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        count, address = int.from_bytes(pdu[3:5], "big"), int.from_bytes(pdu[1:3], "big")
+        head = [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity"), u8(pdu, 5, "byte_count")]
+        return head + bit_fields(pdu, 6, len(pdu), address, count, "coils")
+
+    @classmethod
     def decode(cls, pdu: bytes) -> WriteMultipleCoils:
         address, count, data = cls._split(pdu)
         check_quantity(count, MAX_WRITE_COILS, "coils")
@@ -348,6 +399,12 @@ class WriteMultipleRegisters(_WriteMultiple):
     def encode_data(self) -> bytes:
         n = len(self.values)
         return struct.pack(">HHB", self.address, n, 2 * n) + pack_registers(self.values)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        address = int.from_bytes(pdu[1:3], "big")
+        head = [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity"), u8(pdu, 5, "byte_count")]
+        return head + register_fields(pdu, 6, len(pdu), address)
 
     @classmethod
     def decode(cls, pdu: bytes) -> WriteMultipleRegisters:
@@ -390,6 +447,17 @@ class MaskWriteRegister(Request, Response):
 
     def encode_data(self) -> bytes:
         return struct.pack(">HHH", self.address, self.and_mask, self.or_mask)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        and_mask, or_mask = int.from_bytes(pdu[3:5], "big"), int.from_bytes(pdu[5:7], "big")
+        formula = mask_formula(and_mask, or_mask)
+        return [
+            u16(pdu, 1, "reference_address"),
+            u16(pdu, 3, "and_mask", f"0x{and_mask:04X}"),
+            u16(pdu, 5, "or_mask", f"0x{or_mask:04X}"),
+            Field("result", b"", formula, formula),
+        ]
 
     @classmethod
     def decode(cls, pdu: bytes) -> MaskWriteRegister:
@@ -440,6 +508,17 @@ class ReadWriteMultipleRegisters(Request):
         return head + pack_registers(self.values)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        write_address = int.from_bytes(pdu[5:7], "big")
+        return [
+            u16(pdu, 1, "read_starting_address"),
+            count16(pdu, 3, "quantity_to_read"),
+            u16(pdu, 5, "write_starting_address"),
+            count16(pdu, 7, "quantity_to_write"),
+            u8(pdu, 9, "write_byte_count"),
+        ] + register_fields(pdu, 10, len(pdu), write_address)
+
+    @classmethod
     def decode(cls, pdu: bytes) -> ReadWriteMultipleRegisters:
         if len(pdu) < 10:
             raise DecodeError(f"{cls.name}: request is shorter than its byte count field", pdu)
@@ -479,6 +558,11 @@ class ReadFifoQueueResponse(Response):
         return struct.pack(">BHH", self.function_code, 2 + 2 * n, n) + pack_registers(self.registers)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        head = [count16(pdu, 1, "byte_count"), count16(pdu, 3, "fifo_count")]
+        return head + register_fields(pdu, 5, len(pdu), None, "fifo")
+
+    @classmethod
     def decode(cls, pdu: bytes) -> ReadFifoQueueResponse:
         if len(pdu) < 5:
             raise DecodeError("FIFO reply is shorter than its byte count and FIFO count fields", pdu)
@@ -507,6 +591,10 @@ class ReadFifoQueue(Request):
 
     def encode_data(self) -> bytes:
         return struct.pack(">H", self.address)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [u16(pdu, 1, "fifo_pointer_address")]
 
     @classmethod
     def decode(cls, pdu: bytes) -> ReadFifoQueue:

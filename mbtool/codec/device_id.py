@@ -11,6 +11,7 @@ from __future__ import annotations
 from enum import IntEnum
 from typing import ClassVar
 
+from mbtool.codec.dissect import Field, text_of, u8
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, ExceptionCode, Request, Response, need, register
 from mbtool.codec.record import record
@@ -125,6 +126,24 @@ class DeviceIdentificationResponse(Response):
         return head + b"".join(bytes([object_id, len(value)]) + value for object_id, value in self.objects)
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        fields = [
+            u8(pdu, 1, "mei_type", f"0x{pdu[1]:02X}"),
+            u8(pdu, 2, "read_device_id_code"),
+            u8(pdu, 3, "conformity_level", f"0x{pdu[3]:02X} {CONFORMITY_LEVELS.get(pdu[3], 'unknown')}"),
+            u8(pdu, 4, "more_follows", "yes" if pdu[4] else "no"),
+            u8(pdu, 5, "next_object_id", f"0x{pdu[5]:02X}"),
+            u8(pdu, 6, "number_of_objects"),
+        ]
+        at = 7
+        for _ in range(pdu[6]):
+            object_id, length = pdu[at], pdu[at + 1]
+            value = bytes(pdu[at + 2 : at + 2 + length])
+            fields.append(Field(object_name(object_id), bytes(pdu[at : at + 2 + length]), text_of(value)))
+            at += 2 + length
+        return fields
+
+    @classmethod
     def decode(cls, pdu: bytes) -> DeviceIdentificationResponse:
         if len(pdu) < HEADER:
             raise DecodeError(f"device identification reply is shorter than its {HEADER}-byte header", pdu)
@@ -179,6 +198,15 @@ class ReadDeviceIdentification(Request):
 
     def encode_data(self) -> bytes:
         return bytes([MEI_TYPE, self.read_code, self.object_id])
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        codes = {1: "basic", 2: "regular", 3: "extended", 4: "one specific object"}
+        return [
+            u8(pdu, 1, "mei_type", f"0x{pdu[1]:02X} read device identification"),
+            u8(pdu, 2, "read_device_id_code", f"{pdu[2]} {codes.get(pdu[2], 'invalid')}"),
+            u8(pdu, 3, "object_id", f"0x{pdu[3]:02X} {OBJECT_NAMES.get(pdu[3], '')}".strip()),
+        ]
 
     @classmethod
     def decode(cls, pdu: bytes) -> ReadDeviceIdentification:

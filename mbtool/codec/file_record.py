@@ -11,6 +11,7 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
+from mbtool.codec.dissect import Field, count16, register_fields, u8
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
@@ -78,6 +79,16 @@ def _reference_type(ref: int) -> None:
 # --- FC 20: Read File Record -------------------------------------------------------------
 
 
+def _group_head(pdu: bytes, at: int, g: int) -> list[Field]:
+    """A sub-request's head (spec §3, FC 20/21): reference type, file, record, length."""
+    return [
+        u8(pdu, at, f"group{g}.reference_type"),
+        count16(pdu, at + 1, f"group{g}.file"),
+        count16(pdu, at + 3, f"group{g}.record"),
+        count16(pdu, at + 5, f"group{g}.length"),
+    ]
+
+
 @record
 class FileRecordRequest:
     """One group of a read: ``length`` registers from ``record`` of ``file``."""
@@ -103,6 +114,17 @@ class ReadFileRecordResponse(Response):
             bytes([1 + 2 * len(values), REFERENCE_TYPE]) + pack_registers(values) for values in self.records
         )
         return bytes([self.function_code, len(body)]) + body
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        out = [u8(pdu, 1, "byte_count")]
+        at, g = 2, 0
+        while at + 2 <= len(pdu):
+            length = pdu[at]
+            out += [u8(pdu, at, f"group{g}.length"), u8(pdu, at + 1, f"group{g}.reference_type")]
+            out += register_fields(pdu, at + 2, min(len(pdu), at + 1 + length), None, f"group{g}.register")
+            at, g = at + 1 + max(length, 1), g + 1
+        return out
 
     @classmethod
     def decode(cls, pdu: bytes) -> ReadFileRecordResponse:
@@ -155,6 +177,15 @@ class ReadFileRecord(Request):
             for group in self.groups
         )
         return bytes([len(body)]) + body
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        out = [u8(pdu, 1, "byte_count")]
+        at, g = 2, 0
+        while at + 7 <= len(pdu):
+            out += _group_head(pdu, at, g)
+            at, g = at + 7, g + 1
+        return out
 
     @classmethod
     def decode(cls, pdu: bytes) -> ReadFileRecord:
@@ -228,6 +259,19 @@ class WriteFileRecord(Request, Response):
     def encode_data(self) -> bytes:
         body = b"".join(group.encode() for group in self.groups)
         return bytes([len(body)]) + body
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        out = [u8(pdu, 1, "byte_count")]
+        at, g = 2, 0
+        while at + 7 <= len(pdu):
+            length = int.from_bytes(pdu[at + 5 : at + 7], "big")
+            out += _group_head(pdu, at, g)
+            out += register_fields(
+                pdu, at + 7, min(len(pdu), at + 7 + 2 * length), None, f"group{g}.register"
+            )
+            at, g = at + 7 + 2 * length, g + 1
+        return out
 
     @classmethod
     def decode(cls, pdu: bytes) -> WriteFileRecord:

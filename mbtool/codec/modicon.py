@@ -323,3 +323,14 @@ MODBUS_PLUS_WORDS: tuple[str, ...] = (
     + _path_words("master program output path command initiated counter, path", 0x81, 4, "X")
     + _path_words("slave program input path command processed counter, path", 0xC1, 4, "X")
 )
+
+
+# Where each Modicon field sits in the device-specific bytes (seed 002, FC17 byte tables).
+MODICON_BYTES = {
+    "status_word": (0, 2),
+    "page0_memory_4k": (0, 1),
+    "state_ram_1k": (1, 1),
+    "segments": (2, 1),
+    "machine_state": (3, 2),
+    "stop_code": (5, 2),
+}

@@ -146,6 +146,12 @@ class Response:
     function_code: ClassVar[int]
     warnings: tuple[str, ...] = field(default=(), kw_only=True, compare=False)
 
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list:
+        """The fields after the function code, as codec.dissect.Field (decode, --hex, monitor);
+        ``request``, when known, names what the fields are (addresses).  None by default."""
+        return []
+
 
 @record
 class ExceptionResponse:
@@ -183,6 +189,12 @@ class Request:
 
     def encode(self) -> bytes:
         return bytes([self.function_code]) + self.encode_data()
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list:
+        """The fields after the function code, as codec.dissect.Field (decode, --hex, --dry-run,
+        monitor).  None by default: FC 07, 0B, 0C and 11 requests are the function code alone."""
+        return []
 
     @property
     def expects_response(self) -> bool:

@@ -11,6 +11,7 @@ import struct
 from enum import IntEnum
 from typing import ClassVar
 
+from mbtool.codec.dissect import Field, busy_status, count16, printable, u8, u16
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     MAX_PDU,
@@ -61,6 +62,12 @@ class ExceptionStatusResponse(Response):
 
     def encode(self) -> bytes:
         return bytes([self.function_code, self.status])
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        status = pdu[1]
+        states = " ".join(f"{b}:{'ON' if status >> b & 1 else 'OFF'}" for b in range(8))
+        return [Field("status", bytes(pdu[1:2]), status, f"0x{status:02X} bits {states}")]
 
     @classmethod
     def decode(cls, pdu: bytes) -> ExceptionStatusResponse:
@@ -212,6 +219,10 @@ class DiagnosticsResponse(Response):
         return struct.pack(">BH", self.function_code, self.sub_function) + self.data
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return Diagnostics.dissect(pdu)  # the reply has the request's layout
+
+    @classmethod
     def decode(cls, pdu: bytes) -> DiagnosticsResponse:
         if len(pdu) < 3:
             raise DecodeError("diagnostics reply is shorter than its sub-function", pdu)
@@ -286,6 +297,19 @@ class Diagnostics(Request):
         return struct.pack(">H", self.sub_function) + self.data
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        sub = int.from_bytes(pdu[1:3], "big")
+        name = SUB_FUNCTION_NAMES.get(sub, "not in the spec")
+        fields = [u16(pdu, 1, "sub_function", f"{sub_function_number(sub)} {name}")]
+        if len(pdu) > 3:
+            data = bytes(pdu[3:])
+            text = data.hex(" ").upper()
+            if len(data) == 2:
+                text += f" ({int.from_bytes(data, 'big')})"
+            fields.append(Field("data", data, int.from_bytes(data, "big") if len(data) <= 8 else text, text))
+        return fields
+
+    @classmethod
     def decode(cls, pdu: bytes) -> Diagnostics:
         if len(pdu) < 3:
             raise DecodeError(f"{cls.name}: request is shorter than its sub-function", pdu)
@@ -354,6 +378,10 @@ class CommEventCounterResponse(Response):
 
     def encode(self) -> bytes:
         return struct.pack(">BHH", self.function_code, self.status, self.event_count)
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        return [busy_status(pdu, 1), count16(pdu, 3, "event_count")]
 
     @classmethod
     def decode(cls, pdu: bytes) -> CommEventCounterResponse:
@@ -447,6 +475,18 @@ class CommEventLogResponse(Response):
         return head + self.events
 
     @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        fields = [
+            u8(pdu, 1, "byte_count"),
+            busy_status(pdu, 2),
+            count16(pdu, 4, "event_count"),
+            count16(pdu, 6, "message_count"),
+        ]
+        for i, byte in enumerate(pdu[8:]):
+            fields.append(Field(f"event[{i}]", bytes([byte]), byte, f"0x{byte:02X} {describe_event(byte)}"))
+        return fields
+
+    @classmethod
     def decode(cls, pdu: bytes) -> CommEventLogResponse:
         if len(pdu) < 2:
             raise DecodeError("comm event log reply is shorter than its byte count field", pdu)
@@ -496,6 +536,29 @@ class ReportSlaveIdResponse(Response):
         if run is None:
             run = RUN_ON if self.run_indicator else RUN_OFF
         return bytes([self.function_code, 2 + len(self.extra), self.slave_id, run]) + self.extra
+
+    @classmethod
+    def dissect(cls, pdu: bytes, request=None) -> list[Field]:
+        from mbtool.codec.modicon import MODICON_BYTES, SLAVE_IDS, modicon_fields, modicon_layout
+
+        slave_id, run = pdu[2], pdu[3]
+        extra = bytes(pdu[4:])
+        layout = modicon_layout(slave_id, extra)
+        id_text = str(slave_id) + (f" (Modicon {SLAVE_IDS[slave_id]})" if layout else "")
+        run_text = {0xFF: "ON", 0x00: "OFF"}.get(run, f"0x{run:02X}: neither 00 (OFF) nor FF (ON)")
+        fields = [
+            u8(pdu, 1, "byte_count"),
+            u8(pdu, 2, "slave_id", id_text),
+            u8(pdu, 3, "run_indicator", run_text),
+        ]
+        if layout:
+            for name, value, text in modicon_fields(layout, extra):
+                at, size = MODICON_BYTES.get(name) or (2 + 2 * int(name.removeprefix("pib_")), 2)
+                fields.append(Field(name, extra[at : at + size], value, text))
+        elif extra:
+            shown = extra.hex(" ").upper()
+            fields.append(Field("extra", extra, shown, f'{shown} "{printable(extra)}"'))
+        return fields
 
     @classmethod
     def decode(cls, pdu: bytes) -> ReportSlaveIdResponse:

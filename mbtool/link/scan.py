@@ -114,8 +114,8 @@ def probe_request(function: str, address: int, count: int):
 def _reply_answer(unit: int, reply, ms: float | None) -> Answer:
     """What a reply says about the device, for people (text) and for scripts (fields)."""
     from mbtool.codec.data_access import BitsResponse, RegistersResponse
-    from mbtool.codec.describe import printable, text_of
     from mbtool.codec.device_id import DeviceIdentificationResponse
+    from mbtool.codec.dissect import printable, text_of
     from mbtool.codec.serial_line import DiagnosticsResponse, ReportSlaveIdResponse
 
     fields: dict = {}

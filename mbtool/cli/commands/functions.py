@@ -117,7 +117,7 @@ def report_id(connection):
     state, stop code).
     """
     from mbtool.cli.render import Report, Row
-    from mbtool.codec.describe import printable
+    from mbtool.codec.dissect import printable
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
     from mbtool.codec.serial_line import ReportSlaveId
 
@@ -234,8 +234,7 @@ def mask_write_register(connection, address, and_mask, or_mask):
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
     from mbtool.cli.render import Report, Row
-    from mbtool.codec.data_access import MaskWriteRegister
-    from mbtool.codec.describe import mask_formula
+    from mbtool.codec.data_access import MaskWriteRegister, mask_formula
 
     request = MaskWriteRegister(address, and_mask, or_mask)
     execute(connection, request)
@@ -331,8 +330,8 @@ def device_id(connection, level, object_id):
     """
     from mbtool.cli.render import Report, Row
     from mbtool.cli.session import open_client
-    from mbtool.codec.describe import text_of
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
+    from mbtool.codec.dissect import text_of
     from mbtool.codec.errors import FrameError
 
     objects: dict[int, bytes] = {}
