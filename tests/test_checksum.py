@@ -94,3 +94,16 @@ def test_lrc_makes_the_sum_zero(data):
 @given(st.binary(max_size=64))
 def test_crc_residue_is_zero(data):
     assert crc16(data + crc_bytes(data)) == 0
+
+
+def test_the_crc_verdict_never_contradicts_itself():
+    """A 3-byte frame (unit and CRC) that the hex trace shows: a matching CRC is ok, never
+    "BAD, expected" the very bytes it carries; crc_ok still refuses it as a frame."""
+    from mbtool.codec.checksum import crc_ok
+    from mbtool.codec.framing import RtuFramer
+
+    short = b"\x07" + crc_bytes(b"\x07")
+    assert RtuFramer().check(short) == f"CRC {short[1]:02X} {short[2]:02X} ok"
+    assert not crc_ok(short)
+    bad = b"\x07\x00\x00"
+    assert RtuFramer().check(bad) == f"CRC 00 00 BAD, expected {short[1]:02X} {short[2]:02X}"
