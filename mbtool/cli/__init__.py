@@ -77,18 +77,13 @@ class LazyGroup(QuickHelp, click.Group):
 
     def parse_args(self, ctx, args):
         # `mbtool -p sim:// read-coils 0`: the group has no connection options; say where they go.
-        group_options = {"-h", "--help", "-V", "--version"}
-        first = next((arg for arg in args if not arg.startswith("-") or arg in group_options), None)
-        given = [
-            arg for arg in args[: args.index(first) if first in args else len(args)] if arg.startswith("-")
-        ]
-        stray = [arg for arg in given if arg not in group_options]
         command = next((arg for arg in args if arg in COMMANDS), None)
-        if stray and command:
+        if command is not None:
             before = args[: args.index(command)]
-            after = args[args.index(command) + 1 :]
-            fixed = " ".join(["mbtool", command, *after, *before])
-            raise click.UsageError(f"options follow the command: {fixed}", ctx)
+            own = {name for param in self.get_params(ctx) for name in param.opts}  # -h, -V
+            if any(arg.startswith("-") and arg not in own for arg in before):
+                fixed = " ".join(["mbtool", command, *args[args.index(command) + 1 :], *before])
+                raise click.UsageError(f"options follow the command: {fixed}", ctx)
         return super().parse_args(ctx, args)
 
     def resolve_command(self, ctx, args):

@@ -10,7 +10,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from mbtool.cli.render import local_time
+from mbtool.cli.render import as_dict, error_json, local_time, to_json, value_text, wants_csv_header
 from mbtool.errors import OutputFailed, exit_code_for
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
@@ -30,14 +30,10 @@ class Output:
         self._flush_at = 0.0
 
     def result(self, when: str, result) -> None:
-        from mbtool.cli.render import as_dict, value_text
-
         if self.fmt == "json":
             self._emit(_json_line({"time": when, **as_dict(result)}))
         elif self.fmt == "csv":
             if not self.header_done:
-                from mbtool.cli.render import wants_csv_header
-
                 if wants_csv_header(self.out):
                     self._emit("time,address,value\n")
                 self.header_done = True
@@ -52,8 +48,6 @@ class Output:
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt == "json":
             # jq consumers read stdout only: a failed poll must show up there too.
-            from mbtool.cli.render import error_json
-
             code = int(exit_code_for(error))
             self._emit(error_json(str(error), code, time=when) + "\n", now=True)
 
@@ -80,8 +74,6 @@ class Output:
         from rich.live import Live
         from rich.table import Table
         from rich.text import Text
-
-        from mbtool.cli.render import value_text
 
         # The heading above, not as the table's title: a title wraps to the table's width.
         heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
@@ -152,8 +144,6 @@ def _json_line(data: dict) -> str:
     try:
         return _ENCODER.encode(data) + "\n"
     except ValueError:
-        from mbtool.cli.render import to_json
-
         return to_json(data) + "\n"
 
 

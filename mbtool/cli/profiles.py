@@ -57,34 +57,35 @@ def config_path() -> Path:
     return Path(base) / "mbtool" / "config.toml"
 
 
-def names() -> list[str]:
-    """The profiles the config file defines, for completion: none if it cannot be read."""
+def _read(path: Path) -> dict:
+    """The config file as TOML; RequestError (exit 2) naming the file for any problem."""
     import tomllib
 
-    try:
-        with config_path().open("rb") as file:
-            profiles = tomllib.load(file).get("profiles", {})
-    except (OSError, ValueError):
-        return []
-    return sorted(profiles) if isinstance(profiles, dict) else []
-
-
-def load(name: str, path: Path | None = None) -> dict:
-    """The settings of profile ``name``; RequestError (exit 2) naming the file for any problem."""
-    import tomllib
-
-    path = path or config_path()
     try:
         with open(path, "rb") as file:
             text = file.read().decode("utf-8")
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except OSError as error:
         raise RequestError(f"cannot read profile file {path}: {error.strerror or error}") from None
     except UnicodeDecodeError as error:
         raise RequestError(f"{path}: not UTF-8 text (byte {error.start}), as TOML must be") from None
     except tomllib.TOMLDecodeError as error:
         raise RequestError(f"{path}: not valid TOML: {error}") from None
-    profiles = data.get("profiles", {})
+
+
+def names() -> list[str]:
+    """The profiles the config file defines, for completion: none if it cannot be read."""
+    try:
+        profiles = _read(config_path()).get("profiles", {})
+    except RequestError:
+        return []
+    return sorted(profiles) if isinstance(profiles, dict) else []
+
+
+def load(name: str, path: Path | None = None) -> dict:
+    """The settings of profile ``name``; RequestError (exit 2) naming the file for any problem."""
+    path = path or config_path()
+    profiles = _read(path).get("profiles", {})
     if not isinstance(profiles, dict) or not isinstance(profiles.get(name, {}), dict):
         raise RequestError(f"{path}: [profiles.{name}] must be a table")
     if name not in profiles:

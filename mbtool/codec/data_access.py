@@ -46,6 +46,11 @@ def _address_and_count(pdu: bytes, name: str) -> tuple[int, int]:
     return struct.unpack_from(">HH", pdu, 1)
 
 
+def _address_and_count_fields(pdu: bytes) -> list[Field]:
+    """The fields _address_and_count reads: FC 01-04 requests, FC 0F/10 requests and replies."""
+    return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
+
+
 def mask_formula(and_mask: int, or_mask: int) -> str:
     """FC22 in words: (current AND and) OR (or AND NOT and), spec §3 (not seed 002's formula)."""
     forced_on = or_mask & ~and_mask & 0xFFFF
@@ -136,7 +141,7 @@ class _ReadBits(Request):
 
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
-        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
+        return _address_and_count_fields(pdu)
 
     @classmethod
     def decode(cls, pdu: bytes) -> _ReadBits:
@@ -199,7 +204,7 @@ class _ReadRegisters(Request):
 
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
-        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
+        return _address_and_count_fields(pdu)
 
     @classmethod
     def decode(cls, pdu: bytes) -> _ReadRegisters:
@@ -318,7 +323,7 @@ class WriteMultipleResponse(Response):
 
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
-        return [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity")]
+        return _address_and_count_fields(pdu)
 
     @classmethod
     def decode(cls, pdu: bytes) -> WriteMultipleResponse:
@@ -369,7 +374,7 @@ class WriteMultipleCoils(_WriteMultiple):
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
         count, address = int.from_bytes(pdu[3:5], "big"), int.from_bytes(pdu[1:3], "big")
-        head = [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity"), u8(pdu, 5, "byte_count")]
+        head = _address_and_count_fields(pdu) + [u8(pdu, 5, "byte_count")]
         return head + bit_fields(pdu, 6, len(pdu), address, count, "coils")
 
     @classmethod
@@ -403,7 +408,7 @@ class WriteMultipleRegisters(_WriteMultiple):
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
         address = int.from_bytes(pdu[1:3], "big")
-        head = [u16(pdu, 1, "starting_address"), count16(pdu, 3, "quantity"), u8(pdu, 5, "byte_count")]
+        head = _address_and_count_fields(pdu) + [u8(pdu, 5, "byte_count")]
         return head + register_fields(pdu, 6, len(pdu), address)
 
     @classmethod

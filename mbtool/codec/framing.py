@@ -333,7 +333,7 @@ class RtuFramer(Framer):
             # Noise before a reply can look like the head of a long frame; without
             # this the real reply would wait inside that phantom frame until the deadline.
             return self._skip_to_frame(min(len(buf), size))
-        if crc_ok(self._buffer, 0, size):
+        if crc_ok(buf, 0, size):
             return self._whole(bytes(buf[:size]))
         # A bad checksum: either noise before a good frame that starts inside, or
         # a corrupted frame, reported whole (one line in the trace, not fragments).
@@ -678,12 +678,7 @@ class TcpFramer(Framer):
         buf = self._buffer
         if not self._garbage:  # only the first bad byte of a run is reported: look only there
             size = self._pdu_length(bytes(buf[1:]))
-            if (
-                size is not None
-                and size != UNKNOWN
-                and len(buf) >= size + 3
-                and crc_ok(self._buffer, 0, size + 3)
-            ):
+            if size is not None and size != UNKNOWN and crc_ok(buf, 0, size + 3):
                 why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
         return FrameError(why, bytes(buf[:MBAP_HEADER]))
 

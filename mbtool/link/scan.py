@@ -197,8 +197,6 @@ def ask(client, unit: int, request, framer_name: str) -> Answer | str:
 
     Link failures (ConnectionFailed, a closed connection, OSError) are the caller's.
     """
-    from mbtool.link.transport import ConnectionClosed
-
     began = time.monotonic()
     try:
         reply = client.execute(unit, request)

@@ -230,8 +230,8 @@ class SerialTransport(Transport):
             return b""
 
     def close(self) -> None:
-        bridge = getattr(self.port, "_socket", None)
-        if _is_socket_url(self.port) and bridge is not None:
+        bridge, self._bridge = self._bridge, None
+        if bridge is not None:
             # pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects", which
             # every one-shot command would pay on exit; close the bridge's socket at once.
             with contextlib.suppress(OSError):

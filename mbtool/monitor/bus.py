@@ -117,7 +117,6 @@ class BusMonitor:
         self._pending: BusFrame | None = None  # the request waiting for its response
         self._late: BusFrame | None = None  # timed out; its response may still come before the next request
         # Where a good frame starts inside the buffer: the framers' resync (FrameSearch).
-        # (stream position that decides them, offset), and where unseen offsets begin.
         self._search = FrameSearch()
         # Every function module loaded now, not while the first frame is being read: the
         # codec loads them on the first look-up of a code it has not seen.
@@ -263,9 +262,9 @@ class BusMonitor:
         for direction, size in readings:
             if size is None or size > n:
                 waiting = True
-            elif size != UNKNOWN and crc_ok(self._buffer, 0, size):
+            elif size != UNKNOWN and crc_ok(buf, 0, size):
                 return size, direction, ""
-        if quiet and n >= MIN_RTU_FRAME and n <= RTU_MAX_ADU and crc_ok(self._buffer, 0, n):
+        if quiet and n <= RTU_MAX_ADU and crc_ok(buf, 0, n):
             # Only silence ends a function code the codec does not know (spec §2).
             return n, self._guess(0), ""
         if quiet or not waiting:
