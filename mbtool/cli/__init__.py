@@ -19,7 +19,7 @@ from mbtool import __version__
 from mbtool.cli import render
 from mbtool.cli.options import QuickHelp, did_you_mean
 from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
-from mbtool.link.transport import register_scheme
+from mbtool.link import register_scheme
 
 COMPLETE_VAR = "_MBTOOL_COMPLETE"  # Click's name for it: _{PROG}_COMPLETE
 

@@ -44,7 +44,8 @@ from mbtool.codec.record import record
 from mbtool.codec.timing import silent_interval
 from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.transport import IN_PROCESS, Target
+from mbtool.link import IN_PROCESS
+from mbtool.link.transport import Target
 from mbtool.link.transport import parse_target as parse_link_target
 
 TICK = 0.1  # longest wait before the loop looks at the stop flag again

@@ -2,7 +2,7 @@
 
 Frames go through the same device framer and handlers as ``serve``'s, with no
 socket or line in between: a first command works on a machine with nothing
-attached.  The CLI registers it with ``link.transport.register_scheme``.
+attached.  The CLI registers it with ``mbtool.link.register_scheme``.
 """
 
 from __future__ import annotations

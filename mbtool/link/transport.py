@@ -4,7 +4,7 @@
   and ``rfc2217://`` TCP-bridged serial ports, ``loop://`` (pyserial url handlers).
 * Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
 * ``sim://``: the built-in simulated device, answering in-process (registered by
-  the CLI: ``register_scheme``).
+  the CLI: ``mbtool.link.register_scheme``).
 
 Every read waits at most the time it is given (over TCP a wait of 50 ms or more,
 timed by the kernel, may end a few milliseconds late); the client owns the clock.
@@ -21,12 +21,12 @@ import socket
 import struct
 import sys
 import time
-from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.link import IN_PROCESS
 
 MODBUS_TCP_PORT = 502
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
@@ -319,15 +319,6 @@ class TcpTransport(Transport):
 
     def close(self) -> None:
         self.sock.close()
-
-
-# Links that answer in-process, by scheme: ``opener(framer_name)`` opens one.  The master
-# side knows no device; the CLI registers ``sim://`` (mbtool.device's simulated device).
-IN_PROCESS: dict[str, Callable[[str], Transport]] = {}
-
-
-def register_scheme(scheme: str, opener: Callable[[str], Transport]) -> None:
-    IN_PROCESS[scheme] = opener
 
 
 @record
