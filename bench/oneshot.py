@@ -6,7 +6,11 @@ costs at most 1.25 x ``python -c "import click"``.
 
 Starts pymodbus's TCP server (tests/peers/pymodbus_device.py), then runs both
 commands alternately, N times each, and prints the medians and their ratio.
-Run by hand:  python bench/oneshot.py [-n 40]
+With ``--before DIR`` (a checkout of an earlier commit, e.g. from ``git worktree add``)
+the same read is timed from that tree too, in the same loop, so a change's start-up
+cost is measured against the tree it changes rather than against another day's noise.
+
+Run by hand:  python bench/oneshot.py [-n 40] [--before /tmp/before]
 """
 
 from __future__ import annotations
@@ -56,44 +60,57 @@ def timed(command: list[str]) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-n", type=int, default=40, help="runs of each command")
+    parser.add_argument(
+        "--before",
+        type=Path,
+        action="append",
+        default=[],
+        help="an earlier checkout to time side by side (repeatable)",
+    )
     args = parser.parse_args()
 
     # A wheel install compiles .pyc files, as click's were; an editable checkout
     # (or PYTHONDONTWRITEBYTECODE) would otherwise recompile mbtool on every run.
-    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mbtool")], check=True)
+    trees = [ROOT] + [tree.resolve() for tree in args.before]
+    for tree in trees:
+        subprocess.run([sys.executable, "-m", "compileall", "-q", str(tree / "mbtool")], check=True)
     port = free_port()
     device = start_device(port)
+    baseline = [sys.executable, "-c", "import click"]
+    read = ["read-holding-registers", "0", "10", "-p", f"tcp://127.0.0.1:{port}", "-o", "json"]
     # The console script beside this interpreter, not a version manager's shim on PATH
     # (pyenv's shims are bash scripts that would be timed too).
     mbtool = Path(sysconfig.get_path("scripts")) / "mbtool"
     if not mbtool.exists():
         sys.exit(f"bench: {mbtool} not found: install mbtool first (pip install -e .)")
-    baseline = [sys.executable, "-c", "import click"]
-    oneshot = [
-        str(mbtool),
-        "read-holding-registers",
-        "0",
-        "10",
-        "-p",
-        f"tcp://127.0.0.1:{port}",
-        "-o",
-        "json",
-    ]
+    commands = {"python -c 'import click'": baseline, "mbtool read-holding-registers": [str(mbtool), *read]}
+    if args.before:
+        # Both trees started the same way: what the console script does, with the tree
+        # first on the path.
+        launcher = (
+            "import sys; sys.path.insert(0, sys.argv.pop(1)); from mbtool.cli import main; sys.exit(main())"
+        )
+        for tree in trees:
+            commands[f"the read from {tree}"] = [sys.executable, "-c", launcher, str(tree), *read]
+    times: dict[str, list[float]] = {label: [] for label in commands}
     try:
-        for command in (baseline, oneshot):  # warm the page cache and .pyc files
+        for command in commands.values():  # warm the page cache and .pyc files
             timed(command)
-        base, ours = [], []
         for _ in range(args.n):
-            base.append(timed(baseline))
-            ours.append(timed(oneshot))
+            for label, command in commands.items():
+                times[label].append(timed(command))
     finally:
         device.terminate()
         device.wait(5)
 
-    b, o = statistics.median(base), statistics.median(ours)
-    print(f"python -c 'import click'      median {b * 1000:6.1f} ms  (min {min(base) * 1000:.1f})")
-    print(f"mbtool read-holding-registers median {o * 1000:6.1f} ms  (min {min(ours) * 1000:.1f})")
-    print(f"ratio {o / b:.2f}  (target <= 1.25)   runs {args.n} each, {os.cpu_count()} cores")
+    medians = {label: statistics.median(runs) for label, runs in times.items()}
+    base = medians["python -c 'import click'"]
+    for label, runs in times.items():
+        print(
+            f"{label:40} median {medians[label] * 1000:6.1f} ms  (min {min(runs) * 1000:.1f})"
+            f"  ratio {medians[label] / base:.2f}"
+        )
+    print(f"target: a read <= 1.25 x import click   runs {args.n} each, {os.cpu_count()} cores")
 
 
 if __name__ == "__main__":

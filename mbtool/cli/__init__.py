@@ -8,6 +8,7 @@ code of ``errors.ExitCode``.
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -135,6 +136,10 @@ def _terminate(signum, frame):
 
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every outcome leaves through one exit code and at most one stderr line."""
+    # What start-up built (click, the codec's classes) lives until exit.  Frozen (Python's
+    # gc.freeze), the cyclic collector never walks it again, during the run or at exit:
+    # a one-shot read ends about 6 ms sooner (bench/oneshot.py).
+    gc.freeze()
     if COMPLETE_VAR in os.environ:  # the shell asks for completions (completions/, Click's scripts)
         from click.shell_completion import shell_complete
 

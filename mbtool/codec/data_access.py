@@ -10,21 +10,26 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
-from mbtool.codec.dissect import Field, bit_fields, count16, register_fields, u8, u16
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
+    Field,
     Request,
     Response,
+    bit_fields,
     check_quantity,
     check_span,
     check_u16,
+    count16,
     counted,
     fixed,
     need,
     pack_bits,
     pack_registers,
     register,
+    register_fields,
+    u8,
+    u16,
     unpack_bits,
     unpack_registers,
 )

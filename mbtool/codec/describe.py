@@ -14,9 +14,8 @@ import binascii
 import struct
 
 from mbtool.codec.checksum import crc_ok, lrc
-from mbtool.codec.dissect import Field
 from mbtool.codec.errors import ProtocolError, RequestError, exception_name
-from mbtool.codec.pdu import ExceptionResponse, Request, function_type
+from mbtool.codec.pdu import ExceptionResponse, Field, Request, function_type
 from mbtool.codec.record import record
 
 

@@ -11,9 +11,19 @@ from __future__ import annotations
 from enum import IntEnum
 from typing import ClassVar
 
-from mbtool.codec.dissect import Field, text_of, u8
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
-from mbtool.codec.pdu import MAX_PDU, UNKNOWN, ExceptionCode, Request, Response, need, register
+from mbtool.codec.pdu import (
+    MAX_PDU,
+    UNKNOWN,
+    ExceptionCode,
+    Field,
+    Request,
+    Response,
+    need,
+    register,
+    text_of,
+    u8,
+)
 from mbtool.codec.record import record
 
 MEI_TYPE = 0x0E  # Read Device Identification; 0x0D (CANopen) is not supported

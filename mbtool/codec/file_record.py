@@ -11,17 +11,20 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
-from mbtool.codec.dissect import Field, count16, register_fields, u8
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
+    Field,
     Request,
     Response,
     check_u16,
+    count16,
     counted,
     need,
     pack_registers,
     register,
+    register_fields,
+    u8,
     unpack_registers,
 )
 from mbtool.codec.record import record

@@ -11,18 +11,23 @@ import struct
 from enum import IntEnum
 from typing import ClassVar
 
-from mbtool.codec.dissect import Field, busy_status, count16, printable, u8, u16
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     MAX_PDU,
     ExceptionCode,
+    Field,
     Request,
     Response,
+    busy_status,
     check_u16,
+    count16,
     counted,
     fixed,
     need,
+    printable,
     register,
+    u8,
+    u16,
 )
 from mbtool.codec.record import field, record
 

@@ -115,7 +115,7 @@ def _reply_answer(unit: int, reply, ms: float | None) -> Answer:
     """What a reply says about the device, for people (text) and for scripts (fields)."""
     from mbtool.codec.data_access import BitsResponse, RegistersResponse
     from mbtool.codec.device_id import DeviceIdentificationResponse
-    from mbtool.codec.dissect import printable, text_of
+    from mbtool.codec.pdu import printable, text_of
     from mbtool.codec.serial_line import DiagnosticsResponse, ReportSlaveIdResponse
 
     fields: dict = {}

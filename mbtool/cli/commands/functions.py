@@ -117,8 +117,8 @@ def report_id(connection):
     state, stop code).
     """
     from mbtool.cli.render import Report, Row
-    from mbtool.codec.dissect import printable
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
+    from mbtool.codec.pdu import printable
     from mbtool.codec.serial_line import ReportSlaveId
 
     request = ReportSlaveId()
@@ -331,8 +331,8 @@ def device_id(connection, level, object_id):
     from mbtool.cli.render import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
-    from mbtool.codec.dissect import text_of
     from mbtool.codec.errors import FrameError
+    from mbtool.codec.pdu import text_of
 
     objects: dict[int, bytes] = {}
     conformity = None
