@@ -391,7 +391,17 @@ VALUE_TYPES = ("uint16", "int16", "uint32", "int32", "float32", "uint64", "int64
 ONE_REGISTER_TYPES = ("uint16", "int16", "hex")
 
 
-def type_options(choices: tuple[str, ...]) -> list[Callable]:
+ORDER_ALL = "all"  # --order all: a read shows its values in each of the four orders
+
+
+def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Callable]:
+    orders = ["ABCD", "CDAB", "BADC", "DCBA"] + ([ORDER_ALL] if order_all else [])
+    order_help = (
+        "Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
+        "BADC byte-swapped, DCBA little-endian."
+    )
+    if order_all:
+        order_help += " all: each 32- or 64-bit value in all four, side by side, to find the device's."
     return [
         click.option(
             "--type",
@@ -401,14 +411,7 @@ def type_options(choices: tuple[str, ...]) -> list[Callable]:
             show_default=True,
             help="How values map to registers.",
         ),
-        click.option(
-            "--order",
-            type=Choice(["ABCD", "CDAB", "BADC", "DCBA"]),
-            default="ABCD",
-            show_default=True,
-            help="Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
-            "BADC byte-swapped, DCBA little-endian.",
-        ),
+        click.option("--order", type=Choice(orders), default="ABCD", show_default=True, help=order_help),
     ]
 
 
@@ -429,10 +432,13 @@ PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a
 )
 
 
-def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Callable:
+def device_command(
+    name: str, *, types: tuple[str, ...] = (), order_all: bool = False, **settings
+) -> Callable:
     """A command that talks to a device: the shared options, then a Connection as first argument.
 
-    ``types``: the --type choices the command offers (none: no --type/--order).
+    ``types``: the --type choices the command offers (none: no --type/--order);
+    ``order_all``: --order also takes all (reads).
     """
 
     def decorate(function: Callable) -> Callable:
@@ -474,13 +480,18 @@ def device_command(name: str, *, types: tuple[str, ...] = (), **settings) -> Cal
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
             if profile:
-                from mbtool.cli.profiles import apply
+                from mbtool.cli.profiles import defaults
+                from mbtool.codec.record import replace
 
-                connection = apply(connection, profile)
+                changes = defaults(profile)
+                # A profile's key for the command's own option (map) goes to the command.
+                kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
+                connection = replace(connection, **changes) if changes else connection
             return function(connection, **kwargs)
 
         run = PROFILE_OPTION(run)
-        for option in reversed(CONNECTION_OPTIONS + (type_options(types) if types else [])):
+        typed = type_options(types, order_all) if types else []
+        for option in reversed(CONNECTION_OPTIONS + typed):
             run = option(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
         context = {

@@ -10,7 +10,24 @@ import sys
 import time
 from collections.abc import Callable
 
-from mbtool.cli.render import as_dict, error_json, local_time, to_json, value_text, wants_csv_header
+from mbtool.cli.render import (
+    POINT_CSV_HEADER,
+    Points,
+    as_dict,
+    by_order,
+    csv_cells,
+    error_json,
+    labels,
+    local_time,
+    point_cells,
+    point_line,
+    points_dict,
+    points_heading,
+    points_table,
+    to_json,
+    value_text,
+    wants_csv_header,
+)
 from mbtool.errors import OutputFailed, exit_code_for
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
@@ -30,18 +47,40 @@ class Output:
         self._flush_at = 0.0
 
     def result(self, when: str, result) -> None:
-        if self.fmt == "json":
+        if result.__class__ is Points:
+            self._points(when, result)
+        elif self.fmt == "json":
             self._emit(_json_line({"time": when, **as_dict(result)}))
         elif self.fmt == "csv":
-            if not self.header_done:
-                if wants_csv_header(self.out):
-                    self._emit("time,address,value\n")
-                self.header_done = True
-            self._emit("".join(f"{when},{a},{_csv_cell(value_text(v))}\n" for a, v in result.items))
+            header, rows = csv_cells(result)
+            self._csv(when, header, rows)
         elif self.fmt == "plain":
-            self._emit("".join(f"{when} {a} {value_text(v)}\n" for a, v in result.items))
+            if result.refs is None:  # the common case, kept to one pass (bench/polling_cpu.py)
+                self._emit("".join(f"{when} {a} {value_text(v)}\n" for a, v in result.items))
+            else:
+                lines = zip(labels(result), result.items, strict=True)
+                self._emit("".join(f"{when} {label} {value_text(v)}\n" for label, (_, v) in lines))
         else:
             self._table(when, result)
+
+    def _points(self, when: str, points: Points) -> None:
+        if self.fmt == "json":
+            self._emit(_json_line({"time": when, **points_dict(points)}))
+        elif self.fmt == "csv":
+            self._csv(when, POINT_CSV_HEADER, [point_cells(row) for row in points.rows])
+        elif self.fmt == "plain":
+            self._emit("".join(f"{when} {point_line(row)}\n" for row in points.rows))
+        else:
+            from rich.text import Text
+
+            self._show_table(Text(f"{points_heading(points)} · {when}"), points_table(points))
+
+    def _csv(self, when: str, header: list[str], rows: list[list[str]]) -> None:
+        if not self.header_done:
+            if wants_csv_header(self.out):
+                self._emit(",".join(["time", *header]) + "\n")
+            self.header_done = True
+        self._emit("".join(",".join([when, *map(_csv_cell, row)]) + "\n" for row in rows))
 
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
@@ -70,18 +109,25 @@ class Output:
         self._flush_at = time.monotonic() + FLUSH_GAP
 
     def _table(self, when: str, result) -> None:
-        from rich.console import Group
-        from rich.live import Live
         from rich.table import Table
         from rich.text import Text
 
         # The heading above, not as the table's title: a title wraps to the table's width.
         heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        orders = by_order(result)
         table = Table()
-        table.add_column("Address", justify="right")
-        table.add_column("Value", justify="right")
-        for address, value in result.items:
-            table.add_row(str(address), value_text(value))
+        table.add_column("Ref" if result.refs is not None else "Address", justify="right")
+        for column in orders or ["Value"]:
+            table.add_column(column, justify="right")
+        for label, (_, value) in zip(labels(result), result.items, strict=True):
+            values = [value_text(value[o]) for o in orders] if orders else [value_text(value)]
+            table.add_row(str(label), *values)
+        self._show_table(heading, table)
+
+    def _show_table(self, heading, table) -> None:
+        from rich.console import Group
+        from rich.live import Live
+
         if not self.out.isatty():
             # Into a file or a pipe every poll's table stays, each ending its line: a table
             # refreshed in place would leave only the last one, without a final newline.

@@ -23,7 +23,6 @@ from pathlib import Path
 import click
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import replace
 
 # profile key (the option's parameter name, and the Connection field it sets) -> the TOML
 # types it takes, and how to say so
@@ -40,6 +39,7 @@ KEYS = {
     "echo": ((bool,), "true or false"),
     "rs485": ((bool,), "true or false"),
     "rs485_delays": ((str, int, float), 'milliseconds, such as 2 or "1,2"'),
+    "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
 }
 
 
@@ -102,12 +102,6 @@ def load(name: str, path: Path | None = None) -> dict:
     return settings
 
 
-def apply(connection, name: str):
-    """``connection`` with the profile's values for every option left at its default."""
-    changes = defaults(name)
-    return replace(connection, **changes) if changes else connection
-
-
 def defaults(name: str) -> dict:
     """The profile's values for the current command's options that were left at their default.
 
@@ -125,6 +119,9 @@ def defaults(name: str) -> dict:
         source = ctx.get_parameter_source(key)
         if source not in (None, click.core.ParameterSource.DEFAULT):
             continue  # given on the command line or in the environment: that wins
+        if key == "map":  # a relative path is read from the config file's folder
+            changes[key] = str(path.parent / Path(raw).expanduser())
+            continue
         changes[key] = _convert(params[key], key, raw, ctx, f"{path}: profiles.{name}.{key}")
     return changes
 

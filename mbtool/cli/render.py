@@ -34,6 +34,7 @@ class Result:
     registers: list[int] | None = None  # the raw registers behind typed values
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
+    refs: list[str] | None = None  # Modicon references of the items (read REF): shown for addresses
 
     def __init__(
         self,
@@ -46,6 +47,7 @@ class Result:
         registers: list[int] | None = None,
         note: str = "",
         extra: dict | None = None,
+        refs: list[str] | None = None,
     ) -> None:
         # By hand: one a poll (codec/record.py).
         self.__dict__.update(
@@ -58,6 +60,7 @@ class Result:
             registers=registers,
             note=note,
             extra=extra,
+            refs=refs,
         )
 
 
@@ -111,7 +114,12 @@ def default_format(stream: TextIO = sys.stdout) -> str:
     return "table" if stream.isatty() else "plain"
 
 
-def render(result: Result | Report, fmt: str, out: TextIO = sys.stdout) -> None:
+def render(result: Result | Report | Points, fmt: str, out: TextIO = sys.stdout) -> None:
+    if isinstance(result, Points):
+        {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
+            result, out
+        )
+        return
     if isinstance(result, Report):
         {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}[fmt](
             result, out
@@ -125,11 +133,40 @@ def value_text(value: object) -> str:
         return "1" if value else "0"
     if isinstance(value, float):
         return repr(value)
+    if isinstance(value, dict):  # --order all: the value in each word order
+        return " ".join(f"{order}={value_text(each)}" for order, each in value.items())
     return str(value)
 
 
+def labels(result: Result) -> list:
+    """What names each item: its reference when the user gave one (read 40108), else its address."""
+    return result.refs if result.refs is not None else [address for address, _ in result.items]
+
+
+def by_order(result: Result) -> tuple[str, ...]:
+    """The word orders of a --order all result (its values are {order: value}); () otherwise."""
+    first = result.items[0][1] if result.items else None
+    return tuple(first) if isinstance(first, dict) else ()
+
+
+def csv_cells(result: Result) -> tuple[list[str], list[list[str]]]:
+    """The CSV header and rows of a result: one column a word order with --order all."""
+    orders = by_order(result)
+    header = ["ref" if result.refs is not None else "address", *(orders or ["value"])]
+    rows = [
+        [str(label), *([value_text(value[o]) for o in orders] if orders else [value_text(value)])]
+        for label, (_, value) in zip(labels(result), result.items, strict=True)
+    ]
+    return header, rows
+
+
 def _plain(result: Result, out: TextIO) -> None:
-    out.write("".join(f"{address} {value_text(value)}\n" for address, value in result.items))
+    out.write(
+        "".join(
+            f"{label} {value_text(value)}\n"
+            for label, (_, value) in zip(labels(result), result.items, strict=True)
+        )
+    )
 
 
 def as_dict(result: Result) -> dict:
@@ -143,6 +180,8 @@ def as_dict(result: Result) -> dict:
         data["type"] = result.type
     data["values"] = [value for _, value in result.items]
     data["addresses"] = [address for address, _ in result.items]
+    if result.refs is not None:
+        data["refs"] = result.refs
     if result.registers is not None and result.type not in (None, "uint16"):
         data["registers"] = result.registers
     data.update(result.extra or {})
@@ -187,10 +226,10 @@ def _csv(result: Result, out: TextIO) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
+    header, rows = csv_cells(result)
     if wants_csv_header(out):
-        writer.writerow(["address", "value"])
-    for address, value in result.items:
-        writer.writerow([address, value_text(value)])
+        writer.writerow(header)
+    writer.writerows(rows)
 
 
 def _table(result: Result, out: TextIO) -> None:
@@ -198,9 +237,14 @@ def _table(result: Result, out: TextIO) -> None:
     from rich.table import Table
 
     bits = result.type is None
+    orders = by_order(result)
     table = Table()
-    table.add_column("Address", justify="right")
-    table.add_column("Value", justify="right")
+    if result.refs is not None:
+        table.add_column("Ref", justify="right")
+    if result.refs is None or not orders:
+        table.add_column("Address", justify="right")
+    for heading in orders or ["Value"]:
+        table.add_column(heading, justify="right", overflow="fold")  # a value is never cut short
     plain_registers = result.type == "uint16"
     if plain_registers:
         table.add_column("Hex", justify="right")
@@ -210,23 +254,141 @@ def _table(result: Result, out: TextIO) -> None:
 
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
-    for address, value in result.items:
+    refs = result.refs if result.refs is not None else [None] * len(result.items)
+    for ref, (address, value) in zip(refs, result.items, strict=True):
+        cells = [] if ref is None else [ref]
+        if ref is None or not orders:
+            cells.append(str(address))
         if bits:
-            table.add_row(str(address), "[green]ON[/]" if value else "[dim]OFF[/]")
+            cells.append("[green]ON[/]" if value else "[dim]OFF[/]")
         elif plain_registers:
-            table.add_row(str(address), str(value), f"0x{value:04X}")
-        elif typed_registers:
+            cells += [str(value), f"0x{value:04X}"]
+        else:
+            cells += [value_text(value[o]) for o in orders] if orders else [value_text(value)]
+        if typed_registers:
             # The words behind each value: when a float looks wrong, they show the word order.
             start = address - result.address
             words = result.registers[start : start + (width or len(result.registers))]
-            table.add_row(str(address), value_text(value), " ".join(f"{w:04X}" for w in words))
-        else:
-            table.add_row(str(address), value_text(value))
+            cells.append(" ".join(f"{w:04X}" for w in words))
+        table.add_row(*cells)
     console = Console(file=out) if out is not sys.stdout else Console()
     console.print(f"[bold]{result.name}[/] (FC {result.function:02d}) · unit {result.unit}", highlight=False)
     console.print(table)
     if result.note:
         console.print(result.note, style="dim")
+
+
+# --- a register map's points: name, value, unit ------------------------------------------
+
+
+@record
+class PointRow:
+    """One point of a register map as read: ``value`` in engineering units (or its enum
+    label, or on/off), ``raw`` the registers (or bits) it came from."""
+
+    name: str
+    value: object
+    unit: str
+    ref: str
+    raw: tuple
+    bits: bool  # a coil or discrete input: raw holds bits, not registers
+    description: str = ""
+
+    @property
+    def shown(self) -> str:
+        if isinstance(self.value, bool):
+            return "on" if self.value else "off"
+        return value_text(self.value)
+
+
+@record
+class Points:
+    """What ``read -m MAP`` learned.  Plain: ``NAME VALUE UNIT`` lines; JSON: the unit id,
+    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point."""
+
+    unit: int
+    source: str  # the map file
+    rows: list[PointRow]
+
+
+POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
+
+
+def point_line(row: PointRow) -> str:
+    return f"{row.name} {row.shown} {row.unit}".rstrip()
+
+
+def point_cells(row: PointRow) -> list[str]:
+    raw = " ".join(value_text(item) for item in row.raw)
+    return [row.name, row.shown, row.unit, row.ref, raw]
+
+
+def points_dict(points: Points) -> dict:
+    return {
+        "unit": points.unit,
+        "map": points.source,
+        "points": [
+            {
+                "name": row.name,
+                "value": row.value,
+                "unit": row.unit,
+                "ref": row.ref,
+                "bits" if row.bits else "registers": list(row.raw),
+            }
+            for row in points.rows
+        ],
+    }
+
+
+def points_table(points: Points, heading: str = ""):
+    """The rich table of a map read (its heading above it, as polling draws it too)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    described = any(row.description for row in points.rows)
+    table = Table()
+    for column, justify in (("Name", "left"), ("Value", "right"), ("Unit", "left"), ("Ref", "right")):
+        table.add_column(column, justify=justify)
+    table.add_column("Raw", justify="right")
+    if described:
+        table.add_column("Description")
+    for row in points.rows:
+        raw = " ".join(value_text(b) if row.bits else f"{b:04X}" for b in row.raw)
+        cells = [escape(row.name), escape(row.shown), escape(row.unit), row.ref, raw]
+        if described:
+            cells.append(escape(row.description))
+        table.add_row(*cells)
+    return table
+
+
+def points_heading(points: Points) -> str:
+    return f"{points.source} · unit {points.unit}"
+
+
+def _points_table(points: Points, out: TextIO) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+
+    console = Console(file=out) if out is not sys.stdout else Console()
+    console.print(f"[bold]{escape(points_heading(points))}[/]", highlight=False)
+    console.print(points_table(points))
+
+
+def _points_plain(points: Points, out: TextIO) -> None:
+    out.write("".join(point_line(row) + "\n" for row in points.rows))
+
+
+def _points_json(points: Points, out: TextIO) -> None:
+    out.write(to_json(points_dict(points)) + "\n")
+
+
+def _points_csv(points: Points, out: TextIO) -> None:
+    import csv
+
+    writer = csv.writer(out, lineterminator="\n")
+    if wants_csv_header(out):
+        writer.writerow(POINT_CSV_HEADER)
+    writer.writerows(point_cells(row) for row in points.rows)
 
 
 # --- structured results: fields, counters, event lists, decoded frames -----------------

@@ -82,10 +82,13 @@ def poll(
     interval: float | None,
     polls: int | None,
     trace: Callable | None = None,
+    run: Callable | None = None,
 ) -> None:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
 
-    ``trace``: makes each link's Client trace from its framer (--hex)."""
+    ``trace``: makes each link's Client trace from its framer (--hex).  ``run(client)``:
+    what one poll does when it is more than one request (a register map's reads);
+    ``request`` then stands for them in the link's checks (broadcast)."""
     from mbtool.link.connection import close_quietly, open_client
     from mbtool.link.transport import ConnectionClosed
 
@@ -131,7 +134,7 @@ def poll(
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
                 client.while_waiting = show_previous
-                reply = client.execute(connection.unit, request)
+                reply = client.execute(connection.unit, request) if run is None else run(client)
                 latency.add(client.round_trip * 1000)
                 replies += 1
             except BrokenPipeError:

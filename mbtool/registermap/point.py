@@ -111,11 +111,15 @@ class Point:
 
     def registers_for(self, text: str) -> list[int]:
         """The registers that carry ``text`` (not for bits: see ``raw_for``)."""
-        registers = encode_values([self.raw_for(text)], self.type, self.order)
+        return self.registers_of(self.raw_for(text))
+
+    def registers_of(self, raw: int | float | str) -> list[int]:
+        """The registers that carry a raw value (``raw_for``'s), in the point's order."""
+        registers = encode_values([raw], self.type, self.order)
         if self.type == "string":
             if len(registers) > self.count:
                 raise RequestError(
-                    f"{self.name}: {text} needs {len(registers)} registers, the point has {self.count}"
+                    f"{self.name}: {raw} needs {len(registers)} registers, the point has {self.count}"
                 )
             registers += [0] * (self.count - len(registers))
         return registers

@@ -1,11 +1,21 @@
-"""Read commands: coils, discrete inputs, holding and input registers (FC 01-04)."""
+"""Read commands: coils, discrete inputs, holding and input registers (FC 01-04), and
+``read``, which takes a device manual's references or a register map's point names."""
 
 from __future__ import annotations
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Number, PositiveFloat, device_command
+from mbtool.cli.options import (
+    ADDRESS,
+    COUNT,
+    ORDER_ALL,
+    VALUE_TYPES,
+    Number,
+    PositiveFloat,
+    device_command,
+)
 from mbtool.cli.session import execute, show
+from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -35,9 +45,17 @@ def polling_options(function):
     )(function)
 
 
-def _run(connection: Connection, request, to_result, interval, polls) -> None:
-    if (interval is None and polls is None) or getattr(connection, "dry_run", False):
-        show(connection, to_result(execute(connection, request)))
+def _run(connection: Connection, request, to_result, interval, polls, run=None) -> None:
+    """Once, or polled.  ``run(client)``: a read of several requests (a map's), which
+    ``request``, the first of them, stands for."""
+    if (interval is None and polls is None) or connection.dry_run:
+        if run is None:
+            show(connection, to_result(execute(connection, request)))
+            return
+        from mbtool.cli.session import open_client
+
+        with open_client(connection, request.name) as client:
+            show(connection, to_result(run(client)))
         return
     from mbtool.cli.poll_output import Deferred, Output
     from mbtool.cli.render import default_format
@@ -45,18 +63,22 @@ def _run(connection: Connection, request, to_result, interval, polls) -> None:
     from mbtool.link.polling import poll
 
     shown = Deferred(Output(connection.output_format or default_format()), to_result)
-    poll(connection, request, shown, interval, polls, trace_for(connection))
+    poll(connection, request, shown, interval, polls, trace_for(connection), run)
 
 
 # --- reads: FC 01-04 -------------------------------------------------------------------
 
 
-def _read_bits(connection: Connection, kind, address: int, count: int, interval=None, polls=None) -> None:
+def _read_bits(
+    connection: Connection, kind, address: int, count: int, interval=None, polls=None, table=None
+) -> None:
+    """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     from mbtool.cli.render import Result
 
     def to_result(reply):
         items = [(address + i, bit) for i, bit in enumerate(reply.bits)]
-        return Result(connection.unit, kind.function_code, kind.name, address, items)
+        refs = None if table is None else _refs(table, items)
+        return Result(connection.unit, kind.function_code, kind.name, address, items, refs=refs)
 
     _run(connection, kind(address, count), to_result, interval, polls)
 
@@ -70,16 +92,42 @@ def _read_registers(
     order: str,
     interval=None,
     polls=None,
+    table=None,
 ) -> None:
+    """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     from mbtool.cli.render import Result
-    from mbtool.codec.values import decode_values, registers_needed
+    from mbtool.codec.values import ORDERS, TYPES, decode_values, registers_needed
+
+    if order == ORDER_ALL and TYPES[value_type].registers < 2:
+        raise RequestError(
+            f"--order all shows 32- and 64-bit values in each word order; {value_type} is not one: "
+            "give --type float32, uint32, int32, float64, uint64 or int64"
+        )
 
     def to_result(reply):
-        items = [
-            (address + offset, value) for offset, value in decode_values(reply.registers, value_type, order)
-        ]
+        registers = reply.registers
+        if order == ORDER_ALL:
+            # The same registers read in each order, side by side: the manual's expected
+            # value shows which order the device uses.
+            each = [decode_values(registers, value_type, o) for o in ORDERS]
+            items = [
+                (address + offset, {o: values[i][1] for o, values in zip(ORDERS, each, strict=True)})
+                for i, (offset, _) in enumerate(each[0])
+            ]
+        else:
+            items = [
+                (address + offset, value) for offset, value in decode_values(registers, value_type, order)
+            ]
         return Result(
-            connection.unit, kind.function_code, kind.name, address, items, value_type, list(reply.registers)
+            connection.unit,
+            kind.function_code,
+            kind.name,
+            address,
+            items,
+            value_type,
+            list(registers),
+            extra={"order": ORDER_ALL} if order == ORDER_ALL else None,
+            refs=None if table is None else _refs(table, items),
         )
 
     _run(connection, kind(address, registers_needed(value_type, count)), to_result, interval, polls)
@@ -107,7 +155,13 @@ def read_discrete_inputs(connection, address, count, interval, polls):
     _read_bits(connection, ReadDiscreteInputs, address, count, interval, polls)
 
 
-@device_command("read-holding-registers", types=VALUE_TYPES)
+def _refs(table, items) -> list[str]:
+    from mbtool.codec.tables import reference
+
+    return [reference(table, address) for address, _ in items]
+
+
+@device_command("read-holding-registers", types=VALUE_TYPES, order_all=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -122,7 +176,7 @@ def read_holding_registers(connection, address, count, value_type, order, interv
     _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order, interval, polls)
 
 
-@device_command("read-input-registers", types=VALUE_TYPES)
+@device_command("read-input-registers", types=VALUE_TYPES, order_all=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -135,3 +189,118 @@ def read_input_registers(connection, address, count, value_type, order, interval
     from mbtool.codec.data_access import ReadInputRegisters
 
     _read_registers(connection, ReadInputRegisters, address, count, value_type, order, interval, polls)
+
+
+# --- read: by reference, or by a register map's names ------------------------------------
+
+
+def map_option(function):
+    return click.option(
+        "-m",
+        "--map",
+        "map",
+        metavar="MAP",
+        type=click.Path(dir_okay=False),
+        help="A register map (TOML, or CSV with a header row): points by name, scaled, with units. "
+        "Also a profile's map key.",
+    )(function)
+
+
+def no_type_with_map(map_path: str | None) -> None:
+    """--type and --order name a read's values; a map names each point's own."""
+    ctx = click.get_current_context()
+    for param, option in (("value_type", "--type"), ("order", "--order")):
+        if map_path and ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT:
+            raise RequestError(f"{option} does not apply with -m: the map gives each point's type and order")
+
+
+@device_command("read", types=VALUE_TYPES, order_all=True)
+@click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
+@map_option
+@polling_options
+def read(connection, targets, map, value_type, order, interval, polls):
+    """Read by a device manual's reference, or a register map's points by name.
+
+    REF is a Modicon reference: 00001 coil 1, 10001 discrete input 1, 30001 input
+    register 1, 40001 holding register 1; six digits reach 65536 (400001-465536);
+    4x0108 is 40108. The wire address is the reference - 1 (40108 is holding register
+    107). COUNT (default 1) values from there, of --type for registers.
+
+    With -m MAP: the named points (all when none is named), in as few requests as the
+    spec's limits and the map's max_gap allow; each point scaled, with its unit (plain:
+    NAME VALUE UNIT lines; JSON: name, value, unit, ref and the raw registers).
+    """
+    no_type_with_map(map)
+    if map:
+        _read_map(connection, map, targets, interval, polls)
+        return
+    if not targets:
+        raise click.UsageError("give a reference such as 40001 (and a count), or -m MAP and point names")
+    if len(targets) > 2:
+        raise click.UsageError(
+            f"read takes REF [COUNT], not {len(targets)} arguments (points by name need -m MAP)"
+        )
+    from mbtool.codec.tables import parse_reference
+    from mbtool.registermap.plan import READS
+
+    text = targets[0]
+    try:
+        table, address = parse_reference(text)
+    except RequestError as error:
+        if any(c.isdigit() for c in text):
+            raise
+        raise RequestError(f"{error}; to read a point by name, give its map: -m MAP") from None
+    count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
+    kind = READS[table.name]
+    if table.bits:
+        no_type_for_bits(table, address, text)
+        _read_bits(connection, kind, address, count, interval, polls, table)
+    else:
+        _read_registers(connection, kind, address, count, value_type, order, interval, polls, table)
+
+
+def no_type_for_bits(table, address: int, text: str) -> None:
+    ctx = click.get_current_context()
+    for param, option in (("value_type", "--type"), ("order", "--order")):
+        if ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT:
+            raise RequestError(f"{option} is for registers; {text} is {table.item} {address + 1}, a bit")
+
+
+def _read_map(connection: Connection, path: str, names, interval, polls) -> None:
+    from mbtool.cli.render import PointRow, Points
+    from mbtool.registermap.load import load_map
+    from mbtool.registermap.plan import plan_reads, read_points
+
+    register_map = load_map(path)
+    points = register_map.select(names)
+    requests = [block.request() for block in plan_reads(points, register_map.max_gap)]
+    if connection.dry_run:  # no read depends on another's reply: show them all
+        from mbtool.cli.session import open_client
+
+        with open_client(connection, requests[0].name) as client:
+            for request in requests:
+                client.show(connection.unit, request)
+            client.finish(connection.unit)
+
+    def run(client):
+        def execute_one(request):
+            return client.execute(connection.unit, request)
+
+        return read_points(execute_one, points, register_map.max_gap)
+
+    def to_result(readings):
+        rows = [
+            PointRow(
+                r.point.name,
+                r.value,
+                r.point.unit,
+                r.point.ref,
+                r.raw,
+                r.point.table.bits,
+                r.point.description,
+            )
+            for r in readings
+        ]
+        return Points(connection.unit, register_map.source, rows)
+
+    _run(connection, requests[0], to_result, interval, polls, run)

@@ -1,12 +1,16 @@
-"""Write commands: single and multiple coils and registers (FC 05, 06, 15, 16)."""
+"""Write commands: single and multiple coils and registers (FC 05, 06, 15, 16); ``write``,
+which takes a device manual's references or a register map's point names; and
+``write-bit``, one bit of a register (FC 22)."""
 
 from __future__ import annotations
 
+import sys
+
 import click
 
-from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, device_command
-from mbtool.cli.session import execute, show
-from mbtool.codec.errors import RequestError
+from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, Number, device_command
+from mbtool.cli.session import execute, open_client, show
+from mbtool.codec.errors import ModbusException, RequestError
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
 
@@ -101,4 +105,220 @@ def write_registers(connection, address, values, value_type, order):
     show(
         connection,
         Result(connection.unit, request.function_code, request.name, address, items, value_type, registers),
+    )
+
+
+# --- write: by reference, or a register map's points by name ------------------------------
+
+MULTIPLE_OPTION = click.option(
+    "--multiple",
+    is_flag=True,
+    help="FC 15/16 even for one coil or register (some devices accept no FC 05/06).",
+)
+RMW_OPTION = click.option(
+    "--rmw",
+    is_flag=True,
+    help="Set a bit by reading the register and writing it back (FC 03, then FC 06), for "
+    "devices without FC 22. Not atomic: a change the device makes in between is lost.",
+)
+
+
+@device_command("write", types=VALUE_TYPES)
+@click.argument("targets", nargs=-1, required=True, metavar="REF VALUE... | NAME=VALUE...")
+@click.option(
+    "-m",
+    "--map",
+    "map",
+    metavar="MAP",
+    type=click.Path(dir_okay=False),
+    help="A register map (TOML, or CSV with a header row): write points by name, in their units. "
+    "Also a profile's map key.",
+)
+@MULTIPLE_OPTION
+@RMW_OPTION
+def write(connection, targets, map, multiple, rmw, value_type, order):
+    """Write by a device manual's reference, or a register map's points by name.
+
+    REF is a Modicon reference: 00001 coil 1, 40001 holding register 1 (six digits up
+    to 465536; 4x0108 is 40108); discrete inputs (1x) and input registers (3x) are
+    read-only. One value is FC 05/06, more are FC 15/16 (--multiple: always 15/16).
+
+    With -m MAP: NAME=VALUE in the point's units (the map's scale and offset are
+    undone), an enum label (state=running) or on/off for a bit. Every value is checked
+    before anything is sent. A bit of a register is written with FC 22 (--rmw: FC 03
+    then FC 06).
+    """
+    if map:
+        for param, option in (("value_type", "--type"), ("order", "--order")):
+            if click.get_current_context().get_parameter_source(param).name != "DEFAULT":
+                raise RequestError(
+                    f"{option} does not apply with -m: the map gives each point's type and order"
+                )
+        _write_map(connection, map, targets, multiple, rmw)
+        return
+    if len(targets) < 2:
+        raise click.UsageError("give a reference and a value, such as 40001 17, or -m MAP NAME=VALUE")
+    _write_reference(connection, targets[0], targets[1:], multiple, value_type, order)
+
+
+def _write_reference(connection, text: str, values, multiple: bool, value_type: str, order: str) -> None:
+    from mbtool.cli.render import Result
+    from mbtool.codec.data_access import (
+        WriteMultipleCoils,
+        WriteMultipleRegisters,
+        WriteSingleCoil,
+        WriteSingleRegister,
+    )
+    from mbtool.codec.tables import parse_reference, reference
+    from mbtool.codec.values import decode_values, parse_registers
+
+    if "=" in text:
+        raise RequestError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
+    table, address = parse_reference(text)
+    if not table.writable:
+        raise RequestError(
+            f"{text} is {table.item} {address + 1}: {table.items} are read-only "
+            "(coils 0xxxx and holding registers 4xxxx are the writable ones)"
+        )
+    if table.bits:
+        bits = tuple(parse_bit(value) for value in values)
+        request = (
+            WriteMultipleCoils(address, bits)
+            if multiple or len(bits) > 1
+            else WriteSingleCoil(address, bits[0])
+        )
+        items = [(address + i, bit) for i, bit in enumerate(bits)]
+        registers, kind = None, None
+    else:
+        registers = parse_registers(values, value_type, order)
+        if len(registers) == 1 and not multiple:
+            request = WriteSingleRegister(address, registers[0])
+        else:
+            request = WriteMultipleRegisters(address, tuple(registers))
+        items = [
+            (address + offset, value) for offset, value in decode_values(tuple(registers), value_type, order)
+        ]
+        kind = value_type
+    execute(connection, request)
+    refs = [reference(table, item_address) for item_address, _ in items]
+    show(
+        connection,
+        Result(
+            connection.unit, request.function_code, request.name, address, items, kind, registers, refs=refs
+        ),
+    )
+
+
+def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool) -> None:
+    from mbtool.cli.render import PointRow, Points
+    from mbtool.registermap.load import load_map
+    from mbtool.registermap.plan import write_request
+
+    register_map = load_map(path)
+    plan = []  # (point, value, request): every value checked before anything is sent
+    for assignment in assignments:
+        name, sep, text = assignment.partition("=")
+        if not sep or not name.strip():
+            raise RequestError(f"{assignment}: write a point as NAME=VALUE (such as setpoint=22.5)")
+        (point,) = register_map.select([name.strip()])
+        request = write_request(point, text, multiple)
+        plan.append((point, point.raw_for(text), request))
+    bits_by_rmw = rmw and any(point.bit is not None for point, _, _ in plan)
+    rows = []
+    with open_client(connection, "Read Holding Registers" if bits_by_rmw else "") as client:
+        if connection.dry_run:  # no write depends on a reply: show every frame
+            for point, _, request in plan:
+                if point.bit is not None and rmw:
+                    request = _rmw_read(point.address)
+                client.show(connection.unit, request)
+            client.finish(connection.unit)
+        for point, value, request in plan:
+            if point.bit is not None:
+                raw = _write_bit(connection, client, point.address, point.bit, value, rmw)
+            else:
+                client.execute(connection.unit, request)
+                raw = (value,) if point.table.bits else tuple(point.registers_of(value))
+            shown = value if point.is_bit or not raw else point.value_of(list(raw))
+            rows.append(
+                PointRow(point.name, shown, point.unit, point.ref, raw, point.table.bits, point.description)
+            )
+    show(connection, Points(connection.unit, register_map.source, rows))
+
+
+class MaskWriteUnsupported(ModbusException):
+    """Exception 01 to FC 22: the message names --rmw, the way around it."""
+
+    def __init__(self, error: ModbusException) -> None:
+        super().__init__(error.function_code, error.exception_code)
+        self.args = (
+            f"{error}: the device has no Mask Write Register; --rmw sets the bit by reading the "
+            "register and writing it back (FC 03, then FC 06; not atomic)",
+        )
+
+
+def _rmw_read(address: int):
+    from mbtool.codec.data_access import ReadHoldingRegisters
+
+    return ReadHoldingRegisters(address, 1)
+
+
+def _write_bit(connection, client, address: int, bit: int, on: bool, rmw: bool) -> tuple:
+    """Set or clear one bit of a holding register: FC 22 (spec §3), or with ``rmw`` FC 03
+    then FC 06.  The register as written when it is known (rmw), else ()."""
+    from mbtool.codec.data_access import WriteSingleRegister
+    from mbtool.codec.tables import HOLDING_REGISTERS, reference
+    from mbtool.registermap.plan import bit_request, with_bit
+
+    if not rmw:
+        try:
+            client.execute(connection.unit, bit_request(address, bit, on))
+        except ModbusException as error:
+            if error.exception_code == 0x01:
+                raise MaskWriteUnsupported(error) from None
+            raise
+        return ()
+    current = client.execute(connection.unit, _rmw_read(address)).registers[0]
+    value = with_bit(current, bit, on)
+    print(
+        f"mbtool: --rmw: {reference(HOLDING_REGISTERS, address)} read 0x{current:04X}, "
+        f"writing 0x{value:04X}; not atomic: a change the device made in between is lost",
+        file=sys.stderr,
+    )
+    client.execute(connection.unit, WriteSingleRegister(address, value))
+    return (value,)
+
+
+@device_command("write-bit")
+@click.argument("ref", metavar="REF")
+@click.argument("bit", type=Number(0, 15, "bit"))
+@click.argument("state", metavar="on|off")
+@RMW_OPTION
+def write_bit(connection, ref, bit, state, rmw):
+    """Set or clear one BIT (0-15, 0 the least significant) of a holding register.
+
+    REF is a Modicon reference of a holding register (40001, 400001, 4x0001). Mask
+    Write Register (FC 22) changes that bit and leaves the others; a device without
+    FC 22 answers exception 01, and --rmw reads the register and writes it back
+    (FC 03, then FC 06) instead, which is not atomic.
+    """
+    from mbtool.cli.render import Result
+    from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference
+
+    table, address = parse_reference(ref)
+    if table is not HOLDING_REGISTERS:
+        raise RequestError(
+            f"{ref} is {table.item} {address + 1}: write-bit changes a bit of a holding register (4xxxx)"
+        )
+    on = parse_bit(state)
+    with open_client(connection, "Read Holding Registers" if rmw else "") as client:
+        if connection.dry_run:
+            from mbtool.registermap.plan import bit_request
+
+            client.show(connection.unit, _rmw_read(address) if rmw else bit_request(address, bit, on))
+            client.finish(connection.unit)
+        raw = _write_bit(connection, client, address, bit, on, rmw)
+    function, name = (0x06, "Write Single Register") if rmw else (0x16, "Mask Write Register")
+    extra = {"bit": bit} | ({"register": raw[0]} if raw else {})
+    show(
+        connection, Result(connection.unit, function, name, address, [(address, on)], extra=extra, refs=[ref])
     )
