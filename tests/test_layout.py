@@ -15,7 +15,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-LINT = [sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())"]
+LINT = [
+    sys.executable,
+    "-c",
+    "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())",
+]
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -57,7 +61,11 @@ def _add_to_function(path: Path, line: str) -> None:
         ("link/polling.py", "from mbtool.cli.render import render", "link (the master's I/O)"),
         ("device/server.py", "from mbtool.link.client import Client", "device (the simulated device)"),
         ("monitor/bus.py", "import rich", "monitor (the passive bus monitor)"),
-        ("cli/commands/scan.py", "from mbtool.cli.commands import read", "commands do not import one another"),
+        (
+            "cli/commands/scan.py",
+            "from mbtool.cli.commands import read",
+            "commands do not import one another",
+        ),
         # link.client imports link.transport: the reverse, even inside a function, is a cycle.
         ("link/transport.py", "from mbtool.link import client", "no import cycles"),
     ],
