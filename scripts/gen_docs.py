@@ -62,9 +62,18 @@ FILES = [
     (
         "$MBTOOL_CONFIG, else $XDG_CONFIG_HOME/mbtool/config.toml (~/.config/mbtool/config.toml)",
         "Profiles for -P/--profile NAME: a [profiles.NAME] table of connection settings (port, "
-        "unit, framer, baud, parity, bytesize, stopbits, timeout, retries, echo, rs485, rs485_delays). "
-        "An option on the command line, then MBTOOL_PORT and MBTOOL_UNIT, override them. A file "
-        "that is not UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
+        "unit, framer, baud, parity, bytesize, stopbits, timeout, retries, echo, rs485, rs485_delays), "
+        "and map, a register map for read and write (a relative path is read from the config "
+        "file's folder). An option on the command line, then MBTOOL_PORT and MBTOOL_UNIT, override "
+        "them. A file that is not UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
+    ),
+    (
+        "MAP (read -m, write -m)",
+        "A register map: TOML with an optional [device] table (type, order, access, max_gap) and "
+        "a [points.NAME] table a point (ref, or table and address; type, order, count, scale, offset, "
+        "unit, description, enum, bit, access), or CSV with a header row of the same keys plus name. "
+        "An unknown key, overlapping points, a bit of a float or a value past register 65535 is "
+        "exit status 2 when the map is loaded, naming the file, the point and the key.",
     ),
 ]
 FALLBACK_EXIT_CODES = {

@@ -456,3 +456,28 @@ def test_references_and_maps_over_a_serial_line(serial_rtu_device, pump):
     expect_ok(ser("write", "-m", pump, "setpoint=4.2", "alarm=on"))
     assert lines(expect_ok(ser("read", "-m", pump, "setpoint", "alarm"))) == ["setpoint 4.2 m3/h", "alarm on"]
     assert lines(expect_ok(ser("write-bit", "40521", "3", "off"))) == ["40521 0"]
+
+
+def test_the_readme_energy_meter_reads_as_the_readme_shows():
+    root = Path(__file__).resolve().parent.parent
+    meter = root / "examples/energy-meter.toml"
+    with serve("--data", str(root / "examples/energy-meter-data.toml")) as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = expect_ok(run_mbtool("read", "-m", meter, "--hex", "-p", target))
+        assert lines(res) == [
+            "voltage_l1 230.1 V",
+            "current_l1 12.5 A",
+            "power_total 8625.0 W",
+            "frequency 50.0 Hz",
+            "energy_import 15342.7 kWh",
+            "tariff day",
+            "demand_period 15 min",
+            "ct_ratio 100 A",
+            "overload on",
+            "relay on",
+        ]
+        assert len(_functions_sent(res)) == 6  # as the README says
+        res = expect_ok(run_mbtool("read", "30001", "--type", "float32", "--order", "all", "-p", target))
+        assert "CDAB=230.1" in res.stdout
+        res = run_mbtool("write", "-m", meter, "ct_ratio=102", "-p", target)
+        assert "the nearest writable values are 100 and 105" in assert_one_error_line(res, 2)
