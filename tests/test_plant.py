@@ -481,3 +481,11 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
         assert "CDAB=230.1" in res.stdout
         res = run_mbtool("write", "-m", meter, "ct_ratio=102", "-p", target)
         assert "the nearest writable values are 100 and 105" in assert_one_error_line(res, 2)
+
+
+def test_a_map_write_may_broadcast_but_rmw_may_not(pump, silent_server):
+    res = expect_ok(run_mbtool("write", "-m", pump, "setpoint=1", "-u", "0", "-p", "sim://"))
+    assert lines(res) == ["setpoint 1 m3/h"] and "broadcast: no device confirms" in res.stderr
+    res = run_mbtool("write-bit", "40001", "1", "on", "--rmw", "-u", "0", "-p", silent_server.socket_target)
+    assert "--rmw, which reads the register first, needs a unit 1..255" in assert_one_error_line(res, 2)
+    assert silent_server.received_bytes() == b""

@@ -309,6 +309,7 @@ class Points:
     unit: int
     source: str  # the map file
     rows: list[PointRow]
+    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
 
 
 POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
@@ -372,6 +373,8 @@ def _points_table(points: Points, out: TextIO) -> None:
     console = Console(file=out) if out is not sys.stdout else Console()
     console.print(f"[bold]{escape(points_heading(points))}[/]", highlight=False)
     console.print(points_table(points))
+    if points.note:
+        console.print(escape(points.note), style="dim")
 
 
 def _points_plain(points: Points, out: TextIO) -> None:

@@ -115,6 +115,7 @@ MULTIPLE_OPTION = click.option(
     is_flag=True,
     help="FC 15/16 even for one coil or register (some devices accept no FC 05/06).",
 )
+RMW_NEEDS = "--rmw, which reads the register first,"  # what a broadcast cannot do
 RMW_OPTION = click.option(
     "--rmw",
     is_flag=True,
@@ -225,7 +226,7 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool) ->
         plan.append((point, point.raw_for(text), request))
     bits_by_rmw = rmw and any(point.bit is not None for point, _, _ in plan)
     rows = []
-    with open_client(connection, "Read Holding Registers" if bits_by_rmw else "") as client:
+    with open_client(connection, RMW_NEEDS if bits_by_rmw else "") as client:
         if connection.dry_run:  # no write depends on a reply: show every frame
             for point, _, request in plan:
                 if point.bit is not None and rmw:
@@ -310,7 +311,7 @@ def write_bit(connection, ref, bit, state, rmw):
             f"{ref} is {table.item} {address + 1}: write-bit changes a bit of a holding register (4xxxx)"
         )
     on = parse_bit(state)
-    with open_client(connection, "Read Holding Registers" if rmw else "") as client:
+    with open_client(connection, RMW_NEEDS if rmw else "") as client:
         if connection.dry_run:
             from mbtool.registermap.plan import bit_request
 
