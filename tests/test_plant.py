@@ -489,3 +489,31 @@ def test_a_map_write_may_broadcast_but_rmw_may_not(pump, silent_server):
     res = run_mbtool("write-bit", "40001", "1", "on", "--rmw", "-u", "0", "-p", silent_server.socket_target)
     assert "--rmw, which reads the register first, needs a unit 1..255" in assert_one_error_line(res, 2)
     assert silent_server.received_bytes() == b""
+
+
+def test_a_csv_map_from_a_spreadsheet_reads_like_a_toml_one(tcp_device, tmp_path):
+    path = tmp_path / "pump.csv"
+    path.write_text(
+        "name,ref,type,scale,unit,enum,bit\n"
+        "speed,40001,,0.1,rpm,,\n"
+        "mode,40002,,,,101=auto; 102=manual,\n"
+        "flag3,40003,,,,,1\n"
+        "running,00001,,,,,\n"
+    )
+    res = expect_ok(tcp(tcp_device, "read", "-m", path))
+    assert lines(res) == ["speed 10 rpm", "mode auto", "flag3 on", "running on"]
+
+
+def test_a_map_read_as_a_table_names_value_unit_ref_and_raw(tcp_device, pump):
+    res = expect_ok(tcp(tcp_device, "read", "-m", pump, "speed", "running", "-o", "table"))
+    header = next(line for line in lines(res) if "Name" in line)
+    assert [word for word in header.replace("┃", " ").split()] == [
+        "Name",
+        "Value",
+        "Unit",
+        "Ref",
+        "Raw",
+        "Description",
+    ]
+    speed = next(line for line in lines(res) if "speed" in line)
+    assert speed.replace("│", " ").split() == ["speed", "10", "rpm", "40001", "0064", "Motor", "speed"]
