@@ -415,6 +415,32 @@ def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Call
     ]
 
 
+def map_option(what: str) -> Callable:
+    """-m/--map MAP for read and write; ``what``: what the command does with the points."""
+    return click.option(
+        "-m",
+        "--map",
+        "map",
+        metavar="MAP",
+        type=click.Path(dir_okay=False),
+        help=f"A register map (TOML, or CSV with a header row): {what}. Also a profile's map key.",
+    )
+
+
+def type_options_given(map_path: str | None = None) -> list[str]:
+    """--type and --order, those given rather than left at their default; with a map,
+    none may be: the map gives each point's own (RequestError, exit 2)."""
+    ctx = click.get_current_context()
+    given = [
+        option
+        for param, option in (("value_type", "--type"), ("order", "--order"))
+        if ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT
+    ]
+    if map_path and given:
+        raise RequestError(f"{given[0]} does not apply with -m: the map gives each point's type and order")
+    return given
+
+
 def _remember_profile(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
     # Kept aside, not passed on: the profile fills in options only after all are parsed.
     ctx.meta["mbtool.profile"] = value

@@ -13,6 +13,8 @@ from mbtool.cli.options import (
     Number,
     PositiveFloat,
     device_command,
+    map_option,
+    type_options_given,
 )
 from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
@@ -194,29 +196,9 @@ def read_input_registers(connection, address, count, value_type, order, interval
 # --- read: by reference, or by a register map's names ------------------------------------
 
 
-def map_option(function):
-    return click.option(
-        "-m",
-        "--map",
-        "map",
-        metavar="MAP",
-        type=click.Path(dir_okay=False),
-        help="A register map (TOML, or CSV with a header row): points by name, scaled, with units. "
-        "Also a profile's map key.",
-    )(function)
-
-
-def no_type_with_map(map_path: str | None) -> None:
-    """--type and --order name a read's values; a map names each point's own."""
-    ctx = click.get_current_context()
-    for param, option in (("value_type", "--type"), ("order", "--order")):
-        if map_path and ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT:
-            raise RequestError(f"{option} does not apply with -m: the map gives each point's type and order")
-
-
 @device_command("read", types=VALUE_TYPES, order_all=True)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
-@map_option
+@map_option("points by name, scaled, with units")
 @polling_options
 def read(connection, targets, map, value_type, order, interval, polls):
     """Read by a device manual's reference, or a register map's points by name.
@@ -230,7 +212,7 @@ def read(connection, targets, map, value_type, order, interval, polls):
     spec's limits and the map's max_gap allow; each point scaled, with its unit (plain:
     NAME VALUE UNIT lines; JSON: name, value, unit, ref and the raw registers).
     """
-    no_type_with_map(map)
+    given = type_options_given(map)
     if map:
         _read_map(connection, map, targets, interval, polls)
         return
@@ -253,17 +235,11 @@ def read(connection, targets, map, value_type, order, interval, polls):
     count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
     kind = READS[table.name]
     if table.bits:
-        no_type_for_bits(table, address, text)
+        if given:
+            raise RequestError(f"{given[0]} is for registers; {text} is {table.item} {address + 1}, a bit")
         _read_bits(connection, kind, address, count, interval, polls, table)
     else:
         _read_registers(connection, kind, address, count, value_type, order, interval, polls, table)
-
-
-def no_type_for_bits(table, address: int, text: str) -> None:
-    ctx = click.get_current_context()
-    for param, option in (("value_type", "--type"), ("order", "--order")):
-        if ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT:
-            raise RequestError(f"{option} is for registers; {text} is {table.item} {address + 1}, a bit")
 
 
 def _read_map(connection: Connection, path: str, names, interval, polls) -> None:

@@ -8,7 +8,15 @@ import sys
 
 import click
 
-from mbtool.cli.options import ADDRESS, ONE_REGISTER_TYPES, VALUE_TYPES, Number, device_command
+from mbtool.cli.options import (
+    ADDRESS,
+    ONE_REGISTER_TYPES,
+    VALUE_TYPES,
+    Number,
+    device_command,
+    map_option,
+    type_options_given,
+)
 from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.errors import ModbusException, RequestError
 
@@ -126,15 +134,7 @@ RMW_OPTION = click.option(
 
 @device_command("write", types=VALUE_TYPES)
 @click.argument("targets", nargs=-1, required=True, metavar="REF VALUE... | NAME=VALUE...")
-@click.option(
-    "-m",
-    "--map",
-    "map",
-    metavar="MAP",
-    type=click.Path(dir_okay=False),
-    help="A register map (TOML, or CSV with a header row): write points by name, in their units. "
-    "Also a profile's map key.",
-)
+@map_option("write points by name, in their units")
 @MULTIPLE_OPTION
 @RMW_OPTION
 def write(connection, targets, map, multiple, rmw, value_type, order):
@@ -149,12 +149,8 @@ def write(connection, targets, map, multiple, rmw, value_type, order):
     before anything is sent. A bit of a register is written with FC 22 (--rmw: FC 03
     then FC 06).
     """
+    type_options_given(map)  # refused with a map
     if map:
-        for param, option in (("value_type", "--type"), ("order", "--order")):
-            if click.get_current_context().get_parameter_source(param).name != "DEFAULT":
-                raise RequestError(
-                    f"{option} does not apply with -m: the map gives each point's type and order"
-                )
         _write_map(connection, map, targets, multiple, rmw)
         return
     if len(targets) < 2:
