@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 
+from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 
@@ -37,6 +38,14 @@ DISCRETE_INPUTS = Table("discrete", "1", "discrete input", True, False)
 INPUT_REGISTERS = Table("input", "3", "input register", False, False)
 HOLDING_REGISTERS = Table("holding", "4", "holding register", False, True)
 TABLES = (COILS, DISCRETE_INPUTS, INPUT_REGISTERS, HOLDING_REGISTERS)
+
+# The request that reads each table (FC 01-04), by the table's name.
+READS = {
+    COILS.name: ReadCoils,
+    DISCRETE_INPUTS.name: ReadDiscreteInputs,
+    INPUT_REGISTERS.name: ReadInputRegisters,
+    HOLDING_REGISTERS.name: ReadHoldingRegisters,
+}
 
 _BY_DIGIT = {table.digit: table for table in TABLES}
 _BY_NAME = {table.name: table for table in TABLES}

@@ -20,10 +20,6 @@ from mbtool.codec.data_access import (
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
     MaskWriteRegister,
-    ReadCoils,
-    ReadDiscreteInputs,
-    ReadHoldingRegisters,
-    ReadInputRegisters,
     WriteMultipleCoils,
     WriteMultipleRegisters,
     WriteSingleCoil,
@@ -32,15 +28,8 @@ from mbtool.codec.data_access import (
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionCode, Request, Response
 from mbtool.codec.record import record
-from mbtool.codec.tables import COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS, Table
+from mbtool.codec.tables import READS, Table
 from mbtool.registermap.point import Point, PointValue
-
-READS = {
-    COILS.name: ReadCoils,
-    DISCRETE_INPUTS.name: ReadDiscreteInputs,
-    INPUT_REGISTERS.name: ReadInputRegisters,
-    HOLDING_REGISTERS.name: ReadHoldingRegisters,
-}
 
 
 @record

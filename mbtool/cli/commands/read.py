@@ -222,8 +222,7 @@ def read(connection, targets, map, value_type, order, interval, polls):
         raise click.UsageError(
             f"read takes REF [COUNT], not {len(targets)} arguments (points by name need -m MAP)"
         )
-    from mbtool.codec.tables import parse_reference
-    from mbtool.registermap.plan import READS
+    from mbtool.codec.tables import READS, parse_reference
 
     text = targets[0]
     try:
