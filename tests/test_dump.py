@@ -130,3 +130,33 @@ def test_scattered_registers_cost_little_over_one_request_per_hole_and_run():
     Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 7999), TableDump(HOLDING_REGISTERS))
     floor = (8000 - len(present)) + len(runs_of(present))
     assert floor <= len(sent) <= 1.25 * floor
+
+
+def test_a_data_file_takes_runs_and_a_completeness_mark(tmp_path):
+    from mbtool.device.model import load_data
+
+    path = tmp_path / "dump.toml"
+    path.write_text(
+        "sparse = true\ncomplete = false\n[holding_registers]\n0 = [1, 2]\n"
+        "[holding_registers.10]\nvalue = 7\ncount = 3\n"
+    )
+    model, _ = load_data(str(path), frozenset({1}))
+    assert list(model.holding_registers[10:13]) == [7, 7, 7] and model.holding_registers[13] == 0
+    device = Device(model)
+    sent: list = []
+    dump = TableDump(HOLDING_REGISTERS)
+    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 20), dump)
+    assert dump.runs == [(0, [1, 2]), (10, [7, 7, 7])]
+
+
+@pytest.mark.parametrize(
+    "run, words", [("{ value = 1 }", "a run is"), ("{ value = 1, count = 0 }", "out of range")]
+)
+def test_a_bad_run_is_refused_naming_it(tmp_path, run, words):
+    from mbtool.codec.errors import RequestError
+    from mbtool.device.model import load_data
+
+    path = tmp_path / "bad.toml"
+    path.write_text(f"[holding_registers]\n5 = {run}\n")
+    with pytest.raises(RequestError, match=words):
+        load_data(str(path), frozenset({1}))

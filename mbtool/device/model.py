@@ -733,7 +733,11 @@ def load_data(path: str, units: frozenset[int]) -> tuple[DataModel, dict[int, Da
     per_unit_sections = data.get("units", {})
     if not isinstance(per_unit_sections, dict):
         raise RequestError(f"data file {path}: 'units' must map unit ids to sections")
-    apply_data(template, {k: v for k, v in data.items() if k not in ("units", "sparse")}, path)
+    complete = data.get("complete", True)  # mbtool dump marks a dump it did not finish
+    if not isinstance(complete, bool):
+        raise RequestError(f"data file {path}: complete must be true or false")
+    top = {k: v for k, v in data.items() if k not in ("units", "sparse", "complete")}
+    apply_data(template, top, path)
     unit_models = {}
     for key, section in per_unit_sections.items():
         unit = _int(key, f"{path}: units", 1, 255)
@@ -775,11 +779,16 @@ def _bytes(value, where: str) -> bytes:
 
 
 def _fill(table, section, where: str, high: int, size: int, defined: bytearray | None) -> None:
-    """ADDRESS = value or [values] into ``table``; ``defined`` (sparse) marks each address set."""
+    """ADDRESS = value, [values] or a run { value = V, count = N } into ``table``;
+    ``defined`` (sparse) marks each address set."""
     if not isinstance(section, dict):
         raise RequestError(f"data file {where}: expected a table of ADDRESS = value(s)")
     for key, values in section.items():
         start = _int(key, f"{where}", 0, size - 1)
+        if isinstance(values, dict):  # a run of one value, as mbtool dump writes long ones
+            if set(values) != {"value", "count"}:
+                raise RequestError(f"data file {where}.{key}: a run is {{ value = V, count = N }}")
+            values = [values["value"]] * _int(values["count"], f"{where}.{key}.count", 1, size)
         values = values if isinstance(values, list) else [values]
         if start + len(values) > size:
             raise RequestError(f"data file {where}.{key}: {len(values)} values run past {size - 1}")
