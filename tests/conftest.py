@@ -295,8 +295,10 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 @contextlib.contextmanager
-def start_device(*, tcp: bool, framer: str, units: str = "1,2", pty_echo: bool = False):
-    """Start tests/peers/pymodbus_device.py; yield a Device; always stop it."""
+def start_device(*, tcp: bool, framer: str, units: str = "1,2", pty_echo: bool = False, holes: bool = False):
+    """Start tests/peers/pymodbus_device.py; yield a Device; always stop it.
+
+    ``holes``: the device's address map has gaps (pymodbus_device.HOLED)."""
     errf = tempfile.NamedTemporaryFile(prefix="mbtool-device-", suffix=".log", delete=False)
     pty = None
     if tcp:
@@ -306,7 +308,16 @@ def start_device(*, tcp: bool, framer: str, units: str = "1,2", pty_echo: bool =
         pty = PtyPair(echo=pty_echo)
         where = ["--serial", pty.device_path]
     proc = subprocess.Popen(
-        [sys.executable, str(DEVICE_SCRIPT), *where, "--framer", framer, "--units", units],
+        [
+            sys.executable,
+            str(DEVICE_SCRIPT),
+            *where,
+            "--framer",
+            framer,
+            "--units",
+            units,
+            *(["--holes"] if holes else []),
+        ],
         stdout=subprocess.PIPE,
         stderr=errf,
         stdin=subprocess.DEVNULL,

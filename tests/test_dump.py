@@ -160,3 +160,124 @@ def test_a_bad_run_is_refused_naming_it(tmp_path, run, words):
     path.write_text(f"[holding_registers]\n5 = {run}\n")
     with pytest.raises(RequestError, match=words):
         load_data(str(path), frozenset({1}))
+
+
+# --- mbtool dump end to end: pymodbus's device with holes, and serve --data of its dump ----------
+
+SECTIONS = {
+    "coils": "coils",
+    "discrete": "discrete_inputs",
+    "holding": "holding_registers",
+    "input": "input_registers",
+}
+RANGES = (
+    "--range",
+    "coils:0-99",
+    "--range",
+    "discrete:0-99",
+    "--range",
+    "holding:0-599",
+    "--range",
+    "input:0-599",
+)
+
+
+@pytest.fixture(scope="module")
+def holed_device():
+    from conftest import start_device
+
+    with start_device(tcp=True, framer="socket", units="1", holes=True) as device:
+        yield device
+
+
+def _expanded(section: dict) -> dict[int, int]:
+    values = {}
+    for key, value in section.items():
+        items = [value["value"]] * value["count"] if isinstance(value, dict) else value
+        values.update({int(key) + i: int(v) for i, v in enumerate(items)})
+    return values
+
+
+def test_a_dump_of_a_device_with_holes_finds_them_exactly(holed_device, tmp_path):
+    import tomllib
+
+    from conftest import expect_ok, run_mbtool
+    from pymodbus.client import ModbusTcpClient
+
+    path = tmp_path / "device.toml"
+    res = expect_ok(run_mbtool("dump", path, *RANGES, "-p", holed_device.target))
+    assert res.stdout == "" and len(res.stderr.splitlines()) == 1  # in a pipe: the summary only
+    data = tomllib.loads(path.read_text())
+    assert data["sparse"] is True and "complete" not in data
+    # What pymodbus's own client finds, one address at a time, is what the dump holds.
+    client = ModbusTcpClient(holed_device.host, port=holed_device.port, timeout=2, retries=0)
+    assert client.connect()
+    try:
+        for table, method, size in (
+            ("holding", "read_holding_registers", 600),
+            ("input", "read_input_registers", 600),
+            ("coils", "read_coils", 100),
+            ("discrete", "read_discrete_inputs", 100),
+        ):
+            expected = {}
+            for address in range(size):
+                reply = getattr(client, method)(address, count=1, device_id=1)
+                if not reply.isError():
+                    expected[address] = int(reply.registers[0] if "registers" in method else reply.bits[0])
+            assert _expanded(data[SECTIONS[table]]) == expected, table
+            assert f"{table} {len(expected)}" in res.stderr
+    finally:
+        client.close()
+    assert list(_expanded(data["holding_registers"])) == [*range(10), *range(20, 30), 500, 502, 503]
+    assert data["input_registers"]["300"] == {"value": 4, "count": 40}  # a long run stays compact
+    assert data["identity"]["objects"]["0"] == "Pymodbus"
+
+
+def test_serve_of_a_dump_answers_as_the_device_did(holed_device, tmp_path):
+    from conftest import expect_ok, run_mbtool
+    from pymodbus.client import ModbusTcpClient
+    from test_serve import serve
+
+    path = tmp_path / "device.toml"
+    expect_ok(run_mbtool("dump", path, *RANGES, "-p", holed_device.target))
+    original = ModbusTcpClient(holed_device.host, port=holed_device.port, timeout=2, retries=0)
+    assert original.connect()
+    with serve("--data", str(path)) as server:
+        copy = ModbusTcpClient(server.host, port=server.port, timeout=2, retries=0)
+        assert copy.connect()
+        try:
+            reads = [
+                ("read_holding_registers", 600),
+                ("read_input_registers", 600),
+                ("read_coils", 100),
+                ("read_discrete_inputs", 100),
+            ]
+            for method, size in reads:
+                for address in range(size):
+                    for count in (1, 3):
+                        a = getattr(original, method)(address, count=count, device_id=1)
+                        b = getattr(copy, method)(address, count=count, device_id=1)
+                        assert a.isError() == b.isError(), (method, address, count)
+                        if a.isError():
+                            assert a.exception_code == b.exception_code == 2
+                        else:
+                            assert a.registers == b.registers and a.bits[:count] == b.bits[:count]
+            assert original.read_device_information(device_id=1).information[0] == b"Pymodbus"
+            assert copy.read_device_information(device_id=1).information[0] == b"Pymodbus"
+        finally:
+            copy.close()
+            original.close()
+
+
+def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_path):
+    import tomllib
+
+    from conftest import run_mbtool
+
+    path = tmp_path / "part.toml"
+    res = run_mbtool("dump", path, *RANGES, "--max-requests", "5", "-p", holed_device.target)
+    assert res.returncode == 0 and "stopped after 5 requests (--max-requests)" in res.stderr
+    data = tomllib.loads(path.read_text())
+    assert data["complete"] is False and data["sparse"] is True
+    res = run_mbtool("dump", "-", "--range", "holding:5-2", "-p", holed_device.target)
+    assert res.returncode == 2 and "FIRST no more than LAST" in res.stderr

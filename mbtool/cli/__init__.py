@@ -55,6 +55,7 @@ COMMANDS = {
     "crc": "offline",
     "lrc": "offline",
     "serve": "serve",
+    "dump": "snapshot",
 }
 
 

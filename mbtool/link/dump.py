@@ -122,3 +122,23 @@ class Dumper:
                     size = min(limit, count * 2)  # nothing known missing ahead: gallop
             if progress is not None:
                 progress(address - span.first)
+
+
+def read_identification(execute: Callable[[Request], object], read_code: int) -> tuple[dict[int, bytes], str]:
+    """Every object of a level of FC 43/14 (spec §3), following more-follows across
+    requests; and the device's conformity level.  A more-follows that points back at an
+    object already asked for is a bad reply (FrameError), not a loop."""
+    from mbtool.codec.device_id import ReadDeviceIdentification
+    from mbtool.codec.errors import FrameError
+
+    objects: dict[int, bytes] = {}
+    next_id, asked = 0, set()
+    while True:
+        asked.add(next_id)
+        reply = execute(ReadDeviceIdentification(read_code, next_id))
+        objects.update(reply.objects)
+        if not reply.more_follows:
+            return objects, reply.conformity_name
+        next_id = reply.next_object_id
+        if next_id in asked:
+            raise FrameError(f"more-follows points back to object 0x{next_id:02X}, already asked for")

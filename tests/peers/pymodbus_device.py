@@ -31,6 +31,33 @@ COILS = [i % 2 == 0 for i in range(20)]
 DISCRETE = [True] * 20
 
 
+# --holes: a device with gaps in its address map, as real ones have (reads that touch a
+# gap answer exception 02): (first address, values) blocks per table.
+HOLED = {
+    "coils": [(0, [True, False] * 8), (40, [True] * 5)],
+    "discrete": [(3, [False, True, True])],
+    "holding": [(0, list(range(100, 110))), (20, list(range(200, 210))), (500, [7]), (502, [8, 9])],
+    "input": [(10, [1, 2, 3]), (300, [4] * 40)],
+}
+
+
+def build_holed_device(unit: int):
+    from pymodbus.simulator import DataType, SimData, SimDevice
+
+    def blocks(name, datatype):
+        return [SimData(first, values=list(values), datatype=datatype) for first, values in HOLED[name]]
+
+    return SimDevice(
+        id=unit,
+        simdata=(
+            blocks("coils", DataType.BITS),
+            blocks("discrete", DataType.BITS),
+            blocks("holding", DataType.REGISTERS),
+            blocks("input", DataType.REGISTERS),
+        ),
+    )
+
+
 def build_device(unit: int):
     from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -80,6 +107,7 @@ def parse_args(argv):
     # e2e tests run the serial device on a pty.  Parity does not exist on a pty anyway.
     p.add_argument("--parity", default="N", choices=["N", "E", "O"])
     p.add_argument("--verbose", action="store_true")
+    p.add_argument("--holes", action="store_true", help="the HOLED address map instead of full tables")
     args = p.parse_args(argv)
     if args.framer is None:
         args.framer = "socket" if args.tcp else "rtu"
@@ -93,7 +121,8 @@ async def run(args) -> int:
     from pymodbus import FramerType
     from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 
-    devices = [build_device(u) for u in args.unit_list]
+    build = build_holed_device if args.holes else build_device
+    devices = [build(u) for u in args.unit_list]
     framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[args.framer]
     if args.tcp:
         host, _, port = args.tcp.rpartition(":")

@@ -331,7 +331,6 @@ def device_id(connection, level, object_id):
     from mbtool.cli.render import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.device_id import ReadDeviceIdentification, object_name
-    from mbtool.codec.errors import FrameError
     from mbtool.codec.pdu import text_of
 
     objects: dict[int, bytes] = {}
@@ -344,18 +343,12 @@ def device_id(connection, level, object_id):
             conformity = reply.conformity_name
             objects.update(reply.objects)
         else:
-            next_id, asked = 0, set()
-            while True:
-                asked.add(next_id)
-                request = ReadDeviceIdentification(LEVELS[level], next_id)
-                reply = client.execute(connection.unit, request)
-                conformity = reply.conformity_name
-                objects.update(reply.objects)
-                if not reply.more_follows:
-                    break
-                next_id = reply.next_object_id
-                if next_id in asked:
-                    raise FrameError(f"more-follows points back to object 0x{next_id:02X}, already asked for")
+            from mbtool.link.dump import read_identification
+
+            def execute_one(request):
+                return client.execute(connection.unit, request)
+
+            objects, conformity = read_identification(execute_one, LEVELS[level])
     rows = [Row(object_name(i), text_of(value)) for i, value in objects.items()]
     if not rows:
         rows = [Row("objects", "none: the device answered with no objects")]

@@ -1,0 +1,217 @@
+"""Snapshots of a device: ``dump`` writes what a device holds to a file that
+``mbtool serve --data`` loads unchanged, so a dump is also a simulator of the device."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import click
+
+from mbtool.cli.options import Number, device_command
+from mbtool.codec.errors import RequestError
+
+TABLE_SECTIONS = {  # a table's name in mbtool's messages -> its section in a data file
+    "coils": "coils",
+    "discrete": "discrete_inputs",
+    "input": "input_registers",
+    "holding": "holding_registers",
+}
+RUN = 16  # equal values in a row written as one { value, count }: long runs stay compact
+
+
+def parse_span(text: str):
+    """TABLE:FIRST-LAST (holding:0-999), TABLE:ADDRESS, or TABLE alone (0-65535)."""
+    from mbtool.codec.tables import table_named
+    from mbtool.link.dump import Span
+
+    name, _, where = text.partition(":")
+    table = table_named(name.strip())
+    if not where:
+        return Span(table)
+    first, dash, last = where.partition("-")
+    try:
+        low = int(first, 0)
+        high = int(last, 0) if dash else low
+    except ValueError:
+        raise RequestError(f"--range {text}: write it as TABLE:FIRST-LAST, such as holding:0-999") from None
+    if not 0 <= low <= high <= 0xFFFF:
+        raise RequestError(f"--range {text}: addresses run 0..65535, FIRST no more than LAST")
+    return Span(table, low, high)
+
+
+def data_file(dumps, identity: dict, complete: bool) -> dict:
+    """The dump as ``serve --data`` reads it: sparse, so an address it lacks is exception 02."""
+    document: dict = {"sparse": True}
+    if not complete:
+        document["complete"] = False
+    for dump in dumps:
+        section: dict = {}
+        for first, values in dump.runs:
+            for start, chunk in _chunks(first, [int(v) for v in values]):
+                section[str(start)] = chunk
+        if section:
+            document[TABLE_SECTIONS[dump.table.name]] = section
+    if identity:
+        document["identity"] = identity
+    return document
+
+
+def _chunks(first: int, values: list[int]):
+    """(address, values or a run) pieces of one readable run."""
+    plain: list[int] = []
+    start = i = 0
+    while i < len(values):
+        same = i
+        while same < len(values) and values[same] == values[i]:
+            same += 1
+        if same - i >= RUN:
+            if plain:
+                yield first + start, plain
+            yield first + i, {"value": values[i], "count": same - i}
+            plain, start = [], same
+        else:
+            if not plain:
+                start = i
+            plain.extend(values[i:same])
+        i = same
+    if plain:
+        yield first + start, plain
+
+
+def _text_or_bytes(value: bytes):
+    try:
+        text = value.decode("utf-8")
+    except UnicodeDecodeError:
+        return list(value)
+    return text if text.isprintable() else list(value)
+
+
+def _identity(execute) -> dict:
+    """FC 17 and FC 43/14, when the device answers them: what serve --data replays."""
+    from mbtool.codec.errors import ProtocolError
+    from mbtool.codec.serial_line import ReportSlaveId
+    from mbtool.errors import NoResponse
+    from mbtool.link.dump import read_identification
+
+    identity: dict = {}
+    try:
+        reply = execute(ReportSlaveId())
+        identity |= {"slave_id": reply.slave_id, "run": reply.run_indicator}
+        if reply.extra:
+            identity["extra"] = _text_or_bytes(reply.extra)
+    except (ProtocolError, NoResponse):
+        pass  # not every device answers FC 17 (and Modbus TCP has no use for it)
+    try:
+        objects, _ = read_identification(execute, 0x03)  # extended: every object it has
+    except (ProtocolError, NoResponse):
+        objects = {}
+    if objects:
+        identity["objects"] = {str(key): _text_or_bytes(value) for key, value in objects.items()}
+    return identity
+
+
+@device_command("dump")
+@click.argument("file", type=click.Path(dir_okay=False, allow_dash=True))
+@click.option(
+    "--range",
+    "ranges",
+    multiple=True,
+    metavar="TABLE:FIRST-LAST",
+    help="Dump only these (repeatable): coils, discrete, input or holding, with an address "
+    "range such as holding:0-999. Default: all four tables, 0-65535 each.",
+)
+@click.option(
+    "--max-requests",
+    type=Number(1, 10**9, "requests"),
+    help="Stop after N requests; the file keeps what was read, marked complete = false.",
+)
+def dump(connection, file, ranges, max_requests):
+    """Dump a device's tables, and its identity, to FILE (- for stdout).
+
+    FILE is TOML that mbtool serve --data loads unchanged: sparse, holding exactly the
+    addresses the device has, so the dump serves as a copy of the device. Reads are as
+    large as the spec allows; a read refused with exception 02 is narrowed until every
+    address is known to be there or not (each missing address costs one request).
+    Ctrl-C keeps what was read so far, in a valid file marked complete = false.
+    """
+    import tomli_w
+
+    from mbtool.cli.session import open_client
+    from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary
+    from mbtool.link.dump import Dumper, OutOfRequests, TableDump
+
+    spans = [parse_span(text) for text in ranges] or [parse_span(name) for name in TABLE_SECTIONS]
+    dumps = {span.table.name: TableDump(span.table) for span in spans}
+    total = sum(span.size for span in spans)
+    began = time.monotonic()
+    stopped, failure, identity = "", None, {}
+    with open_client(connection, "Read Holding Registers") as client:
+
+        def execute(request):
+            return client.execute(connection.unit, request)
+
+        dumper = Dumper(execute, max_requests)
+        bar = _Bar(total) if sys.stderr.isatty() and not connection.dry_run else None
+        try:
+            for span in spans:
+                done = bar.done if bar else 0
+                dumper.dump(span, dumps[span.table.name], bar and (lambda n, done=done: bar.at(done + n)))
+                if bar:
+                    bar.at(done + span.size)
+            identity = _identity(execute)
+        except OutOfRequests:
+            stopped = f"stopped after {dumper.requests} requests (--max-requests)"
+        except KeyboardInterrupt:
+            stopped = "interrupted"
+        except KNOWN_ERRORS as error:
+            if connection.dry_run:
+                raise
+            stopped, failure = f"stopped: {error}", error
+        finally:
+            if bar:
+                bar.close()
+    complete = not stopped
+    text = tomli_w.dumps(data_file(dumps.values(), identity, complete))
+    if file == "-":
+        sys.stdout.write(text)
+    else:
+        try:
+            with open(file, "w", encoding="utf-8") as out:
+                out.write(text)
+        except OSError as error:
+            from mbtool.errors import OutputFailed
+
+            raise OutputFailed(file, error) from None
+    found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
+    summary = f"dump: {found}; {dumper.requests} requests in {time.monotonic() - began:.1f} s"
+    if stopped:
+        summary += f"; {stopped}: the file has what was read, marked complete = false"
+    code = ExitCode.OK
+    if stopped == "interrupted":
+        code = ExitCode.INTERRUPTED
+    elif failure is not None:
+        from mbtool.errors import exit_code_for
+
+        code = exit_code_for(failure)
+    raise Summary(summary, code)
+
+
+class _Bar:
+    """A progress bar on a terminal's stderr: addresses covered of all asked for."""
+
+    def __init__(self, total: int) -> None:
+        from rich.console import Console
+        from rich.progress import Progress
+
+        self.done = 0
+        self.progress = Progress(console=Console(stderr=True), transient=True)
+        self.task = self.progress.add_task("dump", total=total)
+        self.progress.start()
+
+    def at(self, done: int) -> None:
+        self.done = done
+        self.progress.update(self.task, completed=done)
+
+    def close(self) -> None:
+        self.progress.stop()
