@@ -281,3 +281,33 @@ def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_pa
     assert data["complete"] is False and data["sparse"] is True
     res = run_mbtool("dump", "-", "--range", "holding:5-2", "-p", holed_device.target)
     assert res.returncode == 2 and "FIRST no more than LAST" in res.stderr
+
+
+def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+    import tomllib
+
+    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+    from test_serve import serve
+
+    path = tmp_path / "part.toml"
+    with serve("--delay", "0.02") as server:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbtool", "dump", str(path), "-p", f"tcp://{server.host}:{server.port}"],
+            cwd=REPO_ROOT,
+            env=mbtool_env(),
+            preexec_fn=signals_as_from_a_shell,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130, err
+    assert "interrupted: the file has what was read, marked complete = false" in err
+    data = tomllib.loads(path.read_text())
+    assert data["complete"] is False and data["coils"]  # the coils came first, and stay
