@@ -45,7 +45,8 @@ EXTRA_ENVIRONMENT = {
 # is still listed, described by its name).
 EXIT_DESCRIPTIONS = {
     "OK": "Success.",
-    "INTERNAL": "Internal error (a bug in mbtool); set MBTOOL_DEBUG=1 to see the traceback.",
+    "INTERNAL": "Internal error (a bug in mbtool); set MBTOOL_DEBUG=1 to see the traceback. "
+    "For diff alone: the two sides differ, as for diff(1).",
     "USAGE": "Usage error or bad input: nothing was sent.",
     "TIMEOUT": "No response within the timeout (after any retries).",
     "EXCEPTION": "The device answered with a Modbus exception response.",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import random
 
 import pytest
@@ -311,3 +312,55 @@ def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
     assert "interrupted: the file has what was read, marked complete = false" in err
     data = tomllib.loads(path.read_text())
     assert data["complete"] is False and data["coils"]  # the coils came first, and stay
+
+
+# --- mbtool diff ----------------------------------------------------------------------------
+
+
+def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, tmp_path):
+    from conftest import expect_ok, run_mbtool
+    from pymodbus.client import ModbusTcpClient
+
+    path = tmp_path / "before.toml"
+    ranges = ("--range", "holding:700-720", "--range", "coils:700-710")
+    expect_ok(run_mbtool("dump", path, *ranges, "-p", tcp_device.target))
+    res = run_mbtool("diff", path, "-p", tcp_device.target)
+    assert res.returncode == 0 and res.stdout == "" and res.stderr == ""
+    client = ModbusTcpClient(tcp_device.host, port=tcp_device.port, timeout=2, retries=0)
+    assert client.connect()
+    try:
+        client.write_register(705, 99, device_id=1)
+        res = run_mbtool("diff", path, "-p", tcp_device.target)
+        assert res.returncode == 1 and res.stdout.splitlines() == ["holding 705: 0 -> 99"]
+        assert res.stderr == "mbtool: 1 difference\n"
+        mapped = tmp_path / "map.toml"
+        mapped.write_text('[points.setpoint]\nref = 40706\nscale = 0.5\nunit = "bar"\n')
+        res = run_mbtool("diff", path, "-m", mapped, "-p", tcp_device.target, "-o", "json")
+        data = json.loads(res.stdout)
+        assert res.returncode == 1 and data["equal"] is False
+        assert data["differences"] == [
+            {
+                "table": "holding",
+                "address": 705,
+                "ref": "40706",
+                "name": "setpoint",
+                "unit": "bar",
+                "a": 0,
+                "b": 49.5,
+            }
+        ]
+    finally:
+        client.write_register(705, 0, device_id=1)
+        client.close()
+
+
+def test_diff_of_two_files_names_what_one_side_lacks(tmp_path):
+    from conftest import run_mbtool
+
+    (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 2, 3]\n[coils]\n4 = 1\n")
+    (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 5]\n[coils]\n4 = 1\n")
+    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml")
+    assert res.returncode == 1
+    assert res.stdout.splitlines() == ["holding 1: 2 -> 5", "holding 2: 3 -> missing"]
+    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "nothere.toml")
+    assert res.returncode == 2 and "cannot read data file" in res.stderr

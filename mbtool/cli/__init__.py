@@ -56,6 +56,7 @@ COMMANDS = {
     "lrc": "offline",
     "serve": "serve",
     "dump": "snapshot",
+    "diff": "snapshot",
 }
 
 

@@ -704,8 +704,13 @@ class Device:
 TABLES = ("coils", "discrete_inputs", "holding_registers", "input_registers")
 
 
-def load_data(path: str, units: frozenset[int]) -> tuple[DataModel, dict[int, DataModel]]:
-    """A template model and per-unit models from a JSON or TOML file (README, "Simulating a device")."""
+def load_data(
+    path: str, units: frozenset[int], listed_only: bool = False
+) -> tuple[DataModel, dict[int, DataModel]]:
+    """A template model and per-unit models from a JSON or TOML file (README, "Simulating a device").
+
+    ``listed_only``: mark the addresses the file lists, as a sparse file does, whatever
+    it says (diff compares those and no others)."""
     try:
         with open(path, "rb") as handle:
             raw = handle.read()
@@ -728,7 +733,7 @@ def load_data(path: str, units: frozenset[int]) -> tuple[DataModel, dict[int, Da
     sparse = data.get("sparse", False)
     if not isinstance(sparse, bool):
         raise RequestError(f"data file {path}: sparse must be true or false")
-    if sparse:
+    if sparse or listed_only:
         template.defined = {}  # only what the file lists exists; units.N add their own
     per_unit_sections = data.get("units", {})
     if not isinstance(per_unit_sections, dict):
