@@ -22,6 +22,8 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+from mbtool.link.dump import runs_of  # noqa: E402  (the bench runs from a checkout)
 
 
 def device(registers: int, blocky: bool, rng: random.Random) -> list[int]:
@@ -34,16 +36,6 @@ def device(registers: int, blocky: bool, rng: random.Random) -> list[int]:
     return sorted(rng.sample(range(65536), registers))
 
 
-def runs(addresses: list[int]) -> list[tuple[int, int]]:
-    out: list[list[int]] = []
-    for a in addresses:
-        if out and out[-1][1] == a - 1:
-            out[-1][1] = a
-        else:
-            out.append([a, a])
-    return [tuple(r) for r in out]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--registers", type=int, default=10000)
@@ -51,7 +43,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     present = device(args.registers, args.blocky, random.Random(args.seed))
-    blocks = runs(present)
+    blocks = runs_of(present)
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "device.toml"
         lines = ["sparse = true", "[holding_registers]"]

@@ -6,12 +6,12 @@ import json
 import random
 
 import pytest
+from test_registermap import _execute as executor
 
 from mbtool.codec.errors import ModbusException
-from mbtool.codec.pdu import ExceptionResponse
 from mbtool.codec.tables import COILS, HOLDING_REGISTERS
 from mbtool.device.model import DataModel, Device
-from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump
+from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, runs_of
 
 
 def sparse_device(defined: dict[str, list[int]]) -> Device:
@@ -27,28 +27,6 @@ def sparse_device(defined: dict[str, list[int]]) -> Device:
     return Device(model)
 
 
-def executor(device: Device, sent: list):
-    def execute(request):
-        sent.append(request)
-        reply = request.decode_response(device.handle(1, request.encode()))
-        if isinstance(reply, ExceptionResponse):
-            raise ModbusException(reply.function_code, reply.exception_code)
-        return reply
-
-    return execute
-
-
-def runs_of(addresses: list[int]) -> list[tuple[int, int]]:
-    """(first, last) of each run of consecutive addresses."""
-    runs: list[list[int]] = []
-    for address in sorted(addresses):
-        if runs and runs[-1][1] == address - 1:
-            runs[-1][1] = address
-        else:
-            runs.append([address, address])
-    return [tuple(run) for run in runs]
-
-
 @pytest.mark.parametrize("seed", range(8))
 def test_the_dump_finds_every_hole_exactly(seed):
     rng = random.Random(seed)
@@ -58,7 +36,7 @@ def test_the_dump_finds_every_hole_exactly(seed):
     sent: list = []
     dump = TableDump(HOLDING_REGISTERS)
     Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 3999), dump)
-    assert [(first, first + len(values) - 1) for first, values in dump.runs] == runs_of(present)
+    assert [(first, first + len(values) - 1) for first, values in dump.runs] == runs_of(sorted(present))
     values = {first + i: v for first, vs in dump.runs for i, v in enumerate(vs)}
     assert values == {a: (a * 7 + 3) & 0xFFFF for a in present}
     assert all(request.count <= 125 for request in sent)
@@ -286,29 +264,16 @@ def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_pa
 
 def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
     import signal
-    import subprocess
-    import sys
-    import time
     import tomllib
 
-    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+    from test_polling import _interrupt_after
     from test_serve import serve
 
     path = tmp_path / "part.toml"
     with serve("--delay", "0.02") as server:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", "dump", str(path), "-p", f"tcp://{server.host}:{server.port}"],
-            cwd=REPO_ROOT,
-            env=mbtool_env(),
-            preexec_fn=signals_as_from_a_shell,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        time.sleep(1.5)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=10)
-    assert proc.returncode == 130, err
+        target = f"tcp://{server.host}:{server.port}"
+        code, _, err = _interrupt_after(["dump", str(path), "-p", target], 0, signal.SIGINT)
+    assert code == 130, err
     assert "interrupted: the file has what was read, marked complete = false" in err
     data = tomllib.loads(path.read_text())
     assert data["complete"] is False and data["coils"]  # the coils came first, and stay

@@ -142,3 +142,14 @@ def read_identification(execute: Callable[[Request], object], read_code: int) ->
         next_id = reply.next_object_id
         if next_id in asked:
             raise FrameError(f"more-follows points back to object 0x{next_id:02X}, already asked for")
+
+
+def runs_of(addresses) -> list[tuple[int, int]]:
+    """(first, last) of each run of consecutive addresses, from sorted addresses."""
+    runs: list[list[int]] = []
+    for address in addresses:
+        if runs and runs[-1][1] == address - 1:
+            runs[-1][1] = address
+        else:
+            runs.append([address, address])
+    return [(first, last) for first, last in runs]

@@ -238,27 +238,17 @@ def read_live(execute, wanted: dict[str, dict[int, int]]) -> dict[str, dict[int,
     """What the device holds at the addresses ``wanted`` lists: each run read exactly (an
     address the device lacks is left out, as a dump would)."""
     from mbtool.codec.tables import table_named
-    from mbtool.link.dump import Dumper, Span, TableDump
+    from mbtool.link.dump import Dumper, Span, TableDump, runs_of
 
     dumper = Dumper(execute)
     out: dict[str, dict[int, int]] = {}
     for name, values in wanted.items():
         table = table_named(name)
         into = TableDump(table)
-        for first, last in _runs(sorted(values)):
+        for first, last in runs_of(sorted(values)):
             dumper.dump(Span(table, first, last), into)
         out[name] = {first + i: int(v) for first, vs in into.runs for i, v in enumerate(vs)}
     return out
-
-
-def _runs(addresses: list[int]) -> list[tuple[int, int]]:
-    runs: list[list[int]] = []
-    for address in addresses:
-        if runs and runs[-1][1] == address - 1:
-            runs[-1][1] = address
-        else:
-            runs.append([address, address])
-    return [(first, last) for first, last in runs]
 
 
 def differences(a: dict, b: dict, register_map=None) -> list[dict]:
