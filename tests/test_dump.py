@@ -329,3 +329,52 @@ def test_diff_of_two_files_names_what_one_side_lacks(tmp_path):
     assert res.stdout.splitlines() == ["holding 1: 2 -> 5", "holding 2: 3 -> missing"]
     res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "nothere.toml")
     assert res.returncode == 2 and "cannot read data file" in res.stderr
+
+
+# --- mbtool restore -------------------------------------------------------------------------
+
+
+def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path):
+    from conftest import expect_ok, parse_hex_lines, run_mbtool
+    from pymodbus.client import ModbusTcpClient
+
+    path = tmp_path / "saved.toml"
+    ranges = ("--range", "holding:740-760", "--range", "coils:740-750", "--range", "input:0-3")
+    expect_ok(run_mbtool("dump", path, *ranges, "-p", tcp_device.target))
+    client = ModbusTcpClient(tcp_device.host, port=tcp_device.port, timeout=2, retries=0)
+    assert client.connect()
+    try:
+        client.write_registers(744, [11, 12], device_id=1)
+        client.write_register(750, 13, device_id=1)
+        client.write_coil(745, True, device_id=1)
+        res = expect_ok(run_mbtool("restore", path, "--dry-run", "-o", "plain", "-p", tcp_device.target))
+        raws = [line for line in res.stdout.splitlines() if line.startswith("raw ")]
+        assert len(raws) == 3  # 744-745, 750, and the coil: only what differs
+        assert "the 3 writes shown were not sent" in res.stderr
+        assert client.read_holding_registers(744, count=2, device_id=1).registers == [11, 12]
+        res = expect_ok(run_mbtool("restore", path, "--hex", "-p", tcp_device.target))
+        writes = [line.data[7] for line in parse_hex_lines(res.stderr) if line.direction == "TX"]
+        assert writes.count(0x10) == 2 and writes.count(0x0F) == 1 and 0x06 not in writes
+        assert "restore: wrote 1 coil, 3 holding registers in 3 requests" in res.stderr
+        assert "skipped 4 input registers (read-only)" in res.stderr
+        assert "read back and confirmed" in res.stderr
+        assert client.read_holding_registers(744, count=7, device_id=1).registers == [0] * 7
+        assert client.read_coils(745, count=1, device_id=1).bits[0] is False
+        assert run_mbtool("diff", path, "-p", tcp_device.target).returncode == 0
+    finally:
+        client.close()
+
+
+def test_write_requests_are_the_fewest_the_limits_allow():
+    from mbtool.cli.commands.snapshot import write_requests
+
+    changes = {"holding": {a: a & 0xFFFF for a in [*range(0, 300), 400, 401, 500]}, "coils": {7: 1}}
+    requests = write_requests(changes)
+    assert [(r.function_code, r.address, len(r.values)) for r in requests] == [
+        (0x0F, 7, 1),
+        (0x10, 0, 123),
+        (0x10, 123, 123),
+        (0x10, 246, 54),
+        (0x10, 400, 2),
+        (0x10, 500, 1),
+    ]

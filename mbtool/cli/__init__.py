@@ -57,6 +57,7 @@ COMMANDS = {
     "serve": "serve",
     "dump": "snapshot",
     "diff": "snapshot",
+    "restore": "snapshot",
 }
 
 

@@ -358,3 +358,98 @@ def diff(connection, a, b, map):
         sys.stdout.write("".join(difference_line(d) + "\n" for d in found))
     if found:
         raise Summary(f"{len(found)} difference{'s' if len(found) != 1 else ''}", ExitCode(1))
+
+
+# --- restore: a dump's writable tables back into the device --------------------------------
+
+
+def write_requests(changes: dict[str, dict[int, int]]) -> list:
+    """FC 15/16 requests for the values to write: one a run of consecutive addresses, cut at
+    the spec's limits (1968 coils, 123 registers a request): the fewest such requests."""
+    from mbtool.codec.data_access import (
+        MAX_WRITE_COILS,
+        MAX_WRITE_REGISTERS,
+        WriteMultipleCoils,
+        WriteMultipleRegisters,
+    )
+    from mbtool.link.dump import runs_of
+
+    requests = []
+    for name, kind, limit in (
+        ("coils", WriteMultipleCoils, MAX_WRITE_COILS),
+        ("holding", WriteMultipleRegisters, MAX_WRITE_REGISTERS),
+    ):
+        values = changes.get(name, {})
+        for first, last in runs_of(sorted(values)):
+            for start in range(first, last + 1, limit):
+                end = min(last + 1, start + limit)
+                run = [values[a] for a in range(start, end)]
+                requests.append(kind(start, tuple(bool(v) for v in run) if name == "coils" else tuple(run)))
+    return requests
+
+
+@device_command("restore")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option(
+    "--all", "everything", is_flag=True, help="Write every coil and register, not only those that differ."
+)
+def restore(connection, file, everything):
+    """Write a dump's holding registers and coils back into the device, then read back.
+
+    Only what differs from the device is written (--all: everything), in the fewest FC
+    15/16 requests; then every written address is read back to confirm it. --dry-run
+    reads the device and shows the writes it would send. Input registers and discrete
+    inputs cannot be written: they are reported as skipped.
+    """
+    from mbtool.cli.session import open_client
+    from mbtool.codec.record import replace
+    from mbtool.errors import ExitCode, Summary
+
+    snap = snapshot(file)
+    wanted = {name: snap[name] for name in ("coils", "holding") if name in snap}
+    skipped = ", ".join(
+        f"{len(snap[name])} {label}"
+        for name, label in (("input", "input registers"), ("discrete", "discrete inputs"))
+        if snap.get(name)
+    )
+    # The reads are needed even for --dry-run: it shows only the writes that differ.
+    with open_client(replace(connection, dry_run=False), "Read Holding Registers") as client:
+
+        def execute(request):
+            return client.execute(connection.unit, request)
+
+        current = {} if everything else read_live(execute, wanted)
+        changes = {
+            name: {a: v for a, v in values.items() if current.get(name, {}).get(a) != v}
+            for name, values in wanted.items()
+        }
+        requests = write_requests(changes)
+        if connection.dry_run:
+            from mbtool.cli.dryrun import DryRunClient, DryRunDone
+
+            dry = DryRunClient(client.framer, connection.output_format)
+            for request in requests:
+                dry.show(connection.unit, request)
+            raise DryRunDone(f"dry run: the device was read; the {len(requests)} writes shown were not sent")
+        for request in requests:
+            execute(request)
+        after = read_live(execute, changes)
+    wrong = [
+        f"{name} {address} wrote {value}, reads {after.get(name, {}).get(address, 'nothing')}"
+        for name, values in changes.items()
+        for address, value in values.items()
+        if after.get(name, {}).get(address) != value
+    ]
+    labels = {"coils": "coils", "holding": "holding registers"}
+    counts = ", ".join(
+        f"{len(values)} {labels[name] if len(values) != 1 else labels[name][:-1]}"
+        for name, values in changes.items()
+        if values
+    )
+    summary = f"restore: wrote {counts or 'nothing'} in {len(requests)} requests"
+    if skipped:
+        summary += f"; skipped {skipped} (read-only)"
+    if wrong:
+        summary += f"; read back differently: {'; '.join(wrong[:5])}" + (" ..." if len(wrong) > 5 else "")
+        raise Summary(summary, ExitCode.INVALID_RESPONSE)
+    raise Summary(summary + "; read back and confirmed", ExitCode.OK)
