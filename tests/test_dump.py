@@ -378,3 +378,69 @@ def test_write_requests_are_the_fewest_the_limits_allow():
         (0x10, 400, 2),
         (0x10, 500, 1),
     ]
+
+
+# --- --changes on polling -------------------------------------------------------------------
+
+
+def _poll_while_writing(args, writes):
+    """Run a polling mbtool; while it polls, make the writes through pymodbus's client."""
+    import select
+    import subprocess
+    import sys
+    import time
+
+    from conftest import REPO_ROOT, mbtool_env
+    from test_serve import serve, tcp_client
+
+    with serve() as server:
+        target = f"tcp://{server.host}:{server.port}"
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbtool", *args, "-p", target],
+            cwd=REPO_ROOT,
+            env=mbtool_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        # Wait for the first poll's output without reading it (communicate reads it all).
+        assert select.select([proc.stdout.fileno()], [], [], 15)[0], "no first poll"
+        client = tcp_client(server)
+        try:
+            for address, value in writes:
+                client.write_register(address, value, device_id=1)
+                time.sleep(0.4)
+        finally:
+            client.close()
+        out, err = proc.communicate(timeout=20)
+    return proc.returncode, out, err
+
+
+def test_changes_prints_the_first_poll_then_one_line_a_change():
+    code, out, err = _poll_while_writing(
+        ["read-holding-registers", "0", "3", "--interval", "0.1", "--polls", "25", "--changes"],
+        [(1, 77), (2, 5)],
+    )
+    assert code == 0, err
+    lines = [line.split(" ", 1)[1] for line in out.splitlines()]
+    assert lines == ["0 0", "1 1", "2 2", "holding 1: 1 -> 77", "holding 2: 2 -> 5"]
+
+
+def test_changes_of_a_map_and_as_json(pump_map):
+    code, out, err = _poll_while_writing(
+        ["read", "-m", pump_map, "--interval", "0.1", "--polls", "20", "--changes", "-o", "json"],
+        [(500, 225)],
+    )
+    assert code == 0, err
+    first, *changes = (json.loads(line) for line in out.splitlines())
+    assert [p["name"] for p in first["points"]] == ["setpoint"]
+    assert [{k: v for k, v in c.items() if k != "time"} for c in changes] == [
+        {"name": "setpoint", "ref": "40501", "old": 0, "new": 22.5, "unit": "m3/h"}
+    ]
+
+
+@pytest.fixture
+def pump_map(tmp_path):
+    path = tmp_path / "pump.toml"
+    path.write_text('[points.setpoint]\nref = 40501\nscale = 0.1\nunit = "m3/h"\n')
+    return path

@@ -63,6 +63,23 @@ class Output:
         else:
             self._table(when, result)
 
+    def change(self, when: str, what: dict, old, new, unit: str) -> None:
+        """One value that changed since the poll before (--changes)."""
+        if self.fmt == "json":
+            self._emit(
+                _json_line({"time": when, **what, "old": old, "new": new, **({"unit": unit} if unit else {})})
+            )
+            return
+        where = f"{what['name']} ({what['ref']})" if "name" in what else f"{what['table']} {what['address']}"
+        shown = [
+            ("missing" if v is None else value_text(v)) + (f" {unit}" if unit and v is not None else "")
+            for v in (old, new)
+        ]
+        if self.fmt == "csv":
+            self._csv(when, ["what", "old", "new"], [[where, *shown]])
+        else:
+            self._emit(f"{when} {where}: {shown[0]} -> {shown[1]}\n")
+
     def _points(self, when: str, points: Points) -> None:
         if self.fmt == "json":
             self._emit(_json_line({"time": when, **points_dict(points)}))
@@ -145,6 +162,51 @@ class Output:
         if self.live is not None:
             self.live.stop()
             self.live = None
+
+
+TABLE_OF_FUNCTION = {0x01: "coils", 0x02: "discrete", 0x03: "holding", 0x04: "input"}
+
+
+class ChangesOnly:
+    """--changes: the first poll whole, then one line a value that changed, so a poll left
+    running into a file is a change log (``TIME holding 5: 5 -> 99``; JSON lines with the
+    old and new values)."""
+
+    def __init__(self, output: Output) -> None:
+        self.output = output
+        self.previous: dict | None = None
+
+    def result(self, when: str, result) -> None:
+        current = _changeable(result)
+        if self.previous is None:
+            self.output.result(when, result)
+        else:
+            for key, (what, value, unit) in current.items():
+                old = self.previous.get(key)
+                if old is None or old[1] != value:
+                    self.output.change(when, what, None if old is None else old[1], value, unit)
+        self.previous = current
+
+    def failure(self, when: str, number: int, error: BaseException) -> None:
+        self.output.failure(when, number, error)
+
+    def close(self) -> None:
+        self.output.close()
+
+
+def _changeable(result) -> dict:
+    """Each value of a poll by what names it: key -> (fields naming it, value, unit)."""
+    if result.__class__ is Points:
+        return {row.name: ({"name": row.name, "ref": row.ref}, row.value, row.unit) for row in result.rows}
+    table = TABLE_OF_FUNCTION.get(result.function, result.name)
+    refs = result.refs or [None] * len(result.items)
+    out = {}
+    for ref, (address, value) in zip(refs, result.items, strict=True):
+        what = {"unit": result.unit, "table": table, "address": address}
+        if ref is not None:
+            what["ref"] = ref
+        out[address] = (what, value, "")
+    return out
 
 
 class Deferred:

@@ -28,12 +28,26 @@ POLL_HELP = """
     with the time; a failed poll is reported on stderr and polling goes on. At the
     end a summary line goes to stderr; exit 0 if every poll got its reply, else the
     code of the last failure (130 only if interrupted before any poll finished).
+    With --changes the first poll is printed whole and later ones only as the values
+    that changed: TIME holding 5: 5 -> 99 (a change log for a file).
     """
+
+
+def _remember_changes(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    # Kept aside for _run, as the profile is: no read command's own arguments change.
+    ctx.meta["mbtool.changes"] = value
 
 
 def polling_options(function):
     """--interval and --polls, for the read commands, and what they do in --help."""
     function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
+    function = click.option(
+        "--changes",
+        is_flag=True,
+        expose_value=False,
+        callback=_remember_changes,
+        help="Polling: print the first poll whole, then only the values that changed.",
+    )(function)
     function = click.option(
         "--polls",
         type=Number(0, 10**9, "polls"),
@@ -59,12 +73,15 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
         with open_client(connection, request.name) as client:
             show(connection, to_result(run(client)))
         return
-    from mbtool.cli.poll_output import Deferred, Output
+    from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
     from mbtool.cli.render import default_format
     from mbtool.cli.session import trace_for
     from mbtool.link.polling import poll
 
-    shown = Deferred(Output(connection.output_format or default_format()), to_result)
+    output = Output(connection.output_format or default_format())
+    if click.get_current_context().meta.get("mbtool.changes"):
+        output = ChangesOnly(output)
+    shown = Deferred(output, to_result)
     poll(connection, request, shown, interval, polls, trace_for(connection), run)
 
 
