@@ -298,6 +298,8 @@ def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, 
         res = run_mbtool("diff", path, "-p", tcp_device.target)
         assert res.returncode == 1 and res.stdout.splitlines() == ["holding 705: 0 -> 99"]
         assert res.stderr == "mbtool: 1 difference\n"
+        res = run_mbtool("diff", "device", path, "-p", tcp_device.target)  # either side may be the device
+        assert res.returncode == 1 and res.stdout.splitlines() == ["holding 705: 99 -> 0"]
         mapped = tmp_path / "map.toml"
         mapped.write_text('[points.setpoint]\nref = 40706\nscale = 0.5\nunit = "bar"\n')
         res = run_mbtool("diff", path, "-m", mapped, "-p", tcp_device.target, "-o", "json")

@@ -306,6 +306,9 @@ def difference_line(difference: dict) -> str:
     return f"{where}: {shown(difference['a'])} -> {shown(difference['b'])}"
 
 
+DEVICE = "device"  # a side of diff that is the device itself, read through -p
+
+
 @device_command("diff")
 @click.argument("a", metavar="A")
 @click.argument("b", metavar="[B]", required=False)
@@ -318,12 +321,12 @@ def difference_line(difference: dict) -> str:
     help="A register map: differences at its points by name, in their units.",
 )
 def diff(connection, a, b, map):
-    """Compare two dumps, or a dump (A) with the device itself (-p and friends).
+    """Compare two dumps, or a dump with the device itself (-p and friends).
 
-    One line per difference, such as holding 5: 5 -> 99 (or setpoint (40006): 22.5 m3/h
-    -> 23 m3/h with -m); "missing" where a side lacks the address. Against the device
-    only the dump's addresses are read. Exit 0 when equal, 1 when they differ (as
-    diff(1)), other codes as everywhere.
+    A side named device (B when left out) is the device: only the dump's addresses are
+    read from it. One line per difference, such as holding 5: 5 -> 99 (or setpoint (40006): 22.5 m3/h
+    -> 23 m3/h with -m); "missing" where a side lacks the address. Exit 0 when equal, 1
+    when they differ (as diff(1)), other codes as everywhere.
     """
     from mbtool.cli.render import default_format, to_json
     from mbtool.errors import ExitCode, Summary
@@ -333,18 +336,23 @@ def diff(connection, a, b, map):
         from mbtool.registermap.load import load_map
 
         register_map = load_map(map)
-    left = snapshot(a)
-    if b is not None:
-        right = snapshot(b)
-    else:
+    b = b or DEVICE
+    if a == DEVICE == b:
+        raise RequestError(
+            f"diff compares a dump with the device, or two dumps: at most one side is {DEVICE}"
+        )
+    files = {side: snapshot(side) for side in (a, b) if side != DEVICE}
+    if DEVICE in (a, b):
         from mbtool.cli.session import open_client
 
+        (dumped,) = files.values()
         with open_client(connection, "Read Holding Registers") as client:
-            right = read_live(lambda request: client.execute(connection.unit, request), left)
+            files[DEVICE] = read_live(lambda request: client.execute(connection.unit, request), dumped)
+    left, right = files[a], files[b]
     found = differences(left, right, register_map)
     fmt = connection.output_format or default_format()
     if fmt == "json":
-        print(to_json({"a": a, "b": b or "device", "equal": not found, "differences": found}))
+        print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
     elif fmt == "csv":
         import csv
 
