@@ -27,6 +27,7 @@ EXAMPLES = {
     "write": "write 40108 1.5 --type float32",
     "write-bit": "write-bit 40001 3 on",
     "dump": "dump - --range holding:0-99",
+    "check": "check 40011 -w 10 -c 20",
     "diff": "diff tests/data/diff-example.toml",
     "read-exception-status": "read-exception-status",
     "diag": "diag return-query-data A537",

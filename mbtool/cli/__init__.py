@@ -55,6 +55,7 @@ COMMANDS = {
     "crc": "offline",
     "lrc": "offline",
     "serve": "serve",
+    "check": "check",
     "dump": "snapshot",
     "diff": "snapshot",
     "restore": "snapshot",
@@ -162,6 +163,10 @@ def main(argv: list[str] | None = None) -> None:
     except click.exceptions.Exit as done:  # --help, --version
         code = done.exit_code
     except click.ClickException as failure:  # usage errors: nothing was sent
+        if failure.ctx is not None and failure.ctx.command.name == "check":
+            # A monitoring plugin's bad arguments are UNKNOWN, on stdout (plugin guidelines).
+            click.echo(f"MODBUS UNKNOWN - {failure.format_message()}")
+            sys.exit(3)
         hint = ""
         if failure.ctx is not None and isinstance(failure, click.UsageError):
             hint = f" (see '{failure.ctx.command_path} --help')"

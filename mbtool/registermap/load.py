@@ -33,6 +33,8 @@ POINT_KEYS = {
     "enum": "labels of raw values",
     "bit": "one bit (0-15) of a register",
     "access": "r or rw",
+    "warn": "mbtool check's warning range (10, 10:, ~:10, 10:20, @10:20)",
+    "crit": "mbtool check's critical range",
 }
 DEVICE_KEYS = ("type", "order", "access", "max_gap")
 NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
@@ -163,6 +165,8 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         "unit": _string(row, "unit", fail),
         "description": _string(row, "description", fail),
         "writable": access == "rw",
+        "warn": _range(row, "warn", fail),
+        "crit": _range(row, "crit", fail),
     }
     if table.bits:
         for key in ("order", "count", "scale", "offset", "enum", "bit"):
@@ -254,6 +258,16 @@ def _decimal(row: dict, key: str, fail) -> Decimal | None:
     if not number.is_finite():
         raise fail(key, f"{value} is not a finite number")
     return number
+
+
+def _range(row: dict, key: str, fail) -> str | None:
+    """A threshold range as text; its grammar is mbtool check's to read (the plugin guidelines')."""
+    value = row.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        raise fail(key, f"{value} is not a range such as 10, 10:20 or @10:20")
+    return str(value)
 
 
 def _string(row: dict, key: str, fail) -> str:

@@ -35,6 +35,8 @@ class Point:
     enum: dict = field(default=None, compare=False)  # raw value -> label
     bit: int | None = None  # one bit (0 = least significant) of a register
     writable: bool = False
+    warn: str | None = None  # mbtool check's thresholds (Monitoring Plugins range syntax)
+    crit: str | None = None
 
     @property
     def ref(self) -> str:
