@@ -30,7 +30,7 @@ class DryRunClient:
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
         from mbtool.cli.frames import frame_report
-        from mbtool.cli.render import default_format, render
+        from mbtool.cli.render import FORMATS, default_format, render
         from mbtool.codec.describe import describe
 
         # Transaction id 1: the first one a real Client would use.
@@ -38,7 +38,8 @@ class DryRunClient:
         name = self.framer.name
         text = adu.decode("ascii", "replace") if name == "ascii" else adu.hex(" ")
         described = describe(text, name, "request")
-        render(frame_report(described, header=self.shown == 0), self.output_format or default_format())
+        fmt = self.output_format if self.output_format in FORMATS else default_format()  # not influx, prom
+        render(frame_report(described, header=self.shown == 0), fmt)
         self.shown += 1
 
     def execute(self, unit: int, request):

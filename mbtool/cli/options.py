@@ -374,10 +374,11 @@ CONNECTION_OPTIONS = [
         "-o",
         "--format",
         "output_format",
-        type=Choice(["table", "plain", "json", "csv"]),
+        type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
         callback=lambda ctx, param, value: output_chosen(value),
         help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
-        'object too: {"error": ..., "exit_code": N}.',
+        'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
+        "(Prometheus text) for the read commands.",
     ),
     NO_HEADER_OPTION,
     click.option(
@@ -459,12 +460,13 @@ PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a
 
 
 def device_command(
-    name: str, *, types: tuple[str, ...] = (), order_all: bool = False, **settings
+    name: str, *, types: tuple[str, ...] = (), order_all: bool = False, readings: bool = False, **settings
 ) -> Callable:
     """A command that talks to a device: the shared options, then a Connection as first argument.
 
     ``types``: the --type choices the command offers (none: no --type/--order);
-    ``order_all``: --order also takes all (reads).
+    ``order_all``: --order also takes all (reads); ``readings``: it prints values read,
+    which -o influx and -o prom can carry.
     """
 
     def decorate(function: Callable) -> Callable:
@@ -505,6 +507,14 @@ def device_command(
                 rs485_delays=rs485_delays,
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
+            if output_format in ("influx", "prom"):
+                if not readings:
+                    raise RequestError(
+                        f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
+                    )
+                from mbtool.cli import monitoring
+
+                monitoring.device = profile or ""
             if profile:
                 from mbtool.cli.profiles import defaults
                 from mbtool.codec.record import replace

@@ -46,8 +46,13 @@ class Output:
         self._pending: list[str] = []
         self._flush_at = 0.0
 
-    def result(self, when: str, result) -> None:
-        if result.__class__ is Points:
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        if self.fmt in ("influx", "prom"):
+            from mbtool.cli import monitoring
+
+            # To stdout with the other writes (one flush a gap); a textfile is written at once.
+            monitoring.emit(result, self.fmt, None if monitoring.textfile else _Pending(self), stamp)
+        elif result.__class__ is Points:
             self._points(when, result)
         elif self.fmt == "json":
             self._emit(_json_line({"time": when, **as_dict(result)}))
@@ -176,7 +181,7 @@ class ChangesOnly:
         self.output = output
         self.previous: dict | None = None
 
-    def result(self, when: str, result) -> None:
+    def result(self, when: str, result, stamp: float | None = None) -> None:
         current = _changeable(result)
         if self.previous is None:
             self.output.result(when, result)
@@ -228,7 +233,7 @@ class Deferred:
         if self.held is not None:
             when, reply = self.held
             self.held = None
-            self.output.result(local_time(when), self.to_result(reply))
+            self.output.result(local_time(when), self.to_result(reply), when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
         self.output.failure(local_time(when), number, error)
@@ -236,6 +241,16 @@ class Deferred:
     def close(self) -> None:
         self.write()
         self.output.close()
+
+
+class _Pending:
+    """A stream for monitoring.emit that joins the Output's pending writes (one flush a gap)."""
+
+    def __init__(self, output: Output) -> None:
+        self.output = output
+
+    def write(self, text: str) -> None:
+        self.output._emit(text)
 
 
 def _json_line(data: dict) -> str:

@@ -115,6 +115,11 @@ def default_format(stream: TextIO = sys.stdout) -> str:
 
 
 def render(result: Result | Report | Points, fmt: str, out: TextIO = sys.stdout) -> None:
+    if fmt in ("influx", "prom"):  # only the read commands offer them (device_command)
+        from mbtool.cli.monitoring import emit
+
+        emit(result, fmt, out)
+        return
     if isinstance(result, Points):
         {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
             result, out

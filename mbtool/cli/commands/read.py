@@ -33,9 +33,9 @@ POLL_HELP = """
     """
 
 
-def _remember_changes(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+def _remember(ctx: click.Context, param: click.Parameter, value) -> None:
     # Kept aside for _run, as the profile is: no read command's own arguments change.
-    ctx.meta["mbtool.changes"] = value
+    ctx.meta[f"mbtool.{param.name}"] = value
 
 
 def polling_options(function):
@@ -45,8 +45,25 @@ def polling_options(function):
         "--changes",
         is_flag=True,
         expose_value=False,
-        callback=_remember_changes,
+        callback=_remember,
         help="Polling: print the first poll whole, then only the values that changed.",
+    )(function)
+    function = click.option(
+        "--measurement",
+        default="modbus",
+        show_default=True,
+        expose_value=False,
+        callback=_remember,
+        help="-o influx: the measurement; -o prom: the metric names' prefix.",
+    )(function)
+    function = click.option(
+        "--textfile",
+        metavar="PATH",
+        type=click.Path(dir_okay=False),
+        expose_value=False,
+        callback=_remember,
+        help="Write the Prometheus text there, atomically, for node_exporter's textfile "
+        "collector (implies -o prom; each poll rewrites it).",
     )(function)
     function = click.option(
         "--polls",
@@ -64,6 +81,9 @@ def polling_options(function):
 def _run(connection: Connection, request, to_result, interval, polls, run=None) -> None:
     """Once, or polled.  ``run(client)``: a read of several requests (a map's), which
     ``request``, the first of them, stands for."""
+    meta = click.get_current_context().meta
+    if meta.get("mbtool.textfile") or connection.output_format in ("influx", "prom"):
+        connection = _monitoring(connection, meta)
     if (interval is None and polls is None) or connection.dry_run:
         if run is None:
             show(connection, to_result(execute(connection, request)))
@@ -86,6 +106,23 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
 
 
 # --- reads: FC 01-04 -------------------------------------------------------------------
+
+
+def _monitoring(connection: Connection, meta: dict) -> Connection:
+    """-o influx / prom and --textfile: their settings, checked before anything is sent."""
+    from mbtool.cli import monitoring
+    from mbtool.codec.record import replace
+
+    fmt, textfile = connection.output_format, meta.get("mbtool.textfile")
+    if textfile:
+        if fmt not in (None, "prom"):
+            raise RequestError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
+        connection = replace(connection, output_format="prom")
+        monitoring.textfile = textfile
+    if meta.get("mbtool.changes"):
+        raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
+    monitoring.measurement = meta.get("mbtool.measurement") or "modbus"
+    return connection
 
 
 def _read_bits(
@@ -152,7 +189,7 @@ def _read_registers(
     _run(connection, kind(address, registers_needed(value_type, count)), to_result, interval, polls)
 
 
-@device_command("read-coils")
+@device_command("read-coils", readings=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -163,7 +200,7 @@ def read_coils(connection, address, count, interval, polls):
     _read_bits(connection, ReadCoils, address, count, interval, polls)
 
 
-@device_command("read-discrete-inputs")
+@device_command("read-discrete-inputs", readings=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -180,7 +217,7 @@ def _refs(table, items) -> list[str]:
     return [reference(table, address) for address, _ in items]
 
 
-@device_command("read-holding-registers", types=VALUE_TYPES, order_all=True)
+@device_command("read-holding-registers", types=VALUE_TYPES, order_all=True, readings=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -195,7 +232,7 @@ def read_holding_registers(connection, address, count, value_type, order, interv
     _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order, interval, polls)
 
 
-@device_command("read-input-registers", types=VALUE_TYPES, order_all=True)
+@device_command("read-input-registers", types=VALUE_TYPES, order_all=True, readings=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -213,7 +250,7 @@ def read_input_registers(connection, address, count, value_type, order, interval
 # --- read: by reference, or by a register map's names ------------------------------------
 
 
-@device_command("read", types=VALUE_TYPES, order_all=True)
+@device_command("read", types=VALUE_TYPES, order_all=True, readings=True)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, scaled, with units")
 @polling_options

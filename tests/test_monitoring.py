@@ -1,0 +1,161 @@
+"""Output for monitoring systems (issue 17): -o influx read back by line-protocol-parser,
+-o prom and --textfile by prometheus_client's own text parser."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import COILS, HOLDING, expect_ok, run_mbtool
+from line_protocol_parser import parse_line
+from prometheus_client.parser import text_string_to_metric_families
+
+pytestmark = pytest.mark.timeout(60)
+
+# Names and descriptions that need escaping in both formats.
+ODD_MAP = """\
+[points."flow rate"]
+ref = 40001
+scale = 0.5
+unit = "m3/h"
+description = 'Outlet "main" flow, in \\ out'
+
+[points."a,b=c"]
+ref = 40002
+
+[points.state]
+ref = 40003
+enum = { 102 = "running" }
+
+[points.pump]
+ref = "00001"
+"""
+
+
+@pytest.fixture
+def odd_map(tmp_path):
+    path = tmp_path / "odd.toml"
+    path.write_text(ODD_MAP)
+    return path
+
+
+def families(text: str) -> dict:
+    return {family.name: family for family in text_string_to_metric_families(text)}
+
+
+# --- InfluxDB line protocol ------------------------------------------------------------------
+
+
+def test_influx_one_line_a_read_with_integer_fields_and_a_nanosecond_time(tcp_device):
+    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-o", "influx", "-p", tcp_device.target))
+    (line,) = res.stdout.splitlines()
+    parsed = parse_line(line)
+    assert parsed["measurement"] == "modbus" and parsed["tags"] == {"unit": "1", "table": "holding"}
+    assert parsed["fields"] == {"0": HOLDING[0], "1": HOLDING[1], "2": HOLDING[2]}
+    assert " 0=100i,1=101i,2=102i " in line  # integers carry the i
+    assert 1.7e18 < parsed["time"] < 4e18  # nanoseconds since the epoch
+    res = expect_ok(run_mbtool("read", "00001", "2", "-o", "influx", "-p", tcp_device.target))
+    parsed = parse_line(res.stdout.strip())
+    assert parsed["tags"]["table"] == "coils" and parsed["fields"] == {"00001": COILS[0], "00002": COILS[1]}
+
+
+def test_influx_escapes_map_names_tags_and_text(tcp_device, odd_map, tmp_path):
+    config = tmp_path / "config.toml"
+    config.write_text(f'[profiles."pump house, east=2"]\nport = "{tcp_device.target}"\n')
+    res = expect_ok(
+        run_mbtool(
+            "read",
+            "-m",
+            odd_map,
+            "-o",
+            "influx",
+            "--measurement",
+            "plant modbus,v1",
+            "-P",
+            "pump house, east=2",
+            env={"MBTOOL_CONFIG": str(config)},
+        )
+    )
+    parsed = parse_line(res.stdout.strip())
+    assert parsed["measurement"] == "plant modbus,v1"
+    assert parsed["tags"] == {"unit": "1", "device": "pump house, east=2"}
+    # An enum carries its number, which graphs; a bit is a boolean.
+    assert parsed["fields"] == {"flow rate": 50, "a,b=c": HOLDING[1], "state": 102, "pump": True}
+
+
+def test_influx_polls_one_line_each(tcp_device):
+    res = expect_ok(
+        run_mbtool(
+            "read-input-registers",
+            "0",
+            "2",
+            "-o",
+            "influx",
+            "--interval",
+            "0",
+            "--polls",
+            "3",
+            "-p",
+            tcp_device.target,
+        )
+    )
+    times = [parse_line(line)["time"] for line in res.stdout.splitlines()]
+    assert len(times) == 3 and times == sorted(times)
+
+
+# --- Prometheus text exposition --------------------------------------------------------------
+
+
+def test_prom_registers_and_bits_as_one_gauge(tcp_device):
+    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
+    family = families(res.stdout)["modbus_value"]
+    assert family.type == "gauge" and "read by mbtool" in family.documentation
+    assert [(s.labels, s.value) for s in family.samples] == [
+        ({"unit": "1", "table": "holding", "address": "0"}, HOLDING[0]),
+        ({"unit": "1", "table": "holding", "address": "1"}, HOLDING[1]),
+    ]
+
+
+def test_prom_map_points_by_name_with_their_unit_in_help(tcp_device, odd_map):
+    res = expect_ok(run_mbtool("read", "-m", odd_map, "-o", "prom", "-p", tcp_device.target))
+    found = families(res.stdout)
+    assert set(found) == {"modbus_flow_rate", "modbus_a_b_c", "modbus_state", "modbus_pump"}
+    flow = found["modbus_flow_rate"]
+    assert flow.documentation == 'Outlet "main" flow, in \\ out (m3/h), 40001'
+    assert [(s.labels, s.value) for s in flow.samples] == [({"unit": "1", "ref": "40001"}, 50)]
+    assert found["modbus_state"].samples[0].value == 102  # an enum by its number
+    assert found["modbus_pump"].samples[0].value == 1
+
+
+def test_textfile_is_written_whole_and_kept_fresh_by_polls(tcp_device, odd_map, tmp_path):
+    path = tmp_path / "modbus.prom"
+    res = expect_ok(
+        run_mbtool(
+            "read",
+            "-m",
+            odd_map,
+            "--textfile",
+            path,
+            "--interval",
+            "0.05",
+            "--polls",
+            "3",
+            "-p",
+            tcp_device.target,
+        )
+    )
+    assert res.stdout == ""
+    assert "modbus_flow_rate" in families(path.read_text())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["modbus.prom", "odd.toml"]  # no temporary left
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("diag", "return-query-data", "A537", "-o", "prom"), "-o prom carries values read"),
+        (("read", "40001", "--textfile", "x.prom", "-o", "json"), "--textfile writes the Prometheus text"),
+        (("read", "40001", "-o", "influx", "--changes", "--polls", "2"), "--changes writes a change log"),
+    ],
+)
+def test_monitoring_formats_refuse_what_they_cannot_carry(silent_server, args, words):
+    res = run_mbtool(*args, "-p", silent_server.tcp_target)
+    assert res.returncode == 2 and words in res.stderr
+    assert silent_server.received_bytes() == b""
