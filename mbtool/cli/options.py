@@ -353,6 +353,20 @@ CONNECTION_OPTIONS = [
     ),
     click.option("--echo", is_flag=True, help="Strip the local echo of a half-duplex adapter."),
     click.option(
+        "--pause",
+        type=PositiveFloat(zero_ok=True),
+        default=Connection.pause,
+        help="Seconds at least between a reply and the next request, for devices and gateways "
+        "that drop requests sent back to back (polling, scan and multi-request commands).",
+    ),
+    click.option(
+        "--connect-delay",
+        type=PositiveFloat(zero_ok=True),
+        default=Connection.connect_delay,
+        help="Seconds to wait after connecting before the first request, for devices that drop "
+        "a request sent right after the handshake.",
+    ),
+    click.option(
         "--rs485",
         is_flag=True,
         help="Drive RTS high while sending, for an RS-485 adapter without automatic direction "
@@ -482,6 +496,8 @@ def device_command(
             timeout,
             retries,
             echo,
+            pause,
+            connect_delay,
             rs485,
             rs485_delays,
             hex_trace,
@@ -500,6 +516,8 @@ def device_command(
                 timeout=timeout,
                 retries=retries,
                 echo=echo,
+                pause=pause,
+                connect_delay=connect_delay,
                 hex=hex_trace,
                 output_format=output_format,
                 dry_run=dry_run,

@@ -39,6 +39,8 @@ KEYS = {
     "echo": ((bool,), "true or false"),
     "rs485": ((bool,), "true or false"),
     "rs485_delays": ((str, int, float), 'milliseconds, such as 2 or "1,2"'),
+    "pause": ((int, float), "seconds, such as 0.05"),
+    "connect_delay": ((int, float), "seconds, such as 0.5"),
     "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
 }
 

@@ -70,6 +70,10 @@ class IoFaults:
     delay: float = 0.0  # seconds before each reply
     drop: float = 0.0  # fraction of replies never sent
     corrupt: float = 0.0  # fraction of replies sent with a wrong CRC/LRC
+    # Devices that drop a request sent too soon (TCP clients): within min_gap of the reply
+    # before it, or within settle of the connection being accepted.
+    min_gap: float = 0.0
+    settle: float = 0.0
 
 
 def parse_target(text: str) -> Target:
@@ -361,13 +365,29 @@ class Server:
             if isinstance(event, Frame):
                 # Only a whole request counts as activity: bytes that never make one
                 # (a drip, garbage) do not keep a client's slot.
-                client.last_active = time.monotonic()
+                client.last_active = now = time.monotonic()
                 client.requests += 1
+                too_soon = self._too_soon(client, now)
+                if too_soon:
+                    self.stats.dropped += 1
+                    self.stats.frame("--", client.peer, event.adu, too_soon)
+                    self._log("drop", client.peer, event.adu, too_soon)
+                    event = client.framer.next_event()
+                    continue
             reply = self.responder.answer(event, client.framer, client.peer)
             if reply:
+                client.replied = time.monotonic() + self.faults.delay
                 self._queue(client, reply)
             event = client.framer.next_event()
         self._flush(client)
+
+    def _too_soon(self, client: _Client, now: float) -> str:
+        """Why a request is dropped unanswered (--min-gap, --settle), or ""."""
+        if self.faults.settle and now - client.connected < self.faults.settle:
+            return "request too soon after connecting: dropped (--settle)"
+        if self.faults.min_gap and now - client.replied < self.faults.min_gap:
+            return "request too soon after the last reply: dropped (--min-gap)"
+        return ""
 
     def _queue(self, client: _Client, reply: bytes) -> None:
         if not self.faults.delay:
@@ -560,6 +580,7 @@ class _Client:
         "owed",
         "events",
         "closed",
+        "replied",
     )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
@@ -574,3 +595,4 @@ class _Client:
         self.owed = 0  # replies held back by --delay
         self.events = selectors.EVENT_READ
         self.closed = False
+        self.replied = float("-inf")  # when the last reply went (--min-gap)

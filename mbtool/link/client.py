@@ -52,6 +52,7 @@ class Client:
         echo: bool = False,
         baud: int = 19200,
         trace: Trace | None = None,
+        pause: float = 0.0,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
@@ -80,6 +81,11 @@ class Client:
         # every poll of it, so worked out once.
         self._prepared: tuple[Request | None, bytes, bool] = (None, b"", False)
         self._char_time = char_time(baud)
+        # --pause: at least this long from the end of a transaction (its reply, or the wait
+        # for one) to the next request, for devices and gateways that drop requests sent
+        # back to back.
+        self.pause = pause
+        self._ended_at = float("-inf")
 
     def execute(self, unit: int, request: Request) -> Response | None:
         """Send the request and return the reply; None for broadcast or a request with no reply.
@@ -97,7 +103,10 @@ class Client:
                 # when this one's timeout would have ended, as after silence.
                 self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
             try:
-                reply = self._transact(unit, request)
+                try:
+                    reply = self._transact(unit, request)
+                finally:
+                    self._ended_at = self.clock()
                 self._settled = reply is not None
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
@@ -129,6 +138,10 @@ class Client:
         serial_line = self.transport.serial_line
         if serial_line:
             self._wait_for_silence()
+        if self.pause:
+            wait = self._ended_at + self.pause - self.clock()
+            if wait > 0:
+                self.sleep(wait)
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
         # a polling loop spares itself the look (a system call a poll); a serial line has no
         # ids, and after a timeout a late reply may be on its way anyway.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
@@ -33,6 +34,8 @@ class Connection:
     dry_run: bool = False  # show the frames, open nothing, send nothing
     rs485: bool = False  # drive RTS for the direction of a two-wire RS-485 line
     rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
+    pause: float = 0.0  # seconds at least between a reply and the next request (slow devices)
+    connect_delay: float = 0.0  # seconds to wait after opening the link, before the first request
 
 
 def framer_name(connection: Connection) -> str:
@@ -98,9 +101,13 @@ def open_client(
             retries=connection.retries,
             echo=connection.echo,
             baud=connection.baud,
+            pause=connection.pause,
         )
         if trace is not None:
             client.trace = trace(framer)
+        if connection.connect_delay:
+            # Some devices drop a request sent right after the TCP handshake.
+            time.sleep(connection.connect_delay)
         yield client
     finally:
         transport.close()

@@ -142,6 +142,18 @@ class Fraction(click.ParamType):
     help="Fault: answer function FC with exception CODE, e.g. 3:2 (repeatable).",
 )
 @click.option(
+    "--min-gap",
+    type=PositiveFloat(),
+    help="Fault (TCP): drop a request that comes less than SECONDS after the reply before it, "
+    "as slow devices and gateways do (mbtool's --pause is the cure).",
+)
+@click.option(
+    "--settle",
+    type=PositiveFloat(),
+    help="Fault (TCP): drop requests for SECONDS after a connection is accepted "
+    "(mbtool's --connect-delay is the cure).",
+)
+@click.option(
     "--busy",
     type=PositiveFloat(),
     help="Fault: answer every request with exception 06 "
@@ -187,6 +199,8 @@ def serve(
     drop,
     corrupt,
     exceptions,
+    min_gap,
+    settle,
     busy,
     max_clients,
     idle_timeout,
@@ -216,6 +230,8 @@ def serve(
         raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
     if framer == "rtu" and bytesize == "7":
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
+    if (min_gap or settle) and where.scheme != "tcp":
+        raise RequestError("--min-gap and --settle are faults of TCP clients: serve on tcp://HOST:PORT")
     if corrupt and framer == "tcp":
         raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)
@@ -233,7 +249,7 @@ def serve(
         device,
         where,
         framer,
-        faults=IoFaults(delay or 0.0, drop, corrupt),
+        faults=IoFaults(delay or 0.0, drop, corrupt, min_gap or 0.0, settle or 0.0),
         seed=seed,
         settings=settings,
         log=log,

@@ -1,0 +1,85 @@
+"""Patience for awkward devices (issue 18): each option against the `serve` fault that needs it."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from conftest import run_mbtool
+from test_serve import serve
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def polls(target: str, *options: str):
+    return run_mbtool(
+        "read-holding-registers",
+        "0",
+        "1",
+        "--polls",
+        "4",
+        "--interval",
+        "0",
+        "-t",
+        "0.3",
+        *options,
+        "-p",
+        target,
+    )
+
+
+def test_pause_lets_a_device_that_drops_back_to_back_requests_answer_every_poll(tmp_path):
+    with serve("--min-gap", "0.2") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = polls(target)
+        assert res.returncode == 3 and re.search(r"timeouts [1-9]", res.stderr)
+        res = polls(target, "--pause", "0.25")
+        assert res.returncode == 0 and "polls 4, replies 4, timeouts 0" in res.stderr
+        # A profile can say so for the device.
+        config = tmp_path / "config.toml"
+        config.write_text(f'[profiles.slow]\nport = "{target}"\npause = 0.25\n')
+        res = run_mbtool(
+            "read-holding-registers",
+            "0",
+            "1",
+            "--polls",
+            "3",
+            "--interval",
+            "0",
+            "-t",
+            "0.3",
+            "-P",
+            "slow",
+            env={"MBTOOL_CONFIG": str(config)},
+        )
+        assert res.returncode == 0 and "replies 3, timeouts 0" in res.stderr
+
+
+def test_pause_spaces_the_requests_of_one_command(tmp_path):
+    # A map read of two blocks is two requests: the second must wait too.
+    path = tmp_path / "map.toml"
+    path.write_text("[points.a]\nref = 40001\n[points.b]\nref = 40201\n")
+    with serve("--min-gap", "0.2") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        assert run_mbtool("read", "-m", path, "-t", "0.3", "-p", target).returncode == 3
+        res = run_mbtool("read", "-m", path, "-t", "0.3", "--pause", "0.25", "-p", target)
+        assert res.returncode == 0 and res.stdout.splitlines() == [
+            "a 0",
+            "b 3",
+        ]  # sim data: the FIFO count at 200
+
+
+def test_connect_delay_waits_out_a_device_that_drops_the_first_request():
+    with serve("--settle", "0.3") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = run_mbtool("read-holding-registers", "0", "1", "-t", "0.2", "-p", target)
+        assert res.returncode == 3
+        res = run_mbtool(
+            "read-holding-registers", "0", "1", "-t", "0.2", "--connect-delay", "0.4", "-p", target
+        )
+        assert res.returncode == 0 and res.stdout.splitlines() == ["0 0"]
+
+
+def test_the_faults_are_for_tcp_clients():
+    res = run_mbtool("serve", "-p", "/dev/null", "--min-gap", "1")
+    assert res.returncode == 2 and "faults of TCP clients" in res.stderr
