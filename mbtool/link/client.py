@@ -106,7 +106,8 @@ class Client:
                 try:
                     reply = self._transact(unit, request)
                 finally:
-                    self._ended_at = self.clock()
+                    if self.pause:
+                        self._ended_at = self.clock()
                 self._settled = reply is not None
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
