@@ -80,6 +80,15 @@ def test_connect_delay_waits_out_a_device_that_drops_the_first_request():
         assert res.returncode == 0 and res.stdout.splitlines() == ["0 0"]
 
 
+def test_reconnect_each_gets_past_a_gateway_that_leaks_connections():
+    with serve("--connection-requests", "1") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = polls(target)
+        assert res.returncode == 3 and "replies 1, timeouts 3" in res.stderr
+        res = polls(target, "--reconnect-each")
+        assert res.returncode == 0 and "polls 4, replies 4, timeouts 0" in res.stderr
+
+
 def test_the_faults_are_for_tcp_clients():
     res = run_mbtool("serve", "-p", "/dev/null", "--min-gap", "1")
     assert res.returncode == 2 and "faults of TCP clients" in res.stderr

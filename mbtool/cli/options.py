@@ -367,6 +367,12 @@ CONNECTION_OPTIONS = [
         "a request sent right after the handshake.",
     ),
     click.option(
+        "--reconnect-each",
+        is_flag=True,
+        help="Polling: close and reopen the link for every poll, for devices and gateways that "
+        "serve one client or leak connections.",
+    ),
+    click.option(
         "--rs485",
         is_flag=True,
         help="Drive RTS high while sending, for an RS-485 adapter without automatic direction "
@@ -498,6 +504,7 @@ def device_command(
             echo,
             pause,
             connect_delay,
+            reconnect_each,
             rs485,
             rs485_delays,
             hex_trace,
@@ -518,6 +525,7 @@ def device_command(
                 echo=echo,
                 pause=pause,
                 connect_delay=connect_delay,
+                reconnect_each=reconnect_each,
                 hex=hex_trace,
                 output_format=output_format,
                 dry_run=dry_run,

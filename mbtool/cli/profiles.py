@@ -41,6 +41,7 @@ KEYS = {
     "rs485_delays": ((str, int, float), 'milliseconds, such as 2 or "1,2"'),
     "pause": ((int, float), "seconds, such as 0.05"),
     "connect_delay": ((int, float), "seconds, such as 0.5"),
+    "reconnect_each": ((bool,), "true or false"),
     "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
 }
 
@@ -129,7 +130,7 @@ def defaults(name: str) -> dict:
 
 
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
-    if key in ("echo", "rs485"):
+    if key in ("echo", "rs485", "reconnect_each"):
         if not isinstance(raw, bool):
             raise RequestError(f"{where}: {raw} is not true or false")
         return raw

@@ -74,6 +74,8 @@ class IoFaults:
     # before it, or within settle of the connection being accepted.
     min_gap: float = 0.0
     settle: float = 0.0
+    # A gateway that leaks connections: it answers only the first N requests of each.
+    connection_requests: int = 0
 
 
 def parse_target(text: str) -> Target:
@@ -382,7 +384,9 @@ class Server:
         self._flush(client)
 
     def _too_soon(self, client: _Client, now: float) -> str:
-        """Why a request is dropped unanswered (--min-gap, --settle), or ""."""
+        """Why a request is dropped unanswered (--min-gap, --settle, --connection-requests), or ""."""
+        if self.faults.connection_requests and client.requests > self.faults.connection_requests:
+            return "past this connection's requests: dropped (--connection-requests)"
         if self.faults.settle and now - client.connected < self.faults.settle:
             return "request too soon after connecting: dropped (--settle)"
         if self.faults.min_gap and now - client.replied < self.faults.min_gap:

@@ -36,6 +36,7 @@ class Connection:
     rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
     pause: float = 0.0  # seconds at least between a reply and the next request (slow devices)
     connect_delay: float = 0.0  # seconds to wait after opening the link, before the first request
+    reconnect_each: bool = False  # polling: a new link for every poll
 
 
 def framer_name(connection: Connection) -> str:

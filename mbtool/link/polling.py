@@ -107,6 +107,7 @@ def poll(
         # not a failed poll repeated for ever.
         opened_at = time.monotonic()
         client = link.enter_context(open_client(connection, request.name, trace=trace))
+        closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
@@ -118,7 +119,7 @@ def poll(
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            if client is None:
+            if client is None and not closed_on_purpose:
                 # The link failed: open it again at most once a timeout, as if a refusal had
                 # waited the timeout out, so a device that is restarting or unplugged is not
                 # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
@@ -157,6 +158,12 @@ def poll(
                 shown.failure(when, done + 1, error)
             else:
                 shown.hold(when, reply)
+            closed_on_purpose = False
+            if connection.reconnect_each and client is not None:
+                # --reconnect-each: a new link every poll, for devices and gateways that
+                # serve one client or leak connections; no wait, as nothing failed.
+                close_quietly(link)
+                client, closed_on_purpose = None, True
             done += 1
             if interval > 0:
                 slot += 1

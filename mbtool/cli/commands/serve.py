@@ -154,6 +154,12 @@ class Fraction(click.ParamType):
     "(mbtool's --connect-delay is the cure).",
 )
 @click.option(
+    "--connection-requests",
+    type=Number(1, 10**9, "requests"),
+    help="Fault (TCP): answer only the first N requests of each connection, as a gateway that "
+    "leaks connections does (mbtool's --reconnect-each is the cure).",
+)
+@click.option(
     "--busy",
     type=PositiveFloat(),
     help="Fault: answer every request with exception 06 "
@@ -201,6 +207,7 @@ def serve(
     exceptions,
     min_gap,
     settle,
+    connection_requests,
     busy,
     max_clients,
     idle_timeout,
@@ -230,8 +237,10 @@ def serve(
         raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
     if framer == "rtu" and bytesize == "7":
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
-    if (min_gap or settle) and where.scheme != "tcp":
-        raise RequestError("--min-gap and --settle are faults of TCP clients: serve on tcp://HOST:PORT")
+    if (min_gap or settle or connection_requests) and where.scheme != "tcp":
+        raise RequestError(
+            "--min-gap, --settle and --connection-requests are faults of TCP clients: serve on tcp://HOST:PORT"
+        )
     if corrupt and framer == "tcp":
         raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)
@@ -249,7 +258,7 @@ def serve(
         device,
         where,
         framer,
-        faults=IoFaults(delay or 0.0, drop, corrupt, min_gap or 0.0, settle or 0.0),
+        faults=IoFaults(delay or 0.0, drop, corrupt, min_gap or 0.0, settle or 0.0, connection_requests or 0),
         seed=seed,
         settings=settings,
         log=log,
