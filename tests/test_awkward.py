@@ -92,3 +92,30 @@ def test_reconnect_each_gets_past_a_gateway_that_leaks_connections():
 def test_the_faults_are_for_tcp_clients():
     res = run_mbtool("serve", "-p", "/dev/null", "--min-gap", "1")
     assert res.returncode == 2 and "faults of TCP clients" in res.stderr
+
+
+@pytest.mark.parametrize(
+    "fault, deviation",
+    [
+        (("--pad", "2"), "2 bytes after a complete reply, ignored"),
+        (("--byte-count-off", "1"), "byte count 5, but the data is the 4 bytes asked for"),
+        (("--reply-unit", "9"), "reply from unit 9, expected unit 1"),
+    ],
+)
+def test_lenient_accepts_a_harmless_deviation_with_one_warning(fault, deviation):
+    with serve(*fault) as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = run_mbtool("read-holding-registers", "0", "2", "-t", "0.3", "-p", target)
+        assert res.returncode == 5 and "--lenient" in res.stderr and res.stdout == ""
+        res = run_mbtool("read-holding-registers", "0", "2", "-t", "0.3", "--lenient", "-p", target)
+        assert res.returncode == 0 and res.stdout.splitlines() == ["0 0", "1 1"]
+        assert res.stderr == f"mbtool: warning: {deviation} (accepted: --lenient)\n"
+
+
+def test_lenient_does_not_guess_at_an_ambiguous_reply():
+    # A byte count one too high and one byte of padding: the byte count covers the padding,
+    # the data is no longer what was asked for, and nothing says which byte is extra.
+    with serve("--byte-count-off", "1", "--pad", "1") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = run_mbtool("read-holding-registers", "0", "2", "--lenient", "-t", "0.3", "-p", target)
+        assert res.returncode == 5 and res.stdout == "" and "warning" not in res.stderr

@@ -373,6 +373,12 @@ CONNECTION_OPTIONS = [
         "serve one client or leak connections.",
     ),
     click.option(
+        "--lenient",
+        is_flag=True,
+        help="Accept a Modbus TCP reply that breaks the spec harmlessly (bytes after a complete "
+        "reply, a byte count that disagrees with whole data, another unit id echoed), with a warning.",
+    ),
+    click.option(
         "--rs485",
         is_flag=True,
         help="Drive RTS high while sending, for an RS-485 adapter without automatic direction "
@@ -505,6 +511,7 @@ def device_command(
             pause,
             connect_delay,
             reconnect_each,
+            lenient,
             rs485,
             rs485_delays,
             hex_trace,
@@ -526,6 +533,7 @@ def device_command(
                 pause=pause,
                 connect_delay=connect_delay,
                 reconnect_each=reconnect_each,
+                lenient=lenient,
                 hex=hex_trace,
                 output_format=output_format,
                 dry_run=dry_run,

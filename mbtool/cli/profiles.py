@@ -42,6 +42,7 @@ KEYS = {
     "pause": ((int, float), "seconds, such as 0.05"),
     "connect_delay": ((int, float), "seconds, such as 0.5"),
     "reconnect_each": ((bool,), "true or false"),
+    "lenient": ((bool,), "true or false"),
     "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
 }
 
@@ -130,7 +131,7 @@ def defaults(name: str) -> dict:
 
 
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
-    if key in ("echo", "rs485", "reconnect_each"):
+    if key in ("echo", "rs485", "reconnect_each", "lenient"):
         if not isinstance(raw, bool):
             raise RequestError(f"{where}: {raw} is not true or false")
         return raw

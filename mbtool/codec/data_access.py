@@ -161,8 +161,13 @@ class _ReadBits(Request):
             response = BitsResponse(response.function_code, response.bits[: self.count], warnings=warnings)
         return response
 
+    @property
+    def reply_byte_count(self) -> int:
+        """The byte count the reply must carry: the bits asked for, in whole bytes."""
+        return (self.count + 7) // 8
+
     def check_response(self, response: BitsResponse) -> None:
-        expected = (self.count + 7) // 8
+        expected = self.reply_byte_count
         if len(response.bits) != 8 * expected:
             raise MismatchError(
                 f"byte count {len(response.bits) // 8} does not fit {self.count} bits (expected {expected})"
@@ -198,6 +203,12 @@ class _ReadRegisters(Request):
 
     request_size: ClassVar = fixed(5)
     response_size: ClassVar = counted(1)
+
+    @property
+    def reply_byte_count(self) -> int:
+        """The byte count the reply must carry: two bytes a register asked for."""
+        return 2 * self.count
+
     response_type: ClassVar = RegistersResponse
 
     def __post_init__(self) -> None:

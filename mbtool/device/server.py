@@ -76,6 +76,10 @@ class IoFaults:
     settle: float = 0.0
     # A gateway that leaks connections: it answers only the first N requests of each.
     connection_requests: int = 0
+    # Replies that break the spec harmlessly (Modbus TCP), for mbtool's --lenient:
+    pad: int = 0  # zero bytes after the reply's PDU, counted in the MBAP length
+    byte_count_off: int = 0  # added to the byte count of FC 01-04 replies; the data stays whole
+    reply_unit: int | None = None  # the unit id every reply carries, as a confused gateway sends
 
 
 def parse_target(text: str) -> Target:
@@ -145,6 +149,10 @@ class Responder:
             self.stats.frame("--", peer, b"", "reply dropped (--drop)")
             self.log("drop", peer, reply, "reply dropped (--drop)")
             return None
+        if framer.name == "tcp" and (
+            self.faults.pad or self.faults.byte_count_off or self.faults.reply_unit is not None
+        ):
+            reply = deviate(reply, self.faults)
         if self.faults.corrupt and self.rng.random() < self.faults.corrupt:
             reply = corrupt_checksum(reply, framer.name)
             self.stats.corrupted += 1
@@ -165,6 +173,18 @@ class Responder:
         if station is not None and station.listen_only:
             return "listen-only mode: no reply"
         return "no reply due"
+
+
+def deviate(adu: bytes, faults: IoFaults) -> bytes:
+    """A Modbus TCP reply bent the ways --pad, --byte-count-off and --reply-unit ask."""
+    header, pdu = bytearray(adu[:7]), bytearray(adu[7:])
+    if faults.byte_count_off and pdu and pdu[0] in (0x01, 0x02, 0x03, 0x04):
+        pdu[1] = (pdu[1] + faults.byte_count_off) & 0xFF
+    pdu += bytes(faults.pad)
+    if faults.reply_unit is not None:
+        header[6] = faults.reply_unit
+    header[4:6] = (len(pdu) + 1).to_bytes(2, "big")  # the MBAP length: unit id and PDU
+    return bytes(header + pdu)
 
 
 def corrupt_checksum(adu: bytes, framer_name: str) -> bytes:

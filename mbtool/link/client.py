@@ -53,6 +53,7 @@ class Client:
         baud: int = 19200,
         trace: Trace | None = None,
         pause: float = 0.0,
+        lenient: bool = False,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
@@ -86,6 +87,10 @@ class Client:
         # back to back.
         self.pause = pause
         self._ended_at = float("-inf")
+        # --lenient: a Modbus TCP reply that carries our transaction id and breaks the spec
+        # in a harmless, unambiguous way is accepted, and each deviation noted here.
+        self.lenient = lenient
+        self.deviations: list[str] = []
 
     def execute(self, unit: int, request: Request) -> Response | None:
         """Send the request and return the reply; None for broadcast or a request with no reply.
@@ -282,27 +287,73 @@ class Client:
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
         mismatch = self._mismatch(event, unit, request)
+        accepted = len(self.deviations)  # those this reply adds go on its trace line
+        ours = event.transaction_id is not None and event.transaction_id in self._attempt_ids
+        if mismatch and ours and event.unit != unit and not self._mismatch(event, event.unit, request):
+            # Our transaction id, the function asked for, only the unit is wrong: a gateway
+            # that echoes another unit id.
+            if not self.lenient:
+                mismatch += " (--lenient accepts a reply whose transaction id matches)"
+            else:
+                self.deviations.append(f"reply from unit {event.unit}, expected unit {unit}")
+                mismatch = ""
         reply = None
         if not mismatch:
             try:
                 reply = request.decode_response(event.pdu)
-            except MismatchError as misfit:
-                if event.transaction_id is not None:
+            except FrameError as misfit:
+                repaired = self._repair(event.pdu, request) if ours else None
+                if repaired is not None and self.lenient:
+                    pdu, deviation = repaired
+                    reply = request.decode_response(pdu)
+                    self.deviations.append(deviation)
+                elif event.transaction_id is not None:
                     self.trace.received(event.adu)
                     self._copy_check(event)
+                    if repaired is not None:
+                        raise FrameError(
+                            f"{misfit} ({repaired[1]}: --lenient accepts it)", event.adu
+                        ) from None
                     raise  # it carries our transaction id: it is the reply, and a bad one
-                # Without a transaction id (RTU, ASCII), a frame from our unit whose byte count
-                # does not fit is most likely the late reply to an earlier request: discard it
-                # and keep waiting, as for another unit (its error is reported if nothing fits).
-                mismatch = str(misfit)
-            except FrameError:
-                self.trace.received(event.adu)
-                self._copy_check(event)
-                raise
-        self.trace.received(event.adu, mismatch)
+                elif not isinstance(misfit, MismatchError):
+                    self.trace.received(event.adu)
+                    self._copy_check(event)
+                    raise
+                else:
+                    # Without a transaction id (RTU, ASCII), a frame from our unit whose byte
+                    # count does not fit is most likely the late reply to an earlier request:
+                    # discard it and keep waiting, as for another unit (its error is reported
+                    # if nothing fits).
+                    mismatch = str(misfit)
+        note = mismatch or "; ".join(f"accepted (--lenient): {d}" for d in self.deviations[accepted:])
+        self.trace.received(event.adu, note)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return reply, problem
+
+    @staticmethod
+    def _repair(pdu: bytes, request: Request) -> tuple[bytes, str] | None:
+        """A reply PDU made whole, and what was wrong with it, when the fault is harmless and
+        unambiguous: bytes after a complete reply (MBAP counted them), or a byte count that
+        disagrees with data that is exactly what was asked for.  None otherwise."""
+        from mbtool.codec.pdu import pdu_length
+
+        if pdu and pdu[0] & 0x80:
+            return None
+        whole = pdu_length(pdu, True, request)
+        if isinstance(whole, int) and whole >= 2 and len(pdu) > whole:
+            try:
+                request.decode_response(pdu[:whole])
+            except FrameError:
+                pass
+            else:
+                return pdu[:whole], f"{len(pdu) - whole} bytes after a complete reply, ignored"
+        wanted = getattr(request, "reply_byte_count", None)  # reads of FC 01-04 know theirs
+        if wanted is not None and len(pdu) == 2 + wanted and pdu[1] != wanted:
+            return pdu[:1] + bytes([wanted]) + pdu[
+                2:
+            ], f"byte count {pdu[1]}, but the data is the {wanted} bytes asked for"
+        return None
 
     def _copy_check(self, frame: Frame) -> None:
         """A reply that does not decode and is the request itself: over TCP nothing echoes but a

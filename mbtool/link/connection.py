@@ -37,6 +37,7 @@ class Connection:
     pause: float = 0.0  # seconds at least between a reply and the next request (slow devices)
     connect_delay: float = 0.0  # seconds to wait after opening the link, before the first request
     reconnect_each: bool = False  # polling: a new link for every poll
+    lenient: bool = False  # accept replies that break the spec harmlessly, with a warning
 
 
 def framer_name(connection: Connection) -> str:
@@ -103,6 +104,7 @@ def open_client(
             echo=connection.echo,
             baud=connection.baud,
             pause=connection.pause,
+            lenient=connection.lenient,
         )
         if trace is not None:
             client.trace = trace(framer)

@@ -160,6 +160,19 @@ class Fraction(click.ParamType):
     "leaks connections does (mbtool's --reconnect-each is the cure).",
 )
 @click.option(
+    "--pad", type=Number(1, 200, "bytes"), help="Fault (tcp framing): N zero bytes after every reply's PDU."
+)
+@click.option(
+    "--byte-count-off",
+    type=Number(1, 255, "bytes"),
+    help="Fault (tcp framing): add N to the byte count of FC 01-04 replies; the data stays whole.",
+)
+@click.option(
+    "--reply-unit",
+    type=Number(0, 255, "unit"),
+    help="Fault (tcp framing): every reply carries this unit id, as a confused gateway sends.",
+)
+@click.option(
     "--busy",
     type=PositiveFloat(),
     help="Fault: answer every request with exception 06 "
@@ -208,6 +221,9 @@ def serve(
     min_gap,
     settle,
     connection_requests,
+    pad,
+    byte_count_off,
+    reply_unit,
     busy,
     max_clients,
     idle_timeout,
@@ -241,6 +257,10 @@ def serve(
         raise RequestError(
             "--min-gap, --settle and --connection-requests are faults of TCP clients: serve on tcp://HOST:PORT"
         )
+    if (pad or byte_count_off or reply_unit is not None) and framer != "tcp":
+        raise RequestError(
+            "--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing"
+        )
     if corrupt and framer == "tcp":
         raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)
@@ -258,7 +278,17 @@ def serve(
         device,
         where,
         framer,
-        faults=IoFaults(delay or 0.0, drop, corrupt, min_gap or 0.0, settle or 0.0, connection_requests or 0),
+        faults=IoFaults(
+            delay or 0.0,
+            drop,
+            corrupt,
+            min_gap or 0.0,
+            settle or 0.0,
+            connection_requests or 0,
+            pad or 0,
+            byte_count_off or 0,
+            reply_unit,
+        ),
         seed=seed,
         settings=settings,
         log=log,
