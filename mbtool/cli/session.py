@@ -32,7 +32,7 @@ def open_client(connection: Connection, needs: str = "", framer=None, then: str 
         return
     with open_link(connection, needs, framer, trace_for(connection)) as client:
         yield client
-        for deviation in dict.fromkeys(client.deviations):  # each kind once
+        for deviation in client.deviations:
             print(f"mbtool: warning: {deviation} (accepted: --lenient)", file=sys.stderr)
 
 

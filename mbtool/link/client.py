@@ -90,7 +90,7 @@ class Client:
         # --lenient: a Modbus TCP reply that carries our transaction id and breaks the spec
         # in a harmless, unambiguous way is accepted, and each deviation noted here.
         self.lenient = lenient
-        self.deviations: list[str] = []
+        self.deviations: dict[str, None] = {}  # each kind once: a poll left running keeps no list
 
     def execute(self, unit: int, request: Request) -> Response | None:
         """Send the request and return the reply; None for broadcast or a request with no reply.
@@ -287,7 +287,7 @@ class Client:
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
         mismatch = self._mismatch(event, unit, request)
-        accepted = len(self.deviations)  # those this reply adds go on its trace line
+        accepted: list[str] = []  # what this reply gets away with, for its trace line
         ours = event.transaction_id is not None and event.transaction_id in self._attempt_ids
         if mismatch and ours and event.unit != unit and not self._mismatch(event, event.unit, request):
             # Our transaction id, the function asked for, only the unit is wrong: a gateway
@@ -295,7 +295,7 @@ class Client:
             if not self.lenient:
                 mismatch += " (--lenient accepts a reply whose transaction id matches)"
             else:
-                self.deviations.append(f"reply from unit {event.unit}, expected unit {unit}")
+                accepted.append(f"reply from unit {event.unit}, expected unit {unit}")
                 mismatch = ""
         reply = None
         if not mismatch:
@@ -306,7 +306,7 @@ class Client:
                 if repaired is not None and self.lenient:
                     pdu, deviation = repaired
                     reply = request.decode_response(pdu)
-                    self.deviations.append(deviation)
+                    accepted.append(deviation)
                 elif event.transaction_id is not None:
                     self.trace.received(event.adu)
                     self._copy_check(event)
@@ -325,7 +325,8 @@ class Client:
                     # discard it and keep waiting, as for another unit (its error is reported
                     # if nothing fits).
                     mismatch = str(misfit)
-        note = mismatch or "; ".join(f"accepted (--lenient): {d}" for d in self.deviations[accepted:])
+        self.deviations.update(dict.fromkeys(accepted))
+        note = mismatch or "; ".join(f"accepted (--lenient): {d}" for d in accepted)
         self.trace.received(event.adu, note)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
