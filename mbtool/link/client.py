@@ -325,8 +325,10 @@ class Client:
                     # discard it and keep waiting, as for another unit (its error is reported
                     # if nothing fits).
                     mismatch = str(misfit)
-        self.deviations.update(dict.fromkeys(accepted))
-        note = mismatch or "; ".join(f"accepted (--lenient): {d}" for d in accepted)
+        note = mismatch
+        if accepted:  # a reply taken as it is (--lenient): its trace line says why
+            self.deviations.update(dict.fromkeys(accepted))
+            note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
         self.trace.received(event.adu, note)
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
