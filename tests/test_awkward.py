@@ -119,3 +119,11 @@ def test_lenient_does_not_guess_at_an_ambiguous_reply():
         target = f"tcp://{server.host}:{server.port}"
         res = run_mbtool("read-holding-registers", "0", "2", "--lenient", "-t", "0.3", "-p", target)
         assert res.returncode == 5 and res.stdout == "" and "warning" not in res.stderr
+
+
+def test_lenient_polling_names_what_it_accepted_in_the_summary():
+    with serve("--pad", "2") as server:
+        target = f"tcp://{server.host}:{server.port}"
+        res = polls(target, "--lenient")
+        assert res.returncode == 0 and "replies 4" in res.stderr
+        assert "accepted (--lenient): 2 bytes after a complete reply, ignored" in res.stderr.splitlines()[-1]

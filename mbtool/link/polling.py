@@ -98,6 +98,7 @@ def poll(
         polls = 0
     done = replies = timeouts = errors = skipped = 0
     latency = Latency()
+    accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
     link = ExitStack()  # holds the open link; reopened only after the link itself failed
@@ -138,6 +139,8 @@ def poll(
                 reply = client.execute(connection.unit, request) if run is None else run(client)
                 latency.add(client.round_trip * 1000)
                 replies += 1
+                if client.deviations:  # --lenient took a reply as it was: the summary says so
+                    accepted.update(client.deviations)
             except BrokenPipeError:
                 raise  # stdout's reader went away: nothing left to poll for
             except (*KNOWN_ERRORS, OSError) as error:
@@ -185,6 +188,8 @@ def poll(
     )
     if done > 1 and when > first_when:
         summary += f", {_rate((done - 1) / (when - first_when))} polls/s"
+    if accepted:
+        summary += f"; accepted (--lenient): {'; '.join(accepted)}"
     if interrupted:
         summary = "interrupted; " + summary
     code = last_failure
