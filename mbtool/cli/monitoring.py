@@ -17,8 +17,9 @@ import os
 import re
 import time
 
+from mbtool.cli.render import Points
+
 MONITORING_FORMATS = ("influx", "prom")
-TABLE_OF_FUNCTION = {0x01: "coils", 0x02: "discrete", 0x03: "holding", 0x04: "input"}
 
 # Set by the options as they are parsed, as render's csv_header is.
 measurement = "modbus"  # --measurement
@@ -26,22 +27,16 @@ device = ""  # the profile's name (-P), a tag and a label when given
 textfile = ""  # --textfile PATH: the Prometheus text goes there, atomically
 
 
-def _is_map_read(result) -> bool:
-    """render.Points (a map's rows of points) rather than render.Result (addressed items);
-    told apart by shape, since render imports this module."""
-    return hasattr(result, "rows")
-
-
 def _values(result) -> list[tuple[dict, object, str]]:
     """Each value with what names it: (labels, value, help) for both formats."""
-    if _is_map_read(result):
+    if isinstance(result, Points):
         out = []
         for row in result.rows:
             number = row.raw[0] if row.value.__class__ is str and len(row.raw) == 1 else row.value
             about = (row.description or row.name) + (f" ({row.unit})" if row.unit else "") + f", {row.ref}"
             out.append(({"name": row.name, "ref": row.ref}, number, about))
         return out
-    table = TABLE_OF_FUNCTION.get(result.function, result.name)
+    table = result.table
     refs = result.refs or [None] * len(result.items)
     out = []
     for ref, (address, value) in zip(refs, result.items, strict=True):
@@ -76,13 +71,13 @@ def _field_value(value) -> str | None:
 def influx_line(result, when: float | None = None) -> str:
     """One line a poll: tags for the unit (and table, device), a field a value."""
     tags = {"unit": str(result.unit)}
-    if not _is_map_read(result):
-        tags["table"] = TABLE_OF_FUNCTION.get(result.function, result.name)
+    if not isinstance(result, Points):
+        tags["table"] = result.table
     if device:
         tags["device"] = device
     fields = []
     for labels, value, _ in _values(result):
-        if _is_map_read(result):
+        if isinstance(result, Points):
             key = labels["name"]
         else:
             key = labels.get("ref", labels["address"]) + (f"_{labels['order']}" if "order" in labels else "")
@@ -133,7 +128,7 @@ def prom_text(result) -> str:
         shown = _sample_value(value)
         if shown is None:
             continue
-        if _is_map_read(result):
+        if isinstance(result, Points):
             name = _metric_name(f"{measurement}_{labels['name']}")
             labels = {"ref": labels["ref"]}
             help_text = about or "a register map's point, read by mbtool"

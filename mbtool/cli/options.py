@@ -468,6 +468,32 @@ def type_options_given(map_path: str | None = None) -> list[str]:
     return given
 
 
+def reference_target(targets: tuple[str, ...], command: str, types_given: list[str]):
+    """REF [COUNT] as read and check take them: the table, the wire address and the count.
+
+    A name where a reference goes is told about -m; --type or --order on coils and
+    discrete inputs is refused (they hold bits)."""
+    from mbtool.codec.tables import parse_reference
+
+    if not targets:
+        raise click.UsageError("give a reference such as 40001 (and a count), or -m MAP and point names")
+    if len(targets) > 2:
+        raise click.UsageError(
+            f"{command} takes REF [COUNT], not {len(targets)} arguments (points by name need -m MAP)"
+        )
+    text = targets[0]
+    try:
+        table, address = parse_reference(text)
+    except RequestError as error:
+        if any(c.isdigit() for c in text):
+            raise
+        raise RequestError(f"{error}; to {command} a point by name, give its map: -m MAP") from None
+    count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
+    if table.bits and types_given:
+        raise RequestError(f"{types_given[0]} is for registers; {text} is {table.item} {address + 1}, a bit")
+    return table, address, count
+
+
 def _remember_profile(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
     # Kept aside, not passed on: the profile fills in options only after all are parsed.
     ctx.meta["mbtool.profile"] = value

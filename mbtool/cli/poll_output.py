@@ -15,6 +15,8 @@ from mbtool.cli.render import (
     Points,
     as_dict,
     by_order,
+    change_line,
+    change_parts,
     csv_cells,
     error_json,
     labels,
@@ -75,15 +77,10 @@ class Output:
                 _json_line({"time": when, **what, "old": old, "new": new, **({"unit": unit} if unit else {})})
             )
             return
-        where = f"{what['name']} ({what['ref']})" if "name" in what else f"{what['table']} {what['address']}"
-        shown = [
-            ("missing" if v is None else value_text(v)) + (f" {unit}" if unit and v is not None else "")
-            for v in (old, new)
-        ]
         if self.fmt == "csv":
-            self._csv(when, ["what", "old", "new"], [[where, *shown]])
+            self._csv(when, ["what", "old", "new"], [list(change_parts(what, old, new, unit))])
         else:
-            self._emit(f"{when} {where}: {shown[0]} -> {shown[1]}\n")
+            self._emit(f"{when} {change_line(what, old, new, unit)}\n")
 
     def _points(self, when: str, points: Points) -> None:
         if self.fmt == "json":
@@ -169,9 +166,6 @@ class Output:
             self.live = None
 
 
-TABLE_OF_FUNCTION = {0x01: "coils", 0x02: "discrete", 0x03: "holding", 0x04: "input"}
-
-
 class ChangesOnly:
     """--changes: the first poll whole, then one line a value that changed, so a poll left
     running into a file is a change log (``TIME holding 5: 5 -> 99``; JSON lines with the
@@ -203,7 +197,7 @@ def _changeable(result) -> dict:
     """Each value of a poll by what names it: key -> (fields naming it, value, unit)."""
     if result.__class__ is Points:
         return {row.name: ({"name": row.name, "ref": row.ref}, row.value, row.unit) for row in result.rows}
-    table = TABLE_OF_FUNCTION.get(result.function, result.name)
+    table = result.table
     refs = result.refs or [None] * len(result.items)
     out = {}
     for ref, (address, value) in zip(refs, result.items, strict=True):

@@ -63,6 +63,14 @@ class Result:
             refs=refs,
         )
 
+    @property
+    def table(self) -> str:
+        """The table a read of FC 01-04 read (coils, discrete, input, holding); else the
+        function's name."""
+        from mbtool.codec.tables import TABLE_OF_READ
+
+        return TABLE_OF_READ.get(self.function, self.name)
+
 
 def local_time(when: float | None = None) -> str:
     """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.
@@ -115,11 +123,6 @@ def default_format(stream: TextIO = sys.stdout) -> str:
 
 
 def render(result: Result | Report | Points, fmt: str, out: TextIO = sys.stdout) -> None:
-    if fmt in ("influx", "prom"):  # only the read commands offer them (device_command)
-        from mbtool.cli.monitoring import emit
-
-        emit(result, fmt, out)
-        return
     if isinstance(result, Points):
         {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
             result, out
@@ -141,6 +144,27 @@ def value_text(value: object) -> str:
     if isinstance(value, dict):  # --order all: the value in each word order
         return " ".join(f"{order}={value_text(each)}" for order, each in value.items())
     return str(value)
+
+
+def change_parts(what: dict, old, new, unit: str = "") -> tuple[str, str, str]:
+    """A value that differs (diff) or changed (--changes): what it is and both values as text.
+
+    ``what`` names a map's point (name, ref) or an address (table, address); a value of
+    None is an address a side does not have: "missing"."""
+    where = f"{what['name']} ({what['ref']})" if "name" in what else f"{what['table']} {what['address']}"
+
+    def shown(value) -> str:
+        if value is None:
+            return "missing"
+        return value_text(value) + (f" {unit}" if unit else "")
+
+    return where, shown(old), shown(new)
+
+
+def change_line(what: dict, old, new, unit: str = "") -> str:
+    """``holding 5: 5 -> 99``, ``setpoint (40006): 22.5 m3/h -> 23 m3/h``."""
+    where, before, after = change_parts(what, old, new, unit)
+    return f"{where}: {before} -> {after}"
 
 
 def labels(result: Result) -> list:

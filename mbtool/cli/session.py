@@ -59,4 +59,10 @@ def show(connection: Connection, result) -> None:
     if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)
-    render(result, connection.output_format or default_format())
+    fmt = connection.output_format or default_format()
+    if fmt in ("influx", "prom"):  # only the read commands offer them (device_command)
+        from mbtool.cli.monitoring import emit
+
+        emit(result, fmt, sys.stdout)
+        return
+    render(result, fmt)

@@ -15,7 +15,16 @@ from __future__ import annotations
 
 import re
 
-from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
+from mbtool.codec.data_access import (
+    ReadCoils,
+    ReadDiscreteInputs,
+    ReadHoldingRegisters,
+    ReadInputRegisters,
+    WriteMultipleCoils,
+    WriteMultipleRegisters,
+    WriteSingleCoil,
+    WriteSingleRegister,
+)
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 
@@ -46,6 +55,23 @@ READS = {
     INPUT_REGISTERS.name: ReadInputRegisters,
     HOLDING_REGISTERS.name: ReadHoldingRegisters,
 }
+
+
+def write_of(table: Table, address: int, values, multiple: bool = False):
+    """The request that writes ``values`` (bits or registers) from ``address``: FC 05/06 for
+    one, FC 15/16 for more, or for one too when ``multiple`` (some devices accept only
+    FC 15/16).  Only coils and holding registers can be written."""
+    if table is COILS:
+        if len(values) == 1 and not multiple:
+            return WriteSingleCoil(address, bool(values[0]))
+        return WriteMultipleCoils(address, tuple(bool(v) for v in values))
+    if len(values) == 1 and not multiple:
+        return WriteSingleRegister(address, values[0])
+    return WriteMultipleRegisters(address, tuple(values))
+
+
+# The table each read function code reads, by its code (a Result names its table by it).
+TABLE_OF_READ = {kind.function_code: name for name, kind in READS.items()}
 
 _BY_DIGIT = {table.digit: table for table in TABLES}
 _BY_NAME = {table.name: table for table in TABLES}

@@ -20,15 +20,11 @@ from mbtool.codec.data_access import (
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
     MaskWriteRegister,
-    WriteMultipleCoils,
-    WriteMultipleRegisters,
-    WriteSingleCoil,
-    WriteSingleRegister,
 )
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionCode, Request, Response
 from mbtool.codec.record import record
-from mbtool.codec.tables import READS, Table
+from mbtool.codec.tables import READS, Table, write_of
 from mbtool.registermap.point import Point, PointValue
 
 
@@ -129,13 +125,8 @@ def write_request(point: Point, text: str, multiple: bool = False) -> Request:
         raise RequestError(f"{point.name} ({point.ref}) is not writable: {why}")
     if point.bit is not None:
         return bit_request(point.address, point.bit, bool(point.raw_for(text)))
-    if point.table.bits:
-        on = bool(point.raw_for(text))
-        return WriteMultipleCoils(point.address, (on,)) if multiple else WriteSingleCoil(point.address, on)
-    registers = point.registers_for(text)
-    if len(registers) == 1 and not multiple:
-        return WriteSingleRegister(point.address, registers[0])
-    return WriteMultipleRegisters(point.address, tuple(registers))
+    values = [point.raw_for(text)] if point.table.bits else point.registers_for(text)
+    return write_of(point.table, point.address, values, multiple)
 
 
 def bit_request(address: int, bit: int, on: bool) -> MaskWriteRegister:

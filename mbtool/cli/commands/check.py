@@ -12,9 +12,18 @@ bad arguments always, a device that does not answer, refuses or garbles unless
 
 from __future__ import annotations
 
+from functools import partial
+
 import click
 
-from mbtool.cli.options import COUNT, VALUE_TYPES, Choice, device_command, map_option, type_options_given
+from mbtool.cli.options import (
+    VALUE_TYPES,
+    Choice,
+    device_command,
+    map_option,
+    reference_target,
+    type_options_given,
+)
 from mbtool.codec.errors import RequestError
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
@@ -96,15 +105,12 @@ def _number(value, what: str) -> float:
     raise RequestError(f"{what} reads {value}, not a number to check")
 
 
-def _reference_values(connection, targets, value_type, order, warn, crit) -> list[Checked]:
+def _reference_values(connection, targets, given, value_type, order, warn, crit) -> list[Checked]:
     from mbtool.cli.session import execute
-    from mbtool.codec.tables import READS, parse_reference, reference
+    from mbtool.codec.tables import READS, reference
     from mbtool.codec.values import decode_values, registers_needed
 
-    if len(targets) not in (1, 2):
-        raise RequestError("check takes REF [COUNT], or -m MAP [NAME...]")
-    table, address = parse_reference(targets[0])
-    count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
+    table, address, count = reference_target(targets, "check", given)
     if table.bits:
         reply = execute(connection, READS[table.name](address, count))
         items = [(address + i, bit) for i, bit in enumerate(reply.bits[:count])]
@@ -138,7 +144,7 @@ def _map_values(connection, path, names, warn, crit) -> list[Checked]:
     }
     first = plan_reads(points, register_map.max_gap)[0].request()
     with open_client(connection, first.name) as client:
-        readings = read_points(lambda r: client.execute(connection.unit, r), points, register_map.max_gap)
+        readings = read_points(partial(client.execute, connection.unit), points, register_map.max_gap)
     out = []
     for reading in readings:
         point, value = reading.point, reading.value
@@ -176,14 +182,14 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, exit_code_for
 
     try:
-        type_options_given(map)
+        given = type_options_given(map)
         warn, crit = _range(warning, "-w"), _range(critical, "-c")
         if not map and not targets:
             raise RequestError("give a reference such as 40011, or -m MAP and point names")
         if map:
             values = _map_values(connection, map, targets, warn, crit)
         else:
-            values = _reference_values(connection, targets, value_type, order, warn, crit)
+            values = _reference_values(connection, targets, given, value_type, order, warn, crit)
     except (*KNOWN_ERRORS, OSError) as error:
         if isinstance(error, OSError):
             error = ConnectionFailed(str(error))

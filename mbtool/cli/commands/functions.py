@@ -5,6 +5,8 @@ FC 08 (diagnostics) has its own module, diagnostics.py.
 
 from __future__ import annotations
 
+from functools import partial
+
 import click
 
 from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Choice, Number, device_command, parse_int
@@ -345,10 +347,7 @@ def device_id(connection, level, object_id):
         else:
             from mbtool.link.dump import read_identification
 
-            def execute_one(request):
-                return client.execute(connection.unit, request)
-
-            objects, conformity = read_identification(execute_one, LEVELS[level])
+            objects, conformity = read_identification(partial(client.execute, connection.unit), LEVELS[level])
     rows = [Row(object_name(i), text_of(value)) for i, value in objects.items()]
     if not rows:
         rows = [Row("objects", "none: the device answered with no objects")]

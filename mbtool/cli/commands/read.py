@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import click
 
 from mbtool.cli.options import (
@@ -14,6 +16,7 @@ from mbtool.cli.options import (
     PositiveFloat,
     device_command,
     map_option,
+    reference_target,
     type_options_given,
 )
 from mbtool.cli.session import execute, show
@@ -99,7 +102,7 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
     from mbtool.link.polling import poll
 
     output = Output(connection.output_format or default_format())
-    if click.get_current_context().meta.get("mbtool.changes"):
+    if meta.get("mbtool.changes"):
         output = ChangesOnly(output)
     shown = Deferred(output, to_result)
     poll(connection, request, shown, interval, polls, trace_for(connection), run)
@@ -270,26 +273,11 @@ def read(connection, targets, map, value_type, order, interval, polls):
     if map:
         _read_map(connection, map, targets, interval, polls)
         return
-    if not targets:
-        raise click.UsageError("give a reference such as 40001 (and a count), or -m MAP and point names")
-    if len(targets) > 2:
-        raise click.UsageError(
-            f"read takes REF [COUNT], not {len(targets)} arguments (points by name need -m MAP)"
-        )
-    from mbtool.codec.tables import READS, parse_reference
+    from mbtool.codec.tables import READS
 
-    text = targets[0]
-    try:
-        table, address = parse_reference(text)
-    except RequestError as error:
-        if any(c.isdigit() for c in text):
-            raise
-        raise RequestError(f"{error}; to read a point by name, give its map: -m MAP") from None
-    count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
+    table, address, count = reference_target(targets, "read", given)
     kind = READS[table.name]
     if table.bits:
-        if given:
-            raise RequestError(f"{given[0]} is for registers; {text} is {table.item} {address + 1}, a bit")
         _read_bits(connection, kind, address, count, interval, polls, table)
     else:
         _read_registers(connection, kind, address, count, value_type, order, interval, polls, table)
@@ -312,10 +300,7 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
             client.finish(connection.unit)
 
     def run(client):
-        def execute_one(request):
-            return client.execute(connection.unit, request)
-
-        return read_points(execute_one, points, register_map.max_gap)
+        return read_points(partial(client.execute, connection.unit), points, register_map.max_gap)
 
     def to_result(readings):
         rows = [

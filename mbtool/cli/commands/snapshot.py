@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import sys
 import time
+from functools import partial
 
 import click
 
-from mbtool.cli.options import Number, device_command
+from mbtool.cli.options import Number, device_command, map_option
 from mbtool.codec.errors import RequestError
 
 TABLE_SECTIONS = {  # a table's name in mbtool's messages -> its section in a data file
@@ -147,9 +148,7 @@ def dump(connection, file, ranges, max_requests):
     began = time.monotonic()
     stopped, failure, identity = "", None, {}
     with open_client(connection, "Read Holding Registers") as client:
-
-        def execute(request):
-            return client.execute(connection.unit, request)
+        execute = partial(client.execute, connection.unit)
 
         dumper = Dumper(execute, max_requests)
         bar = _Bar(total) if sys.stderr.isatty() and not connection.dry_run else None
@@ -293,33 +292,13 @@ def differences(a: dict, b: dict, register_map=None) -> list[dict]:
     return out
 
 
-def difference_line(difference: dict) -> str:
-    def shown(value):
-        if value is None:
-            return "missing"
-        unit = difference.get("unit")
-        return f"{value} {unit}" if unit else str(value)
-
-    where = f"{difference['table']} {difference['address']}"
-    if "name" in difference:
-        where = f"{difference['name']} ({difference['ref']})"
-    return f"{where}: {shown(difference['a'])} -> {shown(difference['b'])}"
-
-
 DEVICE = "device"  # a side of diff that is the device itself, read through -p
 
 
 @device_command("diff")
 @click.argument("a", metavar="A")
 @click.argument("b", metavar="[B]", required=False)
-@click.option(
-    "-m",
-    "--map",
-    "map",
-    metavar="MAP",
-    type=click.Path(dir_okay=False),
-    help="A register map: differences at its points by name, in their units.",
-)
+@map_option("differences at its points by name, in their units")
 def diff(connection, a, b, map):
     """Compare two dumps, or a dump with the device itself (-p and friends).
 
@@ -347,7 +326,7 @@ def diff(connection, a, b, map):
 
         (dumped,) = files.values()
         with open_client(connection, "Read Holding Registers") as client:
-            files[DEVICE] = read_live(lambda request: client.execute(connection.unit, request), dumped)
+            files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
     left, right = files[a], files[b]
     found = differences(left, right, register_map)
     fmt = connection.output_format or default_format()
@@ -363,7 +342,9 @@ def diff(connection, a, b, map):
                 [d["table"], d["address"], d["ref"], d.get("name", ""), d["a"], d["b"], d.get("unit", "")]
             )
     else:
-        sys.stdout.write("".join(difference_line(d) + "\n" for d in found))
+        from mbtool.cli.render import change_line
+
+        sys.stdout.write("".join(change_line(d, d["a"], d["b"], d.get("unit", "")) + "\n" for d in found))
     if found:
         raise Summary(f"{len(found)} difference{'s' if len(found) != 1 else ''}", ExitCode(1))
 
@@ -422,9 +403,7 @@ def restore(connection, file, everything):
     )
     # The reads are needed even for --dry-run: it shows only the writes that differ.
     with open_client(replace(connection, dry_run=False), "Read Holding Registers") as client:
-
-        def execute(request):
-            return client.execute(connection.unit, request)
+        execute = partial(client.execute, connection.unit)
 
         current = {} if everything else read_live(execute, wanted)
         changes = {

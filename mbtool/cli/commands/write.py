@@ -160,13 +160,7 @@ def write(connection, targets, map, multiple, rmw, value_type, order):
 
 def _write_reference(connection, text: str, values, multiple: bool, value_type: str, order: str) -> None:
     from mbtool.cli.render import Result
-    from mbtool.codec.data_access import (
-        WriteMultipleCoils,
-        WriteMultipleRegisters,
-        WriteSingleCoil,
-        WriteSingleRegister,
-    )
-    from mbtool.codec.tables import parse_reference, reference
+    from mbtool.codec.tables import parse_reference, reference, write_of
     from mbtool.codec.values import decode_values, parse_registers
 
     if "=" in text:
@@ -178,20 +172,13 @@ def _write_reference(connection, text: str, values, multiple: bool, value_type: 
             "(coils 0xxxx and holding registers 4xxxx are the writable ones)"
         )
     if table.bits:
-        bits = tuple(parse_bit(value) for value in values)
-        request = (
-            WriteMultipleCoils(address, bits)
-            if multiple or len(bits) > 1
-            else WriteSingleCoil(address, bits[0])
-        )
+        bits = [parse_bit(value) for value in values]
+        request = write_of(table, address, bits, multiple)
         items = [(address + i, bit) for i, bit in enumerate(bits)]
         registers, kind = None, None
     else:
         registers = parse_registers(values, value_type, order)
-        if len(registers) == 1 and not multiple:
-            request = WriteSingleRegister(address, registers[0])
-        else:
-            request = WriteMultipleRegisters(address, tuple(registers))
+        request = write_of(table, address, registers, multiple)
         items = [
             (address + offset, value) for offset, value in decode_values(tuple(registers), value_type, order)
         ]
