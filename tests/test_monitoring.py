@@ -159,3 +159,13 @@ def test_monitoring_formats_refuse_what_they_cannot_carry(silent_server, args, w
     res = run_mbtool(*args, "-p", silent_server.tcp_target)
     assert res.returncode == 2 and words in res.stderr
     assert silent_server.received_bytes() == b""
+
+
+def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
+    path = tmp_path / "text.toml"
+    path.write_text('[points.tag]\nref = 40001\ntype = "string"\ncount = 1\n[points.n]\nref = 40002\n')
+    res = expect_ok(run_mbtool("read", "-m", path, "-o", "influx", "-p", tcp_device.target))
+    fields = parse_line(res.stdout.strip())["fields"]
+    assert fields == {"tag": "\\x00d", "n": HOLDING[1]}  # 0x0064: a NUL, then "d"
+    res = expect_ok(run_mbtool("read", "-m", path, "-o", "prom", "-p", tcp_device.target))
+    assert set(families(res.stdout)) == {"modbus_n"}

@@ -19,8 +19,6 @@ import time
 
 from mbtool.cli.render import Points
 
-MONITORING_FORMATS = ("influx", "prom")
-
 # Set by the options as they are parsed, as render's csv_header is.
 measurement = "modbus"  # --measurement
 device = ""  # the profile's name (-P), a tag and a label when given
@@ -32,7 +30,7 @@ def _values(result) -> list[tuple[dict, object, str]]:
     if isinstance(result, Points):
         out = []
         for row in result.rows:
-            number = row.raw[0] if row.value.__class__ is str and len(row.raw) == 1 else row.value
+            number = row.value if row.number is None else row.number  # text stays text
             about = (row.description or row.name) + (f" ({row.unit})" if row.unit else "") + f", {row.ref}"
             out.append(({"name": row.name, "ref": row.ref}, number, about))
         return out

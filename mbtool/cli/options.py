@@ -567,7 +567,9 @@ def device_command(
                 rs485_delays=rs485_delays,
             )
             profile = click.get_current_context().meta.get("mbtool.profile")
-            if output_format in ("influx", "prom"):
+            from mbtool.cli.render import MONITORING_FORMATS  # loaded with the CLI
+
+            if output_format in MONITORING_FORMATS:
                 if not readings:
                     raise RequestError(
                         f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 
 from mbtool.cli.render import (
+    MONITORING_FORMATS,
     POINT_CSV_HEADER,
     Points,
     as_dict,
@@ -49,7 +50,7 @@ class Output:
         self._flush_at = 0.0
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if self.fmt in ("influx", "prom"):
+        if self.fmt in MONITORING_FORMATS:
             from mbtool.cli import monitoring
 
             # To stdout with the other writes (one flush a gap); a textfile is written at once.

@@ -19,6 +19,7 @@ from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
 
 FORMATS = ("table", "plain", "json", "csv")
+MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for the read commands
 
 
 @record
@@ -322,6 +323,7 @@ class PointRow:
     raw: tuple
     bits: bool  # a coil or discrete input: raw holds bits, not registers
     description: str = ""
+    number: int | float | None = None  # the number behind the value (Point.number_of)
 
     @property
     def shown(self) -> str:

@@ -53,14 +53,14 @@ def execute(connection: Connection, request) -> object:
 
 def show(connection: Connection, result) -> None:
     """Print a command's result; a write to unit 0 says on stderr that nobody confirmed it."""
-    from mbtool.cli.render import default_format, render
+    from mbtool.cli.render import MONITORING_FORMATS, default_format, render
     from mbtool.codec.framing import is_broadcast
 
     if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)
     fmt = connection.output_format or default_format()
-    if fmt in ("influx", "prom"):  # only the read commands offer them (device_command)
+    if fmt in MONITORING_FORMATS:  # only the read commands offer them (device_command)
         from mbtool.cli.monitoring import emit
 
         emit(result, fmt, sys.stdout)

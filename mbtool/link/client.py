@@ -353,9 +353,8 @@ class Client:
                 return pdu[:whole], f"{len(pdu) - whole} bytes after a complete reply, ignored"
         wanted = getattr(request, "reply_byte_count", None)  # reads of FC 01-04 know theirs
         if wanted is not None and len(pdu) == 2 + wanted and pdu[1] != wanted:
-            return pdu[:1] + bytes([wanted]) + pdu[
-                2:
-            ], f"byte count {pdu[1]}, but the data is the {wanted} bytes asked for"
+            whole_pdu = pdu[:1] + bytes([wanted]) + pdu[2:]
+            return whole_pdu, f"byte count {pdu[1]}, but the data is the {wanted} bytes asked for"
         return None
 
     def _copy_check(self, frame: Frame) -> None:

@@ -71,6 +71,16 @@ class Point:
             return value
         return _number(Decimal(repr(value)) * (self.scale or 1) + (self.offset or 0))
 
+    def number_of(self, value: PointValue) -> int | float | None:
+        """The number behind a value, for thresholds and monitoring: an enum label's raw
+        value, 1 or 0 for a bit, a number as it is; None for text."""
+        if isinstance(value, bool):
+            return int(value)
+        if isinstance(value, str):
+            labelled = [raw for raw, label in (self.enum or {}).items() if label == value]
+            return labelled[0] if labelled else None
+        return value
+
     def raw_for(self, text: str) -> int | float | str | bool:
         """The raw value that writes ``text`` (engineering units, an enum label, on/off)."""
         if self.is_bit:

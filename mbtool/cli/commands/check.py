@@ -148,10 +148,9 @@ def _map_values(connection, path, names, warn, crit) -> list[Checked]:
     out = []
     for reading in readings:
         point, value = reading.point, reading.value
-        if point.enum is not None and isinstance(value, str):  # judged by the raw number behind the label
-            number = next(raw for raw, label in point.enum.items() if label == value)
-        else:
-            number = _number(value, point.name)
+        number = point.number_of(value)  # an enum by the raw number behind its label
+        if number is None:
+            raise RequestError(f"{point.name} reads {value}, not a number to check")
         text = ("on" if value else "off") if isinstance(value, bool) else str(value)
         out.append(Checked(point.name, number, text, point.unit, *limits[point.name]))
     return out

@@ -84,8 +84,10 @@ def polling_options(function):
 def _run(connection: Connection, request, to_result, interval, polls, run=None) -> None:
     """Once, or polled.  ``run(client)``: a read of several requests (a map's), which
     ``request``, the first of them, stands for."""
+    from mbtool.cli.render import MONITORING_FORMATS
+
     meta = click.get_current_context().meta
-    if meta.get("mbtool.textfile") or connection.output_format in ("influx", "prom"):
+    if meta.get("mbtool.textfile") or connection.output_format in MONITORING_FORMATS:
         connection = _monitoring(connection, meta)
     if (interval is None and polls is None) or connection.dry_run:
         if run is None:
@@ -312,6 +314,7 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
                 r.raw,
                 r.point.table.bits,
                 r.point.description,
+                r.point.number_of(r.value),
             )
             for r in readings
         ]
