@@ -106,3 +106,28 @@ def test_map_points_with_their_thresholds_and_the_command_line_beating_them(tmp_
     bad.write_text('[points.x]\nref = 40001\nwarn = "1:x"\n')
     code, line = check("-m", bad, port=tcp_device.target)
     assert code == 3 and "x: warn 1:x is not a range" in line
+
+
+@pytest.mark.parametrize(
+    "ref, ranges, code, why",
+    [
+        ("40006", ("-w", "110"), 0, ""),  # 105 within 0..110
+        ("40019", ("-w", "110"), 1, "outside 0:110"),  # 118 above 110
+        ("40006", ("-w", "110:"), 1, "outside 110:"),
+        ("40019", ("-w", "110:"), 0, ""),
+        ("40019", ("-w", "~:110"), 1, "outside ~:110"),
+        ("40006", ("-w", "~:110"), 0, ""),
+        ("40016", ("-w", "110:120"), 0, ""),
+        ("40006", ("-w", "110:120"), 1, "outside 110:120"),
+        ("40016", ("-w", "@110:120"), 1, "inside 110:120"),
+        ("40006", ("-w", "@110:120"), 0, ""),
+        ("40019", ("-w", "110", "-c", "115"), 2, "outside 0:115"),
+    ],
+)
+def test_every_range_form_and_state_against_pymodbus(tcp_device, ref, ranges, code, why):
+    got, line = check(ref, *ranges, port=tcp_device.target)
+    assert got == code
+    state = ("OK", "WARNING", "CRITICAL")[code]
+    value = HOLDING[int(ref) - 40001]
+    assert line.startswith(f"MODBUS {state} - {ref}={value}")
+    assert (f"({state}: {why})" in line) if why else "(" not in line
