@@ -517,3 +517,25 @@ def test_a_map_read_as_a_table_names_value_unit_ref_and_raw(tcp_device, pump):
     ]
     speed = next(line for line in lines(res) if "speed" in line)
     assert speed.replace("│", " ").split() == ["speed", "10", "rpm", "40001", "0064", "Motor", "speed"]
+
+
+def test_references_maps_and_bits_against_mbtool_serve_over_a_serial_line(pump):
+    from conftest import PtyPair
+
+    pair = PtyPair()
+    try:
+        with serve("--parity", "N", target=pair.device_path):
+
+            def ser(*args):
+                return run_mbtool(*args, "-p", pair.mbtool_path, *PTY_SERIAL_OPTS)
+
+            expect_ok(ser("write", "-m", pump, "setpoint=7.5", "state=fault"))
+            assert lines(expect_ok(ser("read", "-m", pump, "setpoint", "state"))) == [
+                "setpoint 7.5 m3/h",
+                "state fault",
+            ]
+            assert lines(expect_ok(ser("read", "40101", "--type", "float32"))) == ["40101 21.5"]
+            assert lines(expect_ok(ser("write-bit", "40521", "2", "on"))) == ["40521 1"]
+            assert lines(expect_ok(ser("read", "-m", pump, "alarm"))) == ["alarm off"]  # bit 3, not 2
+    finally:
+        pair.close()
