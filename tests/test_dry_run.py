@@ -43,8 +43,9 @@ EXAMPLES = {
     "raw": "raw 01 03 00 00 00 02",
     "scan": "scan -u 1-5",
 }
-# Commands that never send a request: offline tools, the simulator, and the passive monitor.
-OFFLINE = {"decode", "crc", "lrc", "serve", "monitor"}
+# Commands that never send a request of their own: offline tools, the simulator, the gateway
+# (it forwards its clients' requests) and the passive monitor.
+OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor"}
 
 
 def run(capsys, line: str) -> tuple[int, str, str]:

@@ -55,6 +55,7 @@ COMMANDS = {
     "crc": "offline",
     "lrc": "offline",
     "serve": "serve",
+    "bridge": "bridge",
     "check": "check",
     "dump": "snapshot",
     "diff": "snapshot",

@@ -4,6 +4,32 @@ from __future__ import annotations
 
 from mbtool.cli.render import Report, Row
 
+SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
+
+
+def one_line(described) -> str:
+    """A decoded frame in one line, as monitor and bridge show it: its name and the first
+    fields after the function code."""
+    fields = [f for f in described.fields if f.name != "function"]
+    parts = [f"{f.name}={_shown(f)}" for f in fields]
+    if len(parts) > SUMMARY_FIELDS:
+        parts = parts[:SUMMARY_FIELDS] + [f"... ({len(fields) - SUMMARY_FIELDS} more)"]
+    text = described.name + (": " + " ".join(parts) if parts else "")
+    if described.error:
+        text += f" (invalid: {described.error})"
+    return text
+
+
+def _shown(field) -> str:
+    """A field as decode shows it where its words say more than its number (coils as ON/OFF,
+    an exception by name); a plain number stays a number."""
+    number = str(field.value)
+    if isinstance(field.value, int) and (
+        field.text in (None, number) or field.text.startswith(f"{number} (0x")
+    ):
+        return number
+    return field.text or number
+
 
 def frame_report(described, header: bool = True):
     """The rows of a decoded frame: envelope, fields, checksum, warnings; JSON with every field."""

@@ -285,6 +285,56 @@ def serial_line_options(function: Callable) -> Callable:
     return function
 
 
+class Seconds(click.ParamType):
+    """Seconds, 0 for never."""
+
+    name = "seconds"
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value} is not a number of seconds", param, ctx)
+        if not 0 <= number < float("inf"):  # also refuses nan
+            self.fail(f"{value} is not a number of seconds (0 for never)", param, ctx)
+        return number
+
+
+# How a server treats its TCP clients, shared by serve and bridge.
+TCP_CLIENT_OPTIONS = [
+    click.option(
+        "--max-clients",
+        type=Number(1, 1000, "client count"),
+        default=64,
+        show_default=True,
+        help="TCP: clients served at once. A newcomer past them takes the slot of the least "
+        "recently used idle client (one that never completed a request first); with none idle it "
+        "is closed at once. Both are logged.",
+    ),
+    click.option(
+        "--idle-timeout",
+        type=Seconds(),
+        default=60.0,
+        show_default=True,
+        help="TCP: close a client that completes no request and takes no reply for SECONDS "
+        "(one that never sends, sends a byte now and then, or does not read); 0 for never.",
+    ),
+    click.option(
+        "--first-request-timeout",
+        type=Seconds(),
+        default=5.0,
+        show_default=True,
+        help="TCP: close a client that has not completed a request SECONDS after connecting; 0 for never.",
+    ),
+]
+
+
+def tcp_client_options(function: Callable) -> Callable:
+    for option in reversed(TCP_CLIENT_OPTIONS):
+        function = option(function)
+    return function
+
+
 def output_chosen(fmt: str | None) -> str | None:
     """Note -o as soon as it is parsed, so that even a failure after it gets its JSON object."""
     if fmt == "json":
@@ -309,33 +359,8 @@ NO_HEADER_OPTION = click.option(
     help="CSV without its header row (it is left out anyway when appending to a file that has content).",
 )
 
-CONNECTION_OPTIONS = [
-    click.option(
-        "-p",
-        "--port",
-        envvar="MBTOOL_PORT",
-        metavar="TARGET",
-        shell_complete=complete_port,
-        help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
-        "loop:// or sim:// (the built-in device).",
-        show_envvar=True,
-    ),
-    click.option(
-        "-u",
-        "--unit",
-        envvar="MBTOOL_UNIT",
-        type=Number(0, 255, "unit"),
-        default=Connection.unit,
-        show_default=True,
-        help="Unit (slave) id; 0 broadcasts a write.",
-        show_envvar=True,
-    ),
-    click.option(
-        "--framer",
-        type=Choice(["rtu", "ascii", "tcp"]),
-        help="Framing: tcp for tcp:// targets, rtu otherwise.",
-    ),
-    *SERIAL_LINE_OPTIONS,
+# How the master uses its link, shared by the device commands and bridge.
+LINK_OPTIONS = [
     click.option(
         "-t",
         "--timeout",
@@ -367,12 +392,6 @@ CONNECTION_OPTIONS = [
         "a request sent right after the handshake.",
     ),
     click.option(
-        "--reconnect-each",
-        is_flag=True,
-        help="Polling: close and reopen the link for every poll, for devices and gateways that "
-        "serve one client or leak connections.",
-    ),
-    click.option(
         "--lenient",
         is_flag=True,
         help="Accept a Modbus TCP reply that breaks the spec harmlessly (bytes after a complete "
@@ -389,6 +408,42 @@ CONNECTION_OPTIONS = [
         type=Rs485Delays(),
         metavar="MS[,MS]",
         help="RTS raised this long before the frame and held this long after it; implies --rs485.",
+    ),
+]
+
+CONNECTION_OPTIONS = [
+    click.option(
+        "-p",
+        "--port",
+        envvar="MBTOOL_PORT",
+        metavar="TARGET",
+        shell_complete=complete_port,
+        help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
+        "loop:// or sim:// (the built-in device).",
+        show_envvar=True,
+    ),
+    click.option(
+        "-u",
+        "--unit",
+        envvar="MBTOOL_UNIT",
+        type=Number(0, 255, "unit"),
+        default=Connection.unit,
+        show_default=True,
+        help="Unit (slave) id; 0 broadcasts a write.",
+        show_envvar=True,
+    ),
+    click.option(
+        "--framer",
+        type=Choice(["rtu", "ascii", "tcp"]),
+        help="Framing: tcp for tcp:// targets, rtu otherwise.",
+    ),
+    *SERIAL_LINE_OPTIONS,
+    *LINK_OPTIONS,
+    click.option(
+        "--reconnect-each",
+        is_flag=True,
+        help="Polling: close and reopen the link for every poll, for devices and gateways that "
+        "serve one client or leak connections.",
     ),
     click.option(
         "--hex",

@@ -545,8 +545,10 @@ class HexTrace:
         self._line("RX", data, verdict)
 
     def _line(self, direction: str, data: bytes, verdict: str) -> None:
-        shown = (
-            data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()
-        )
-        self.out.write(f"{direction} {shown}  {verdict}\n")
+        self.out.write(f"{direction} {shown_frame(data)}  {verdict}\n")
         self.out.flush()
+
+
+def shown_frame(data: bytes) -> str:
+    """A frame as the traces show it: hex pairs, or an ASCII frame's own text."""
+    return data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()

@@ -23,6 +23,12 @@
 * Serial: pyserial (device path or URL), frames ended by implicit length or by
   t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
 * Faults of the I/O layer: delay, drop and checksum corruption of replies.
+* Who answers is pluggable (``answerer``): the simulated device by default, or a gateway's
+  forwarder (``mbtool.link.forward``, for ``mbtool bridge``).  An answer that takes a bus's
+  time is ``queued``: on TCP a worker thread answers one request at a time, in the order they
+  came, while the loop goes on accepting, reading and sending.  Each client has at most one
+  request in the queue and its socket is not read until that one is answered, so the clients
+  take turns: none can hold the others up, however fast it sends.
 
 Every wait is bounded by ``TICK`` so a stop request (Ctrl-C, SIGTERM) is seen
 within a tenth of a second.
@@ -31,12 +37,15 @@ within a tenth of a second.
 from __future__ import annotations
 
 import heapq
+import queue
 import random
 import selectors
 import socket
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
@@ -63,6 +72,8 @@ RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others 
 # replies, 133 KB), so a client costs at most about 200 KB.
 OUT_LIMIT = 64 * 1024
 ACCEPTS_PER_TURN = 16  # a burst of connections cannot starve the clients already served
+WORKER_STOP = 10.0  # seconds a stop waits for the queued answer under way
+_WAKE = object()  # the selector's key for the worker's wake-ups
 
 
 @record
@@ -112,8 +123,13 @@ class Stats:
         self.frames.append((time.monotonic() - self.started, direction, peer, adu, note))
 
 
+class Answerer(Protocol):
+    def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
+        """The reply ADU to a request from ``peer``, or None when no reply is due."""
+
+
 class Responder:
-    """Turns framer events into (when, reply bytes): the device's answer with the faults applied."""
+    """Turns framer events into reply bytes: the device's answer with the faults applied."""
 
     def __init__(
         self,
@@ -204,10 +220,12 @@ class Server:
 
     def __init__(
         self,
-        device: Device,
+        device: Device | None,
         target: Target,
         framer_name: str,
         *,
+        answerer: Answerer | None = None,
+        queued: bool = False,
         faults: IoFaults | None = None,
         seed: int | None = None,
         settings=None,
@@ -227,7 +245,15 @@ class Server:
         self.stats = Stats()
         self._stop = False
         self._log = log or (lambda direction, peer, data, note: None)
-        self.responder = Responder(device, self.faults, self.stats, random.Random(seed), self._log)
+        self.responder: Answerer = answerer or Responder(
+            device, self.faults, self.stats, random.Random(seed), self._log
+        )
+        # queued: answers take a bus's time, given one at a time by a worker thread (TCP).
+        self.queued = queued
+        self._jobs: queue.SimpleQueue[tuple[_Client, Frame] | None] = queue.SimpleQueue()
+        self._answered: deque[tuple[_Client, bytes | None]] = deque()
+        self._worker: threading.Thread | None = None
+        self._failure: BaseException | None = None  # what stopped the worker, raised by the loop
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
         self._seq = 0
         self._tick: Callable[[], None] = lambda: None
@@ -288,6 +314,14 @@ class Server:
         self.stats.listening = f"tcp://{shown}:{bound[1]}"
         self.selector = selectors.DefaultSelector()
         self.selector.register(listener, selectors.EVENT_READ, None)
+        if self.queued:
+            # The worker wakes the loop with a byte when it has answered.
+            self._wake, self._waker = socket.socketpair()
+            self._wake.setblocking(False)
+            self._waker.setblocking(False)
+            self.selector.register(self._wake, selectors.EVENT_READ, _WAKE)
+            self._worker = threading.Thread(target=self._work, name="mbtool-bus", daemon=True)
+            self._worker.start()
 
     def _accept(self) -> None:
         accepted: list[_Client] = []
@@ -396,6 +430,12 @@ class Server:
                     self._log("drop", client.peer, event.adu, too_soon)
                     event = client.framer.next_event()
                     continue
+                if self.queued:
+                    # Its turn on the bus; the requests behind it wait for its answer.
+                    client.owed += 1
+                    client.on_bus = True
+                    self._jobs.put((client, event))
+                    break
             reply = self.responder.answer(event, client.framer, client.peer)
             if reply:
                 client.replied = time.monotonic() + self.faults.delay
@@ -442,7 +482,7 @@ class Server:
             if sent:
                 del client.out[:sent]
                 client.last_active = time.monotonic()
-        events = selectors.EVENT_READ if len(client.out) < OUT_LIMIT else 0
+        events = selectors.EVENT_READ if len(client.out) < OUT_LIMIT and not client.on_bus else 0
         if client.out:
             events |= selectors.EVENT_WRITE
         if events != client.events:
@@ -491,6 +531,9 @@ class Server:
                 if client is None:
                     newcomers = True
                     continue
+                if client is _WAKE:
+                    self._collect()
+                    continue
                 if mask & selectors.EVENT_WRITE:
                     self._flush(client)
                 if mask & selectors.EVENT_READ and not client.closed:
@@ -504,7 +547,7 @@ class Server:
             if self.framer_name != "tcp":
                 # RTU/ASCII over TCP: no silence to see, but a long pause ends what is buffered.
                 for client in list(self._clients):
-                    if client.framer.buffered and now - client.last_data > TCP_GAP:
+                    if client.framer.buffered and not client.on_bus and now - client.last_data > TCP_GAP:
                         self._events(client, client.framer.silence)
             self._expire(now)
             self._tick()
@@ -514,6 +557,52 @@ class Server:
             self._close(client, "server stopped")
         self.selector.close()
         self.listener.close()
+        if self._worker is not None:
+            self._jobs.put(None)
+            # The transaction under way ends by its own deadline; a stop waits for it, not more.
+            self._worker.join(WORKER_STOP)
+            self._wake.close()
+            self._waker.close()
+
+    # -- queued answers (a bus behind the server) ----------------------------------------------
+
+    def _work(self) -> None:
+        """The worker thread: answer each queued request in turn, then wake the loop."""
+        while (job := self._jobs.get()) is not None:
+            client, event = job
+            reply = None
+            if not client.closed:  # a client gone while it waited is owed nothing
+                try:
+                    reply = self.responder.answer(event, client.framer, client.peer)
+                except BaseException as error:  # a bug: the loop raises it, the worker ends
+                    self._failure = error
+            self._answered.append((client, reply))
+            try:
+                self._waker.send(b"!")
+            except OSError:  # the buffer is full of wake-ups already, or the loop has closed
+                pass
+            if self._failure is not None:
+                return
+
+    def _collect(self) -> None:
+        """The loop's side: hand the worker's answers to their clients."""
+        try:
+            self._wake.recv(RECV_SIZE)
+        except OSError:
+            pass
+        if self._failure is not None:
+            raise self._failure
+        while self._answered:
+            client, reply = self._answered.popleft()
+            client.owed -= 1
+            client.on_bus = False
+            if client.closed:
+                continue
+            if reply:
+                client.replied = time.monotonic()
+                client.out += reply
+            # Its next request, if one is buffered already, joins the back of the queue.
+            self._events(client, client.framer.next_event)
 
     # -- serial ----------------------------------------------------------------------------
 
@@ -605,6 +694,7 @@ class _Client:
         "events",
         "closed",
         "replied",
+        "on_bus",
     )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
@@ -620,3 +710,4 @@ class _Client:
         self.events = selectors.EVENT_READ
         self.closed = False
         self.replied = float("-inf")  # when the last reply went (--min-gap)
+        self.on_bus = False  # a queued request of its is waiting for its answer

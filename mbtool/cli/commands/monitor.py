@@ -19,6 +19,7 @@ import time
 
 import click
 
+from mbtool.cli.frames import frame_report, one_line
 from mbtool.cli.options import (
     PROFILE_OPTION,
     Choice,
@@ -38,7 +39,6 @@ TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --dur
 # shorter pause must not cut a frame.  A frame of known length never waits for the pause.
 MIN_RTU_SILENCE = 0.02
 ASCII_SILENCE = 1.0  # spec §2: up to 1 s may pass between the characters of an ASCII frame
-SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
 
 
 class MonitorCommand(QuickHelp, click.Command):
@@ -291,27 +291,8 @@ def wire_text(frame) -> str:
 
 
 def summary(frame) -> str:
-    """The decoded frame in one line: its name and the first fields after the function code."""
-    described = frame.described
-    fields = [f for f in described.fields if f.name != "function"]
-    parts = [f"{f.name}={_shown(f)}" for f in fields]
-    if len(parts) > SUMMARY_FIELDS:
-        parts = parts[:SUMMARY_FIELDS] + [f"... ({len(fields) - SUMMARY_FIELDS} more)"]
-    text = described.name + (": " + " ".join(parts) if parts else "")
-    if described.error:
-        text += f" (invalid: {described.error})"
-    return text
-
-
-def _shown(field) -> str:
-    """A field as decode shows it where its words say more than its number (coils as ON/OFF,
-    an exception by name); a plain number stays a number."""
-    number = str(field.value)
-    if isinstance(field.value, int) and (
-        field.text in (None, number) or field.text.startswith(f"{number} (0x")
-    ):
-        return number
-    return field.text or number
+    """The decoded frame in one line (cli.frames.one_line)."""
+    return one_line(frame.described)
 
 
 def as_dict(item) -> dict:
@@ -348,8 +329,6 @@ def as_dict(item) -> dict:
         "flags": list(item.flags),
     }
     if item.described is not None:
-        from mbtool.cli.frames import frame_report
-
         decoded = frame_report(item.described).data
         data["fields"] = decoded["fields"]
         data["warnings"] = decoded["warnings"]
@@ -393,8 +372,6 @@ class Output:
             from rich.console import Console
 
             self.console = Console(file=self.out, highlight=False, soft_wrap=True)
-        elif fmt == "json":
-            import mbtool.cli.frames  # noqa: F401 - frame_report, for the fields
 
     def write(self, item) -> None:
         if self.fmt == "json":

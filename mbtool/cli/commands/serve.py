@@ -22,6 +22,7 @@ from mbtool.cli.options import (
     parse_int,
     parse_units,
     serial_line_options,
+    tcp_client_options,
     units_text,
 )
 from mbtool.codec.errors import RequestError
@@ -44,21 +45,6 @@ def parse_exception(text: str) -> tuple[int, int]:
     if not 1 <= ex <= 0xFF:
         raise RequestError(f"exception code {ex} is out of range 1..255")
     return fc, ex
-
-
-class Seconds(click.ParamType):
-    """Seconds, 0 for never."""
-
-    name = "seconds"
-
-    def convert(self, value, param, ctx):
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value} is not a number of seconds", param, ctx)
-        if not 0 <= number < float("inf"):  # also refuses nan
-            self.fail(f"{value} is not a number of seconds (0 for never)", param, ctx)
-        return number
 
 
 class Fraction(click.ParamType):
@@ -178,30 +164,7 @@ class Fraction(click.ParamType):
     help="Fault: answer every request with exception 06 "
     "(server device busy) for the first SECONDS after start.",
 )
-@click.option(
-    "--max-clients",
-    type=Number(1, 1000, "client count"),
-    default=64,
-    show_default=True,
-    help="TCP: clients served at once. A newcomer past them takes the slot of the least "
-    "recently used idle client (one that never completed a request first); with none idle it "
-    "is closed at once. Both are logged.",
-)
-@click.option(
-    "--idle-timeout",
-    type=Seconds(),
-    default=60.0,
-    show_default=True,
-    help="TCP: close a client that completes no request and takes no reply for SECONDS "
-    "(one that never sends, sends a byte now and then, or does not read); 0 for never.",
-)
-@click.option(
-    "--first-request-timeout",
-    type=Seconds(),
-    default=5.0,
-    show_default=True,
-    help="TCP: close a client that has not completed a request SECONDS after connecting; 0 for never.",
-)
+@tcp_client_options
 @click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
 def serve(

@@ -1,0 +1,382 @@
+"""``mbtool bridge``: a gateway between Modbus TCP and a serial line, showing its traffic.
+
+Its two halves exist already (design notes: a gateway is ``link`` + ``device`` joined in
+``cli``): ``mbtool.device.server`` takes the requests, from TCP clients or as a slave on a
+serial line, and ``mbtool.link.forward`` sends each on as a master and turns what comes back
+(or does not) into the reply.  Here they are joined, and every transaction is shown.
+"""
+
+from __future__ import annotations
+
+import signal
+import statistics
+import sys
+import threading
+
+import click
+
+from mbtool.cli.options import (
+    LINK_OPTIONS,
+    Choice,
+    QuickHelp,
+    complete_port,
+    output_chosen,
+    parse_units,
+    serial_line_options,
+    tcp_client_options,
+    units_text,
+)
+from mbtool.cli.render import local_time
+from mbtool.codec.errors import RequestError
+
+DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
+EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
+
+
+class BridgeCommand(QuickHelp, click.Command):
+    pass
+
+
+def _link_options(function):
+    for option in reversed(LINK_OPTIONS):
+        function = option(function)
+    return function
+
+
+@click.command(
+    "bridge",
+    cls=BridgeCommand,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="A Modbus TCP <-> RTU/ASCII gateway that shows its traffic.",
+)
+@click.option(
+    "--listen",
+    metavar="WHERE",
+    default=DEFAULT_LISTEN,
+    shell_complete=complete_port,
+    show_default=True,
+    help="Where requests come from: tcp://HOST:PORT (Modbus TCP clients; PORT 0 picks a free "
+    "one), or a serial device or pyserial URL (mbtool is then a slave on that line). Only "
+    "loopback by default: tcp://0.0.0.0:502 opens the bus to the network, a choice you type.",
+)
+@click.option(
+    "-p",
+    "--port",
+    "target",
+    metavar="TARGET",
+    required=True,
+    shell_complete=complete_port,
+    help="Where requests go: a serial device or pyserial URL (the bus), tcp://HOST[:PORT] "
+    "(a Modbus TCP device), or sim:// (the built-in device).",
+)
+@click.option(
+    "--framer",
+    type=Choice(["rtu", "ascii"]),
+    help="The serial side's framing (default rtu); tcp:// always speaks Modbus TCP (MBAP).",
+)
+@click.option(
+    "--units",
+    metavar="UNITS",
+    default=EVERY_UNIT,
+    show_default=True,
+    help="Units forwarded: 1,17 or 1-10 or both. From TCP a request for another unit gets "
+    "exception 0A; on a serial line it is left to the other slaves. Unit 0 is a broadcast "
+    "where a serial line is either side: sent, never answered.",
+)
+@serial_line_options
+@_link_options
+@tcp_client_options
+@click.option(
+    "--hex",
+    "hex_trace",
+    is_flag=True,
+    help="Show each transaction's frames in hex, both sides, checksums checked.",
+)
+@click.option(
+    "-o",
+    "--format",
+    "output_format",
+    type=Choice(["table", "plain", "json"]),
+    callback=lambda ctx, param, value: output_chosen(value),
+    help="How transactions are shown: table on a terminal, plain in a pipe, json one object a transaction.",
+)
+@click.option(
+    "-q", "--quiet", is_flag=True, help="Show no transactions; only the start line and the summary."
+)
+def bridge(
+    listen,
+    target,
+    framer,
+    units,
+    baud,
+    parity,
+    bytesize,
+    stopbits,
+    timeout,
+    retries,
+    echo,
+    pause,
+    connect_delay,
+    lenient,
+    rs485,
+    rs485_delays,
+    max_clients,
+    idle_timeout,
+    first_request_timeout,
+    hex_trace,
+    output_format,
+    quiet,
+):
+    """A gateway: Modbus TCP clients to a serial bus (RTU or ASCII), or a serial line's master
+    to a Modbus TCP device, one transaction at a time, each shown as it passes.
+
+    Requests are forwarded as they come, with the serial line's silences; replies go back
+    with the client's transaction id. The gateway answers for the device only where the
+    spec says a gateway does: exception 0B when the device does not answer (or its reply is
+    garbled), 0A when the unit is not forwarded or the link cannot be used (it is opened
+    again for the next request). TCP clients take turns: none can hold up the others.
+    The start line and a summary on exit go to stderr; Ctrl-C or SIGTERM stops it with
+    exit status 0.
+
+    \b
+    Try it:
+      mbtool bridge -p /dev/ttyUSB0 -b 9600 --parity N
+      mbtool read-holding-registers 0 10 -p tcp://127.0.0.1:5020
+    The reverse, mbtool as a slave on a serial line in front of a TCP device:
+      mbtool bridge --listen /dev/ttyUSB1 -p tcp://192.0.2.10
+    """
+    from mbtool.device.server import Server, parse_target
+    from mbtool.link.connection import Connection, check, open_client
+    from mbtool.link.forward import Forwarder
+    from mbtool.link.transport import SerialSettings, default_framer
+
+    where = parse_target(listen)
+    forwarded = parse_units(units)
+    serial_framer = framer or "rtu"
+    listening_framer = "tcp" if where.scheme == "tcp" else serial_framer
+    link_framer = default_framer(target)
+    if link_framer != "tcp":
+        link_framer = serial_framer if framer or link_framer == "rtu" else link_framer
+    if framer and "tcp" == listening_framer == link_framer:
+        raise RequestError("--framer sets the serial side's framing, and both sides are tcp://")
+    if where.scheme == "serial" and where.path == target:
+        raise RequestError(f"--listen and -p are both {target}: a bridge joins two links")
+    if bytesize == "7" and "rtu" in (listening_framer, link_framer):
+        raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
+    connection = Connection(
+        port=target,
+        unit=1,
+        framer=link_framer,
+        baud=baud,
+        parity=parity,
+        bytesize=int(bytesize),
+        stopbits=int(stopbits),
+        timeout=timeout,
+        retries=retries,
+        echo=echo,
+        pause=pause,
+        connect_delay=connect_delay,
+        lenient=lenient,
+        rs485=rs485,
+        rs485_delays=rs485_delays,
+    )
+    check(connection)
+    fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
+    show = Show(fmt, hex_trace, quiet)
+    forwarder = Forwarder(
+        lambda trace: open_client(connection, trace=trace), link_framer, forwarded, show.passage
+    )
+    forwarder.open()  # a link that cannot be opened now is a mistake to hear of at once (exit 6)
+    server = Server(
+        None,
+        where,
+        listening_framer,
+        answerer=forwarder,
+        queued=True,
+        settings=SerialSettings(baud, parity, int(bytesize), int(stopbits)),
+        log=show.event,
+        max_clients=max_clients,
+        idle_timeout=idle_timeout,
+        first_request_timeout=first_request_timeout,
+    )
+    try:
+        server.open()
+        click.echo(
+            f"bridging {server.stats.listening} ({listening_framer}) to {target} ({link_framer}), "
+            f"units {units_text(forwarded)}",
+            err=True,
+        )
+
+        def stop(signum, frame):
+            server.stop()
+
+        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            server.run()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+    finally:
+        forwarder.close()
+    click.echo(f"stopped: {show.summary(server.stats.connections, where.scheme == 'tcp')}", err=True)
+
+
+class Show:
+    """Each transaction as it passes (from the bus worker's thread), and the tally for the summary."""
+
+    def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
+        from mbtool.link.forward import OUTCOMES
+
+        self.fmt = fmt
+        self.hex = hex_trace
+        self.quiet = quiet
+        self.counts = dict.fromkeys(OUTCOMES, 0)
+        self.bus_times: list[float] = []
+        self.lock = threading.Lock()  # the bus worker and the server's loop both print
+        self.console = None
+        if fmt == "table" and not quiet:
+            from rich.console import Console
+
+            self.console = Console(highlight=False, soft_wrap=True)
+
+    def passage(self, passage) -> None:
+        with self.lock:
+            self.counts[passage.outcome] += 1
+            if passage.bus_time is not None:
+                self.bus_times.append(passage.bus_time)
+            if self.quiet:
+                return
+            if self.fmt == "json":
+                from mbtool.cli.render import to_json
+
+                sys.stdout.write(to_json(passage_record(passage)) + "\n")
+            else:
+                lines = hex_lines(passage) if self.hex else decoded_lines(passage)
+                if self.console is not None:
+                    for style, line in lines:
+                        self.console.print(line, style=style, markup=False)
+                else:
+                    sys.stdout.write("".join(line + "\n" for _, line in lines))
+            sys.stdout.flush()
+
+    def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
+        """The server's own events: clients connecting, closed, refused."""
+        if self.quiet or self.fmt == "json" or direction not in ("open", "close", "refuse"):
+            return
+        with self.lock:
+            line = f"{local_time()} {peer} {note}"
+            if self.console is not None:
+                self.console.print(line, style="dim", markup=False)
+            else:
+                sys.stdout.write(line + "\n")
+                sys.stdout.flush()
+
+    def summary(self, connections: int, tcp: bool) -> str:
+        from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, REFUSED, REPLY
+
+        counts = self.counts
+        total = sum(counts.values())
+        parts = [
+            f"{counts[REPLY]} replies",
+            f"{counts[REFUSED]} exceptions from devices",
+            f"{counts[NO_RESPONSE]} unanswered (0B)",
+            f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
+            f"{counts[BROADCAST]} broadcasts",
+        ]
+        text = f"{total} transactions: " + ", ".join(parts)
+        if tcp:
+            text += f"; {connections} connections"
+        if self.bus_times:
+            times = sorted(self.bus_times)
+            text += (
+                f"; bus time median {statistics.median(times) * 1000:.1f} ms, max {times[-1] * 1000:.1f} ms"
+            )
+        return text
+
+
+# Line styles on a terminal: the request, and its reply by what became of it.
+ASKED = "cyan"
+STYLES = {
+    "reply": "green",
+    "exception": "yellow",
+    "broadcast": "green",
+    "no response": "bold red",
+    "no path": "bold red",
+}
+
+
+def _describe(adu: bytes, framing: str, direction: str, previous=None):
+    from mbtool.cli.render import shown_frame
+    from mbtool.codec.describe import describe
+
+    return describe(shown_frame(adu) if framing == "ascii" else adu.hex(), framing, direction, previous)
+
+
+def decoded_lines(passage) -> list[tuple[str, str]]:
+    """The request and what became of it, decoded as monitor prints frames: (style, line)."""
+    from mbtool.cli.frames import one_line
+
+    request = _describe(passage.request, passage.upstream, "request")
+    head = f"{local_time(passage.time)} {passage.peer}"
+    lines = [(ASKED, f"{head} > unit {passage.unit} FC{passage.function:02X} {one_line(request)}")]
+    if passage.reply:
+        reply = _describe(passage.reply, passage.upstream, "response", request)
+        text = f"{head} < unit {passage.unit} FC{reply.function:02X} {one_line(reply)}"
+    else:
+        text = f"{head} - {'broadcast' if passage.outcome == 'broadcast' else 'no reply'}"
+    lines.append((STYLES[passage.outcome], text + _after(passage)))
+    return lines
+
+
+def hex_lines(passage) -> list[tuple[str, str]]:
+    """Every frame of the transaction in hex, both sides, checksums checked: (style, line)."""
+    head = local_time(passage.time)
+    lines = [(ASKED, f"{head} {passage.peer} RX {_wire(passage.request, passage.upstream)}")]
+    if passage.sent:
+        lines.append((ASKED, f"{head} link TX {_wire(passage.sent, passage.downstream)}"))
+    if passage.received:
+        lines.append((ASKED, f"{head} link RX {_wire(passage.received, passage.downstream)}"))
+    if passage.reply:
+        text = f"{head} {passage.peer} TX {_wire(passage.reply, passage.upstream)}"
+    else:
+        text = f"{head} {passage.peer} -- {'broadcast' if passage.outcome == 'broadcast' else 'no reply'}"
+    lines.append((STYLES[passage.outcome], text + _after(passage)))
+    return lines
+
+
+def _after(passage) -> str:
+    """What ends a transaction's last line: its times, and what the gateway saw."""
+    bus = "" if passage.bus_time is None else f"bus {passage.bus_time * 1000:.1f} ms, "
+    text = f" | {bus}total {passage.total * 1000:.1f} ms"
+    return text + f" | {passage.why}" if passage.why and passage.outcome != "exception" else text
+
+
+def _wire(adu: bytes, framing: str) -> str:
+    from mbtool.cli.render import shown_frame
+    from mbtool.codec.framing import make_framer
+
+    return f"{shown_frame(adu)}  {make_framer(framing).check(adu)}"
+
+
+def passage_record(passage) -> dict:
+    """One JSON object a transaction."""
+    from mbtool.cli.frames import one_line
+    from mbtool.cli.render import shown_frame
+
+    request = _describe(passage.request, passage.upstream, "request")
+    reply = _describe(passage.reply, passage.upstream, "response", request) if passage.reply else None
+    return {
+        "time": local_time(passage.time),
+        "client": passage.peer,
+        "unit": passage.unit,
+        "function": passage.function,
+        "name": request.name,
+        "outcome": passage.outcome,
+        "why": passage.why or None,
+        "bus_ms": None if passage.bus_time is None else round(passage.bus_time * 1000, 2),
+        "total_ms": round(passage.total * 1000, 2),
+        "request": {"frame": shown_frame(passage.request), "summary": one_line(request)},
+        "forwarded": shown_frame(passage.sent) if passage.sent else None,
+        "received": shown_frame(passage.received) if passage.received else None,
+        "reply": None if reply is None else {"frame": shown_frame(passage.reply), "summary": one_line(reply)},
+    }

@@ -1,0 +1,223 @@
+"""The gateway's master side (``mbtool bridge``): other masters' requests forwarded as they are.
+
+Each request's PDU goes to the unit it names through a ``Client``, so the link behind keeps
+its t3.5 silences, a half-duplex echo is stripped and the reply is checked like any other;
+the reply's PDU goes back unchanged, a device's own exception included.  Where the gateway
+must answer for the device it says so with the exceptions the spec keeps for gateways
+(spec §3; the Modbus TCP implementation guide, "gateway" exception codes):
+
+* 0B Gateway Target Device Failed to Respond: no reply within the timeout, or none whole
+  (a CRC/LRC error, the wrong unit or function).
+* 0A Gateway Path Unavailable: the unit is not one this gateway forwards (``--units``), or the
+  link behind it cannot be opened or broke.  It is opened again for the next request, so a
+  USB adapter plugged back in or a TCP device restarted is used again without a restart.
+
+A broadcast (unit 0 where a serial line is either side, spec §2) is sent and never answered.
+Requests come from a device-side framer (``mbtool.device.server``), one at a time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager, ExitStack
+
+from mbtool.codec.errors import FrameError, ModbusException
+from mbtool.codec.framing import Frame, Framer, Rejected, is_broadcast
+from mbtool.codec.pdu import ExceptionCode, ExceptionResponse
+from mbtool.codec.raw import RawRequest
+from mbtool.codec.record import record
+from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.link.client import Client, Trace
+from mbtool.link.transport import ConnectionClosed
+
+# What became of a request, in the words the display and the summary use.
+REPLY = "reply"  # the device's reply, passed on
+REFUSED = "exception"  # the device's exception reply, passed on
+BROADCAST = "broadcast"  # sent to every unit, answered by none
+NO_RESPONSE = "no response"  # answered 0B
+NO_PATH = "no path"  # answered 0A (or, on a serial line, a unit left to other slaves)
+OUTCOMES = (REPLY, REFUSED, BROADCAST, NO_RESPONSE, NO_PATH)
+
+
+@record
+class Passage:
+    """One request through the gateway, as the display shows it."""
+
+    time: float  # when the request arrived, seconds since the epoch
+    peer: str  # who sent it: a TCP client's address, or the serial line
+    unit: int
+    function: int
+    request: bytes  # the request as it came (its ADU)
+    upstream: str  # its framing: tcp, rtu or ascii
+    sent: bytes  # the request as forwarded, b"" if it was not
+    downstream: str  # that side's framing
+    received: bytes  # the reply as it came back, b"" if none did
+    reply: bytes  # the reply as sent back, b"" if none was
+    outcome: str  # one of OUTCOMES
+    why: str  # what the gateway saw: the device's exception, why 0A or 0B, a garbled reply
+    bus_time: float | None  # seconds from the forwarded request leaving to its reply arriving
+    total: float  # seconds from the request's arrival to the reply being ready
+
+
+class _Watch(Trace):
+    """The frames of one forwarded transaction, for its Passage."""
+
+    def __init__(self) -> None:
+        self.request = b""
+        self.reply = b""
+        self.problems: list[str] = []  # frames that were not the reply, and why
+        self.sent_at = self.received_at = 0.0
+
+    def sent(self, adu: bytes) -> None:
+        self.request = adu
+        self.sent_at = time.monotonic()
+
+    def received(self, adu: bytes, note: str = "") -> None:
+        if note:
+            self.problems.append(note)
+        else:
+            self.reply = adu
+            self.received_at = time.monotonic()
+
+    @property
+    def bus_time(self) -> float | None:
+        return self.received_at - self.sent_at if self.reply else None
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        self.problems.append(str(error))
+
+
+class Forwarder:
+    """Answers requests by forwarding them over a link opened by ``open_link``.
+
+    ``open_link(trace)`` is a context manager giving an open Client with that trace (what
+    ``mbtool.link.connection.open_client`` gives).  ``units``: the units forwarded.  Every
+    request ends in a ``Passage`` handed to ``report``.
+    """
+
+    def __init__(
+        self,
+        open_link: Callable[[Callable[[Framer], Trace]], AbstractContextManager[Client]],
+        framing: str,
+        units: frozenset[int],
+        report: Callable[[Passage], None],
+    ) -> None:
+        self.open_link = open_link
+        self.framing = framing  # the link's: rtu, ascii or tcp
+        self.units = units
+        self.report = report
+        self._link = ExitStack()
+        self._client: Client | None = None
+        self._watch = _Watch()
+
+    def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
+        """The reply ADU to a request from ``peer``, in the framing it came in; None: none is due.
+
+        What ``mbtool.device.server.Server`` asks of whoever answers its requests.
+        """
+        if not isinstance(event, Frame) or not event.pdu:  # bytes that made no request
+            return None
+        arrived, started = time.time(), time.monotonic()
+        unit, function = event.unit, event.pdu[0]
+        watch = self._watch = _Watch()
+        if unit not in self.units and not self._broadcast(unit, framer):
+            why = f"unit {unit} is not forwarded (--units)"
+            if framer.broadcast_unit is not None:
+                # On a serial line other slaves share the bus: a unit not ours is theirs.
+                pdu = None
+            else:
+                pdu = _exception(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
+            outcome = NO_PATH
+        else:
+            pdu, outcome, why = self._forward(unit, event.pdu, framer)
+        reply = b"" if pdu is None else framer.build(unit, pdu, event.transaction_id or 0)
+        self.report(
+            Passage(
+                arrived,
+                peer,
+                unit,
+                function,
+                event.adu,
+                framer.name,
+                watch.request,
+                self.framing,
+                watch.reply,
+                reply,
+                outcome,
+                why,
+                watch.bus_time,
+                time.monotonic() - started,
+            )
+        )
+        return reply or None
+
+    def open(self) -> None:
+        """Open the link now: ConnectionFailed (exit 6) if it cannot be, before any request."""
+        self._open()
+
+    def close(self) -> None:
+        self._drop_link()
+
+    # -- forwarding --------------------------------------------------------------------
+
+    def _broadcast(self, unit: int, framer: Framer) -> bool:
+        """Unit 0 where a serial line is either side: the bus's broadcast (spec §2)."""
+        return unit == 0 and (framer.broadcast_unit == 0 or is_broadcast(0, self.framing))
+
+    def _forward(self, unit: int, pdu: bytes, framer: Framer) -> tuple[bytes | None, str, str]:
+        """The reply PDU (None: none is due), the outcome and what was seen."""
+        failed = ExceptionCode.GATEWAY_TARGET_FAILED_TO_RESPOND
+        try:
+            reply = self._execute(unit, RawRequest(pdu))
+        except ModbusException as refusal:
+            answer = _exception(refusal.function_code, refusal.exception_code)
+            outcome, why = REFUSED, str(refusal)
+        except (ConnectionFailed, ConnectionClosed, OSError) as lost:
+            self._drop_link()
+            why = lost.strerror or str(lost) if isinstance(lost, OSError) else str(lost)
+            answer, outcome = _exception(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE), NO_PATH
+        except (NoResponse, FrameError) as failure:
+            why = "; ".join([*self._watch.problems, str(failure)])
+            answer, outcome = _exception(pdu[0], failed), NO_RESPONSE
+        else:
+            if reply is None:  # a broadcast on the link, or a request no reply is due for (FC08 sub 04)
+                answer, outcome, why = None, REPLY, "no reply is due"
+            else:
+                answer, outcome, why = reply.encode(), REPLY, ""
+        if self._broadcast(unit, framer):
+            # Whatever came of it, a broadcast is never answered (spec §2).
+            return None, BROADCAST, why if outcome == NO_PATH else "sent to every unit, answered by none"
+        return answer, outcome, why
+
+    def _execute(self, unit: int, request: RawRequest):
+        reused = self._client is not None
+        try:
+            return self._open().execute(unit, request)
+        except (ConnectionClosed, ConnectionFailed):
+            if not reused:
+                raise
+            # A TCP device closes a connection left idle: once more, on a new one.
+            self._drop_link()
+            return self._open().execute(unit, request)
+
+    def _open(self) -> Client:
+        if self._client is None:
+            self._client = self._link.enter_context(self.open_link(lambda framer: self._watch))
+        self._client.trace = self._watch
+        return self._client
+
+    def _drop_link(self) -> None:
+        client, self._client = self._client, None
+        if client is None:
+            return
+        try:
+            self._link.close()
+        except (ConnectionFailed, NoResponse, OSError):
+            pass  # the link was already broken: that is why it is dropped
+        self._link = ExitStack()
+
+
+def _exception(function: int, code: int) -> bytes:
+    """An exception response PDU to a request with this function code (spec §3)."""
+    return ExceptionResponse(function & 0x7F, code).encode()

@@ -1,0 +1,518 @@
+"""``mbtool bridge`` end to end: Modbus TCP clients (pymodbus's, mbpoll, mbtool's, raw sockets)
+through the bridge to pymodbus's RTU and ASCII servers on pseudo-terminal pairs, and the
+reverse (mbtool and pymodbus as masters on a pty, a TCP device behind), with the gateway's
+exceptions 0A/0B, broadcasts, several clients at once, the display and bad input.
+
+Every bridge here is a subprocess on a free loopback port (``--listen tcp://127.0.0.1:0``: its
+start line on stderr says which), stopped with SIGTERM at the end of its test.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import select
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import pytest
+from conftest import (
+    PTY_SERIAL_OPTS,
+    PtyPair,
+    assert_one_error_line,
+    crc16,
+    expect_ok,
+    mbtool_env,
+    plain_pairs,
+    run_mbtool,
+    signals_as_from_a_shell,
+    start_device,
+)
+
+pytestmark = pytest.mark.timeout(90)
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+READY = 10.0  # seconds for the bridge to say where it listens
+
+
+class Bridge:
+    def __init__(self, proc: subprocess.Popen, first_line: str, out_path: str) -> None:
+        self.proc = proc
+        self.first_line = first_line  # "bridging tcp://127.0.0.1:PORT (tcp) to ... "
+        self.out_path = out_path
+        where = first_line.split()[1]
+        self.host, self.port = "", 0
+        if where.startswith("tcp://"):
+            host, _, port = where[6:].rpartition(":")
+            self.host, self.port = host, int(port)
+        self.result: tuple[int, str, str] | None = None
+
+    @property
+    def target(self) -> str:
+        return f"tcp://{self.host}:{self.port}"
+
+    def output(self) -> str:
+        with open(self.out_path, encoding="utf-8") as out:
+            return out.read()
+
+    def records(self) -> list[dict]:
+        return [json.loads(line) for line in self.output().splitlines()]
+
+    def stop(self, sig: int = signal.SIGTERM) -> tuple[int, str, str]:
+        """(exit code, stdout, stderr) once it has stopped."""
+        if self.result is None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(sig)
+            try:
+                _, err = self.proc.communicate(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                _, err = self.proc.communicate(timeout=5)
+            self.result = (self.proc.returncode, self.output(), self.first_line + "\n" + err)
+        return self.result
+
+
+@contextlib.contextmanager
+def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
+    """A running ``mbtool bridge``; its stdout goes to a file (a pipe nobody reads would fill)."""
+    out = tempfile.NamedTemporaryFile(prefix="mbtool-bridge-", suffix=".out", delete=False)
+    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, "-o", fmt, *args]
+    proc = subprocess.Popen(
+        argv,
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdin=subprocess.DEVNULL,
+        stdout=out,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    out.close()
+    running = None
+    try:
+        running = Bridge(proc, _first_line(proc), out.name)
+        yield running
+    finally:
+        if running is not None:
+            code, _, err = running.stop()
+            assert code == 0, f"bridge exited {code}: {err}"
+            assert "Traceback" not in err, err
+        elif proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+        os.unlink(out.name)
+
+
+def _first_line(proc: subprocess.Popen) -> str:
+    fd = proc.stderr.fileno()
+    end = time.monotonic() + READY
+    buf = b""
+    while time.monotonic() < end and b"\n" not in buf:
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        if ready:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            buf += chunk
+    if not buf.startswith(b"bridging "):
+        proc.kill()
+        _, err = proc.communicate(timeout=5)
+        raise RuntimeError(f"mbtool bridge did not start: {buf!r} {err}")
+    return buf.split(b"\n")[0].decode()
+
+
+def tcp_client(running: Bridge, timeout: float = 3.0):
+    from pymodbus.client import ModbusTcpClient
+
+    client = ModbusTcpClient(running.host, port=running.port, timeout=timeout, retries=0)
+    assert client.connect()
+    return client
+
+
+def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
+
+
+def read_mbap(sock: socket.socket) -> tuple[int, int, bytes]:
+    """(transaction id, unit, PDU) of one reply."""
+    header = _read_exactly(sock, 7)
+    tid, _, length, unit = struct.unpack(">HHHB", header)
+    return tid, unit, _read_exactly(sock, length - 1)
+
+
+def _read_exactly(sock: socket.socket, size: int) -> bytes:
+    data = b""
+    while len(data) < size:
+        chunk = sock.recv(size - len(data))
+        assert chunk, "the bridge closed the connection"
+        data += chunk
+    return data
+
+
+@pytest.fixture(scope="module")
+def rtu_bus():
+    """pymodbus's RTU server for units 1 and 2 on a pty pair: the bus behind the bridge."""
+    with start_device(tcp=False, framer="rtu") as device:
+        yield device
+
+
+# --- TCP clients to an RTU bus ---------------------------------------------------------------
+
+
+def test_pymodbus_client_reads_and_writes_through_the_bridge(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        client = tcp_client(running)
+        try:
+            assert client.read_holding_registers(0, count=5, device_id=1).registers == [
+                100,
+                101,
+                102,
+                103,
+                104,
+            ]
+            assert client.read_input_registers(0, count=2, device_id=2).registers == [200, 201]
+            assert not client.write_registers(600, [11, 22, 33], device_id=1).isError()
+            assert client.read_holding_registers(600, count=3, device_id=1).registers == [11, 22, 33]
+            assert not client.write_coil(600, True, device_id=2).isError()
+            assert client.read_coils(600, count=1, device_id=2).bits[0] is True
+        finally:
+            client.close()
+        code, out, err = running.stop()
+    records = [json.loads(line) for line in out.splitlines()]
+    assert [r["outcome"] for r in records] == ["reply"] * 6
+    assert [r["function"] for r in records] == [3, 4, 16, 3, 5, 1]
+    first = records[0]
+    assert first["client"].startswith("127.0.0.1:")
+    assert first["forwarded"] == "01 03 00 00 00 05 85 C9"  # the request as it went on the bus
+    assert first["received"].startswith("01 03 0A 00 64 00 65")
+    assert first["reply"]["frame"].endswith("00 64 00 65 00 66 00 67 00 68")
+    assert 0 < first["bus_ms"] <= first["total_ms"]
+    assert "stopped: 6 transactions: 6 replies" in err
+
+
+def test_mbpoll_reads_and_writes_through_the_bridge(rtu_bus):
+    if shutil.which("mbpoll") is None:
+        pytest.skip("mbpoll is not installed (Debian package mbpoll)")
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        common = ["-m", "tcp", "-p", str(running.port), "-a", "1", "-0", "-1", "-o", "3"]
+        done = subprocess.run(
+            ["mbpoll", *common, "-r", "610", running.host, "4321", "8765"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
+        assert done.returncode == 0, done.stdout + done.stderr
+        done = subprocess.run(
+            ["mbpoll", *common, "-r", "609", "-c", "4", running.host],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
+        assert done.returncode == 0, done.stdout + done.stderr
+        values = dict(
+            line.strip().strip("[").replace("]:", "").split()
+            for line in done.stdout.splitlines()
+            if line.strip().startswith("[")
+        )
+        assert values == {"609": "0", "610": "4321", "611": "8765", "612": "0"}
+
+
+def test_mbtool_reads_through_the_bridge_to_an_ascii_bus():
+    with start_device(tcp=False, framer="ascii") as device:
+        with bridge("-p", device.target, "--framer", "ascii", *PTY_SERIAL_OPTS) as running:
+            res = expect_ok(run_mbtool("read-holding-registers", "3", "2", "-p", running.target, "-u", "2"))
+            assert plain_pairs(res) == [(3, "103"), (4, "104")]
+            records = running.records()
+    assert records[0]["forwarded"].startswith(":0203000300")  # the bus spoke ASCII
+    assert records[0]["outcome"] == "reply"
+
+
+def test_the_clients_transaction_id_comes_back_and_requests_in_one_burst_are_all_answered(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            # Three requests in one send: each is forwarded in turn, each answered with its id.
+            sock.sendall(
+                mbap(0xBEEF, 1, bytes.fromhex("0300000001"))
+                + mbap(0x0001, 2, bytes.fromhex("0400050002"))
+                + mbap(0xFFFF, 1, bytes.fromhex("0300130001"))
+            )
+            replies = [read_mbap(sock) for _ in range(3)]
+    assert replies == [
+        (0xBEEF, 1, bytes.fromhex("03020064")),
+        (0x0001, 2, bytes.fromhex("040400CD00CE")),
+        (0xFFFF, 1, bytes.fromhex("03020077")),
+    ]
+
+
+def test_several_clients_at_once_are_each_answered_their_own_values(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "-q") as running:
+        failures: list[str] = []
+
+        def work(number: int) -> None:
+            client = tcp_client(running, timeout=10)
+            try:
+                for poll in range(8):
+                    address = (number * 3 + poll) % 18
+                    unit = 1 + number % 2
+                    first = 100 if unit == 1 else 100  # both units hold 100.. (conftest)
+                    registers = client.read_holding_registers(address, count=2, device_id=unit).registers
+                    if registers != [first + address, first + address + 1]:
+                        failures.append(f"client {number} poll {poll}: {registers}")
+            except Exception as error:  # reported below, with the others
+                failures.append(f"client {number}: {error!r}")
+            finally:
+                client.close()
+
+        workers = [threading.Thread(target=work, args=(n,)) for n in range(5)]
+        for worker in workers:
+            worker.start()
+        for worker in workers:
+            worker.join(60)
+        assert failures == []
+        _, _, err = running.stop()
+    assert "stopped: 40 transactions: 40 replies" in err
+    assert "5 connections" in err
+
+
+def test_a_client_that_floods_cannot_hold_up_another(rtu_bus):
+    """Clients take turns: a burst of 30 requests from one waits behind the other's one."""
+    # --pause makes each transaction take 30 ms at least, as on a slow line.
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--pause", "0.03") as running:
+        flood = socket.create_connection((running.host, running.port), timeout=20)
+        polite = socket.create_connection((running.host, running.port), timeout=20)
+        try:
+            flood.sendall(b"".join(mbap(n, 1, bytes.fromhex("0300000010")) for n in range(30)))
+            time.sleep(0.1)  # the flood is on its way first
+            polite.sendall(mbap(0x7777, 2, bytes.fromhex("0300000001")))
+            assert read_mbap(polite) == (0x7777, 2, bytes.fromhex("03020064"))
+            polite_done = time.monotonic()
+            replies = [read_mbap(flood) for _ in range(30)]
+            flood_done = time.monotonic()
+        finally:
+            flood.close()
+            polite.close()
+        assert [tid for tid, _, _ in replies] == list(range(30))
+        records = running.records()
+    # The polite client's request went on the bus among the first few, not after the 30.
+    order = [r["client"] for r in records]
+    polite_peer = next(r["client"] for r in records if r["unit"] == 2)
+    assert order.index(polite_peer) <= 5
+    assert flood_done - polite_done > 0.5  # the flood was still being worked through
+
+
+# --- what the gateway answers itself -------------------------------------------------------
+
+
+def test_a_unit_that_does_not_answer_gets_exception_0B(pty_pair):
+    # Nothing on the line: pymodbus's server answers units it does not have with exception 04.
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3") as running:
+        started = time.monotonic()
+        res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-u", "9", "-t", "3")
+        took = time.monotonic() - started
+        records = running.records()
+    assert_one_error_line(res, 4)
+    assert "exception 0B Gateway Target Failed to Respond" in res.stderr
+    assert took < 2.5  # the bridge's own timeout, not the client's
+    assert records[0]["outcome"] == "no response"
+    assert "no response from unit 9 within 0.3 s" in records[0]["why"]
+    assert records[0]["received"] is None
+
+
+def test_a_unit_not_forwarded_gets_exception_0A_and_nothing_goes_on_the_bus(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "2") as running:
+        rtu_bus.pty.clear()
+        res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-u", "1")
+        assert rtu_bus.pty.sent_by_mbtool() == b""
+        records = running.records()
+    assert_one_error_line(res, 4)
+    assert "exception 0A Gateway Path Unavailable" in res.stderr
+    assert records[0]["outcome"] == "no path"
+    assert records[0]["forwarded"] is None
+    assert "unit 1 is not forwarded (--units)" in records[0]["why"]
+
+
+def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_path):
+    """TCP behind the bridge: the device goes away (0A), comes back (answered again)."""
+    with start_device(tcp=True, framer="socket", units="1") as device:
+        port = device.port
+        with bridge("-p", device.target) as running:
+            res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target))
+            assert plain_pairs(res) == [(0, "100")]
+            device.proc.send_signal(signal.SIGTERM)
+            device.proc.wait(10)
+            res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target)
+            assert_one_error_line(res, 4)
+            assert "exception 0A Gateway Path Unavailable" in res.stderr
+            with start_device_on(port) as again:
+                assert again.port == port
+                res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target))
+                assert plain_pairs(res) == [(0, "100")]
+            records = running.records()
+    assert [r["outcome"] for r in records] == ["reply", "no path", "reply"]
+    assert "127.0.0.1" in records[1]["why"]
+
+
+@contextlib.contextmanager
+def start_device_on(port: int):
+    """pymodbus's TCP device again on a given port (start_device picks a free one)."""
+    import conftest
+
+    original = conftest.free_port
+    conftest.free_port = lambda: port
+    try:
+        with start_device(tcp=True, framer="socket", units="1") as device:
+            yield device
+    finally:
+        conftest.free_port = original
+
+
+def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(5, 0, bytes.fromhex("06025A1234")))
+            sock.settimeout(1.0)
+            with pytest.raises(TimeoutError):
+                sock.recv(100)
+        sent = rtu_bus.pty.sent_by_mbtool()
+        records = running.records()
+    frame = bytes.fromhex("0006025A1234")
+    assert sent == frame + crc16(frame)
+    assert records[0]["outcome"] == "broadcast"
+    assert records[0]["reply"] is None
+
+
+# --- the display -------------------------------------------------------------------------------
+
+
+def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, fmt="plain") as running:
+        expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", running.target))
+        code, out, err = running.stop()
+    lines = [line for line in out.splitlines() if " > " in line or " < " in line]
+    assert "> unit 1 FC03 Read Holding Registers: starting_address=0 quantity=2" in lines[0]
+    assert "< unit 1 FC03 Read Holding Registers: byte_count=4 register[0]=100 register[1]=101" in lines[1]
+    assert " | bus " in lines[1] and " ms, total " in lines[1]
+    assert any(line.endswith("connected") for line in out.splitlines())
+    assert code == 0
+    assert "1 transactions: 1 replies" in err
+
+
+def test_hex_shows_every_frame_on_both_sides_with_checksums(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--hex", fmt="plain") as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(0x1234, 1, bytes.fromhex("0300010001")))
+            read_mbap(sock)
+        _, out, _ = running.stop()
+    lines = [line.split(" ", 1)[1] for line in out.splitlines() if " RX " in line or " TX " in line]
+    assert lines[0].endswith("RX 12 34 00 00 00 06 01 03 00 01 00 01  MBAP tid 4660 length 6 ok")
+    assert lines[1] == "link TX 01 03 00 01 00 01 D5 CA  CRC D5 CA ok"
+    crc = crc16(bytes.fromhex("0103020065")).hex(" ").upper()
+    assert lines[2] == f"link RX 01 03 02 00 65 {crc}  CRC {crc} ok"
+    assert "TX 12 34 00 00 00 05 01 03 02 00 65  MBAP tid 4660 length 5 ok | bus " in lines[3]
+
+
+# --- the reverse: a slave on a serial line, a TCP device behind --------------------------------
+
+
+@pytest.fixture(scope="module")
+def tcp_behind():
+    with start_device(tcp=True, framer="socket", units="1,2") as device:
+        yield device
+
+
+def test_reverse_mbtool_as_master_on_the_serial_side(tcp_behind):
+    pty = PtyPair()
+    try:
+        with bridge(
+            "-p", tcp_behind.target, "--framer", "rtu", "--units", "1,2", listen=pty.device_path
+        ) as running:
+            serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
+            res = expect_ok(run_mbtool("read-holding-registers", "2", "3", *serial, "-u", "2"))
+            assert plain_pairs(res) == [(2, "102"), (3, "103"), (4, "104")]
+            expect_ok(run_mbtool("write-registers", "620", "5", "6", *serial))
+            res = expect_ok(run_mbtool("read-holding-registers", "620", "2", *serial, "--hex"))
+            assert plain_pairs(res) == [(620, "5"), (621, "6")]
+            assert "CRC" in res.stderr and " ok" in res.stderr  # RTU on the serial side
+            # A unit not forwarded is another slave's: no answer at all, not an exception.
+            res = run_mbtool("read-holding-registers", "0", "1", *serial, "-u", "3", "-t", "0.5")
+            assert_one_error_line(res, 3)
+            records = running.records()
+    finally:
+        pty.close()
+    assert [r["outcome"] for r in records] == ["reply", "reply", "reply", "no path"]
+    assert records[0]["client"] == pty.device_path
+    assert records[0]["forwarded"].startswith("00 01 00 00 00 06 02 03 00 02 00 03")  # MBAP behind
+
+
+def test_reverse_pymodbus_serial_client_and_a_device_gone_answers_0A(tcp_behind):
+    from pymodbus.client import ModbusSerialClient
+
+    pty = PtyPair()
+    try:
+        with start_device(tcp=True, framer="socket", units="1") as gone:
+            target = gone.target
+        with bridge("-p", tcp_behind.target, listen=pty.device_path):
+            client = ModbusSerialClient(pty.mbtool_path, baudrate=19200, parity="N", timeout=3, retries=0)
+            assert client.connect()
+            try:
+                assert client.read_input_registers(1, count=2, device_id=1).registers == [201, 202]
+            finally:
+                client.close()
+        # The TCP device stopped before the bridge started: the bridge says so and exits 6.
+        res = run_mbtool("bridge", "--listen", pty.device_path, "-p", target, timeout=20)
+        assert_one_error_line(res, 6)
+    finally:
+        pty.close()
+
+
+def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
+    pty = PtyPair()
+    try:
+        with start_device(tcp=True, framer="socket", units="1") as device:
+            with bridge("-p", device.target, listen=pty.device_path) as running:
+                serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
+                expect_ok(run_mbtool("read-holding-registers", "0", "1", *serial))
+                device.proc.send_signal(signal.SIGTERM)
+                device.proc.wait(10)
+                res = run_mbtool("read-holding-registers", "0", "1", *serial)
+                assert_one_error_line(res, 4)
+                assert "exception 0A Gateway Path Unavailable" in res.stderr
+                assert [r["outcome"] for r in running.records()] == ["reply", "no path"]
+    finally:
+        pty.close()
+
+
+# --- bad input ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--listen", "tcp://127.0.0.1:0"], "Missing option '-p'"),
+        (["-p", "sim://", "--listen", "sim://"], "in-process device"),
+        (["-p", "tcp://127.0.0.1:5", "--framer", "rtu"], "both sides are tcp://"),
+        (["-p", "sim://", "--units", "300"], "300"),
+        (["-p", "/dev/ttyS0", "--listen", "/dev/ttyS0"], "a bridge joins two links"),
+        (["-p", "sim://", "--listen", "tcp://127.0.0.1:99999"], "99999"),
+        (["-p", "sim://", "--bytesize", "7"], "8 data bits"),
+    ],
+)
+def test_bad_arguments_are_one_line_and_exit_2(args, says):
+    res = run_mbtool("bridge", *args)
+    line = assert_one_error_line(res, 2)
+    assert says in line
+
+
+def test_a_serial_port_that_does_not_exist_is_exit_6_before_listening():
+    res = run_mbtool("bridge", "-p", "/dev/ttyNOSUCH0", "--listen", "tcp://127.0.0.1:0")
+    line = assert_one_error_line(res, 6)
+    assert "/dev/ttyNOSUCH0" in line
