@@ -64,7 +64,10 @@ class Bridge:
             return out.read()
 
     def records(self) -> list[dict]:
-        return [json.loads(line) for line in self.output().splitlines()]
+        """The JSON records, once the bridge has stopped: a transaction is printed after its
+        reply has gone, so a client's reply does not mean its record is out yet."""
+        _, out, _ = self.stop()
+        return [json.loads(line) for line in out.splitlines()]
 
     def stop(self, sig: int = signal.SIGTERM) -> tuple[int, str, str]:
         """(exit code, stdout, stderr) once it has stopped."""
@@ -82,9 +85,13 @@ class Bridge:
 
 @contextlib.contextmanager
 def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
-    """A running ``mbtool bridge``; its stdout goes to a file (a pipe nobody reads would fill)."""
+    """A running ``mbtool bridge``; its stdout goes to a file (a pipe nobody reads would fill).
+
+    Its timeout is 2 s unless ``args`` say otherwise (a busy test machine can keep pymodbus's
+    device from answering in 1 s); a client through it waits longer than that.
+    """
     out = tempfile.NamedTemporaryFile(prefix="mbtool-bridge-", suffix=".out", delete=False)
-    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, "-o", fmt, *args]
+    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, "-o", fmt, "-t", "2", *args]
     proc = subprocess.Popen(
         argv,
         cwd=REPO_ROOT,
@@ -129,7 +136,7 @@ def _first_line(proc: subprocess.Popen) -> str:
     return buf.split(b"\n")[0].decode()
 
 
-def tcp_client(running: Bridge, timeout: float = 3.0):
+def tcp_client(running: Bridge, timeout: float = 5.0):
     from pymodbus.client import ModbusTcpClient
 
     client = ModbusTcpClient(running.host, port=running.port, timeout=timeout, retries=0)
@@ -202,6 +209,20 @@ def test_mbpoll_reads_and_writes_through_the_bridge(rtu_bus):
     if shutil.which("mbpoll") is None:
         pytest.skip("mbpoll is not installed (Debian package mbpoll)")
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        # A pymodbus client polls the other unit all the while: two clients at once.
+        alongside: list[object] = []
+
+        def poll() -> None:
+            client = tcp_client(running)
+            try:
+                alongside.extend(
+                    client.read_input_registers(0, count=1, device_id=2).registers for _ in range(20)
+                )
+            finally:
+                client.close()
+
+        poller = threading.Thread(target=poll)
+        poller.start()
         common = ["-m", "tcp", "-p", str(running.port), "-a", "1", "-0", "-1", "-o", "3"]
         done = subprocess.run(
             ["mbpoll", *common, "-r", "610", running.host, "4321", "8765"],
@@ -223,12 +244,16 @@ def test_mbpoll_reads_and_writes_through_the_bridge(rtu_bus):
             if line.strip().startswith("[")
         )
         assert values == {"609": "0", "610": "4321", "611": "8765", "612": "0"}
+        poller.join(30)
+        assert alongside == [[200]] * 20
 
 
 def test_mbtool_reads_through_the_bridge_to_an_ascii_bus():
     with start_device(tcp=False, framer="ascii") as device:
         with bridge("-p", device.target, "--framer", "ascii", *PTY_SERIAL_OPTS) as running:
-            res = expect_ok(run_mbtool("read-holding-registers", "3", "2", "-p", running.target, "-u", "2"))
+            res = expect_ok(
+                run_mbtool("read-holding-registers", "3", "2", "-p", running.target, "-u", "2", "-t", "5")
+            )
             assert plain_pairs(res) == [(3, "103"), (4, "104")]
             records = running.records()
     assert records[0]["forwarded"].startswith(":0203000300")  # the bus spoke ASCII
@@ -344,16 +369,18 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_pa
     with start_device(tcp=True, framer="socket", units="1") as device:
         port = device.port
         with bridge("-p", device.target) as running:
-            res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target))
+            res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5"))
             assert plain_pairs(res) == [(0, "100")]
             device.proc.send_signal(signal.SIGTERM)
             device.proc.wait(10)
-            res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target)
+            res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
             assert_one_error_line(res, 4)
             assert "exception 0A Gateway Path Unavailable" in res.stderr
             with start_device_on(port) as again:
                 assert again.port == port
-                res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target))
+                res = expect_ok(
+                    run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
+                )
                 assert plain_pairs(res) == [(0, "100")]
             records = running.records()
     assert [r["outcome"] for r in records] == ["reply", "no path", "reply"]
@@ -395,7 +422,7 @@ def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
 
 def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, fmt="plain") as running:
-        expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", running.target))
+        expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", running.target, "-t", "5"))
         code, out, err = running.stop()
     lines = [line for line in out.splitlines() if " > " in line or " < " in line]
     assert "> unit 1 FC03 Read Holding Registers: starting_address=0 quantity=2" in lines[0]
@@ -436,10 +463,10 @@ def test_reverse_mbtool_as_master_on_the_serial_side(tcp_behind):
             "-p", tcp_behind.target, "--framer", "rtu", "--units", "1,2", listen=pty.device_path
         ) as running:
             serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
-            res = expect_ok(run_mbtool("read-holding-registers", "2", "3", *serial, "-u", "2"))
+            res = expect_ok(run_mbtool("read-holding-registers", "2", "3", *serial, "-u", "2", "-t", "5"))
             assert plain_pairs(res) == [(2, "102"), (3, "103"), (4, "104")]
-            expect_ok(run_mbtool("write-registers", "620", "5", "6", *serial))
-            res = expect_ok(run_mbtool("read-holding-registers", "620", "2", *serial, "--hex"))
+            expect_ok(run_mbtool("write-registers", "620", "5", "6", *serial, "-t", "5"))
+            res = expect_ok(run_mbtool("read-holding-registers", "620", "2", *serial, "--hex", "-t", "5"))
             assert plain_pairs(res) == [(620, "5"), (621, "6")]
             assert "CRC" in res.stderr and " ok" in res.stderr  # RTU on the serial side
             # A unit not forwarded is another slave's: no answer at all, not an exception.
@@ -480,10 +507,10 @@ def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
         with start_device(tcp=True, framer="socket", units="1") as device:
             with bridge("-p", device.target, listen=pty.device_path) as running:
                 serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
-                expect_ok(run_mbtool("read-holding-registers", "0", "1", *serial))
+                expect_ok(run_mbtool("read-holding-registers", "0", "1", *serial, "-t", "5"))
                 device.proc.send_signal(signal.SIGTERM)
                 device.proc.wait(10)
-                res = run_mbtool("read-holding-registers", "0", "1", *serial)
+                res = run_mbtool("read-holding-registers", "0", "1", *serial, "-t", "5")
                 assert_one_error_line(res, 4)
                 assert "exception 0A Gateway Path Unavailable" in res.stderr
                 assert [r["outcome"] for r in running.records()] == ["reply", "no path"]

@@ -8,8 +8,8 @@ serial line, and ``mbtool.link.forward`` sends each on as a master and turns wha
 
 from __future__ import annotations
 
+import queue
 import signal
-import statistics
 import sys
 import threading
 
@@ -31,6 +31,7 @@ from mbtool.codec.errors import RequestError
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
+PRINTER_STOP = 5.0  # seconds a stop waits for the transactions still to be printed
 
 
 class BridgeCommand(QuickHelp, click.Command):
@@ -199,6 +200,7 @@ def bridge(
         idle_timeout=idle_timeout,
         first_request_timeout=first_request_timeout,
     )
+    show.on_failure = server.stop
     try:
         server.open()
         click.echo(
@@ -218,11 +220,18 @@ def bridge(
                 signal.signal(sig, handler)
     finally:
         forwarder.close()
+        show.close()
+    if show.failure is not None:
+        raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
     click.echo(f"stopped: {show.summary(server.stats.connections, where.scheme == 'tcp')}", err=True)
 
 
 class Show:
-    """Each transaction as it passes (from the bus worker's thread), and the tally for the summary."""
+    """Each transaction as it passes, and the tally for the summary.
+
+    The bus worker only hands a transaction over: a printer thread decodes and prints it, so
+    a reply never waits for its own display, nor the bus for a slow terminal or pipe.
+    """
 
     def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
         from mbtool.link.forward import OUTCOMES
@@ -230,52 +239,74 @@ class Show:
         self.fmt = fmt
         self.hex = hex_trace
         self.quiet = quiet
+        self.on_failure = lambda: None  # called (by the printer) when the output cannot be written
         self.counts = dict.fromkeys(OUTCOMES, 0)
-        self.bus_times: list[float] = []
-        self.lock = threading.Lock()  # the bus worker and the server's loop both print
+        self.timed = 0  # transactions with a bus time, their sum and the longest
+        self.bus_total = 0.0
+        self.bus_longest = 0.0
         self.console = None
         if fmt == "table" and not quiet:
             from rich.console import Console
 
             self.console = Console(highlight=False, soft_wrap=True)
+        self.failure: OSError | None = None
+        self._lines: queue.SimpleQueue = queue.SimpleQueue()
+        self._printer = threading.Thread(target=self._print, name="mbtool-show", daemon=True)
+        self._printer.start()
 
     def passage(self, passage) -> None:
-        with self.lock:
-            self.counts[passage.outcome] += 1
-            if passage.bus_time is not None:
-                self.bus_times.append(passage.bus_time)
-            if self.quiet:
-                return
-            if self.fmt == "json":
-                from mbtool.cli.render import to_json
-
-                sys.stdout.write(to_json(passage_record(passage)) + "\n")
-            else:
-                lines = hex_lines(passage) if self.hex else decoded_lines(passage)
-                if self.console is not None:
-                    for style, line in lines:
-                        self.console.print(line, style=style, markup=False)
-                else:
-                    sys.stdout.write("".join(line + "\n" for _, line in lines))
-            sys.stdout.flush()
+        """A transaction has ended (called by whoever answered it)."""
+        self.counts[passage.outcome] += 1
+        if passage.bus_time is not None:
+            self.timed += 1
+            self.bus_total += passage.bus_time
+            self.bus_longest = max(self.bus_longest, passage.bus_time)
+        if not self.quiet:
+            self._lines.put(passage)
 
     def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
         """The server's own events: clients connecting, closed, refused."""
         if self.quiet or self.fmt == "json" or direction not in ("open", "close", "refuse"):
             return
-        with self.lock:
-            line = f"{local_time()} {peer} {note}"
-            if self.console is not None:
-                self.console.print(line, style="dim", markup=False)
-            else:
-                sys.stdout.write(line + "\n")
-                sys.stdout.flush()
+        self._lines.put(f"{local_time()} {peer} {note}")
+
+    def close(self) -> None:
+        """Print what is still queued (a few seconds at most), then stop the printer."""
+        self._lines.put(None)
+        self._printer.join(PRINTER_STOP)
+
+    def _print(self) -> None:
+        while (item := self._lines.get()) is not None:
+            if self.failure is not None:
+                continue  # the reader has gone: the bridge is stopping
+            try:
+                self._write(item)
+            except OSError as error:  # a closed pipe, a full disk: the bridge stops, main says why
+                self.failure = error
+                self.on_failure()
+
+    def _write(self, item) -> None:
+        if isinstance(item, str):  # a server event
+            lines = [("dim", item)]
+        elif self.fmt == "json":
+            from mbtool.cli.render import to_json
+
+            sys.stdout.write(to_json(passage_record(item)) + "\n")
+            sys.stdout.flush()
+            return
+        else:
+            lines = hex_lines(item) if self.hex else decoded_lines(item)
+        if self.console is not None:
+            for style, line in lines:
+                self.console.print(line, style=style, markup=False)
+        else:
+            sys.stdout.write("".join(line + "\n" for _, line in lines))
+            sys.stdout.flush()
 
     def summary(self, connections: int, tcp: bool) -> str:
         from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, REFUSED, REPLY
 
         counts = self.counts
-        total = sum(counts.values())
         parts = [
             f"{counts[REPLY]} replies",
             f"{counts[REFUSED]} exceptions from devices",
@@ -283,13 +314,13 @@ class Show:
             f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
             f"{counts[BROADCAST]} broadcasts",
         ]
-        text = f"{total} transactions: " + ", ".join(parts)
+        text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
         if tcp:
             text += f"; {connections} connections"
-        if self.bus_times:
-            times = sorted(self.bus_times)
+        if self.timed:
             text += (
-                f"; bus time median {statistics.median(times) * 1000:.1f} ms, max {times[-1] * 1000:.1f} ms"
+                f"; bus time mean {self.bus_total / self.timed * 1000:.1f} ms, "
+                f"max {self.bus_longest * 1000:.1f} ms"
             )
         return text
 
@@ -319,6 +350,7 @@ def decoded_lines(passage) -> list[tuple[str, str]]:
     request = _describe(passage.request, passage.upstream, "request")
     head = f"{local_time(passage.time)} {passage.peer}"
     lines = [(ASKED, f"{head} > unit {passage.unit} FC{passage.function:02X} {one_line(request)}")]
+    head = f"{local_time(passage.time + passage.total)} {passage.peer}"  # when it ended
     if passage.reply:
         reply = _describe(passage.reply, passage.upstream, "response", request)
         text = f"{head} < unit {passage.unit} FC{reply.function:02X} {one_line(reply)}"
@@ -336,6 +368,7 @@ def hex_lines(passage) -> list[tuple[str, str]]:
         lines.append((ASKED, f"{head} link TX {_wire(passage.sent, passage.downstream)}"))
     if passage.received:
         lines.append((ASKED, f"{head} link RX {_wire(passage.received, passage.downstream)}"))
+    head = local_time(passage.time + passage.total)  # when it ended
     if passage.reply:
         text = f"{head} {passage.peer} TX {_wire(passage.reply, passage.upstream)}"
     else:
