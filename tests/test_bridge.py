@@ -531,6 +531,7 @@ def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
         (["-p", "/dev/ttyS0", "--listen", "/dev/ttyS0"], "a bridge joins two links"),
         (["-p", "sim://", "--listen", "tcp://127.0.0.1:99999"], "99999"),
         (["-p", "sim://", "--bytesize", "7"], "8 data bits"),
+        (["-p", "tcp://127.0.0.1:5", "--rs485"], "neither side is one"),
     ],
 )
 def test_bad_arguments_are_one_line_and_exit_2(args, says):

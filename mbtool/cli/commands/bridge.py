@@ -147,6 +147,7 @@ def bridge(
       mbtool bridge --listen /dev/ttyUSB1 -p tcp://192.0.2.10
     """
     from mbtool.device.server import Server, parse_target
+    from mbtool.link import IN_PROCESS
     from mbtool.link.connection import Connection, check, open_client
     from mbtool.link.forward import Forwarder
     from mbtool.link.transport import SerialSettings, default_framer
@@ -164,6 +165,11 @@ def bridge(
         raise RequestError(f"--listen and -p are both {target}: a bridge joins two links")
     if bytesize == "7" and "rtu" in (listening_framer, link_framer):
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
+    # --rs485 drives the RTS line of the serial side, whichever side that is.
+    direction = (rs485_delays or (0.0, 0.0)) if rs485 or rs485_delays else None
+    link_serial = link_framer != "tcp" and not target.startswith(tuple(f"{s}://" for s in IN_PROCESS))
+    if direction and where.scheme != "serial" and not link_serial:
+        raise RequestError("--rs485 drives the RTS line of a serial port, and neither side is one")
     connection = Connection(
         port=target,
         unit=1,
@@ -178,8 +184,7 @@ def bridge(
         pause=pause,
         connect_delay=connect_delay,
         lenient=lenient,
-        rs485=rs485,
-        rs485_delays=rs485_delays,
+        rs485_delays=direction if link_serial else None,
     )
     check(connection)
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
@@ -194,7 +199,7 @@ def bridge(
         listening_framer,
         answerer=forwarder,
         queued=True,
-        settings=SerialSettings(baud, parity, int(bytesize), int(stopbits)),
+        settings=SerialSettings(baud, parity, int(bytesize), int(stopbits), direction),
         log=show.event,
         max_clients=max_clients,
         idle_timeout=idle_timeout,
