@@ -556,6 +556,27 @@ def signals_as_from_a_shell() -> None:
 # ----------------------------------------------------------------------------- assertions shared by tests
 
 
+def first_line(proc: subprocess.Popen, starts: str, stream=None, wait: float = 10.0) -> str:
+    """The first line a long-running mbtool prints (``serving ...``, ``bridging ...``), read
+    from ``stream`` (its stdout by default) within ``wait`` seconds; the process is killed
+    and the test fails with its stderr if the line is not ``starts...``."""
+    fd = (stream or proc.stdout).fileno()
+    end = time.monotonic() + wait
+    buf = b""
+    while time.monotonic() < end and b"\n" not in buf:
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        if ready:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            buf += chunk
+    if not buf.startswith(starts.encode()):
+        proc.kill()
+        _, err = proc.communicate(timeout=5)
+        raise RuntimeError(f"mbtool did not start: {buf!r} {err}")
+    return buf.split(b"\n")[0].decode()
+
+
 def assert_one_error_line(res: Result, code: int) -> str:
     """Exit code as expected, exactly one 'mbtool: ' line on stderr, no traceback. Returns the line."""
     assert res.returncode == code, str(res)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import select
 import shutil
 import signal
 import socket
@@ -30,6 +29,7 @@ from conftest import (
     assert_one_error_line,
     crc16,
     expect_ok,
+    first_line,
     mbtool_env,
     plain_pairs,
     run_mbtool,
@@ -40,7 +40,6 @@ from conftest import (
 pytestmark = pytest.mark.timeout(90)
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-READY = 10.0  # seconds for the bridge to say where it listens
 
 
 class Bridge:
@@ -105,7 +104,7 @@ def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
     out.close()
     running = None
     try:
-        running = Bridge(proc, _first_line(proc), out.name)
+        running = Bridge(proc, first_line(proc, "bridging ", proc.stderr), out.name)
         yield running
     finally:
         if running is not None:
@@ -116,24 +115,6 @@ def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
             proc.kill()
             proc.communicate(timeout=5)
         os.unlink(out.name)
-
-
-def _first_line(proc: subprocess.Popen) -> str:
-    fd = proc.stderr.fileno()
-    end = time.monotonic() + READY
-    buf = b""
-    while time.monotonic() < end and b"\n" not in buf:
-        ready, _, _ = select.select([fd], [], [], 0.1)
-        if ready:
-            chunk = os.read(fd, 4096)
-            if not chunk:
-                break
-            buf += chunk
-    if not buf.startswith(b"bridging "):
-        proc.kill()
-        _, err = proc.communicate(timeout=5)
-        raise RuntimeError(f"mbtool bridge did not start: {buf!r} {err}")
-    return buf.split(b"\n")[0].decode()
 
 
 def tcp_client(running: Bridge, timeout: float = 5.0):

@@ -24,6 +24,7 @@ from conftest import (
     assert_one_error_line,
     crc16,
     expect_ok,
+    first_line,
     free_port,
     mbtool_env,
     plain_pairs,
@@ -78,7 +79,7 @@ def serve(*args: str, target: str = "tcp://127.0.0.1:0", quiet: bool = True):
     )
     server = None
     try:
-        line = _first_line(proc)
+        line = first_line(proc, "serving ")
         server = Serve(proc, line)
         yield server
     finally:
@@ -89,24 +90,6 @@ def serve(*args: str, target: str = "tcp://127.0.0.1:0", quiet: bool = True):
         elif proc.poll() is None:
             proc.kill()
             proc.communicate(timeout=5)
-
-
-def _first_line(proc: subprocess.Popen) -> str:
-    fd = proc.stdout.fileno()
-    end = time.monotonic() + READY
-    buf = b""
-    while time.monotonic() < end and b"\n" not in buf:
-        ready, _, _ = select.select([fd], [], [], 0.1)
-        if ready:
-            chunk = os.read(fd, 4096)
-            if not chunk:
-                break
-            buf += chunk
-    if not buf.startswith(b"serving "):
-        proc.kill()
-        _, err = proc.communicate(timeout=5)
-        raise RuntimeError(f"mbtool serve did not start: {buf!r} {err}")
-    return buf.split(b"\n")[0].decode()
 
 
 def tcp_client(server: Serve, **kw):

@@ -279,10 +279,18 @@ SERIAL_LINE_OPTIONS = [
 ]
 
 
-def serial_line_options(function: Callable) -> Callable:
-    for option in reversed(SERIAL_LINE_OPTIONS):
-        function = option(function)
-    return function
+def with_options(options: list[Callable]) -> Callable:
+    """A decorator that puts these click options on a command, shown in this order."""
+
+    def decorate(function: Callable) -> Callable:
+        for option in reversed(options):
+            function = option(function)
+        return function
+
+    return decorate
+
+
+serial_line_options = with_options(SERIAL_LINE_OPTIONS)
 
 
 class Seconds(click.ParamType):
@@ -329,10 +337,7 @@ TCP_CLIENT_OPTIONS = [
 ]
 
 
-def tcp_client_options(function: Callable) -> Callable:
-    for option in reversed(TCP_CLIENT_OPTIONS):
-        function = option(function)
-    return function
+tcp_client_options = with_options(TCP_CLIENT_OPTIONS)
 
 
 def output_chosen(fmt: str | None) -> str | None:
@@ -644,8 +649,7 @@ def device_command(
 
         run = PROFILE_OPTION(run)
         typed = type_options(types, order_all) if types else []
-        for option in reversed(CONNECTION_OPTIONS + typed):
-            run = option(run)
+        run = with_options(CONNECTION_OPTIONS + typed)(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
         context = {
             "ignore_unknown_options": True,

@@ -25,6 +25,7 @@ from mbtool.cli.options import (
     serial_line_options,
     tcp_client_options,
     units_text,
+    with_options,
 )
 from mbtool.cli.render import local_time
 from mbtool.codec.errors import RequestError
@@ -36,12 +37,6 @@ PRINTER_STOP = 5.0  # seconds a stop waits for the transactions still to be prin
 
 class BridgeCommand(QuickHelp, click.Command):
     pass
-
-
-def _link_options(function):
-    for option in reversed(LINK_OPTIONS):
-        function = option(function)
-    return function
 
 
 @click.command(
@@ -85,7 +80,7 @@ def _link_options(function):
     "where a serial line is either side: sent, never answered.",
 )
 @serial_line_options
-@_link_options
+@with_options(LINK_OPTIONS)
 @tcp_client_options
 @click.option(
     "--hex",
