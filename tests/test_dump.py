@@ -56,9 +56,24 @@ def test_a_hole_costs_one_request_and_a_block_few_more_than_its_reads():
     present = [a for a in range(1200) if a % 120 < 100]
     device = sparse_device({"holding_registers": present})
     sent: list = []
-    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 1199), TableDump(HOLDING_REGISTERS))
+    dumper = Dumper(executor(device, sent))
+    dumper.dump(Span(HOLDING_REGISTERS, 0, 1199), TableDump(HOLDING_REGISTERS))
     holes, blocks = 1200 - len(present), 10
     assert holes <= len(sent) <= holes + blocks * 16
+    assert holes <= dumper.refused < len(sent)  # every hole is a refusal, counted
+
+
+def test_scattered_registers_take_at_most_two_answered_reads_a_block():
+    """Issue (reads that scale): registers scattered one by one, as in bench/dump.py."""
+    present = sorted(random.Random(7).sample(range(5000), 750))
+    device = sparse_device({"holding_registers": present})
+    sent: list = []
+    dumper = Dumper(executor(device, sent))
+    dump = TableDump(HOLDING_REGISTERS)
+    dumper.dump(Span(HOLDING_REGISTERS, 0, 4999), dump)
+    assert dump.count == len(present)
+    answered = len(sent) - dumper.refused
+    assert answered <= 2 * len(runs_of(present))
 
 
 def test_bits_are_read_up_to_2000_at_a_time():

@@ -78,6 +78,7 @@ class Dumper:
         self.execute = execute
         self.max_requests = max_requests
         self.requests = 0
+        self.refused = 0  # of them, refused with exception 02 (an address missing)
 
     def _read(self, request: Request):
         if self.max_requests is not None and self.requests >= self.max_requests:
@@ -111,6 +112,7 @@ class Dumper:
                     return
                 if error.exception_code != ExceptionCode.ILLEGAL_DATA_ADDRESS:
                     raise
+                self.refused += 1
                 if count > 1:
                     missing_before = address + count
                     continue

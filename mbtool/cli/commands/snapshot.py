@@ -183,7 +183,8 @@ def dump(connection, file, ranges, max_requests):
 
             raise OutputFailed(file, error) from None
     found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
-    summary = f"dump: {found}; {dumper.requests} requests in {time.monotonic() - began:.1f} s"
+    refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
+    summary = f"dump: {found}; {dumper.requests} requests{refused} in {time.monotonic() - began:.1f} s"
     if stopped:
         summary += f"; {stopped}: the file has what was read, marked complete = false"
     code = ExitCode.OK
