@@ -92,15 +92,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def build(workdir: Path) -> tuple[Path, Path]:
-    """The libmodbus server and client, compiled here; exits saying why where it cannot."""
+def build(workdir: Path, sources: dict[str, str]) -> list[Path]:
+    """Programs against libmodbus, compiled here from C ``sources`` by name; exits saying
+    why where they cannot be (no gcc, no libmodbus-dev)."""
     gcc = shutil.which("gcc")
     if gcc is None:
         sys.exit("bench: gcc is not installed (apt-get install gcc libmodbus-dev)")
     flags = subprocess.run(["pkg-config", "--cflags", "--libs", "libmodbus"], capture_output=True, text=True)
     cflags = flags.stdout.split() if flags.returncode == 0 else ["-I/usr/include/modbus", "-lmodbus"]
     built = []
-    for name, source in (("server", SERVER_C), ("client", CLIENT_C)):
+    for name, source in sources.items():
         (workdir / f"{name}.c").write_text(source)
         result = subprocess.run(
             [gcc, "-O2", "-o", str(workdir / name), str(workdir / f"{name}.c"), *cflags],
@@ -112,7 +113,7 @@ def build(workdir: Path) -> tuple[Path, Path]:
                 f"bench: cannot build libmodbus's {name} (apt-get install libmodbus-dev): {result.stderr}"
             )
         built.append(workdir / name)
-    return built[0], built[1]
+    return built
 
 
 def cpu_of(argv: list[str], stdout=subprocess.DEVNULL) -> tuple[float, float]:
@@ -164,7 +165,7 @@ def main() -> None:
     args = parser.parse_args()
     os.chdir(ROOT)
     with tempfile.TemporaryDirectory() as work:
-        server_bin, client_bin = build(Path(work))
+        server_bin, client_bin = build(Path(work), {"server": SERVER_C, "client": CLIENT_C})
         port = free_port()
         server = subprocess.Popen(
             [str(server_bin), str(port)], stdout=subprocess.PIPE, text=True, preexec_fn=on_core(0)

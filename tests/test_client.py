@@ -8,7 +8,7 @@ from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
-from mbtool.codec.timing import silent_interval
+from mbtool.codec.timing import character_bits, silent_interval
 from mbtool.errors import NoResponse
 from mbtool.link.client import Client
 from mbtool.link.transport import ConnectionClosed, Transport
@@ -163,6 +163,21 @@ def test_t35_silence_between_frames():
     # 3.5 characters of 11 bits at 9600 baud, measured from the end of the reply
     assert clock.sleeps and clock.sleeps[-1] == pytest.approx(3.5 * 11 / 9600, rel=0.01)
     assert silent_interval(115200) == 0.00175
+
+
+def test_t35_on_an_8n1_line_is_three_and_a_half_10_bit_characters():
+    """Spec §2: a character is 11 bits in the spec's formats; 8N1 (which many devices ship)
+    sends 10, and its t3.5 is 3.5 of those."""
+    assert character_bits("E", 8, 1) == character_bits("N", 8, 2) == 11
+    assert character_bits("N", 8, 1) == 10
+    assert character_bits("E", 7, 1) == 10  # ASCII's 7E1
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[REPLY], [REPLY]])
+    c = client(link, clock, baud=9600, char_bits=character_bits("N", 8, 1))
+    c.execute(0x11, REQUEST)
+    c.execute(0x11, REQUEST)
+    assert clock.sleeps[-1] == pytest.approx(3.5 * 10 / 9600, rel=0.01)
+    assert silent_interval(115200, 10) == 0.00175  # the fixed value above 19200 baud
 
 
 def test_echo_is_stripped():

@@ -50,7 +50,7 @@ from typing import Protocol
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
-from mbtool.codec.timing import silent_interval
+from mbtool.codec.timing import character_bits, silent_interval
 from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link import IN_PROCESS
@@ -620,7 +620,10 @@ class Server:
         self.stats.clients = 1
 
     def _serve_serial(self) -> None:
-        t35 = silent_interval(self.baud)
+        settings = self.settings
+        t35 = silent_interval(
+            self.baud, character_bits(settings.parity, settings.bytesize, settings.stopbits)
+        )
         gap = max(t35, MIN_SERIAL_GAP) if self.framer_name == "rtu" else 1.0  # ASCII: 1 s between chars (§2)
         last_rx = 0.0
         peer = self.target.path

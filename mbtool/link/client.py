@@ -16,7 +16,7 @@ from collections.abc import Callable
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
-from mbtool.codec.timing import char_time, silent_interval
+from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
 from mbtool.errors import MbtoolError, NoResponse
 from mbtool.link.transport import ConnectionClosed, Transport
 
@@ -51,6 +51,7 @@ class Client:
         retries: int = 0,
         echo: bool = False,
         baud: int = 19200,
+        char_bits: int = CHAR_BITS,
         trace: Trace | None = None,
         pause: float = 0.0,
         lenient: bool = False,
@@ -81,7 +82,9 @@ class Client:
         # The last request, its PDU and whether its echo could pass for a reply: the same for
         # every poll of it, so worked out once.
         self._prepared: tuple[Request | None, bytes, bool] = (None, b"", False)
-        self._char_time = char_time(baud)
+        # The line's own character (10 bits for 8N1): its t3.5 is what the next frame waits.
+        self._char_time = char_time(baud, char_bits)
+        self._t35 = silent_interval(baud, char_bits)
         # --pause: at least this long from the end of a transaction (its reply, or the wait
         # for one) to the next request, for devices and gateways that drop requests sent
         # back to back.
@@ -191,7 +194,7 @@ class Client:
 
     def _wait_for_silence(self) -> None:
         """A serial line: t3.5 since the last frame ended before the next may start (spec §2)."""
-        wait = self._line_free_at + silent_interval(self.baud) - self.clock()
+        wait = self._line_free_at + self._t35 - self.clock()
         if wait > 0:
             self.sleep(wait)
 

@@ -82,6 +82,7 @@ def open_client(
     more-follows; sim:// keeps its state only as long as its link).
     """
     from mbtool.codec.framing import make_framer
+    from mbtool.codec.timing import character_bits
     from mbtool.link.client import Client
     from mbtool.link.transport import SerialSettings, open_transport
 
@@ -103,6 +104,7 @@ def open_client(
             retries=connection.retries,
             echo=connection.echo,
             baud=connection.baud,
+            char_bits=character_bits(connection.parity, connection.bytesize, connection.stopbits),
             pause=connection.pause,
             lenient=connection.lenient,
         )

@@ -1,24 +1,27 @@
 #!/usr/bin/env python3
-"""What ``mbtool bridge`` adds to a transaction beyond the serial line's own time.
+"""Polling on a paced serial line: mbtool beside pymodbus and libmodbus, and what
+``mbtool bridge`` adds to a transaction beyond the line's own time.
 
-Target (issue 18): the bridge adds less than 1 ms per transaction.  Measured on a paced
-serial line: an emulator that carries each character no sooner than the baud rate allows,
-both directions sharing the line (RS-485), between two pseudo-terminals.  The emulator is
-not part of mbtool; give its path with --wire (the one this was written against takes
-``BAUD BITS_PER_CHAR MASTER_LINK SLAVE_LINK [STATS_FILE]`` and writes JSON statistics,
-t3.5 violations included, on SIGTERM).
+Targets:
 
-On the line's slave end ``mbtool serve`` answers reads of 10 holding registers.  Each
-master reads them back to back, in alternating rounds:
+* issue 19 (fast where it counts): on a 9600-baud line mbtool keeps 0 t3.5 violations and
+  makes at least 1.1 x pymodbus's transactions a second;
+* issue 18 (a gateway): the bridge adds less than 1 ms per transaction.
 
-* directly on the line's master end: mbtool's polling loop, and pymodbus's serial client;
-* through ``mbtool bridge`` on the line's master end, over Modbus TCP on loopback:
-  mbtool's polling loop, and pymodbus's TCP client.
+The line is an emulator that carries each character no sooner than the baud rate allows,
+both directions sharing it (RS-485), between two pseudo-terminals; it counts the master's
+t3.5 violations.  It is not part of mbtool: give its path with --wire (the one this was
+written against takes ``BAUD BITS_PER_CHAR MASTER_LINK SLAVE_LINK [STATS_FILE]`` and writes
+JSON statistics on SIGTERM).  The line is 8N1, so a character is 10 bits.
 
-The bridge's cost is the time a transaction takes through it less the time the same master
-takes on the line itself.  The line's own time (characters and silences) is printed beside.
+On the line's slave end ``mbtool serve`` answers reads of 10 holding registers, t3.5
+after each request.  Each master reads them back to back, a fresh line a run, in
+alternating rounds: directly on the line's master end mbtool's polling loop, pymodbus's
+serial client and libmodbus's C client (built with gcc against Debian's libmodbus-dev;
+left out, saying why, where it cannot be); through ``mbtool bridge`` on the line's master
+end, over Modbus TCP on loopback, mbtool's polling loop and pymodbus's TCP client.
 
-Run by hand:  python bench/bridge.py --wire PATH/TO/wire.py [--baud 9600] [--polls 150]
+Run by hand:  python bench/serial_line.py --wire PATH/TO/wire.py [--baud 9600] [--polls 150]
 """
 
 from __future__ import annotations
@@ -82,6 +85,37 @@ def started(argv: list[str], ready: str, stream: str = "stdout"):
         proc.wait(timeout=15)
 
 
+RTU_CLIENT_C = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <modbus.h>
+
+int main(int argc, char **argv) {
+    modbus_t *ctx = modbus_new_rtu(argv[1], atoi(argv[2]), 'N', 8, 1);
+    long n = atol(argv[3]);
+    uint16_t regs[10];
+    modbus_set_slave(ctx, 1);
+    if (modbus_connect(ctx) < 0) { perror("connect"); return 1; }
+    for (long i = 0; i < n; i++)
+        if (modbus_read_registers(ctx, 0, 10, regs) != 10) { perror("read"); return 1; }
+    modbus_close(ctx);
+    modbus_free(ctx);
+    return 0;
+}
+"""
+
+
+def libmodbus_client(workdir: Path) -> Path | None:
+    """libmodbus's RTU client, or None (said why) where gcc or libmodbus-dev is missing."""
+    from polling_cpu import build  # beside this script
+
+    try:
+        return build(workdir, {"rtu_client": RTU_CLIENT_C})[0]
+    except SystemExit as why:
+        print(f"{why}: libmodbus left out")
+        return None
+
+
 def mbtool(*args: str) -> list[str]:
     return [sys.executable, "-m", "mbtool", *args]
 
@@ -127,20 +161,28 @@ def main() -> None:
     parser.add_argument("--wire", required=True, help="the paced-line emulator (wire.py)")
     parser.add_argument("--baud", type=int, default=9600, help="the line's baud rate (default 9600)")
     parser.add_argument("--polls", type=int, default=150, help="reads per run (default 150)")
-    parser.add_argument("--rounds", type=int, default=2, help="rounds of the four runs (default 2)")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of the runs (default 2)")
+    parser.add_argument(
+        "--device",
+        choices=["mbtool", "pymodbus"],
+        default="mbtool",
+        help="the device on the line: mbtool serve (answers t3.5 after a request), or pymodbus's "
+        "RTU server (answers as soon as it can)",
+    )
     args = parser.parse_args()
 
     from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
     baud, polls = args.baud, args.polls
     # The line's own time for one read: request (8 bytes) and reply (5 + 2 x COUNT bytes) at
-    # BITS bits a character, and the two t3.5 silences (spec §2: 11-bit characters, as the
-    # master and the device count them).
+    # BITS bits a character, and the two t3.5 silences of the same characters (spec §2).
     characters = 8 + 5 + 2 * COUNT
-    line_time = characters * BITS / baud + 2 * 3.5 * 11 / baud
-    runs: dict[str, list[float]] = {
-        name: [] for name in ("mbtool", "mbtool via bridge", "pymodbus", "pymodbus via bridge")
-    }
+    line_time = (characters + 2 * 3.5) * BITS / baud
+    names = ["mbtool", "pymodbus", "libmodbus", "mbtool via bridge", "pymodbus via bridge"]
+    libmodbus = libmodbus_client(Path(tempfile.mkdtemp(prefix="mbtool-bench-")))
+    if libmodbus is None:
+        names.remove("libmodbus")
+    runs: dict[str, list[float]] = {name: [] for name in names}
     stats: dict[str, list[dict]] = {name: [] for name in runs}
 
     latencies: dict[str, list[float]] = {"mbtool": [], "mbtool via bridge": []}
@@ -148,8 +190,13 @@ def main() -> None:
     def on_line(name: str, measure) -> None:
         with tempfile.TemporaryDirectory(prefix="mbtool-bench-") as where:
             with line(args.wire, baud, Path(where), stats[name]) as (master, slave):
-                device = mbtool("serve", "-p", slave, "-u", "1", "-q", *serial(baud))
-                with started(device, "serving "):
+                if args.device == "pymodbus":
+                    device = [sys.executable, str(ROOT / "tests/peers/pymodbus_device.py"), "--serial", slave]
+                    device += ["--baud", str(baud), "--units", "1"]
+                    ready = "READY"
+                else:
+                    device, ready = mbtool("serve", "-p", slave, "-u", "1", "-q", *serial(baud)), "serving "
+                with started(device, ready):
                     runs[name].append(measure(master))
         if name in latencies:
             latencies[name].append(LATENCIES[-1])
@@ -176,18 +223,28 @@ def main() -> None:
         finally:
             client.close()
 
-    plan = [
-        ("mbtool", lambda master: mbtool_seconds(master, polls, *serial(baud))),
-        ("mbtool via bridge", lambda master: via_bridge(master, lambda tcp: mbtool_seconds(tcp, polls))),
-        ("pymodbus", pymodbus_direct),
-        ("pymodbus via bridge", lambda master: via_bridge(master, pymodbus_tcp)),
-    ]
+    def libmodbus_direct(master: str) -> float:
+        began = time.perf_counter()
+        done = subprocess.run([str(libmodbus), master, str(baud), str(polls)], capture_output=True, text=True)
+        if done.returncode:
+            sys.exit(f"bench: libmodbus's client failed: {done.stderr.strip()}")
+        return (time.perf_counter() - began) / polls
+
+    measures = {
+        "mbtool": lambda master: mbtool_seconds(master, polls, *serial(baud)),
+        "pymodbus": pymodbus_direct,
+        "libmodbus": libmodbus_direct,
+        "mbtool via bridge": lambda master: via_bridge(master, lambda tcp: mbtool_seconds(tcp, polls)),
+        "pymodbus via bridge": lambda master: via_bridge(master, pymodbus_tcp),
+    }
+    plan = [(name, measures[name]) for name in names]
     for round_ in range(args.rounds):
         for name, measure in plan if round_ % 2 == 0 else plan[::-1]:
             on_line(name, measure)
 
     print(
-        f"FC03 x {COUNT} registers on an emulated {baud}-baud line, {polls} reads a run, {args.rounds} rounds"
+        f"FC03 x {COUNT} registers on an emulated {baud}-baud line, {polls} reads a run, {args.rounds} rounds,"
+        f" {args.device} as the device"
     )
     print(f"  the line's own time: {line_time * 1000:.2f} ms a read ({characters} characters and two t3.5)")
     median = {name: statistics.median(values) for name, values in runs.items()}
@@ -199,6 +256,9 @@ def main() -> None:
             f"  runs: {' '.join(f'{v * 1000:.2f}' for v in values)}"
             f"  t3.5 violations: {violations} in {frames} frames"
         )
+    print(
+        f"  mbtool / pymodbus: {median['pymodbus'] / median['mbtool']:.2f} x the transactions a second (target >= 1.1)"
+    )
     for master in ("mbtool", "pymodbus"):
         added = median[f"{master} via bridge"] - median[master]
         print(f"  the bridge adds {added * 1000:+.2f} ms a transaction ({master} as the TCP client)")
@@ -206,7 +266,7 @@ def main() -> None:
     # silent for t3.5 before passing it on; on the line the master waits that out before
     # its clock starts.  What is left beyond that silence is the bridge's own.
     direct, bridged = (statistics.median(latencies[name]) for name in ("mbtool", "mbtool via bridge"))
-    t35 = 3.5 * 11 / baud
+    t35 = 3.5 * BITS / baud
     print(
         f"  mbtool's latency, request to reply: on the line {direct * 1000:.2f} ms, via the bridge "
         f"{bridged * 1000:.2f} ms = the line's + t3.5 {t35 * 1000:.2f} ms + {(bridged - direct - t35) * 1000:+.2f} ms"
