@@ -352,3 +352,32 @@ def test_a_lost_link_is_reopened_at_most_once_a_timeout(mbtool):
     assert all((b - a).total_seconds() >= 0.25 for a, b in itertools.pairwise(stamps)), stamps
     assert took < 5
     assert summary(res) == {"polls": 5, "replies": 0, "timeouts": 1, "errors": 4, "skipped": 0}
+
+
+def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_it():
+    """poll_output keeps the text around a poll's time and values while the shape stays:
+    every line must still be exactly what encoding the whole dict gives."""
+    import io
+
+    from mbtool.cli.poll_output import Output, _json_line
+    from mbtool.cli.render import Result, as_dict
+
+    results = [
+        Result(1, 3, "Read Holding Registers", 0, [(0, 5), (1, 6)], "uint16", [5, 6]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, 7), (1, 8)], "uint16", [7, 8]),
+        Result(1, 3, "Read Holding Registers", 4, [(4, 7), (5, 8)], "uint16", [7, 8]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, 1.5)], "float32", [16320, 0]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, float("nan"))], "float32", [32704, 0]),
+        Result(2, 1, "Read Coils", 10, [(10, True), (11, False)], refs=["00011", "00012"]),
+        Result(2, 1, "Read Coils", 10, [(10, False), (11, True)], refs=["00011", "00012"]),
+        Result(
+            1, 3, "Read Holding Registers", 0, [(0, {"ABCD": 1.5})], "float32", [1, 2], extra={"order": "all"}
+        ),
+    ]
+    output = Output("json", io.StringIO())
+    for result in results:
+        expected = _json_line({"time": "2026-11-25T10:00:00.000+00:00", **as_dict(result)})
+        output.result("2026-11-25T10:00:00.000+00:00", result)
+        output.flush()
+        assert output.out.getvalue().splitlines()[-1] + "\n" == expected
+    assert '"values": [null]' in output.out.getvalue()  # NaN is null, as to_json writes it

@@ -48,6 +48,7 @@ class Output:
         self.live = None
         self._pending: list[str] = []
         self._flush_at = 0.0
+        self._json = _JsonLines()
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         if self.fmt in MONITORING_FORMATS:
@@ -58,7 +59,7 @@ class Output:
         elif result.__class__ is Points:
             self._points(when, result)
         elif self.fmt == "json":
-            self._emit(_json_line({"time": when, **as_dict(result)}))
+            self._emit(self._json.line(when, result))
         elif self.fmt == "csv":
             header, rows = csv_cells(result)
             self._csv(when, header, rows)
@@ -266,6 +267,46 @@ def _json_line(data: dict) -> str:
 
 
 _ENCODER = None
+
+
+class _JsonLines:
+    """A poll's JSON line, as ``_json_line({"time": ..., **as_dict(result)})`` writes it, with
+    less work a poll: the polls of one command differ only in their time, values and raw
+    registers, so the rest of the line (unit, function, name, address, type, addresses,
+    refs) is encoded once and kept while the result's shape stays the same."""
+
+    def __init__(self) -> None:
+        self.shape: tuple | None = None
+        self.parts: list[str] = []  # the text around the time, the values and the registers
+
+    def line(self, when: str, result) -> str:
+        items = result.items
+        shape = (result.unit, result.function, result.name, result.address, len(items), result.type)
+        shape += (items[-1][0] if items else None, result.refs, result.extra, result.registers is None)
+        if shape != self.shape:
+            self.shape, self.parts = shape, self._parts(result)
+        values = [value for _, value in items]
+        try:
+            fields = [_ENCODER.encode(when), _ENCODER.encode(values)]
+            if len(self.parts) == 4:
+                fields.append(_ENCODER.encode(result.registers))
+        except ValueError:  # NaN or an infinity: to_json's null, through the whole dict
+            return _json_line({"time": when, **as_dict(result)})
+        parts = self.parts
+        text = parts[0] + fields[0] + parts[1] + fields[1] + parts[2]
+        return text + fields[2] + parts[3] if len(parts) == 4 else text
+
+    @staticmethod
+    def _parts(result) -> list[str]:
+        """The line's text, cut where the time, the values and the registers go."""
+        data = {"time": _MARK, **as_dict(result), "values": _MARK}
+        if "registers" in data:
+            data["registers"] = _MARK
+        text = _json_line(data)
+        return text.split(_ENCODER.encode(_MARK))
+
+
+_MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
 
 
 def _csv_cell(text: str) -> str:

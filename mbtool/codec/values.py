@@ -104,17 +104,22 @@ def registers_needed(type_name: str, count: int) -> int:
     return count if per == 0 else count * per
 
 
-def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD") -> list[tuple[int, Value]]:
-    """(register offset, value) for each value in the registers."""
+def decode_values(
+    registers: tuple[int, ...], type_name: str, order: str = "ABCD", first: int = 0
+) -> list[tuple[int, Value]]:
+    """(address, value) for each value in the registers, the first register at ``first``
+    (0: the offsets in the block)."""
     kind = TYPES[type_name]
     if kind.name == "string":
         text = _bytes_of(registers, _bytes_only(order))
-        return [(0, _printable(text.rstrip(b"\x00")))]
+        return [(first, _printable(text.rstrip(b"\x00")))]
     if kind.name == "hex":
-        return [(i, f"0x{w:04X}") for i, w in enumerate(_swap_words(list(registers), _bytes_only(order)))]
+        return list(
+            enumerate((f"0x{w:04X}" for w in _swap_words(list(registers), _bytes_only(order))), first)
+        )
     size = kind.registers
     if kind.fmt == "H" and _bytes_only(order) == "ABCD":
-        return list(enumerate(registers))  # uint16 as on the wire: the registers themselves
+        return list(enumerate(registers, first))  # uint16 as on the wire: the registers themselves
     if (_bytes_only(order) if size == 1 else order) == "ABCD":
         # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
         count = len(registers) // size
@@ -127,7 +132,7 @@ def decode_values(registers: tuple[int, ...], type_name: str, order: str = "ABCD
         )
     if kind.fmt == "f":
         values = tuple(map(shortest_float32, values))
-    return list(zip(range(0, len(values) * size, size), values, strict=True))
+    return list(zip(range(first, first + len(values) * size, size), values, strict=True))
 
 
 def parse_value(text: str, type_name: str) -> Value:

@@ -116,7 +116,7 @@ def _reference_values(connection, targets, given, value_type, order, warn, crit)
         items = [(address + i, bit) for i, bit in enumerate(reply.bits[:count])]
     else:
         reply = execute(connection, READS[table.name](address, registers_needed(value_type, count)))
-        items = [(address + offset, v) for offset, v in decode_values(reply.registers, value_type, order)]
+        items = decode_values(reply.registers, value_type, order, address)
     out = []
     for item_address, value in items:
         name = reference(table, item_address)

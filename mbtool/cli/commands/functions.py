@@ -269,9 +269,7 @@ def read_write_registers(connection, read_address, read_count, write_address, va
         read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
     )
     reply = execute(connection, request)
-    items = [
-        (read_address + offset, value) for offset, value in decode_values(reply.registers, value_type, order)
-    ]
+    items = decode_values(reply.registers, value_type, order, read_address)
     result = Result(
         connection.unit,
         request.function_code,

@@ -170,15 +170,13 @@ def _read_registers(
         if order == ORDER_ALL:
             # The same registers read in each order, side by side: the manual's expected
             # value shows which order the device uses.
-            each = [decode_values(registers, value_type, o) for o in ORDERS]
+            each = [decode_values(registers, value_type, o, address) for o in ORDERS]
             items = [
-                (address + offset, {o: values[i][1] for o, values in zip(ORDERS, each, strict=True)})
-                for i, (offset, _) in enumerate(each[0])
+                (at, {o: values[i][1] for o, values in zip(ORDERS, each, strict=True)})
+                for i, (at, _) in enumerate(each[0])
             ]
         else:
-            items = [
-                (address + offset, value) for offset, value in decode_values(registers, value_type, order)
-            ]
+            items = decode_values(registers, value_type, order, address)
         return Result(
             connection.unit,
             kind.function_code,

@@ -179,9 +179,7 @@ def _write_reference(connection, text: str, values, multiple: bool, value_type: 
     else:
         registers = parse_registers(values, value_type, order)
         request = write_of(table, address, registers, multiple)
-        items = [
-            (address + offset, value) for offset, value in decode_values(tuple(registers), value_type, order)
-        ]
+        items = decode_values(tuple(registers), value_type, order, address)
         kind = value_type
     execute(connection, request)
     refs = [reference(table, item_address) for item_address, _ in items]
