@@ -40,15 +40,18 @@ COUNT = 10  # holding registers per read
 # libmodbus's own TCP server, shared with the tests' peers.
 SERVER_C = (ROOT / "tests" / "peers" / "libmodbus_server.c").read_text()
 
+# libmodbus's client: NEW_CONTEXT opens the link from the first arguments; the last is the
+# number of reads of 10 holding registers from unit 1.
 CLIENT_C = r"""
 #include <stdio.h>
 #include <stdlib.h>
 #include <modbus.h>
 
 int main(int argc, char **argv) {
-    modbus_t *ctx = modbus_new_tcp("127.0.0.1", atoi(argv[1]));
-    long n = atol(argv[2]);
+    modbus_t *ctx = NEW_CONTEXT;
+    long n = atol(argv[argc - 1]);
     uint16_t regs[10];
+    modbus_set_slave(ctx, 1);
     if (modbus_connect(ctx) < 0) { perror("connect"); return 1; }
     for (long i = 0; i < n; i++)
         if (modbus_read_registers(ctx, 0, 10, regs) != 10) { perror("read"); return 1; }
@@ -57,6 +60,7 @@ int main(int argc, char **argv) {
     return 0;
 }
 """
+TCP_CLIENT_C = CLIENT_C.replace("NEW_CONTEXT", 'modbus_new_tcp("127.0.0.1", atoi(argv[1]))')
 
 BARE_LOOP = """
 import socket, struct, sys
@@ -165,7 +169,7 @@ def main() -> None:
     args = parser.parse_args()
     os.chdir(ROOT)
     with tempfile.TemporaryDirectory() as work:
-        server_bin, client_bin = build(Path(work), {"server": SERVER_C, "client": CLIENT_C})
+        server_bin, client_bin = build(Path(work), {"server": SERVER_C, "client": TCP_CLIENT_C})
         port = free_port()
         server = subprocess.Popen(
             [str(server_bin), str(port)], stdout=subprocess.PIPE, text=True, preexec_fn=on_core(0)

@@ -85,32 +85,13 @@ def started(argv: list[str], ready: str, stream: str = "stdout"):
         proc.wait(timeout=15)
 
 
-RTU_CLIENT_C = r"""
-#include <stdio.h>
-#include <stdlib.h>
-#include <modbus.h>
-
-int main(int argc, char **argv) {
-    modbus_t *ctx = modbus_new_rtu(argv[1], atoi(argv[2]), 'N', 8, 1);
-    long n = atol(argv[3]);
-    uint16_t regs[10];
-    modbus_set_slave(ctx, 1);
-    if (modbus_connect(ctx) < 0) { perror("connect"); return 1; }
-    for (long i = 0; i < n; i++)
-        if (modbus_read_registers(ctx, 0, 10, regs) != 10) { perror("read"); return 1; }
-    modbus_close(ctx);
-    modbus_free(ctx);
-    return 0;
-}
-"""
-
-
 def libmodbus_client(workdir: Path) -> Path | None:
     """libmodbus's RTU client, or None (said why) where gcc or libmodbus-dev is missing."""
-    from polling_cpu import build  # beside this script
+    from polling_cpu import CLIENT_C, build  # beside this script
 
+    source = CLIENT_C.replace("NEW_CONTEXT", "modbus_new_rtu(argv[1], atoi(argv[2]), 'N', 8, 1)")
     try:
-        return build(workdir, {"rtu_client": RTU_CLIENT_C})[0]
+        return build(workdir, {"rtu_client": source})[0]
     except SystemExit as why:
         print(f"{why}: libmodbus left out")
         return None
