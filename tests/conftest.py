@@ -295,14 +295,23 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 @contextlib.contextmanager
-def start_device(*, tcp: bool, framer: str, units: str = "1,2", pty_echo: bool = False, holes: bool = False):
+def start_device(
+    *,
+    tcp: bool,
+    framer: str,
+    units: str = "1,2",
+    pty_echo: bool = False,
+    holes: bool = False,
+    port: int | None = None,
+):
     """Start tests/peers/pymodbus_device.py; yield a Device; always stop it.
 
-    ``holes``: the device's address map has gaps (pymodbus_device.HOLED)."""
+    ``holes``: the device's address map has gaps (pymodbus_device.HOLED); ``port``: the TCP
+    port to listen on (a free one by default), e.g. to bring a stopped device back."""
     errf = tempfile.NamedTemporaryFile(prefix="mbtool-device-", suffix=".log", delete=False)
     pty = None
     if tcp:
-        port = free_port()
+        port = port or free_port()
         where = ["--tcp", f"127.0.0.1:{port}"]
     else:
         pty = PtyPair(echo=pty_echo)

@@ -357,7 +357,7 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_pa
             res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
             assert_one_error_line(res, 4)
             assert "exception 0A Gateway Path Unavailable" in res.stderr
-            with start_device_on(port) as again:
+            with start_device(tcp=True, framer="socket", units="1", port=port) as again:
                 assert again.port == port
                 res = expect_ok(
                     run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
@@ -366,20 +366,6 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_pa
             records = running.records()
     assert [r["outcome"] for r in records] == ["reply", "no path", "reply"]
     assert "127.0.0.1" in records[1]["why"]
-
-
-@contextlib.contextmanager
-def start_device_on(port: int):
-    """pymodbus's TCP device again on a given port (start_device picks a free one)."""
-    import conftest
-
-    original = conftest.free_port
-    conftest.free_port = lambda: port
-    try:
-        with start_device(tcp=True, framer="socket", units="1") as device:
-            yield device
-    finally:
-        conftest.free_port = original
 
 
 def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):

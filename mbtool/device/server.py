@@ -36,21 +36,23 @@ within a tenth of a second.
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import queue
 import random
 import selectors
+import signal
 import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
-from mbtool.codec.timing import character_bits, silent_interval
+from mbtool.codec.timing import silent_interval
 from mbtool.device.model import Device
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link import IN_PROCESS
@@ -265,6 +267,20 @@ class Server:
 
     def stop(self) -> None:
         self._stop = True
+
+    @contextlib.contextmanager
+    def stopped_by_signals(self) -> Iterator[None]:
+        """Inside, Ctrl-C and SIGTERM stop the server cleanly (the loop ends, clients are closed)
+        instead of interrupting it; the handlers before come back afterwards."""
+        previous = {
+            sig: signal.signal(sig, lambda signum, frame: self.stop())
+            for sig in (signal.SIGINT, signal.SIGTERM)
+        }
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def _later(self, due: float, send: Callable[[], None]) -> None:
         self._seq += 1
@@ -620,10 +636,7 @@ class Server:
         self.stats.clients = 1
 
     def _serve_serial(self) -> None:
-        settings = self.settings
-        t35 = silent_interval(
-            self.baud, character_bits(settings.parity, settings.bytesize, settings.stopbits)
-        )
+        t35 = silent_interval(self.baud, self.settings.char_bits)
         gap = max(t35, MIN_SERIAL_GAP) if self.framer_name == "rtu" else 1.0  # ASCII: 1 s between chars (§2)
         last_rx = 0.0
         peer = self.target.path

@@ -63,7 +63,6 @@ class Client:
         self.timeout = timeout
         self.retries = retries
         self.echo = echo  # the adapter echoes what it sends (half-duplex RS-485)
-        self.baud = baud
         self.trace = trace or Trace()
         self.clock = clock
         self.sleep = sleep

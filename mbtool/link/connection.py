@@ -82,7 +82,6 @@ def open_client(
     more-follows; sim:// keeps its state only as long as its link).
     """
     from mbtool.codec.framing import make_framer
-    from mbtool.codec.timing import character_bits
     from mbtool.link.client import Client
     from mbtool.link.transport import SerialSettings, open_transport
 
@@ -104,7 +103,7 @@ def open_client(
             retries=connection.retries,
             echo=connection.echo,
             baud=connection.baud,
-            char_bits=character_bits(connection.parity, connection.bytesize, connection.stopbits),
+            char_bits=settings.char_bits,
             pause=connection.pause,
             lenient=connection.lenient,
         )
@@ -129,12 +128,16 @@ def close_quietly(link: ExitStack) -> None:
 
 
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
-    """RTS lead and trail in seconds when RTS switches the line's direction, else None.
-
-    Delays alone turn the mode on: nobody sets them without meaning it.
-    """
-    if not (connection.rs485 or connection.rs485_delays):
-        return None
-    if (connection.port or "").lower().startswith("tcp://"):
+    """RTS lead and trail in seconds when RTS switches the line's direction, else None."""
+    delays = rs485_delays(connection.rs485, connection.rs485_delays)
+    if delays and (connection.port or "").lower().startswith("tcp://"):
         raise RequestError("--rs485 drives the RTS line of a serial port; a tcp:// target has none")
-    return connection.rs485_delays or (0.0, 0.0)
+    return delays
+
+
+def rs485_delays(rs485: bool, delays: tuple[float, float] | None) -> tuple[float, float] | None:
+    """What --rs485 and --rs485-delays ask: RTS lead and trail, or None for no RTS switching.
+    Delays alone turn the mode on: nobody sets them without meaning it."""
+    if not (rs485 or delays):
+        return None
+    return delays or (0.0, 0.0)

@@ -29,6 +29,7 @@ from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.client import Client, Trace
+from mbtool.link.connection import close_quietly
 from mbtool.link.transport import ConnectionClosed
 
 # What became of a request, in the words the display and the summary use.
@@ -91,14 +92,14 @@ class _Watch(Trace):
 class Forwarder:
     """Answers requests by forwarding them over a link opened by ``open_link``.
 
-    ``open_link(trace)`` is a context manager giving an open Client with that trace (what
+    ``open_link()`` is a context manager giving an open Client (what
     ``mbtool.link.connection.open_client`` gives).  ``units``: the units forwarded.  Every
     request ends in a ``Passage`` handed to ``report``.
     """
 
     def __init__(
         self,
-        open_link: Callable[[Callable[[Framer], Trace]], AbstractContextManager[Client]],
+        open_link: Callable[[], AbstractContextManager[Client]],
         framing: str,
         units: frozenset[int],
         report: Callable[[Passage], None],
@@ -167,7 +168,6 @@ class Forwarder:
 
     def _forward(self, unit: int, pdu: bytes, framer: Framer) -> tuple[bytes | None, str, str]:
         """The reply PDU (None: none is due), the outcome and what was seen."""
-        failed = ExceptionCode.GATEWAY_TARGET_FAILED_TO_RESPOND
         try:
             reply = self._execute(unit, RawRequest(pdu))
         except ModbusException as refusal:
@@ -175,11 +175,12 @@ class Forwarder:
             outcome, why = REFUSED, str(refusal)
         except (ConnectionFailed, ConnectionClosed, OSError) as lost:
             self._drop_link()
-            why = lost.strerror or str(lost) if isinstance(lost, OSError) else str(lost)
+            why = (lost.strerror or str(lost)) if isinstance(lost, OSError) else str(lost)
             answer, outcome = _exception(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE), NO_PATH
         except (NoResponse, FrameError) as failure:
             why = "; ".join([*self._watch.problems, str(failure)])
-            answer, outcome = _exception(pdu[0], failed), NO_RESPONSE
+            answer = _exception(pdu[0], ExceptionCode.GATEWAY_TARGET_FAILED_TO_RESPOND)
+            outcome = NO_RESPONSE
         else:
             if reply is None:  # a broadcast on the link, or a request no reply is due for (FC08 sub 04)
                 answer, outcome, why = None, REPLY, "no reply is due"
@@ -203,19 +204,16 @@ class Forwarder:
 
     def _open(self) -> Client:
         if self._client is None:
-            self._client = self._link.enter_context(self.open_link(lambda framer: self._watch))
+            self._client = self._link.enter_context(self.open_link())
         self._client.trace = self._watch
         return self._client
 
     def _drop_link(self) -> None:
-        client, self._client = self._client, None
-        if client is None:
-            return
-        try:
-            self._link.close()
-        except (ConnectionFailed, NoResponse, OSError):
-            pass  # the link was already broken: that is why it is dropped
-        self._link = ExitStack()
+        """Close the link, broken or not (that is usually why it is dropped)."""
+        if self._client is not None:
+            self._client = None
+            close_quietly(self._link)
+            self._link = ExitStack()
 
 
 def _exception(function: int, code: int) -> bytes:

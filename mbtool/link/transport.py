@@ -53,6 +53,13 @@ class SerialSettings:
     def __str__(self) -> str:
         return f"{self.baud} {self.bytesize}{self.parity}{self.stopbits}"
 
+    @property
+    def char_bits(self) -> int:
+        """Bits one character takes on this line (its t3.5 is 3.5 of them)."""
+        from mbtool.codec.timing import character_bits
+
+        return character_bits(self.parity, self.bytesize, self.stopbits)
+
 
 class ConnectionClosed(NoResponse):
     """The peer closed the connection; no (further) reply can come."""

@@ -9,7 +9,6 @@ serial line, and ``mbtool.link.forward`` sends each on as a master and turns wha
 from __future__ import annotations
 
 import queue
-import signal
 import sys
 import threading
 
@@ -29,6 +28,7 @@ from mbtool.cli.options import (
 )
 from mbtool.cli.render import local_time
 from mbtool.codec.errors import RequestError
+from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
@@ -144,6 +144,7 @@ def bridge(
     from mbtool.device.server import Server, parse_target
     from mbtool.link import IN_PROCESS
     from mbtool.link.connection import Connection, check, open_client
+    from mbtool.link.connection import rs485_delays as rs485_delays_of
     from mbtool.link.forward import Forwarder
     from mbtool.link.transport import SerialSettings, default_framer
 
@@ -151,9 +152,7 @@ def bridge(
     forwarded = parse_units(units)
     serial_framer = framer or "rtu"
     listening_framer = "tcp" if where.scheme == "tcp" else serial_framer
-    link_framer = default_framer(target)
-    if link_framer != "tcp":
-        link_framer = serial_framer if framer or link_framer == "rtu" else link_framer
+    link_framer = "tcp" if default_framer(target) == "tcp" else serial_framer
     if framer and "tcp" == listening_framer == link_framer:
         raise RequestError("--framer sets the serial side's framing, and both sides are tcp://")
     if where.scheme == "serial" and where.path == target:
@@ -161,7 +160,7 @@ def bridge(
     if bytesize == "7" and "rtu" in (listening_framer, link_framer):
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
     # --rs485 drives the RTS line of the serial side, whichever side that is.
-    direction = (rs485_delays or (0.0, 0.0)) if rs485 or rs485_delays else None
+    direction = rs485_delays_of(rs485, rs485_delays)
     link_serial = link_framer != "tcp" and not target.startswith(tuple(f"{s}://" for s in IN_PROCESS))
     if direction and where.scheme != "serial" and not link_serial:
         raise RequestError("--rs485 drives the RTS line of a serial port, and neither side is one")
@@ -184,9 +183,7 @@ def bridge(
     check(connection)
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
     show = Show(fmt, hex_trace, quiet)
-    forwarder = Forwarder(
-        lambda trace: open_client(connection, trace=trace), link_framer, forwarded, show.passage
-    )
+    forwarder = Forwarder(lambda: open_client(connection), link_framer, forwarded, show.passage)
     forwarder.open()  # a link that cannot be opened now is a mistake to hear of at once (exit 6)
     server = Server(
         None,
@@ -208,16 +205,8 @@ def bridge(
             f"units {units_text(forwarded)}",
             err=True,
         )
-
-        def stop(signum, frame):
-            server.stop()
-
-        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-        try:
+        with server.stopped_by_signals():
             server.run()
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
     finally:
         forwarder.close()
         show.close()
@@ -234,8 +223,6 @@ class Show:
     """
 
     def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
-        from mbtool.link.forward import OUTCOMES
-
         self.fmt = fmt
         self.hex = hex_trace
         self.quiet = quiet
@@ -304,8 +291,6 @@ class Show:
             sys.stdout.flush()
 
     def summary(self, connections: int, tcp: bool) -> str:
-        from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, REFUSED, REPLY
-
         counts = self.counts
         parts = [
             f"{counts[REPLY]} replies",
@@ -327,13 +312,7 @@ class Show:
 
 # Line styles on a terminal: the request, and its reply by what became of it.
 ASKED = "cyan"
-STYLES = {
-    "reply": "green",
-    "exception": "yellow",
-    "broadcast": "green",
-    "no response": "bold red",
-    "no path": "bold red",
-}
+STYLES = {REPLY: "green", REFUSED: "yellow", BROADCAST: "green", NO_RESPONSE: "bold red", NO_PATH: "bold red"}
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
@@ -355,7 +334,7 @@ def decoded_lines(passage) -> list[tuple[str, str]]:
         reply = _describe(passage.reply, passage.upstream, "response", request)
         text = f"{head} < unit {passage.unit} FC{reply.function:02X} {one_line(reply)}"
     else:
-        text = f"{head} - {'broadcast' if passage.outcome == 'broadcast' else 'no reply'}"
+        text = f"{head} - {_unanswered(passage)}"
     lines.append((STYLES[passage.outcome], text + _after(passage)))
     return lines
 
@@ -372,16 +351,20 @@ def hex_lines(passage) -> list[tuple[str, str]]:
     if passage.reply:
         text = f"{head} {passage.peer} TX {_wire(passage.reply, passage.upstream)}"
     else:
-        text = f"{head} {passage.peer} -- {'broadcast' if passage.outcome == 'broadcast' else 'no reply'}"
+        text = f"{head} {passage.peer} -- {_unanswered(passage)}"
     lines.append((STYLES[passage.outcome], text + _after(passage)))
     return lines
+
+
+def _unanswered(passage) -> str:
+    return "broadcast" if passage.outcome == BROADCAST else "no reply"
 
 
 def _after(passage) -> str:
     """What ends a transaction's last line: its times, and what the gateway saw."""
     bus = "" if passage.bus_time is None else f"bus {passage.bus_time * 1000:.1f} ms, "
     text = f" | {bus}total {passage.total * 1000:.1f} ms"
-    return text + f" | {passage.why}" if passage.why and passage.outcome != "exception" else text
+    return text + f" | {passage.why}" if passage.why and passage.outcome != REFUSED else text
 
 
 def _wire(adu: bytes, framing: str) -> str:

@@ -8,7 +8,6 @@ choice types are the shared ones.
 from __future__ import annotations
 
 import functools
-import signal
 import sys
 import time
 
@@ -265,18 +264,11 @@ def serve(
     click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
     sys.stdout.flush()
 
-    def stop(signum, frame):
-        server.stop()
-
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with server.stopped_by_signals():
         if mode == "live":
             _run_live(server, device, framer, unit_text, unit_set)
         else:
             server.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     if mode != "quiet":
         stats = server.stats
         turned_away = "".join(
