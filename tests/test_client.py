@@ -377,3 +377,23 @@ def test_after_retries_the_most_telling_problem_is_reported_not_the_last():
     link = ScriptedLink(clock, [[], [corrupted]])
     with pytest.raises(ChecksumError):
         client(link, clock, retries=1, timeout=0.5).execute(0x11, REQUEST)
+
+
+def test_the_same_reply_bytes_give_the_same_response_and_other_bytes_a_new_one():
+    """A poll whose reply is byte for byte the one before gets the response decoded then
+    (responses are immutable); a reply that differs, or another request, is decoded anew,
+    and a repeated exception reply still raises every time."""
+    clock = FakeClock()
+    other = rtu("11 03 06 02 2B 00 00 00 65")
+    refusal = rtu("11 83 02")
+    link = ScriptedLink(clock, [[REPLY], [REPLY], [other], [refusal], [refusal], [REPLY]])
+    master = client(link, clock)
+    first = master.execute(0x11, REQUEST)
+    assert master.execute(0x11, REQUEST) is first
+    changed = master.execute(0x11, REQUEST)
+    assert changed is not first and changed.registers == (555, 0, 101)
+    for _ in range(2):
+        with pytest.raises(ModbusException, match="02 Illegal Data Address"):
+            master.execute(0x11, REQUEST)
+    again = master.execute(0x11, ReadHoldingRegisters(0x6B, 3))  # an equal request, not this one
+    assert again == first and again is not first

@@ -366,6 +366,11 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
         Result(1, 3, "Read Holding Registers", 0, [(0, 5), (1, 6)], "uint16", [5, 6]),
         Result(1, 3, "Read Holding Registers", 0, [(0, 7), (1, 8)], "uint16", [7, 8]),
         Result(1, 3, "Read Holding Registers", 4, [(4, 7), (5, 8)], "uint16", [7, 8]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, -2), (1, 32767)], "int16", [65534, 32767]),
+        Result(1, 4, "Read Input Registers", 0, [(0, 2**64 - 1)], "uint64", [65535] * 4),
+        Result(1, 4, "Read Input Registers", 0, [(0, -1), (2, 7)], "int32", [65535, 65535, 0, 7]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, "0x00FF")], "hex", [255]),
+        Result(1, 3, "Read Holding Registers", 0, [(0, 'a"b')], "string", [24866, 25088]),
         Result(1, 3, "Read Holding Registers", 0, [(0, 1.5)], "float32", [16320, 0]),
         Result(1, 3, "Read Holding Registers", 0, [(0, float("nan"))], "float32", [32704, 0]),
         Result(2, 1, "Read Coils", 10, [(10, True), (11, False)], refs=["00011", "00012"]),
@@ -381,3 +386,34 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
         output.flush()
         assert output.out.getvalue().splitlines()[-1] + "\n" == expected
     assert '"values": [null]' in output.out.getvalue()  # NaN is null, as to_json writes it
+
+
+def test_a_reply_shown_again_is_worked_out_once_and_written_with_its_own_time():
+    """The client hands back the same response for the same reply bytes: Deferred turns it
+    into a result once, and each poll's line still carries that poll's time."""
+    import io
+    import json
+
+    from mbtool.cli.poll_output import Deferred, Output
+    from mbtool.cli.render import Result
+    from mbtool.codec.data_access import RegistersResponse
+
+    made = []
+
+    def to_result(reply):
+        made.append(reply)
+        items = list(enumerate(reply.registers, 10))
+        return Result(1, 3, "Read Holding Registers", 10, items, "uint16", list(reply.registers))
+
+    output = Output("json", io.StringIO())
+    shown = Deferred(output, to_result)
+    same, changed = RegistersResponse(3, (5, 6)), RegistersResponse(3, (7, 6))
+    for when, reply in [(1.0, same), (2.0, same), (3.0, changed), (4.0, same)]:
+        shown.hold(1_700_000_000 + when, reply)
+        shown.write()
+    shown.close()
+    assert made == [same, changed, same]
+    lines = [json.loads(line) for line in output.out.getvalue().splitlines()]
+    assert [line["values"] for line in lines] == [[5, 6], [5, 6], [7, 6], [5, 6]]
+    assert [line["time"][17:23] for line in lines] == ["21.000", "22.000", "23.000", "24.000"]
+    assert all(line["addresses"] == [10, 11] for line in lines)

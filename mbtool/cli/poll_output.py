@@ -31,6 +31,7 @@ from mbtool.cli.render import (
     value_text,
     wants_csv_header,
 )
+from mbtool.codec.values import TYPES
 from mbtool.errors import OutputFailed, exit_code_for
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
@@ -220,6 +221,10 @@ class Deferred:
         self.output = output
         self.to_result = to_result
         self.held: tuple[float, object] | None = None
+        # The last reply shown and its result: the client hands back the same response for
+        # the same reply bytes, and a poll whose values have not changed is not worked out
+        # again.
+        self.shown: tuple[object, object] = (None, None)
 
     def hold(self, when: float, reply) -> None:
         """Keep a reply to show later; the one before it went out with the request."""
@@ -229,7 +234,9 @@ class Deferred:
         if self.held is not None:
             when, reply = self.held
             self.held = None
-            self.output.result(local_time(when), self.to_result(reply), when)
+            if reply is not self.shown[0]:
+                self.shown = (reply, self.to_result(reply))
+            self.output.result(local_time(when), self.shown[1], when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
         self.output.failure(local_time(when), number, error)
@@ -273,28 +280,54 @@ class _JsonLines:
     """A poll's JSON line, as ``_json_line({"time": ..., **as_dict(result)})`` writes it, with
     less work a poll: the polls of one command differ only in their time, values and raw
     registers, so the rest of the line (unit, function, name, address, type, addresses,
-    refs) is encoded once and kept while the result's shape stays the same."""
+    refs) is encoded once and kept while the result's shape stays the same; and a poll
+    whose result is the one before (its values unchanged: ``Deferred``) writes only its
+    time anew."""
 
     def __init__(self) -> None:
         self.shape: tuple | None = None
         self.parts: list[str] = []  # the text around the time, the values and the registers
+        self.integers = False  # the values are ints (an integer type, one order)
+        self.result = None  # the last result written,
+        self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
 
     def line(self, when: str, result) -> str:
+        if result is not self.result:
+            self.result, self.rest = result, self._rest(result)
+        if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
+            return _json_line({"time": when, **as_dict(result)})
+        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
+        return self.parts[0] + '"' + when + '"' + self.rest
+
+    def _rest(self, result) -> str | None:
+        """The line after the time: the values and registers within the text kept for the shape."""
         items = result.items
-        shape = (result.unit, result.function, result.name, result.address, len(items), result.type)
-        shape += (items[-1][0] if items else None, result.refs, result.extra, result.registers is None)
+        shape = (
+            result.unit,
+            result.function,
+            result.name,
+            result.address,
+            len(items),
+            items[-1][0] if items else None,
+            result.type,
+            result.refs,
+            result.extra,
+            result.registers is None,
+        )
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
+            self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
         values = [value for _, value in items]
+        # A list of ints is the same text in Python's repr as in JSON (json writes an int by
+        # its repr, and a list with ", "), at a third of the encoder's cost; registers are
+        # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
         try:
-            fields = [_ENCODER.encode(when), _ENCODER.encode(values)]
-            if len(self.parts) == 4:
-                fields.append(_ENCODER.encode(result.registers))
-        except ValueError:  # NaN or an infinity: to_json's null, through the whole dict
-            return _json_line({"time": when, **as_dict(result)})
+            text = repr(values) if self.integers else _ENCODER.encode(values)
+        except ValueError:
+            return None
         parts = self.parts
-        text = parts[0] + fields[0] + parts[1] + fields[1] + parts[2]
-        return text + fields[2] + parts[3] if len(parts) == 4 else text
+        rest = parts[1] + text + parts[2]
+        return rest + repr(result.registers) + parts[3] if len(parts) == 4 else rest
 
     @staticmethod
     def _parts(result) -> list[str]:

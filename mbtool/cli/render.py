@@ -51,18 +51,17 @@ class Result:
         refs: list[str] | None = None,
     ) -> None:
         # By hand: one a poll (codec/record.py).
-        self.__dict__.update(
-            unit=unit,
-            function=function,
-            name=name,
-            address=address,
-            items=items,
-            type=type,
-            registers=registers,
-            note=note,
-            extra=extra,
-            refs=refs,
-        )
+        fields = self.__dict__
+        fields["unit"] = unit
+        fields["function"] = function
+        fields["name"] = name
+        fields["address"] = address
+        fields["items"] = items
+        fields["type"] = type
+        fields["registers"] = registers
+        fields["note"] = note
+        fields["extra"] = extra
+        fields["refs"] = refs
 
     @property
     def table(self) -> str:

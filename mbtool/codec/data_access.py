@@ -79,7 +79,10 @@ class BitsResponse(Response):
 
     def __init__(self, function_code: int, bits: tuple[bool, ...], *, warnings: tuple[str, ...] = ()) -> None:
         # By hand: one a transaction in a polling loop (codec/record.py).
-        self.__dict__.update(function_code=function_code, bits=bits, warnings=warnings)
+        fields = self.__dict__
+        fields["function_code"] = function_code
+        fields["bits"] = bits
+        fields["warnings"] = warnings
 
     def encode(self) -> bytes:
         data = pack_bits(self.bits)
@@ -110,7 +113,10 @@ class RegistersResponse(Response):
         self, function_code: int, registers: tuple[int, ...], *, warnings: tuple[str, ...] = ()
     ) -> None:
         # By hand: one a transaction in a polling loop (codec/record.py).
-        self.__dict__.update(function_code=function_code, registers=registers, warnings=warnings)
+        fields = self.__dict__
+        fields["function_code"] = function_code
+        fields["registers"] = registers
+        fields["warnings"] = warnings
 
     def encode(self) -> bytes:
         return bytes([self.function_code, 2 * len(self.registers)]) + pack_registers(self.registers)

@@ -26,6 +26,9 @@ from mbtool.codec.record import record
 RTU_MAX_ADU = 256
 ASCII_MAX_CHARS = 513  # ':' + 2 × 255 hex + CR LF (spec §2)
 MBAP_HEADER = 7
+# The MBAP header: transaction id, protocol id, length, unit (compiled once: one a frame).
+_MBAP_HEADER = struct.Struct(">HHHB")
+_MBAP_FIELDS = struct.Struct(">HHH")  # without the unit, which the frame takes with the PDU
 
 
 @record
@@ -83,10 +86,9 @@ class Framer(ABC):
     def buffered(self) -> int:
         return len(self._buffer) + len(self._garbage)
 
-    @property
-    def waiting_for_silence(self) -> bool:
-        """True when only a pause on the line can end the frame in the buffer (RTU, unknown length)."""
-        return False
+    # True when only a pause on the line can end the frame in the buffer: RTU's property,
+    # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
+    waiting_for_silence = False
 
     def next_event(self) -> Event | None:
         while True:
@@ -95,7 +97,10 @@ class Framer(ABC):
                 # Out of bytes: hand over the garbage so far, so the caller sees it now.
                 return self._flush_garbage()
             if isinstance(result, Frame):
-                return self._flush_garbage() or self._take(result)
+                if self._garbage:  # the garbage before the frame first; it is found again next call
+                    return self._flush_garbage()
+                del self._buffer[: len(result.adu)]
+                return result
             # An int: this many bytes at the front are no frame; fold them into the garbage run.
             skip, error = result
             if not self._garbage:
@@ -141,10 +146,6 @@ class Framer(ABC):
         """A short verdict on the frame's checksum, for the hex trace."""
 
     # -- helpers ---------------------------------------------------------------------
-
-    def _take(self, frame: Frame) -> Frame:
-        del self._buffer[: len(frame.adu)]
-        return frame
 
     def _flush_garbage(self) -> Rejected | None:
         if not self._garbage:
@@ -641,12 +642,12 @@ class TcpFramer(Framer):
     broadcast_unit = None
 
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
-        return struct.pack(">HHHB", transaction_id, 0, len(pdu) + 1, unit) + pdu
+        return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:
             return "MBAP header truncated"
-        tid, pid, length = struct.unpack_from(">HHH", adu)
+        tid, pid, length = _MBAP_FIELDS.unpack_from(adu)
         verdict = "ok" if pid == 0 and length == len(adu) - 6 else "BAD"
         return f"MBAP tid {tid} length {length} {verdict}"
 
@@ -654,7 +655,7 @@ class TcpFramer(Framer):
         buf = self._buffer
         if len(buf) < MBAP_HEADER:
             return None
-        tid, pid, length = struct.unpack_from(">HHH", buf)
+        tid, pid, length = _MBAP_FIELDS.unpack_from(buf)
         if pid != 0:
             # Noise: no frame starts before the next 00 00 that could be a protocol id, so
             # skip to it at once, not byte by byte (a flooding peer must not outrun the resync).

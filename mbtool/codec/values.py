@@ -30,6 +30,11 @@ class ValueType:
     registers: int  # registers per value; 0 for string (as many as asked)
     fmt: str  # struct format of the big-endian value ("" for hex/string)
 
+    @property
+    def integer(self) -> bool:
+        """Its values are whole numbers (Python ints)."""
+        return self.fmt in ("H", "h", "I", "i", "Q", "q")
+
 
 TYPES = {
     t.name: t

@@ -78,9 +78,12 @@ class Client:
         self.while_waiting: Callable[[], None] | None = None
         self.round_trip = 0.0  # seconds from the last request sent to its reply
         self._settled = False  # the last transaction ended with its reply: nothing stale left
-        # The last request, its PDU and whether its echo could pass for a reply: the same for
-        # every poll of it, so worked out once.
-        self._prepared: tuple[Request | None, bytes, bool] = (None, b"", False)
+        # The last request, its PDU, whether its echo could pass for a reply and whether it has
+        # one: the same for every poll of it, so worked out once.
+        self._prepared: tuple[Request | None, bytes, bool, bool] = (None, b"", False, True)
+        # The last reply decoded: the request, the reply's PDU and what it decoded to.  A poll
+        # whose reply is the same bytes gets the same (immutable) response, decoded once.
+        self._decoded: tuple[Request | None, bytes, Response | ExceptionResponse | None] = (None, b"", None)
         # The line's own character (10 bits for 8N1): its t3.5 is what the next frame waits.
         self._char_time = char_time(baud, char_bits)
         self._t35 = silent_interval(baud, char_bits)
@@ -140,8 +143,13 @@ class Client:
         self._transaction_id = (self._transaction_id + 1) & 0xFFFF
         self._attempt_ids.append(self._transaction_id)
         if request is not self._prepared[0]:
-            self._prepared = (request, request.encode(), _EchoWatch.needed(request))
-        _, pdu, echo_watched = self._prepared
+            self._prepared = (
+                request,
+                request.encode(),
+                _EchoWatch.needed(request),
+                request.expects_response,
+            )
+        _, pdu, echo_watched, expects_response = self._prepared
         adu = self.framer.build(unit, pdu, self._transaction_id)
         serial_line = self.transport.serial_line
         if serial_line:
@@ -173,7 +181,7 @@ class Client:
         if unit == self.framer.broadcast_unit:
             return None
         deadline = sent_at + on_wire + self.timeout
-        if not request.expects_response:
+        if not expects_response:
             # No reply is the outcome asked for (FC08 sub 04), but a device that does not
             # support the request still refuses it with an exception: wait for that.
             try:
@@ -201,13 +209,8 @@ class Client:
         self, unit: int, request: Request, deadline: float, watch: _EchoWatch | None = None
     ) -> Response | ExceptionResponse:
         problem: FrameError | None = None
-        event = None
+        serial_line = self.transport.serial_line
         while True:
-            reply, problem = self._judge_events(event, unit, request, problem)
-            if reply is not None:
-                return reply
-            if isinstance(problem, ChecksumError) and not self.framer.buffered:
-                deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
             now = self.clock()
             if now >= deadline:
                 break
@@ -220,7 +223,8 @@ class Client:
                 self._release(watch)
                 return self._last_word(unit, request, problem, closed, hung_up=True)
             if data:
-                self._line_free_at = self.clock()
+                if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
+                    self._line_free_at = self.clock()
                 if watch is not None:
                     data = watch.filter(data)
                     if watch.seen:
@@ -231,6 +235,12 @@ class Client:
             else:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
                 event = self.framer.silence() if waiting else self.framer.next_event()
+            if event is not None:
+                reply, problem = self._judge_events(event, unit, request, problem)
+                if reply is not None:
+                    return reply
+            if isinstance(problem, ChecksumError) and not self.framer.buffered:
+                deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
         self._release(watch)
         if watch is not None and watch.echoed and problem is None and not self.echo:
             # Bytes came back, but only the request's: an echo, or a device parroting a request
@@ -290,8 +300,12 @@ class Client:
             return None, _worse(problem, event.error)
         mismatch = self._mismatch(event, unit, request)
         accepted: list[str] = []  # what this reply gets away with, for its trace line
-        ours = event.transaction_id is not None and event.transaction_id in self._attempt_ids
-        if mismatch and ours and event.unit != unit and not self._mismatch(event, event.unit, request):
+        if (
+            mismatch
+            and event.unit != unit
+            and self._ours(event)
+            and not self._mismatch(event, event.unit, request)
+        ):
             # Our transaction id, the function asked for, only the unit is wrong: a gateway
             # that echoes another unit id.
             if not self.lenient:
@@ -302,9 +316,12 @@ class Client:
         reply = None
         if not mismatch:
             try:
-                reply = request.decode_response(event.pdu)
+                decoded_request, decoded_pdu, reply = self._decoded
+                if request is not decoded_request or event.pdu != decoded_pdu:
+                    reply = request.decode_response(event.pdu)
+                    self._decoded = (request, event.pdu, reply)
             except FrameError as misfit:
-                repaired = self._repair(event.pdu, request) if ours else None
+                repaired = self._repair(event.pdu, request) if self._ours(event) else None
                 if repaired is not None and self.lenient:
                     pdu, deviation = repaired
                     reply = request.decode_response(pdu)
@@ -335,6 +352,10 @@ class Client:
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return reply, problem
+
+    def _ours(self, frame: Frame) -> bool:
+        """The frame carries the transaction id of one of this request's attempts (MBAP)."""
+        return frame.transaction_id is not None and frame.transaction_id in self._attempt_ids
 
     @staticmethod
     def _repair(pdu: bytes, request: Request) -> tuple[bytes, str] | None:
