@@ -6,6 +6,7 @@ replies and failures to a ``Deferred`` made here.
 
 from __future__ import annotations
 
+import operator
 import sys
 import time
 from collections.abc import Callable
@@ -317,7 +318,7 @@ class _JsonLines:
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
             self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        values = [value for _, value in items]
+        values = list(map(_VALUE, items))
         # A list of ints is the same text in Python's repr as in JSON (json writes an int by
         # its repr, and a list with ", "), at a third of the encoder's cost; registers are
         # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
@@ -339,6 +340,7 @@ class _JsonLines:
         return text.split(_ENCODER.encode(_MARK))
 
 
+_VALUE = operator.itemgetter(1)  # an item's value: (address, value)
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
 
 
