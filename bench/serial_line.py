@@ -252,6 +252,15 @@ def main() -> None:
         f"  mbtool's latency, request to reply: on the line {direct * 1000:.2f} ms, via the bridge "
         f"{bridged * 1000:.2f} ms = the line's + t3.5 {t35 * 1000:.2f} ms + {(bridged - direct - t35) * 1000:+.2f} ms"
     )
+    # The ceiling: request to reply is the line's and the device's time, the same for every
+    # master; after the reply the line must stay silent t3.5 (spec §2).  No master that keeps
+    # t3.5 reads faster than their sum, which bounds the ratio to pymodbus on this line.
+    fastest = direct + t35
+    print(
+        f"  the fastest a master keeping t3.5 can read here: {fastest * 1000:.2f} ms"
+        f" = {median['pymodbus'] / fastest:.3f} x pymodbus; mbtool's own time beyond it"
+        f" {(median['mbtool'] - fastest) * 1000:+.2f} ms a read"
+    )
 
 
 if __name__ == "__main__":

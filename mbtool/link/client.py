@@ -390,7 +390,7 @@ class Client:
             )
 
     def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
-        if frame.transaction_id is not None and frame.transaction_id not in self._attempt_ids:
+        if frame.transaction_id is not None and not self._ours(frame):
             return f"reply has transaction id {frame.transaction_id}, expected {_ids(self._attempt_ids)}"
         if frame.unit != unit:
             return f"reply from unit {frame.unit}, expected unit {unit}"
