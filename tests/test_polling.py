@@ -363,20 +363,28 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
     from mbtool.cli.render import Result, as_dict
 
     results = [
-        Result(1, 3, "Read Holding Registers", 0, [(0, 5), (1, 6)], "uint16", [5, 6]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, 7), (1, 8)], "uint16", [7, 8]),
-        Result(1, 3, "Read Holding Registers", 4, [(4, 7), (5, 8)], "uint16", [7, 8]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, -2), (1, 32767)], "int16", [65534, 32767]),
-        Result(1, 4, "Read Input Registers", 0, [(0, 2**64 - 1)], "uint64", [65535] * 4),
-        Result(1, 4, "Read Input Registers", 0, [(0, -1), (2, 7)], "int32", [65535, 65535, 0, 7]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, "0x00FF")], "hex", [255]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, 'a"b')], "string", [24866, 25088]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, 1.5)], "float32", [16320, 0]),
-        Result(1, 3, "Read Holding Registers", 0, [(0, float("nan"))], "float32", [32704, 0]),
-        Result(2, 1, "Read Coils", 10, [(10, True), (11, False)], refs=["00011", "00012"]),
-        Result(2, 1, "Read Coils", 10, [(10, False), (11, True)], refs=["00011", "00012"]),
+        Result(1, 3, "Read Holding Registers", 0, [5, 6], "uint16", [5, 6]),
+        Result(1, 3, "Read Holding Registers", 0, [7, 8], "uint16", [7, 8]),
+        Result(1, 3, "Read Holding Registers", 4, [7, 8], "uint16", [7, 8]),
+        Result(1, 3, "Read Holding Registers", 0, [-2, 32767], "int16", [65534, 32767]),
+        Result(1, 4, "Read Input Registers", 0, [2**64 - 1], "uint64", [65535] * 4, addresses=[0]),
+        Result(1, 4, "Read Input Registers", 0, [-1, 7], "int32", [65535, 65535, 0, 7], addresses=[0, 2]),
+        Result(1, 3, "Read Holding Registers", 0, ["0x00FF"], "hex", [255]),
+        Result(1, 3, "Read Holding Registers", 0, ['a"b'], "string", [24866, 25088], addresses=[0]),
+        Result(1, 3, "Read Holding Registers", 0, [1.5], "float32", [16320, 0], addresses=[0]),
+        Result(1, 3, "Read Holding Registers", 0, [float("nan")], "float32", [32704, 0], addresses=[0]),
+        Result(2, 1, "Read Coils", 10, [True, False], refs=["00011", "00012"]),
+        Result(2, 1, "Read Coils", 10, [False, True], refs=["00011", "00012"]),
         Result(
-            1, 3, "Read Holding Registers", 0, [(0, {"ABCD": 1.5})], "float32", [1, 2], extra={"order": "all"}
+            1,
+            3,
+            "Read Holding Registers",
+            0,
+            [{"ABCD": 1.5}],
+            "float32",
+            [1, 2],
+            extra={"order": "all"},
+            addresses=[0],
         ),
     ]
     output = Output("json", io.StringIO())
@@ -402,8 +410,8 @@ def test_a_reply_shown_again_is_worked_out_once_and_written_with_its_own_time():
 
     def to_result(reply):
         made.append(reply)
-        items = list(enumerate(reply.registers, 10))
-        return Result(1, 3, "Read Holding Registers", 10, items, "uint16", list(reply.registers))
+        values = list(reply.registers)
+        return Result(1, 3, "Read Holding Registers", 10, values, "uint16", list(reply.registers))
 
     output = Output("json", io.StringIO())
     shown = Deferred(output, to_result)

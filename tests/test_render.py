@@ -10,9 +10,16 @@ import sys
 from mbtool.cli.render import Result, as_dict, render, to_json
 
 REGISTERS = Result(
-    1, 3, "Read Holding Registers", 100, [(100, 21.5), (102, float("nan"))], "float32", [0x41AC, 0, 0x7FC0, 0]
+    1,
+    3,
+    "Read Holding Registers",
+    100,
+    [21.5, float("nan")],
+    "float32",
+    [0x41AC, 0, 0x7FC0, 0],
+    addresses=[100, 102],
 )
-BITS = Result(17, 1, "Read Coils", 19, [(19, True), (20, False)])
+BITS = Result(17, 1, "Read Coils", 19, [True, False])
 
 
 def rendered(result: Result, fmt: str) -> str:
@@ -54,7 +61,7 @@ def test_csv_has_a_header():
 def test_table_golden(monkeypatch):
     monkeypatch.setenv("COLUMNS", "60")
     monkeypatch.setenv("NO_COLOR", "1")
-    text = rendered(Result(1, 3, "Read Holding Registers", 0, [(0, 7)], "uint16", [7]), "table")
+    text = rendered(Result(1, 3, "Read Holding Registers", 0, [7], "uint16", [7]), "table")
     assert text == (
         "Read Holding Registers (FC 03) · unit 1\n"
         "┏━━━━━━━━━┳━━━━━━━┳━━━━━━━━┓\n"

@@ -16,6 +16,7 @@ from mbtool.codec.values import (
     parse_register,
     parse_value,
     registers_needed,
+    value_addresses,
 )
 
 # 0x11223344 as uint32 in each order: the bytes A B C D are 11 22 33 44.
@@ -30,7 +31,7 @@ UINT32_ORDERS = {
 @pytest.mark.parametrize("order", ORDERS)
 def test_uint32_in_every_order(order):
     assert encode_values([0x11223344], "uint32", order) == UINT32_ORDERS[order]
-    assert decode_values(tuple(UINT32_ORDERS[order]), "uint32", order) == [(0, 0x11223344)]
+    assert decode_values(tuple(UINT32_ORDERS[order]), "uint32", order) == [0x11223344]
 
 
 def test_float32_abcd_is_big_endian():
@@ -44,9 +45,13 @@ def test_uint64_word_order_reverses_all_four_words():
     assert encode_values([value], "uint64", "CDAB") == [0x7788, 0x5566, 0x3344, 0x1122]
 
 
-def test_offsets_step_by_the_width_of_the_type():
+def test_addresses_step_by_the_width_of_the_type():
     registers = tuple(encode_values([1.0, 2.0, 3.0], "float32"))
-    assert decode_values(registers, "float32") == [(0, 1.0), (2, 2.0), (4, 3.0)]
+    assert decode_values(registers, "float32") == [1.0, 2.0, 3.0]
+    assert value_addresses("float32", 100, len(registers)) == [100, 102, 104]
+    assert value_addresses("float64", 0, 9) == [0, 4]  # a partial value at the end is not one
+    assert value_addresses("uint16", 7, 3) == [7, 8, 9]
+    assert value_addresses("string", 5, 3) == [5]  # one string, the whole block
 
 
 def test_registers_needed():
@@ -58,13 +63,13 @@ def test_registers_needed():
 
 def test_strings_pack_two_characters_a_register_and_escape_control_bytes():
     assert encode_values(["Hello"], "string") == [0x4865, 0x6C6C, 0x6F00]
-    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string") == [(0, "Hello")]
-    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string", "BADC") == [(0, "eHll\\x00o")]
-    assert decode_values((0x0001,), "string") == [(0, "\\x00\\x01")]
+    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string") == ["Hello"]
+    assert decode_values((0x4865, 0x6C6C, 0x6F00), "string", "BADC") == ["eHll\\x00o"]
+    assert decode_values((0x0001,), "string") == ["\\x00\\x01"]
 
 
 def test_hex_type_shows_each_register():
-    assert decode_values((0x00FF, 0x1234), "hex") == [(0, "0x00FF"), (1, "0x1234")]
+    assert decode_values((0x00FF, 0x1234), "hex") == ["0x00FF", "0x1234"]
 
 
 @pytest.mark.parametrize(
@@ -95,12 +100,12 @@ def test_plain_register_values_accept_negatives_as_twos_complement():
 
 @given(st.integers(-(2**31), 2**31 - 1), st.sampled_from(ORDERS))
 def test_int32_round_trip(value, order):
-    assert decode_values(tuple(encode_values([value], "int32", order)), "int32", order) == [(0, value)]
+    assert decode_values(tuple(encode_values([value], "int32", order)), "int32", order) == [value]
 
 
 @given(st.floats(width=64), st.sampled_from(ORDERS))
 def test_float64_round_trip(value, order):
-    ((_, back),) = decode_values(tuple(encode_values([value], "float64", order)), "float64", order)
+    (back,) = decode_values(tuple(encode_values([value], "float64", order)), "float64", order)
     assert back == value or (math.isnan(back) and math.isnan(value))
 
 
@@ -132,7 +137,5 @@ def test_float32_is_the_shortest_decimal_that_reads_back():
 def test_float64_stays_pythons_repr():
     from mbtool.codec.values import decode_values, encode_values
 
-    assert decode_values(tuple(encode_values([0.1], "float64")), "float64") == [(0, 0.1)]
-    assert decode_values(tuple(encode_values([123.456], "float32", "CDAB")), "float32", "CDAB") == [
-        (0, 123.456)
-    ]
+    assert decode_values(tuple(encode_values([0.1], "float64")), "float64") == [0.1]
+    assert decode_values(tuple(encode_values([123.456], "float32", "CDAB")), "float32", "CDAB") == [123.456]

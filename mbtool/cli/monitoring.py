@@ -35,9 +35,9 @@ def _values(result) -> list[tuple[dict, object, str]]:
             out.append(({"name": row.name, "ref": row.ref}, number, about))
         return out
     table = result.table
-    refs = result.refs or [None] * len(result.items)
+    refs = result.refs or [None] * len(result.values)
     out = []
-    for ref, (address, value) in zip(refs, result.items, strict=True):
+    for ref, address, value in zip(refs, result.addresses, result.values, strict=True):
         labels = {"table": table, "address": str(address)} | ({"ref": ref} if ref else {})
         if isinstance(value, dict):  # --order all: one value an order
             out += [(labels | {"order": order}, each, "") for order, each in value.items()]

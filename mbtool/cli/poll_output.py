@@ -6,7 +6,6 @@ replies and failures to a ``Deferred`` made here.
 
 from __future__ import annotations
 
-import operator
 import sys
 import time
 from collections.abc import Callable
@@ -66,11 +65,8 @@ class Output:
             header, rows = csv_cells(result)
             self._csv(when, header, rows)
         elif self.fmt == "plain":
-            if result.refs is None:  # the common case, kept to one pass (bench/polling_cpu.py)
-                self._emit("".join(f"{when} {a} {value_text(v)}\n" for a, v in result.items))
-            else:
-                lines = zip(labels(result), result.items, strict=True)
-                self._emit("".join(f"{when} {label} {value_text(v)}\n" for label, (_, v) in lines))
+            lines = zip(labels(result), result.values, strict=True)
+            self._emit("".join(f"{when} {label} {value_text(v)}\n" for label, v in lines))
         else:
             self._table(when, result)
 
@@ -142,7 +138,7 @@ class Output:
         table.add_column("Ref" if result.refs is not None else "Address", justify="right")
         for column in orders or ["Value"]:
             table.add_column(column, justify="right")
-        for label, (_, value) in zip(labels(result), result.items, strict=True):
+        for label, value in zip(labels(result), result.values, strict=True):
             values = [value_text(value[o]) for o in orders] if orders else [value_text(value)]
             table.add_row(str(label), *values)
         self._show_table(heading, table)
@@ -202,9 +198,9 @@ def _changeable(result) -> dict:
     if result.__class__ is Points:
         return {row.name: ({"name": row.name, "ref": row.ref}, row.value, row.unit) for row in result.rows}
     table = result.table
-    refs = result.refs or [None] * len(result.items)
+    refs = result.refs or [None] * len(result.values)
     out = {}
-    for ref, (address, value) in zip(refs, result.items, strict=True):
+    for ref, address, value in zip(refs, result.addresses, result.values, strict=True):
         what = {"unit": result.unit, "table": table, "address": address}
         if ref is not None:
             what["ref"] = ref
@@ -302,14 +298,12 @@ class _JsonLines:
 
     def _rest(self, result) -> str | None:
         """The line after the time: the values and registers within the text kept for the shape."""
-        items = result.items
         shape = (
             result.unit,
             result.function,
             result.name,
             result.address,
-            len(items),
-            items[-1][0] if items else None,
+            result.addresses,
             result.type,
             result.refs,
             result.extra,
@@ -318,17 +312,13 @@ class _JsonLines:
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
             self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        values = list(map(_VALUE, items))
-        # A list of ints is the same text in Python's repr as in JSON (json writes an int by
-        # its repr, and a list with ", "), at a third of the encoder's cost; registers are
-        # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
         try:
-            text = repr(values) if self.integers else _ENCODER.encode(values)
+            values = _ints(result.values) if self.integers else _ENCODER.encode(result.values)
         except ValueError:
             return None
         parts = self.parts
-        rest = parts[1] + text + parts[2]
-        return rest + repr(result.registers) + parts[3] if len(parts) == 4 else rest
+        rest = parts[1] + values + parts[2]
+        return rest + _ints(result.registers) + parts[3] if len(parts) == 4 else rest
 
     @staticmethod
     def _parts(result) -> list[str]:
@@ -340,7 +330,12 @@ class _JsonLines:
         return text.split(_ENCODER.encode(_MARK))
 
 
-_VALUE = operator.itemgetter(1)  # an item's value: (address, value)
+def _ints(numbers: list[int]) -> str:
+    """A list of ints as JSON: Python's repr is the same text (json writes an int by its repr,
+    and a list with ", ") at a third of the encoder's cost."""
+    return repr(numbers) if numbers.__class__ is list else _ENCODER.encode(numbers)
+
+
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
 
 

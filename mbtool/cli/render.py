@@ -16,7 +16,7 @@ from typing import TextIO
 
 from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.framing import Framer
-from mbtool.codec.record import record
+from mbtool.codec.record import field, record
 
 FORMATS = ("table", "plain", "json", "csv")
 MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for the read commands
@@ -24,18 +24,19 @@ MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for th
 
 @record
 class Result:
-    """What a command learned (or wrote): items of (address, value) and their context."""
+    """What a command learned (or wrote): values at addresses, and their context."""
 
     unit: int
     function: int
     name: str
     address: int
-    items: list[tuple[int, object]]
+    values: list  # bits, or values of ``type``; {order: value} each with --order all
     type: str | None = None  # None for bits; a register type from codec.values otherwise
     registers: list[int] | None = None  # the raw registers behind typed values
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
-    refs: list[str] | None = None  # Modicon references of the items (read REF): shown for addresses
+    refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
+    addresses: list[int] = field(default=None, kw_only=True)  # where each value starts
 
     def __init__(
         self,
@@ -43,12 +44,14 @@ class Result:
         function: int,
         name: str,
         address: int,
-        items: list[tuple[int, object]],
+        values: list,
         type: str | None = None,
         registers: list[int] | None = None,
         note: str = "",
         extra: dict | None = None,
         refs: list[str] | None = None,
+        *,
+        addresses: list[int] | None = None,
     ) -> None:
         # By hand: one a poll (codec/record.py).
         fields = self.__dict__
@@ -56,12 +59,14 @@ class Result:
         fields["function"] = function
         fields["name"] = name
         fields["address"] = address
-        fields["items"] = items
+        fields["values"] = values
         fields["type"] = type
         fields["registers"] = registers
         fields["note"] = note
         fields["extra"] = extra
         fields["refs"] = refs
+        # One value a register or a bit, from ``address`` on, unless the command says otherwise.
+        fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
 
     @property
     def table(self) -> str:
@@ -86,10 +91,13 @@ def local_time(when: float | None = None) -> str:
         sign = "-" if offset < 0 else "+"
         zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
         _SECOND[:] = [second, time.strftime("%Y-%m-%dT%H:%M:%S", local), zone]
-    return f"{_SECOND[1]}.{int((when - second) * 1000):03d}{_SECOND[2]}"
+        if not _MILLISECONDS:  # made on first use: a one-shot command stamps nothing
+            _MILLISECONDS.extend(f".{ms:03d}" for ms in range(1000))
+    return _SECOND[1] + _MILLISECONDS[int((when - second) * 1000)] + _SECOND[2]
 
 
 _SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)
+_MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
 
 
 # Set by the options as they are parsed: cli.main reads them when a command fails.
@@ -169,12 +177,12 @@ def change_line(what: dict, old, new, unit: str = "") -> str:
 
 def labels(result: Result) -> list:
     """What names each item: its reference when the user gave one (read 40108), else its address."""
-    return result.refs if result.refs is not None else [address for address, _ in result.items]
+    return result.refs if result.refs is not None else result.addresses
 
 
 def by_order(result: Result) -> tuple[str, ...]:
     """The word orders of a --order all result (its values are {order: value}); () otherwise."""
-    first = result.items[0][1] if result.items else None
+    first = result.values[0] if result.values else None
     return tuple(first) if isinstance(first, dict) else ()
 
 
@@ -184,7 +192,7 @@ def csv_cells(result: Result) -> tuple[list[str], list[list[str]]]:
     header = ["ref" if result.refs is not None else "address", *(orders or ["value"])]
     rows = [
         [str(label), *([value_text(value[o]) for o in orders] if orders else [value_text(value)])]
-        for label, (_, value) in zip(labels(result), result.items, strict=True)
+        for label, value in zip(labels(result), result.values, strict=True)
     ]
     return header, rows
 
@@ -193,7 +201,7 @@ def _plain(result: Result, out: TextIO) -> None:
     out.write(
         "".join(
             f"{label} {value_text(value)}\n"
-            for label, (_, value) in zip(labels(result), result.items, strict=True)
+            for label, value in zip(labels(result), result.values, strict=True)
         )
     )
 
@@ -207,8 +215,8 @@ def as_dict(result: Result) -> dict:
     }
     if result.type:
         data["type"] = result.type
-    data["values"] = [value for _, value in result.items]
-    data["addresses"] = [address for address, _ in result.items]
+    data["values"] = result.values
+    data["addresses"] = result.addresses
     if result.refs is not None:
         data["refs"] = result.refs
     if result.registers is not None and result.type not in (None, "uint16"):
@@ -283,8 +291,8 @@ def _table(result: Result, out: TextIO) -> None:
 
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
-    refs = result.refs if result.refs is not None else [None] * len(result.items)
-    for ref, (address, value) in zip(refs, result.items, strict=True):
+    refs = result.refs if result.refs is not None else [None] * len(result.values)
+    for ref, address, value in zip(refs, result.addresses, result.values, strict=True):
         cells = [] if ref is None else [ref]
         if ref is None or not orders:
             cells.append(str(address))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable, Sequence
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
@@ -109,35 +110,52 @@ def registers_needed(type_name: str, count: int) -> int:
     return count if per == 0 else count * per
 
 
-def decode_values(
-    registers: tuple[int, ...], type_name: str, order: str = "ABCD", first: int = 0
-) -> list[tuple[int, Value]]:
-    """(address, value) for each value in the registers, the first register at ``first``
-    (0: the offsets in the block)."""
+def value_decoder(type_name: str, order: str = "ABCD") -> Callable[[Sequence[int]], list[Value]]:
+    """How a block of registers reads as values of the type in the order: chosen once, so a
+    polling loop decodes each reply in one call, without asking again what the type is."""
     kind = TYPES[type_name]
+    byte_order = _bytes_only(order)  # what a type of one register at a time heeds
     if kind.name == "string":
-        text = _bytes_of(registers, _bytes_only(order))
-        return [(first, _printable(text.rstrip(b"\x00")))]
+        return lambda registers: [_printable(_bytes_of(registers, byte_order).rstrip(b"\x00"))]
     if kind.name == "hex":
-        return list(
-            enumerate((f"0x{w:04X}" for w in _swap_words(list(registers), _bytes_only(order))), first)
-        )
+        return lambda registers: [f"0x{w:04X}" for w in _swap_words(list(registers), byte_order)]
     size = kind.registers
-    if kind.fmt == "H" and _bytes_only(order) == "ABCD":
-        return list(enumerate(registers, first))  # uint16 as on the wire: the registers themselves
-    if (_bytes_only(order) if size == 1 else order) == "ABCD":
-        # Big-endian as on the wire: the whole block in one unpack (a polling loop's case).
+    if kind.fmt == "H" and byte_order == "ABCD":
+        return list  # uint16 as on the wire: the registers themselves
+    float32 = kind.fmt == "f"
+    if (byte_order if size == 1 else order) != "ABCD":
+
+        def swapped(registers: Sequence[int]) -> list[Value]:
+            values = [
+                struct.unpack(">" + kind.fmt, _bytes_of(registers[i : i + size], order))[0]
+                for i in range(0, len(registers) - size + 1, size)
+            ]
+            return list(map(shortest_float32, values)) if float32 else values
+
+        return swapped
+
+    def big_endian(registers: Sequence[int]) -> list[Value]:
+        # As on the wire: the whole block in one unpack.
         count = len(registers) // size
-        data = struct.pack(f">{count * size}H", *registers[: count * size])
-        values = struct.unpack(f">{count}{kind.fmt}", data)
-    else:
-        values = tuple(
-            struct.unpack(">" + kind.fmt, _bytes_of(registers[i : i + size], order))[0]
-            for i in range(0, len(registers) - size + 1, size)
+        values = struct.unpack(
+            f">{count}{kind.fmt}", struct.pack(f">{count * size}H", *registers[: count * size])
         )
-    if kind.fmt == "f":
-        values = tuple(map(shortest_float32, values))
-    return list(zip(range(first, first + len(values) * size, size), values, strict=True))
+        return list(map(shortest_float32, values)) if float32 else list(values)
+
+    return big_endian
+
+
+def decode_values(registers: Sequence[int], type_name: str, order: str = "ABCD") -> list[Value]:
+    """The values in the registers: one a value's worth of registers (a string: one in all)."""
+    return value_decoder(type_name, order)(registers)
+
+
+def value_addresses(type_name: str, first: int, registers: int) -> list[int]:
+    """Where each value of a block of ``registers`` registers from ``first`` starts."""
+    size = TYPES[type_name].registers
+    if size == 0:  # a string: one value, the whole block
+        return [first]
+    return list(range(first, first + registers - registers % size, size))
 
 
 def parse_value(text: str, type_name: str) -> Value:

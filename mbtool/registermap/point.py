@@ -64,7 +64,7 @@ class Point:
             return bool(raw[0])
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
-        value = decode_values(tuple(raw), self.type, self.order)[0][1]
+        value = decode_values(raw, self.type, self.order)[0]
         if self.enum is not None and value in self.enum:
             return self.enum[value]
         if self.scale is None and self.offset is None or isinstance(value, str):

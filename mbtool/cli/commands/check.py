@@ -108,17 +108,19 @@ def _number(value, what: str) -> float:
 def _reference_values(connection, targets, given, value_type, order, warn, crit) -> list[Checked]:
     from mbtool.cli.session import execute
     from mbtool.codec.tables import READS, reference
-    from mbtool.codec.values import decode_values, registers_needed
+    from mbtool.codec.values import decode_values, registers_needed, value_addresses
 
     table, address, count = reference_target(targets, "check", given)
     if table.bits:
         reply = execute(connection, READS[table.name](address, count))
-        items = [(address + i, bit) for i, bit in enumerate(reply.bits[:count])]
+        values = list(reply.bits[:count])
+        addresses = list(range(address, address + count))
     else:
         reply = execute(connection, READS[table.name](address, registers_needed(value_type, count)))
-        items = decode_values(reply.registers, value_type, order, address)
+        values = decode_values(reply.registers, value_type, order)
+        addresses = value_addresses(value_type, address, len(reply.registers))
     out = []
-    for item_address, value in items:
+    for item_address, value in zip(addresses, values, strict=True):
         name = reference(table, item_address)
         number = _number(value, name)
         out.append(

@@ -262,23 +262,23 @@ def read_write_registers(connection, read_address, read_count, write_address, va
     """
     from mbtool.cli.render import Result
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
-    from mbtool.codec.values import decode_values, parse_registers, registers_needed
+    from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses
 
     registers = parse_registers(values, value_type, order)
     request = ReadWriteMultipleRegisters(
         read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
     )
     reply = execute(connection, request)
-    items = decode_values(reply.registers, value_type, order, read_address)
     result = Result(
         connection.unit,
         request.function_code,
         request.name,
         read_address,
-        items,
+        decode_values(reply.registers, value_type, order),
         value_type,
         list(reply.registers),
         extra={"written": {"address": write_address, "registers": registers}},
+        addresses=value_addresses(value_type, read_address, len(reply.registers)),
     )
     show(connection, result)
 

@@ -136,12 +136,18 @@ def _read_bits(
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     from mbtool.cli.render import Result
 
-    def to_result(reply):
-        items = [(address + i, bit) for i, bit in enumerate(reply.bits)]
-        refs = None if table is None else _refs(table, items)
-        return Result(connection.unit, kind.function_code, kind.name, address, items, refs=refs)
+    request = kind(address, count)
+    # What every poll shares, made once: a poll's result is its bits in this frame.
+    addresses = list(range(address, address + count))
+    refs = None if table is None else _refs(table, addresses)
 
-    _run(connection, kind(address, count), to_result, interval, polls)
+    def to_result(reply):
+        values = list(reply.bits)
+        return Result(
+            connection.unit, kind.function_code, kind.name, address, values, refs=refs, addresses=addresses
+        )
+
+    _run(connection, request, to_result, interval, polls)
 
 
 def _read_registers(
@@ -157,39 +163,47 @@ def _read_registers(
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     from mbtool.cli.render import Result
-    from mbtool.codec.values import ORDERS, TYPES, decode_values, registers_needed
+    from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
 
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
         raise RequestError(
             f"--order all shows 32- and 64-bit values in each word order; {value_type} is not one: "
             "give --type float32, uint32, int32, float64, uint64 or int64"
         )
+    # What every poll shares, worked out once: a poll's result is its values in this frame.
+    request = kind(address, registers_needed(value_type, count))
+    addresses = value_addresses(value_type, address, request.count)
+    refs = None if table is None else _refs(table, addresses)
+    extra = {"order": ORDER_ALL} if order == ORDER_ALL else None
+    if order == ORDER_ALL:
+        # The same registers read in each order, side by side: the manual's expected value
+        # shows which order the device uses.
+        decoders = [value_decoder(value_type, o) for o in ORDERS]
+
+        def decode(registers):
+            each = [decoded(registers) for decoded in decoders]
+            return [dict(zip(ORDERS, values, strict=True)) for values in zip(*each, strict=True)]
+
+    else:
+        decode = value_decoder(value_type, order)
 
     def to_result(reply):
         registers = reply.registers
-        if order == ORDER_ALL:
-            # The same registers read in each order, side by side: the manual's expected
-            # value shows which order the device uses.
-            each = [decode_values(registers, value_type, o, address) for o in ORDERS]
-            items = [
-                (at, {o: values[i][1] for o, values in zip(ORDERS, each, strict=True)})
-                for i, (at, _) in enumerate(each[0])
-            ]
-        else:
-            items = decode_values(registers, value_type, order, address)
         return Result(
             connection.unit,
             kind.function_code,
             kind.name,
             address,
-            items,
+            decode(registers),
             value_type,
             list(registers),
-            extra={"order": ORDER_ALL} if order == ORDER_ALL else None,
-            refs=None if table is None else _refs(table, items),
+            "",
+            extra,
+            refs,
+            addresses=addresses,
         )
 
-    _run(connection, kind(address, registers_needed(value_type, count)), to_result, interval, polls)
+    _run(connection, request, to_result, interval, polls)
 
 
 @device_command("read-coils", readings=True)
@@ -214,10 +228,10 @@ def read_discrete_inputs(connection, address, count, interval, polls):
     _read_bits(connection, ReadDiscreteInputs, address, count, interval, polls)
 
 
-def _refs(table, items) -> list[str]:
+def _refs(table, addresses: list[int]) -> list[str]:
     from mbtool.codec.tables import reference
 
-    return [reference(table, address) for address, _ in items]
+    return [reference(table, address) for address in addresses]
 
 
 @device_command("read-holding-registers", types=VALUE_TYPES, order_all=True, readings=True)

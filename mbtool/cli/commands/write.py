@@ -44,7 +44,7 @@ def write_coil(connection, address, state):
     execute(connection, request)
     show(
         connection,
-        Result(connection.unit, request.function_code, request.name, address, [(address, request.on)]),
+        Result(connection.unit, request.function_code, request.name, address, [request.on]),
     )
 
 
@@ -61,7 +61,7 @@ def write_register(connection, address, value, value_type, order):
     request = WriteSingleRegister(address, register)
     execute(connection, request)
     # As write-registers does: the value as the register now holds it, in the user's --type.
-    ((_, written),) = decode_values((register,), value_type, order)
+    (written,) = decode_values((register,), value_type, order)
     show(
         connection,
         Result(
@@ -69,7 +69,7 @@ def write_register(connection, address, value, value_type, order):
             request.function_code,
             request.name,
             address,
-            [(address, written)],
+            [written],
             value_type,
             [register],
         ),
@@ -87,8 +87,7 @@ def write_coils(connection, address, bits):
     values = tuple(parse_bit(bit) for bit in bits)
     request = WriteMultipleCoils(address, values)
     execute(connection, request)
-    items = [(address + i, bit) for i, bit in enumerate(values)]
-    show(connection, Result(connection.unit, request.function_code, request.name, address, items))
+    show(connection, Result(connection.unit, request.function_code, request.name, address, list(values)))
 
 
 @device_command("write-registers", types=VALUE_TYPES)
@@ -102,17 +101,26 @@ def write_registers(connection, address, values, value_type, order):
     """
     from mbtool.cli.render import Result
     from mbtool.codec.data_access import WriteMultipleRegisters
-    from mbtool.codec.values import decode_values, parse_registers
+    from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
     registers = parse_registers(values, value_type, order)
     request = WriteMultipleRegisters(address, tuple(registers))
     execute(connection, request)
     # Report the values as the device now holds them, read back through the same type.
-    typed = decode_values(tuple(registers), value_type, order)
-    items = [(address + offset, value) for offset, value in typed]
+    typed = decode_values(registers, value_type, order)
+    addresses = value_addresses(value_type, address, len(registers))
     show(
         connection,
-        Result(connection.unit, request.function_code, request.name, address, items, value_type, registers),
+        Result(
+            connection.unit,
+            request.function_code,
+            request.name,
+            address,
+            typed,
+            value_type,
+            registers,
+            addresses=addresses,
+        ),
     )
 
 
@@ -161,7 +169,7 @@ def write(connection, targets, map, multiple, rmw, value_type, order):
 def _write_reference(connection, text: str, values, multiple: bool, value_type: str, order: str) -> None:
     from mbtool.cli.render import Result
     from mbtool.codec.tables import parse_reference, reference, write_of
-    from mbtool.codec.values import decode_values, parse_registers
+    from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
     if "=" in text:
         raise RequestError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
@@ -172,21 +180,30 @@ def _write_reference(connection, text: str, values, multiple: bool, value_type: 
             "(coils 0xxxx and holding registers 4xxxx are the writable ones)"
         )
     if table.bits:
-        bits = [parse_bit(value) for value in values]
-        request = write_of(table, address, bits, multiple)
-        items = [(address + i, bit) for i, bit in enumerate(bits)]
+        written: list = [parse_bit(value) for value in values]
+        request = write_of(table, address, written, multiple)
+        addresses = list(range(address, address + len(written)))
         registers, kind = None, None
     else:
         registers = parse_registers(values, value_type, order)
         request = write_of(table, address, registers, multiple)
-        items = decode_values(tuple(registers), value_type, order, address)
+        written = decode_values(registers, value_type, order)
+        addresses = value_addresses(value_type, address, len(registers))
         kind = value_type
     execute(connection, request)
-    refs = [reference(table, item_address) for item_address, _ in items]
+    refs = [reference(table, at) for at in addresses]
     show(
         connection,
         Result(
-            connection.unit, request.function_code, request.name, address, items, kind, registers, refs=refs
+            connection.unit,
+            request.function_code,
+            request.name,
+            address,
+            written,
+            kind,
+            registers,
+            refs=refs,
+            addresses=addresses,
         ),
     )
 
@@ -301,6 +318,4 @@ def write_bit(connection, ref, bit, state, rmw):
         raw = _write_bit(connection, client, address, bit, on, rmw)
     function, name = (0x06, "Write Single Register") if rmw else (0x16, "Mask Write Register")
     extra = {"bit": bit} | ({"register": raw[0]} if raw else {})
-    show(
-        connection, Result(connection.unit, function, name, address, [(address, on)], extra=extra, refs=[ref])
-    )
+    show(connection, Result(connection.unit, function, name, address, [on], extra=extra, refs=[ref]))
