@@ -10,7 +10,7 @@ from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, Modbus
 from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
 from mbtool.codec.timing import character_bits, silent_interval
 from mbtool.errors import NoResponse
-from mbtool.link.client import Client
+from mbtool.link.client import Client, Trace
 from mbtool.link.transport import ConnectionClosed, Transport
 
 
@@ -397,3 +397,55 @@ def test_the_same_reply_bytes_give_the_same_response_and_other_bytes_a_new_one()
             master.execute(0x11, REQUEST)
     again = master.execute(0x11, ReadHoldingRegisters(0x6B, 3))  # an equal request, not this one
     assert again == first and again is not first
+
+
+class RecordingTrace(Trace):
+    def __init__(self) -> None:
+        self.lines: list[tuple] = []
+
+    def sent(self, adu: bytes) -> None:
+        self.lines.append(("sent", adu))
+
+    def received(self, adu: bytes, note: str = "") -> None:
+        self.lines.append(("received", adu, note))
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        self.lines.append(("rejected", data, str(error)))
+
+
+def test_a_tcp_reply_read_whole_is_taken_as_predicted_with_the_response_and_trace_of_a_parse():
+    """A read that is exactly the reply the request predicts skips the framer's parse and
+    the judge; the reply read in two pieces goes through them.  Both end alike."""
+    reply = TcpFramer().build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 64"), 1)
+
+    class CountingFramer(TcpFramer):
+        fed = 0
+
+        def feed(self, data: bytes) -> None:
+            self.fed += 1
+            super().feed(data)
+
+    ends = []
+    for chunks in ([reply], [reply[:8], reply[8:]]):
+        clock, trace, framer = FakeClock(), RecordingTrace(), CountingFramer()
+        link = ScriptedLink(clock, [chunks], serial_line=False)
+        response = client(link, clock, framer=framer, trace=trace).execute(0x11, REQUEST)
+        ends.append((response, trace.lines))
+        assert framer.fed == (0 if len(chunks) == 1 else 2)
+    assert ends[0] == ends[1]
+    assert ends[0][0].registers == (555, 0, 100)
+    assert ends[0][1][-1] == ("received", reply, "")
+
+
+def test_a_tcp_reply_unlike_the_prediction_is_judged_as_ever():
+    """Another unit with our transaction id: not the reply predicted, so the judge sees it
+    and says what is wrong, and --lenient still takes it."""
+    other_unit = TcpFramer().build(0x12, bytes.fromhex("03 06 02 2B 00 00 00 64"), 1)
+    clock = FakeClock()
+    link = ScriptedLink(clock, [[other_unit]], serial_line=False)
+    with pytest.raises(MismatchError, match="reply from unit 18, expected unit 17"):
+        client(link, clock, framer=TcpFramer(), timeout=0.5).execute(0x11, REQUEST)
+    link = ScriptedLink(clock, [[other_unit]], serial_line=False)
+    lenient = client(link, clock, framer=TcpFramer(), lenient=True)
+    assert lenient.execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert lenient.deviations == {"reply from unit 18, expected unit 17": None}

@@ -187,6 +187,37 @@ def test_tcp_length_field_out_of_range_is_rejected():
     assert events and all(isinstance(event, Rejected) for event in events)
 
 
+def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_else_to_the_parse():
+    tcp = TcpFramer()
+    pdu = REPLY.encode()
+    reply = tcp.build(UNIT, pdu, 7)
+    framer = TcpFramer()
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    frame = framer.predicted(reply)
+    assert frame == Frame(UNIT, pdu, reply, 7)
+    framer.feed(reply)
+    assert framer.next_event() == frame  # what the parse finds in the same bytes
+    unlike = {
+        "another unit": tcp.build(UNIT + 1, pdu, 7),
+        "another transaction": tcp.build(UNIT, pdu, 8),
+        "an exception": tcp.build(UNIT, bytes.fromhex("83 02"), 7),
+        "another byte count, same size": tcp.build(UNIT, bytes([3, 4]) + pdu[2:], 7),
+        "cut short": reply[:-1],
+        "two replies in one read": reply + reply,
+    }
+    for why, data in unlike.items():
+        assert framer.predicted(data) is None, why
+    framer.feed(b"\x00")
+    assert framer.predicted(reply) is None, "bytes already buffered come first"
+    framer.reset()
+    framer.predict(UNIT, 7, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
+    assert framer.predicted(reply) is None
+    assert framer.predicted(b"") is None  # an empty read (an echo held back) is no reply
+    rtu = RtuFramer()
+    rtu.predict(UNIT, 0, REQUEST.reply_prefix)
+    assert rtu.predicted(rtu.build(UNIT, pdu)) is None  # RTU predicts nothing: its CRC is to check
+
+
 def test_corrupted_reply_is_held_until_silence_then_rejected_whole():
     # Its last byte might be the unit of the real reply: only a pause on the line can tell.
     framer = RtuFramer(responses=True)

@@ -13,6 +13,7 @@ from typing import ClassVar
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
     ExceptionCode,
+    ExceptionResponse,
     Field,
     Request,
     Response,
@@ -231,6 +232,15 @@ class _ReadRegisters(Request):
     @classmethod
     def decode(cls, pdu: bytes) -> _ReadRegisters:
         return cls(*_address_and_count(pdu, cls.name))
+
+    def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
+        # The reply as asked for, which a poll nearly always gets, is taken at once: the
+        # function code, the byte count for the registers asked for and that many bytes.
+        # Anything else goes through Request's checks, which say what is wrong with it.
+        byte_count = 2 * self.count
+        if len(pdu) == 2 + byte_count and pdu[1] == byte_count and pdu[0] == self.function_code:
+            return RegistersResponse(pdu[0], unpack_registers(pdu[2:]))
+        return super().decode_response(pdu)
 
     def check_response(self, response: RegistersResponse) -> None:
         _check_register_count(response, self.count)

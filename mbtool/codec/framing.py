@@ -147,6 +147,21 @@ class Framer(ABC):
 
     # -- helpers ---------------------------------------------------------------------
 
+    # -- the reply predicted ------------------------------------------------------------
+
+    def predict(  # noqa: B027 - optional hook, not abstract
+        self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None
+    ) -> None:
+        """What the reply will be if it answers as asked: ``prefix`` is the request's
+        reply_prefix (the first bytes of its PDU and its length), None when unknown."""
+
+    def predicted(self, data: bytes) -> Frame | None:
+        """``data``, as one read brought it, when it is exactly the reply predicted and
+        nothing else is buffered: its frame, found without the buffer and the parse.  None
+        otherwise, and always from a framer that predicts nothing: the bytes then go the
+        usual way (feed, next_event), which tells what they are."""
+        return None
+
     def _flush_garbage(self) -> Rejected | None:
         if not self._garbage:
             return None
@@ -643,6 +658,26 @@ class TcpFramer(Framer):
 
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
+
+    # The reply predicted: its bytes up to its data (the MBAP header, the function code and
+    # the byte count), its size and its transaction id; None when nothing is predicted.
+    _predicted: tuple[bytes, int, int] | None = None
+
+    def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
+        if prefix is None:
+            self._predicted = None
+            return
+        head, length = prefix
+        header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
+        self._predicted = (header + head, MBAP_HEADER + length, transaction_id)
+
+    def predicted(self, data: bytes) -> Frame | None:
+        if self._predicted is None:
+            return None
+        head, size, transaction_id = self._predicted
+        if len(data) != size or not data.startswith(head) or self._buffer:
+            return None
+        return Frame(data[6], data[MBAP_HEADER:], data, transaction_id)
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

@@ -285,6 +285,14 @@ class Request:
         """Length of the reply to this request; the request may refine the generic rule."""
         return self.response_size.of(pdu)
 
+    @property
+    def reply_prefix(self) -> tuple[bytes, int] | None:
+        """The reply that answers as asked, as far as it is known before it comes: the first
+        bytes of its PDU and the PDU's length.  Reads (FC 01-04) know their function code
+        and byte count; other requests None."""
+        count = getattr(self, "reply_byte_count", None)
+        return None if count is None else (bytes([self.function_code, count]), 2 + count)
+
     def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
         """Client side: decode a reply PDU and check that it answers this request."""
         if not pdu:
