@@ -12,11 +12,12 @@ import os
 import stat
 import sys
 import time
+from collections.abc import Sequence
 from typing import TextIO
 
 from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.framing import Framer
-from mbtool.codec.record import field, record
+from mbtool.codec.record import record
 
 FORMATS = ("table", "plain", "json", "csv")
 MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for the read commands
@@ -32,11 +33,11 @@ class Result:
     address: int
     values: list  # bits, or values of ``type``; {order: value} each with --order all
     type: str | None = None  # None for bits; a register type from codec.values otherwise
-    registers: list[int] | None = None  # the raw registers behind typed values
+    registers: Sequence[int] | None = None  # the raw registers behind typed values, as read
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
     refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
-    addresses: list[int] = field(default=None, kw_only=True)  # where each value starts
+    addresses: list[int] | None = None  # where each value starts; None: one a value from address
 
     def __init__(
         self,
@@ -46,11 +47,10 @@ class Result:
         address: int,
         values: list,
         type: str | None = None,
-        registers: list[int] | None = None,
+        registers: Sequence[int] | None = None,
         note: str = "",
         extra: dict | None = None,
         refs: list[str] | None = None,
-        *,
         addresses: list[int] | None = None,
     ) -> None:
         # By hand: one a poll (codec/record.py).

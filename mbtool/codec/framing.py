@@ -155,9 +155,9 @@ class Framer(ABC):
         """What the reply will be if it answers as asked: ``prefix`` is the request's
         reply_prefix (the first bytes of its PDU and its length), None when unknown."""
 
-    def predicted(self, data: bytes) -> Frame | None:
+    def predicted(self, data: bytes) -> bytes | None:
         """``data``, as one read brought it, when it is exactly the reply predicted and
-        nothing else is buffered: its frame, found without the buffer and the parse.  None
+        nothing else is buffered: its PDU, found without the buffer and the parse.  None
         otherwise, and always from a framer that predicts nothing: the bytes then go the
         usual way (feed, next_event), which tells what they are."""
         return None
@@ -660,8 +660,8 @@ class TcpFramer(Framer):
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
     # The reply predicted: its bytes up to its data (the MBAP header, the function code and
-    # the byte count), its size and its transaction id; None when nothing is predicted.
-    _predicted: tuple[bytes, int, int] | None = None
+    # the byte count) and its size; None when nothing is predicted.
+    _predicted: tuple[bytes, int] | None = None
 
     def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
         if prefix is None:
@@ -669,15 +669,15 @@ class TcpFramer(Framer):
             return
         head, length = prefix
         header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
-        self._predicted = (header + head, MBAP_HEADER + length, transaction_id)
+        self._predicted = (header + head, MBAP_HEADER + length)
 
-    def predicted(self, data: bytes) -> Frame | None:
+    def predicted(self, data: bytes) -> bytes | None:
         if self._predicted is None:
             return None
-        head, size, transaction_id = self._predicted
+        head, size = self._predicted
         if len(data) != size or not data.startswith(head) or self._buffer:
             return None
-        return Frame(data[6], data[MBAP_HEADER:], data, transaction_id)
+        return data[MBAP_HEADER:]
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

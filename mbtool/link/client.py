@@ -239,10 +239,16 @@ class Client:
                     if watch.seen:
                         self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
                         watch.seen = False  # traced once; echoed stays True
-                frame = self.framer.predicted(data)
-                if frame is not None:
-                    reply = self._as_predicted(frame, request)
-                    if reply is not None:
+                pdu = self.framer.predicted(data)
+                if pdu is not None:
+                    # Exactly the reply predicted: from our unit, with our transaction id, the
+                    # function code and the byte count asked for, so the judge's look is spared.
+                    try:
+                        reply = self._decode(request, pdu)
+                    except FrameError:
+                        pass  # not the reply after all: the framer and the judge say why
+                    else:
+                        self.trace.received(data)
                         return reply
                 self.framer.feed(data)
                 event = self.framer.next_event()
@@ -363,18 +369,6 @@ class Client:
         if mismatch:
             return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return reply, problem
-
-    def _as_predicted(self, frame: Frame, request: Request) -> Response | ExceptionResponse | None:
-        """The reply in a frame that is exactly the one predicted (Framer.predicted): from our
-        unit, with our transaction id, the function code and the byte count asked for, so
-        the judge's look is spared.  None if it does not decode after all: the framer and
-        the judge then say why."""
-        try:
-            reply = self._decode(request, frame.pdu)
-        except FrameError:
-            return None
-        self.trace.received(frame.adu)
-        return reply
 
     def _decode(self, request: Request, pdu: bytes) -> Response | ExceptionResponse:
         """The reply PDU decoded; the same response as last time for the same request and bytes."""

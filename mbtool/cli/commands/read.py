@@ -196,11 +196,11 @@ def _read_registers(
             address,
             decode(registers),
             value_type,
-            list(registers),
+            registers,
             "",
             extra,
             refs,
-            addresses=addresses,
+            addresses,
         )
 
     _run(connection, request, to_result, interval, polls)
