@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from mbtool.cli.render import (
     MONITORING_FORMATS,
@@ -312,13 +312,18 @@ class _JsonLines:
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
             self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
+        # A list of ints is the same text in Python's repr as in JSON (json writes an int by
+        # its repr, and a list with ", "), at a third of the encoder's cost; registers are
+        # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
+        values = result.values
         try:
-            values = _ints(result.values) if self.integers else _ENCODER.encode(result.values)
+            text = repr(values) if self.integers and type(values) is list else _ENCODER.encode(values)
         except ValueError:
             return None
         parts = self.parts
-        rest = parts[1] + values + parts[2]
-        return rest + _ints(result.registers) + parts[3] if len(parts) == 4 else rest
+        if len(parts) == 3:
+            return parts[1] + text + parts[2]
+        return parts[1] + text + parts[2] + repr(list(result.registers)) + parts[3]
 
     @staticmethod
     def _parts(result) -> list[str]:
@@ -328,12 +333,6 @@ class _JsonLines:
             data["registers"] = _MARK
         text = _json_line(data)
         return text.split(_ENCODER.encode(_MARK))
-
-
-def _ints(numbers: Sequence[int]) -> str:
-    """Ints as a JSON array: a list's repr is the same text (json writes an int by its repr,
-    and a list with ", ") at a third of the encoder's cost."""
-    return repr(numbers if numbers.__class__ is list else list(numbers))
 
 
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded

@@ -132,7 +132,7 @@ class RegistersResponse(Response):
         if len(pdu) < 2:
             raise DecodeError("registers reply is shorter than its byte count field", pdu)
         need(pdu, 2 + pdu[1], "registers reply")
-        return cls(pdu[0], unpack_registers(pdu[2:]))
+        return cls(pdu[0], unpack_registers(pdu, 2))
 
 
 @record
@@ -239,7 +239,7 @@ class _ReadRegisters(Request):
         # Anything else goes through Request's checks, which say what is wrong with it.
         byte_count = 2 * self.count
         if len(pdu) == 2 + byte_count and pdu[1] == byte_count and pdu[0] == self.function_code:
-            return RegistersResponse(pdu[0], unpack_registers(pdu[2:]))
+            return RegistersResponse(pdu[0], unpack_registers(pdu, 2))
         return super().decode_response(pdu)
 
     def check_response(self, response: RegistersResponse) -> None:

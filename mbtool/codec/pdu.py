@@ -81,14 +81,16 @@ def pack_registers(registers: tuple[int, ...] | list[int]) -> bytes:
     return struct.pack(f">{len(registers)}H", *registers)
 
 
-def unpack_registers(data: bytes) -> tuple[int, ...]:
-    if len(data) % 2:
-        raise DecodeError(f"odd number of register bytes ({len(data)})", data)
-    size = len(data) // 2
+def unpack_registers(data: bytes, start: int = 0) -> tuple[int, ...]:
+    """The registers in ``data`` from ``start`` to its end, high byte first."""
+    length = len(data) - start
+    if length % 2:
+        raise DecodeError(f"odd number of register bytes ({length})", data[start:])
+    size = length // 2
     unpack = _UNPACK_REGISTERS.get(size)
     if unpack is None:  # one Struct a size, not a format string built and looked up a reply
-        unpack = _UNPACK_REGISTERS[size] = struct.Struct(f">{size}H").unpack
-    return unpack(data)
+        unpack = _UNPACK_REGISTERS[size] = struct.Struct(f">{size}H").unpack_from
+    return unpack(data, start)
 
 
 _UNPACK_REGISTERS: dict = {}

@@ -147,8 +147,9 @@ class Client:
     # -- one attempt ------------------------------------------------------------
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
-        self._transaction_id = (self._transaction_id + 1) & 0xFFFF
-        self._attempt_ids.append(self._transaction_id)
+        framer, transport = self.framer, self.transport
+        tid = self._transaction_id = (self._transaction_id + 1) & 0xFFFF
+        self._attempt_ids.append(tid)
         if request is not self._prepared[0]:
             self._prepared = (
                 request,
@@ -158,8 +159,8 @@ class Client:
                 request.reply_prefix,
             )
         _, pdu, echo_watched, expects_response, reply_prefix = self._prepared
-        adu = self.framer.build(unit, pdu, self._transaction_id)
-        serial_line = self.transport.serial_line
+        adu = framer.build(unit, pdu, tid)
+        serial_line = transport.serial_line
         if serial_line:
             self._wait_for_silence()
         if self.pause:
@@ -169,27 +170,30 @@ class Client:
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
         # a polling loop spares itself the look (a system call a poll); a serial line has no
         # ids, and after a timeout a late reply may be on its way anyway.
-        stale = b"" if self._settled and not serial_line else self.transport.discard_input()
+        if serial_line or not self._settled:
+            stale = transport.discard_input()
+            if stale:
+                self.trace.rejected(
+                    stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
+                )
         self._settled = False  # until this attempt ends with its reply
-        if stale:
-            self.trace.rejected(
-                stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
-            )
-        self.framer.reset()
-        self.framer.expect = request
-        self.framer.expect_unit = unit
-        self.framer.predict(unit, self._transaction_id, reply_prefix)
-        self.transport.write(adu)
+        framer.reset()
+        framer.expect = request
+        framer.expect_unit = unit
+        framer.predict(unit, tid, reply_prefix)
+        transport.write(adu)
         self.trace.sent(adu)
         sent_at = self._sent_at = self.clock()
         if self.while_waiting is not None:
             work, self.while_waiting = self.while_waiting, None
             work()
-        on_wire = len(adu) * self._char_time if serial_line else 0.0
-        self._line_free_at = sent_at + on_wire
-        if unit == self.framer.broadcast_unit:
-            return None
+        on_wire = 0.0
+        if serial_line:  # the line is busy while the request is on it
+            on_wire = len(adu) * self._char_time
+            self._line_free_at = sent_at + on_wire
         deadline = sent_at + on_wire + self.timeout
+        if unit == framer.broadcast_unit:
+            return None
         if not expects_response:
             # No reply is the outcome asked for (FC08 sub 04), but a device that does not
             # support the request still refuses it with an exception: wait for that.
