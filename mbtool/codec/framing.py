@@ -145,8 +145,6 @@ class Framer(ABC):
     def check(self, adu: bytes) -> str:
         """A short verdict on the frame's checksum, for the hex trace."""
 
-    # -- helpers ---------------------------------------------------------------------
-
     # -- the reply predicted ------------------------------------------------------------
 
     def predict(  # noqa: B027 - optional hook, not abstract
@@ -161,6 +159,8 @@ class Framer(ABC):
         otherwise, and always from a framer that predicts nothing: the bytes then go the
         usual way (feed, next_event), which tells what they are."""
         return None
+
+    # -- helpers ---------------------------------------------------------------------
 
     def _flush_garbage(self) -> Rejected | None:
         if not self._garbage:
