@@ -231,3 +231,21 @@ def test_closing_a_socket_bridge_does_not_sleep(monkeypatch):
         assert peer.recv(1) == b""  # the bridge saw the connection end
         assert not transport.port.is_open
         peer.close()
+
+
+def test_a_setting_a_url_handler_does_not_support_is_one_cannot_open_error(monkeypatch):
+    """pyserial raises NotImplementedError for a setting a port or url handler lacks
+    (custom baud rates or RS-485 on some platforms, rfc2217:// and a write timeout): it is
+    a port that cannot be opened as asked, one ConnectionFailed naming it (exit 6)."""
+    import serial
+
+    from mbtool.errors import ConnectionFailed, exit_code_for
+    from mbtool.link.transport import SerialSettings, SerialTransport
+
+    def refuse(url, **settings):
+        raise NotImplementedError("non-standard baudrates are not supported on this platform")
+
+    monkeypatch.setattr(serial, "serial_for_url", refuse)
+    with pytest.raises(ConnectionFailed, match="^cannot open /dev/ttyFAKE: non-standard baudrates") as caught:
+        SerialTransport("/dev/ttyFAKE", SerialSettings())
+    assert int(exit_code_for(caught.value)) == 6
