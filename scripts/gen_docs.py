@@ -1,14 +1,14 @@
 #!/usr/bin/env python3
-"""Generate mbtool's man page from the click command tree, and write Click's completion scripts.
+"""Generate mbtool's man page from the click command tree, and write the completion scripts.
 
     python scripts/gen_docs.py           write man/mbtool.1 and completions/mbtool.{bash,zsh,fish}
     python scripts/gen_docs.py --check   exit 1, naming the stale files, if any differs from the tree
 
 Everything is taken from ``mbtool.cli.cli``: the group's help, every command with its help,
 arguments and options (names, metavar or type, choices, default, help, environment
-variable).  The completion scripts are the ones Click emits (click.shell_completion): at
-each TAB they ask mbtool, which answers from the same command tree, so they never go stale
-in what they offer; only a change in Click's script text makes them differ.
+variable).  The completion scripts load the one the installed Click emits
+(click.shell_completion), which at each TAB asks mbtool, answering from the same command
+tree: they never go stale in what they offer, whatever Click is installed.
 The output is deterministic: commands in the group's own order, parameters in declaration
 order, no dates; the only version is ``mbtool.__version__`` in the man page footer.
 
@@ -659,13 +659,37 @@ def _exit_codes() -> list[tuple[int, str]]:
 SHELLS = ("bash", "zsh", "fish")
 
 
-def completion_script(group: click.Group, shell: str) -> str:
-    """The script Click emits for ``shell``: it asks mbtool itself for the words at each TAB."""
-    from click.shell_completion import get_completion_class
+# Each script has the installed mbtool print Click's own script for its shell and loads it, so
+# the script always speaks the completion protocol of the Click that answers (the protocol
+# changed between Click 8.4 and 8.5, and a copy of one Click's script breaks with the other).
+COMPLETION_SCRIPTS = {
+    "bash": (
+        "# mbtool's bash completion: {note}\n"
+        "# The installed mbtool writes Click's script, which asks mbtool for the words at each TAB.\n"
+        'eval "$({var}=bash_source {prog})"\n'
+    ),
+    "zsh": (
+        "#compdef {prog}\n"
+        "# mbtool's zsh completion: {note}\n"
+        "# The installed mbtool writes Click's script, which asks mbtool for the words at each TAB.\n"
+        'eval "$({var}=zsh_source {prog})"\n'
+        "# Autoloaded from fpath at the first TAB: complete that TAB too (Click's script, run\n"
+        "# inside eval, only registers its function for the next ones).\n"
+        '[[ $zsh_eval_context[-1] == loadautofunc ]] && _{prog}_completion "$@"\n'
+    ),
+    "fish": (
+        "# mbtool's fish completion: {note}\n"
+        "# The installed mbtool writes Click's script, which asks mbtool for the words at each TAB.\n"
+        "{var}=fish_source {prog} | source\n"
+    ),
+}
 
+
+def completion_script(shell: str) -> str:
+    """The script for ``shell``: it loads the one the installed Click writes."""
     from mbtool.cli import COMPLETE_VAR
 
-    return get_completion_class(shell)(group, {}, PROG, COMPLETE_VAR).source()
+    return COMPLETION_SCRIPTS[shell].format(prog=PROG, var=COMPLETE_VAR, note=GENERATED_NOTE)
 
 
 def load_cli() -> click.Group:
@@ -681,7 +705,7 @@ def generate(group: click.Group | None = None, version: str | None = None) -> di
     group = group if group is not None else load_cli()
     outputs = {"man/mbtool.1": render_man(collect(group, version))}
     for shell in SHELLS:
-        outputs[f"completions/{PROG}.{shell}"] = completion_script(group, shell)
+        outputs[f"completions/{PROG}.{shell}"] = completion_script(shell)
     return outputs
 
 

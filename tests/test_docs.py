@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -223,27 +224,82 @@ def test_completes_diag_sub_functions_profiles_and_files(tmp_path):
     assert _complete("mbtool monitor --capture ") == ["file,"]
 
 
-def test_the_bash_script_completes_through_mbtool(tmp_path):
-    """Click's script, sourced in bash, asks the mbtool on PATH and fills COMPREPLY."""
+def test_help_and_man_page_spell_choices_as_the_docs_do():
+    """Any case is accepted, but --help, the man page and errors show the listed spelling
+    (Click 8.2 and later show case-insensitive choices in lower case)."""
+    from click.testing import CliRunner
+
+    help_text = CliRunner().invoke(cli, ["read-coils", "--help"], terminal_width=200).output
+    assert "[N|E|O]" in help_text and "[n|e|o]" not in help_text
+    write_help = CliRunner().invoke(cli, ["write-registers", "--help"], terminal_width=200).output
+    assert "[ABCD|CDAB|BADC|DCBA]" in write_help
+    assert "\\fI\\%N\\fR|\\fI\\%E\\fR|\\fI\\%O\\fR" in _read(MAN_PAGE)
+    refused = CliRunner().invoke(cli, ["read-coils", "0", "--parity", "x", "-p", "sim://"])
+    assert refused.exit_code == 2 and "'N', 'E', 'O'" in refused.output
+
+
+def _shell_env(tmp_path: Path) -> dict[str, str]:
+    """An environment whose PATH has an ``mbtool`` that runs this checkout."""
     wrapper = tmp_path / "mbtool"
     wrapper.write_text(f'#!/bin/sh\nexec {sys.executable} -m mbtool "$@"\n')
     wrapper.chmod(0o755)
+    return {**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}", "PYTHONPATH": str(REPO_ROOT)}
+
+
+def _run_shell(argv: list[str], tmp_path: Path) -> str:
+    if shutil.which(argv[0]) is None:
+        pytest.skip(f"{argv[0]} is not installed (.ci/run installs it)")
+    result = subprocess.run(
+        argv, env=_shell_env(tmp_path), capture_output=True, text=True, timeout=30, cwd=REPO_ROOT
+    )
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def test_the_bash_script_completes_through_mbtool(tmp_path):
+    """The script, sourced in bash, loads Click's, which asks the mbtool on PATH and fills COMPREPLY."""
     script = (
         f"source {BASH}\n"
         "COMP_WORDS=(mbtool read-coils --framer a); COMP_CWORD=3\n"
         "_mbtool_completion mbtool\n"
         'printf "%s\\n" "${COMPREPLY[@]}"\n'
+        "COMP_WORDS=(mbtool read-coils --parity); COMP_CWORD=3\n"
+        "COMPREPLY=(); _mbtool_completion mbtool\n"
+        'printf "%s\\n" "${COMPREPLY[@]}"\n'
     )
-    result = subprocess.run(
-        ["bash", "--norc", "--noprofile", "-c", script],
-        env={**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}", "PYTHONPATH": str(REPO_ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=30,
-        cwd=REPO_ROOT,
+    assert _run_shell(["bash", "--norc", "--noprofile", "-c", script], tmp_path).split() == [
+        "ascii", "N", "E", "O",
+    ]
+
+
+def test_the_fish_script_completes_through_mbtool(tmp_path):
+    script = (
+        "source completions/mbtool.fish\n"
+        "complete -C 'mbtool read-coils --framer a'\n"
+        "complete -C 'mbtool read-coils --parity '\n"
+        "complete -C 'mbtool write-registers 0 1 --order c'\n"
     )
-    assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["ascii"]
+    offered = _run_shell(["fish", "--no-config", "-c", script], tmp_path).split()
+    assert sorted(offered) == sorted(["ascii", "N", "E", "O", "CDAB"])  # fish sorts what it offers
+
+
+def test_the_zsh_script_completes_through_mbtool(tmp_path):
+    """Autoloaded from fpath as _mbtool at the first TAB, as the README installs it: that TAB
+    is completed, and later TABs go to the function it registered (compadd and compdef are
+    zsh's completion builtins, stood in for by functions that print what they are given)."""
+    folder = tmp_path / "zfunc"
+    folder.mkdir()
+    (folder / "_mbtool").write_text((REPO_ROOT / "completions" / "mbtool.zsh").read_text())
+    script = (
+        f"fpath=({folder} $fpath); autoload -U _mbtool\n"
+        "compdef() { print -r -- compdef $@ }\n"
+        "compadd() { print -r -- ${(P)${@[-1]}} }\n"
+        "words=(mbtool read-coils --framer a); CURRENT=4; _mbtool\n"
+        "words=(mbtool read-coils --parity ''); CURRENT=4; _mbtool_completion\n"
+    )
+    assert _run_shell(["zsh", "-f", "-c", script], tmp_path).splitlines() == [
+        "compdef _mbtool_completion mbtool", "ascii", "N E O",
+    ]
 
 
 # --- (d) the check fails when the tree changes ---------------------------------------------
@@ -269,7 +325,7 @@ def _tree_with_extra_command() -> click.Group:
 
 def test_check_reports_stale_files_when_a_command_is_added():
     outputs = gen_docs.generate(_tree_with_extra_command())
-    # The completion scripts ask mbtool at each TAB: a new command changes the man page only.
+    # The completion scripts have mbtool answer at each TAB: a new command changes the man page only.
     assert gen_docs.stale(outputs, REPO_ROOT) == [MAN_PAGE]
     assert "frobnicate-registers" in outputs[MAN_PAGE].replace("\\-", "-")
     assert _has_word(outputs[MAN_PAGE].replace("\\-", "-"), "--zap-level")

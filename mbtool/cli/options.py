@@ -193,17 +193,28 @@ class Rs485Delays(click.ParamType):
 
 class Choice(click.Choice):
     """One case rule for every choice: any case is accepted (--type FLOAT32, --order cdab,
-    --framer RTU) and the listed spelling is what the command gets.  ``aliases`` are other
-    words for a choice, as a field engineer says them (parity none, even, odd)."""
+    --framer RTU) and the listed spelling is what the command gets, what --help shows and what
+    completion offers.  ``aliases`` are other words for a choice, as a field engineer says
+    them (parity none, even, odd).
+
+    The case folding is done here rather than by Click's ``case_sensitive=False``, whose
+    help and completion show the choices in lower case from Click 8.2 on ([n|e|o] for a
+    parity the docs write N, E, O)."""
 
     def __init__(self, choices, aliases: dict[str, str] | None = None) -> None:
-        super().__init__(choices, case_sensitive=False)
-        self.aliases = {word.lower(): choice for word, choice in (aliases or {}).items()}
+        super().__init__(choices, case_sensitive=True)
+        self.spelling = {choice.lower(): choice for choice in self.choices}
+        self.spelling.update((word.lower(), choice) for word, choice in (aliases or {}).items())
 
     def convert(self, value, param, ctx):
         if isinstance(value, str):
-            value = self.aliases.get(value.lower(), value)
+            value = self.spelling.get(value.lower(), value)
         return super().convert(value, param, ctx)
+
+    def shell_complete(self, ctx, param, incomplete):
+        from click.shell_completion import CompletionItem
+
+        return [CompletionItem(c) for c in self.choices if c.lower().startswith(incomplete.lower())]
 
 
 PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
