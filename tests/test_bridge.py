@@ -392,8 +392,8 @@ def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
         expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", running.target, "-t", "5"))
         code, out, err = running.stop()
     lines = [line for line in out.splitlines() if " > " in line or " < " in line]
-    assert "> unit 1 FC03 Read Holding Registers: starting_address=0 quantity=2" in lines[0]
-    assert "< unit 1 FC03 Read Holding Registers: byte_count=4 register[0]=100 register[1]=101" in lines[1]
+    assert "> unit 1 FC 03 (0x03) Read Holding Registers: starting_address=0 quantity=2" in lines[0]
+    assert "< unit 1 FC 03 (0x03) Read Holding Registers: byte_count=4 register[0]=100 register[1]=101" in lines[1]
     assert " | bus " in lines[1] and " ms, total " in lines[1]
     assert any(line.endswith("connected") for line in out.splitlines())
     assert code == 0

@@ -51,7 +51,7 @@ def test_unit_0_over_modbus_tcp_is_sent_to_pymodbus(tcp_device):
     mbtool sends the request and reports the device's answer, as for any unit."""
     res = run_mbtool("read-holding-registers", "0", "2", "-u", "0", "-p", tcp_device.target)
     line = assert_one_error_line(res, 4)
-    assert line == "mbtool: exception 04 Server Device Failure (function 03)"
+    assert line == "mbtool: exception 04 Server Device Failure to FC 03 (0x03)"
 
 
 def test_unit_0_with_serial_framing_stays_a_broadcast(socket_rtu_device):
@@ -159,7 +159,7 @@ def test_force_listen_only_waits_for_a_refusal(libmodbus_server):
     """libmodbus's server has no FC08 and answers exception 01: exit 4, as everywhere."""
     res = run_mbtool("diag", "force-listen-only", "-p", libmodbus_server, "-t", "0.5")
     line = assert_one_error_line(res, 4)
-    assert line == "mbtool: exception 01 Illegal Function (function 08)"
+    assert line == "mbtool: exception 01 Illegal Function to FC 08 (0x08)"
 
 
 def test_force_listen_only_silence_is_the_expected_outcome(silent_server):

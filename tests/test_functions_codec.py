@@ -204,7 +204,7 @@ def test_report_csv_adds_bytes_column_when_rows_carry_them():
 
 def test_report_table_has_title_and_fields():
     text = rendered("table")
-    assert "Get Comm Event Log (FC 12) · unit 1" in text
+    assert "Get Comm Event Log · FC 12 (0x0C) · unit 1" in text
     assert "event count" in text and "264" in text
 
 

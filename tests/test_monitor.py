@@ -277,11 +277,11 @@ def test_from_file_plain_and_json(tmp_path):
     lines = plain.stdout.splitlines()
     assert len(lines) == 5
     assert (
-        " #1 request unit=17 fc=03 [11 03 00 6B 00 03 76 87] CRC 76 87 ok | Read Holding Registers:"
+        " #1 request unit=17 FC 03 (0x03) [11 03 00 6B 00 03 76 87] CRC 76 87 ok | Read Holding Registers:"
         in lines[0]
     )
     assert "starting_address=107 quantity=3" in lines[0]
-    assert " #2 response unit=17 fc=03 " in lines[1] and "request=#1" in lines[1]
+    assert " #2 response unit=17 FC 03 (0x03) " in lines[1] and "request=#1" in lines[1]
     assert " #3 garbage 3 bytes [FF FF 00]" in lines[2]
     assert lines[4].endswith("| flags=exception")
     assert plain.stderr.splitlines() == [

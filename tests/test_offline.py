@@ -130,7 +130,7 @@ def test_decode_request_flag_is_honoured():
 def test_decode_unknown_function_is_shown_as_hex():
     res = expect_ok(run_mbtool("decode", rtu(bytes.fromhex("01 41 AA BB")).hex(" ")))
     got = pairs(res)
-    assert got["data"] == "AA BB" and "not one the codec knows" in got["warning"]
+    assert got["data"] == "AA BB" and got["warning"] == "FC 65 (0x41) is not a function code the codec knows"
 
 
 def test_decode_wrong_byte_count_exit_5():

@@ -152,7 +152,7 @@ def test_a_polled_table_into_a_file_keeps_every_table_and_ends_its_line(tmp_path
     out = tmp_path / "tables.txt"
     assert shell(f"{MBTOOL} {' '.join(READ)} -o table --polls 3 --interval 0.01 > {out}").returncode == 0
     text = out.read_text()
-    assert text.count("Read Holding Registers (FC 03)") == 3 and text.endswith("\n")
+    assert text.count("Read Holding Registers · FC 03 (0x03)") == 3 and text.endswith("\n")
 
 
 def test_write_register_echoes_the_value_in_the_users_type():

@@ -434,7 +434,7 @@ CASES = [
     Case("wrong transaction id", wrong_tid, ("tcp",), 5, r"transaction id \d+, expected \d+"),
     Case("stale reply then the right one", stale_then_right, ALL, 0),
     Case("reply from another unit", other_unit, ALL, 5, r"reply from unit 7, expected unit 1"),
-    Case("another function code", other_function, ALL, 5, r"function code 04, expected 03"),
+    Case("another function code", other_function, ALL, 5, r"reply has FC 04 \(0x04\), expected FC 03 \(0x03\)"),
     Case("byte count disagrees with quantity", byte_count, ALL, 5, r"byte count 4 does not fit 1 registers"),
     Case(
         "truncated reply",
@@ -500,7 +500,7 @@ CASES = [
         undefined_exception,
         ALL,
         4,
-        r"exception 19 Undefined Exception Code \(function 03\)",
+        r"exception 19 Undefined Exception Code to FC 03 \(0x03\)",
     ),
     Case("half-duplex echo with --echo", echo_then_reply, PTYS + ("socket-rtu",), 0, options=("--echo",)),
     Case("half-duplex echo without --echo", echo_then_reply, PTYS + ("socket-rtu",), 0),

@@ -63,7 +63,7 @@ def test_table_golden(monkeypatch):
     monkeypatch.setenv("NO_COLOR", "1")
     text = rendered(Result(1, 3, "Read Holding Registers", 0, [7], "uint16", [7]), "table")
     assert text == (
-        "Read Holding Registers (FC 03) · unit 1\n"
+        "Read Holding Registers · FC 03 (0x03) · unit 1\n"
         "┏━━━━━━━━━┳━━━━━━━┳━━━━━━━━┓\n"
         "┃ Address ┃ Value ┃    Hex ┃\n"
         "┡━━━━━━━━━╇━━━━━━━╇━━━━━━━━┩\n"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from mbtool.cli.render import Report, Row
+from mbtool.codec.errors import function_code_text
 
 SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
 
@@ -79,7 +80,7 @@ def frame_report(described, header: bool = True):
     }
     title = f"[bold]{d.framing.upper()} {d.kind}[/]: {d.name}"
     if d.function is not None:
-        title += f" (FC {d.function & 0x7F:02d})"
+        title += f" · {function_code_text(d.function & 0x7F)}"
     if d.unit is not None:
         title += f" · unit {d.unit}"
     return Report(d.unit, d.function, d.name, rows, data, title=title, header=header)

@@ -31,6 +31,7 @@ from mbtool.cli.render import (
     value_text,
     wants_csv_header,
 )
+from mbtool.codec.errors import function_code_text
 from mbtool.codec.values import TYPES
 from mbtool.errors import OutputFailed, exit_code_for
 
@@ -132,7 +133,7 @@ class Output:
         from rich.text import Text
 
         # The heading above, not as the table's title: a title wraps to the table's width.
-        heading = Text(f"{result.name} (FC {result.function:02d}) · unit {result.unit} · {when}")
+        heading = Text(f"{result.name} · {function_code_text(result.function)} · unit {result.unit} · {when}")
         orders = by_order(result)
         table = Table()
         table.add_column("Ref" if result.refs is not None else "Address", justify="right")

@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from typing import TextIO
 
-from mbtool.codec.errors import ChecksumError, FrameError
+from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
 from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
 
@@ -309,7 +309,10 @@ def _table(result: Result, out: TextIO) -> None:
             cells.append(" ".join(f"{w:04X}" for w in words))
         table.add_row(*cells)
     console = Console(file=out) if out is not sys.stdout else Console()
-    console.print(f"[bold]{result.name}[/] (FC {result.function:02d}) · unit {result.unit}", highlight=False)
+    console.print(
+        f"[bold]{result.name}[/] · {function_code_text(result.function)} · unit {result.unit}",
+        highlight=False,
+    )
     console.print(table)
     if result.note:
         console.print(result.note, style="dim")
@@ -523,7 +526,7 @@ def _report_table(report: Report, out: TextIO) -> None:
     if not title:
         title = f"[bold]{escape(report.name)}[/]"
         if report.function is not None:
-            title += f" (FC {report.function:02d})"
+            title += f" · {function_code_text(report.function)}"
         if report.unit is not None:
             title += f" · unit {report.unit}"
     console.print(title, highlight=False)

@@ -14,7 +14,7 @@ import binascii
 import struct
 
 from mbtool.codec.checksum import crc_ok, lrc
-from mbtool.codec.errors import ProtocolError, RequestError, exception_name
+from mbtool.codec.errors import ProtocolError, RequestError, exception_name, function_code_text
 from mbtool.codec.pdu import ExceptionResponse, Field, Request, function_type
 from mbtool.codec.record import record
 
@@ -197,7 +197,7 @@ def describe_pdu(
         else:
             error = f"exception response: PDU is {len(pdu)} bytes, expected 2"
         kind_type = function_type(code & 0x7F)
-        title = f"exception to {kind_type.name}" if kind_type else f"exception to function {code & 0x7F:02X}"
+        title = f"exception to {kind_type.name if kind_type else function_code_text(code & 0x7F)}"
         return Described(
             **envelope,
             kind="exception",
@@ -214,9 +214,9 @@ def describe_pdu(
             **envelope,
             kind="unknown",
             function=code,
-            name=f"function {code:02X}",
+            name=function_code_text(code),
             fields=fields,
-            warnings=[f"function code {code:02X} is not one the codec knows"],
+            warnings=[f"{function_code_text(code)} is not a function code the codec knows"],
             error="",
         )
     request, request_error = _try_request(pdu) if direction != "response" else (None, "not tried")
@@ -268,7 +268,7 @@ def describe_pdu(
         if shown < len(pdu):
             rest = bytes(pdu[shown:])
             fields.append(Field("undecoded", rest, rest.hex(" ").upper()))
-    head = [Field("function", pdu[:1], code, f"{code:02X} {kind.name}")]
+    head = [Field("function", pdu[:1], code, f"{function_code_text(code)} {kind.name}")]
     return Described(
         **envelope,
         kind=chosen,

@@ -28,6 +28,12 @@ def exception_name(code: int) -> str:
     return EXCEPTION_NAMES.get(code, "Undefined Exception Code")
 
 
+def function_code_text(code: int) -> str:
+    """A function code as every message writes it: decimal, as the spec's tables, the README
+    and --help number the functions, with the hex that a frame shows (FC 22 (0x16))."""
+    return f"FC {code:02d} (0x{code:02X})"
+
+
 class ProtocolError(Exception):
     """Base of the codec's errors; str() is the one line the user sees."""
 
@@ -73,4 +79,4 @@ class ModbusException(ProtocolError):
         self.function_code = function_code
         self.exception_code = exception_code
         self.name = exception_name(exception_code)
-        super().__init__(f"exception {exception_code:02X} {self.name} (function {function_code:02X})")
+        super().__init__(f"exception {exception_code:02X} {self.name} to {function_code_text(function_code)}")

@@ -19,7 +19,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 
 from mbtool.codec.checksum import crc16, crc_ok, lrc
-from mbtool.codec.errors import ChecksumError, FrameError
+from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
 from mbtool.codec.record import record
 
@@ -481,7 +481,7 @@ class RtuFramer(Framer):
         code = self._buffer[start + 1]
         if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
             return None  # an unknown function code we asked for (raw): only silence ends it
-        return FrameError(f"function code {code:02X} is unknown", bytes(self._buffer[start : start + 2]))
+        return FrameError(f"{function_code_text(code)} is unknown", bytes(self._buffer[start : start + 2]))
 
     def _skip_to_frame(self, end: int):
         """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.

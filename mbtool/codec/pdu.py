@@ -16,7 +16,7 @@ from __future__ import annotations
 import struct
 from typing import ClassVar
 
-from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name
+from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name, function_code_text
 from mbtool.codec.record import field, record
 
 MAX_PDU = 253  # RTU: 256 bytes - unit - CRC; MBAP: length field ≤ 254 incl. unit
@@ -303,7 +303,8 @@ class Request:
             return ExceptionResponse.decode(pdu)
         if pdu[0] != self.function_code:
             raise MismatchError(
-                f"reply has function code {pdu[0]:02X}, expected {self.function_code:02X}", pdu
+                f"reply has {function_code_text(pdu[0])}, expected {function_code_text(self.function_code)}",
+                pdu,
             )
         response = _decode_reply(self.response_type, pdu)
         self.check_response(response)
@@ -371,7 +372,7 @@ def pdu_length(pdu: bytes, response: bool, request: Request | None = None) -> in
 def decode_request(pdu: bytes) -> Request:
     kind = function_type(pdu[0]) if pdu else None
     if kind is None:
-        raise DecodeError(f"unknown function code {pdu[0]:02X}" if pdu else "empty PDU", pdu)
+        raise DecodeError(f"unknown function code: {function_code_text(pdu[0])}" if pdu else "empty PDU", pdu)
     return kind.decode(pdu)
 
 
@@ -383,7 +384,7 @@ def decode_response(pdu: bytes) -> Response | ExceptionResponse:
         return ExceptionResponse.decode(pdu)
     kind = function_type(pdu[0])
     if kind is None:
-        raise DecodeError(f"unknown function code {pdu[0]:02X}", pdu)
+        raise DecodeError(f"unknown function code: {function_code_text(pdu[0])}", pdu)
     return _decode_reply(kind.response_type, pdu)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
+from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
@@ -425,8 +425,8 @@ class Client:
             return f"reply from unit {frame.unit}, expected unit {unit}"
         code = frame.pdu[0] if frame.pdu else None
         if code not in (request.function_code, request.function_code | 0x80):
-            shown = "none" if code is None else f"{code:02X}"
-            return f"reply has function code {shown}, expected {request.function_code:02X}"
+            shown = "no function code" if code is None else function_code_text(code)
+            return f"reply has {shown}, expected {function_code_text(request.function_code)}"
         return ""
 
 

@@ -27,7 +27,7 @@ from mbtool.cli.options import (
     with_options,
 )
 from mbtool.cli.render import local_time
-from mbtool.codec.errors import RequestError
+from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
@@ -328,11 +328,12 @@ def decoded_lines(passage) -> list[tuple[str, str]]:
 
     request = _describe(passage.request, passage.upstream, "request")
     head = f"{local_time(passage.time)} {passage.peer}"
-    lines = [(ASKED, f"{head} > unit {passage.unit} FC{passage.function:02X} {one_line(request)}")]
+    fc = function_code_text(passage.function & 0x7F)
+    lines = [(ASKED, f"{head} > unit {passage.unit} {fc} {one_line(request)}")]
     head = f"{local_time(passage.time + passage.total)} {passage.peer}"  # when it ended
     if passage.reply:
         reply = _describe(passage.reply, passage.upstream, "response", request)
-        text = f"{head} < unit {passage.unit} FC{reply.function:02X} {one_line(reply)}"
+        text = f"{head} < unit {passage.unit} {function_code_text(reply.function & 0x7F)} {one_line(reply)}"
     else:
         text = f"{head} - {_unanswered(passage)}"
     lines.append((STYLES[passage.outcome], text + _after(passage)))

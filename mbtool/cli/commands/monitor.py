@@ -30,7 +30,7 @@ from mbtool.cli.options import (
     serial_line_options,
 )
 from mbtool.cli.render import local_time
-from mbtool.codec.errors import RequestError
+from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
@@ -343,13 +343,16 @@ def plain_line(item) -> str:
         name = request.described.name if request.described else ""
         return (
             f"{local_time(item.time)} unanswered #{request.number} unit={request.unit} "
-            f"fc={request.function:02X} {name} | {item.reason}"
+            f"{function_code_text(request.function)} {name} | {item.reason}"
         )
     gap = "-" if item.gap is None else f"{item.gap * 1000:.1f}ms"
     head = f"{local_time(item.time)} gap={gap} #{item.number} {item.direction}"
     if item.direction == "garbage":
         return f"{head} {len(item.wire)} bytes [{wire_text(item)}] | {item.note}"
-    line = f"{head} unit={item.unit} fc={item.function:02X} [{wire_text(item)}] {item.checksum} | {summary(item)}"
+    line = (
+        f"{head} unit={item.unit} {function_code_text(item.function & 0x7F)} [{wire_text(item)}]"
+        f" {item.checksum} | {summary(item)}"
+    )
     if item.latency is not None:
         line += f" | latency={item.latency * 1000:.1f}ms request=#{item.request}"
     if item.flags:
@@ -394,7 +397,7 @@ class Output:
             name = request.described.name if request.described else ""
             self.console.print(
                 f"[dim]{local_time(item.time)}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
-                f"FC{request.function:02X} {escape(name)}: {escape(item.reason)}"
+                f"{function_code_text(request.function)} {escape(name)}: {escape(item.reason)}"
             )
             return
         gap = "" if item.gap is None else f"+{item.gap * 1000:.1f}ms"
@@ -410,7 +413,9 @@ class Output:
             if item.checksum_ok
             else f"[bold red]{escape(item.checksum)}[/]"
         )
-        line = f"{head} unit {item.unit:<3} FC{item.function:02X} {escape(summary(item))}"
+        line = (
+            f"{head} unit {item.unit:<3} {function_code_text(item.function & 0x7F)} {escape(summary(item))}"
+        )
         if item.latency is not None:
             line += f" [yellow]{item.latency * 1000:.1f} ms[/]"
         flags = [flag for flag in item.flags if flag != "bad-checksum"]

@@ -23,7 +23,7 @@ import time
 import click
 
 from mbtool.cli.options import ADDRESS, COUNT, Choice, device_command, parse_units, units_text
-from mbtool.codec.errors import RequestError
+from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary
 from mbtool.link.scan import PROBES, READS, Answer, Scan, Setting, Tally, probe_request
@@ -360,7 +360,7 @@ def scan(connection, probe, address, count, bauds, parities, first):
     finally:
         progress.stop()
     head = {"function": request.function_code, "name": request.name, "timeout": connection.timeout}
-    title = f"[bold]Scan[/] {request.name} (FC {request.function_code:02d}) · {connection.port}"
+    title = f"[bold]Scan[/] {request.name} · {function_code_text(request.function_code)} · {connection.port}"
     output.finish(tally, head, title)
     raise _summary(tally, time.monotonic() - started, connection.timeout, sweeping)
 

@@ -40,7 +40,7 @@ def parse_exception(text: str) -> tuple[int, int]:
     fc = parse_int(function, "function code")
     ex = parse_int(code, "exception code")
     if not 1 <= fc <= 0x7F:
-        raise RequestError(f"function code {fc} is out of range 1..127")
+        raise RequestError(f"function code {function} is out of range 1..127")
     if not 1 <= ex <= 0xFF:
         raise RequestError(f"exception code {ex} is out of range 1..255")
     return fc, ex
