@@ -59,24 +59,36 @@ EXIT_DESCRIPTIONS = {
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
     "with the status of a program ended by SIGPIPE.",
 }
-FILES = [
-    (
-        "$MBTOOL_CONFIG, else $XDG_CONFIG_HOME/mbtool/config.toml (~/.config/mbtool/config.toml)",
-        "Profiles for -P/--profile NAME: a [profiles.NAME] table of connection settings (port, "
-        "unit, framer, baud, parity, bytesize, stopbits, timeout, retries, echo, rs485, rs485_delays), "
-        "and map, a register map for read and write (a relative path is read from the config "
-        "file's folder). An option on the command line, then MBTOOL_PORT and MBTOOL_UNIT, override "
-        "them. A file that is not UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
-    ),
-    (
-        "MAP (read -m, write -m)",
-        "A register map: TOML with an optional [device] table (type, order, access, max_gap) and "
-        "a [points.NAME] table a point (ref, or table and address; type, order, count, scale, offset, "
-        "unit, description, enum, bit, access), or CSV with a header row of the same keys plus name. "
-        "An unknown key, overlapping points, a bit of a float or a value past register 65535 is "
-        "exit status 2 when the map is loaded, naming the file, the point and the key.",
-    ),
-]
+
+
+def files() -> list[tuple[str, str]]:
+    """The FILES section: the config file and register maps, their keys listed from the
+    tables the loaders check them against, so a key added there is documented here."""
+    from mbtool.cli.profiles import KEYS
+    from mbtool.registermap.load import DEVICE_KEYS, POINT_KEYS
+
+    return [
+        (
+            "$MBTOOL_CONFIG, else $XDG_CONFIG_HOME/mbtool/config.toml (~/.config/mbtool/config.toml)",
+            "Profiles for -P/--profile NAME: a [profiles.NAME] table of these keys: "
+            + "; ".join(f"{key} ({what})" for key, (_, what) in KEYS.items())
+            + ". A relative map path is read from the config file's folder. An option on the "
+            "command line, then MBTOOL_PORT and MBTOOL_UNIT, override them. A file that is not "
+            "UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
+        ),
+        (
+            "MAP (read -m, write -m, diff -m, restore -m, check -m)",
+            "A register map: TOML with an optional [device] table of defaults ("
+            + ", ".join(DEVICE_KEYS)
+            + ") and a [points.NAME] table a point, of these keys: "
+            + "; ".join(f"{key} ({what})" for key, what in POINT_KEYS.items())
+            + "; or CSV with a header row of the same keys plus name. An unknown key, "
+            "overlapping points, a bit of a float or a value past register 65535 is exit "
+            "status 2 when the map is loaded, naming the file, the point and the key.",
+        ),
+    ]
+
+
 FALLBACK_EXIT_CODES = {
     0: "OK",
     1: "INTERNAL",
@@ -618,7 +630,7 @@ def render_man(tree: Tree) -> str:
         out += [".TP", bold(envvar), line(" ".join(text))]
 
     out.append(".SH FILES")
-    for where, what in FILES:
+    for where, what in files():
         out += [".TP", italic(where), line(roff(what))]
 
     out.append(".SH EXIT STATUS")

@@ -268,7 +268,10 @@ def test_the_bash_script_completes_through_mbtool(tmp_path):
         'printf "%s\\n" "${COMPREPLY[@]}"\n'
     )
     assert _run_shell(["bash", "--norc", "--noprofile", "-c", script], tmp_path).split() == [
-        "ascii", "N", "E", "O",
+        "ascii",
+        "N",
+        "E",
+        "O",
     ]
 
 
@@ -298,7 +301,9 @@ def test_the_zsh_script_completes_through_mbtool(tmp_path):
         "words=(mbtool read-coils --parity ''); CURRENT=4; _mbtool_completion\n"
     )
     assert _run_shell(["zsh", "-f", "-c", script], tmp_path).splitlines() == [
-        "compdef _mbtool_completion mbtool", "ascii", "N E O",
+        "compdef _mbtool_completion mbtool",
+        "ascii",
+        "N E O",
     ]
 
 
@@ -346,3 +351,17 @@ def test_man_page_names_the_config_file_and_every_exit_status():
     status = page.split(".SH EXIT STATUS", 1)[1].split(".SH ", 1)[0]
     for code in ExitCode:
         assert f"\\fB\\%{int(code)}\\fR" in status, code
+
+
+def test_man_page_lists_every_profile_key_and_map_key():
+    """The FILES section names each key the config and map loaders accept (pause, lenient,
+    warn and crit were missing once)."""
+    from mbtool.cli.profiles import KEYS
+    from mbtool.registermap.load import DEVICE_KEYS, POINT_KEYS
+
+    files = _man_text().split(".SH FILES", 1)[1].split(".SH ", 1)[0]
+    config, register_map = files.split("MAP (", 1)
+    for key in KEYS:
+        assert _has_word(config, key), f"profile key {key} is not in the man page's FILES"
+    for key in (*POINT_KEYS, *DEVICE_KEYS):
+        assert _has_word(register_map, key), f"map key {key} is not in the man page's FILES"

@@ -483,6 +483,27 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
         assert "the nearest writable values are 100 and 105" in assert_one_error_line(res, 2)
 
 
+@pytest.mark.parametrize("example", ["energy-meter.toml"])
+def test_an_example_maps_header_commands_read_its_twin(example):
+    """The commands an example's header says to try, run as written (but for the port):
+    its twin served with the data file it names, then read with the map."""
+    root = Path(__file__).resolve().parent.parent
+    header = [
+        row[1:].strip()
+        for row in (root / "examples" / example).read_text().splitlines()
+        if row.startswith("#")
+    ]
+    commands = [row.removesuffix("&").split() for row in header if row.startswith("mbtool ")]
+    (serve_argv,) = [argv[2:] for argv in commands if argv[1] == "serve"]
+    (read_argv,) = [argv[1:] for argv in commands if argv[1] == "read"]
+    at = serve_argv.index("-p")
+    del serve_argv[at : at + 2]  # the test picks the port
+    with serve(*serve_argv) as server:
+        at = read_argv.index("-p")
+        read_argv[at + 1] = f"tcp://{server.host}:{server.port}"
+        assert lines(expect_ok(run_mbtool(*read_argv)))[0] == "voltage_l1 230.1 V"
+
+
 def test_a_map_write_may_broadcast_but_rmw_may_not(pump, silent_server):
     res = expect_ok(run_mbtool("write", "-m", pump, "setpoint=1", "-u", "0", "-p", "sim://"))
     assert lines(res) == ["setpoint 1 m3/h"] and "broadcast: no device confirms" in res.stderr
