@@ -365,3 +365,16 @@ def test_man_page_lists_every_profile_key_and_map_key():
         assert _has_word(config, key), f"profile key {key} is not in the man page's FILES"
     for key in (*POINT_KEYS, *DEVICE_KEYS):
         assert _has_word(register_map, key), f"map key {key} is not in the man page's FILES"
+
+
+def test_the_overview_shows_each_commands_summary_whole():
+    """mbtool --help at 80 columns: no summary cut short with "..." (read, write, dump, diff,
+    restore and check were)."""
+    from click.testing import CliRunner
+
+    overview = CliRunner().invoke(cli, ["--help"], terminal_width=80).output
+    listing = " ".join(overview.split("Commands:", 1)[1].split())
+    for name, command in COMMANDS.items():
+        summary = " ".join(command.get_short_help_str(limit=1000).split())
+        assert f"{name} {summary}" in listing, f"{name}'s summary is cut in mbtool --help"
+    assert "..." not in listing

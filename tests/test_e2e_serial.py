@@ -108,6 +108,15 @@ def test_serial_exception_02(serial_device):
     assert "Traceback" not in res.stderr
 
 
+def test_the_hex_trace_marks_an_exception_reply(serial_rtu_device):
+    """pymodbus's device refuses address 5000: its RX line names the exception, as the error does."""
+    res = ser(serial_rtu_device, "read-holding-registers", "5000", "--hex")
+    assert res.returncode == 4, str(res)
+    (rx,) = [h for h in parse_hex_lines(res.stderr) if h.direction == "RX"]
+    assert rx.data[1:3] == bytes([0x83, 0x02]), str(res)
+    assert rx.verdict.endswith("ok; exception 02 Illegal Data Address to FC 03 (0x03)"), str(res)
+
+
 def test_rtu_hex_trace(serial_rtu_device):
     res = expect_ok(ser(serial_rtu_device, "read-holding-registers", "0", "10", "--hex"))
     assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:10])], "stdout must stay clean"

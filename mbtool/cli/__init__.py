@@ -104,6 +104,13 @@ class LazyGroup(QuickHelp, click.Group):
             raise click.UsageError(f"no such command {name}{did_you_mean(close)}", ctx)
         return super().resolve_command(ctx, args)
 
+    def format_commands(self, ctx, formatter):
+        # Each command's summary whole, wrapped in its column: Click cuts it to the width
+        # left on one line ("Read by a device manual's reference, or a...").
+        rows = [(name, self.get_command(ctx, name).get_short_help_str(limit=1000)) for name in COMMANDS]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
     def get_command(self, ctx, name):
         module = COMMANDS.get(name)
         if module is None:

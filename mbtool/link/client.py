@@ -366,6 +366,8 @@ class Client:
                     # if nothing fits).
                     mismatch = str(misfit)
         note = mismatch
+        if isinstance(reply, ExceptionResponse):  # the device's "no", marked where it is seen
+            note = str(ModbusException(reply.function_code, reply.exception_code))
         if accepted:  # a reply taken as it is (--lenient): its trace line says why
             self.deviations.update(dict.fromkeys(accepted))
             note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
