@@ -72,9 +72,14 @@ FILES = [
         "MAP (read -m, write -m)",
         "A register map: TOML with an optional [device] table (type, order, access, max_gap) and "
         "a [points.NAME] table a point (ref, or table and address; type, order, count, scale, offset, "
-        "unit, description, enum, bit, access), or CSV with a header row of the same keys plus name. "
-        "An unknown key, overlapping points, a bit of a float or a value past register 65535 is "
-        "exit status 2 when the map is loaded, naming the file, the point and the key.",
+        "unit, description, enum, bit, access, warn, crit), or CSV with a header row of the same keys "
+        "plus name, read by the csv module's rules (a quoted cell may hold commas and line breaks; a "
+        "UTF-8 byte order mark is allowed; a cell holds at most 128 KiB). An enum labels whole raw "
+        "values, of integer and float points; a value it does not label shows as the number with "
+        "(no label). An unknown key or column, overlapping points, a bit of a float, a value past "
+        "register 65535, a scale or offset a double cannot hold, a raw value labelled twice or "
+        "arrays nested too deeply is exit status 2 when the map is loaded, before the port is "
+        "opened, naming the file, the point and the key.",
     ),
 ]
 FALLBACK_EXIT_CODES = {
