@@ -211,3 +211,36 @@ def test_a_mistyped_reference_is_not_taken_for_a_name(silent_server):
     res = run_mbtool("read", "4o001", "-p", silent_server.tcp_target)
     line = assert_one_error_line(res, 2)
     assert "a reference has 5 or 6 digits" in line and "-m MAP" not in line
+
+
+# --- any file nested too deeply: a data file, a dump, the profile file ----------------------
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [
+        ("deep.json", '{"holding_registers": ' + "[" * 100_000 + "]" * 100_000 + "}"),
+        ("deep.toml", "[holding_registers]\n0 = " + "[" * 5000 + "]" * 5000 + "\n"),
+    ],
+)
+def test_a_data_file_or_dump_nested_too_deeply_is_exit_2(silent_server, tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    res = run_mbtool("serve", "--data", path, "-p", "tcp://127.0.0.1:0")
+    line = assert_one_error_line(res, 2)
+    assert str(path) in line and "nested too deeply" in line
+    res = run_mbtool("diff", path, "-p", silent_server.tcp_target)
+    line = assert_one_error_line(res, 2)
+    assert str(path) in line and "nested too deeply" in line
+    assert silent_server.received_bytes() == b"" and silent_server.connections == 0
+
+
+def test_a_profile_file_nested_too_deeply_is_exit_2(silent_server, tmp_path):
+    config = tmp_path / "config.toml"
+    config.write_text("[profiles.meter]\nport = " + "[" * 5000 + "]" * 5000 + "\n")
+    res = run_mbtool(
+        "read", "40001", "-P", "meter", "-p", silent_server.tcp_target, env={"MBTOOL_CONFIG": str(config)}
+    )
+    line = assert_one_error_line(res, 2)
+    assert str(config) in line and "nested too deeply" in line
+    assert silent_server.received_bytes() == b"" and silent_server.connections == 0
