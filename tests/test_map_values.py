@@ -160,6 +160,15 @@ def test_a_value_without_a_label_says_so(served):
     assert _lines(res) == ["state 7 (no label)"]
     res = expect_ok(run_mbtool("read", "-m", plant, "state", "-o", "json", "-p", target))
     assert json.loads(res.stdout)["points"][0]["value"] == 7  # a number for scripts
+    rw = plant.parent / "rw.toml"
+    rw.write_text(
+        MAP.replace('enum = { 0 = "stopped", 1 = "running" }', 'enum = { 0 = "stopped" }\naccess = "rw"')
+    )
+    res = expect_ok(run_mbtool("write", "-m", rw, "state=5", "-p", "sim://"))
+    assert _lines(res) == ["state 5 (no label)"]
+    assert _lines(expect_ok(run_mbtool("write", "-m", rw, "state=stopped", "-p", "sim://"))) == [
+        "state stopped"
+    ]
 
 
 def test_an_enum_on_a_float32_point(served):
