@@ -253,3 +253,16 @@ def test_a_profile_file_nested_too_deeply_is_exit_2(silent_server, tmp_path):
     line = assert_one_error_line(res, 2)
     assert str(config) in line and "nested too deeply" in line
     assert silent_server.received_bytes() == b"" and silent_server.connections == 0
+
+
+def test_a_nan_that_stays_nan_is_no_change(served):
+    target, plant = served
+    polls = ("--interval", "0.05", "--polls", "3", "--changes", "-p", target)
+    for args in (
+        ("-m", plant, "fault", "hot"),
+        ("40005", "--type", "float32"),
+        ("40005", "--type", "float32", "--order", "all"),
+    ):
+        res = expect_ok(run_mbtool("read", *args, *polls))
+        assert "->" not in res.stdout, str(res)  # NaN equals nothing, itself included
+        assert len(_lines(res)) == (2 if "-m" in args else 1), str(res)
