@@ -79,7 +79,7 @@ FILES = [
         "(no label). An unknown key or column, overlapping points, a bit of a float, a value past "
         "register 65535, a scale or offset a double cannot hold, a raw value labelled twice or "
         "arrays nested too deeply is exit status 2 when the map is loaded, before the port is "
-        "opened, naming the file, the point and the key.",
+        "opened, naming the file, and the point and the key where there is one.",
     ),
 ]
 FALLBACK_EXIT_CODES = {
