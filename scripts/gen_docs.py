@@ -82,9 +82,14 @@ def files() -> list[tuple[str, str]]:
             + ", ".join(DEVICE_KEYS)
             + ") and a [points.NAME] table a point, of these keys: "
             + "; ".join(f"{key} ({what})" for key, what in POINT_KEYS.items())
-            + "; or CSV with a header row of the same keys plus name. An unknown key, "
-            "overlapping points, a bit of a float or a value past register 65535 is exit "
-            "status 2 when the map is loaded, naming the file, the point and the key.",
+            + "; or CSV with a header row of the same keys plus name, read by the csv module's "
+            "rules (a quoted cell may hold commas and line breaks; a UTF-8 byte order mark is "
+            "allowed; a cell holds at most 128 KiB). An enum labels whole raw values, of integer "
+            "and float points; a value it does not label shows as the number with (no label). "
+            "An unknown key or column, overlapping points, a bit of a float, a value past "
+            "register 65535, a scale or offset a double cannot hold, a raw value labelled twice "
+            "or arrays nested too deeply is exit status 2 when the map is loaded, before the "
+            "port is opened, naming the file, and the point and the key where there is one.",
         ),
     ]
 

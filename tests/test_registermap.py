@@ -425,3 +425,218 @@ def test_the_point_at_fault_is_named(tmp_path):
     ) as caught:
         read_points(_execute(device, []), points)
     assert exit_code_for(caught.value) == ExitCode.EXCEPTION
+
+
+# --- non-finite values (issues 28 §3 and 29) --------------------------------------
+
+
+NAN_32, INF_32, NEG_INF_32 = [0x7FC0, 0x0000], [0x7F80, 0x0000], [0xFF80, 0x0000]
+
+
+@pytest.mark.parametrize("scale, offset", [(None, None), ("0.1", None), ("10", "-5"), (None, "3")])
+def test_nan_and_infinity_read_as_themselves_scaled_or_not(scale, offset):
+    import math
+    from decimal import Decimal
+
+    point = _point(
+        type="float32",
+        scale=None if scale is None else Decimal(scale),
+        offset=None if offset is None else Decimal(offset),
+    )
+    assert math.isnan(point.value_of(NAN_32))
+    assert point.value_of(INF_32) == math.inf
+    assert point.value_of(NEG_INF_32) == -math.inf
+    assert math.isnan(point.number_of(point.value_of(NAN_32)))
+    wide = _point(type="float64", scale=point.scale, offset=point.offset)
+    assert wide.value_of(encode_values([math.inf], "float64")) == math.inf
+
+
+def test_a_negative_scale_turns_infinity_round():
+    import math
+    from decimal import Decimal
+
+    point = _point(type="float32", scale=Decimal("-0.5"), offset=Decimal(7))
+    assert point.value_of(INF_32) == -math.inf
+    assert point.value_of(NEG_INF_32) == math.inf
+
+
+def test_a_scaled_value_beyond_a_double_is_infinite_as_float_arithmetic_makes_it():
+    import math
+    from decimal import Decimal
+
+    point = _point(type="float64", scale=Decimal("1e10"))
+    assert point.value_of(encode_values([1e300], "float64")) == math.inf
+    assert point.value_of(encode_values([-1e300], "float64")) == -math.inf
+    assert point.value_of(encode_values([1e290], "float64")) == 10**300  # still a whole number
+
+
+def test_a_written_value_too_large_for_any_step_is_out_of_range():
+    from decimal import Decimal
+
+    setpoint = _point(scale=Decimal("0.1"), writable=True)
+    for text in ("1e999999", "-1e99999999999"):
+        with pytest.raises(RequestError, match="out of range"):
+            setpoint.registers_for(text)
+
+
+# --- what a map may say (issues 28 §5 and 29) --------------------------------------
+
+
+@pytest.mark.parametrize(
+    "value, words",
+    [
+        ('"1e999999999"', "1e999999999 is beyond a double"),
+        ('"1e5000"', "1e5000 is beyond a double"),
+        ('"-1e309"', "-1e309 is beyond a double"),
+        ('"1e-400"', "1e-400 is too small"),
+    ],
+)
+@pytest.mark.parametrize("key", ["scale", "offset"])
+def test_scale_and_offset_are_numbers_a_double_holds(tmp_path, key, value, words):
+    if key == "offset" and "too small" in words:
+        return  # an offset that small is 0 to a double: harmless, and allowed
+    path = _write(tmp_path, f"[points.flow]\nref = 40001\n{key} = {value}\n")
+    with pytest.raises(MapError, match=f"point flow: key {key}: {words}") as caught:
+        load_map(path)
+    assert str(caught.value).startswith(str(path))
+
+
+def test_a_tiny_offset_and_the_largest_double_load(tmp_path):
+    path = _write(tmp_path, '[points.a]\nref = 40001\noffset = "1e-400"\nscale = "1.7976931348623157e308"\n')
+    assert load_map(path).points["a"].scale == __import__("decimal").Decimal("1.7976931348623157e308")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[points.a]\nref = 40001\ndescription = " + "[" * 5000 + "]" * 5000 + "\n",
+        "[points.a]\nref = 40001\ndescription = " + "{a=" * 5000 + "1" + "}" * 5000 + "\n",
+    ],
+)
+def test_a_deeply_nested_map_is_refused(tmp_path, text):
+    path = _write(tmp_path, text)
+    with pytest.raises(MapError, match="nested too deeply") as caught:
+        load_map(path)
+    assert str(caught.value).startswith(str(path))
+    assert exit_code_for(caught.value) == ExitCode.USAGE
+
+
+@pytest.mark.parametrize(
+    "enum",
+    ['{ 1 = "day", "0x1" = "night" }', '{ 1 = "day", "+1" = "night" }'],
+)
+def test_a_raw_value_labelled_twice_is_refused(tmp_path, enum):
+    path = _write(tmp_path, f"[points.tariff]\nref = 40001\nenum = {enum}\n")
+    with pytest.raises(MapError, match="point tariff: key enum: raw value 1 is labelled twice"):
+        load_map(path)
+
+
+def test_a_raw_value_labelled_twice_in_a_csv_cell_is_refused(tmp_path):
+    path = _write(tmp_path, "name,ref,enum\ntariff,40001,1=day; 1=night\n", "m.csv")
+    with pytest.raises(MapError, match="point tariff: key enum: raw value 1 is labelled twice"):
+        load_map(path)
+
+
+@pytest.mark.parametrize(
+    "kind, enum, words",
+    [
+        ("uint16", "{ 70000 = 'x' }", "70000 is out of range 0..65535 for uint16"),
+        ("int16", "{ -40000 = 'x' }", "-40000 is out of range -32768..32767 for int16"),
+        ("float32", "{ 16777217 = 'x' }", "a float32 cannot hold 16777217"),
+    ],
+)
+def test_a_raw_value_the_type_cannot_hold_is_refused(tmp_path, kind, enum, words):
+    path = _write(tmp_path, f"[points.mode]\nref = 40001\ntype = '{kind}'\nenum = {enum}\n")
+    with pytest.raises(MapError, match=f"point mode: key enum: {words}"):
+        load_map(path)
+
+
+@pytest.mark.parametrize("kind", ["float32", "float64"])
+def test_an_enum_on_a_float_point_labels_its_whole_values(tmp_path, kind):
+    import math
+
+    path = _write(
+        tmp_path,
+        f"[points.mode]\nref = 40001\ntype = '{kind}'\nenum = {{ 0 = 'off', 1 = 'heat', 2 = 'cool' }}\n"
+        "access = 'rw'\n",
+    )
+    mode = load_map(path).points["mode"]
+    assert mode.value_of(encode_values([2.0], kind)) == "cool"
+    assert mode.value_of(encode_values([-0.0], kind)) == "off"
+    assert mode.value_of(encode_values([1.5], kind)) == 1.5  # between labels: the number
+    assert math.isnan(mode.value_of(encode_values([math.nan], kind)))
+    assert mode.number_of("heat") == 1
+    assert mode.registers_for("heat") == encode_values([1.0], kind)
+    assert mode.registers_for("2") == encode_values([2.0], kind)
+
+
+def test_a_value_an_enum_does_not_label_is_said_to_have_no_label():
+    state = _point(enum={0: "stopped", 1: "running"})
+    assert state.no_label(state.value_of([7])) and state.no_label(state.value_of([0])) is False
+    assert state.value_of([7]) == 7 and state.number_of(7) == 7
+    assert _point().no_label(7) is False  # a point without enum has no labels to miss
+    float_state = _point(type="float32", enum={1: "on"})
+    assert float_state.no_label(float_state.value_of(encode_values([1.5], "float32")))
+
+
+# --- CSV maps by the csv module's rules (issue 29) ------------------------------------
+
+
+def _csv(tmp_path, text: str, encoding: str = "utf-8"):
+    path = tmp_path / "meter.csv"
+    path.write_bytes(text.encode(encoding))
+    return path
+
+
+def test_a_line_separator_inside_a_cell_is_text(tmp_path):
+    path = _csv(tmp_path, "name,ref,description\nflow,40001,outlet\u2028flow\nlevel,40002,tank\n")
+    points = load_map(path).points
+    assert list(points) == ["flow", "level"]
+    assert points["flow"].description == "outlet\u2028flow"
+
+
+def test_a_quoted_newline_stays_in_its_cell(tmp_path):
+    path = _csv(tmp_path, 'name,ref,description\r\nflow,40001,"outlet\r\nflow"\r\nlevel,40002,tank\r\n')
+    points = load_map(path).points
+    assert list(points) == ["flow", "level"]
+    assert points["flow"].description == "outlet\r\nflow"
+
+
+def test_an_excel_csv_with_a_byte_order_mark_loads(tmp_path):
+    path = _csv(tmp_path, "name,ref,unit\r\nflow,40001,m3/h\r\n", "utf-8-sig")
+    assert load_map(path).points["flow"].unit == "m3/h"
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("name,ref,colour\nflow,40001,\n", "line 1: unknown column colour \\(known: name, ref, table"),
+        ("name,ref,ref\nflow,40001,40002\n", "line 1: column ref is named twice"),
+        ("name,ref,\nflow,40001,red\n", "line 2: a cell under no column name"),
+        ("name;ref;unit\nflow;40001;m3/h\n", "columns are separated by commas"),
+        ("ref,unit\n40001,m3/h\n", "the first row names the columns, one of them name"),
+    ],
+)
+def test_csv_columns_are_checked_by_their_header(tmp_path, text, words):
+    path = _csv(tmp_path, text)
+    with pytest.raises(MapError, match=words) as caught:
+        load_map(path)
+    assert str(caught.value).startswith(str(path))
+
+
+def test_trailing_empty_columns_from_a_spreadsheet_are_allowed(tmp_path):
+    path = _csv(tmp_path, "name,ref,unit,,\nflow,40001,m3/h,,\n")
+    assert load_map(path).points["flow"].unit == "m3/h"
+
+
+def test_a_csv_cell_over_128_kib_is_refused_by_its_key(tmp_path):
+    path = _csv(tmp_path, "name,ref,description\nflow,40001," + "x" * (128 * 1024 + 1) + "\n")
+    with pytest.raises(MapError, match="line 2: point flow: key description: .*128 KiB") as caught:
+        load_map(path)
+    assert str(caught.value).startswith(str(path))
+    import csv
+
+    assert csv.field_size_limit() == 128 * 1024  # the csv module's limit is left as it was
+    path = _csv(tmp_path, "name,ref\n" + "f" * (128 * 1024 + 1) + ",40001\n")
+    with pytest.raises(MapError, match="line 2: key name: a name of 131073 characters"):
+        load_map(path)

@@ -89,6 +89,16 @@ def test_out_of_range_or_malformed_values_are_refused(text, kind):
         parse_value(text, kind)
 
 
+def test_a_number_past_a_double_is_not_written_as_infinity():
+    for kind in ("float64", "float32"):
+        with pytest.raises(RequestError, match=f"1e999 does not fit in {kind}"):
+            parse_value("1e999", kind)
+        with pytest.raises(RequestError, match=f"-1E\\+400 does not fit in {kind}"):
+            parse_value("-1E+400", kind)
+        assert parse_value("-Infinity", kind) == -math.inf  # typed as such, it is meant
+        assert parse_value("inf", kind) == math.inf
+
+
 def test_plain_register_values_accept_negatives_as_twos_complement():
     assert parse_register("-5") == 65531
     assert parse_register("0xFFFF") == 65535

@@ -556,7 +556,7 @@ def reference_target(targets: tuple[str, ...], command: str, types_given: list[s
     try:
         table, address = parse_reference(text)
     except RequestError as error:
-        if any(c.isdigit() for c in text):
+        if text[:1].isdigit():  # a reference mistyped (4o001); a name starts with a letter (voltage_l1)
             raise
         raise RequestError(f"{error}; to {command} a point by name, give its map: -m MAP") from None
     count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1

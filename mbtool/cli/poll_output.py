@@ -183,7 +183,7 @@ class ChangesOnly:
         else:
             for key, (what, value, unit) in current.items():
                 old = self.previous.get(key)
-                if old is None or old[1] != value:
+                if old is None or not _same(old[1], value):
                     self.output.change(when, what, None if old is None else old[1], value, unit)
         self.previous = current
 
@@ -192,6 +192,14 @@ class ChangesOnly:
 
     def close(self) -> None:
         self.output.close()
+
+
+def _same(old, new) -> bool:
+    """Equal, or NaN both times: NaN equals nothing, itself included, and a register that
+    keeps reading NaN has not changed (--order all: each order's value alike)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return old.keys() == new.keys() and all(_same(old[order], new[order]) for order in old)
+    return old == new or old != old and new != new
 
 
 def _changeable(result) -> dict:

@@ -75,6 +75,8 @@ def _read(path: Path) -> dict:
         raise RequestError(f"{path}: not UTF-8 text (byte {error.start}), as TOML must be") from None
     except tomllib.TOMLDecodeError as error:
         raise RequestError(f"{path}: not valid TOML: {error}") from None
+    except RecursionError:  # tomllib parses arrays and tables inside one another recursively
+        raise RequestError(f"{path}: nested too deeply (arrays or tables inside one another)") from None
 
 
 def names() -> list[str]:

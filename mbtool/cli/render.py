@@ -334,12 +334,13 @@ class PointRow:
     bits: bool  # a coil or discrete input: raw holds bits, not registers
     description: str = ""
     number: int | float | None = None  # the number behind the value (Point.number_of)
+    no_label: bool = False  # a value the point's enum does not label (Point.no_label)
 
     @property
     def shown(self) -> str:
         if isinstance(self.value, bool):
             return "on" if self.value else "off"
-        return value_text(self.value)
+        return value_text(self.value) + (" (no label)" if self.no_label else "")
 
 
 @record

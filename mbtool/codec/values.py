@@ -164,14 +164,16 @@ def parse_value(text: str, type_name: str) -> Value:
     if kind.name == "string":
         return text
     try:
-        if kind.fmt in ("f", "d"):
-            value: Value = float(text)
-            if kind.fmt == "f" and math.isfinite(value) and abs(value) > 3.4028234663852886e38:
-                raise RequestError(f"{text} does not fit in float32")
-            return value
-        value = int(text, 0)
+        value: Value = float(text) if kind.fmt in ("f", "d") else int(text, 0)
     except ValueError:
         raise RequestError(f"{text} is not a valid {type_name} value") from None
+    if isinstance(value, float):
+        # float() makes a number past a double's range infinite (1e999): that is not
+        # what was typed, so it is refused as a float32's overflow is.
+        overflowed = math.isinf(value) and "inf" not in text.lower()
+        if overflowed or kind.fmt == "f" and math.isfinite(value) and abs(value) > 3.4028234663852886e38:
+            raise RequestError(f"{text} does not fit in {type_name}")
+        return value
     bits = 16 * kind.registers
     low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if kind.fmt.islower() else (0, (1 << bits) - 1)
     if kind.name == "hex":

@@ -727,6 +727,10 @@ def load_data(
             data = json.loads(raw)
     except (ValueError, UnicodeDecodeError) as error:
         raise RequestError(f"data file {path} is not valid {_kind(path)}: {error}") from None
+    except RecursionError:  # json and tomllib parse arrays inside one another recursively
+        raise RequestError(
+            f"data file {path}: nested too deeply (arrays or tables inside one another)"
+        ) from None
     if not isinstance(data, dict):
         raise RequestError(f"data file {path}: the top level must be a table of sections")
     template = DataModel()

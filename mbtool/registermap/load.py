@@ -9,13 +9,15 @@ and the key.
 from __future__ import annotations
 
 import csv
+import io
+import math
 import tomllib
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.tables import Table, parse_reference, table_named
-from mbtool.codec.values import ORDERS, TYPES
+from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
 from mbtool.errors import ExitCode, MbtoolError
 from mbtool.registermap.point import Point
 
@@ -30,7 +32,7 @@ POINT_KEYS = {
     "offset": "value = raw × scale + offset",
     "unit": "the unit printed after the value",
     "description": "free text",
-    "enum": "labels of raw values",
+    "enum": "labels of raw values (whole numbers; a float's whole values)",
     "bit": "one bit (0-15) of a register",
     "access": "r or rw",
     "warn": "mbtool check's warning range (10, 10:, ~:10, 10:20, @10:20)",
@@ -38,6 +40,7 @@ POINT_KEYS = {
 }
 DEVICE_KEYS = ("type", "order", "access", "max_gap")
 NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
+CSV_CELL_LIMIT = 128 * 1024  # characters: the csv module's own limit for a field
 
 
 class MapError(MbtoolError, ValueError):
@@ -71,6 +74,7 @@ def load_map(path: str | Path) -> RegisterMap:
         raise MapError(f"cannot read map {path}: {error.strerror or error}") from None
     except UnicodeDecodeError as error:
         raise MapError(f"{path}: not UTF-8 text (byte {error.start})") from None
+    text = text.removeprefix("\ufeff")  # a byte order mark (Excel's "CSV UTF-8") is no text
     if path.suffix.lower() == ".csv":
         device: dict = {}
         rows = _csv_rows(path, text)
@@ -79,6 +83,10 @@ def load_map(path: str | Path) -> RegisterMap:
             document = tomllib.loads(text)
         except tomllib.TOMLDecodeError as error:
             raise MapError(f"{path}: not a valid TOML map: {error}") from None
+        except RecursionError:  # tomllib parses arrays and tables inside one another recursively
+            raise MapError(
+                f"{path}: nested too deeply to be a map (arrays or tables inside one another)"
+            ) from None
         unknown = set(document) - {"device", "points"}
         if unknown:
             raise MapError(
@@ -97,23 +105,67 @@ def load_map(path: str | Path) -> RegisterMap:
 
 
 def _csv_rows(path: Path, text: str) -> dict[str, dict]:
-    reader = csv.DictReader(text.splitlines())
-    if not reader.fieldnames or "name" not in reader.fieldnames:
-        raise MapError(f"{path}: the first row names the columns, one of them name")
+    """The rows by the csv module's rules: read as from a file opened with newline="", so a
+    quoted newline stays in its cell and only CR and LF end a row (not U+2028, which
+    str.splitlines would split at)."""
+    # csv refuses a field over its limit with no word of which; so the limit is lifted
+    # while this file is read, and a cell over it is refused below by its key.
+    limit = csv.field_size_limit(max(len(text), CSV_CELL_LIMIT))
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = [cell.strip() for cell in next(reader, [])]
+        table: list[tuple[int, list[str]]] = []
+        line = reader.line_num + 1
+        for cells in reader:
+            table.append((line, cells))
+            line = reader.line_num + 1
+    except csv.Error as error:
+        raise MapError(f"{path}: line {reader.line_num}: not valid CSV: {error}") from None
+    finally:
+        csv.field_size_limit(limit)
+    _csv_header(path, header)
     rows: dict[str, dict] = {}
-    for line, row in enumerate(reader, start=2):
-        if None in row:
+    for line, cells in table:
+        if not any(cell.strip() for cell in cells):
+            continue  # an empty row, as spreadsheets leave at the end
+        if len(cells) > len(header):
             raise MapError(f"{path}: line {line} has more cells than the header")
-        name = (row.pop("name") or "").strip()
+        row = dict(zip(header, (cell.strip() for cell in cells), strict=False))
+        unnamed = [i + 1 for i, cell in enumerate(cells) if not header[i] and cell.strip()]
+        if unnamed:
+            raise MapError(f"{path}: line {line}: a cell under no column name (column {unnamed[0]})")
+        name = row.pop("name", "")
+        if len(name) > CSV_CELL_LIMIT:
+            raise MapError(f"{path}: line {line}: key name: a name of {len(name)} characters")
         if not name:
             raise MapError(f"{path}: line {line} has no name")
         if name in rows:
             raise MapError(f"{path}: line {line}: point {name} is named twice")
-        cells = {key: value.strip() for key, value in row.items() if value and value.strip()}
-        if "enum" in cells:
-            cells["enum"] = _csv_enum(path, name, cells["enum"])
-        rows[name] = cells
+        for key, value in row.items():
+            if len(value) > CSV_CELL_LIMIT:
+                raise MapError(
+                    f"{path}: line {line}: point {name}: key {key}: a cell of {len(value)} characters, "
+                    f"over csv's limit of 128 KiB ({CSV_CELL_LIMIT})"
+                )
+        cells_given = {key: value for key, value in row.items() if key and value}
+        if "enum" in cells_given:
+            cells_given["enum"] = _csv_enum(path, name, cells_given["enum"])
+        rows[name] = cells_given
     return rows
+
+
+def _csv_header(path: Path, header: list[str]) -> None:
+    """Every column is a key a point may have, once; a column with no name is left alone
+    only while its cells are empty (a spreadsheet's trailing commas)."""
+    if "name" not in header:
+        if len(header) == 1 and ";" in header[0]:
+            raise MapError(f"{path}: line 1: columns are separated by commas, and this header has semicolons")
+        raise MapError(f"{path}: the first row names the columns, one of them name")
+    for i, key in enumerate(header):
+        if key and key in header[:i]:
+            raise MapError(f"{path}: line 1: column {key} is named twice")
+        if key and key != "name" and key not in POINT_KEYS:
+            raise MapError(f"{path}: line 1: unknown column {key} (known: name, {', '.join(POINT_KEYS)})")
 
 
 def _csv_enum(path: Path, name: str, text: str) -> dict:
@@ -123,6 +175,8 @@ def _csv_enum(path: Path, name: str, text: str) -> dict:
         raw, sep, label = part.partition("=")
         if not sep:
             raise MapError(f"{path}: point {name}: key enum: write it as 0=stopped; 1=running")
+        if raw.strip() in labels:
+            raise MapError(f"{path}: point {name}: key enum: raw value {raw.strip()} is labelled twice")
         labels[raw.strip()] = label.strip()
     return labels
 
@@ -202,9 +256,11 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         raise fail("scale", "a scale of 0 makes every value the same")
     if (scale is not None or offset is not None) and kind not in NUMERIC_TYPES:
         raise fail("scale" if scale is not None else "offset", f"a {kind} has no number to scale")
-    enum = _enum(row, fail) if "enum" in row else None
-    if enum is not None and not kind.startswith(("uint", "int")):
-        raise fail("enum", f"labels are for integer types, not {kind}")
+    enum = None
+    if "enum" in row:
+        if kind not in NUMERIC_TYPES:
+            raise fail("enum", f"labels are for numbers, not {kind}")
+        enum = _enum(row, kind, fail)
     point = Point(name, table, address, kind, order, count, scale, offset, enum=enum, bit=bit, **options)
     if point.end > 65536:
         raise fail(
@@ -257,6 +313,12 @@ def _decimal(row: dict, key: str, fail) -> Decimal | None:
         raise fail(key, f"{value} is not a number") from None
     if not number.is_finite():
         raise fail(key, f"{value} is not a finite number")
+    # Values are doubles (point.py): a scale or offset a double cannot hold would fail
+    # only once the device was read (decimal.Overflow, a whole number too long to print).
+    if math.isinf(float(number)):
+        raise fail(key, f"{value} is beyond a double's range (±1.8e308)")
+    if key == "scale" and number and float(number) == 0:
+        raise fail(key, f"{value} is too small: a double holds it as 0")
     return number
 
 
@@ -277,7 +339,9 @@ def _string(row: dict, key: str, fail) -> str:
     return value
 
 
-def _enum(row: dict, fail) -> dict[int, str]:
+def _enum(row: dict, kind: str, fail) -> dict[int, str]:
+    """Labels of whole raw values, each one the type holds: on a float point they label
+    the float's whole values (2.0 is 2), and a fraction has no label."""
     labels = row["enum"]
     if not isinstance(labels, dict) or not labels:
         raise fail("enum", 'a table of labels: enum = { 0 = "stopped", 1 = "running" }')
@@ -287,6 +351,14 @@ def _enum(row: dict, fail) -> dict[int, str]:
             number = int(str(raw), 0)
         except ValueError:
             raise fail("enum", f"{raw} is not a whole number") from None
+        if number in out:
+            raise fail("enum", f"raw value {number} is labelled twice ({out[number]} and {label})")
+        try:
+            held = decode_values(encode_values([parse_value(str(number), kind)], kind), kind)[0]
+        except RequestError as error:
+            raise fail("enum", str(error)) from None
+        if held != number:  # a float32 past 2**24 skips whole numbers
+            raise fail("enum", f"a {kind} cannot hold {number}: the nearest it holds is {held}")
         if not isinstance(label, str) or not label:
             raise fail("enum", f"the label of {raw} is not text")
         if label.lower() in (known.lower() for known in out.values()):

@@ -4,10 +4,16 @@ Engineering value = raw × scale + offset, computed in decimal so that a
 manual's 0.1 m³/h step gives 22.5, not 22.500000000000004, and so that a
 written value can be checked to be a whole number of steps before anything is
 sent.
+
+A float register holding NaN or ±Infinity reads as that, scaled or not, as IEEE 754
+arithmetic has it: NaN stays NaN, and ±Infinity times the scale keeps its sign (or flips
+it, for a negative scale) whatever the offset.  A scaled value beyond a double's range is
+±Infinity too, so every value is a number a double holds and every output can carry it.
 """
 
 from __future__ import annotations
 
+import sys
 from decimal import Decimal, InvalidOperation
 
 from mbtool.codec.errors import RequestError
@@ -18,6 +24,7 @@ from mbtool.codec.values import TYPES, Value, decode_values, encode_values, pars
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
 PointValue = Value | bool | None
+DOUBLE_MAX = Decimal(sys.float_info.max)  # the largest finite double
 
 
 @record
@@ -65,11 +72,17 @@ class Point:
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
         value = decode_values(raw, self.type, self.order)[0]
-        if self.enum is not None and value in self.enum:
+        if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
         if self.scale is None and self.offset is None or isinstance(value, str):
             return value
+        # Decimal keeps NaN and ±Infinity as IEEE 754 does (repr gives 'nan', 'inf').
         return _number(Decimal(repr(value)) * (self.scale or 1) + (self.offset or 0))
+
+    def no_label(self, value: PointValue) -> bool:
+        """Whether a value is one the point's enum gives no label: a number (a raw value
+        the map does not name, or a float's fraction, or NaN), shown as such."""
+        return self.enum is not None and not isinstance(value, str)
 
     def number_of(self, value: PointValue) -> int | float | None:
         """The number behind a value, for thresholds and monitoring: an enum label's raw
@@ -103,10 +116,19 @@ class Point:
             raise RequestError(f"{self.name}: {text} is not a number") from None
         if not wanted.is_finite():
             return parse_value(text, self.type)
+        if wanted.copy_abs() > DOUBLE_MAX:  # copy_abs: abs() would round, and overflow
+            # No register holds more than a double; and the step arithmetic stays in
+            # Decimal's range (decimal.Overflow past 1e999999).
+            raise RequestError(f"{self.name}: {text} is out of range for {self.type}")
         scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
         raw = (wanted - offset) / scale
         if TYPES[self.type].fmt in ("f", "d"):
-            return parse_value(str(raw), self.type)
+            try:
+                return parse_value(str(raw), self.type)
+            except RequestError as error:
+                raise RequestError(
+                    f"{self.name}: {text} {self.unit}".rstrip() + f" is raw {raw}: {error}"
+                ) from None
         if raw != raw.to_integral_value():
             low = raw.to_integral_value(rounding="ROUND_FLOOR")
             nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
@@ -138,7 +160,11 @@ class Point:
 
 
 def _number(value: Decimal) -> int | float:
-    return int(value) if value == value.to_integral_value() else float(value)
+    """A whole number as an int, else a float; NaN, ±Infinity and anything beyond a
+    double's range as the double it is (±Infinity for the last)."""
+    if value == value.to_integral_value() and value.copy_abs() <= DOUBLE_MAX:
+        return int(value)
+    return float(value)
 
 
 def _text(value: Decimal) -> str:

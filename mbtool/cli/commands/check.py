@@ -6,12 +6,13 @@ state: 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.  Thresholds are the guidelines'
 ranges (``10``, ``10:``, ``~:10``, ``10:20``, ``@10:20``): an alert when the value
 lies outside the range (inside, with ``@``).  The grammar is nagiosplugin's.
 Anything that keeps the check from judging the value is UNKNOWN with the reason:
-bad arguments always, a device that does not answer, refuses or garbles unless
-``--state-on-error`` says otherwise.
+bad arguments always, a device that does not answer, refuses or garbles, or a value
+that reads NaN, unless ``--state-on-error`` says otherwise.
 """
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import click
@@ -67,14 +68,19 @@ def _label(name: str) -> str:
 
 
 class Checked:
-    """One value judged: its name, number, text for people, unit and thresholds."""
+    """One value judged: its name, number, text for people, unit and thresholds.
+    ``unjudged``: the state of a NaN, which no range can judge (--state-on-error's)."""
 
-    def __init__(self, name: str, number: float, text: str, unit: str, warn, crit) -> None:
+    def __init__(self, name: str, number: float, text: str, unit: str, warn, crit, unjudged: int) -> None:
         self.name, self.number, self.text, self.unit = name, number, text, unit
-        self.warn, self.crit = warn, crit
+        self.warn, self.crit, self.unjudged = warn, crit, unjudged
 
     @property
     def state(self) -> int:
+        # A device reads NaN for "no valid measurement" (a sensor fault): every comparison
+        # with NaN is false, so a range would let it pass as OK.  ±Infinity is judged.
+        if math.isnan(self.number):
+            return self.unjudged
         if self.crit is not None and not self.crit.match(self.number):
             return 2
         if self.warn is not None and not self.warn.match(self.number):
@@ -84,7 +90,9 @@ class Checked:
     def summary(self) -> str:
         shown = f"{self.name}={self.text}" + (f" {self.unit}" if self.unit else "")
         state = self.state
-        if state:
+        if math.isnan(self.number):
+            shown += f" ({STATES[state]}: not a number, nothing to judge)"
+        elif state:
             limit = self.crit if state == 2 else self.warn
             shown += f" ({STATES[state]}: {_violation(limit)})"
         return shown
@@ -105,7 +113,7 @@ def _number(value, what: str) -> float:
     raise RequestError(f"{what} reads {value}, not a number to check")
 
 
-def _reference_values(connection, targets, given, value_type, order, warn, crit) -> list[Checked]:
+def _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged) -> list[Checked]:
     from mbtool.cli.session import execute
     from mbtool.codec.tables import READS, reference
     from mbtool.codec.values import decode_values, registers_needed, value_addresses
@@ -124,12 +132,14 @@ def _reference_values(connection, targets, given, value_type, order, warn, crit)
         name = reference(table, item_address)
         number = _number(value, name)
         out.append(
-            Checked(name, number, str(int(number) if isinstance(value, bool) else value), "", warn, crit)
+            Checked(
+                name, number, str(int(number) if isinstance(value, bool) else value), "", warn, crit, unjudged
+            )
         )
     return out
 
 
-def _map_values(connection, path, names, warn, crit) -> list[Checked]:
+def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     from mbtool.cli.session import open_client
     from mbtool.registermap.load import load_map
     from mbtool.registermap.plan import plan_reads, read_points
@@ -154,7 +164,7 @@ def _map_values(connection, path, names, warn, crit) -> list[Checked]:
         if number is None:
             raise RequestError(f"{point.name} reads {value}, not a number to check")
         text = ("on" if value else "off") if isinstance(value, bool) else str(value)
-        out.append(Checked(point.name, number, text, point.unit, *limits[point.name]))
+        out.append(Checked(point.name, number, text, point.unit, *limits[point.name], unjudged))
     return out
 
 
@@ -168,7 +178,8 @@ def _map_values(connection, path, names, warn, crit) -> list[Checked]:
     type=Choice(["unknown", "warning", "critical"]),
     default="unknown",
     show_default=True,
-    help="The state when the device cannot be read (no response, exception, bad reply).",
+    help="The state when the device cannot be read (no response, exception, bad reply) "
+    "or reads NaN, which no range can judge.",
 )
 def check(connection, targets, map, warning, critical, state_on_error, value_type, order):
     """A monitoring plugin (Nagios, Icinga): judge values against thresholds.
@@ -178,19 +189,20 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     with exit 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN. Ranges as the Monitoring Plugins
     guidelines write them: 10 (alert outside 0..10), 10: (below 10), ~:10 (above 10),
     10:20 (outside), @10:20 (inside). Bad arguments are UNKNOWN; so is a device that
-    cannot be read, unless --state-on-error says otherwise.
+    cannot be read, or a value that reads NaN, unless --state-on-error says otherwise.
     """
     from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, exit_code_for
 
+    on_error = {"unknown": 3, "warning": 1, "critical": 2}[state_on_error]
     try:
         given = type_options_given(map)
         warn, crit = _range(warning, "-w"), _range(critical, "-c")
         if not map and not targets:
             raise RequestError("give a reference such as 40011, or -m MAP and point names")
         if map:
-            values = _map_values(connection, map, targets, warn, crit)
+            values = _map_values(connection, map, targets, warn, crit, on_error)
         else:
-            values = _reference_values(connection, targets, given, value_type, order, warn, crit)
+            values = _reference_values(connection, targets, given, value_type, order, warn, crit, on_error)
     except (*KNOWN_ERRORS, OSError) as error:
         if isinstance(error, OSError):
             error = ConnectionFailed(str(error))
@@ -199,7 +211,7 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
             raise  # --dry-run has shown the frame
         if code == ExitCode.USAGE:  # bad arguments, a bad map or range: nothing was sent
             plugin_output(3, str(error))
-        plugin_output({"unknown": 3, "warning": 1, "critical": 2}[state_on_error], str(error))
+        plugin_output(on_error, str(error))
     state = max(value.state for value in values)
     plugin_output(
         state,

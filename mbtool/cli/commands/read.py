@@ -327,6 +327,7 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
                 r.point.table.bits,
                 r.point.description,
                 r.point.number_of(r.value),
+                r.point.no_label(r.value),
             )
             for r in readings
         ]

@@ -239,7 +239,16 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool) ->
                 raw = (value,) if point.table.bits else tuple(point.registers_of(value))
             shown = value if point.is_bit or not raw else point.value_of(list(raw))
             rows.append(
-                PointRow(point.name, shown, point.unit, point.ref, raw, point.table.bits, point.description)
+                PointRow(
+                    point.name,
+                    shown,
+                    point.unit,
+                    point.ref,
+                    raw,
+                    point.table.bits,
+                    point.description,
+                    no_label=point.no_label(shown),
+                )
             )
     show(connection, Points(connection.unit, register_map.source, rows))
 
