@@ -425,3 +425,160 @@ def test_a_reply_shown_again_is_worked_out_once_and_written_with_its_own_time():
     assert [line["values"] for line in lines] == [[5, 6], [5, 6], [7, 6], [5, 6]]
     assert [line["time"][17:23] for line in lines] == ["21.000", "22.000", "23.000", "24.000"]
     assert all(line["addresses"] == [10, 11] for line in lines)
+
+
+# --- --pause on every poll; each poll stamped when its request went out (issue 28) ---------
+
+
+def _json_polls(res) -> list[dict]:
+    return [json.loads(line) for line in res.stdout.splitlines()]
+
+
+def test_pause_spaces_every_poll_the_first_two_as_well_as_their_stamps_show(mbtool):
+    """serve --min-gap drops a request that comes too soon after its reply before: every poll
+    answered says the pause held on the wire, and the stamps must say so too, from the
+    first poll to the second as between the later ones."""
+    from test_serve import serve
+
+    with serve("--min-gap", "0.3") as server:
+        res = expect_ok(
+            mbtool(
+                "read-holding-registers",
+                "0",
+                "1",
+                "-p",
+                server.target,
+                "-t",
+                "0.5",
+                "--pause",
+                "0.35",
+                "--interval",
+                "0",
+                "--polls",
+                "4",
+                "-o",
+                "json",
+            )
+        )
+    assert summary(res)["replies"] == 4, res
+    stamps = [stamp(line["time"]) for line in _json_polls(res)]
+    gaps = [(b - a).total_seconds() for a, b in itertools.pairwise(stamps)]
+    assert all(gap >= 0.35 - 0.001 for gap in gaps), gaps  # stamps are cut to the millisecond
+
+
+def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, raw_responder):
+    arrived = []
+
+    def answer(request: bytes) -> bytes:
+        arrived.append(time.time())
+        return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
+
+    device = raw_responder(answer)
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers",
+            "0",
+            "1",
+            "-p",
+            device.tcp_target,
+            "--pause",
+            "0.5",
+            "--interval",
+            "0.1",  # due before the pause is over: the pause, not the slot, sends each request
+            "--polls",
+            "3",
+            "-o",
+            "json",
+        )
+    )
+    stamps = [stamp(line["time"]).timestamp() for line in _json_polls(res)]
+    assert len(stamps) == len(arrived) == 3, res
+    # The responder's thread sees a request a few tens of ms late on a loaded machine; a stamp
+    # taken before the pause would be half a second early.
+    assert all(-0.002 <= seen - sent <= 0.25 for sent, seen in zip(stamps, arrived, strict=True)), (
+        stamps,
+        arrived,
+    )
+
+
+def _line_times(args: list[str], lines: int) -> list[float]:
+    """When each of a polling mbtool's first ``lines`` lines of stdout came, on the monotonic clock."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    times = []
+    try:
+        for _ in range(lines):
+            assert proc.stdout.readline(), proc.communicate(timeout=20)
+            times.append(time.monotonic())
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert proc.returncode == 0, err
+    return times
+
+
+def test_a_polls_line_is_not_held_back_for_the_pause_after_it():
+    from test_serve import serve
+
+    with serve() as server:
+        first, second = _line_times(
+            [
+                "read-holding-registers",
+                "0",
+                "1",
+                "-p",
+                server.target,
+                "--pause",
+                "1.5",
+                "--interval",
+                "0",
+                "--polls",
+                "2",
+                "-o",
+                "json",
+            ],
+            2,
+        )
+    # The first line is written when its reply is in, not when the second request leaves.
+    assert second - first >= 0.75, (first, second)
+
+
+def test_pause_holds_across_a_new_link_each_poll(mbtool, raw_responder):
+    """--reconnect-each opens a new link for every poll; the device behind it is the same, and
+    still needs the pause after its last reply."""
+    arrived = []
+
+    def answer(request: bytes) -> bytes:
+        arrived.append(time.monotonic())
+        return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
+
+    device = raw_responder(answer)
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers",
+            "0",
+            "1",
+            "-p",
+            device.tcp_target,
+            "--pause",
+            "0.5",
+            "--reconnect-each",
+            "--interval",
+            "0",
+            "--polls",
+            "3",
+            "-o",
+            "json",
+        )
+    )
+    assert device.connections == 3 and len(arrived) == 3, res
+    gaps = [b - a for a, b in itertools.pairwise(arrived)]
+    assert all(gap >= 0.4 for gap in gaps), gaps  # the responder's thread may see one late

@@ -73,8 +73,8 @@ class Client:
         # earlier attempt answers the request as well as the last one's would (issue 12.2).
         self._attempt_ids: list[int] = []
         self._line_free_at = 0.0  # when the last frame on the line ended
-        # Run once, right after the next request has left: work that can overlap the
-        # device's turnaround (polling writes the previous poll's output there).
+        # Run once, right after the next request has left: polling stamps the poll's time
+        # there, and writes the previous poll's output while the device turns it round.
         self.while_waiting: Callable[[], None] | None = None
         self.round_trip = 0.0  # seconds from the last request sent to its reply
         self._settled = False  # the last transaction ended with its reply: nothing stale left
@@ -96,9 +96,10 @@ class Client:
         self._t35 = silent_interval(baud, char_bits)
         # --pause: at least this long from the end of a transaction (its reply, or the wait
         # for one) to the next request, for devices and gateways that drop requests sent
-        # back to back.
+        # back to back.  ``ended_at`` is on the client's clock; polling hands it to the client of
+        # a new link to the same device (--reconnect-each, a lost link), which must wait too.
         self.pause = pause
-        self._ended_at = float("-inf")
+        self.ended_at = float("-inf")
         # --lenient: a Modbus TCP reply that carries our transaction id and breaks the spec
         # in a harmless, unambiguous way is accepted, and each deviation noted here.
         self.lenient = lenient
@@ -124,7 +125,7 @@ class Client:
                     reply = self._transact(unit, request)
                 finally:
                     if self.pause:
-                        self._ended_at = self.clock()
+                        self.ended_at = self.clock()
                 self._settled = reply is not None
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
@@ -164,7 +165,7 @@ class Client:
         if serial_line:
             self._wait_for_silence()
         if self.pause:
-            wait = self._ended_at + self.pause - self.clock()
+            wait = self.ended_at + self.pause - self.clock()
             if wait > 0:
                 self.sleep(wait)
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction

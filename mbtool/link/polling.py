@@ -101,14 +101,25 @@ def poll(
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
+    pause = connection.pause
     link = ExitStack()  # holds the open link; reopened only after the link itself failed
     client = None
+    when = first_when = last_when = None  # time.time() of this poll, the first and the last
+
+    def request_sent() -> None:
+        """Run by the client right after a poll's (first) request has left: that is the poll's
+        time, and the poll before it is shown while the reply is on its way."""
+        nonlocal when
+        when = time.time()
+        show_previous()
+
     try:
         # Opened before the first poll: a bad port or unit is one error and its exit code,
         # not a failed poll repeated for ever.
         opened_at = time.monotonic()
         client = link.enter_context(open_client(connection, request.name, trace=trace))
         closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
+        ended_at = float("-inf")  # when the last link's last transaction ended (--pause)
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
@@ -127,15 +138,14 @@ def poll(
                 wait = opened_at + connection.timeout - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
-            when = time.time()  # formatted when shown, off the request's path
-            if done == 0:
-                first_when = when
+            when = None  # until the request goes out
             try:
                 if client is None:
                     opened_at = time.monotonic()
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
-                client.while_waiting = show_previous
+                    client.ended_at = ended_at  # the device still wants its pause after that
+                client.while_waiting = request_sent
                 reply = client.execute(connection.unit, request) if run is None else run(client)
                 latency.add(client.round_trip * 1000)
                 replies += 1
@@ -147,12 +157,16 @@ def poll(
                 shown.write()  # the poll before it, if the request never left
                 if isinstance(error, RequestError | OutputFailed):
                     raise  # the request is wrong, or the output full: no later poll can do better
+                if when is None:  # the request never left: the poll failed now
+                    when = time.time()
                 if isinstance(error, NoResponse):
                     timeouts += 1
                 else:
                     errors += 1
                 if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
                     # The link is gone (device restarted, cable pulled): open it anew next poll.
+                    if client is not None:
+                        ended_at = client.ended_at
                     close_quietly(link)
                     client = None
                 if isinstance(error, OSError):
@@ -161,22 +175,32 @@ def poll(
                 shown.failure(when, done + 1, error)
             else:
                 shown.hold(when, reply)
+            if done == 0:
+                first_when = when
+            last_when = when
             closed_on_purpose = False
             if connection.reconnect_each and client is not None:
                 # --reconnect-each: a new link every poll, for devices and gateways that
                 # serve one client or leak connections; no wait, as nothing failed.
+                ended_at = client.ended_at
                 close_quietly(link)
                 client, closed_on_purpose = None, True
             done += 1
+            # Show the poll now unless the next request leaves at once (then it is shown while
+            # that request's reply is on its way): a pause, a new link or a slot not yet due
+            # come first.
+            idle = pause or client is None
             if interval > 0:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
-                    shown.write()  # the next poll is not due yet: no reason to hold this one
+                    idle = True
                 elif behind > 0 and (polls == 0 or done < polls):
                     missed = math.ceil(behind / interval)
                     skipped += missed
                     slot += missed
+            if idle:
+                shown.write()
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -186,8 +210,8 @@ def poll(
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
         f"skipped {skipped}, latency min/avg/max {latency}"
     )
-    if done > 1 and when > first_when:
-        summary += f", {_rate((done - 1) / (when - first_when))} polls/s"
+    if done > 1 and last_when > first_when:
+        summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
     if accepted:
         summary += f"; accepted (--lenient): {'; '.join(accepted)}"
     if interrupted:
