@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from datetime import datetime
+from types import SimpleNamespace
 
 from conftest import (
     HOLDING,
@@ -251,12 +252,69 @@ def test_polling_help_documents_exit_status(mbtool):
     assert "130 only if interrupted before any poll finished" in " ".join(res.stdout.split())
 
 
-def test_a_link_that_cannot_open_is_one_error_not_a_failed_poll_for_ever(mbtool, refused_port):
-    from conftest import assert_one_error_line
-
-    res = mbtool("read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{refused_port}", "--interval", "0.1")
-    assert_one_error_line(res, 6)
+def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(mbtool, refused_port):
+    res = mbtool(
+        "read-coils",
+        "0",
+        "1",
+        "-p",
+        f"tcp://127.0.0.1:{refused_port}",
+        "-t",
+        "0.2",
+        "--interval",
+        "0.5",  # beyond the 0.2 s a link waits to be opened again: no slot skipped
+        "--polls",
+        "3",
+        "-o",
+        "json",
+    )
+    assert res.returncode == 6 and "Traceback" not in res.stderr, res
+    failed = [line for line in res.stderr.splitlines() if re.match(r"mbtool: \S+ poll \d: ", line)]
+    assert [line.split()[3] for line in failed] == ["1:", "2:", "3:"], res
+    assert [json.loads(line)["exit_code"] for line in res.stdout.splitlines()] == [6, 6, 6]
+    assert summary(res) == {"polls": 3, "replies": 0, "timeouts": 0, "errors": 3, "skipped": 0}
+    # A request that cannot be made is still one error, before any poll.
     assert_one_error_line(mbtool("read-coils", "0", "1", "--interval", "0.1"), 2)
+
+
+def test_polling_goes_on_until_a_device_that_was_not_up_answers():
+    """The device is down when polling starts, and comes up: its first polls fail as a lost
+    link's would, and polling goes on to read it."""
+    from conftest import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "read-holding-registers", "0", "1", "-p", f"tcp://127.0.0.1:{port}"]
+        + ["-t", "0.2", "--interval", "0.2", "-o", "json"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        first = proc.stdout.readline()
+        assert first, proc.communicate(timeout=10)
+        assert json.loads(first)["exit_code"] == 6
+        lines = [first]
+        with start_device(tcp=True, framer="socket", port=port):
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and "values" not in lines[-1]:
+                line = proc.stdout.readline()
+                assert line, proc.communicate(timeout=10)
+                lines.append(line)
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert json.loads(lines[-1])["values"] == [HOLDING[0]], lines
+    assert proc.returncode == 6, err  # the code of the last failed poll
+    assert "Traceback" not in err and "poll 1: " in err
+    counts = summary(SimpleNamespace(stderr=err))
+    assert counts["replies"] >= 1 and counts["errors"] >= 1, err
 
 
 def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):

@@ -114,12 +114,12 @@ def poll(
         show_previous()
 
     try:
-        # Opened before the first poll: a bad port or unit is one error and its exit code,
-        # not a failed poll repeated for ever.
-        opened_at = time.monotonic()
-        client = link.enter_context(open_client(connection, request.name, trace=trace))
+        # The link is opened by the first poll, as by a poll after a lost link: a device that
+        # is not up yet is a failed poll, and polling goes on.  A port or unit that makes no
+        # sense is a RequestError, one error before anything is sent.
+        opened_at = -math.inf
         closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
-        ended_at = float("-inf")  # when the last link's last transaction ended (--pause)
+        ended_at = -math.inf  # when the last link's last transaction ended (--pause)
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
@@ -132,7 +132,7 @@ def poll(
                 if delay > 0:
                     time.sleep(delay)
             if client is None and not closed_on_purpose:
-                # The link failed: open it again at most once a timeout, as if a refusal had
+                # No link, or it failed: open it at most once a timeout, as if a refusal had
                 # waited the timeout out, so a device that is restarting or unplugged is not
                 # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
                 wait = opened_at + connection.timeout - time.monotonic()
@@ -145,6 +145,12 @@ def poll(
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
                     client.ended_at = ended_at  # the device still wants its pause after that
+                    if done == 0:
+                        # The first link's modules stay as long as the loop too; and the schedule
+                        # starts with the first link open: opening sim:// (its imports) or a
+                        # slow handshake is not a poll overrunning its slot.
+                        gc.freeze()
+                        start = time.monotonic()
                 client.while_waiting = request_sent
                 reply = client.execute(connection.unit, request) if run is None else run(client)
                 latency.add(client.round_trip * 1000)
