@@ -29,7 +29,8 @@ def summary(res) -> dict:
     line = res.stderr.strip().splitlines()[-1]
     match = re.match(
         r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), timeouts (\d+), errors (\d+), skipped (\d+), "
-        r"latency min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-)(?:, [\d.]+ polls/s)?$",
+        r"latency per request min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-), per poll (?:[\d.]+/[\d.]+/[\d.]+ ms|-)"
+        r"(?:, [\d.]+ polls/s)?$",
         line,
     )
     assert match, f"no summary line\n{res}"
@@ -151,7 +152,7 @@ def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server
     assert "Traceback" not in res.stderr
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert len(lines) == 2 and all("error" in line and "time" in line for line in lines)
-    errors = [line for line in res.stderr.splitlines() if " poll " in line]
+    errors = [line for line in res.stderr.splitlines() if re.search(r" poll \d+: ", line)]
     assert len(errors) == 2 and all(line.startswith("mbtool: ") for line in errors)
     assert summary(res) == {"polls": 2, "replies": 0, "timeouts": 2, "errors": 0, "skipped": 0}
 
@@ -640,3 +641,70 @@ def test_pause_holds_across_a_new_link_each_poll(mbtool, raw_responder):
     assert device.connections == 3 and len(arrived) == 3, res
     gaps = [b - a for a, b in itertools.pairwise(arrived)]
     assert all(gap >= 0.4 for gap in gaps), gaps  # the responder's thread may see one late
+
+
+# --- the summary's latency: a request's and a poll's, the device's time only (issue 28) -----
+
+LATENCIES = re.compile(
+    r"latency per request min/avg/max ([\d.]+)/([\d.]+)/([\d.]+) ms, per poll ([\d.]+)/([\d.]+)/([\d.]+) ms"
+)
+
+
+def latencies(stderr: str) -> tuple[list[float], list[float]]:
+    """The summary's min/avg/max in ms, a request's and a poll's."""
+    match = LATENCIES.search(stderr.strip().splitlines()[-1])
+    assert match, f"no request and poll latency in the summary\n{stderr}"
+    figures = [float(g) for g in match.groups()]
+    return figures[:3], figures[3:]
+
+
+def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_path):
+    """A map read of three requests from a device that takes 0.1 s to answer each: 0.1 s a
+    request, 0.3 s a poll, and the summary says which is which."""
+    from test_serve import serve
+
+    path = tmp_path / "map.toml"
+    path.write_text("[points.a]\nref = 40001\n[points.b]\nref = 40201\n[points.c]\nref = 40401\n")
+    with serve("--delay", "0.1") as server:
+        res = expect_ok(mbtool("read", "-m", path, "-p", server.target, "--interval", "0", "--polls", "3"))
+    assert summary(res)["replies"] == 3
+    request, poll = latencies(res.stderr)
+    assert request[0] >= 100 and poll[0] >= 300, res.stderr
+    # A poll's three requests take their time one after another, within the poll's.
+    assert 3 * request[1] <= poll[1] + 0.1, res.stderr
+
+
+def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
+    """Back to back, a poll's output is written while the next request is out: a slow
+    writer is mbtool's time, not the device's."""
+    from mbtool.codec.data_access import ReadHoldingRegisters
+    from mbtool.errors import Summary
+    from mbtool.link.connection import Connection
+    from mbtool.link.polling import poll
+
+    class SlowWriter:
+        def __init__(self) -> None:
+            self.held = []
+
+        def hold(self, when, reply) -> None:
+            self.held.append(reply)
+
+        def write(self) -> None:
+            if self.held:
+                self.held.clear()
+                time.sleep(0.5)  # a table on a slow terminal
+
+        def failure(self, when, number, error) -> None:
+            raise AssertionError(error)
+
+        def close(self) -> None:
+            self.held.clear()
+
+    connection = Connection(port=tcp_device.target, timeout=5)
+    try:
+        poll(connection, ReadHoldingRegisters(0, 2), SlowWriter(), interval=0, polls=3)
+    except Summary as summary_line:
+        text = str(summary_line)
+    request, per_poll = latencies(text)
+    # The device answers within the half second mbtool spends writing: none of that counts.
+    assert request[2] < 500 and per_poll[2] < 500, text

@@ -76,7 +76,11 @@ class Client:
         # Run once, right after the next request has left: polling stamps the poll's time
         # there, and writes the previous poll's output while the device turns it round.
         self.while_waiting: Callable[[], None] | None = None
-        self.round_trip = 0.0  # seconds from the last request sent to its reply
+        self.work_done_at = 0.0  # when that work last ended (the clock's time)
+        self.replied_at = 0.0  # when the last reply came
+        # Given each transaction's seconds from its request to its reply, the work above left
+        # out (polling's summary).
+        self.timed: Callable[[float], None] | None = None
         self._settled = False  # the last transaction ended with its reply: nothing stale left
         # The last request, its PDU, whether its echo could pass for a reply, whether it has
         # one and what is known of it beforehand: the same for every poll of it, so worked
@@ -185,9 +189,13 @@ class Client:
         transport.write(adu)
         self.trace.sent(adu)
         sent_at = self._sent_at = self.clock()
+        waited_from = sent_at
         if self.while_waiting is not None:
             work, self.while_waiting = self.while_waiting, None
             work()
+            # The reply is timed from here: the work was mbtool's time, not the device's (a
+            # reply that came meanwhile waited for mbtool, not mbtool for it).
+            waited_from = self.work_done_at = self.clock()
         on_wire = 0.0
         if serial_line:  # the line is busy while the request is on it
             on_wire = len(adu) * self._char_time
@@ -210,7 +218,9 @@ class Client:
         watch = _EchoWatch(adu) if serial_line and (self.echo or echo_watched) else None
         self._sent = adu
         reply = self._await_reply(unit, request, deadline, watch)
-        self.round_trip = self.clock() - sent_at
+        replied_at = self.replied_at = self.clock()
+        if self.timed is not None:
+            self.timed(replied_at - waited_from)
         return reply
 
     def _wait_for_silence(self) -> None:

@@ -55,19 +55,20 @@ class Latency:
     def __init__(self) -> None:
         self.count, self.total, self.low, self.high = 0, 0.0, math.inf, 0.0
 
-    def add(self, ms: float) -> None:
+    def add(self, seconds: float) -> None:
         self.count += 1
-        self.total += ms
+        self.total += seconds
         # Comparisons, not min() and max(): this runs between a reply and the next request.
-        if ms < self.low:
-            self.low = ms
-        if ms > self.high:
-            self.high = ms
+        if seconds < self.low:
+            self.low = seconds
+        if seconds > self.high:
+            self.high = seconds
 
     def __str__(self) -> str:
+        """min/avg/max in ms."""
         if not self.count:
             return "-"
-        return f"{self.low:.1f}/{self.total / self.count:.1f}/{self.high:.1f} ms"
+        return f"{self.low * 1000:.1f}/{self.total / self.count * 1000:.1f}/{self.high * 1000:.1f} ms"
 
 
 def _rate(per_second: float) -> str:
@@ -97,7 +98,10 @@ def poll(
     if polls is None:
         polls = 0
     done = replies = timeouts = errors = skipped = 0
-    latency = Latency()
+    # A request's latency runs from it leaving to its reply; a poll's from its first request
+    # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
+    # mbtool's own work while a reply is on its way (the poll before written) is in neither.
+    per_request, per_poll = Latency(), Latency()
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
@@ -145,6 +149,7 @@ def poll(
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
                     client.ended_at = ended_at  # the device still wants its pause after that
+                    client.timed = per_request.add
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
                         # starts with the first link open: opening sim:// (its imports) or a
@@ -153,7 +158,7 @@ def poll(
                         start = time.monotonic()
                 client.while_waiting = request_sent
                 reply = client.execute(connection.unit, request) if run is None else run(client)
-                latency.add(client.round_trip * 1000)
+                per_poll.add(client.replied_at - client.work_done_at)
                 replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
                     accepted.update(client.deviations)
@@ -214,7 +219,7 @@ def poll(
         close_quietly(link)
     summary = (
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
-        f"skipped {skipped}, latency min/avg/max {latency}"
+        f"skipped {skipped}, latency per request min/avg/max {per_request}, per poll {per_poll}"
     )
     if done > 1 and last_when > first_when:
         summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
