@@ -674,37 +674,55 @@ def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_pa
     assert 3 * request[1] <= poll[1] + 0.1, res.stderr
 
 
-def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
-    """Back to back, a poll's output is written while the next request is out: a slow
-    writer is mbtool's time, not the device's."""
+class SlowWriter:
+    """What polling shows, written slowly (a table on a slow terminal, a reader that lags)."""
+
+    def __init__(self) -> None:
+        self.held = []
+        self.failures = []
+
+    def hold(self, when, reply) -> None:
+        self.held.append(reply)
+
+    def write(self) -> None:
+        if self.held:
+            self.held.clear()
+            time.sleep(0.5)
+
+    def failure(self, when, number, error) -> None:
+        self.failures.append(f"poll {number}: {error}")
+
+    def close(self) -> None:
+        self.held.clear()
+
+
+def _poll_slowly(target: str, timeout: float) -> tuple[str, list[str]]:
+    """Three polls back to back, each the poll before written slowly while its request is out:
+    the summary line and the failed polls."""
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.errors import Summary
     from mbtool.link.connection import Connection
     from mbtool.link.polling import poll
 
-    class SlowWriter:
-        def __init__(self) -> None:
-            self.held = []
-
-        def hold(self, when, reply) -> None:
-            self.held.append(reply)
-
-        def write(self) -> None:
-            if self.held:
-                self.held.clear()
-                time.sleep(0.5)  # a table on a slow terminal
-
-        def failure(self, when, number, error) -> None:
-            raise AssertionError(error)
-
-        def close(self) -> None:
-            self.held.clear()
-
-    connection = Connection(port=tcp_device.target, timeout=5)
+    shown = SlowWriter()
     try:
-        poll(connection, ReadHoldingRegisters(0, 2), SlowWriter(), interval=0, polls=3)
+        poll(Connection(port=target, timeout=timeout), ReadHoldingRegisters(0, 2), shown, interval=0, polls=3)
     except Summary as summary_line:
-        text = str(summary_line)
+        return str(summary_line), shown.failures
+    raise AssertionError("polling ended without its summary")
+
+
+def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
+    """Back to back, a poll's output is written while the next request is out: a slow
+    writer is mbtool's time, not the device's."""
+    text, failures = _poll_slowly(tcp_device.target, 5)
+    assert failures == [], failures
     request, per_poll = latencies(text)
     # The device answers within the half second mbtool spends writing: none of that counts.
     assert request[2] < 500 and per_poll[2] < 500, text
+
+
+def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
+    """The timeout is the device's time to answer: it runs from when mbtool is free to read."""
+    text, failures = _poll_slowly(tcp_device.target, 0.2)
+    assert failures == [] and "replies 3, timeouts 0" in text, (failures, text)

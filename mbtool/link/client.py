@@ -189,18 +189,21 @@ class Client:
         transport.write(adu)
         self.trace.sent(adu)
         sent_at = self._sent_at = self.clock()
-        waited_from = sent_at
-        if self.while_waiting is not None:
-            work, self.while_waiting = self.while_waiting, None
-            work()
-            # The reply is timed from here: the work was mbtool's time, not the device's (a
-            # reply that came meanwhile waited for mbtool, not mbtool for it).
-            waited_from = self.work_done_at = self.clock()
         on_wire = 0.0
         if serial_line:  # the line is busy while the request is on it
             on_wire = len(adu) * self._char_time
             self._line_free_at = sent_at + on_wire
         deadline = sent_at + on_wire + self.timeout
+        waited_from = sent_at
+        if self.while_waiting is not None:
+            work, self.while_waiting = self.while_waiting, None
+            work()
+            # The reply is timed from here, and the timeout runs from here at the earliest:
+            # the work was mbtool's time, not the device's (a reply that came meanwhile waited
+            # for mbtool, not mbtool for it).
+            waited_from = self.work_done_at = self.clock()
+            if waited_from + self.timeout > deadline:
+                deadline = waited_from + self.timeout
         if unit == framer.broadcast_unit:
             return None
         if not expects_response:

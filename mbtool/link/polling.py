@@ -40,7 +40,7 @@ DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 class Shown(Protocol):
     """Where the loop puts what it gets: a reply held to show later, or a failed poll."""
 
-    def hold(self, when: float, reply) -> None: ...  # when: time.time() of the poll
+    def hold(self, when: float, reply) -> None: ...  # when: time.time() the poll's request left
 
     def write(self) -> None: ...  # show the reply held, if any
 
