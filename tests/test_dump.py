@@ -456,6 +456,56 @@ def test_changes_of_a_map_and_as_json(pump_map):
     ]
 
 
+def test_changes_as_csv_are_rows_under_the_first_polls_header(pump_map):
+    """-o csv writes one header: a change is a row of the same columns, the value it changed to."""
+    import csv
+
+    code, out, err = _poll_while_writing(
+        ["read-holding-registers", "0", "3", "--interval", "0.1", "--polls", "25", "--changes", "-o", "csv"],
+        [(1, 77)],
+    )
+    assert code == 0, err
+    rows = list(csv.reader(out.splitlines()))
+    assert rows[0] == ["time", "address", "value"]
+    assert all(len(row) == 3 for row in rows), out
+    assert [row[1:] for row in rows[1:]] == [["0", "0"], ["1", "1"], ["2", "2"], ["1", "77"]]
+    code, out, err = _poll_while_writing(
+        ["read", "-m", pump_map, "--interval", "0.1", "--polls", "20", "--changes", "-o", "csv"],
+        [(500, 225)],
+    )
+    assert code == 0, err
+    header, *rows = csv.reader(out.splitlines())
+    assert header == ["time", "name", "value", "unit", "ref", "registers"]
+    assert [row[1:] for row in rows] == [
+        ["setpoint", "0", "m3/h", "40501", "0"],
+        ["setpoint", "22.5", "m3/h", "40501", "225"],
+    ]
+
+
+def test_changes_of_a_read_by_reference_name_the_reference():
+    """read 40002 shows its first poll by reference: its changes say the same reference."""
+    code, out, err = _poll_while_writing(
+        ["read", "40002", "2", "--interval", "0.1", "--polls", "25", "--changes"], [(1, 77)]
+    )
+    assert code == 0, err
+    lines = [line.split(" ", 1)[1] for line in out.splitlines()]
+    assert lines == ["40002 1", "40003 2", "40002: 1 -> 77"]
+    code, out, err = _poll_while_writing(
+        ["read", "40002", "2", "--interval", "0.1", "--polls", "25", "--changes", "-o", "json"], [(1, 77)]
+    )
+    assert code == 0, err
+    first, change = (json.loads(line) for line in out.splitlines())
+    assert first["refs"] == ["40002", "40003"]
+    assert {k: v for k, v in change.items() if k != "time"} == {
+        "unit": 1,
+        "table": "holding",
+        "address": 1,
+        "ref": "40002",
+        "old": 1,
+        "new": 77,
+    }
+
+
 @pytest.fixture
 def pump_map(tmp_path):
     path = tmp_path / "pump.toml"

@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from datetime import datetime
+from types import SimpleNamespace
 
 from conftest import (
     HOLDING,
@@ -28,7 +29,8 @@ def summary(res) -> dict:
     line = res.stderr.strip().splitlines()[-1]
     match = re.match(
         r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), timeouts (\d+), errors (\d+), skipped (\d+), "
-        r"latency min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-)(?:, [\d.]+ polls/s)?$",
+        r"latency per request min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-), per poll (?:[\d.]+/[\d.]+/[\d.]+ ms|-)"
+        r"(?:, [\d.]+ polls/s)?$",
         line,
     )
     assert match, f"no summary line\n{res}"
@@ -150,7 +152,7 @@ def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server
     assert "Traceback" not in res.stderr
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert len(lines) == 2 and all("error" in line and "time" in line for line in lines)
-    errors = [line for line in res.stderr.splitlines() if " poll " in line]
+    errors = [line for line in res.stderr.splitlines() if re.search(r" poll \d+: ", line)]
     assert len(errors) == 2 and all(line.startswith("mbtool: ") for line in errors)
     assert summary(res) == {"polls": 2, "replies": 0, "timeouts": 2, "errors": 0, "skipped": 0}
 
@@ -251,12 +253,69 @@ def test_polling_help_documents_exit_status(mbtool):
     assert "130 only if interrupted before any poll finished" in " ".join(res.stdout.split())
 
 
-def test_a_link_that_cannot_open_is_one_error_not_a_failed_poll_for_ever(mbtool, refused_port):
-    from conftest import assert_one_error_line
-
-    res = mbtool("read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{refused_port}", "--interval", "0.1")
-    assert_one_error_line(res, 6)
+def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(mbtool, refused_port):
+    res = mbtool(
+        "read-coils",
+        "0",
+        "1",
+        "-p",
+        f"tcp://127.0.0.1:{refused_port}",
+        "-t",
+        "0.2",
+        "--interval",
+        "0.5",  # beyond the 0.2 s a link waits to be opened again: no slot skipped
+        "--polls",
+        "3",
+        "-o",
+        "json",
+    )
+    assert res.returncode == 6 and "Traceback" not in res.stderr, res
+    failed = [line for line in res.stderr.splitlines() if re.match(r"mbtool: \S+ poll \d: ", line)]
+    assert [line.split()[3] for line in failed] == ["1:", "2:", "3:"], res
+    assert [json.loads(line)["exit_code"] for line in res.stdout.splitlines()] == [6, 6, 6]
+    assert summary(res) == {"polls": 3, "replies": 0, "timeouts": 0, "errors": 3, "skipped": 0}
+    # A request that cannot be made is still one error, before any poll.
     assert_one_error_line(mbtool("read-coils", "0", "1", "--interval", "0.1"), 2)
+
+
+def test_polling_goes_on_until_a_device_that_was_not_up_answers():
+    """The device is down when polling starts, and comes up: its first polls fail as a lost
+    link's would, and polling goes on to read it."""
+    from conftest import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "read-holding-registers", "0", "1", "-p", f"tcp://127.0.0.1:{port}"]
+        + ["-t", "0.2", "--interval", "0.2", "-o", "json"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        first = proc.stdout.readline()
+        assert first, proc.communicate(timeout=10)
+        assert json.loads(first)["exit_code"] == 6
+        lines = [first]
+        with start_device(tcp=True, framer="socket", port=port):
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and "values" not in lines[-1]:
+                line = proc.stdout.readline()
+                assert line, proc.communicate(timeout=10)
+                lines.append(line)
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert json.loads(lines[-1])["values"] == [HOLDING[0]], lines
+    assert proc.returncode == 6, err  # the code of the last failed poll
+    assert "Traceback" not in err and "poll 1: " in err
+    counts = summary(SimpleNamespace(stderr=err))
+    assert counts["replies"] >= 1 and counts["errors"] >= 1, err
 
 
 def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
@@ -425,3 +484,245 @@ def test_a_reply_shown_again_is_worked_out_once_and_written_with_its_own_time():
     assert [line["values"] for line in lines] == [[5, 6], [5, 6], [7, 6], [5, 6]]
     assert [line["time"][17:23] for line in lines] == ["21.000", "22.000", "23.000", "24.000"]
     assert all(line["addresses"] == [10, 11] for line in lines)
+
+
+# --- --pause on every poll; each poll stamped when its request went out (issue 28) ---------
+
+
+def _json_polls(res) -> list[dict]:
+    return [json.loads(line) for line in res.stdout.splitlines()]
+
+
+def test_pause_spaces_every_poll_the_first_two_as_well_as_their_stamps_show(mbtool):
+    """serve --min-gap drops a request that comes too soon after its reply before: every poll
+    answered says the pause held on the wire, and the stamps must say so too, from the
+    first poll to the second as between the later ones."""
+    from test_serve import serve
+
+    with serve("--min-gap", "0.3") as server:
+        res = expect_ok(
+            mbtool(
+                "read-holding-registers",
+                "0",
+                "1",
+                "-p",
+                server.target,
+                "-t",
+                "0.5",
+                "--pause",
+                "0.35",
+                "--interval",
+                "0",
+                "--polls",
+                "4",
+                "-o",
+                "json",
+            )
+        )
+    assert summary(res)["replies"] == 4, res
+    stamps = [stamp(line["time"]) for line in _json_polls(res)]
+    gaps = [(b - a).total_seconds() for a, b in itertools.pairwise(stamps)]
+    assert all(gap >= 0.35 - 0.001 for gap in gaps), gaps  # stamps are cut to the millisecond
+
+
+def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, raw_responder):
+    arrived = []
+
+    def answer(request: bytes) -> bytes:
+        arrived.append(time.time())
+        return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
+
+    device = raw_responder(answer)
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers",
+            "0",
+            "1",
+            "-p",
+            device.tcp_target,
+            "--pause",
+            "0.5",
+            "--interval",
+            "0.1",  # due before the pause is over: the pause, not the slot, sends each request
+            "--polls",
+            "3",
+            "-o",
+            "json",
+        )
+    )
+    stamps = [stamp(line["time"]).timestamp() for line in _json_polls(res)]
+    assert len(stamps) == len(arrived) == 3, res
+    # The responder's thread sees a request a few tens of ms late on a loaded machine; a stamp
+    # taken before the pause would be half a second early.
+    assert all(-0.002 <= seen - sent <= 0.25 for sent, seen in zip(stamps, arrived, strict=True)), (
+        stamps,
+        arrived,
+    )
+
+
+def _line_times(args: list[str], lines: int) -> list[float]:
+    """When each of a polling mbtool's first ``lines`` lines of stdout came, on the monotonic clock."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    times = []
+    try:
+        for _ in range(lines):
+            assert proc.stdout.readline(), proc.communicate(timeout=20)
+            times.append(time.monotonic())
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert proc.returncode == 0, err
+    return times
+
+
+def test_a_polls_line_is_not_held_back_for_the_pause_after_it():
+    from test_serve import serve
+
+    with serve() as server:
+        first, second = _line_times(
+            [
+                "read-holding-registers",
+                "0",
+                "1",
+                "-p",
+                server.target,
+                "--pause",
+                "1.5",
+                "--interval",
+                "0",
+                "--polls",
+                "2",
+                "-o",
+                "json",
+            ],
+            2,
+        )
+    # The first line is written when its reply is in, not when the second request leaves.
+    assert second - first >= 0.75, (first, second)
+
+
+def test_pause_holds_across_a_new_link_each_poll(mbtool, raw_responder):
+    """--reconnect-each opens a new link for every poll; the device behind it is the same, and
+    still needs the pause after its last reply."""
+    arrived = []
+
+    def answer(request: bytes) -> bytes:
+        arrived.append(time.monotonic())
+        return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
+
+    device = raw_responder(answer)
+    res = expect_ok(
+        mbtool(
+            "read-holding-registers",
+            "0",
+            "1",
+            "-p",
+            device.tcp_target,
+            "--pause",
+            "0.5",
+            "--reconnect-each",
+            "--interval",
+            "0",
+            "--polls",
+            "3",
+            "-o",
+            "json",
+        )
+    )
+    assert device.connections == 3 and len(arrived) == 3, res
+    gaps = [b - a for a, b in itertools.pairwise(arrived)]
+    assert all(gap >= 0.4 for gap in gaps), gaps  # the responder's thread may see one late
+
+
+# --- the summary's latency: a request's and a poll's, the device's time only (issue 28) -----
+
+LATENCIES = re.compile(
+    r"latency per request min/avg/max ([\d.]+)/([\d.]+)/([\d.]+) ms, per poll ([\d.]+)/([\d.]+)/([\d.]+) ms"
+)
+
+
+def latencies(stderr: str) -> tuple[list[float], list[float]]:
+    """The summary's min/avg/max in ms, a request's and a poll's."""
+    match = LATENCIES.search(stderr.strip().splitlines()[-1])
+    assert match, f"no request and poll latency in the summary\n{stderr}"
+    figures = [float(g) for g in match.groups()]
+    return figures[:3], figures[3:]
+
+
+def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_path):
+    """A map read of three requests from a device that takes 0.1 s to answer each: 0.1 s a
+    request, 0.3 s a poll, and the summary says which is which."""
+    from test_serve import serve
+
+    path = tmp_path / "map.toml"
+    path.write_text("[points.a]\nref = 40001\n[points.b]\nref = 40201\n[points.c]\nref = 40401\n")
+    with serve("--delay", "0.1") as server:
+        res = expect_ok(mbtool("read", "-m", path, "-p", server.target, "--interval", "0", "--polls", "3"))
+    assert summary(res)["replies"] == 3
+    request, poll = latencies(res.stderr)
+    assert request[0] >= 100 and poll[0] >= 300, res.stderr
+    # A poll's three requests take their time one after another, within the poll's.
+    assert 3 * request[1] <= poll[1] + 0.1, res.stderr
+
+
+class SlowWriter:
+    """What polling shows, written slowly (a table on a slow terminal, a reader that lags)."""
+
+    def __init__(self) -> None:
+        self.held = []
+        self.failures = []
+
+    def hold(self, when, reply) -> None:
+        self.held.append(reply)
+
+    def write(self) -> None:
+        if self.held:
+            self.held.clear()
+            time.sleep(0.5)
+
+    def failure(self, when, number, error) -> None:
+        self.failures.append(f"poll {number}: {error}")
+
+    def close(self) -> None:
+        self.held.clear()
+
+
+def _poll_slowly(target: str, timeout: float) -> tuple[str, list[str]]:
+    """Three polls back to back, each the poll before written slowly while its request is out:
+    the summary line and the failed polls."""
+    from mbtool.codec.data_access import ReadHoldingRegisters
+    from mbtool.errors import Summary
+    from mbtool.link.connection import Connection
+    from mbtool.link.polling import poll
+
+    shown = SlowWriter()
+    try:
+        poll(Connection(port=target, timeout=timeout), ReadHoldingRegisters(0, 2), shown, interval=0, polls=3)
+    except Summary as summary_line:
+        return str(summary_line), shown.failures
+    raise AssertionError("polling ended without its summary")
+
+
+def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
+    """Back to back, a poll's output is written while the next request is out: a slow
+    writer is mbtool's time, not the device's."""
+    text, failures = _poll_slowly(tcp_device.target, 5)
+    assert failures == [], failures
+    request, per_poll = latencies(text)
+    # The device answers within the half second mbtool spends writing: none of that counts.
+    assert request[2] < 500 and per_poll[2] < 500, text
+
+
+def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
+    """The timeout is the device's time to answer: it runs from when mbtool is free to read."""
+    text, failures = _poll_slowly(tcp_device.target, 0.2)
+    assert failures == [] and "replies 3, timeouts 0" in text, (failures, text)

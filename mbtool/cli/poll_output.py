@@ -14,9 +14,9 @@ from mbtool.cli.render import (
     MONITORING_FORMATS,
     POINT_CSV_HEADER,
     Points,
+    Result,
     as_dict,
     by_order,
-    change_line,
     change_parts,
     csv_cells,
     error_json,
@@ -71,17 +71,17 @@ class Output:
         else:
             self._table(when, result)
 
-    def change(self, when: str, what: dict, old, new, unit: str) -> None:
-        """One value that changed since the poll before (--changes)."""
+    def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
+        """One value that changed since the poll before (--changes), as a JSON line or a text
+        line; ``where`` names it in the text ("": as ``what`` names it).  CSV writes the rows
+        of the values that changed instead (ChangesOnly)."""
         if self.fmt == "json":
             self._emit(
                 _json_line({"time": when, **what, "old": old, "new": new, **({"unit": unit} if unit else {})})
             )
             return
-        if self.fmt == "csv":
-            self._csv(when, ["what", "old", "new"], [list(change_parts(what, old, new, unit))])
-        else:
-            self._emit(f"{when} {change_line(what, old, new, unit)}\n")
+        named, before, after = change_parts(what, old, new, unit)
+        self._emit(f"{when} {where or named}: {before} -> {after}\n")
 
     def _points(self, when: str, points: Points) -> None:
         if self.fmt == "json":
@@ -170,22 +170,46 @@ class Output:
 class ChangesOnly:
     """--changes: the first poll whole, then one line a value that changed, so a poll left
     running into a file is a change log (``TIME holding 5: 5 -> 99``; JSON lines with the
-    old and new values)."""
+    old and new values; CSV rows of the values that changed, under the first poll's header)."""
 
     def __init__(self, output: Output) -> None:
         self.output = output
         self.previous: dict | None = None
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        current = _changeable(result)
-        if self.previous is None:
-            self.output.result(when, result)
+        points = result.__class__ is Points
+        # Each value by what names it: a map's point by its name, else its address.
+        if points:
+            current = {row.name: row.value for row in result.rows}
         else:
-            for key, (what, value, unit) in current.items():
-                old = self.previous.get(key)
-                if old is None or not _same(old[1], value):
-                    self.output.change(when, what, None if old is None else old[1], value, unit)
-        self.previous = current
+            current = dict(zip(result.addresses, result.values, strict=True))
+        previous, self.previous = self.previous, current
+        if previous is None:
+            self.output.result(when, result)
+            return
+        missing = object()  # a key the poll before did not have: changed from nothing
+        changed = {key for key, value in current.items() if not _same(previous.get(key, missing), value)}
+        if not changed:
+            return
+        if self.output.fmt == "csv":
+            # One header for the whole log: the rows of the values that changed, as the
+            # first poll wrote its rows.
+            self.output.result(when, _only(result, changed))
+            return
+        if points:
+            for row in result.rows:
+                if row.name in changed:
+                    what = {"name": row.name, "ref": row.ref}
+                    self.output.change(when, what, "", previous.get(row.name), row.value, row.unit)
+            return
+        refs, table = result.refs, result.table
+        for index, (address, value) in enumerate(zip(result.addresses, result.values, strict=True)):
+            if address in changed:
+                what = {"unit": result.unit, "table": table, "address": address}
+                if refs is not None:  # named by the reference the user gave, as its first poll was
+                    what["ref"] = refs[index]
+                where = "" if refs is None else refs[index]
+                self.output.change(when, what, where, previous.get(address), value, "")
 
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.output.failure(when, number, error)
@@ -202,19 +226,24 @@ def _same(old, new) -> bool:
     return old == new or old != old and new != new
 
 
-def _changeable(result) -> dict:
-    """Each value of a poll by what names it: key -> (fields naming it, value, unit)."""
+def _only(result, keys: set):
+    """A poll's result cut to the values ``keys`` name (points by name, values by address)."""
     if result.__class__ is Points:
-        return {row.name: ({"name": row.name, "ref": row.ref}, row.value, row.unit) for row in result.rows}
-    table = result.table
-    refs = result.refs or [None] * len(result.values)
-    out = {}
-    for ref, address, value in zip(refs, result.addresses, result.values, strict=True):
-        what = {"unit": result.unit, "table": table, "address": address}
-        if ref is not None:
-            what["ref"] = ref
-        out[address] = (what, value, "")
-    return out
+        return Points(result.unit, result.source, [row for row in result.rows if row.name in keys])
+    kept = [i for i, address in enumerate(result.addresses) if address in keys]
+    return Result(
+        result.unit,
+        result.function,
+        result.name,
+        result.address,
+        [result.values[i] for i in kept],
+        result.type,
+        None,
+        "",
+        result.extra,
+        None if result.refs is None else [result.refs[i] for i in kept],
+        [result.addresses[i] for i in kept],
+    )
 
 
 class Deferred:

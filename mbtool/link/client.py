@@ -73,10 +73,14 @@ class Client:
         # earlier attempt answers the request as well as the last one's would (issue 12.2).
         self._attempt_ids: list[int] = []
         self._line_free_at = 0.0  # when the last frame on the line ended
-        # Run once, right after the next request has left: work that can overlap the
-        # device's turnaround (polling writes the previous poll's output there).
+        # Run once, right after the next request has left: polling stamps the poll's time
+        # there, and writes the previous poll's output while the device turns it round.
         self.while_waiting: Callable[[], None] | None = None
-        self.round_trip = 0.0  # seconds from the last request sent to its reply
+        self.work_done_at = 0.0  # when that work last ended (the clock's time)
+        self.replied_at = 0.0  # when the last reply came
+        # Given each transaction's seconds from its request to its reply, the work above left
+        # out (polling's summary).
+        self.timed: Callable[[float], None] | None = None
         self._settled = False  # the last transaction ended with its reply: nothing stale left
         # The last request, its PDU, whether its echo could pass for a reply, whether it has
         # one and what is known of it beforehand: the same for every poll of it, so worked
@@ -96,9 +100,10 @@ class Client:
         self._t35 = silent_interval(baud, char_bits)
         # --pause: at least this long from the end of a transaction (its reply, or the wait
         # for one) to the next request, for devices and gateways that drop requests sent
-        # back to back.
+        # back to back.  ``ended_at`` is on the client's clock; polling hands it to the client of
+        # a new link to the same device (--reconnect-each, a lost link), which must wait too.
         self.pause = pause
-        self._ended_at = float("-inf")
+        self.ended_at = float("-inf")
         # --lenient: a Modbus TCP reply that carries our transaction id and breaks the spec
         # in a harmless, unambiguous way is accepted, and each deviation noted here.
         self.lenient = lenient
@@ -124,7 +129,7 @@ class Client:
                     reply = self._transact(unit, request)
                 finally:
                     if self.pause:
-                        self._ended_at = self.clock()
+                        self.ended_at = self.clock()
                 self._settled = reply is not None
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
@@ -164,7 +169,7 @@ class Client:
         if serial_line:
             self._wait_for_silence()
         if self.pause:
-            wait = self._ended_at + self.pause - self.clock()
+            wait = self.ended_at + self.pause - self.clock()
             if wait > 0:
                 self.sleep(wait)
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
@@ -184,14 +189,21 @@ class Client:
         transport.write(adu)
         self.trace.sent(adu)
         sent_at = self._sent_at = self.clock()
-        if self.while_waiting is not None:
-            work, self.while_waiting = self.while_waiting, None
-            work()
         on_wire = 0.0
         if serial_line:  # the line is busy while the request is on it
             on_wire = len(adu) * self._char_time
             self._line_free_at = sent_at + on_wire
         deadline = sent_at + on_wire + self.timeout
+        waited_from = sent_at
+        if self.while_waiting is not None:
+            work, self.while_waiting = self.while_waiting, None
+            work()
+            # The reply is timed from here, and the timeout runs from here at the earliest:
+            # the work was mbtool's time, not the device's (a reply that came meanwhile waited
+            # for mbtool, not mbtool for it).
+            waited_from = self.work_done_at = self.clock()
+            if waited_from + self.timeout > deadline:
+                deadline = waited_from + self.timeout
         if unit == framer.broadcast_unit:
             return None
         if not expects_response:
@@ -209,7 +221,9 @@ class Client:
         watch = _EchoWatch(adu) if serial_line and (self.echo or echo_watched) else None
         self._sent = adu
         reply = self._await_reply(unit, request, deadline, watch)
-        self.round_trip = self.clock() - sent_at
+        replied_at = self.replied_at = self.clock()
+        if self.timed is not None:
+            self.timed(replied_at - waited_from)
         return reply
 
     def _wait_for_silence(self) -> None:

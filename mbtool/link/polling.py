@@ -40,7 +40,7 @@ DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 class Shown(Protocol):
     """Where the loop puts what it gets: a reply held to show later, or a failed poll."""
 
-    def hold(self, when: float, reply) -> None: ...  # when: time.time() of the poll
+    def hold(self, when: float, reply) -> None: ...  # when: time.time() the poll's request left
 
     def write(self) -> None: ...  # show the reply held, if any
 
@@ -55,19 +55,20 @@ class Latency:
     def __init__(self) -> None:
         self.count, self.total, self.low, self.high = 0, 0.0, math.inf, 0.0
 
-    def add(self, ms: float) -> None:
+    def add(self, seconds: float) -> None:
         self.count += 1
-        self.total += ms
+        self.total += seconds
         # Comparisons, not min() and max(): this runs between a reply and the next request.
-        if ms < self.low:
-            self.low = ms
-        if ms > self.high:
-            self.high = ms
+        if seconds < self.low:
+            self.low = seconds
+        if seconds > self.high:
+            self.high = seconds
 
     def __str__(self) -> str:
+        """min/avg/max in ms."""
         if not self.count:
             return "-"
-        return f"{self.low:.1f}/{self.total / self.count:.1f}/{self.high:.1f} ms"
+        return f"{self.low * 1000:.1f}/{self.total / self.count * 1000:.1f}/{self.high * 1000:.1f} ms"
 
 
 def _rate(per_second: float) -> str:
@@ -97,18 +98,32 @@ def poll(
     if polls is None:
         polls = 0
     done = replies = timeouts = errors = skipped = 0
-    latency = Latency()
+    # A request's latency runs from it leaving to its reply; a poll's from its first request
+    # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
+    # mbtool's own work while a reply is on its way (the poll before written) is in neither.
+    per_request, per_poll = Latency(), Latency()
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
+    pause = connection.pause
     link = ExitStack()  # holds the open link; reopened only after the link itself failed
     client = None
+    when = first_when = last_when = None  # time.time() of this poll, the first and the last
+
+    def request_sent() -> None:
+        """Run by the client right after a poll's (first) request has left: that is the poll's
+        time, and the poll before it is shown while the reply is on its way."""
+        nonlocal when
+        when = time.time()
+        show_previous()
+
     try:
-        # Opened before the first poll: a bad port or unit is one error and its exit code,
-        # not a failed poll repeated for ever.
-        opened_at = time.monotonic()
-        client = link.enter_context(open_client(connection, request.name, trace=trace))
+        # The link is opened by the first poll, as by a poll after a lost link: a device that
+        # is not up yet is a failed poll, and polling goes on.  A port or unit that makes no
+        # sense is a RequestError, one error before anything is sent.
+        opened_at = -math.inf
         closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
+        ended_at = -math.inf  # when the last link's last transaction ended (--pause)
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
@@ -121,23 +136,29 @@ def poll(
                 if delay > 0:
                     time.sleep(delay)
             if client is None and not closed_on_purpose:
-                # The link failed: open it again at most once a timeout, as if a refusal had
+                # No link, or it failed: open it at most once a timeout, as if a refusal had
                 # waited the timeout out, so a device that is restarting or unplugged is not
                 # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
                 wait = opened_at + connection.timeout - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
-            when = time.time()  # formatted when shown, off the request's path
-            if done == 0:
-                first_when = when
+            when = None  # until the request goes out
             try:
                 if client is None:
                     opened_at = time.monotonic()
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
-                client.while_waiting = show_previous
+                    client.ended_at = ended_at  # the device still wants its pause after that
+                    client.timed = per_request.add
+                    if done == 0:
+                        # The first link's modules stay as long as the loop too; and the schedule
+                        # starts with the first link open: opening sim:// (its imports) or a
+                        # slow handshake is not a poll overrunning its slot.
+                        gc.freeze()
+                        start = time.monotonic()
+                client.while_waiting = request_sent
                 reply = client.execute(connection.unit, request) if run is None else run(client)
-                latency.add(client.round_trip * 1000)
+                per_poll.add(client.replied_at - client.work_done_at)
                 replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
                     accepted.update(client.deviations)
@@ -147,12 +168,16 @@ def poll(
                 shown.write()  # the poll before it, if the request never left
                 if isinstance(error, RequestError | OutputFailed):
                     raise  # the request is wrong, or the output full: no later poll can do better
+                if when is None:  # the request never left: the poll failed now
+                    when = time.time()
                 if isinstance(error, NoResponse):
                     timeouts += 1
                 else:
                     errors += 1
                 if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
                     # The link is gone (device restarted, cable pulled): open it anew next poll.
+                    if client is not None:
+                        ended_at = client.ended_at
                     close_quietly(link)
                     client = None
                 if isinstance(error, OSError):
@@ -161,22 +186,32 @@ def poll(
                 shown.failure(when, done + 1, error)
             else:
                 shown.hold(when, reply)
+            if done == 0:
+                first_when = when
+            last_when = when
             closed_on_purpose = False
             if connection.reconnect_each and client is not None:
                 # --reconnect-each: a new link every poll, for devices and gateways that
                 # serve one client or leak connections; no wait, as nothing failed.
+                ended_at = client.ended_at
                 close_quietly(link)
                 client, closed_on_purpose = None, True
             done += 1
+            # Show the poll now unless the next request leaves at once (then it is shown while
+            # that request's reply is on its way): a pause, a new link or a slot not yet due
+            # come first.
+            idle = pause or client is None
             if interval > 0:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
-                    shown.write()  # the next poll is not due yet: no reason to hold this one
+                    idle = True
                 elif behind > 0 and (polls == 0 or done < polls):
                     missed = math.ceil(behind / interval)
                     skipped += missed
                     slot += missed
+            if idle:
+                shown.write()
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -184,10 +219,10 @@ def poll(
         close_quietly(link)
     summary = (
         f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
-        f"skipped {skipped}, latency min/avg/max {latency}"
+        f"skipped {skipped}, latency per request min/avg/max {per_request}, per poll {per_poll}"
     )
-    if done > 1 and when > first_when:
-        summary += f", {_rate((done - 1) / (when - first_when))} polls/s"
+    if done > 1 and last_when > first_when:
+        summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
     if accepted:
         summary += f"; accepted (--lenient): {'; '.join(accepted)}"
     if interrupted:

@@ -28,7 +28,8 @@ POLL_HELP = """
     \b
     Polling: --interval SECONDS repeats the read over one link until interrupted
     (with --polls N, N times); --polls alone polls every 1 s. Each poll is stamped
-    with the time; a failed poll is reported on stderr and polling goes on. At the
+    with the time its request went out; a failed poll (a link that cannot be opened,
+    the first poll's too) is reported on stderr and polling goes on. At the
     end a summary line goes to stderr; exit 0 if every poll got its reply, else the
     code of the last failure (130 only if interrupted before any poll finished).
     With --changes the first poll is printed whole and later ones only as the values
