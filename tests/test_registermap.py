@@ -176,9 +176,8 @@ def test_nan_and_inf_are_written_only_when_the_user_insists():
 
 
 def test_a_scaled_float_point_reads_nan_and_inf_without_failing():
-    from decimal import Decimal
-
     import math
+    from decimal import Decimal
 
     scaled = _point(type="float32", scale=Decimal("0.1"), offset=Decimal("2"))
     assert scaled.value_of([0x7F80, 0x0000]) == float("inf")  # was OverflowError: internal error
