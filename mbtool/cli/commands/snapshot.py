@@ -314,7 +314,7 @@ def diff(connection, a, b, map):
 
     A side named device (B when left out) is the device: only the dump's addresses are
     read from it. One line per difference, such as holding 5: 5 -> 99 (or setpoint (40006): 22.5 m3/h
-    -> 23 m3/h with -m); "missing" where a side lacks the address. Exit 0 when equal, 1
+    -> 23 m3/h with -m, a bit off -> on); "missing" where a side lacks the address. Exit 0 when equal, 1
     when they differ (as diff(1)), other codes as everywhere.
     """
     from mbtool.cli.render import default_format, to_json
@@ -500,8 +500,8 @@ def restore(connection, file, everything, map):
 
             report(connection, items, head)
             raise DryRunDone(
-                f"dry run: the device was read; nothing was sent: {len(steps)} requests would write "
-                f"{len(items)} value{'s' if len(items) != 1 else ''}"
+                f"dry run: the device was read; nothing was sent: {len(steps)} request"
+                f"{'s' if len(steps) != 1 else ''} would write {len(items)} value{'s' if len(items) != 1 else ''}"
             )
         outcome = send_all(steps, lambda step: execute(step.work[0]))
         # Read back what the device acknowledged, while it still answers: after a refusal it
