@@ -425,16 +425,16 @@ def restore_plan(current: dict, wanted: dict, register_map=None, everything: boo
             item["old"] = difference["a"]
         item["new"] = difference["b"]
         placed.append((item, addresses))
-    steps = []
+    # The requests come table by table, in address order, as the items sorted so: each takes
+    # the items from where the one before stopped, up to its end.
+    placed.sort(key=lambda pair: (pair[0]["table"] != "coils", pair[1][0]))
+    steps, taken = [], 0
     for request in write_requests(changes, spans):
         table = "coils" if request.function_code == 0x0F else "holding"
-        end = request.address + len(request.values)
-        mine = [
-            (item, addresses)
-            for item, addresses in placed
-            if item["table"] == table and request.address <= addresses[0] < end
-        ]
-        mine.sort(key=lambda pair: pair[1][0])
+        end, first = request.address + len(request.values), taken
+        while taken < len(placed) and placed[taken][0]["table"] == table and placed[taken][1][0] < end:
+            taken += 1
+        mine = placed[first:taken]
         items = tuple(item for item, _ in mine)
         if len(items) == 1:
             label = change_parts(items[0], None, None)[0]
