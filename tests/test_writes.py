@@ -245,6 +245,47 @@ def test_a_device_that_stops_answering_or_hangs_up_mid_restore(raw_responder, tm
     assert plant.holding == {0: 1, 10: 2}
 
 
+def test_ctrl_c_mid_restore_lists_what_was_written(raw_responder, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+
+    saved = tmp_path / "saved.toml"
+    saved.write_text(RUNS)
+    plant = TcpPlant(answered=2, then=None)  # the third write waits for a reply that never comes
+    server = raw_responder(plant)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "restore", str(saved), "--timeout", "30", "-p", server.tcp_target],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 20  # until the third write is out, waiting for its reply
+    while sum(request[7] == 0x10 for request in server.requests) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=15)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.splitlines() == [
+        "mbtool: restore stopped at holding 20: interrupted; 2 written (not read back), 1 failed "
+        "(no valid reply: it may or may not have been written), 1 not sent"
+    ]
+    assert out.splitlines() == [
+        "written holding 0: 0 -> 1",
+        "written holding 10: 0 -> 2",
+        "failed holding 20: 0 -> 3",
+        "not-sent holding 30: 0 -> 4",
+    ]
+
+
 def test_a_map_write_to_a_device_that_hangs_up(raw_responder, three):
     server = raw_responder(TcpPlant(answered=1, then=CLOSE))
     res = run_mbtool("write", "-m", three, "a=1", "b=2", "c=3", *FAST, "-p", server.tcp_target)

@@ -67,8 +67,8 @@ def send_all(steps: Sequence[Step], send: Callable[[Step], object], broadcast: b
     for index, step in enumerate(steps):
         try:
             send(step)
-        except (*KNOWN_ERRORS, KeyboardInterrupt) as failure:
-            done, error = index, failure
+        except (*KNOWN_ERRORS, KeyboardInterrupt) as caught:
+            done, error = index, caught
             break
     for index, step in enumerate(steps):
         if index < done:
