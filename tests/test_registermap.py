@@ -163,6 +163,18 @@ def test_every_refused_value_names_its_point():
         tiny.raw_for("1e10")  # was 7F 80 00 00 (+inf) sent, then an internal error
 
 
+def test_a_value_past_decimals_own_range_is_out_of_the_points():
+    from decimal import Decimal
+
+    setpoint = _point(name="setpoint", scale=Decimal("0.1"), writable=True)
+    for text in ("1e999999", "-1e99999999999"):  # was decimal.Overflow: an internal error
+        with pytest.raises(RequestError, match=f"^setpoint: {text} \\(raw .*\\) is out of range 0..65535"):
+            setpoint.raw_for(text)
+    level = _point(name="level", type="float32", scale=Decimal("0.1"), writable=True)
+    with pytest.raises(RequestError, match="^level: 1e999999 \\(raw .*\\) is out of float32's range$"):
+        level.raw_for("1e999999")
+
+
 def test_nan_and_inf_are_written_only_when_the_user_insists():
     import math
 

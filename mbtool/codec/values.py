@@ -200,8 +200,9 @@ def float_value(number, type_name: str, shown: str, nonfinite: bool = False) -> 
     return value
 
 
-def integer_value(value: int, type_name: str, shown: str) -> int:
-    """``value`` when the integer type holds it; RequestError naming ``shown`` if not."""
+def integer_value(value, type_name: str, shown: str) -> int:
+    """``value`` (an int, or a whole Decimal) as an int when the integer type holds it;
+    RequestError naming ``shown`` if not (checked first: 1e999999 is never made an int)."""
     kind = TYPES[type_name]
     bits = 16 * kind.registers
     low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if kind.fmt.islower() else (0, (1 << bits) - 1)
@@ -209,7 +210,7 @@ def integer_value(value: int, type_name: str, shown: str) -> int:
         low = 0
     if not low <= value <= high:
         raise RequestError(f"{shown} is out of range {low}..{high} for {type_name}")
-    return value
+    return int(value)
 
 
 def encode_values(values: list[Value], type_name: str, order: str = "ABCD") -> list[int]:

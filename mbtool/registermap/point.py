@@ -8,7 +8,7 @@ sent.
 
 from __future__ import annotations
 
-from decimal import Decimal, InvalidOperation
+from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, localcontext
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record
@@ -18,6 +18,7 @@ from mbtool.codec.values import TYPES, Value, decode_values, encode_values, floa
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
 PointValue = Value | bool | None
+UNBOUNDED = Context(Emax=MAX_EMAX, Emin=MIN_EMIN)  # a written value's arithmetic: see raw_for
 
 
 @record
@@ -105,25 +106,28 @@ class Point:
         floating = TYPES[self.type].fmt in ("f", "d")
         if not wanted.is_finite() and not floating:
             raise RequestError(f"{self.name}: {text} is not a number a {self.type} can hold")
-        scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
-        raw = (wanted - offset) / scale if wanted.is_finite() else wanted
-        # The value named in an error: the user's, and the raw one too when scaling made it.
-        shown = text.strip()
-        if wanted.is_finite() and raw != wanted:
-            shown = f"{shown} {self.unit}".rstrip() + f" (raw {_raw_text(raw)})"
-        try:
-            if floating:
-                return float_value(raw, self.type, shown, nonfinite)
-            if raw != raw.to_integral_value():
-                low = raw.to_integral_value(rounding="ROUND_FLOOR")
-                nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
-                raise RequestError(
-                    f"{text} is not a whole number of steps of {_text(scale)}"
-                    f"{' from ' + _text(offset) if offset else ''}; the nearest writable values are {nearest}"
-                )
-            return integer_value(int(raw), self.type, shown)
-        except RequestError as error:
-            raise RequestError(f"{self.name}: {error}") from None
+        # Decimal's own exponent range (1e999999) is no limit on what a user may type: past
+        # it a value is out of the point's range, which the type's check says, not Overflow.
+        with localcontext(UNBOUNDED):
+            scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
+            raw = (wanted - offset) / scale if wanted.is_finite() else wanted
+            # The value named in an error: the user's, and the raw one too when scaling made it.
+            shown = text.strip()
+            if wanted.is_finite() and raw != wanted:
+                shown = f"{shown} {self.unit}".rstrip() + f" (raw {_raw_text(raw)})"
+            try:
+                if floating:
+                    return float_value(raw, self.type, shown, nonfinite)
+                if raw != raw.to_integral_value():
+                    low = raw.to_integral_value(rounding="ROUND_FLOOR")
+                    nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
+                    raise RequestError(
+                        f"{text} is not a whole number of steps of {_text(scale)}"
+                        f"{' from ' + _text(offset) if offset else ''}; the nearest writable values are {nearest}"
+                    )
+                return integer_value(raw, self.type, shown)
+            except RequestError as error:
+                raise RequestError(f"{self.name}: {error}") from None
 
     def held(self, text: str, raw: int | float | str | bool) -> PointValue:
         """What the point holds once ``raw`` (``raw_for(text)``'s) is written, when that is not
