@@ -41,6 +41,12 @@ EXTRA_ENVIRONMENT = {
     "Python traceback instead of a one-line message.",
 }
 
+# After the exit statuses: what a run of several writes that stops part-way exits with.
+EXIT_NOTE = (
+    "A command of several writes (write -m, restore) stops at the first write that fails, lists "
+    "each write as written, refused, failed or not-sent, and exits with the status of that failure."
+)
+
 # Exit statuses, keyed by the names of mbtool.errors.ExitCode (a code without an entry here
 # is still listed, described by its name).
 EXIT_DESCRIPTIONS = {
@@ -642,6 +648,7 @@ def render_man(tree: Tree) -> str:
     for code, name in _exit_codes():
         description = EXIT_DESCRIPTIONS.get(name, name.replace("_", " ").capitalize() + ".")
         out += [".TP", bold(str(code)), line(roff(description))]
+    out += [".PP", line(roff(EXIT_NOTE))]
 
     out.append(".SH EXAMPLES")
     for example in EXAMPLES:

@@ -425,6 +425,9 @@ def pymodbus_rtu_socket_client(socket_rtu_device):
 # ----------------------------------------------------------------------------- misbehaving peers
 
 
+CLOSE = object()  # what a RawResponder's reply function returns to close the connection instead
+
+
 class _ThreadServer:
     """A TCP listener on 127.0.0.1 handled in a thread; records every byte received."""
 
@@ -481,6 +484,11 @@ class _ThreadServer:
                     self.received += data
                     self.requests.append(bytes(data))
                 reply = self.answer(bytes(data))
+                if reply is CLOSE:  # the peer hangs up instead of answering
+                    with self._lock:
+                        self._conns.remove(c)
+                    c.close()
+                    continue
                 if reply:
                     with contextlib.suppress(OSError):
                         c.sendall(reply)

@@ -365,9 +365,14 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
         client.write_register(750, 13, device_id=1)
         client.write_coil(745, True, device_id=1)
         res = expect_ok(run_mbtool("restore", path, "--dry-run", "-o", "plain", "-p", tcp_device.target))
-        raws = [line for line in res.stdout.splitlines() if line.startswith("raw ")]
-        assert len(raws) == 3  # 744-745, 750, and the coil: only what differs
-        assert "the 3 writes shown were not sent" in res.stderr
+        # Only what differs, as diff lists it: the coil, then 744-745 and 750 (3 requests).
+        assert res.stdout.splitlines() == [
+            "coils 745: 1 -> 0",
+            "holding 744: 11 -> 0",
+            "holding 745: 12 -> 0",
+            "holding 750: 13 -> 0",
+        ]
+        assert "nothing was sent: 3 requests would write 4 values" in res.stderr
         assert client.read_holding_registers(744, count=2, device_id=1).registers == [11, 12]
         res = expect_ok(run_mbtool("restore", path, "--hex", "-p", tcp_device.target))
         writes = [line.data[7] for line in parse_hex_lines(res.stderr) if line.direction == "TX"]
@@ -375,6 +380,7 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
         assert "restore: wrote 1 coil, 3 holding registers in 3 requests" in res.stderr
         assert "skipped 4 input registers (read-only)" in res.stderr
         assert "read back and confirmed" in res.stderr
+        assert res.stdout.splitlines()[0] == "confirmed coils 745: 1 -> 0"  # each write, and its fate
         assert client.read_holding_registers(744, count=7, device_id=1).registers == [0] * 7
         assert client.read_coils(745, count=1, device_id=1).bits[0] is False
         assert run_mbtool("diff", path, "-p", tcp_device.target).returncode == 0

@@ -141,6 +141,90 @@ def test_written_value_must_fit_the_type():
         setpoint.registers_for("warm")
 
 
+def test_every_refused_value_names_its_point():
+    from decimal import Decimal
+
+    period = _point(name="demand_period", type="float32", writable=True)
+    with pytest.raises(RequestError, match="^demand_period: 1e39 is out of float32's range$"):
+        period.raw_for("1e39")
+    counter = _point(name="count", type="uint16", writable=True)
+    for text, words in (
+        ("nan", "count: nan is not a number a uint16 can hold"),
+        ("inf", "count: inf is not a number a uint16 can hold"),
+        ("1e39", "count: 1e39 is out of range 0..65535 for uint16"),
+    ):
+        with pytest.raises(RequestError, match=f"^{words}$"):
+            counter.raw_for(text)
+    wide = _point(name="total", type="float64", writable=True)
+    with pytest.raises(RequestError, match="^total: 1e400 is out of float64's range$"):
+        wide.raw_for("1e400")  # float() would make it +inf: 7F F0 00 ... on the wire
+    tiny = _point(name="d", type="float32", scale=Decimal("1e-300"), writable=True)
+    with pytest.raises(RequestError, match="^d: 1e10 \\(raw 1E\\+310\\) is out of float32's range$"):
+        tiny.raw_for("1e10")  # was 7F 80 00 00 (+inf) sent, then an internal error
+
+
+def test_a_value_past_decimals_own_range_is_out_of_the_points():
+    from decimal import Decimal
+
+    setpoint = _point(name="setpoint", scale=Decimal("0.1"), writable=True)
+    for text in ("1e999999", "-1e99999999999"):  # was decimal.Overflow: an internal error
+        with pytest.raises(RequestError, match=f"^setpoint: {text} \\(raw .*\\) is out of range 0..65535"):
+            setpoint.raw_for(text)
+    level = _point(name="level", type="float32", scale=Decimal("0.1"), writable=True)
+    with pytest.raises(RequestError, match="^level: 1e999999 \\(raw .*\\) is out of float32's range$"):
+        level.raw_for("1e999999")
+
+
+def test_nan_and_inf_are_written_only_when_the_user_insists():
+    import math
+
+    level = _point(name="level", type="float32", writable=True)
+    for text in ("nan", "inf", "-Infinity"):
+        with pytest.raises(RequestError, match=f"^level: {text} is not a finite number"):
+            level.raw_for(text)
+    assert math.isnan(level.raw_for("nan", nonfinite=True))
+    assert level.registers_of(level.raw_for("-inf", nonfinite=True)) == [0xFF80, 0x0000]
+    assert level.value_of([0x7F80, 0x0000]) == float("inf")
+
+
+def test_a_scaled_float_point_reads_nan_and_inf_without_failing():
+    import math
+    from decimal import Decimal
+
+    scaled = _point(type="float32", scale=Decimal("0.1"), offset=Decimal("2"))
+    assert scaled.value_of([0x7F80, 0x0000]) == float("inf")  # was OverflowError: internal error
+    assert scaled.value_of([0xFF80, 0x0000]) == float("-inf")
+    assert math.isnan(scaled.value_of([0x7FC0, 0x0000]))
+
+
+def test_hex_is_a_number_as_everywhere_else():
+    from decimal import Decimal
+
+    period = _point(name="period", type="uint16", writable=True)
+    assert period.raw_for("0x0F") == 15 and period.raw_for("0X10") == 16
+    word = _point(name="word", type="hex", writable=True)
+    assert word.registers_for("0x00FF") == [0x00FF]
+    scaled = _point(name="flow", type="uint16", scale=Decimal("0.5"), writable=True)
+    assert scaled.raw_for("0x10") == 32  # 16 in the point's units
+    state = _point(enum={0: "stopped", 1: "running"}, writable=True)
+    assert state.raw_for("0x1") == 1
+    with pytest.raises(RequestError, match="^p: 0xZZ is none of stopped, running$"):
+        state.raw_for("0xZZ")
+
+
+def test_a_float_that_cannot_hold_the_decimal_given_says_what_it_holds():
+    from decimal import Decimal
+
+    level = _point(type="float32", writable=True)
+    assert level.held("1.25", level.raw_for("1.25")) is None  # exact: nothing to say
+    assert level.held("0.1", level.raw_for("0.1")) is None  # 0.1 reads back as 0.1
+    assert level.held("16777217", level.raw_for("16777217")) == 16777216
+    assert level.held("123.456789", level.raw_for("123.456789")) == 123.45679
+    third = _point(type="float32", scale=Decimal("3"), writable=True)
+    assert third.held("1", third.raw_for("1")) == 1.00000002
+    assert _point(writable=True).held("5", 5) is None  # integers are exact or refused
+
+
 def test_write_requests_pick_the_function_code():
     from decimal import Decimal
 

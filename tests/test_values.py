@@ -14,6 +14,7 @@ from mbtool.codec.values import (
     decode_values,
     encode_values,
     parse_register,
+    parse_registers,
     parse_value,
     registers_needed,
     value_addresses,
@@ -91,12 +92,13 @@ def test_out_of_range_or_malformed_values_are_refused(text, kind):
 
 def test_a_number_past_a_double_is_not_written_as_infinity():
     for kind in ("float64", "float32"):
-        with pytest.raises(RequestError, match=f"1e999 does not fit in {kind}"):
+        with pytest.raises(RequestError, match=f"1e999 is out of {kind}'s range"):
             parse_value("1e999", kind)
-        with pytest.raises(RequestError, match=f"-1E\\+400 does not fit in {kind}"):
+        with pytest.raises(RequestError, match=f"-1E\\+400 is out of {kind}'s range"):
             parse_value("-1E+400", kind)
-        assert parse_value("-Infinity", kind) == -math.inf  # typed as such, it is meant
-        assert parse_value("inf", kind) == math.inf
+        # typed as such and insisted on (--allow-nonfinite), it is meant
+        assert parse_value("-Infinity", kind, nonfinite=True) == -math.inf
+        assert parse_value("inf", kind, nonfinite=True) == math.inf
 
 
 def test_plain_register_values_accept_negatives_as_twos_complement():
@@ -149,3 +151,34 @@ def test_float64_stays_pythons_repr():
 
     assert decode_values(tuple(encode_values([0.1], "float64")), "float64") == [0.1]
     assert decode_values(tuple(encode_values([123.456], "float32", "CDAB")), "float32", "CDAB") == [123.456]
+
+
+# --- a written value is the value typed, or refused (issues 28 §2, 29 item 7) ------------------
+
+
+@pytest.mark.parametrize(
+    ("text", "kind", "words"),
+    [
+        ("1e400", "float64", "1e400 is out of float64's range"),  # float() makes it +inf
+        ("-1e400", "float32", "-1e400 is out of float32's range"),
+        ("1e39", "float32", "1e39 is out of float32's range"),
+        ("nan", "float32", "nan is not a finite number"),
+        ("-inf", "float64", "-inf is not a finite number"),
+        ("Infinity", "float32", "Infinity is not a finite number"),
+        ("snan", "float32", "snan is not a valid float32 value"),
+    ],
+)
+def test_a_float_typed_is_finite_and_in_its_types_range(text, kind, words):
+    with pytest.raises(RequestError, match=words):
+        parse_value(text, kind)
+
+
+def test_nan_and_inf_are_written_only_when_the_user_insists():
+    assert math.isnan(parse_value("nan", "float32", nonfinite=True))
+    assert parse_value("-inf", "float64", nonfinite=True) == float("-inf")
+    # Out of range is never +inf, insisting or not: 1e400 is not what the user typed.
+    with pytest.raises(RequestError, match="out of float64's range"):
+        parse_value("1e400", "float64", nonfinite=True)
+    assert parse_registers(["inf"], "float32", nonfinite=True) == [0x7F80, 0x0000]
+    with pytest.raises(RequestError, match="not a finite number"):
+        parse_registers(["inf"], "float32")

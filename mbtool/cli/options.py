@@ -513,6 +513,14 @@ def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Call
     ]
 
 
+# nan and inf are refused unless asked for: a typo (or 1e400, out of range) must not send one.
+NONFINITE_OPTION = click.option(
+    "--allow-nonfinite",
+    is_flag=True,
+    help="Let a float value be nan, inf or -inf (refused otherwise).",
+)
+
+
 def map_option(what: str) -> Callable:
     """-m/--map MAP for read and write; ``what``: what the command does with the points."""
     return click.option(

@@ -158,13 +158,15 @@ def change_parts(what: dict, old, new, unit: str = "") -> tuple[str, str, str]:
     """A value that differs (diff) or changed (--changes): what it is and both values as text.
 
     ``what`` names a map's point (name, ref) or an address (table, address); a value of
-    None is an address a side does not have: "missing"."""
-    where = f"{what['name']} ({what['ref']})" if "name" in what else f"{what['table']} {what['address']}"
+    None is an address a side does not have: "missing".  A point's bit is on or off, as
+    read -m shows it."""
+    point = "name" in what
+    where = f"{what['name']} ({what['ref']})" if point else f"{what['table']} {what['address']}"
 
     def shown(value) -> str:
         if value is None:
             return "missing"
-        return value_text(value) + (f" {unit}" if unit else "")
+        return (point_text(value) if point else value_text(value)) + (f" {unit}" if unit else "")
 
     return where, shown(old), shown(new)
 
@@ -338,9 +340,14 @@ class PointRow:
 
     @property
     def shown(self) -> str:
-        if isinstance(self.value, bool):
-            return "on" if self.value else "off"
-        return value_text(self.value) + (" (no label)" if self.no_label else "")
+        return point_text(self.value) + (" (no label)" if self.no_label else "")
+
+
+def point_text(value: object) -> str:
+    """A map's point's value as text: a bit is on or off."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return value_text(value)
 
 
 @record

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import struct
+import sys
 from collections.abc import Callable, Sequence
 
 from mbtool.codec.errors import RequestError
@@ -158,29 +159,58 @@ def value_addresses(type_name: str, first: int, registers: int) -> list[int]:
     return list(range(first, first + registers - registers % size, size))
 
 
-def parse_value(text: str, type_name: str) -> Value:
-    """A value typed by the user, checked against the type's range; RequestError if not."""
+FLOAT_MAX = {"f": 3.4028234663852886e38, "d": sys.float_info.max}  # the largest finite of each
+
+
+def parse_value(text: str, type_name: str, nonfinite: bool = False) -> Value:
+    """A value typed by the user, checked against the type's range; RequestError if not.
+    ``nonfinite``: nan and inf are written as such (a float type only)."""
     kind = TYPES[type_name]
     if kind.name == "string":
         return text
+    if kind.fmt in ("f", "d"):
+        return float_value(text, type_name, text, nonfinite)
     try:
-        value: Value = float(text) if kind.fmt in ("f", "d") else int(text, 0)
+        value = int(text, 0)
     except ValueError:
         raise RequestError(f"{text} is not a valid {type_name} value") from None
-    if isinstance(value, float):
-        # float() makes a number past a double's range infinite (1e999): that is not
-        # what was typed, so it is refused as a float32's overflow is.
-        overflowed = math.isinf(value) and "inf" not in text.lower()
-        if overflowed or kind.fmt == "f" and math.isfinite(value) and abs(value) > 3.4028234663852886e38:
-            raise RequestError(f"{text} does not fit in {type_name}")
-        return value
+    return integer_value(value, type_name, text)
+
+
+def float_value(number, type_name: str, shown: str, nonfinite: bool = False) -> float:
+    """``number`` (text or a Decimal) as the float type holds it.  A decimal beyond the
+    type's range is refused: float() would make it an infinity, and struct would send
+    7F 80 00 00 for a value the user never typed.  nan and inf only with ``nonfinite``."""
+    from decimal import Decimal, InvalidOperation  # only for a float written
+
+    kind = TYPES[type_name]
+    try:
+        exact = number if isinstance(number, Decimal) else Decimal(str(number).strip())
+    except InvalidOperation:
+        exact = None
+    if exact is None or exact.is_snan():
+        raise RequestError(f"{shown} is not a valid {type_name} value")
+    if not exact.is_finite():
+        if not nonfinite:
+            raise RequestError(f"{shown} is not a finite number (--allow-nonfinite writes it)")
+        return float(exact)
+    value = float(exact)  # correctly rounded, as float(text) is
+    if not abs(value) <= FLOAT_MAX[kind.fmt]:
+        raise RequestError(f"{shown} is out of {type_name}'s range")
+    return value
+
+
+def integer_value(value, type_name: str, shown: str) -> int:
+    """``value`` (an int, or a whole Decimal) as an int when the integer type holds it;
+    RequestError naming ``shown`` if not (checked first: 1e999999 is never made an int)."""
+    kind = TYPES[type_name]
     bits = 16 * kind.registers
     low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if kind.fmt.islower() else (0, (1 << bits) - 1)
     if kind.name == "hex":
         low = 0
     if not low <= value <= high:
-        raise RequestError(f"{text} is out of range {low}..{high} for {type_name}")
-    return value
+        raise RequestError(f"{shown} is out of range {low}..{high} for {type_name}")
+    return int(value)
 
 
 def encode_values(values: list[Value], type_name: str, order: str = "ABCD") -> list[int]:
@@ -216,8 +246,9 @@ def parse_register(text: str) -> int:
     return value & 0xFFFF
 
 
-def parse_registers(texts, type_name: str, order: str = "ABCD") -> list[int]:
-    """The registers for values as a user types them, each checked against its type."""
+def parse_registers(texts, type_name: str, order: str = "ABCD", nonfinite: bool = False) -> list[int]:
+    """The registers for values as a user types them, each checked against its type
+    (``nonfinite``: a float may be nan or inf)."""
     if type_name == "uint16":
         return [parse_register(text) for text in texts]  # -32768..65535, as the contract says
-    return encode_values([parse_value(text, type_name) for text in texts], type_name, order)
+    return encode_values([parse_value(text, type_name, nonfinite) for text in texts], type_name, order)

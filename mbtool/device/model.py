@@ -120,6 +120,7 @@ class DataModel:
         # A sparse data file (README, "Simulating a device"): what it defines, per table name
         # and per file number, 1 for each address it lists.  None: every address exists.
         self.defined: dict[str | int, bytearray] | None = None
+        self.complete = True  # False: a dump mbtool did not finish (complete = false in the file)
 
     def copy(self) -> DataModel:
         other = DataModel.__new__(DataModel)
@@ -135,6 +136,7 @@ class DataModel:
         other.slave_id_extra = self.slave_id_extra
         other.objects = dict(self.objects)
         other.defined = None if self.defined is None else {k: bytearray(v) for k, v in self.defined.items()}
+        other.complete = self.complete
         return other
 
     def file(self, number: int, create: bool) -> array | None:
@@ -745,6 +747,7 @@ def load_data(
     complete = data.get("complete", True)  # mbtool dump marks a dump it did not finish
     if not isinstance(complete, bool):
         raise RequestError(f"data file {path}: complete must be true or false")
+    template.complete = complete
     top = {k: v for k, v in data.items() if k not in ("units", "sparse", "complete")}
     apply_data(template, top, path)
     unit_models = {}

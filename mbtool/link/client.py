@@ -138,6 +138,10 @@ class Client:
                 error = _worse(error, failure)
                 busy = False
                 continue
+            if reply is not None and self.transport.silence_hint:
+                # A reply came over this link, so its framing is right: silence from here on
+                # is the device's (it stopped answering), not the mix-up the hint suggests.
+                self.transport.silence_hint = ""
             if isinstance(reply, ExceptionResponse):
                 refusal = ModbusException(reply.function_code, reply.exception_code)
                 busy = reply.exception_code == ExceptionCode.SERVER_DEVICE_BUSY

@@ -113,9 +113,10 @@ class PointException(ModbusException):
         self.args = (f"{point.name} ({point.ref}): {error}",)
 
 
-def write_request(point: Point, text: str, multiple: bool = False) -> Request:
+def write_request(point: Point, text: str, multiple: bool = False, nonfinite: bool = False) -> Request:
     """The request that writes ``text`` to a point: FC05/06 for one item, FC15/16 for more
-    or when ``multiple`` (some devices accept only FC15/16); bits of a register: see ``bit_request``."""
+    or when ``multiple`` (some devices accept only FC15/16); bits of a register: see ``bit_request``.
+    ``nonfinite``: a float point may be written nan or inf."""
     if not point.writable:
         why = (
             f"{point.table.items} are read-only"
@@ -123,9 +124,10 @@ def write_request(point: Point, text: str, multiple: bool = False) -> Request:
             else "the map does not mark it rw"
         )
         raise RequestError(f"{point.name} ({point.ref}) is not writable: {why}")
+    raw = point.raw_for(text, nonfinite)
     if point.bit is not None:
-        return bit_request(point.address, point.bit, bool(point.raw_for(text)))
-    values = [point.raw_for(text)] if point.table.bits else point.registers_for(text)
+        return bit_request(point.address, point.bit, bool(raw))
+    values = [raw] if point.table.bits else point.registers_of(raw)
     return write_of(point.table, point.address, values, multiple)
 
 

@@ -14,17 +14,18 @@ it, for a negative scale) whatever the offset.  A scaled value beyond a double's
 from __future__ import annotations
 
 import sys
-from decimal import Decimal, InvalidOperation
+from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, localcontext
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import Table, reference
-from mbtool.codec.values import TYPES, Value, decode_values, encode_values, parse_value
+from mbtool.codec.values import TYPES, Value, decode_values, encode_values, float_value, integer_value
 
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
 PointValue = Value | bool | None
 DOUBLE_MAX = Decimal(sys.float_info.max)  # the largest finite double
+UNBOUNDED = Context(Emax=MAX_EMAX, Emin=MIN_EMIN)  # a written value's arithmetic: see raw_for
 
 
 @record
@@ -94,54 +95,64 @@ class Point:
             return labelled[0] if labelled else None
         return value
 
-    def raw_for(self, text: str) -> int | float | str | bool:
-        """The raw value that writes ``text`` (engineering units, an enum label, on/off)."""
+    def raw_for(self, text: str, nonfinite: bool = False) -> int | float | str | bool:
+        """The raw value that writes ``text`` (engineering units, an enum label, on/off),
+        checked against the point's type after scaling: every error names the point.
+        ``nonfinite``: a float point may be written nan or inf."""
         if self.is_bit:
             try:
                 return ON_WORDS[text.strip().lower()]
             except KeyError:
                 raise RequestError(f"{self.name}: {text} is not on or off") from None
+        wanted = _decimal(text)
         if self.enum is not None:
             for raw, label in self.enum.items():
                 if label.lower() == text.strip().lower():
                     return raw
-            if not text.strip().lstrip("-").isdigit():
+            if wanted is None:
                 labels = ", ".join(self.enum.values())
                 raise RequestError(f"{self.name}: {text} is none of {labels}")
         if self.type == "string":
             return text
-        try:
-            wanted = Decimal(text.strip())
-        except InvalidOperation:
-            raise RequestError(f"{self.name}: {text} is not a number") from None
-        if not wanted.is_finite():
-            return parse_value(text, self.type)
-        if wanted.copy_abs() > DOUBLE_MAX:  # copy_abs: abs() would round, and overflow
-            # No register holds more than a double; and the step arithmetic stays in
-            # Decimal's range (decimal.Overflow past 1e999999).
-            raise RequestError(f"{self.name}: {text} is out of range for {self.type}")
-        scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
-        raw = (wanted - offset) / scale
-        if TYPES[self.type].fmt in ("f", "d"):
+        if wanted is None:
+            raise RequestError(f"{self.name}: {text} is not a number")
+        floating = TYPES[self.type].fmt in ("f", "d")
+        if not wanted.is_finite() and not floating:
+            raise RequestError(f"{self.name}: {text} is not a number a {self.type} can hold")
+        # Decimal's own exponent range (1e999999) is no limit on what a user may type: past
+        # it a value is out of the point's range, which the type's check says, not Overflow.
+        with localcontext(UNBOUNDED):
+            scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
+            raw = (wanted - offset) / scale if wanted.is_finite() else wanted
+            # The value named in an error: the user's, and the raw one too when scaling made it.
+            shown = text.strip()
+            if wanted.is_finite() and raw != wanted:
+                shown = f"{shown} {self.unit}".rstrip() + f" (raw {_raw_text(raw)})"
             try:
-                return parse_value(str(raw), self.type)
+                if floating:
+                    return float_value(raw, self.type, shown, nonfinite)
+                if raw != raw.to_integral_value():
+                    low = raw.to_integral_value(rounding="ROUND_FLOOR")
+                    nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
+                    raise RequestError(
+                        f"{text} is not a whole number of steps of {_text(scale)}"
+                        f"{' from ' + _text(offset) if offset else ''}; the nearest writable values are {nearest}"
+                    )
+                return integer_value(raw, self.type, shown)
             except RequestError as error:
-                raise RequestError(
-                    f"{self.name}: {text} {self.unit}".rstrip() + f" is raw {raw}: {error}"
-                ) from None
-        if raw != raw.to_integral_value():
-            low = raw.to_integral_value(rounding="ROUND_FLOOR")
-            nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
-            raise RequestError(
-                f"{self.name}: {text} is not a whole number of steps of {_text(scale)}"
-                f"{' from ' + _text(offset) if offset else ''}; the nearest writable values are {nearest}"
-            )
-        try:
-            return parse_value(str(int(raw)), self.type)
-        except RequestError as error:
-            raise RequestError(
-                f"{self.name}: {text} {self.unit}".rstrip() + f" is raw {int(raw)}: {error}"
-            ) from None
+                raise RequestError(f"{self.name}: {error}") from None
+
+    def held(self, text: str, raw: int | float | str | bool) -> PointValue:
+        """What the point holds once ``raw`` (``raw_for(text)``'s) is written, when that is not
+        the decimal ``text`` names: a float32 holds about 7 digits, so 16777217 is written as
+        16777216.  None when it is the value given (and for every type but the floats)."""
+        if self.is_bit or TYPES[self.type].fmt not in ("f", "d"):
+            return None
+        wanted = _decimal(text)
+        if wanted is None or not wanted.is_finite():
+            return None
+        value = self.value_of(self.registers_of(raw))
+        return None if Decimal(repr(value)) == wanted else value
 
     def registers_for(self, text: str) -> list[int]:
         """The registers that carry ``text`` (not for bits: see ``raw_for``)."""
@@ -165,6 +176,24 @@ def _number(value: Decimal) -> int | float:
     if value == value.to_integral_value() and value.copy_abs() <= DOUBLE_MAX:
         return int(value)
     return float(value)
+
+
+def _raw_text(raw: Decimal) -> str:
+    """A raw value in an error: 40000, 0.3333333333333333333333333333, 1E+310."""
+    if raw == raw.to_integral_value() and raw.adjusted() < 20:
+        return str(int(raw))
+    return str(raw.normalize())
+
+
+def _decimal(text: str) -> Decimal | None:
+    """A number as the user types it: a decimal, or 0x hex as every other value takes."""
+    text = text.strip()
+    try:
+        if text.lower().lstrip("+-").startswith("0x"):
+            return Decimal(int(text, 16))
+        return Decimal(text)
+    except (InvalidOperation, ValueError):
+        return None
 
 
 def _text(value: Decimal) -> str:

@@ -9,7 +9,16 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, VALUE_TYPES, Choice, Number, device_command, parse_int
+from mbtool.cli.options import (
+    ADDRESS,
+    COUNT,
+    NONFINITE_OPTION,
+    VALUE_TYPES,
+    Choice,
+    Number,
+    device_command,
+    parse_int,
+)
 from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
 
@@ -254,7 +263,10 @@ def mask_write_register(connection, address, and_mask, or_mask):
 @click.argument("read_count", type=COUNT)
 @click.argument("write_address", type=ADDRESS)
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
-def read_write_registers(connection, read_address, read_count, write_address, values, value_type, order):
+@NONFINITE_OPTION
+def read_write_registers(
+    connection, read_address, read_count, write_address, values, allow_nonfinite, value_type, order
+):
     """Read/write registers (FC 23).
 
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
@@ -264,7 +276,7 @@ def read_write_registers(connection, read_address, read_count, write_address, va
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses
 
-    registers = parse_registers(values, value_type, order)
+    registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = ReadWriteMultipleRegisters(
         read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
     )

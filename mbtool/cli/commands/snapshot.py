@@ -220,18 +220,27 @@ class _Bar:
 # --- diff: two snapshots, or a snapshot and the device ------------------------------------
 
 
-def snapshot(path: str) -> dict[str, dict[int, int]]:
-    """A data file's listed addresses and their values, by table (coils, discrete, input, holding)."""
+def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
+    """A data file's listed addresses and their values, by table (coils, discrete, input,
+    holding), and whether the file is complete (a dump cut short says complete = false).
+
+    One device's tables: a file with [units.N] sections (serve's, one set a unit) is
+    refused rather than read as something it is not."""
     from mbtool.device.model import load_data
 
-    model, _ = load_data(path, frozenset(range(1, 256)), listed_only=True)
+    model, units = load_data(path, frozenset(range(1, 256)), listed_only=True)
+    if units:
+        raise RequestError(
+            f"{path} has [units.{min(units)}]: diff and restore take one device's tables, "
+            "as mbtool dump writes them, not serve's sections a unit"
+        )
     out: dict[str, dict[int, int]] = {}
     for name, section in TABLE_SECTIONS.items():
         mask = model.defined.get(section)
         if mask:
             values = getattr(model, section)
             out[name] = {address: int(values[address]) for address, there in enumerate(mask) if there}
-    return out
+    return out, model.complete
 
 
 def read_live(execute, wanted: dict[str, dict[int, int]]) -> dict[str, dict[int, int]]:
@@ -305,7 +314,7 @@ def diff(connection, a, b, map):
 
     A side named device (B when left out) is the device: only the dump's addresses are
     read from it. One line per difference, such as holding 5: 5 -> 99 (or setpoint (40006): 22.5 m3/h
-    -> 23 m3/h with -m); "missing" where a side lacks the address. Exit 0 when equal, 1
+    -> 23 m3/h with -m, a bit off -> on); "missing" where a side lacks the address. Exit 0 when equal, 1
     when they differ (as diff(1)), other codes as everywhere.
     """
     from mbtool.cli.render import default_format, to_json
@@ -321,7 +330,7 @@ def diff(connection, a, b, map):
         raise RequestError(
             f"diff compares a dump with the device, or two dumps: at most one side is {DEVICE}"
         )
-    files = {side: snapshot(side) for side in (a, b) if side != DEVICE}
+    files = {side: snapshot(side)[0] for side in (a, b) if side != DEVICE}
     if DEVICE in (a, b):
         from mbtool.cli.session import open_client
 
@@ -353,9 +362,12 @@ def diff(connection, a, b, map):
 # --- restore: a dump's writable tables back into the device --------------------------------
 
 
-def write_requests(changes: dict[str, dict[int, int]]) -> list:
+def write_requests(changes: dict[str, dict[int, int]], spans=()) -> list:
     """FC 15/16 requests for the values to write: one a run of consecutive addresses, cut at
-    the spec's limits (1968 coils, 123 registers a request): the fewest such requests."""
+    the spec's limits (1968 coils, 123 registers a request): the fewest such requests.
+
+    ``spans``: (table, first, end) ranges no request may cut, a map's points: a meter
+    refuses half a float32, so a cut that would fall inside one falls before it."""
     from mbtool.codec.data_access import (
         MAX_WRITE_COILS,
         MAX_WRITE_REGISTERS,
@@ -370,12 +382,66 @@ def write_requests(changes: dict[str, dict[int, int]]) -> list:
         ("holding", WriteMultipleRegisters, MAX_WRITE_REGISTERS),
     ):
         values = changes.get(name, {})
+        whole = [(first, end) for table, first, end in spans if table == name]
         for first, last in runs_of(sorted(values)):
-            for start in range(first, last + 1, limit):
+            start = first
+            while start <= last:
                 end = min(last + 1, start + limit)
+                end = next((low for low, high in whole if start < low < end < high), end)
                 run = [values[a] for a in range(start, end)]
                 requests.append(kind(start, tuple(bool(v) for v in run) if name == "coils" else tuple(run)))
+                start = end
     return requests
+
+
+def restore_plan(current: dict, wanted: dict, register_map=None, everything: bool = False):
+    """The writes that make the device hold ``wanted`` (from ``current``): one item a
+    difference, named as diff names it, and one Step a request.  A map's point is written
+    whole, its registers in one request, when any of them differs.  Also the points the
+    dump holds only in part, which are not written."""
+    from mbtool.cli.render import change_parts
+    from mbtool.cli.writes import Step
+
+    changes: dict[str, dict[int, int]] = {}
+    spans, halves, placed = [], [], []
+    for difference in differences(current, wanted, register_map):
+        table = difference["table"]
+        held = wanted.get(table, {})
+        if "name" in difference:
+            point = register_map.points[difference["name"]]
+            addresses = list(range(point.address, point.end))
+            if any(address not in held for address in addresses):
+                if any(address in held for address in addresses):
+                    halves.append(point.name)
+                continue  # a point the dump lacks, whole or in part: nothing to write it whole
+            spans.append((table, point.address, point.end))
+        else:
+            addresses = [difference["address"]]
+        changes.setdefault(table, {}).update((address, held[address]) for address in addresses)
+        item = {
+            key: difference[key] for key in ("table", "address", "ref", "name", "unit") if key in difference
+        }
+        if not everything:  # --all reads nothing first: what the device held is not known
+            item["old"] = difference["a"]
+        item["new"] = difference["b"]
+        placed.append((item, addresses))
+    # The requests come table by table, in address order, as the items sorted so: each takes
+    # the items from where the one before stopped, up to its end.
+    placed.sort(key=lambda pair: (pair[0]["table"] != "coils", pair[1][0]))
+    steps, taken = [], 0
+    for request in write_requests(changes, spans):
+        table = "coils" if request.function_code == 0x0F else "holding"
+        end, first = request.address + len(request.values), taken
+        while taken < len(placed) and placed[taken][0]["table"] == table and placed[taken][1][0] < end:
+            taken += 1
+        mine = placed[first:taken]
+        items = tuple(item for item, _ in mine)
+        if len(items) == 1:
+            label = change_parts(items[0], None, None)[0]
+        else:
+            label = f"{table} {request.address}-{end - 1}"
+        steps.append(Step(label, items, (request, [addresses for _, addresses in mine])))
+    return steps, changes, halves
 
 
 @device_command("restore")
@@ -383,61 +449,125 @@ def write_requests(changes: dict[str, dict[int, int]]) -> list:
 @click.option(
     "--all", "everything", is_flag=True, help="Write every coil and register, not only those that differ."
 )
-def restore(connection, file, everything):
+@map_option("each point written whole, its registers in one request, and named in the report")
+def restore(connection, file, everything, map):
     """Write a dump's holding registers and coils back into the device, then read back.
 
     Only what differs from the device is written (--all: everything), in the fewest FC
-    15/16 requests; then every written address is read back to confirm it. --dry-run
-    reads the device and shows the writes it would send. Input registers and discrete
-    inputs cannot be written: they are reported as skipped.
+    15/16 requests; then every written address is read back to confirm it. Each write is
+    listed as diff lists a difference, with its fate: confirmed, differs (reads back
+    otherwise), written, refused, failed or not-sent. The first write that fails stops the
+    rest, and the exit code is the failure's own. --dry-run reads the device and lists the
+    writes it would make, sending none. With -m MAP a point that differs is written whole
+    (a meter may refuse half a float32) and named. Input registers and discrete inputs
+    cannot be written: they are reported as skipped.
     """
     from mbtool.cli.session import open_client
+    from mbtool.cli.writes import DIFFERS, failure, report, send_all
+    from mbtool.codec.errors import ModbusException
     from mbtool.codec.record import replace
-    from mbtool.errors import ExitCode, Summary
+    from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
 
-    snap = snapshot(file)
+    snap, complete = snapshot(file)
+    register_map = None
+    if map:
+        from mbtool.registermap.load import load_map
+
+        register_map = load_map(map)
+    if not complete:
+        print(
+            f"mbtool: warning: {file} is marked complete = false: the dump stopped early, and only "
+            "what it holds is restored",
+            file=sys.stderr,
+        )
     wanted = {name: snap[name] for name in ("coils", "holding") if name in snap}
     skipped = ", ".join(
         f"{len(snap[name])} {label}"
         for name, label in (("input", "input registers"), ("discrete", "discrete inputs"))
         if snap.get(name)
     )
-    # The reads are needed even for --dry-run: it shows only the writes that differ.
+    head = {"unit": connection.unit, "file": file} | ({"map": map} if map else {})
+    read_back, trouble = False, None
+    # The reads are needed even for --dry-run: it lists only the writes that differ.
     with open_client(replace(connection, dry_run=False), "Read Holding Registers") as client:
         execute = partial(client.execute, connection.unit)
 
         current = {} if everything else read_live(execute, wanted)
-        changes = {
-            name: {a: v for a, v in values.items() if current.get(name, {}).get(a) != v}
-            for name, values in wanted.items()
-        }
-        requests = write_requests(changes)
+        steps, changes, partial_points = restore_plan(current, wanted, register_map, everything)
+        items = [item for step in steps for item in step.items]
         if connection.dry_run:
-            from mbtool.cli.dryrun import DryRunClient, DryRunDone
+            from mbtool.cli.dryrun import DryRunDone
 
-            dry = DryRunClient(client.framer, connection.output_format)
-            for request in requests:
-                dry.show(connection.unit, request)
-            raise DryRunDone(f"dry run: the device was read; the {len(requests)} writes shown were not sent")
-        for request in requests:
-            execute(request)
-        after = read_live(execute, changes)
-    wrong = [
-        f"{name} {address} wrote {value}, reads {after.get(name, {}).get(address, 'nothing')}"
-        for name, values in changes.items()
-        for address, value in values.items()
-        if after.get(name, {}).get(address) != value
-    ]
-    labels = {"coils": "coils", "holding": "holding registers"}
-    counts = ", ".join(
-        f"{len(values)} {labels[name] if len(values) != 1 else labels[name][:-1]}"
-        for name, values in changes.items()
-        if values
-    )
-    summary = f"restore: wrote {counts or 'nothing'} in {len(requests)} requests"
-    if skipped:
-        summary += f"; skipped {skipped} (read-only)"
-    if wrong:
-        summary += f"; read back differently: {'; '.join(wrong[:5])}" + (" ..." if len(wrong) > 5 else "")
-        raise Summary(summary, ExitCode.INVALID_RESPONSE)
-    raise Summary(summary + "; read back and confirmed", ExitCode.OK)
+            report(connection, items, head)
+            raise DryRunDone(
+                f"dry run: the device was read; nothing was sent: {len(steps)} request"
+                f"{'s' if len(steps) != 1 else ''} would write {len(items)} value{'s' if len(items) != 1 else ''}"
+            )
+        outcome = send_all(steps, lambda step: execute(step.work[0]))
+        # Read back what the device acknowledged, while it still answers: after a refusal it
+        # does; after silence or a hang-up another read would only wait for nothing.
+        if outcome.error is None or isinstance(outcome.error, ModbusException):
+            sent: dict[str, dict[int, int]] = {}
+            for step in outcome.steps[: outcome.done]:
+                request, _ = step.work
+                table = "coils" if request.function_code == 0x0F else "holding"
+                sent.setdefault(table, {}).update(
+                    (request.address + i, int(value)) for i, value in enumerate(request.values)
+                )
+            try:
+                after = read_live(execute, sent)
+            except KNOWN_ERRORS as error:
+                trouble = error
+            else:
+                read_back = True
+                for step in outcome.steps[: outcome.done]:
+                    _confirm(step, sent, after, register_map)
+    code = exit_code_for(outcome.error) if outcome.error else ExitCode.OK
+    if outcome.error is not None:
+        summary = failure("restore", outcome, read_back)
+    else:
+        labels = {"coils": "coils", "holding": "holding registers"}
+        counted = ", ".join(
+            f"{len(values)} {labels[name] if len(values) != 1 else labels[name][:-1]}"
+            for name, values in changes.items()
+            if values
+        )
+        text = f"restore: wrote {counted or 'nothing'} in {len(steps)} requests"
+        if skipped:
+            text += f"; skipped {skipped} (read-only)"
+        if partial_points:
+            text += f"; not written: {', '.join(partial_points)} (the dump holds part of each)"
+        differ = sum(item["status"] == DIFFERS for item in items)
+        if trouble is not None:
+            text += f"; not read back: {trouble}"
+            code = exit_code_for(trouble)
+        elif differ:
+            text += f"; {differ} read back differently"
+            code = ExitCode.INVALID_RESPONSE
+        elif items:
+            text += "; read back and confirmed"
+        summary = Summary(text, code)
+    end = {"error": str(summary)} if code else {}
+    report(connection, items, head, end | {"exit_code": int(code)})
+    raise summary
+
+
+def _confirm(step, sent: dict, after: dict, register_map) -> None:
+    """Each item of a step written: confirmed when every address it covers reads back as
+    written, else differs, with what it reads (its point's value with a map)."""
+    from mbtool.cli.writes import CONFIRMED, DIFFERS
+
+    _, spans = step.work
+    for item, addresses in zip(step.items, spans, strict=True):
+        table = item["table"]
+        raw = [after.get(table, {}).get(address) for address in addresses]
+        if raw == [sent[table][address] for address in addresses]:
+            item["status"] = CONFIRMED
+            continue
+        item["status"] = DIFFERS
+        if None in raw:
+            item["reads"] = None
+        elif "name" in item:
+            item["reads"] = register_map.points[item["name"]].value_of(raw)
+        else:
+            item["reads"] = raw[0]

@@ -10,6 +10,7 @@ import click
 
 from mbtool.cli.options import (
     ADDRESS,
+    NONFINITE_OPTION,
     ONE_REGISTER_TYPES,
     VALUE_TYPES,
     Number,
@@ -93,7 +94,8 @@ def write_coils(connection, address, bits):
 @device_command("write-registers", types=VALUE_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
-def write_registers(connection, address, values, value_type, order):
+@NONFINITE_OPTION
+def write_registers(connection, address, values, allow_nonfinite, value_type, order):
     """Write registers (FC 16). VALUEs from ADDRESS, at most 123 registers.
 
     Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
@@ -103,7 +105,7 @@ def write_registers(connection, address, values, value_type, order):
     from mbtool.codec.data_access import WriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
-    registers = parse_registers(values, value_type, order)
+    registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = WriteMultipleRegisters(address, tuple(registers))
     execute(connection, request)
     # Report the values as the device now holds them, read back through the same type.
@@ -145,7 +147,8 @@ RMW_OPTION = click.option(
 @map_option("write points by name, in their units")
 @MULTIPLE_OPTION
 @RMW_OPTION
-def write(connection, targets, map, multiple, rmw, value_type, order):
+@NONFINITE_OPTION
+def write(connection, targets, map, multiple, rmw, allow_nonfinite, value_type, order):
     """Write by a device manual's reference, or a register map's points by name.
 
     REF is a Modicon reference: 00001 coil 1, 40001 holding register 1 (six digits up
@@ -154,19 +157,24 @@ def write(connection, targets, map, multiple, rmw, value_type, order):
 
     With -m MAP: NAME=VALUE in the point's units (the map's scale and offset are
     undone), an enum label (state=running) or on/off for a bit. Every value is checked
-    before anything is sent. A bit of a register is written with FC 22 (--rmw: FC 03
-    then FC 06).
+    against its point's type before anything is sent (a float32 that cannot hold the
+    decimal given is a warning naming the value written). A bit of a register is written
+    with FC 22 (--rmw: FC 03 then FC 06). The first write that fails stops the rest: each
+    point is then listed as written, refused, failed or not-sent, and the exit code is the
+    failure's own.
     """
     type_options_given(map)  # refused with a map
     if map:
-        _write_map(connection, map, targets, multiple, rmw)
+        _write_map(connection, map, targets, multiple, rmw, allow_nonfinite)
         return
     if len(targets) < 2:
         raise click.UsageError("give a reference and a value, such as 40001 17, or -m MAP NAME=VALUE")
-    _write_reference(connection, targets[0], targets[1:], multiple, value_type, order)
+    _write_reference(connection, targets[0], targets[1:], multiple, value_type, order, allow_nonfinite)
 
 
-def _write_reference(connection, text: str, values, multiple: bool, value_type: str, order: str) -> None:
+def _write_reference(
+    connection, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
+) -> None:
     from mbtool.cli.render import Result
     from mbtool.codec.tables import parse_reference, reference, write_of
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
@@ -185,7 +193,7 @@ def _write_reference(connection, text: str, values, multiple: bool, value_type: 
         addresses = list(range(address, address + len(written)))
         registers, kind = None, None
     else:
-        registers = parse_registers(values, value_type, order)
+        registers = parse_registers(values, value_type, order, nonfinite)
         request = write_of(table, address, registers, multiple)
         written = decode_values(registers, value_type, order)
         addresses = value_addresses(value_type, address, len(registers))
@@ -208,48 +216,76 @@ def _write_reference(connection, text: str, values, multiple: bool, value_type: 
     )
 
 
-def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool) -> None:
-    from mbtool.cli.render import PointRow, Points
+def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool) -> None:
+    from mbtool.cli.render import PointRow, Points, value_text
+    from mbtool.cli.writes import Step, failure, report, send_all
+    from mbtool.codec.framing import is_broadcast
+    from mbtool.link.connection import framer_name
     from mbtool.registermap.load import load_map
     from mbtool.registermap.plan import write_request
 
     register_map = load_map(path)
-    plan = []  # (point, value, request): every value checked before anything is sent
+    steps, warnings = [], []  # every value checked before anything is sent
     for assignment in assignments:
         name, sep, text = assignment.partition("=")
-        if not sep or not name.strip():
+        name = name.strip()
+        if not sep or not name:
             raise RequestError(f"{assignment}: write a point as NAME=VALUE (such as setpoint=22.5)")
-        (point,) = register_map.select([name.strip()])
-        request = write_request(point, text, multiple)
-        plan.append((point, point.raw_for(text), request))
-    bits_by_rmw = rmw and any(point.bit is not None for point, _, _ in plan)
+        (point,) = register_map.select([name])
+        request = write_request(point, text, multiple, nonfinite)
+        if any(step.work[0] is point for step in steps):
+            raise RequestError(f"{name} is given twice: write each point once")
+        value = point.raw_for(text, nonfinite)
+        held = point.held(text, value)
+        if held is not None:
+            warnings.append(
+                f"{name}: a {point.type} cannot hold {text.strip()}; writing {value_text(held)} {point.unit}".rstrip()
+            )
+        shown = value if point.is_bit else point.value_of(point.registers_of(value))
+        item = {"table": point.table.name, "address": point.address, "ref": point.ref, "name": name}
+        item |= {"unit": point.unit, "new": shown}
+        steps.append(Step(f"{name} ({point.ref})", (item,), (point, value, request)))
+    for warning in warnings:
+        print(f"mbtool: warning: {warning}", file=sys.stderr)
+    bits_by_rmw = rmw and any(step.work[0].bit is not None for step in steps)
     rows = []
+
+    def send(step: Step) -> None:
+        point, value, request = step.work
+        if point.bit is not None:
+            raw = _write_bit(connection, client, point.address, point.bit, value, rmw)
+        else:
+            client.execute(connection.unit, request)
+            raw = (value,) if point.table.bits else tuple(point.registers_of(value))
+        shown = value if point.is_bit or not raw else point.value_of(list(raw))
+        rows.append(
+            PointRow(
+                point.name,
+                shown,
+                point.unit,
+                point.ref,
+                raw,
+                point.table.bits,
+                point.description,
+                no_label=point.no_label(shown),
+            )
+        )
+
     with open_client(connection, RMW_NEEDS if bits_by_rmw else "") as client:
         if connection.dry_run:  # no write depends on a reply: show every frame
-            for point, _, request in plan:
+            for step in steps:
+                point, _, request = step.work
                 if point.bit is not None and rmw:
                     request = _rmw_read(point.address)
                 client.show(connection.unit, request)
             client.finish(connection.unit)
-        for point, value, request in plan:
-            if point.bit is not None:
-                raw = _write_bit(connection, client, point.address, point.bit, value, rmw)
-            else:
-                client.execute(connection.unit, request)
-                raw = (value,) if point.table.bits else tuple(point.registers_of(value))
-            shown = value if point.is_bit or not raw else point.value_of(list(raw))
-            rows.append(
-                PointRow(
-                    point.name,
-                    shown,
-                    point.unit,
-                    point.ref,
-                    raw,
-                    point.table.bits,
-                    point.description,
-                    no_label=point.no_label(shown),
-                )
-            )
+        outcome = send_all(steps, send, is_broadcast(connection.unit, framer_name(connection)))
+    if outcome.error is not None:
+        summary = failure("write", outcome)
+        items = [item for step in steps for item in step.items]
+        end = {"error": str(summary), "exit_code": int(summary.exit_code)}
+        report(connection, items, {"unit": connection.unit, "map": register_map.source}, end)
+        raise summary
     show(connection, Points(connection.unit, register_map.source, rows))
 
 
