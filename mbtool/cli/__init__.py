@@ -153,6 +153,8 @@ def main(argv: list[str] | None = None) -> None:
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
     signal.signal(signal.SIGTERM, _terminate)
+    if sys.stdout is None:
+        _closed_stdout_as_a_gone_reader()
     render.errors_as_json, render.csv_header = False, True  # until the options say otherwise
     error: BaseException | None = None
     try:
@@ -162,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.stdout.flush()  # here, where a full disk is still ours to report
         code = ExitCode.OK
     except click.exceptions.Exit as done:  # --help, --version
-        code = done.exit_code
+        error, code = _flushed(None, done.exit_code)
     except click.ClickException as failure:  # usage errors: nothing was sent
         if failure.ctx is not None and failure.ctx.command.name == "check":
             # A monitoring plugin's bad arguments are UNKNOWN, on stdout (plugin guidelines).
@@ -188,8 +190,9 @@ def main(argv: list[str] | None = None) -> None:
     except KNOWN_ERRORS as failure:
         if isinstance(failure, OutputFailed):
             _discard_stdout()
-        error = failure
-        code = exit_code_for(failure)
+            error, code = failure, failure.exit_code
+        else:  # what the command wrote first (dump -, diff's lines) goes before the verdict
+            error, code = _flushed(failure, exit_code_for(failure))
     except Exception as failure:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
         if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
             raise
@@ -204,6 +207,34 @@ def main(argv: list[str] | None = None) -> None:
             # (polling writes its own per poll, and its Summary is no error object).
             _write_quietly(render.error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
+
+
+def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | None, int]:
+    """The outcome once what the command wrote to stdout is out: a reader that went away or a
+    full disk then ends the run as they do any write (141 quietly, 7), not at exit with a
+    traceback from the interpreter's last flush."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _discard_stdout()
+        return None, ExitCode.READER_GONE
+    except OSError as failure:
+        _discard_stdout()
+        failed = OutputFailed("standard output", failure)
+        return failed, failed.exit_code
+    return error, code
+
+
+def _closed_stdout_as_a_gone_reader() -> None:
+    """Started with stdout closed (``>&-``; Python then has no sys.stdout): a pipe whose reader
+    has gone takes its place, so a write fails as it does after ``| head`` and ends the run the
+    same way (141, quietly), and fd 1 is taken: no socket or file opened later becomes stdout."""
+    reader, writer = os.pipe()
+    os.close(reader)
+    if writer != 1:  # fd 1 is the lowest free one, so the pipe normally lands there
+        os.dup2(writer, 1)
+        os.close(writer)
+    sys.stdout = open(1, "w", encoding="utf-8", closefd=False)
 
 
 def _discard_stdout() -> None:

@@ -126,11 +126,14 @@ def wants_csv_header(out: TextIO) -> bool:
     return info.st_size == 0 and os.lseek(fd, 0, os.SEEK_CUR) == 0
 
 
-def default_format(stream: TextIO = sys.stdout) -> str:
-    return "table" if stream.isatty() else "plain"
+# The streams are looked up when called, not bound as defaults: cli.main may put a stdout in
+# place of a closed one after this module is imported.
+def default_format(stream: TextIO | None = None) -> str:
+    return "table" if (stream or sys.stdout).isatty() else "plain"
 
 
-def render(result: Result | Report | Points, fmt: str, out: TextIO = sys.stdout) -> None:
+def render(result: Result | Report | Points, fmt: str, out: TextIO | None = None) -> None:
+    out = out or sys.stdout
     if isinstance(result, Points):
         {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
             result, out
