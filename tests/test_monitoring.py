@@ -3,6 +3,11 @@
 
 from __future__ import annotations
 
+import os
+import stat
+import subprocess
+import sys
+
 import pytest
 from conftest import COILS, HOLDING, expect_ok, run_mbtool
 from line_protocol_parser import parse_line
@@ -169,3 +174,39 @@ def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
     assert fields == {"tag": "\\x00d", "n": HOLDING[1]}  # 0x0064: a NUL, then "d"
     res = expect_ok(run_mbtool("read", "-m", path, "-o", "prom", "-p", tcp_device.target))
     assert set(families(res.stdout)) == {"modbus_n"}
+
+
+# --- the textfile's temporary file (issue 29.14) ----------------------------------------------
+
+
+def test_a_symlink_planted_beside_the_textfile_is_never_followed(tmp_path):
+    """The old temporary name was .NAME.PID.tmp: a symlink planted there sent the write to
+    another file and then became the textfile itself."""
+    from mbtool.cli import monitoring
+
+    victim = tmp_path / "victim"
+    victim.write_text("precious\n")
+    path = tmp_path / "modbus.prom"
+    for name in (f".modbus.prom.{os.getpid()}.tmp", f".modbus.prom.{os.getpid()}"):
+        (tmp_path / name).symlink_to(victim)
+    monitoring.write_textfile("modbus_up 1\n", str(path))
+    assert victim.read_text() == "precious\n"
+    assert not path.is_symlink() and path.read_text() == "modbus_up 1\n"
+    # Readable as any file the user makes (node_exporter runs as another user), not 0600.
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask
+
+
+def test_temporary_files_a_killed_mbtool_left_are_cleaned_up(tcp_device, tmp_path):
+    path = tmp_path / "modbus.prom"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".modbus.prom.{dead.pid}.k3x9_q2a.tmp"  # as SIGKILL leaves one
+    stale.write_text("half")
+    live = tmp_path / f".modbus.prom.{os.getpid()}.a1b2c3d4.tmp"  # another writer, still at it
+    live.write_text("half")
+    other = tmp_path / ".other.prom.1.tmp"  # not this textfile's
+    other.write_text("x")
+    expect_ok(run_mbtool("read", "40001", "--textfile", path, "-p", tcp_device.target))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["modbus.prom", live.name, other.name])

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import stat
 import time
 
 from mbtool.cli.render import Points
@@ -144,21 +145,76 @@ def prom_text(result) -> str:
 
 def write_textfile(text: str, path: str) -> None:
     """Atomically: a temporary file in the same directory, then a rename over the old one,
-    so node_exporter's textfile collector never reads half a file."""
+    so node_exporter's textfile collector never reads half a file.
+
+    The temporary file is tempfile's: created with O_EXCL under a name no one can guess, so
+    a symlink planted beside the textfile is never followed, and the rename replaces a
+    symlink at PATH itself rather than writing through it.  It is made readable as any file
+    the user creates (the umask), as node_exporter runs as another user.  Its name,
+    ``.NAME.PID.XXXXXXXX.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
+    gives no chance to clean up) is removed at the first write."""
+    import tempfile
+
     from mbtool.errors import OutputFailed
 
-    folder = os.path.dirname(os.path.abspath(path))
-    temporary = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp")
+    folder, name = os.path.split(os.path.abspath(path))
+    if path not in _swept:
+        _swept.add(path)
+        _remove_stale_temporaries(folder, name)
+    temporary = None
     try:
-        with open(temporary, "w", encoding="utf-8") as out:
+        descriptor, temporary = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}.", suffix=".tmp", dir=folder)
+        with open(descriptor, "w", encoding="utf-8") as out:
+            os.fchmod(descriptor, 0o666 & ~_umask())
             out.write(text)
         os.replace(temporary, path)
     except OSError as error:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
+        if temporary is not None:
+            try:
+                os.unlink(temporary)
+            except OSError:
+                pass
         raise OutputFailed(path, error) from None
+
+
+_swept: set[str] = set()  # textfiles whose stale temporaries this run has looked for
+
+
+def _umask() -> int:
+    mask = os.umask(0)  # the only way to read it is to set it
+    os.umask(mask)
+    return mask
+
+
+def _remove_stale_temporaries(folder: str, name: str) -> None:
+    """Remove this textfile's temporaries whose writer is gone: regular files of ours (never
+    a symlink's target), named by write_textfile, whose process no longer runs."""
+    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[a-z0-9_]+\.tmp")
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return  # the write itself will say what is wrong with the folder
+    for each in names:
+        found = pattern.fullmatch(each)
+        if found is None or _running(int(found[1])):
+            continue
+        where = os.path.join(folder, each)
+        try:
+            info = os.lstat(where)
+            if stat.S_ISREG(info.st_mode) and info.st_uid == os.geteuid():
+                os.unlink(where)
+        except OSError:
+            pass  # gone already, or not ours to remove
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: it runs, as another user
+        return True
+    return True
 
 
 def emit(result, fmt: str, out, when: float | None = None) -> None:
