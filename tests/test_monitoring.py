@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import COILS, HOLDING, expect_ok, run_mbtool
+from conftest import COILS, HOLDING, assert_one_error_line, expect_ok, run_mbtool
 from line_protocol_parser import parse_line
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -210,3 +210,66 @@ def test_temporary_files_a_killed_mbtool_left_are_cleaned_up(tcp_device, tmp_pat
     other.write_text("x")
     expect_ok(run_mbtool("read", "40001", "--textfile", path, "-p", tcp_device.target))
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["modbus.prom", live.name, other.name])
+
+
+# --- names the line protocol must carry (issue 29.11) -----------------------------------------
+
+
+def reference_unescaped(text: str) -> str:
+    """The line-protocol reference reads two contiguous backslashes as one (the first is an
+    escape); line_protocol_parser keeps both, so the test applies that rule itself."""
+    return text.replace("\\\\", "\\")
+
+
+def test_backslashes_never_swallow_the_separator_after_them(tcp_device, tmp_path):
+    path = tmp_path / "slash.toml"
+    path.write_text(
+        "[points.'a\\']\nref = 40001\n[points.'b\\\\c']\nref = 40002\n[points.'e\\,f']\nref = 40003\n"
+    )
+    config = tmp_path / "config.toml"
+    config.write_text(f"[profiles.'east\\x']\nport = \"{tcp_device.target}\"\n")
+    res = expect_ok(
+        run_mbtool(
+            "read", "-m", path, "-o", "influx", "--measurement", "m\\x", "-P", "east\\x",
+            env={"MBTOOL_CONFIG": str(config)},
+        )
+    )  # fmt: skip
+    parsed = parse_line(res.stdout.strip())
+    assert reference_unescaped(parsed["measurement"]) == "m\\x"
+    assert {k: reference_unescaped(v) for k, v in parsed["tags"].items()} == {
+        "unit": "1",
+        "device": "east\\x",
+    }
+    fields = {reference_unescaped(key): value for key, value in parsed["fields"].items()}
+    assert fields == {"a\\": HOLDING[0], "b\\\\c": HOLDING[1], "e\\,f": HOLDING[2]}
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("-P", "line\nbreak"), "profile 'line\\nbreak': a tag or label is written on one line"),
+        (
+            ("--measurement", "line\nbreak"),
+            "--measurement 'line\\nbreak': a measurement is written on one line",
+        ),
+        (("--measurement", ""), "--measurement '': a measurement has a name"),
+        (("--measurement", "#modbus"), "--measurement '#modbus': a line starting with # is a comment"),
+        (("--measurement", "modbus\\"), "a backslash at the end of a measurement escapes the separator"),
+        (("-P", "east\\"), "a backslash at the end of a tag or label escapes the separator"),
+    ],
+    ids=["profile", "measurement", "empty", "comment", "backslash", "tag-backslash"],
+)
+def test_names_the_line_protocol_cannot_carry_are_refused_before_anything_is_sent(
+    silent_server, tmp_path, args, words
+):
+    config = tmp_path / "config.toml"
+    config.write_text(
+        f'[profiles."line\\nbreak"]\nport = "{silent_server.tcp_target}"\n'
+        f"[profiles.'east\\']\nport = \"{silent_server.tcp_target}\"\n"
+    )
+    res = run_mbtool(
+        "read", "40001", "-o", "influx", *args, *([] if "-P" in args else ["-p", silent_server.tcp_target]),
+        env={"MBTOOL_CONFIG": str(config)},
+    )  # fmt: skip
+    assert words in assert_one_error_line(res, 2)
+    assert res.stdout == "" and silent_server.received_bytes() == b""

@@ -287,6 +287,15 @@ def test_a_csv_map_reads_as_the_toml_one(tmp_path):
         ("[pointz.a]\nref = 40001\n", "unknown section pointz"),
         ("[device]\n", "the map has no points"),
         ("[points.a\n", "not a valid TOML map"),
+        # Names, units and labels are written on one line in every format (issue 29.11, 29.12).
+        ('[points."line\\nbreak"]\nref = 40001\n', r"point 'line\\nbreak': .*no control characters"),
+        ('[points."tab\\there"]\nref = 40001\n', r"point 'tab\\there': .*no control characters"),
+        ('[points.""]\nref = 40001\n', "a point with an empty name"),
+        ('[points.a]\nref = 40001\nunit = "m\\n3"\n', r"point a: key unit: 'm\\n3' .*no control characters"),
+        (
+            '[points.a]\nref = 40001\nenum = { 1 = "on\\roff" }\n',
+            r"point a: key enum: 'on\\roff' .*no control characters",
+        ),
     ],
 )
 def test_bad_maps_name_file_point_and_key(tmp_path, text, words):

@@ -3,8 +3,9 @@ and the Prometheus text exposition format (``-o prom``, ``--textfile``).
 
 Both follow their system's reference to the letter: the line protocol's escaping
 (measurement: commas and spaces; tag keys, tag values and field keys: commas, equals
-signs and spaces; string field values: double quotes and backslashes), integers with
-``i`` and nanosecond timestamps; Prometheus's ``# HELP``/``# TYPE`` lines, metric
+signs and spaces; backslashes doubled in all of them; string field values: double quotes
+and backslashes), names it cannot carry refused before anything is sent (``check_names``;
+a map's point names when the map is loaded), integers with ``i`` and nanosecond timestamps; Prometheus's ``# HELP``/``# TYPE`` lines, metric
 names of ``[a-zA-Z_:][a-zA-Z0-9_:]*`` and label values with backslash, double quote
 and newline escaped.  Only the read commands offer them (``readings`` in
 ``device_command``).
@@ -51,10 +52,49 @@ def _values(result) -> list[tuple[dict, object, str]]:
 
 
 def _escape(text: str, specials: str) -> str:
-    text = text.replace("\\", "\\\\") if "\\" in specials else text
-    for char in specials.replace("\\", ""):
+    """The reference's escaping: a backslash before each special character, and a backslash
+    itself doubled (two contiguous backslashes are one), so one at the end of a name never
+    escapes the separator after it."""
+    text = text.replace("\\", "\\\\")
+    for char in specials:
         text = text.replace(char, "\\" + char)
     return text
+
+
+MEASUREMENT_SPECIALS = ", "  # commas and spaces
+KEY_SPECIALS = ",= "  # tag keys, tag values and field keys: commas, equals signs and spaces
+
+
+def check_names(fmt: str) -> None:
+    """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
+
+    Each is written on one line: the line protocol has no escape for a newline, which would
+    end the point and make the rest a point of its own (in a measurement of its own).  Its
+    measurement cannot be empty, and one starting with # makes the line a comment.  A map's
+    point names are held to one line when the map is loaded."""
+    from mbtool.codec.errors import RequestError
+    from mbtool.registermap.load import one_line
+
+    names = [("--measurement", measurement, "a measurement")]
+    if device:
+        names.append(("profile", device, "a tag or label"))
+    for option, name, what in names:
+        if not name:
+            raise RequestError(f"{option} {name!r}: {what} has a name")
+        if not one_line(name):
+            raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
+    if fmt != "influx":
+        return
+    if measurement.startswith("#"):
+        raise RequestError(f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB")
+    for option, name, what in names:
+        if name.endswith("\\"):
+            # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
+            # a backslash in a measurement or tag value as escaped, the separator too.
+            raise RequestError(
+                f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
+                "it to InfluxDB 1.x"
+            )
 
 
 def _field_value(value) -> str | None:
@@ -64,7 +104,7 @@ def _field_value(value) -> str | None:
         return f"{value}i"
     if isinstance(value, float):
         return repr(value) if math.isfinite(value) else None  # the protocol has no NaN
-    return '"' + _escape(str(value), '\\"') + '"'
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def influx_line(result, when: float | None = None) -> str:
@@ -82,9 +122,9 @@ def influx_line(result, when: float | None = None) -> str:
             key = labels.get("ref", labels["address"]) + (f"_{labels['order']}" if "order" in labels else "")
         shown = _field_value(value)
         if shown is not None:
-            fields.append(f"{_escape(key, ',= ')}={shown}")
-    head = _escape(measurement, ", ") + "".join(
-        f",{_escape(k, ',= ')}={_escape(v, ',= ')}" for k, v in sorted(tags.items()) if v
+            fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
+    head = _escape(measurement, MEASUREMENT_SPECIALS) + "".join(
+        f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
     )
     stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
     return f"{head} {','.join(fields)} {stamp}\n"

@@ -126,7 +126,8 @@ def _monitoring(connection: Connection, meta: dict) -> Connection:
         monitoring.textfile = textfile
     if meta.get("mbtool.changes"):
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
-    monitoring.measurement = meta.get("mbtool.measurement") or "modbus"
+    monitoring.measurement = meta.get("mbtool.measurement", "modbus")
+    monitoring.check_names(connection.output_format)
     return connection
 
 
