@@ -273,3 +273,118 @@ def test_names_the_line_protocol_cannot_carry_are_refused_before_anything_is_sen
     )  # fmt: skip
     assert words in assert_one_error_line(res, 2)
     assert res.stdout == "" and silent_server.received_bytes() == b""
+
+
+# --- a field's type, for ever (issue 28, 3) ----------------------------------------------------
+
+
+def test_a_points_field_type_is_fixed_by_its_map_entry_whatever_the_value(tmp_path):
+    """InfluxDB refuses a field whose type changes: a scaled point that reads 0.3 once and 1.0
+    the next is a float both times, never 1i (sim://: holding register i holds i)."""
+    path = tmp_path / "types.toml"
+    path.write_text(
+        "[points.scaled_fraction]\nref = 40004\nscale = 0.1\n"  # 3 -> 0.3
+        "[points.scaled_whole]\nref = 40011\nscale = 0.1\n"  # 10 -> 1.0, not 1i
+        "[points.offset_whole]\nref = 40012\noffset = 0.5\n[points.offset_whole2]\nref = 40013\noffset = 1\n"
+        "[points.counter]\nref = 40014\n"  # an integer: always i
+        "[points.label]\nref = 40015\nenum = { 14 = 'on' }\n"  # an enum carries its raw number
+        "[points.float]\nref = 40101\ntype = 'float32'\n"  # 21.5
+    )
+    res = expect_ok(run_mbtool("read", "-m", path, "-o", "influx", "-p", "sim://"))
+    fields = parse_line(res.stdout.strip())["fields"]
+    assert fields == {
+        "scaled_fraction": 0.3,
+        "scaled_whole": 1.0,
+        "offset_whole": 11.5,
+        "offset_whole2": 13.0,
+        "counter": 13,
+        "label": 14,
+        "float": 21.5,
+    }
+    kinds = {name: type(value) for name, value in fields.items()}
+    assert kinds == {**dict.fromkeys(fields, float), "counter": int, "label": int}
+
+
+# --- values that are not numbers (issue 28, 3) ---------------------------------------------------
+
+NOT_FINITE = """\
+[holding_registers]
+0 = [0x7FC0, 0x0000, 0x7F80, 0x0000, 0xFF80, 0x0000, 0x41AC, 0x0000]  # NaN, +Inf, -Inf, 21.5
+"""
+
+NOT_FINITE_MAP = """\
+[device]
+type = "float32"
+[points.nan]
+ref = 40001
+[points.inf]
+ref = 40003
+[points.minus_inf]
+ref = 40005
+[points.fine]
+ref = 40007
+"""
+
+
+@pytest.fixture(scope="module")
+def not_finite(tmp_path_factory):
+    """mbtool serve with float32 NaN, +Inf, -Inf and 21.5 in holding registers 0-7, and a map."""
+    from test_serve import serve
+
+    where = tmp_path_factory.mktemp("not-finite")
+    (where / "data.toml").write_text(NOT_FINITE)
+    (where / "map.toml").write_text(NOT_FINITE_MAP)
+    with serve("--data", str(where / "data.toml")) as server:
+        server.map = where / "map.toml"
+        yield server
+
+
+def test_influx_leaves_a_value_that_is_not_a_number_out_with_a_warning(not_finite):
+    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "influx", "-p", not_finite.target))
+    assert parse_line(res.stdout.strip())["fields"] == {"fine": 21.5}
+    assert res.stderr.splitlines() == [
+        f"mbtool: warning: {name} ({ref}) reads {value}: left out of the InfluxDB line (it has no NaN or infinity)"
+        for name, ref, value in (
+            ("nan", "40001", "nan"),
+            ("inf", "40003", "inf"),
+            ("minus_inf", "40005", "-inf"),
+        )
+    ]
+    # Registers as well as points; and polling warns once a value, not once a poll.
+    res = expect_ok(
+        run_mbtool(
+            "read", "40001", "4", "--type", "float32", "-o", "influx", "--polls", "3", "--interval", "0",
+            "-p", not_finite.target,
+        )
+    )  # fmt: skip
+    assert [parse_line(line)["fields"] for line in res.stdout.splitlines()] == [{"40007": 21.5}] * 3
+    assert [line for line in res.stderr.splitlines() if "warning" in line] == [
+        f"mbtool: warning: holding {ref} reads {value}: left out of the InfluxDB line (it has no NaN or infinity)"
+        for ref, value in (("40001", "nan"), ("40003", "inf"), ("40005", "-inf"))
+    ]
+
+
+def test_a_read_with_no_number_to_write_writes_no_influx_line(not_finite):
+    """A line with no fields is no point: InfluxDB refuses the whole write."""
+    res = expect_ok(
+        run_mbtool("read", "-m", not_finite.map, "nan", "inf", "-o", "influx", "-p", not_finite.target)
+    )
+    assert res.stdout == "" and len(res.stderr.splitlines()) == 2
+
+
+def test_json_and_prom_carry_what_is_not_a_number_as_they_can(not_finite):
+    import json
+
+    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "json", "-p", not_finite.target))
+    values = {p["name"]: p["value"] for p in json.loads(res.stdout)["points"]}
+    assert values == {"nan": None, "inf": None, "minus_inf": None, "fine": 21.5}
+    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "prom", "-p", not_finite.target))
+    found = families(res.stdout)
+    assert [
+        str(found[f"modbus_{name}"].samples[0].value) for name in ("nan", "inf", "minus_inf", "fine")
+    ] == [
+        "nan",
+        "inf",
+        "-inf",
+        "21.5",
+    ]

@@ -17,6 +17,7 @@ import math
 import os
 import re
 import stat
+import sys
 import time
 
 from mbtool.cli.render import Points
@@ -98,36 +99,59 @@ def check_names(fmt: str) -> None:
 
 
 def _field_value(value) -> str | None:
+    """The value as the line protocol writes it; None for NaN and the infinities, which it
+    cannot carry."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int):
         return f"{value}i"
     if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else None  # the protocol has no NaN
+        return repr(value) if math.isfinite(value) else None
     return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def influx_line(result, when: float | None = None) -> str:
-    """One line a poll: tags for the unit (and table, device), a field a value."""
+    """One line a poll: tags for the unit (and table, device), a field a value.
+
+    A value the protocol cannot carry (NaN, an infinity) is left out with a warning, once a
+    run for each field; a read left with no field writes no line, as a point must have one."""
     tags = {"unit": str(result.unit)}
-    if not isinstance(result, Points):
+    points = isinstance(result, Points)
+    if not points:
         tags["table"] = result.table
     if device:
         tags["device"] = device
     fields = []
     for labels, value, _ in _values(result):
-        if isinstance(result, Points):
+        if points:
             key = labels["name"]
         else:
             key = labels.get("ref", labels["address"]) + (f"_{labels['order']}" if "order" in labels else "")
         shown = _field_value(value)
-        if shown is not None:
-            fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
+        if shown is None:
+            _warn_left_out(f"{key} ({labels['ref']})" if points else f"{result.table} {key}", value)
+            continue
+        fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
+    if not fields:
+        return ""
     head = _escape(measurement, MEASUREMENT_SPECIALS) + "".join(
         f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
     )
     stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
     return f"{head} {','.join(fields)} {stamp}\n"
+
+
+_warned: set[str] = set()  # the fields left out so far, each warned about once
+
+
+def _warn_left_out(what: str, value: float) -> None:
+    if what not in _warned:
+        _warned.add(what)
+        print(
+            f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line (it has no NaN or infinity)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 # --- Prometheus text exposition --------------------------------------------------------------
