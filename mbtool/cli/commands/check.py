@@ -12,6 +12,7 @@ bad arguments always, a device that does not answer, refuses or garbles unless
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import click
@@ -94,7 +95,20 @@ class Checked:
 
         unit = self.unit if self.unit in PERFDATA_UNITS else ""
         warn, crit = self.warn or "", self.crit or ""
-        return str(nagiosplugin.Performance(_label(self.name), self.number, unit, warn, crit))
+        return str(nagiosplugin.Performance(_label(self.name), _perf_value(self.number), unit, warn, crit))
+
+
+def _perf_value(number: float) -> str:
+    """A perfdata value in the guidelines' characters, [-0-9.]: no exponent, and a whole
+    float without its .0 (a scaled point's 10.0 is 10); U, their "could not be determined",
+    for NaN and the infinities."""
+    if not isinstance(number, float):
+        return str(number)
+    if not math.isfinite(number):
+        return "U"
+    from decimal import Decimal
+
+    return format(Decimal(repr(number)).normalize(), "f")
 
 
 def _number(value, what: str) -> float:
