@@ -307,37 +307,6 @@ def test_a_points_field_type_is_fixed_by_its_map_entry_whatever_the_value(tmp_pa
 
 # --- values that are not numbers (issue 28, 3) ---------------------------------------------------
 
-NOT_FINITE = """\
-[holding_registers]
-0 = [0x7FC0, 0x0000, 0x7F80, 0x0000, 0xFF80, 0x0000, 0x41AC, 0x0000]  # NaN, +Inf, -Inf, 21.5
-"""
-
-NOT_FINITE_MAP = """\
-[device]
-type = "float32"
-[points.nan]
-ref = 40001
-[points.inf]
-ref = 40003
-[points.minus_inf]
-ref = 40005
-[points.fine]
-ref = 40007
-"""
-
-
-@pytest.fixture(scope="module")
-def not_finite(tmp_path_factory):
-    """mbtool serve with float32 NaN, +Inf, -Inf and 21.5 in holding registers 0-7, and a map."""
-    from test_serve import serve
-
-    where = tmp_path_factory.mktemp("not-finite")
-    (where / "data.toml").write_text(NOT_FINITE)
-    (where / "map.toml").write_text(NOT_FINITE_MAP)
-    with serve("--data", str(where / "data.toml")) as server:
-        server.map = where / "map.toml"
-        yield server
-
 
 def test_influx_leaves_a_value_that_is_not_a_number_out_with_a_warning(not_finite):
     res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "influx", "-p", not_finite.target))
@@ -388,3 +357,73 @@ def test_json_and_prom_carry_what_is_not_a_number_as_they_can(not_finite):
         "-inf",
         "21.5",
     ]
+
+
+# --- one missing point (issue 28, 3) ------------------------------------------------------------
+
+# pymodbus's holed device (tests/peers/pymodbus_device.py HOLED): holding 0-9 hold 100-109,
+# 20-29 hold 200-209, and 10-19 do not exist (exception 02). max_gap 30 merges the three
+# points into one read, 40001-40021, which the device refuses.
+HOLED_MAP = """\
+[device]
+max_gap = 30
+[points.flow]
+ref = 40001
+[points.missing]
+ref = 40011
+[points.level]
+ref = 40021
+"""
+
+PARTIAL = 8  # the exit code of a read that got some points and not others
+
+
+@pytest.fixture
+def holed_map(tmp_path):
+    path = tmp_path / "holed.toml"
+    path.write_text(HOLED_MAP)
+    return path
+
+
+def test_one_missing_point_no_longer_blanks_out_the_map_read(holed_device, holed_map):
+    res = run_mbtool("read", "-m", holed_map, "-o", "plain", "-p", holed_device.target)
+    assert res.stdout == "flow 100\nlevel 200\n"
+    line = assert_one_error_line(res, PARTIAL)
+    assert "missing (40011): exception 02 Illegal Data Address" in line and "2 of 3 points read" in line
+
+
+def test_json_names_the_point_it_could_not_read_in_its_one_object(holed_device, holed_map):
+    import json
+
+    res = run_mbtool("read", "-m", holed_map, "-o", "json", "-p", holed_device.target)
+    assert_one_error_line(res, PARTIAL)
+    data = json.loads(res.stdout)  # one object: the failure is in it, not a second one
+    assert [(p["name"], p["value"]) for p in data["points"]] == [("flow", 100), ("level", 200)]
+    (failed,) = data["failed"]
+    assert (failed["name"], failed["ref"]) == ("missing", "40011")
+    assert failed["error"].startswith("exception 02 Illegal Data Address")
+
+
+def test_the_monitoring_outputs_export_the_points_read(holed_device, holed_map):
+    res = run_mbtool("read", "-m", holed_map, "-o", "influx", "-p", holed_device.target)
+    assert res.returncode == PARTIAL
+    assert parse_line(res.stdout.strip())["fields"] == {"flow": 100, "level": 200}
+    res = run_mbtool("read", "-m", holed_map, "-o", "prom", "-p", holed_device.target)
+    assert res.returncode == PARTIAL
+    found = families(res.stdout)
+    assert found["modbus_flow"].samples[0].value == 100 and found["modbus_level"].samples[0].value == 200
+    assert "modbus_missing" not in found
+
+
+def test_a_refused_merged_read_is_split_once_and_stays_split_while_polling(holed_device, holed_map):
+    res = run_mbtool(
+        "read", "-m", holed_map, "-o", "plain", "--polls", "3", "--interval", "0", "--hex",
+        "-p", holed_device.target,
+    )  # fmt: skip
+    assert res.returncode == PARTIAL, res
+    assert [line.split(" ", 1)[1] for line in res.stdout.splitlines()] == ["flow 100", "level 200"] * 3
+    sent = [line for line in res.stderr.splitlines() if line.startswith("TX")]
+    # The merged read once, refused; then each point alone, every poll.
+    assert len(sent) == 1 + 3 * 3, res.stderr
+    failures = [line for line in res.stderr.splitlines() if " poll " in line]
+    assert len(failures) == 3 and all("missing (40011): exception 02" in line for line in failures)

@@ -19,7 +19,15 @@ import click
 from mbtool import __version__
 from mbtool.cli import render
 from mbtool.cli.options import QuickHelp, did_you_mean
-from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
+from mbtool.errors import (
+    KNOWN_ERRORS,
+    ExitCode,
+    MbtoolError,
+    OutputFailed,
+    PartialRead,
+    Summary,
+    exit_code_for,
+)
 from mbtool.link import register_scheme
 
 COMPLETE_VAR = "_MBTOOL_COMPLETE"  # Click's name for it: _{PROG}_COMPLETE
@@ -202,9 +210,10 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed):
+        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed | PartialRead):
             # -o json: a script reading stdout alone gets an object for every outcome
-            # (polling writes its own per poll, and its Summary is no error object).
+            # (polling writes its own per poll, and its Summary is no error object; a
+            # partial read's object names the points it could not read).
             _write_quietly(render.error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
 

@@ -343,14 +343,26 @@ class PointRow:
 
 
 @record
+class PointFailure:
+    """A point of a map the device refused: its name, ref and the device's answer."""
+
+    name: str
+    ref: str
+    error: str
+
+
+@record
 class Points:
     """What ``read -m MAP`` learned.  Plain: ``NAME VALUE UNIT`` lines; JSON: the unit id,
-    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point."""
+    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point.
+    The points the device refused (a partial read) are in ``failed``: in JSON and the table,
+    and on stderr; plain and CSV lines are values only."""
 
     unit: int
     source: str  # the map file
     rows: list[PointRow]
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
+    failed: list[PointFailure] = ()
 
 
 POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
@@ -379,6 +391,11 @@ def points_dict(points: Points) -> dict:
             }
             for row in points.rows
         ],
+        **(
+            {"failed": [{"name": f.name, "ref": f.ref, "error": f.error} for f in points.failed]}
+            if points.failed
+            else {}
+        ),
     }
 
 
@@ -400,6 +417,8 @@ def points_table(points: Points, heading: str = ""):
         if described:
             cells.append(escape(row.description))
         table.add_row(*cells)
+    for failure in points.failed:  # refused by the device: the answer where the value would be
+        table.add_row(escape(failure.name), f"[red]{escape(failure.error)}[/]", "", failure.ref, "")
     return table
 
 

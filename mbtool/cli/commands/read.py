@@ -94,9 +94,15 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
             show(connection, to_result(execute(connection, request)))
             return
         from mbtool.cli.session import open_client
+        from mbtool.errors import PartialRead
 
         with open_client(connection, request.name) as client:
-            show(connection, to_result(run(client)))
+            try:
+                result = to_result(run(client))
+            except PartialRead as partial:  # what was read is shown; the failure ends the run
+                show(connection, to_result(partial.readings))
+                raise
+            show(connection, result)
         return
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
     from mbtool.cli.render import default_format
@@ -299,13 +305,14 @@ def read(connection, targets, map, value_type, order, interval, polls):
 
 
 def _read_map(connection: Connection, path: str, names, interval, polls) -> None:
-    from mbtool.cli.render import PointRow, Points
+    from mbtool.cli.render import PointFailure, PointRow, Points
     from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import plan_reads, read_points
+    from mbtool.registermap.plan import MapReader
 
     register_map = load_map(path)
     points = register_map.select(names)
-    requests = [block.request() for block in plan_reads(points, register_map.max_gap)]
+    reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
+    requests = [block.request() for block in reader.blocks]
     if connection.dry_run:  # no read depends on another's reply: show them all
         from mbtool.cli.session import open_client
 
@@ -315,7 +322,7 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
             client.finish(connection.unit)
 
     def run(client):
-        return read_points(partial(client.execute, connection.unit), points, register_map.max_gap)
+        return reader.read(partial(client.execute, connection.unit))
 
     def to_result(readings):
         rows = [
@@ -330,7 +337,11 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
                 r.point.number_of(r.value),
             )
             for r in readings
+            if r.error is None
         ]
-        return Points(connection.unit, register_map.source, rows)
+        failed = [
+            PointFailure(r.point.name, r.point.ref, r.error.answer) for r in readings if r.error is not None
+        ]
+        return Points(connection.unit, register_map.source, rows, failed=failed)
 
     _run(connection, requests[0], to_result, interval, polls, run)
