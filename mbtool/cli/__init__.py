@@ -174,10 +174,6 @@ def main(argv: list[str] | None = None) -> None:
     except click.exceptions.Exit as done:  # --help, --version
         error, code = _flushed(None, done.exit_code)
     except click.ClickException as failure:  # usage errors: nothing was sent
-        if failure.ctx is not None and failure.ctx.command.name == "check":
-            # A monitoring plugin's bad arguments are UNKNOWN, on stdout (plugin guidelines).
-            click.echo(f"MODBUS UNKNOWN - {failure.format_message()}")
-            sys.exit(3)
         hint = ""
         if failure.ctx is not None and isinstance(failure, click.UsageError):
             hint = f" (see '{failure.ctx.command_path} --help')"
@@ -189,15 +185,15 @@ def main(argv: list[str] | None = None) -> None:
     except BrokenPipeError:
         # The reader went away (| head): stop at once and quietly, with the status a shell
         # gives a program that SIGPIPE ended (SIGPIPE itself would also end us on sockets).
-        _discard_stdout()
+        discard_stdout()
         code = ExitCode.READER_GONE
     except OSError as failure:  # what reaches here unconverted is stdout failing (disk full)
-        _discard_stdout()
+        discard_stdout()
         error = OutputFailed("standard output", failure)
         code = error.exit_code
     except KNOWN_ERRORS as failure:
         if isinstance(failure, OutputFailed):
-            _discard_stdout()
+            discard_stdout()
             error, code = failure, failure.exit_code
         else:  # what the command wrote first (dump -, diff's lines) goes before the verdict
             error, code = _flushed(failure, exit_code_for(failure))
@@ -225,10 +221,10 @@ def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | No
     try:
         sys.stdout.flush()
     except BrokenPipeError:
-        _discard_stdout()
+        discard_stdout()
         return None, ExitCode.READER_GONE
     except OSError as failure:
-        _discard_stdout()
+        discard_stdout()
         failed = OutputFailed("standard output", failure)
         return failed, failed.exit_code
     return error, code
@@ -246,7 +242,7 @@ def _closed_stdout_as_a_gone_reader() -> None:
     sys.stdout = open(1, "w", encoding="utf-8", closefd=False)
 
 
-def _discard_stdout() -> None:
+def discard_stdout() -> None:
     """Point stdout at /dev/null: what is still buffered must not fail again at exit."""
     try:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -259,4 +255,4 @@ def _write_quietly(text: str) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
     except OSError:
-        _discard_stdout()
+        discard_stdout()
