@@ -7,9 +7,10 @@ import os
 import stat
 import subprocess
 import sys
+import time
 
 import pytest
-from conftest import COILS, HOLDING, assert_one_error_line, expect_ok, run_mbtool
+from conftest import COILS, HOLDING, REPO_ROOT, assert_one_error_line, expect_ok, mbtool_env, run_mbtool
 from line_protocol_parser import parse_line
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -40,6 +41,9 @@ def odd_map(tmp_path):
     path = tmp_path / "odd.toml"
     path.write_text(ODD_MAP)
     return path
+
+
+STATUS = ("modbus_up", "modbus_last_success_timestamp_seconds")  # in every exposition
 
 
 def families(text: str) -> dict:
@@ -122,7 +126,7 @@ def test_prom_registers_and_bits_as_one_gauge(tcp_device):
 def test_prom_map_points_by_name_with_their_unit_in_help(tcp_device, odd_map):
     res = expect_ok(run_mbtool("read", "-m", odd_map, "-o", "prom", "-p", tcp_device.target))
     found = families(res.stdout)
-    assert set(found) == {"modbus_flow_rate", "modbus_a_b_c", "modbus_state", "modbus_pump"}
+    assert set(found) == {"modbus_flow_rate", "modbus_a_b_c", "modbus_state", "modbus_pump", *STATUS}
     flow = found["modbus_flow_rate"]
     assert flow.documentation == 'Outlet "main" flow, in \\ out (m3/h), 40001'
     assert [(s.labels, s.value) for s in flow.samples] == [({"unit": "1", "ref": "40001"}, 50)]
@@ -173,7 +177,7 @@ def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
     fields = parse_line(res.stdout.strip())["fields"]
     assert fields == {"tag": "\\x00d", "n": HOLDING[1]}  # 0x0064: a NUL, then "d"
     res = expect_ok(run_mbtool("read", "-m", path, "-o", "prom", "-p", tcp_device.target))
-    assert set(families(res.stdout)) == {"modbus_n"}
+    assert set(families(res.stdout)) == {"modbus_n", *STATUS}
 
 
 # --- the textfile's temporary file (issue 29.14) ----------------------------------------------
@@ -427,3 +431,95 @@ def test_a_refused_merged_read_is_split_once_and_stays_split_while_polling(holed
     assert len(sent) == 1 + 3 * 3, res.stderr
     failures = [line for line in res.stderr.splitlines() if " poll " in line]
     assert len(failures) == 3 and all("missing (40011): exception 02" in line for line in failures)
+
+
+# --- a device that cannot be read (issue 28, 3) -----------------------------------------------
+
+
+def status(found: dict) -> tuple[float, float | None]:
+    """modbus_up's value, and modbus_last_success_timestamp_seconds's (None when absent)."""
+    up = found["modbus_up"].samples[0]
+    assert up.labels == {"unit": "1"}
+    last = found.get("modbus_last_success_timestamp_seconds")
+    return up.value, last.samples[0].value if last else None
+
+
+def test_prom_says_the_device_answered_and_when(tcp_device):
+    before = time.time()
+    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
+    up, last = status(families(res.stdout))
+    assert up == 1 and before <= last <= time.time()
+
+
+def test_a_textfile_of_a_device_that_cannot_be_read_says_so_and_keeps_no_stale_value(
+    tcp_device, refused_port, tmp_path
+):
+    path = tmp_path / "modbus.prom"
+    expect_ok(run_mbtool("read", "40001", "2", "--textfile", path, "-p", tcp_device.target))
+    _, answered = status(families(path.read_text()))
+    res = run_mbtool("read", "40001", "2", "--textfile", path, "-p", f"tcp://127.0.0.1:{refused_port}")
+    assert res.returncode == 6 and res.stdout == ""
+    found = families(path.read_text())
+    assert set(found) == set(STATUS)  # modbus_value is gone: no stale value is scraped as current
+    assert status(found) == (0, answered)  # the last success, from the file it replaced
+
+
+def test_prom_on_stdout_says_the_device_cannot_be_read(silent_server):
+    res = run_mbtool("read", "40001", "-o", "prom", "-t", "0.2", "-p", silent_server.tcp_target)
+    assert res.returncode == 3
+    found = families(res.stdout)
+    assert set(found) == {"modbus_up"} and status(found) == (0, None)  # no success to tell of
+
+
+def test_a_polled_textfile_follows_the_device_down(tmp_path):
+    from conftest import start_device
+
+    path = tmp_path / "modbus.prom"
+    with start_device(tcp=True, framer="socket", units="1") as device:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mbtool", "read", "40001", "--textfile", str(path), "--interval", "0.1",
+             "--polls", "600", "-t", "0.2", "-p", device.target],
+            cwd=REPO_ROOT, env=mbtool_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            found = _wait_for(path, lambda found: status(found)[0] == 1)
+            assert found["modbus_value"].samples[0].value == HOLDING[0]
+        except BaseException:
+            proc.kill()
+            raise
+    try:
+        stopped = time.time()
+        found = _wait_for(path, lambda found: status(found)[0] == 0)
+        assert set(found) == set(STATUS)
+        assert stopped - 5 < status(found)[1] <= stopped
+    finally:
+        proc.kill()
+        proc.communicate(timeout=10)
+
+
+def _wait_for(path, condition, wait: float = 20.0) -> dict:
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        if path.exists():
+            found = families(path.read_text())
+            if "modbus_up" in found and condition(found):
+                return found
+        time.sleep(0.05)
+    raise AssertionError(
+        f"{path} never showed what was awaited: {path.read_text() if path.exists() else None}"
+    )
+
+
+@pytest.mark.parametrize(
+    "name, measurement", [("up", "modbus"), ("last_success_timestamp_seconds", "plant")], ids=["up", "last"]
+)
+def test_a_point_named_as_a_status_metric_is_refused_before_anything_is_sent(
+    silent_server, tmp_path, name, measurement
+):
+    path = tmp_path / "status.toml"
+    path.write_text(f"[points.{name}]\nref = 40001\n")
+    res = run_mbtool(
+        "read", "-m", path, "-o", "prom", "--measurement", measurement, "-p", silent_server.tcp_target
+    )
+    assert f"its metric, {measurement}_{name}, is the one that says" in assert_one_error_line(res, 2)
+    assert silent_server.received_bytes() == b""

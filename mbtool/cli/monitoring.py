@@ -21,6 +21,7 @@ import sys
 import time
 
 from mbtool.cli.render import Points
+from mbtool.errors import ExitCode, exit_code_for
 
 # Set by the options as they are parsed, as render's csv_header is.
 measurement = "modbus"  # --measurement
@@ -184,9 +185,10 @@ def _sample_value(value) -> str | None:
 
 def prom_text(result) -> str:
     """The exposition of one read: modbus_value{unit,table,address} for registers and bits,
-    modbus_NAME{unit,ref} for a map's points (HELP with the description and unit)."""
+    modbus_NAME{unit,ref} for a map's points (HELP with the description and unit), after
+    modbus_up 1 and when the device last answered (this read)."""
     base = {"unit": str(result.unit)} | ({"device": device} if device else {})
-    metrics: dict[str, tuple[str, list[str]]] = {}
+    metrics = _status(result.unit, up=True)
     for labels, value, about in _values(result):
         shown = _sample_value(value)
         if shown is None:
@@ -198,13 +200,67 @@ def prom_text(result) -> str:
         else:
             name = _metric_name(f"{measurement}_value")
             help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
-        pairs = ",".join(f'{k}="{_label_value(v)}"' for k, v in (base | labels).items())
-        metrics.setdefault(name, (help_text, []))[1].append(f"{name}{{{pairs}}} {shown}")
+        metrics.setdefault(name, (help_text, []))[1].append(
+            f"{name}{{{_label_pairs(base | labels)}}} {shown}"
+        )
+    return _exposition(metrics)
+
+
+def prom_down_text() -> str:
+    """The exposition when the device could not be read: modbus_up 0 and when it last
+    answered, and no value: one read before would be scraped as current."""
+    return _exposition(_status(unit, up=False))
+
+
+# Set by the options (cli.commands.read): the unit the status metrics name when no result does.
+unit = 1
+last_success: float | None = None  # when the device last answered a read (Unix time)
+
+
+def status_names() -> tuple[str, str]:
+    """The status metrics' names: modbus_up, modbus_last_success_timestamp_seconds."""
+    return _metric_name(f"{measurement}_up"), _metric_name(f"{measurement}_last_success_timestamp_seconds")
+
+
+def _status(unit_id: int, up: bool) -> dict[str, tuple[str, list[str]]]:
+    up_name, last_name = status_names()
+    pairs = _label_pairs({"unit": str(unit_id)} | ({"device": device} if device else {}))
+    metrics = {
+        up_name: (
+            "1 when the device answered the read, 0 when it could not be read (no value is shown then)",
+            [f"{up_name}{{{pairs}}} {int(up)}"],
+        )
+    }
+    if last_success is not None:
+        metrics[last_name] = (
+            "When the device last answered a read, in seconds since the epoch",
+            [f"{last_name}{{{pairs}}} {last_success!r}"],
+        )
+    return metrics
+
+
+def _label_pairs(labels: dict[str, str]) -> str:
+    return ",".join(f'{k}="{_label_value(v)}"' for k, v in labels.items())
+
+
+def _exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
     out = []
     for name, (help_text, samples) in metrics.items():
         escaped = help_text.replace("\\", "\\\\").replace("\n", "\\n")
         out += [f"# HELP {name} {escaped}", f"# TYPE {name} gauge", *samples]
     return "\n".join(out) + "\n"
+
+
+def check_point_names(points) -> None:
+    """Refuse, before anything is sent, a map point whose metric would be a status metric."""
+    from mbtool.codec.errors import RequestError
+
+    for point in points:
+        if _metric_name(f"{measurement}_{point.name}") in status_names():
+            raise RequestError(
+                f"point {point.name}: its metric, {_metric_name(f'{measurement}_{point.name}')}, is the "
+                "one that says whether the device answered; rename the point or give --measurement"
+            )
 
 
 def write_textfile(text: str, path: str) -> None:
@@ -283,9 +339,46 @@ def _running(pid: int) -> bool:
 
 def emit(result, fmt: str, out, when: float | None = None) -> None:
     """One read in a monitoring format: to ``out``, or with --textfile to that file."""
+    global last_success
     if fmt == "influx":
         out.write(influx_line(result, when))
-    elif textfile:
+        return
+    last_success = time.time() if when is None else when
+    if textfile:
         write_textfile(prom_text(result), textfile)
     else:
         out.write(prom_text(result))
+
+
+# The failures that mean the device could not be read: no reply, an exception (to every
+# point of a map), a reply that is not one, a link that cannot be opened.
+DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
+
+
+def emit_failure(error: BaseException, fmt: str, out) -> None:
+    """A read that failed, in a monitoring format: for Prometheus, an exposition that says
+    the device could not be read and when it last answered, in place of the values read
+    before, which a scrape would take as current.  The line protocol has no such thing: an
+    InfluxDB line is written only for values read."""
+    global last_success
+    if fmt != "prom" or exit_code_for(error) not in DEVICE_FAILURES:
+        return  # a bad request (nothing sent), a full disk: no news of the device
+    if textfile:
+        if last_success is None:  # a run before this one may have read it: the file says when
+            last_success = _last_success_in(textfile)
+        write_textfile(prom_down_text(), textfile)
+    else:
+        out.write(prom_down_text())
+
+
+def _last_success_in(path: str) -> float | None:
+    """The last success a textfile written before tells of (its own sample line), if any."""
+    name = status_names()[1]
+    try:
+        with open(path, encoding="utf-8") as old:
+            for line in old:
+                if line.startswith(name + "{"):
+                    return float(line.rsplit(" ", 1)[1])
+    except (OSError, ValueError, UnicodeDecodeError):
+        pass
+    return None

@@ -104,6 +104,10 @@ class Output:
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
+        if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
+            from mbtool.cli import monitoring
+
+            monitoring.emit_failure(error, self.fmt, None if monitoring.textfile else _Pending(self))
         if self.fmt == "json" and not isinstance(error, PartialRead):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).

@@ -81,28 +81,25 @@ def polling_options(function):
     )(function)
 
 
-def _run(connection: Connection, request, to_result, interval, polls, run=None) -> None:
-    """Once, or polled.  ``run(client)``: a read of several requests (a map's), which
-    ``request``, the first of them, stands for."""
+def _run(connection: Connection, request, to_result, interval, polls, run=None, points=()) -> None:
+    """Once, or polled.  ``run(client)``: a read of several requests (a map's ``points``),
+    which ``request``, the first of them, stands for."""
     from mbtool.cli.render import MONITORING_FORMATS
 
     meta = click.get_current_context().meta
     if meta.get("mbtool.textfile") or connection.output_format in MONITORING_FORMATS:
-        connection = _monitoring(connection, meta)
+        connection = _monitoring(connection, meta, points)
     if (interval is None and polls is None) or connection.dry_run:
-        if run is None:
-            show(connection, to_result(execute(connection, request)))
-            return
-        from mbtool.cli.session import open_client
-        from mbtool.errors import PartialRead
+        try:
+            _once(connection, request, to_result, run)
+        except Exception as error:
+            if connection.output_format in MONITORING_FORMATS:  # -o prom says the device is down
+                import sys
 
-        with open_client(connection, request.name) as client:
-            try:
-                result = to_result(run(client))
-            except PartialRead as partial:  # what was read is shown; the failure ends the run
-                show(connection, to_result(partial.readings))
-                raise
-            show(connection, result)
+                from mbtool.cli import monitoring
+
+                monitoring.emit_failure(error, connection.output_format, sys.stdout)
+            raise
         return
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
     from mbtool.cli.render import default_format
@@ -116,11 +113,28 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
     poll(connection, request, shown, interval, polls, trace_for(connection), run)
 
 
+def _once(connection: Connection, request, to_result, run=None) -> None:
+    if run is None:
+        show(connection, to_result(execute(connection, request)))
+        return
+    from mbtool.cli.session import open_client
+    from mbtool.errors import PartialRead
+
+    with open_client(connection, request.name) as client:
+        try:
+            result = to_result(run(client))
+        except PartialRead as partial:  # what was read is shown; the failure ends the run
+            show(connection, to_result(partial.readings))
+            raise
+        show(connection, result)
+
+
 # --- reads: FC 01-04 -------------------------------------------------------------------
 
 
-def _monitoring(connection: Connection, meta: dict) -> Connection:
-    """-o influx / prom and --textfile: their settings, checked before anything is sent."""
+def _monitoring(connection: Connection, meta: dict, points=()) -> Connection:
+    """-o influx / prom and --textfile: their settings, checked before anything is sent
+    (with a map's ``points``)."""
     from mbtool.cli import monitoring
     from mbtool.codec.record import replace
 
@@ -133,7 +147,10 @@ def _monitoring(connection: Connection, meta: dict) -> Connection:
     if meta.get("mbtool.changes"):
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
     monitoring.measurement = meta.get("mbtool.measurement", "modbus")
+    monitoring.unit = connection.unit
     monitoring.check_names(connection.output_format)
+    if connection.output_format == "prom":
+        monitoring.check_point_names(points)
     return connection
 
 
@@ -344,4 +361,4 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
         ]
         return Points(connection.unit, register_map.source, rows, failed=failed)
 
-    _run(connection, requests[0], to_result, interval, polls, run)
+    _run(connection, requests[0], to_result, interval, polls, run, points)
