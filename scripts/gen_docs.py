@@ -55,7 +55,10 @@ EXIT_DESCRIPTIONS = {
     "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
     "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
     "to its last whole record).",
-    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM).",
+    "PARTIAL": "A map read got some points and not others (the device refused them): the points read "
+    "were printed and exported, and stderr names each one that failed.",
+    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM). check alone has its own codes: every outcome "
+    "is a plugin state, 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.",
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
     "with the status of a program ended by SIGPIPE.",
 }
@@ -74,7 +77,8 @@ FILES = [
         "a [points.NAME] table a point (ref, or table and address; type, order, count, scale, offset, "
         "unit, description, enum, bit, access), or CSV with a header row of the same keys plus name. "
         "An unknown key, overlapping points, a bit of a float or a value past register 65535 is "
-        "exit status 2 when the map is loaded, naming the file, the point and the key.",
+        "exit status 2 when the map is loaded, naming the file, the point and the key; so is a name, "
+        "unit or label with a control character, or an empty name.",
     ),
 ]
 FALLBACK_EXIT_CODES = {
