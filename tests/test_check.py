@@ -214,12 +214,12 @@ def test_a_bar_in_a_name_or_unit_never_splits_the_line_or_its_perfdata(tmp_path,
     assert line == "MODBUS OK - inout=100 m3h, load=101 % | inout=100;1000 load=101%;1000"
 
 
-def test_a_value_that_is_not_a_number_is_unknown_and_u_in_perfdata(not_finite):
+def test_nan_is_unknown_an_infinity_is_judged_and_neither_breaks_the_perfdata(not_finite):
     code, line = check("-m", not_finite.map, "-w", "30", port=not_finite.target)
     assert code == 3
     assert line == (
-        "MODBUS UNKNOWN - nan=nan (UNKNOWN: not a number), inf=inf (UNKNOWN: not a number), "
-        "minus_inf=-inf (UNKNOWN: not a number), fine=21.5 | nan=U;30 inf=U;30 minus_inf=U;30 fine=21.5;30"
+        "MODBUS UNKNOWN - nan=nan (UNKNOWN: not a number, nothing to judge), inf=inf (WARNING: outside 0:30), "
+        "minus_inf=-inf (WARNING: outside 0:30), fine=21.5 | nan=U;30 inf=U;30 minus_inf=U;30 fine=21.5;30"
     )
     code, _ = check(
         "-m", not_finite.map, "fine", "nan", "--state-on-error", "critical", port=not_finite.target

@@ -10,8 +10,8 @@ Every outcome is a state and that one line (``PluginCommand``): anything that ke
 the check from judging is UNKNOWN with the reason: bad arguments, a profile or config
 file that cannot be used, an output format check does not write, a signal (SIGTERM,
 SIGHUP, SIGINT), a bug; a device that does not answer, refuses or garbles, a point it
-refuses and a value that is not a finite number are UNKNOWN unless ``--state-on-error``
-says otherwise.  The worst state wins, UNKNOWN above CRITICAL (nagiosplugin's order).
+refuses and a value that reads NaN are UNKNOWN unless ``--state-on-error`` says
+otherwise.  Perfdata has U for a value that is not a finite number.  The worst state wins, UNKNOWN above CRITICAL (nagiosplugin's order).
 Only a stdout that cannot be written (full, closed, its reader gone) leaves no line:
 the reason goes to stderr, and the state is UNKNOWN.
 """
@@ -150,8 +150,8 @@ def _label(name: str) -> str:
 
 class Checked:
     """One value judged: its name, number, text for people, unit and thresholds.  A number
-    of None is a point the device refused (``text`` says why); it and a number that is not
-    finite cannot be judged: their state is ``unjudged`` (--state-on-error)."""
+    of None is a point the device refused (``text`` says why); it and NaN cannot be judged:
+    their state is ``unjudged`` (--state-on-error's)."""
 
     def __init__(self, name: str, number, text: str, unit: str, warn, crit, unjudged: int = UNKNOWN) -> None:
         self.name, self.number, self.text, self.unit = name, number, text, unit
@@ -159,7 +159,9 @@ class Checked:
 
     @property
     def judged(self) -> bool:
-        return self.number is not None and math.isfinite(self.number)
+        # A device reads NaN for "no valid measurement" (a sensor fault): every comparison
+        # with NaN is false, so a range would let it pass as OK.  ±Infinity is judged.
+        return self.number is not None and not math.isnan(self.number)
 
     @property
     def state(self) -> int:
@@ -177,7 +179,7 @@ class Checked:
             return f"{self.name} not read ({STATES[state]}: {self.text})"
         shown = f"{self.name}={self.text}" + (f" {self.unit}" if self.unit else "")
         if not self.judged:
-            shown += f" ({STATES[state]}: not a number)"
+            shown += f" ({STATES[state]}: not a number, nothing to judge)"
         elif state:
             limit = self.crit if state == 2 else self.warn
             shown += f" ({STATES[state]}: {_violation(limit)})"
@@ -186,7 +188,7 @@ class Checked:
     def perfdata(self) -> str:
         import nagiosplugin
 
-        unit = self.unit if self.unit in PERFDATA_UNITS and self.judged else ""
+        unit = self.unit if self.unit in PERFDATA_UNITS and self.number is not None else ""
         warn, crit = self.warn or "", self.crit or ""
         return str(nagiosplugin.Performance(_label(self.name), _perf_value(self.number), unit, warn, crit))
 
@@ -284,7 +286,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     default="unknown",
     show_default=True,
     help="The state when the device cannot be read (no response, exception, bad reply), a point "
-    "of a map is refused or a value is not a number.",
+    "of a map is refused or a value reads NaN, which no range can judge.",
 )
 def check(connection, targets, map, warning, critical, state_on_error, value_type, order):
     """A monitoring plugin (Nagios, Icinga): judge values against thresholds.
@@ -295,7 +297,7 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     Monitoring Plugins guidelines write them: 10 (alert outside 0..10), 10: (below 10),
     ~:10 (above 10), 10:20 (outside), @10:20 (inside). Bad arguments, profiles and
     config files are UNKNOWN, and so is a signal; a device that cannot be read, a point
-    it refuses and a value that is not a number (perfdata U) are UNKNOWN unless
+    it refuses and a value that reads NaN (perfdata U) are UNKNOWN unless
     --state-on-error says otherwise. The worst state wins, UNKNOWN above CRITICAL.
     """
     unjudged = ERROR_STATES[state_on_error]
