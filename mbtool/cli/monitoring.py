@@ -5,10 +5,12 @@ Both follow their system's reference to the letter: the line protocol's escaping
 (measurement: commas and spaces; tag keys, tag values and field keys: commas, equals
 signs and spaces; backslashes doubled in all of them; string field values: double quotes
 and backslashes), names it cannot carry refused before anything is sent (``check_names``;
-a map's point names when the map is loaded), integers with ``i`` and nanosecond timestamps; Prometheus's ``# HELP``/``# TYPE`` lines, metric
-names of ``[a-zA-Z_:][a-zA-Z0-9_:]*`` and label values with backslash, double quote
-and newline escaped.  Only the read commands offer them (``readings`` in
-``device_command``).
+a map's point names when the map is loaded), a field's type fixed by its point
+(``Point.number_of``), integers with ``i`` and nanosecond timestamps; Prometheus's
+``# HELP``/``# TYPE`` lines, metric names of ``[a-zA-Z_:][a-zA-Z0-9_:]*`` and label
+values with backslash, double quote and newline escaped, and ``modbus_up`` with the time
+of the last success in every exposition.  Only the read commands offer them
+(``readings`` in ``device_command``).
 """
 
 from __future__ import annotations
@@ -149,7 +151,8 @@ def _warn_left_out(what: str, value: float) -> None:
     if what not in _warned:
         _warned.add(what)
         print(
-            f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line (it has no NaN or infinity)",
+            f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line "
+            "(it has no NaN or infinity)",
             file=sys.stderr,
             flush=True,
         )

@@ -6,14 +6,15 @@ state: 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.  Thresholds are the guidelines'
 ranges (``10``, ``10:``, ``~:10``, ``10:20``, ``@10:20``): an alert when the value
 lies outside the range (inside, with ``@``).  The grammar is nagiosplugin's.
 
-Every outcome is a state and that one line (``PluginCommand``): anything that keeps
-the check from judging is UNKNOWN with the reason: bad arguments, a profile or config
-file that cannot be used, an output format check does not write, a signal (SIGTERM,
-SIGHUP, SIGINT), a bug; a device that does not answer, refuses or garbles, a point it
-refuses and a value that reads NaN are UNKNOWN unless ``--state-on-error`` says
-otherwise.  Perfdata has U for a value that is not a finite number.  The worst state wins, UNKNOWN above CRITICAL (nagiosplugin's order).
-Only a stdout that cannot be written (full, closed, its reader gone) leaves no line:
-the reason goes to stderr, and the state is UNKNOWN.
+Every outcome is a state and that one line (``PluginCommand``), as the plugin API asks.
+Anything that keeps the check from judging is UNKNOWN with the reason: bad arguments, a
+profile or config file that cannot be used, an output format check does not write, a
+signal (SIGTERM, SIGHUP, SIGINT), a bug.  A device that does not answer, refuses or
+garbles, a point it refuses and a value that reads NaN are UNKNOWN unless
+``--state-on-error`` says otherwise; perfdata has U for a value that is not a finite
+number.  The worst state wins, UNKNOWN above CRITICAL (nagiosplugin's order).  Only a
+stdout that cannot be written (full, closed, its reader gone) leaves no line: the reason
+goes to stderr, and the state is UNKNOWN.
 """
 
 from __future__ import annotations
