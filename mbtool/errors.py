@@ -21,6 +21,7 @@ class ExitCode(IntEnum):
     INVALID_RESPONSE = 5  # checksum, framing, wrong unit/function/transaction id, byte count
     CONNECTION = 6  # cannot open the port or connect
     OUTPUT = 7  # cannot write the output: disk full, a file too large, an I/O error
+    PARTIAL = 8  # some of a map's points were read and shown, the device refused others
     INTERRUPTED = 130  # Ctrl-C / SIGTERM
     READER_GONE = 141  # stdout's reader went away (| head): what a shell reports for SIGPIPE
 
@@ -38,6 +39,19 @@ class Summary(MbtoolError):
     def __init__(self, message: str, exit_code: ExitCode) -> None:
         super().__init__(message)
         self.exit_code = exit_code
+
+
+class PartialRead(MbtoolError):
+    """A read of several points that got some and not others: ``readings`` has them all, those
+    the device refused with their error, for the command to show before it ends with exit 8.
+    One line: why each failed, and how many were read."""
+
+    exit_code = ExitCode.PARTIAL
+
+    def __init__(self, readings: list, failures: list[BaseException]) -> None:
+        read = len(readings) - len(failures)
+        super().__init__("; ".join(map(str, failures)) + f"; {read} of {len(readings)} points read")
+        self.readings = readings
 
 
 class NoResponse(MbtoolError):

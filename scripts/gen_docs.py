@@ -61,7 +61,10 @@ EXIT_DESCRIPTIONS = {
     "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
     "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
     "to its last whole record).",
-    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM).",
+    "PARTIAL": "A map read got some points and not others (the device refused them): the points read "
+    "were printed and exported, and stderr names each one that failed.",
+    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM). check alone has its own codes: every outcome "
+    "is a plugin state, 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.",
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
     "with the status of a program ended by SIGPIPE.",
 }
@@ -95,7 +98,8 @@ def files() -> list[tuple[str, str]]:
             "An unknown key or column, overlapping points, a bit of a float, a value past "
             "register 65535, a scale or offset a double cannot hold, a raw value labelled twice "
             "or arrays nested too deeply is exit status 2 when the map is loaded, before the "
-            "port is opened, naming the file, and the point and the key where there is one.",
+            "port is opened, naming the file, and the point and the key where there is one; so "
+            "is a name, unit or label with a control character, or an empty name.",
         ),
     ]
 

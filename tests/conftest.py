@@ -398,6 +398,46 @@ def serial_ascii_device():
         yield dev
 
 
+@pytest.fixture(scope="session")
+def holed_device():
+    """pymodbus over Modbus TCP with gaps in its address map (pymodbus_device.HOLED): a read
+    that touches one answers exception 02. Unit 1."""
+    with start_device(tcp=True, framer="socket", units="1", holes=True) as device:
+        yield device
+
+
+NOT_FINITE = """\
+[holding_registers]
+0 = [0x7FC0, 0x0000, 0x7F80, 0x0000, 0xFF80, 0x0000, 0x41AC, 0x0000]  # NaN, +Inf, -Inf, 21.5
+"""
+
+NOT_FINITE_MAP = """\
+[device]
+type = "float32"
+[points.nan]
+ref = 40001
+[points.inf]
+ref = 40003
+[points.minus_inf]
+ref = 40005
+[points.fine]
+ref = 40007
+"""
+
+
+@pytest.fixture(scope="session")
+def not_finite(tmp_path_factory):
+    """mbtool serve with float32 NaN, +Inf, -Inf and 21.5 in holding registers 0-7, and a map."""
+    from test_serve import serve
+
+    where = tmp_path_factory.mktemp("not-finite")
+    (where / "data.toml").write_text(NOT_FINITE)
+    (where / "map.toml").write_text(NOT_FINITE_MAP)
+    with serve("--data", str(where / "data.toml")) as server:
+        server.map = where / "map.toml"
+        yield server
+
+
 @pytest.fixture
 def pymodbus_tcp_client(tcp_device):
     """pymodbus's own client on the tcp_device: the independent check of what mbtool wrote."""

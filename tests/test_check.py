@@ -3,8 +3,13 @@ against sim:// (holding register i holds i) and pymodbus's server (holding 0..19
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
+
 import pytest
-from conftest import HOLDING, run_mbtool
+from conftest import HOLDING, REPO_ROOT, mbtool_env, run_mbtool, signals_as_from_a_shell
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -131,3 +136,105 @@ def test_every_range_form_and_state_against_pymodbus(tcp_device, ref, ranges, co
     value = HOLDING[int(ref) - 40001]
     assert line.startswith(f"MODBUS {state} - {ref}={value}")
     assert (f"({state}: {why})" in line) if why else "(" not in line
+
+
+# --- every outcome a state, one line (issue 29.12) --------------------------------------------
+#
+# The Nagios plugin API: exactly one line on stdout and an exit code 0-3, whatever happens.
+# Anything that keeps check from judging is UNKNOWN (3): bad arguments, a profile or config
+# that cannot be used, an output format check does not write, a signal, a stdout that cannot
+# be written (the one case with no line: nothing can be written; the reason goes to stderr).
+
+
+def _config(tmp_path, text: str) -> dict:
+    path = tmp_path / "config.toml"
+    path.write_text(text)
+    return {"MBTOOL_CONFIG": str(path)}
+
+
+@pytest.mark.parametrize(
+    "args, config, words",
+    [
+        (("40001", "-P", "nosuch"), '[profiles.pump]\nport = "sim://"\n', "no profile nosuch"),
+        (("40001", "-P", "pump"), "[profiles.pump\n", "not valid TOML"),
+        (("40001", "-P", "pump"), '[profiles.pump]\ncolour = "red"\n', "unknown key"),
+        (("40001", "-o", "prom", "-p", "sim://"), "", "-o prom carries values read"),
+        (("40001", "-t", "0", "-p", "sim://"), "", "-t"),
+    ],
+    ids=["no-profile", "broken-config", "bad-profile-key", "prom", "bad-timeout"],
+)
+def test_what_keeps_check_from_judging_is_unknown_on_one_line(tmp_path, args, config, words):
+    res = run_mbtool("check", *args, env=_config(tmp_path, config))
+    assert res.returncode == 3 and res.stderr == "", str(res)
+    (line,) = res.stdout.splitlines()
+    assert line.startswith("MODBUS UNKNOWN - ") and words in line
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT], ids=lambda s: s.name)
+def test_a_signal_is_unknown_on_one_line(silent_server, sig):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "check", "40001", "-t", "20", "-p", silent_server.tcp_target],
+        cwd=REPO_ROOT, env=mbtool_env(), preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 15
+    while not silent_server.received_bytes(settle=0.05) and time.monotonic() < deadline:
+        pass  # until the request is out and check waits for the reply
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=10)
+    assert (proc.returncode, out, err) == (3, f"MODBUS UNKNOWN - interrupted by {sig.name}\n", "")
+
+
+def _shell(command: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        ["bash", "-c", f"{sys.executable} -m mbtool {command}"],
+        capture_output=True, text=True, timeout=20, cwd=REPO_ROOT, env=mbtool_env(),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "args", ["check 40001 -p sim://", "check --bogus -p sim://", "check 40001 -p tcp://127.0.0.1:1"]
+)
+@pytest.mark.parametrize(
+    "redirect, why",
+    [("> /dev/full", "No space left on device"), (">&-", "Broken pipe")],
+    ids=["full", "closed"],
+)
+def test_a_stdout_that_cannot_be_written_is_unknown_with_the_reason_on_stderr(args, redirect, why):
+    res = _shell(f"{args} {redirect}")
+    assert res.returncode == 3, res
+    assert res.stderr == f"mbtool: cannot write the plugin's line to standard output: {why}\n", res.stderr
+
+
+def test_a_bar_in_a_name_or_unit_never_splits_the_line_or_its_perfdata(tmp_path, tcp_device):
+    path = tmp_path / "bars.toml"
+    path.write_text('[points."in|out"]\nref = 40001\nunit = "m3|h"\n[points.load]\nref = 40002\nunit = "%"\n')
+    code, line = check("-m", path, "-w", "1000", port=tcp_device.target)
+    assert code == 0 and line.count("|") == 1
+    assert line == "MODBUS OK - inout=100 m3h, load=101 % | inout=100;1000 load=101%;1000"
+
+
+def test_nan_is_unknown_an_infinity_is_judged_and_neither_breaks_the_perfdata(not_finite):
+    code, line = check("-m", not_finite.map, "-w", "30", port=not_finite.target)
+    assert code == 3
+    assert line == (
+        "MODBUS UNKNOWN - nan=nan (UNKNOWN: not a number, nothing to judge), inf=inf (WARNING: outside 0:30), "
+        "minus_inf=-inf (WARNING: outside 0:30), fine=21.5 | nan=U;30 inf=U;30 minus_inf=U;30 fine=21.5;30"
+    )
+    code, _ = check(
+        "-m", not_finite.map, "fine", "nan", "--state-on-error", "critical", port=not_finite.target
+    )
+    assert code == 2
+
+
+def test_a_point_the_device_refuses_is_judged_as_unreadable_and_the_others_as_read(tmp_path, holed_device):
+    path = tmp_path / "holed.toml"
+    path.write_text("[device]\nmax_gap = 30\n[points.flow]\nref = 40001\n[points.missing]\nref = 40011\n"
+                    "[points.level]\nref = 40021\n")  # fmt: skip
+    code, line = check("-m", path, "-w", "150", port=holed_device.target)
+    assert code == 3
+    assert line.startswith(
+        "MODBUS UNKNOWN - flow=100, missing not read (UNKNOWN: exception 02 Illegal Data Address"
+    )
+    assert line.endswith("), level=200 (WARNING: outside 0:150) | flow=100;150 missing=U;150 level=200;150")
+    assert check("-m", path, "-w", "150", "--state-on-error", "warning", port=holed_device.target)[0] == 1

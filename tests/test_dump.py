@@ -176,14 +176,6 @@ RANGES = (
 )
 
 
-@pytest.fixture(scope="module")
-def holed_device():
-    from conftest import start_device
-
-    with start_device(tcp=True, framer="socket", units="1", holes=True) as device:
-        yield device
-
-
 def _expanded(section: dict) -> dict[int, int]:
     values = {}
     for key, value in section.items():

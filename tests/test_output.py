@@ -105,6 +105,33 @@ def test_a_closed_pipe_ends_a_one_shot_quietly():
     assert res.stdout.strip() in ("0", "141") and res.stderr == "", res  # 0 when it wrote before head left
 
 
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("read", "40001", "-p", "sim://"),
+        ("read-holding-registers", "0", "2", "-p", "sim://", "--polls", "2", "--interval", "0"),
+        ("read", "-m", "MAP", "-p", "sim://"),
+        ("diff", "DUMP", "-p", "sim://"),
+        ("dump", "-", "-p", "sim://"),
+        ("read", "40001", "-p", "sim://", "-o", "prom"),
+        ("read", "40001", "-p", "sim://", "-o", "influx"),
+        ("read", "40001", "-p", "sim://", "-o", "json"),
+        ("crc", "01 03"),
+    ],
+    ids=["read", "polling", "read-map", "diff", "dump", "prom", "influx", "json", "crc"],
+)
+def test_a_closed_stdout_is_a_reader_gone_not_an_internal_error(args, tmp_path):
+    """`>&-` (issue 29.13): nothing can be written, as when the reader of a pipe went away: 141,
+    quietly, from every command."""
+    (tmp_path / "map.toml").write_text("[points.a]\nref = 40001\n")
+    (tmp_path / "dump.toml").write_text("[holding_registers]\n5 = 99\n")
+    where = {"MAP": str(tmp_path / "map.toml"), "DUMP": str(tmp_path / "dump.toml")}
+    argv = " ".join(f"'{where.get(arg, arg)}'" for arg in args)
+    res = shell(f"{MBTOOL} {argv} >&-")
+    assert res.returncode == 128 + signal.SIGPIPE, res
+    assert "Traceback" not in res.stderr and "internal error" not in res.stderr, res.stderr
+
+
 # --- a full disk (13.3) ---------------------------------------------------------------------------
 
 

@@ -18,9 +18,16 @@ from mbtool.codec.tables import (
 )
 from mbtool.codec.values import encode_values
 from mbtool.device.model import DataModel, Device
-from mbtool.errors import ExitCode, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, exit_code_for
 from mbtool.registermap.load import MapError, load_map
-from mbtool.registermap.plan import bit_request, plan_reads, read_points, with_bit, write_request
+from mbtool.registermap.plan import (
+    MapReader,
+    bit_request,
+    plan_reads,
+    read_points,
+    with_bit,
+    write_request,
+)
 from mbtool.registermap.point import Point
 
 # --- references ---------------------------------------------------------------
@@ -371,6 +378,15 @@ def test_a_csv_map_reads_as_the_toml_one(tmp_path):
         ("[pointz.a]\nref = 40001\n", "unknown section pointz"),
         ("[device]\n", "the map has no points"),
         ("[points.a\n", "not a valid TOML map"),
+        # Names, units and labels are written on one line in every format (issue 29.11, 29.12).
+        ('[points."line\\nbreak"]\nref = 40001\n', r"point 'line\\nbreak': .*no control characters"),
+        ('[points."tab\\there"]\nref = 40001\n', r"point 'tab\\there': .*no control characters"),
+        ('[points.""]\nref = 40001\n', "a point with an empty name"),
+        ('[points.a]\nref = 40001\nunit = "m\\n3"\n', r"point a: key unit: 'm\\n3' .*no control characters"),
+        (
+            '[points.a]\nref = 40001\nenum = { 1 = "on\\roff" }\n',
+            r"point a: key enum: 'on\\roff' .*no control characters",
+        ),
     ],
 )
 def test_bad_maps_name_file_point_and_key(tmp_path, text, words):
@@ -499,15 +515,50 @@ def test_a_merged_read_refused_with_exception_02_is_retried_point_by_point(tmp_p
     assert [(r.address, r.count) for r in requests] == [(0, 3), (0, 1), (2, 1)]
 
 
-def test_the_point_at_fault_is_named(tmp_path):
+def test_the_point_at_fault_is_named_and_the_others_are_read(tmp_path):
+    """Issue 28 §3: one missing point no longer blanks out the whole read."""
     device = Device(DataModel())
     device.model.defined = {"holding_registers": bytearray(65536)}
     device.model.defined["holding_registers"][0] = 1
+    device.model.holding_registers[0] = 5
     points = [_point(name="a", address=0), _point(name="missing", address=1)]
-    with pytest.raises(
-        ModbusException, match=r"missing \(40002\): exception 02 Illegal Data Address"
-    ) as caught:
+    with pytest.raises(PartialRead, match=r"missing \(40002\): exception 02 Illegal Data Address") as caught:
         read_points(_execute(device, []), points)
+    assert str(caught.value).endswith("; 1 of 2 points read")
+    assert exit_code_for(caught.value) == ExitCode.PARTIAL
+    a, missing = caught.value.readings
+    assert (a.value, a.error) == (5, None)
+    assert missing.value is None and missing.error.answer.startswith("exception 02 Illegal Data Address")
+
+
+def test_a_refused_merged_read_stays_split_for_the_next_read():
+    device = Device(DataModel())
+    device.model.defined = {"holding_registers": bytearray(65536)}
+    for address in (0, 2, 10):
+        device.model.defined["holding_registers"][address] = 1
+    points = [_point(name=name, address=address) for name, address in (("a", 0), ("b", 2), ("c", 10))]
+    reader = MapReader(points, max_gap=20)
+    requests: list = []
+    for _ in range(3):
+        assert [r.value for r in reader.read(_execute(device, requests))] == [0, 0, 0]
+    assert [(r.address, r.count) for r in requests] == [(0, 11), (0, 1), (2, 1), (10, 1)] + [
+        (0, 1),
+        (2, 1),
+        (10, 1),
+    ] * 2
+
+
+def test_a_point_the_device_refuses_outright_fails_alone_and_all_refused_is_the_error():
+    device = Device(DataModel())
+    device.model.defined = {"holding_registers": bytearray(65536), "input_registers": bytearray(65536)}
+    device.model.defined["holding_registers"][0] = 1
+    # Input registers answer exception 02 for every address: the point there is refused, the
+    # holding register is read.
+    points = [_point(name="h", address=0), _point(name="i", table=INPUT_REGISTERS, address=0)]
+    with pytest.raises(PartialRead, match=r"^i \(30001\): exception 02"):
+        read_points(_execute(device, []), points)
+    with pytest.raises(ModbusException, match=r"^i \(30001\): exception 02") as caught:
+        read_points(_execute(device, []), points[1:])
     assert exit_code_for(caught.value) == ExitCode.EXCEPTION
 
 

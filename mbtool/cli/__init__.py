@@ -19,7 +19,15 @@ import click
 from mbtool import __version__
 from mbtool.cli import render
 from mbtool.cli.options import QuickHelp, did_you_mean
-from mbtool.errors import KNOWN_ERRORS, ExitCode, MbtoolError, OutputFailed, Summary, exit_code_for
+from mbtool.errors import (
+    KNOWN_ERRORS,
+    ExitCode,
+    MbtoolError,
+    OutputFailed,
+    PartialRead,
+    Summary,
+    exit_code_for,
+)
 from mbtool.link import register_scheme
 
 COMPLETE_VAR = "_MBTOOL_COMPLETE"  # Click's name for it: _{PROG}_COMPLETE
@@ -138,7 +146,8 @@ def cli() -> None:
 
     Exit codes: 0 ok, 1 internal error, 2 bad input (nothing sent), 3 no response,
     4 Modbus exception, 5 invalid response, 6 cannot open or connect, 7 cannot write the
-    output (disk full), 130 interrupted, 141 the reader of stdout went away.
+    output (disk full), 8 some of a map's points not read, 130 interrupted, 141 the
+    reader of stdout went away (or stdout closed). check exits with its plugin state, 0-3.
     """
 
 
@@ -160,6 +169,8 @@ def main(argv: list[str] | None = None) -> None:
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
     signal.signal(signal.SIGTERM, _terminate)
+    if sys.stdout is None:
+        _closed_stdout_as_a_gone_reader()
     render.errors_as_json, render.csv_header = False, True  # until the options say otherwise
     error: BaseException | None = None
     try:
@@ -169,12 +180,8 @@ def main(argv: list[str] | None = None) -> None:
         sys.stdout.flush()  # here, where a full disk is still ours to report
         code = ExitCode.OK
     except click.exceptions.Exit as done:  # --help, --version
-        code = done.exit_code
+        error, code = _flushed(None, done.exit_code)
     except click.ClickException as failure:  # usage errors: nothing was sent
-        if failure.ctx is not None and failure.ctx.command.name == "check":
-            # A monitoring plugin's bad arguments are UNKNOWN, on stdout (plugin guidelines).
-            click.echo(f"MODBUS UNKNOWN - {failure.format_message()}")
-            sys.exit(3)
         hint = ""
         if failure.ctx is not None and isinstance(failure, click.UsageError):
             hint = f" (see '{failure.ctx.command_path} --help')"
@@ -186,17 +193,18 @@ def main(argv: list[str] | None = None) -> None:
     except BrokenPipeError:
         # The reader went away (| head): stop at once and quietly, with the status a shell
         # gives a program that SIGPIPE ended (SIGPIPE itself would also end us on sockets).
-        _discard_stdout()
+        discard_stdout()
         code = ExitCode.READER_GONE
     except OSError as failure:  # what reaches here unconverted is stdout failing (disk full)
-        _discard_stdout()
+        discard_stdout()
         error = OutputFailed("standard output", failure)
         code = error.exit_code
     except KNOWN_ERRORS as failure:
         if isinstance(failure, OutputFailed):
-            _discard_stdout()
-        error = failure
-        code = exit_code_for(failure)
+            discard_stdout()
+            error, code = failure, failure.exit_code
+        else:  # what the command wrote first (dump -, diff's lines) goes before the verdict
+            error, code = _flushed(failure, exit_code_for(failure))
     except Exception as failure:  # a bug: say so in one line; MBTOOL_DEBUG=1 shows the traceback
         if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
             raise
@@ -206,14 +214,43 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed):
+        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed | PartialRead):
             # -o json: a script reading stdout alone gets an object for every outcome
-            # (polling writes its own per poll, and its Summary is no error object).
+            # (polling writes its own per poll, and its Summary is no error object; a
+            # partial read's object names the points it could not read).
             _write_quietly(render.error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
 
 
-def _discard_stdout() -> None:
+def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | None, int]:
+    """The outcome once what the command wrote to stdout is out: a reader that went away or a
+    full disk then ends the run as they do any write (141 quietly, 7), not at exit with a
+    traceback from the interpreter's last flush."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        discard_stdout()
+        return None, ExitCode.READER_GONE
+    except OSError as failure:
+        discard_stdout()
+        failed = OutputFailed("standard output", failure)
+        return failed, failed.exit_code
+    return error, code
+
+
+def _closed_stdout_as_a_gone_reader() -> None:
+    """Started with stdout closed (``>&-``; Python then has no sys.stdout): a pipe whose reader
+    has gone takes its place, so a write fails as it does after ``| head`` and ends the run the
+    same way (141, quietly), and fd 1 is taken: no socket or file opened later becomes stdout."""
+    reader, writer = os.pipe()
+    os.close(reader)
+    if writer != 1:  # fd 1 is the lowest free one, so the pipe normally lands there
+        os.dup2(writer, 1)
+        os.close(writer)
+    sys.stdout = open(1, "w", encoding="utf-8", closefd=False)
+
+
+def discard_stdout() -> None:
     """Point stdout at /dev/null: what is still buffered must not fail again at exit."""
     try:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -226,4 +263,4 @@ def _write_quietly(text: str) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
     except OSError:
-        _discard_stdout()
+        discard_stdout()

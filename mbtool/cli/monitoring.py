@@ -3,11 +3,14 @@ and the Prometheus text exposition format (``-o prom``, ``--textfile``).
 
 Both follow their system's reference to the letter: the line protocol's escaping
 (measurement: commas and spaces; tag keys, tag values and field keys: commas, equals
-signs and spaces; string field values: double quotes and backslashes), integers with
-``i`` and nanosecond timestamps; Prometheus's ``# HELP``/``# TYPE`` lines, metric
-names of ``[a-zA-Z_:][a-zA-Z0-9_:]*`` and label values with backslash, double quote
-and newline escaped.  Only the read commands offer them (``readings`` in
-``device_command``).
+signs and spaces; backslashes doubled in all of them; string field values: double quotes
+and backslashes), names it cannot carry refused before anything is sent (``check_names``;
+a map's point names when the map is loaded), a field's type fixed by its point
+(``Point.number_of``), integers with ``i`` and nanosecond timestamps; Prometheus's
+``# HELP``/``# TYPE`` lines, metric names of ``[a-zA-Z_:][a-zA-Z0-9_:]*`` and label
+values with backslash, double quote and newline escaped, and ``modbus_up`` with the time
+of the last success in every exposition.  Only the read commands offer them
+(``readings`` in ``device_command``).
 """
 
 from __future__ import annotations
@@ -15,9 +18,12 @@ from __future__ import annotations
 import math
 import os
 import re
+import stat
+import sys
 import time
 
 from mbtool.cli.render import Points
+from mbtool.errors import ExitCode, exit_code_for
 
 # Set by the options as they are parsed, as render's csv_header is.
 measurement = "modbus"  # --measurement
@@ -50,43 +56,106 @@ def _values(result) -> list[tuple[dict, object, str]]:
 
 
 def _escape(text: str, specials: str) -> str:
-    text = text.replace("\\", "\\\\") if "\\" in specials else text
-    for char in specials.replace("\\", ""):
+    """The reference's escaping: a backslash before each special character, and a backslash
+    itself doubled (two contiguous backslashes are one), so one at the end of a name never
+    escapes the separator after it."""
+    text = text.replace("\\", "\\\\")
+    for char in specials:
         text = text.replace(char, "\\" + char)
     return text
 
 
+MEASUREMENT_SPECIALS = ", "  # commas and spaces
+KEY_SPECIALS = ",= "  # tag keys, tag values and field keys: commas, equals signs and spaces
+
+
+def check_names(fmt: str) -> None:
+    """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
+
+    Each is written on one line: the line protocol has no escape for a newline, which would
+    end the point and make the rest a point of its own (in a measurement of its own).  Its
+    measurement cannot be empty, and one starting with # makes the line a comment.  A map's
+    point names are held to one line when the map is loaded."""
+    from mbtool.codec.errors import RequestError
+    from mbtool.registermap.load import one_line
+
+    names = [("--measurement", measurement, "a measurement")]
+    if device:
+        names.append(("profile", device, "a tag or label"))
+    for option, name, what in names:
+        if not name:
+            raise RequestError(f"{option} {name!r}: {what} has a name")
+        if not one_line(name):
+            raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
+    if fmt != "influx":
+        return
+    if measurement.startswith("#"):
+        raise RequestError(f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB")
+    for option, name, what in names:
+        if name.endswith("\\"):
+            # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
+            # a backslash in a measurement or tag value as escaped, the separator too.
+            raise RequestError(
+                f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
+                "it to InfluxDB 1.x"
+            )
+
+
 def _field_value(value) -> str | None:
+    """The value as the line protocol writes it; None for NaN and the infinities, which it
+    cannot carry."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int):
         return f"{value}i"
     if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else None  # the protocol has no NaN
-    return '"' + _escape(str(value), '\\"') + '"'
+        return repr(value) if math.isfinite(value) else None
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def influx_line(result, when: float | None = None) -> str:
-    """One line a poll: tags for the unit (and table, device), a field a value."""
+    """One line a poll: tags for the unit (and table, device), a field a value.
+
+    A value the protocol cannot carry (NaN, an infinity) is left out with a warning, once a
+    run for each field; a read left with no field writes no line, as a point must have one."""
     tags = {"unit": str(result.unit)}
-    if not isinstance(result, Points):
+    points = isinstance(result, Points)
+    if not points:
         tags["table"] = result.table
     if device:
         tags["device"] = device
     fields = []
     for labels, value, _ in _values(result):
-        if isinstance(result, Points):
+        if points:
             key = labels["name"]
         else:
             key = labels.get("ref", labels["address"]) + (f"_{labels['order']}" if "order" in labels else "")
         shown = _field_value(value)
-        if shown is not None:
-            fields.append(f"{_escape(key, ',= ')}={shown}")
-    head = _escape(measurement, ", ") + "".join(
-        f",{_escape(k, ',= ')}={_escape(v, ',= ')}" for k, v in sorted(tags.items()) if v
+        if shown is None:
+            _warn_left_out(f"{key} ({labels['ref']})" if points else f"{result.table} {key}", value)
+            continue
+        fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
+    if not fields:
+        return ""
+    head = _escape(measurement, MEASUREMENT_SPECIALS) + "".join(
+        f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
     )
     stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
     return f"{head} {','.join(fields)} {stamp}\n"
+
+
+_warned: set[str] = set()  # the fields left out so far, each warned about once
+
+
+def _warn_left_out(what: str, value: float) -> None:
+    if what not in _warned:
+        _warned.add(what)
+        print(
+            f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line "
+            "(it has no NaN or infinity)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 # --- Prometheus text exposition --------------------------------------------------------------
@@ -119,9 +188,10 @@ def _sample_value(value) -> str | None:
 
 def prom_text(result) -> str:
     """The exposition of one read: modbus_value{unit,table,address} for registers and bits,
-    modbus_NAME{unit,ref} for a map's points (HELP with the description and unit)."""
+    modbus_NAME{unit,ref} for a map's points (HELP with the description and unit), after
+    modbus_up 1 and when the device last answered (this read)."""
     base = {"unit": str(result.unit)} | ({"device": device} if device else {})
-    metrics: dict[str, tuple[str, list[str]]] = {}
+    metrics = _status(result.unit, up=True)
     for labels, value, about in _values(result):
         shown = _sample_value(value)
         if shown is None:
@@ -133,8 +203,50 @@ def prom_text(result) -> str:
         else:
             name = _metric_name(f"{measurement}_value")
             help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
-        pairs = ",".join(f'{k}="{_label_value(v)}"' for k, v in (base | labels).items())
-        metrics.setdefault(name, (help_text, []))[1].append(f"{name}{{{pairs}}} {shown}")
+        metrics.setdefault(name, (help_text, []))[1].append(
+            f"{name}{{{_label_pairs(base | labels)}}} {shown}"
+        )
+    return _exposition(metrics)
+
+
+def prom_down_text() -> str:
+    """The exposition when the device could not be read: modbus_up 0 and when it last
+    answered, and no value: one read before would be scraped as current."""
+    return _exposition(_status(unit, up=False))
+
+
+# Set by the options (cli.commands.read): the unit the status metrics name when no result does.
+unit = 1
+last_success: float | None = None  # when the device last answered a read (Unix time)
+
+
+def status_names() -> tuple[str, str]:
+    """The status metrics' names: modbus_up, modbus_last_success_timestamp_seconds."""
+    return _metric_name(f"{measurement}_up"), _metric_name(f"{measurement}_last_success_timestamp_seconds")
+
+
+def _status(unit_id: int, up: bool) -> dict[str, tuple[str, list[str]]]:
+    up_name, last_name = status_names()
+    pairs = _label_pairs({"unit": str(unit_id)} | ({"device": device} if device else {}))
+    metrics = {
+        up_name: (
+            "1 when the device answered the read, 0 when it could not be read (no value is shown then)",
+            [f"{up_name}{{{pairs}}} {int(up)}"],
+        )
+    }
+    if last_success is not None:
+        metrics[last_name] = (
+            "When the device last answered a read, in seconds since the epoch",
+            [f"{last_name}{{{pairs}}} {last_success!r}"],
+        )
+    return metrics
+
+
+def _label_pairs(labels: dict[str, str]) -> str:
+    return ",".join(f'{k}="{_label_value(v)}"' for k, v in labels.items())
+
+
+def _exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
     out = []
     for name, (help_text, samples) in metrics.items():
         escaped = help_text.replace("\\", "\\\\").replace("\n", "\\n")
@@ -142,30 +254,134 @@ def prom_text(result) -> str:
     return "\n".join(out) + "\n"
 
 
+def check_point_names(points) -> None:
+    """Refuse, before anything is sent, a map point whose metric would be a status metric."""
+    from mbtool.codec.errors import RequestError
+
+    for point in points:
+        if _metric_name(f"{measurement}_{point.name}") in status_names():
+            raise RequestError(
+                f"point {point.name}: its metric, {_metric_name(f'{measurement}_{point.name}')}, is the "
+                "one that says whether the device answered; rename the point or give --measurement"
+            )
+
+
 def write_textfile(text: str, path: str) -> None:
     """Atomically: a temporary file in the same directory, then a rename over the old one,
-    so node_exporter's textfile collector never reads half a file."""
+    so node_exporter's textfile collector never reads half a file.
+
+    The temporary file is tempfile's: created with O_EXCL under a name no one can guess, so
+    a symlink planted beside the textfile is never followed, and the rename replaces a
+    symlink at PATH itself rather than writing through it.  It is made readable as any file
+    the user creates (the umask), as node_exporter runs as another user.  Its name,
+    ``.NAME.PID.XXXXXXXX.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
+    gives no chance to clean up) is removed at the first write."""
+    import tempfile
+
     from mbtool.errors import OutputFailed
 
-    folder = os.path.dirname(os.path.abspath(path))
-    temporary = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp")
+    folder, name = os.path.split(os.path.abspath(path))
+    if path not in _swept:
+        _swept.add(path)
+        _remove_stale_temporaries(folder, name)
+    temporary = None
     try:
-        with open(temporary, "w", encoding="utf-8") as out:
+        descriptor, temporary = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}.", suffix=".tmp", dir=folder)
+        with open(descriptor, "w", encoding="utf-8") as out:
+            os.fchmod(descriptor, 0o666 & ~_umask())
             out.write(text)
         os.replace(temporary, path)
     except OSError as error:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
+        if temporary is not None:
+            try:
+                os.unlink(temporary)
+            except OSError:
+                pass
         raise OutputFailed(path, error) from None
+
+
+_swept: set[str] = set()  # textfiles whose stale temporaries this run has looked for
+
+
+def _umask() -> int:
+    mask = os.umask(0)  # the only way to read it is to set it
+    os.umask(mask)
+    return mask
+
+
+def _remove_stale_temporaries(folder: str, name: str) -> None:
+    """Remove this textfile's temporaries whose writer is gone: regular files of ours (never
+    a symlink's target), named by write_textfile, whose process no longer runs."""
+    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[a-z0-9_]+\.tmp")
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return  # the write itself will say what is wrong with the folder
+    for each in names:
+        found = pattern.fullmatch(each)
+        if found is None or _running(int(found[1])):
+            continue
+        where = os.path.join(folder, each)
+        try:
+            info = os.lstat(where)
+            if stat.S_ISREG(info.st_mode) and info.st_uid == os.geteuid():
+                os.unlink(where)
+        except OSError:
+            pass  # gone already, or not ours to remove
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: it runs, as another user
+        return True
+    return True
 
 
 def emit(result, fmt: str, out, when: float | None = None) -> None:
     """One read in a monitoring format: to ``out``, or with --textfile to that file."""
+    global last_success
     if fmt == "influx":
         out.write(influx_line(result, when))
-    elif textfile:
+        return
+    last_success = time.time() if when is None else when
+    if textfile:
         write_textfile(prom_text(result), textfile)
     else:
         out.write(prom_text(result))
+
+
+# The failures that mean the device could not be read: no reply, an exception (to every
+# point of a map), a reply that is not one, a link that cannot be opened.
+DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
+
+
+def emit_failure(error: BaseException, fmt: str, out) -> None:
+    """A read that failed, in a monitoring format: for Prometheus, an exposition that says
+    the device could not be read and when it last answered, in place of the values read
+    before, which a scrape would take as current.  The line protocol has no such thing: an
+    InfluxDB line is written only for values read."""
+    global last_success
+    if fmt != "prom" or exit_code_for(error) not in DEVICE_FAILURES:
+        return  # a bad request (nothing sent), a full disk: no news of the device
+    if textfile:
+        if last_success is None:  # a run before this one may have read it: the file says when
+            last_success = _last_success_in(textfile)
+        write_textfile(prom_down_text(), textfile)
+    else:
+        out.write(prom_down_text())
+
+
+def _last_success_in(path: str) -> float | None:
+    """The last success a textfile written before tells of (its own sample line), if any."""
+    name = status_names()[1]
+    try:
+        with open(path, encoding="utf-8") as old:
+            for line in old:
+                if line.startswith(name + "{"):
+                    return float(line.rsplit(" ", 1)[1])
+    except (OSError, ValueError, UnicodeDecodeError):
+        pass
+    return None

@@ -675,6 +675,7 @@ def device_command(
             "help_option_names": ["-h", "--help"],
             **settings.pop("context_settings", {}),
         }
-        return click.command(name, cls=DeviceCommand, context_settings=context, **settings)(run)
+        command_class = settings.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
+        return click.command(name, cls=command_class, context_settings=context, **settings)(run)
 
     return decorate

@@ -33,7 +33,7 @@ from mbtool.cli.render import (
 )
 from mbtool.codec.errors import function_code_text
 from mbtool.codec.values import TYPES
-from mbtool.errors import OutputFailed, exit_code_for
+from mbtool.errors import OutputFailed, PartialRead, exit_code_for
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
 
@@ -105,8 +105,13 @@ class Output:
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
-        if self.fmt == "json":
-            # jq consumers read stdout only: a failed poll must show up there too.
+        if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
+            from mbtool.cli import monitoring
+
+            monitoring.emit_failure(error, self.fmt, None if monitoring.textfile else _Pending(self))
+        if self.fmt == "json" and not isinstance(error, PartialRead):
+            # jq consumers read stdout only: a failed poll must show up there too (a partial
+            # read's line names the points it could not read).
             code = int(exit_code_for(error))
             self._emit(error_json(str(error), code, time=when) + "\n", now=True)
 
@@ -274,6 +279,8 @@ class Deferred:
             self.output.result(local_time(when), self.shown[1], when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
+        if isinstance(error, PartialRead):  # what was read is shown, then what was not
+            self.output.result(local_time(when), self.to_result(error.readings), when)
         self.output.failure(local_time(when), number, error)
 
     def close(self) -> None:

@@ -126,11 +126,14 @@ def wants_csv_header(out: TextIO) -> bool:
     return info.st_size == 0 and os.lseek(fd, 0, os.SEEK_CUR) == 0
 
 
-def default_format(stream: TextIO = sys.stdout) -> str:
-    return "table" if stream.isatty() else "plain"
+# The streams are looked up when called, not bound as defaults: cli.main may put a stdout in
+# place of a closed one after this module is imported.
+def default_format(stream: TextIO | None = None) -> str:
+    return "table" if (stream or sys.stdout).isatty() else "plain"
 
 
-def render(result: Result | Report | Points, fmt: str, out: TextIO = sys.stdout) -> None:
+def render(result: Result | Report | Points, fmt: str, out: TextIO | None = None) -> None:
+    out = out or sys.stdout
     if isinstance(result, Points):
         {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
             result, out
@@ -351,14 +354,26 @@ def point_text(value: object) -> str:
 
 
 @record
+class PointFailure:
+    """A point of a map the device refused: its name, ref and the device's answer."""
+
+    name: str
+    ref: str
+    error: str
+
+
+@record
 class Points:
     """What ``read -m MAP`` learned.  Plain: ``NAME VALUE UNIT`` lines; JSON: the unit id,
-    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point."""
+    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point.
+    The points the device refused (a partial read) are in ``failed``: in JSON and the table,
+    and on stderr; plain and CSV lines are values only."""
 
     unit: int
     source: str  # the map file
     rows: list[PointRow]
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
+    failed: list[PointFailure] = ()
 
 
 POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
@@ -387,6 +402,11 @@ def points_dict(points: Points) -> dict:
             }
             for row in points.rows
         ],
+        **(
+            {"failed": [{"name": f.name, "ref": f.ref, "error": f.error} for f in points.failed]}
+            if points.failed
+            else {}
+        ),
     }
 
 
@@ -408,6 +428,8 @@ def points_table(points: Points, heading: str = ""):
         if described:
             cells.append(escape(row.description))
         table.add_row(*cells)
+    for failure in points.failed:  # refused by the device: the answer where the value would be
+        table.add_row(escape(failure.name), f"[red]{escape(failure.error)}[/]", "", failure.ref, "")
     return table
 
 

@@ -202,12 +202,15 @@ class Client:
         if self.while_waiting is not None:
             work, self.while_waiting = self.while_waiting, None
             work()
-            # The reply is timed from here, and the timeout runs from here at the earliest:
-            # the work was mbtool's time, not the device's (a reply that came meanwhile waited
-            # for mbtool, not mbtool for it).
-            waited_from = self.work_done_at = self.clock()
-            if waited_from + self.timeout > deadline:
-                deadline = waited_from + self.timeout
+            # The timeout runs from here at the earliest: the work was mbtool's time, not the
+            # device's.  A reply that came meanwhile waited for mbtool, not mbtool for it: it
+            # is timed from here, for its arrival is not known; one still to come, from the
+            # request, as ever.
+            done = self.work_done_at = self.clock()
+            if done + self.timeout > deadline:
+                deadline = done + self.timeout
+            if transport.input_waiting():
+                waited_from = done
         if unit == framer.broadcast_unit:
             return None
         if not expects_response:

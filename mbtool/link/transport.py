@@ -84,6 +84,10 @@ class Transport:
         """Drop (and return) bytes that arrived before a request: stale replies, noise."""
         return b""
 
+    def input_waiting(self) -> bool:
+        """Whether bytes have come that were not read yet (True where the link cannot tell)."""
+        return True
+
     def close(self) -> None:
         """Release the link."""
 
@@ -221,6 +225,14 @@ class SerialTransport(Transport):
         except (self._serial_error, OSError) as error:
             raise ConnectionClosed(f"{self.description}: {_reason(error)}{self.silence_hint}") from None
 
+    def input_waiting(self) -> bool:
+        try:
+            if self._fd is not None:
+                return bool(select.select([self._fd], [], [], 0)[0])
+            return self.port.in_waiting > 0
+        except (self._serial_error, OSError):
+            return True  # the read that follows says what is wrong
+
     def _bridge_bytes(self) -> bytes:
         """What socket:// holds now, in one recv (pyserial's socket.recv, without its loop)."""
         if not select.select([self._bridge], [], [], 0)[0]:
@@ -300,6 +312,12 @@ class TcpTransport(Transport):
         if not data:
             raise ConnectionClosed(f"{self.description} closed the connection")
         return data
+
+    def input_waiting(self) -> bool:
+        try:
+            return bool(select.select([self.sock], [], [], 0)[0])
+        except (OSError, ValueError):
+            return True  # the read that follows says what is wrong
 
     def discard_input(self) -> bytes:
         stale = bytearray()

@@ -194,6 +194,10 @@ def _device(path: Path, device: object) -> dict:
 
 
 def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
+    if not name:
+        raise MapError(f"{path}: a point with an empty name (read, check and the monitoring formats show it)")
+    if not one_line(name):
+        raise MapError(f"{path}: point {name!r}: the name {ONE_LINE}")
     where = f"{path}: point {name}"
 
     def fail(key: str, why: str) -> MapError:
@@ -215,8 +219,11 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         raise fail("access", f"{row['access']} is neither r nor rw")
     if access == "rw" and not table.writable:
         raise fail("access", f"{table.items} are read-only")
+    unit = _string(row, "unit", fail)
+    if not one_line(unit):
+        raise fail("unit", f"{unit!r} {ONE_LINE}")
     options = {
-        "unit": _string(row, "unit", fail),
+        "unit": unit,
         "description": _string(row, "description", fail),
         "writable": access == "rw",
         "warn": _range(row, "warn", fail),
@@ -332,6 +339,19 @@ def _range(row: dict, key: str, fail) -> str | None:
     return str(value)
 
 
+# Names, units and labels are written on one line in every output: a plain NAME VALUE UNIT
+# line, check's plugin line, an InfluxDB line (whose protocol has no escape for a newline:
+# it ends the point) and a Prometheus sample.
+ONE_LINE = "is written on one line: no control characters (newline, tab...)"
+
+
+def one_line(text: str) -> bool:
+    """No control character, line or paragraph separator: the text stays on its line."""
+    import unicodedata
+
+    return not any(unicodedata.category(char) in ("Cc", "Zl", "Zp") for char in text)
+
+
 def _string(row: dict, key: str, fail) -> str:
     value = row.get(key, "")
     if not isinstance(value, str):
@@ -361,6 +381,8 @@ def _enum(row: dict, kind: str, fail) -> dict[int, str]:
             raise fail("enum", f"a {kind} cannot hold {number}: the nearest it holds is {held}")
         if not isinstance(label, str) or not label:
             raise fail("enum", f"the label of {raw} is not text")
+        if not one_line(label):
+            raise fail("enum", f"{label!r} {ONE_LINE}")
         if label.lower() in (known.lower() for known in out.values()):
             raise fail("enum", f"the label {label} is given twice")
         out[number] = label

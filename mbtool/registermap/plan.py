@@ -8,8 +8,11 @@ it goes, from the lowest address up, gives the fewest requests: any plan's
 first block ends no later than the greedy one's, and so on for every block.
 
 A device that answers a merged read with exception 02 (it lacks an address in
-a gap, or one point's address) is asked again point by point, and the error
-names the point at fault.
+a gap, or one point's address) is asked again point by point, and the split is
+kept for the reads after (``MapReader``, polling).  A point the device refuses
+on its own is not read and the others still are: the read is partial
+(``PartialRead``, exit 8), each failure naming its point.  This is the one rule
+for ``read -m``, polling, ``check -m`` and the monitoring outputs.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionCode, Request, Response
 from mbtool.codec.record import record
 from mbtool.codec.tables import READS, Table, write_of
+from mbtool.errors import PartialRead
 from mbtool.registermap.point import Point, PointValue
 
 
@@ -43,11 +47,13 @@ class Block:
 
 @record
 class Reading:
-    """A point's value as read, with the raw registers (or bit) it came from."""
+    """A point's value as read, with the raw registers (or bit) it came from; or, for a point
+    the device refused, no value and the device's answer."""
 
     point: Point
     value: PointValue
     raw: tuple
+    error: ModbusException | None = None
 
 
 def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
@@ -75,24 +81,57 @@ def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
 Execute = Callable[[Request], Response]
 
 
+class MapReader:
+    """The reads that serve a map's points, kept from one read (one poll) to the next."""
+
+    def __init__(self, points: Iterable[Point], max_gap: int = 0) -> None:
+        self.points = list(points)
+        self.blocks = plan_reads(self.points, max_gap)
+
+    def read(self, execute: Execute) -> list[Reading]:
+        """Every point's reading, in the order the points were given.
+
+        A merged read refused with exception 02 is split into its points' own reads, for
+        good: the next read starts from the split.  An exception to a point's own read (or
+        to a read of points that cannot be split further) is that point's failure: the
+        others are still read, and PartialRead carries them all.  When no point could be
+        read, the first failure is the error.  A link failure (no response, a bad reply)
+        ends the read: the device cannot be read at all."""
+        readings: dict[str, Reading] = {}
+        blocks = []
+        for block in self.blocks:
+            try:
+                readings |= _read_block(execute, block)
+                blocks.append(block)
+            except ModbusException as error:
+                if error.exception_code != ExceptionCode.ILLEGAL_DATA_ADDRESS or len(block.points) == 1:
+                    readings |= _refused(block, error)
+                    blocks.append(block)
+                    continue
+                for point in block.points:  # which point is it?
+                    single = Block(point.table, point.address, point.size, (point,))
+                    blocks.append(single)
+                    try:
+                        readings |= _read_block(execute, single)
+                    except ModbusException as failure:
+                        readings |= _refused(single, failure)
+        self.blocks = blocks
+        ordered = [readings[point.name] for point in self.points]
+        failures = [reading.error for reading in ordered if reading.error is not None]
+        if len(failures) == len(ordered):
+            raise failures[0]
+        if failures:
+            raise PartialRead(ordered, failures)
+        return ordered
+
+
 def read_points(execute: Execute, points: list[Point], max_gap: int = 0) -> list[Reading]:
-    """Every point's reading, in the order the points were given."""
-    readings: dict[str, Reading] = {}
-    for block in plan_reads(points, max_gap):
-        try:
-            readings |= _read_block(execute, block)
-        except ModbusException as error:
-            if error.exception_code != ExceptionCode.ILLEGAL_DATA_ADDRESS:
-                raise
-            if len(block.points) == 1:
-                raise PointException(block.points[0], error) from None
-            for point in block.points:  # which point is it?
-                single = Block(point.table, point.address, point.size, (point,))
-                try:
-                    readings |= _read_block(execute, single)
-                except ModbusException as failure:
-                    raise PointException(point, failure) from None
-    return [readings[point.name] for point in points]
+    """Every point's reading, in one read (MapReader.read's rule)."""
+    return MapReader(points, max_gap).read(execute)
+
+
+def _refused(block: Block, error: ModbusException) -> dict[str, Reading]:
+    return {point.name: Reading(point, None, (), PointException(point, error)) for point in block.points}
 
 
 def _read_block(execute: Execute, block: Block) -> dict[str, Reading]:
@@ -110,6 +149,7 @@ class PointException(ModbusException):
 
     def __init__(self, point: Point, error: ModbusException) -> None:
         super().__init__(error.function_code, error.exception_code)
+        self.answer = str(error)  # the device's answer alone, where the point is named apart
         self.args = (f"{point.name} ({point.ref}): {error}",)
 
 

@@ -85,15 +85,25 @@ class Point:
         the map does not name, or a float's fraction, or NaN), shown as such."""
         return self.enum is not None and not isinstance(value, str)
 
+    @property
+    def floating(self) -> bool:
+        """Its numbers are floats, whatever one value is: a float type, or a scaled point
+        (22.5 one read, 23 the next)."""
+        if self.is_bit or self.type not in TYPES:
+            return False
+        return self.scale is not None or self.offset is not None or TYPES[self.type].fmt in ("f", "d")
+
     def number_of(self, value: PointValue) -> int | float | None:
         """The number behind a value, for thresholds and monitoring: an enum label's raw
-        value, 1 or 0 for a bit, a number as it is; None for text."""
+        value, 1 or 0 for a bit, a number as it is; None for text.  Its type is the point's,
+        not the value's: a float point's whole value is a float too, as InfluxDB fixes a
+        field's type at its first write and refuses any other after (issue 28)."""
         if isinstance(value, bool):
             return int(value)
         if isinstance(value, str):
             labelled = [raw for raw, label in (self.enum or {}).items() if label == value]
-            return labelled[0] if labelled else None
-        return value
+            value = labelled[0] if labelled else None
+        return float(value) if value is not None and self.floating else value
 
     def raw_for(self, text: str, nonfinite: bool = False) -> int | float | str | bool:
         """The raw value that writes ``text`` (engineering units, an enum label, on/off),

@@ -5,14 +5,24 @@ One line on stdout, ``MODBUS STATE - text | perfdata``, and the exit code of the
 state: 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.  Thresholds are the guidelines'
 ranges (``10``, ``10:``, ``~:10``, ``10:20``, ``@10:20``): an alert when the value
 lies outside the range (inside, with ``@``).  The grammar is nagiosplugin's.
-Anything that keeps the check from judging the value is UNKNOWN with the reason:
-bad arguments always, a device that does not answer, refuses or garbles, or a value
-that reads NaN, unless ``--state-on-error`` says otherwise.
+
+Every outcome is a state and that one line (``PluginCommand``), as the plugin API asks.
+Anything that keeps the check from judging is UNKNOWN with the reason: bad arguments, a
+profile or config file that cannot be used, an output format check does not write, a
+signal (SIGTERM, SIGHUP, SIGINT), a bug.  A device that does not answer, refuses or
+garbles, a point it refuses and a value that reads NaN are UNKNOWN unless
+``--state-on-error`` says otherwise; perfdata has U for a value that is not a finite
+number.  The worst state wins, UNKNOWN above CRITICAL (nagiosplugin's order).  Only a
+stdout that cannot be written (full, closed, its reader gone) leaves no line: the reason
+goes to stderr, and the state is UNKNOWN.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import signal
+import sys
 from functools import partial
 
 import click
@@ -20,6 +30,7 @@ import click
 from mbtool.cli.options import (
     VALUE_TYPES,
     Choice,
+    DeviceCommand,
     device_command,
     map_option,
     reference_target,
@@ -28,15 +39,86 @@ from mbtool.cli.options import (
 from mbtool.codec.errors import RequestError
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
+UNKNOWN = 3
+ERROR_STATES = {"unknown": 3, "warning": 1, "critical": 2}  # --state-on-error
 # Units of measure perfdata may carry (guidelines, "Performance data"); others are
 # shown in the text only, as a graphing tool would misread them.
 PERFDATA_UNITS = {"s", "ms", "us", "%", "B", "KB", "MB", "TB", "c"}
+STOPPING = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)  # what a scheduler or a terminal sends
 
 
-def plugin_output(state: int, text: str, perfdata: str = "") -> None:
-    """The plugin's one line, and its exit code."""
-    click.echo(f"MODBUS {STATES[state]} - {text}" + (f" | {perfdata}" if perfdata else ""))
+def plugin_exit(state: int, text: str, perfdata: str = "") -> None:
+    """The plugin's one line, and its exit code.  ``|`` separates the perfdata and is
+    dropped anywhere else (nagiosplugin's rule); a control character would break the line."""
+    for stop in STOPPING:  # the verdict is in: a signal now must not cut the line short
+        signal.signal(stop, signal.SIG_IGN)
+    line = f"MODBUS {STATES[state]} - {_one_line(text)}" + (f" | {_one_line(perfdata)}" if perfdata else "")
+    try:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+    except OSError as error:  # a full disk, a closed stdout or its reader gone: no line can go
+        from mbtool.cli import discard_stdout
+
+        discard_stdout()
+        reason = error.strerror or error
+        print(f"mbtool: cannot write the plugin's line to standard output: {reason}", file=sys.stderr)
+        state = UNKNOWN
     raise click.exceptions.Exit(state)
+
+
+def _one_line(text: str) -> str:
+    """No | (it starts the perfdata) and no control character (it would end the line)."""
+    return "".join(char if char.isprintable() else " " for char in text.replace("|", ""))
+
+
+def _stopped(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+class PluginCommand(DeviceCommand):
+    """check's command: whatever happens, from parsing its arguments on, ends in
+    ``plugin_exit`` (one line, a state 0-3), never in cli.main's exit codes."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        for stop in STOPPING:
+            signal.signal(stop, _stopped)
+        try:
+            return super().make_context(info_name, args, parent, **extra)
+        except click.exceptions.Exit:
+            raise  # --help
+        except click.ClickException as failure:  # bad arguments
+            plugin_exit(UNKNOWN, failure.format_message())
+        except KeyboardInterrupt as stop:
+            plugin_exit(UNKNOWN, _interrupted(stop))
+
+    def invoke(self, ctx):
+        from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, exit_code_for
+
+        try:
+            return super().invoke(ctx)
+        except click.exceptions.Exit:
+            raise  # the plugin's line is out
+        except click.ClickException as failure:
+            plugin_exit(UNKNOWN, failure.format_message())
+        except KeyboardInterrupt as stop:
+            plugin_exit(UNKNOWN, _interrupted(stop))
+        except (*KNOWN_ERRORS, OSError) as error:
+            if isinstance(error, OSError):
+                error = ConnectionFailed(str(error))
+            code = exit_code_for(error)
+            if code == ExitCode.OK:
+                raise  # --dry-run has shown the frame
+            if code == ExitCode.USAGE:  # bad arguments, a bad map, profile or range: nothing was sent
+                plugin_exit(UNKNOWN, str(error))
+            plugin_exit(ERROR_STATES[ctx.params["state_on_error"]], str(error))
+        except Exception as failure:  # a bug: still a state; MBTOOL_DEBUG=1 shows the traceback
+            if os.environ.get("MBTOOL_DEBUG", "0") not in ("", "0"):
+                raise
+            plugin_exit(UNKNOWN, f"internal error: {type(failure).__name__}: {failure}")
+
+
+def _interrupted(stop: KeyboardInterrupt) -> str:
+    return f"interrupted by {stop.args[0] if stop.args else 'SIGINT'}"  # Ctrl-C raises it bare
 
 
 def _range(text: str | None, what: str):
@@ -63,23 +145,28 @@ def _violation(limit) -> str:
 
 
 def _label(name: str) -> str:
-    # A perfdata label may hold anything but = and ' (guidelines).
-    return name.replace("=", "_").replace("'", "_")
+    # A perfdata label may hold anything but = and ' (guidelines); | ends the text, so it goes.
+    return name.replace("=", "_").replace("'", "_").replace("|", "")
 
 
 class Checked:
-    """One value judged: its name, number, text for people, unit and thresholds.
-    ``unjudged``: the state of a NaN, which no range can judge (--state-on-error's)."""
+    """One value judged: its name, number, text for people, unit and thresholds.  A number
+    of None is a point the device refused (``text`` says why); it and NaN cannot be judged:
+    their state is ``unjudged`` (--state-on-error's)."""
 
-    def __init__(self, name: str, number: float, text: str, unit: str, warn, crit, unjudged: int) -> None:
+    def __init__(self, name: str, number, text: str, unit: str, warn, crit, unjudged: int = UNKNOWN) -> None:
         self.name, self.number, self.text, self.unit = name, number, text, unit
         self.warn, self.crit, self.unjudged = warn, crit, unjudged
 
     @property
-    def state(self) -> int:
+    def judged(self) -> bool:
         # A device reads NaN for "no valid measurement" (a sensor fault): every comparison
         # with NaN is false, so a range would let it pass as OK.  ±Infinity is judged.
-        if math.isnan(self.number):
+        return self.number is not None and not math.isnan(self.number)
+
+    @property
+    def state(self) -> int:
+        if not self.judged:
             return self.unjudged
         if self.crit is not None and not self.crit.match(self.number):
             return 2
@@ -88,9 +175,11 @@ class Checked:
         return 0
 
     def summary(self) -> str:
-        shown = f"{self.name}={self.text}" + (f" {self.unit}" if self.unit else "")
         state = self.state
-        if math.isnan(self.number):
+        if self.number is None:
+            return f"{self.name} not read ({STATES[state]}: {self.text})"
+        shown = f"{self.name}={self.text}" + (f" {self.unit}" if self.unit else "")
+        if not self.judged:
             shown += f" ({STATES[state]}: not a number, nothing to judge)"
         elif state:
             limit = self.crit if state == 2 else self.warn
@@ -100,9 +189,22 @@ class Checked:
     def perfdata(self) -> str:
         import nagiosplugin
 
-        unit = self.unit if self.unit in PERFDATA_UNITS else ""
+        unit = self.unit if self.unit in PERFDATA_UNITS and self.number is not None else ""
         warn, crit = self.warn or "", self.crit or ""
-        return str(nagiosplugin.Performance(_label(self.name), self.number, unit, warn, crit))
+        return str(nagiosplugin.Performance(_label(self.name), _perf_value(self.number), unit, warn, crit))
+
+
+def _perf_value(number: float) -> str:
+    """A perfdata value in the guidelines' characters, [-0-9.]: no exponent, and a whole
+    float without its .0 (a scaled point's 10.0 is 10); U, their "could not be determined",
+    for NaN and the infinities."""
+    if number is None or isinstance(number, float) and not math.isfinite(number):
+        return "U"
+    if not isinstance(number, float):
+        return str(number)
+    from decimal import Decimal
+
+    return format(Decimal(repr(number)).normalize(), "f")
 
 
 def _number(value, what: str) -> float:
@@ -131,18 +233,16 @@ def _reference_values(connection, targets, given, value_type, order, warn, crit,
     for item_address, value in zip(addresses, values, strict=True):
         name = reference(table, item_address)
         number = _number(value, name)
-        out.append(
-            Checked(
-                name, number, str(int(number) if isinstance(value, bool) else value), "", warn, crit, unjudged
-            )
-        )
+        text = str(int(number) if isinstance(value, bool) else value)
+        out.append(Checked(name, number, text, "", warn, crit, unjudged))
     return out
 
 
 def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     from mbtool.cli.session import open_client
+    from mbtool.errors import PartialRead
     from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import plan_reads, read_points
+    from mbtool.registermap.plan import MapReader
 
     register_map = load_map(path)
     points = register_map.select(names)
@@ -154,12 +254,20 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
         )
         for point in points
     }
-    first = plan_reads(points, register_map.max_gap)[0].request()
-    with open_client(connection, first.name) as client:
-        readings = read_points(partial(client.execute, connection.unit), points, register_map.max_gap)
+    reader = MapReader(points, register_map.max_gap)
+    with open_client(connection, reader.blocks[0].request().name) as client:
+        try:
+            readings = reader.read(partial(client.execute, connection.unit))
+        except PartialRead as partial_read:  # the points read are judged; the others are unread
+            readings = partial_read.readings
     out = []
     for reading in readings:
         point, value = reading.point, reading.value
+        if reading.error is not None:
+            out.append(
+                Checked(point.name, None, reading.error.answer, point.unit, *limits[point.name], unjudged)
+            )
+            continue
         number = point.number_of(value)  # an enum by the raw number behind its label
         if number is None:
             raise RequestError(f"{point.name} reads {value}, not a number to check")
@@ -168,53 +276,42 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     return out
 
 
-@device_command("check", types=VALUE_TYPES)
+@device_command("check", types=VALUE_TYPES, cls=PluginCommand)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, with their warn and crit keys")
 @click.option("-w", "--warning", metavar="RANGE", help="Warning range (beats a map's warn).")
 @click.option("-c", "--critical", metavar="RANGE", help="Critical range (beats a map's crit).")
 @click.option(
     "--state-on-error",
-    type=Choice(["unknown", "warning", "critical"]),
+    type=Choice(list(ERROR_STATES)),
     default="unknown",
     show_default=True,
-    help="The state when the device cannot be read (no response, exception, bad reply) "
-    "or reads NaN, which no range can judge.",
+    help="The state when the device cannot be read (no response, exception, bad reply), a point "
+    "of a map is refused or a value reads NaN, which no range can judge.",
 )
 def check(connection, targets, map, warning, critical, state_on_error, value_type, order):
     """A monitoring plugin (Nagios, Icinga): judge values against thresholds.
 
     Reads a reference (check 40011 -w 10 -c 20) or a map's points (check -m pump.toml
     flow level), and prints one line, MODBUS OK - flow=21.5 m3/h | flow=21.5;10;20,
-    with exit 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN. Ranges as the Monitoring Plugins
-    guidelines write them: 10 (alert outside 0..10), 10: (below 10), ~:10 (above 10),
-    10:20 (outside), @10:20 (inside). Bad arguments are UNKNOWN; so is a device that
-    cannot be read, or a value that reads NaN, unless --state-on-error says otherwise.
+    with exit 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN, whatever happens. Ranges as the
+    Monitoring Plugins guidelines write them: 10 (alert outside 0..10), 10: (below 10),
+    ~:10 (above 10), 10:20 (outside), @10:20 (inside). Bad arguments, profiles and
+    config files are UNKNOWN, and so is a signal; a device that cannot be read, a point
+    it refuses and a value that reads NaN (perfdata U) are UNKNOWN unless
+    --state-on-error says otherwise. The worst state wins, UNKNOWN above CRITICAL.
     """
-    from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, exit_code_for
-
-    on_error = {"unknown": 3, "warning": 1, "critical": 2}[state_on_error]
-    try:
-        given = type_options_given(map)
-        warn, crit = _range(warning, "-w"), _range(critical, "-c")
-        if not map and not targets:
-            raise RequestError("give a reference such as 40011, or -m MAP and point names")
-        if map:
-            values = _map_values(connection, map, targets, warn, crit, on_error)
-        else:
-            values = _reference_values(connection, targets, given, value_type, order, warn, crit, on_error)
-    except (*KNOWN_ERRORS, OSError) as error:
-        if isinstance(error, OSError):
-            error = ConnectionFailed(str(error))
-        code = exit_code_for(error)
-        if code == ExitCode.OK:
-            raise  # --dry-run has shown the frame
-        if code == ExitCode.USAGE:  # bad arguments, a bad map or range: nothing was sent
-            plugin_output(3, str(error))
-        plugin_output(on_error, str(error))
-    state = max(value.state for value in values)
-    plugin_output(
-        state,
+    unjudged = ERROR_STATES[state_on_error]
+    given = type_options_given(map)
+    warn, crit = _range(warning, "-w"), _range(critical, "-c")
+    if not map and not targets:
+        raise RequestError("give a reference such as 40011, or -m MAP and point names")
+    if map:
+        values = _map_values(connection, map, targets, warn, crit, unjudged)
+    else:
+        values = _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged)
+    plugin_exit(
+        max(value.state for value in values),
         ", ".join(value.summary() for value in values),
         " ".join(value.perfdata() for value in values),
     )

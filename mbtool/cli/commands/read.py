@@ -82,22 +82,25 @@ def polling_options(function):
     )(function)
 
 
-def _run(connection: Connection, request, to_result, interval, polls, run=None) -> None:
-    """Once, or polled.  ``run(client)``: a read of several requests (a map's), which
-    ``request``, the first of them, stands for."""
+def _run(connection: Connection, request, to_result, interval, polls, run=None, points=()) -> None:
+    """Once, or polled.  ``run(client)``: a read of several requests (a map's ``points``),
+    which ``request``, the first of them, stands for."""
     from mbtool.cli.render import MONITORING_FORMATS
 
     meta = click.get_current_context().meta
     if meta.get("mbtool.textfile") or connection.output_format in MONITORING_FORMATS:
-        connection = _monitoring(connection, meta)
+        connection = _monitoring(connection, meta, points)
     if (interval is None and polls is None) or connection.dry_run:
-        if run is None:
-            show(connection, to_result(execute(connection, request)))
-            return
-        from mbtool.cli.session import open_client
+        try:
+            _once(connection, request, to_result, run)
+        except Exception as error:
+            if connection.output_format in MONITORING_FORMATS:  # -o prom says the device is down
+                import sys
 
-        with open_client(connection, request.name) as client:
-            show(connection, to_result(run(client)))
+                from mbtool.cli import monitoring
+
+                monitoring.emit_failure(error, connection.output_format, sys.stdout)
+            raise
         return
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
     from mbtool.cli.render import default_format
@@ -111,11 +114,28 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None) 
     poll(connection, request, shown, interval, polls, trace_for(connection), run)
 
 
+def _once(connection: Connection, request, to_result, run=None) -> None:
+    if run is None:
+        show(connection, to_result(execute(connection, request)))
+        return
+    from mbtool.cli.session import open_client
+    from mbtool.errors import PartialRead
+
+    with open_client(connection, request.name) as client:
+        try:
+            result = to_result(run(client))
+        except PartialRead as partial:  # what was read is shown; the failure ends the run
+            show(connection, to_result(partial.readings))
+            raise
+        show(connection, result)
+
+
 # --- reads: FC 01-04 -------------------------------------------------------------------
 
 
-def _monitoring(connection: Connection, meta: dict) -> Connection:
-    """-o influx / prom and --textfile: their settings, checked before anything is sent."""
+def _monitoring(connection: Connection, meta: dict, points=()) -> Connection:
+    """-o influx / prom and --textfile: their settings, checked before anything is sent
+    (with a map's ``points``)."""
     from mbtool.cli import monitoring
     from mbtool.codec.record import replace
 
@@ -127,7 +147,11 @@ def _monitoring(connection: Connection, meta: dict) -> Connection:
         monitoring.textfile = textfile
     if meta.get("mbtool.changes"):
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
-    monitoring.measurement = meta.get("mbtool.measurement") or "modbus"
+    monitoring.measurement = meta.get("mbtool.measurement", "modbus")
+    monitoring.unit = connection.unit
+    monitoring.check_names(connection.output_format)
+    if connection.output_format == "prom":
+        monitoring.check_point_names(points)
     return connection
 
 
@@ -299,13 +323,14 @@ def read(connection, targets, map, value_type, order, interval, polls):
 
 
 def _read_map(connection: Connection, path: str, names, interval, polls) -> None:
-    from mbtool.cli.render import PointRow, Points
+    from mbtool.cli.render import PointFailure, PointRow, Points
     from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import plan_reads, read_points
+    from mbtool.registermap.plan import MapReader
 
     register_map = load_map(path)
     points = register_map.select(names)
-    requests = [block.request() for block in plan_reads(points, register_map.max_gap)]
+    reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
+    requests = [block.request() for block in reader.blocks]
     if connection.dry_run:  # no read depends on another's reply: show them all
         from mbtool.cli.session import open_client
 
@@ -315,7 +340,7 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
             client.finish(connection.unit)
 
     def run(client):
-        return read_points(partial(client.execute, connection.unit), points, register_map.max_gap)
+        return reader.read(partial(client.execute, connection.unit))
 
     def to_result(readings):
         rows = [
@@ -331,7 +356,11 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
                 r.point.no_label(r.value),
             )
             for r in readings
+            if r.error is None
         ]
-        return Points(connection.unit, register_map.source, rows)
+        failed = [
+            PointFailure(r.point.name, r.point.ref, r.error.answer) for r in readings if r.error is not None
+        ]
+        return Points(connection.unit, register_map.source, rows, failed=failed)
 
-    _run(connection, requests[0], to_result, interval, polls, run)
+    _run(connection, requests[0], to_result, interval, polls, run, points)
