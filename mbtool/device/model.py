@@ -80,6 +80,26 @@ BUS_COUNTERS = ("bus_messages", "bus_comm_errors", "bus_char_overruns")
 # The function codes that change data (spec §1's write column, and FC21 for files):
 # a read-only device (serve --read-only) answers them exception 01, a function it does not do.
 WRITE_FUNCTIONS = frozenset({0x05, 0x06, 0x0F, 0x10, 0x15, 0x16, 0x17})
+# The FC08 sub-functions that change the device's state, refused alike (spec §4): restart
+# (it also clears the counters), the ASCII delimiter, listen-only (which would silence the
+# device for every master), clear counters and the diagnostic register, clear overrun.
+# Sub 15 changes it only with 0004, clear the statistics.
+STATE_SUBS = frozenset({SUB_RESTART, SUB_ASCII_DELIMITER, SUB_LISTEN_ONLY, SUB_CLEAR_COUNTERS, SUB_CLEAR_OVERRUN})
+MODBUS_PLUS_CLEAR = b"\x00\x04"
+
+
+def changes_state(pdu: bytes) -> bool:
+    """Does this request change the device's data or state (what serve --read-only refuses)?
+
+    By function code and sub-function alone, before the request's own checks: a device
+    without the function answers 01 to any form of it."""
+    code = pdu[0] if pdu else 0
+    if code in WRITE_FUNCTIONS:
+        return True
+    if code != 0x08 or len(pdu) < 3:
+        return False
+    sub = int.from_bytes(pdu[1:3], "big")
+    return sub in STATE_SUBS or (sub == SUB_MODBUS_PLUS and pdu[3:5] == MODBUS_PLUS_CLEAR)
 
 # Read Device Identification (FC43/14): basic 00-02, regular 03-06, extended 80-FF.
 DEFAULT_OBJECTS = {
@@ -230,7 +250,7 @@ class Device:
         self.units = frozenset(units)
         self.unit_models = unit_models or {}  # units with data of their own (--data [units.N])
         self.faults = Faults()
-        self.read_only = False  # serve --read-only: WRITE_FUNCTIONS get exception 01
+        self.read_only = False  # serve --read-only: what changes_state() names gets exception 01
         self.stations: dict[int, Station] = {}
         # Bus-level counters are shared: every node on the line sees every message (spec §4).
         self.bus = dict.fromkeys(BUS_COUNTERS, 0)
@@ -428,9 +448,7 @@ class Device:
             if restart and request.data in RESTART_DATA:  # other data would get exception 03
                 self._restart(station, request.data)
             return None
-        if self.read_only and code in WRITE_FUNCTIONS:
-            # Before the request's own checks: a device without the function answers 01 to
-            # any form of it, as it would to a function code it does not know.
+        if self.read_only and changes_state(pdu):
             return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)
         if request is None:
             return failure

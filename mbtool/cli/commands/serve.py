@@ -107,7 +107,8 @@ class Fraction(click.ParamType):
 @click.option(
     "--read-only",
     is_flag=True,
-    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01.",
+    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01, "
+    "and every FC 08 sub-function that changes the device's state (01, 03, 04, 0A, 14; 15 with 0004).",
 )
 @click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
 @click.option(
