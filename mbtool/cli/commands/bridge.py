@@ -285,7 +285,7 @@ class Show:
             lines = hex_lines(item) if self.hex else decoded_lines(item)
         if self.console is not None:
             for style, line in lines:
-                self.console.print(line, style=style, markup=False)
+                self.console.print(line, style=style, markup=False, emoji=False)
         else:
             sys.stdout.write("".join(line + "\n" for _, line in lines))
             sys.stdout.flush()

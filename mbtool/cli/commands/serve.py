@@ -289,9 +289,12 @@ def serve(
 
 
 def _shown(data: bytes, framer: str) -> str:
-    """A frame as the trace shows it: hex pairs, or the characters of an ASCII frame."""
+    """A frame as the trace shows it: hex pairs, or the characters of an ASCII frame when
+    they are all printable (a peer's escape sequences never reach the terminal)."""
     if framer == "ascii" and data.isascii():
-        return data.decode("ascii").replace("\r", "\\r").replace("\n", "\\n")
+        text = data.decode("ascii").replace("\r", "\\r").replace("\n", "\\n")
+        if text.isprintable():
+            return text
     return data.hex(" ").upper()
 
 
@@ -306,6 +309,7 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
     from rich.console import Console, Group
     from rich.live import Live
     from rich.table import Table
+    from rich.text import Text
 
     console = Console()
     shown_units = sorted(units)[:4]
@@ -358,7 +362,9 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         frames.add_column("bytes", overflow="fold")
         frames.add_column("note", overflow="fold")
         for at, direction, peer, data, note in stats.frames:
-            frames.add_row(f"{at:.3f}", direction, peer, _shown(data, framer), note)
+            # Text, never markup: the frame is whatever a peer sent ("[/x]" in an ASCII frame),
+            # and the peer and the note come from outside too.
+            frames.add_row(f"{at:.3f}", direction, Text(peer), Text(_shown(data, framer)), Text(note))
         side = Table.grid(padding=(0, 4))
         side.add_row(counters, served)
         return Group(head, side, frames)
