@@ -8,9 +8,9 @@
   No client can hold the others up or make memory grow: sockets never block,
   at most ``max_clients`` are served, each is read ``RECV_SIZE`` bytes a turn,
   its framer keeps at most one frame (the framers drop what cannot be one), its
-  unsent replies are capped at ``OUT_LIMIT`` (past it its requests are no longer
-  read: the kernel's buffers and then the client's own sends take the
-  back-pressure), and a client that completes no request and takes no reply for
+  unsent replies, those --delay holds back included, are capped at ``OUT_LIMIT``
+  (past it its requests are no longer read: the kernel's buffers and then the
+  client's own sends take the back-pressure), and a client that completes no request and takes no reply for
   ``idle_timeout`` seconds is closed, so one that never sends, drips a byte a
   minute or never reads its replies gives its slot back.
 * Nor can idle connections lock it: one that has completed no request
@@ -22,7 +22,9 @@
   the newcomer closed at once.
 * Serial: pyserial (device path or URL), frames ended by implicit length or by
   t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
-* Faults of the I/O layer: delay, drop and checksum corruption of replies.
+* Faults of the I/O layer: delay, drop and checksum corruption of replies.  On a serial
+  line, where requests cannot be left unread, a request that finds ``OUT_LIMIT`` bytes of
+  replies held back by --delay is dropped.
 * Who answers is pluggable (``answerer``): the simulated device by default, or a gateway's
   forwarder (``mbtool.link.forward``, for ``mbtool bridge``).  An answer that takes a bus's
   time is ``queued``: on TCP a worker thread answers one request at a time, in the order they
@@ -258,6 +260,7 @@ class Server:
         self._failure: BaseException | None = None  # what stopped the worker, raised by the loop
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
         self._seq = 0
+        self._held = 0  # bytes of serial replies waiting in _pending (--delay)
         self._tick: Callable[[], None] = lambda: None
         self.max_clients = max_clients
         self.idle_timeout = idle_timeout or None  # 0 or None: never
@@ -476,11 +479,13 @@ class Server:
 
         def send() -> None:
             client.owed -= 1
+            client.held -= len(reply)
             if not client.closed:
                 client.out += reply
                 self._flush(client)
 
         client.owed += 1  # a reply the server owes is not the client's idleness
+        client.held += len(reply)  # counts towards OUT_LIMIT like the replies unsent
         self._later(time.monotonic() + self.faults.delay, send)
 
     def _flush(self, client: _Client) -> None:
@@ -498,7 +503,9 @@ class Server:
             if sent:
                 del client.out[:sent]
                 client.last_active = time.monotonic()
-        events = selectors.EVENT_READ if len(client.out) < OUT_LIMIT and not client.on_bus else 0
+        events = (
+            selectors.EVENT_READ if len(client.out) + client.held < OUT_LIMIT and not client.on_bus else 0
+        )
         if client.out:
             events |= selectors.EVENT_WRITE
         if events != client.events:
@@ -656,10 +663,17 @@ class Server:
             else:
                 events = []
             for event in events:
+                if self._held >= OUT_LIMIT and isinstance(event, Frame):
+                    why = "request dropped: replies held back by --delay fill the output limit"
+                    self.stats.dropped += 1
+                    self.stats.frame("--", peer, event.adu, why)
+                    self._log("drop", peer, event.adu, why)
+                    continue
                 reply = self.responder.answer(event, self.framer, peer)
                 if reply:
                     # Keep the line quiet for t3.5 after the request before answering (spec §2).
                     due = max(now, last_rx + t35) + self.faults.delay
+                    self._held += len(reply)
                     self._later(due, lambda reply=reply: self._write(reply))
             self._send_due()
             self._tick()
@@ -673,6 +687,7 @@ class Server:
         return events
 
     def _write(self, data: bytes) -> None:
+        self._held -= len(data)
         self.transport.write(data)
 
     # -- the loop ----------------------------------------------------------------------------
@@ -707,6 +722,7 @@ class _Client:
         "requests",
         "out",
         "owed",
+        "held",
         "events",
         "closed",
         "replied",
@@ -723,6 +739,7 @@ class _Client:
         self.requests = 0  # whole requests received
         self.out = bytearray()  # replies the socket has not taken yet
         self.owed = 0  # replies held back by --delay
+        self.held = 0  # their bytes
         self.events = selectors.EVENT_READ
         self.closed = False
         self.replied = float("-inf")  # when the last reply went (--min-gap)

@@ -200,6 +200,11 @@ def serve(
     pipe every frame is logged on stdout; with -q only the first line ("serving
     ...") is printed. Ctrl-C or SIGTERM stops it cleanly with exit status 0.
 
+    What a master (or --data) can make it hold is bounded: each unit has 65536 of each
+    table, shared with the other units until written, and at most 16 files (FC 20/21) of
+    10000 records, so a write to another file answers exception 02; a client's unsent
+    replies, those --delay holds back included, are capped at 64 KB.
+
     \b
     Try it:
       mbtool serve                                   (in one terminal)
