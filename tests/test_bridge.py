@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import shutil
 import signal
 import socket
@@ -32,6 +33,7 @@ from conftest import (
     first_line,
     mbtool_env,
     plain_pairs,
+    rtu,
     run_mbtool,
     signals_as_from_a_shell,
     start_device,
@@ -369,7 +371,7 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_pa
 
 
 def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
-    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "0-2") as running:
         rtu_bus.pty.clear()
         with socket.create_connection((running.host, running.port), timeout=5) as sock:
             sock.sendall(mbap(5, 0, bytes.fromhex("06025A1234")))
@@ -382,6 +384,76 @@ def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
     assert sent == frame + crc16(frame)
     assert records[0]["outcome"] == "broadcast"
     assert records[0]["reply"] is None
+
+
+# --- requests the gateway refuses itself (issue 29 item 2) -------------------------------------
+
+# Requests a device would refuse, and the exception the bridge answers in its place: the
+# codec's layout of each function code says what a whole request is (spec §3).
+MALFORMED = [
+    ("03 0000 0001 FFFF", "83 03"),  # FC03 with 2 bytes past its layout
+    ("03 00", "83 03"),  # a PDU of 2 bytes
+    ("03" + " 00" * 252, "83 03"),  # a 253-byte FC03
+    ("10 0000 0002 04 0001", "90 03"),  # byte count 4, 2 bytes of data
+    ("10 0000 0002 02 0001 0002", "90 03"),  # byte count 2, 4 bytes of data
+    ("14 0E 06 0004 0001 0002", "94 03"),  # byte count 14, one 7-byte group
+    ("03 0000 007E", "83 03"),  # 126 registers: past the spec's 125
+    ("00", "80 01"),  # no function has code 00
+    ("83 02", "83 01"),  # an exception response sent as a request
+    ("41 0102", "C1 01"),  # a function code the codec does not know (no --raw-functions)
+    ("2B 0D 01 00", "AB 01"),  # FC43 with an MEI type other than 0E
+]
+
+
+def test_malformed_requests_are_answered_by_the_bridge_and_never_reach_the_bus(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            for tid, (pdu, reply) in enumerate(MALFORMED):
+                sock.sendall(mbap(tid, 1, bytes.fromhex(pdu)))
+                assert read_mbap(sock) == (tid, 1, bytes.fromhex(reply)), pdu
+            assert rtu_bus.pty.sent_by_mbtool() == b""  # the tap: nothing went on the bus
+            # The bus is there: a whole request is forwarded and answered.
+            sock.sendall(mbap(99, 1, bytes.fromhex("0300000001")))
+            assert read_mbap(sock) == (99, 1, bytes.fromhex("03020064"))
+        assert rtu_bus.pty.sent_by_mbtool() == rtu(bytes.fromhex("010300000001"))
+        records = running.records()
+    assert [r["outcome"] for r in records] == ["invalid"] * len(MALFORMED) + ["reply"]
+    assert all(r["forwarded"] is None for r in records[:-1])
+    assert "not forwarded" in records[0]["why"]
+
+
+def test_unknown_function_codes_are_forwarded_only_with_raw_functions(pty_pair):
+    # A silent line (nothing on it knows FC 41): the tap shows what was sent, 0B comes back.
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "--raw-functions", "-t", "0.3") as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(1, 1, bytes.fromhex("41 0102")))
+            assert read_mbap(sock) == (1, 1, bytes.fromhex("C10B"))
+            for tid, pdu in ((2, "00"), (3, "83 02"), (4, "03 00")):  # never forwarded
+                sock.sendall(mbap(tid, 1, bytes.fromhex(pdu)))
+                assert read_mbap(sock)[0] == tid
+        assert pty_pair.sent_by_mbtool() == rtu(bytes.fromhex("01410102"))
+
+
+def test_broadcasts_obey_units_and_only_writes_are_broadcast(rtu_bus):
+    write, read = bytes.fromhex("06025A1234"), bytes.fromhex("0300000001")
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:  # --units 1-247: no 0
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(1, 0, write))
+            assert read_mbap(sock) == (1, 0, bytes.fromhex("860A"))
+        assert rtu_bus.pty.sent_by_mbtool() == b""
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "0-247") as running:
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(2, 0, read))  # a read of every unit: nobody could answer it
+            assert read_mbap(sock) == (2, 0, bytes.fromhex("8301"))
+            sock.sendall(mbap(3, 0, bytes.fromhex("41")))
+            assert read_mbap(sock) == (3, 0, bytes.fromhex("C101"))
+        assert rtu_bus.pty.sent_by_mbtool() == b""
+        records = running.records()
+    assert [r["outcome"] for r in records] == ["invalid", "invalid"]
+    assert "only writes are broadcast" in records[0]["why"]
 
 
 # --- the display -------------------------------------------------------------------------------
@@ -483,6 +555,29 @@ def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
                 assert [r["outcome"] for r in running.records()] == ["reply", "no path"]
     finally:
         pty.close()
+
+
+def test_reverse_a_malformed_request_on_the_serial_line_is_answered_there(tcp_behind):
+    pty = PtyPair()
+    try:
+        with bridge("-p", tcp_behind.target, "--units", "1,2", listen=pty.device_path) as running:
+            fd = os.open(pty.mbtool_path, os.O_RDWR | os.O_NOCTTY)
+            try:
+                os.write(fd, rtu(bytes.fromhex("01 10 0000 0002 04 0001")))  # 2 bytes short
+                reply = b""
+                end = time.monotonic() + 5
+                while len(reply) < 5 and time.monotonic() < end:
+                    ready, _, _ = select.select([fd], [], [], 0.1)
+                    if ready:
+                        reply += os.read(fd, 100)
+            finally:
+                os.close(fd)
+            records = running.records()
+    finally:
+        pty.close()
+    assert reply == rtu(bytes.fromhex("01 90 03"))
+    assert [r["outcome"] for r in records] == ["invalid"]
+    assert records[0]["forwarded"] is None
 
 
 # --- bad input ---------------------------------------------------------------------------------

@@ -36,8 +36,8 @@ from mbtool.codec.pdu import (
     ExceptionCode,
     ExceptionResponse,
     Response,
+    check_request,
     decode_request,
-    function_type,
 )
 from mbtool.codec.record import record
 
@@ -489,16 +489,10 @@ class Device:
     def _reply(self, station: Station, pdu: bytes) -> Response | ExceptionResponse | None:
         code = pdu[0] if pdu else 0
         try:
-            request = decode_request(pdu)
+            request = check_request(pdu)
         except RequestError as error:
             request = None
             failure = ExceptionResponse(code, error.exception_code)
-        except DecodeError:
-            request = None
-            known = function_type(code) is not None and code in self._handlers
-            failure = ExceptionResponse(
-                code, ExceptionCode.ILLEGAL_DATA_VALUE if known else ExceptionCode.ILLEGAL_FUNCTION
-            )
         if station.listen_only:
             # Listen-only: nothing is done and nothing answered, except a restart (spec §4 sub 04).
             restart = request is not None and code == 0x08 and request.sub_function == SUB_RESTART

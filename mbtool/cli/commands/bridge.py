@@ -28,7 +28,7 @@ from mbtool.cli.options import (
 )
 from mbtool.cli.render import local_time
 from mbtool.codec.errors import RequestError
-from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
+from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
@@ -77,7 +77,15 @@ class BridgeCommand(QuickHelp, click.Command):
     show_default=True,
     help="Units forwarded: 1,17 or 1-10 or both. From TCP a request for another unit gets "
     "exception 0A; on a serial line it is left to the other slaves. Unit 0 is a broadcast "
-    "where a serial line is either side: sent, never answered.",
+    "where a serial line is either side: forwarded only if listed (0-247), only writes, "
+    "never answered.",
+)
+@click.option(
+    "--raw-functions",
+    is_flag=True,
+    help="Forward function codes mbtool does not know (01-7F, and FC 43 MEI types other than "
+    "0E) as they come; without it they are answered exception 01. Known ones are always "
+    "checked: a request that does not fit its layout is answered 01 or 03, never forwarded.",
 )
 @serial_line_options
 @with_options(LINK_OPTIONS)
@@ -104,6 +112,7 @@ def bridge(
     target,
     framer,
     units,
+    raw_functions,
     baud,
     parity,
     bytesize,
@@ -130,7 +139,9 @@ def bridge(
     with the client's transaction id. The gateway answers for the device only where the
     spec says a gateway does: exception 0B when the device does not answer (or its reply is
     garbled), 0A when the unit is not forwarded or the link cannot be used (it is opened
-    again for the next request). TCP clients take turns: none can hold up the others.
+    again for the next request). A request no device could take (one that does not fit
+    its function code's layout, a read broadcast) never reaches the bus: the bridge answers
+    it 01 or 03 as the device would. TCP clients take turns: none can hold up the others.
     The start line and a summary on exit go to stderr; Ctrl-C or SIGTERM stops it with
     exit status 0.
 
@@ -149,7 +160,7 @@ def bridge(
     from mbtool.link.transport import SerialSettings, default_framer
 
     where = parse_target(listen)
-    forwarded = parse_units(units)
+    forwarded = parse_units(units, broadcast=True)
     serial_framer = framer or "rtu"
     listening_framer = "tcp" if where.scheme == "tcp" else serial_framer
     link_framer = "tcp" if default_framer(target) == "tcp" else serial_framer
@@ -183,7 +194,9 @@ def bridge(
     check(connection)
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
     show = Show(fmt, hex_trace, quiet)
-    forwarder = Forwarder(lambda: open_client(connection), link_framer, forwarded, show.passage)
+    forwarder = Forwarder(
+        lambda: open_client(connection), link_framer, forwarded, show.passage, raw_functions
+    )
     forwarder.open()  # a link that cannot be opened now is a mistake to hear of at once (exit 6)
     server = Server(
         None,
@@ -298,6 +311,7 @@ class Show:
             f"{counts[NO_RESPONSE]} unanswered (0B)",
             f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
             f"{counts[BROADCAST]} broadcasts",
+            f"{counts[INVALID]} invalid (01, 03)",
         ]
         text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
         if tcp:
@@ -312,7 +326,14 @@ class Show:
 
 # Line styles on a terminal: the request, and its reply by what became of it.
 ASKED = "cyan"
-STYLES = {REPLY: "green", REFUSED: "yellow", BROADCAST: "green", NO_RESPONSE: "bold red", NO_PATH: "bold red"}
+STYLES = {
+    REPLY: "green",
+    REFUSED: "yellow",
+    BROADCAST: "green",
+    NO_RESPONSE: "bold red",
+    NO_PATH: "bold red",
+    INVALID: "bold red",
+}
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
