@@ -22,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 from conftest import (
@@ -38,6 +39,7 @@ from conftest import (
     signals_as_from_a_shell,
     start_device,
 )
+from test_serve_abuse import serve
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -152,6 +154,19 @@ def rtu_bus():
     """pymodbus's RTU server for units 1 and 2 on a pty pair: the bus behind the bridge."""
     with start_device(tcp=False, framer="rtu") as device:
         yield device
+
+
+@pytest.fixture(scope="module")
+def shared_bus(tmp_path_factory):
+    """``mbtool serve -u 1,2`` on a pty pair: silent to other units' requests, as slaves on a
+    shared bus are (pymodbus 3.16's server answers them exception 04), so a unit that is not
+    there costs the bridge its timeout.  Its ``pty`` is the tap: what reached the bus."""
+    pair = PtyPair()
+    try:
+        with serve(tmp_path_factory.mktemp("bus"), "-u", "1,2", *PTY_SERIAL_OPTS, target=pair.device_path):
+            yield SimpleNamespace(target=pair.mbtool_path, pty=pair)
+    finally:
+        pair.close()
 
 
 # --- TCP clients to an RTU bus ---------------------------------------------------------------
@@ -314,6 +329,113 @@ def test_a_client_that_floods_cannot_hold_up_another(rtu_bus):
     polite_peer = next(r["client"] for r in records if r["unit"] == 2)
     assert order.index(polite_peer) <= 5
     assert flood_done - polite_done > 0.5  # the flood was still being worked through
+
+
+def rtu_units(sent: bytes) -> list[int]:
+    """The unit of each FC03 request (8 bytes with its CRC) in what the tap saw on the bus."""
+    frames = [sent[at : at + 8] for at in range(0, len(sent), 8)]
+    assert all(len(f) == 8 and f[1] == 0x03 and crc16(f[:6]) == f[6:] for f in frames), sent.hex(" ")
+    return [f[0] for f in frames]
+
+
+def test_requests_of_clients_that_have_gone_never_reach_the_bus(pty_pair):
+    """Issue 29 item 3: each request of a client gone while it waited cost the full timeout."""
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.5", "-q") as running:
+        for unit in range(10, 30):  # each its own unit: none is known to be silent yet
+            with socket.create_connection((running.host, running.port), timeout=5) as gone:
+                gone.sendall(mbap(unit, unit, bytes.fromhex("0300000001")))
+        time.sleep(0.2)
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            started = time.monotonic()
+            sock.sendall(mbap(1, 1, bytes.fromhex("0300000001")))
+            assert read_mbap(sock) == (1, 1, bytes.fromhex("830B"))  # a silent line: 0B
+            waited = time.monotonic() - started
+        units = rtu_units(pty_pair.sent_by_mbtool())
+    print(f"\nafter 20 gone clients the next waited {waited:.2f} s; on the bus: units {units}")
+    assert units[-1] == 1 and len(units) <= 3, units  # at most the one on the bus as they left
+    assert waited < 4 * 0.5, waited  # 20 gone clients were 10 s
+
+
+def _poll_while(running, unit: int, flooding, seconds: float, warm_up: float = 0.3) -> list[float]:
+    """A client's FC03 latencies, polling ``unit`` (serve's demo data) every 50 ms for
+    ``seconds`` while ``flooding`` runs, from ``warm_up`` seconds after it started."""
+    stop = threading.Event()
+    threads = [threading.Thread(target=work, args=(stop,), daemon=True) for work in flooding]
+    for thread in threads:
+        thread.start()
+    time.sleep(warm_up)
+    latencies = []
+    try:
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                started = time.monotonic()
+                sock.sendall(mbap(7, unit, bytes.fromhex("0300000001")))
+                assert read_mbap(sock) == (7, unit, bytes.fromhex("03020000"))
+                latencies.append(time.monotonic() - started)
+                time.sleep(0.05)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(10)
+    return latencies
+
+
+def _flooder(running, units, answers: list[bytes]):
+    """A client that asks for each of ``units`` in turn, as fast as it is answered."""
+
+    def work(stop: threading.Event) -> None:
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            tid = 0
+            while not stop.is_set():
+                sock.sendall(mbap(tid, units[tid % len(units)], bytes.fromhex("0300000001")))
+                answers.append(read_mbap(sock)[2])
+                tid += 1
+
+    return work
+
+
+def test_a_client_flooding_an_absent_unit_does_not_slow_the_others(shared_bus):
+    """Issue 29 item 3: one client asking again and again for a unit that is not there made
+    every other client wait the bridge's timeout (median 910 ms)."""
+    with bridge("-p", shared_bus.target, *PTY_SERIAL_OPTS, "-t", "1", "-q") as running:
+        shared_bus.pty.clear()
+        answers: list[bytes] = []
+        latencies = _poll_while(running, 1, [_flooder(running, [9], answers)], 4.0)
+        units = rtu_units(shared_bus.pty.sent_by_mbtool())
+    median = sorted(latencies)[len(latencies) // 2]
+    print(f"\nwhile one client flooded unit 9: median {median * 1000:.0f} ms over {len(latencies)} reads")
+    assert set(answers) == {bytes.fromhex("830B")} and len(answers) > 20
+    assert units.count(9) <= 2, units  # tried once, then answered 0B at once (--silent-hold)
+    assert median < 0.3, latencies
+
+
+def test_silent_hold_0_tries_the_bus_every_time(pty_pair):
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.2", "--silent-hold", "0") as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            for tid in range(3):
+                sock.sendall(mbap(tid, 9, bytes.fromhex("0300000001")))
+                assert read_mbap(sock) == (tid, 9, bytes.fromhex("830B"))
+        assert rtu_units(pty_pair.sent_by_mbtool()) == [9, 9, 9]
+
+
+def test_clients_share_the_bus_by_the_time_they_use(shared_bus):
+    """Five connections that each cycle through absent units (each costs the bridge its
+    timeout) cost a polling client one transaction at most, not one for each of them: the
+    client that has used the least bus time goes next."""
+    timeout = 0.5
+    with bridge("-p", shared_bus.target, *PTY_SERIAL_OPTS, "-t", str(timeout), "-q") as running:
+        answers: list[bytes] = []
+        flooding = [_flooder(running, list(range(20 + 40 * n, 60 + 40 * n)), answers) for n in range(5)]
+        # Once each flooder has used the bus, the newcomer is the one that has used the least.
+        latencies = _poll_while(running, 1, flooding, 4.0, warm_up=6 * timeout)
+    assert set(answers) == {bytes.fromhex("830B")}
+    median = sorted(latencies)[len(latencies) // 2]
+    print(
+        f"\nwhile 5 clients flooded absent units: median {median * 1000:.0f} ms, worst {max(latencies) * 1000:.0f} ms"
+    )
+    assert max(latencies) < 2 * timeout, latencies  # the one under way, then its turn (was 5)
+    assert median < 1.5 * timeout, latencies
 
 
 # --- what the gateway answers itself -------------------------------------------------------

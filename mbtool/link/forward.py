@@ -7,7 +7,9 @@ must answer for the device it says so with the exceptions the spec keeps for gat
 (spec §3; the Modbus TCP implementation guide, "gateway" exception codes):
 
 * 0B Gateway Target Device Failed to Respond: no reply within the timeout, or none whole
-  (a CRC/LRC error, the wrong unit or function).
+  (a CRC/LRC error, the wrong unit or function).  A unit that sent nothing at all is then
+  answered 0B at once, without the bus, for ``silent_hold`` seconds: a master asking again
+  and again for a unit that is not there does not cost every other master its timeout.
 * 0A Gateway Path Unavailable: the unit is not one this gateway forwards (``--units``), or the
   link behind it cannot be opened or broke.  It is opened again for the next request, so a
   USB adapter plugged back in or a TCP device restarted is used again without a restart.
@@ -47,6 +49,7 @@ NO_RESPONSE = "no response"  # answered 0B
 NO_PATH = "no path"  # answered 0A (or, on a serial line, a unit left to other slaves)
 INVALID = "invalid"  # a request no device could take: answered 01 or 03, never forwarded
 OUTCOMES = (REPLY, REFUSED, BROADCAST, NO_RESPONSE, NO_PATH, INVALID)
+SILENT_HOLD = 5.0  # seconds a unit that sent nothing is answered 0B without the bus
 
 
 @record
@@ -102,8 +105,9 @@ class Forwarder:
 
     ``open_link()`` is a context manager giving an open Client (what
     ``mbtool.link.connection.open_client`` gives).  ``units``: the units forwarded (0: the
-    broadcasts).  ``raw_functions``: forward function codes the codec does not know.  Every
-    request ends in a ``Passage`` handed to ``report``.
+    broadcasts).  ``raw_functions``: forward function codes the codec does not know.
+    ``silent_hold``: seconds a unit that did not respond is answered 0B at once (0: never).
+    Every request ends in a ``Passage`` handed to ``report``.
     """
 
     def __init__(
@@ -113,12 +117,15 @@ class Forwarder:
         units: frozenset[int],
         report: Callable[[Passage], None],
         raw_functions: bool = False,
+        silent_hold: float = SILENT_HOLD,
     ) -> None:
         self.open_link = open_link
         self.framing = framing  # the link's: rtu, ascii or tcp
         self.units = units
         self.report = report
         self.raw_functions = raw_functions
+        self.silent_hold = silent_hold
+        self._silent: dict[int, float] = {}  # unit -> when it last sent nothing (monotonic)
         self._link = ExitStack()
         self._client: Client | None = None
         self._watch = _Watch()
@@ -195,6 +202,12 @@ class Forwarder:
                 INVALID,
                 "not forwarded: only writes are broadcast (spec §2)",
             )
+        silent = time.monotonic() - self._silent.get(unit, float("-inf"))
+        if silent < self.silent_hold:
+            why = (
+                f"unit {unit} did not respond {silent:.1f} s ago: not tried again for {self.silent_hold:g} s"
+            )
+            return ExceptionCode.GATEWAY_TARGET_FAILED_TO_RESPOND, NO_RESPONSE, why + " (--silent-hold)"
         return None
 
     def _forward(self, unit: int, pdu: bytes, broadcast: bool) -> tuple[bytes | None, str, str]:
@@ -202,6 +215,7 @@ class Forwarder:
         try:
             reply = self._execute(unit, RawRequest(pdu))
         except ModbusException as refusal:
+            self._silent.pop(unit, None)
             answer = _exception(refusal.function_code, refusal.exception_code)
             outcome, why = REFUSED, str(refusal)
         except (ConnectionFailed, ConnectionClosed, OSError) as lost:
@@ -209,10 +223,13 @@ class Forwarder:
             why = (lost.strerror or str(lost)) if isinstance(lost, OSError) else str(lost)
             answer, outcome = _exception(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE), NO_PATH
         except (NoResponse, FrameError) as failure:
+            if isinstance(failure, NoResponse) and not self._watch.problems:
+                self._silent[unit] = time.monotonic()  # nothing at all: not there, or not listening
             why = "; ".join([*self._watch.problems, str(failure)])
             answer = _exception(pdu[0], ExceptionCode.GATEWAY_TARGET_FAILED_TO_RESPOND)
             outcome = NO_RESPONSE
         else:
+            self._silent.pop(unit, None)
             if reply is None:  # a broadcast on the link, or a request no reply is due for (FC08 sub 04)
                 answer, outcome, why = None, REPLY, "no reply is due"
             else:

@@ -18,6 +18,7 @@ from mbtool.cli.options import (
     LINK_OPTIONS,
     Choice,
     QuickHelp,
+    Seconds,
     complete_port,
     output_chosen,
     parse_units,
@@ -87,6 +88,15 @@ class BridgeCommand(QuickHelp, click.Command):
     "0E) as they come; without it they are answered exception 01. Known ones are always "
     "checked: a request that does not fit its layout is answered 01 or 03, never forwarded.",
 )
+@click.option(
+    "--silent-hold",
+    type=Seconds(),
+    default=5.0,
+    show_default=True,
+    help="After a unit sends nothing within the timeout, answer its requests exception 0B at "
+    "once, without the bus, for SECONDS: a client asking again and again for a unit that is "
+    "not there does not cost the others its timeout. 0: try the bus every time.",
+)
 @serial_line_options
 @with_options(LINK_OPTIONS)
 @tcp_client_options
@@ -113,6 +123,7 @@ def bridge(
     framer,
     units,
     raw_functions,
+    silent_hold,
     baud,
     parity,
     bytesize,
@@ -141,7 +152,9 @@ def bridge(
     garbled), 0A when the unit is not forwarded or the link cannot be used (it is opened
     again for the next request). A request no device could take (one that does not fit
     its function code's layout, a read broadcast) never reaches the bus: the bridge answers
-    it 01 or 03 as the device would. TCP clients take turns: none can hold up the others.
+    it 01 or 03 as the device would. TCP clients take turns, the one that has used the
+    least bus time lately first, and the requests of a client that has gone are dropped:
+    none can hold up the others.
     The start line and a summary on exit go to stderr; Ctrl-C or SIGTERM stops it with
     exit status 0.
 
@@ -195,7 +208,7 @@ def bridge(
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
     show = Show(fmt, hex_trace, quiet)
     forwarder = Forwarder(
-        lambda: open_client(connection), link_framer, forwarded, show.passage, raw_functions
+        lambda: open_client(connection), link_framer, forwarded, show.passage, raw_functions, silent_hold
     )
     forwarder.open()  # a link that cannot be opened now is a mistake to hear of at once (exit 6)
     server = Server(
