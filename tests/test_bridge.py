@@ -608,6 +608,118 @@ def test_hex_shows_every_frame_on_both_sides_with_checksums(rtu_bus):
     assert "TX 12 34 00 00 00 05 01 03 02 00 65  MBAP tid 4660 length 5 ok | bus " in lines[3]
 
 
+def _rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+
+
+def test_a_display_nobody_reads_never_holds_the_bus_nor_grows():
+    """Issue 29 item 4: with its stdout not read, the bridge kept every transaction it could not
+    print (18.9 MB -> 52 MB and rising).  The bus never waits for the display: past a backlog
+    lines are dropped, and counted where the display catches up."""
+    argv = [
+        sys.executable,
+        "-m",
+        "mbtool",
+        "bridge",
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "-p",
+        "sim://",
+        "-o",
+        "plain",
+    ]
+    proc = subprocess.Popen(
+        argv,
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,  # read by nobody until the end
+        stderr=subprocess.PIPE,
+    )
+    try:
+        running = Bridge(proc, first_line(proc, "bridging ", proc.stderr), os.devnull)
+        # FC23 with 121 registers written and 125 read: about 1 KB of frames a transaction.
+        pdu = bytes.fromhex("17 0000 007D 0000 0079 F2") + bytes(242)
+        count = 6000
+        with socket.create_connection((running.host, running.port), timeout=10) as sock:
+            for first in range(0, 100):  # the sim device's first request: allocations that stay
+                sock.sendall(mbap(first, 1, pdu))
+                read_mbap(sock)
+            before = _rss_kb(proc.pid)
+            started = time.monotonic()
+            for first in range(0, count, 10):
+                sock.sendall(b"".join(mbap(tid, 1, pdu) for tid in range(first, first + 10)))
+                assert [read_mbap(sock)[0] for _ in range(10)] == list(range(first, first + 10))
+            took = time.monotonic() - started
+            after = _rss_kb(proc.pid)
+        print(f"\n{count} transactions in {took:.1f} s with stdout unread: RSS {before} kB -> {after} kB")
+        assert after - before < 5 * 1024, (before, after)
+        # Now the display is read: it catches up and says how much it did not show.
+        out = b""
+        end = time.monotonic() + 20
+        while b"not shown: the display fell behind" not in out and time.monotonic() < end:
+            ready, _, _ = select.select([proc.stdout], [], [], 0.1)
+            if ready:
+                out += os.read(proc.stdout.fileno(), 65536)
+        proc.send_signal(signal.SIGTERM)
+        rest, err = proc.communicate(timeout=15)
+        out += rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    text = out.decode()
+    assert proc.returncode == 0, err
+    shown = sum(" < unit 1 FC17 " in line for line in text.splitlines())
+    not_shown = [line for line in text.splitlines() if "not shown: the display fell behind" in line]
+    dropped = sum(int(line.split()[1]) for line in not_shown)
+    assert not_shown and dropped > count // 2, not_shown
+    assert shown + dropped >= count + 100 - 5  # every transaction is shown or counted (+ events)
+    assert f"{dropped} not shown (the display fell behind)" in err.decode(), err
+
+
+def test_json_says_how_many_transactions_it_did_not_show(monkeypatch):
+    """The count of the lines dropped is a JSON object of its own, in its place."""
+    from mbtool.cli.commands import bridge as command
+    from mbtool.link.forward import REPLY, Passage
+
+    class Stuck:
+        """A stdout whose reader is away until ``back`` is set."""
+
+        def __init__(self) -> None:
+            self.back = threading.Event()
+            self.text = ""
+
+        def write(self, text: str) -> None:
+            self.back.wait(10)
+            self.text += text
+
+        def flush(self) -> None:
+            pass
+
+    stuck = Stuck()
+    monkeypatch.setattr(sys, "stdout", stuck)
+    request, reply = mbap(1, 1, bytes.fromhex("0300000001")), mbap(1, 1, bytes.fromhex("03020064"))
+    passage = Passage(0.0, "peer", 1, 3, request, "tcp", b"", "rtu", b"", reply, REPLY, "", 0.001, 0.002)
+    show = command.Show("json", False, False)
+    total = command.DISPLAY_BACKLOG + 500
+    for _ in range(total):
+        show.passage(passage)
+    stuck.back.set()
+    show.close()
+    records = [json.loads(line) for line in stuck.text.splitlines()]
+    counts = [r["not_shown"] for r in records if "not_shown" in r]
+    assert len(counts) == 1 and counts[0] == show.not_shown >= 499
+    assert len(records) - 1 + counts[0] == total
+    assert records[-1] == {
+        "time": records[-1]["time"],
+        "not_shown": counts[0],
+        "why": "the display fell behind",
+    }
+
+
 # --- the reverse: a slave on a serial line, a TCP device behind --------------------------------
 
 

@@ -27,13 +27,16 @@ from mbtool.cli.options import (
     units_text,
     with_options,
 )
-from mbtool.cli.render import local_time
+from mbtool.cli.render import local_time, to_json
 from mbtool.codec.errors import RequestError
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
 PRINTER_STOP = 5.0  # seconds a stop waits for the transactions still to be printed
+# Lines (transactions and the server's events) waiting for a display that falls behind: past
+# it they are dropped and counted, so the bus never waits for stdout nor memory grows.
+DISPLAY_BACKLOG = 1000
 
 
 class BridgeCommand(QuickHelp, click.Command):
@@ -112,7 +115,8 @@ class BridgeCommand(QuickHelp, click.Command):
     "output_format",
     type=Choice(["table", "plain", "json"]),
     callback=lambda ctx, param, value: output_chosen(value),
-    help="How transactions are shown: table on a terminal, plain in a pipe, json one object a transaction.",
+    help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
+    "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",
 )
 @click.option(
     "-q", "--quiet", is_flag=True, help="Show no transactions; only the start line and the summary."
@@ -245,7 +249,9 @@ class Show:
     """Each transaction as it passes, and the tally for the summary.
 
     The bus worker only hands a transaction over: a printer thread decodes and prints it, so
-    a reply never waits for its own display, nor the bus for a slow terminal or pipe.
+    a reply never waits for its own display, nor the bus for a slow terminal or pipe.  A
+    display that falls DISPLAY_BACKLOG lines behind (a pipe nobody reads) loses the lines past
+    it, and says how many where it catches up.
     """
 
     def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
@@ -263,6 +269,9 @@ class Show:
 
             self.console = Console(highlight=False, soft_wrap=True)
         self.failure: OSError | None = None
+        self.not_shown = 0  # lines dropped because the display fell behind
+        self._dropped = 0  # of those, the ones the display has not been told of yet
+        self._queueing = threading.Lock()  # the bus worker and the server's loop both queue
         self._lines: queue.SimpleQueue = queue.SimpleQueue()
         self._printer = threading.Thread(target=self._print, name="mbtool-show", daemon=True)
         self._printer.start()
@@ -275,16 +284,34 @@ class Show:
             self.bus_total += passage.bus_time
             self.bus_longest = max(self.bus_longest, passage.bus_time)
         if not self.quiet:
-            self._lines.put(passage)
+            self._show(passage)
 
     def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
         """The server's own events: clients connecting, closed, refused."""
         if self.quiet or self.fmt == "json" or direction not in ("open", "close", "refuse"):
             return
-        self._lines.put(f"{local_time()} {peer} {note}")
+        self._show(f"{local_time()} {peer} {note}")
+
+    def _show(self, item) -> None:
+        """Queue a line for the printer, never waiting: past DISPLAY_BACKLOG it is dropped."""
+        with self._queueing:
+            if self._lines.qsize() >= DISPLAY_BACKLOG:
+                self._dropped += 1
+                self.not_shown += 1
+                return
+            self._tell_dropped()
+            self._lines.put(item)
+
+    def _tell_dropped(self) -> None:
+        """The count of the lines dropped since the last, in their place among the others."""
+        if self._dropped:
+            self._lines.put(self._dropped)
+            self._dropped = 0
 
     def close(self) -> None:
         """Print what is still queued (a few seconds at most), then stop the printer."""
+        with self._queueing:
+            self._tell_dropped()
         self._lines.put(None)
         self._printer.join(PRINTER_STOP)
 
@@ -299,11 +326,17 @@ class Show:
                 self.on_failure()
 
     def _write(self, item) -> None:
-        if isinstance(item, str):  # a server event
+        if isinstance(item, int):  # lines dropped
+            why = "the display fell behind"
+            if self.fmt == "json":
+                item = {"time": local_time(), "not_shown": item, "why": why}
+                sys.stdout.write(to_json(item) + "\n")
+                sys.stdout.flush()
+                return
+            lines = [("bold red", f"{local_time()} {item} not shown: {why}")]
+        elif isinstance(item, str):  # a server event
             lines = [("dim", item)]
         elif self.fmt == "json":
-            from mbtool.cli.render import to_json
-
             sys.stdout.write(to_json(passage_record(item)) + "\n")
             sys.stdout.flush()
             return
@@ -334,6 +367,8 @@ class Show:
                 f"; bus time mean {self.bus_total / self.timed * 1000:.1f} ms, "
                 f"max {self.bus_longest * 1000:.1f} ms"
             )
+        if self.not_shown:
+            text += f"; {self.not_shown} not shown (the display fell behind)"
         return text
 
 
