@@ -10,9 +10,9 @@
   its framer keeps at most one frame (the framers drop what cannot be one), its
   unsent replies, those --delay holds back included, are capped at ``OUT_LIMIT``
   (past it its requests are no longer read: the kernel's buffers and then the
-  client's own sends take the back-pressure), and a client that completes no request and takes no reply for
-  ``idle_timeout`` seconds is closed, so one that never sends, drips a byte a
-  minute or never reads its replies gives its slot back.
+  client's own sends take the back-pressure), and a client that completes no
+  request and takes no reply for ``idle_timeout`` seconds is closed, so one that
+  never sends, drips a byte a minute or never reads its replies gives its slot back.
 * Nor can idle connections lock it: one that has completed no request
   ``first_request_timeout`` seconds after connecting is closed, and a newcomer
   past ``max_clients`` takes the slot of the least recently used idle client
@@ -782,8 +782,8 @@ class _Client:
         self.last_active = self.connected  # connected, a whole request, or a reply taken
         self.requests = 0  # whole requests received
         self.out = bytearray()  # replies the socket has not taken yet
-        self.owed = 0  # replies held back by --delay
-        self.held = 0  # their bytes
+        self.owed = 0  # replies held back by --delay, or waiting for the bus
+        self.held = 0  # the bytes of those held back by --delay
         self.events = selectors.EVENT_READ
         self.closed = False
         self.replied = float("-inf")  # when the last reply went (--min-gap)
