@@ -673,7 +673,7 @@ def test_a_display_nobody_reads_never_holds_the_bus_nor_grows():
             proc.communicate(timeout=5)
     text = out.decode()
     assert proc.returncode == 0, err
-    shown = sum(" < unit 1 FC17 " in line for line in text.splitlines())
+    shown = sum(" < unit 1 " in line for line in text.splitlines())  # the replies shown
     not_shown = [line for line in text.splitlines() if "not shown: the display fell behind" in line]
     dropped = sum(int(line.split()[1]) for line in not_shown)
     assert not_shown and dropped > count // 2, not_shown

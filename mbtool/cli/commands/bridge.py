@@ -87,7 +87,7 @@ class BridgeCommand(QuickHelp, click.Command):
 @click.option(
     "--raw-functions",
     is_flag=True,
-    help="Forward function codes mbtool does not know (01-7F, and FC 43 MEI types other than "
+    help="Forward function codes mbtool does not know (01-7F, and FC 43 (0x2B) MEI types other than "
     "0E) as they come; without it they are answered exception 01. Known ones are always "
     "checked: a request that does not fit its layout is answered 01 or 03, never forwarded.",
 )
