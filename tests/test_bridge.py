@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import shutil
 import signal
 import socket
@@ -21,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 from conftest import (
@@ -32,10 +34,12 @@ from conftest import (
     first_line,
     mbtool_env,
     plain_pairs,
+    rtu,
     run_mbtool,
     signals_as_from_a_shell,
     start_device,
 )
+from test_serve_abuse import serve
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -150,6 +154,19 @@ def rtu_bus():
     """pymodbus's RTU server for units 1 and 2 on a pty pair: the bus behind the bridge."""
     with start_device(tcp=False, framer="rtu") as device:
         yield device
+
+
+@pytest.fixture(scope="module")
+def shared_bus(tmp_path_factory):
+    """``mbtool serve -u 1,2`` on a pty pair: silent to other units' requests, as slaves on a
+    shared bus are (pymodbus 3.16's server answers them exception 04), so a unit that is not
+    there costs the bridge its timeout.  Its ``pty`` is the tap: what reached the bus."""
+    pair = PtyPair()
+    try:
+        with serve(tmp_path_factory.mktemp("bus"), "-u", "1,2", *PTY_SERIAL_OPTS, target=pair.device_path):
+            yield SimpleNamespace(target=pair.mbtool_path, pty=pair)
+    finally:
+        pair.close()
 
 
 # --- TCP clients to an RTU bus ---------------------------------------------------------------
@@ -314,6 +331,114 @@ def test_a_client_that_floods_cannot_hold_up_another(rtu_bus):
     assert flood_done - polite_done > 0.5  # the flood was still being worked through
 
 
+def rtu_units(sent: bytes) -> list[int]:
+    """The unit of each FC03 request (8 bytes with its CRC) in what the tap saw on the bus."""
+    frames = [sent[at : at + 8] for at in range(0, len(sent), 8)]
+    assert all(len(f) == 8 and f[1] == 0x03 and crc16(f[:6]) == f[6:] for f in frames), sent.hex(" ")
+    return [f[0] for f in frames]
+
+
+def test_requests_of_clients_that_have_gone_never_reach_the_bus(pty_pair):
+    """Issue 29 item 3: each request of a client gone while it waited cost the full timeout."""
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.5", "-q") as running:
+        for unit in range(10, 30):  # each its own unit: none is known to be silent yet
+            with socket.create_connection((running.host, running.port), timeout=5) as gone:
+                gone.sendall(mbap(unit, unit, bytes.fromhex("0300000001")))
+        time.sleep(0.2)
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            started = time.monotonic()
+            sock.sendall(mbap(1, 1, bytes.fromhex("0300000001")))
+            assert read_mbap(sock) == (1, 1, bytes.fromhex("830B"))  # a silent line: 0B
+            waited = time.monotonic() - started
+        units = rtu_units(pty_pair.sent_by_mbtool())
+    print(f"\nafter 20 gone clients the next waited {waited:.2f} s; on the bus: units {units}")
+    assert units[-1] == 1 and len(units) <= 3, units  # at most the one on the bus as they left
+    assert waited < 4 * 0.5, waited  # 20 gone clients were 10 s
+
+
+def _poll_while(running, unit: int, flooding, seconds: float, warm_up: float = 0.3) -> list[float]:
+    """A client's FC03 latencies, polling ``unit`` (serve's demo data) every 50 ms for
+    ``seconds`` while ``flooding`` runs, from ``warm_up`` seconds after it started."""
+    stop = threading.Event()
+    threads = [threading.Thread(target=work, args=(stop,), daemon=True) for work in flooding]
+    for thread in threads:
+        thread.start()
+    time.sleep(warm_up)
+    latencies = []
+    try:
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                started = time.monotonic()
+                sock.sendall(mbap(7, unit, bytes.fromhex("0300000001")))
+                assert read_mbap(sock) == (7, unit, bytes.fromhex("03020000"))
+                latencies.append(time.monotonic() - started)
+                time.sleep(0.05)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(10)
+    return latencies
+
+
+def _flooder(running, units, answers: list[bytes]):
+    """A client that asks for each of ``units`` in turn, as fast as it is answered."""
+
+    def work(stop: threading.Event) -> None:
+        with socket.create_connection((running.host, running.port), timeout=30) as sock:
+            tid = 0
+            while not stop.is_set():
+                sock.sendall(mbap(tid, units[tid % len(units)], bytes.fromhex("0300000001")))
+                answers.append(read_mbap(sock)[2])
+                tid += 1
+
+    return work
+
+
+def test_a_client_flooding_an_absent_unit_does_not_slow_the_others(shared_bus):
+    """Issue 29 item 3: one client asking again and again for a unit that is not there made
+    every other client wait the bridge's timeout (median 910 ms)."""
+    with bridge("-p", shared_bus.target, *PTY_SERIAL_OPTS, "-t", "1", "-q") as running:
+        shared_bus.pty.clear()
+        answers: list[bytes] = []
+        latencies = _poll_while(running, 1, [_flooder(running, [9], answers)], 4.0)
+        units = rtu_units(shared_bus.pty.sent_by_mbtool())
+    median = sorted(latencies)[len(latencies) // 2]
+    print(f"\nwhile one client flooded unit 9: median {median * 1000:.0f} ms over {len(latencies)} reads")
+    assert set(answers) == {bytes.fromhex("830B")} and len(answers) > 20
+    assert units.count(9) <= 2, units  # tried once, then answered 0B at once (--silent-hold)
+    assert median < 0.3, latencies
+
+
+def test_silent_hold_0_tries_the_bus_every_time(pty_pair):
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.2", "--silent-hold", "0") as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            for tid in range(3):
+                sock.sendall(mbap(tid, 9, bytes.fromhex("0300000001")))
+                assert read_mbap(sock) == (tid, 9, bytes.fromhex("830B"))
+        assert rtu_units(pty_pair.sent_by_mbtool()) == [9, 9, 9]
+
+
+def test_clients_share_the_bus_by_the_time_they_use(shared_bus):
+    """Five connections that each cycle through absent units (each costs the bridge its
+    timeout) cost a polling client one transaction at most, not one for each of them: the
+    client that has used the least bus time goes next."""
+    timeout = 0.5
+    with bridge("-p", shared_bus.target, *PTY_SERIAL_OPTS, "-t", str(timeout), "-q") as running:
+        answers: list[bytes] = []
+        flooding = [_flooder(running, list(range(20 + 40 * n, 60 + 40 * n)), answers) for n in range(5)]
+        # Once each flooder has used the bus, the newcomer is the one that has used the least.
+        latencies = _poll_while(running, 1, flooding, 4.0, warm_up=6 * timeout)
+    assert set(answers) == {bytes.fromhex("830B")}
+    median = sorted(latencies)[len(latencies) // 2]
+    worst = max(latencies)
+    print(
+        f"\nwhile 5 clients flooded absent units: median {median * 1000:.0f} ms, worst {worst * 1000:.0f} ms"
+    )
+    assert worst < 2 * timeout, latencies  # the one under way, then its turn (was 5)
+    assert median < 1.5 * timeout, latencies
+
+
 # --- what the gateway answers itself -------------------------------------------------------
 
 
@@ -369,7 +494,7 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_pa
 
 
 def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
-    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "0-2") as running:
         rtu_bus.pty.clear()
         with socket.create_connection((running.host, running.port), timeout=5) as sock:
             sock.sendall(mbap(5, 0, bytes.fromhex("06025A1234")))
@@ -382,6 +507,76 @@ def test_a_broadcast_goes_on_the_bus_and_is_not_answered(rtu_bus):
     assert sent == frame + crc16(frame)
     assert records[0]["outcome"] == "broadcast"
     assert records[0]["reply"] is None
+
+
+# --- requests the gateway refuses itself (issue 29 item 2) -------------------------------------
+
+# Requests a device would refuse, and the exception the bridge answers in its place: the
+# codec's layout of each function code says what a whole request is (spec §3).
+MALFORMED = [
+    ("03 0000 0001 FFFF", "83 03"),  # FC03 with 2 bytes past its layout
+    ("03 00", "83 03"),  # a PDU of 2 bytes
+    ("03" + " 00" * 252, "83 03"),  # a 253-byte FC03
+    ("10 0000 0002 04 0001", "90 03"),  # byte count 4, 2 bytes of data
+    ("10 0000 0002 02 0001 0002", "90 03"),  # byte count 2, 4 bytes of data
+    ("14 0E 06 0004 0001 0002", "94 03"),  # byte count 14, one 7-byte group
+    ("03 0000 007E", "83 03"),  # 126 registers: past the spec's 125
+    ("00", "80 01"),  # no function has code 00
+    ("83 02", "83 01"),  # an exception response sent as a request
+    ("41 0102", "C1 01"),  # a function code the codec does not know (no --raw-functions)
+    ("2B 0D 01 00", "AB 01"),  # FC43 with an MEI type other than 0E
+]
+
+
+def test_malformed_requests_are_answered_by_the_bridge_and_never_reach_the_bus(rtu_bus):
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            for tid, (pdu, reply) in enumerate(MALFORMED):
+                sock.sendall(mbap(tid, 1, bytes.fromhex(pdu)))
+                assert read_mbap(sock) == (tid, 1, bytes.fromhex(reply)), pdu
+            assert rtu_bus.pty.sent_by_mbtool() == b""  # the tap: nothing went on the bus
+            # The bus is there: a whole request is forwarded and answered.
+            sock.sendall(mbap(99, 1, bytes.fromhex("0300000001")))
+            assert read_mbap(sock) == (99, 1, bytes.fromhex("03020064"))
+        assert rtu_bus.pty.sent_by_mbtool() == rtu(bytes.fromhex("010300000001"))
+        records = running.records()
+    assert [r["outcome"] for r in records] == ["invalid"] * len(MALFORMED) + ["reply"]
+    assert all(r["forwarded"] is None for r in records[:-1])
+    assert "not forwarded" in records[0]["why"]
+
+
+def test_unknown_function_codes_are_forwarded_only_with_raw_functions(pty_pair):
+    # A silent line (nothing on it knows FC 41): the tap shows what was sent, 0B comes back.
+    with bridge("-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "--raw-functions", "-t", "0.3") as running:
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(1, 1, bytes.fromhex("41 0102")))
+            assert read_mbap(sock) == (1, 1, bytes.fromhex("C10B"))
+            for tid, pdu in ((2, "00"), (3, "83 02"), (4, "03 00")):  # never forwarded
+                sock.sendall(mbap(tid, 1, bytes.fromhex(pdu)))
+                assert read_mbap(sock)[0] == tid
+        assert pty_pair.sent_by_mbtool() == rtu(bytes.fromhex("01410102"))
+
+
+def test_broadcasts_obey_units_and_only_writes_are_broadcast(rtu_bus):
+    write, read = bytes.fromhex("06025A1234"), bytes.fromhex("0300000001")
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:  # --units 1-247: no 0
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(1, 0, write))
+            assert read_mbap(sock) == (1, 0, bytes.fromhex("860A"))
+        assert rtu_bus.pty.sent_by_mbtool() == b""
+    with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "0-247") as running:
+        rtu_bus.pty.clear()
+        with socket.create_connection((running.host, running.port), timeout=5) as sock:
+            sock.sendall(mbap(2, 0, read))  # a read of every unit: nobody could answer it
+            assert read_mbap(sock) == (2, 0, bytes.fromhex("8301"))
+            sock.sendall(mbap(3, 0, bytes.fromhex("41")))
+            assert read_mbap(sock) == (3, 0, bytes.fromhex("C101"))
+        assert rtu_bus.pty.sent_by_mbtool() == b""
+        records = running.records()
+    assert [r["outcome"] for r in records] == ["invalid", "invalid"]
+    assert "only writes are broadcast" in records[0]["why"]
 
 
 # --- the display -------------------------------------------------------------------------------
@@ -412,6 +607,118 @@ def test_hex_shows_every_frame_on_both_sides_with_checksums(rtu_bus):
     crc = crc16(bytes.fromhex("0103020065")).hex(" ").upper()
     assert lines[2] == f"link RX 01 03 02 00 65 {crc}  CRC {crc} ok"
     assert "TX 12 34 00 00 00 05 01 03 02 00 65  MBAP tid 4660 length 5 ok | bus " in lines[3]
+
+
+def _rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+
+
+def test_a_display_nobody_reads_never_holds_the_bus_nor_grows():
+    """Issue 29 item 4: with its stdout not read, the bridge kept every transaction it could not
+    print (18.9 MB -> 52 MB and rising).  The bus never waits for the display: past a backlog
+    lines are dropped, and counted where the display catches up."""
+    argv = [
+        sys.executable,
+        "-m",
+        "mbtool",
+        "bridge",
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "-p",
+        "sim://",
+        "-o",
+        "plain",
+    ]
+    proc = subprocess.Popen(
+        argv,
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,  # read by nobody until the end
+        stderr=subprocess.PIPE,
+    )
+    try:
+        running = Bridge(proc, first_line(proc, "bridging ", proc.stderr), os.devnull)
+        # FC23 with 121 registers written and 125 read: about 1 KB of frames a transaction.
+        pdu = bytes.fromhex("17 0000 007D 0000 0079 F2") + bytes(242)
+        count = 6000
+        with socket.create_connection((running.host, running.port), timeout=10) as sock:
+            for first in range(0, 100):  # the sim device's first request: allocations that stay
+                sock.sendall(mbap(first, 1, pdu))
+                read_mbap(sock)
+            before = _rss_kb(proc.pid)
+            started = time.monotonic()
+            for first in range(0, count, 10):
+                sock.sendall(b"".join(mbap(tid, 1, pdu) for tid in range(first, first + 10)))
+                assert [read_mbap(sock)[0] for _ in range(10)] == list(range(first, first + 10))
+            took = time.monotonic() - started
+            after = _rss_kb(proc.pid)
+        print(f"\n{count} transactions in {took:.1f} s with stdout unread: RSS {before} kB -> {after} kB")
+        assert after - before < 5 * 1024, (before, after)
+        # Now the display is read: it catches up and says how much it did not show.
+        out = b""
+        end = time.monotonic() + 20
+        while b"not shown: the display fell behind" not in out and time.monotonic() < end:
+            ready, _, _ = select.select([proc.stdout], [], [], 0.1)
+            if ready:
+                out += os.read(proc.stdout.fileno(), 65536)
+        proc.send_signal(signal.SIGTERM)
+        rest, err = proc.communicate(timeout=15)
+        out += rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    text = out.decode()
+    assert proc.returncode == 0, err
+    shown = sum(" < unit 1 " in line for line in text.splitlines())  # the replies shown
+    not_shown = [line for line in text.splitlines() if "not shown: the display fell behind" in line]
+    dropped = sum(int(line.split()[1]) for line in not_shown)
+    assert not_shown and dropped > count // 2, not_shown
+    assert shown + dropped >= count + 100 - 5  # every transaction is shown or counted (+ events)
+    assert f"{dropped} not shown (the display fell behind)" in err.decode(), err
+
+
+def test_json_says_how_many_transactions_it_did_not_show(monkeypatch):
+    """The count of the lines dropped is a JSON object of its own, in its place."""
+    from mbtool.cli.commands import bridge as command
+    from mbtool.link.forward import REPLY, Passage
+
+    class Stuck:
+        """A stdout whose reader is away until ``back`` is set."""
+
+        def __init__(self) -> None:
+            self.back = threading.Event()
+            self.text = ""
+
+        def write(self, text: str) -> None:
+            self.back.wait(10)
+            self.text += text
+
+        def flush(self) -> None:
+            pass
+
+    stuck = Stuck()
+    monkeypatch.setattr(sys, "stdout", stuck)
+    request, reply = mbap(1, 1, bytes.fromhex("0300000001")), mbap(1, 1, bytes.fromhex("03020064"))
+    passage = Passage(0.0, "peer", 1, 3, request, "tcp", b"", "rtu", b"", reply, REPLY, "", 0.001, 0.002)
+    show = command.Show("json", False, False)
+    total = command.DISPLAY_BACKLOG + 500
+    for _ in range(total):
+        show.passage(passage)
+    stuck.back.set()
+    show.close()
+    records = [json.loads(line) for line in stuck.text.splitlines()]
+    counts = [r["not_shown"] for r in records if "not_shown" in r]
+    assert len(counts) == 1 and counts[0] == show.not_shown >= 499
+    assert len(records) - 1 + counts[0] == total
+    assert records[-1] == {
+        "time": records[-1]["time"],
+        "not_shown": counts[0],
+        "why": "the display fell behind",
+    }
 
 
 # --- the reverse: a slave on a serial line, a TCP device behind --------------------------------
@@ -483,6 +790,29 @@ def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
                 assert [r["outcome"] for r in running.records()] == ["reply", "no path"]
     finally:
         pty.close()
+
+
+def test_reverse_a_malformed_request_on_the_serial_line_is_answered_there(tcp_behind):
+    pty = PtyPair()
+    try:
+        with bridge("-p", tcp_behind.target, "--units", "1,2", listen=pty.device_path) as running:
+            fd = os.open(pty.mbtool_path, os.O_RDWR | os.O_NOCTTY)
+            try:
+                os.write(fd, rtu(bytes.fromhex("01 10 0000 0002 04 0001")))  # 2 bytes short
+                reply = b""
+                end = time.monotonic() + 5
+                while len(reply) < 5 and time.monotonic() < end:
+                    ready, _, _ = select.select([fd], [], [], 0.1)
+                    if ready:
+                        reply += os.read(fd, 100)
+            finally:
+                os.close(fd)
+            records = running.records()
+    finally:
+        pty.close()
+    assert reply == rtu(bytes.fromhex("01 90 03"))
+    assert [r["outcome"] for r in records] == ["invalid"]
+    assert records[0]["forwarded"] is None
 
 
 # --- bad input ---------------------------------------------------------------------------------

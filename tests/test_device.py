@@ -12,7 +12,7 @@ import pytest
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer
-from mbtool.device.model import Device, Faults, demo_model, load_data
+from mbtool.device.model import MAX_FILES, Device, Faults, demo_model, load_data
 
 H = bytes.fromhex
 
@@ -270,6 +270,80 @@ def test_broadcast_reaches_every_unit_and_is_not_answered():
         assert ask(d, "14 07 06 0004 0007 0002", unit=unit) == H("14 06 05 06 06AF 04BE")
 
 
+# --- what a master or a data file can make the device hold (issue 29 item 1) ----------------
+
+
+def write_file(number: int, record: int = 0, value: int = 7) -> str:
+    return f"15 09 06 {number:04X} {record:04X} 0001 {value:04X}"
+
+
+def allocated(work) -> int:
+    """Bytes ``work()`` leaves allocated (tracemalloc sees every bytearray and array)."""
+    import gc
+    import tracemalloc
+
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        kept = work()
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    del kept
+    return after - before
+
+
+def test_a_unit_holds_at_most_max_files_and_another_file_is_exception_02():
+    d = dev()
+    for number in range(1, MAX_FILES + 1):
+        assert ask(d, write_file(number * 1000)) == H(write_file(number * 1000).replace(" ", ""))
+    assert ask(d, write_file(0xFFFF)) == H("95 02")  # the spec's "illegal data address"
+    assert ask(d, write_file(1000, record=9999, value=9)) == H(write_file(1000, 9999, 9).replace(" ", ""))
+    # A write of several groups is all or nothing: one file too many and none is written.
+    both = "15 12 06 07D0 0005 0001 0042 06 FFFE 0005 0001 0042"
+    assert ask(d, both) == H("95 02")
+    assert ask(d, "14 07 06 07D0 0005 0001") == H("14 04 03 06 0000")
+    # Reading a file never written reads zeros and makes nothing.
+    assert ask(d, "14 07 06 FFFD 0000 0001") == H("14 04 03 06 0000")
+    assert len(d.model.files) == MAX_FILES
+
+
+def test_writes_to_every_file_number_keep_memory_bounded():
+    """65535 file numbers took a serve from 17.5 MB to 1.39 GB before there was a bound."""
+    d = dev()
+
+    def hostile():
+        for number in range(1, 2001):
+            ask(d, write_file(number))
+        return d
+
+    grown = allocated(hostile)
+    assert grown < (MAX_FILES + 4) * 20_000, grown
+
+
+def test_units_share_their_tables_until_one_is_written():
+    units = range(1, 248)
+    d = dev(units=units)
+
+    def read_every_unit():
+        for unit in units:
+            assert ask(d, "03 0000 0001", unit=unit) == H("03 02 0000")
+        return d
+
+    assert allocated(read_every_unit) < 2 * 1024 * 1024  # 247 stations, no tables of their own
+    assert ask(d, "06 0000 0005", unit=7) == H("06 0000 0005")  # unit 7's own registers now
+    assert ask(d, "03 0000 0001", unit=7) == H("03 02 0005")
+    assert ask(d, "03 0000 0001", unit=8) == H("03 02 0000")
+    assert ask(d, "03 0001 0001", unit=0) is None  # a read broadcast does nothing
+    assert ask(d, "06 0001 0009", unit=0) is None  # a broadcast write reaches them all
+    for unit in (7, 8, 200):
+        assert ask(d, "03 0000 0002", unit=unit) == H("03 04 0005 0009" if unit == 7 else "03 04 0000 0009")
+    assert ask(d, "05 0003 FF00", unit=8) == H("05 0003 FF00")
+    assert ask(d, "01 0003 0001", unit=8) == H("01 01 01")
+    assert ask(d, "01 0003 0001", unit=9) == H("01 01 00")
+
+
 def test_injected_exception_and_busy():
     d = dev()
     d.faults = Faults({3: 2}, 0.0)
@@ -350,6 +424,48 @@ def test_bad_data_files(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(RequestError, match=message):
         load_data(str(path), frozenset({1}))
+
+
+def test_a_data_file_holds_at_most_max_files_a_unit(tmp_path):
+    path = tmp_path / "files.json"
+    path.write_text(json.dumps({"files": {str(n): {"0": 1} for n in range(1, MAX_FILES + 2)}}))
+    with pytest.raises(RequestError, match=f"files: {MAX_FILES + 1} files: a unit holds at most {MAX_FILES}"):
+        load_data(str(path), frozenset({1}))
+    # The file's common files count for each unit too.
+    common = {str(n): {"0": 1} for n in range(1, MAX_FILES)}
+    path.write_text(
+        json.dumps({"files": common, "units": {"2": {"files": {"60000": {"0": 1}, "60001": {}}}}})
+    )
+    with pytest.raises(RequestError, match=r"units\.2: files: .* at most"):
+        load_data(str(path), frozenset({1, 2}))
+
+
+def test_a_data_file_for_every_unit_costs_what_each_unit_changes(tmp_path):
+    """A 40 KB data file of files and units.N sections took more than 4 GB: each unit copied
+    every table and every file, whether its section changed it or not."""
+    path = tmp_path / "units.json"
+    units = range(1, 248)
+    path.write_text(
+        json.dumps(
+            {
+                "sparse": True,
+                "files": {str(n): {"0": [1, 2, 3]} for n in range(1, MAX_FILES + 1)},
+                "holding_registers": {"0": [1, 2, 3]},
+                "units": {str(unit): {"coils": {"0": 1}} for unit in units},
+            }
+        )
+    )
+    grown = allocated(lambda: load_data(str(path), frozenset(units)))
+    # Each unit: its own coils (64 KB) and their sparse mask (64 KB); the rest is shared.
+    assert grown < len(units) * 150 * 1024, grown
+    model, per_unit = load_data(str(path), frozenset(units))
+    d = Device(model, frozenset(units), per_unit)
+    assert ask(d, "01 0000 0001", unit=5) == H("01 01 01")
+    assert ask(d, "01 0001 0001", unit=5) == H("81 02")  # sparse: coil 1 is not listed
+    assert ask(d, "03 0000 0003", unit=5) == H("03 06 0001 0002 0003")
+    assert ask(d, "14 07 06 0010 0000 0003", unit=5) == H("14 08 07 06 0001 0002 0003")
+    assert ask(d, "06 0000 0009", unit=5) == H("06 0000 0009")
+    assert ask(d, "03 0000 0001", unit=6) == H("03 02 0001")  # unit 6 keeps its own
 
 
 def test_missing_data_file(tmp_path):

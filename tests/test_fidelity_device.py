@@ -418,6 +418,37 @@ def test_read_only_device_refuses_every_write_with_01(pdu):
     assert ask(d, "01 0001 0002") == H("01 01 02")  # the demo coils: 1 off, 2 on
 
 
+# FC08 sub-functions that change the device's state (spec §4): restart (which also leaves
+# listen-only and clears the counters), the ASCII delimiter, force listen-only, clear counters
+# and diagnostic register, clear overrun, clear Modbus Plus statistics.
+STATE_CHANGING_DIAGNOSTICS = [
+    "08 0001 0000",
+    "08 0001 FF00",
+    "08 0003 3A00",
+    "08 0004 0000",
+    "08 000A 0000",
+    "08 0014 0000",
+    "08 0015 0004",
+    "08 0004 0001",  # malformed: still a function this device does not do
+]
+
+
+@pytest.mark.parametrize("pdu", STATE_CHANGING_DIAGNOSTICS)
+def test_read_only_device_refuses_diagnostics_that_change_its_state_with_01(pdu):
+    d = Device(demo_model())
+    d.read_only = True
+    d.model.diagnostic_register = 0x1234
+    ask(d, "03 0000 0001")
+    assert ask(d, pdu) == H("88 01")
+    assert ask(d, "03 0001 0001") == H("03 02 0001")  # not silenced (sub 04)
+    assert ask(d, "08 0002 0000") == H("08 0002 1234")  # the diagnostic register is kept (sub 0A)
+    assert ask(d, "08 000E 0000") == H("08 000E 0005")  # the counters too (subs 01, 0A)
+    assert d.stations[1].ascii_delimiter == 0x0A  # and the delimiter (sub 03)
+    # Reading diagnostics changes nothing: those are still answered.
+    assert ask(d, "08 0000 A537") == H("08 0000 A537")
+    assert ask(d, "08 0015 0003")[:6] == H("08 0015 0003 6C")
+
+
 def test_read_only_device_ignores_broadcast_writes():
     d = Device(demo_model(), frozenset({1, 2}))
     d.read_only = True
@@ -445,12 +476,25 @@ def test_read_only_serve_with_pymodbus_and_mbtool(tmp_path):
             ):
                 assert r.isError() and r.exception_code == 1, r
             assert client.read_holding_registers(0, count=3).registers == [0, 1, 2]
-            assert not client.diag_clear_counters().isError()  # diagnostics are no data
+            assert client.diag_clear_counters().exception_code == 1  # nor are the counters cleared
+            assert not client.diag_read_bus_message_count().isError()  # reading them is fine
         finally:
             client.close()
         target = f"tcp://{server.host}:{server.port}"
         line = assert_one_error_line(run_mbtool("write-register", "1", "9", "-p", target), 4)
         assert "exception 01" in line, line
+
+
+def test_read_only_serve_cannot_be_silenced_by_one_client(tmp_path):
+    """Issue 29 item 6: FC08 sub 04 from one client made the device deaf to every client."""
+    with serve(tmp_path, "--read-only") as server:
+        with server.connect() as hostile:
+            for tid, pdu in enumerate(STATE_CHANGING_DIAGNOSTICS):
+                hostile.sendall(mbap(tid, 1, H(pdu.replace(" ", ""))))
+                assert hostile.recv(100) == mbap(tid, 1, H("88 01")), pdu
+        with server.connect() as other:
+            other.sendall(mbap(99, 1, H("03 0007 0001")))
+            assert other.recv(100) == mbap(99, 1, H("03 02 0007"))
 
 
 def test_read_only_startup_line_in_the_log(tmp_path):

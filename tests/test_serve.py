@@ -468,12 +468,35 @@ def test_log_mode_prints_frames_and_sigint_exits_0():
         assert "stopped: 1 requests, 1 replies" in out
 
 
-def test_live_view_on_a_terminal():
+class LiveView:
+    """``mbtool serve`` with its stdout on a terminal (a pty): the live view."""
+
+    def __init__(self, master: int, proc: subprocess.Popen, port: int) -> None:
+        self.master = master
+        self.proc = proc
+        self.target = f"tcp://127.0.0.1:{port}"
+        self.port = port
+        self.seen = b""
+
+    def until(self, text: bytes, wait: float = 5.0) -> bool:
+        """Read the terminal until ``text`` shows (or ``wait`` seconds pass); the screen is
+        read all along, so the server never waits on a full terminal."""
+        end = time.monotonic() + wait
+        while time.monotonic() < end and text not in self.seen and self.proc.poll() is None:
+            ready, _, _ = select.select([self.master], [], [], 0.1)
+            if ready:
+                with contextlib.suppress(OSError):
+                    self.seen += os.read(self.master, 65536)
+        return text in self.seen
+
+
+@contextlib.contextmanager
+def live_view(*args: str):
     master, slave = os.openpty()
     port = free_port()
     env = mbtool_env({"COLUMNS": "120", "LINES": "40", "TERM": "xterm"})
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "serve", "-p", f"tcp://127.0.0.1:{port}"],
+        [sys.executable, "-m", "mbtool", "serve", "-p", f"tcp://127.0.0.1:{port}", *args],
         cwd=REPO_ROOT,
         env=env,
         stdin=subprocess.DEVNULL,
@@ -482,29 +505,45 @@ def test_live_view_on_a_terminal():
     )
     os.close(slave)
     try:
-        seen = b""
-        end = time.monotonic() + READY
-        while time.monotonic() < end and b"FC08 counters" not in seen:
-            ready, _, _ = select.select([master], [], [], 0.1)
-            if ready:
-                with contextlib.suppress(OSError):
-                    seen += os.read(master, 65536)
-        assert b"FC08 counters" in seen, seen[-2000:]
-        expect_ok(run_mbtool("read-coils", "0", "-p", f"tcp://127.0.0.1:{port}"))
-        end = time.monotonic() + 5
-        while time.monotonic() < end and b"01 01 00 00 00 01" not in seen:
-            ready, _, _ = select.select([master], [], [], 0.1)
-            if ready:
-                with contextlib.suppress(OSError):
-                    seen += os.read(master, 65536)
-        assert b"01 01 00 00 00 01" in seen  # the request in "last frames"
+        view = LiveView(master, proc, port)
+        assert view.until(b"FC08 counters", READY), view.seen[-2000:]
+        yield view
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=5) == 0
+        view.until(b"\0", 0.5)  # drain what it prints as it stops
+        assert proc.wait(timeout=5) == 0, view.seen[-2000:]
+        assert b"Traceback" not in view.seen, view.seen[-2000:]
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=5)
         os.close(master)
+
+
+def test_live_view_on_a_terminal():
+    with live_view() as view:
+        expect_ok(run_mbtool("read-coils", "0", "-p", view.target))
+        assert view.until(b"01 01 00 00 00 01")  # the request in "last frames"
+
+
+def test_live_view_shows_what_a_peer_sends_as_text_never_as_markup():
+    """Issue 29 item 5: one ASCII frame with rich markup in it stopped serve (MarkupError)."""
+    with live_view("--framer", "ascii") as view:
+        with socket.create_connection(("127.0.0.1", view.port), timeout=5) as hostile:
+            # Shown as the characters they are in "last frames" (CR LF as \\r\\n); each is
+            # sent once the one before is shown, so each is a frame of its own.
+            hostile.sendall(b":[/bogus]\r\n")
+            assert view.until(b":[/bogus]\\r\\n"), view.seen[-2000:]
+            hostile.sendall(b":[bold]01[/bold]\r\n")
+            assert view.until(b":[bold]01[/bold]\\r\\n"), view.seen[-2000:]
+            hostile.sendall(b":\x1b]0;pwned\x07\r\n")  # a terminal's escape: set the title
+            assert view.until(b"3A 1B 5D 30 3B 70 77 6E 65 64 07"), view.seen[-2000:]  # in hex
+        assert b"\x1b]0;" not in view.seen
+        assert view.proc.poll() is None, view.seen[-2000:]
+        request = b"\x01\x03\x00\x07\x00\x01"
+        frame = b":" + (request + bytes([(-sum(request)) & 0xFF])).hex().upper().encode() + b"\r\n"
+        with socket.create_connection(("127.0.0.1", view.port), timeout=5) as good:
+            good.sendall(frame)
+            assert good.recv(100).startswith(b":0103020007")
 
 
 @pytest.mark.parametrize(

@@ -24,7 +24,9 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import PtyPair, crc16, lrc, mbtool_env
+from conftest import PtyPair, assert_one_error_line, crc16, lrc, mbtool_env, run_mbtool
+
+from mbtool.device.model import MAX_FILES
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -603,3 +605,73 @@ def test_client_that_never_reads_blocks_nobody_and_is_closed(tmp_path):
         assert max(latencies) < PROMPT
         # Back-pressure: the kernel's buffers, not the server's memory, hold what it would not take.
         assert max(peak, after) - before < 8 * 1024, (before, peak, after)
+
+
+# --- what a client or a data file can make the server hold (issue 29 item 1) ---------------
+
+
+def _mbap_replies(sock: socket.socket, count: int) -> list[bytes]:
+    """``count`` whole MBAP replies' PDUs."""
+    pdus, data = [], b""
+    end = time.monotonic() + 10 * PROMPT
+    while len(pdus) < count and time.monotonic() < end:
+        data += sock.recv(65536)
+        while len(data) >= 6 and len(data) >= 6 + struct.unpack_from(">H", data, 4)[0]:
+            size = 6 + struct.unpack_from(">H", data, 4)[0]
+            pdus.append(data[7:size])
+            data = data[size:]
+    return pdus
+
+
+def test_writes_to_thousands_of_files_get_exception_02_past_the_bound(tmp_path):
+    files = 4000
+    with serve(tmp_path) as server:
+        good = pymodbus_tcp(server)
+        hostile = server.connect()
+        try:
+            timed_read(good)
+            before = server.rss_kb()
+            answers = []
+            for first in range(1, files + 1, 100):
+                numbers = range(first, min(files, first + 99) + 1)
+                hostile.sendall(
+                    b"".join(mbap(n, 1, struct.pack(">BBBHHHH", 0x15, 9, 6, n, 0, 1, 7)) for n in numbers)
+                )
+                answers += _mbap_replies(hostile, len(numbers))
+            after = server.rss_kb()
+            latency = timed_read(good)
+        finally:
+            good.close()
+            hostile.close()
+        print(f"\n{files} FC21 writes to distinct files: RSS {before} kB -> {after} kB")
+        assert len(answers) == files
+        assert answers[MAX_FILES] == b"\x95\x02"
+        assert answers.count(b"\x95\x02") == files - MAX_FILES
+        assert after - before < 4 * 1024, (before, after)  # 4000 files were 80 MB
+        assert latency < PROMPT
+
+
+def test_replies_held_back_by_delay_count_towards_the_output_limit(tmp_path):
+    # --delay holds each reply for 30 s: a client that pipelines requests made the server hold
+    # every reply it owed, 150 MB in 8 s.
+    with serve(tmp_path, "--delay", "30", "--idle-timeout", "0") as server:
+        flooder = server.connect()
+        try:
+            before = server.rss_kb()
+            request = mbap(1, 1, struct.pack(">BHH", 3, 0, 125))  # 259-byte replies
+            sent = [0]
+            _flood(flooder, (request * 1000 for _ in range(10_000)), 4.0, sent)
+            after = server.rss_kb()
+        finally:
+            flooder.close()
+        print(f"\n{sent[0] // len(request)} requests sent at --delay 30: RSS {before} kB -> {after} kB")
+        assert after - before < 8 * 1024, (before, after)
+
+
+def test_a_data_file_with_more_files_than_a_unit_holds_is_refused(tmp_path):
+    path = tmp_path / "files.toml"
+    path.write_text("".join(f"[files.{n}]\n0 = 1\n" for n in range(1, MAX_FILES + 2)))
+    line = assert_one_error_line(run_mbtool("serve", "-q", "-p", "tcp://127.0.0.1:0", "--data", str(path)), 2)
+    assert f"{MAX_FILES + 1} files: a unit holds at most {MAX_FILES}" in line
+    help_text = " ".join(run_mbtool("serve", "--help").stdout.split())
+    assert f"at most {MAX_FILES} files (FC 20/21)" in help_text  # the bound is stated

@@ -25,8 +25,9 @@ def parse_int(text: str, what: str = "number") -> int:
         raise RequestError(f"{what} {shown} is not a number (decimal or 0x hex)") from None
 
 
-def parse_units(text: str) -> frozenset[int]:
-    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears)."""
+def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
+    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears;
+    ``broadcast``: 0 may be listed, for a gateway that forwards broadcasts)."""
     units: set[int] = set()
     for part in text.split(","):
         part = part.strip()
@@ -37,11 +38,11 @@ def parse_units(text: str) -> frozenset[int]:
         high = parse_int(high_text, "unit") if dash else low
         if low > high:
             raise RequestError(f"unit range {part} runs backwards")
+        lowest = 0 if broadcast else 1
         for unit in (low, high):
-            if not 1 <= unit <= 255:
-                raise RequestError(
-                    f"unit {unit} is out of range 1..255 (unit 0 is broadcast: every unit hears it)"
-                )
+            if not lowest <= unit <= 255:
+                why = "" if broadcast else " (unit 0 is broadcast: every unit hears it)"
+                raise RequestError(f"unit {unit} is out of range {lowest}..255{why}")
         units.update(range(low, high + 1))
     return frozenset(units)
 

@@ -376,6 +376,18 @@ def decode_request(pdu: bytes) -> Request:
     return kind.decode(pdu)
 
 
+def check_request(pdu: bytes) -> Request:
+    """The request a PDU makes, read as a device reads it: any failure is a RequestError
+    carrying the exception code a device answers (spec §3): 01 for a function code the codec
+    does not know, 03 for a PDU its function's layout does not fit, else the limit's own."""
+    try:
+        return decode_request(pdu)
+    except DecodeError as error:
+        known = bool(pdu) and function_type(pdu[0]) is not None
+        code = ExceptionCode.ILLEGAL_DATA_VALUE if known else ExceptionCode.ILLEGAL_FUNCTION
+        raise RequestError(str(error), code) from None
+
+
 def decode_response(pdu: bytes) -> Response | ExceptionResponse:
     """Decode a reply with no request to check it against (offline decoding)."""
     if not pdu:

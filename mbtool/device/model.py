@@ -13,6 +13,13 @@ was told (spec §2: unit 0 is all of them).
 
 Tables are a bytearray (bits) and array("H") (registers): no Python object
 per item, so a one-shot ``-p sim://`` command pays microseconds for them.
+
+What a master (or a data file) can make the device hold is bounded: a unit's
+tables are shared with the template, and the other units, until something
+writes to one (then that table is copied for it: 64 KB of bits, 128 KB of
+registers), and a unit holds at most MAX_FILES files of FILE_SIZE registers.
+So a unit costs at most 384 KB of tables and 320 KB of files, however many
+requests it gets, and a read costs nothing.
 """
 
 from __future__ import annotations
@@ -29,13 +36,18 @@ from mbtool.codec.pdu import (
     ExceptionCode,
     ExceptionResponse,
     Response,
+    check_request,
     decode_request,
-    function_type,
 )
 from mbtool.codec.record import record
 
 TABLE_SIZE = 0x10000  # every table spans the whole 16-bit address space (spec §1)
+TABLES = ("coils", "discrete_inputs", "holding_registers", "input_registers")
 FILE_SIZE = 10000  # records 0..9999 per file (spec §1, FC20/21)
+# Files a unit holds (FC20/21), 20 KB each: a write that would make one more answers
+# exception 02, as a device answers for a file it does not have.  File numbers run
+# 1..65535 (spec §3); without a bound a master writing to each took a GB.
+MAX_FILES = 16
 MAX_EVENTS = 64  # FC12 log length (spec §3)
 MAX_PDU = 253
 
@@ -80,6 +92,29 @@ BUS_COUNTERS = ("bus_messages", "bus_comm_errors", "bus_char_overruns")
 # The function codes that change data (spec §1's write column, and FC21 for files):
 # a read-only device (serve --read-only) answers them exception 01, a function it does not do.
 WRITE_FUNCTIONS = frozenset({0x05, 0x06, 0x0F, 0x10, 0x15, 0x16, 0x17})
+# The FC08 sub-functions that change the device's state, refused alike (spec §4): restart
+# (it also clears the counters), the ASCII delimiter, listen-only (which would silence the
+# device for every master), clear counters and the diagnostic register, clear overrun.
+# Sub 15 changes it only with 0004, clear the statistics.
+STATE_SUBS = frozenset(
+    {SUB_RESTART, SUB_ASCII_DELIMITER, SUB_LISTEN_ONLY, SUB_CLEAR_COUNTERS, SUB_CLEAR_OVERRUN}
+)
+MODBUS_PLUS_CLEAR = b"\x00\x04"
+
+
+def changes_state(pdu: bytes) -> bool:
+    """Does this request change the device's data or state (what serve --read-only refuses)?
+
+    By function code and sub-function alone, before the request's own checks: a device
+    without the function answers 01 to any form of it."""
+    code = pdu[0] if pdu else 0
+    if code in WRITE_FUNCTIONS:
+        return True
+    if code != 0x08 or len(pdu) < 3:
+        return False
+    sub = int.from_bytes(pdu[1:3], "big")
+    return sub in STATE_SUBS or (sub == SUB_MODBUS_PLUS and pdu[3:5] == MODBUS_PLUS_CLEAR)
+
 
 # Read Device Identification (FC43/14): basic 00-02, regular 03-06, extended 80-FF.
 DEFAULT_OBJECTS = {
@@ -121,36 +156,78 @@ class DataModel:
         # and per file number, 1 for each address it lists.  None: every address exists.
         self.defined: dict[str | int, bytearray] | None = None
         self.complete = True  # False: a dump mbtool did not finish (complete = false in the file)
+        # What this model shares with a copy (a table name, ("file", N), ("defined", key)):
+        # copied for itself before its first write, so a copy costs nothing until written.
+        self._shared: set = set()
 
     def copy(self) -> DataModel:
+        """A model with the same contents; the tables, files and masks are shared by both
+        until either writes to one (writable, writable_file, defines)."""
         other = DataModel.__new__(DataModel)
-        other.coils = bytearray(self.coils)
-        other.discrete_inputs = bytearray(self.discrete_inputs)
-        other.holding_registers = array("H", self.holding_registers)
-        other.input_registers = array("H", self.input_registers)
-        other.files = {number: array("H", values) for number, values in self.files.items()}
+        shared = {*TABLES, *(("file", number) for number in self.files)}
+        other.coils = self.coils
+        other.discrete_inputs = self.discrete_inputs
+        other.holding_registers = self.holding_registers
+        other.input_registers = self.input_registers
+        other.files = dict(self.files)
         other.exception_status = self.exception_status
         other.diagnostic_register = self.diagnostic_register
         other.slave_id = self.slave_id
         other.run_indicator = self.run_indicator
         other.slave_id_extra = self.slave_id_extra
         other.objects = dict(self.objects)
-        other.defined = None if self.defined is None else {k: bytearray(v) for k, v in self.defined.items()}
+        if self.defined is None:
+            other.defined = None
+        else:
+            other.defined = dict(self.defined)
+            shared.update(("defined", key) for key in self.defined)
         other.complete = self.complete
+        self._shared |= shared
+        other._shared = set(shared)
         return other
 
-    def file(self, number: int, create: bool) -> array | None:
-        values = self.files.get(number)
-        if values is None and create:
-            values = self.files[number] = array("H", bytes(2 * FILE_SIZE))
-        return values
+    def writable(self, name: str) -> bytearray | array:
+        """The table ``name`` to write into: first made its own if it shares it."""
+        if name in self._shared:
+            self._shared.discard(name)
+            setattr(self, name, getattr(self, name)[:])
+        return getattr(self, name)
+
+    def file(self, number: int) -> array | None:
+        """File ``number`` to read, or None if it was never written (it reads as zeros)."""
+        return self.files.get(number)
+
+    def make_files(self, numbers) -> None:
+        """Files ``numbers`` exist after this; exception 02 (and none made) if that would be
+        more than MAX_FILES, as a device answers for a file it does not have."""
+        new = set(numbers) - self.files.keys()
+        if len(self.files) + len(new) > MAX_FILES:
+            raise RequestError(
+                f"{len(self.files) + len(new)} files: a unit holds at most {MAX_FILES}",
+                ExceptionCode.ILLEGAL_DATA_ADDRESS,
+            )
+        for number in new:
+            self.files[number] = array("H", bytes(2 * FILE_SIZE))
+
+    def writable_file(self, number: int) -> array:
+        """File ``number`` (made by make_files) to write into: first made its own if it shares it."""
+        if ("file", number) in self._shared:
+            self._shared.discard(("file", number))
+            self.files[number] = self.files[number][:]
+        return self.files[number]
 
     def defines(self, key: str | int, size: int) -> bytearray | None:
-        """The mask a sparse data file marks its addresses in (a table name or a file number);
-        None when the model is not sparse."""
+        """The mask a sparse data file marks its addresses in (a table name or a file number),
+        to write into; None when the model is not sparse."""
         if self.defined is None:
             return None
-        return self.defined.setdefault(key, bytearray(size))
+        mask = self.defined.get(key)
+        if mask is None:
+            mask = self.defined[key] = bytearray(size)
+        elif ("defined", key) in self._shared:
+            self._shared.discard(("defined", key))
+            mask = self.defined[key] = mask[:]
+        return mask
 
     def require(self, key: str | int, start: int, count: int) -> None:
         """Exception 02 unless ``count`` addresses from ``start`` exist: all do, unless a sparse
@@ -232,7 +309,7 @@ class Device:
         self.units = frozenset(units)
         self.unit_models = unit_models or {}  # units with data of their own (--data [units.N])
         self.faults = Faults()
-        self.read_only = False  # serve --read-only: WRITE_FUNCTIONS get exception 01
+        self.read_only = False  # serve --read-only: what changes_state() names gets exception 01
         self.stations: dict[int, Station] = {}
         # Bus-level counters are shared: every node on the line sees every message (spec §4).
         self.bus = dict.fromkeys(BUS_COUNTERS, 0)
@@ -414,25 +491,17 @@ class Device:
     def _reply(self, station: Station, pdu: bytes) -> Response | ExceptionResponse | None:
         code = pdu[0] if pdu else 0
         try:
-            request = decode_request(pdu)
+            request = check_request(pdu)
         except RequestError as error:
             request = None
             failure = ExceptionResponse(code, error.exception_code)
-        except DecodeError:
-            request = None
-            known = function_type(code) is not None and code in self._handlers
-            failure = ExceptionResponse(
-                code, ExceptionCode.ILLEGAL_DATA_VALUE if known else ExceptionCode.ILLEGAL_FUNCTION
-            )
         if station.listen_only:
             # Listen-only: nothing is done and nothing answered, except a restart (spec §4 sub 04).
             restart = request is not None and code == 0x08 and request.sub_function == SUB_RESTART
             if restart and request.data in RESTART_DATA:  # other data would get exception 03
                 self._restart(station, request.data)
             return None
-        if self.read_only and code in WRITE_FUNCTIONS:
-            # Before the request's own checks: a device without the function answers 01 to
-            # any form of it, as it would to a function code it does not know.
+        if self.read_only and changes_state(pdu):
             return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)
         if request is None:
             return failure
@@ -478,13 +547,13 @@ class Device:
     @staticmethod
     def _write_single_coil(station: Station, request):
         station.model.require("coils", request.address, 1)
-        station.model.coils[request.address] = request.on
+        station.model.writable("coils")[request.address] = request.on
         return request
 
     @staticmethod
     def _write_single_register(station: Station, request):
         station.model.require("holding_registers", request.address, 1)
-        station.model.holding_registers[request.address] = request.value
+        station.model.writable("holding_registers")[request.address] = request.value
         return request
 
     @staticmethod
@@ -492,7 +561,8 @@ class Device:
         from mbtool.codec.data_access import WriteMultipleResponse
 
         station.model.require("coils", request.address, len(request.values))
-        station.model.coils[request.address : request.address + len(request.values)] = bytes(request.values)
+        end = request.address + len(request.values)
+        station.model.writable("coils")[request.address : end] = bytes(request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
     @staticmethod
@@ -501,13 +571,13 @@ class Device:
 
         station.model.require("holding_registers", request.address, len(request.values))
         end = request.address + len(request.values)
-        station.model.holding_registers[request.address : end] = array("H", request.values)
+        station.model.writable("holding_registers")[request.address : end] = array("H", request.values)
         return WriteMultipleResponse(request.function_code, request.address, len(request.values))
 
     @staticmethod
     def _mask_write_register(station: Station, request):
         station.model.require("holding_registers", request.address, 1)
-        table = station.model.holding_registers
+        table = station.model.writable("holding_registers")
         table[request.address] = request.result(table[request.address])
         return request
 
@@ -519,7 +589,7 @@ class Device:
         model = station.model
         model.require("holding_registers", request.write_address, len(request.values))
         model.require("holding_registers", request.read_address, request.read_count)
-        table = model.holding_registers
+        table = model.writable("holding_registers")
         table[request.write_address : request.write_address + len(request.values)] = array(
             "H", request.values
         )
@@ -553,7 +623,7 @@ class Device:
             station.model.require(group.file, group.record, group.length)
         records = []
         for group in request.groups:
-            values = station.model.file(group.file, create=False)
+            values = station.model.file(group.file)
             if values is None:
                 records.append((0,) * group.length)  # a file never written reads as zeros
             else:
@@ -562,10 +632,12 @@ class Device:
 
     @staticmethod
     def _write_file_record(station: Station, request):
+        model = station.model
         for group in request.groups:  # every group exists before any is written
-            station.model.require(group.file, group.record, len(group.values))
+            model.require(group.file, group.record, len(group.values))
+        model.make_files(group.file for group in request.groups)
         for group in request.groups:
-            values = station.model.file(group.file, create=True)
+            values = model.writable_file(group.file)
             values[group.record : group.record + len(group.values)] = array("H", group.values)
         return request  # the reply is an echo (spec §3)
 
@@ -703,8 +775,6 @@ class Device:
 
 # -- loading a data file (--data) --------------------------------------------------------
 
-TABLES = ("coils", "discrete_inputs", "holding_registers", "input_registers")
-
 
 def load_data(
     path: str, units: frozenset[int], listed_only: bool = False
@@ -821,7 +891,7 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
         if name in data:
             bits = name in ("coils", "discrete_inputs")
             _fill(
-                getattr(model, name),
+                model.writable(name),
                 data[name],
                 f"{where}: {name}",
                 1 if bits else 0xFFFF,
@@ -831,10 +901,15 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
     files = data.get("files", {})
     if not isinstance(files, dict):
         raise RequestError(f"data file {where}: files must map file numbers to records")
+    numbers = {key: _int(key, f"{where}: files", 1, 0xFFFF) for key in files}
+    try:
+        model.make_files(numbers.values())
+    except RequestError as error:
+        raise RequestError(f"data file {where}: files: {error}") from None
     for key, section in files.items():
-        number = _int(key, f"{where}: files", 1, 0xFFFF)
+        number = numbers[key]
         _fill(
-            model.file(number, create=True),
+            model.writable_file(number),
             section,
             f"{where}: files.{key}",
             0xFFFF,

@@ -8,11 +8,11 @@
   No client can hold the others up or make memory grow: sockets never block,
   at most ``max_clients`` are served, each is read ``RECV_SIZE`` bytes a turn,
   its framer keeps at most one frame (the framers drop what cannot be one), its
-  unsent replies are capped at ``OUT_LIMIT`` (past it its requests are no longer
-  read: the kernel's buffers and then the client's own sends take the
-  back-pressure), and a client that completes no request and takes no reply for
-  ``idle_timeout`` seconds is closed, so one that never sends, drips a byte a
-  minute or never reads its replies gives its slot back.
+  unsent replies, those --delay holds back included, are capped at ``OUT_LIMIT``
+  (past it its requests are no longer read: the kernel's buffers and then the
+  client's own sends take the back-pressure), and a client that completes no
+  request and takes no reply for ``idle_timeout`` seconds is closed, so one that
+  never sends, drips a byte a minute or never reads its replies gives its slot back.
 * Nor can idle connections lock it: one that has completed no request
   ``first_request_timeout`` seconds after connecting is closed, and a newcomer
   past ``max_clients`` takes the slot of the least recently used idle client
@@ -22,13 +22,19 @@
   the newcomer closed at once.
 * Serial: pyserial (device path or URL), frames ended by implicit length or by
   t3.5 of silence (spec §2), replies sent no sooner than t3.5 after the request.
-* Faults of the I/O layer: delay, drop and checksum corruption of replies.
+* Faults of the I/O layer: delay, drop and checksum corruption of replies.  On a serial
+  line, where requests cannot be left unread, a request that finds ``OUT_LIMIT`` bytes of
+  replies held back by --delay is dropped.
 * Who answers is pluggable (``answerer``): the simulated device by default, or a gateway's
   forwarder (``mbtool.link.forward``, for ``mbtool bridge``).  An answer that takes a bus's
-  time is ``queued``: on TCP a worker thread answers one request at a time, in the order they
-  came, while the loop goes on accepting, reading and sending.  Each client has at most one
-  request in the queue and its socket is not read until that one is answered, so the clients
-  take turns: none can hold the others up, however fast it sends.
+  time is ``queued``: on TCP a worker thread answers one request at a time while the loop
+  goes on accepting, reading and sending.  Each client has at most one request waiting for
+  the bus, and the next to go is that of the client that has used the least bus time lately
+  (``_Turns``), so the clients take turns and one whose requests cost the bus its timeout
+  waits behind those whose do not: none can hold the others up, however fast it sends.
+  While its request waits, a client's socket is read only for the start of its next ones
+  (``RECV_SIZE``), so a client that leaves is seen to go, and its request never reaches
+  the bus.
 
 Every wait is bounded by ``TICK`` so a stop request (Ctrl-C, SIGTERM) is seen
 within a tenth of a second.
@@ -38,7 +44,6 @@ from __future__ import annotations
 
 import contextlib
 import heapq
-import queue
 import random
 import selectors
 import signal
@@ -74,6 +79,7 @@ RECV_SIZE = 4096  # bytes read from one client per turn of the loop: the others 
 # replies, 133 KB), so a client costs at most about 200 KB.
 OUT_LIMIT = 64 * 1024
 ACCEPTS_PER_TURN = 16  # a burst of connections cannot starve the clients already served
+BUS_HALF_LIFE = 10.0  # seconds after which a client's bus time counts half, for whose turn it is
 WORKER_STOP = 10.0  # seconds a stop waits for the queued answer under way
 _WAKE = object()  # the selector's key for the worker's wake-ups
 
@@ -252,12 +258,13 @@ class Server:
         )
         # queued: answers take a bus's time, given one at a time by a worker thread (TCP).
         self.queued = queued
-        self._jobs: queue.SimpleQueue[tuple[_Client, Frame] | None] = queue.SimpleQueue()
+        self._turns = _Turns()
         self._answered: deque[tuple[_Client, bytes | None]] = deque()
         self._worker: threading.Thread | None = None
         self._failure: BaseException | None = None  # what stopped the worker, raised by the loop
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
         self._seq = 0
+        self._held = 0  # bytes of serial replies waiting in _pending (--delay)
         self._tick: Callable[[], None] = lambda: None
         self.max_clients = max_clients
         self.idle_timeout = idle_timeout or None  # 0 or None: never
@@ -425,6 +432,9 @@ class Server:
             return
         client.framer.feed(data)
         client.last_data = time.monotonic()
+        if client.on_bus:
+            self._flush(client)  # its next requests wait in its framer for its answer
+            return
         self._events(client, client.framer.next_event)
 
     def _events(self, client: _Client, first: Callable[[], Frame | Rejected | None]) -> None:
@@ -447,10 +457,10 @@ class Server:
                     event = client.framer.next_event()
                     continue
                 if self.queued:
-                    # Its turn on the bus; the requests behind it wait for its answer.
+                    # It waits for its turn on the bus; the requests behind it for its answer.
                     client.owed += 1
                     client.on_bus = True
-                    self._jobs.put((client, event))
+                    self._turns.put(client, event)
                     break
             reply = self.responder.answer(event, client.framer, client.peer)
             if reply:
@@ -476,11 +486,13 @@ class Server:
 
         def send() -> None:
             client.owed -= 1
+            client.held -= len(reply)
             if not client.closed:
                 client.out += reply
                 self._flush(client)
 
         client.owed += 1  # a reply the server owes is not the client's idleness
+        client.held += len(reply)  # counts towards OUT_LIMIT like the replies unsent
         self._later(time.monotonic() + self.faults.delay, send)
 
     def _flush(self, client: _Client) -> None:
@@ -498,7 +510,10 @@ class Server:
             if sent:
                 del client.out[:sent]
                 client.last_active = time.monotonic()
-        events = selectors.EVENT_READ if len(client.out) < OUT_LIMIT and not client.on_bus else 0
+        # While its request waits for the bus, read on only until a request's worth is buffered:
+        # enough to see the client close its connection, no more.
+        room = not client.on_bus or client.framer.buffered < RECV_SIZE
+        events = selectors.EVENT_READ if len(client.out) + client.held < OUT_LIMIT and room else 0
         if client.out:
             events |= selectors.EVENT_WRITE
         if events != client.events:
@@ -574,7 +589,7 @@ class Server:
         self.selector.close()
         self.listener.close()
         if self._worker is not None:
-            self._jobs.put(None)
+            self._turns.close()
             # The transaction under way ends by its own deadline; a stop waits for it, not more.
             self._worker.join(WORKER_STOP)
             self._wake.close()
@@ -583,15 +598,17 @@ class Server:
     # -- queued answers (a bus behind the server) ----------------------------------------------
 
     def _work(self) -> None:
-        """The worker thread: answer each queued request in turn, then wake the loop."""
-        while (job := self._jobs.get()) is not None:
+        """The worker thread: answer each waiting request in turn, then wake the loop."""
+        while (job := self._turns.next()) is not None:
             client, event = job
             reply = None
             if not client.closed:  # a client gone while it waited is owed nothing
+                started = time.monotonic()
                 try:
                     reply = self.responder.answer(event, client.framer, client.peer)
                 except BaseException as error:  # a bug: the loop raises it, the worker ends
                     self._failure = error
+                client.use_bus(time.monotonic() - started)
             self._answered.append((client, reply))
             try:
                 self._waker.send(b"!")
@@ -617,7 +634,7 @@ class Server:
             if reply:
                 client.replied = time.monotonic()
                 client.out += reply
-            # Its next request, if one is buffered already, joins the back of the queue.
+            # Its next request, if one is buffered already, waits for its turn.
             self._events(client, client.framer.next_event)
 
     # -- serial ----------------------------------------------------------------------------
@@ -656,10 +673,17 @@ class Server:
             else:
                 events = []
             for event in events:
+                if self._held >= OUT_LIMIT and isinstance(event, Frame):
+                    why = "request dropped: replies held back by --delay fill the output limit"
+                    self.stats.dropped += 1
+                    self.stats.frame("--", peer, event.adu, why)
+                    self._log("drop", peer, event.adu, why)
+                    continue
                 reply = self.responder.answer(event, self.framer, peer)
                 if reply:
                     # Keep the line quiet for t3.5 after the request before answering (spec §2).
                     due = max(now, last_rx + t35) + self.faults.delay
+                    self._held += len(reply)
                     self._later(due, lambda reply=reply: self._write(reply))
             self._send_due()
             self._tick()
@@ -673,6 +697,7 @@ class Server:
         return events
 
     def _write(self, data: bytes) -> None:
+        self._held -= len(data)
         self.transport.write(data)
 
     # -- the loop ----------------------------------------------------------------------------
@@ -696,6 +721,38 @@ class Server:
             self.transport.close()
 
 
+class _Turns:
+    """The requests waiting for the bus, at most one a client, and whose turn is next: that of
+    the client with the least bus time lately, the one that came first among equals."""
+
+    def __init__(self) -> None:
+        self._waiting: list[tuple[_Client, Frame]] = []
+        self._ready = threading.Condition()
+        self._closed = False
+
+    def put(self, client: _Client, event: Frame) -> None:
+        with self._ready:
+            self._waiting.append((client, event))
+            self._ready.notify()
+
+    def next(self) -> tuple[_Client, Frame] | None:
+        """The next request to put on the bus (waits for one); None once closed."""
+        with self._ready:
+            while not self._waiting and not self._closed:
+                self._ready.wait()
+            if self._closed:
+                return None
+            now = time.monotonic()
+            job = min(self._waiting, key=lambda job: job[0].bus_time(now))
+            self._waiting.remove(job)
+            return job
+
+    def close(self) -> None:
+        with self._ready:
+            self._closed = True
+            self._ready.notify()
+
+
 class _Client:
     __slots__ = (
         "sock",
@@ -707,10 +764,13 @@ class _Client:
         "requests",
         "out",
         "owed",
+        "held",
         "events",
         "closed",
         "replied",
         "on_bus",
+        "bus",
+        "bus_at",
     )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
@@ -722,8 +782,20 @@ class _Client:
         self.last_active = self.connected  # connected, a whole request, or a reply taken
         self.requests = 0  # whole requests received
         self.out = bytearray()  # replies the socket has not taken yet
-        self.owed = 0  # replies held back by --delay
+        self.owed = 0  # replies held back by --delay, or waiting for the bus
+        self.held = 0  # the bytes of those held back by --delay
         self.events = selectors.EVENT_READ
         self.closed = False
         self.replied = float("-inf")  # when the last reply went (--min-gap)
         self.on_bus = False  # a queued request of its is waiting for its answer
+        self.bus = 0.0  # seconds of bus time it has used, decayed (BUS_HALF_LIFE)
+        self.bus_at = self.connected  # when ``bus`` was last brought up to date
+
+    def bus_time(self, now: float) -> float:
+        """The bus time it has used, each second counting half after BUS_HALF_LIFE."""
+        return self.bus * 0.5 ** ((now - self.bus_at) / BUS_HALF_LIFE)
+
+    def use_bus(self, seconds: float) -> None:
+        now = time.monotonic()
+        self.bus = self.bus_time(now) + seconds
+        self.bus_at = now

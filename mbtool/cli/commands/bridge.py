@@ -18,6 +18,7 @@ from mbtool.cli.options import (
     LINK_OPTIONS,
     Choice,
     QuickHelp,
+    Seconds,
     complete_port,
     output_chosen,
     parse_units,
@@ -26,13 +27,16 @@ from mbtool.cli.options import (
     units_text,
     with_options,
 )
-from mbtool.cli.render import local_time
+from mbtool.cli.render import local_time, to_json
 from mbtool.codec.errors import RequestError, function_code_text
-from mbtool.link.forward import BROADCAST, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
+from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
 PRINTER_STOP = 5.0  # seconds a stop waits for the transactions still to be printed
+# Lines (transactions and the server's events) waiting for a display that falls behind: past
+# it they are dropped and counted, so the bus never waits for stdout nor memory grows.
+DISPLAY_BACKLOG = 1000
 
 
 class BridgeCommand(QuickHelp, click.Command):
@@ -77,7 +81,24 @@ class BridgeCommand(QuickHelp, click.Command):
     show_default=True,
     help="Units forwarded: 1,17 or 1-10 or both. From TCP a request for another unit gets "
     "exception 0A; on a serial line it is left to the other slaves. Unit 0 is a broadcast "
-    "where a serial line is either side: sent, never answered.",
+    "where a serial line is either side: forwarded only if listed (0-247), only writes, "
+    "never answered.",
+)
+@click.option(
+    "--raw-functions",
+    is_flag=True,
+    help="Forward function codes mbtool does not know (01-7F, and FC 43 (0x2B) MEI types other than "
+    "0E) as they come; without it they are answered exception 01. Known ones are always "
+    "checked: a request that does not fit its layout is answered 01 or 03, never forwarded.",
+)
+@click.option(
+    "--silent-hold",
+    type=Seconds(),
+    default=5.0,
+    show_default=True,
+    help="After a unit sends nothing within the timeout, answer its requests exception 0B at "
+    "once, without the bus, for SECONDS: a client asking again and again for a unit that is "
+    "not there does not cost the others its timeout. 0: try the bus every time.",
 )
 @serial_line_options
 @with_options(LINK_OPTIONS)
@@ -94,7 +115,8 @@ class BridgeCommand(QuickHelp, click.Command):
     "output_format",
     type=Choice(["table", "plain", "json"]),
     callback=lambda ctx, param, value: output_chosen(value),
-    help="How transactions are shown: table on a terminal, plain in a pipe, json one object a transaction.",
+    help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
+    "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",
 )
 @click.option(
     "-q", "--quiet", is_flag=True, help="Show no transactions; only the start line and the summary."
@@ -104,6 +126,8 @@ def bridge(
     target,
     framer,
     units,
+    raw_functions,
+    silent_hold,
     baud,
     parity,
     bytesize,
@@ -130,7 +154,11 @@ def bridge(
     with the client's transaction id. The gateway answers for the device only where the
     spec says a gateway does: exception 0B when the device does not answer (or its reply is
     garbled), 0A when the unit is not forwarded or the link cannot be used (it is opened
-    again for the next request). TCP clients take turns: none can hold up the others.
+    again for the next request). A request no device could take (one that does not fit
+    its function code's layout, a read broadcast) never reaches the bus: the bridge answers
+    it 01 or 03 as the device would. TCP clients take turns, the one that has used the
+    least bus time lately first, and the requests of a client that has gone are dropped:
+    none can hold up the others.
     The start line and a summary on exit go to stderr; Ctrl-C or SIGTERM stops it with
     exit status 0.
 
@@ -149,7 +177,7 @@ def bridge(
     from mbtool.link.transport import SerialSettings, default_framer
 
     where = parse_target(listen)
-    forwarded = parse_units(units)
+    forwarded = parse_units(units, broadcast=True)
     serial_framer = framer or "rtu"
     listening_framer = "tcp" if where.scheme == "tcp" else serial_framer
     link_framer = "tcp" if default_framer(target) == "tcp" else serial_framer
@@ -183,7 +211,9 @@ def bridge(
     check(connection)
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
     show = Show(fmt, hex_trace, quiet)
-    forwarder = Forwarder(lambda: open_client(connection), link_framer, forwarded, show.passage)
+    forwarder = Forwarder(
+        lambda: open_client(connection), link_framer, forwarded, show.passage, raw_functions, silent_hold
+    )
     forwarder.open()  # a link that cannot be opened now is a mistake to hear of at once (exit 6)
     server = Server(
         None,
@@ -219,7 +249,9 @@ class Show:
     """Each transaction as it passes, and the tally for the summary.
 
     The bus worker only hands a transaction over: a printer thread decodes and prints it, so
-    a reply never waits for its own display, nor the bus for a slow terminal or pipe.
+    a reply never waits for its own display, nor the bus for a slow terminal or pipe.  A
+    display that falls DISPLAY_BACKLOG lines behind (a pipe nobody reads) loses the lines past
+    it, and says how many where it catches up.
     """
 
     def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
@@ -237,6 +269,9 @@ class Show:
 
             self.console = Console(highlight=False, soft_wrap=True)
         self.failure: OSError | None = None
+        self.not_shown = 0  # lines dropped because the display fell behind
+        self._dropped = 0  # of those, the ones the display has not been told of yet
+        self._queueing = threading.Lock()  # the bus worker and the server's loop both queue
         self._lines: queue.SimpleQueue = queue.SimpleQueue()
         self._printer = threading.Thread(target=self._print, name="mbtool-show", daemon=True)
         self._printer.start()
@@ -249,16 +284,34 @@ class Show:
             self.bus_total += passage.bus_time
             self.bus_longest = max(self.bus_longest, passage.bus_time)
         if not self.quiet:
-            self._lines.put(passage)
+            self._show(passage)
 
     def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
         """The server's own events: clients connecting, closed, refused."""
         if self.quiet or self.fmt == "json" or direction not in ("open", "close", "refuse"):
             return
-        self._lines.put(f"{local_time()} {peer} {note}")
+        self._show(f"{local_time()} {peer} {note}")
+
+    def _show(self, item) -> None:
+        """Queue a line for the printer, never waiting: past DISPLAY_BACKLOG it is dropped."""
+        with self._queueing:
+            if self._lines.qsize() >= DISPLAY_BACKLOG:
+                self._dropped += 1
+                self.not_shown += 1
+                return
+            self._tell_dropped()
+            self._lines.put(item)
+
+    def _tell_dropped(self) -> None:
+        """The count of the lines dropped since the last, in their place among the others."""
+        if self._dropped:
+            self._lines.put(self._dropped)
+            self._dropped = 0
 
     def close(self) -> None:
         """Print what is still queued (a few seconds at most), then stop the printer."""
+        with self._queueing:
+            self._tell_dropped()
         self._lines.put(None)
         self._printer.join(PRINTER_STOP)
 
@@ -273,11 +326,17 @@ class Show:
                 self.on_failure()
 
     def _write(self, item) -> None:
-        if isinstance(item, str):  # a server event
+        if isinstance(item, int):  # lines dropped
+            why = "the display fell behind"
+            if self.fmt == "json":
+                item = {"time": local_time(), "not_shown": item, "why": why}
+                sys.stdout.write(to_json(item) + "\n")
+                sys.stdout.flush()
+                return
+            lines = [("bold red", f"{local_time()} {item} not shown: {why}")]
+        elif isinstance(item, str):  # a server event
             lines = [("dim", item)]
         elif self.fmt == "json":
-            from mbtool.cli.render import to_json
-
             sys.stdout.write(to_json(passage_record(item)) + "\n")
             sys.stdout.flush()
             return
@@ -285,7 +344,7 @@ class Show:
             lines = hex_lines(item) if self.hex else decoded_lines(item)
         if self.console is not None:
             for style, line in lines:
-                self.console.print(line, style=style, markup=False)
+                self.console.print(line, style=style, markup=False, emoji=False)
         else:
             sys.stdout.write("".join(line + "\n" for _, line in lines))
             sys.stdout.flush()
@@ -298,6 +357,7 @@ class Show:
             f"{counts[NO_RESPONSE]} unanswered (0B)",
             f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
             f"{counts[BROADCAST]} broadcasts",
+            f"{counts[INVALID]} invalid (01, 03)",
         ]
         text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
         if tcp:
@@ -307,12 +367,21 @@ class Show:
                 f"; bus time mean {self.bus_total / self.timed * 1000:.1f} ms, "
                 f"max {self.bus_longest * 1000:.1f} ms"
             )
+        if self.not_shown:
+            text += f"; {self.not_shown} not shown (the display fell behind)"
         return text
 
 
 # Line styles on a terminal: the request, and its reply by what became of it.
 ASKED = "cyan"
-STYLES = {REPLY: "green", REFUSED: "yellow", BROADCAST: "green", NO_RESPONSE: "bold red", NO_PATH: "bold red"}
+STYLES = {
+    REPLY: "green",
+    REFUSED: "yellow",
+    BROADCAST: "green",
+    NO_RESPONSE: "bold red",
+    NO_PATH: "bold red",
+    INVALID: "bold red",
+}
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):

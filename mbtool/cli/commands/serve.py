@@ -107,7 +107,8 @@ class Fraction(click.ParamType):
 @click.option(
     "--read-only",
     is_flag=True,
-    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01.",
+    help="Answer every function that writes data (05, 06, 15, 16, 21, 22, 23) with exception 01, "
+    "and every FC 08 sub-function that changes the device's state (01, 03, 04, 0A, 14; 15 with 0004).",
 )
 @click.option("--delay", type=PositiveFloat(), help="Fault: wait SECONDS before every reply.")
 @click.option(
@@ -199,6 +200,11 @@ def serve(
     pipe every frame is logged on stdout; with -q only the first line ("serving
     ...") is printed. Ctrl-C or SIGTERM stops it cleanly with exit status 0.
 
+    What a master (or --data) can make it hold is bounded: each unit has 65536 of each
+    table, shared with the other units until written, and at most 16 files (FC 20/21) of
+    10000 records, so a write to another file answers exception 02; a client's unsent
+    replies, those --delay holds back included, are capped at 64 KB.
+
     \b
     Try it:
       mbtool serve                                   (in one terminal)
@@ -288,9 +294,12 @@ def serve(
 
 
 def _shown(data: bytes, framer: str) -> str:
-    """A frame as the trace shows it: hex pairs, or the characters of an ASCII frame."""
+    """A frame as the trace shows it: hex pairs, or the characters of an ASCII frame when
+    they are all printable (a peer's escape sequences never reach the terminal)."""
     if framer == "ascii" and data.isascii():
-        return data.decode("ascii").replace("\r", "\\r").replace("\n", "\\n")
+        text = data.decode("ascii").replace("\r", "\\r").replace("\n", "\\n")
+        if text.isprintable():
+            return text
     return data.hex(" ").upper()
 
 
@@ -305,6 +314,7 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
     from rich.console import Console, Group
     from rich.live import Live
     from rich.table import Table
+    from rich.text import Text
 
     console = Console()
     shown_units = sorted(units)[:4]
@@ -357,7 +367,9 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         frames.add_column("bytes", overflow="fold")
         frames.add_column("note", overflow="fold")
         for at, direction, peer, data, note in stats.frames:
-            frames.add_row(f"{at:.3f}", direction, peer, _shown(data, framer), note)
+            # Text, never markup: the frame is whatever a peer sent ("[/x]" in an ASCII frame),
+            # and the peer and the note come from outside too.
+            frames.add_row(f"{at:.3f}", direction, Text(peer), Text(_shown(data, framer)), Text(note))
         side = Table.grid(padding=(0, 4))
         side.add_row(counters, served)
         return Group(head, side, frames)
