@@ -158,7 +158,7 @@ def _map_values(connection, path, names, warn, crit) -> list[Checked]:
     return out
 
 
-@device_command("check", types=VALUE_TYPES)
+@device_command("check", types=VALUE_TYPES, output=False)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, with their warn and crit keys")
 @click.option("-w", "--warning", metavar="RANGE", help="Warning range (beats a map's warn).")

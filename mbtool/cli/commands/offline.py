@@ -185,14 +185,14 @@ def lrc(data, output_format):
 # --- raw -------------------------------------------------------------------------------------------
 
 
-@device_command("raw")
+@device_command("raw", unit=False)
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @click.option("--adu", is_flag=True, help="Send HEX exactly as given (checksum or MBAP header included).")
 def raw(connection, data, adu):
     """Send any PDU, or exact frame bytes.
 
     HEX is a unit and a PDU; mbtool adds the CRC, LRC or MBAP header and shows
-    the reply decoded, with its checksum verdict. The first byte is the unit (-u is not used). Any function code may be sent;
+    the reply decoded, with its checksum verdict. The first byte is the unit. Any function code may be sent;
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """

@@ -112,7 +112,7 @@ def _identity(execute) -> dict:
     return identity
 
 
-@device_command("dump")
+@device_command("dump", output=False)
 @click.argument("file", type=click.Path(dir_okay=False, allow_dash=True))
 @click.option(
     "--range",
