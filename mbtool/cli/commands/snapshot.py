@@ -125,7 +125,8 @@ def _identity(execute) -> dict:
 @click.option(
     "--max-requests",
     type=Number(1, 10**9, "requests"),
-    help="Stop after N requests; the file keeps what was read, marked complete = false.",
+    help="Stop after N requests; the file keeps what was read, marked complete = false, "
+    "and the exit status is 8 (incomplete) unless the dump finished within them.",
 )
 def dump(connection, file, ranges, max_requests):
     """Dump a device's tables, and its identity, to FILE (- for stdout).
@@ -146,7 +147,7 @@ def dump(connection, file, ranges, max_requests):
     dumps = {span.table.name: TableDump(span.table) for span in spans}
     total = sum(span.size for span in spans)
     began = time.monotonic()
-    stopped, failure, identity = "", None, {}
+    stopped, failure, identity, out_of_requests = "", None, {}, False
     with open_client(connection, "Read Holding Registers") as client:
         execute = partial(client.execute, connection.unit)
 
@@ -161,6 +162,7 @@ def dump(connection, file, ranges, max_requests):
             identity = _identity(execute)
         except OutOfRequests:
             stopped = f"stopped after {dumper.requests} requests (--max-requests)"
+            out_of_requests = True
         except KeyboardInterrupt:
             stopped = "interrupted"
         except KNOWN_ERRORS as error:
@@ -190,6 +192,8 @@ def dump(connection, file, ranges, max_requests):
     code = ExitCode.OK
     if stopped == "interrupted":
         code = ExitCode.INTERRUPTED
+    elif out_of_requests:
+        code = ExitCode.INCOMPLETE
     elif failure is not None:
         from mbtool.errors import exit_code_for
 
