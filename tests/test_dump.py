@@ -263,6 +263,90 @@ def test_serve_of_a_dump_answers_as_the_device_did(holed_device, tmp_path):
             original.close()
 
 
+# A device whose identity differs from the simulator's defaults in every way a dump must keep:
+# FC 17 with run indicator OFF and bytes that are no text, FC 43/14 with only the basic
+# objects (no 03..06) and conformity 81 (basic, stream and individual access).
+CRAFTED_SLAVE_ID = bytes([0x11, 0x08, 0x2A, 0x00]) + b"\x01\x02v1.0"
+CRAFTED_OBJECTS = {0x00: b"ACME", 0x01: b"PLC-7", 0x02: b"2.1"}
+
+
+def _crafted_identity(request: bytes) -> bytes:
+    """MBAP replies of the crafted device: its identity, and exception 02 to every read."""
+    import struct
+
+    tid, _, _, unit = struct.unpack(">HHHB", request[:7])
+    pdu = request[7:]
+    if pdu[:1] == b"\x11":
+        reply = CRAFTED_SLAVE_ID
+    elif pdu[:2] == b"\x2b\x0e" and pdu[2] == 4:
+        value = CRAFTED_OBJECTS.get(pdu[3])
+        reply = b"\xab\x02" if value is None else bytes([0x2B, 0x0E, 4, 0x81, 0, 0, 1, pdu[3], len(value)]) + value
+    elif pdu[:2] == b"\x2b\x0e":
+        objects = b"".join(bytes([i, len(v)]) + v for i, v in CRAFTED_OBJECTS.items())
+        reply = bytes([0x2B, 0x0E, pdu[2], 0x81, 0, 0, len(CRAFTED_OBJECTS)]) + objects
+    else:
+        reply = bytes([pdu[0] | 0x80, 0x02])
+    return struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply
+
+
+def _identity_replies(host: str, port: int, asked: list[bytes] | None = None) -> tuple[list, list]:
+    """(requests, replies): FC 17, FC 43/14 read codes 1-3 from object 0 following
+    more-follows, and read code 4 for each object there is and one there is not; the whole
+    MBAP replies.  ``asked``: send these requests instead (the other side's)."""
+    import socket
+
+    from test_bridge import mbap, read_mbap
+
+    requests = list(asked) if asked is not None else [b"\x11"]
+    replies = []
+    with socket.create_connection((host, port), timeout=5) as sock:
+
+        def ask(pdu: bytes) -> bytes:
+            sock.sendall(mbap(len(replies) + 1, 1, pdu))
+            tid, unit, reply = read_mbap(sock)
+            replies.append((tid, unit, reply))
+            return reply
+
+        if asked is not None:
+            for pdu in requests:
+                ask(pdu)
+            return requests, replies
+        ask(b"\x11")
+        for code in (1, 2, 3):
+            next_id = 0
+            while True:
+                requests.append(bytes([0x2B, 0x0E, code, next_id]))
+                reply = ask(requests[-1])
+                if reply[0] != 0x2B or reply[4] != 0xFF:
+                    break
+                next_id = reply[5]
+        for object_id in [*range(7), *range(0x80, 0x85), 0x10]:
+            requests.append(bytes([0x2B, 0x0E, 4, object_id]))
+            ask(requests[-1])
+    return requests, replies
+
+
+@pytest.mark.parametrize("original", ["pymodbus", "crafted"])
+def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_device, raw_responder, tmp_path):
+    import tomllib
+
+    from conftest import expect_ok, run_mbtool
+    from test_serve import serve
+
+    if original == "pymodbus":  # its FC 17 sends text first: run indicator byte 79 ('y')
+        host, port = holed_device.host, holed_device.port
+    else:
+        host, port = "127.0.0.1", raw_responder(_crafted_identity).port
+    path = tmp_path / "device.toml"
+    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
+    assert "identity" in tomllib.loads(path.read_text())
+    requests, expected = _identity_replies(host, port)
+    with serve("--data", str(path)) as server:
+        _, replies = _identity_replies(server.host, server.port, requests)
+    for request, want, got in zip(requests, expected, replies, strict=True):
+        assert got == want, f"request {request.hex(' ')}: {got[2].hex(' ')} != {want[2].hex(' ')}"
+
+
 def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_path):
     import tomllib
 

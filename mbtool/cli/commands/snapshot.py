@@ -89,8 +89,11 @@ def _text_or_bytes(value: bytes):
 
 
 def _identity(execute) -> dict:
-    """FC 17 and FC 43/14, when the device answers them: what serve --data replays."""
-    from mbtool.codec.errors import ProtocolError
+    """FC 17 and FC 43/14, when the device answers them: what serve --data replays, byte
+    for byte (a run indicator that is neither 00 nor FF as its byte, no extra bytes as "",
+    the conformity level, and exactly the objects the device has)."""
+    from mbtool.codec.errors import ModbusException, ProtocolError
+    from mbtool.codec.pdu import ExceptionCode
     from mbtool.codec.serial_line import ReportSlaveId
     from mbtool.errors import NoResponse
     from mbtool.link.dump import read_identification
@@ -98,17 +101,23 @@ def _identity(execute) -> dict:
     identity: dict = {}
     try:
         reply = execute(ReportSlaveId())
-        identity |= {"slave_id": reply.slave_id, "run": reply.run_indicator}
-        if reply.extra:
-            identity["extra"] = _text_or_bytes(reply.extra)
+        run = reply.run_indicator if reply.run_indicator_byte is None else reply.run_indicator_byte
+        identity |= {"slave_id": reply.slave_id, "run": run, "extra": _text_or_bytes(reply.extra)}
     except (ProtocolError, NoResponse):
         pass  # not every device answers FC 17 (and Modbus TCP has no use for it)
-    try:
-        objects, _ = read_identification(execute, 0x03)  # extended: every object it has
-    except (ProtocolError, NoResponse):
-        objects = {}
-    if objects:
-        identity["objects"] = {str(key): _text_or_bytes(value) for key, value in objects.items()}
+    for read_code in (0x03, 0x02, 0x01):  # extended: every object; a lesser device may refuse it
+        try:
+            objects, conformity = read_identification(execute, read_code)
+        except ModbusException as error:
+            if error.exception_code == ExceptionCode.ILLEGAL_FUNCTION:
+                break  # no FC 43/14 at all
+            continue
+        except (ProtocolError, NoResponse):
+            break
+        if objects:
+            identity["conformity"] = conformity
+            identity["objects"] = {str(key): _text_or_bytes(value) for key, value in objects.items()}
+        break
     return identity
 
 
