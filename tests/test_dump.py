@@ -347,6 +347,27 @@ def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_dev
         assert got == want, f"request {request.hex(' ')}: {got[2].hex(' ')} != {want[2].hex(' ')}"
 
 
+def test_a_device_that_refuses_the_extended_stream_still_gets_its_objects_dumped(raw_responder, tmp_path):
+    import struct
+    import tomllib
+
+    from conftest import expect_ok, run_mbtool
+
+    def basic_only(request: bytes) -> bytes:
+        pdu = request[7:]
+        if pdu[:2] == b"\x2b\x0e" and pdu[2] in (2, 3):  # exception 03: no such read code here
+            tid, _, _, unit = struct.unpack(">HHHB", request[:7])
+            return struct.pack(">HHHB", tid, 0, 3, unit) + b"\xab\x03"
+        return _crafted_identity(request)
+
+    device = raw_responder(basic_only)
+    path = tmp_path / "device.toml"
+    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://127.0.0.1:{device.port}"))
+    identity = tomllib.loads(path.read_text())["identity"]
+    assert identity["objects"] == {"0": "ACME", "1": "PLC-7", "2": "2.1"} and identity["conformity"] == 0x81
+    assert identity["run"] is False and identity["extra"] == [1, 2, *b"v1.0"]
+
+
 def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_path):
     import tomllib
 
