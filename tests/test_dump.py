@@ -400,6 +400,115 @@ def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
     assert data["complete"] is False and data["coils"]  # the coils came first, and stay
 
 
+def _requests_served(server, count: int, wait: float = 30.0) -> None:
+    """Return once ``serve`` (log mode, in a pipe) has logged ``count`` requests."""
+    import os
+    import select
+    import time
+
+    fd, seen, end = server.proc.stdout.fileno(), b"", time.monotonic() + wait
+    while seen.count(b" RX ") < count:
+        assert time.monotonic() < end, f"serve logged {seen.count(b' RX ')} requests in {wait} s"
+        if select.select([fd], [], [], 0.1)[0]:
+            seen += os.read(fd, 65536)
+
+
+def _dump_process(args):
+    import subprocess
+    import sys
+
+    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "dump", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.parametrize(
+    "first, second", [("SIGINT", "SIGINT"), ("SIGINT", "SIGTERM"), ("SIGTERM", "SIGTERM")]
+)
+def test_a_second_interrupt_still_saves_what_was_read(tmp_path, first, second):
+    import signal
+    import time
+    import tomllib
+
+    from test_serve import serve
+
+    path = tmp_path / "part.toml"
+    with serve("--delay", "0.01", quiet=False) as server:
+        proc = _dump_process([str(path), "-p", f"tcp://{server.host}:{server.port}"])
+        _requests_served(server, 10)
+        proc.send_signal(getattr(signal, first))
+        # The second signal comes again and again until the file is there: none may lose it.
+        end = time.monotonic() + 5
+        while proc.poll() is None and not path.exists() and time.monotonic() < end:
+            proc.send_signal(getattr(signal, second))
+            time.sleep(0.002)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "interrupted: the file has what was read, marked complete = false" in err
+    data = tomllib.loads(path.read_text())
+    assert data["complete"] is False and data["coils"]
+    assert [p.name for p in tmp_path.iterdir()] == ["part.toml"]  # no temporary file left
+
+
+def test_a_dump_that_cannot_be_written_whole_leaves_the_previous_one(tmp_path):
+    import resource
+    import subprocess
+    import sys
+    import tomllib
+
+    from conftest import REPO_ROOT, mbtool_env
+
+    path = tmp_path / "device.toml"
+    previous = "sparse = true\n\n[holding_registers]\n0 = [1, 2, 3]\n"
+    path.write_text(previous)
+
+    def small_files():  # a file size limit: the new dump cannot be written whole (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200, 200))
+
+    res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=small_files,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 7, res.stderr
+    assert f"cannot write to {path}" in res.stderr and "Traceback" not in res.stderr
+    assert path.read_text() == previous  # the previous dump, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
+    # Without the limit the new dump replaces it, with a new file's permissions.
+    expect_ok_res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert expect_ok_res.returncode == 0, expect_ok_res.stderr
+    assert tomllib.loads(path.read_text())["holding_registers"]
+    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
+
+
+def test_a_dump_to_an_unwritable_place_fails_before_reading_the_device(tmp_path, silent_server):
+    from conftest import assert_one_error_line, run_mbtool
+
+    path = tmp_path / "no-such-folder" / "device.toml"
+    line = assert_one_error_line(run_mbtool("dump", path, "-p", silent_server.tcp_target), 7)
+    assert line == f"mbtool: cannot write to {path}: No such file or directory"
+    assert silent_server.connections == 0 and silent_server.received_bytes() == b""
+
+
 # --- mbtool diff ----------------------------------------------------------------------------
 
 
