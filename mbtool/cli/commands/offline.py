@@ -116,13 +116,16 @@ def _decode_stream(lines, framer, direction, fmt: str) -> None:
 
 
 # What decode reads besides a frame a line: the lines mbtool itself writes, and socat's dumps.
-TRACE_LINE = re.compile(r"(TX|RX) (?P<frame>\S.*?)(  .*)?$")  # --hex: 'TX 01 03 ... C4 0B  CRC C4 0B ok'
-# monitor -o plain (cli/commands/monitor.py, plain_line): 'TIME gap=... #N request unit=1 fc=03 [01 03 ...] ...'
+# --hex: 'TX 01 03 00 00 00 02 C4 0B  CRC C4 0B ok'
+TRACE_LINE = re.compile(r"(TX|RX) (?P<frame>\S.*?)(  .*)?$")
+# monitor -o plain (monitor.py's plain_line): 'TIME gap=... #N request unit=1 fc=03 [01 03 ...] ...'
 MONITOR_LINE = re.compile(r"\S+ gap=\S+ #\d+ (?P<direction>request|response|garbage) .*?\[(?P<frame>[^\]]*)\]")
 MONITOR_UNANSWERED = re.compile(r"\S+ unanswered #\d+ ")
 # socat -x (-v): '> 2026/01/02 10:00:00.000100  length=8 from=0 to=7', the bytes in hex on
 # the lines after it (16 a line with -v, the text beside them), and '--' between blocks.
-SOCAT_HEADER = re.compile(r"(?P<arrow>[<>]) \d{4}/\d\d/\d\d \d\d:\d\d:\d\d\S*\s+length=(?P<length>\d+) from=\d+ to=\d+$")
+SOCAT_HEADER = re.compile(
+    r"(?P<arrow>[<>]) \d{4}/\d\d/\d\d \d\d:\d\d:\d\d\S*\s+length=(?P<length>\d+) from=\d+ to=\d+$"
+)
 
 
 def frames_in(lines):
