@@ -131,3 +131,54 @@ def test_every_range_form_and_state_against_pymodbus(tcp_device, ref, ranges, co
     value = HOLDING[int(ref) - 40001]
     assert line.startswith(f"MODBUS {state} - {ref}={value}")
     assert (f"({state}: {why})" in line) if why else "(" not in line
+
+
+# --- ranges that are not: said in the check's own words (issue 28) -------------------------
+
+RANGE_FORMS = "ranges are 10, 10:, ~:10, 10:20 or @10:20"
+
+
+@pytest.mark.parametrize(
+    "option, text, why",
+    [
+        ("-w", "abc", "abc is not a number"),
+        ("-c", "10:abc", "abc is not a number"),
+        ("-w", "@x:5", "x is not a number"),
+        ("-w", "20:10", "its start 20 is above its end 10"),
+        ("-c", "1:2:3", "it has more than one ':'"),
+        ("-w", "5:~", "~ is not a number (~ is for the start: ~:10)"),
+    ],
+)
+def test_a_bad_range_says_what_is_wrong(option, text, why):
+    code, line = check("40001", option, text)
+    assert code == 3
+    assert line == f"MODBUS UNKNOWN - {option} {text} is not a range: {why}; {RANGE_FORMS}"
+
+
+@pytest.mark.parametrize("option", ["-w", "-c"])
+def test_a_range_the_shell_made_into_the_home_directory_is_told_to_quote_it(option):
+    import os
+
+    home = os.path.expanduser("~")
+    code, line = check("40001", option, f"{home}:8000")  # what the shell passes for -w ~:8000
+    assert code == 3
+    assert line == (
+        f"MODBUS UNKNOWN - {option} {home}:8000 is not a range: the shell made ~:8000 into your "
+        f"home directory; quote it: {option} '~:8000'"
+    )
+
+
+def test_a_bad_range_in_a_map_names_the_point_and_no_shell(tmp_path):
+    import os
+
+    path = tmp_path / "pump.toml"
+    path.write_text(f'[points.flow]\nref = 40001\nwarn = "{os.path.expanduser("~")}:8000"\n')
+    code, line = check("-m", path, "flow")
+    assert code == 3 and line.startswith("MODBUS UNKNOWN - flow: warn ") and "is not a number" in line
+    assert "shell" not in line
+
+
+def test_silence_over_modbus_tcp_is_a_plain_timeout(silent_server):
+    # Nothing came back, so nothing says it was a gateway that wants --framer rtu (issue 28).
+    code, line = check("40001", "-t", "0.2", port=silent_server.tcp_target)
+    assert code == 3 and line == "MODBUS UNKNOWN - no response from unit 1 within 0.2 s"
