@@ -429,6 +429,10 @@ def test_frames_option_stops_after_n_frames(tmp_path):
         (("--from-file", "/nonexistent/bus.bin"), "does not exist"),
         (("-p", "/dev/ttyS99", "--from-file", __file__), "not both"),
         (("--from-file", __file__, "--capture", "/nonexistent/dir/x.pcap"), "cannot write capture file"),
+        # Options a recording leaves nothing to do (issue 28: no command takes an option it ignores).
+        (("--from-file", __file__, "--duration", "5"), "--duration is for listening"),
+        (("--from-file", __file__, "--silence", "0.1"), "--silence measures time, and"),
+        (("--from-file", __file__, "--response-timeout", "2"), "is raw bytes with no time stamps"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, words):

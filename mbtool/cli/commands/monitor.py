@@ -154,6 +154,7 @@ def monitor(
     recording, timed = None, True
     if from_file:
         recording, timed = _recording(from_file)
+        _check_replay_options(ctx, from_file, timed)
     else:
         _check_port(port)
     sniffer = BusMonitor(framer, silence or default_silence(framer, baud), response_timeout, timed)
@@ -200,6 +201,21 @@ def monitor(
     if interrupted:
         raise Summary("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
     raise Summary(summary, ExitCode.OK)
+
+
+def _check_replay_options(ctx: click.Context, path: str, timed: bool) -> None:
+    """Refuse the options a recording leaves nothing to do: a recording is read to its end,
+    and raw bytes have no times to measure a silence or a timeout by."""
+
+    def given(name: str) -> bool:
+        return ctx.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE
+
+    if given("duration"):
+        raise RequestError("--duration is for listening; a recording is read to its end (--frames stops sooner)")
+    for name in ("silence", "response_timeout"):
+        if not timed and given(name):
+            option = "--" + name.replace("_", "-")
+            raise RequestError(f"{option} measures time, and {path} is raw bytes with no time stamps")
 
 
 def _check_port(port: str | None) -> None:
