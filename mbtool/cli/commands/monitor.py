@@ -196,6 +196,8 @@ def monitor(
         if recorder is not None:
             recorder.close()
     summary = str(tally)
+    if not timed:
+        summary += f"; {from_file} is raw bytes with no time stamps: no time, gap or latency"
     if lost is not None:
         raise ConnectionFailed(f"{lost}; {summary}")
     if interrupted:
@@ -245,12 +247,7 @@ def _replay(path: str, data: bytes, sniffer, show) -> None:
     """A recording: a pcap file with its time stamps, else raw bytes with none."""
     from mbtool.monitor.pcap import packets
 
-    if not sniffer.timed:
-        sys.stderr.write(
-            f"mbtool: {path} is raw bytes with no time stamps: frames are split by their "
-            "implicit length, and no time, gap or latency is shown\n"
-        )
-        sys.stderr.flush()
+    if not sniffer.timed:  # frames split by their implicit length alone; the summary says so
         now = time.time()  # no time of its own: what --capture stamps its packets with
         if show(sniffer.feed(now, data)):
             show(sniffer.finish(now))
