@@ -453,7 +453,7 @@ HEX_OPTION = click.option(
     is_flag=True,
     help="Print every frame sent and received (stderr), checksum checked.",
 )
-FORMAT_OPTION = click.option(
+OUTPUT_FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
@@ -506,7 +506,7 @@ def connection_options(unit: bool = True, output: bool = True, polls: bool = Fal
         *LINK_OPTIONS,
         *([RECONNECT_EACH_OPTION] if polls else []),
         HEX_OPTION,
-        *([FORMAT_OPTION, NO_HEADER_OPTION] if output else []),
+        *([OUTPUT_FORMAT_OPTION, NO_HEADER_OPTION] if output else []),
         DRY_RUN_OPTION,
     ]
 
