@@ -55,8 +55,6 @@ EXIT_DESCRIPTIONS = {
     "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
     "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
     "to its last whole record).",
-    "INCOMPLETE": "Stopped by a limit before finishing what was asked: dump --max-requests ran "
-    "out of requests (the file it wrote is marked complete = false).",
     "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM).",
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
     "with the status of a program ended by SIGPIPE.",

@@ -131,8 +131,7 @@ def cli() -> None:
 
     Exit codes: 0 ok, 1 internal error, 2 bad input (nothing sent), 3 no response,
     4 Modbus exception, 5 invalid response, 6 cannot open or connect, 7 cannot write the
-    output (disk full), 8 stopped by a limit before finishing (dump --max-requests),
-    130 interrupted, 141 the reader of stdout went away.
+    output (disk full), 130 interrupted, 141 the reader of stdout went away.
     """
 
 

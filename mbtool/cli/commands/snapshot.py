@@ -138,7 +138,7 @@ def _identity(execute) -> dict:
     "--max-requests",
     type=Number(1, 10**9, "requests"),
     help="Stop after N requests; the file keeps what was read, marked complete = false, "
-    "and the exit status is 8 (incomplete) unless the dump finished within them.",
+    "and the exit status is 8 (partial) unless the dump finished within them.",
 )
 def dump(connection, file, ranges, max_requests):
     """Dump a device's tables, and its identity, to FILE (- for stdout).
@@ -214,7 +214,7 @@ def dump(connection, file, ranges, max_requests):
     if stopped == "interrupted":
         code = ExitCode.INTERRUPTED
     elif out_of_requests:
-        code = ExitCode.INCOMPLETE
+        code = ExitCode.PARTIAL  # part of what was asked: a finished dump must not look like it
     elif failure is not None:
         from mbtool.errors import exit_code_for
 
