@@ -21,7 +21,7 @@ class ExitCode(IntEnum):
     INVALID_RESPONSE = 5  # checksum, framing, wrong unit/function/transaction id, byte count
     CONNECTION = 6  # cannot open the port or connect
     OUTPUT = 7  # cannot write the output: disk full, a file too large, an I/O error
-    PARTIAL = 8  # some of a map's points were read and shown, the device refused others
+    PARTIAL = 8  # part of what was asked was done: some of a map's points, a dump cut short
     INTERRUPTED = 130  # Ctrl-C / SIGTERM
     READER_GONE = 141  # stdout's reader went away (| head): what a shell reports for SIGPIPE
 

@@ -61,8 +61,10 @@ EXIT_DESCRIPTIONS = {
     "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
     "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
     "to its last whole record).",
-    "PARTIAL": "A map read got some points and not others (the device refused them): the points read "
-    "were printed and exported, and stderr names each one that failed.",
+    "PARTIAL": "Part of what was asked was done: a map read got some points and not others (the "
+    "device refused them; the points read were printed and exported, and stderr names each one "
+    "that failed), or dump --max-requests stopped before the end (the file is written, marked "
+    "complete = false).",
     "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM). check alone has its own codes: every outcome "
     "is a plugin state, 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.",
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "

@@ -158,7 +158,7 @@ def _config(tmp_path, text: str) -> dict:
         (("40001", "-P", "nosuch"), '[profiles.pump]\nport = "sim://"\n', "no profile nosuch"),
         (("40001", "-P", "pump"), "[profiles.pump\n", "not valid TOML"),
         (("40001", "-P", "pump"), '[profiles.pump]\ncolour = "red"\n', "unknown key"),
-        (("40001", "-o", "prom", "-p", "sim://"), "", "-o prom carries values read"),
+        (("40001", "-o", "prom", "-p", "sim://"), "", "no such option -o"),
         (("40001", "-t", "0", "-p", "sim://"), "", "-t"),
     ],
     ids=["no-profile", "broken-config", "bad-profile-key", "prom", "bad-timeout"],
@@ -238,3 +238,54 @@ def test_a_point_the_device_refuses_is_judged_as_unreadable_and_the_others_as_re
     )
     assert line.endswith("), level=200 (WARNING: outside 0:150) | flow=100;150 missing=U;150 level=200;150")
     assert check("-m", path, "-w", "150", "--state-on-error", "warning", port=holed_device.target)[0] == 1
+
+
+# --- ranges that are not: said in the check's own words (issue 28) -------------------------
+
+RANGE_FORMS = "ranges are 10, 10:, ~:10, 10:20 or @10:20"
+
+
+@pytest.mark.parametrize(
+    "option, text, why",
+    [
+        ("-w", "abc", "abc is not a number"),
+        ("-c", "10:abc", "abc is not a number"),
+        ("-w", "@x:5", "x is not a number"),
+        ("-w", "20:10", "its start 20 is above its end 10"),
+        ("-c", "1:2:3", "it has more than one ':'"),
+        ("-w", "5:~", "~ is not a number (~ is for the start: ~:10)"),
+    ],
+)
+def test_a_bad_range_says_what_is_wrong(option, text, why):
+    code, line = check("40001", option, text)
+    assert code == 3
+    assert line == f"MODBUS UNKNOWN - {option} {text} is not a range: {why}; {RANGE_FORMS}"
+
+
+@pytest.mark.parametrize("option", ["-w", "-c"])
+def test_a_range_the_shell_made_into_the_home_directory_is_told_to_quote_it(option):
+    import os
+
+    home = os.path.expanduser("~")
+    code, line = check("40001", option, f"{home}:8000")  # what the shell passes for -w ~:8000
+    assert code == 3
+    assert line == (
+        f"MODBUS UNKNOWN - {option} {home}:8000 is not a range: the shell made ~:8000 into your "
+        f"home directory; quote it: {option} '~:8000'"
+    )
+
+
+def test_a_bad_range_in_a_map_names_the_point_and_no_shell(tmp_path):
+    import os
+
+    path = tmp_path / "pump.toml"
+    path.write_text(f'[points.flow]\nref = 40001\nwarn = "{os.path.expanduser("~")}:8000"\n')
+    code, line = check("-m", path, "flow")
+    assert code == 3 and line.startswith("MODBUS UNKNOWN - flow: warn ") and "is not a number" in line
+    assert "shell" not in line
+
+
+def test_silence_over_modbus_tcp_is_a_plain_timeout(silent_server):
+    # Nothing came back, so nothing says it was a gateway that wants --framer rtu (issue 28).
+    code, line = check("40001", "-t", "0.2", port=silent_server.tcp_target)
+    assert code == 3 and line == "MODBUS UNKNOWN - no response from unit 1 within 0.2 s"

@@ -59,3 +59,43 @@ def test_options_before_the_command_are_told_where_they_go():
     assert res.stdout == ""
     # What it suggests works.
     assert run_mbtool("read-holding-registers", "0", "2", "-p", "sim://", "-u", "1").returncode == 0
+
+
+# --- no command takes an option it ignores (issue 28) ----------------------------------------
+
+
+def _command_tree() -> dict:
+    import click
+
+    from mbtool.cli import COMMANDS, cli
+
+    ctx = click.Context(cli)
+    return {name: cli.get_command(ctx, name) for name in COMMANDS}
+
+
+def _option_names(command) -> set[str]:
+    return {name for param in command.params for name in param.opts + param.secondary_opts}
+
+
+def test_no_command_takes_an_option_it_ignores():
+    commands = _command_tree()
+    for name, command in commands.items():
+        names = _option_names(command)
+        # --reconnect-each reopens the link every poll: only a command that polls takes it.
+        assert ("--reconnect-each" in names) == ("--interval" in names), name
+        # --no-header leaves out CSV's header row: only where -o offers csv.
+        fmt = next((param for param in command.params if "-o" in param.opts), None)
+        offers_csv = fmt is not None and "csv" in fmt.type.choices
+        assert ("--no-header" in names) == offers_csv, name
+    # A dump writes a data file and check a plugin's line: neither has a format to choose.
+    for name in ("dump", "check"):
+        assert not {"-o", "--no-header", "--reconnect-each"} & _option_names(commands[name]), name
+    # raw sends the unit as the first byte of HEX.
+    assert not {"-u", "--unit"} & _option_names(commands["raw"])
+
+
+@pytest.mark.parametrize("option", [["-o", "json"], ["-o", "csv"], ["--no-header"], ["--reconnect-each"]])
+def test_dump_refuses_the_options_it_has_no_use_for(tmp_path, option):
+    line = assert_one_error_line(run_mbtool("dump", tmp_path / "d.toml", *option, "-p", "sim://"), 2)
+    assert f"no such option {option[0]}" in line
+    assert not (tmp_path / "d.toml").exists()

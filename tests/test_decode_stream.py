@@ -41,43 +41,52 @@ def test_each_line_is_decoded_as_it_comes():
         proc.stderr.close()
 
 
+BAD_CRC = "01 03 04 00 01 00 02 2A 33"  # a reply
+
+
 def test_bad_lines_are_named_and_decoding_goes_on():
-    lines = [REQUEST, "zz", "01 03", "", "# a comment", REPLY]
+    lines = [REQUEST, "zz", "01 03", "", "# a comment", BAD_CRC, REPLY]
     res = run_mbtool("decode", input="\n".join(lines) + "\n")
-    assert res.returncode == 5, str(res)
-    assert res.stdout.count("raw ") == 2  # both frames, the one after the bad lines too
+    assert res.returncode == 5, str(res)  # the frame with a bad CRC, not the lines that are none
+    assert res.stdout.count("raw ") == 3  # every frame, those after the bad lines too
     errors = res.stderr.splitlines()
-    assert errors[0] == "mbtool: line 2: zz is not hex"
-    assert errors[1].startswith("mbtool: line 3: RTU frame too short")
-    assert errors[2] == "mbtool: 2 of 4 lines failed; the first: line 2: zz is not hex"
+    assert errors[0] == "mbtool: line 2: not a frame, passed over: zz is not hex"
+    assert errors[1].startswith("mbtool: line 3: not a frame, passed over: RTU frame too short")
+    assert errors[2] == "mbtool: line 6: CRC 2A 33 BAD, expected 2A 32"
+    assert errors[3] == "mbtool: 1 of 3 frames failed; the first: line 6: CRC 2A 33 BAD, expected 2A 32"
 
 
-def test_bad_lines_in_json_are_records_with_an_error():
-    res = run_mbtool("decode", "-o", "json", input=f"{REQUEST}\nzz\n{REPLY}\n")
+def test_bad_frames_in_json_are_records_with_an_error():
+    res = run_mbtool("decode", "-o", "json", input=f"{REQUEST}\nzz\n{BAD_CRC}\n{REPLY}\n")
     records = [json.loads(line) for line in res.stdout.splitlines()]
-    assert [r.get("line") for r in records[:3]] == [1, 2, 3]
-    assert records[1] == {"line": 2, "input": "zz", "error": "zz is not hex", "exit_code": 5}
+    assert [r.get("line") for r in records[:3]] == [1, 3, 4]  # line 2 is no frame: stderr names it
+    assert records[1]["kind"] == "response" and records[1]["checksum"]["ok"] is False
     assert records[2]["kind"] == "response" and records[2]["error"] is None
     assert records[3]["exit_code"] == 5 and res.returncode == 5
+    assert res.stderr.splitlines()[0] == "mbtool: line 2: not a frame, passed over: zz is not hex"
 
 
 def test_100000_lines_with_garbage_every_valid_frame_decoded():
     rnd = random.Random(5)
-    lines, valid = [], 0
+    lines, valid, bad = [], 0, 0
     for i in range(100_000):
         r = rnd.random()
         if r < 0.05:
             lines.append("garbage!")
         elif r < 0.1:
             lines.append("01 03")
+        elif r < 0.11:
+            lines.append(BAD_CRC)
+            bad += 1
         else:
             lines.append(REQUEST if i % 2 == 0 else REPLY)
             valid += 1
     start = time.monotonic()
     res = run_mbtool("decode", "-o", "plain", input="\n".join(lines) + "\n", timeout=110)
     assert res.returncode == 5
-    assert res.stdout.count("frame rtu ") == valid
+    assert res.stdout.count("frame rtu ") == valid + bad
     assert len(res.stderr.splitlines()) == 100_000 - valid + 1
+    assert res.stderr.splitlines()[-1].startswith(f"mbtool: {bad} of {valid + bad} frames failed")
     print(f"\n100,000 lines decoded in {time.monotonic() - start:.1f} s")
 
 
@@ -89,3 +98,111 @@ def test_a_saved_hex_trace_decodes():
     records = [json.loads(line) for line in res.stdout.splitlines()]
     assert [r["kind"] for r in records] == ["request", "response"]
     assert records[1]["name"] == "Read Holding Registers" and records[1]["error"] is None
+
+
+# --- what decode reads: monitor's lines, socat -x dumps; only frames decide the exit (issue 28) ----
+
+
+def test_text_that_is_not_hex_is_quoted_as_typed():
+    from conftest import assert_one_error_line
+
+    line = assert_one_error_line(run_mbtool("decode", "2024-05-26T00:12:34.567+02:00", "01", "03"), 2)
+    assert line == "mbtool: 2024-05-26T00:12:34.567+02:00 is not hex"
+    line = assert_one_error_line(run_mbtool("decode", "01 03 0:0G"), 2)
+    assert line == "mbtool: 0:0G is not hex"
+
+
+def _monitor_recording(tmp_path, fmt: str) -> str:
+    """monitor's own output (-o plain or json) for a recording of a request and its reply."""
+    from conftest import crc16
+
+    request = bytes.fromhex(REQUEST.replace(" ", ""))
+    reply = bytes.fromhex(REPLY.replace(" ", ""))
+    exception = bytes([0x01, 0x83, 0x02]) + crc16(bytes([0x01, 0x83, 0x02]))
+    path = tmp_path / "bus.bin"
+    path.write_bytes(request + reply + request + exception + b"\x55\x55")  # and 2 garbage bytes
+    res = run_mbtool("monitor", "--from-file", path, "-o", fmt)
+    assert res.returncode == 0 and res.stdout, str(res)
+    return res.stdout
+
+
+@pytest.mark.parametrize("fmt", ["plain", "json"])
+def test_monitor_lines_decode(tmp_path, fmt):
+    lines = _monitor_recording(tmp_path, fmt)
+    res = run_mbtool("decode", "-o", "json", input=lines)
+    assert res.returncode == 0, str(res)
+    assert res.stderr == ""
+    records = [json.loads(line) for line in res.stdout.splitlines()]
+    assert [r["kind"] for r in records] == ["request", "response", "request", "exception"]
+    assert [r["raw"] for r in records[:2]] == [REQUEST, REPLY]
+    assert all(r["error"] is None for r in records)
+    assert [r["line"] for r in records] == [1, 2, 3, 4]
+
+
+def _socat_x(tmp_path, *flags: str) -> str:
+    """A real socat -x dump of a read through it: mbtool -> socat -> serve (RTU over TCP)."""
+    import shutil
+    import signal
+
+    from conftest import free_port
+    from test_serve import serve
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed")
+    port = free_port()
+    log = tmp_path / "socat.log"
+    with serve("--framer", "rtu") as server, open(log, "w") as err:
+        socat = subprocess.Popen(
+            ["socat", *flags, f"TCP-LISTEN:{port},bind=127.0.0.1,reuseaddr", f"TCP:127.0.0.1:{server.port}"],
+            stderr=err,
+        )
+        try:
+            deadline = time.monotonic() + 10
+            while True:
+                res = run_mbtool("read-holding-registers", "0", "2", "-p", f"socket://127.0.0.1:{port}")
+                if res.returncode == 0 or time.monotonic() > deadline:
+                    break
+                time.sleep(0.1)  # socat not listening yet
+            assert res.returncode == 0, str(res)
+        finally:
+            socat.send_signal(signal.SIGTERM)
+            socat.wait(timeout=5)
+    return log.read_text()
+
+
+@pytest.mark.parametrize("flags", [["-x"], ["-x", "-v"]], ids=["x", "xv"])
+def test_a_socat_dump_decodes(tmp_path, flags):
+    dump = _socat_x(tmp_path, *flags)
+    assert dump.startswith("> ") and "length=8" in dump
+    res = run_mbtool("decode", "-o", "json", input=dump)
+    assert res.returncode == 0, str(res)
+    records = [json.loads(line) for line in res.stdout.splitlines()]
+    assert [r["kind"] for r in records] == ["request", "response"]
+    assert records[0]["raw"] == "01 03 00 00 00 02 C4 0B" and records[1]["error"] is None
+
+
+def test_a_frame_socat_saw_in_pieces_is_joined():
+    # A serial line read in pieces: socat shows each read as a block of its own.
+    dump = (
+        "> 2026/01/02 10:00:00.000100  length=3 from=0 to=2\n 01 03 00\n--\n"
+        "> 2026/01/02 10:00:00.000900  length=5 from=3 to=7\n 00 00 02 c4 0b\n--\n"
+        "< 2026/01/02 10:00:00.010000  length=9 from=0 to=8\n 01 03 04 00 01 00 02 2a 32\n--\n"
+    )
+    res = run_mbtool("decode", "-o", "json", input=dump)
+    assert res.returncode == 0, str(res)
+    records = [json.loads(line) for line in res.stdout.splitlines()]
+    assert [(r["line"], r["kind"], r["raw"]) for r in records] == [
+        (1, "request", REQUEST),
+        (7, "response", REPLY),
+    ]
+
+
+def test_lines_that_are_no_frames_are_named_and_do_not_fail_the_run():
+    # What 2>&1 mixes in with --hex's lines: values read and mbtool's own lines.
+    trace = run_mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--hex")
+    mixed = trace.stderr + trace.stdout + "mbtool: a line of mbtool's own\n"
+    res = run_mbtool("decode", input=mixed)
+    assert res.returncode == 0, str(res)
+    assert res.stdout.count("raw ") == 2
+    notes = res.stderr.splitlines()
+    assert notes and all(" not a frame, passed over" in note for note in notes), res.stderr

@@ -255,6 +255,111 @@ def test_serve_of_a_dump_answers_as_the_device_did(holed_device, tmp_path):
             original.close()
 
 
+# A device whose identity differs from the simulator's defaults in every way a dump must keep:
+# FC 17 with run indicator OFF and bytes that are no text, FC 43/14 with only the basic
+# objects (no 03..06) and conformity 81 (basic, stream and individual access).
+CRAFTED_SLAVE_ID = bytes([0x11, 0x08, 0x2A, 0x00]) + b"\x01\x02v1.0"
+CRAFTED_OBJECTS = {0x00: b"ACME", 0x01: b"PLC-7", 0x02: b"2.1"}
+
+
+def _crafted_identity(request: bytes) -> bytes:
+    """MBAP replies of the crafted device: its identity, and exception 02 to every read."""
+    import struct
+
+    tid, _, _, unit = struct.unpack(">HHHB", request[:7])
+    pdu = request[7:]
+    if pdu[:1] == b"\x11":
+        reply = CRAFTED_SLAVE_ID
+    elif pdu[:2] == b"\x2b\x0e" and pdu[2] == 4:
+        value = CRAFTED_OBJECTS.get(pdu[3])
+        reply = b"\xab\x02" if value is None else bytes([0x2B, 0x0E, 4, 0x81, 0, 0, 1, pdu[3], len(value)]) + value
+    elif pdu[:2] == b"\x2b\x0e":
+        objects = b"".join(bytes([i, len(v)]) + v for i, v in CRAFTED_OBJECTS.items())
+        reply = bytes([0x2B, 0x0E, pdu[2], 0x81, 0, 0, len(CRAFTED_OBJECTS)]) + objects
+    else:
+        reply = bytes([pdu[0] | 0x80, 0x02])
+    return struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply
+
+
+def _identity_replies(host: str, port: int, asked: list[bytes] | None = None) -> tuple[list, list]:
+    """(requests, replies): FC 17, FC 43/14 read codes 1-3 from object 0 following
+    more-follows, and read code 4 for each object there is and one there is not; the whole
+    MBAP replies.  ``asked``: send these requests instead (the other side's)."""
+    import socket
+
+    from test_bridge import mbap, read_mbap
+
+    requests = list(asked) if asked is not None else [b"\x11"]
+    replies = []
+    with socket.create_connection((host, port), timeout=5) as sock:
+
+        def ask(pdu: bytes) -> bytes:
+            sock.sendall(mbap(len(replies) + 1, 1, pdu))
+            tid, unit, reply = read_mbap(sock)
+            replies.append((tid, unit, reply))
+            return reply
+
+        if asked is not None:
+            for pdu in requests:
+                ask(pdu)
+            return requests, replies
+        ask(b"\x11")
+        for code in (1, 2, 3):
+            next_id = 0
+            while True:
+                requests.append(bytes([0x2B, 0x0E, code, next_id]))
+                reply = ask(requests[-1])
+                if reply[0] != 0x2B or reply[4] != 0xFF:
+                    break
+                next_id = reply[5]
+        for object_id in [*range(7), *range(0x80, 0x85), 0x10]:
+            requests.append(bytes([0x2B, 0x0E, 4, object_id]))
+            ask(requests[-1])
+    return requests, replies
+
+
+@pytest.mark.parametrize("original", ["pymodbus", "crafted"])
+def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_device, raw_responder, tmp_path):
+    import tomllib
+
+    from conftest import expect_ok, run_mbtool
+    from test_serve import serve
+
+    if original == "pymodbus":  # its FC 17 sends text first: run indicator byte 79 ('y')
+        host, port = holed_device.host, holed_device.port
+    else:
+        host, port = "127.0.0.1", raw_responder(_crafted_identity).port
+    path = tmp_path / "device.toml"
+    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
+    assert "identity" in tomllib.loads(path.read_text())
+    requests, expected = _identity_replies(host, port)
+    with serve("--data", str(path)) as server:
+        _, replies = _identity_replies(server.host, server.port, requests)
+    for request, want, got in zip(requests, expected, replies, strict=True):
+        assert got == want, f"request {request.hex(' ')}: {got[2].hex(' ')} != {want[2].hex(' ')}"
+
+
+def test_a_device_that_refuses_the_extended_stream_still_gets_its_objects_dumped(raw_responder, tmp_path):
+    import struct
+    import tomllib
+
+    from conftest import expect_ok, run_mbtool
+
+    def basic_only(request: bytes) -> bytes:
+        pdu = request[7:]
+        if pdu[:2] == b"\x2b\x0e" and pdu[2] in (2, 3):  # exception 03: no such read code here
+            tid, _, _, unit = struct.unpack(">HHHB", request[:7])
+            return struct.pack(">HHHB", tid, 0, 3, unit) + b"\xab\x03"
+        return _crafted_identity(request)
+
+    device = raw_responder(basic_only)
+    path = tmp_path / "device.toml"
+    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://127.0.0.1:{device.port}"))
+    identity = tomllib.loads(path.read_text())["identity"]
+    assert identity["objects"] == {"0": "ACME", "1": "PLC-7", "2": "2.1"} and identity["conformity"] == 0x81
+    assert identity["run"] is False and identity["extra"] == [1, 2, *b"v1.0"]
+
+
 def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_path):
     import tomllib
 
@@ -262,7 +367,8 @@ def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_pa
 
     path = tmp_path / "part.toml"
     res = run_mbtool("dump", path, *RANGES, "--max-requests", "5", "-p", holed_device.target)
-    assert res.returncode == 0 and "stopped after 5 requests (--max-requests)" in res.stderr
+    # Not 0: a dump that did not finish must not look like one that did (issue 28).
+    assert res.returncode == 8 and "stopped after 5 requests (--max-requests)" in res.stderr
     data = tomllib.loads(path.read_text())
     assert data["complete"] is False and data["sparse"] is True
     res = run_mbtool("dump", "-", "--range", "holding:5-2", "-p", holed_device.target)
@@ -284,6 +390,115 @@ def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
     assert "interrupted: the file has what was read, marked complete = false" in err
     data = tomllib.loads(path.read_text())
     assert data["complete"] is False and data["coils"]  # the coils came first, and stay
+
+
+def _requests_served(server, count: int, wait: float = 30.0) -> None:
+    """Return once ``serve`` (log mode, in a pipe) has logged ``count`` requests."""
+    import os
+    import select
+    import time
+
+    fd, seen, end = server.proc.stdout.fileno(), b"", time.monotonic() + wait
+    while seen.count(b" RX ") < count:
+        assert time.monotonic() < end, f"serve logged {seen.count(b' RX ')} requests in {wait} s"
+        if select.select([fd], [], [], 0.1)[0]:
+            seen += os.read(fd, 65536)
+
+
+def _dump_process(args):
+    import subprocess
+    import sys
+
+    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "dump", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=signals_as_from_a_shell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.parametrize(
+    "first, second", [("SIGINT", "SIGINT"), ("SIGINT", "SIGTERM"), ("SIGTERM", "SIGTERM")]
+)
+def test_a_second_interrupt_still_saves_what_was_read(tmp_path, first, second):
+    import signal
+    import time
+    import tomllib
+
+    from test_serve import serve
+
+    path = tmp_path / "part.toml"
+    with serve("--delay", "0.01", quiet=False) as server:
+        proc = _dump_process([str(path), "-p", f"tcp://{server.host}:{server.port}"])
+        _requests_served(server, 10)
+        proc.send_signal(getattr(signal, first))
+        # The second signal comes again and again until the file is there: none may lose it.
+        end = time.monotonic() + 5
+        while proc.poll() is None and not path.exists() and time.monotonic() < end:
+            proc.send_signal(getattr(signal, second))
+            time.sleep(0.002)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "interrupted: the file has what was read, marked complete = false" in err
+    data = tomllib.loads(path.read_text())
+    assert data["complete"] is False and data["coils"]
+    assert [p.name for p in tmp_path.iterdir()] == ["part.toml"]  # no temporary file left
+
+
+def test_a_dump_that_cannot_be_written_whole_leaves_the_previous_one(tmp_path):
+    import resource
+    import subprocess
+    import sys
+    import tomllib
+
+    from conftest import REPO_ROOT, mbtool_env
+
+    path = tmp_path / "device.toml"
+    previous = "sparse = true\n\n[holding_registers]\n0 = [1, 2, 3]\n"
+    path.write_text(previous)
+
+    def small_files():  # a file size limit: the new dump cannot be written whole (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200, 200))
+
+    res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=small_files,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 7, res.stderr
+    assert f"cannot write to {path}" in res.stderr and "Traceback" not in res.stderr
+    assert path.read_text() == previous  # the previous dump, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
+    # Without the limit the new dump replaces it, with a new file's permissions.
+    expect_ok_res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert expect_ok_res.returncode == 0, expect_ok_res.stderr
+    assert tomllib.loads(path.read_text())["holding_registers"]
+    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
+
+
+def test_a_dump_to_an_unwritable_place_fails_before_reading_the_device(tmp_path, silent_server):
+    from conftest import assert_one_error_line, run_mbtool
+
+    path = tmp_path / "no-such-folder" / "device.toml"
+    line = assert_one_error_line(run_mbtool("dump", path, "-p", silent_server.tcp_target), 7)
+    assert line == f"mbtool: cannot write to {path}: No such file or directory"
+    assert silent_server.connections == 0 and silent_server.received_bytes() == b""
 
 
 # --- mbtool diff ----------------------------------------------------------------------------

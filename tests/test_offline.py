@@ -113,7 +113,7 @@ def test_decode_stdin_reports_which_frame_is_bad():
     assert res.returncode == 5
     assert res.stderr.splitlines() == [
         "mbtool: line 2: CRC C5 CD BAD, expected C5 CE",
-        "mbtool: 1 of 2 lines failed; the first: line 2: CRC C5 CD BAD, expected C5 CE",
+        "mbtool: 1 of 2 frames failed; the first: line 2: CRC C5 CD BAD, expected C5 CE",
     ]
 
 

@@ -146,7 +146,7 @@ def cli() -> None:
 
     Exit codes: 0 ok, 1 internal error, 2 bad input (nothing sent), 3 no response,
     4 Modbus exception, 5 invalid response, 6 cannot open or connect, 7 cannot write the
-    output (disk full), 8 some of a map's points not read, 130 interrupted, 141 the
+    output (disk full), 8 partial (some of a map's points, a dump cut short), 130 interrupted, 141 the
     reader of stdout went away (or stdout closed). check exits with its plugin state, 0-3.
     """
 

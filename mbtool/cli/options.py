@@ -428,63 +428,100 @@ LINK_OPTIONS = [
     ),
 ]
 
-CONNECTION_OPTIONS = [
-    click.option(
-        "-p",
-        "--port",
-        envvar="MBTOOL_PORT",
-        metavar="TARGET",
-        shell_complete=complete_port,
-        help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
-        "loop:// or sim:// (the built-in device).",
-        show_envvar=True,
-    ),
-    click.option(
-        "-u",
-        "--unit",
-        envvar="MBTOOL_UNIT",
-        type=Number(0, 255, "unit"),
-        default=Connection.unit,
-        show_default=True,
-        help="Unit (slave) id; 0 broadcasts a write.",
-        show_envvar=True,
-    ),
-    click.option(
-        "--framer",
-        type=Choice(["rtu", "ascii", "tcp"]),
-        help="Framing: tcp for tcp:// targets, rtu otherwise.",
-    ),
-    *SERIAL_LINE_OPTIONS,
-    *LINK_OPTIONS,
-    click.option(
-        "--reconnect-each",
-        is_flag=True,
-        help="Polling: close and reopen the link for every poll, for devices and gateways that "
-        "serve one client or leak connections.",
-    ),
-    click.option(
-        "--hex",
-        "hex_trace",
-        is_flag=True,
-        help="Print every frame sent and received (stderr), checksum checked.",
-    ),
-    click.option(
-        "-o",
-        "--format",
-        "output_format",
-        type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
-        callback=lambda ctx, param, value: output_chosen(value),
-        help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
-        'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
-        "(Prometheus text) for the read commands.",
-    ),
-    NO_HEADER_OPTION,
-    click.option(
-        "--dry-run",
-        is_flag=True,
-        help="Print the frame that would be sent, decoded, and send nothing (the port is not opened).",
-    ),
-]
+PORT_OPTION = click.option(
+    "-p",
+    "--port",
+    envvar="MBTOOL_PORT",
+    metavar="TARGET",
+    shell_complete=complete_port,
+    help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
+    "loop:// or sim:// (the built-in device).",
+    show_envvar=True,
+)
+UNIT_OPTION = click.option(
+    "-u",
+    "--unit",
+    envvar="MBTOOL_UNIT",
+    type=Number(0, 255, "unit"),
+    default=Connection.unit,
+    show_default=True,
+    help="Unit (slave) id; 0 broadcasts a write.",
+    show_envvar=True,
+)
+FRAMER_OPTION = click.option(
+    "--framer",
+    type=Choice(["rtu", "ascii", "tcp"]),
+    help="Framing: tcp for tcp:// targets, rtu otherwise.",
+)
+RECONNECT_EACH_OPTION = click.option(
+    "--reconnect-each",
+    is_flag=True,
+    help="Polling: close and reopen the link for every poll, for devices and gateways that "
+    "serve one client or leak connections.",
+)
+HEX_OPTION = click.option(
+    "--hex",
+    "hex_trace",
+    is_flag=True,
+    help="Print every frame sent and received (stderr), checksum checked.",
+)
+OUTPUT_FORMAT_OPTION = click.option(
+    "-o",
+    "--format",
+    "output_format",
+    type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
+    callback=lambda ctx, param, value: output_chosen(value),
+    help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
+    'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
+    "(Prometheus text) for the read commands.",
+)
+DRY_RUN_OPTION = click.option(
+    "--dry-run",
+    is_flag=True,
+    help="Print the frame that would be sent, decoded, and send nothing (the port is not opened).",
+)
+
+
+# The parameters connection_options may give a command, as click names them.
+CONNECTION_KEYS = (
+    "port",
+    "unit",
+    "framer",
+    "baud",
+    "parity",
+    "bytesize",
+    "stopbits",
+    "timeout",
+    "retries",
+    "echo",
+    "pause",
+    "connect_delay",
+    "lenient",
+    "rs485",
+    "rs485_delays",
+    "reconnect_each",
+    "hex_trace",
+    "output_format",
+    "dry_run",
+)
+
+
+def connection_options(unit: bool = True, output: bool = True, polls: bool = False) -> list[Callable]:
+    """The options of a command that talks to a device, only those it uses: ``unit`` -u
+    (raw takes the unit from its bytes), ``output`` -o and --no-header (dump writes a data
+    file, check a plugin's line), ``polls`` --reconnect-each (only a poll has a next link)."""
+    return [
+        PORT_OPTION,
+        *([UNIT_OPTION] if unit else []),
+        FRAMER_OPTION,
+        *SERIAL_LINE_OPTIONS,
+        *LINK_OPTIONS,
+        *([RECONNECT_EACH_OPTION] if polls else []),
+        HEX_OPTION,
+        *([OUTPUT_FORMAT_OPTION, NO_HEADER_OPTION] if output else []),
+        DRY_RUN_OPTION,
+    ]
+
 
 VALUE_TYPES = ("uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string")
 ONE_REGISTER_TYPES = ("uint16", "int16", "hex")
@@ -592,60 +629,34 @@ PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a
 
 
 def device_command(
-    name: str, *, types: tuple[str, ...] = (), order_all: bool = False, readings: bool = False, **settings
+    name: str,
+    *,
+    types: tuple[str, ...] = (),
+    order_all: bool = False,
+    readings: bool = False,
+    polls: bool = False,
+    unit: bool = True,
+    output: bool = True,
+    **settings,
 ) -> Callable:
-    """A command that talks to a device: the shared options, then a Connection as first argument.
+    """A command that talks to a device: the shared options it uses, then a Connection as
+    first argument.
 
     ``types``: the --type choices the command offers (none: no --type/--order);
     ``order_all``: --order also takes all (reads); ``readings``: it prints values read,
-    which -o influx and -o prom can carry.
+    which -o influx and -o prom can carry; ``polls``, ``unit``, ``output``: see
+    connection_options.
     """
 
     def decorate(function: Callable) -> Callable:
         @functools.wraps(function)
-        def run(
-            port,
-            unit,
-            framer,
-            baud,
-            parity,
-            bytesize,
-            stopbits,
-            timeout,
-            retries,
-            echo,
-            pause,
-            connect_delay,
-            reconnect_each,
-            lenient,
-            rs485,
-            rs485_delays,
-            hex_trace,
-            output_format,
-            dry_run,
-            **kwargs,
-        ):
-            connection = Connection(
-                port=port,
-                unit=unit,
-                framer=framer,
-                baud=baud,
-                parity=parity,
-                bytesize=int(bytesize),
-                stopbits=int(stopbits),
-                timeout=timeout,
-                retries=retries,
-                echo=echo,
-                pause=pause,
-                connect_delay=connect_delay,
-                reconnect_each=reconnect_each,
-                lenient=lenient,
-                hex=hex_trace,
-                output_format=output_format,
-                dry_run=dry_run,
-                rs485=rs485,
-                rs485_delays=rs485_delays,
-            )
+        def run(**kwargs):
+            # The command's own arguments stay in kwargs; the shared options make the Connection.
+            shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
+            shared["hex"] = shared.pop("hex_trace")
+            shared["bytesize"], shared["stopbits"] = int(shared["bytesize"]), int(shared["stopbits"])
+            connection = Connection(**shared)
+            output_format = connection.output_format
             profile = click.get_current_context().meta.get("mbtool.profile")
             from mbtool.cli.render import MONITORING_FORMATS  # loaded with the CLI
 
@@ -669,7 +680,7 @@ def device_command(
 
         run = PROFILE_OPTION(run)
         typed = type_options(types, order_all) if types else []
-        run = with_options(CONNECTION_OPTIONS + typed)(run)
+        run = with_options(connection_options(unit, output, polls) + typed)(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
         context = {
             "ignore_unknown_options": True,

@@ -11,6 +11,7 @@ and the padding bits of FC01/02 that only the request's quantity can tell.
 from __future__ import annotations
 
 import binascii
+import re
 import struct
 
 from mbtool.codec.checksum import crc_ok, lrc
@@ -36,22 +37,28 @@ class Described:
     request: Request | None = None  # the typed request, for the next frame's context
 
 
+HEX_DIGITS = "0123456789abcdefABCDEF"
+
+
 def parse_hex(text: str) -> bytes:
-    """Hex bytes as a user types them: ``01 03 00 6B``, ``01036B``, ``0x01,0x03``."""
-    cleaned = text.replace(",", " ").replace(":", " ").replace("-", " ")
-    tokens = cleaned.split()
+    """Hex bytes as a user types them: ``01 03 00 6B``, ``01036B``, ``0x01,0x03``, ``01:03``.
+
+    A bad piece is named by the word it is in, as typed (``2024-05-26T00:12`` is not hex),
+    never by a fragment that the separators made of it."""
+    pieces = [
+        (word, piece) for word in text.replace(",", " ").split() for piece in re.split("[:-]", word) if piece
+    ]
     out = bytearray()
-    for token in tokens:
-        token = token[2:] if token.lower().startswith("0x") else token
-        if len(token) % 2:
-            if len(tokens) > 1 and len(token) == 1:
-                token = "0" + token
+    for word, piece in pieces:
+        piece = piece[2:] if piece.lower().startswith("0x") else piece
+        if not piece or piece.strip(HEX_DIGITS):
+            raise RequestError(f"{word} is not hex")
+        if len(piece) % 2:
+            if len(pieces) > 1 and len(piece) == 1:
+                piece = "0" + piece
             else:
-                raise RequestError(f"{token} is not whole bytes of hex (an odd number of digits)")
-        try:
-            out += binascii.unhexlify(token)
-        except (binascii.Error, ValueError):
-            raise RequestError(f"{token} is not hex") from None
+                raise RequestError(f"{word} is not whole bytes of hex (an odd number of digits)")
+        out += binascii.unhexlify(piece)
     return bytes(out)
 
 
@@ -60,6 +67,15 @@ def parse_hex(text: str) -> bytes:
 
 def _looks_tcp(data: bytes) -> bool:
     return len(data) >= 8 and data[2:4] == b"\x00\x00" and int.from_bytes(data[4:6], "big") == len(data) - 6
+
+
+def looks_whole(data: bytes) -> bool:
+    """Bytes that end where a frame ends: an RTU frame with a good CRC, an MBAP header whose
+    length is the rest, or an ASCII frame to its CR LF (spec §2).  A capture that shows a
+    line's reads (socat -x) joins a piece that is not with the next one."""
+    if data[:1] == b":":
+        return data.endswith(b"\r\n")
+    return (len(data) >= 4 and crc_ok(data)) or _looks_tcp(data)
 
 
 def split_frame(

@@ -59,6 +59,10 @@ CONFORMITY_LEVELS = {
 }
 
 
+def conformity_name(level: int) -> str:
+    return CONFORMITY_LEVELS.get(level, f"unknown conformity level {level:02X}")
+
+
 def object_name(object_id: int) -> str:
     if object_id in OBJECT_NAMES:
         return OBJECT_NAMES[object_id]
@@ -116,7 +120,7 @@ class DeviceIdentificationResponse(Response):
 
     @property
     def conformity_name(self) -> str:
-        return CONFORMITY_LEVELS.get(self.conformity, f"unknown conformity level {self.conformity:02X}")
+        return conformity_name(self.conformity)
 
     def named_objects(self) -> tuple[tuple[str, bytes], ...]:
         return tuple((object_name(object_id), value) for object_id, value in self.objects)

@@ -40,6 +40,7 @@ from mbtool.codec.pdu import (
     decode_request,
 )
 from mbtool.codec.record import record
+from mbtool.codec.serial_line import RUN_OFF, RUN_ON
 
 TABLE_SIZE = 0x10000  # every table spans the whole 16-bit address space (spec §1)
 TABLES = ("coils", "discrete_inputs", "holding_registers", "input_registers")
@@ -149,9 +150,11 @@ class DataModel:
         self.exception_status = 0  # FC07: eight device-defined bits
         self.diagnostic_register = 0  # FC08 sub 02
         self.slave_id: int | None = None  # FC17; None: the unit id
-        self.run_indicator = True
+        # The FC17 run indicator byte: FF on, 00 off, or whatever else a dumped device sent.
+        self.run_indicator = RUN_ON
         self.slave_id_extra = b"mbtool"
         self.objects: dict[int, bytes] = dict(DEFAULT_OBJECTS)  # FC43/14
+        self.conformity: int | None = None  # FC43/14's conformity level; None: from the objects
         # A sparse data file (README, "Simulating a device"): what it defines, per table name
         # and per file number, 1 for each address it lists.  None: every address exists.
         self.defined: dict[str | int, bytearray] | None = None
@@ -182,6 +185,7 @@ class DataModel:
             other.defined = dict(self.defined)
             shared.update(("defined", key) for key in self.defined)
         other.complete = self.complete
+        other.conformity = self.conformity
         self._shared |= shared
         other._shared = set(shared)
         return other
@@ -736,7 +740,13 @@ class Device:
 
         model = station.model
         slave_id = station.unit if model.slave_id is None else model.slave_id
-        return ReportSlaveIdResponse(slave_id & 0xFF, model.run_indicator, model.slave_id_extra)
+        run = model.run_indicator
+        return ReportSlaveIdResponse(
+            slave_id & 0xFF,
+            run != RUN_OFF,
+            model.slave_id_extra,
+            run_indicator_byte=None if run in (RUN_ON, RUN_OFF) else run,
+        )
 
     @staticmethod
     def _read_device_identification(station: Station, request):
@@ -744,8 +754,10 @@ class Device:
         from mbtool.codec.device_id import DeviceIdentificationResponse
 
         objects = station.model.objects
-        extended = any(object_id >= 0x80 for object_id in objects)
-        conformity = 0x83 if extended else 0x82  # stream and individual access
+        conformity = station.model.conformity
+        if conformity is None:
+            extended = any(object_id >= 0x80 for object_id in objects)
+            conformity = 0x83 if extended else 0x82  # stream and individual access
         code = int(request.read_code)
         if code == 4:
             if request.object_id not in objects:
@@ -925,26 +937,37 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
     identity = data.get("identity", {})
     if not isinstance(identity, dict):
         raise RequestError(f"data file {where}: identity must be a table")
+    # The FC43/14 objects are exactly those the identity names, as a dump of a device lists
+    # them; one that names none keeps the simulator's own.
+    objects: dict[int, bytes] = {}
     for key, value in identity.items():
         here = f"{where}: identity.{key}"
         if key == "slave_id":
             model.slave_id = _int(value, here, 0, 0xFF)
         elif key == "run":
-            if not isinstance(value, bool):
-                raise RequestError(f"data file {here}: expected true or false")
-            model.run_indicator = value
+            # true or false (FF, 00), or the byte itself: a dump keeps one that is neither.
+            if isinstance(value, bool):
+                model.run_indicator = RUN_ON if value else RUN_OFF
+            elif isinstance(value, int):
+                model.run_indicator = _int(value, here, 0, 0xFF)
+            else:
+                raise RequestError(f"data file {here}: expected true, false or a byte 0..255")
         elif key == "extra":
             model.slave_id_extra = _bytes(value, here)[: MAX_PDU - 4]
+        elif key == "conformity":
+            model.conformity = _int(value, here, 0, 0xFF)
         elif key in OBJECT_KEYS:
-            model.objects[OBJECT_KEYS[key]] = _object(value, here)
+            objects[OBJECT_KEYS[key]] = _object(value, here)
         elif key == "objects":
             if not isinstance(value, dict):
                 raise RequestError(f"data file {here}: expected a table of OBJECT_ID = value")
             for object_key, object_value in value.items():
                 object_id = _int(object_key, here, 0, 0xFF)
-                model.objects[object_id] = _object(object_value, f"{here}.{object_key}")
+                objects[object_id] = _object(object_value, f"{here}.{object_key}")
         else:
             raise RequestError(f"data file {here}: unknown key")
+    if objects:
+        model.objects = objects
 
 
 def _object(value, where: str) -> bytes:

@@ -126,9 +126,9 @@ class Dumper:
                 progress(address - span.first)
 
 
-def read_identification(execute: Callable[[Request], object], read_code: int) -> tuple[dict[int, bytes], str]:
+def read_identification(execute: Callable[[Request], object], read_code: int) -> tuple[dict[int, bytes], int]:
     """Every object of a level of FC 43/14 (spec §3), following more-follows across
-    requests; and the device's conformity level.  A more-follows that points back at an
+    requests; and the device's conformity level (codec.device_id.conformity_name names it).  A more-follows that points back at an
     object already asked for is a bad reply (FrameError), not a loop."""
     from mbtool.codec.device_id import ReadDeviceIdentification
     from mbtool.codec.errors import FrameError
@@ -140,7 +140,7 @@ def read_identification(execute: Callable[[Request], object], read_code: int) ->
         reply = execute(ReadDeviceIdentification(read_code, next_id))
         objects.update(reply.objects)
         if not reply.more_follows:
-            return objects, reply.conformity_name
+            return objects, reply.conformity
         next_id = reply.next_object_id
         if next_id in asked:
             raise FrameError(f"more-follows points back to object 0x{next_id:02X}, already asked for")

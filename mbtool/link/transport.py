@@ -438,13 +438,10 @@ def open_transport(target: str, settings: SerialSettings, timeout: float, framer
     where = parse_target(target)
     if where.scheme == "tcp":
         link = TcpTransport(where.host, where.port, timeout)
-        # Silence over tcp:// is often a framing mix-up: a gateway that carries RTU frames
-        # ignores MBAP, and a Modbus TCP device ignores RTU or ASCII frames.
-        if framer in (None, "tcp"):
-            link.silence_hint = (
-                " (an RTU-over-TCP gateway ignores Modbus TCP frames: if it is one, try --framer rtu)"
-            )
-        else:
+        # Serial frames chosen over tcp:// and only silence back: a Modbus TCP device ignores
+        # RTU and ASCII frames.  Silence to MBAP is a plain timeout: an RTU-over-TCP gateway
+        # is named only when bytes come back that are an RTU frame (the TCP framer's _not_mbap).
+        if framer not in (None, "tcp"):
             link.silence_hint = (
                 f" (--framer {framer} sends serial frames; for a Modbus TCP device leave --framer out)"
             )

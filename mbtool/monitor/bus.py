@@ -38,9 +38,9 @@ class BusFrame:
     """One frame on the line, or one run of garbage (``direction`` "garbage")."""
 
     number: int  # 1, 2, ... in line order; garbage runs are numbered too
-    time: float  # arrival of its first byte, seconds since the epoch
+    time: float  # arrival of its first byte, seconds since the epoch (untimed: when it was read)
     end: float  # arrival of its last byte
-    gap: float | None  # seconds since the end of the previous frame; None for the first
+    gap: float | None  # seconds since the end of the previous frame; None for the first, or untimed
     framing: str  # rtu | ascii
     wire: bytes  # the exact bytes on the line
     direction: str  # request | response | garbage
@@ -49,7 +49,7 @@ class BusFrame:
     checksum_ok: bool | None = None  # None for garbage
     checksum: str = ""  # the verdict, e.g. "CRC 76 87 ok"
     described: Described | None = None  # the decoded fields (codec.describe), None for garbage
-    latency: float | None = None  # a response: seconds from the end of its request to its start
+    latency: float | None = None  # a response: seconds from the end of its request to its start, if timed
     request: int | None = None  # a response: the number of the request it answers
     flags: tuple[str, ...] = ()  # bad-checksum exception invalid unsolicited late broadcast garbage
     note: str = ""  # garbage: why the bytes are no frame
@@ -97,10 +97,16 @@ class Tally:
 
 
 class BusMonitor:
-    def __init__(self, framing: str = "rtu", silence: float = 0.02, response_timeout: float = 1.0) -> None:
+    def __init__(
+        self, framing: str = "rtu", silence: float = 0.02, response_timeout: float = 1.0, timed: bool = True
+    ) -> None:
+        """``timed``: the times fed are when the bytes came.  A recording of raw bytes has
+        none: its frames are split by their implicit length alone, get no gap or latency,
+        and a request is unanswered only when another follows it."""
         if framing not in ("rtu", "ascii"):
             raise ValueError(f"a bus monitor reads rtu or ascii, not {framing}")
         self.framing = framing
+        self.timed = timed
         self.silence = silence
         self.response_timeout = response_timeout
         self._buffer = bytearray()  # RTU: bytes not yet judged
@@ -186,13 +192,15 @@ class BusMonitor:
 
     def _expire(self, now: float) -> list[Unanswered]:
         pending = self._pending
-        if pending is None or now - pending.end < self.response_timeout:
+        if pending is None or not self.timed or now - pending.end < self.response_timeout:
             return []
         self._pending, self._late = None, pending
         return [self._unanswered(pending.end + self.response_timeout, pending)]
 
     def _unanswered(self, when: float, request: BusFrame, followed: bool = False) -> Unanswered:
-        if followed:
+        if followed and not self.timed:
+            reason = "another request followed"
+        elif followed:
             reason = f"another request followed after {1000 * (when - request.end):.0f} ms"
         else:
             reason = f"no response within {1000 * self.response_timeout:.0f} ms"
@@ -363,7 +371,9 @@ class BusMonitor:
 
     def _frame(self, start: float, end: float, wire: bytes, direction: str, **details) -> BusFrame:
         self._number += 1
-        gap = None if self._previous_end is None else max(start - self._previous_end, 0.0)
+        gap = None
+        if self._previous_end is not None and self.timed:
+            gap = max(start - self._previous_end, 0.0)
         self._previous_end = end
         return BusFrame(self._number, start, end, gap, self.framing, wire, direction, **details)
 
@@ -381,7 +391,7 @@ class BusMonitor:
             return [self._frame(start, end, wire, "garbage", flags=("garbage",), note=str(error))]
         out: list[BusFrame | Unanswered] = []
         # A response that comes later than the timeout: its request is unanswered first.
-        if self._pending is not None and start - self._pending.end >= self.response_timeout:
+        if self._pending is not None and self.timed and start - self._pending.end >= self.response_timeout:
             out += self._expire(start)
         code = pdu[0] if pdu else 0
         asked = self._asked(unit, code)
@@ -399,7 +409,8 @@ class BusMonitor:
             else:
                 if asked is self._late:
                     flags.append("late")
-                details = {"latency": max(start - asked.end, 0.0), "request": asked.number}
+                latency = max(start - asked.end, 0.0) if self.timed else None
+                details = {"latency": latency, "request": asked.number}
                 self._pending = self._late = None
             described = describe_pdu(
                 framing, adu, unit, pdu, ok, verdict, "response", asked.described if asked else None

@@ -121,15 +121,59 @@ def _interrupted(stop: KeyboardInterrupt) -> str:
     return f"interrupted by {stop.args[0] if stop.args else 'SIGINT'}"  # Ctrl-C raises it bare
 
 
-def _range(text: str | None, what: str):
+RANGE_FORMS = "ranges are 10, 10:, ~:10, 10:20 or @10:20"
+
+
+def _range(text: str | None, what: str, typed: bool = False):
+    """A threshold range, [@][START:][END] as nagiosplugin reads it; a bad one is a
+    RequestError in the check's own words.  ``typed``: from the command line, where an
+    unquoted ~:10 arrives as the home directory (the shell expands the ~)."""
+    import os
+
     import nagiosplugin
 
     if text is None or text == "":
         return None
+    at = "@" if text.startswith("@") else ""
+    body = text.removeprefix("@")
+    home = os.path.expanduser("~")
+    if typed and home != "~" and body.startswith(home + ":"):
+        meant = f"{at}~:{body[len(home) + 1 :]}"
+        raise RequestError(
+            f"{what} {text} is not a range: the shell made {meant} into your home directory; "
+            f"quote it: {what} '{meant}'"
+        )
+    why = _range_fault(body)
+    if why:
+        raise RequestError(f"{what} {text} is not a range: {why}; {RANGE_FORMS}")
+    return nagiosplugin.Range(text)
+
+
+def _range_fault(body: str) -> str:
+    """Why a range (after its @) is none in nagiosplugin's grammar, or "" when it is one."""
+    if body.count(":") > 1:
+        return "it has more than one ':'"
+    start_text, _, end_text = body.rpartition(":")
+    if end_text == "~":
+        return "~ is not a number (~ is for the start: ~:10)"
+    start = float("-inf") if start_text == "~" else _range_number(start_text, 0)
+    end = _range_number(end_text, float("inf"))
+    for number, atom in ((start, start_text), (end, end_text)):
+        if number is None:
+            return f"{atom} is not a number"
+    if start > end:
+        return f"its start {start_text} is above its end {end_text}"
+    return ""
+
+
+def _range_number(atom: str, default: float) -> float | None:
+    """A range's end as nagiosplugin reads it (int, or float with a '.'); None if it is none."""
+    if atom == "":
+        return default
     try:
-        return nagiosplugin.Range(text)
-    except ValueError as error:
-        raise RequestError(f"{what} {text} is not a range (10, 10:, ~:10, 10:20, @10:20): {error}") from None
+        return float(atom) if "." in atom else int(atom)
+    except ValueError:
+        return None
 
 
 def _violation(limit) -> str:
@@ -276,7 +320,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     return out
 
 
-@device_command("check", types=VALUE_TYPES, cls=PluginCommand)
+@device_command("check", types=VALUE_TYPES, output=False, cls=PluginCommand)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, with their warn and crit keys")
 @click.option("-w", "--warning", metavar="RANGE", help="Warning range (beats a map's warn).")
@@ -303,7 +347,7 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     """
     unjudged = ERROR_STATES[state_on_error]
     given = type_options_given(map)
-    warn, crit = _range(warning, "-w"), _range(critical, "-c")
+    warn, crit = _range(warning, "-w", typed=True), _range(critical, "-c", typed=True)
     if not map and not targets:
         raise RequestError("give a reference such as 40011, or -m MAP and point names")
     if map:

@@ -342,7 +342,7 @@ def device_id(connection, level, object_id):
     """
     from mbtool.cli.render import Report, Row
     from mbtool.cli.session import open_client
-    from mbtool.codec.device_id import ReadDeviceIdentification, object_name
+    from mbtool.codec.device_id import ReadDeviceIdentification, conformity_name, object_name
     from mbtool.codec.pdu import text_of
 
     objects: dict[int, bytes] = {}
@@ -357,7 +357,10 @@ def device_id(connection, level, object_id):
         else:
             from mbtool.link.dump import read_identification
 
-            objects, conformity = read_identification(partial(client.execute, connection.unit), LEVELS[level])
+            objects, conformity_code = read_identification(
+                partial(client.execute, connection.unit), LEVELS[level]
+            )
+            conformity = conformity_name(conformity_code)
     rows = [Row(object_name(i), text_of(value)) for i, value in objects.items()]
     if not rows:
         rows = [Row("objects", "none: the device answered with no objects")]

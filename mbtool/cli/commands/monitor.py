@@ -99,7 +99,8 @@ def default_silence(framer: str, baud: int) -> float:
     metavar="FILE",
     type=click.Path(exists=True, dir_okay=False),
     help="Analyse a recording instead of listening: a pcap file (as --capture writes), with its "
-    "time stamps, or raw bytes from a line, with no timing (frames split by their implicit length).",
+    "time stamps, or raw bytes from a line, with no timing (frames split by their implicit length; "
+    "no time, gap or latency shown).",
 )
 @click.option(
     "-o",
@@ -150,10 +151,14 @@ def monitor(
     port_given = port and ctx.get_parameter_source("port") is not click.core.ParameterSource.ENVIRONMENT
     if from_file and port_given:
         raise RequestError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
-    if not from_file:
+    recording, timed = None, True
+    if from_file:
+        recording, timed = _recording(from_file)
+        _check_replay_options(ctx, from_file, timed)
+    else:
         _check_port(port)
-    sniffer = BusMonitor(framer, silence or default_silence(framer, baud), response_timeout)
-    output = Output(output_format or default_format())
+    sniffer = BusMonitor(framer, silence or default_silence(framer, baud), response_timeout, timed)
+    output = Output(output_format or default_format(), timed=timed)
     tally = Tally()
     recorder = None
     if capture:
@@ -181,7 +186,7 @@ def monitor(
     lost = None
     try:
         if from_file:
-            _replay(from_file, sniffer, show)
+            _replay(from_file, recording, sniffer, show)
         else:
             lost = _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show)
     except KeyboardInterrupt:
@@ -191,11 +196,30 @@ def monitor(
         if recorder is not None:
             recorder.close()
     summary = str(tally)
+    if not timed:
+        summary += f"; {from_file} is raw bytes with no time stamps: no time, gap or latency"
     if lost is not None:
         raise ConnectionFailed(f"{lost}; {summary}")
     if interrupted:
         raise Summary("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
     raise Summary(summary, ExitCode.OK)
+
+
+def _check_replay_options(ctx: click.Context, path: str, timed: bool) -> None:
+    """Refuse the options a recording leaves nothing to do: a recording is read to its end,
+    and raw bytes have no times to measure a silence or a timeout by."""
+
+    def given(name: str) -> bool:
+        return ctx.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE
+
+    if given("duration"):
+        raise RequestError(
+            "--duration is for listening; a recording is read to its end (--frames stops sooner)"
+        )
+    for name in ("silence", "response_timeout"):
+        if not timed and given(name):
+            option = "--" + name.replace("_", "-")
+            raise RequestError(f"{option} measures time, and {path} is raw bytes with no time stamps")
 
 
 def _check_port(port: str | None) -> None:
@@ -208,17 +232,25 @@ def _check_port(port: str | None) -> None:
         )
 
 
-def _replay(path: str, sniffer, show) -> None:
-    """A recording: a pcap file (--capture's) with its time stamps, else raw bytes with none."""
-    from mbtool.monitor.pcap import is_pcap, packets
+def _recording(path: str) -> tuple[bytes, bool]:
+    """A recording's bytes, and whether it has time stamps: a pcap file (--capture's) has,
+    raw bytes from a line have none."""
+    from mbtool.monitor.pcap import is_pcap
 
     try:
         with open(path, "rb") as file:
             data = file.read()
     except OSError as error:
         raise RequestError(f"cannot read {path}: {error.strerror or error}") from None
-    if not is_pcap(data):
-        now = time.time()
+    return data, is_pcap(data)
+
+
+def _replay(path: str, data: bytes, sniffer, show) -> None:
+    """A recording: a pcap file with its time stamps, else raw bytes with none."""
+    from mbtool.monitor.pcap import packets
+
+    if not sniffer.timed:  # frames split by their implicit length alone; the summary says so
+        now = time.time()  # no time of its own: what --capture stamps its packets with
         if show(sniffer.feed(now, data)):
             show(sniffer.finish(now))
         return
@@ -295,14 +327,19 @@ def summary(frame) -> str:
     return one_line(frame.described)
 
 
-def as_dict(item) -> dict:
+def _when(item, timed: bool) -> str | None:
+    """The time of a frame or note; None for a recording with no time stamps."""
+    return local_time(item.time) if timed else None
+
+
+def as_dict(item, timed: bool = True) -> dict:
     """One JSON object per frame, garbage run or unanswered request."""
     from mbtool.monitor.bus import Unanswered
 
     if isinstance(item, Unanswered):
         request = item.request
         return {
-            "time": local_time(item.time),
+            "time": _when(item, timed),
             "event": "unanswered",
             "request": request.number,
             "unit": request.unit,
@@ -311,7 +348,7 @@ def as_dict(item) -> dict:
             "reason": item.reason,
         }
     data = {
-        "time": local_time(item.time),
+        "time": _when(item, timed),
         "event": "garbage" if item.direction == "garbage" else "frame",
         "number": item.number,
         "gap_ms": _ms(item.gap),
@@ -335,18 +372,19 @@ def as_dict(item) -> dict:
     return data
 
 
-def plain_line(item) -> str:
+def plain_line(item, timed: bool = True) -> str:
     from mbtool.monitor.bus import Unanswered
 
+    when = _when(item, timed) or "-"
     if isinstance(item, Unanswered):
         request = item.request
         name = request.described.name if request.described else ""
         return (
-            f"{local_time(item.time)} unanswered #{request.number} unit={request.unit} "
+            f"{when} unanswered #{request.number} unit={request.unit} "
             f"{function_code_text(request.function)} {name} | {item.reason}"
         )
     gap = "-" if item.gap is None else f"{item.gap * 1000:.1f}ms"
-    head = f"{local_time(item.time)} gap={gap} #{item.number} {item.direction}"
+    head = f"{when} gap={gap} #{item.number} {item.direction}"
     if item.direction == "garbage":
         return f"{head} {len(item.wire)} bytes [{wire_text(item)}] | {item.note}"
     line = (
@@ -355,6 +393,8 @@ def plain_line(item) -> str:
     )
     if item.latency is not None:
         line += f" | latency={item.latency * 1000:.1f}ms request=#{item.request}"
+    elif item.request is not None:  # no time stamps: the request it answers, no latency
+        line += f" | request=#{item.request}"
     if item.flags:
         line += " | flags=" + ",".join(item.flags)
     return line
@@ -365,9 +405,10 @@ class Output:
 
     COLOURS = {"request": "cyan", "response": "green", "garbage": "red"}
 
-    def __init__(self, fmt: str, out=None) -> None:
+    def __init__(self, fmt: str, out=None, timed: bool = True) -> None:
         self.fmt = fmt
         self.out = out or sys.stdout
+        self.timed = timed  # False: a recording with no time stamps
         self.console = None
         # Imported now, not while the first frame arrives: a read delayed by an import
         # stamps its bytes late and shrinks the gap and latency shown.
@@ -380,9 +421,9 @@ class Output:
         if self.fmt == "json":
             from mbtool.cli.render import to_json
 
-            self.out.write(to_json(as_dict(item)) + "\n")
+            self.out.write(to_json(as_dict(item, self.timed)) + "\n")
         elif self.fmt == "plain":
-            self.out.write(plain_line(item) + "\n")
+            self.out.write(plain_line(item, self.timed) + "\n")
         else:
             self._coloured(item)
         self.out.flush()
@@ -395,14 +436,16 @@ class Output:
         if isinstance(item, Unanswered):
             request = item.request
             name = request.described.name if request.described else ""
+            when = _when(item, self.timed) or "-"
             self.console.print(
-                f"[dim]{local_time(item.time)}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
+                f"[dim]{when}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
                 f"{function_code_text(request.function)} {escape(name)}: {escape(item.reason)}"
             )
             return
         gap = "" if item.gap is None else f"+{item.gap * 1000:.1f}ms"
         colour = self.COLOURS.get(item.direction, "white")
-        head = f"[dim]{local_time(item.time)} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
+        when = _when(item, self.timed) or "-"
+        head = f"[dim]{when} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
         if item.direction == "garbage":
             self.console.print(
                 f"{head} [red]{len(item.wire)} bytes, {escape(item.note)}[/] [dim]{wire_text(item)}[/]"

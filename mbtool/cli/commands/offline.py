@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 import click
@@ -52,9 +53,9 @@ def decode(frame, framer, direction, output_format):
     Field by field, checking the CRC, LRC or MBAP header. HEX is one frame (RTU bytes, an
     ASCII ':...' frame, or a Modbus TCP frame); with no HEX or '-', one frame per line is
     read from stdin and decoded as it comes (tail -f log | mbtool decode), also the TX and
-    RX lines --hex prints. A reply after its request is checked against it. A line that is
-    no frame is reported with its number and decoding goes on. Exit 5 when a checksum, a
-    field or a line is wrong.
+    RX lines --hex prints, monitor's lines (plain or json) and socat -x dumps. A reply after
+    its request is checked against it. A line that is no frame is named on stderr and
+    passed over. Exit 5 when a frame's checksum or a field is wrong.
     """
     from mbtool.codec.describe import describe
     from mbtool.codec.errors import FrameError
@@ -74,61 +75,173 @@ def decode(frame, framer, direction, output_format):
 
 
 def _decode_stream(lines, framer, direction, fmt: str) -> None:
-    """One frame a line, each decoded and written as it comes, in constant memory."""
-    from mbtool.cli.render import error_json
+    """Each frame in the lines decoded and written as it comes, in constant memory.  Only
+    frames decide the exit status: a line that is no frame is named on stderr and passed over."""
     from mbtool.codec.describe import describe
     from mbtool.codec.errors import FrameError
     from mbtool.codec.record import replace
-    from mbtool.errors import KNOWN_ERRORS, ExitCode
+    from mbtool.errors import KNOWN_ERRORS
 
-    frames = unreadable = failed = 0  # frames decoded, lines that are none, lines with a problem
+    frames = failed = 0  # frames decoded, and of them those with a problem
     first_failure = ""
     previous = None
-    for number, line in enumerate(lines, start=1):
-        text = line.strip()
-        if not text or text.startswith("#"):
-            continue
-        text, kind = _trace_line(text)
+    for number, text, kind in frames_in(lines):
         try:
             described = describe(text, framer, direction or kind, previous)
-        except KNOWN_ERRORS as error:  # not a frame at all: say where, and go on
-            problem, described = str(error), None
-            unreadable += 1
-        else:
-            if frames and fmt in ("plain", "table"):
-                sys.stdout.write("\n")
-            report = frame_report(described, header=frames == 0)
-            if fmt == "json":
-                report = replace(report, data={"line": number, **report.data})
-            _render(report, fmt)
-            frames += 1
-            problem = _problem(described)
+        except KNOWN_ERRORS as error:  # not a frame at all (not hex, too short): say where, go on
+            sys.stdout.flush()  # stdout and stderr in the order of the lines
+            print(f"mbtool: line {number}: not a frame, passed over: {error}", file=sys.stderr)
+            continue
+        if frames and fmt in ("plain", "table"):
+            sys.stdout.write("\n")
+        report = frame_report(described, header=frames == 0)
+        if fmt == "json":
+            report = replace(report, data={"line": number, **report.data})
+        _render(report, fmt)
+        frames += 1
         previous = described
+        problem = _problem(described)
         if problem:
             failed += 1
             first_failure = first_failure or f"line {number}: {problem}"
-            if fmt == "json":
-                if described is None:
-                    sys.stdout.write(
-                        error_json(problem, int(ExitCode.INVALID_RESPONSE), line=number, input=text) + "\n"
-                    )
-            else:
-                sys.stdout.flush()  # stdout and stderr in the order of the lines
+            if fmt != "json":  # the JSON record carries its error
+                sys.stdout.flush()
                 print(f"mbtool: line {number}: {problem}", file=sys.stderr)
         sys.stdout.flush()
-    if not frames and not failed:
+    if not frames:
         raise RequestError("no frame on stdin")
     if failed:
-        raise FrameError(f"{failed} of {frames + unreadable} lines failed; the first: {first_failure}")
+        raise FrameError(f"{failed} of {frames} frames failed; the first: {first_failure}")
 
 
-def _trace_line(text: str) -> tuple[str, str | None]:
-    """A line --hex printed ('TX 01 03 ... C4 0B  CRC C4 0B ok'): the frame and its direction."""
-    head, _, rest = text.partition(" ")
-    if head in ("TX", "RX") and rest:
-        frame = rest.strip().split("  ", 1)[0]  # the verdict follows two spaces
-        return frame, "request" if head == "TX" else "response"
-    return text, None
+# What decode reads besides a frame a line: the lines mbtool itself writes, and socat's dumps.
+# --hex: 'TX 01 03 00 00 00 02 C4 0B  CRC C4 0B ok'
+TRACE_LINE = re.compile(r"(TX|RX) (?P<frame>\S.*?)(  .*)?$")
+# monitor -o plain (monitor.py's plain_line): 'TIME gap=... #N request unit=1 FC 03 (0x03) [01 03 ...] ...'
+MONITOR_LINE = re.compile(
+    r"\S+ gap=\S+ #\d+ (?P<direction>request|response|garbage) .*?\[(?P<frame>[^\]]*)\]"
+)
+MONITOR_UNANSWERED = re.compile(r"\S+ unanswered #\d+ ")
+# socat -x (-v): '> 2026/01/02 10:00:00.000100  length=8 from=0 to=7', the bytes in hex on
+# the lines after it (16 a line with -v, the text beside them), and '--' between blocks.
+SOCAT_HEADER = re.compile(
+    r"(?P<arrow>[<>]) \d{4}/\d\d/\d\d \d\d:\d\d:\d\d\S*\s+length=(?P<length>\d+) from=\d+ to=\d+$"
+)
+
+
+def frames_in(lines):
+    """(line number, frame, "request" | "response" | None) of each frame in the lines: one
+    frame a line, --hex's TX and RX lines, monitor's lines (-o plain and json), and socat -x
+    dumps.  Blank lines, comments and what those tools write that is no frame (monitor's
+    garbage and unanswered lines, socat's --) are passed over."""
+    from mbtool.codec.describe import parse_hex
+
+    socat = _SocatBlocks()
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if socat.reading:
+            try:  # a line of the block's bytes; with -v, the text beside them after two spaces
+                socat.add(parse_hex(text.split("  ", 1)[0]))
+                continue
+            except RequestError:
+                pass  # the block ends short of its length: what it has is decoded
+        header = SOCAT_HEADER.match(text)
+        if header:
+            yield from socat.start(number, header["arrow"], int(header["length"]))
+            continue
+        if text != "--":
+            yield from socat.end()
+        if not text or text.startswith("#") or text == "--" or MONITOR_UNANSWERED.match(text):
+            continue
+        trace = TRACE_LINE.match(text)
+        if trace:
+            yield number, trace["frame"], "request" if trace[1] == "TX" else "response"
+            continue
+        monitored = MONITOR_LINE.match(text)
+        if monitored:
+            if monitored["direction"] != "garbage":
+                yield number, monitored["frame"], monitored["direction"]
+            continue
+        frame = _monitor_json(text) if text.startswith("{") else None
+        if frame is not None:
+            if frame:
+                yield number, *frame
+            continue
+        yield number, text, None
+    yield from socat.end()
+
+
+class _SocatBlocks:
+    """socat -x's blocks: each is what one read of a link returned, so a frame on a serial
+    line may come in several.  A block that ends no frame (codec.describe.looks_whole) is
+    held and joined with the next block from the same side; the other side's block, or
+    anything else, ends it as it is."""
+
+    def __init__(self) -> None:
+        self.block: list | None = None  # [line, side, bytes, length] being read
+        self.held: list | None = None
+
+    @property
+    def reading(self) -> bool:
+        return self.block is not None and len(self.block[2]) < self.block[3]
+
+    def add(self, data: bytes) -> None:
+        self.block[2] += data
+
+    def start(self, number: int, side: str, length: int) -> list:
+        done = self._settle()
+        self.block = [number, side, bytearray(), length]
+        return done
+
+    def end(self) -> list:
+        """Anything but a block follows: what is read or held is a frame as it is."""
+        done = self._settle()
+        if self.held is not None:
+            done.append(self._frame(self.held))
+            self.held = None
+        return done
+
+    def _settle(self) -> list:
+        from mbtool.codec.describe import looks_whole
+
+        block, self.block, done = self.block, None, []
+        if block is None:
+            return done
+        if self.held is not None:
+            if self.held[1] == block[1]:
+                self.held[2] += block[2]
+                block = self.held
+            else:
+                done.append(self._frame(self.held))
+            self.held = None
+        if looks_whole(bytes(block[2])):
+            done.append(self._frame(block))
+        else:
+            self.held = block
+        return done
+
+    @staticmethod
+    def _frame(block: list) -> tuple:
+        number, _, data, _ = block
+        if data[:1] == b":" and data.isascii():  # an ASCII frame: as its text
+            return number, data.decode("ascii").strip(), None
+        return number, bytes(data).hex(" ").upper(), None
+
+
+def _monitor_json(text: str) -> tuple | None:
+    """A line of monitor -o json: (frame, direction) for a frame, () for what is none
+    (garbage, unanswered); None when the line is not monitor's JSON."""
+    import json
+
+    try:
+        record = json.loads(text)
+    except ValueError:
+        return None
+    if not isinstance(record, dict) or "event" not in record:
+        return None
+    if record["event"] != "frame" or not isinstance(record.get("frame"), str):
+        return ()
+    return record["frame"], record.get("direction")
 
 
 # --- crc / lrc -----------------------------------------------------------------------------------
@@ -185,14 +298,14 @@ def lrc(data, output_format):
 # --- raw -------------------------------------------------------------------------------------------
 
 
-@device_command("raw")
+@device_command("raw", unit=False)
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @click.option("--adu", is_flag=True, help="Send HEX exactly as given (checksum or MBAP header included).")
 def raw(connection, data, adu):
     """Send any PDU, or exact frame bytes.
 
     HEX is a unit and a PDU; mbtool adds the CRC, LRC or MBAP header and shows
-    the reply decoded, with its checksum verdict. The first byte is the unit (-u is not used). Any function code may be sent;
+    the reply decoded, with its checksum verdict. The first byte is the unit. Any function code may be sent;
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """

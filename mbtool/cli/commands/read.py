@@ -231,7 +231,7 @@ def _read_registers(
     _run(connection, request, to_result, interval, polls)
 
 
-@device_command("read-coils", readings=True)
+@device_command("read-coils", readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -242,7 +242,7 @@ def read_coils(connection, address, count, interval, polls):
     _read_bits(connection, ReadCoils, address, count, interval, polls)
 
 
-@device_command("read-discrete-inputs", readings=True)
+@device_command("read-discrete-inputs", readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -259,7 +259,7 @@ def _refs(table, addresses: list[int]) -> list[str]:
     return [reference(table, address) for address in addresses]
 
 
-@device_command("read-holding-registers", types=VALUE_TYPES, order_all=True, readings=True)
+@device_command("read-holding-registers", types=VALUE_TYPES, order_all=True, readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -274,7 +274,7 @@ def read_holding_registers(connection, address, count, value_type, order, interv
     _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order, interval, polls)
 
 
-@device_command("read-input-registers", types=VALUE_TYPES, order_all=True, readings=True)
+@device_command("read-input-registers", types=VALUE_TYPES, order_all=True, readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
@@ -292,7 +292,7 @@ def read_input_registers(connection, address, count, value_type, order, interval
 # --- read: by reference, or by a register map's names ------------------------------------
 
 
-@device_command("read", types=VALUE_TYPES, order_all=True, readings=True)
+@device_command("read", types=VALUE_TYPES, order_all=True, readings=True, polls=True)
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, scaled, with units")
 @polling_options
