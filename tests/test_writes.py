@@ -390,6 +390,19 @@ def test_diff_with_a_map_shows_bits_as_on_and_off(tmp_path):
     assert res.stdout.splitlines() == ["alarm (40111): off -> on", "relay (00001): on -> off"]
 
 
+def test_diff_with_a_map_says_a_value_an_enum_does_not_label(tmp_path):
+    """As read -m shows it (issue 28 §5): 'mode (40121): auto -> 7 (no label)'; JSON keeps the number."""
+    meter = tmp_path / "meter.toml"
+    meter.write_text('[points.mode]\nref = 40121\nenum = { 1 = "auto", 2 = "manual" }\n')
+    (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n120 = [1]\n")
+    (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n120 = [7]\n")
+    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter)
+    assert res.returncode == 1 and res.stdout.splitlines() == ["mode (40121): auto -> 7 (no label)"]
+    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter, "-o", "json")
+    (difference,) = json.loads(res.stdout)["differences"]
+    assert (difference["a"], difference["b"]) == ("auto", 7)
+
+
 # --- every value checked against its point before anything is sent (issue 28 §2, 29 item 7) -------
 
 VALUES = """\

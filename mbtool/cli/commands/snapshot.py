@@ -414,6 +414,18 @@ def differences(a: dict, b: dict, register_map=None) -> list[dict]:
 DEVICE = "device"  # a side of diff that is the device itself, read through -p
 
 
+def _as_read(difference: dict, register_map) -> tuple:
+    """A difference's two values as read -m shows them: a number an enum point's labels
+    leave out says so (JSON keeps the number)."""
+    sides = difference["a"], difference["b"]
+    if "name" not in difference:
+        return sides
+    point = register_map.points[difference["name"]]
+    return tuple(
+        f"{value} (no label)" if value is not None and point.no_label(value) else value for value in sides
+    )
+
+
 @device_command("diff")
 @click.argument("a", metavar="A")
 @click.argument("b", metavar="[B]", required=False)
@@ -463,7 +475,9 @@ def diff(connection, a, b, map):
     else:
         from mbtool.cli.render import change_line
 
-        sys.stdout.write("".join(change_line(d, d["a"], d["b"], d.get("unit", "")) + "\n" for d in found))
+        sys.stdout.write(
+            "".join(change_line(d, *_as_read(d, register_map), d.get("unit", "")) + "\n" for d in found)
+        )
     if found:
         raise Summary(f"{len(found)} difference{'s' if len(found) != 1 else ''}", ExitCode(1))
 
