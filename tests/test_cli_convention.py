@@ -99,3 +99,28 @@ def test_dump_refuses_the_options_it_has_no_use_for(tmp_path, option):
     line = assert_one_error_line(run_mbtool("dump", tmp_path / "d.toml", *option, "-p", "sim://"), 2)
     assert f"no such option {option[0]}" in line
     assert not (tmp_path / "d.toml").exists()
+
+
+def test_diff_csv_without_its_header(tmp_path):
+    (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n5 = [5]\n")
+    (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n5 = [99]\n")
+    both = (tmp_path / "a.toml", tmp_path / "b.toml")
+    assert run_mbtool("diff", *both, "-o", "csv").stdout.splitlines()[0].startswith("table,address")
+    res = run_mbtool("diff", *both, "-o", "csv", "--no-header")
+    assert res.returncode == 1 and res.stdout.splitlines() == ["holding,5,40006,,5,99,"]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("serve", "--seed", "7"), "--seed picks which replies --drop and --corrupt spoil"),
+        (("bridge", "-p", "sim://", "-q", "-o", "json"), "-q shows no transaction: -o would have nothing"),
+        (("bridge", "-p", "sim://", "-q", "--hex"), "-q shows no transaction: --hex would have nothing"),
+    ],
+    ids=["serve-seed", "bridge-quiet-o", "bridge-quiet-hex"],
+)
+def test_an_option_another_makes_pointless_is_refused(args, words):
+    """serve --seed spoils nothing without --drop or --corrupt, and bridge -q shows nothing
+    that -o or --hex would shape: refused, rather than accepted and ignored (issue 28)."""
+    res = run_mbtool(*args, "--listen" if args[0] == "bridge" else "-p", "tcp://127.0.0.1:0", timeout=10)
+    assert words in assert_one_error_line(res, 2)

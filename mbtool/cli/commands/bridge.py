@@ -176,6 +176,9 @@ def bridge(
     from mbtool.link.forward import Forwarder
     from mbtool.link.transport import SerialSettings, default_framer
 
+    if quiet and (output_format or hex_trace):
+        shown = " and ".join(name for name, given in (("-o", output_format), ("--hex", hex_trace)) if given)
+        raise RequestError(f"-q shows no transaction: {shown} would have nothing to show")
     where = parse_target(listen)
     forwarded = parse_units(units, broadcast=True)
     serial_framer = framer or "rtu"

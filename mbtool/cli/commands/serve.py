@@ -229,6 +229,8 @@ def serve(
         raise RequestError(
             "--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing"
         )
+    if seed is not None and not (drop or corrupt):
+        raise RequestError("--seed picks which replies --drop and --corrupt spoil: give one of them")
     if corrupt and framer == "tcp":
         raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)

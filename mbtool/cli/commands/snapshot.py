@@ -466,8 +466,11 @@ def diff(connection, a, b, map):
     elif fmt == "csv":
         import csv
 
+        from mbtool.cli.render import wants_csv_header
+
         writer = csv.writer(sys.stdout, lineterminator="\n")
-        writer.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
+        if wants_csv_header(sys.stdout):
+            writer.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
         for d in found:
             writer.writerow(
                 [d["table"], d["address"], d["ref"], d.get("name", ""), d["a"], d["b"], d.get("unit", "")]
