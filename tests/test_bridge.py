@@ -94,7 +94,8 @@ def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
     device from answering in 1 s); a client through it waits longer than that.
     """
     out = tempfile.NamedTemporaryFile(prefix="mbtool-bridge-", suffix=".out", delete=False)
-    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, "-o", fmt, "-t", "2", *args]
+    shape = [] if "-q" in args else ["-o", fmt]  # -q shows no transaction to shape
+    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, *shape, "-t", "2", *args]
     proc = subprocess.Popen(
         argv,
         cwd=REPO_ROOT,
