@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import random
 
@@ -272,7 +273,11 @@ def _crafted_identity(request: bytes) -> bytes:
         reply = CRAFTED_SLAVE_ID
     elif pdu[:2] == b"\x2b\x0e" and pdu[2] == 4:
         value = CRAFTED_OBJECTS.get(pdu[3])
-        reply = b"\xab\x02" if value is None else bytes([0x2B, 0x0E, 4, 0x81, 0, 0, 1, pdu[3], len(value)]) + value
+        reply = (
+            b"\xab\x02"
+            if value is None
+            else bytes([0x2B, 0x0E, 4, 0x81, 0, 0, 1, pdu[3], len(value)]) + value
+        )
     elif pdu[:2] == b"\x2b\x0e":
         objects = b"".join(bytes([i, len(v)]) + v for i, v in CRAFTED_OBJECTS.items())
         reply = bytes([0x2B, 0x0E, pdu[2], 0x81, 0, 0, len(CRAFTED_OBJECTS)]) + objects
@@ -318,21 +323,28 @@ def _identity_replies(host: str, port: int, asked: list[bytes] | None = None) ->
     return requests, replies
 
 
-@pytest.mark.parametrize("original", ["pymodbus", "crafted"])
+@pytest.mark.parametrize("original", ["pymodbus", "crafted", "without"])
 def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_device, raw_responder, tmp_path):
+    """pymodbus's device, a crafted one, and one without FC 17 and FC 43 (exception 01 to both,
+    as many Modbus TCP devices answer FC 17): the copy answers as the device did."""
     import tomllib
 
     from conftest import expect_ok, run_mbtool
     from test_serve import serve
 
-    if original == "pymodbus":  # its FC 17 sends text first: run indicator byte 79 ('y')
-        host, port = holed_device.host, holed_device.port
-    else:
-        host, port = "127.0.0.1", raw_responder(_crafted_identity).port
-    path = tmp_path / "device.toml"
-    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
-    assert "identity" in tomllib.loads(path.read_text())
-    requests, expected = _identity_replies(host, port)
+    with contextlib.ExitStack() as stack:
+        if original == "pymodbus":  # its FC 17 sends text first: run indicator byte 79 ('y')
+            host, port = holed_device.host, holed_device.port
+        elif original == "crafted":
+            host, port = "127.0.0.1", raw_responder(_crafted_identity).port
+        else:
+            device = stack.enter_context(serve("--exception", "17:1", "--exception", "43:1"))
+            host, port = device.host, device.port
+        path = tmp_path / "device.toml"
+        expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
+        identity = tomllib.loads(path.read_text())["identity"]
+        assert ("refused" in identity) == (original == "without")
+        requests, expected = _identity_replies(host, port)
     with serve("--data", str(path)) as server:
         _, replies = _identity_replies(server.host, server.port, requests)
     for request, want, got in zip(requests, expected, replies, strict=True):

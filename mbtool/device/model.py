@@ -136,6 +136,7 @@ OBJECT_KEYS = {
     "model_name": 0x05,
     "user_application_name": 0x06,
 }
+IDENTITY_FUNCTIONS = {0x11, 0x2B}  # FC 17 and FC 43, which a data file's identity may refuse
 
 
 class DataModel:
@@ -155,6 +156,8 @@ class DataModel:
         self.slave_id_extra = b"mbtool"
         self.objects: dict[int, bytes] = dict(DEFAULT_OBJECTS)  # FC43/14
         self.conformity: int | None = None  # FC43/14's conformity level; None: from the objects
+        # FC 17 and FC 43 as a dumped device answered them: exception 01, no such function.
+        self.refused: frozenset[int] = frozenset()
         # A sparse data file (README, "Simulating a device"): what it defines, per table name
         # and per file number, 1 for each address it lists.  None: every address exists.
         self.defined: dict[str | int, bytearray] | None = None
@@ -186,6 +189,7 @@ class DataModel:
             shared.update(("defined", key) for key in self.defined)
         other.complete = self.complete
         other.conformity = self.conformity
+        other.refused = self.refused
         self._shared |= shared
         other._shared = set(shared)
         return other
@@ -739,6 +743,7 @@ class Device:
         from mbtool.codec.serial_line import ReportSlaveIdResponse
 
         model = station.model
+        _unless_refused(model, request)
         slave_id = station.unit if model.slave_id is None else model.slave_id
         run = model.run_indicator
         return ReportSlaveIdResponse(
@@ -753,6 +758,7 @@ class Device:
         """FC43/14: stream access 1-3 from the object asked for, 4 one object (spec §3)."""
         from mbtool.codec.device_id import DeviceIdentificationResponse
 
+        _unless_refused(station.model, request)
         objects = station.model.objects
         conformity = station.model.conformity
         if conformity is None:
@@ -783,6 +789,14 @@ class Device:
             chosen.append((object_id, value))
             size += 2 + len(value)
         return DeviceIdentificationResponse(code, conformity, more, next_id, tuple(chosen))
+
+
+def _unless_refused(model: DataModel, request) -> None:
+    """A dumped device's "no such function" to FC 17 or FC 43, given again (identity.refused)."""
+    if request.function_code in model.refused:
+        raise RequestError(
+            f"the device this copies has no FC {request.function_code}", ExceptionCode.ILLEGAL_FUNCTION
+        )
 
 
 # -- loading a data file (--data) --------------------------------------------------------
@@ -956,6 +970,10 @@ def apply_data(model: DataModel, data: dict, where: str) -> None:
             model.slave_id_extra = _bytes(value, here)[: MAX_PDU - 4]
         elif key == "conformity":
             model.conformity = _int(value, here, 0, 0xFF)
+        elif key == "refused":
+            if not isinstance(value, list) or not set(value) <= IDENTITY_FUNCTIONS:
+                raise RequestError(f"data file {here}: expected a list of 17 and 43, the functions refused")
+            model.refused = frozenset(value)
         elif key in OBJECT_KEYS:
             objects[OBJECT_KEYS[key]] = _object(value, here)
         elif key == "objects":

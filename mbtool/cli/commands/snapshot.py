@@ -94,7 +94,9 @@ def _text_or_bytes(value: bytes):
 def _identity(execute) -> dict:
     """FC 17 and FC 43/14, when the device answers them: what serve --data replays, byte
     for byte (a run indicator that is neither 00 nor FF as its byte, no extra bytes as "",
-    the conformity level, and exactly the objects the device has)."""
+    the conformity level, and exactly the objects the device has); ``refused`` lists those
+    of the two it answered exception 01 (no such function), which the copy refuses too."""
+    from mbtool.codec.device_id import ReadDeviceIdentification
     from mbtool.codec.errors import ModbusException, ProtocolError
     from mbtool.codec.pdu import ExceptionCode
     from mbtool.codec.serial_line import ReportSlaveId
@@ -102,18 +104,23 @@ def _identity(execute) -> dict:
     from mbtool.link.dump import read_identification
 
     identity: dict = {}
+    refused = []
     try:
         reply = execute(ReportSlaveId())
         run = reply.run_indicator if reply.run_indicator_byte is None else reply.run_indicator_byte
         identity |= {"slave_id": reply.slave_id, "run": run, "extra": _text_or_bytes(reply.extra)}
+    except ModbusException as error:
+        if error.exception_code == ExceptionCode.ILLEGAL_FUNCTION:
+            refused.append(ReportSlaveId.function_code)  # Modbus TCP devices often have no FC 17
     except (ProtocolError, NoResponse):
-        pass  # not every device answers FC 17 (and Modbus TCP has no use for it)
+        pass  # silence or a bad reply says nothing of the function: the copy keeps its own
     for read_code in (0x03, 0x02, 0x01):  # extended: every object; a lesser device may refuse it
         try:
             objects, conformity = read_identification(execute, read_code)
         except ModbusException as error:
             if error.exception_code == ExceptionCode.ILLEGAL_FUNCTION:
-                break  # no FC 43/14 at all
+                refused.append(ReadDeviceIdentification.function_code)  # no FC 43/14 at all
+                break
             continue
         except (ProtocolError, NoResponse):
             break
@@ -121,6 +128,8 @@ def _identity(execute) -> dict:
             identity["conformity"] = conformity
             identity["objects"] = {str(key): _text_or_bytes(value) for key, value in objects.items()}
         break
+    if refused:
+        identity["refused"] = refused
     return identity
 
 
