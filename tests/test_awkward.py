@@ -34,7 +34,7 @@ def test_pause_lets_a_device_that_drops_back_to_back_requests_answer_every_poll(
         res = polls(target)
         assert res.returncode == 3 and re.search(r"timeouts [1-9]", res.stderr)
         res = polls(target, "--pause", "0.25")
-        assert res.returncode == 0 and "polls 4, replies 4, timeouts 0" in res.stderr
+        assert res.returncode == 0 and "polls 4, replies 4, partial 0, timeouts 0" in res.stderr
         # A profile can say so for the device.
         config = tmp_path / "config.toml"
         config.write_text(f'[profiles.slow]\nport = "{target}"\npause = 0.25\n')
@@ -52,7 +52,7 @@ def test_pause_lets_a_device_that_drops_back_to_back_requests_answer_every_poll(
             "slow",
             env={"MBTOOL_CONFIG": str(config)},
         )
-        assert res.returncode == 0 and "replies 3, timeouts 0" in res.stderr
+        assert res.returncode == 0 and "replies 3, partial 0, timeouts 0" in res.stderr
 
 
 def test_pause_spaces_the_requests_of_one_command(tmp_path):
@@ -84,9 +84,9 @@ def test_reconnect_each_gets_past_a_gateway_that_leaks_connections():
     with serve("--connection-requests", "1") as server:
         target = f"tcp://{server.host}:{server.port}"
         res = polls(target)
-        assert res.returncode == 3 and "replies 1, timeouts 3" in res.stderr
+        assert res.returncode == 3 and "replies 1, partial 0, timeouts 3" in res.stderr
         res = polls(target, "--reconnect-each")
-        assert res.returncode == 0 and "polls 4, replies 4, timeouts 0" in res.stderr
+        assert res.returncode == 0 and "polls 4, replies 4, partial 0, timeouts 0" in res.stderr
 
 
 def test_the_faults_are_for_tcp_clients():

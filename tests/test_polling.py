@@ -28,7 +28,7 @@ from conftest import (
 def summary(res) -> dict:
     line = res.stderr.strip().splitlines()[-1]
     match = re.match(
-        r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), timeouts (\d+), errors (\d+), skipped (\d+), "
+        r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), partial \d+, timeouts (\d+), errors (\d+), skipped (\d+), "
         r"latency per request min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-), per poll (?:[\d.]+/[\d.]+/[\d.]+ ms|-)"
         r"(?:, [\d.]+ polls/s)?$",
         line,
@@ -193,7 +193,7 @@ def test_device_killed_mid_run_polling_goes_on():
     assert "error" in lines[-1]
     assert proc.returncode in (3, 5, 6), err
     assert "Traceback" not in err
-    counts = re.search(r"polls (\d+), replies (\d+), timeouts (\d+), errors (\d+)", err)
+    counts = re.search(r"polls (\d+), replies (\d+), partial \d+, timeouts (\d+), errors (\d+)", err)
     polls, replies, timeouts, errors = (int(g) for g in counts.groups())
     assert polls == 6 and replies >= 1 and replies + timeouts + errors == 6 and timeouts + errors >= 1
 
@@ -725,4 +725,4 @@ def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
 def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
     """The timeout is the device's time to answer: it runs from when mbtool is free to read."""
     text, failures = _poll_slowly(tcp_device.target, 0.2)
-    assert failures == [] and "replies 3, timeouts 0" in text, (failures, text)
+    assert failures == [] and "replies 3, partial 0, timeouts 0" in text, (failures, text)

@@ -30,6 +30,7 @@ from mbtool.errors import (
     ExitCode,
     NoResponse,
     OutputFailed,
+    PartialRead,
     Summary,
     exit_code_for,
 )
@@ -97,7 +98,7 @@ def poll(
         interval = DEFAULT_INTERVAL
     if polls is None:
         polls = 0
-    done = replies = timeouts = errors = skipped = 0
+    done = replies = partial = timeouts = errors = skipped = 0
     # A request's latency runs from it leaving to its reply; a poll's from its first request
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
     # mbtool's own work while a reply is on its way (the poll before written) is in neither.
@@ -170,7 +171,9 @@ def poll(
                     raise  # the request is wrong, or the output full: no later poll can do better
                 if when is None:  # the request never left: the poll failed now
                     when = time.time()
-                if isinstance(error, NoResponse):
+                if isinstance(error, PartialRead):  # some of a map's points: the others are shown
+                    partial += 1
+                elif isinstance(error, NoResponse):
                     timeouts += 1
                 else:
                     errors += 1
@@ -218,7 +221,7 @@ def poll(
         shown.close()
         close_quietly(link)
     summary = (
-        f"polls {done}, replies {replies}, timeouts {timeouts}, errors {errors}, "
+        f"polls {done}, replies {replies}, partial {partial}, timeouts {timeouts}, errors {errors}, "
         f"skipped {skipped}, latency per request min/avg/max {per_request}, per poll {per_poll}"
     )
     if done > 1 and last_when > first_when:
