@@ -210,7 +210,7 @@ class Bridge:
         line = self.stderr().split("\n")[0]
         if not line.startswith("bridging tcp://"):
             self.proc.kill()
-            raise SystemExit(f"campaign: the bridge did not start: {self.stderr()!r}")
+            common.give_up(f"the bridge did not start: {self.stderr()!r}")
         self.port = int(line.split()[1].rpartition(":")[2])
 
     def stderr(self) -> str:

@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import NoReturn
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -61,6 +62,12 @@ def arguments(doc: str, **sizes: tuple[type, object, str]) -> argparse.Namespace
         parser.error(f"--mbtool {args.mbtool}: no mbtool package there")
     sys.path.insert(0, str(TREE))  # in-process checks (the map loader) use the same mbtool
     return args
+
+
+def give_up(why: str) -> NoReturn:
+    """The campaign could not be set up (no fault found, none ruled out): exit 2."""
+    print(f"campaign: {why}", file=sys.stderr)
+    sys.exit(2)
 
 
 def env(extra: dict[str, str] | None = None) -> dict[str, str]:
@@ -134,7 +141,7 @@ def first_stream_line(proc: subprocess.Popen, stream, starts: str, wait: float =
     if not buf.startswith(starts.encode()):
         proc.kill()
         _, err = proc.communicate(timeout=5)
-        raise SystemExit(f"campaign: mbtool did not start: {buf!r} {err!r}")
+        give_up(f"mbtool did not start: {buf!r} {err!r}")
     return buf.split(b"\n")[0].decode()
 
 

@@ -104,9 +104,7 @@ def main() -> None:
                 _, err = proc.communicate(timeout=60)
                 length = time.monotonic() - opened
                 if proc.returncode != 0 or state_of(target, b"") != "new, complete":
-                    raise SystemExit(
-                        f"campaign: the uninterrupted dump failed: {err.decode(errors='replace')}"
-                    )
+                    common.give_up(f"the uninterrupted dump failed: {err.decode(errors='replace')}")
                 # Marked, so that a new dump of the same device is told from it.
                 previous = target.read_bytes() + b"# the previous dump\n"
                 for index in range(args.runs):

@@ -259,7 +259,7 @@ def main() -> None:
             plain.write_text('[points.flow]\nref = 40001\nunit = "m3/h"\n')
             baseline = common.run("read", "-m", plain, "-o", "prom", "-p", proxy.target)
             if baseline.code != 0:
-                raise SystemExit(f"campaign: a plain map cannot be read:\n{baseline}")
+                common.give_up(f"a plain map cannot be read:\n{baseline}")
             status_families = sum(
                 not any("ref" in s.labels for s in family.samples) for family in families_of(baseline.out)
             )

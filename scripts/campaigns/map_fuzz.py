@@ -84,23 +84,8 @@ ODD_NUMBERS = [
     "1/3",
 ]
 ODD_REFS = [0, 1, 40000, 40001, 465536, 465537, -1, 1.5, "", "abc", True, 10**30, "4x0108", "00000", "99999"]
-ODD_VALUES = [
-    "1",
-    "0",
-    "-1",
-    "on",
-    "off",
-    "1e999",
-    "nan",
-    "inf",
-    "-inf",
-    "0x10",
-    "65536",
-    "1.5",
-    "",
-    "é",
-    "\x00",
-]
+ODD_VALUES = ["1", "0", "-1", "on", "off", "1e999", "1e999999", "-1e-999999", "1e-400", "nan", "inf", "-inf"]
+ODD_VALUES += ["0x10", "65536", "1.5", "", "é", "\x00", "1_0", "٣", "1e308", "-0", "0b1", "+5"]
 TABLES = (("coils", 0), ("discrete", 10000), ("input", 30000), ("holding", 40000))
 TYPES = ("uint16", "int16", "uint32", "int32", "float32", "uint64", "int64", "float64", "hex", "string")
 SIZE = {"uint32": 2, "int32": 2, "float32": 2, "uint64": 4, "int64": 4, "float64": 4}
@@ -158,7 +143,7 @@ def valid_points(rng: random.Random) -> dict[str, dict]:
             point["ref"] = int(ref) if base and rng.random() < 0.5 else ref
         else:
             point["table"], point["address"] = table, address
-        if table in ("coils", "holding") and rng.random() < 0.4:
+        if table in ("coils", "holding") and rng.random() < 0.7:
             point["access"] = "rw"
         if rng.random() < 0.2:
             point["description"] = rng.choice(["Outlet flow", "Phase 1 voltage", "état"])
@@ -382,7 +367,7 @@ def command(
         )
         return ["read", "-m", str(path), *chosen, *fmt]
     if which == "write":
-        if writable and rng.random() < 0.7:
+        if writable and rng.random() < 0.9:
             chosen = rng.sample(writable, rng.randint(1, len(writable)))
         plain = ["1", "2", "10", "0", "on", "off", "state1", "state2", "0.5", "-3"]
         pairs = [f"{name}={rng.choice(ODD_VALUES if rng.random() < 0.3 else plain)}" for name in chosen]
@@ -394,7 +379,7 @@ def command(
 
 
 def main() -> None:
-    args = common.arguments(__doc__, maps=(int, 25, "maps to try (each with all four commands)"))
+    args = common.arguments(__doc__, maps=(int, 60, "maps to try (each with all four commands)"))
     rng = random.Random(args.seed)
     report = common.Report("map fuzz", args.verbose)
     codes: dict[str, Counter] = {which: Counter() for which in COMMANDS}
