@@ -77,7 +77,7 @@ def wait_for_link(proxy: common.RecordingProxy, proc: subprocess.Popen, deadline
 def main() -> None:
     args = common.arguments(
         __doc__,
-        runs=(int, 48, "dumps to stop (spread evenly over the six ways of stopping)"),
+        runs=(int, 96, "dumps to stop (spread evenly over the six ways of stopping)"),
         delay=(float, 0.01, "serve's --delay: seconds before each reply"),
         registers=(int, 4000, "holding registers and coils the device has"),
     )
