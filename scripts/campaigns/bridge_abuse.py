@@ -5,13 +5,14 @@ other end, unit 1), its stdout a pipe that is never read, its RSS sampled from
 abuse it, phase after phase:
 
 * alone: the well-behaved client by itself (its latency here is the baseline);
-* bulk: four clients pipelining reads of unit 1 as fast as the bus answers (the bulk of
-  the requests, and of what the bridge has to print);
+* bulk: four clients pipelining reads of unit 1 as fast as the bus answers, then two
+  pipelining requests for a unit not forwarded, answered 0A at once: thousands of
+  transactions a second for the bridge to show on a stdout nobody reads;
 * slowloris: clients that connect and never send, drip a request a byte at a time, or send
   half an MBAP header and stop;
 * garbage: clients sending random bytes and text that is no Modbus at all;
 * malformed: MBAP headers with another protocol id or a length that lies, and PDUs whose
-  length does not fit their function code (spec §6: each request's layout), each on its
+  length does not fit their function code (spec §3: each request's fields), each on its
   own connection; the bus is tapped to see which reached it;
 * vanishing: clients that queue requests for an absent unit and go at once; then a new
   client's wait, and the tap says how many of the gone clients' requests reached the bus;
@@ -337,7 +338,7 @@ def pipeline(
             return
 
 
-def slowloris(port: int, until: threading.Event, rng: random.Random) -> None:
+def slowloris(port: int, until: threading.Event) -> None:
     """Ten clients that never send, ten that drip a request a byte at a time, ten that send
     half an MBAP header; reconnecting when closed."""
     request = adu(1, 1, READ)
@@ -487,7 +488,7 @@ def main() -> None:
 
             good.phase = "slowloris"
             until = threading.Event()
-            worker = threading.Thread(target=slowloris, args=(bridge.port, until, rng), daemon=True)
+            worker = threading.Thread(target=slowloris, args=(bridge.port, until), daemon=True)
             worker.start()
             time.sleep(6 * share)
             until.set()

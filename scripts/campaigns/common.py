@@ -2,8 +2,8 @@
 proxy that says whether anything was sent, the RSS of a process, and the report.
 
 The peers the tests already have (tests/conftest.py: the pseudo-terminal pair that records
-what crosses it, the RTU CRC, the signal set-up of a child a test interrupts) are imported
-from there, not copied.
+what crosses it, the environment mbtool runs in, the signal set-up of a child a test
+interrupts) are imported from there, not copied.
 """
 
 from __future__ import annotations
@@ -29,13 +29,11 @@ sys.path.insert(0, str(ROOT / "tests"))
 from conftest import (  # noqa: E402  (the tests' own peers and helpers)
     PTY_SERIAL_OPTS,
     PtyPair,
-    crc16,
     mbtool_env,
-    rtu,
     signals_as_from_a_shell,
 )
 
-__all__ = ["PTY_SERIAL_OPTS", "PtyPair", "crc16", "rtu"]
+__all__ = ["PTY_SERIAL_OPTS", "PtyPair"]  # for the campaigns, from tests/conftest.py
 
 TREE = ROOT  # the checkout whose mbtool runs (--mbtool DIR)
 RUN_DEADLINE = 30.0  # seconds any one mbtool run may take before it counts as a hang
