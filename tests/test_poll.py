@@ -411,3 +411,46 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     final = textfile.read_text()
     assert 'modbus_up{device="dead"} 0' in final and "modbus_voltage{" in final
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
+
+
+def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
+    """A meter sends 0xFFFF before its sensor is ready: no value (JSON null, "invalid": true),
+    never scaled into 6553.5, left out of influx and Prometheus; the other points as ever."""
+    from line_protocol_parser import parse_line
+    from prometheus_client.parser import text_string_to_metric_families
+
+    data = write(tmp_path / "data.toml", "[holding_registers]\n0 = [0xFFFF, 230]\n")
+    write(
+        tmp_path / "meter.toml",
+        '[device]\ninvalid = [0xFFFF]\n[points.power]\nref = 40001\nscale = 0.1\nunit = "kW"\n'
+        '[points.voltage]\nref = 40002\nunit = "V"\n',
+    )
+    with serve("--data", str(data)) as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n[devices.m]\nlink = "a"\nmap = "meter.toml"\n',
+        )
+        run = {
+            fmt: run_mbtool("poll", plant, "--once", "-o", fmt) for fmt in ("json", "plain", "influx", "prom")
+        }
+    assert all(res.returncode == 0 for res in run.values()), run
+    (record,) = map(json.loads, run["json"].stdout.splitlines())
+    assert record["points"][0] == {
+        "name": "power",
+        "value": None,
+        "unit": "kW",
+        "ref": "40001",
+        "invalid": True,
+    }
+    assert record["points"][1]["value"] == 230
+    assert [line.split(" ", 1)[1] for line in run["plain"].stdout.splitlines()] == [
+        "m power invalid",
+        "m voltage 230 V",
+    ]
+    assert parse_line(run["influx"].stdout)["fields"] == {"voltage": 230}
+    names = {
+        sample.name
+        for family in text_string_to_metric_families(run["prom"].stdout)
+        for sample in family.samples
+    }
+    assert "modbus_voltage" in names and "modbus_power" not in names

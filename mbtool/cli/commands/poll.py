@@ -157,7 +157,9 @@ class PlantOutput:
         if self.fmt == "plain":
             for reading in poll.readings or ():
                 if reading.error is None:
-                    unit = f" {reading.point.unit}" if reading.point.unit else ""
+                    unit = (
+                        f" {reading.point.unit}" if reading.point.unit and reading.value is not None else ""
+                    )
                     sys.stdout.write(f"{when} {device.name} {reading.point.name} {_shown(reading)}{unit}\n")
         elif self.fmt == "json":
             sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
@@ -197,8 +199,13 @@ class PlantOutput:
             sys.stdout.flush()
 
 
+INVALID = "invalid"  # a value the map's invalid list names: the device has no data
+
+
 def _shown(reading) -> str:
     value = reading.value
+    if value is None:
+        return INVALID
     if isinstance(value, bool):
         return "on" if value else "off"
     text = value_text(value)
@@ -208,6 +215,8 @@ def _shown(reading) -> str:
 
 
 def _csv_value(reading) -> str:
+    if reading.value is None:
+        return ""  # no data: an empty cell, as a spreadsheet leaves one
     return _shown(reading) if isinstance(reading.value, bool) else value_text(reading.value)
 
 
@@ -223,7 +232,10 @@ def _json_record(poll: Poll, when: str) -> dict:
     for reading in poll.readings:
         point = reading.point
         if reading.error is None:
-            points.append({"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref})
+            entry = {"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref}
+            if reading.value is None:
+                entry["invalid"] = True  # the device sent a value its map says means no data
+            points.append(entry)
         else:
             failed.append({"name": point.name, "ref": point.ref, "error": str(reading.error)})
     record["state"] = poll.state
@@ -244,7 +256,7 @@ def influx_line(poll: Poll) -> str:
     device = poll.device
     fields = []
     for reading in poll.readings or ():
-        if reading.error is not None:
+        if reading.error is not None or reading.value is None:
             continue
         number = reading.point.number_of(reading.value)
         shown = _field_value(reading.value if number is None else number)
@@ -279,7 +291,7 @@ def prom_text(states: list) -> str:
         if state.last_success is not None:
             metrics[last_name][1].append(f"{last_name}{{{pairs}}} {state.last_success!r}")
         for reading in poll.readings if up else ():
-            if reading.error is not None:
+            if reading.error is not None or reading.value is None:
                 continue
             point = reading.point
             number = point.number_of(reading.value)
