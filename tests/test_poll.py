@@ -309,6 +309,10 @@ def small_plant(tmp_path):
         yield write(
             tmp_path / "plant.toml",
             f"""
+[poll]
+interval = 0.5
+offline_after = 2
+
 [links.gw]
 target = "{first.target}"
 timeout = 0.3
@@ -454,3 +458,72 @@ def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
         for sample in family.samples
     }
     assert "modbus_voltage" in names and "modbus_power" not in names
+
+
+def _on_a_terminal(argv: list[str], seconds: float) -> tuple[int, str, str]:
+    """Run mbtool with a pseudo-terminal as stdout for ``seconds``, then Ctrl-C: (status,
+    what the terminal showed, stderr)."""
+    import pty
+    import select
+    import signal
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mbtool", *argv],
+        stdout=slave,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        cwd=REPO_ROOT,
+        env=mbtool_env({"COLUMNS": "160"}),
+    )
+    os.close(slave)
+    shown = b""
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                try:
+                    shown += os.read(master, 65536)
+                except OSError:
+                    break
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 10
+        while proc.poll() is None and time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                try:
+                    shown += os.read(master, 65536)
+                except OSError:
+                    break
+        proc.wait(timeout=10)
+        err = proc.stderr.read().decode()
+    finally:
+        os.close(master)
+        proc.stderr.close()
+    return proc.returncode, shown.decode(errors="replace"), err
+
+
+def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(small_plant):
+    code, shown, err = _on_a_terminal(["poll", str(small_plant)], 3)
+    assert code == 8, err  # interrupted with the dead unit failing and the others answering
+    for row in ("meter1", "meter2", "plc", "dead", "voltage=230.1", "tariff=day"):
+        assert row in shown, shown[-2000:]
+    assert "online" in shown and "offline" in shown
+    # The statistics on stderr: a row a device and a link.
+    table = err.splitlines()
+    assert table[0].split()[:4] == ["name", "state", "polls", "trans"]
+    rows = {line.split()[1]: line.split() for line in table[1:] if line.split()[:1] in (["device"], ["link"])}
+    assert rows["dead"][2] == "offline" and rows["meter1"][2] == "online" and rows["gw"][0] == "link"
+    assert "interrupted; 3 of 4 devices answered" in err.splitlines()[-1]
+
+
+def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent_server):
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{silent_server.socket_target.replace("socket", "tcp")}"\ntimeout = 0.2\n'
+        '[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+    )
+    res = run_mbtool("poll", plant, "--once", "--stats", "json")
+    assert res.returncode == 3, res  # no response
+    stats = json.loads(res.stderr.splitlines()[-2])
+    assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
+    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 devices answered: no response")
