@@ -501,9 +501,9 @@ def test_sim_device_startup_is_cheap():
 
 
 def test_readme_example_data_file_loads(tmp_path):
-    """The TOML example of README's "Simulating a device" is a working data file."""
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    section = readme.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
+    """The TOML example of docs/simulator.md's "Simulating a device" is a working data file."""
+    page = (Path(__file__).resolve().parent.parent / "docs" / "simulator.md").read_text(encoding="utf-8")
+    section = page.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
     example = section.split("```toml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "plant.toml"
     path.write_text(example)

@@ -1,4 +1,5 @@
-"""The man page and shell completions are generated from the click tree and kept current.
+"""The man page and shell completions are generated from the click tree and kept current;
+the README and the pages of docs/ link to one another and their sim:// examples run.
 
 If a test here fails after a command or option changed: run python scripts/gen_docs.py
 (and commit man/mbtool.1 and completions/*).
@@ -9,6 +10,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import click
 import pytest
+from conftest import run_mbtool
 
 from mbtool.cli import cli
 
@@ -378,3 +381,109 @@ def test_the_overview_shows_each_commands_summary_whole():
         summary = " ".join(command.get_short_help_str(limit=1000).split())
         assert f"{name} {summary}" in listing, f"{name}'s summary is cut in mbtool --help"
     assert "..." not in listing
+
+
+# --- (e) the README is the front door, docs/ has a page for each job ----------------------------
+
+README = REPO_ROOT / "README.md"
+DOCS_INDEX = REPO_ROOT / "docs" / "README.md"
+ARCHITECTURE = REPO_ROOT / "ARCHITECTURE.md"
+DOC_PAGES = sorted((REPO_ROOT / "docs").glob("*.md"))
+MARKDOWN = [README, *DOC_PAGES]
+SET_UP = [  # what a newcomer types first; .ci/run runs the second
+    "pip install -e . && mbtool read-holding-registers 0 10 -p sim://",
+    "pip install -e '.[test]' && python3 -m pytest",
+]
+
+
+def _prose(text: str) -> str:
+    """Markdown without its fenced code blocks (a '# HELP' line in an example is no heading)."""
+    return re.sub(r"^```.*?^```", "", text, flags=re.M | re.S)
+
+
+def _links(path: Path) -> list[str]:
+    return re.findall(r"\]\(([^)\s]+)\)", _prose(path.read_text(encoding="utf-8")))
+
+
+def _linked_files(path: Path) -> set[Path]:
+    return {(path.parent / link.partition("#")[0]).resolve() for link in _links(path)}
+
+
+def _slug(heading: str) -> str:
+    """The id GitHub gives a heading: lower case, punctuation dropped, spaces as hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    return {_slug(heading) for heading in re.findall(r"^#+ (.+)$", _prose(path.read_text(encoding="utf-8")), re.M)}
+
+
+def _code_lines(path: Path) -> list[str]:
+    blocks = re.findall(r"^```[^\n]*\n(.*?)^```", path.read_text(encoding="utf-8"), re.M | re.S)
+    return [row for block in blocks for row in block.splitlines()]
+
+
+@pytest.mark.parametrize("path", MARKDOWN, ids=lambda path: str(path.relative_to(REPO_ROOT)))
+def test_every_relative_link_leads_to_a_file_and_heading_there_are(path):
+    for link in _links(path):
+        if re.match(r"[a-z]+:", link):
+            continue  # https: and the like lead out of the repository
+        name, _, anchor = link.partition("#")
+        target = (path.parent / name).resolve() if name else path
+        assert target.exists(), f"{path.name}: {link} leads to no file"
+        if anchor and target.suffix == ".md":
+            assert anchor in _anchors(target), f"{path.name}: {link}: {target.name} has no such heading"
+
+
+def test_every_docs_page_is_linked_from_the_readme_or_the_docs_index():
+    assert {DOCS_INDEX, ARCHITECTURE} <= _linked_files(README)
+    assert ARCHITECTURE in _linked_files(DOCS_INDEX)
+    linked = _linked_files(README) | _linked_files(DOCS_INDEX)
+    for page in DOC_PAGES:
+        assert page in linked, f"docs/{page.name} is linked from neither README.md nor docs/README.md"
+
+
+def test_the_readme_is_a_front_door_with_a_table_of_contents():
+    """At most ~15 KB (it had grown to 65 KB: issue 30), and its contents link every section."""
+    text = README.read_text(encoding="utf-8")
+    assert len(text.encode()) <= 15 * 1024, "the README is the front door: move the detail into docs/"
+    contents = text.split("## Contents", 1)[1].split("\n## ", 1)[0]
+    linked = set(re.findall(r"\]\(#([^)]+)\)", contents))
+    for section in re.findall(r"^## (.+)$", _prose(text), re.M):
+        assert section == "Contents" or _slug(section) in linked, f"the contents do not link {section!r}"
+
+
+def test_the_readme_sets_up_with_its_two_commands():
+    set_up = README.read_text(encoding="utf-8").split("## Set up", 1)[1].split("\n## ", 1)[0]
+    (block,) = re.findall(r"^```sh\n(.*?)^```", set_up, re.M | re.S)
+    assert block.splitlines() == SET_UP
+
+
+def _runs_alone_on_sim(row: str) -> bool:
+    """A command line against sim:// that needs no pipe, redirection, other program or
+    other terminal (serve and bridge run until they are stopped)."""
+    argv = shlex.split(row.removeprefix("$ "), comments=True)
+    return (
+        argv[:1] == ["mbtool"]
+        and "sim://" in argv
+        and argv[1] not in ("serve", "bridge")
+        and not {"|", "<", ">", "&"} & set("".join(argv))
+    )
+
+
+SIM_EXAMPLES = sorted(
+    {
+        (str(path.relative_to(REPO_ROOT)), shlex.join(shlex.split(row.removeprefix("$ "), comments=True)))
+        for path in MARKDOWN
+        for row in _code_lines(path)
+        if row.removeprefix("$ ").startswith("mbtool ") and _runs_alone_on_sim(row)
+    }
+)
+
+
+@pytest.mark.parametrize("page, example", SIM_EXAMPLES, ids=[f"{page}: {row}" for page, row in SIM_EXAMPLES])
+def test_the_sim_examples_run(page, example):
+    """Each example the README and docs/ show against sim:// works as typed, on files the
+    repository has."""
+    result = run_mbtool(*shlex.split(example)[1:])
+    assert result.returncode == 0, f"{page}: {result}"

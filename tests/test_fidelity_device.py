@@ -263,9 +263,9 @@ def test_not_sparse_stays_as_it_was(tmp_path):
 
 
 def test_readme_sparse_example(tmp_path):
-    """The sparse TOML example of README's "Simulating a device" does what the text says."""
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    section = readme.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
+    """The sparse TOML example of docs/simulator.md's "Simulating a device" does what the text says."""
+    page = (Path(__file__).resolve().parent.parent / "docs" / "simulator.md").read_text(encoding="utf-8")
+    section = page.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
     blocks = [text.split("```", 1)[0] for text in section.split("```toml\n")[1:]]
     path = tmp_path / "sparse.toml"
     path.write_text(next(block for block in blocks if "sparse = true" in block))

@@ -1,7 +1,7 @@
 """The misbehaving-peer matrix: every way a device (or what stands for one) can answer badly,
 over every kind of link, and the exit code and one stderr line each one ends in.
 
-This is the contract README's "Exit codes and what causes them" documents.  Each case is
+This is the contract docs/exit-codes.md documents.  Each case is
 a scripted peer that reads the real request mbtool sent and builds its reply from it
 (the request's transaction id and unit, or deliberately not), writing it in pieces with
 delays where the case says so.  The peer frames its replies with the CRC/LRC helpers of

@@ -461,6 +461,7 @@ def test_references_and_maps_over_a_serial_line(serial_rtu_device, pump):
 
 
 def test_the_readme_energy_meter_reads_as_the_readme_shows():
+    """The meter of docs/maps-and-references.md's "Register maps" (once in the README)."""
     root = Path(__file__).resolve().parent.parent
     meter = root / "examples/energy-meter.toml"
     with serve("--data", str(root / "examples/energy-meter-data.toml")) as server:
@@ -478,7 +479,7 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
             "overload on",
             "relay on",
         ]
-        assert len(_functions_sent(res)) == 6  # as the README says
+        assert len(_functions_sent(res)) == 6  # as docs/maps-and-references.md says
         res = expect_ok(run_mbtool("read", "30001", "--type", "float32", "--order", "all", "-p", target))
         assert "CDAB=230.1" in res.stdout
         res = run_mbtool("write", "-m", meter, "ct_ratio=102", "-p", target)

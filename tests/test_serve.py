@@ -114,7 +114,7 @@ def _value(response) -> int:
 
 
 def exercise_every_function(client, unit: int = 1, variable: bool = True) -> None:
-    """Every function code pymodbus can send, with the demo data (README, "The built-in device")."""
+    """Every function code pymodbus can send, with the demo data (docs/simulator.md, "The built-in device")."""
     from pymodbus.pdu.file_message import FileRecord
 
     r = client.read_coils(0, count=5, device_id=unit)
