@@ -187,6 +187,8 @@ class PtyPair:
         self.mbtool_path = os.ttyname(self._mb_slave)
         self.to_device = bytearray()  # bytes mbtool sent towards the device
         self.to_mbtool = bytearray()  # bytes the device sent towards mbtool
+        # Everything that crossed, in order: (monotonic time, "request" or "reply", bytes).
+        self.crossings: list[tuple[float, str, bytes]] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._relay, name="pty-relay", daemon=True)
@@ -208,6 +210,9 @@ class PtyPair:
                 if not data:
                     continue
                 with self._lock:
+                    self.crossings.append(
+                        (time.monotonic(), "request" if fd == self._mb_master else "reply", data)
+                    )
                     if fd == self._mb_master:
                         self.to_device += data
                         if self.echo:
@@ -226,6 +231,7 @@ class PtyPair:
         with self._lock:
             self.to_device.clear()
             self.to_mbtool.clear()
+            self.crossings.clear()
 
     def close(self) -> None:
         self._stop.set()

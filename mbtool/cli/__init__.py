@@ -68,6 +68,7 @@ COMMANDS = {
     "dump": "snapshot",
     "diff": "snapshot",
     "restore": "snapshot",
+    "poll": "poll",
 }
 
 

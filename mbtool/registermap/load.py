@@ -37,8 +37,9 @@ POINT_KEYS = {
     "access": "r or rw",
     "warn": "mbtool check's warning range (10, 10:, ~:10, 10:20, @10:20)",
     "crit": "mbtool check's critical range",
+    "invalid": "raw values that mean no data, such as [65535] or [0x8000]: no value, never scaled",
 }
-DEVICE_KEYS = ("type", "order", "access", "max_gap")
+DEVICE_KEYS = ("type", "order", "access", "max_gap", "invalid")
 NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
 CSV_CELL_LIMIT = 128 * 1024  # characters: the csv module's own limit for a field
 
@@ -213,6 +214,12 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         row = {key: defaults[key] for key in ("type", "order") if key in defaults} | row
     if table.writable and "access" in defaults:
         row = {"access": defaults["access"]} | row
+    if "invalid" in defaults and not table.bits and "bit" not in row and "invalid" not in row:
+        # The device's "no data" values are its default type's (uint16 unless [device] says):
+        # 0xFFFF is no data in a uint16, and -1 or 65535.0 may be real values of another type.
+        device_type = str(defaults.get("type", "uint16")).lower()
+        if str(row.get("type", device_type)).lower() == device_type:
+            row = {"invalid": defaults["invalid"]} | row
     kind = str(row.get("type", "bool" if table.bits else "uint16")).lower()
     access = str(row.get("access", "r")).lower()
     if access not in ("r", "rw"):
@@ -230,7 +237,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         "crit": _range(row, "crit", fail),
     }
     if table.bits:
-        for key in ("order", "count", "scale", "offset", "enum", "bit"):
+        for key in ("order", "count", "scale", "offset", "enum", "bit", "invalid"):
             if key in row:
                 raise fail(key, f"{table.items} hold one bit each; {key} is for registers")
         if kind != "bool":
@@ -253,7 +260,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         if TYPES[kind].registers != 1 or kind not in ("uint16", "int16", "hex"):
             raise fail("bit", f"a bit is one of a 16-bit register's bits, not of a {kind}")
         bit = _integer(path, name, "bit", row["bit"], 0, 15)
-        for key in ("scale", "offset", "enum"):
+        for key in ("scale", "offset", "enum", "invalid"):
             if key in row:
                 raise fail(key, f"a bit reads on or off; {key} does not apply")
         kind = "bool"
@@ -268,7 +275,21 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         if kind not in NUMERIC_TYPES:
             raise fail("enum", f"labels are for numbers, not {kind}")
         enum = _enum(row, kind, fail)
-    point = Point(name, table, address, kind, order, count, scale, offset, enum=enum, bit=bit, **options)
+    invalid = _invalid(row, kind, fail) if "invalid" in row else frozenset()
+    point = Point(
+        name,
+        table,
+        address,
+        kind,
+        order,
+        count,
+        scale,
+        offset,
+        enum=enum,
+        bit=bit,
+        invalid=invalid,
+        **options,
+    )
     if point.end > 65536:
         raise fail(
             "ref" if "ref" in row else "address",
@@ -357,6 +378,39 @@ def _string(row: dict, key: str, fail) -> str:
     if not isinstance(value, str):
         raise fail(key, f"{value} is not text")
     return value
+
+
+def _as_held(kind: str, value):
+    """A raw value as the point's type reads it: a signed type's bit pattern written as an
+    unsigned number (0x8000, SunSpec's int16 'not implemented') is its negative value."""
+    bits = 16 * TYPES[kind].registers
+    signed = TYPES[kind].fmt.islower() and TYPES[kind].fmt not in ("f", "d")
+    if signed and isinstance(value, int) and 1 << (bits - 1) <= value < 1 << bits:
+        return value - (1 << bits)
+    return value
+
+
+def _invalid(row: dict, kind: str, fail) -> frozenset:
+    """The raw values a device sends for "no data" (0xFFFF from a meter at night, 0x8000 for
+    SunSpec's int16), each one the point's type holds."""
+    values = row["invalid"]
+    if kind not in NUMERIC_TYPES:
+        raise fail("invalid", f"a {kind} has no number that could mean no data")
+    if not isinstance(values, list) or not values:
+        raise fail("invalid", "a list of raw values, such as [65535] or [0x8000]")
+    out = set()
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise fail("invalid", f"{value!r} is not a number")
+        value = _as_held(kind, value)
+        try:
+            held = decode_values(encode_values([parse_value(str(value), kind)], kind), kind)[0]
+        except RequestError as error:
+            raise fail("invalid", str(error)) from None
+        if held != value:
+            raise fail("invalid", f"a {kind} cannot hold {value}: the nearest it holds is {held}")
+        out.add(held)
+    return frozenset(out)
 
 
 def _enum(row: dict, kind: str, fail) -> dict[int, str]:

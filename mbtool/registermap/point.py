@@ -45,6 +45,7 @@ class Point:
     writable: bool = False
     warn: str | None = None  # mbtool check's thresholds (Monitoring Plugins range syntax)
     crit: str | None = None
+    invalid: frozenset = field(default=frozenset(), compare=False)  # raw values meaning no data
 
     @property
     def ref(self) -> str:
@@ -73,6 +74,8 @@ class Point:
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
         value = decode_values(raw, self.type, self.order)[0]
+        if value in self.invalid:
+            return None  # the device has no value to give: never a label, never scaled
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
         if self.scale is None and self.offset is None or isinstance(value, str):
@@ -83,7 +86,7 @@ class Point:
     def no_label(self, value: PointValue) -> bool:
         """Whether a value is one the point's enum gives no label: a number (a raw value
         the map does not name, or a float's fraction, or NaN), shown as such."""
-        return self.enum is not None and not isinstance(value, str)
+        return self.enum is not None and value is not None and not isinstance(value, str)
 
     @property
     def floating(self) -> bool:

@@ -1,0 +1,485 @@
+"""``mbtool poll PLANT.toml``: every device of a plant, from one process.
+
+One worker a link polls its devices one transaction at a time, every link at once
+(mbtool.plant.schedule); this module turns what they report into output: plain lines,
+JSON lines, long CSV, influx, Prometheus text or a textfile of the whole plant, a live
+view on a terminal, one line on stderr for each change of state, and statistics on exit.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+import threading
+import time
+
+import click
+
+from mbtool.cli.inventory import FORMATS, load_inventory
+from mbtool.cli.options import PositiveFloat
+from mbtool.cli.render import local_time, to_json, value_text, wants_csv_header
+from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
+
+CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
+
+
+@click.command(
+    "poll",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="Poll every device of a plant: several buses and gateways, from one process.",
+)
+@click.argument("inventory", type=click.Path(dir_okay=False))
+@click.option(
+    "-o",
+    "--format",
+    "output_format",
+    type=click.Choice(FORMATS),
+    help="Output: plain lines, JSON lines (one a device poll), CSV (long form), InfluxDB line "
+    "protocol or Prometheus text. Default: the inventory's [poll] output, else a live view on "
+    "a terminal and plain lines in a pipe.",
+)
+@click.option(
+    "--textfile",
+    metavar="PATH",
+    type=click.Path(dir_okay=False),
+    help="Rewrite the whole plant's metrics (Prometheus text) to PATH atomically after each "
+    "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
+)
+@click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
+@click.option("--rounds", type=click.IntRange(1), help="Poll every device this many times, then exit.")
+@click.option("--duration", type=PositiveFloat(), metavar="SECONDS", help="Stop after this long.")
+@click.option(
+    "--stats",
+    "stats_format",
+    type=click.Choice(["table", "json"]),
+    default="table",
+    show_default=True,
+    help="Statistics on exit, on stderr: a table per device and per link, or one JSON object.",
+)
+@click.option("--no-header", is_flag=True, help="CSV without its header row.")
+@click.option("--hex", "hex_trace", is_flag=True, help="Print every frame sent and received (stderr).")
+def poll(inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace):
+    """Poll every device of a plant from one process: PLANT.toml names its links (serial
+    buses, gateways, TCP devices) and devices (unit, register map or references, tags).
+
+    Each link has a worker of its own: one transaction at a time on it, with its silences
+    and pause; every link at once. A device that fails 3 polls in a row is offline and tried
+    again after a back-off that doubles up to max_backoff, so a dead unit costs one timeout
+    a back-off, not one a round; one good poll brings it back. Each change of state is one
+    line on stderr (and an event in JSON).
+
+    Exit status: 0 when every device answered its last poll, 8 when some did and others
+    did not, the failure's own status when none did; 2 for a bad inventory, with nothing
+    opened.
+    """
+    plant = load_inventory(inventory)
+    fmt = output_format or plant.output
+    live = fmt is None and textfile is None and sys.stdout.isatty()
+    fmt = fmt or "plain"
+    if once:
+        rounds = 1
+    trace = None
+    if hex_trace:
+        from mbtool.cli.render import HexTrace
+
+        trace = HexTrace
+    output = PlantOutput(fmt, textfile, no_header, plant)
+    view = LiveView(plant) if live else None
+    runner = Plant(plant.links, plant.devices, view.report if view else output.report, rounds or 0, trace)
+    output.states = runner.devices
+    started = time.monotonic()
+    interrupted = False
+    try:
+        if view:
+            with view.running(runner.devices):
+                runner.run(duration)
+        else:
+            runner.run(duration)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        runner.stop.set()
+    output.close()
+    _statistics(runner, stats_format, time.monotonic() - started)
+    raise _verdict(runner, interrupted)
+
+
+class PlantOutput:
+    """What the workers report, written as it comes (one writer at a time: a lock)."""
+
+    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant) -> None:
+        self.fmt = fmt
+        self.textfile = textfile
+        self.lock = threading.Lock()
+        self.states: dict = {}
+        self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
+        self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
+        self.pending = {device.name for device in plant.devices}  # not yet polled this round
+
+    def report(self, item: Poll | Event) -> None:
+        with self.lock:
+            if isinstance(item, Event):
+                self._event(item)
+            else:
+                self._poll(item)
+            sys.stdout.flush()
+
+    def _event(self, event: Event) -> None:
+        what = f"link {event.name}" if event.kind == "link" else event.name
+        line = f"{local_time(event.time)} {what} {event.state}"
+        if event.reason:
+            line += f": {event.reason}"
+        if event.retry_in is not None:
+            line += f"; next try in {event.retry_in:g} s"
+        print(f"mbtool: {line}", file=sys.stderr, flush=True)
+        if self.fmt == "json":
+            record = {"time": local_time(event.time), "event": event.state, event.kind: event.name}
+            if event.reason:
+                record["reason"] = event.reason
+            if event.retry_in is not None:
+                record["retry_in"] = event.retry_in
+            sys.stdout.write(to_json(record) + "\n")
+
+    def _poll(self, poll: Poll) -> None:
+        device, when = poll.device, local_time(poll.time)
+        if poll.readings is None:
+            if poll.state != OFFLINE:  # an offline device's probes: its event said why
+                print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
+        else:
+            for reading in poll.readings:
+                if reading.error is not None:
+                    point = reading.point
+                    print(
+                        f"mbtool: {when} {device.name} {point.name} ({point.ref}): {reading.error}",
+                        file=sys.stderr,
+                    )
+        if self.fmt == "plain":
+            for reading in poll.readings or ():
+                if reading.error is None:
+                    unit = (
+                        f" {reading.point.unit}" if reading.point.unit and reading.value is not None else ""
+                    )
+                    sys.stdout.write(f"{when} {device.name} {reading.point.name} {_shown(reading)}{unit}\n")
+        elif self.fmt == "json":
+            sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
+        elif self.fmt == "csv":
+            if self.header:
+                self.writer.writerow(CSV_HEADER)
+                self.header = False
+            for reading in poll.readings or ():
+                if reading.error is None:
+                    point = reading.point
+                    self.writer.writerow(
+                        [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
+                    )
+        elif self.fmt == "influx":
+            line = influx_line(poll)
+            if line:
+                sys.stdout.write(line)
+        elif self.fmt == "prom":
+            sys.stdout.write(prom_text([self.states[device.name]]))
+        if self.textfile:
+            # A round: every device has reported since the last write, but those offline,
+            # tried once a back-off, which would hold every other device's values back.
+            self.pending.discard(device.name)
+            if all(self.states[name].state == OFFLINE for name in self.pending):
+                self._write_textfile()
+                self.pending = set(self.states)
+
+    def _write_textfile(self) -> None:
+        from mbtool.cli.monitoring import write_textfile
+
+        write_textfile(prom_text(list(self.states.values())), self.textfile)
+
+    def close(self) -> None:
+        with self.lock:
+            if self.textfile and self.states:
+                self._write_textfile()  # the last state of every device, whatever the round
+            sys.stdout.flush()
+
+
+INVALID = "invalid"  # a value the map's invalid list names: the device has no data
+
+
+def _shown(reading) -> str:
+    value = reading.value
+    if value is None:
+        return INVALID
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    text = value_text(value)
+    if reading.point.no_label(value):
+        text += " (no label)"
+    return text
+
+
+def _csv_value(reading) -> str:
+    if reading.value is None:
+        return ""  # no data: an empty cell, as a spreadsheet leaves one
+    return _shown(reading) if isinstance(reading.value, bool) else value_text(reading.value)
+
+
+def _json_record(poll: Poll, when: str) -> dict:
+    device = poll.device
+    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
+    if poll.readings is None:
+        record["state"] = poll.state
+        record["error"] = str(poll.error)
+        record["exit_code"] = int(exit_code_for(poll.error))
+        return record
+    points, failed = [], []
+    for reading in poll.readings:
+        point = reading.point
+        if reading.error is None:
+            entry = {"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref}
+            if reading.value is None:
+                entry["invalid"] = True  # the device sent a value its map says means no data
+            points.append(entry)
+        else:
+            failed.append({"name": point.name, "ref": point.ref, "error": str(reading.error)})
+    record["state"] = poll.state
+    record["points"] = points
+    if failed:
+        record["failed"] = failed
+    return record
+
+
+# --- influx and Prometheus: tagged by device -----------------------------------------------
+
+
+def influx_line(poll: Poll) -> str:
+    """One line a device poll: measurement modbus, tags device, unit and the device's tags, a
+    field a point read (its type fixed by its map entry; NaN and infinities left out)."""
+    from mbtool.cli.monitoring import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value
+
+    device = poll.device
+    fields = []
+    for reading in poll.readings or ():
+        if reading.error is not None or reading.value is None:
+            continue
+        number = reading.point.number_of(reading.value)
+        shown = _field_value(reading.value if number is None else number)
+        if shown is not None:
+            fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
+    if not fields:
+        return ""
+    tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
+    head = _escape("modbus", MEASUREMENT_SPECIALS) + "".join(
+        f",{_escape(key, KEY_SPECIALS)}={_escape(value, KEY_SPECIALS)}" for key, value in sorted(tags.items())
+    )
+    return f"{head} {','.join(fields)} {int(poll.time * 1_000_000_000)}\n"
+
+
+def prom_text(states: list) -> str:
+    """The exposition of the devices' latest polls: modbus_up and the last success a device,
+    and a gauge a point read; a device down shows no value (it would be scraped as current)."""
+    from mbtool.cli.monitoring import _exposition, _label_pairs, _metric_name, _sample_value
+
+    up_name, last_name = "modbus_up", "modbus_last_success_timestamp_seconds"
+    metrics = {
+        up_name: ("1 when the device answered its last poll, 0 when it could not be read", []),
+        last_name: ("When the device last answered a poll, in seconds since the epoch", []),
+    }
+    for state in states:
+        device = state.spec
+        base = {"device": device.name} | (device.tags or {})
+        pairs = _label_pairs(base)
+        poll = state.last_poll
+        up = poll is not None and poll.readings is not None
+        metrics[up_name][1].append(f"{up_name}{{{pairs}}} {int(up)}")
+        if state.last_success is not None:
+            metrics[last_name][1].append(f"{last_name}{{{pairs}}} {state.last_success!r}")
+        for reading in poll.readings if up else ():
+            if reading.error is not None or reading.value is None:
+                continue
+            point = reading.point
+            number = point.number_of(reading.value)
+            shown = _sample_value(reading.value if number is None else number)
+            if shown is None:
+                continue
+            name = _metric_name(f"modbus_{point.name}")
+            about = (point.description or point.name) + (f" ({point.unit})" if point.unit else "")
+            metrics.setdefault(name, (about, []))[1].append(
+                f"{name}{{{_label_pairs(base | {'ref': point.ref})}}} {shown}"
+            )
+    if not metrics[last_name][1]:
+        del metrics[last_name]
+    return _exposition(metrics)
+
+
+# --- on a terminal: a live view ------------------------------------------------------------
+
+
+class LiveView:
+    """One row a device: its state in colour, the age of its last good poll, its round-trip
+    time and error counts, and its points' latest values, a changed one highlighted."""
+
+    COLOURS = {ONLINE: "green", OFFLINE: "bold red", "unknown": "yellow"}
+
+    def __init__(self, plant) -> None:
+        self.plant = plant
+        self.lock = threading.Lock()
+        self.changed: dict[str, set[str]] = {}
+        self.previous: dict[str, dict[str, object]] = {}
+        self.events: list[str] = []
+        self.states: dict = {}
+        self.live = None
+
+    def running(self, states: dict):
+        from rich.live import Live
+
+        self.states = states
+        self.live = Live(self._table(), refresh_per_second=4, transient=False)
+        return self.live
+
+    def report(self, item: Poll | Event) -> None:
+        with self.lock:
+            if isinstance(item, Event):
+                what = f"link {item.name}" if item.kind == "link" else item.name
+                line = f"{local_time(item.time)} {what} {item.state} {item.reason}".rstrip()
+                if item.retry_in is not None:
+                    line += f"; next try in {item.retry_in:g} s"
+                self.events = (self.events + [line])[-5:]
+            elif item.readings is not None:
+                values = {r.point.name: r.value for r in item.readings if r.error is None}
+                before = self.previous.get(item.device.name, {})
+                self.changed[item.device.name] = {
+                    name for name, value in values.items() if before.get(name, value) != value
+                }
+                self.previous[item.device.name] = values
+            if self.live is not None:
+                self.live.update(self._table())
+
+    def _table(self):
+        from rich.console import Group
+        from rich.table import Table
+        from rich.text import Text
+
+        table = Table(title="mbtool poll", expand=False)
+        for column in (
+            "device",
+            "link",
+            "state",
+            "last good",
+            "rtt avg",
+            "timeouts",
+            "corrupt",
+            "exceptions",
+            "values",
+        ):
+            table.add_column(column)
+        now = time.time()
+        for name, state in self.states.items():
+            stats = state.stats
+            figures = stats.rtt_figures()
+            age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
+            values = Text()
+            for reading in (state.last_poll.readings or ()) if state.last_poll else ():
+                if reading.error is not None:
+                    continue
+                style = "reverse" if reading.point.name in self.changed.get(name, ()) else ""
+                values.append(f"{reading.point.name}={_shown(reading)} ", style=style)
+            table.add_row(
+                Text(name),
+                Text(state.spec.link),
+                Text(state.state, style=self.COLOURS.get(state.state, "")),
+                age,
+                "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
+                str(stats.outcomes["timeout"]),
+                str(stats.outcomes["corrupt"]),
+                str(stats.outcomes["exception"]),
+                values,
+            )
+        return Group(table, *(Text(line, style="dim") for line in self.events))
+
+
+# --- on exit: statistics and the verdict ----------------------------------------------------
+
+
+def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
+    from mbtool.plant.stats import Stats
+
+    links = {}
+    for worker in runner.workers:
+        total = Stats()
+        for state in worker.devices:
+            total.add(state.stats)
+        links[worker.spec.name] = (total, worker.state)
+    if fmt == "json":
+        record = {
+            "seconds": round(seconds, 3),
+            "devices": {
+                name: {"link": s.spec.link, "state": s.state, **s.stats.as_dict()}
+                for name, s in runner.devices.items()
+            },
+            "links": {
+                worker.spec.name: {
+                    "state": worker.state,
+                    "open_failures": worker.open_failures,
+                    **links[worker.spec.name][0].as_dict(),
+                }
+                for worker in runner.workers
+            },
+        }
+        print(to_json(record), file=sys.stderr, flush=True)
+        return
+    rows = [("device", name, s.state, s.stats) for name, s in runner.devices.items()]
+    rows += [("link", name, state, total) for name, (total, state) in links.items()]
+    head = [
+        "",
+        "name",
+        "state",
+        "polls",
+        "trans",
+        "answered",
+        "timeout",
+        "corrupt",
+        "not ours",
+        "exc",
+        "recovered",
+        "rtt min/avg/p95/max ms",
+    ]
+    lines = [head]
+    for kind, name, state, stats in rows:
+        figures = stats.rtt_figures()
+        rtt = (
+            "-"
+            if figures is None
+            else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
+        )
+        exceptions = ",".join(f"{code:02X}:{n}" for code, n in sorted(stats.exceptions.items())) or "0"
+        lines.append(
+            [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
+             str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),
+             exceptions, str(stats.recovered), rtt]
+        )  # fmt: skip
+    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    for line in lines:
+        print(
+            "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
+            file=sys.stderr,
+        )
+    sys.stderr.flush()
+
+
+def _verdict(runner: Plant, interrupted: bool) -> Summary:
+    """0 when every device answered its last poll, 8 when some did, else the failure's code."""
+    polls = [state.last_poll for state in runner.devices.values() if state.last_poll is not None]
+    answered = [
+        poll for poll in polls if poll.readings is not None and not isinstance(poll.error, PartialRead)
+    ]
+    failed = [poll for poll in polls if poll.readings is None]
+    partial = len(polls) - len(answered) - len(failed)
+    text = f"{len(answered)} of {len(runner.devices)} devices answered" + (
+        f", {partial} in part" if partial else ""
+    )
+    if interrupted and not polls:
+        return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
+    if interrupted:
+        text = "interrupted; " + text
+    if not failed and not partial:
+        return Summary(text, ExitCode.OK)
+    if answered or partial:
+        return Summary(text, ExitCode.PARTIAL)
+    return Summary(text + f": {failed[0].error}", exit_code_for(failed[0].error))

@@ -1,0 +1,262 @@
+"""The inventory of ``mbtool poll``: a plant's links and devices in one TOML file.
+
+::
+
+    [poll]                       # defaults for every device
+    interval = 10                # seconds between polls of a device
+    output = "json"              # any -o format; the command line beats it
+
+    [links.bus1]                 # every key a profile takes but unit and map; target for port
+    target = "/dev/ttyUSB0"
+    baud = 9600
+
+    [devices.meter1]
+    link = "bus1"
+    unit = 1
+    map = "maps/sdm630.toml"     # relative to the inventory file; points = [...] picks some
+    tags = { site = "north" }
+
+    [devices.plc]
+    link = "bus1"
+    unit = 3
+    read = ["40001 10", "00001 16"]   # references with counts, as `read` takes them
+
+Everything is checked before anything is opened: an unknown key, a device that names a
+link the file does not have, a map that does not load, a target that names nothing, a
+value of the wrong type are one RequestError (exit 2) naming the file, the table and the key.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+import click
+
+from mbtool.cli import profiles
+from mbtool.codec.errors import RequestError
+from mbtool.codec.record import record, replace
+from mbtool.codec.tables import parse_reference, reference
+from mbtool.link.connection import Connection, check
+from mbtool.link.transport import parse_target
+from mbtool.plant.schedule import DeviceSpec, LinkSpec
+from mbtool.registermap.load import MapError, load_map, one_line
+from mbtool.registermap.plan import MapReader
+from mbtool.registermap.point import Point
+
+FORMATS = ("plain", "json", "csv", "influx", "prom")
+POLL_KEYS = {
+    "interval": "seconds between polls of a device, such as 10",
+    "output": "one of " + ", ".join(FORMATS),
+    "offline_after": "failed polls in a row that make a device offline, such as 3",
+    "max_backoff": "the longest wait, in seconds, before an offline device is tried again",
+}
+# A device may set its own interval, offline_after and max_backoff.
+DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", *POLL_KEYS.keys() - {"output"})
+# A link takes what a profile does, but the unit (each device has its own) and a map.
+LINK_KEYS = {"target": profiles.KEYS["port"]} | {
+    key: about for key, about in profiles.KEYS.items() if key not in ("port", "unit", "map")
+}
+DEFAULTS = {"interval": 10.0, "offline_after": 3, "max_backoff": 300.0}
+# A tag is a Prometheus label and an influx tag: a name both can carry, and not one of the
+# labels every record has.
+TAG_NAME = re.compile(r"[a-zA-Z_][a-zA-Z0-9_]*")
+RESERVED_TAGS = ("device", "name", "ref", "unit", "link")
+
+
+@record
+class Inventory:
+    path: str
+    output: str | None
+    links: dict
+    devices: list
+
+
+def load_inventory(path: str) -> Inventory:
+    """The inventory at ``path``, checked whole; RequestError (exit 2) naming what is wrong."""
+    try:
+        data = tomllib.loads(Path(path).read_bytes().decode("utf-8"))
+    except OSError as error:
+        raise RequestError(f"cannot read inventory {path}: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise RequestError(f"{path}: not UTF-8 text (byte {error.start})") from None
+    except tomllib.TOMLDecodeError as error:
+        raise RequestError(f"{path}: not valid TOML: {error}") from None
+    except RecursionError:
+        raise RequestError(f"{path}: nested too deeply to be an inventory") from None
+    for key in data:
+        if key not in ("poll", "links", "devices"):
+            raise RequestError(f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME])")
+    poll = _table(data, "poll", path, "[poll]")
+    defaults = dict(DEFAULTS)
+    output = None
+    for key, value in poll.items():
+        where = f"{path}: [poll] {key}"
+        if key not in POLL_KEYS:
+            raise RequestError(f"{where}: unknown key (known: {', '.join(POLL_KEYS)})")
+        if key == "output":
+            if value not in FORMATS:
+                raise RequestError(f"{where}: {value!r} is not {POLL_KEYS[key]}")
+            output = value
+        else:
+            defaults[key] = _setting(key, value, where)
+    params, ctx = _link_params()
+    links = {
+        name: _link(name, table, path, params, ctx)
+        for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
+    }
+    devices = [
+        _device(name, table, path, links, defaults)
+        for name, table in _table(data, "devices", path, "[devices.NAME]", nested=True).items()
+    ]
+    if not devices:
+        raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
+    return Inventory(path, output, links, devices)
+
+
+def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:
+    table = data.get(key, {})
+    if not isinstance(table, dict):
+        raise RequestError(f"{path}: {key} must be a table, {shown}")
+    for name, value in table.items() if nested else ():
+        if not isinstance(value, dict):
+            raise RequestError(f"{path}: [{key}.{name}] must be a table")
+        _name(name, f"{path}: [{key}.{name}]")
+    return table
+
+
+def _name(name: str, where: str) -> None:
+    """A link's or device's name: a label value and a tag, so on one line and not empty."""
+    if not name or not one_line(name):
+        raise RequestError(f"{where}: a name must not be empty nor hold a control character")
+
+
+def _setting(key: str, value, where: str):
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise RequestError(f"{where}: expected {POLL_KEYS[key]}")
+    if key == "offline_after":
+        if not isinstance(value, int) or value < 1:
+            raise RequestError(f"{where}: expected a whole number of polls, 1 or more")
+        return value
+    if not 0 < value <= 86400:
+        raise RequestError(f"{where}: expected seconds above 0, at most a day (86400)")
+    return float(value)
+
+
+def _link_params() -> tuple[dict[str, click.Parameter], click.Context]:
+    """The device commands' options, whose types convert a link's values as they convert a
+    profile's (profiles._convert): one place for what --parity or --timeout accepts."""
+    from mbtool.cli.options import device_command
+
+    command = device_command("link", polls=True)(lambda connection: connection)
+    return {param.name: param for param in command.params}, click.Context(command)
+
+
+def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context) -> LinkSpec:
+    settings = {}
+    for key, value in table.items():
+        where = f"{path}: [links.{name}] {key}"
+        if key not in LINK_KEYS:
+            raise RequestError(f"{where}: unknown key (known: {', '.join(LINK_KEYS)})")
+        param = params["port" if key == "target" else key]
+        settings["port" if key == "target" else key] = profiles._convert(param, key, value, ctx, where)
+    if "port" not in settings:
+        raise RequestError(
+            f'{path}: [links.{name}] has no target (such as "/dev/ttyUSB0" or "tcp://192.0.2.10")'
+        )
+    try:
+        parse_target(settings["port"])
+        connection = Connection(**settings)
+        check(connection)
+    except RequestError as error:
+        raise RequestError(f"{path}: [links.{name}]: {error}") from None
+    return LinkSpec(name, connection)
+
+
+def _device(name: str, table: dict, path: str, links: dict, defaults: dict) -> DeviceSpec:
+    where = f"{path}: [devices.{name}]"
+    for key in table:
+        if key not in DEVICE_KEYS:
+            raise RequestError(f"{where} {key}: unknown key (known: {', '.join(DEVICE_KEYS)})")
+    link = table.get("link")
+    if not isinstance(link, str):
+        raise RequestError(f"{where}: link must name one of [links.NAME] ({', '.join(links) or 'none'})")
+    if link not in links:
+        raise RequestError(f"{where} link: no [links.{link}] (links: {', '.join(links) or 'none'})")
+    unit = table.get("unit", 1)
+    if isinstance(unit, bool) or not isinstance(unit, int) or not 0 <= unit <= 255:
+        raise RequestError(f"{where} unit: expected a whole number, 0..255")
+    try:
+        check(replace(links[link].connection, unit=unit), "polling")
+    except RequestError as error:
+        raise RequestError(f"{where} unit: {error}") from None
+    settings = {
+        key: _setting(key, table[key], f"{where} {key}") if key in table else defaults[key]
+        for key in DEFAULTS
+    }
+    return DeviceSpec(
+        name,
+        link,
+        unit,
+        _reader(table, where, Path(path).parent),
+        _tags(table.get("tags", {}), where),
+        **settings,
+    )
+
+
+def _reader(table: dict, where: str, folder: Path) -> MapReader:
+    """What the device reads: a map's points (all, or those ``points`` names), or the
+    references ``read`` lists, each a point named by its reference."""
+    if ("map" in table) == ("read" in table):
+        raise RequestError(f"{where}: give either map (a register map) or read (references with counts)")
+    if "map" in table:
+        if not isinstance(table["map"], str):
+            raise RequestError(f"{where} map: expected the path of a register map")
+        names = table.get("points", [])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise RequestError(f"{where} points: expected a list of the map's point names")
+        try:
+            register_map = load_map(folder / Path(table["map"]).expanduser())
+            return MapReader(register_map.select(names), register_map.max_gap)
+        except MapError as error:
+            raise RequestError(f"{where} map: {error}") from None
+    if "points" in table:
+        raise RequestError(f"{where} points: picks a map's points; read lists references")
+    reads = table["read"]
+    if not isinstance(reads, list) or not reads or not all(isinstance(r, str) for r in reads):
+        raise RequestError(f'{where} read: expected references with counts, such as ["40001 10"]')
+    points: dict[str, Point] = {}
+    for text in reads:
+        ref, _, count_text = text.strip().partition(" ")
+        try:
+            table_of, address = parse_reference(ref)
+            count = int(count_text, 0) if count_text.strip() else 1
+        except (RequestError, ValueError) as error:
+            raise RequestError(f"{where} read: {text!r}: {error}") from None
+        if not 1 <= count <= 2000 or address + count > 65536:
+            raise RequestError(f"{where} read: {text!r}: a count of 1..2000 that stays below 65536")
+        for item in range(address, address + count):
+            point = Point(reference(table_of, item), table_of, item, "bool" if table_of.bits else "uint16")
+            if point.name in points:
+                raise RequestError(f"{where} read: {point.name} is read twice")
+            points[point.name] = point
+    return MapReader(points.values())
+
+
+def _tags(tags, where: str) -> dict[str, str]:
+    if not isinstance(tags, dict):
+        raise RequestError(f'{where} tags: expected a table, such as {{ site = "north" }}')
+    out = {}
+    for key, value in tags.items():
+        if not TAG_NAME.fullmatch(key) or key in RESERVED_TAGS:
+            raise RequestError(
+                f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(RESERVED_TAGS)})"
+            )
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise RequestError(f"{where} tags.{key}: expected text or a number")
+        text = str(value)
+        if not text or not one_line(text) or text.endswith("\\"):
+            raise RequestError(f"{where} tags.{key}: a tag's value is one line, not empty, no trailing \\")
+        out[key] = text
+    return out
