@@ -58,7 +58,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
 from mbtool.codec.timing import silent_interval
-from mbtool.device.model import Device
+from mbtool.device.device import Device
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link import IN_PROCESS
 from mbtool.link.transport import Target

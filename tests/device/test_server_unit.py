@@ -21,7 +21,8 @@ from test_serve_abuse import ascii_frame, closed_by_peer, mbap, wait_until
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Rejected, device_framer
-from mbtool.device.model import Device, demo_model
+from mbtool.device.device import Device
+from mbtool.device.model import demo_model
 from mbtool.device.server import (
     BUS_HALF_LIFE,
     IoFaults,
