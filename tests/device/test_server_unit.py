@@ -1,4 +1,4 @@
-"""The server behind serve and bridge (mbtool.device.server), in-process, no subprocess.
+"""The server behind serve and bridge (mbtool.device.server and what it runs), in-process.
 
 The replies and the I/O layer's faults (``Responder``) are checked event by event; the TCP
 server runs in a thread on a loopback port, the serial one on a line made of a loopback
@@ -23,18 +23,9 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Rejected, device_framer
 from mbtool.device.device import Device
 from mbtool.device.model import demo_model
-from mbtool.device.server import (
-    BUS_HALF_LIFE,
-    IoFaults,
-    Responder,
-    Server,
-    Stats,
-    _Client,
-    _Turns,
-    corrupt_checksum,
-    deviate,
-    parse_target,
-)
+from mbtool.device.server import Server, parse_target
+from mbtool.device.serving import IoFaults, Responder, Stats, corrupt_checksum, deviate
+from mbtool.device.tcp_server import BUS_HALF_LIFE, _Client, _Turns
 from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
 

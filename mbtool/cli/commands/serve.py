@@ -213,7 +213,8 @@ def serve(
     from mbtool.device.datafile import load_data
     from mbtool.device.device import Device, Faults
     from mbtool.device.model import demo_model
-    from mbtool.device.server import IoFaults, Server, parse_target
+    from mbtool.device.server import Server, parse_target
+    from mbtool.device.serving import IoFaults
     from mbtool.link.transport import SerialSettings
 
     unit_set = parse_units(units)
