@@ -68,7 +68,8 @@ TRANSACTION_ID = 1  # the id a new Client gives its first request
 
 def seeds() -> list[tuple[object, bytes]]:
     """(request, reply PDU) pairs: the device's answer to each request, and an exception reply."""
-    from mbtool.device.model import Device, demo_model
+    from mbtool.device.device import Device
+    from mbtool.device.model import demo_model
 
     device = Device(demo_model())
     pairs = []

@@ -1,4 +1,4 @@
-"""The simulated device (mbtool.device.model) PDU by PDU: every function code of the spec,
+"""The simulated device (mbtool.device.device) PDU by PDU: every function code of the spec,
 its exception codes, the FC08 counters, the FC12 event log, broadcast and --data files."""
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import pytest
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer
-from mbtool.device.model import MAX_FILES, Device, Faults, demo_model, load_data
+from mbtool.device.datafile import load_data
+from mbtool.device.device import Device, Faults
+from mbtool.device.model import MAX_FILES, demo_model
 
 H = bytes.fromhex
 

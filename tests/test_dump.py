@@ -11,7 +11,8 @@ from test_registermap import _execute as executor
 
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.tables import COILS, HOLDING_REGISTERS
-from mbtool.device.model import DataModel, Device
+from mbtool.device.device import Device
+from mbtool.device.model import DataModel
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, runs_of
 
 
@@ -128,7 +129,7 @@ def test_scattered_registers_cost_little_over_one_request_per_hole_and_run():
 
 
 def test_a_data_file_takes_runs_and_a_completeness_mark(tmp_path):
-    from mbtool.device.model import load_data
+    from mbtool.device.datafile import load_data
 
     path = tmp_path / "dump.toml"
     path.write_text(
@@ -149,7 +150,7 @@ def test_a_data_file_takes_runs_and_a_completeness_mark(tmp_path):
 )
 def test_a_bad_run_is_refused_naming_it(tmp_path, run, words):
     from mbtool.codec.errors import RequestError
-    from mbtool.device.model import load_data
+    from mbtool.device.datafile import load_data
 
     path = tmp_path / "bad.toml"
     path.write_text(f"[holding_registers]\n5 = {run}\n")

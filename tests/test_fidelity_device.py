@@ -21,7 +21,9 @@ from conftest import PtyPair, assert_one_error_line, build_libmodbus, run_mbtool
 from test_serve_abuse import PROMPT, mbap, serve
 
 from mbtool.codec.framing import make_framer
-from mbtool.device.model import Device, demo_model, load_data
+from mbtool.device.datafile import load_data
+from mbtool.device.device import Device
+from mbtool.device.model import demo_model
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -57,7 +57,7 @@ def _add_to_function(path: Path, line: str) -> None:
     [
         ("codec/checksum.py", "import click", "codec is sans-IO"),
         ("codec/pdu.py", "from mbtool.errors import ExitCode", "codec is sans-IO"),
-        ("link/transport.py", "from mbtool.device.model import Device", "link (the master's I/O)"),
+        ("link/transport.py", "from mbtool.device.device import Device", "link (the master's I/O)"),
         ("link/polling.py", "from mbtool.cli.render import render", "link (the master's I/O)"),
         ("device/server.py", "from mbtool.link.client import Client", "device (the simulated device)"),
         ("monitor/bus.py", "import rich", "monitor (the passive bus monitor)"),

@@ -17,7 +17,8 @@ from mbtool.codec.tables import (
     reference,
 )
 from mbtool.codec.values import encode_values
-from mbtool.device.model import DataModel, Device
+from mbtool.device.device import Device
+from mbtool.device.model import DataModel
 from mbtool.errors import ExitCode, PartialRead, exit_code_for
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import (

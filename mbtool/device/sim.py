@@ -8,7 +8,8 @@ attached.  The CLI registers it with ``mbtool.link.register_scheme``.
 from __future__ import annotations
 
 from mbtool.codec.framing import device_framer
-from mbtool.device.model import Device, demo_model
+from mbtool.device.device import Device
+from mbtool.device.model import demo_model
 from mbtool.link.transport import Transport
 
 

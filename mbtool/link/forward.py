@@ -133,7 +133,8 @@ class Forwarder:
     def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
         """The reply ADU to a request from ``peer``, in the framing it came in; None: none is due.
 
-        What ``mbtool.device.server.Server`` asks of whoever answers its requests.
+        What ``mbtool.device.server.Server`` asks of whoever answers its requests
+        (``mbtool.device.serving.Answerer``).
         """
         if not isinstance(event, Frame) or not event.pdu:  # bytes that made no request
             return None

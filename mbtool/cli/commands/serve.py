@@ -210,8 +210,11 @@ def serve(
       mbtool serve                                   (in one terminal)
       mbtool read-holding-registers 0 10 -p tcp://127.0.0.1:5020
     """
-    from mbtool.device.model import Device, Faults, demo_model, load_data
-    from mbtool.device.server import IoFaults, Server, parse_target
+    from mbtool.device.datafile import load_data
+    from mbtool.device.device import Device, Faults
+    from mbtool.device.model import demo_model
+    from mbtool.device.server import Server, parse_target
+    from mbtool.device.serving import IoFaults
     from mbtool.link.transport import SerialSettings
 
     unit_set = parse_units(units)

@@ -344,7 +344,7 @@ def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
 
     One device's tables: a file with [units.N] sections (serve's, one set a unit) is
     refused rather than read as something it is not."""
-    from mbtool.device.model import load_data
+    from mbtool.device.datafile import load_data
 
     model, units = load_data(path, frozenset(range(1, 256)), listed_only=True)
     if units:
