@@ -314,9 +314,10 @@ def test_a_unit_holds_at_most_max_files_and_another_file_is_exception_02():
 def test_writes_to_every_file_number_keep_memory_bounded():
     """65535 file numbers took a serve from 17.5 MB to 1.39 GB before there was a bound."""
     d = dev()
+    ask(d, write_file(1))  # the first write loads the file-record codec: not the files' memory
 
     def hostile():
-        for number in range(1, 2001):
+        for number in range(2, 2001):
             ask(d, write_file(number))
         return d
 
