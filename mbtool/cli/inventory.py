@@ -29,7 +29,6 @@ value of the wrong type are one RequestError (exit 2) naming the file, the table
 from __future__ import annotations
 
 import re
-import tomllib
 from pathlib import Path
 
 import click
@@ -75,16 +74,7 @@ class Inventory:
 
 def load_inventory(path: str) -> Inventory:
     """The inventory at ``path``, checked whole; RequestError (exit 2) naming what is wrong."""
-    try:
-        data = tomllib.loads(Path(path).read_bytes().decode("utf-8"))
-    except OSError as error:
-        raise RequestError(f"cannot read inventory {path}: {error.strerror or error}") from None
-    except UnicodeDecodeError as error:
-        raise RequestError(f"{path}: not UTF-8 text (byte {error.start})") from None
-    except tomllib.TOMLDecodeError as error:
-        raise RequestError(f"{path}: not valid TOML: {error}") from None
-    except RecursionError:
-        raise RequestError(f"{path}: nested too deeply to be an inventory") from None
+    data = profiles.read_toml(Path(path), "inventory")
     for key in data:
         if key not in ("poll", "links", "devices"):
             raise RequestError(f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME])")

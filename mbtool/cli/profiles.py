@@ -61,8 +61,9 @@ def config_path() -> Path:
     return Path(base) / "mbtool" / "config.toml"
 
 
-def _read(path: Path) -> dict:
-    """The config file as TOML; RequestError (exit 2) naming the file for any problem."""
+def read_toml(path: Path, what: str = "profile file") -> dict:
+    """A TOML file (the config file, poll's inventory); RequestError (exit 2) naming the
+    file for any problem."""
     import tomllib
 
     try:
@@ -70,7 +71,7 @@ def _read(path: Path) -> dict:
             text = file.read().decode("utf-8")
         return tomllib.loads(text)
     except OSError as error:
-        raise RequestError(f"cannot read profile file {path}: {error.strerror or error}") from None
+        raise RequestError(f"cannot read {what} {path}: {error.strerror or error}") from None
     except UnicodeDecodeError as error:
         raise RequestError(f"{path}: not UTF-8 text (byte {error.start}), as TOML must be") from None
     except tomllib.TOMLDecodeError as error:
@@ -82,7 +83,7 @@ def _read(path: Path) -> dict:
 def names() -> list[str]:
     """The profiles the config file defines, for completion: none if it cannot be read."""
     try:
-        profiles = _read(config_path()).get("profiles", {})
+        profiles = read_toml(config_path()).get("profiles", {})
     except RequestError:
         return []
     return sorted(profiles) if isinstance(profiles, dict) else []
@@ -91,7 +92,7 @@ def names() -> list[str]:
 def load(name: str, path: Path | None = None) -> dict:
     """The settings of profile ``name``; RequestError (exit 2) naming the file for any problem."""
     path = path or config_path()
-    profiles = _read(path).get("profiles", {})
+    profiles = read_toml(path).get("profiles", {})
     if not isinstance(profiles, dict) or not isinstance(profiles.get(name, {}), dict):
         raise RequestError(f"{path}: [profiles.{name}] must be a table")
     if name not in profiles:
