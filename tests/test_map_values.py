@@ -267,3 +267,39 @@ def test_a_nan_that_stays_nan_is_no_change(served):
         res = expect_ok(run_mbtool("read", *args, *polls))
         assert "->" not in res.stdout, str(res)  # NaN equals nothing, itself included
         assert len(_lines(res)) == (2 if "-m" in args else 1), str(res)
+
+
+def test_read_m_and_check_honour_a_maps_invalid_values(tmp_path):
+    """0xFFFF, which the map's [device] invalid names, is no value: never scaled into 6553.5,
+    'invalid' in plain, null with invalid true in JSON, no influx field nor Prometheus
+    sample, and nothing check can judge (UNKNOWN, or --state-on-error's state) (issue 31)."""
+    from line_protocol_parser import parse_line
+    from prometheus_client.parser import text_string_to_metric_families
+    from test_serve import serve
+
+    data = tmp_path / "data.toml"
+    data.write_text("[holding_registers]\n0 = [0xFFFF, 230]\n")
+    meter = tmp_path / "meter.toml"
+    meter.write_text(
+        '[device]\ninvalid = [0xFFFF]\n[points.power]\nref = 40001\nscale = 0.1\nunit = "kW"\n'
+        '[points.voltage]\nref = 40002\nunit = "V"\n'
+    )
+    with serve("--data", str(data)) as device:
+        read = [
+            run_mbtool("read", "-m", meter, "-o", fmt, "-p", device.target)
+            for fmt in ("plain", "json", "influx", "prom")
+        ]
+        checked = run_mbtool("check", "-m", meter, "power", "-w", "0:100", "-p", device.target)
+        critical = run_mbtool(
+            "check", "-m", meter, "power", "--state-on-error", "critical", "-p", device.target
+        )
+    plain, as_json, influx, prom = (res.stdout for res in read)
+    assert all(res.returncode == 0 for res in read), read
+    assert plain.splitlines() == ["power invalid", "voltage 230 V"]
+    power = json.loads(as_json)["points"][0]
+    assert power["value"] is None and power["invalid"] is True and power["registers"] == [0xFFFF]
+    assert parse_line(influx)["fields"] == {"voltage": 230}
+    names = {s.name for family in text_string_to_metric_families(prom) for s in family.samples}
+    assert "modbus_voltage" in names and "modbus_power" not in names
+    assert checked.returncode == 3 and "power not read (UNKNOWN: no data (invalid))" in checked.stdout
+    assert critical.returncode == 2

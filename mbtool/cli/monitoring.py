@@ -36,6 +36,8 @@ def _values(result) -> list[tuple[dict, object, str]]:
     if isinstance(result, Points):
         out = []
         for row in result.rows:
+            if row.value is None:
+                continue  # no data (the map's invalid key): no field, no sample
             number = row.value if row.number is None else row.number  # text stays text
             about = (row.description or row.name) + (f" ({row.unit})" if row.unit else "") + f", {row.ref}"
             out.append(({"name": row.name, "ref": row.ref}, number, about))

@@ -346,8 +346,14 @@ class PointRow:
         return point_text(self.value) + (" (no label)" if self.no_label else "")
 
 
+INVALID = "invalid"  # a raw value the map's invalid key names: the device has no value to give
+
+
 def point_text(value: object) -> str:
-    """A map's point's value as text: a bit is on or off."""
+    """A map's point's value as text: a bit is on or off; no value (the map's invalid key)
+    is invalid."""
+    if value is None:
+        return INVALID
     if isinstance(value, bool):
         return "on" if value else "off"
     return value_text(value)
@@ -380,7 +386,7 @@ POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
 
 
 def point_line(row: PointRow) -> str:
-    return f"{row.name} {row.shown} {row.unit}".rstrip()
+    return f"{row.name} {row.shown} {row.unit if row.value is not None else ''}".rstrip()
 
 
 def point_cells(row: PointRow) -> list[str]:
@@ -399,6 +405,7 @@ def points_dict(points: Points) -> dict:
                 "unit": row.unit,
                 "ref": row.ref,
                 "bits" if row.bits else "registers": list(row.raw),
+                **({"invalid": True} if row.value is None else {}),
             }
             for row in points.rows
         ],

@@ -312,6 +312,11 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
                 Checked(point.name, None, reading.error.answer, point.unit, *limits[point.name], unjudged)
             )
             continue
+        if value is None:  # a raw value the map's invalid key names: nothing to judge
+            out.append(
+                Checked(point.name, None, "no data (invalid)", point.unit, *limits[point.name], unjudged)
+            )
+            continue
         number = point.number_of(value)  # an enum by the raw number behind its label
         if number is None:
             raise RequestError(f"{point.name} reads {value}, not a number to check")

@@ -17,7 +17,7 @@ import click
 
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.options import PositiveFloat
-from mbtool.cli.render import local_time, to_json, value_text, wants_csv_header
+from mbtool.cli.render import local_time, point_text, to_json, value_text, wants_csv_header
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
 
@@ -199,19 +199,9 @@ class PlantOutput:
             sys.stdout.flush()
 
 
-INVALID = "invalid"  # a value the map's invalid list names: the device has no data
-
-
 def _shown(reading) -> str:
-    value = reading.value
-    if value is None:
-        return INVALID
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    text = value_text(value)
-    if reading.point.no_label(value):
-        text += " (no label)"
-    return text
+    """A reading as read -m shows it: on/off, invalid, a label, or a number (no label)."""
+    return point_text(reading.value) + (" (no label)" if reading.point.no_label(reading.value) else "")
 
 
 def _csv_value(reading) -> str:
