@@ -398,11 +398,11 @@ class LiveView:
 
 
 def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
-    from mbtool.plant.stats import Stats
+    from mbtool.plant.stats import PollStats
 
     links = {}
     for worker in runner.workers:
-        total = Stats()
+        total = PollStats()
         for state in worker.devices:
             total.add(state.stats)
         links[worker.spec.name] = (total, worker.state)
