@@ -92,10 +92,11 @@ class Durations:
         }
 
     def text(self, names: tuple[str, ...] = ("min", "avg", "p95", "max")) -> str:
-        """The figures named, in ms: "min/avg/p95/max 1.2/3.4/5.6/7.8 ms", or "-" before any."""
+        """The figures named, in ms to the microsecond as ping(8) prints them:
+        "min/avg/p95/max 1.204/3.417/5.600/7.815 ms", or "-" before any."""
         figures = self.figures()
         if figures is None:
             return "-"
         figures["mdev"] = self.mdev()
-        shown = "/".join(f"{figures[name] * 1000:.1f}" for name in names)
+        shown = "/".join(f"{figures[name] * 1000:.3f}" for name in names)
         return f"{'/'.join(names)} {shown} ms"

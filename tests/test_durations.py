@@ -39,7 +39,7 @@ def test_min_avg_p95_max_and_mdev_as_ping_prints_them():
         three.add(ms / 1000)
     # ping(8): sqrt(mean of squares - square of the mean) = sqrt(14/3 - 4) ms
     assert three.mdev() == pytest.approx(math.sqrt(14 / 3 - 4) / 1000)
-    assert three.text(("min", "avg", "max", "mdev")) == "min/avg/max/mdev 1.0/2.0/3.0/0.8 ms"
+    assert three.text(("min", "avg", "max", "mdev")) == "min/avg/max/mdev 1.000/2.000/3.000/0.816 ms"
 
 
 def test_the_percentile_is_of_the_most_recent_window_and_every_duration_is_in_the_histogram():

@@ -90,17 +90,18 @@ class Stats:
             "rtt_seconds": self.rtt_figures(),
         }
 
-    def __str__(self) -> str:
-        """One line for a summary: every outcome, the retries that recovered and the rtt."""
+    def outcomes_text(self) -> str:
+        """Every outcome and the retries that recovered, for a summary line."""
         counts = ", ".join(
             f"{outcome.replace('_', ' ')} {self.outcomes[outcome]}"
             + (f" ({self.exceptions_text()})" if outcome == "exception" and self.exceptions else "")
             for outcome in OUTCOMES
         )
-        return (
-            f"transactions {self.transactions}: {counts}; retries recovered {self.recovered}; "
-            f"rtt {self.rtt.text()}"
-        )
+        return f"transactions {self.transactions}: {counts}; retries recovered {self.recovered}"
+
+    def __str__(self) -> str:
+        """One line for a summary: every outcome, the retries that recovered and the rtt."""
+        return f"{self.outcomes_text()}; rtt {self.rtt.text()}"
 
 
 class Counted:
