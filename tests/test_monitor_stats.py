@@ -90,10 +90,12 @@ def check(stats: dict, played: float | None) -> None:
     assert units == EXPECTED_UNITS, json.dumps(stats, indent=1)
     assert stats["frames"] == 11 and stats["garbage_bytes"] == 3 and stats["t35_breaks"] == 1
     one, two = (unit["response_seconds"] for unit in stats["units"])
-    # Unit 1: the reply written with its request (no time at all) and one after TURNAROUND;
-    # the damaged reply is corrupt, not a response time.  A loaded machine reads late, never early.
-    assert one["min"] < TURNAROUND <= one["max"] < TURNAROUND + PAUSE
-    assert TURNAROUND <= two["min"] <= two["max"] < TURNAROUND + PAUSE  # the exception and the reply
+    # Unit 1: the reply written with its request (read with it: no time at all) and one after
+    # TURNAROUND; the damaged reply is corrupt, not a response time.  The times are when the
+    # monitor read the bytes, so a loaded machine that read a request late shortens its
+    # response time: only the bounds that holds to are checked.
+    assert one["min"] == 0 < one["max"] < TURNAROUND + PAUSE
+    assert 0 < two["min"] <= two["max"] < TURNAROUND + PAUSE  # the exception and the reply
     if played is not None:
         assert stats["seconds"] >= played - 0.1
         assert 0 < stats["utilisation"] <= ON_THE_LINE / (played - 0.1)
@@ -133,13 +135,17 @@ def test_monitor_stats_count_exactly_what_was_on_a_bus_with_two_units(tmp_path):
     assert rows[0][:7] == ["unit", "requests", "replies", "exceptions", "unanswered", "corrupt", "t3.5"]
     assert rows[1][:7] == ["1", "3", "2", "0", "0", "1", "1"], shown
     assert rows[2][:7] == ["2", "3", "1", "02:1", "1", "0", "0"], shown
-    assert shown.stdout.splitlines()[-1].startswith("bus: 11 frames, 3 garbage bytes, 1 t3.5 breaks, utilisation ")
+    assert shown.stdout.splitlines()[-1].startswith(
+        "bus: 11 frames, 3 garbage bytes, 1 t3.5 breaks, utilisation "
+    )
 
 
 def test_stats_interval_prints_them_as_they_grow():
     line = Line()
     try:
-        proc = start_monitor("-p", line.path, "--parity", "N", "--stats", "--stats-interval", "0.3", "-o", "json")
+        proc = start_monitor(
+            "-p", line.path, "--parity", "N", "--stats", "--stats-interval", "0.3", "-o", "json"
+        )
         for _ in range(4):
             line.send(READ_1)
             time.sleep(TURNAROUND)

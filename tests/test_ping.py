@@ -71,9 +71,11 @@ def test_pymodbus_over_tcp_answers_every_ping_with_its_time(tcp_device):
     assert [seq for seq, _ in seen] == [1, 2, 3]
     assert all(re.fullmatch(r"time=[\d.]+ ms", what) for _, what in seen), seen
     assert "3 sent, 3 answered, 0% lost, rtt min/avg/max/mdev " in summary
-    low, avg, high, mdev = map(float, re.search(r"mdev ([\d.]+)/([\d.]+)/([\d.]+)/([\d.]+) ms", summary).groups())
-    assert low <= avg <= high and min(times(seen)) == pytest.approx(low, abs=0.001)
-    assert max(times(seen)) == pytest.approx(high, abs=0.001)
+    low, avg, high, mdev = map(
+        float, re.search(r"mdev ([\d.]+)/([\d.]+)/([\d.]+)/([\d.]+) ms", summary).groups()
+    )
+    assert low <= avg <= high and min(times(seen)) == pytest.approx(low, rel=0.01, abs=0.001)
+    assert max(times(seen)) == pytest.approx(high, rel=0.01, abs=0.001)
     assert outcomes(summary) == {
         "answered": 3, "exception": 0, "timeout": 0, "corrupt": 0, "not ours": 0, "link lost": 0,
         "retries recovered": 0,
@@ -81,7 +83,9 @@ def test_pymodbus_over_tcp_answers_every_ping_with_its_time(tcp_device):
 
 
 def test_pymodbus_on_a_serial_line_answers_every_ping(serial_rtu_device):
-    seen, summary, code = pinged("-p", serial_rtu_device.target, *PTY_SERIAL_OPTS, "-u", "2", "-c", "2", "-i", "0")
+    seen, summary, code = pinged(
+        "-p", serial_rtu_device.target, *PTY_SERIAL_OPTS, "-u", "2", "-c", "2", "-i", "0"
+    )
     assert code == 0
     assert [seq for seq, _ in seen] == [1, 2] and len(times(seen)) == 2
     assert summary.startswith("mbtool: 2 sent, 2 answered, 0% lost")

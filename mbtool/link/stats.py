@@ -13,7 +13,14 @@ from __future__ import annotations
 
 from collections import Counter
 
-from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
+from mbtool.codec.errors import (
+    ChecksumError,
+    FrameError,
+    MismatchError,
+    ModbusException,
+    exceptions_by_code,
+    exceptions_text,
+)
 from mbtool.codec.pdu import Request, Response
 from mbtool.durations import Durations
 from mbtool.errors import NoResponse
@@ -79,13 +86,13 @@ class Stats:
 
     def exceptions_text(self) -> str:
         """The exceptions by code, "02:3,0B:1"; "0" when none came."""
-        return ",".join(f"{code:02X}:{n}" for code, n in sorted(self.exceptions.items())) or "0"
+        return exceptions_text(self.exceptions)
 
     def as_dict(self) -> dict:
         return {
             "transactions": self.transactions,
             **{outcome: self.outcomes[outcome] for outcome in OUTCOMES},
-            "exceptions_by_code": {f"{code:02X}": n for code, n in sorted(self.exceptions.items())},
+            "exceptions_by_code": exceptions_by_code(self.exceptions),
             "retries_recovered": self.recovered,
             "rtt_seconds": self.rtt_figures(),
         }

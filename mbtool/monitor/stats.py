@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections import Counter
 
+from mbtool.codec.errors import exceptions_by_code, exceptions_text
 from mbtool.durations import Durations
 from mbtool.monitor.bus import BusFrame, Unanswered
 
@@ -38,7 +39,7 @@ class UnitStats:
         return {
             "requests": self.requests,
             "replies": self.replies,
-            "exceptions_by_code": {f"{code:02X}": n for code, n in sorted(self.exceptions.items())},
+            "exceptions_by_code": exceptions_by_code(self.exceptions),
             "unanswered": self.unanswered,
             "corrupt": self.corrupt,
             "t35_breaks": self.breaks if timed and t35 else None,
@@ -137,14 +138,18 @@ class BusStats:
         for unit, stats in sorted(self.units.items()):
             figures = stats.response.figures()
             response = (
-                "-" if figures is None else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
+                "-"
+                if figures is None
+                else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
             )
-            exceptions = ",".join(f"{code:02X}:{n}" for code, n in sorted(stats.exceptions.items())) or "0"
+            exceptions = exceptions_text(stats.exceptions)
             breaks = str(stats.breaks) if self.timed and self.t35 is not None else "-"
             rows.append([str(unit), str(stats.requests), str(stats.replies), exceptions, str(stats.unanswered),
                          str(stats.corrupt), breaks, response])  # fmt: skip
         widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
-        lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows]
+        lines = [
+            "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows
+        ]
         bus = f"bus: {self.frames} frames, {self.garbage_bytes} garbage bytes"
         if self.timed and self.t35 is not None:
             bus += f", {self.breaks} t3.5 breaks"

@@ -25,8 +25,8 @@ from contextlib import ExitStack
 from mbtool.codec.record import field, record
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead
 from mbtool.link.connection import Connection, close_quietly, open_client
-from mbtool.link.transport import ConnectionClosed
 from mbtool.link.stats import Counted
+from mbtool.link.transport import ConnectionClosed
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.plan import MapReader, Reading
 

@@ -22,7 +22,9 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
 
 
-@device_command("ping", output=False, short_help="Is a device there, and how fast does it answer (like ping).")
+@device_command(
+    "ping", output=False, short_help="Is a device there, and how fast does it answer (like ping)."
+)
 @click.option(
     "-c", "--count", type=Number(1, 2**31, "count"), help="Stop after COUNT requests (default: until Ctrl-C)."
 )
@@ -129,7 +131,9 @@ class Pinger:
                         link = ExitStack()
                         client = link.enter_context(open_client(connection, "ping"))
                     except (ConnectionFailed, OSError) as error:
-                        failure = error if isinstance(error, ConnectionFailed) else ConnectionFailed(str(error))
+                        failure = (
+                            error if isinstance(error, ConnectionFailed) else ConnectionFailed(str(error))
+                        )
                         self.stats.transaction(failure, 0)
                         self._line(seq, f"link lost: {failure}")
                         last_sent = time.monotonic()
