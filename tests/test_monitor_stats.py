@@ -127,6 +127,7 @@ def test_monitor_stats_count_exactly_what_was_on_a_bus_with_two_units(tmp_path):
     assert replayed.returncode == 0, replayed
     (again,) = json_lines(replayed.stdout)
     check(again, None)
+    assert again["time"] and again["time"] <= records[0]["time"]  # as of the last frame recorded
 
     # And as a table.
     shown = run_mbtool("monitor", "--from-file", str(capture), "--response-timeout", str(RESPONSE_TIMEOUT), "--stats",
@@ -171,6 +172,7 @@ def test_raw_bytes_with_no_time_stamps_have_no_times_to_count(tmp_path):
     assert res.returncode == 0, res
     (stats,) = json_lines(res.stdout)
     assert stats["t35_breaks"] is None and stats["utilisation"] is None and stats["seconds"] is None
+    assert stats["time"] is None
     assert [(u["unit"], u["requests"], u["replies"], u["exceptions_by_code"]) for u in stats["units"]] == [
         (1, 1, 1, {}),
         (2, 1, 0, {"02": 1}),

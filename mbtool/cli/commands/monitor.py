@@ -516,7 +516,9 @@ class Output:
         if self.fmt == "json":
             from mbtool.cli.render import to_json
 
-            record = {"event": "stats", "time": local_time(now) if now is not None else None}
+            # A recording's are as of its last frame; raw bytes have no time at all.
+            when = now if now is not None else counts.last
+            record = {"event": "stats", "time": local_time(when) if counts.timed and when else None}
             self.out.write(to_json({**record, **counts.as_dict(now)}) + "\n")
         else:
             self.out.write("\n".join(counts.table(now)) + "\n")
