@@ -458,6 +458,37 @@ def test_a_unit_that_does_not_answer_gets_exception_0B(pty_pair):
     assert records[0]["received"] is None
 
 
+def test_the_summary_on_exit_counts_each_units_transactions_by_outcome(tmp_path):
+    """Per unit, what became of each request forwarded (issue 32), as every summary counts
+    transactions: unit 1 answers, unit 2 refuses writes (02), unit 9 is not on the bus."""
+    from test_serve import serve as serve_on
+
+    pair = PtyPair()
+    try:
+        with (
+            serve_on("-u", "1,2", "--exception", "6:2", *PTY_SERIAL_OPTS, target=pair.device_path),
+            bridge("-p", pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3", "-q") as running,
+        ):
+            for _ in range(2):
+                expect_ok(run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "1", "-t", "5"))
+            run_mbtool("write-register", "0", "7", "-p", running.target, "-u", "2", "-t", "5")
+            for _ in range(2):  # the second is answered 0B without the bus (--silent-hold)
+                run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "9", "-t", "5")
+            code, _, err = running.stop()
+    finally:
+        pair.close()
+    assert code == 0, err
+    units = {line.split(":", 1)[0]: line for line in err.splitlines() if line.startswith("unit ")}
+    assert set(units) == {"unit 1", "unit 2", "unit 9"}, err
+    assert units["unit 1"].startswith(
+        "unit 1: transactions 2: answered 2, exception 0, timeout 0, corrupt 0, not ours 0, link lost 0;"
+    ), err
+    assert "rtt min/avg/p95/max " in units["unit 1"]
+    assert units["unit 2"].startswith("unit 2: transactions 1: answered 0, exception 1 (02:1), timeout 0,"), err
+    assert units["unit 9"].startswith("unit 9: transactions 1: answered 0, exception 0, timeout 1,"), err
+    assert units["unit 9"].endswith("rtt -"), err
+
+
 def test_a_unit_not_forwarded_gets_exception_0A_and_nothing_goes_on_the_bus(rtu_bus):
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "2") as running:
         rtu_bus.pty.clear()

@@ -61,6 +61,7 @@ def _add_to_function(path: Path, line: str) -> None:
         ("link/polling.py", "from mbtool.cli.render import render", "link (the master's I/O)"),
         ("device/server.py", "from mbtool.link.client import Client", "device (the simulated device)"),
         ("monitor/bus.py", "import rich", "monitor (the passive bus monitor)"),
+        ("durations.py", "from mbtool.codec.pdu import Request", "durations (the histogram"),
         (
             "cli/commands/scan.py",
             "from mbtool.cli.commands import read",

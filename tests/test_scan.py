@@ -394,6 +394,37 @@ def test_a_late_reply_is_credited_to_its_unit(mbtool, raw_responder):
     assert data["silent"] == 9
 
 
+def test_the_summary_counts_every_probe_by_its_outcome(mbtool, raw_responder):
+    """Each probe is one transaction, classified as every summary of mbtool counts them
+    (issue 32): in the stderr line and in -o json's "transactions"."""
+
+    def reply(request: bytes) -> bytes | None:
+        unit = request[0]
+        if unit == 1:
+            return rtu(bytes([1, 3, 2, 0, 42]))
+        if unit == 2:
+            frame = rtu(bytes([2, 3, 2, 0, 42]))
+            return frame[:-1] + bytes([frame[-1] ^ 0xFF])  # a wrong CRC: the wire
+        if unit == 3:
+            return rtu(bytes([3, 0x83, 2]))  # exception 02
+        if unit == 4:
+            return rtu(bytes([9, 3, 2, 0, 42]))  # a whole frame from unit 9: not ours
+        return None  # unit 5: nobody
+
+    srv = raw_responder(reply)
+    res = expect_ok(mbtool("scan", "-p", srv.socket_target, "--units", "1-5", "-t", "0.3", "-o", "json"))
+    counts = scan_json(res)["transactions"]
+    assert {k: counts[k] for k in ("transactions", "answered", "exception", "timeout", "corrupt", "not_ours")} == {
+        "transactions": 5, "answered": 1, "exception": 1, "timeout": 1, "corrupt": 1, "not_ours": 1,
+    }  # fmt: skip
+    assert counts["exceptions_by_code"] == {"02": 1} and counts["link_lost"] == 0
+    assert counts["rtt_seconds"]["max"] < 0.3  # the reply's and the exception's round trips
+    assert (
+        "transactions 5: answered 1, exception 1 (02:1), timeout 1, corrupt 1, not ours 1, link lost 0; "
+        "retries recovered 0; rtt min/avg/p95/max " in res.stderr
+    ), res
+
+
 # --- bad input: exit 2, one line, nothing sent -------------------------------------------------
 
 

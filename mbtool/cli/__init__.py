@@ -57,6 +57,7 @@ COMMANDS = {
     "fifo": "functions",
     "device-id": "functions",
     "scan": "scan",
+    "ping": "ping",
     "monitor": "monitor",
     "raw": "offline",
     "decode": "offline",

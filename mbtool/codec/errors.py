@@ -28,6 +28,16 @@ def exception_name(code: int) -> str:
     return EXCEPTION_NAMES.get(code, "Undefined Exception Code")
 
 
+def exceptions_by_code(counts) -> dict[str, int]:
+    """Exceptions counted by their code, as every statistics output keys them: {"02": 3, "0B": 1}."""
+    return {f"{code:02X}": n for code, n in sorted(counts.items())}
+
+
+def exceptions_text(counts) -> str:
+    """Exceptions counted by their code, as every statistics table shows them: "02:3,0B:1", or "0"."""
+    return ",".join(f"{code}:{n}" for code, n in exceptions_by_code(counts).items()) or "0"
+
+
 def function_code_text(code: int) -> str:
     """A function code as every message writes it: decimal, as the spec's tables, the README
     and --help number the functions, with the hex that a frame shows (FC 22 (0x16))."""

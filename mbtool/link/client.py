@@ -153,6 +153,11 @@ class Client:
         assert error is not None
         raise error
 
+    @property
+    def attempts(self) -> int:
+        """The requests the last ``execute`` sent: 1, or more when it retried."""
+        return len(self._attempt_ids)
+
     # -- one attempt ------------------------------------------------------------
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:

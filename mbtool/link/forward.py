@@ -39,6 +39,7 @@ from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.client import Client, Trace
 from mbtool.link.connection import close_quietly
+from mbtool.link.stats import Counted, Stats
 from mbtool.link.transport import ConnectionClosed
 
 # What became of a request, in the words the display and the summary use.
@@ -107,7 +108,9 @@ class Forwarder:
     ``mbtool.link.connection.open_client`` gives).  ``units``: the units forwarded (0: the
     broadcasts).  ``raw_functions``: forward function codes the codec does not know.
     ``silent_hold``: seconds a unit that did not respond is answered 0B at once (0: never).
-    Every request ends in a ``Passage`` handed to ``report``.
+    Every request ends in a ``Passage`` handed to ``report``; each one forwarded is also a
+    transaction on the link, counted in ``stats`` by its unit (``link.stats``).  A request sent
+    again on a new link, after the one it went out on had closed, is a second transaction.
     """
 
     def __init__(
@@ -126,6 +129,7 @@ class Forwarder:
         self.raw_functions = raw_functions
         self.silent_hold = silent_hold
         self._silent: dict[int, float] = {}  # unit -> when it last sent nothing (monotonic)
+        self.stats: dict[int, Stats] = {}  # unit -> its transactions on the link
         self._link = ExitStack()
         self._client: Client | None = None
         self._watch = _Watch()
@@ -241,15 +245,16 @@ class Forwarder:
         return answer, outcome, why
 
     def _execute(self, unit: int, request: RawRequest):
+        stats = self.stats.setdefault(unit, Stats())
         reused = self._client is not None
         try:
-            return self._open().execute(unit, request)
+            return Counted(self._open(), stats)(unit, request)
         except (ConnectionClosed, ConnectionFailed):
             if not reused:
                 raise
             # A TCP device closes a connection left idle: once more, on a new one.
             self._drop_link()
-            return self._open().execute(unit, request)
+            return Counted(self._open(), stats)(unit, request)
 
     def _open(self) -> Client:
         if self._client is None:

@@ -23,6 +23,7 @@ from mbtool.codec.errors import FrameError, MismatchError, ModbusException, Prot
 from mbtool.codec.record import record, replace
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.connection import close_quietly, framer_name, open_client
+from mbtool.link.stats import Counted, Stats
 from mbtool.link.transport import ConnectionClosed, SerialSettings
 
 GATEWAY_EXCEPTIONS = (0x0A, 0x0B)  # spec §3: path unavailable, target failed to respond
@@ -81,6 +82,7 @@ class Tally:
         self.silent: set[tuple[int, int]] = set()  # (setting index, unit) that never answered
         self.gateway = 0  # units a gateway said it cannot reach (exception 0A/0B)
         self.interrupted = False
+        self.transactions = Stats()  # what became of each probe, as every summary counts them
 
 
 # --- probing ------------------------------------------------------------------------------
@@ -192,14 +194,15 @@ def frames_in(framer_name: str, data: bytes) -> list:
     return frames
 
 
-def ask(client, unit: int, request, framer_name: str) -> Answer | str:
-    """Probe one unit: an Answer, or why there is none ("silent" or "gateway").
+def ask(execute: Counted, unit: int, request, framer_name: str) -> Answer | str:
+    """Probe one unit through ``execute`` (the client's, counted): an Answer, or why there is
+    none ("silent" or "gateway").
 
     Link failures (ConnectionFailed, a closed connection, OSError) are the caller's.
     """
     began = time.monotonic()
     try:
-        reply = client.execute(unit, request)
+        reply = execute(unit, request)
     except ModbusException as exception:
         return _exception_answer(unit, exception.exception_code, _ms(began)) or "gateway"
     except ConnectionClosed:
@@ -314,10 +317,11 @@ class Scan:
             probed: set[int] = set()
             found: set[int] = set()
             here = len(tally.settings) - 1
+            execute = Counted(client, tally.transactions)
             for index, unit in enumerate(self.units):
                 self.progress.at(setting if self.sweeping else None, unit)
                 try:
-                    outcome = ask(client, unit, self.request, name)
+                    outcome = ask(execute, unit, self.request, name)
                 except (ConnectionFailed, ConnectionClosed, OSError) as error:
                     # The link broke (a gateway hanging up on an unknown unit, a cable
                     # pulled): count this unit silent and go on over a new link.
@@ -327,6 +331,7 @@ class Scan:
                     except ConnectionFailed as again:
                         self._refused(setting, str(again), len(self.units) - index)
                         return False
+                    execute = Counted(client, tally.transactions)
                     outcome = "silent"
                     self.output.note(f"unit {unit}: {error}; link reopened")
                 tally.probes += 1

@@ -25,8 +25,9 @@ from contextlib import ExitStack
 from mbtool.codec.record import field, record
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead
 from mbtool.link.connection import Connection, close_quietly, open_client
+from mbtool.link.stats import Counted
 from mbtool.link.transport import ConnectionClosed
-from mbtool.plant.stats import Stats
+from mbtool.plant.stats import PollStats
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
@@ -90,7 +91,7 @@ class DeviceState:
         self.polls = 0
         self.last_success: float | None = None  # time.time()
         self.last_poll: Poll | None = None
-        self.stats = Stats()
+        self.stats = PollStats()
 
     def succeeded(self, now: float, when: float) -> Event | None:
         was = self.state
@@ -205,23 +206,13 @@ class LinkWorker:
         return True
 
     def _poll(self, device: DeviceState) -> None:
-        client, spec, stats = self.client, device.spec, device.stats
+        client, spec = self.client, device.spec
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
-        client.timed = stats.round_trip
-        trace = client.trace
-        sent = _SentCounter(trace)
-        client.trace = sent
+        counted = Counted(client, device.stats)
 
         def execute(request):
-            before = sent.count
-            try:
-                reply = client.execute(spec.unit, request)
-            except BaseException as error:
-                stats.transaction(error, sent.count - before)
-                raise
-            stats.transaction(None, sent.count - before)
-            return reply
+            return counted(spec.unit, request)
 
         readings, error = None, None
         try:
@@ -234,7 +225,6 @@ class LinkWorker:
                 close_quietly(self.link)  # the link is gone: open it anew for the next poll
                 self.client = None
         finally:
-            client.trace = trace
             client.while_waiting = None
         self._end(device, readings, error, stamp[0] if stamp else time.time())
 
@@ -252,24 +242,6 @@ class LinkWorker:
         self.report(poll)
         if event is not None:
             self.report(event)
-
-
-class _SentCounter:
-    """The client's trace, counting the requests sent (the attempts of a transaction)."""
-
-    def __init__(self, inner) -> None:
-        self.inner = inner
-        self.count = 0
-
-    def sent(self, adu: bytes) -> None:
-        self.count += 1
-        self.inner.sent(adu)
-
-    def received(self, adu: bytes, note: str = "") -> None:
-        self.inner.received(adu, note)
-
-    def rejected(self, data: bytes, error) -> None:
-        self.inner.rejected(data, error)
 
 
 class Plant:

@@ -159,8 +159,9 @@ def bridge(
     it 01 or 03 as the device would. TCP clients take turns, the one that has used the
     least bus time lately first, and the requests of a client that has gone are dropped:
     none can hold up the others.
-    The start line and a summary on exit go to stderr; Ctrl-C or SIGTERM stops it with
-    exit status 0.
+    The start line and a summary on exit go to stderr, with a line for each unit: its
+    transactions on the link by outcome (answered, exception, timeout, corrupt, not ours,
+    link lost) and their round-trip time. Ctrl-C or SIGTERM stops it with exit status 0.
 
     \b
     Try it:
@@ -246,6 +247,8 @@ def bridge(
     if show.failure is not None:
         raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
     click.echo(f"stopped: {show.summary(server.stats.connections, where.scheme == 'tcp')}", err=True)
+    for unit, stats in sorted(forwarder.stats.items()):  # what became of each unit's transactions
+        click.echo(f"unit {unit}: {stats}", err=True)
 
 
 class Show:

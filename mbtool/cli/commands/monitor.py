@@ -110,6 +110,19 @@ def default_silence(framer: str, baud: int) -> float:
     callback=lambda ctx, param, value: output_chosen(value),
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
+@click.option(
+    "--stats",
+    is_flag=True,
+    help="Show statistics instead of each frame: per unit its requests, replies, exceptions by "
+    "code, unanswered requests, corrupt frames, response time min/avg/p95/max and frames that "
+    "broke the t3.5 silence, and the bus's utilisation; on exit (a table, or -o json).",
+)
+@click.option(
+    "--stats-interval",
+    type=PositiveFloat(),
+    metavar="SECONDS",
+    help="With --stats: also every SECONDS while listening, each time all since the start.",
+)
 @PROFILE_OPTION
 def monitor(
     port,
@@ -125,6 +138,8 @@ def monitor(
     capture,
     from_file,
     output_format,
+    stats,
+    stats_interval,
 ):
     """Watch a serial bus and decode every frame; never transmits.
 
@@ -134,6 +149,9 @@ def monitor(
     late, broadcast, garbage; a request with no response gets an "unanswered" line.
     Each line has the time (ms) and the gap before the frame. Ctrl-C, SIGTERM,
     --duration or --frames stop it, with a summary line on stderr.
+
+    --stats counts instead, per unit, to tell which device is sick: a table on exit (and
+    every --stats-interval), or one JSON object each time with -o json.
     """
     from mbtool.cli.render import default_format
     from mbtool.monitor.bus import BusMonitor, Tally
@@ -152,6 +170,8 @@ def monitor(
     if from_file and port_given:
         raise RequestError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
     recording, timed = None, True
+    if stats_interval is not None and not stats:
+        raise RequestError("--stats-interval goes with --stats")
     if from_file:
         recording, timed = _recording(from_file)
         _check_replay_options(ctx, from_file, timed)
@@ -160,6 +180,8 @@ def monitor(
     sniffer = BusMonitor(framer, silence or default_silence(framer, baud), response_timeout, timed)
     output = Output(output_format or default_format(), timed=timed)
     tally = Tally()
+    counts = _bus_stats(framer, baud, parity, bytesize, stopbits, timed, from_file) if stats else None
+    next_stats = time.monotonic() + stats_interval if stats_interval else None
     recorder = None
     if capture:
         from mbtool.monitor.pcap import BusCapture
@@ -173,13 +195,20 @@ def monitor(
         """Show what the sniffer found; False once --frames is reached."""
         from mbtool.monitor.bus import BusFrame
 
+        nonlocal next_stats
         for item in seen:
             if frame_limit and tally.frames >= frame_limit:
                 return False
             tally.count(item)
-            output.write(item)
+            if counts is None:
+                output.write(item)
+            else:
+                counts.count(item)
             if recorder is not None and isinstance(item, BusFrame):
                 recorder.frame(item)
+        if next_stats is not None and time.monotonic() >= next_stats:
+            next_stats += stats_interval
+            output.stats(counts, time.time())
         return not (frame_limit and tally.frames >= frame_limit)
 
     interrupted = False
@@ -192,6 +221,9 @@ def monitor(
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        if counts is not None:
+            # Listening: the time watched runs to now; a recording's, to its last frame.
+            output.stats(counts, None if from_file else time.time())
         output.close()
         if recorder is not None:
             recorder.close()
@@ -205,6 +237,17 @@ def monitor(
     raise Summary(summary, ExitCode.OK)
 
 
+def _bus_stats(framer, baud, parity, bytesize, stopbits, timed: bool, from_file):
+    """The counts --stats shows, with the line's t3.5 (none on ASCII: spec §2) and character time."""
+    from mbtool.codec.timing import char_time, character_bits, silent_interval
+    from mbtool.monitor.stats import BusStats
+
+    bits = character_bits(parity, int(bytesize), int(stopbits))
+    t35 = silent_interval(baud, bits) if framer == "rtu" else None
+    # Listening, the time watched starts now; a recording's at its first frame.
+    return BusStats(t35, char_time(baud, bits), timed, None if from_file else time.time())
+
+
 def _check_replay_options(ctx: click.Context, path: str, timed: bool) -> None:
     """Refuse the options a recording leaves nothing to do: a recording is read to its end,
     and raw bytes have no times to measure a silence or a timeout by."""
@@ -216,6 +259,8 @@ def _check_replay_options(ctx: click.Context, path: str, timed: bool) -> None:
         raise RequestError(
             "--duration is for listening; a recording is read to its end (--frames stops sooner)"
         )
+    if given("stats_interval"):
+        raise RequestError("--stats-interval is for listening; a recording's statistics are shown at its end")
     for name in ("silence", "response_timeout"):
         if not timed and given(name):
             option = "--" + name.replace("_", "-")
@@ -465,6 +510,19 @@ class Output:
         if flags:
             line += " [bold red]" + escape(" ".join(flags)) + "[/]"
         self.console.print(f"{line}\n    [dim]{escape(wire_text(item))}[/] {verdict}")
+
+    def stats(self, counts, now: float | None) -> None:
+        """The statistics so far (monitor.stats.BusStats): a table, or one JSON object."""
+        if self.fmt == "json":
+            from mbtool.cli.render import to_json
+
+            # A recording's are as of its last frame; raw bytes have no time at all.
+            when = now if now is not None else counts.last
+            record = {"event": "stats", "time": local_time(when) if counts.timed and when else None}
+            self.out.write(to_json({**record, **counts.as_dict(now)}) + "\n")
+        else:
+            self.out.write("\n".join(counts.table(now)) + "\n")
+        self.out.flush()
 
     def close(self) -> None:
         self.out.flush()

@@ -388,11 +388,11 @@ class LiveView:
 
 
 def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
-    from mbtool.plant.stats import Stats
+    from mbtool.plant.stats import PollStats
 
     links = {}
     for worker in runner.workers:
-        total = Stats()
+        total = PollStats()
         for state in worker.devices:
             total.add(state.stats)
         links[worker.spec.name] = (total, worker.state)
@@ -438,7 +438,7 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
             if figures is None
             else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
         )
-        exceptions = ",".join(f"{code:02X}:{n}" for code, n in sorted(stats.exceptions.items())) or "0"
+        exceptions = stats.exceptions_text()
         lines.append(
             [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
              str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),

@@ -234,6 +234,7 @@ class Output:
                 "silent": len(tally.silent),
                 "gateway": tally.gateway,
                 "interrupted": tally.interrupted,
+                "transactions": tally.transactions.as_dict(),
             }
             if self.sweeping:
                 data["settings"] = [
@@ -396,7 +397,7 @@ def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Su
     if sweeping:
         opened = sum(1 for setting in tally.settings if not setting.error)
         text += f", settings opened {opened} of {len(tally.settings)}"
-    text += f", {seconds:.1f} s"
+    text += f", {seconds:.1f} s; {tally.transactions}"
     if tally.interrupted:
         return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
     if found:

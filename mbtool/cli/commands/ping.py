@@ -1,0 +1,212 @@
+"""``mbtool ping``: is a device there, and how fast does it answer -- ping(8) for Modbus (issue 32).
+
+One small request at a time (FC 03 of one register, or FC 08's echo carrying the sequence
+number), one line for each reply or failure, and at the end ping(8)'s summary beside every
+transaction's outcome as all of mbtool's summaries count them (``link.stats``).  An exception
+is the device answering: it is alive.  A gateway's 0A or 0B is the gateway answering for a
+device that did not (spec §3): that request is lost.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import ExitStack
+
+import click
+
+from mbtool.cli.options import ADDRESS, Choice, Number, PositiveFloat, device_command
+from mbtool.codec.errors import ModbusException, RequestError, function_code_text
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
+
+# What each --function asks: a read of one holding register, or the diagnostics echo.
+FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
+
+
+@device_command(
+    "ping", output=False, short_help="Is a device there, and how fast does it answer (like ping)."
+)
+@click.option(
+    "-c", "--count", type=Number(1, 2**31, "count"), help="Stop after COUNT requests (default: until Ctrl-C)."
+)
+@click.option(
+    "-i",
+    "--interval",
+    type=PositiveFloat(zero_ok=True),
+    default=1.0,
+    show_default=True,
+    help="Seconds from one request to the next (0: back to back).",
+)
+@click.option(
+    "--function",
+    type=Choice(list(FUNCTIONS), aliases={"3": "03", "8": "08"}),
+    default="03",
+    show_default=True,
+    help="03: read the holding register at --address; 08: the diagnostics echo (return query "
+    "data), which carries the sequence number back.",
+)
+@click.option("--address", type=ADDRESS, default=0, show_default=True, help="The register FC 03 reads.")
+@click.option("-q", "--quiet", is_flag=True, help="No line for each request: only the summary.")
+def ping(connection, count, interval, function, address, quiet):
+    """Ask a device the same small question again and again, like ping(8): one line for each
+    reply ("unit 1: seq=3 time=4.2 ms") or for what went wrong (timeout, corrupt, not ours,
+    link lost), then the summary on stderr: sent, answered, lost and rtt min/avg/max/mdev,
+    with every transaction's outcome.
+
+    An exception reply counts as answered: the device is there. Exception 0A or 0B from a
+    gateway counts as lost: the gateway answered, the device behind it did not. With
+    --retries, a reply that took a retry is shown with the retries and counted as recovered.
+
+    Exit 0 when any reply came, 3 when none did (130 when interrupted before the first).
+    """
+    ctx = click.get_current_context()
+    if function == "08" and ctx.get_parameter_source("address") is not click.core.ParameterSource.DEFAULT:
+        raise RequestError("--address is the register FC 03 reads; --function 08 reads none")
+    request_for = _requests(function, address)
+    unit = connection.unit
+    if connection.dry_run:
+        from mbtool.cli.session import open_client
+
+        with open_client(connection, "ping", then="then the same again every --interval") as client:
+            client.execute(unit, request_for(1))
+        return
+    raise Pinger(connection, request_for, quiet).run(count, interval)
+
+
+def _requests(function: str, address: int):
+    """The request of each sequence number: FC 08's echo carries the number, so a late echo of
+    an earlier one is told from its own (it is not ours)."""
+    if function == "03":
+        from mbtool.codec.data_access import ReadHoldingRegisters
+
+        request = ReadHoldingRegisters(address, 1)
+        return lambda seq: request
+    from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
+
+    return lambda seq: Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, (seq & 0xFFFF).to_bytes(2, "big"))
+
+
+class Pinger:
+    """The requests one after another, each shown as it ends, and the summary they add up to."""
+
+    def __init__(self, connection, request_for, quiet: bool) -> None:
+        from mbtool.durations import Durations
+        from mbtool.link.stats import Stats
+
+        self.connection = connection
+        self.request_for = request_for
+        self.quiet = quiet
+        self.stats = Stats()  # every transaction's outcome
+        self.alive = 0  # replies from the device itself: answers and its exceptions
+        self.alive_rtt = Durations()  # their round trips, ping(8)'s rtt
+
+    def run(self, count: int | None, interval: float) -> Summary:
+        from mbtool.cli.session import open_client
+        from mbtool.link.connection import close_quietly
+        from mbtool.link.stats import Counted, outcome_of
+
+        connection, unit = self.connection, self.connection.unit
+        request = self.request_for(1)
+        if not self.quiet:
+            what = f"{function_code_text(request.function_code)} {FUNCTIONS[f'{request.function_code:02d}']}"
+            if request.function_code == 0x03:
+                what += f" at {request.address}"
+            click.echo(f"PING {connection.port} unit {unit}: {what}, timeout {connection.timeout:g} s")
+        link = ExitStack()
+        # The first link is the command's: one that cannot be opened ends it (exit 6).
+        client = link.enter_context(open_client(connection, "ping"))
+        counted = Counted(client, self.stats)
+        opened_at = last_sent = time.monotonic()
+        interrupted = False
+        try:
+            while count is None or self.stats.transactions < count:
+                seq = self.stats.transactions + 1
+                if seq > 1:
+                    _sleep_until(last_sent + interval)
+                if client is None:
+                    # The link was lost: open it again, at most once a timeout (-i 0 against
+                    # a device that is restarting is not a flood of connections).
+                    _sleep_until(opened_at + connection.timeout)
+                    opened_at = time.monotonic()
+                    try:
+                        link = ExitStack()
+                        client = link.enter_context(open_client(connection, "ping"))
+                    except (ConnectionFailed, OSError) as error:
+                        failure = (
+                            error if isinstance(error, ConnectionFailed) else ConnectionFailed(str(error))
+                        )
+                        self.stats.transaction(failure, 0)
+                        self._line(seq, f"link lost: {failure}")
+                        last_sent = time.monotonic()
+                        continue
+                    counted = Counted(client, self.stats)
+                last_sent = time.monotonic()
+                try:
+                    counted(unit, self.request_for(seq))
+                except RequestError:
+                    raise  # the request itself is wrong: no later one can do better
+                except (*KNOWN_ERRORS, OSError) as error:
+                    self._failed(seq, error, counted.rtt, client.attempts)
+                    if outcome_of(error) == "link_lost":  # closed or broken: open it anew next time
+                        close_quietly(link)
+                        client = None
+                else:
+                    self._answered(seq, counted.rtt, client.attempts)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            close_quietly(link)
+        return self._summary(interrupted)
+
+    def _answered(self, seq: int, rtt: float | None, attempts: int, what: str = "") -> None:
+        self.alive += 1
+        if rtt is not None:
+            self.alive_rtt.add(rtt)
+        retried = f" (after {attempts - 1} {'retry' if attempts == 2 else 'retries'})" if attempts > 1 else ""
+        self._line(seq, f"{what}{_time(rtt)}{retried}")
+
+    def _failed(self, seq: int, error: BaseException, rtt: float | None, attempts: int) -> None:
+        from mbtool.link.scan import GATEWAY_EXCEPTIONS
+        from mbtool.link.stats import outcome_of
+
+        if isinstance(error, ModbusException):
+            code = f"exception {error.exception_code:02X} {error.name}"
+            if error.exception_code in GATEWAY_EXCEPTIONS:
+                # The gateway speaks for a device that did not answer (spec §3): lost.
+                self._line(seq, f"lost: {code} from the gateway {_time(rtt)}")
+            else:
+                self._answered(seq, rtt, attempts, code + " ")
+            return
+        outcome = outcome_of(error).replace("_", " ")
+        self._line(seq, f"{outcome}: {error}")
+
+    def _line(self, seq: int, text: str) -> None:
+        if not self.quiet:
+            click.echo(f"unit {self.connection.unit}: seq={seq} {text}")
+
+    def _summary(self, interrupted: bool) -> Summary:
+        stats = self.stats
+        sent = stats.transactions
+        lost = 0.0 if not sent else round(100 * (sent - self.alive) / sent, 1)
+        text = f"{sent} sent, {self.alive} answered, {lost:g}% lost"
+        if self.alive_rtt.count:
+            text += f", rtt {self.alive_rtt.text(('min', 'avg', 'max', 'mdev'))}"
+        text += f"; {stats.outcomes_text()}"
+        if interrupted:
+            text = "interrupted; " + text
+            if not sent:
+                return Summary(text, ExitCode.INTERRUPTED)
+        return Summary(text, ExitCode.OK if self.alive else ExitCode.TIMEOUT)
+
+
+def _time(rtt: float | None) -> str:
+    """ping(8)'s "time=0.045 ms", "time=4.21 ms", "time=38.5 ms", "time=1203 ms": three figures."""
+    if rtt is None:
+        return ""
+    ms = rtt * 1000
+    return f"time={ms:.{3 if ms < 1 else 2 if ms < 10 else 1 if ms < 100 else 0}f} ms"
+
+
+def _sleep_until(when: float) -> None:
+    wait = when - time.monotonic()
+    if wait > 0:
+        time.sleep(wait)

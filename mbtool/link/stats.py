@@ -1,0 +1,146 @@
+"""What became of each transaction: the counts that tell a wiring fault (corrupt frames) from a
+wrong address or a sleeping device (timeouts) and from a slow one (the round-trip time).
+
+Every transaction the master makes ends as exactly one of: answered, an exception (by its
+code), a timeout (nothing came), corrupt (a CRC/LRC or framing error: the wire), not ours (an
+intact frame for another unit or transaction id), or the link failing (it closed, or could not
+be written: link_lost).  An answer that came on a retry is also counted as a retry that
+recovered.  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
+plant, ping, scan and the bridge call it rather than judge outcomes of their own.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from mbtool.codec.errors import (
+    ChecksumError,
+    FrameError,
+    MismatchError,
+    ModbusException,
+    exceptions_by_code,
+    exceptions_text,
+)
+from mbtool.codec.pdu import Request, Response
+from mbtool.durations import Durations
+from mbtool.errors import NoResponse
+from mbtool.link.transport import ConnectionClosed
+
+OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost")
+
+
+def outcome_of(error: BaseException | None) -> str:
+    """The one outcome a transaction ended in, from what Client.execute raised (None: a reply).
+
+    The client raises the most telling failure of its attempts: bytes that came (a bad CRC,
+    a reply for another unit) beat a later silence."""
+    if error is None:
+        return "answered"
+    if isinstance(error, ModbusException):
+        return "exception"
+    if isinstance(error, MismatchError):
+        return "not_ours"
+    if isinstance(error, ChecksumError | FrameError):
+        return "corrupt"
+    if isinstance(error, NoResponse) and not isinstance(error, ConnectionClosed):
+        return "timeout"
+    return "link_lost"
+
+
+class Stats:
+    """The transactions with one device (or over one link), added up as they end."""
+
+    def __init__(self) -> None:
+        self.transactions = 0
+        self.outcomes: Counter[str] = Counter()
+        self.exceptions: Counter[int] = Counter()  # exception code -> count
+        self.recovered = 0  # answers that came on a retry
+        self.rtt = Durations()  # request to reply, for every reply (exceptions too)
+
+    def transaction(self, error: BaseException | None, attempts: int, rtt: float | None = None) -> str:
+        """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
+        requests on the wire, ``rtt`` seconds from the request to its reply if one came.  Its
+        outcome, one of OUTCOMES."""
+        self.transactions += 1
+        outcome = outcome_of(error)
+        self.outcomes[outcome] += 1
+        if outcome == "exception":
+            self.exceptions[error.exception_code] += 1
+        elif outcome == "answered" and attempts > 1:
+            self.recovered += 1
+        if rtt is not None and outcome in ("answered", "exception"):
+            self.rtt.add(rtt)  # a reply's; not that of an attempt before a failure
+        return outcome
+
+    def add(self, other: Stats) -> None:
+        """Fold another's counts into these (a link's are its devices')."""
+        self.transactions += other.transactions
+        self.outcomes.update(other.outcomes)
+        self.exceptions.update(other.exceptions)
+        self.recovered += other.recovered
+        self.rtt.merge(other.rtt)
+
+    def rtt_figures(self) -> dict[str, float] | None:
+        """min, avg, p95 and max round-trip time in seconds; None before the first answer."""
+        return self.rtt.figures()
+
+    def exceptions_text(self) -> str:
+        """The exceptions by code, "02:3,0B:1"; "0" when none came."""
+        return exceptions_text(self.exceptions)
+
+    def as_dict(self) -> dict:
+        return {
+            "transactions": self.transactions,
+            **{outcome: self.outcomes[outcome] for outcome in OUTCOMES},
+            "exceptions_by_code": exceptions_by_code(self.exceptions),
+            "retries_recovered": self.recovered,
+            "rtt_seconds": self.rtt_figures(),
+        }
+
+    def outcomes_text(self) -> str:
+        """Every outcome and the retries that recovered, for a summary line."""
+        counts = ", ".join(
+            f"{outcome.replace('_', ' ')} {self.outcomes[outcome]}"
+            + (f" ({self.exceptions_text()})" if outcome == "exception" and self.exceptions else "")
+            for outcome in OUTCOMES
+        )
+        return f"transactions {self.transactions}: {counts}; retries recovered {self.recovered}"
+
+    def __str__(self) -> str:
+        """One line for a summary: every outcome, the retries that recovered and the rtt."""
+        return f"{self.outcomes_text()}; rtt {self.rtt.text()}"
+
+
+class Counted:
+    """``client.execute``, each transaction counted in ``stats``: its outcome, the attempts it
+    took and its round-trip time.  ``rtt`` is the last one's (None: no reply came).
+
+    A transaction with nothing to judge (a broadcast, a request no reply is due for, which
+    execute returns None for) is not counted unless it failed.  An interrupt (Ctrl-C) in the
+    middle of one is not counted either: it never ended."""
+
+    def __init__(self, client, stats: Stats) -> None:
+        self.client = client
+        self.stats = stats
+        self.rtt: float | None = None
+        self._inner = None  # the client's own ``timed``, called as ever
+
+    def __call__(self, unit: int, request: Request) -> Response | None:
+        client = self.client
+        self.rtt = None
+        self._inner, client.timed = client.timed, self._timed
+        try:
+            reply = client.execute(unit, request)
+        except Exception as error:
+            self.stats.transaction(error, client.attempts, self.rtt)
+            raise
+        finally:
+            client.timed = self._inner
+        if reply is not None:
+            self.stats.transaction(None, client.attempts, self.rtt)
+        return reply
+
+    def _timed(self, seconds: float) -> None:
+        self.rtt = seconds
+        if self._inner is not None:
+            self._inner(seconds)
