@@ -347,7 +347,9 @@ class PointRow:
 
 
 def point_text(value: object) -> str:
-    """A map's point's value as text: a bit is on or off."""
+    """A map's point's value as text: a bit is on or off; no value (the map's invalid) is invalid."""
+    if value is None:
+        return "invalid"
     if isinstance(value, bool):
         return "on" if value else "off"
     return value_text(value)
@@ -380,7 +382,7 @@ POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
 
 
 def point_line(row: PointRow) -> str:
-    return f"{row.name} {row.shown} {row.unit}".rstrip()
+    return f"{row.name} {row.shown} {'' if row.value is None else row.unit}".rstrip()
 
 
 def point_cells(row: PointRow) -> list[str]:
