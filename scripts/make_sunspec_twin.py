@@ -227,6 +227,21 @@ TWIN: list[tuple[int, dict]] = [
 ]
 
 
+# Not in the twin: the tests' model of groups counted by points, one inside the other.
+VOLT_VAR = {
+    "Ena": 1,
+    "NPt": 2,
+    "NCrv": 2,
+    "V_SF": -1,
+    "DeptRef_SF": 0,
+    "RspTms_SF": 0,
+    "Crv": [
+        {"ActPt": 2, "DeptRef": 1, "Pt": [{"V": 920, "Var": 300}, {"V": 1080, "Var": -300}]},
+        {"ActPt": 2, "DeptRef": 1, "Pt": [{"V": 900, "Var": 200}, {"V": 1100, "Var": -200}]},
+    ],
+}
+
+
 def model_registers(model_id: int, values: dict) -> list[int]:
     """The model's registers after its id and length, laid out by its definition."""
     group = definition(model_id)
@@ -321,7 +336,8 @@ def _wrapped(text: str, width: int = 96) -> str:
 
 
 def quirks() -> dict[str, tuple[str, list[int], str]]:
-    """Each quirk's data file: what it is, its registers from 40000, and a note."""
+    """Each quirk's data file (and nested-groups, the tests' model of nested counted groups):
+    what it is, its registers from 40000, and a note."""
     common, inverter = TWIN[0], TWIN[1]
     mppt = TWIN[6]
     short_common = model_registers(1, common[1])[:-1]  # 65 registers: the common model before its Pad
@@ -351,6 +367,12 @@ def quirks() -> dict[str, tuple[str, list[int], str]]:
             "An MPPT model 160 whose length holds two modules and 3 registers that make no third "
             "(as a battery's model 803 with 6 registers where a string takes 32: ha-sunspec #62)",
             chain([common, (160, mppt_leftover)]),
+            "",
+        ),
+        "nested-groups": (
+            "Volt-var curves (model 705): two curves of two points each, each count held by a point "
+            "of the model (NCrv, NPt), the points a group inside each curve",
+            chain([common, (705, VOLT_VAR)]),
             "",
         ),
         "unknown-model": (

@@ -211,6 +211,23 @@ def test_pysunspec2_and_mbtool_agree_on_every_point_of_the_twin_over_rtu():
     assert _agree(theirs, tree_of(res)) == 247
 
 
+def test_groups_counted_by_points_one_inside_the_other_agree_with_pysunspec2():
+    """Model 705: NCrv curves, each with NPt points, a group inside each curve."""
+    with serve("--data", str(QUIRKS / "nested-groups.toml")) as device:
+        theirs = _pysunspec2_tcp(device)
+        res = sunspec(device.target)
+        plain = run_mbtool("sunspec", "-p", device.target, "--model", "705")
+    tree = tree_of(res)
+    assert _agree(theirs, tree) == 6 + 11 + 2 * (9 + 2 * 2)
+    curves = tree["models"][1]["groups"]["Crv"]
+    assert [[p["points"]["V"]["value"] for p in curve["groups"]["Pt"]] for curve in curves] == [
+        [92, 108],
+        [90, 110],
+    ]
+    assert "  Crv 2: ActPt 2, DeptRef VAR_MAX_PCT, Pri not implemented" in plain.stdout
+    assert "    Pt 2: V 110 VNomPct, Var -200 DeptRef" in plain.stdout
+
+
 def test_the_plain_output_names_each_model_and_a_module_a_line(twin):
     res = run_mbtool("sunspec", "-p", twin.target)
     assert res.returncode == 0, res
