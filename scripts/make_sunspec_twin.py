@@ -369,6 +369,12 @@ def quirks() -> dict[str, tuple[str, list[int], str]]:
             chain([common, (160, mppt_leftover)]),
             "",
         ),
+        "battery-string": (
+            "A battery bank's model 803 whose NStr says one string of 32 registers, and 6 registers "
+            "after the model's fixed points (an E3DC S10: ha-sunspec #62)",
+            chain([common, (803, model_registers(803, {"NStr": 1, "NStrCon": 1}) + [0] * 6)]),
+            "",
+        ),
         "nested-groups": (
             "Volt-var curves (model 705): two curves of two points each, each count held by a point "
             "of the model (NCrv, NPt), the points a group inside each curve",

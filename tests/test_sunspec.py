@@ -325,6 +325,19 @@ def test_a_repeating_group_that_does_not_fit_shows_what_fits_and_the_rest_raw():
     ]
 
 
+def test_a_repeating_group_counted_by_a_point_that_does_not_fit_is_left_raw():
+    """ha-sunspec #62: an E3DC's model 803 says one string (32 registers) and has 6 registers."""
+    with serve("--data", str(QUIRKS / "battery-string.toml")) as device:
+        res = sunspec(device.target)
+    bank = tree_of(res)["models"][1]
+    assert bank["points"]["NStr"]["value"] == 1 and "groups" not in bank
+    assert bank["raw"] == {"address": 40098, "registers": [0] * 6}
+    assert warnings_of(res) == [
+        "model 803 (lithium_ion_bank) at 40070: 1 string group of 32 registers (its NStr) does not fit in its "
+        "length: 0 shown, the registers left raw"
+    ]
+
+
 def test_a_model_sunspec_does_not_define_is_shown_raw_and_the_walk_goes_on():
     with serve("--data", str(QUIRKS / "unknown-model.toml")) as device:
         res = sunspec(device.target)

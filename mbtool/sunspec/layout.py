@@ -196,9 +196,10 @@ class _Laying:
             count = held
         fits = room // size if size else count
         if count > fits:
+            self.leftover = True
             self.warnings.append(
-                f"{where}: {count} {sub['name']} groups of {size} registers do not fit in its length; "
-                f"{fits} shown"
+                f"{where}: {count} {sub['name']} group{'s' * (count != 1)} of {size} registers (its {sub['count']}) "
+                f"{'does' if count == 1 else 'do'} not fit in its length: {fits} shown, the registers left raw"
             )
             return fits
         return count

@@ -405,7 +405,8 @@ def _write_map(path: str, connection, unit: int, chain, models) -> None:
             out.write(text)
     except OSError as error:
         raise OutputFailed(path, error) from None
-    print(f"mbtool: wrote {path}: {len(rows)} points of {len(models)} models", file=sys.stderr)
+    count = len(models)
+    print(f"mbtool: wrote {path}: {len(rows)} points of {count} model{'s' * (count != 1)}", file=sys.stderr)
 
 
 def _toml(device: dict, rows: dict) -> str:
