@@ -394,6 +394,13 @@ def test_a_model_the_device_refuses_is_named_the_others_shown_and_exit_8(tmp_pat
     )
     with serve("--data", str(data)) as device:
         res = sunspec(device.target)
+        no_map = sunspec(device.target, "--map", tmp_path / "none.toml", "--model", "64999")
+    assert no_map.returncode == 8 and not (tmp_path / "none.toml").exists()
+    assert (
+        f"no map written to {tmp_path / 'none.toml'}: no point of a model SunSpec defines was read"
+        in no_map.stderr
+    )
+    assert json.loads(no_map.stdout)["models"][0]["raw"]["registers"] == [7, 8]
     assert res.returncode == 8
     models = json.loads(res.stdout)["models"]
     assert models[0]["error"].startswith("exception 02 Illegal Data Address")

@@ -67,16 +67,17 @@ def sunspec(connection, base, model_ids, map_path):
     # A model the device refused is laid out by its length alone: its layout says nothing.
     for warning in [*chain.warnings, *(w for m in wanted if m.error is None for w in m.layout.warnings)]:
         print(f"mbtool: warning: {warning}", file=sys.stderr)
-    if map_path is not None:
-        _write_map(map_path, connection, unit, chain, wanted)
+    unwritten = _write_map(map_path, connection, unit, chain, wanted) if map_path is not None else None
     tree = _tree(chain, unit, wanted)
     {"json": _json, "csv": _csv, "table": _table}.get(fmt, _plain)(tree)
     refused = [m for m in wanted if m.error is not None]
-    if refused:
+    if refused or unwritten:
         from mbtool.errors import ExitCode, Summary
 
-        named = "; ".join(f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused)
-        raise Summary(f"{named}; {len(wanted) - len(refused)} of {len(wanted)} models read", ExitCode.PARTIAL)
+        named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
+        if refused:
+            named.append(f"{len(wanted) - len(refused)} of {len(wanted)} models read")
+        raise Summary("; ".join(named + ([unwritten] if unwritten else [])), ExitCode.PARTIAL)
 
 
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
@@ -357,9 +358,10 @@ def _table_groups(console, groups: dict, prefix: str = "") -> None:
 # --- --map: the register map of what was found -----------------------------------------------------
 
 
-def _write_map(path: str, connection, unit: int, chain, models) -> None:
+def _write_map(path: str, connection, unit: int, chain, models) -> str | None:
     """A map of every point of the models read, scaled by their scale factors (scale_ref),
-    SunSpec's unimplemented values as invalid; checked by the map loader before it is written."""
+    SunSpec's unimplemented values as invalid; checked by the map loader before it is written.
+    Why no map was written, when no point was read that a map could name."""
     from mbtool.errors import OutputFailed
     from mbtool.registermap.load import build_map
     from mbtool.sunspec.layout import map_rows
@@ -377,7 +379,7 @@ def _write_map(path: str, connection, unit: int, chain, models) -> None:
         rows |= found
         left_out += missing
     if not rows:
-        raise RequestError("--map: no point of a model SunSpec defines was read; no map written")
+        return f"no map written to {path}: no point of a model SunSpec defines was read"
     build_map(path, {"max_gap": MAP_MAX_GAP}, rows)  # the loader's own checks, before a byte is written
     common = next((m for m in models if m.layout.model_id == 1 and m.error is None), None)
     device = ""
@@ -407,6 +409,7 @@ def _write_map(path: str, connection, unit: int, chain, models) -> None:
         raise OutputFailed(path, error) from None
     count = len(models)
     print(f"mbtool: wrote {path}: {len(rows)} points of {count} model{'s' * (count != 1)}", file=sys.stderr)
+    return None
 
 
 def _toml(device: dict, rows: dict) -> str:
