@@ -42,6 +42,7 @@ EXAMPLES = {
     "device-id": "device-id",
     "raw": "raw 01 03 00 00 00 02",
     "scan": "scan -u 1-5",
+    "sunspec": "sunspec",
 }
 # Commands that never send a request of their own: offline tools, the simulator, the gateway
 # (it forwards its clients' requests) and the passive monitor.
