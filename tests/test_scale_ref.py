@@ -277,3 +277,16 @@ def test_write_m_of_a_scaled_point_to_unit_0_is_refused_before_anything_is_sent(
     res = run_mbtool("write", "-m", path, "W=12.5", "-p", "/dev/null", "-u", "0")
     assert res.returncode == 2
     assert "W_SF is read first, to scale what is written: unit 0 (broadcast) cannot be read" in res.stderr
+
+
+def test_diff_m_scales_each_side_by_its_own_scale_factor(tmp_path):
+    """Two dumps of an inverter: W raw 1234 with W_SF -1, then 1234 with W_SF -2."""
+    before, after = tmp_path / "before.toml", tmp_path / "after.toml"
+    before.write_text("sparse = true\n[holding_registers]\n100 = 1234\n120 = 0xFFFF\n")
+    after.write_text("sparse = true\n[holding_registers]\n100 = 1235\n120 = 0xFFFE\n")
+    path = tmp_path / "inverter.toml"
+    path.write_text(INVERTER)
+    res = run_mbtool("diff", before, after, "-m", path, "-o", "json")
+    assert res.returncode == 1, res
+    changes = {change["name"]: (change["a"], change["b"]) for change in json.loads(res.stdout)["differences"]}
+    assert changes == {"W": (123.4, 12.35), "W_SF": (-1, -2)}
