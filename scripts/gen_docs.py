@@ -180,6 +180,10 @@ EXAMPLES = (
         ("write-registers", "10", "1", "2", "0x10", "-p", "tcp://192.0.2.10:5020", "--retries", "2"),
     ),
     Example(
+        "Name every point of a SunSpec solar inverter and write a register map of them:",
+        ("sunspec", "-p", "tcp://192.0.2.20", "--map", "inverter.toml"),
+    ),
+    Example(
         "Read 16 coils, the port taken from the environment:",
         ("read-coils", "0", "16"),
         (("MBTOOL_PORT", "/dev/ttyUSB0"),),

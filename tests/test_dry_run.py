@@ -42,6 +42,8 @@ EXAMPLES = {
     "device-id": "device-id",
     "raw": "raw 01 03 00 00 00 02",
     "scan": "scan -u 1-5",
+    "sunspec": "sunspec",
+    "ping": "ping -c 1",
 }
 # Commands that never send a request of their own: offline tools, the simulator, the gateway
 # (it forwards its clients' requests) and the passive monitor.
@@ -71,7 +73,7 @@ def no_port(monkeypatch):
 # restore's dry run reads the device (it shows only the writes that differ), so it opens
 # the port; tests/test_dump.py checks that it sends no write.
 READS_FIRST = {"restore"}
-NO_FORMAT = {"dump", "check"}  # a data file, a plugin's line: no -o
+NO_FORMAT = {"dump", "check", "ping"}  # a data file, a plugin's line, ping(8)'s lines: no -o
 
 
 def test_every_device_command_has_an_example():

@@ -70,6 +70,7 @@ COMMANDS = {
     "diff": "snapshot",
     "restore": "snapshot",
     "poll": "poll",
+    "sunspec": "sunspec",
 }
 
 

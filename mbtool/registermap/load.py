@@ -16,6 +16,7 @@ from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 from mbtool.codec.errors import RequestError
+from mbtool.codec.record import replace
 from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
 from mbtool.errors import ExitCode, MbtoolError
@@ -38,6 +39,7 @@ POINT_KEYS = {
     "warn": "mbtool check's warning range (10, 10:, ~:10, 10:20, @10:20)",
     "crit": "mbtool check's critical range",
     "invalid": "raw values that mean no data, such as [65535] or [0x8000]: no value, never scaled",
+    "scale_ref": "the point holding a power-of-ten scale factor (SunSpec's W_SF): value = raw × 10^that",
 }
 DEVICE_KEYS = ("type", "order", "access", "max_gap", "invalid")
 NUMERIC_TYPES = [name for name in TYPES if name not in ("hex", "string")]
@@ -96,12 +98,20 @@ def load_map(path: str | Path) -> RegisterMap:
         device, rows = document.get("device", {}), document.get("points", {})
         if not isinstance(rows, dict) or not all(isinstance(row, dict) for row in rows.values()):
             raise MapError(f"{path}: points are tables: [points.NAME] with keys such as ref and type")
+    return build_map(path, device, rows)
+
+
+def build_map(path: Path | str, device: dict, rows: dict[str, dict]) -> RegisterMap:
+    """A map from its [device] table and its points' rows, as a file gives them (``path``
+    names it in every error): what ``load_map`` makes of a file, and ``mbtool sunspec`` of
+    what it found."""
     defaults = _device(path, device)
     max_gap = defaults.pop("max_gap", 0)
     points = {name: _point(path, name, row, defaults) for name, row in rows.items()}
     if not points:
         raise MapError(f"{path}: the map has no points")
     _check_overlaps(path, points.values())
+    _link_scale_refs(path, points, rows)
     return RegisterMap(points, max_gap, str(path))
 
 
@@ -237,7 +247,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         "crit": _range(row, "crit", fail),
     }
     if table.bits:
-        for key in ("order", "count", "scale", "offset", "enum", "bit", "invalid"):
+        for key in ("order", "count", "scale", "offset", "enum", "bit", "invalid", "scale_ref"):
             if key in row:
                 raise fail(key, f"{table.items} hold one bit each; {key} is for registers")
         if kind != "bool":
@@ -260,7 +270,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         if TYPES[kind].registers != 1 or kind not in ("uint16", "int16", "hex"):
             raise fail("bit", f"a bit is one of a 16-bit register's bits, not of a {kind}")
         bit = _integer(path, name, "bit", row["bit"], 0, 15)
-        for key in ("scale", "offset", "enum", "invalid"):
+        for key in ("scale", "offset", "enum", "invalid", "scale_ref"):
             if key in row:
                 raise fail(key, f"a bit reads on or off; {key} does not apply")
         kind = "bool"
@@ -276,6 +286,8 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
             raise fail("enum", f"labels are for numbers, not {kind}")
         enum = _enum(row, kind, fail)
     invalid = _invalid(row, kind, fail) if "invalid" in row else frozenset()
+    if "scale_ref" in row:
+        _scale_ref(row, kind, fail)
     point = Point(
         name,
         table,
@@ -392,8 +404,13 @@ def _as_held(kind: str, value):
 
 def _invalid(row: dict, kind: str, fail) -> frozenset:
     """The raw values a device sends for "no data" (0xFFFF from a meter at night, 0x8000 for
-    SunSpec's int16), each one the point's type holds."""
+    SunSpec's int16, NaN for its float32), each one the point's type holds; for a string,
+    "" (registers of NUL only: SunSpec's unimplemented string)."""
     values = row["invalid"]
+    if kind == "string":
+        if values != [""]:
+            raise fail("invalid", 'a string\'s no data is [""]: registers holding NUL bytes only')
+        return frozenset(values)
     if kind not in NUMERIC_TYPES:
         raise fail("invalid", f"a {kind} has no number that could mean no data")
     if not isinstance(values, list) or not values:
@@ -403,6 +420,11 @@ def _invalid(row: dict, kind: str, fail) -> frozenset:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise fail("invalid", f"{value!r} is not a number")
         value = _as_held(kind, value)
+        if isinstance(value, float) and math.isnan(value):
+            if TYPES[kind].fmt not in ("f", "d"):
+                raise fail("invalid", f"a {kind} holds no NaN")
+            out.add(value)  # Point.is_invalid looks for a NaN as NaN
+            continue
         try:
             held = decode_values(encode_values([parse_value(str(value), kind)], kind), kind)[0]
         except RequestError as error:
@@ -411,6 +433,42 @@ def _invalid(row: dict, kind: str, fail) -> frozenset:
             raise fail("invalid", f"a {kind} cannot hold {value}: the nearest it holds is {held}")
         out.add(held)
     return frozenset(out)
+
+
+def _scale_ref(row: dict, kind: str, fail) -> None:
+    """What a point's own keys say of its scale_ref; the point it names is checked once
+    every point is read (``_link_scale_refs``)."""
+    name = row["scale_ref"]
+    if not isinstance(name, str) or not name:
+        raise fail("scale_ref", f"{name!r} is not a point's name")
+    if kind not in NUMERIC_TYPES:
+        raise fail("scale_ref", f"a {kind} has no number to scale")
+    for key in ("scale", "offset"):
+        if key in row:
+            raise fail("scale_ref", f"the scale is read from {name}; {key} does not go with it")
+
+
+def _link_scale_refs(path: Path | str, points: dict[str, Point], rows: dict[str, dict]) -> None:
+    """Each scale_ref names a point of the map that holds a whole number and is read as it
+    is: a SunSpec sunssf register (int16, -10..10)."""
+    for name, row in rows.items():
+        if "scale_ref" not in row:
+            continue
+        where = f"{path}: point {name}: key scale_ref"
+        target = points.get(row["scale_ref"])
+        if target is None:
+            raise MapError(f"{where}: the map has no point named {row['scale_ref']}")
+        if target.name == name:
+            raise MapError(f"{where}: a point cannot be its own scale factor")
+        if target.is_bit or target.type not in NUMERIC_TYPES or not TYPES[target.type].integer:
+            raise MapError(f"{where}: {target.name} is not a whole number (a scale factor is an int16)")
+        if target.scale is not None or target.offset is not None or target.enum is not None:
+            raise MapError(f"{where}: {target.name} is scaled or labelled; a scale factor is read as it is")
+        if "scale_ref" in rows[target.name]:
+            raise MapError(
+                f"{where}: {target.name} has a scale_ref of its own; a scale factor is read as it is"
+            )
+        points[name] = replace(points[name], scale_ref=target)
 
 
 def _enum(row: dict, kind: str, fail) -> dict[int, str]:

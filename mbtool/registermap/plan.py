@@ -7,6 +7,12 @@ any one gap, are at most the map's ``max_gap``.  Growing each block as far as
 it goes, from the lowest address up, gives the fewest requests: any plan's
 first block ends no later than the greedy one's, and so on for every block.
 
+A point and its scale factor (``scale_ref``, SunSpec's W and W_SF) are read in one
+request, over any gap, when the two fit in one: read apart, the device may change the
+scale factor in between and the value is off by a power of ten (the SunSpec
+specification asks a client to read a point and its scale factor together).  A scale
+factor is read with its point even when it was not asked for.
+
 A device that answers a merged read with exception 02 (it lacks an address in
 a gap, or one point's address) is asked again point by point, and the split is
 kept for the reads after (``MapReader``, polling).  A point the device refuses
@@ -65,17 +71,48 @@ def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
         table_points.sort(key=lambda p: (p.address, p.end))
         table = table_points[0].table
         limit = MAX_READ_BITS if table.bits else MAX_READ_REGISTERS
-        members = [table_points[0]]
-        start, end = table_points[0].address, table_points[0].end
-        for point in table_points[1:]:
-            if point.address - end <= max_gap and max(end, point.end) - start <= limit:
+        partners = _partners(table_points)
+        members, start, end, reach = [], 0, 0, 0
+        for point in table_points:
+            # reach: where a member's scale factor (or a point it scales) ends, when one read
+            # from this block's start can get there.
+            joins = point.address - end <= max_gap or point.address < reach
+            if members and joins and max(end, point.end) - start <= limit:
                 members.append(point)
                 end = max(end, point.end)
-                continue
-            blocks.append(Block(table, start, end - start, tuple(members)))
-            members, start, end = [point], point.address, point.end
+            else:
+                if members:
+                    blocks.append(Block(table, start, end - start, tuple(members)))
+                members, start, end, reach = [point], point.address, point.end, 0
+            for partner in partners.get(point.name, ()):
+                if partner.end - start <= limit:
+                    reach = max(reach, partner.end)
         blocks.append(Block(table, start, end - start, tuple(members)))
     return blocks
+
+
+def _partners(points: list[Point]) -> dict[str, list[Point]]:
+    """Each point's scale factor and the points it scales, among ``points`` (one table's)."""
+    names = {point.name for point in points}
+    out: dict[str, list[Point]] = {}
+    for point in points:
+        factor = point.scale_ref
+        if factor is not None and factor.name in names:
+            out.setdefault(point.name, []).append(factor)
+            out.setdefault(factor.name, []).append(point)
+    return out
+
+
+def with_scale_factors(points: Iterable[Point]) -> list[Point]:
+    """The points and the scale factors they need that are not among them."""
+    points = list(points)
+    names = {point.name for point in points}
+    for point in list(points):
+        factor = point.scale_ref
+        if factor is not None and factor.name not in names:
+            names.add(factor.name)
+            points.append(factor)
+    return points
 
 
 Execute = Callable[[Request], Response]
@@ -86,7 +123,7 @@ class MapReader:
 
     def __init__(self, points: Iterable[Point], max_gap: int = 0) -> None:
         self.points = list(points)
-        self.blocks = plan_reads(self.points, max_gap)
+        self.blocks = plan_reads(with_scale_factors(self.points), max_gap)
 
     def read(self, execute: Execute) -> list[Reading]:
         """Every point's reading, in the order the points were given.
@@ -116,7 +153,7 @@ class MapReader:
                     except ModbusException as failure:
                         readings |= _refused(single, failure)
         self.blocks = blocks
-        ordered = [readings[point.name] for point in self.points]
+        ordered = [_scaled(readings, readings[point.name]) for point in self.points]
         failures = [reading.error for reading in ordered if reading.error is not None]
         if len(failures) == len(ordered):
             raise failures[0]
@@ -128,6 +165,19 @@ class MapReader:
 def read_points(execute: Execute, points: list[Point], max_gap: int = 0) -> list[Reading]:
     """Every point's reading, in one read (MapReader.read's rule)."""
     return MapReader(points, max_gap).read(execute)
+
+
+def _scaled(readings: dict[str, Reading], reading: Reading) -> Reading:
+    """A point's reading with its scale factor applied, the factor read in the same read;
+    a factor the device refused leaves the point unread too, with the device's answer."""
+    factor = reading.point.scale_ref
+    if factor is None or reading.error is not None:
+        return reading
+    scale = readings[factor.name]
+    if scale.error is not None:
+        return Reading(reading.point, None, (), PointException(reading.point, scale.error, factor))
+    value = reading.point.value_of(list(reading.raw), scale.value)
+    return Reading(reading.point, value, reading.raw)
 
 
 def _refused(block: Block, error: ModbusException) -> dict[str, Reading]:
@@ -145,18 +195,25 @@ def _read_block(execute: Execute, block: Block) -> dict[str, Reading]:
 
 
 class PointException(ModbusException):
-    """An exception reply to a point's own read: the message names the point."""
+    """An exception reply to a point's own read (or to its scale factor's, ``factor``): the
+    message names the point."""
 
-    def __init__(self, point: Point, error: ModbusException) -> None:
+    def __init__(self, point: Point, error: ModbusException, factor: Point | None = None) -> None:
         super().__init__(error.function_code, error.exception_code)
-        self.answer = str(error)  # the device's answer alone, where the point is named apart
-        self.args = (f"{point.name} ({point.ref}): {error}",)
+        answer = getattr(error, "answer", str(error))
+        if factor is not None:
+            answer = f"its scale factor {factor.name} ({factor.ref}): {answer}"
+        self.answer = answer  # the device's answer alone, where the point is named apart
+        self.args = (f"{point.name} ({point.ref}): {answer}",)
 
 
-def write_request(point: Point, text: str, multiple: bool = False, nonfinite: bool = False) -> Request:
+def write_request(
+    point: Point, text: str, multiple: bool = False, nonfinite: bool = False, scale_factor: int | None = None
+) -> Request:
     """The request that writes ``text`` to a point: FC05/06 for one item, FC15/16 for more
     or when ``multiple`` (some devices accept only FC15/16); bits of a register: see ``bit_request``.
-    ``nonfinite``: a float point may be written nan or inf."""
+    ``nonfinite``: a float point may be written nan or inf.  ``scale_factor``: what the
+    point's ``scale_ref`` reads now (without it, point.NoScaleFactor once the rest is checked)."""
     if not point.writable:
         why = (
             f"{point.table.items} are read-only"
@@ -164,7 +221,7 @@ def write_request(point: Point, text: str, multiple: bool = False, nonfinite: bo
             else "the map does not mark it rw"
         )
         raise RequestError(f"{point.name} ({point.ref}) is not writable: {why}")
-    raw = point.raw_for(text, nonfinite)
+    raw = point.raw_for(text, nonfinite, scale_factor)
     if point.bit is not None:
         return bit_request(point.address, point.bit, bool(raw))
     values = [raw] if point.table.bits else point.registers_of(raw)

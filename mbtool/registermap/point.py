@@ -3,7 +3,10 @@
 Engineering value = raw × scale + offset, computed in decimal so that a
 manual's 0.1 m³/h step gives 22.5, not 22.500000000000004, and so that a
 written value can be checked to be a whole number of steps before anything is
-sent.
+sent.  A SunSpec point's scale is read from the device instead: value = raw ×
+10^sf, where sf is the value of the point its ``scale_ref`` names (a ``sunssf``
+register); a scale factor with no value (SunSpec's 0x8000, "not implemented")
+leaves the point with none.
 
 A float register holding NaN or ±Infinity reads as that, scaled or not, as IEEE 754
 arithmetic has it: NaN stays NaN, and ±Infinity times the scale keeps its sign (or flips
@@ -13,6 +16,7 @@ it, for a negative scale) whatever the offset.  A scaled value beyond a double's
 
 from __future__ import annotations
 
+import math
 import sys
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, localcontext
 
@@ -26,6 +30,11 @@ ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "fals
 PointValue = Value | bool | None
 DOUBLE_MAX = Decimal(sys.float_info.max)  # the largest finite double
 UNBOUNDED = Context(Emax=MAX_EMAX, Emin=MIN_EMIN)  # a written value's arithmetic: see raw_for
+
+
+class NoScaleFactor(RequestError):
+    """A scaled point (``scale_ref``) written without the value of its scale factor: not
+    read yet, or the device has none (SunSpec's 0x8000)."""
 
 
 @record
@@ -46,6 +55,8 @@ class Point:
     warn: str | None = None  # mbtool check's thresholds (Monitoring Plugins range syntax)
     crit: str | None = None
     invalid: frozenset = field(default=frozenset(), compare=False)  # raw values meaning no data
+    # The point whose value is this one's power-of-ten scale factor (SunSpec's sunssf).
+    scale_ref: Point | None = field(default=None, compare=False)
 
     @property
     def ref(self) -> str:
@@ -67,21 +78,43 @@ class Point:
     def is_bit(self) -> bool:
         return self.table.bits or self.bit is not None
 
-    def value_of(self, raw: list[int] | list[bool]) -> PointValue:
-        """The engineering value of the point's registers (or bit) as read."""
+    def value_of(self, raw: list[int] | list[bool], scale_factor: int | None = None) -> PointValue:
+        """The engineering value of the point's registers (or bit) as read; ``scale_factor``:
+        the value of the ``scale_ref`` point, read with it (None: it has none)."""
         if self.table.bits:
             return bool(raw[0])
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
         value = decode_values(raw, self.type, self.order)[0]
-        if value in self.invalid:
+        if self.is_invalid(value):
             return None  # the device has no value to give: never a label, never scaled
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
-        if self.scale is None and self.offset is None or isinstance(value, str):
+        scale = self.scale_for(scale_factor)
+        if scale is None and self.scale_ref is not None:
+            return None  # a value without its scale factor is no value
+        if scale is None and self.offset is None or isinstance(value, str):
             return value
         # Decimal keeps NaN and ±Infinity as IEEE 754 does (repr gives 'nan', 'inf').
-        return _number(Decimal(repr(value)) * (self.scale or 1) + (self.offset or 0))
+        return _number(Decimal(repr(value)) * (scale or 1) + (self.offset or 0))
+
+    def scale_for(self, scale_factor: int | None) -> Decimal | None:
+        """The scale that applies: the map's, or 10^sf from the ``scale_ref`` point's value
+        (None when that point has no value)."""
+        if self.scale_ref is None:
+            return self.scale
+        return None if scale_factor is None else Decimal(1).scaleb(scale_factor)
+
+    def is_invalid(self, value) -> bool:
+        """Whether a raw value is one the map calls no data; NaN is one when the map lists
+        it (a NaN equals nothing, itself included, so it is looked for as NaN)."""
+        if value in self.invalid:
+            return True
+        return (
+            isinstance(value, float)
+            and math.isnan(value)
+            and any(isinstance(known, float) and math.isnan(known) for known in self.invalid)
+        )
 
     def no_label(self, value: PointValue) -> bool:
         """Whether a value is one the point's enum gives no label: a number (a raw value
@@ -94,7 +127,8 @@ class Point:
         (22.5 one read, 23 the next)."""
         if self.is_bit or self.type not in TYPES:
             return False
-        return self.scale is not None or self.offset is not None or TYPES[self.type].fmt in ("f", "d")
+        scaled = self.scale is not None or self.offset is not None or self.scale_ref is not None
+        return scaled or TYPES[self.type].fmt in ("f", "d")
 
     def number_of(self, value: PointValue) -> int | float | None:
         """The number behind a value, for thresholds and monitoring: an enum label's raw
@@ -108,10 +142,13 @@ class Point:
             value = labelled[0] if labelled else None
         return float(value) if value is not None and self.floating else value
 
-    def raw_for(self, text: str, nonfinite: bool = False) -> int | float | str | bool:
+    def raw_for(
+        self, text: str, nonfinite: bool = False, scale_factor: int | None = None
+    ) -> int | float | str | bool:
         """The raw value that writes ``text`` (engineering units, an enum label, on/off),
         checked against the point's type after scaling: every error names the point.
-        ``nonfinite``: a float point may be written nan or inf."""
+        ``nonfinite``: a float point may be written nan or inf.  ``scale_factor``: the value
+        the ``scale_ref`` point holds now, which the write undoes."""
         if self.is_bit:
             try:
                 return ON_WORDS[text.strip().lower()]
@@ -132,10 +169,14 @@ class Point:
         floating = TYPES[self.type].fmt in ("f", "d")
         if not wanted.is_finite() and not floating:
             raise RequestError(f"{self.name}: {text} is not a number a {self.type} can hold")
+        if self.scale_ref is not None and scale_factor is None:
+            raise NoScaleFactor(
+                f"{self.name}: its scale factor, {self.scale_ref.name}, has no value: {text} cannot be scaled"
+            )
         # Decimal's own exponent range (1e999999) is no limit on what a user may type: past
         # it a value is out of the point's range, which the type's check says, not Overflow.
         with localcontext(UNBOUNDED):
-            scale, offset = self.scale or Decimal(1), self.offset or Decimal(0)
+            scale, offset = self.scale_for(scale_factor) or Decimal(1), self.offset or Decimal(0)
             raw = (wanted - offset) / scale if wanted.is_finite() else wanted
             # The value named in an error: the user's, and the raw one too when scaling made it.
             shown = text.strip()
@@ -155,7 +196,7 @@ class Point:
             except RequestError as error:
                 raise RequestError(f"{self.name}: {error}") from None
 
-    def held(self, text: str, raw: int | float | str | bool) -> PointValue:
+    def held(self, text: str, raw: int | float | str | bool, scale_factor: int | None = None) -> PointValue:
         """What the point holds once ``raw`` (``raw_for(text)``'s) is written, when that is not
         the decimal ``text`` names: a float32 holds about 7 digits, so 16777217 is written as
         16777216.  None when it is the value given (and for every type but the floats)."""
@@ -164,7 +205,7 @@ class Point:
         wanted = _decimal(text)
         if wanted is None or not wanted.is_finite():
             return None
-        value = self.value_of(self.registers_of(raw))
+        value = self.value_of(self.registers_of(raw), scale_factor)
         return None if Decimal(repr(value)) == wanted else value
 
     def registers_for(self, text: str) -> list[int]:

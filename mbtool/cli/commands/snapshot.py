@@ -378,6 +378,16 @@ def read_live(execute, wanted: dict[str, dict[int, int]]) -> dict[str, dict[int,
     return out
 
 
+def _scale_factor(point, registers: dict) -> int | None:
+    """What a scaled point's scale factor (its map's scale_ref) holds in a snapshot's
+    registers; None when the point has none or the snapshot lacks it."""
+    factor = point.scale_ref
+    if factor is None:
+        return None
+    raw = [registers.get(factor.table.name, {}).get(address) for address in range(factor.address, factor.end)]
+    return None if None in raw else factor.value_of(raw)
+
+
 def differences(a: dict, b: dict, register_map=None) -> list[dict]:
     """Each difference: a map's point (by name, in its units) where one covers the address,
     else the table and address with the raw values; None where a side lacks the address."""
@@ -391,7 +401,10 @@ def differences(a: dict, b: dict, register_map=None) -> list[dict]:
         sides = [[side.get(name, {}).get(address) for address in addresses] for side in (a, b)]
         if sides[0] == sides[1]:
             continue
-        values = [None if None in raw else point.value_of(raw) for raw in sides]
+        values = [
+            None if None in raw else point.value_of(raw, _scale_factor(point, side))
+            for raw, side in zip(sides, (a, b), strict=True)
+        ]
         out.append(
             {
                 "table": name,
@@ -703,6 +716,7 @@ def _confirm(step, sent: dict, after: dict, register_map) -> None:
         if None in raw:
             item["reads"] = None
         elif "name" in item:
-            item["reads"] = register_map.points[item["name"]].value_of(raw)
+            point = register_map.points[item["name"]]
+            item["reads"] = point.value_of(raw, _scale_factor(point, after))
         else:
             item["reads"] = raw[0]

@@ -223,41 +223,40 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
     from mbtool.link.connection import framer_name
     from mbtool.registermap.load import load_map
     from mbtool.registermap.plan import write_request
+    from mbtool.registermap.point import NoScaleFactor
 
     register_map = load_map(path)
-    steps, warnings = [], []  # every value checked before anything is sent
+    wanted = []  # every value checked before anything is sent
     for assignment in assignments:
         name, sep, text = assignment.partition("=")
         name = name.strip()
         if not sep or not name:
             raise RequestError(f"{assignment}: write a point as NAME=VALUE (such as setpoint=22.5)")
         (point,) = register_map.select([name])
-        request = write_request(point, text, multiple, nonfinite)
-        if any(step.work[0] is point for step in steps):
+        try:
+            write_request(point, text, multiple, nonfinite)
+        except NoScaleFactor:
+            pass  # checked once the device has said its scale factor
+        if any(known is point for known, _ in wanted):
             raise RequestError(f"{name} is given twice: write each point once")
-        value = point.raw_for(text, nonfinite)
-        held = point.held(text, value)
-        if held is not None:
-            warnings.append(
-                f"{name}: a {point.type} cannot hold {text.strip()}; writing {value_text(held)} {point.unit}".rstrip()
-            )
-        shown = value if point.is_bit else point.value_of(point.registers_of(value))
-        item = {"table": point.table.name, "address": point.address, "ref": point.ref, "name": name}
-        item |= {"unit": point.unit, "new": shown}
-        steps.append(Step(f"{name} ({point.ref})", (item,), (point, value, request)))
-    for warning in warnings:
-        print(f"mbtool: warning: {warning}", file=sys.stderr)
-    bits_by_rmw = rmw and any(step.work[0].bit is not None for step in steps)
+        wanted.append((point, text))
+    factors = [point.scale_ref for point, _ in wanted if point.scale_ref is not None]
+    broadcast = is_broadcast(connection.unit, framer_name(connection))
+    if factors and broadcast:
+        raise RequestError(
+            f"{factors[0].name} is read first, to scale what is written: unit 0 (broadcast) cannot be read"
+        )
+    bits_by_rmw = rmw and any(point.bit is not None for point, _ in wanted)
     rows = []
 
     def send(step: Step) -> None:
-        point, value, request = step.work
+        point, value, request, factor = step.work
         if point.bit is not None:
             raw = _write_bit(connection, client, point.address, point.bit, value, rmw)
         else:
             client.execute(connection.unit, request)
             raw = (value,) if point.table.bits else tuple(point.registers_of(value))
-        shown = value if point.is_bit or not raw else point.value_of(list(raw))
+        shown = value if point.is_bit or not raw else point.value_of(list(raw), factor)
         rows.append(
             PointRow(
                 point.name,
@@ -272,14 +271,34 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
         )
 
     with open_client(connection, RMW_NEEDS if bits_by_rmw else "") as client:
+        # A scaled point (SunSpec's WMaxLimPct with its WMaxLimPct_SF) is written in the
+        # scale the device reports now: its scale factors are read first.
+        scale = _scale_factors(connection, client, factors, register_map.max_gap)
+        steps, warnings = [], []
+        for point, text in wanted:
+            factor = scale.get(point.scale_ref.name) if point.scale_ref is not None else None
+            request = write_request(point, text, multiple, nonfinite, factor)
+            value = point.raw_for(text, nonfinite, factor)
+            held = point.held(text, value, factor)
+            if held is not None:
+                warnings.append(
+                    f"{point.name}: a {point.type} cannot hold {text.strip()}; "
+                    f"writing {value_text(held)} {point.unit}".rstrip()
+                )
+            shown = value if point.is_bit else point.value_of(point.registers_of(value), factor)
+            item = {"table": point.table.name, "address": point.address, "ref": point.ref, "name": point.name}
+            item |= {"unit": point.unit, "new": shown}
+            steps.append(Step(f"{point.name} ({point.ref})", (item,), (point, value, request, factor)))
+        for warning in warnings:
+            print(f"mbtool: warning: {warning}", file=sys.stderr)
         if connection.dry_run:  # no write depends on a reply: show every frame
             for step in steps:
-                point, _, request = step.work
+                point, _, request, _ = step.work
                 if point.bit is not None and rmw:
                     request = _rmw_read(point.address)
                 client.show(connection.unit, request)
             client.finish(connection.unit)
-        outcome = send_all(steps, send, is_broadcast(connection.unit, framer_name(connection)))
+        outcome = send_all(steps, send, broadcast)
     if outcome.error is not None:
         summary = failure("write", outcome)
         items = [item for step in steps for item in step.items]
@@ -287,6 +306,27 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
         report(connection, items, {"unit": connection.unit, "map": register_map.source}, end)
         raise summary
     show(connection, Points(connection.unit, register_map.source, rows))
+
+
+def _scale_factors(connection, client, factors: list, max_gap: int) -> dict:
+    """The value each scale-factor point holds now (None: it has none), read before any
+    write; with --dry-run their reads are shown and the run ends there, as the writes
+    depend on the replies."""
+    from functools import partial
+
+    from mbtool.registermap.plan import MapReader
+
+    if not factors:
+        return {}
+    reader = MapReader(factors, max_gap)
+    if connection.dry_run:
+        for block in reader.blocks:
+            client.show(connection.unit, block.request())
+        client.then = "then each point is written in the scale its scale factor reads"
+        client.finish(connection.unit)
+    return {
+        reading.point.name: reading.value for reading in reader.read(partial(client.execute, connection.unit))
+    }
 
 
 class MaskWriteUnsupported(ModbusException):
