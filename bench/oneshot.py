@@ -117,7 +117,13 @@ def main() -> None:
         )
         for tree in trees:
             for name, arguments in reads.items():
-                commands[f"the {name} read from {tree}"] = [sys.executable, "-c", launcher, str(tree), *arguments]
+                commands[f"the {name} read from {tree}"] = [
+                    sys.executable,
+                    "-c",
+                    launcher,
+                    str(tree),
+                    *arguments,
+                ]
     times: dict[str, list[float]] = {label: [] for label in commands}
     try:
         for command in commands.values():  # warm the page cache and .pyc files

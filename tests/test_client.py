@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import pytest
 
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
-from mbtool.codec.framing import AsciiFramer, RtuFramer, TcpFramer
+from mbtool.codec.mbap import TcpFramer
+from mbtool.codec.rtu import RtuFramer
 from mbtool.codec.timing import character_bits, silent_interval
 from mbtool.errors import NoResponse
 from mbtool.link.client import Client, Trace

@@ -9,9 +9,12 @@ import pytest
 from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
 from mbtool.codec import serial_line as sl
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.errors import ChecksumError, FrameError
-from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
+from mbtool.codec.framer import Frame, Rejected
+from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import UNKNOWN
+from mbtool.codec.rtu import RtuFramer
 from tests.conftest import drain_events, settle_events
 
 REQUEST = da.ReadHoldingRegisters(107, 3)

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
-from mbtool.codec.framing import Frame, Framer, Rejected
+from mbtool.codec.framer import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
 from mbtool.errors import MbtoolError, NoResponse
