@@ -10,7 +10,7 @@ import re
 from mbtool.codec.checksum import crc16, crc_ok
 from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
 from mbtool.codec.framer import Event, Frame, Framer
-from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type
+from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, is_known
 from mbtool.codec.resync import FRAME, NO_FRAME, FrameSearch, Verdict
 
 RTU_MAX_ADU = 256
@@ -33,8 +33,9 @@ def crc_verdict(adu: bytes) -> str:
 _START_RULES: dict[tuple, re.Pattern[bytes]] = {}
 
 # The size of a frame whose function code alone tells it, by code (0: the bytes after it or
-# the request tell it), per (responses, function code asked): see RtuFramer._sizes_for.
-_FIXED_SIZES: dict[tuple, tuple[int, ...]] = {}
+# the request tell it; None: not yet worked out), per (responses, function code asked): see
+# RtuFramer._sizes_for.
+_FIXED_SIZES: dict[tuple, list[int | None]] = {}
 
 
 def _byte_class(values: set[int]) -> bytes:
@@ -55,10 +56,10 @@ class RtuFramer(Framer):
         super().__init__(responses)
         self._fed = 0  # bytes fed so far: the resync's positions are absolute
         self._search = FrameSearch()
+        # What the rules below were learnt for.  Nothing yet: the first look learns them for
+        # what is expected then (a master's request), never first for nothing expected.
         self._scan_expect: Request | None = None
-        self._scan_unit: int | None = None
-        self._judge_starts_for(None, None)
-        self._sizes_for(None)
+        self._scan_unit: int | None = -1
 
     def feed(self, data: bytes) -> None:
         super().feed(data)
@@ -165,28 +166,32 @@ class RtuFramer(Framer):
 
     def _sizes_for(self, expect: Request | None) -> None:
         """Learn which function codes tell their frame's size alone: most do, and looking it up
-        spares _frame_size the general rule for each offset judged amid garbage."""
+        spares _frame_size the general rule for each offset judged amid garbage.  A code's size
+        is worked out when a frame first seems to start with it (_fixed_size): asking about
+        every code at once imported every function module, most of an RTU read's start-up."""
         code = None if expect is None else expect.function_code
         key = (self.responses, code)
         if key not in _FIXED_SIZES:
-            sizes = []
-            for byte in range(256):
-                if self.responses and byte & 0x80:
-                    length = 2  # an exception reply (pdu_length)
-                elif byte == code or (kind := function_type(byte)) is None:
-                    length = 0  # the request asked may refine its rule; an unknown code has none
-                else:
-                    rule = kind.response_size if self.responses else kind.request_size
-                    length = getattr(rule, "fixed", None) or 0  # a Size, or a rule of its own
-                sizes.append(1 + length + 2 if 0 < length <= MAX_PDU else 0)
-            _FIXED_SIZES[key] = tuple(sizes)
+            _FIXED_SIZES[key] = [None] * 256
         self._fixed_sizes = _FIXED_SIZES[key]
+        self._sizes_asked = code
+
+    def _fixed_size(self, byte: int) -> int:
+        """The size of a frame whose function code is ``byte``, if the code alone tells it; else 0."""
+        if self.responses and byte & 0x80:
+            length = 2  # an exception reply (pdu_length)
+        elif byte == self._sizes_asked or (kind := function_type(byte)) is None:
+            length = 0  # the request asked may refine its rule; an unknown code has none
+        else:
+            rule = kind.response_size if self.responses else kind.request_size
+            length = getattr(rule, "fixed", None) or 0  # a Size, or a rule of its own
+        return 1 + length + 2 if 0 < length <= MAX_PDU else 0
 
     def _can_start(self, code: int) -> bool:
         """Can a frame whose function code is ``code`` start here, with no request outstanding?"""
         if self.responses and code & 0x80:
             return True  # an exception reply, whatever its function
-        return function_type(code) is not None
+        return is_known(code)
 
     def _starts(self, lo: int, hi: int):
         """The offsets in lo..hi-1 worth judging as the start of a frame, in order."""
@@ -220,7 +225,10 @@ class RtuFramer(Framer):
         buf = self._buffer
         if len(buf) < start + 2:
             return None
-        size = self._fixed_sizes[buf[start + 1]]
+        code = buf[start + 1]
+        size = self._fixed_sizes[code]
+        if size is None:
+            size = self._fixed_sizes[code] = self._fixed_size(code)
         if size:
             return size  # the function code alone tells it
         # A window of one maximal ADU is all a length can depend on; never copy the
@@ -266,7 +274,7 @@ class RtuFramer(Framer):
                 if start + 5 > len(buf):
                     return base + start + 5
                 return FRAME if crc_ok(buf, start, 5) else NO_FRAME
-            if function_type(code) is None and (self.expect is None or code != self.expect.function_code):
+            if not is_known(code) and (self.expect is None or code != self.expect.function_code):
                 return NO_FRAME  # a code nobody knows or asked for starts no frame
         size = self._frame_size(start)
         if size is None:
@@ -354,7 +362,7 @@ class DeviceRtuFramer(RtuFramer):
         # answered with exception 01.  Beyond one maximal ADU it cannot be a frame: skip it as
         # noise, which also keeps the buffer (and the work silence() does on it) bounded.
         # (A known code with a length the codec cannot tell, FC43 with another MEI type, is noise.)
-        if len(self._buffer) - start <= RTU_MAX_ADU and function_type(self._buffer[start + 1]) is None:
+        if len(self._buffer) - start <= RTU_MAX_ADU and not is_known(self._buffer[start + 1]):
             return None
         return super()._unknown_function_size(start)
 
