@@ -11,8 +11,11 @@ the commands alternately, N times each, and prints the medians and their ratio.
 With ``--before DIR`` (a checkout of an earlier commit, e.g. from ``git worktree add``)
 the same reads are timed from that tree too, in the same loop, so a change's start-up
 cost is measured against the tree it changes rather than against another day's noise.
+With ``--instructions`` each command runs once under valgrind's callgrind instead, and the
+instructions it executed are printed: a figure that does not move with the machine's load
+(the time a command waits for its device is not in it).
 
-Run by hand:  python bench/oneshot.py [-n 40] [--before /tmp/before]
+Run by hand:  python bench/oneshot.py [-n 40] [--before /tmp/before] [--instructions]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import PTY_SERIAL_OPTS, PtyPair  # noqa: E402
+from polling_instructions import instructions  # noqa: E402
 
 
 def free_port() -> int:
@@ -83,6 +87,9 @@ def main() -> None:
         default=[],
         help="an earlier checkout to time side by side (repeatable)",
     )
+    parser.add_argument(
+        "--instructions", action="store_true", help="count each command's instructions with callgrind, once"
+    )
     args = parser.parse_args()
 
     # A wheel install compiles .pyc files, as click's were; an editable checkout
@@ -125,10 +132,13 @@ def main() -> None:
                     *arguments,
                 ]
     times: dict[str, list[float]] = {label: [] for label in commands}
+    counts: dict[str, int] = {}
     try:
         for command in commands.values():  # warm the page cache and .pyc files
             timed(command)
-        for _ in range(args.n):
+        if args.instructions:
+            counts = {label: instructions(command) for label, command in commands.items()}
+        for _ in range(0 if args.instructions else args.n):
             for label, command in commands.items():
                 times[label].append(timed(command))
     finally:
@@ -137,6 +147,11 @@ def main() -> None:
             peer.wait(5)
         line.close()
 
+    if counts:
+        base = counts["python -c 'import click'"]
+        for label, count in counts.items():
+            print(f"{label:50} {count / 1e6:8.1f} M instructions  ratio {count / base:.2f}")
+        return
     medians = {label: statistics.median(runs) for label, runs in times.items()}
     base = medians["python -c 'import click'"]
     for label, runs in times.items():
