@@ -217,7 +217,29 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
     assert framer.predicted(b"") is None  # an empty read (an echo held back) is no reply
     rtu = RtuFramer()
     rtu.predict(UNIT, 0, REQUEST.reply_prefix)
-    assert rtu.predicted(rtu.build(UNIT, pdu)) is None  # RTU predicts nothing: its CRC is to check
+    broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
+    rtu.feed(broken)
+    assert not frames(settle_events(rtu))  # RTU predicts nothing: its CRC is to check
+
+
+def test_tcp_hands_over_the_reply_predicted_first_and_what_came_after_it_next():
+    framer = TcpFramer()
+    pdu = REPLY.encode()
+    reply, later = framer.build(UNIT, pdu, 7), framer.build(UNIT, pdu, 9)
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    framer.feed(reply)
+    framer.feed(reply)  # the same bytes again: behind the first, so parsed
+    framer.feed(later)
+    assert framer.buffered == 3 * len(reply)
+    assert drain_events(framer) == [
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, later, 9),
+    ]
+    assert framer.buffered == 0
+    framer.feed(reply)
+    framer.reset()  # another request: the reply predicted for the last one is dropped too
+    assert framer.buffered == 0 and framer.next_event() is None
 
 
 def test_corrupted_reply_is_held_until_silence_then_rejected_whole():

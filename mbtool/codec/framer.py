@@ -67,20 +67,30 @@ class Framer(ABC):
     def feed(self, data: bytes) -> None:
         self._buffer += data
 
+    # A frame found without the parse (MBAP: the reply predicted, read whole), bytes fed
+    # before any in the buffer: the next event.
+    _ready: Frame | None = None
+
     def reset(self) -> None:
         self._buffer.clear()
         self._garbage.clear()
         self._garbage_error = None
+        self._ready = None
 
     @property
     def buffered(self) -> int:
-        return len(self._buffer) + len(self._garbage)
+        ready = 0 if self._ready is None else len(self._ready.adu)
+        return ready + len(self._buffer) + len(self._garbage)
 
     # True when only a pause on the line can end the frame in the buffer: RTU's property,
     # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
     waiting_for_silence = False
 
     def next_event(self) -> Event | None:
+        ready = self._ready
+        if ready is not None:
+            self._ready = None
+            return ready
         while True:
             result = self._parse()
             if result is None:
@@ -141,14 +151,9 @@ class Framer(ABC):
         self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None
     ) -> None:
         """What the reply will be if it answers as asked: ``prefix`` is the request's
-        reply_prefix (the first bytes of its PDU and its length), None when unknown."""
-
-    def predicted(self, data: bytes) -> bytes | None:
-        """``data``, as one read brought it, when it is exactly the reply predicted and
-        nothing else is buffered: its PDU, found without the buffer and the parse.  None
-        otherwise, and always from a framer that predicts nothing: the bytes then go the
-        usual way (feed, next_event), which tells what they are."""
-        return None
+        reply_prefix (the first bytes of its PDU and its length), None when unknown.  A
+        framer may hand over a reply that is exactly that without parsing it (MBAP: one a
+        poll); RTU and ASCII predict nothing, as their checksum is to be checked."""
 
     # -- helpers ---------------------------------------------------------------------
 

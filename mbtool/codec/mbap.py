@@ -28,8 +28,8 @@ class TcpFramer(Framer):
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
     # The reply predicted: its bytes up to its data (the MBAP header, the function code and
-    # the byte count) and its size; None when nothing is predicted.
-    _predicted: tuple[bytes, int] | None = None
+    # the byte count), its size, its unit and its transaction id; None when nothing is.
+    _predicted: tuple[bytes, int, int, int] | None = None
 
     def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
         if prefix is None:
@@ -37,15 +37,26 @@ class TcpFramer(Framer):
             return
         head, length = prefix
         header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
-        self._predicted = (header + head, MBAP_HEADER + length)
+        self._predicted = (header + head, MBAP_HEADER + length, unit, transaction_id)
 
     def predicted(self, data: bytes) -> bytes | None:
-        if self._predicted is None:
+        """``data``, as one read brought it, when it is exactly the reply predicted and
+        nothing else is buffered: its PDU.  None otherwise: the bytes then go the usual way
+        (the parse), which tells what they are."""
+        predicted = self._predicted
+        if predicted is None or len(data) != predicted[1] or not data.startswith(predicted[0]):
             return None
-        head, size = self._predicted
-        if len(data) != size or not data.startswith(head) or self._buffer:
+        if self._buffer or self._garbage or self._ready is not None:
             return None
         return data[MBAP_HEADER:]
+
+    def feed(self, data: bytes) -> None:
+        pdu = self.predicted(data)
+        if pdu is None:
+            super().feed(data)
+        else:
+            # The reply a poll nearly always gets: its frame is known without the parse.
+            self._ready = Frame(self._predicted[2], pdu, data, self._predicted[3])
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:
