@@ -28,7 +28,6 @@ Needs valgrind; the TCP runs need gcc and libmodbus-dev (as bench/polling_cpu.py
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import shutil
 import subprocess
@@ -46,6 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # it.  The replies are made beforehand: the link's own work a read is a slice and a join.
 IN_PROCESS = f"""
 import sys
+sys.path.insert(0, sys.argv.pop(1))  # the tree counted, before the one installed
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.framing import make_framer
 from mbtool.link.client import Client
@@ -82,7 +82,7 @@ for _ in range(int(sys.argv[1])):
 """
 
 
-def instructions(argv: list[str], env: dict[str, str] | None = None) -> int:
+def instructions(argv: list[str]) -> int:
     """The instructions one run of ``argv`` executes, as callgrind counts them."""
     with tempfile.TemporaryDirectory() as work:
         result = subprocess.run(
@@ -95,7 +95,6 @@ def instructions(argv: list[str], env: dict[str, str] | None = None) -> int:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
-            env=env,
         )
     if result.returncode:
         sys.exit(f"bench: {' '.join(argv[:4])}... failed under valgrind: {result.stderr[-2000:]}")
@@ -131,19 +130,13 @@ def main() -> None:
     trees = [ROOT] + [tree.resolve() for tree in args.before]
     mode = "changing" if args.changing else "same"
 
-    def env_for(tree: Path) -> dict[str, str]:
-        # The tree first on the path, whatever is installed.
-        return {**os.environ, "PYTHONPATH": str(tree)}
-
     for tree in trees:  # compiled first, or the short run would count the compiling
         subprocess.run([sys.executable, "-m", "compileall", "-q", str(tree / "mbtool")], check=True)
     figures: dict[str, float] = {}
     for tree in trees:
         label = "" if tree == ROOT else f" ({tree})"
         figures[f"mbtool client in process{label}"] = per_transaction(
-            lambda n, tree=tree: instructions(
-                [sys.executable, "-c", IN_PROCESS, str(n), mode], env_for(tree)
-            ),
+            lambda n, tree=tree: instructions([sys.executable, "-c", IN_PROCESS, str(tree), str(n), mode]),
             args.short,
             args.long,
         )
@@ -177,8 +170,7 @@ def main() -> None:
                                 str(n),
                                 "-o",
                                 "json",
-                            ],
-                            env_for(tree),
+                            ]
                         ),
                         args.short,
                         args.long,
