@@ -326,26 +326,22 @@ class Client:
         if isinstance(event, Rejected):
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
+        accepted: list[str] = []  # what this reply gets away with (--lenient), for its trace line
         mismatch = self._mismatch(event, unit, request)
-        if not mismatch:
-            return self._take(event, request, problem, [])
-        if event.unit != unit and self._ours(event) and not self._mismatch(event, event.unit, request):
-            # Our transaction id, the function asked for, only the unit is wrong: a gateway
-            # that echoes another unit id.
-            if self.lenient:
-                return self._take(
-                    event, request, problem, [f"reply from unit {event.unit}, expected unit {unit}"]
-                )
-            mismatch += " (--lenient accepts a reply whose transaction id matches)"
-        self.trace.received(event.adu, mismatch)
-        return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
-
-    def _take(
-        self, frame: Frame, request: Request, problem: FrameError | None, accepted: list[str]
-    ) -> tuple[Response | ExceptionResponse | None, FrameError | None]:
-        """A frame from the unit asked, to the function asked: the reply, decoded, unless it does
-        not decode.  ``accepted``: what it gets away with (--lenient), for its trace line."""
-        pdu = frame.pdu
+        if mismatch:
+            if event.unit != unit and self._ours(event) and not self._mismatch(event, event.unit, request):
+                # Our transaction id, the function asked for, only the unit is wrong: a gateway
+                # that echoes another unit id.
+                if not self.lenient:
+                    mismatch += " (--lenient accepts a reply whose transaction id matches)"
+                else:
+                    accepted.append(f"reply from unit {event.unit}, expected unit {unit}")
+                    mismatch = ""
+            if mismatch:
+                self.trace.received(event.adu, mismatch)
+                return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
+        # From the unit asked, to the function asked: the reply, unless it does not decode.
+        pdu = event.pdu
         last_request, last_pdu, reply = self._decoded
         try:
             if request is not last_request or pdu != last_pdu:
@@ -353,35 +349,35 @@ class Client:
                 reply = request.decode_response(pdu)
                 self._decoded = (request, pdu, reply)
         except FrameError as misfit:
-            repaired = self._repair(pdu, request) if self._ours(frame) else None
+            repaired = self._repair(pdu, request) if self._ours(event) else None
             if repaired is not None and self.lenient:
                 pdu, deviation = repaired
                 reply = request.decode_response(pdu)
                 accepted.append(deviation)
-            elif frame.transaction_id is not None:
-                self.trace.received(frame.adu)
-                self._copy_check(frame)
+            elif event.transaction_id is not None:
+                self.trace.received(event.adu)
+                self._copy_check(event)
                 if repaired is not None:
-                    raise FrameError(f"{misfit} ({repaired[1]}: --lenient accepts it)", frame.adu) from None
+                    raise FrameError(f"{misfit} ({repaired[1]}: --lenient accepts it)", event.adu) from None
                 raise  # it carries our transaction id: it is the reply, and a bad one
             elif not isinstance(misfit, MismatchError):
-                self.trace.received(frame.adu)
-                self._copy_check(frame)
+                self.trace.received(event.adu)
+                self._copy_check(event)
                 raise
             else:
                 # Without a transaction id (RTU, ASCII), a frame from our unit whose byte
                 # count does not fit is most likely the late reply to an earlier request:
                 # discard it and keep waiting, as for another unit (its error is reported
                 # if nothing fits).
-                self.trace.received(frame.adu, str(misfit))
-                return None, _worse(problem, MismatchError(f"{misfit}, discarded", frame.adu))
+                self.trace.received(event.adu, str(misfit))
+                return None, _worse(problem, MismatchError(f"{misfit}, discarded", event.adu))
         note = ""
         if isinstance(reply, ExceptionResponse):  # the device's "no", marked where it is seen
             note = str(ModbusException(reply.function_code, reply.exception_code))
         if accepted:  # a reply taken as it is (--lenient): its trace line says why
             self.deviations.update(dict.fromkeys(accepted))
             note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
-        self.trace.received(frame.adu, note)
+        self.trace.received(event.adu, note)
         return reply, problem
 
     def _ours(self, frame: Frame) -> bool:
