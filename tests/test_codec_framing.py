@@ -269,3 +269,32 @@ def test_reply_starting_on_the_last_byte_of_a_phantom_frame_is_kept():
     events = drain_events(framer)
     assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
     assert b"".join(event.data for event in events[:-1]) == noise
+
+
+def test_the_framings_face_gives_every_envelope_name_and_loads_only_what_is_asked_for():
+    """Issue 30: one module an envelope, codec/framing.py on top.  Its names are the modules'
+    own, and taking the base's or the registry's imports no envelope (a one-shot read's
+    start-up pays for its own framing only)."""
+    import subprocess
+    import sys
+
+    from mbtool.codec import ascii, framer, framing, mbap, resync, rtu
+
+    for name, module in framing._DEFINED_IN.items():
+        assert getattr(framing, name) is getattr(
+            {"rtu": rtu, "ascii": ascii, "mbap": mbap, "resync": resync}[module], name
+        )
+    for name in ("Frame", "Framer", "Rejected", "Event"):
+        assert getattr(framing, name) is getattr(framer, name)
+    assert not hasattr(framing, "NoSuchFramer")
+    script = (
+        "import sys\n"
+        "from mbtool.codec.framing import Frame, Framer, Rejected, make_framer\n"
+        "make_framer('tcp')\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('mbtool.codec.'))))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert "mbtool.codec.mbap" in loaded
+    assert not {"mbtool.codec.rtu", "mbtool.codec.ascii", "mbtool.codec.resync"} & set(loaded)

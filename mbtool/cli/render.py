@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import TextIO
 
 from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
-from mbtool.codec.framer import Framer
+from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
 
 FORMATS = ("table", "plain", "json", "csv")

@@ -100,7 +100,7 @@ def split_frame(
         raise RequestError(
             f"RTU frame too short: {len(data)} bytes (unit, function and 2 CRC bytes at least)"
         )
-    from mbtool.codec.rtu import crc_verdict
+    from mbtool.codec.framing import crc_verdict
 
     return "rtu", data, data[0], data[1:-2], crc_ok(data), crc_verdict(data)
 

@@ -67,8 +67,8 @@ class Framer(ABC):
     def feed(self, data: bytes) -> None:
         self._buffer += data
 
-    # A frame found without the parse (MBAP: the reply predicted, read whole), bytes fed
-    # before any in the buffer: the next event.
+    # A frame found without the parse (MBAP: the reply predicted, read whole): the next
+    # event, as its bytes came before any in the buffer.
     _ready: Frame | None = None
 
     def reset(self) -> None:

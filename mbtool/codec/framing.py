@@ -2,15 +2,20 @@
 (spec §2), for ``--framer`` and a target's default.
 
 Each envelope is a module of its own (``codec/rtu.py``, ``codec/ascii.py``,
-``codec/mbap.py``) on the base in ``codec/framer.py``; a framing's module is imported when
-its name is first looked up, so a one-shot read loads only its own envelope.
+``codec/mbap.py``) on the base in ``codec/framer.py`` and the resync search in
+``codec/resync.py``.  This module is their face: the base's names, the registry, and the
+envelopes' names too, each envelope's module imported when a name of it is first asked for,
+so a one-shot read loads only its own envelope.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
+from importlib import import_module
 
-from mbtool.codec.framer import Framer
+from mbtool.codec.framer import Event, Frame, Framer, Rejected
+
+__all__ = ["FRAMERS", "Event", "Frame", "Framer", "Rejected", "device_framer", "is_broadcast", "make_framer"]
 
 
 class _Framers(Mapping):
@@ -57,3 +62,28 @@ def device_framer(name: str) -> Framer:
 
         return DeviceRtuFramer()
     return make_framer(name, responses=False)
+
+
+# The envelopes' and the resync's names, for code that takes them from here: the module that
+# defines one is imported when it is first asked for (PEP 562), as FRAMERS does.
+_DEFINED_IN = {
+    "RtuFramer": "rtu",
+    "DeviceRtuFramer": "rtu",
+    "RTU_MAX_ADU": "rtu",
+    "crc_verdict": "rtu",
+    "AsciiFramer": "ascii",
+    "ASCII_MAX_CHARS": "ascii",
+    "TcpFramer": "mbap",
+    "MBAP_HEADER": "mbap",
+    "FrameSearch": "resync",
+    "Verdict": "resync",
+    "FRAME": "resync",
+    "NO_FRAME": "resync",
+}
+
+
+def __getattr__(name: str):
+    module = _DEFINED_IN.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(f"mbtool.codec.{module}"), name)

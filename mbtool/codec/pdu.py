@@ -353,12 +353,11 @@ def function_type(code: int) -> type[Request] | None:
     return kind
 
 
-def load_all_functions() -> dict[int, type[Request]]:
-    """Every function module imported now (the bus monitor, before the first frame comes):
-    the whole registry."""
+def load_all_functions() -> None:
+    """Every function module imported now, the whole registry filled (the bus monitor, before
+    the first frame comes)."""
     for code in _MODULE_OF:
         function_type(code)
-    return FUNCTIONS
 
 
 UNKNOWN = -1  # pdu_length() of a function code the codec does not know

@@ -24,7 +24,7 @@ from collections import deque
 from collections.abc import Callable
 
 from mbtool.codec.errors import ChecksumError, DecodeError, RequestError
-from mbtool.codec.framer import Frame, Framer, Rejected
+from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import (
     ExceptionCode,
     ExceptionResponse,

@@ -50,8 +50,7 @@ from collections.abc import Callable, Iterator
 from typing import Protocol
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.framer import Frame, Framer, Rejected
-from mbtool.codec.framing import device_framer
+from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
 from mbtool.codec.record import record
 from mbtool.codec.timing import silent_interval
 from mbtool.device.model import Device

@@ -23,8 +23,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
 
 from mbtool.codec.errors import FrameError, ModbusException
-from mbtool.codec.framer import Frame, Framer, Rejected
-from mbtool.codec.framing import is_broadcast
+from mbtool.codec.framing import Frame, Framer, Rejected, is_broadcast
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse
 from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import record

@@ -284,8 +284,7 @@ def raw(connection, data, adu):
 
 def _exact_framer(name: str, exact: bytes | None):
     """The framer for ``name``; with ``exact``, one that sends those bytes instead of building a frame."""
-    from mbtool.codec.framer import Frame
-    from mbtool.codec.framing import FRAMERS
+    from mbtool.codec.framing import FRAMERS, Frame
     from mbtool.codec.record import replace
 
     base = FRAMERS[name]
