@@ -1,17 +1,21 @@
 #!/usr/bin/env python3
 """What a one-shot read costs a cron job, side by side with starting Python and importing click.
 
-Target (issues: foundation, fast where it counts): ``mbtool read-holding-registers 0 10
--o json`` from a TCP device, and from the built-in ``sim://``, each costs at most 1.25 x
-``python -c "import click"``.
+Target (issues: foundation, fast where it counts, 30): ``mbtool read-holding-registers 0 10
+-o json`` from a TCP device, from the built-in ``sim://`` and from an RTU device on a serial
+line, each costs at most 1.25 x ``python -c "import click"``.
 
-Starts pymodbus's TCP server (tests/peers/pymodbus_device.py), then runs both
-commands alternately, N times each, and prints the medians and their ratio.
+Starts pymodbus's TCP server (tests/peers/pymodbus_device.py) and ``mbtool serve`` on one end
+of a pseudo-terminal pair (the tests' virtual null-modem cable, tests/conftest.py), then runs
+the commands alternately, N times each, and prints the medians and their ratio.
 With ``--before DIR`` (a checkout of an earlier commit, e.g. from ``git worktree add``)
-the same read is timed from that tree too, in the same loop, so a change's start-up
+the same reads are timed from that tree too, in the same loop, so a change's start-up
 cost is measured against the tree it changes rather than against another day's noise.
+With ``--instructions`` each command runs once under valgrind's callgrind instead, and the
+instructions it executed are printed: a figure that does not move with the machine's load
+(the time a command waits for its device is not in it).
 
-Run by hand:  python bench/oneshot.py [-n 40] [--before /tmp/before]
+Run by hand:  python bench/oneshot.py [-n 40] [--before /tmp/before] [--instructions]
 """
 
 from __future__ import annotations
@@ -27,6 +31,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+from conftest import PTY_SERIAL_OPTS, PtyPair  # noqa: E402
+from polling_instructions import instructions  # noqa: E402
 
 
 def free_port() -> int:
@@ -49,6 +57,17 @@ def start_device(port: int) -> subprocess.Popen:
     sys.exit("bench: the pymodbus device did not start")
 
 
+def start_serial_device(mbtool: Path, where: str) -> subprocess.Popen:
+    """``mbtool serve`` on the serial line ``where``: an RTU device, ready once it says so."""
+    device = subprocess.Popen(
+        [str(mbtool), "serve", "-p", where, *PTY_SERIAL_OPTS, "-q"], stdout=subprocess.PIPE, text=True
+    )
+    if not device.stdout.readline().startswith("serving"):
+        device.kill()
+        sys.exit("bench: mbtool serve did not start")
+    return device
+
+
 def timed(command: list[str]) -> float:
     start = time.perf_counter()
     result = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -68,6 +87,9 @@ def main() -> None:
         default=[],
         help="an earlier checkout to time side by side (repeatable)",
     )
+    parser.add_argument(
+        "--instructions", action="store_true", help="count each command's instructions with callgrind, once"
+    )
     args = parser.parse_args()
 
     # A wheel install compiles .pyc files, as click's were; an editable checkout
@@ -75,20 +97,25 @@ def main() -> None:
     trees = [ROOT] + [tree.resolve() for tree in args.before]
     for tree in trees:
         subprocess.run([sys.executable, "-m", "compileall", "-q", str(tree / "mbtool")], check=True)
-    port = free_port()
-    device = start_device(port)
-    baseline = [sys.executable, "-c", "import click"]
-    read = ["read-holding-registers", "0", "10", "-p", f"tcp://127.0.0.1:{port}", "-o", "json"]
     # The console script beside this interpreter, not a version manager's shim on PATH
     # (pyenv's shims are bash scripts that would be timed too).
     mbtool = Path(sysconfig.get_path("scripts")) / "mbtool"
     if not mbtool.exists():
         sys.exit(f"bench: {mbtool} not found: install mbtool first (pip install -e .)")
-    commands = {
-        "python -c 'import click'": baseline,
-        "mbtool read-holding-registers (TCP)": [str(mbtool), *read],
-        "mbtool read-holding-registers (sim://)": [str(mbtool), *read[:4], "sim://", *read[5:]],
+    port = free_port()
+    device = start_device(port)
+    line = PtyPair()
+    serial_device = start_serial_device(mbtool, line.device_path)
+    baseline = [sys.executable, "-c", "import click"]
+    read = ["read-holding-registers", "0", "10", "-o", "json"]
+    reads = {
+        "TCP": [*read, "-p", f"tcp://127.0.0.1:{port}"],
+        "sim://": [*read, "-p", "sim://"],
+        "RTU": [*read, "-p", line.mbtool_path, *PTY_SERIAL_OPTS],
     }
+    commands = {"python -c 'import click'": baseline}
+    for name, arguments in reads.items():
+        commands[f"mbtool read-holding-registers ({name})"] = [str(mbtool), *arguments]
     if args.before:
         # Both trees started the same way: what the console script does, with the tree
         # first on the path.
@@ -96,23 +123,40 @@ def main() -> None:
             "import sys; sys.path.insert(0, sys.argv.pop(1)); from mbtool.cli import main; sys.exit(main())"
         )
         for tree in trees:
-            commands[f"the read from {tree}"] = [sys.executable, "-c", launcher, str(tree), *read]
+            for name, arguments in reads.items():
+                commands[f"the {name} read from {tree}"] = [
+                    sys.executable,
+                    "-c",
+                    launcher,
+                    str(tree),
+                    *arguments,
+                ]
     times: dict[str, list[float]] = {label: [] for label in commands}
+    counts: dict[str, int] = {}
     try:
         for command in commands.values():  # warm the page cache and .pyc files
             timed(command)
-        for _ in range(args.n):
+        if args.instructions:
+            counts = {label: instructions(command) for label, command in commands.items()}
+        for _ in range(0 if args.instructions else args.n):
             for label, command in commands.items():
                 times[label].append(timed(command))
     finally:
-        device.terminate()
-        device.wait(5)
+        for peer in (device, serial_device):
+            peer.terminate()
+            peer.wait(5)
+        line.close()
 
+    if counts:
+        base = counts["python -c 'import click'"]
+        for label, count in counts.items():
+            print(f"{label:50} {count / 1e6:8.1f} M instructions  ratio {count / base:.2f}")
+        return
     medians = {label: statistics.median(runs) for label, runs in times.items()}
     base = medians["python -c 'import click'"]
     for label, runs in times.items():
         print(
-            f"{label:40} median {medians[label] * 1000:6.1f} ms  (min {min(runs) * 1000:.1f})"
+            f"{label:50} median {medians[label] * 1000:6.1f} ms  (min {min(runs) * 1000:.1f})"
             f"  ratio {medians[label] / base:.2f}"
         )
     print(f"target: each read <= 1.25 x import click   runs {args.n} each, {os.cpu_count()} cores")

@@ -33,7 +33,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from mbtool.codec.data_access import ReadHoldingRegisters  # noqa: E402
-from mbtool.codec.framing import DeviceRtuFramer, Frame, RtuFramer  # noqa: E402
+from mbtool.codec.framer import Frame  # noqa: E402
+from mbtool.codec.rtu import DeviceRtuFramer, RtuFramer  # noqa: E402
 
 SIZES = (1, 16, 256, 4096, 65536)
 UNIT = 0x11

@@ -29,7 +29,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from mbtool.codec.errors import ProtocolError  # noqa: E402
-from mbtool.codec.framing import Frame, make_framer  # noqa: E402
+from mbtool.codec.framer import Frame  # noqa: E402
+from mbtool.codec.framing import make_framer  # noqa: E402
 from mbtool.codec.pdu import decode_request  # noqa: E402
 from mbtool.errors import KNOWN_ERRORS  # noqa: E402
 from mbtool.link.client import Client  # noqa: E402

@@ -100,7 +100,7 @@ def test_the_crc_verdict_never_contradicts_itself():
     """A 3-byte frame (unit and CRC) that the hex trace shows: a matching CRC is ok, never
     "BAD, expected" the very bytes it carries; crc_ok still refuses it as a frame."""
     from mbtool.codec.checksum import crc_ok
-    from mbtool.codec.framing import RtuFramer
+    from mbtool.codec.rtu import RtuFramer
 
     short = b"\x07" + crc_bytes(b"\x07")
     assert RtuFramer().check(short) == f"CRC {short[1]:02X} {short[2]:02X} ok"

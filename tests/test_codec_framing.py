@@ -9,9 +9,12 @@ import pytest
 from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
 from mbtool.codec import serial_line as sl
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.errors import ChecksumError, FrameError
-from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
+from mbtool.codec.framer import Frame, Rejected
+from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import UNKNOWN
+from mbtool.codec.rtu import RtuFramer
 from tests.conftest import drain_events, settle_events
 
 REQUEST = da.ReadHoldingRegisters(107, 3)
@@ -214,7 +217,29 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
     assert framer.predicted(b"") is None  # an empty read (an echo held back) is no reply
     rtu = RtuFramer()
     rtu.predict(UNIT, 0, REQUEST.reply_prefix)
-    assert rtu.predicted(rtu.build(UNIT, pdu)) is None  # RTU predicts nothing: its CRC is to check
+    broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
+    rtu.feed(broken)
+    assert not frames(settle_events(rtu))  # RTU predicts nothing: its CRC is to check
+
+
+def test_tcp_hands_over_the_reply_predicted_first_and_what_came_after_it_next():
+    framer = TcpFramer()
+    pdu = REPLY.encode()
+    reply, later = framer.build(UNIT, pdu, 7), framer.build(UNIT, pdu, 9)
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    framer.feed(reply)
+    framer.feed(reply)  # the same bytes again: behind the first, so parsed
+    framer.feed(later)
+    assert framer.buffered == 3 * len(reply)
+    assert drain_events(framer) == [
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, later, 9),
+    ]
+    assert framer.buffered == 0
+    framer.feed(reply)
+    framer.reset()  # another request: the reply predicted for the last one is dropped too
+    assert framer.buffered == 0 and framer.next_event() is None
 
 
 def test_corrupted_reply_is_held_until_silence_then_rejected_whole():
@@ -244,3 +269,32 @@ def test_reply_starting_on_the_last_byte_of_a_phantom_frame_is_kept():
     events = drain_events(framer)
     assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
     assert b"".join(event.data for event in events[:-1]) == noise
+
+
+def test_the_framings_face_gives_every_envelope_name_and_loads_only_what_is_asked_for():
+    """Issue 30: one module an envelope, codec/framing.py on top.  Its names are the modules'
+    own, and taking the base's or the registry's imports no envelope (a one-shot read's
+    start-up pays for its own framing only)."""
+    import subprocess
+    import sys
+
+    from mbtool.codec import ascii, framer, framing, mbap, resync, rtu
+
+    for name, module in framing._DEFINED_IN.items():
+        assert getattr(framing, name) is getattr(
+            {"rtu": rtu, "ascii": ascii, "mbap": mbap, "resync": resync}[module], name
+        )
+    for name in ("Frame", "Framer", "Rejected", "Event"):
+        assert getattr(framing, name) is getattr(framer, name)
+    assert not hasattr(framing, "NoSuchFramer")
+    script = (
+        "import sys\n"
+        "from mbtool.codec.framing import Frame, Framer, Rejected, make_framer\n"
+        "make_framer('tcp')\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('mbtool.codec.'))))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert "mbtool.codec.mbap" in loaded
+    assert not {"mbtool.codec.rtu", "mbtool.codec.ascii", "mbtool.codec.resync"} & set(loaded)

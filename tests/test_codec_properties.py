@@ -14,8 +14,10 @@ from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
 from mbtool.codec import file_record as fr
 from mbtool.codec import serial_line as sl
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.errors import ProtocolError
-from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
+from mbtool.codec.framer import Frame, Rejected
+from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import (
     FUNCTIONS,
     MAX_PDU,
@@ -26,6 +28,7 @@ from mbtool.codec.pdu import (
     unpack_bits,
     unpack_registers,
 )
+from mbtool.codec.rtu import RtuFramer
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

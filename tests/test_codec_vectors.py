@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from mbtool.codec import data_access, device_id, file_record, serial_line  # noqa: F401  (register every FC)
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.data_access import (
     BitsResponse,
     MaskWriteRegister,
@@ -37,8 +38,10 @@ from mbtool.codec.file_record import (
     ReadFileRecordResponse,
     WriteFileRecord,
 )
-from mbtool.codec.framing import AsciiFramer, Frame, Rejected, RtuFramer, TcpFramer
+from mbtool.codec.framer import Frame, Rejected
+from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import ExceptionResponse, Response, decode_request, decode_response
+from mbtool.codec.rtu import RtuFramer
 from mbtool.codec.serial_line import (
     CommEventCounterResponse,
     CommEventLogResponse,

@@ -520,7 +520,7 @@ def test_readme_example_data_file_loads(tmp_path):
 
 def test_character_overrun_is_counted():
     from mbtool.codec.errors import FrameError
-    from mbtool.codec.framing import Rejected
+    from mbtool.codec.framer import Rejected
 
     d = dev()
     d.rejected(Rejected(b"\xff" * 300, FrameError("garbage", b"")))

@@ -12,7 +12,6 @@ from mbtool.cli.render import Report, Row, render
 from mbtool.codec.data_access import mask_formula
 from mbtool.codec.describe import describe, parse_hex, split_frame
 from mbtool.codec.errors import RequestError
-from mbtool.codec.framing import RtuFramer
 from mbtool.codec.modicon import (
     CONTROLLERS,
     DIAGNOSTIC_REGISTER_BITS,
@@ -22,6 +21,7 @@ from mbtool.codec.modicon import (
 )
 from mbtool.codec.pdu import UNKNOWN
 from mbtool.codec.raw import RawRequest, RawResponse
+from mbtool.codec.rtu import RtuFramer
 
 # ----------------------------------------------------------------------------- Modicon (seed 002)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mbtool.codec.data_access import BitsResponse, ReadHoldingRegisters, RegistersResponse
-from mbtool.codec.framing import Frame
+from mbtool.codec.framer import Frame
 from mbtool.codec.record import FrozenInstanceError, field, fields, record, replace
 
 

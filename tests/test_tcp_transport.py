@@ -103,7 +103,7 @@ def test_socket_url_to_a_silent_peer_says_tcp_may_be_meant(hang_up):
     """A Modbus TCP device ignores RTU frames or hangs up on them, on whatever port it
     listens: the error says what is probably wrong."""
     from mbtool.codec.data_access import ReadHoldingRegisters
-    from mbtool.codec.framing import RtuFramer
+    from mbtool.codec.rtu import RtuFramer
     from mbtool.errors import NoResponse
     from mbtool.link.client import Client
     from mbtool.link.transport import SerialSettings, SerialTransport

@@ -2,6 +2,6 @@
 
 Never imports socket, serial, time, click or rich (design notes, "The codec is
 sans-IO").  Function-code modules register themselves when imported;
-``pdu.function_type`` imports the rest on demand, so a one-shot command pays
-only for the function codes it uses.
+``pdu.function_type`` imports a code's module (``pdu.FUNCTION_MODULES``) on the
+code's first look-up, so a one-shot command pays only for the function codes it uses.
 """

@@ -1,725 +1,49 @@
-"""The three envelopes around a PDU (spec §2): RTU, ASCII and Modbus TCP (MBAP).
+"""The framings by name: RTU, ASCII and Modbus TCP (MBAP), the three envelopes around a PDU
+(spec §2), for ``--framer`` and a target's default.
 
-Sans-IO, after h11: ``feed(data)`` whatever arrived, then call
-``next_event()`` until it returns None (more bytes needed).  An event is a
-``Frame`` or a ``Rejected`` run of bytes with the reason it is not a frame, so
-the caller can trace garbage and explain a failure instead of only timing out.
-A framer reads either replies (a master) or requests (a device): the implicit
-length of a PDU depends on which.
-
-The framers differ only in their envelope (tokio-modbus ``frame/{rtu,tcp}.rs``).
+Each envelope is a module of its own (``codec/rtu.py``, ``codec/ascii.py``,
+``codec/mbap.py``) on the base in ``codec/framer.py`` and the resync search in
+``codec/resync.py``.  This module is their face: the base's names, the registry, and the
+envelopes' names too, each envelope's module imported when a name of it is first asked for,
+so a one-shot read loads only its own envelope.
 """
 
 from __future__ import annotations
 
-import binascii
-import re
-import struct
-from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable
+from collections.abc import Iterator, Mapping
+from importlib import import_module
 
-from mbtool.codec.checksum import crc16, crc_ok, lrc
-from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
-from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, pdu_length
-from mbtool.codec.record import record
+from mbtool.codec.framer import Event, Frame, Framer, Rejected
 
-RTU_MAX_ADU = 256
-ASCII_MAX_CHARS = 513  # ':' + 2 × 255 hex + CR LF (spec §2)
-MBAP_HEADER = 7
-# The MBAP header: transaction id, protocol id, length, unit (compiled once: one a frame).
-_MBAP_HEADER = struct.Struct(">HHHB")
-_MBAP_FIELDS = struct.Struct(">HHH")  # without the unit, which the frame takes with the PDU
+__all__ = ["FRAMERS", "Event", "Frame", "Framer", "Rejected", "device_framer", "is_broadcast", "make_framer"]
 
 
-@record
-class Frame:
-    unit: int
-    pdu: bytes
-    adu: bytes  # the exact bytes on the wire
-    transaction_id: int | None = None
+class _Framers(Mapping):
+    """The framer type of each framing's name, imported on the first look-up."""
 
-    def __init__(self, unit: int, pdu: bytes, adu: bytes, transaction_id: int | None = None) -> None:
-        # By hand: two frames a transaction in a polling loop (codec/record.py).
-        fields = self.__dict__
-        fields["unit"] = unit
-        fields["pdu"] = pdu
-        fields["adu"] = adu
-        fields["transaction_id"] = transaction_id
+    def __getitem__(self, name: str) -> type[Framer]:
+        if name == "rtu":
+            from mbtool.codec.rtu import RtuFramer
 
+            return RtuFramer
+        if name == "ascii":
+            from mbtool.codec.ascii import AsciiFramer
 
-@record
-class Rejected:
-    data: bytes
-    error: FrameError
+            return AsciiFramer
+        if name == "tcp":
+            from mbtool.codec.mbap import TcpFramer
 
+            return TcpFramer
+        raise KeyError(name)
 
-Event = Frame | Rejected
+    def __iter__(self) -> Iterator[str]:
+        return iter(("rtu", "ascii", "tcp"))
 
+    def __len__(self) -> int:
+        return 3
 
-class Framer(ABC):
-    """What every framer shares: the buffer, the garbage run and the event loop."""
 
-    name = ""
-    checksum_name = ""
-    # The unit id every device on a serial line hears and none answers (spec §2).
-    broadcast_unit: int | None = 0
-
-    def __init__(self, responses: bool = True) -> None:
-        self.responses = responses  # reading replies (a master) or requests (a device)
-        self.expect: Request | None = None  # the request being answered, for lengths that depend on it
-        self.expect_unit: int | None = None  # and the unit it went to
-        self._buffer = bytearray()
-        self._garbage = bytearray()
-        self._garbage_error: FrameError | None = None
-
-    # -- input -------------------------------------------------------------------
-
-    def feed(self, data: bytes) -> None:
-        self._buffer += data
-
-    def reset(self) -> None:
-        self._buffer.clear()
-        self._garbage.clear()
-        self._garbage_error = None
-
-    @property
-    def buffered(self) -> int:
-        return len(self._buffer) + len(self._garbage)
-
-    # True when only a pause on the line can end the frame in the buffer: RTU's property,
-    # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
-    waiting_for_silence = False
-
-    def next_event(self) -> Event | None:
-        while True:
-            result = self._parse()
-            if result is None:
-                # Out of bytes: hand over the garbage so far, so the caller sees it now.
-                return self._flush_garbage()
-            if isinstance(result, Frame):
-                if self._garbage:  # the garbage before the frame first; it is found again next call
-                    return self._flush_garbage()
-                del self._buffer[: len(result.adu)]
-                return result
-            # An int: this many bytes at the front are no frame; fold them into the garbage run.
-            skip, error = result
-            if not self._garbage:
-                self._garbage_error = error
-            self._garbage += self._buffer[:skip]
-            del self._buffer[:skip]
-
-    def silence(self) -> Event | None:
-        """The line has gone quiet (or the deadline passed): end whatever is buffered."""
-        event = self.next_event()
-        if event is not None:
-            return event
-        while self._buffer:
-            frame = self._whole(bytes(self._buffer))
-            if isinstance(frame, Frame):
-                self._buffer.clear()
-                return self._flush_garbage() or frame
-            # The front byte starts no frame that ends here: drop it and look again,
-            # since a whole frame may still sit behind it.
-            if not self._garbage:
-                self._garbage_error = frame
-            self._garbage.append(self._buffer.pop(0))
-            event = self.next_event()
-            if event is not None:
-                return event
-        return self._flush_garbage()
-
-    # -- for subclasses --------------------------------------------------------------
-
-    @abstractmethod
-    def _parse(self) -> Frame | tuple[int, FrameError] | None:
-        """Look at the front of the buffer: a Frame, (bytes to skip, why), or None for more."""
-
-    def _whole(self, data: bytes) -> Frame | FrameError:
-        """After silence: the buffered bytes taken as one frame, or why they are not one."""
-        return FrameError(f"truncated frame ({len(data)} bytes)", data)
-
-    @abstractmethod
-    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes: ...
-
-    @abstractmethod
-    def check(self, adu: bytes) -> str:
-        """A short verdict on the frame's checksum, for the hex trace."""
-
-    # -- the reply predicted ------------------------------------------------------------
-
-    def predict(  # noqa: B027 - optional hook, not abstract
-        self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None
-    ) -> None:
-        """What the reply will be if it answers as asked: ``prefix`` is the request's
-        reply_prefix (the first bytes of its PDU and its length), None when unknown."""
-
-    def predicted(self, data: bytes) -> bytes | None:
-        """``data``, as one read brought it, when it is exactly the reply predicted and
-        nothing else is buffered: its PDU, found without the buffer and the parse.  None
-        otherwise, and always from a framer that predicts nothing: the bytes then go the
-        usual way (feed, next_event), which tells what they are."""
-        return None
-
-    # -- helpers ---------------------------------------------------------------------
-
-    def _flush_garbage(self) -> Rejected | None:
-        if not self._garbage:
-            return None
-        data = bytes(self._garbage)
-        error = self._garbage_error or FrameError(f"{len(data)} bytes of garbage", data)
-        if len(data) > len(error.data) and not isinstance(error, ChecksumError):
-            error = FrameError(f"{len(data)} bytes of garbage, starting with: {error}", data)
-        self._garbage.clear()
-        self._garbage_error = None
-        return Rejected(data, error)
-
-    def _pdu_length(self, pdu: bytes) -> int | None:
-        return pdu_length(pdu, self.responses, self.expect)
-
-
-def crc_verdict(adu: bytes) -> str:
-    """An RTU frame's CRC in words, as --hex, decode and monitor show it: "CRC 0E 84 ok"."""
-    if len(adu) < 3:
-        return "CRC missing"
-    # The expected value decides and is shown: one computation (crc_ok would refuse
-    # the 3-byte frames a trace may show, and then contradict itself in words).
-    expected = crc16(adu[:-2])
-    if adu[-2] | adu[-1] << 8 == expected:
-        return f"CRC {adu[-2]:02X} {adu[-1]:02X} ok"
-    return f"CRC {adu[-2]:02X} {adu[-1]:02X} BAD, expected {expected & 0xFF:02X} {expected >> 8:02X}"
-
-
-class Verdict:
-    """What judging one offset as a frame start tells, when it tells for good."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-
-    def __repr__(self) -> str:
-        return self.name
-
-
-FRAME = Verdict("FRAME")  # a whole frame with a good CRC starts here
-NO_FRAME = Verdict("NO_FRAME")  # none starts here, whatever bytes follow
-# Any other verdict is an int: the stream position the bytes must reach before it can tell.
-
-
-class FrameSearch:
-    """Where a whole RTU frame with a good CRC starts inside a buffer: resync (spec §2: an
-    RTU frame has no start mark; only its length rule and its CRC tell one).  The master's
-    and the device's framers and the bus monitor all search with it.
-
-    Positions are absolute stream positions (bytes are only ever appended at the end and
-    dropped at the front, so a position's bytes never change).  Each offset is judged once
-    for good, or kept pending until the bytes that decide it have come, and only judged
-    again then: garbage costs linear time (without it each byte of garbage rescanned the
-    whole buffer, and 64 KiB took a second).
-    """
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget every judgement: what decides a verdict has changed (another request)."""
-        self.scanned = 0  # every position below it has been judged...
-        self.pending: list[tuple[int, int]] = []  # ...and these may still start a frame: (position, wake)
-
-    def find(
-        self,
-        base: int,
-        fed: int,
-        end: int,
-        last: int,
-        judge: Callable[[int], Verdict | int],
-        starts: Callable[[int, int], Iterable[int]],
-    ) -> int | None:
-        """The first offset in 1..end-1 where ``judge`` (given an offset into the buffer, whose
-        first byte is at stream position ``base``; ``fed`` bytes so far) finds a frame.
-        New offsets are taken from ``starts(lo, hi)`` up to ``last``: the others are not worth
-        judging (yet)."""
-        pending = self.pending
-        if pending and pending[0][0] <= base:
-            pending = [entry for entry in pending if entry[0] > base]
-        still = []
-        for index, entry in enumerate(pending):
-            position, wake = entry
-            if position >= base + end:
-                still += pending[index:]
-                break
-            if wake > fed:
-                still.append(entry)  # the bytes that decide it have not all come
-                continue
-            verdict = judge(position - base)
-            if verdict is FRAME:
-                self.pending = still + pending[index + 1 :]
-                return position - base
-            if verdict is not NO_FRAME:
-                still.append((position, verdict))
-        self.pending = still
-        first = max(self.scanned - base, 1)
-        if first < last:
-            for start in starts(first, last):
-                verdict = judge(start)
-                if verdict is FRAME:
-                    self.scanned = base + start + 1
-                    return start
-                if verdict is not NO_FRAME:
-                    self.pending.append((base + start, verdict))
-            self.scanned = base + last
-        return None
-
-
-# Which offsets an RTU framer judges as frame starts, per (framer class, responses,
-# function code asked, unit asked): see RtuFramer._judge_starts_for.
-_START_RULES: dict[tuple, re.Pattern[bytes]] = {}
-
-# The size of a frame whose function code alone tells it, by code (0: the bytes after it or
-# the request tell it), per (responses, function code asked): see RtuFramer._sizes_for.
-_FIXED_SIZES: dict[tuple, tuple[int, ...]] = {}
-
-
-def _byte_class(values: set[int]) -> bytes:
-    """A regex character class matching exactly these byte values."""
-    return b"[" + b"".join(re.escape(bytes([value])) for value in sorted(values)) + b"]"
-
-
-class RtuFramer(Framer):
-    """``[unit][PDU][CRC lo][CRC hi]``, ended by implicit length (or by silence)."""
-
-    name = "rtu"
-    checksum_name = "CRC"
-    _held = False  # a corrupted frame is held: the awaited reply may begin in its last bytes
-    _quiet = False  # inside silence(): no more bytes are coming
-    _starved: tuple | None = None  # the state in which _parse last needed more bytes
-
-    def __init__(self, responses: bool = True) -> None:
-        super().__init__(responses)
-        self._fed = 0  # bytes fed so far: the resync's positions are absolute
-        self._search = FrameSearch()
-        self._scan_expect: Request | None = None
-        self._scan_unit: int | None = None
-        self._judge_starts_for(None, None)
-        self._sizes_for(None)
-
-    def feed(self, data: bytes) -> None:
-        super().feed(data)
-        self._fed += len(data)
-
-    @property
-    def waiting_for_silence(self) -> bool:
-        if self._held and self._buffer:
-            return True
-        return len(self._buffer) >= 2 and self._pdu_length(bytes(self._buffer[1:])) == UNKNOWN
-
-    def silence(self) -> Event | None:
-        self._quiet = True
-        try:
-            return super().silence()
-        finally:
-            self._quiet = False
-
-    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
-        body = bytes([unit]) + pdu
-        return body + crc16(body).to_bytes(2, "little")
-
-    def check(self, adu: bytes) -> str:
-        return crc_verdict(adu)
-
-    def _parse(self):
-        # next_event() asks again after handing over the garbage; until bytes come or go
-        # (or the request changes) the answer is the same: do not judge it all twice.
-        state = (self._fed, len(self._buffer), self.expect, self.expect_unit, self._quiet)
-        if state == self._starved:
-            return None
-        result = self._judge_front()
-        self._starved = state if result is None else None
-        return result
-
-    def _judge_front(self):
-        buf = self._buffer
-        self._held = False
-        self._rescan_if_expecting_anew()
-        size = self._frame_size(0)
-        if size is None:
-            # The front does not tell its length yet: a whole frame may already sit behind it.
-            return self._skip_to_frame(len(buf))
-        if isinstance(size, FrameError):
-            return self._garbage_up_to_a_start(1, size)
-        if len(buf) < size:
-            # Noise before a reply can look like the head of a long frame; without
-            # this the real reply would wait inside that phantom frame until the deadline.
-            return self._skip_to_frame(min(len(buf), size))
-        if crc_ok(buf, 0, size):
-            return self._whole(bytes(buf[:size]))
-        # A bad checksum: either noise before a good frame that starts inside, or
-        # a corrupted frame, reported whole (one line in the trace, not fragments).
-        skip = self._skip_to_frame(size)
-        if skip is not None:
-            return skip
-        if self._awaited_inside(size):
-            self._held = True
-            return None  # the reply we wait for may be starting inside: wait for the rest
-        if self._silence_tells_corrupted():
-            return None
-        # Only the first rejection of a garbage run is reported (next_event folds the rest
-        # into it): say what this one is only then.  Formatting the reason for every
-        # corrupted would-be frame amid garbage cost as much as judging it.
-        error = self._garbage_error if self._garbage else self._whole(bytes(buf[:size]))
-        return self._garbage_up_to_a_start(size, error)
-
-    def _silence_tells_corrupted(self) -> bool:
-        """A whole frame with a bad CRC at the front: is it held until silence, not skipped?"""
-        return False
-
-    # -- resync (spec §2: an RTU frame has no start mark; only its length rule and CRC tell) --
-
-    def _judge_starts_for(self, expect: Request | None, unit: int | None) -> None:
-        """Decide which offsets are worth judging as the start of a frame.
-
-        While a request is outstanding: an offset holding its unit, or one byte before its
-        function code (or code | 0x80).  That finds the reply, and a reply from the wrong
-        unit or with the wrong function, reported as a mismatch; any other frame amid
-        garbage cannot answer the request and stays garbage.  Judging every offset in
-        Python made 64 KiB of garbage cost over 100 ms.
-
-        With no request outstanding: one byte before any function code that can start a
-        frame (an exception reply too).  The offsets left out are those the front would
-        reject one by one as an unknown function code, so skipping them changes nothing
-        (a device holds one until an ADU follows it: see DeviceRtuFramer._first_unsettled).
-        """
-        code = None if expect is None else expect.function_code
-        key = (type(self), self.responses, code, unit)
-        if key not in _START_RULES:  # once per request kind, not per request: a poll repeats them
-            if code is not None:
-                codes = {code, code | 0x80}
-                units = set() if unit is None else {unit}
-            else:
-                codes = {code for code in range(256) if self._can_start(code)}
-                units = set()
-            # A look-ahead matches, at each offset worth judging, its unit or the function code
-            # after it: the offsets are found in C, never byte by byte in Python.
-            marks = [b"." + _byte_class(codes)] if codes else []
-            if units:
-                marks.insert(0, _byte_class(units) + b".")  # a unit byte with a function code after it
-            _START_RULES[key] = re.compile(b"(?s)(?=" + b"|".join(marks) + b")")
-        self._marks = _START_RULES[key]
-
-    def _sizes_for(self, expect: Request | None) -> None:
-        """Learn which function codes tell their frame's size alone: most do, and looking it up
-        spares _frame_size the general rule for each offset judged amid garbage."""
-        code = None if expect is None else expect.function_code
-        key = (self.responses, code)
-        if key not in _FIXED_SIZES:
-            sizes = []
-            for byte in range(256):
-                if self.responses and byte & 0x80:
-                    length = 2  # an exception reply (pdu_length)
-                elif byte == code or (kind := function_type(byte)) is None:
-                    length = 0  # the request asked may refine its rule; an unknown code has none
-                else:
-                    rule = kind.response_size if self.responses else kind.request_size
-                    length = getattr(rule, "fixed", None) or 0  # a Size, or a rule of its own
-                sizes.append(1 + length + 2 if 0 < length <= MAX_PDU else 0)
-            _FIXED_SIZES[key] = tuple(sizes)
-        self._fixed_sizes = _FIXED_SIZES[key]
-
-    def _can_start(self, code: int) -> bool:
-        """Can a frame whose function code is ``code`` start here, with no request outstanding?"""
-        if self.responses and code & 0x80:
-            return True  # an exception reply, whatever its function
-        return function_type(code) is not None
-
-    def _starts(self, lo: int, hi: int):
-        """The offsets in lo..hi-1 worth judging as the start of a frame, in order."""
-        # Up to hi inclusive: the function code of an offset at hi - 1 lies at hi.
-        return map(re.Match.start, self._marks.finditer(self._buffer, lo, hi + 1))
-
-    def _rescan_if_expecting_anew(self) -> None:
-        if self._scan_expect is not self.expect or self._scan_unit != self.expect_unit:
-            # Lengths and the offsets worth judging depend on the request: judge afresh.
-            self._scan_expect, self._scan_unit = self.expect, self.expect_unit
-            self._judge_starts_for(self.expect, self.expect_unit)
-            self._sizes_for(self.expect)
-            self._search.reset()
-
-    def _garbage_up_to_a_start(self, skip: int, error: FrameError):
-        """(bytes to skip, why) for a rejected front, stretched over the offsets behind it
-        that are not worth judging, so garbage goes in one step, not byte by byte."""
-        last = self._first_unsettled()
-        if skip < last:
-            skip = next(self._starts(skip, last), last)
-        return skip, error
-
-    def _first_unsettled(self) -> int:
-        """Where stretching garbage stops: from this offset on, one that _starts leaves out may
-        still start a frame once more bytes come.  Here only the last byte, whose function
-        code has not arrived."""
-        return len(self._buffer) - 1
-
-    def _frame_size(self, start: int) -> int | None | FrameError:
-        """Size of the frame that would start at ``start``: None for more bytes, or why none can."""
-        buf = self._buffer
-        if len(buf) < start + 2:
-            return None
-        size = self._fixed_sizes[buf[start + 1]]
-        if size:
-            return size  # the function code alone tells it
-        # A window of one maximal ADU is all a length can depend on; never copy the
-        # whole buffer per byte (64 KiB of garbage would cost quadratic time).
-        length = self._pdu_length(bytes(buf[start + 1 : start + RTU_MAX_ADU]))
-        if length is None:
-            return None
-        if length == UNKNOWN:
-            return self._unknown_function_size(start)
-        if length > MAX_PDU:
-            return FrameError(f"PDU length {length} exceeds {MAX_PDU}", bytes(buf[start : start + 2]))
-        return 1 + length + 2
-
-    def _unknown_function_size(self, start: int) -> None | FrameError:
-        """_frame_size for a function code the codec does not know: None if only silence can end
-        the frame, or why none starts here."""
-        code = self._buffer[start + 1]
-        if self.expect is not None and code in (self.expect.function_code, self.expect.function_code | 0x80):
-            return None  # an unknown function code we asked for (raw): only silence ends it
-        return FrameError(f"{function_code_text(code)} is unknown", bytes(self._buffer[start : start + 2]))
-
-    def _skip_to_frame(self, end: int):
-        """(bytes to skip, why) if a whole, valid frame starts at an offset in 1..end-1.
-
-        Only the offsets _starts picks out are judged.  An offset is picked out by its byte
-        and the next one: the last byte waits for its follower (no whole frame can start
-        there yet anyway).
-        """
-        buf = self._buffer
-        base = self._fed - len(buf)  # the absolute position of buf[0]
-        found = self._search.find(base, self._fed, end, min(end, len(buf) - 1), self._frame_at, self._starts)
-        return None if found is None else self._noise(found)
-
-    def _frame_at(self, start: int) -> Verdict | int:
-        """Does a whole, valid frame start here: FRAME, NO_FRAME, or (an int) how many bytes
-        must have been fed before more bytes can tell (FrameSearch)."""
-        buf = self._buffer
-        base = self._fed - len(buf)
-        if self.responses and start + 2 <= len(buf):
-            code = buf[start + 1]
-            if code & 0x80:
-                # An exception reply, half of all garbage bytes: 5 bytes, whatever was asked.
-                if start + 5 > len(buf):
-                    return base + start + 5
-                return FRAME if crc_ok(buf, start, 5) else NO_FRAME
-            if function_type(code) is None and (self.expect is None or code != self.expect.function_code):
-                return NO_FRAME  # a code nobody knows or asked for starts no frame
-        size = self._frame_size(start)
-        if size is None:
-            return self._fed + 1  # the bytes that tell its length have not all come
-        if not isinstance(size, int):
-            return NO_FRAME
-        if start + size > len(buf):
-            return base + start + size
-        return FRAME if crc_ok(buf, start, size) else NO_FRAME
-
-    def _noise(self, start: int):
-        return start, FrameError(f"{start} bytes of noise before a frame", bytes(self._buffer[:start]))
-
-    def _awaited_inside(self, end: int) -> bool:
-        """Does the awaited reply seem to start at an offset in 1..end-1, not yet complete?"""
-        if self.expect is None or self._quiet:
-            return False
-        if self.expect_unit is None:
-            # Offsets are picked out by the function code after them, which the last byte lacks.
-            last = end == len(self._buffer) and self._awaited(end - 1)
-            return last or any(self._awaited(start) for start in self._starts(1, end))
-        unit = bytes([self.expect_unit])  # the reply starts with it: find it in C
-        start = self._buffer.find(unit, 1, end)
-        while start >= 0:
-            if self._awaited(start):
-                return True
-            start = self._buffer.find(unit, start + 1, end)
-        return False
-
-    def _awaited(self, start: int) -> bool:
-        """Does the reply to the expected request seem to start here, not yet complete?"""
-        if self.expect is None or self._quiet:
-            return False
-        if self.expect_unit is not None and self._buffer[start] != self.expect_unit:
-            return False
-        if start + 1 >= len(self._buffer):
-            return True  # its function code has not arrived: only more bytes or silence can tell
-        code = self._buffer[start + 1]
-        if code not in (self.expect.function_code, self.expect.function_code | 0x80):
-            return False
-        size = self._frame_size(start)
-        return size is None or (isinstance(size, int) and start + size > len(self._buffer))
-
-    def _whole(self, data: bytes) -> Frame | FrameError:
-        if len(data) < 4:
-            return FrameError(f"truncated frame ({len(data)} bytes)", data)
-        received = int.from_bytes(data[-2:], "little")
-        expected = crc16(data[:-2])
-        if received != expected:
-            length = self._pdu_length(data[1:RTU_MAX_ADU])
-            if length is not None and length != UNKNOWN and 1 + length + 2 > len(data):
-                # Silence came before the length the frame announces: its end never came,
-                # and "CRC error" would send the user looking for noise.
-                return FrameError(f"truncated frame ({len(data)} of {1 + length + 2} bytes)", data)
-            return ChecksumError(
-                f"CRC error: frame {data.hex(' ').upper()} carries {data[-2]:02X} {data[-1]:02X},"
-                f" expected {expected & 0xFF:02X} {expected >> 8:02X}",
-                data,
-                received,
-                expected,
-            )
-        return Frame(data[0], data[1:-2], data)
-
-
-class AsciiFramer(Framer):
-    """``:`` hex(unit PDU) hex(LRC) CR LF; LF may be changed by FC08 sub-function 03."""
-
-    name = "ascii"
-    checksum_name = "LRC"
-
-    def __init__(self, responses: bool = True, delimiter: int = 0x0A) -> None:
-        super().__init__(responses)
-        self.delimiter = delimiter
-
-    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
-        body = bytes([unit]) + pdu
-        text = (body + bytes([lrc(body)])).hex().upper().encode()
-        return b":" + text + b"\r" + bytes([self.delimiter])
-
-    def check(self, adu: bytes) -> str:
-        try:
-            body = binascii.unhexlify(adu.strip(b":\r\n" + bytes([self.delimiter])))
-        except (binascii.Error, ValueError):
-            return "LRC unreadable (not hex)"
-        if len(body) < 2:
-            return "LRC missing"
-        expected = lrc(body[:-1])
-        if body[-1] == expected:
-            return f"LRC {expected:02X} ok"
-        return f"LRC {body[-1]:02X} BAD, expected {expected:02X}"
-
-    def _parse(self):
-        buf = self._buffer
-        if not buf:
-            return None
-        start = buf.find(b":")
-        if start < 0:
-            return len(buf), FrameError(f"{len(buf)} bytes before any ':'", bytes(buf))
-        if start > 0:
-            return start, FrameError(f"{start} bytes before ':'", bytes(buf[:start]))
-        end = buf.find(bytes([self.delimiter]))
-        restart = buf.find(b":", 1)
-        if 0 < restart and (end < 0 or restart < end):
-            # A new ':' before the end: the device restarts on ':' (spec §2), and so do we.
-            return restart, FrameError("frame abandoned by a new ':'", bytes(buf[:restart]))
-        if end < 0:
-            if len(buf) > ASCII_MAX_CHARS:
-                return len(buf), FrameError(
-                    f"no end of frame within {ASCII_MAX_CHARS} characters", bytes(buf)
-                )
-            return None
-        frame = self._whole(bytes(buf[: end + 1]))
-        if isinstance(frame, Frame):
-            return frame
-        return end + 1, frame
-
-    def _whole(self, data: bytes) -> Frame | FrameError:
-        if not data.startswith(b":") or not data.endswith(b"\r" + bytes([self.delimiter])):
-            return FrameError("ASCII frame not ended by CR LF", data)
-        text = data[1:-2]
-        if len(text) % 2:
-            return FrameError(f"odd number of hex characters ({len(text)})", data)
-        try:
-            body = binascii.unhexlify(text)
-        except (binascii.Error, ValueError):
-            return FrameError("non-hex characters in ASCII frame", data)
-        if len(body) < 3:
-            return FrameError(f"ASCII frame too short ({len(body)} bytes)", data)
-        expected = lrc(body[:-1])
-        if body[-1] != expected:
-            return ChecksumError(
-                f"LRC error: frame {data.decode('ascii', 'replace').strip()} carries {body[-1]:02X}, expected {expected:02X}",
-                data,
-                body[-1],
-                expected,
-            )
-        return Frame(body[0], body[1:-1], data)
-
-
-class TcpFramer(Framer):
-    """MBAP: transaction id, protocol id 0, length (unit + PDU), unit; no checksum."""
-
-    name = "tcp"
-    checksum_name = "MBAP"
-    # The Modbus TCP implementation guide: over TCP the unit id only routes through a
-    # gateway; 0 and FF address the server itself, which answers.  No broadcast.
-    broadcast_unit = None
-
-    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
-        return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
-
-    # The reply predicted: its bytes up to its data (the MBAP header, the function code and
-    # the byte count) and its size; None when nothing is predicted.
-    _predicted: tuple[bytes, int] | None = None
-
-    def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
-        if prefix is None:
-            self._predicted = None
-            return
-        head, length = prefix
-        header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
-        self._predicted = (header + head, MBAP_HEADER + length)
-
-    def predicted(self, data: bytes) -> bytes | None:
-        if self._predicted is None:
-            return None
-        head, size = self._predicted
-        if len(data) != size or not data.startswith(head) or self._buffer:
-            return None
-        return data[MBAP_HEADER:]
-
-    def check(self, adu: bytes) -> str:
-        if len(adu) < MBAP_HEADER:
-            return "MBAP header truncated"
-        tid, pid, length = _MBAP_FIELDS.unpack_from(adu)
-        verdict = "ok" if pid == 0 and length == len(adu) - 6 else "BAD"
-        return f"MBAP tid {tid} length {length} {verdict}"
-
-    def _parse(self):
-        buf = self._buffer
-        if len(buf) < MBAP_HEADER:
-            return None
-        tid, pid, length = _MBAP_FIELDS.unpack_from(buf)
-        if pid != 0:
-            # Noise: no frame starts before the next 00 00 that could be a protocol id, so
-            # skip to it at once, not byte by byte (a flooding peer must not outrun the resync).
-            found = buf.find(b"\x00\x00", 3)
-            skip = found - 2 if found != -1 else max(1, len(buf) - 3)
-            return skip, self._not_mbap(f"MBAP protocol id {pid}, expected 0")
-        if not 2 <= length <= MAX_PDU + 1:
-            return 1, self._not_mbap(f"MBAP length {length} is outside 2..{MAX_PDU + 1}")
-        size = 6 + length
-        if len(buf) < size:
-            return None
-        adu = bytes(buf[:size])
-        return Frame(adu[6], adu[7:], adu, tid)
-
-    def _whole(self, data: bytes) -> Frame | FrameError:
-        return FrameError(f"truncated MBAP frame ({len(data)} bytes)", data)
-
-    def _not_mbap(self, why: str) -> FrameError:
-        """A bad MBAP header at the front.  When the bytes there are a whole RTU frame with a
-        good CRC, say so: the peer is an RTU-over-TCP gateway, the commonest reason for it."""
-        buf = self._buffer
-        if not self._garbage:  # only the first bad byte of a run is reported: look only there
-            size = self._pdu_length(bytes(buf[1:]))
-            if size is not None and size != UNKNOWN and crc_ok(buf, 0, size + 3):
-                why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
-        return FrameError(why, bytes(buf[:MBAP_HEADER]))
-
-
-FRAMERS = {"rtu": RtuFramer, "ascii": AsciiFramer, "tcp": TcpFramer}
+FRAMERS: Mapping[str, type[Framer]] = _Framers()
 
 
 def is_broadcast(unit: int, framer_name: str) -> bool:
@@ -731,47 +55,35 @@ def make_framer(name: str, responses: bool = True) -> Framer:
     return FRAMERS[name](responses)
 
 
-class DeviceRtuFramer(RtuFramer):
-    """Reads requests like a slave: a frame with a function code the codec does not know is
-    ended by silence and answered with exception 01, not skipped byte by byte as noise."""
-
-    def __init__(self) -> None:
-        super().__init__(responses=False)
-
-    # Resync: an unknown function code may start a request that only silence ends (spec §2:
-    # 3.5 character times end an RTU frame), until more than one maximal ADU has come behind
-    # it.  Behind the front it is not judged at all (_can_start is RtuFramer's): before
-    # silence it is never a whole frame, so never the frame found behind noise.  Judging it
-    # kept nearly every offset pending, each rechecked at every step: 64 KiB took seconds.
-
-    def _first_unsettled(self) -> int:
-        # Garbage is stretched over unknown function codes only where an ADU follows them:
-        # the front rejects those one by one (_unknown_function_size), not the later ones.
-        return len(self._buffer) - RTU_MAX_ADU
-
-    def _unknown_function_size(self, start: int) -> None | FrameError:
-        # A function code the codec does not know starts a request that silence will end,
-        # answered with exception 01.  Beyond one maximal ADU it cannot be a frame: skip it as
-        # noise, which also keeps the buffer (and the work silence() does on it) bounded.
-        # (A known code with a length the codec cannot tell, FC43 with another MEI type, is noise.)
-        if len(self._buffer) - start <= RTU_MAX_ADU and function_type(self._buffer[start + 1]) is None:
-            return None
-        return super()._unknown_function_size(start)
-
-    def _silence_tells_corrupted(self) -> bool:
-        # A bad CRC at the length a request would have: on a shared bus it is as likely
-        # a reply from another slave, or a longer FC08 query; only silence tells (spec §2).
-        return not self._quiet and len(self._buffer) <= RTU_MAX_ADU
-
-    def silence(self):
-        if self._buffer and not self._garbage:
-            frame = self._whole(bytes(self._buffer))
-            if isinstance(frame, Frame):
-                self._buffer.clear()
-                return frame
-        return super().silence()
-
-
 def device_framer(name: str) -> Framer:
     """The framer a device reads requests with (mbtool serve and sim://)."""
-    return DeviceRtuFramer() if name == "rtu" else make_framer(name, responses=False)
+    if name == "rtu":
+        from mbtool.codec.rtu import DeviceRtuFramer
+
+        return DeviceRtuFramer()
+    return make_framer(name, responses=False)
+
+
+# The envelopes' and the resync's names, for code that takes them from here: the module that
+# defines one is imported when it is first asked for (PEP 562), as FRAMERS does.
+_DEFINED_IN = {
+    "RtuFramer": "rtu",
+    "DeviceRtuFramer": "rtu",
+    "RTU_MAX_ADU": "rtu",
+    "crc_verdict": "rtu",
+    "AsciiFramer": "ascii",
+    "ASCII_MAX_CHARS": "ascii",
+    "TcpFramer": "mbap",
+    "MBAP_HEADER": "mbap",
+    "FrameSearch": "resync",
+    "Verdict": "resync",
+    "FRAME": "resync",
+    "NO_FRAME": "resync",
+}
+
+
+def __getattr__(name: str):
+    module = _DEFINED_IN.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(f"mbtool.codec.{module}"), name)

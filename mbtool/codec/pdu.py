@@ -318,11 +318,18 @@ class Request:
             raise MismatchError(f"reply {response.encode().hex(' ')} does not echo the request", b"")
 
 
-# The registry: function code -> request type.  Filled by the function modules as
-# they are imported; a one-shot read imports only the module it needs (start-up
-# time is what a cron job pays), and a look-up of any other code loads them all.
+# The registry: function code -> request type, filled by the function modules as they are
+# imported.  Which module registers which code is listed here, so a look-up imports that
+# module alone: a one-shot read pays only for the function codes it uses (start-up time is
+# what a cron job pays), and a code nobody knows costs no import at all.
 FUNCTIONS: dict[int, type[Request]] = {}
-FUNCTION_MODULES = ("data_access", "serial_line", "file_record", "device_id")
+FUNCTION_MODULES = {
+    "data_access": (0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F, 0x10, 0x16, 0x17, 0x18),
+    "serial_line": (0x07, 0x08, 0x0B, 0x0C, 0x11),
+    "file_record": (0x14, 0x15),
+    "device_id": (0x2B,),
+}
+_MODULE_OF = {code: module for module, codes in FUNCTION_MODULES.items() for code in codes}
 
 
 def register(cls: type[Request]) -> type[Request]:
@@ -330,21 +337,27 @@ def register(cls: type[Request]) -> type[Request]:
     return cls
 
 
-_ALL_LOADED = False
+def is_known(code: int) -> bool:
+    """Does the codec know this function code?  Answered without importing its module."""
+    return code in _MODULE_OF
 
 
 def function_type(code: int) -> type[Request] | None:
     """The request type of a function code, or None if the codec does not know it."""
-    global _ALL_LOADED
-    if code not in FUNCTIONS and not _ALL_LOADED:
-        # Once: an RTU framer resyncing through garbage asks about unknown codes at
-        # every byte, and re-importing per byte made 64 KiB of garbage cost seconds.
+    kind = FUNCTIONS.get(code)
+    if kind is None and code in _MODULE_OF:
         from importlib import import_module
 
-        for module in FUNCTION_MODULES:
-            import_module(f"mbtool.codec.{module}")
-        _ALL_LOADED = True
-    return FUNCTIONS.get(code)
+        import_module(f"mbtool.codec.{_MODULE_OF[code]}")
+        kind = FUNCTIONS[code]
+    return kind
+
+
+def load_all_functions() -> None:
+    """Every function module imported now, the whole registry filled (the bus monitor, before
+    the first frame comes)."""
+    for code in _MODULE_OF:
+        function_type(code)
 
 
 UNKNOWN = -1  # pdu_length() of a function code the codec does not know

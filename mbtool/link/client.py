@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
-from mbtool.codec.framing import Frame, Framer, Rejected
+from mbtool.codec.framer import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
 from mbtool.errors import MbtoolError, NoResponse
@@ -269,26 +269,16 @@ class Client:
                     if watch.seen:
                         self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
                         watch.seen = False  # traced once; echoed stays True
-                pdu = self.framer.predicted(data)
-                if pdu is not None:
-                    # Exactly the reply predicted: from our unit, with our transaction id, the
-                    # function code and the byte count asked for, so the judge's look is spared.
-                    try:
-                        reply = self._decode(request, pdu)
-                    except FrameError:
-                        pass  # not the reply after all: the framer and the judge say why
-                    else:
-                        self.trace.received(data)
-                        return reply
                 self.framer.feed(data)
                 event = self.framer.next_event()
             else:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
                 event = self.framer.silence() if waiting else self.framer.next_event()
-            if event is not None:
-                reply, problem = self._judge_events(event, unit, request, problem)
+            while event is not None:  # judged until the reply, with no look for more
+                reply, problem = self._judge(event, unit, request, problem)
                 if reply is not None:
                     return reply
+                event = self.framer.next_event()
             if isinstance(problem, ChecksumError) and not self.framer.buffered:
                 deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
         self._release(watch)
@@ -348,67 +338,59 @@ class Client:
         if isinstance(event, Rejected):
             self.trace.rejected(event.data, event.error)
             return None, _worse(problem, event.error)
+        accepted: list[str] = []  # what this reply gets away with (--lenient), for its trace line
         mismatch = self._mismatch(event, unit, request)
-        accepted: list[str] = []  # what this reply gets away with, for its trace line
-        if (
-            mismatch
-            and event.unit != unit
-            and self._ours(event)
-            and not self._mismatch(event, event.unit, request)
-        ):
-            # Our transaction id, the function asked for, only the unit is wrong: a gateway
-            # that echoes another unit id.
-            if not self.lenient:
-                mismatch += " (--lenient accepts a reply whose transaction id matches)"
-            else:
-                accepted.append(f"reply from unit {event.unit}, expected unit {unit}")
-                mismatch = ""
-        reply = None
-        if not mismatch:
-            try:
-                reply = self._decode(request, event.pdu)
-            except FrameError as misfit:
-                repaired = self._repair(event.pdu, request) if self._ours(event) else None
-                if repaired is not None and self.lenient:
-                    pdu, deviation = repaired
-                    reply = request.decode_response(pdu)
-                    accepted.append(deviation)
-                elif event.transaction_id is not None:
-                    self.trace.received(event.adu)
-                    self._copy_check(event)
-                    if repaired is not None:
-                        raise FrameError(
-                            f"{misfit} ({repaired[1]}: --lenient accepts it)", event.adu
-                        ) from None
-                    raise  # it carries our transaction id: it is the reply, and a bad one
-                elif not isinstance(misfit, MismatchError):
-                    self.trace.received(event.adu)
-                    self._copy_check(event)
-                    raise
+        if mismatch:
+            if event.unit != unit and self._ours(event) and not self._mismatch(event, event.unit, request):
+                # Our transaction id, the function asked for, only the unit is wrong: a gateway
+                # that echoes another unit id.
+                if not self.lenient:
+                    mismatch += " (--lenient accepts a reply whose transaction id matches)"
                 else:
-                    # Without a transaction id (RTU, ASCII), a frame from our unit whose byte
-                    # count does not fit is most likely the late reply to an earlier request:
-                    # discard it and keep waiting, as for another unit (its error is reported
-                    # if nothing fits).
-                    mismatch = str(misfit)
-        note = mismatch
+                    accepted.append(f"reply from unit {event.unit}, expected unit {unit}")
+                    mismatch = ""
+            if mismatch:
+                self.trace.received(event.adu, mismatch)
+                return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
+        # From the unit asked, to the function asked: the reply, unless it does not decode.
+        pdu = event.pdu
+        last_request, last_pdu, reply = self._decoded
+        try:
+            if request is not last_request or pdu != last_pdu:
+                # The same response as last time for the same request and bytes (immutable).
+                reply = request.decode_response(pdu)
+                self._decoded = (request, pdu, reply)
+        except FrameError as misfit:
+            repaired = self._repair(pdu, request) if self._ours(event) else None
+            if repaired is not None and self.lenient:
+                pdu, deviation = repaired
+                reply = request.decode_response(pdu)
+                accepted.append(deviation)
+            elif event.transaction_id is not None:
+                self.trace.received(event.adu)
+                self._copy_check(event)
+                if repaired is not None:
+                    raise FrameError(f"{misfit} ({repaired[1]}: --lenient accepts it)", event.adu) from None
+                raise  # it carries our transaction id: it is the reply, and a bad one
+            elif not isinstance(misfit, MismatchError):
+                self.trace.received(event.adu)
+                self._copy_check(event)
+                raise
+            else:
+                # Without a transaction id (RTU, ASCII), a frame from our unit whose byte
+                # count does not fit is most likely the late reply to an earlier request:
+                # discard it and keep waiting, as for another unit (its error is reported
+                # if nothing fits).
+                self.trace.received(event.adu, str(misfit))
+                return None, _worse(problem, MismatchError(f"{misfit}, discarded", event.adu))
+        note = ""
         if isinstance(reply, ExceptionResponse):  # the device's "no", marked where it is seen
             note = str(ModbusException(reply.function_code, reply.exception_code))
         if accepted:  # a reply taken as it is (--lenient): its trace line says why
             self.deviations.update(dict.fromkeys(accepted))
             note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
         self.trace.received(event.adu, note)
-        if mismatch:
-            return None, _worse(problem, MismatchError(mismatch + ", discarded", event.adu))
         return reply, problem
-
-    def _decode(self, request: Request, pdu: bytes) -> Response | ExceptionResponse:
-        """The reply PDU decoded; the same response as last time for the same request and bytes."""
-        last_request, last_pdu, reply = self._decoded
-        if request is not last_request or pdu != last_pdu:
-            reply = request.decode_response(pdu)
-            self._decoded = (request, pdu, reply)
-        return reply
 
     def _ours(self, frame: Frame) -> bool:
         """The frame carries the transaction id of one of this request's attempts (MBAP)."""
@@ -447,14 +429,17 @@ class Client:
             )
 
     def _mismatch(self, frame: Frame, unit: int, request: Request) -> str:
-        if frame.transaction_id is not None and not self._ours(frame):
-            return f"reply has transaction id {frame.transaction_id}, expected {_ids(self._attempt_ids)}"
+        tid = frame.transaction_id
+        if tid is not None and tid not in self._attempt_ids:  # not _ours(): a call less a reply
+            return f"reply has transaction id {tid}, expected {_ids(self._attempt_ids)}"
         if frame.unit != unit:
             return f"reply from unit {frame.unit}, expected unit {unit}"
-        code = frame.pdu[0] if frame.pdu else None
-        if code not in (request.function_code, request.function_code | 0x80):
+        pdu = frame.pdu
+        code = pdu[0] if pdu else None
+        asked = request.function_code
+        if code != asked and code != asked | 0x80:
             shown = "no function code" if code is None else function_code_text(code)
-            return f"reply has {shown}, expected {function_code_text(request.function_code)}"
+            return f"reply has {shown}, expected {function_code_text(asked)}"
         return ""
 
 

@@ -11,7 +11,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 
 if TYPE_CHECKING:
-    from mbtool.codec.framing import Framer
+    from mbtool.codec.framer import Framer
     from mbtool.link.client import Client, Trace
 
 

@@ -180,7 +180,8 @@ class Listener:
 
 def frames_in(framer_name: str, data: bytes) -> list:
     """The whole, valid frames in ``data``, read as replies."""
-    from mbtool.codec.framing import Frame, make_framer
+    from mbtool.codec.framer import Frame
+    from mbtool.codec.framing import make_framer
 
     framer = make_framer(framer_name)
     framer.feed(data)

@@ -22,12 +22,15 @@ from __future__ import annotations
 
 from bisect import bisect_right
 
+from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_ok
 from mbtool.codec.describe import Described, describe_pdu, split_frame
 from mbtool.codec.errors import ChecksumError, ProtocolError
-from mbtool.codec.framing import FRAME, NO_FRAME, RTU_MAX_ADU, AsciiFramer, Frame, FrameSearch, Verdict
-from mbtool.codec.pdu import MAX_PDU, UNKNOWN, function_type, pdu_length
+from mbtool.codec.framer import Frame
+from mbtool.codec.pdu import MAX_PDU, UNKNOWN, function_type, load_all_functions, pdu_length
 from mbtool.codec.record import record
+from mbtool.codec.resync import FRAME, NO_FRAME, FrameSearch, Verdict
+from mbtool.codec.rtu import RTU_MAX_ADU
 
 MIN_RTU_FRAME = 4  # unit, function code, CRC: the FC07/11/12/17 requests (spec §2, §3)
 GARBAGE_RUN = RTU_MAX_ADU  # a garbage run is reported at the latest when it is this long
@@ -125,8 +128,8 @@ class BusMonitor:
         # Where a good frame starts inside the buffer: the framers' resync (FrameSearch).
         self._search = FrameSearch()
         # Every function module loaded now, not while the first frame is being read: the
-        # codec loads them on the first look-up of a code it has not seen.
-        function_type(0)
+        # codec loads a module on the first look-up of a code of it.
+        load_all_functions()
 
     # -- what the caller calls ------------------------------------------------------------
 

@@ -1,0 +1,172 @@
+"""What every envelope around a PDU shares (spec §2): the framer's buffer and event loop.
+
+Sans-IO, after h11: ``feed(data)`` whatever arrived, then call
+``next_event()`` until it returns None (more bytes needed).  An event is a
+``Frame`` or a ``Rejected`` run of bytes with the reason it is not a frame, so
+the caller can trace garbage and explain a failure instead of only timing out.
+A framer reads either replies (a master) or requests (a device): the implicit
+length of a PDU depends on which.
+
+The framers differ only in their envelope (tokio-modbus ``frame/{rtu,tcp}.rs``):
+``codec/rtu.py``, ``codec/ascii.py`` and ``codec/mbap.py``; ``codec/framing.py`` finds
+them by name.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from mbtool.codec.errors import ChecksumError, FrameError
+from mbtool.codec.pdu import Request, pdu_length
+from mbtool.codec.record import record
+
+
+@record
+class Frame:
+    unit: int
+    pdu: bytes
+    adu: bytes  # the exact bytes on the wire
+    transaction_id: int | None = None
+
+    def __init__(self, unit: int, pdu: bytes, adu: bytes, transaction_id: int | None = None) -> None:
+        # By hand: two frames a transaction in a polling loop (codec/record.py).
+        fields = self.__dict__
+        fields["unit"] = unit
+        fields["pdu"] = pdu
+        fields["adu"] = adu
+        fields["transaction_id"] = transaction_id
+
+
+@record
+class Rejected:
+    data: bytes
+    error: FrameError
+
+
+Event = Frame | Rejected
+
+
+class Framer(ABC):
+    """What every framer shares: the buffer, the garbage run and the event loop."""
+
+    name = ""
+    checksum_name = ""
+    # The unit id every device on a serial line hears and none answers (spec §2).
+    broadcast_unit: int | None = 0
+
+    def __init__(self, responses: bool = True) -> None:
+        self.responses = responses  # reading replies (a master) or requests (a device)
+        self.expect: Request | None = None  # the request being answered, for lengths that depend on it
+        self.expect_unit: int | None = None  # and the unit it went to
+        self._buffer = bytearray()
+        self._garbage = bytearray()
+        self._garbage_error: FrameError | None = None
+
+    # -- input -------------------------------------------------------------------
+
+    def feed(self, data: bytes) -> None:
+        self._buffer += data
+
+    # A frame found without the parse (MBAP: the reply predicted, read whole): the next
+    # event, as its bytes came before any in the buffer.
+    _ready: Frame | None = None
+
+    def reset(self) -> None:
+        self._buffer.clear()
+        self._garbage.clear()
+        self._garbage_error = None
+        self._ready = None
+
+    @property
+    def buffered(self) -> int:
+        ready = 0 if self._ready is None else len(self._ready.adu)
+        return ready + len(self._buffer) + len(self._garbage)
+
+    # True when only a pause on the line can end the frame in the buffer: RTU's property,
+    # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
+    waiting_for_silence = False
+
+    def next_event(self) -> Event | None:
+        ready = self._ready
+        if ready is not None:
+            self._ready = None
+            return ready
+        while True:
+            result = self._parse()
+            if result is None:
+                # Out of bytes: hand over the garbage so far, so the caller sees it now.
+                return self._flush_garbage()
+            if isinstance(result, Frame):
+                if self._garbage:  # the garbage before the frame first; it is found again next call
+                    return self._flush_garbage()
+                del self._buffer[: len(result.adu)]
+                return result
+            # An int: this many bytes at the front are no frame; fold them into the garbage run.
+            skip, error = result
+            if not self._garbage:
+                self._garbage_error = error
+            self._garbage += self._buffer[:skip]
+            del self._buffer[:skip]
+
+    def silence(self) -> Event | None:
+        """The line has gone quiet (or the deadline passed): end whatever is buffered."""
+        event = self.next_event()
+        if event is not None:
+            return event
+        while self._buffer:
+            frame = self._whole(bytes(self._buffer))
+            if isinstance(frame, Frame):
+                self._buffer.clear()
+                return self._flush_garbage() or frame
+            # The front byte starts no frame that ends here: drop it and look again,
+            # since a whole frame may still sit behind it.
+            if not self._garbage:
+                self._garbage_error = frame
+            self._garbage.append(self._buffer.pop(0))
+            event = self.next_event()
+            if event is not None:
+                return event
+        return self._flush_garbage()
+
+    # -- for subclasses --------------------------------------------------------------
+
+    @abstractmethod
+    def _parse(self) -> Frame | tuple[int, FrameError] | None:
+        """Look at the front of the buffer: a Frame, (bytes to skip, why), or None for more."""
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        """After silence: the buffered bytes taken as one frame, or why they are not one."""
+        return FrameError(f"truncated frame ({len(data)} bytes)", data)
+
+    @abstractmethod
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes: ...
+
+    @abstractmethod
+    def check(self, adu: bytes) -> str:
+        """A short verdict on the frame's checksum, for the hex trace."""
+
+    # -- the reply predicted ------------------------------------------------------------
+
+    def predict(  # noqa: B027 - optional hook, not abstract
+        self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None
+    ) -> None:
+        """What the reply will be if it answers as asked: ``prefix`` is the request's
+        reply_prefix (the first bytes of its PDU and its length), None when unknown.  A
+        framer may hand over a reply that is exactly that without parsing it (MBAP: one a
+        poll); RTU and ASCII predict nothing, as their checksum is to be checked."""
+
+    # -- helpers ---------------------------------------------------------------------
+
+    def _flush_garbage(self) -> Rejected | None:
+        if not self._garbage:
+            return None
+        data = bytes(self._garbage)
+        error = self._garbage_error or FrameError(f"{len(data)} bytes of garbage", data)
+        if len(data) > len(error.data) and not isinstance(error, ChecksumError):
+            error = FrameError(f"{len(data)} bytes of garbage, starting with: {error}", data)
+        self._garbage.clear()
+        self._garbage_error = None
+        return Rejected(data, error)
+
+    def _pdu_length(self, pdu: bytes) -> int | None:
+        return pdu_length(pdu, self.responses, self.expect)

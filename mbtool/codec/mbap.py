@@ -1,0 +1,98 @@
+"""Modbus TCP (the Modbus TCP implementation guide): the MBAP header before the PDU, no checksum."""
+
+from __future__ import annotations
+
+import struct
+
+from mbtool.codec.checksum import crc_ok
+from mbtool.codec.errors import FrameError
+from mbtool.codec.framer import Frame, Framer
+from mbtool.codec.pdu import MAX_PDU, UNKNOWN
+
+MBAP_HEADER = 7
+# The MBAP header: transaction id, protocol id, length, unit (compiled once: one a frame).
+_MBAP_HEADER = struct.Struct(">HHHB")
+_MBAP_FIELDS = struct.Struct(">HHH")  # without the unit, which the frame takes with the PDU
+
+
+class TcpFramer(Framer):
+    """MBAP: transaction id, protocol id 0, length (unit + PDU), unit; no checksum."""
+
+    name = "tcp"
+    checksum_name = "MBAP"
+    # The Modbus TCP implementation guide: over TCP the unit id only routes through a
+    # gateway; 0 and FF address the server itself, which answers.  No broadcast.
+    broadcast_unit = None
+
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+        return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
+
+    # The reply predicted: its bytes up to its data (the MBAP header, the function code and
+    # the byte count), its size, its unit and its transaction id; None when nothing is.
+    _predicted: tuple[bytes, int, int, int] | None = None
+
+    def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
+        if prefix is None:
+            self._predicted = None
+            return
+        head, length = prefix
+        header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
+        self._predicted = (header + head, MBAP_HEADER + length, unit, transaction_id)
+
+    def predicted(self, data: bytes) -> bytes | None:
+        """``data``, as one read brought it, when it is exactly the reply predicted and
+        nothing else is buffered: its PDU.  None otherwise: the bytes then go the usual way
+        (the parse), which tells what they are."""
+        predicted = self._predicted
+        if predicted is None or len(data) != predicted[1] or not data.startswith(predicted[0]):
+            return None
+        if self._buffer or self._garbage or self._ready is not None:
+            return None
+        return data[MBAP_HEADER:]
+
+    def feed(self, data: bytes) -> None:
+        pdu = self.predicted(data)
+        if pdu is None:
+            super().feed(data)
+        else:
+            # The reply a poll nearly always gets: its frame is known without the parse.
+            self._ready = Frame(self._predicted[2], pdu, data, self._predicted[3])
+
+    def check(self, adu: bytes) -> str:
+        if len(adu) < MBAP_HEADER:
+            return "MBAP header truncated"
+        tid, pid, length = _MBAP_FIELDS.unpack_from(adu)
+        verdict = "ok" if pid == 0 and length == len(adu) - 6 else "BAD"
+        return f"MBAP tid {tid} length {length} {verdict}"
+
+    def _parse(self):
+        buf = self._buffer
+        if len(buf) < MBAP_HEADER:
+            return None
+        tid, pid, length = _MBAP_FIELDS.unpack_from(buf)
+        if pid != 0:
+            # Noise: no frame starts before the next 00 00 that could be a protocol id, so
+            # skip to it at once, not byte by byte (a flooding peer must not outrun the resync).
+            found = buf.find(b"\x00\x00", 3)
+            skip = found - 2 if found != -1 else max(1, len(buf) - 3)
+            return skip, self._not_mbap(f"MBAP protocol id {pid}, expected 0")
+        if not 2 <= length <= MAX_PDU + 1:
+            return 1, self._not_mbap(f"MBAP length {length} is outside 2..{MAX_PDU + 1}")
+        size = 6 + length
+        if len(buf) < size:
+            return None
+        adu = bytes(buf[:size])
+        return Frame(adu[6], adu[7:], adu, tid)
+
+    def _whole(self, data: bytes) -> Frame | FrameError:
+        return FrameError(f"truncated MBAP frame ({len(data)} bytes)", data)
+
+    def _not_mbap(self, why: str) -> FrameError:
+        """A bad MBAP header at the front.  When the bytes there are a whole RTU frame with a
+        good CRC, say so: the peer is an RTU-over-TCP gateway, the commonest reason for it."""
+        buf = self._buffer
+        if not self._garbage:  # only the first bad byte of a run is reported: look only there
+            size = self._pdu_length(bytes(buf[1:]))
+            if size is not None and size != UNKNOWN and crc_ok(buf, 0, size + 3):
+                why += " (an RTU frame with a good CRC: an RTU-over-TCP gateway? try --framer rtu)"
+        return FrameError(why, bytes(buf[:MBAP_HEADER]))
