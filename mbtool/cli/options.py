@@ -665,9 +665,9 @@ def device_command(
                     raise RequestError(
                         f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
                     )
-                from mbtool.cli import monitoring
+                from mbtool.cli import metrics
 
-                monitoring.device = profile or ""
+                metrics.device = profile or ""
             if profile:
                 from mbtool.cli.profiles import defaults
                 from mbtool.codec.record import replace

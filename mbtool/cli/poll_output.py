@@ -54,10 +54,10 @@ class Output:
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         if self.fmt in MONITORING_FORMATS:
-            from mbtool.cli import monitoring
+            from mbtool.cli import metrics
 
             # To stdout with the other writes (one flush a gap); a textfile is written at once.
-            monitoring.emit(result, self.fmt, None if monitoring.textfile else _Pending(self), stamp)
+            metrics.emit(result, self.fmt, None if metrics.textfile else _Pending(self), stamp)
         elif result.__class__ is Points:
             self._points(when, result)
         elif self.fmt == "json":
@@ -106,9 +106,9 @@ class Output:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
-            from mbtool.cli import monitoring
+            from mbtool.cli import metrics
 
-            monitoring.emit_failure(error, self.fmt, None if monitoring.textfile else _Pending(self))
+            metrics.emit_failure(error, self.fmt, None if metrics.textfile else _Pending(self))
         if self.fmt == "json" and not isinstance(error, PartialRead):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).
@@ -289,7 +289,7 @@ class Deferred:
 
 
 class _Pending:
-    """A stream for monitoring.emit that joins the Output's pending writes (one flush a gap)."""
+    """A stream for metrics.emit that joins the Output's pending writes (one flush a gap)."""
 
     def __init__(self, output: Output) -> None:
         self.output = output

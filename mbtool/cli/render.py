@@ -20,7 +20,7 @@ from mbtool.codec.framing import Framer
 from mbtool.codec.record import record
 
 FORMATS = ("table", "plain", "json", "csv")
-MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for the read commands
+MONITORING_FORMATS = ("influx", "prom")  # cli/metrics.py writes them, for the read commands
 
 
 @record

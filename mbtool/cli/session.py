@@ -61,7 +61,7 @@ def show(connection: Connection, result) -> None:
         print(f"mbtool: {result.note}", file=sys.stderr)
     fmt = connection.output_format or default_format()
     if fmt in MONITORING_FORMATS:  # only the read commands offer them (device_command)
-        from mbtool.cli.monitoring import emit
+        from mbtool.cli.metrics import emit
 
         emit(result, fmt, sys.stdout)
         return

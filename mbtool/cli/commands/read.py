@@ -97,9 +97,9 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None, 
             if connection.output_format in MONITORING_FORMATS:  # -o prom says the device is down
                 import sys
 
-                from mbtool.cli import monitoring
+                from mbtool.cli import metrics
 
-                monitoring.emit_failure(error, connection.output_format, sys.stdout)
+                metrics.emit_failure(error, connection.output_format, sys.stdout)
             raise
         return
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
@@ -136,7 +136,7 @@ def _once(connection: Connection, request, to_result, run=None) -> None:
 def _monitoring(connection: Connection, meta: dict, points=()) -> Connection:
     """-o influx / prom and --textfile: their settings, checked before anything is sent
     (with a map's ``points``)."""
-    from mbtool.cli import monitoring
+    from mbtool.cli import metrics
     from mbtool.codec.record import replace
 
     fmt, textfile = connection.output_format, meta.get("mbtool.textfile")
@@ -144,14 +144,14 @@ def _monitoring(connection: Connection, meta: dict, points=()) -> Connection:
         if fmt not in (None, "prom"):
             raise RequestError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
         connection = replace(connection, output_format="prom")
-        monitoring.textfile = textfile
+        metrics.textfile = textfile
     if meta.get("mbtool.changes"):
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
-    monitoring.measurement = meta.get("mbtool.measurement", "modbus")
-    monitoring.unit = connection.unit
-    monitoring.check_names(connection.output_format)
+    metrics.measurement = meta.get("mbtool.measurement", "modbus")
+    metrics.unit = connection.unit
+    metrics.check_names(connection.output_format)
     if connection.output_format == "prom":
-        monitoring.check_point_names(points)
+        metrics.check_point_names(points)
     return connection
 
 
