@@ -57,7 +57,7 @@ def plugin_exit(state: int, text: str, perfdata: str = "") -> None:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
     except OSError as error:  # a full disk, a closed stdout or its reader gone: no line can go
-        from mbtool.cli import discard_stdout
+        from mbtool.cli.program import discard_stdout
 
         discard_stdout()
         reason = error.strerror or error
