@@ -11,6 +11,9 @@ a map's point names when the map is loaded), a field's type fixed by its point
 values with backslash, double quote and newline escaped, and ``modbus_up`` with the time
 of the last success in every exposition.  Only the read commands offer them
 (``readings`` in ``device_command``).
+
+A run writes them through one ``Metrics``, made from its settings: what it learns as it
+goes (when the device last answered, the fields it warned about) is the run's own.
 """
 
 from __future__ import annotations
@@ -23,12 +26,200 @@ import sys
 import time
 
 from mbtool.cli.render import Points
+from mbtool.cli.settings import Settings
 from mbtool.errors import ExitCode, exit_code_for
 
-# Set by the options as they are parsed, as render's csv_header is.
-measurement = "modbus"  # --measurement
-device = ""  # the profile's name (-P), a tag and a label when given
-textfile = ""  # --textfile PATH: the Prometheus text goes there, atomically
+# The failures that mean the device could not be read: no reply, an exception (to every
+# point of a map), a reply that is not one, a link that cannot be opened.
+DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
+
+
+class Metrics:
+    """One run's -o influx or -o prom (--textfile): its measurement, its profile's name, its
+    textfile, the unit the status metrics name when no result does; and what the run has
+    learnt: when the device last answered, the fields left out of a line so far."""
+
+    def __init__(self, settings: Settings, unit: int) -> None:
+        self.fmt = settings.output_format  # influx or prom
+        self.measurement = settings.measurement
+        self.device = settings.device
+        self.textfile = settings.textfile
+        self.unit = unit
+        self.last_success: float | None = None  # when the device last answered a read (Unix time)
+        self.warned: set[str] = set()  # the fields left out so far, each warned about once
+        self.swept = False  # the textfile's stale temporaries have been looked for
+
+    def check_names(self) -> None:
+        """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
+
+        Each is written on one line: the line protocol has no escape for a newline, which
+        would end the point and make the rest a point of its own (in a measurement of its
+        own).  Its measurement cannot be empty, and one starting with # makes the line a
+        comment.  A map's point names are held to one line when the map is loaded."""
+        from mbtool.codec.errors import RequestError
+        from mbtool.registermap.load import one_line
+
+        measurement, device = self.measurement, self.device
+        names = [("--measurement", measurement, "a measurement")]
+        if device:
+            names.append(("profile", device, "a tag or label"))
+        for option, name, what in names:
+            if not name:
+                raise RequestError(f"{option} {name!r}: {what} has a name")
+            if not one_line(name):
+                raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
+        if self.fmt != "influx":
+            return
+        if measurement.startswith("#"):
+            raise RequestError(
+                f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB"
+            )
+        for option, name, what in names:
+            if name.endswith("\\"):
+                # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
+                # a backslash in a measurement or tag value as escaped, the separator too.
+                raise RequestError(
+                    f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
+                    "it to InfluxDB 1.x"
+                )
+
+    def check_point_names(self, points) -> None:
+        """Refuse, before anything is sent, a map point whose metric would be a status metric."""
+        from mbtool.codec.errors import RequestError
+
+        for point in points:
+            metric = _metric_name(f"{self.measurement}_{point.name}")
+            if metric in self.status_names():
+                raise RequestError(
+                    f"point {point.name}: its metric, {metric}, is the "
+                    "one that says whether the device answered; rename the point or give --measurement"
+                )
+
+    def emit(self, result, out, when: float | None = None) -> None:
+        """One read: to ``out``, or with --textfile to that file."""
+        if self.fmt == "influx":
+            out.write(self.influx_line(result, when))
+            return
+        self.last_success = time.time() if when is None else when
+        if self.textfile:
+            self._write_textfile(self.prom_text(result))
+        else:
+            out.write(self.prom_text(result))
+
+    def emit_failure(self, error: BaseException, out) -> None:
+        """A read that failed: for Prometheus, an exposition that says the device could not be
+        read and when it last answered, in place of the values read before, which a scrape
+        would take as current.  The line protocol has no such thing: an InfluxDB line is
+        written only for values read."""
+        if self.fmt != "prom" or exit_code_for(error) not in DEVICE_FAILURES:
+            return  # a bad request (nothing sent), a full disk: no news of the device
+        if self.textfile:
+            if self.last_success is None:  # a run before this one may have read it: the file says when
+                self.last_success = _last_success_in(self.textfile, self.status_names()[1])
+            self._write_textfile(self.prom_down_text())
+        else:
+            out.write(self.prom_down_text())
+
+    def _write_textfile(self, text: str) -> None:
+        write_textfile(text, self.textfile, sweep=not self.swept)
+        self.swept = True
+
+    # --- InfluxDB line protocol --------------------------------------------------------------
+
+    def influx_line(self, result, when: float | None = None) -> str:
+        """One line a poll: tags for the unit (and table, device), a field a value.
+
+        A value the protocol cannot carry (NaN, an infinity) is left out with a warning,
+        once a run for each field; a read left with no field writes no line, as a point
+        must have one."""
+        tags = {"unit": str(result.unit)}
+        points = isinstance(result, Points)
+        if not points:
+            tags["table"] = result.table
+        if self.device:
+            tags["device"] = self.device
+        fields = []
+        for labels, value, _ in _values(result):
+            if points:
+                key = labels["name"]
+            else:
+                key = labels.get("ref", labels["address"]) + (
+                    f"_{labels['order']}" if "order" in labels else ""
+                )
+            shown = _field_value(value)
+            if shown is None:
+                self._warn_left_out(f"{key} ({labels['ref']})" if points else f"{result.table} {key}", value)
+                continue
+            fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
+        if not fields:
+            return ""
+        head = _escape(self.measurement, MEASUREMENT_SPECIALS) + "".join(
+            f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
+        )
+        stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
+        return f"{head} {','.join(fields)} {stamp}\n"
+
+    def _warn_left_out(self, what: str, value: float) -> None:
+        if what not in self.warned:
+            self.warned.add(what)
+            print(
+                f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line "
+                "(it has no NaN or infinity)",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    # --- Prometheus text exposition ----------------------------------------------------------
+
+    def prom_text(self, result) -> str:
+        """The exposition of one read: modbus_value{unit,table,address} for registers and
+        bits, modbus_NAME{unit,ref} for a map's points (HELP with the description and unit),
+        after modbus_up 1 and when the device last answered (this read)."""
+        base = {"unit": str(result.unit)} | ({"device": self.device} if self.device else {})
+        metrics = self._status(result.unit, up=True)
+        for labels, value, about in _values(result):
+            shown = _sample_value(value)
+            if shown is None:
+                continue
+            if isinstance(result, Points):
+                name = _metric_name(f"{self.measurement}_{labels['name']}")
+                labels = {"ref": labels["ref"]}
+                help_text = about or "a register map's point, read by mbtool"
+            else:
+                name = _metric_name(f"{self.measurement}_value")
+                help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
+            metrics.setdefault(name, (help_text, []))[1].append(
+                f"{name}{{{_label_pairs(base | labels)}}} {shown}"
+            )
+        return _exposition(metrics)
+
+    def prom_down_text(self) -> str:
+        """The exposition when the device could not be read: modbus_up 0 and when it last
+        answered, and no value: one read before would be scraped as current."""
+        return _exposition(self._status(self.unit, up=False))
+
+    def status_names(self) -> tuple[str, str]:
+        """The status metrics' names: modbus_up, modbus_last_success_timestamp_seconds."""
+        return (
+            _metric_name(f"{self.measurement}_up"),
+            _metric_name(f"{self.measurement}_last_success_timestamp_seconds"),
+        )
+
+    def _status(self, unit_id: int, up: bool) -> dict[str, tuple[str, list[str]]]:
+        up_name, last_name = self.status_names()
+        pairs = _label_pairs({"unit": str(unit_id)} | ({"device": self.device} if self.device else {}))
+        metrics = {
+            up_name: (
+                "1 when the device answered the read, 0 when it could not be read (no value is shown then)",
+                [f"{up_name}{{{pairs}}} {int(up)}"],
+            )
+        }
+        if self.last_success is not None:
+            metrics[last_name] = (
+                "When the device last answered a read, in seconds since the epoch",
+                [f"{last_name}{{{pairs}}} {self.last_success!r}"],
+            )
+        return metrics
 
 
 def _values(result) -> list[tuple[dict, object, str]]:
@@ -69,38 +260,6 @@ MEASUREMENT_SPECIALS = ", "  # commas and spaces
 KEY_SPECIALS = ",= "  # tag keys, tag values and field keys: commas, equals signs and spaces
 
 
-def check_names(fmt: str) -> None:
-    """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
-
-    Each is written on one line: the line protocol has no escape for a newline, which would
-    end the point and make the rest a point of its own (in a measurement of its own).  Its
-    measurement cannot be empty, and one starting with # makes the line a comment.  A map's
-    point names are held to one line when the map is loaded."""
-    from mbtool.codec.errors import RequestError
-    from mbtool.registermap.load import one_line
-
-    names = [("--measurement", measurement, "a measurement")]
-    if device:
-        names.append(("profile", device, "a tag or label"))
-    for option, name, what in names:
-        if not name:
-            raise RequestError(f"{option} {name!r}: {what} has a name")
-        if not one_line(name):
-            raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
-    if fmt != "influx":
-        return
-    if measurement.startswith("#"):
-        raise RequestError(f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB")
-    for option, name, what in names:
-        if name.endswith("\\"):
-            # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
-            # a backslash in a measurement or tag value as escaped, the separator too.
-            raise RequestError(
-                f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
-                "it to InfluxDB 1.x"
-            )
-
-
 def _field_value(value) -> str | None:
     """The value as the line protocol writes it; None for NaN and the infinities, which it
     cannot carry."""
@@ -111,51 +270,6 @@ def _field_value(value) -> str | None:
     if isinstance(value, float):
         return repr(value) if math.isfinite(value) else None
     return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
-def influx_line(result, when: float | None = None) -> str:
-    """One line a poll: tags for the unit (and table, device), a field a value.
-
-    A value the protocol cannot carry (NaN, an infinity) is left out with a warning, once a
-    run for each field; a read left with no field writes no line, as a point must have one."""
-    tags = {"unit": str(result.unit)}
-    points = isinstance(result, Points)
-    if not points:
-        tags["table"] = result.table
-    if device:
-        tags["device"] = device
-    fields = []
-    for labels, value, _ in _values(result):
-        if points:
-            key = labels["name"]
-        else:
-            key = labels.get("ref", labels["address"]) + (f"_{labels['order']}" if "order" in labels else "")
-        shown = _field_value(value)
-        if shown is None:
-            _warn_left_out(f"{key} ({labels['ref']})" if points else f"{result.table} {key}", value)
-            continue
-        fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
-    if not fields:
-        return ""
-    head = _escape(measurement, MEASUREMENT_SPECIALS) + "".join(
-        f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
-    )
-    stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
-    return f"{head} {','.join(fields)} {stamp}\n"
-
-
-_warned: set[str] = set()  # the fields left out so far, each warned about once
-
-
-def _warn_left_out(what: str, value: float) -> None:
-    if what not in _warned:
-        _warned.add(what)
-        print(
-            f"mbtool: warning: {what} reads {value}: left out of the InfluxDB line "
-            "(it has no NaN or infinity)",
-            file=sys.stderr,
-            flush=True,
-        )
 
 
 # --- Prometheus text exposition --------------------------------------------------------------
@@ -186,62 +300,6 @@ def _sample_value(value) -> str | None:
     return None  # text is no gauge
 
 
-def prom_text(result) -> str:
-    """The exposition of one read: modbus_value{unit,table,address} for registers and bits,
-    modbus_NAME{unit,ref} for a map's points (HELP with the description and unit), after
-    modbus_up 1 and when the device last answered (this read)."""
-    base = {"unit": str(result.unit)} | ({"device": device} if device else {})
-    metrics = _status(result.unit, up=True)
-    for labels, value, about in _values(result):
-        shown = _sample_value(value)
-        if shown is None:
-            continue
-        if isinstance(result, Points):
-            name = _metric_name(f"{measurement}_{labels['name']}")
-            labels = {"ref": labels["ref"]}
-            help_text = about or "a register map's point, read by mbtool"
-        else:
-            name = _metric_name(f"{measurement}_value")
-            help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
-        metrics.setdefault(name, (help_text, []))[1].append(
-            f"{name}{{{_label_pairs(base | labels)}}} {shown}"
-        )
-    return _exposition(metrics)
-
-
-def prom_down_text() -> str:
-    """The exposition when the device could not be read: modbus_up 0 and when it last
-    answered, and no value: one read before would be scraped as current."""
-    return _exposition(_status(unit, up=False))
-
-
-# Set by the options (cli.commands.read): the unit the status metrics name when no result does.
-unit = 1
-last_success: float | None = None  # when the device last answered a read (Unix time)
-
-
-def status_names() -> tuple[str, str]:
-    """The status metrics' names: modbus_up, modbus_last_success_timestamp_seconds."""
-    return _metric_name(f"{measurement}_up"), _metric_name(f"{measurement}_last_success_timestamp_seconds")
-
-
-def _status(unit_id: int, up: bool) -> dict[str, tuple[str, list[str]]]:
-    up_name, last_name = status_names()
-    pairs = _label_pairs({"unit": str(unit_id)} | ({"device": device} if device else {}))
-    metrics = {
-        up_name: (
-            "1 when the device answered the read, 0 when it could not be read (no value is shown then)",
-            [f"{up_name}{{{pairs}}} {int(up)}"],
-        )
-    }
-    if last_success is not None:
-        metrics[last_name] = (
-            "When the device last answered a read, in seconds since the epoch",
-            [f"{last_name}{{{pairs}}} {last_success!r}"],
-        )
-    return metrics
-
-
 def _label_pairs(labels: dict[str, str]) -> str:
     return ",".join(f'{k}="{_label_value(v)}"' for k, v in labels.items())
 
@@ -254,19 +312,7 @@ def _exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
     return "\n".join(out) + "\n"
 
 
-def check_point_names(points) -> None:
-    """Refuse, before anything is sent, a map point whose metric would be a status metric."""
-    from mbtool.codec.errors import RequestError
-
-    for point in points:
-        if _metric_name(f"{measurement}_{point.name}") in status_names():
-            raise RequestError(
-                f"point {point.name}: its metric, {_metric_name(f'{measurement}_{point.name}')}, is the "
-                "one that says whether the device answered; rename the point or give --measurement"
-            )
-
-
-def write_textfile(text: str, path: str) -> None:
+def write_textfile(text: str, path: str, sweep: bool = True) -> None:
     """Atomically: a temporary file in the same directory, then a rename over the old one,
     so node_exporter's textfile collector never reads half a file.
 
@@ -275,14 +321,13 @@ def write_textfile(text: str, path: str) -> None:
     symlink at PATH itself rather than writing through it.  It is made readable as any file
     the user creates (the umask), as node_exporter runs as another user.  Its name,
     ``.NAME.PID.XXXXXXXX.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
-    gives no chance to clean up) is removed at the first write."""
+    gives no chance to clean up) is removed at a run's first write (``sweep``)."""
     import tempfile
 
     from mbtool.errors import OutputFailed
 
     folder, name = os.path.split(os.path.abspath(path))
-    if path not in _swept:
-        _swept.add(path)
+    if sweep:
         _remove_stale_temporaries(folder, name)
     temporary = None
     try:
@@ -298,9 +343,6 @@ def write_textfile(text: str, path: str) -> None:
             except OSError:
                 pass
         raise OutputFailed(path, error) from None
-
-
-_swept: set[str] = set()  # textfiles whose stale temporaries this run has looked for
 
 
 def _umask() -> int:
@@ -340,43 +382,8 @@ def _running(pid: int) -> bool:
     return True
 
 
-def emit(result, fmt: str, out, when: float | None = None) -> None:
-    """One read in a monitoring format: to ``out``, or with --textfile to that file."""
-    global last_success
-    if fmt == "influx":
-        out.write(influx_line(result, when))
-        return
-    last_success = time.time() if when is None else when
-    if textfile:
-        write_textfile(prom_text(result), textfile)
-    else:
-        out.write(prom_text(result))
-
-
-# The failures that mean the device could not be read: no reply, an exception (to every
-# point of a map), a reply that is not one, a link that cannot be opened.
-DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
-
-
-def emit_failure(error: BaseException, fmt: str, out) -> None:
-    """A read that failed, in a monitoring format: for Prometheus, an exposition that says
-    the device could not be read and when it last answered, in place of the values read
-    before, which a scrape would take as current.  The line protocol has no such thing: an
-    InfluxDB line is written only for values read."""
-    global last_success
-    if fmt != "prom" or exit_code_for(error) not in DEVICE_FAILURES:
-        return  # a bad request (nothing sent), a full disk: no news of the device
-    if textfile:
-        if last_success is None:  # a run before this one may have read it: the file says when
-            last_success = _last_success_in(textfile)
-        write_textfile(prom_down_text(), textfile)
-    else:
-        out.write(prom_down_text())
-
-
-def _last_success_in(path: str) -> float | None:
-    """The last success a textfile written before tells of (its own sample line), if any."""
-    name = status_names()[1]
+def _last_success_in(path: str, name: str) -> float | None:
+    """The last success a textfile written before tells of (its sample line of ``name``), if any."""
     try:
         with open(path, encoding="utf-8") as old:
             for line in old:

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import click
 
+from mbtool.cli.settings import ERRORS_AS_JSON, Settings
 from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
 
@@ -352,27 +353,17 @@ TCP_CLIENT_OPTIONS = [
 tcp_client_options = with_options(TCP_CLIENT_OPTIONS)
 
 
-def output_chosen(fmt: str | None) -> str | None:
-    """Note -o as soon as it is parsed, so that even a failure after it gets its JSON object."""
+def output_chosen(ctx: click.Context, param: click.Parameter, fmt: str | None) -> str | None:
+    """-o's callback: noted in the run's context as soon as it is parsed, so that even a
+    failure after it gets its JSON object (cli.program.main)."""
     if fmt == "json":
-        from mbtool.cli import render
-
-        render.errors_as_json = True
+        ctx.meta[ERRORS_AS_JSON] = True
     return fmt
-
-
-def _no_header(ctx: click.Context, param: click.Parameter, value: bool) -> None:
-    if value:
-        from mbtool.cli import render
-
-        render.csv_header = False
 
 
 NO_HEADER_OPTION = click.option(
     "--no-header",
     is_flag=True,
-    expose_value=False,
-    callback=_no_header,
     help="CSV without its header row (it is left out anyway when appending to a file that has content).",
 )
 
@@ -470,7 +461,7 @@ OUTPUT_FORMAT_OPTION = click.option(
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
     'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
     "(Prometheus text) for the read commands.",
@@ -482,7 +473,8 @@ DRY_RUN_OPTION = click.option(
 )
 
 
-# The parameters connection_options may give a command, as click names them.
+# The parameters connection_options may give a command, as click names them: those that
+# make its Connection, and those that make its Settings.
 CONNECTION_KEYS = (
     "port",
     "unit",
@@ -500,10 +492,8 @@ CONNECTION_KEYS = (
     "rs485",
     "rs485_delays",
     "reconnect_each",
-    "hex_trace",
-    "output_format",
-    "dry_run",
 )
+SETTINGS_KEYS = ("hex_trace", "output_format", "no_header", "dry_run", "measurement", "textfile", "changes")
 
 
 def connection_options(unit: bool = True, output: bool = True, polls: bool = False) -> list[Callable]:
@@ -639,8 +629,8 @@ def device_command(
     output: bool = True,
     **settings,
 ) -> Callable:
-    """A command that talks to a device: the shared options it uses, then a Connection as
-    first argument.
+    """A command that talks to a device: the shared options it uses, then a Connection and
+    the run's Settings as first arguments.
 
     ``types``: the --type choices the command offers (none: no --type/--order);
     ``order_all``: --order also takes all (reads); ``readings``: it prints values read,
@@ -651,23 +641,32 @@ def device_command(
     def decorate(function: Callable) -> Callable:
         @functools.wraps(function)
         def run(**kwargs):
-            # The command's own arguments stay in kwargs; the shared options make the Connection.
+            # The command's own arguments stay in kwargs; the shared options make the
+            # Connection and the Settings.
             shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
-            shared["hex"] = shared.pop("hex_trace")
             shared["bytesize"], shared["stopbits"] = int(shared["bytesize"]), int(shared["stopbits"])
             connection = Connection(**shared)
-            output_format = connection.output_format
+            shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
+            output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
             from mbtool.cli.render import MONITORING_FORMATS  # loaded with the CLI
 
-            if output_format in MONITORING_FORMATS:
-                if not readings:
-                    raise RequestError(
-                        f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
-                    )
-                from mbtool.cli import metrics
-
-                metrics.device = profile or ""
+            if output_format in MONITORING_FORMATS and not readings:
+                raise RequestError(
+                    f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
+                )
+            settings = Settings(
+                output_format=output_format,
+                csv_header=not shown.get("no_header", False),
+                hex=shown["hex_trace"],
+                dry_run=shown["dry_run"],
+                measurement=shown.get("measurement", "modbus"),
+                textfile=shown.get("textfile") or "",
+                # The profile names the device in what -o influx and -o prom write; --textfile
+                # alone, which implies -o prom, has never carried it.
+                device=(profile or "") if output_format in MONITORING_FORMATS else "",
+                changes=shown.get("changes", False),
+            )
             if profile:
                 from mbtool.cli.profiles import defaults
                 from mbtool.codec.record import replace
@@ -676,7 +675,7 @@ def device_command(
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
                 connection = replace(connection, **changes) if changes else connection
-            return function(connection, **kwargs)
+            return function(connection, settings, **kwargs)
 
         run = PROFILE_OPTION(run)
         typed = type_options(types, order_all) if types else []

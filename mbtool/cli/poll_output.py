@@ -43,9 +43,13 @@ class Output:
     together than FLUSH_GAP (--interval 0) share one write, not a system call each, which
     PYTHONUNBUFFERED or a pipe would otherwise make of every line."""
 
-    def __init__(self, fmt: str, out=None) -> None:
+    def __init__(self, fmt: str, out=None, *, csv_header: bool = True, metrics=None) -> None:
+        """``csv_header``: the run's settings (False with --no-header); ``metrics``: the run's
+        cli.metrics.Metrics, for -o influx and prom."""
         self.fmt = fmt
         self.out = out or sys.stdout
+        self.csv_header = csv_header
+        self.metrics = metrics
         self.header_done = False
         self.live = None
         self._pending: list[str] = []
@@ -54,10 +58,8 @@ class Output:
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         if self.fmt in MONITORING_FORMATS:
-            from mbtool.cli import metrics
-
             # To stdout with the other writes (one flush a gap); a textfile is written at once.
-            metrics.emit(result, self.fmt, None if metrics.textfile else _Pending(self), stamp)
+            self.metrics.emit(result, None if self.metrics.textfile else _Pending(self), stamp)
         elif result.__class__ is Points:
             self._points(when, result)
         elif self.fmt == "json":
@@ -97,7 +99,7 @@ class Output:
 
     def _csv(self, when: str, header: list[str], rows: list[list[str]]) -> None:
         if not self.header_done:
-            if wants_csv_header(self.out):
+            if wants_csv_header(self.out, self.csv_header):
                 self._emit(",".join(["time", *header]) + "\n")
             self.header_done = True
         self._emit("".join(",".join([when, *map(_csv_cell, row)]) + "\n" for row in rows))
@@ -106,9 +108,7 @@ class Output:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
-            from mbtool.cli import metrics
-
-            metrics.emit_failure(error, self.fmt, None if metrics.textfile else _Pending(self))
+            self.metrics.emit_failure(error, None if self.metrics.textfile else _Pending(self))
         if self.fmt == "json" and not isinstance(error, PartialRead):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).
@@ -289,7 +289,7 @@ class Deferred:
 
 
 class _Pending:
-    """A stream for metrics.emit that joins the Output's pending writes (one flush a gap)."""
+    """A stream for Metrics.emit that joins the Output's pending writes (one flush a gap)."""
 
     def __init__(self, output: Output) -> None:
         self.output = output

@@ -17,8 +17,9 @@ from importlib import import_module
 import click
 
 from mbtool import __version__
-from mbtool.cli import render
 from mbtool.cli.options import QuickHelp, did_you_mean
+from mbtool.cli.render import error_json
+from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.errors import (
     KNOWN_ERRORS,
     ExitCode,
@@ -174,11 +175,12 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
-    render.errors_as_json, render.csv_header = False, True  # until the options say otherwise
     error: BaseException | None = None
+    meta: dict = {}  # the run's click context's: what the options noted as they were parsed
     try:
         # Not cli.main: it turns a closed pipe into exit 1 before any handler here sees it.
         with cli.make_context("mbtool", sys.argv[1:] if argv is None else list(argv)) as ctx:
+            meta = ctx.meta
             cli.invoke(ctx)
         sys.stdout.flush()  # here, where a full disk is still ours to report
         code = ExitCode.OK
@@ -217,11 +219,11 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if code and render.errors_as_json and not isinstance(error, Summary | OutputFailed | PartialRead):
+        if code and meta.get(ERRORS_AS_JSON) and not isinstance(error, Summary | OutputFailed | PartialRead):
             # -o json: a script reading stdout alone gets an object for every outcome
             # (polling writes its own per poll, and its Summary is no error object; a
             # partial read's object names the points it could not read).
-            _write_quietly(render.error_json(str(error), int(code)) + "\n")
+            _write_quietly(error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
 
 

@@ -100,20 +100,16 @@ _SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its te
 _MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
 
 
-# Set by the options as they are parsed: cli.main reads them when a command fails.
-errors_as_json = False  # -o json: a failure is also an object on stdout
-csv_header = True  # --no-header: CSV without its header row, always
-
-
 def error_json(message: str, code: int, **first: object) -> str:
     """The object -o json writes for a failure, one-shot or a poll's: {"error", "exit_code"}."""
     return to_json({**first, "error": message, "exit_code": code})
 
 
-def wants_csv_header(out: TextIO) -> bool:
-    """A CSV header, unless --no-header, or unless the output is a regular file that already
-    has content: cron's ``>> log.csv`` gets one header, not one a run."""
-    if not csv_header:
+def wants_csv_header(out: TextIO, header: bool = True) -> bool:
+    """A CSV header, unless --no-header (``header`` False, the run's settings), or unless the
+    output is a regular file that already has content: cron's ``>> log.csv`` gets one
+    header, not one a run."""
+    if not header:
         return False
     try:
         fd = out.fileno()
@@ -132,19 +128,21 @@ def default_format(stream: TextIO | None = None) -> str:
     return "table" if (stream or sys.stdout).isatty() else "plain"
 
 
-def render(result: Result | Report | Points, fmt: str, out: TextIO | None = None) -> None:
+def render(
+    result: Result | Report | Points, fmt: str, out: TextIO | None = None, *, csv_header: bool = True
+) -> None:
+    """``csv_header``: the run's settings (False with --no-header)."""
     out = out or sys.stdout
     if isinstance(result, Points):
-        {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
-            result, out
-        )
-        return
-    if isinstance(result, Report):
-        {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}[fmt](
-            result, out
-        )
-        return
-    {"table": _table, "plain": _plain, "json": _json, "csv": _csv}[fmt](result, out)
+        renderers = {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}
+    elif isinstance(result, Report):
+        renderers = {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}
+    else:
+        renderers = {"table": _table, "plain": _plain, "json": _json, "csv": _csv}
+    if fmt == "csv":
+        renderers[fmt](result, out, csv_header)
+    else:
+        renderers[fmt](result, out)
 
 
 def value_text(value: object) -> str:
@@ -264,12 +262,12 @@ def _json(result: Result, out: TextIO) -> None:
     out.write(to_json(as_dict(result)) + "\n")
 
 
-def _csv(result: Result, out: TextIO) -> None:
+def _csv(result: Result, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
     header, rows = csv_cells(result)
-    if wants_csv_header(out):
+    if wants_csv_header(out, wanted):
         writer.writerow(header)
     writer.writerows(rows)
 
@@ -456,11 +454,11 @@ def _points_json(points: Points, out: TextIO) -> None:
     out.write(to_json(points_dict(points)) + "\n")
 
 
-def _points_csv(points: Points, out: TextIO) -> None:
+def _points_csv(points: Points, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
-    if wants_csv_header(out):
+    if wants_csv_header(out, wanted):
         writer.writerow(POINT_CSV_HEADER)
     writer.writerows(point_cells(row) for row in points.rows)
 
@@ -520,12 +518,12 @@ def _report_json(report: Report, out: TextIO) -> None:
     out.write(to_json(report_dict(report)) + "\n")
 
 
-def _report_csv(report: Report, out: TextIO) -> None:
+def _report_csv(report: Report, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
     with_raw = any(row.raw is not None for row in report.rows)
-    if report.header and wants_csv_header(out):
+    if report.header and wants_csv_header(out, wanted):
         writer.writerow(["name", "value", "bytes"] if with_raw else ["name", "value"])
     for row in report.rows:
         cells = [row.name, row.shown]

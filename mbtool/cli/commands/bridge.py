@@ -114,7 +114,7 @@ class BridgeCommand(QuickHelp, click.Command):
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
     "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",
 )

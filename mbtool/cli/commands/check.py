@@ -259,18 +259,20 @@ def _number(value, what: str) -> float:
     raise RequestError(f"{what} reads {value}, not a number to check")
 
 
-def _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged) -> list[Checked]:
+def _reference_values(
+    connection, settings, targets, given, value_type, order, warn, crit, unjudged
+) -> list[Checked]:
     from mbtool.cli.session import execute
     from mbtool.codec.tables import READS, reference
     from mbtool.codec.values import decode_values, registers_needed, value_addresses
 
     table, address, count = reference_target(targets, "check", given)
     if table.bits:
-        reply = execute(connection, READS[table.name](address, count))
+        reply = execute(connection, settings, READS[table.name](address, count))
         values = list(reply.bits[:count])
         addresses = list(range(address, address + count))
     else:
-        reply = execute(connection, READS[table.name](address, registers_needed(value_type, count)))
+        reply = execute(connection, settings, READS[table.name](address, registers_needed(value_type, count)))
         values = decode_values(reply.registers, value_type, order)
         addresses = value_addresses(value_type, address, len(reply.registers))
     out = []
@@ -282,7 +284,7 @@ def _reference_values(connection, targets, given, value_type, order, warn, crit,
     return out
 
 
-def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
+def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list[Checked]:
     from mbtool.cli.session import open_client
     from mbtool.errors import PartialRead
     from mbtool.registermap.load import load_map
@@ -299,7 +301,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
         for point in points
     }
     reader = MapReader(points, register_map.max_gap)
-    with open_client(connection, reader.blocks[0].request().name) as client:
+    with open_client(connection, settings, reader.blocks[0].request().name) as client:
         try:
             readings = reader.read(partial(client.execute, connection.unit))
         except PartialRead as partial_read:  # the points read are judged; the others are unread
@@ -333,7 +335,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     help="The state when the device cannot be read (no response, exception, bad reply), a point "
     "of a map is refused or a value reads NaN, which no range can judge.",
 )
-def check(connection, targets, map, warning, critical, state_on_error, value_type, order):
+def check(connection, settings, targets, map, warning, critical, state_on_error, value_type, order):
     """A monitoring plugin (Nagios, Icinga): judge values against thresholds.
 
     Reads a reference (check 40011 -w 10 -c 20) or a map's points (check -m pump.toml
@@ -351,9 +353,11 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     if not map and not targets:
         raise RequestError("give a reference such as 40011, or -m MAP and point names")
     if map:
-        values = _map_values(connection, map, targets, warn, crit, unjudged)
+        values = _map_values(connection, settings, map, targets, warn, crit, unjudged)
     else:
-        values = _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged)
+        values = _reference_values(
+            connection, settings, targets, given, value_type, order, warn, crit, unjudged
+        )
     plugin_exit(
         max(value.state for value in values),
         ", ".join(value.summary() for value in values),

@@ -26,7 +26,7 @@ from mbtool.codec.errors import RequestError
 
 
 @device_command("read-exception-status")
-def read_exception_status(connection):
+def read_exception_status(connection, settings):
     """Read exception status (FC 07).
 
     Eight device-defined status bits, each ON or OFF (a serial-line function).
@@ -36,11 +36,11 @@ def read_exception_status(connection):
     from mbtool.codec.serial_line import ReadExceptionStatus
 
     request = ReadExceptionStatus()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("status", reply.status, f"0x{reply.status:02X}")]
     rows += [Row(f"bit{i}", bit, "ON" if bit else "OFF") for i, bit in enumerate(reply.bits)]
     data = {"status": reply.status, "bits": list(reply.bits)}
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, data))
+    show(connection, settings, Report(connection.unit, request.function_code, request.name, rows, data))
 
 
 # --- FC 11 / 12 ---------------------------------------------------------------------------
@@ -51,7 +51,7 @@ def _status_text(status: int) -> str:
 
 
 @device_command("event-counter")
-def event_counter(connection):
+def event_counter(connection, settings):
     """Get the comm event counter (FC 11).
 
     The status (busy or idle) and the count of successful messages.
@@ -60,17 +60,18 @@ def event_counter(connection):
     from mbtool.codec.serial_line import GetCommEventCounter
 
     request = GetCommEventCounter()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("status", _status_text(reply.status)), Row("event_count", reply.event_count)]
     data = {"status": _status_text(reply.status), "busy": reply.busy, "event_count": reply.event_count}
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
 
 @device_command("event-log")
-def event_log(connection):
+def event_log(connection, settings):
     """Get the comm event log (FC 12).
 
     Status, event and message counts, and each event byte (0 = newest) in words.
@@ -79,7 +80,7 @@ def event_log(connection):
     from mbtool.codec.serial_line import GetCommEventLog, describe_event
 
     request = GetCommEventLog()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [
         Row("status", _status_text(reply.status)),
         Row("event_count", reply.event_count),
@@ -98,6 +99,7 @@ def event_log(connection):
     }
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
@@ -120,7 +122,7 @@ def _with_warnings(report, reply):
 
 
 @device_command("report-id")
-def report_id(connection):
+def report_id(connection, settings):
     """Report server (slave) ID (FC 17).
 
     The id, the run indicator and the device's own bytes.  The extra bytes are shown in hex and as text; replies of Modicon 184/384,
@@ -133,7 +135,7 @@ def report_id(connection):
     from mbtool.codec.serial_line import ReportSlaveId
 
     request = ReportSlaveId()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     layout = modicon_layout(reply.slave_id, reply.extra)
     run = "ON" if reply.run_indicator else "OFF"
     if reply.run_indicator_byte is not None:  # neither 00 nor FF: say neither, not ON
@@ -160,6 +162,7 @@ def report_id(connection):
     data.update(extra_hex=extra_hex, extra_text=printable(reply.extra))
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
@@ -182,7 +185,7 @@ def _groups(tokens: tuple[str, ...]) -> list[list[str]]:
 
 @device_command("read-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD LENGTH [FILE RECORD LENGTH]...")
-def read_file_record(connection, groups):
+def read_file_record(connection, settings, groups):
     """Read file records (FC 20).
 
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
@@ -196,17 +199,21 @@ def read_file_record(connection, groups):
         raise RequestError(f"give FILE RECORD LENGTH in threes, not {len(numbers)} numbers")
     parts = tuple(FileRecordRequest(*numbers[i : i + 3]) for i in range(0, len(numbers), 3))
     request = ReadFileRecord(parts)
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows, data = [], []
     for part, values in zip(parts, reply.records, strict=True):
         rows += [Row(f"{part.file}:{part.record + i}", value) for i, value in enumerate(values)]
         data.append({"file": part.file, "record": part.record, "values": list(values)})
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+    show(
+        connection,
+        settings,
+        Report(connection.unit, request.function_code, request.name, rows, {"groups": data}),
+    )
 
 
 @device_command("write-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD VALUE... [, FILE RECORD VALUE...]...")
-def write_file_record(connection, groups):
+def write_file_record(connection, settings, groups):
     """Write file records (FC 21).
 
     VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
@@ -223,10 +230,14 @@ def write_file_record(connection, groups):
         file, record = parse_int(group[0], "file number"), parse_int(group[1], "record number")
         parts.append(FileRecord(file, record, tuple(parse_register(text) for text in group[2:])))
     request = WriteFileRecord(tuple(parts))
-    execute(connection, request)
+    execute(connection, settings, request)
     rows = [Row(f"{p.file}:{p.record + i}", value) for p in parts for i, value in enumerate(p.values)]
     data = [{"file": p.file, "record": p.record, "values": list(p.values)} for p in parts]
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+    show(
+        connection,
+        settings,
+        Report(connection.unit, request.function_code, request.name, rows, {"groups": data}),
+    )
 
 
 # --- FC 22 / 23 / 24 ------------------------------------------------------------------------------
@@ -238,7 +249,7 @@ MASK = Number(0, 0xFFFF, "mask")
 @click.argument("address", type=ADDRESS)
 @click.argument("and_mask", type=MASK)
 @click.argument("or_mask", type=MASK)
-def mask_write_register(connection, address, and_mask, or_mask):
+def mask_write_register(connection, settings, address, and_mask, or_mask):
     """Mask write register (FC 22).
 
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
@@ -248,14 +259,14 @@ def mask_write_register(connection, address, and_mask, or_mask):
     from mbtool.codec.data_access import MaskWriteRegister, mask_formula
 
     request = MaskWriteRegister(address, and_mask, or_mask)
-    execute(connection, request)
+    execute(connection, settings, request)
     rows = [
         Row("address", address),
         Row("and_mask", and_mask, f"0x{and_mask:04X}"),
         Row("or_mask", or_mask, f"0x{or_mask:04X}"),
         Row("result", mask_formula(and_mask, or_mask)),
     ]
-    show(connection, Report(connection.unit, request.function_code, request.name, rows))
+    show(connection, settings, Report(connection.unit, request.function_code, request.name, rows))
 
 
 @device_command("read-write-registers", types=VALUE_TYPES)
@@ -265,7 +276,7 @@ def mask_write_register(connection, address, and_mask, or_mask):
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
 @NONFINITE_OPTION
 def read_write_registers(
-    connection, read_address, read_count, write_address, values, allow_nonfinite, value_type, order
+    connection, settings, read_address, read_count, write_address, values, allow_nonfinite, value_type, order
 ):
     """Read/write registers (FC 23).
 
@@ -280,7 +291,7 @@ def read_write_registers(
     request = ReadWriteMultipleRegisters(
         read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
     )
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     result = Result(
         connection.unit,
         request.function_code,
@@ -292,12 +303,12 @@ def read_write_registers(
         extra={"written": {"address": write_address, "registers": registers}},
         addresses=value_addresses(value_type, read_address, len(reply.registers)),
     )
-    show(connection, result)
+    show(connection, settings, result)
 
 
 @device_command("fifo")
 @click.argument("address", type=ADDRESS)
-def fifo(connection, address):
+def fifo(connection, settings, address):
     """Read a FIFO queue (FC 24).
 
     The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
@@ -306,7 +317,7 @@ def fifo(connection, address):
     from mbtool.codec.data_access import ReadFifoQueue
 
     request = ReadFifoQueue(address)
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("count", len(reply.registers))]
     rows += [Row(str(i), value) for i, value in enumerate(reply.registers)]
     data = {"address": address, "count": len(reply.registers), "values": list(reply.registers)}
@@ -318,7 +329,7 @@ def fifo(connection, address):
         data,
         note=f"{len(reply.registers)} entries queued at pointer address {address}",
     )
-    show(connection, report)
+    show(connection, settings, report)
 
 
 # --- FC 43 / 14 --------------------------------------------------------------------------------------
@@ -335,7 +346,7 @@ LEVELS = {"basic": 1, "regular": 2, "extended": 3}
     help="Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF.",
 )
 @click.option("--object", "object_id", type=Number(0, 255, "object id"), help="Read this one object only.")
-def device_id(connection, level, object_id):
+def device_id(connection, settings, level, object_id):
     """Read device identification (FC 43/14).
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
@@ -348,7 +359,7 @@ def device_id(connection, level, object_id):
     objects: dict[int, bytes] = {}
     conformity = None
     follows = "" if object_id is not None else "any further request depends on the reply's more-follows"
-    with open_client(connection, ReadDeviceIdentification.name, then=follows) as client:
+    with open_client(connection, settings, ReadDeviceIdentification.name, then=follows) as client:
         if object_id is not None:
             request = ReadDeviceIdentification(4, object_id)
             reply = client.execute(connection.unit, request)
@@ -370,6 +381,7 @@ def device_id(connection, level, object_id):
     }
     show(
         connection,
+        settings,
         Report(
             connection.unit, 0x2B, "Read Device Identification", rows, data, note=f"conformity: {conformity}"
         ),

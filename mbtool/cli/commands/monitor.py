@@ -107,7 +107,7 @@ def default_silence(framer: str, baud: int) -> float:
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
 @PROFILE_OPTION

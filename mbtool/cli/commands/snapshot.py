@@ -149,7 +149,7 @@ def _identity(execute) -> dict:
     help="Stop after N requests; the file keeps what was read, marked complete = false, "
     "and the exit status is 8 (partial) unless the dump finished within them.",
 )
-def dump(connection, file, ranges, max_requests):
+def dump(connection, settings, file, ranges, max_requests):
     """Dump a device's tables, and its identity, to FILE (- for stdout).
 
     FILE is TOML that mbtool serve --data loads unchanged: sparse, holding exactly the
@@ -171,17 +171,17 @@ def dump(connection, file, ranges, max_requests):
     dumps = {span.table.name: TableDump(span.table) for span in spans}
     total = sum(span.size for span in spans)
     # A place that cannot be written fails here, before the device is read.
-    output = None if file == "-" or connection.dry_run else _DataFile(file)
+    output = None if file == "-" or settings.dry_run else _DataFile(file)
     began = time.monotonic()
     stopped, failure, identity, out_of_requests, dumper = "", None, {}, False, None
     try:
         with _Interrupts() as interrupts:
             try:
-                with open_client(connection, "Read Holding Registers") as client:
+                with open_client(connection, settings, "Read Holding Registers") as client:
                     execute = partial(client.execute, connection.unit)
 
                     dumper = Dumper(execute, max_requests)
-                    bar = _Bar(total) if sys.stderr.isatty() and not connection.dry_run else None
+                    bar = _Bar(total) if sys.stderr.isatty() and not settings.dry_run else None
                     try:
                         for span in spans:
                             done = bar.done if bar else 0
@@ -194,7 +194,7 @@ def dump(connection, file, ranges, max_requests):
                         stopped = f"stopped after {dumper.requests} requests (--max-requests)"
                         out_of_requests = True
                     except KNOWN_ERRORS as error:
-                        if connection.dry_run:
+                        if settings.dry_run:
                             raise
                         stopped, failure = f"stopped: {error}", error
                     finally:
@@ -439,7 +439,7 @@ def _as_read(difference: dict, register_map) -> tuple:
 @click.argument("a", metavar="A")
 @click.argument("b", metavar="[B]", required=False)
 @map_option("differences at its points by name, in their units")
-def diff(connection, a, b, map):
+def diff(connection, settings, a, b, map):
     """Compare two dumps, or a dump with the device itself (-p and friends).
 
     A side named device (B when left out) is the device: only the dump's addresses are
@@ -465,11 +465,11 @@ def diff(connection, a, b, map):
         from mbtool.cli.session import open_client
 
         (dumped,) = files.values()
-        with open_client(connection, "Read Holding Registers") as client:
+        with open_client(connection, settings, "Read Holding Registers") as client:
             files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
     left, right = files[a], files[b]
     found = differences(left, right, register_map)
-    fmt = connection.output_format or default_format()
+    fmt = settings.output_format or default_format()
     if fmt == "json":
         print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
     elif fmt == "csv":
@@ -478,7 +478,7 @@ def diff(connection, a, b, map):
         from mbtool.cli.render import wants_csv_header
 
         writer = csv.writer(sys.stdout, lineterminator="\n")
-        if wants_csv_header(sys.stdout):
+        if wants_csv_header(sys.stdout, settings.csv_header):
             writer.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
         for d in found:
             writer.writerow(
@@ -585,7 +585,7 @@ def restore_plan(current: dict, wanted: dict, register_map=None, everything: boo
     "--all", "everything", is_flag=True, help="Write every coil and register, not only those that differ."
 )
 @map_option("each point written whole, its registers in one request, and named in the report")
-def restore(connection, file, everything, map):
+def restore(connection, settings, file, everything, map):
     """Write a dump's holding registers and coils back into the device, then read back.
 
     Only what differs from the device is written (--all: everything), in the fewest FC
@@ -624,16 +624,16 @@ def restore(connection, file, everything, map):
     head = {"unit": connection.unit, "file": file} | ({"map": map} if map else {})
     read_back, trouble = False, None
     # The reads are needed even for --dry-run: it lists only the writes that differ.
-    with open_client(replace(connection, dry_run=False), "Read Holding Registers") as client:
+    with open_client(connection, replace(settings, dry_run=False), "Read Holding Registers") as client:
         execute = partial(client.execute, connection.unit)
 
         current = {} if everything else read_live(execute, wanted)
         steps, changes, partial_points = restore_plan(current, wanted, register_map, everything)
         items = [item for step in steps for item in step.items]
-        if connection.dry_run:
+        if settings.dry_run:
             from mbtool.cli.dryrun import DryRunDone
 
-            report(connection, items, head)
+            report(settings, items, head)
             raise DryRunDone(
                 f"dry run: the device was read; nothing was sent: {len(steps)} request"
                 f"{'s' if len(steps) != 1 else ''} would write {len(items)} value{'s' if len(items) != 1 else ''}"
@@ -683,7 +683,7 @@ def restore(connection, file, everything, map):
             text += "; read back and confirmed"
         summary = Summary(text, code)
     end = {"error": str(summary)} if code else {}
-    report(connection, items, head, end | {"exit_code": int(code)})
+    report(settings, items, head, end | {"exit_code": int(code)})
     raise summary
 
 
