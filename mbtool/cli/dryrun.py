@@ -30,7 +30,8 @@ class DryRunClient:
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
         from mbtool.cli.frames import frame_report
-        from mbtool.cli.render import FORMATS, default_format, render
+        from mbtool.cli.render import default_format, render
+        from mbtool.cli.settings import FORMATS
         from mbtool.codec.describe import describe
 
         # Transaction id 1: the first one a real Client would use.

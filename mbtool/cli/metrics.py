@@ -25,7 +25,7 @@ import stat
 import sys
 import time
 
-from mbtool.cli.render import Points
+from mbtool.cli.results import Points
 from mbtool.cli.settings import Settings
 from mbtool.errors import ExitCode, exit_code_for
 

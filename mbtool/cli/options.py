@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import click
 
-from mbtool.cli.settings import ERRORS_AS_JSON, Settings
+from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
 from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
 
@@ -649,8 +649,6 @@ def device_command(
             shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
             output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
-            from mbtool.cli.render import MONITORING_FORMATS  # loaded with the CLI
-
             if output_format in MONITORING_FORMATS and not readings:
                 raise RequestError(
                     f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"

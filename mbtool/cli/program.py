@@ -17,8 +17,8 @@ from importlib import import_module
 import click
 
 from mbtool import __version__
+from mbtool.cli.json_text import error_json
 from mbtool.cli.options import QuickHelp, did_you_mean
-from mbtool.cli.render import error_json
 from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.errors import (
     KNOWN_ERRORS,

@@ -44,7 +44,7 @@ def trace_for(settings: Settings):
     """What makes a Client's trace from its framer: --hex's, or None for no trace."""
     if not settings.hex:
         return None
-    from mbtool.cli.render import HexTrace
+    from mbtool.cli.frames import HexTrace
 
     return HexTrace
 

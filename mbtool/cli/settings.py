@@ -16,6 +16,11 @@ from mbtool.codec.record import record
 # object on stdout too (``program.main``).
 ERRORS_AS_JSON = "mbtool.errors_as_json"
 
+# What -o may say: the renderers' formats, and those cli/metrics.py writes (the read
+# commands' alone).
+FORMATS = ("table", "plain", "json", "csv")
+MONITORING_FORMATS = ("influx", "prom")
+
 
 @record
 class Settings:

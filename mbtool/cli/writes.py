@@ -139,7 +139,8 @@ def item_line(item: dict) -> str:
 def report(settings, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
     """Print the items in the run's format (its Settings): ``head`` (unit, map, file) and
     ``end`` (error, exit_code) frame them in JSON."""
-    from mbtool.cli.render import default_format, to_json
+    from mbtool.cli.json_text import to_json
+    from mbtool.cli.render import default_format
 
     fmt = settings.output_format or default_format()
     if fmt == "json":
@@ -158,7 +159,8 @@ CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 def _csv(items: Sequence[dict], header: bool) -> None:
     import csv
 
-    from mbtool.cli.render import value_text, wants_csv_header
+    from mbtool.cli.render import wants_csv_header
+    from mbtool.cli.results import value_text
 
     writer = csv.writer(sys.stdout, lineterminator="\n")
     if wants_csv_header(sys.stdout, header):

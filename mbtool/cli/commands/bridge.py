@@ -14,6 +14,7 @@ import threading
 
 import click
 
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     LINK_OPTIONS,
     Choice,
@@ -27,7 +28,7 @@ from mbtool.cli.options import (
     units_text,
     with_options,
 )
-from mbtool.cli.render import local_time, to_json
+from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
@@ -388,7 +389,7 @@ STYLES = {
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import shown_frame
     from mbtool.codec.describe import describe
 
     return describe(shown_frame(adu) if framing == "ascii" else adu.hex(), framing, direction, previous)
@@ -441,7 +442,7 @@ def _after(passage) -> str:
 
 
 def _wire(adu: bytes, framing: str) -> str:
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import shown_frame
     from mbtool.codec.framing import make_framer
 
     return f"{shown_frame(adu)}  {make_framer(framing).check(adu)}"
@@ -449,8 +450,7 @@ def _wire(adu: bytes, framing: str) -> str:
 
 def passage_record(passage) -> dict:
     """One JSON object a transaction."""
-    from mbtool.cli.frames import one_line
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import one_line, shown_frame
 
     request = _describe(passage.request, passage.upstream, "request")
     reply = _describe(passage.reply, passage.upstream, "response", request) if passage.reply else None

@@ -101,7 +101,7 @@ def diag(connection, settings, sub_function, data, clear_log, controller):
 
 
 def _one(connection, settings, sub: int, data: bytes, controller: str | None):
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import execute
     from mbtool.codec.errors import MismatchError
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
@@ -173,7 +173,7 @@ def _one(connection, settings, sub: int, data: bytes, controller: str | None):
 
 def _statistics_rows(words: tuple[int, ...]):
     """Modbus Plus statistics, each word named as seed 002 does; byte pairs shown as LO/HI."""
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.modicon import MODBUS_PLUS_WORDS
 
     rows = []
@@ -188,7 +188,7 @@ def _statistics_rows(words: tuple[int, ...]):
 
 
 def _register_rows(value: int, controller: str | None):
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.modicon import diagnostic_register_bits
 
     rows = [Row("diagnostic_register", value, f"0x{value:04X}")]
@@ -203,7 +203,7 @@ def _register_rows(value: int, controller: str | None):
 
 
 def _counters(connection, settings):
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.errors import ModbusException
     from mbtool.codec.serial_line import Diagnostics

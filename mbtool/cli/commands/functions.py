@@ -32,7 +32,7 @@ def read_exception_status(connection, settings):
     Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import ReadExceptionStatus
 
     request = ReadExceptionStatus()
@@ -56,7 +56,7 @@ def event_counter(connection, settings):
 
     The status (busy or idle) and the count of successful messages.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import GetCommEventCounter
 
     request = GetCommEventCounter()
@@ -76,7 +76,7 @@ def event_log(connection, settings):
 
     Status, event and message counts, and each event byte (0 = newest) in words.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import GetCommEventLog, describe_event
 
     request = GetCommEventLog()
@@ -107,7 +107,7 @@ def event_log(connection, settings):
 def _with_warnings(report, reply):
     """What a strict reader noticed in the reply (e.g. a status word neither busy nor idle):
     a ``warning`` row, and a ``warnings`` list in JSON; stderr stays for the one error line."""
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.record import replace
 
     warnings = list(getattr(reply, "warnings", ()))
@@ -129,7 +129,7 @@ def report_id(connection, settings):
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
     from mbtool.codec.pdu import printable
     from mbtool.codec.serial_line import ReportSlaveId
@@ -191,7 +191,7 @@ def read_file_record(connection, settings, groups):
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
@@ -219,7 +219,7 @@ def write_file_record(connection, settings, groups):
     VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
     Each VALUE is -32768..65535 or 0x hex.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.file_record import FileRecord, WriteFileRecord
     from mbtool.codec.values import parse_register
 
@@ -255,7 +255,7 @@ def mask_write_register(connection, settings, address, and_mask, or_mask):
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.data_access import MaskWriteRegister, mask_formula
 
     request = MaskWriteRegister(address, and_mask, or_mask)
@@ -283,7 +283,7 @@ def read_write_registers(
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses
 
@@ -313,7 +313,7 @@ def fifo(connection, settings, address):
 
     The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.data_access import ReadFifoQueue
 
     request = ReadFifoQueue(address)
@@ -351,7 +351,7 @@ def device_id(connection, settings, level, object_id):
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.device_id import ReadDeviceIdentification, conformity_name, object_name
     from mbtool.codec.pdu import text_of

@@ -29,7 +29,7 @@ from mbtool.cli.options import (
     output_chosen,
     serial_line_options,
 )
-from mbtool.cli.render import local_time
+from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
 
@@ -419,7 +419,7 @@ class Output:
 
     def write(self, item) -> None:
         if self.fmt == "json":
-            from mbtool.cli.render import to_json
+            from mbtool.cli.json_text import to_json
 
             self.out.write(to_json(as_dict(item, self.timed)) + "\n")
         elif self.fmt == "plain":

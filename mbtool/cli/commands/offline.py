@@ -256,7 +256,7 @@ def crc(data, output_format, no_header):
 
     The CRC of HEX, and the RTU frame with it appended (low byte first).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.checksum import crc16
     from mbtool.codec.describe import parse_hex
 
@@ -284,7 +284,7 @@ def lrc(data, output_format, no_header):
 
     The LRC of HEX (unit through last data byte), and the ASCII frame with it.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.checksum import lrc as lrc8
     from mbtool.codec.describe import parse_hex
 
@@ -367,7 +367,8 @@ def raw(connection, settings, data, adu):
             client.execute(unit, request)
         except (ModbusException, FrameError) as error:
             failure = error
-    from mbtool.cli.render import Report, Row, default_format, render
+    from mbtool.cli.render import default_format, render
+    from mbtool.cli.results import Report, Row
 
     heard = capture.reply or capture.other
     if heard is None:

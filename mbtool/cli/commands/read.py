@@ -79,7 +79,7 @@ def _run(
 ) -> None:
     """Once, or polled.  ``run(client)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
-    from mbtool.cli.render import MONITORING_FORMATS
+    from mbtool.cli.settings import MONITORING_FORMATS
 
     metrics = None
     if settings.textfile or settings.output_format in MONITORING_FORMATS:
@@ -157,7 +157,7 @@ def _read_bits(
     table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
 
     request = kind(address, count)
     # What every poll shares, made once: a poll's result is its bits in this frame.
@@ -186,7 +186,7 @@ def _read_registers(
     table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
 
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
@@ -326,7 +326,7 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
 
 
 def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
-    from mbtool.cli.render import PointFailure, PointRow, Points
+    from mbtool.cli.results import PointFailure, PointRow, Points
     from mbtool.registermap.load import load_map
     from mbtool.registermap.plan import MapReader
 

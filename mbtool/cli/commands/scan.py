@@ -225,7 +225,7 @@ class Output:
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
         if self.fmt == "json":
-            from mbtool.cli.render import to_json
+            from mbtool.cli.json_text import to_json
 
             data = {
                 **head,

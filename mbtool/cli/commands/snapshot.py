@@ -447,7 +447,8 @@ def diff(connection, settings, a, b, map):
     -> 23 m3/h with -m, a bit off -> on); "missing" where a side lacks the address. Exit 0 when equal, 1
     when they differ (as diff(1)), other codes as everywhere.
     """
-    from mbtool.cli.render import default_format, to_json
+    from mbtool.cli.json_text import to_json
+    from mbtool.cli.render import default_format
     from mbtool.errors import ExitCode, Summary
 
     register_map = None

@@ -38,7 +38,7 @@ def parse_bit(text: str) -> bool:
 @click.argument("state", metavar="on|off|1|0")
 def write_coil(connection, settings, address, state):
     """Write one coil (FC 05). Switch the coil at ADDRESS on or off (also 1|0|true|false)."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteSingleCoil
 
     request = WriteSingleCoil(address, parse_bit(state))
@@ -55,7 +55,7 @@ def write_coil(connection, settings, address, state):
 @click.argument("value")
 def write_register(connection, settings, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteSingleRegister
     from mbtool.codec.values import decode_values, parse_registers
 
@@ -84,7 +84,7 @@ def write_register(connection, settings, address, value, value_type, order):
 @click.argument("bits", nargs=-1, required=True, metavar="BIT...")
 def write_coils(connection, settings, address, bits):
     """Write coils (FC 15). BITs (on|off|1|0|true|false) from ADDRESS, at most 1968."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteMultipleCoils
 
     values = tuple(parse_bit(bit) for bit in bits)
@@ -107,7 +107,7 @@ def write_registers(connection, settings, address, values, allow_nonfinite, valu
     Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
     fills 2 registers in --order).
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
@@ -184,7 +184,7 @@ def write(connection, settings, targets, map, multiple, rmw, allow_nonfinite, va
 def _write_reference(
     connection, settings, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
 ) -> None:
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.tables import parse_reference, reference, write_of
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
@@ -229,7 +229,7 @@ def _write_reference(
 def _write_map(
     connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
 ) -> None:
-    from mbtool.cli.render import PointRow, Points, value_text
+    from mbtool.cli.results import PointRow, Points, value_text
     from mbtool.cli.writes import Step, failure, report, send_all
     from mbtool.codec.framing import is_broadcast
     from mbtool.link.connection import framer_name
@@ -357,7 +357,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
     FC 22 answers exception 01, and --rmw reads the register and writes it back
     (FC 03, then FC 06) instead, which is not atomic.
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference
 
     table, address = parse_reference(ref)
