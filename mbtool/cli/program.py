@@ -18,7 +18,7 @@ import click
 
 from mbtool import __version__
 from mbtool.cli.json_text import error_json
-from mbtool.cli.options import QuickHelp, did_you_mean
+from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.errors import (
     KNOWN_ERRORS,

@@ -14,20 +14,17 @@ import threading
 
 import click
 
+from mbtool.cli.completion import complete_port
 from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     LINK_OPTIONS,
-    Choice,
-    QuickHelp,
-    Seconds,
-    complete_port,
     output_chosen,
-    parse_units,
     serial_line_options,
     tcp_client_options,
-    units_text,
     with_options,
 )
+from mbtool.cli.param_types import Choice, Seconds, parse_units, units_text
+from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY

@@ -27,15 +27,9 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import (
-    VALUE_TYPES,
-    Choice,
-    DeviceCommand,
-    device_command,
-    map_option,
-    reference_target,
-    type_options_given,
-)
+from mbtool.cli.options import VALUE_TYPES, device_command, map_option, reference_target, type_options_given
+from mbtool.cli.param_types import Choice
+from mbtool.cli.parsing import DeviceCommand
 from mbtool.codec.errors import RequestError
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code

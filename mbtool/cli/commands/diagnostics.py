@@ -6,7 +6,8 @@ import sys
 
 import click
 
-from mbtool.cli.options import Choice, device_command, parse_int
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import Choice, parse_int
 from mbtool.codec.errors import RequestError
 from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, SUB_FUNCTION_NAMES, sub_function_number
 

@@ -9,16 +9,8 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import (
-    ADDRESS,
-    COUNT,
-    NONFINITE_OPTION,
-    VALUE_TYPES,
-    Choice,
-    Number,
-    device_command,
-    parse_int,
-)
+from mbtool.cli.options import NONFINITE_OPTION, VALUE_TYPES, device_command
+from mbtool.cli.param_types import ADDRESS, COUNT, Choice, Number, parse_int
 from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
 

@@ -20,15 +20,9 @@ import time
 import click
 
 from mbtool.cli.frames import frame_report, one_line
-from mbtool.cli.options import (
-    PROFILE_OPTION,
-    Choice,
-    Number,
-    PositiveFloat,
-    QuickHelp,
-    output_chosen,
-    serial_line_options,
-)
+from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
+from mbtool.cli.param_types import Choice, Number, PositiveFloat
+from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary

@@ -8,7 +8,9 @@ import sys
 import click
 
 from mbtool.cli.frames import frame_report
-from mbtool.cli.options import NO_HEADER_OPTION, Choice, QuickHelp, device_command, output_chosen
+from mbtool.cli.options import NO_HEADER_OPTION, device_command, output_chosen
+from mbtool.cli.param_types import Choice
+from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
 
 FORMAT_OPTION = click.option(

@@ -8,17 +8,14 @@ from functools import partial
 import click
 
 from mbtool.cli.options import (
-    ADDRESS,
-    COUNT,
     ORDER_ALL,
     VALUE_TYPES,
-    Number,
-    PositiveFloat,
     device_command,
     map_option,
     reference_target,
     type_options_given,
 )
+from mbtool.cli.param_types import ADDRESS, COUNT, Number, PositiveFloat
 from mbtool.cli.session import execute, show
 from mbtool.cli.settings import Settings
 from mbtool.codec.errors import RequestError

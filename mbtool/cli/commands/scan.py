@@ -22,7 +22,8 @@ import time
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, Choice, device_command, parse_units, units_text
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary

@@ -11,7 +11,8 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import Number, device_command, map_option
+from mbtool.cli.options import device_command, map_option
+from mbtool.cli.param_types import Number
 from mbtool.codec.errors import RequestError
 from mbtool.errors import OutputFailed
 

@@ -9,15 +9,14 @@ import sys
 import click
 
 from mbtool.cli.options import (
-    ADDRESS,
     NONFINITE_OPTION,
     ONE_REGISTER_TYPES,
     VALUE_TYPES,
-    Number,
     device_command,
     map_option,
     type_options_given,
 )
+from mbtool.cli.param_types import ADDRESS, Number
 from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.errors import ModbusException, RequestError
 
