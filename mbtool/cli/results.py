@@ -113,6 +113,30 @@ class PointRow:
     number: int | float | None = None  # the number behind the value (Point.number_of)
     no_label: bool = False  # a value the point's enum does not label (Point.no_label)
 
+    def __init__(
+        self,
+        name: str,
+        value: object,
+        unit: str,
+        ref: str,
+        raw: tuple,
+        bits: bool,
+        description: str = "",
+        number: int | float | None = None,
+        no_label: bool = False,
+    ) -> None:
+        # By hand: one a point a poll (codec/record.py).
+        fields = self.__dict__
+        fields["name"] = name
+        fields["value"] = value
+        fields["unit"] = unit
+        fields["ref"] = ref
+        fields["raw"] = raw
+        fields["bits"] = bits
+        fields["description"] = description
+        fields["number"] = number
+        fields["no_label"] = no_label
+
     @property
     def shown(self) -> str:
         return point_text(self.value) + (" (no label)" if self.no_label else "")

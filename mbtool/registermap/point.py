@@ -19,7 +19,14 @@ from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, loca
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import Table, reference
-from mbtool.codec.values import TYPES, Value, decode_values, encode_values, float_value, integer_value
+from mbtool.codec.values import (
+    TYPES,
+    Value,
+    encode_values,
+    float_value,
+    integer_value,
+    value_decoder,
+)
 
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
@@ -46,9 +53,12 @@ class Point:
     warn: str | None = None  # mbtool check's thresholds (Monitoring Plugins range syntax)
     crit: str | None = None
 
-    @property
-    def ref(self) -> str:
-        return reference(self.table, self.address)
+    def __post_init__(self) -> None:
+        # What every read of the point asks, worked out once: a map polled reads it again and
+        # again.  ``ref``: its Modicon reference; ``_decode``: how its registers read as values.
+        object.__setattr__(self, "ref", reference(self.table, self.address))
+        registers = not (self.table.bits or self.bit is not None) and self.type in TYPES
+        object.__setattr__(self, "_decode", value_decoder(self.type, self.order) if registers else None)
 
     @property
     def size(self) -> int:
@@ -72,7 +82,7 @@ class Point:
             return bool(raw[0])
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
-        value = decode_values(raw, self.type, self.order)[0]
+        value = self._decode(raw)[0]
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
         if self.scale is None and self.offset is None or isinstance(value, str):

@@ -295,7 +295,7 @@ def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list
         for point in points
     }
     reader = MapReader(points, register_map.max_gap)
-    with open_client(connection, settings, reader.blocks[0].request().name) as client:
+    with open_client(connection, settings, reader.blocks[0].request.name) as client:
         try:
             readings = reader.read(partial(client.execute, connection.unit))
         except PartialRead as partial_read:  # the points read are judged; the others are unread

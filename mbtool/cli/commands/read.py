@@ -330,7 +330,7 @@ def _read_map(connection: Connection, settings: Settings, path: str, names, inte
     register_map = load_map(path)
     points = register_map.select(names)
     reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
-    requests = [block.request() for block in reader.blocks]
+    requests = [block.request for block in reader.blocks]
     if settings.dry_run:  # no read depends on another's reply: show them all
         from mbtool.cli.session import open_client
 
