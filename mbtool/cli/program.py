@@ -66,7 +66,7 @@ COMMANDS = {
     "serve": "serve",
     "bridge": "bridge",
     "check": "check",
-    "dump": "snapshot",
+    "dump": "dump",
     "diff": "snapshot",
     "restore": "snapshot",
 }
