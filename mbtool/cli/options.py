@@ -373,7 +373,7 @@ def device_command(
     polls: bool = False,
     unit: bool = True,
     output: bool = True,
-    **settings,
+    **attrs,
 ) -> Callable:
     """A command that talks to a device: the shared options it uses, then a Connection and
     the run's Settings as first arguments.
@@ -381,7 +381,7 @@ def device_command(
     ``types``: the --type choices the command offers (none: no --type/--order);
     ``order_all``: --order also takes all (reads); ``readings``: it prints values read,
     which -o influx and -o prom can carry; ``polls``, ``unit``, ``output``: see
-    connection_options.
+    connection_options; ``attrs``: click.command's.
     """
 
     def decorate(function: Callable) -> Callable:
@@ -428,9 +428,9 @@ def device_command(
         context = {
             "ignore_unknown_options": True,
             "help_option_names": ["-h", "--help"],
-            **settings.pop("context_settings", {}),
+            **attrs.pop("context_settings", {}),
         }
-        command_class = settings.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
-        return click.command(name, cls=command_class, context_settings=context, **settings)(run)
+        command_class = attrs.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
+        return click.command(name, cls=command_class, context_settings=context, **attrs)(run)
 
     return decorate
