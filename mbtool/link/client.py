@@ -82,9 +82,16 @@ class Client:
         # out (polling's summary).
         self.timed: Callable[[float], None] | None = None
         self._settled = False  # the last transaction ended with its reply: nothing stale left
-        # The last request, its PDU, whether it has a reply and what is known of the reply
-        # beforehand: the same for every poll of it, so worked out once.
-        self._prepared: tuple[Request | None, bytes, bool, tuple[bytes, int] | None] = (None, b"", True, None)
+        # The last request, its PDU, whether its echo could pass for a reply, whether it has
+        # one and what is known of it beforehand: the same for every poll of it, so worked
+        # out once.
+        self._prepared: tuple[Request | None, bytes, bool, bool, tuple[bytes, int] | None] = (
+            None,
+            b"",
+            False,
+            True,
+            None,
+        )
         # The last reply decoded: the request, the reply's PDU and what it decoded to.  A poll
         # whose reply is the same bytes gets the same (immutable) response, decoded once.
         self._decoded: tuple[Request | None, bytes, Response | ExceptionResponse | None] = (None, b"", None)
@@ -153,8 +160,16 @@ class Client:
         tid = self._transaction_id = (self._transaction_id + 1) & 0xFFFF
         self._attempt_ids.append(tid)
         if request is not self._prepared[0]:
-            self._prepared = (request, request.encode(), request.expects_response, request.reply_prefix)
-        _, pdu, expects_response, reply_prefix = self._prepared
+            self._prepared = (
+                request,
+                request.encode(),
+                # Only a serial line has an echo to watch for (a map's requests over TCP
+                # would pay for the look on every one).
+                transport.serial_line and _EchoWatch.needed(request),
+                request.expects_response,
+                request.reply_prefix,
+            )
+        _, pdu, echo_watched, expects_response, reply_prefix = self._prepared
         adu = framer.build(unit, pdu, tid)
         serial_line = transport.serial_line
         if serial_line:
@@ -212,7 +227,7 @@ class Client:
         # The request's own bytes coming back first are an adapter's echo: with --echo always
         # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
         # pass for the reply.  Bytes that differ from the request are the reply, shown as such.
-        watch = _EchoWatch(adu) if serial_line and (self.echo or _EchoWatch.needed(request)) else None
+        watch = _EchoWatch(adu) if serial_line and (self.echo or echo_watched) else None
         self._sent = adu
         reply = self._await_reply(unit, request, deadline, watch)
         replied_at = self.replied_at = self.clock()
