@@ -418,8 +418,9 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
     every line must still be exactly what encoding the whole dict gives."""
     import io
 
-    from mbtool.cli.poll_output import Output, _json_line
-    from mbtool.cli.render import Result, as_dict
+    from mbtool.cli.json_text import json_line as _json_line
+    from mbtool.cli.poll_output import Output
+    from mbtool.cli.results import Result, as_dict
 
     results = [
         Result(1, 3, "Read Holding Registers", 0, [5, 6], "uint16", [5, 6]),
@@ -462,7 +463,7 @@ def test_a_reply_shown_again_is_worked_out_once_and_written_with_its_own_time():
     import json
 
     from mbtool.cli.poll_output import Deferred, Output
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import RegistersResponse
 
     made = []

@@ -7,7 +7,9 @@ import json
 import subprocess
 import sys
 
-from mbtool.cli.render import Result, as_dict, render, to_json
+from mbtool.cli.json_text import to_json
+from mbtool.cli.render import render
+from mbtool.cli.results import Result, as_dict
 
 REGISTERS = Result(
     1,

@@ -15,9 +15,11 @@ import tty
 import pytest
 from conftest import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
 
-import mbtool.cli  # noqa: F401  (registers sim://, as the command line does)
+from mbtool.cli.program import register_schemes
 from mbtool.codec.errors import RequestError
 from mbtool.link.transport import parse_target
+
+register_schemes()  # sim://, as the command line's main() registers it
 
 pytestmark = pytest.mark.timeout(60)
 

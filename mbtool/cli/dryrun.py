@@ -20,9 +20,9 @@ class DryRunDone(MbtoolError):
 class DryRunClient:
     """Stands in for a Client: builds and shows each frame instead of sending it."""
 
-    def __init__(self, framer, output_format: str | None, then: str = "") -> None:
+    def __init__(self, framer, settings, then: str = "") -> None:
         self.framer = framer
-        self.output_format = output_format
+        self.settings = settings  # the run's: its -o and --no-header
         self.then = then  # what a multi-request command would do next, for the closing line
         self.shown = 0
         self.trace = None  # raw wraps the trace; nothing is ever traced here
@@ -30,7 +30,8 @@ class DryRunClient:
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
         from mbtool.cli.frames import frame_report
-        from mbtool.cli.render import FORMATS, default_format, render
+        from mbtool.cli.render import default_format, render
+        from mbtool.cli.settings import FORMATS
         from mbtool.codec.describe import describe
 
         # Transaction id 1: the first one a real Client would use.
@@ -38,8 +39,9 @@ class DryRunClient:
         name = self.framer.name
         text = adu.decode("ascii", "replace") if name == "ascii" else adu.hex(" ")
         described = describe(text, name, "request")
-        fmt = self.output_format if self.output_format in FORMATS else default_format()  # not influx, prom
-        render(frame_report(described, header=self.shown == 0), fmt)
+        fmt = self.settings.output_format
+        fmt = fmt if fmt in FORMATS else default_format()  # not influx, prom
+        render(frame_report(described, header=self.shown == 0), fmt, csv_header=self.settings.csv_header)
         self.shown += 1
 
     def execute(self, unit: int, request):

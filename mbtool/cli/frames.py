@@ -1,9 +1,14 @@
-"""A decoded frame as a Report: what decode, raw, --dry-run and monitor print for one frame."""
+"""Frames as mbtool shows them: a decoded frame as a Report (what decode, raw, --dry-run and
+monitor print for one frame), a frame in one line, and the --hex trace."""
 
 from __future__ import annotations
 
-from mbtool.cli.render import Report, Row
-from mbtool.codec.errors import function_code_text
+import sys
+from typing import TextIO
+
+from mbtool.cli.results import Report, Row
+from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
+from mbtool.codec.framing import Framer
 
 SUMMARY_FIELDS = 8  # decoded fields shown on one line before "..."
 
@@ -84,3 +89,32 @@ def frame_report(described, header: bool = True):
     if d.unit is not None:
         title += f" · unit {d.unit}"
     return Report(d.unit, d.function, d.name, rows, data, title=title, header=header)
+
+
+class HexTrace:
+    """``--hex``: every frame sent and received, in hex on stderr, its checksum judged."""
+
+    def __init__(self, framer: Framer, out: TextIO | None = None) -> None:
+        self.framer = framer
+        self.out = out or sys.stderr
+
+    def sent(self, adu: bytes) -> None:
+        self._line("TX", adu, self.framer.check(adu))
+
+    def received(self, adu: bytes, note: str = "") -> None:
+        verdict = self.framer.check(adu)
+        self._line("RX", adu, f"{verdict}; {note}" if note else verdict)
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        # A whole frame with a bad checksum is judged like any frame; other bytes say why not.
+        verdict = self.framer.check(data) if isinstance(error, ChecksumError) else f"rejected: {error}"
+        self._line("RX", data, verdict)
+
+    def _line(self, direction: str, data: bytes, verdict: str) -> None:
+        self.out.write(f"{direction} {shown_frame(data)}  {verdict}\n")
+        self.out.flush()
+
+
+def shown_frame(data: bytes) -> str:
+    """A frame as the traces show it: hex pairs, or an ASCII frame's own text."""
+    return data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()

@@ -139,7 +139,7 @@ def _link_params() -> tuple[dict[str, click.Parameter], click.Context]:
     profile's (profiles._convert): one place for what --parity or --timeout accepts."""
     from mbtool.cli.options import device_command
 
-    command = device_command("link", polls=True)(lambda connection: connection)
+    command = device_command("link", polls=True)(lambda connection, settings: connection)
     return {param.name: param for param in command.params}, click.Context(command)
 
 

@@ -1,4 +1,6 @@
-"""Options and argument types shared by the commands: defined once (pip-tools' options.py)."""
+"""Options shared by the commands: defined once (pip-tools' options.py), and the decorator
+that gives a device command its options, its Connection and its Settings.  Their types are
+cli/param_types.py's."""
 
 from __future__ import annotations
 
@@ -7,252 +9,12 @@ from collections.abc import Callable
 
 import click
 
+from mbtool.cli.completion import complete_port, complete_profile
+from mbtool.cli.param_types import COUNT, PARITY, Choice, Number, PositiveFloat, Rs485Delays, Seconds
+from mbtool.cli.parsing import DeviceCommand
+from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
 from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
-
-# --- parameter types --------------------------------------------------------------
-
-
-def parse_int(text: str, what: str = "number") -> int:
-    """Decimal or 0x hex (also 0o / 0b); leading zeros are decimal, as a user means them."""
-    text = text.strip()
-    try:
-        if text.lstrip("+-").isdigit():
-            return int(text, 10)
-        return int(text, 0)
-    except ValueError:
-        shown = text or "(empty)"
-        raise RequestError(f"{what} {shown} is not a number (decimal or 0x hex)") from None
-
-
-def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
-    """'1', '1,17', '1-10', '1-3,17': unit ids 1..255 (0 is broadcast, which every unit hears;
-    ``broadcast``: 0 may be listed, for a gateway that forwards broadcasts)."""
-    units: set[int] = set()
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            raise RequestError(f"empty unit id in {text}")
-        low_text, dash, high_text = part.partition("-")
-        low = parse_int(low_text, "unit")
-        high = parse_int(high_text, "unit") if dash else low
-        if low > high:
-            raise RequestError(f"unit range {part} runs backwards")
-        lowest = 0 if broadcast else 1
-        for unit in (low, high):
-            if not lowest <= unit <= 255:
-                why = "" if broadcast else " (unit 0 is broadcast: every unit hears it)"
-                raise RequestError(f"unit {unit} is out of range {lowest}..255{why}")
-        units.update(range(low, high + 1))
-    return frozenset(units)
-
-
-def units_text(units: frozenset[int]) -> str:
-    """1,2,3,17 -> 1-3,17."""
-    runs: list[list[int]] = []
-    for unit in sorted(units):
-        if runs and unit == runs[-1][1] + 1:
-            runs[-1][1] = unit
-        else:
-            runs.append([unit, unit])
-    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
-
-
-class Number(click.ParamType):
-    """An integer in decimal or hex within [low, high]."""
-
-    name = "number"
-
-    def __init__(self, low: int, high: int, what: str) -> None:
-        self.low, self.high, self.what = low, high, what
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, int):
-            number = value
-        else:
-            try:
-                number = parse_int(value, self.what)
-            except RequestError as error:
-                self.fail(str(error), param, ctx)
-        if not self.low <= number <= self.high:
-            self.fail(f"{self.what} {number} is out of range {self.low}..{self.high}", param, ctx)
-        return number
-
-
-ADDRESS = Number(0, 0xFFFF, "address")
-COUNT = Number(0, 0xFFFF, "count")  # the spec limit is the codec's to check, per function code
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token) if not token.lower().lstrip("+-").startswith("0x") else int(token, 16)
-    except ValueError:
-        return False
-    return True
-
-
-def _show_help(ctx: click.Context, param: click.Parameter, value: bool) -> None:
-    if value and not ctx.resilient_parsing:
-        click.echo(ctx.get_help(), color=ctx.color)
-        ctx.exit()
-
-
-def did_you_mean(close: list[str]) -> str:
-    """ "; did you mean a, b or c?" for the close matches of a mistyped name, best first."""
-    if not close:
-        return ""
-    words = close[0] if len(close) == 1 else f"{', '.join(close[:-1])} or {close[-1]}"
-    return f"; did you mean {words}?"
-
-
-class QuickHelp:
-    """A --help option made without click's gettext look-up, which imports locale on every run."""
-
-    def get_help_option(self, ctx: click.Context) -> click.Option | None:
-        names = self.get_help_option_names(ctx)
-        if not names or not self.add_help_option:
-            return None
-        return click.Option(
-            names,
-            is_flag=True,
-            is_eager=True,
-            expose_value=False,
-            callback=_show_help,
-            help="Show this message and exit.",
-        )
-
-
-class DeviceCommand(QuickHelp, click.Command):
-    """Takes negative numbers as arguments (write-register 100 -5) yet still refuses unknown options."""
-
-    def parse_args(self, ctx, args):
-        params = self.get_params(ctx)
-        known = {name for param in params for name in param.opts + param.secondary_opts}
-        # Click tries every short option as a long one first, and the internal
-        # "no such option" it raises imports difflib and gettext: ~2 ms a run that
-        # a cron job pays.  Naming the long option up front skips that detour.
-        longer = {
-            short: max(param.opts, key=len)
-            for param in params
-            for short in param.opts
-            if len(short) == 2 and short[0] == "-" and short[1] != "-"
-        }
-        args = list(args)
-        for i, token in enumerate(args):
-            if token == "--":
-                break
-            if token in longer:
-                args[i] = longer[token]
-            elif token.startswith("-") and len(token) > 1 and not _is_number(token):
-                name = token.split("=", 1)[0]
-                if name not in known and not (name[:2] in known and not name.startswith("--")):
-                    import difflib  # only for a mistyped option
-
-                    close = difflib.get_close_matches(name, sorted(known), n=3, cutoff=0.6)
-                    raise click.UsageError(f"no such option {name}{did_you_mean(close)}", ctx)
-        return super().parse_args(ctx, args)
-
-
-class PositiveFloat(click.ParamType):
-    """Seconds, more than 0; with ``zero_ok`` also 0 (poll back to back)."""
-
-    name = "seconds"
-
-    def __init__(self, zero_ok: bool = False) -> None:
-        self.zero_ok = zero_ok
-
-    def convert(self, value, param, ctx):
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value} is not a number of seconds", param, ctx)
-        if number != number or number == float("inf") or number < 0 or (number == 0 and not self.zero_ok):
-            least = "0 or more" if self.zero_ok else "more than 0"
-            self.fail(f"must be {least} seconds, not {value}", param, ctx)
-        return number
-
-
-class Rs485Delays(click.ParamType):
-    """BEFORE[,AFTER] in milliseconds, as modpoll's -4 takes them; kept in seconds."""
-
-    name = "ms[,ms]"
-    LIMIT_MS = 1000  # the kernel keeps these in milliseconds; a second is already absurd
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).split(",")
-        try:
-            delays = [float(part) for part in parts]
-        except ValueError:
-            self.fail(f"{value} is not BEFORE[,AFTER] in milliseconds", param, ctx)
-        if len(delays) > 2 or not all(0 <= d <= self.LIMIT_MS for d in delays):
-            self.fail(f"{value}: give BEFORE[,AFTER], each 0..{self.LIMIT_MS} ms", param, ctx)
-        before, after = (delays + [0.0])[:2]
-        return (before / 1000, after / 1000)
-
-
-class Choice(click.Choice):
-    """One case rule for every choice: any case is accepted (--type FLOAT32, --order cdab,
-    --framer RTU) and the listed spelling is what the command gets, what --help shows and what
-    completion offers.  ``aliases`` are other words for a choice, as a field engineer says
-    them (parity none, even, odd).
-
-    The case folding is done here rather than by Click's ``case_sensitive=False``, whose
-    help and completion show the choices in lower case from Click 8.2 on ([n|e|o] for a
-    parity the docs write N, E, O)."""
-
-    def __init__(self, choices, aliases: dict[str, str] | None = None) -> None:
-        super().__init__(choices, case_sensitive=True)
-        self.spelling = {choice.lower(): choice for choice in self.choices}
-        self.spelling.update((word.lower(), choice) for word, choice in (aliases or {}).items())
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, str):
-            value = self.spelling.get(value.lower(), value)
-        return super().convert(value, param, ctx)
-
-    def shell_complete(self, ctx, param, incomplete):
-        from click.shell_completion import CompletionItem
-
-        return [CompletionItem(c) for c in self.choices if c.lower().startswith(incomplete.lower())]
-
-
-PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
-
-
-# Where serial adapters appear (Linux, macOS); completion offers the ones present.
-SERIAL_DEVICE_GLOBS = (
-    "/dev/ttyUSB*",
-    "/dev/ttyACM*",
-    "/dev/ttyAMA*",
-    "/dev/ttyS*",
-    "/dev/tty.usb*",
-    "/dev/serial/by-id/*",
-)
-
-
-def complete_port(ctx: click.Context, param: click.Parameter, incomplete: str) -> list:
-    """-p TAB: the URL schemes, the serial devices there are, and file names for other paths."""
-    import glob
-
-    from click.shell_completion import CompletionItem
-
-    from mbtool.link.transport import schemes
-
-    offers = [f"{scheme}://" for scheme in schemes()]
-    offers += sorted(path for pattern in SERIAL_DEVICE_GLOBS for path in glob.glob(pattern))
-    found = [CompletionItem(offer) for offer in offers if offer.startswith(incomplete)]
-    if not found and "://" not in incomplete:
-        return [CompletionItem(incomplete, type="file")]  # a device path typed by hand
-    return found
-
-
-def complete_profile(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
-    from mbtool.cli.profiles import names
-
-    return [name for name in names() if name.startswith(incomplete)]
-
 
 # --- shared options ------------------------------------------------------------------
 
@@ -305,21 +67,6 @@ def with_options(options: list[Callable]) -> Callable:
 serial_line_options = with_options(SERIAL_LINE_OPTIONS)
 
 
-class Seconds(click.ParamType):
-    """Seconds, 0 for never."""
-
-    name = "seconds"
-
-    def convert(self, value, param, ctx):
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value} is not a number of seconds", param, ctx)
-        if not 0 <= number < float("inf"):  # also refuses nan
-            self.fail(f"{value} is not a number of seconds (0 for never)", param, ctx)
-        return number
-
-
 # How a server treats its TCP clients, shared by serve and bridge.
 TCP_CLIENT_OPTIONS = [
     click.option(
@@ -352,27 +99,17 @@ TCP_CLIENT_OPTIONS = [
 tcp_client_options = with_options(TCP_CLIENT_OPTIONS)
 
 
-def output_chosen(fmt: str | None) -> str | None:
-    """Note -o as soon as it is parsed, so that even a failure after it gets its JSON object."""
+def output_chosen(ctx: click.Context, param: click.Parameter, fmt: str | None) -> str | None:
+    """-o's callback: noted in the run's context as soon as it is parsed, so that even a
+    failure after it gets its JSON object (cli.program.main)."""
     if fmt == "json":
-        from mbtool.cli import render
-
-        render.errors_as_json = True
+        ctx.meta[ERRORS_AS_JSON] = True
     return fmt
-
-
-def _no_header(ctx: click.Context, param: click.Parameter, value: bool) -> None:
-    if value:
-        from mbtool.cli import render
-
-        render.csv_header = False
 
 
 NO_HEADER_OPTION = click.option(
     "--no-header",
     is_flag=True,
-    expose_value=False,
-    callback=_no_header,
     help="CSV without its header row (it is left out anyway when appending to a file that has content).",
 )
 
@@ -470,7 +207,7 @@ OUTPUT_FORMAT_OPTION = click.option(
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
     'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
     "(Prometheus text) for the read commands.",
@@ -482,7 +219,8 @@ DRY_RUN_OPTION = click.option(
 )
 
 
-# The parameters connection_options may give a command, as click names them.
+# The parameters connection_options may give a command, as click names them: those that
+# make its Connection, and those that make its Settings.
 CONNECTION_KEYS = (
     "port",
     "unit",
@@ -500,10 +238,8 @@ CONNECTION_KEYS = (
     "rs485",
     "rs485_delays",
     "reconnect_each",
-    "hex_trace",
-    "output_format",
-    "dry_run",
 )
+SETTINGS_KEYS = ("hex_trace", "output_format", "no_header", "dry_run", "measurement", "textfile", "changes")
 
 
 def connection_options(unit: bool = True, output: bool = True, polls: bool = False) -> list[Callable]:
@@ -637,37 +373,44 @@ def device_command(
     polls: bool = False,
     unit: bool = True,
     output: bool = True,
-    **settings,
+    **attrs,
 ) -> Callable:
-    """A command that talks to a device: the shared options it uses, then a Connection as
-    first argument.
+    """A command that talks to a device: the shared options it uses, then a Connection and
+    the run's Settings as first arguments.
 
     ``types``: the --type choices the command offers (none: no --type/--order);
     ``order_all``: --order also takes all (reads); ``readings``: it prints values read,
     which -o influx and -o prom can carry; ``polls``, ``unit``, ``output``: see
-    connection_options.
+    connection_options; ``attrs``: click.command's.
     """
 
     def decorate(function: Callable) -> Callable:
         @functools.wraps(function)
         def run(**kwargs):
-            # The command's own arguments stay in kwargs; the shared options make the Connection.
+            # The command's own arguments stay in kwargs; the shared options make the
+            # Connection and the Settings.
             shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
-            shared["hex"] = shared.pop("hex_trace")
             shared["bytesize"], shared["stopbits"] = int(shared["bytesize"]), int(shared["stopbits"])
             connection = Connection(**shared)
-            output_format = connection.output_format
+            shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
+            output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
-            from mbtool.cli.render import MONITORING_FORMATS  # loaded with the CLI
-
-            if output_format in MONITORING_FORMATS:
-                if not readings:
-                    raise RequestError(
-                        f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
-                    )
-                from mbtool.cli import monitoring
-
-                monitoring.device = profile or ""
+            if output_format in MONITORING_FORMATS and not readings:
+                raise RequestError(
+                    f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
+                )
+            settings = Settings(
+                output_format=output_format,
+                csv_header=not shown.get("no_header", False),
+                hex=shown["hex_trace"],
+                dry_run=shown["dry_run"],
+                measurement=shown.get("measurement", "modbus"),
+                textfile=shown.get("textfile") or "",
+                # The profile names the device in what -o influx and -o prom write; --textfile
+                # alone, which implies -o prom, has never carried it.
+                device=(profile or "") if output_format in MONITORING_FORMATS else "",
+                changes=shown.get("changes", False),
+            )
             if profile:
                 from mbtool.cli.profiles import defaults
                 from mbtool.codec.record import replace
@@ -676,7 +419,7 @@ def device_command(
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
                 connection = replace(connection, **changes) if changes else connection
-            return function(connection, **kwargs)
+            return function(connection, settings, **kwargs)
 
         run = PROFILE_OPTION(run)
         typed = type_options(types, order_all) if types else []
@@ -685,9 +428,9 @@ def device_command(
         context = {
             "ignore_unknown_options": True,
             "help_option_names": ["-h", "--help"],
-            **settings.pop("context_settings", {}),
+            **attrs.pop("context_settings", {}),
         }
-        command_class = settings.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
-        return click.command(name, cls=command_class, context_settings=context, **settings)(run)
+        command_class = attrs.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
+        return click.command(name, cls=command_class, context_settings=context, **attrs)(run)
 
     return decorate

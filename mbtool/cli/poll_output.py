@@ -10,29 +10,23 @@ import sys
 import time
 from collections.abc import Callable
 
+from mbtool.cli.json_text import JsonLines, error_json, json_line
 from mbtool.cli.render import (
-    MONITORING_FORMATS,
     POINT_CSV_HEADER,
-    Points,
-    Result,
-    as_dict,
     by_order,
     change_parts,
     csv_cells,
-    error_json,
     labels,
-    local_time,
     point_cells,
     point_line,
-    points_dict,
     points_heading,
     points_table,
-    to_json,
-    value_text,
     wants_csv_header,
 )
+from mbtool.cli.results import Points, Result, points_dict, value_text
+from mbtool.cli.settings import MONITORING_FORMATS
+from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import function_code_text
-from mbtool.codec.values import TYPES
 from mbtool.errors import OutputFailed, PartialRead, exit_code_for
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
@@ -43,21 +37,23 @@ class Output:
     together than FLUSH_GAP (--interval 0) share one write, not a system call each, which
     PYTHONUNBUFFERED or a pipe would otherwise make of every line."""
 
-    def __init__(self, fmt: str, out=None) -> None:
+    def __init__(self, fmt: str, out=None, *, csv_header: bool = True, metrics=None) -> None:
+        """``csv_header``: the run's settings (False with --no-header); ``metrics``: the run's
+        cli.metrics.Metrics, for -o influx and prom."""
         self.fmt = fmt
         self.out = out or sys.stdout
+        self.csv_header = csv_header
+        self.metrics = metrics
         self.header_done = False
         self.live = None
         self._pending: list[str] = []
         self._flush_at = 0.0
-        self._json = _JsonLines()
+        self._json = JsonLines()
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         if self.fmt in MONITORING_FORMATS:
-            from mbtool.cli import monitoring
-
             # To stdout with the other writes (one flush a gap); a textfile is written at once.
-            monitoring.emit(result, self.fmt, None if monitoring.textfile else _Pending(self), stamp)
+            self.metrics.emit(result, None if self.metrics.textfile else _Pending(self), stamp)
         elif result.__class__ is Points:
             self._points(when, result)
         elif self.fmt == "json":
@@ -77,7 +73,7 @@ class Output:
         of the values that changed instead (ChangesOnly)."""
         if self.fmt == "json":
             self._emit(
-                _json_line({"time": when, **what, "old": old, "new": new, **({"unit": unit} if unit else {})})
+                json_line({"time": when, **what, "old": old, "new": new, **({"unit": unit} if unit else {})})
             )
             return
         named, before, after = change_parts(what, old, new, unit)
@@ -85,7 +81,7 @@ class Output:
 
     def _points(self, when: str, points: Points) -> None:
         if self.fmt == "json":
-            self._emit(_json_line({"time": when, **points_dict(points)}))
+            self._emit(json_line({"time": when, **points_dict(points)}))
         elif self.fmt == "csv":
             self._csv(when, POINT_CSV_HEADER, [point_cells(row) for row in points.rows])
         elif self.fmt == "plain":
@@ -97,7 +93,7 @@ class Output:
 
     def _csv(self, when: str, header: list[str], rows: list[list[str]]) -> None:
         if not self.header_done:
-            if wants_csv_header(self.out):
+            if wants_csv_header(self.out, self.csv_header):
                 self._emit(",".join(["time", *header]) + "\n")
             self.header_done = True
         self._emit("".join(",".join([when, *map(_csv_cell, row)]) + "\n" for row in rows))
@@ -106,9 +102,7 @@ class Output:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
-            from mbtool.cli import monitoring
-
-            monitoring.emit_failure(error, self.fmt, None if monitoring.textfile else _Pending(self))
+            self.metrics.emit_failure(error, None if self.metrics.textfile else _Pending(self))
         if self.fmt == "json" and not isinstance(error, PartialRead):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).
@@ -289,98 +283,13 @@ class Deferred:
 
 
 class _Pending:
-    """A stream for monitoring.emit that joins the Output's pending writes (one flush a gap)."""
+    """A stream for Metrics.emit that joins the Output's pending writes (one flush a gap)."""
 
     def __init__(self, output: Output) -> None:
         self.output = output
 
     def write(self, text: str) -> None:
         self.output._emit(text)
-
-
-def _json_line(data: dict) -> str:
-    """The json module's C encoder: a sustained poll spends more on JSON than on Modbus
-    with render.to_json, and json's import is nothing to a loop.  The same text, since
-    to_json keeps json's separators; NaN and infinities, which json would write as
-    invalid JSON, go the to_json way (null)."""
-    global _ENCODER
-    if _ENCODER is None:
-        import json
-
-        # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
-        _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
-    try:
-        return _ENCODER.encode(data) + "\n"
-    except ValueError:
-        return to_json(data) + "\n"
-
-
-_ENCODER = None
-
-
-class _JsonLines:
-    """A poll's JSON line, as ``_json_line({"time": ..., **as_dict(result)})`` writes it, with
-    less work a poll: the polls of one command differ only in their time, values and raw
-    registers, so the rest of the line (unit, function, name, address, type, addresses,
-    refs) is encoded once and kept while the result's shape stays the same; and a poll
-    whose result is the one before (its values unchanged: ``Deferred``) writes only its
-    time anew."""
-
-    def __init__(self) -> None:
-        self.shape: tuple | None = None
-        self.parts: list[str] = []  # the text around the time, the values and the registers
-        self.integers = False  # the values are ints (an integer type, one order)
-        self.result = None  # the last result written,
-        self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
-
-    def line(self, when: str, result) -> str:
-        if result is not self.result:
-            self.result, self.rest = result, self._rest(result)
-        if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
-            return _json_line({"time": when, **as_dict(result)})
-        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
-        return self.parts[0] + '"' + when + '"' + self.rest
-
-    def _rest(self, result) -> str | None:
-        """The line after the time: the values and registers within the text kept for the shape."""
-        shape = (
-            result.unit,
-            result.function,
-            result.name,
-            result.address,
-            result.addresses,
-            result.type,
-            result.refs,
-            result.extra,
-            result.registers is None,
-        )
-        if shape != self.shape:
-            self.shape, self.parts = shape, self._parts(result)
-            self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        # A list of ints is the same text in Python's repr as in JSON (json writes an int by
-        # its repr, and a list with ", "), at a third of the encoder's cost; registers are
-        # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
-        values = result.values
-        try:
-            text = repr(values) if self.integers and type(values) is list else _ENCODER.encode(values)
-        except ValueError:
-            return None
-        parts = self.parts
-        if len(parts) == 3:
-            return parts[1] + text + parts[2]
-        return parts[1] + text + parts[2] + repr(list(result.registers)) + parts[3]
-
-    @staticmethod
-    def _parts(result) -> list[str]:
-        """The line's text, cut where the time, the values and the registers go."""
-        data = {"time": _MARK, **as_dict(result), "values": _MARK}
-        if "registers" in data:
-            data["registers"] = _MARK
-        text = _json_line(data)
-        return text.split(_ENCODER.encode(_MARK))
-
-
-_MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
 
 
 def _csv_cell(text: str) -> str:

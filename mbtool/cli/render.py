@@ -1,4 +1,5 @@
-"""Renderers: turn a result into table, plain, JSON or CSV text.  They never talk to a device.
+"""Renderers: turn a result (cli/results.py) into table, plain, JSON or CSV text.  They
+never talk to a device.
 
 The default follows the terminal (httpie's rule): a rich table when stdout is a
 TTY, plain ``ADDRESS VALUE`` lines in a pipe.  rich is imported only when a
@@ -7,113 +8,31 @@ table is drawn: it costs tens of milliseconds a cron job should not pay.
 
 from __future__ import annotations
 
-import math
 import os
 import stat
 import sys
-import time
-from collections.abc import Sequence
 from typing import TextIO
 
-from mbtool.codec.errors import ChecksumError, FrameError, function_code_text
-from mbtool.codec.framing import Framer
-from mbtool.codec.record import record
-
-FORMATS = ("table", "plain", "json", "csv")
-MONITORING_FORMATS = ("influx", "prom")  # cli/monitoring.py writes them, for the read commands
-
-
-@record
-class Result:
-    """What a command learned (or wrote): values at addresses, and their context."""
-
-    unit: int
-    function: int
-    name: str
-    address: int
-    values: list  # bits, or values of ``type``; {order: value} each with --order all
-    type: str | None = None  # None for bits; a register type from codec.values otherwise
-    registers: Sequence[int] | None = None  # the raw registers behind typed values, as read
-    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
-    extra: dict | None = None  # more keys for JSON
-    refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
-    addresses: list[int] | None = None  # where each value starts; None: one a value from address
-
-    def __init__(
-        self,
-        unit: int,
-        function: int,
-        name: str,
-        address: int,
-        values: list,
-        type: str | None = None,
-        registers: Sequence[int] | None = None,
-        note: str = "",
-        extra: dict | None = None,
-        refs: list[str] | None = None,
-        addresses: list[int] | None = None,
-    ) -> None:
-        # By hand: one a poll (codec/record.py).
-        fields = self.__dict__
-        fields["unit"] = unit
-        fields["function"] = function
-        fields["name"] = name
-        fields["address"] = address
-        fields["values"] = values
-        fields["type"] = type
-        fields["registers"] = registers
-        fields["note"] = note
-        fields["extra"] = extra
-        fields["refs"] = refs
-        # One value a register or a bit, from ``address`` on, unless the command says otherwise.
-        fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
-
-    @property
-    def table(self) -> str:
-        """The table a read of FC 01-04 read (coils, discrete, input, holding); else the
-        function's name."""
-        from mbtool.codec.tables import TABLE_OF_READ
-
-        return TABLE_OF_READ.get(self.function, self.name)
+from mbtool.cli.json_text import to_json
+from mbtool.cli.results import (
+    PointRow,
+    Points,
+    Report,
+    Result,
+    as_dict,
+    point_text,
+    points_dict,
+    report_dict,
+    value_text,
+)
+from mbtool.codec.errors import function_code_text
 
 
-def local_time(when: float | None = None) -> str:
-    """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.
-
-    Built from time.localtime, which knows the offset in force (a day-long poll crosses
-    daylight saving time), at a third of datetime.astimezone's cost a poll.
-    """
-    when = time.time() if when is None else when
-    second = int(when)
-    if second != _SECOND[0]:  # one strftime a second, however fast the polls come
-        local = time.localtime(second)
-        offset = local.tm_gmtoff // 60
-        sign = "-" if offset < 0 else "+"
-        zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
-        _SECOND[:] = [second, time.strftime("%Y-%m-%dT%H:%M:%S", local), zone]
-        if not _MILLISECONDS:  # made on first use: a one-shot command stamps nothing
-            _MILLISECONDS.extend(f".{ms:03d}" for ms in range(1000))
-    return _SECOND[1] + _MILLISECONDS[int((when - second) * 1000)] + _SECOND[2]
-
-
-_SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)
-_MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
-
-
-# Set by the options as they are parsed: cli.main reads them when a command fails.
-errors_as_json = False  # -o json: a failure is also an object on stdout
-csv_header = True  # --no-header: CSV without its header row, always
-
-
-def error_json(message: str, code: int, **first: object) -> str:
-    """The object -o json writes for a failure, one-shot or a poll's: {"error", "exit_code"}."""
-    return to_json({**first, "error": message, "exit_code": code})
-
-
-def wants_csv_header(out: TextIO) -> bool:
-    """A CSV header, unless --no-header, or unless the output is a regular file that already
-    has content: cron's ``>> log.csv`` gets one header, not one a run."""
-    if not csv_header:
+def wants_csv_header(out: TextIO, header: bool = True) -> bool:
+    """A CSV header, unless --no-header (``header`` False, the run's settings), or unless the
+    output is a regular file that already has content: cron's ``>> log.csv`` gets one
+    header, not one a run."""
+    if not header:
         return False
     try:
         fd = out.fileno()
@@ -132,29 +51,21 @@ def default_format(stream: TextIO | None = None) -> str:
     return "table" if (stream or sys.stdout).isatty() else "plain"
 
 
-def render(result: Result | Report | Points, fmt: str, out: TextIO | None = None) -> None:
+def render(
+    result: Result | Report | Points, fmt: str, out: TextIO | None = None, *, csv_header: bool = True
+) -> None:
+    """``csv_header``: the run's settings (False with --no-header)."""
     out = out or sys.stdout
     if isinstance(result, Points):
-        {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}[fmt](
-            result, out
-        )
-        return
-    if isinstance(result, Report):
-        {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}[fmt](
-            result, out
-        )
-        return
-    {"table": _table, "plain": _plain, "json": _json, "csv": _csv}[fmt](result, out)
-
-
-def value_text(value: object) -> str:
-    if isinstance(value, bool):
-        return "1" if value else "0"
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, dict):  # --order all: the value in each word order
-        return " ".join(f"{order}={value_text(each)}" for order, each in value.items())
-    return str(value)
+        renderers = {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}
+    elif isinstance(result, Report):
+        renderers = {"table": _report_table, "plain": _report_plain, "json": _report_json, "csv": _report_csv}
+    else:
+        renderers = {"table": _table, "plain": _plain, "json": _json, "csv": _csv}
+    if fmt == "csv":
+        renderers[fmt](result, out, csv_header)
+    else:
+        renderers[fmt](result, out)
 
 
 def change_parts(what: dict, old, new, unit: str = "") -> tuple[str, str, str]:
@@ -211,65 +122,16 @@ def _plain(result: Result, out: TextIO) -> None:
     )
 
 
-def as_dict(result: Result) -> dict:
-    data: dict = {
-        "unit": result.unit,
-        "function": result.function,
-        "name": result.name,
-        "address": result.address,
-    }
-    if result.type:
-        data["type"] = result.type
-    data["values"] = result.values
-    data["addresses"] = result.addresses
-    if result.refs is not None:
-        data["refs"] = result.refs
-    if result.registers is not None and result.type not in (None, "uint16"):
-        data["registers"] = result.registers
-    data.update(result.extra or {})
-    return data
-
-
-def to_json(value: object) -> str:
-    """JSON text of plain data (dict, list, tuple, str, int, float, bool, None).
-
-    Not the json module: importing it costs ~2 ms (its decoder too) that every
-    one-shot ``-o json`` from cron would pay; strings are escaped by the same C
-    function json itself uses.
-    """
-    from _json import encode_basestring_ascii
-
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "null"  # NaN and infinities are not JSON; jq would choke on them
-    if value is True:
-        return "true"
-    if value is False:
-        return "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return encode_basestring_ascii(value)
-    if isinstance(value, dict):
-        return (
-            "{"
-            + ", ".join(f"{encode_basestring_ascii(str(k))}: {to_json(v)}" for k, v in value.items())
-            + "}"
-        )
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(to_json(item) for item in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} as JSON")
-
-
 def _json(result: Result, out: TextIO) -> None:
     out.write(to_json(as_dict(result)) + "\n")
 
 
-def _csv(result: Result, out: TextIO) -> None:
+def _csv(result: Result, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
     header, rows = csv_cells(result)
-    if wants_csv_header(out):
+    if wants_csv_header(out, wanted):
         writer.writerow(header)
     writer.writerows(rows)
 
@@ -326,62 +188,6 @@ def _table(result: Result, out: TextIO) -> None:
 # --- a register map's points: name, value, unit ------------------------------------------
 
 
-@record
-class PointRow:
-    """One point of a register map as read: ``value`` in engineering units (or its enum
-    label, or on/off), ``raw`` the registers (or bits) it came from."""
-
-    name: str
-    value: object
-    unit: str
-    ref: str
-    raw: tuple
-    bits: bool  # a coil or discrete input: raw holds bits, not registers
-    description: str = ""
-    number: int | float | None = None  # the number behind the value (Point.number_of)
-    no_label: bool = False  # a value the point's enum does not label (Point.no_label)
-
-    @property
-    def shown(self) -> str:
-        return point_text(self.value) + (" (no label)" if self.no_label else "")
-
-
-INVALID = "invalid"  # a raw value the map's invalid key names: the device has no value to give
-
-
-def point_text(value: object) -> str:
-    """A map's point's value as text: a bit is on or off; no value (the map's invalid key)
-    is invalid."""
-    if value is None:
-        return INVALID
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    return value_text(value)
-
-
-@record
-class PointFailure:
-    """A point of a map the device refused: its name, ref and the device's answer."""
-
-    name: str
-    ref: str
-    error: str
-
-
-@record
-class Points:
-    """What ``read -m MAP`` learned.  Plain: ``NAME VALUE UNIT`` lines; JSON: the unit id,
-    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point.
-    The points the device refused (a partial read) are in ``failed``: in JSON and the table,
-    and on stderr; plain and CSV lines are values only."""
-
-    unit: int
-    source: str  # the map file
-    rows: list[PointRow]
-    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
-    failed: list[PointFailure] = ()
-
-
 POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
 
 
@@ -392,29 +198,6 @@ def point_line(row: PointRow) -> str:
 def point_cells(row: PointRow) -> list[str]:
     raw = " ".join(value_text(item) for item in row.raw)
     return [row.name, row.shown, row.unit, row.ref, raw]
-
-
-def points_dict(points: Points) -> dict:
-    return {
-        "unit": points.unit,
-        "map": points.source,
-        "points": [
-            {
-                "name": row.name,
-                "value": row.value,
-                "unit": row.unit,
-                "ref": row.ref,
-                "bits" if row.bits else "registers": list(row.raw),
-                **({"invalid": True} if row.value is None else {}),
-            }
-            for row in points.rows
-        ],
-        **(
-            {"failed": [{"name": f.name, "ref": f.ref, "error": f.error} for f in points.failed]}
-            if points.failed
-            else {}
-        ),
-    }
 
 
 def points_table(points: Points, heading: str = ""):
@@ -463,60 +246,16 @@ def _points_json(points: Points, out: TextIO) -> None:
     out.write(to_json(points_dict(points)) + "\n")
 
 
-def _points_csv(points: Points, out: TextIO) -> None:
+def _points_csv(points: Points, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
-    if wants_csv_header(out):
+    if wants_csv_header(out, wanted):
         writer.writerow(POINT_CSV_HEADER)
     writer.writerows(point_cells(row) for row in points.rows)
 
 
 # --- structured results: fields, counters, event lists, decoded frames -----------------
-
-
-@record
-class Row:
-    """One named item of a Report.
-
-    ``name`` is one token (a script splits the plain line at the first space);
-    ``value`` is plain data for JSON; ``text`` is how a person reads it (default:
-    the value); ``raw`` the bytes on the wire it came from (offline decoding).
-    """
-
-    name: str
-    value: object
-    text: str | None = None
-    raw: bytes | None = None
-
-    @property
-    def shown(self) -> str:
-        return value_text(self.value) if self.text is None else self.text
-
-
-@record
-class Report:
-    """What a command learned that is not a run of addressed values: named rows.
-
-    Plain: one ``NAME VALUE`` line per row.  JSON: ``unit``, ``function``, ``name``,
-    then ``data`` (default: each row's name and value).  CSV: ``name,value`` rows
-    (plus ``bytes`` when rows carry them).  Table: one rich table.
-    """
-
-    unit: int | None
-    function: int | None
-    name: str
-    rows: list[Row]
-    data: dict | None = None
-    note: str = ""
-    title: str = ""  # the table's heading; default name, function code and unit
-    header: bool = True  # CSV header (off for the second and later of several reports)
-
-
-def report_dict(report: Report) -> dict:
-    head: dict = {"unit": report.unit, "function": report.function, "name": report.name}
-    body = report.data if report.data is not None else {row.name: row.value for row in report.rows}
-    return {**head, **body}
 
 
 def _report_plain(report: Report, out: TextIO) -> None:
@@ -527,12 +266,12 @@ def _report_json(report: Report, out: TextIO) -> None:
     out.write(to_json(report_dict(report)) + "\n")
 
 
-def _report_csv(report: Report, out: TextIO) -> None:
+def _report_csv(report: Report, out: TextIO, wanted: bool) -> None:
     import csv
 
     writer = csv.writer(out, lineterminator="\n")
     with_raw = any(row.raw is not None for row in report.rows)
-    if report.header and wants_csv_header(out):
+    if report.header and wants_csv_header(out, wanted):
         writer.writerow(["name", "value", "bytes"] if with_raw else ["name", "value"])
     for row in report.rows:
         cells = [row.name, row.shown]
@@ -570,32 +309,3 @@ def _report_table(report: Report, out: TextIO) -> None:
     console.print(table)
     if report.note:
         console.print(escape(report.note), style="dim")
-
-
-class HexTrace:
-    """``--hex``: every frame sent and received, in hex on stderr, its checksum judged."""
-
-    def __init__(self, framer: Framer, out: TextIO | None = None) -> None:
-        self.framer = framer
-        self.out = out or sys.stderr
-
-    def sent(self, adu: bytes) -> None:
-        self._line("TX", adu, self.framer.check(adu))
-
-    def received(self, adu: bytes, note: str = "") -> None:
-        verdict = self.framer.check(adu)
-        self._line("RX", adu, f"{verdict}; {note}" if note else verdict)
-
-    def rejected(self, data: bytes, error: FrameError) -> None:
-        # A whole frame with a bad checksum is judged like any frame; other bytes say why not.
-        verdict = self.framer.check(data) if isinstance(error, ChecksumError) else f"rejected: {error}"
-        self._line("RX", data, verdict)
-
-    def _line(self, direction: str, data: bytes, verdict: str) -> None:
-        self.out.write(f"{direction} {shown_frame(data)}  {verdict}\n")
-        self.out.flush()
-
-
-def shown_frame(data: bytes) -> str:
-    """A frame as the traces show it: hex pairs, or an ASCII frame's own text."""
-    return data.hex(" ").upper() if not data.startswith(b":") else data.decode("ascii", "replace").strip()

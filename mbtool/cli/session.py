@@ -2,7 +2,8 @@
 or only shown (--dry-run); and the result printed in the chosen format.
 
 What every device command shares lives here, so that commands never import one
-another and the link knows nothing of rendering.
+another and the link knows nothing of rendering: each function takes the link's
+``Connection`` and the run's ``Settings``.
 """
 
 from __future__ import annotations
@@ -11,58 +12,60 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from mbtool.cli.settings import Settings
 from mbtool.codec.record import replace
 from mbtool.link.connection import Connection, check, framer_name
 from mbtool.link.connection import open_client as open_link
 
 
 @contextmanager
-def open_client(connection: Connection, needs: str = "", framer=None, then: str = "") -> Iterator:
+def open_client(
+    connection: Connection, settings: Settings, needs: str = "", framer=None, then: str = ""
+) -> Iterator:
     """A Client on the connection's link (see link.connection.open_client), traced with
     --hex; with --dry-run a stand-in that shows each request's frame and opens nothing.
 
     ``then``: with --dry-run, what the command would send after the first reply.
     """
-    if connection.dry_run:
+    if settings.dry_run:
         from mbtool.cli.dryrun import DryRunClient
         from mbtool.codec.framing import make_framer
 
-        name = check(connection, needs)
-        yield DryRunClient(framer or make_framer(name), connection.output_format, then)
+        name = check(connection, needs, opening=False)
+        yield DryRunClient(framer or make_framer(name), settings, then)
         return
-    with open_link(connection, needs, framer, trace_for(connection)) as client:
+    with open_link(connection, needs, framer, trace_for(settings)) as client:
         yield client
         for deviation in client.deviations:
             print(f"mbtool: warning: {deviation} (accepted: --lenient)", file=sys.stderr)
 
 
-def trace_for(connection: Connection):
+def trace_for(settings: Settings):
     """What makes a Client's trace from its framer: --hex's, or None for no trace."""
-    if not connection.hex:
+    if not settings.hex:
         return None
-    from mbtool.cli.render import HexTrace
+    from mbtool.cli.frames import HexTrace
 
     return HexTrace
 
 
-def execute(connection: Connection, request) -> object:
+def execute(connection: Connection, settings: Settings, request) -> object:
     """Open the link, run one transaction, close it; the reply (None for broadcast)."""
-    with open_client(connection, "" if request.broadcastable else request.name) as client:
+    with open_client(connection, settings, "" if request.broadcastable else request.name) as client:
         return client.execute(connection.unit, request)
 
 
-def show(connection: Connection, result) -> None:
-    """Print a command's result; a write to unit 0 says on stderr that nobody confirmed it."""
-    from mbtool.cli.render import MONITORING_FORMATS, default_format, render
+def show(connection: Connection, settings: Settings, result, metrics=None) -> None:
+    """Print a command's result; a write to unit 0 says on stderr that nobody confirmed it.
+    ``metrics``: the run's cli.metrics.Metrics, which writes -o influx and prom (only the
+    read commands offer them: device_command)."""
+    from mbtool.cli.render import default_format, render
     from mbtool.codec.framing import is_broadcast
 
     if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)
-    fmt = connection.output_format or default_format()
-    if fmt in MONITORING_FORMATS:  # only the read commands offer them (device_command)
-        from mbtool.cli.monitoring import emit
-
-        emit(result, fmt, sys.stdout)
+    if metrics is not None:
+        metrics.emit(result, sys.stdout)
         return
-    render(result, fmt)
+    render(result, settings.output_format or default_format(), csv_header=settings.csv_header)

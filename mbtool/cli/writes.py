@@ -136,16 +136,17 @@ def item_line(item: dict) -> str:
     return f"{item['status']} {line}" if "status" in item else line
 
 
-def report(connection, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
-    """Print the items in the connection's format: ``head`` (unit, map, file) and ``end``
-    (error, exit_code) frame them in JSON."""
-    from mbtool.cli.render import default_format, to_json
+def report(settings, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
+    """Print the items in the run's format (its Settings): ``head`` (unit, map, file) and
+    ``end`` (error, exit_code) frame them in JSON."""
+    from mbtool.cli.json_text import to_json
+    from mbtool.cli.render import default_format
 
-    fmt = connection.output_format or default_format()
+    fmt = settings.output_format or default_format()
     if fmt == "json":
         print(to_json({**head, "writes": list(items), **(end or {})}))
     elif fmt == "csv":
-        _csv(items)
+        _csv(items, settings.csv_header)
     elif fmt == "table":
         _table(items, head)
     else:
@@ -155,13 +156,14 @@ def report(connection, items: Sequence[dict], head: dict, end: dict | None = Non
 CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 
 
-def _csv(items: Sequence[dict]) -> None:
+def _csv(items: Sequence[dict], header: bool) -> None:
     import csv
 
-    from mbtool.cli.render import value_text, wants_csv_header
+    from mbtool.cli.render import wants_csv_header
+    from mbtool.cli.results import value_text
 
     writer = csv.writer(sys.stdout, lineterminator="\n")
-    if wants_csv_header(sys.stdout):
+    if wants_csv_header(sys.stdout, header):
         writer.writerow(CSV_HEADER)
     for item in items:
         writer.writerow(

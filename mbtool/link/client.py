@@ -168,7 +168,9 @@ class Client:
             self._prepared = (
                 request,
                 request.encode(),
-                _EchoWatch.needed(request),
+                # Only a serial line has an echo to watch for (a map's requests over TCP
+                # would pay for the look on every one).
+                transport.serial_line and _EchoWatch.needed(request),
                 request.expects_response,
                 request.reply_prefix,
             )

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 @record
 class Connection:
-    """Built from keywords: what -p, -u and the line options say, and how to show the result."""
+    """Built from keywords: what -p, -u and the line options say about the link."""
 
     port: str | None = None
     unit: int = 1
@@ -29,9 +29,6 @@ class Connection:
     timeout: float = 1.0
     retries: int = 0
     echo: bool = False  # a half-duplex adapter echoes every byte sent
-    hex: bool = False  # --hex: trace every frame on stderr
-    output_format: str | None = None  # None: table on a terminal, plain in a pipe
-    dry_run: bool = False  # show the frames, open nothing, send nothing
     rs485: bool = False  # drive RTS for the direction of a two-wire RS-485 line
     rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
     pause: float = 0.0  # seconds at least between a reply and the next request (slow devices)
@@ -46,15 +43,16 @@ def framer_name(connection: Connection) -> str:
     return connection.framer or default_framer(connection.port or "")
 
 
-def check(connection: Connection, needs: str = "") -> str:
+def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
     """The framing's name, once the connection makes sense; RequestError (nothing sent) if not.
 
     ``needs``: what the command does, named when it may not go to unit 0 (broadcast is
-    for writes only, spec §2; an empty ``needs`` allows it).
+    for writes only, spec §2; an empty ``needs`` allows it).  ``opening``: the link is to
+    be opened, so a port is needed (a dry run opens none).
     """
     from mbtool.codec.framing import is_broadcast
 
-    if not connection.port and not connection.dry_run:
+    if not connection.port and opening:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )

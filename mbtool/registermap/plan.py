@@ -32,7 +32,7 @@ from mbtool.codec.data_access import (
 )
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.pdu import ExceptionCode, Request, Response
-from mbtool.codec.record import record
+from mbtool.codec.record import field, record
 from mbtool.codec.tables import READS, Table, write_of
 from mbtool.errors import PartialRead
 from mbtool.registermap.point import Point, PointValue
@@ -40,15 +40,22 @@ from mbtool.registermap.point import Point, PointValue
 
 @record
 class Block:
-    """One read request and the points it serves."""
+    """One read request and the points it serves.  The request, and where each point lies
+    in its reply, are worked out with the block: a map polled reads the same blocks, with the
+    same requests, poll after poll."""
 
     table: Table
     address: int
     count: int
     points: tuple[Point, ...]
+    request: Request = field(default=None, compare=False)  # made from the fields above
+    spans: tuple = field(default=(), compare=False)  # (point, first, end) in the reply's data
 
-    def request(self) -> Request:
-        return READS[self.table.name](self.address, self.count)
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "request", READS[self.table.name](self.address, self.count))
+        first = self.address
+        spans = tuple((point, point.address - first, point.end - first) for point in self.points)
+        object.__setattr__(self, "spans", spans)
 
 
 @record
@@ -60,6 +67,16 @@ class Reading:
     value: PointValue
     raw: tuple
     error: ModbusException | None = None
+
+    def __init__(
+        self, point: Point, value: PointValue, raw: tuple, error: ModbusException | None = None
+    ) -> None:
+        # By hand: one a point a poll (codec/record.py).
+        fields = self.__dict__
+        fields["point"] = point
+        fields["value"] = value
+        fields["raw"] = raw
+        fields["error"] = error
 
 
 def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
@@ -185,12 +202,12 @@ def _refused(block: Block, error: ModbusException) -> dict[str, Reading]:
 
 
 def _read_block(execute: Execute, block: Block) -> dict[str, Reading]:
-    reply = execute(block.request())
+    reply = execute(block.request)
     data = reply.bits if block.table.bits else reply.registers
     out = {}
-    for point in block.points:
-        raw = tuple(data[point.address - block.address : point.end - block.address])
-        out[point.name] = Reading(point, point.value_of(list(raw)), raw)
+    for point, first, end in block.spans:
+        raw = data[first:end]
+        out[point.name] = Reading(point, point.value_of(raw), raw)
     return out
 
 

@@ -23,7 +23,14 @@ from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, loca
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import Table, reference
-from mbtool.codec.values import TYPES, Value, decode_values, encode_values, float_value, integer_value
+from mbtool.codec.values import (
+    TYPES,
+    Value,
+    encode_values,
+    float_value,
+    integer_value,
+    value_decoder,
+)
 
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
@@ -58,9 +65,12 @@ class Point:
     # The point whose value is this one's power-of-ten scale factor (SunSpec's sunssf).
     scale_ref: Point | None = field(default=None, compare=False)
 
-    @property
-    def ref(self) -> str:
-        return reference(self.table, self.address)
+    def __post_init__(self) -> None:
+        # What every read of the point asks, worked out once: a map polled reads it again and
+        # again.  ``ref``: its Modicon reference; ``_decode``: how its registers read as values.
+        object.__setattr__(self, "ref", reference(self.table, self.address))
+        registers = not (self.table.bits or self.bit is not None) and self.type in TYPES
+        object.__setattr__(self, "_decode", value_decoder(self.type, self.order) if registers else None)
 
     @property
     def size(self) -> int:
@@ -85,7 +95,7 @@ class Point:
             return bool(raw[0])
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
-        value = decode_values(raw, self.type, self.order)[0]
+        value = self._decode(raw)[0]
         if self.is_invalid(value):
             return None  # the device has no value to give: never a label, never scaled
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2

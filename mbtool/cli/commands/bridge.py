@@ -14,20 +14,18 @@ import threading
 
 import click
 
+from mbtool.cli.completion import complete_port
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     LINK_OPTIONS,
-    Choice,
-    QuickHelp,
-    Seconds,
-    complete_port,
     output_chosen,
-    parse_units,
     serial_line_options,
     tcp_client_options,
-    units_text,
     with_options,
 )
-from mbtool.cli.render import local_time, to_json
+from mbtool.cli.param_types import Choice, Seconds, parse_units, units_text
+from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
 
@@ -114,7 +112,7 @@ class BridgeCommand(QuickHelp, click.Command):
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
     "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",
 )
@@ -391,7 +389,7 @@ STYLES = {
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import shown_frame
     from mbtool.codec.describe import describe
 
     return describe(shown_frame(adu) if framing == "ascii" else adu.hex(), framing, direction, previous)
@@ -444,7 +442,7 @@ def _after(passage) -> str:
 
 
 def _wire(adu: bytes, framing: str) -> str:
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import shown_frame
     from mbtool.codec.framing import make_framer
 
     return f"{shown_frame(adu)}  {make_framer(framing).check(adu)}"
@@ -452,8 +450,7 @@ def _wire(adu: bytes, framing: str) -> str:
 
 def passage_record(passage) -> dict:
     """One JSON object a transaction."""
-    from mbtool.cli.frames import one_line
-    from mbtool.cli.render import shown_frame
+    from mbtool.cli.frames import one_line, shown_frame
 
     request = _describe(passage.request, passage.upstream, "request")
     reply = _describe(passage.reply, passage.upstream, "response", request) if passage.reply else None

@@ -27,15 +27,9 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import (
-    VALUE_TYPES,
-    Choice,
-    DeviceCommand,
-    device_command,
-    map_option,
-    reference_target,
-    type_options_given,
-)
+from mbtool.cli.options import VALUE_TYPES, device_command, map_option, reference_target, type_options_given
+from mbtool.cli.param_types import Choice
+from mbtool.cli.parsing import DeviceCommand
 from mbtool.codec.errors import RequestError
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
@@ -57,7 +51,7 @@ def plugin_exit(state: int, text: str, perfdata: str = "") -> None:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
     except OSError as error:  # a full disk, a closed stdout or its reader gone: no line can go
-        from mbtool.cli import discard_stdout
+        from mbtool.cli.program import discard_stdout
 
         discard_stdout()
         reason = error.strerror or error
@@ -259,18 +253,20 @@ def _number(value, what: str) -> float:
     raise RequestError(f"{what} reads {value}, not a number to check")
 
 
-def _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged) -> list[Checked]:
+def _reference_values(
+    connection, settings, targets, given, value_type, order, warn, crit, unjudged
+) -> list[Checked]:
     from mbtool.cli.session import execute
     from mbtool.codec.tables import READS, reference
     from mbtool.codec.values import decode_values, registers_needed, value_addresses
 
     table, address, count = reference_target(targets, "check", given)
     if table.bits:
-        reply = execute(connection, READS[table.name](address, count))
+        reply = execute(connection, settings, READS[table.name](address, count))
         values = list(reply.bits[:count])
         addresses = list(range(address, address + count))
     else:
-        reply = execute(connection, READS[table.name](address, registers_needed(value_type, count)))
+        reply = execute(connection, settings, READS[table.name](address, registers_needed(value_type, count)))
         values = decode_values(reply.registers, value_type, order)
         addresses = value_addresses(value_type, address, len(reply.registers))
     out = []
@@ -282,7 +278,7 @@ def _reference_values(connection, targets, given, value_type, order, warn, crit,
     return out
 
 
-def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
+def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list[Checked]:
     from mbtool.cli.session import open_client
     from mbtool.errors import PartialRead
     from mbtool.registermap.load import load_map
@@ -299,7 +295,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
         for point in points
     }
     reader = MapReader(points, register_map.max_gap)
-    with open_client(connection, reader.blocks[0].request().name) as client:
+    with open_client(connection, settings, reader.blocks[0].request.name) as client:
         try:
             readings = reader.read(partial(client.execute, connection.unit))
         except PartialRead as partial_read:  # the points read are judged; the others are unread
@@ -338,7 +334,7 @@ def _map_values(connection, path, names, warn, crit, unjudged) -> list[Checked]:
     help="The state when the device cannot be read (no response, exception, bad reply), a point "
     "of a map is refused or a value reads NaN, which no range can judge.",
 )
-def check(connection, targets, map, warning, critical, state_on_error, value_type, order):
+def check(connection, settings, targets, map, warning, critical, state_on_error, value_type, order):
     """A monitoring plugin (Nagios, Icinga): judge values against thresholds.
 
     Reads a reference (check 40011 -w 10 -c 20) or a map's points (check -m pump.toml
@@ -356,9 +352,11 @@ def check(connection, targets, map, warning, critical, state_on_error, value_typ
     if not map and not targets:
         raise RequestError("give a reference such as 40011, or -m MAP and point names")
     if map:
-        values = _map_values(connection, map, targets, warn, crit, unjudged)
+        values = _map_values(connection, settings, map, targets, warn, crit, unjudged)
     else:
-        values = _reference_values(connection, targets, given, value_type, order, warn, crit, unjudged)
+        values = _reference_values(
+            connection, settings, targets, given, value_type, order, warn, crit, unjudged
+        )
     plugin_exit(
         max(value.state for value in values),
         ", ".join(value.summary() for value in values),

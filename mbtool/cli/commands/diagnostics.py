@@ -6,7 +6,8 @@ import sys
 
 import click
 
-from mbtool.cli.options import Choice, device_command, parse_int
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import Choice, parse_int
 from mbtool.codec.errors import RequestError
 from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, SUB_FUNCTION_NAMES, sub_function_number
 
@@ -74,7 +75,7 @@ def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
     type=Choice(["184/384", "484", "584/984", "884"]),
     help="diagnostic-register: name the bits as this Modicon family does.",
 )
-def diag(connection, sub_function, data, clear_log, controller):
+def diag(connection, settings, sub_function, data, clear_log, controller):
     """Diagnostics (FC 08, serial line). SUBFUNCTION by name or number, DATA in hex.
 
     Names: return-query-data [HEX] (checks the echo), restart-comms [--clear-log],
@@ -93,15 +94,15 @@ def diag(connection, sub_function, data, clear_log, controller):
     if sub_function.lower() == "counters":
         if data is not None or clear_log:
             raise RequestError("diag counters takes no DATA")
-        report = _counters(connection)
+        report = _counters(connection, settings)
     else:
         sub = _sub_function(sub_function)
-        report = _one(connection, sub, _data(sub, data, clear_log), controller)
-    show(connection, report)
+        report = _one(connection, settings, sub, _data(sub, data, clear_log), controller)
+    show(connection, settings, report)
 
 
-def _one(connection, sub: int, data: bytes, controller: str | None):
-    from mbtool.cli.render import Report, Row
+def _one(connection, settings, sub: int, data: bytes, controller: str | None):
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import execute
     from mbtool.codec.errors import MismatchError
     from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
@@ -115,7 +116,7 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
         # Our own echo check, to say "matched" or show both sides rather than only fail.
         from mbtool.codec.raw import RawRequest
 
-        reply = execute(connection, RawRequest(request.encode()))
+        reply = execute(connection, settings, RawRequest(request.encode()))
         echoed = bytes(reply.pdu[3:])
         matched = reply.pdu[:3] == request.encode()[:3] and echoed == data
         rows += [
@@ -126,13 +127,13 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
         if not matched:
             from mbtool.cli.session import show
 
-            show(connection, Report(connection.unit, 8, title, rows))
+            show(connection, settings, Report(connection.unit, 8, title, rows))
             raise MismatchError(
                 f"return-query-data echo {echoed.hex(' ').upper()} differs from {data.hex(' ').upper()}"
             )
         return Report(connection.unit, 8, title, rows)
     try:
-        reply = execute(connection, request)
+        reply = execute(connection, settings, request)
     except NoResponse as silence:
         if sub == 0x01:
             # Spec §4: a device in listen-only mode restarts without answering.
@@ -173,7 +174,7 @@ def _one(connection, sub: int, data: bytes, controller: str | None):
 
 def _statistics_rows(words: tuple[int, ...]):
     """Modbus Plus statistics, each word named as seed 002 does; byte pairs shown as LO/HI."""
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.modicon import MODBUS_PLUS_WORDS
 
     rows = []
@@ -188,7 +189,7 @@ def _statistics_rows(words: tuple[int, ...]):
 
 
 def _register_rows(value: int, controller: str | None):
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.modicon import diagnostic_register_bits
 
     rows = [Row("diagnostic_register", value, f"0x{value:04X}")]
@@ -202,15 +203,15 @@ def _register_rows(value: int, controller: str | None):
     return rows
 
 
-def _counters(connection):
-    from mbtool.cli.render import Report, Row
+def _counters(connection, settings):
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.errors import ModbusException
     from mbtool.codec.serial_line import Diagnostics
 
     rows, data, answered, refused = [], {}, 0, None
-    with open_client(connection, "diag counters") as client:
-        if connection.dry_run:
+    with open_client(connection, settings, "diag counters") as client:
+        if settings.dry_run:
             # Every request is known in advance: show them all, then stop as a dry run does.
             for sub in COUNTERS:
                 client.show(connection.unit, Diagnostics(sub))

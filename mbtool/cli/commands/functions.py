@@ -9,16 +9,8 @@ from functools import partial
 
 import click
 
-from mbtool.cli.options import (
-    ADDRESS,
-    COUNT,
-    NONFINITE_OPTION,
-    VALUE_TYPES,
-    Choice,
-    Number,
-    device_command,
-    parse_int,
-)
+from mbtool.cli.options import NONFINITE_OPTION, VALUE_TYPES, device_command
+from mbtool.cli.param_types import ADDRESS, COUNT, Choice, Number, parse_int
 from mbtool.cli.session import execute, show
 from mbtool.codec.errors import RequestError
 
@@ -26,21 +18,21 @@ from mbtool.codec.errors import RequestError
 
 
 @device_command("read-exception-status")
-def read_exception_status(connection):
+def read_exception_status(connection, settings):
     """Read exception status (FC 07).
 
     Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import ReadExceptionStatus
 
     request = ReadExceptionStatus()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("status", reply.status, f"0x{reply.status:02X}")]
     rows += [Row(f"bit{i}", bit, "ON" if bit else "OFF") for i, bit in enumerate(reply.bits)]
     data = {"status": reply.status, "bits": list(reply.bits)}
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, data))
+    show(connection, settings, Report(connection.unit, request.function_code, request.name, rows, data))
 
 
 # --- FC 11 / 12 ---------------------------------------------------------------------------
@@ -51,35 +43,36 @@ def _status_text(status: int) -> str:
 
 
 @device_command("event-counter")
-def event_counter(connection):
+def event_counter(connection, settings):
     """Get the comm event counter (FC 11).
 
     The status (busy or idle) and the count of successful messages.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import GetCommEventCounter
 
     request = GetCommEventCounter()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("status", _status_text(reply.status)), Row("event_count", reply.event_count)]
     data = {"status": _status_text(reply.status), "busy": reply.busy, "event_count": reply.event_count}
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
 
 @device_command("event-log")
-def event_log(connection):
+def event_log(connection, settings):
     """Get the comm event log (FC 12).
 
     Status, event and message counts, and each event byte (0 = newest) in words.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.serial_line import GetCommEventLog, describe_event
 
     request = GetCommEventLog()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [
         Row("status", _status_text(reply.status)),
         Row("event_count", reply.event_count),
@@ -98,6 +91,7 @@ def event_log(connection):
     }
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
@@ -105,7 +99,7 @@ def event_log(connection):
 def _with_warnings(report, reply):
     """What a strict reader noticed in the reply (e.g. a status word neither busy nor idle):
     a ``warning`` row, and a ``warnings`` list in JSON; stderr stays for the one error line."""
-    from mbtool.cli.render import Row
+    from mbtool.cli.results import Row
     from mbtool.codec.record import replace
 
     warnings = list(getattr(reply, "warnings", ()))
@@ -120,20 +114,20 @@ def _with_warnings(report, reply):
 
 
 @device_command("report-id")
-def report_id(connection):
+def report_id(connection, settings):
     """Report server (slave) ID (FC 17).
 
     The id, the run indicator and the device's own bytes.  The extra bytes are shown in hex and as text; replies of Modicon 184/384,
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
     from mbtool.codec.pdu import printable
     from mbtool.codec.serial_line import ReportSlaveId
 
     request = ReportSlaveId()
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     layout = modicon_layout(reply.slave_id, reply.extra)
     run = "ON" if reply.run_indicator else "OFF"
     if reply.run_indicator_byte is not None:  # neither 00 nor FF: say neither, not ON
@@ -160,6 +154,7 @@ def report_id(connection):
     data.update(extra_hex=extra_hex, extra_text=printable(reply.extra))
     show(
         connection,
+        settings,
         _with_warnings(Report(connection.unit, request.function_code, request.name, rows, data), reply),
     )
 
@@ -182,13 +177,13 @@ def _groups(tokens: tuple[str, ...]) -> list[list[str]]:
 
 @device_command("read-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD LENGTH [FILE RECORD LENGTH]...")
-def read_file_record(connection, groups):
+def read_file_record(connection, settings, groups):
     """Read file records (FC 20).
 
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
@@ -196,23 +191,27 @@ def read_file_record(connection, groups):
         raise RequestError(f"give FILE RECORD LENGTH in threes, not {len(numbers)} numbers")
     parts = tuple(FileRecordRequest(*numbers[i : i + 3]) for i in range(0, len(numbers), 3))
     request = ReadFileRecord(parts)
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows, data = [], []
     for part, values in zip(parts, reply.records, strict=True):
         rows += [Row(f"{part.file}:{part.record + i}", value) for i, value in enumerate(values)]
         data.append({"file": part.file, "record": part.record, "values": list(values)})
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+    show(
+        connection,
+        settings,
+        Report(connection.unit, request.function_code, request.name, rows, {"groups": data}),
+    )
 
 
 @device_command("write-file-record")
 @click.argument("groups", nargs=-1, required=True, metavar="FILE RECORD VALUE... [, FILE RECORD VALUE...]...")
-def write_file_record(connection, groups):
+def write_file_record(connection, settings, groups):
     """Write file records (FC 21).
 
     VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
     Each VALUE is -32768..65535 or 0x hex.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.file_record import FileRecord, WriteFileRecord
     from mbtool.codec.values import parse_register
 
@@ -223,10 +222,14 @@ def write_file_record(connection, groups):
         file, record = parse_int(group[0], "file number"), parse_int(group[1], "record number")
         parts.append(FileRecord(file, record, tuple(parse_register(text) for text in group[2:])))
     request = WriteFileRecord(tuple(parts))
-    execute(connection, request)
+    execute(connection, settings, request)
     rows = [Row(f"{p.file}:{p.record + i}", value) for p in parts for i, value in enumerate(p.values)]
     data = [{"file": p.file, "record": p.record, "values": list(p.values)} for p in parts]
-    show(connection, Report(connection.unit, request.function_code, request.name, rows, {"groups": data}))
+    show(
+        connection,
+        settings,
+        Report(connection.unit, request.function_code, request.name, rows, {"groups": data}),
+    )
 
 
 # --- FC 22 / 23 / 24 ------------------------------------------------------------------------------
@@ -238,24 +241,24 @@ MASK = Number(0, 0xFFFF, "mask")
 @click.argument("address", type=ADDRESS)
 @click.argument("and_mask", type=MASK)
 @click.argument("or_mask", type=MASK)
-def mask_write_register(connection, address, and_mask, or_mask):
+def mask_write_register(connection, settings, address, and_mask, or_mask):
     """Mask write register (FC 22).
 
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.data_access import MaskWriteRegister, mask_formula
 
     request = MaskWriteRegister(address, and_mask, or_mask)
-    execute(connection, request)
+    execute(connection, settings, request)
     rows = [
         Row("address", address),
         Row("and_mask", and_mask, f"0x{and_mask:04X}"),
         Row("or_mask", or_mask, f"0x{or_mask:04X}"),
         Row("result", mask_formula(and_mask, or_mask)),
     ]
-    show(connection, Report(connection.unit, request.function_code, request.name, rows))
+    show(connection, settings, Report(connection.unit, request.function_code, request.name, rows))
 
 
 @device_command("read-write-registers", types=VALUE_TYPES)
@@ -265,14 +268,14 @@ def mask_write_register(connection, address, and_mask, or_mask):
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
 @NONFINITE_OPTION
 def read_write_registers(
-    connection, read_address, read_count, write_address, values, allow_nonfinite, value_type, order
+    connection, settings, read_address, read_count, write_address, values, allow_nonfinite, value_type, order
 ):
     """Read/write registers (FC 23).
 
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import ReadWriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses
 
@@ -280,7 +283,7 @@ def read_write_registers(
     request = ReadWriteMultipleRegisters(
         read_address, registers_needed(value_type, read_count), write_address, tuple(registers)
     )
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     result = Result(
         connection.unit,
         request.function_code,
@@ -292,21 +295,21 @@ def read_write_registers(
         extra={"written": {"address": write_address, "registers": registers}},
         addresses=value_addresses(value_type, read_address, len(reply.registers)),
     )
-    show(connection, result)
+    show(connection, settings, result)
 
 
 @device_command("fifo")
 @click.argument("address", type=ADDRESS)
-def fifo(connection, address):
+def fifo(connection, settings, address):
     """Read a FIFO queue (FC 24).
 
     The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.data_access import ReadFifoQueue
 
     request = ReadFifoQueue(address)
-    reply = execute(connection, request)
+    reply = execute(connection, settings, request)
     rows = [Row("count", len(reply.registers))]
     rows += [Row(str(i), value) for i, value in enumerate(reply.registers)]
     data = {"address": address, "count": len(reply.registers), "values": list(reply.registers)}
@@ -318,7 +321,7 @@ def fifo(connection, address):
         data,
         note=f"{len(reply.registers)} entries queued at pointer address {address}",
     )
-    show(connection, report)
+    show(connection, settings, report)
 
 
 # --- FC 43 / 14 --------------------------------------------------------------------------------------
@@ -335,12 +338,12 @@ LEVELS = {"basic": 1, "regular": 2, "extended": 3}
     help="Objects to read: basic 0x00-0x02, regular up to 0x06, extended up to 0xFF.",
 )
 @click.option("--object", "object_id", type=Number(0, 255, "object id"), help="Read this one object only.")
-def device_id(connection, level, object_id):
+def device_id(connection, settings, level, object_id):
     """Read device identification (FC 43/14).
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.cli.session import open_client
     from mbtool.codec.device_id import ReadDeviceIdentification, conformity_name, object_name
     from mbtool.codec.pdu import text_of
@@ -348,7 +351,7 @@ def device_id(connection, level, object_id):
     objects: dict[int, bytes] = {}
     conformity = None
     follows = "" if object_id is not None else "any further request depends on the reply's more-follows"
-    with open_client(connection, ReadDeviceIdentification.name, then=follows) as client:
+    with open_client(connection, settings, ReadDeviceIdentification.name, then=follows) as client:
         if object_id is not None:
             request = ReadDeviceIdentification(4, object_id)
             reply = client.execute(connection.unit, request)
@@ -370,6 +373,7 @@ def device_id(connection, level, object_id):
     }
     show(
         connection,
+        settings,
         Report(
             connection.unit, 0x2B, "Read Device Identification", rows, data, note=f"conformity: {conformity}"
         ),

@@ -20,16 +20,10 @@ import time
 import click
 
 from mbtool.cli.frames import frame_report, one_line
-from mbtool.cli.options import (
-    PROFILE_OPTION,
-    Choice,
-    Number,
-    PositiveFloat,
-    QuickHelp,
-    output_chosen,
-    serial_line_options,
-)
-from mbtool.cli.render import local_time
+from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
+from mbtool.cli.param_types import Choice, Number, PositiveFloat
+from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
 
@@ -107,7 +101,7 @@ def default_silence(framer: str, baud: int) -> float:
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
 @click.option(
@@ -464,7 +458,7 @@ class Output:
 
     def write(self, item) -> None:
         if self.fmt == "json":
-            from mbtool.cli.render import to_json
+            from mbtool.cli.json_text import to_json
 
             self.out.write(to_json(as_dict(item, self.timed)) + "\n")
         elif self.fmt == "plain":
@@ -514,7 +508,7 @@ class Output:
     def stats(self, counts, now: float | None) -> None:
         """The statistics so far (monitor.stats.BusStats): a table, or one JSON object."""
         if self.fmt == "json":
-            from mbtool.cli.render import to_json
+            from mbtool.cli.json_text import to_json
 
             # A recording's are as of its last frame; raw bytes have no time at all.
             when = now if now is not None else counts.last

@@ -8,7 +8,9 @@ import sys
 import click
 
 from mbtool.cli.frames import frame_report
-from mbtool.cli.options import NO_HEADER_OPTION, Choice, QuickHelp, device_command, output_chosen
+from mbtool.cli.options import NO_HEADER_OPTION, device_command, output_chosen
+from mbtool.cli.param_types import Choice
+from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
 
 FORMAT_OPTION = click.option(
@@ -16,7 +18,7 @@ FORMAT_OPTION = click.option(
     "--format",
     "output_format",
     type=Choice(["table", "plain", "json", "csv"]),
-    callback=lambda ctx, param, value: output_chosen(value),
+    callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe.",
 )
 
@@ -25,10 +27,10 @@ class OfflineCommand(QuickHelp, click.Command):
     """A command that talks to no device."""
 
 
-def _render(report, output_format: str | None) -> None:
+def _render(report, output_format: str | None, no_header: bool) -> None:
     from mbtool.cli.render import default_format, render
 
-    render(report, output_format or default_format())
+    render(report, output_format or default_format(), csv_header=not no_header)
 
 
 def _problem(described) -> str:
@@ -47,7 +49,7 @@ def _problem(described) -> str:
 @click.option("--response", "direction", flag_value="response", help="Read the frame as a response.")
 @FORMAT_OPTION
 @NO_HEADER_OPTION
-def decode(frame, framer, direction, output_format):
+def decode(frame, framer, direction, output_format, no_header):
     """Decode frames offline.
 
     Field by field, checking the CRC, LRC or MBAP header. HEX is one frame (RTU bytes, an
@@ -62,7 +64,7 @@ def decode(frame, framer, direction, output_format):
 
     if frame and frame != ("-",):
         described = describe(" ".join(frame), framer, direction)
-        _render(frame_report(described), output_format)
+        _render(frame_report(described), output_format, no_header)
         problem = _problem(described)
         if problem:
             raise FrameError(problem)
@@ -71,10 +73,10 @@ def decode(frame, framer, direction, output_format):
 
     if sys.stdin.isatty():
         print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
-    _decode_stream(sys.stdin, framer, direction, output_format or default_format())
+    _decode_stream(sys.stdin, framer, direction, output_format or default_format(), no_header)
 
 
-def _decode_stream(lines, framer, direction, fmt: str) -> None:
+def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
     """Each frame in the lines decoded and written as it comes, in constant memory.  Only
     frames decide the exit status: a line that is no frame is named on stderr and passed over."""
     from mbtool.codec.describe import describe
@@ -97,7 +99,7 @@ def _decode_stream(lines, framer, direction, fmt: str) -> None:
         report = frame_report(described, header=frames == 0)
         if fmt == "json":
             report = replace(report, data={"line": number, **report.data})
-        _render(report, fmt)
+        _render(report, fmt, no_header)
         frames += 1
         previous = described
         problem = _problem(described)
@@ -251,12 +253,12 @@ def _monitor_json(text: str) -> tuple | None:
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
 @NO_HEADER_OPTION
-def crc(data, output_format):
+def crc(data, output_format, no_header):
     """CRC-16/MODBUS of bytes.
 
     The CRC of HEX, and the RTU frame with it appended (low byte first).
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.checksum import crc16
     from mbtool.codec.describe import parse_hex
 
@@ -271,6 +273,7 @@ def crc(data, output_format):
     _render(
         Report(None, None, "CRC-16/MODBUS", rows, data_out, note=f"0x{value:04X}, sent low byte first"),
         output_format,
+        no_header,
     )
 
 
@@ -278,12 +281,12 @@ def crc(data, output_format):
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @FORMAT_OPTION
 @NO_HEADER_OPTION
-def lrc(data, output_format):
+def lrc(data, output_format, no_header):
     """LRC of bytes.
 
     The LRC of HEX (unit through last data byte), and the ASCII frame with it.
     """
-    from mbtool.cli.render import Report, Row
+    from mbtool.cli.results import Report, Row
     from mbtool.codec.checksum import lrc as lrc8
     from mbtool.codec.describe import parse_hex
 
@@ -292,7 +295,9 @@ def lrc(data, output_format):
     text = ":" + (body + bytes([value])).hex().upper()
     rows = [Row("lrc", value, f"{value:02X}"), Row("frame", text + "\r\n", text)]
     data_out = {"lrc": value, "frame": text + "\r\n"}
-    _render(Report(None, None, "LRC", rows, data_out, note="the frame ends with CR LF"), output_format)
+    _render(
+        Report(None, None, "LRC", rows, data_out, note="the frame ends with CR LF"), output_format, no_header
+    )
 
 
 # --- raw -------------------------------------------------------------------------------------------
@@ -301,7 +306,7 @@ def lrc(data, output_format):
 @device_command("raw", unit=False)
 @click.argument("data", nargs=-1, required=True, metavar="HEX...")
 @click.option("--adu", is_flag=True, help="Send HEX exactly as given (checksum or MBAP header included).")
-def raw(connection, data, adu):
+def raw(connection, settings, data, adu):
     """Send any PDU, or exact frame bytes.
 
     HEX is a unit and a PDU; mbtool adds the CRC, LRC or MBAP header and shows
@@ -357,14 +362,15 @@ def raw(connection, data, adu):
                 self.other = frame
 
     failure = None
-    with open_client(connection, framer=_exact_framer(name, exact)) as client:
+    with open_client(connection, settings, framer=_exact_framer(name, exact)) as client:
         capture = Capture(client.trace)
         client.trace = capture
         try:
             client.execute(unit, request)
         except (ModbusException, FrameError) as error:
             failure = error
-    from mbtool.cli.render import Report, Row, default_format, render
+    from mbtool.cli.render import default_format, render
+    from mbtool.cli.results import Report, Row
 
     heard = capture.reply or capture.other
     if heard is None:
@@ -379,7 +385,8 @@ def raw(connection, data, adu):
         rows = [Row("sent", request.encode().hex(" ").upper()), Row("reply", why)]
         render(
             Report(unit, request.function_code, request.name, rows),
-            connection.output_format or default_format(),
+            settings.output_format or default_format(),
+            csv_header=settings.csv_header,
         )
         if failure is not None:
             raise failure
@@ -388,7 +395,9 @@ def raw(connection, data, adu):
     framing, got, got_unit, got_pdu, ok, verdict = split_frame(shown, name)
     asked = describe_pdu(name, b"", unit, request.encode(), None, "", "request")
     described = describe_pdu(framing, got, got_unit, got_pdu, ok, verdict, "response", asked)
-    render(frame_report(described), connection.output_format or default_format())
+    render(
+        frame_report(described), settings.output_format or default_format(), csv_header=settings.csv_header
+    )
     if failure is not None:
         raise failure
     if described.error:

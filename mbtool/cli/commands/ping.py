@@ -14,7 +14,8 @@ from contextlib import ExitStack
 
 import click
 
-from mbtool.cli.options import ADDRESS, Choice, Number, PositiveFloat, device_command
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import ADDRESS, Choice, Number, PositiveFloat
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
 
@@ -46,7 +47,7 @@ FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query
 )
 @click.option("--address", type=ADDRESS, default=0, show_default=True, help="The register FC 03 reads.")
 @click.option("-q", "--quiet", is_flag=True, help="No line for each request: only the summary.")
-def ping(connection, count, interval, function, address, quiet):
+def ping(connection, settings, count, interval, function, address, quiet):
     """Ask a device the same small question again and again, like ping(8): one line for each
     reply ("unit 1: seq=3 time=4.2 ms") or for what went wrong (timeout, corrupt, not ours,
     link lost), then the summary on stderr: sent, answered, lost and rtt min/avg/max/mdev,
@@ -63,13 +64,13 @@ def ping(connection, count, interval, function, address, quiet):
         raise RequestError("--address is the register FC 03 reads; --function 08 reads none")
     request_for = _requests(function, address)
     unit = connection.unit
-    if connection.dry_run:
+    if settings.dry_run:
         from mbtool.cli.session import open_client
 
-        with open_client(connection, "ping", then="then the same again every --interval") as client:
+        with open_client(connection, settings, "ping", then="then the same again every --interval") as client:
             client.execute(unit, request_for(1))
         return
-    raise Pinger(connection, request_for, quiet).run(count, interval)
+    raise Pinger(connection, settings, request_for, quiet).run(count, interval)
 
 
 def _requests(function: str, address: int):
@@ -88,11 +89,12 @@ def _requests(function: str, address: int):
 class Pinger:
     """The requests one after another, each shown as it ends, and the summary they add up to."""
 
-    def __init__(self, connection, request_for, quiet: bool) -> None:
+    def __init__(self, connection, settings, request_for, quiet: bool) -> None:
         from mbtool.durations import Durations
         from mbtool.link.stats import Stats
 
         self.connection = connection
+        self.settings = settings
         self.request_for = request_for
         self.quiet = quiet
         self.stats = Stats()  # every transaction's outcome
@@ -113,7 +115,7 @@ class Pinger:
             click.echo(f"PING {connection.port} unit {unit}: {what}, timeout {connection.timeout:g} s")
         link = ExitStack()
         # The first link is the command's: one that cannot be opened ends it (exit 6).
-        client = link.enter_context(open_client(connection, "ping"))
+        client = link.enter_context(open_client(connection, self.settings, "ping"))
         counted = Counted(client, self.stats)
         opened_at = last_sent = time.monotonic()
         interrupted = False
@@ -129,7 +131,7 @@ class Pinger:
                     opened_at = time.monotonic()
                     try:
                         link = ExitStack()
-                        client = link.enter_context(open_client(connection, "ping"))
+                        client = link.enter_context(open_client(connection, self.settings, "ping"))
                     except (ConnectionFailed, OSError) as error:
                         failure = (
                             error if isinstance(error, ConnectionFailed) else ConnectionFailed(str(error))

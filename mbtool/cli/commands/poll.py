@@ -16,8 +16,11 @@ import time
 import click
 
 from mbtool.cli.inventory import FORMATS, load_inventory
-from mbtool.cli.options import PositiveFloat
-from mbtool.cli.render import local_time, point_text, to_json, value_text, wants_csv_header
+from mbtool.cli.json_text import to_json
+from mbtool.cli.param_types import PositiveFloat
+from mbtool.cli.render import wants_csv_header
+from mbtool.cli.results import point_text, value_text
+from mbtool.cli.stamps import local_time
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
 
@@ -81,7 +84,7 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
         rounds = 1
     trace = None
     if hex_trace:
-        from mbtool.cli.render import HexTrace
+        from mbtool.cli.frames import HexTrace
 
         trace = HexTrace
     output = PlantOutput(fmt, textfile, no_header, plant)
@@ -188,7 +191,7 @@ class PlantOutput:
                 self.pending = set(self.states)
 
     def _write_textfile(self) -> None:
-        from mbtool.cli.monitoring import write_textfile
+        from mbtool.cli.metrics import write_textfile
 
         write_textfile(prom_text(list(self.states.values())), self.textfile)
 
@@ -241,7 +244,7 @@ def _json_record(poll: Poll, when: str) -> dict:
 def influx_line(poll: Poll) -> str:
     """One line a device poll: measurement modbus, tags device, unit and the device's tags, a
     field a point read (its type fixed by its map entry; NaN and infinities left out)."""
-    from mbtool.cli.monitoring import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value
+    from mbtool.cli.metrics import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value
 
     device = poll.device
     fields = []
@@ -264,7 +267,7 @@ def influx_line(poll: Poll) -> str:
 def prom_text(states: list) -> str:
     """The exposition of the devices' latest polls: modbus_up and the last success a device,
     and a gauge a point read; a device down shows no value (it would be scraped as current)."""
-    from mbtool.cli.monitoring import _exposition, _label_pairs, _metric_name, _sample_value
+    from mbtool.cli.metrics import _exposition, _label_pairs, _metric_name, _sample_value
 
     up_name, last_name = "modbus_up", "modbus_last_success_timestamp_seconds"
     metrics = {

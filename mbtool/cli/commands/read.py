@@ -8,18 +8,16 @@ from functools import partial
 import click
 
 from mbtool.cli.options import (
-    ADDRESS,
-    COUNT,
     ORDER_ALL,
     VALUE_TYPES,
-    Number,
-    PositiveFloat,
     device_command,
     map_option,
     reference_target,
     type_options_given,
 )
+from mbtool.cli.param_types import ADDRESS, COUNT, Number, PositiveFloat
 from mbtool.cli.session import execute, show
+from mbtool.cli.settings import Settings
 from mbtool.codec.errors import RequestError
 from mbtool.link.connection import Connection
 
@@ -37,35 +35,26 @@ POLL_HELP = """
     """
 
 
-def _remember(ctx: click.Context, param: click.Parameter, value) -> None:
-    # Kept aside for _run, as the profile is: no read command's own arguments change.
-    ctx.meta[f"mbtool.{param.name}"] = value
-
-
 def polling_options(function):
-    """--interval and --polls, for the read commands, and what they do in --help."""
+    """--interval and --polls, for the read commands, and what they do in --help; and the
+    output options of reads (--changes, --measurement, --textfile), which go to the run's
+    Settings (device_command)."""
     function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
     function = click.option(
         "--changes",
         is_flag=True,
-        expose_value=False,
-        callback=_remember,
         help="Polling: print the first poll whole, then only the values that changed.",
     )(function)
     function = click.option(
         "--measurement",
         default="modbus",
         show_default=True,
-        expose_value=False,
-        callback=_remember,
         help="-o influx: the measurement; -o prom: the metric names' prefix.",
     )(function)
     function = click.option(
         "--textfile",
         metavar="PATH",
         type=click.Path(dir_okay=False),
-        expose_value=False,
-        callback=_remember,
         help="Write the Prometheus text there, atomically, for node_exporter's textfile "
         "collector (implies -o prom; each poll rewrites it).",
     )(function)
@@ -82,24 +71,24 @@ def polling_options(function):
     )(function)
 
 
-def _run(connection: Connection, request, to_result, interval, polls, run=None, points=()) -> None:
+def _run(
+    connection: Connection, settings: Settings, request, to_result, interval, polls, run=None, points=()
+) -> None:
     """Once, or polled.  ``run(client)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
-    from mbtool.cli.render import MONITORING_FORMATS
+    from mbtool.cli.settings import MONITORING_FORMATS
 
-    meta = click.get_current_context().meta
-    if meta.get("mbtool.textfile") or connection.output_format in MONITORING_FORMATS:
-        connection = _monitoring(connection, meta, points)
-    if (interval is None and polls is None) or connection.dry_run:
+    metrics = None
+    if settings.textfile or settings.output_format in MONITORING_FORMATS:
+        settings, metrics = _metrics(connection, settings, points)
+    if (interval is None and polls is None) or settings.dry_run:
         try:
-            _once(connection, request, to_result, run)
+            _once(connection, settings, request, to_result, run, metrics)
         except Exception as error:
-            if connection.output_format in MONITORING_FORMATS:  # -o prom says the device is down
+            if metrics is not None:  # -o prom says the device is down
                 import sys
 
-                from mbtool.cli import monitoring
-
-                monitoring.emit_failure(error, connection.output_format, sys.stdout)
+                metrics.emit_failure(error, sys.stdout)
             raise
         return
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
@@ -107,59 +96,65 @@ def _run(connection: Connection, request, to_result, interval, polls, run=None, 
     from mbtool.cli.session import trace_for
     from mbtool.link.polling import poll
 
-    output = Output(connection.output_format or default_format())
-    if meta.get("mbtool.changes"):
+    fmt = settings.output_format or default_format()
+    output = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
+    if settings.changes:
         output = ChangesOnly(output)
     shown = Deferred(output, to_result)
-    poll(connection, request, shown, interval, polls, trace_for(connection), run)
+    poll(connection, request, shown, interval, polls, trace_for(settings), run)
 
 
-def _once(connection: Connection, request, to_result, run=None) -> None:
+def _once(connection: Connection, settings: Settings, request, to_result, run=None, metrics=None) -> None:
     if run is None:
-        show(connection, to_result(execute(connection, request)))
+        show(connection, settings, to_result(execute(connection, settings, request)), metrics)
         return
     from mbtool.cli.session import open_client
     from mbtool.errors import PartialRead
 
-    with open_client(connection, request.name) as client:
+    with open_client(connection, settings, request.name) as client:
         try:
             result = to_result(run(client))
         except PartialRead as partial:  # what was read is shown; the failure ends the run
-            show(connection, to_result(partial.readings))
+            show(connection, settings, to_result(partial.readings), metrics)
             raise
-        show(connection, result)
+        show(connection, settings, result, metrics)
 
 
 # --- reads: FC 01-04 -------------------------------------------------------------------
 
 
-def _monitoring(connection: Connection, meta: dict, points=()) -> Connection:
-    """-o influx / prom and --textfile: their settings, checked before anything is sent
-    (with a map's ``points``)."""
-    from mbtool.cli import monitoring
+def _metrics(connection: Connection, settings: Settings, points=()):
+    """-o influx / prom and --textfile: the run's settings for them (--textfile is -o prom)
+    and its Metrics, checked before anything is sent (with a map's ``points``)."""
+    from mbtool.cli.metrics import Metrics
     from mbtool.codec.record import replace
 
-    fmt, textfile = connection.output_format, meta.get("mbtool.textfile")
-    if textfile:
+    fmt = settings.output_format
+    if settings.textfile:
         if fmt not in (None, "prom"):
             raise RequestError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
-        connection = replace(connection, output_format="prom")
-        monitoring.textfile = textfile
-    if meta.get("mbtool.changes"):
+        settings = replace(settings, output_format="prom")
+    if settings.changes:
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
-    monitoring.measurement = meta.get("mbtool.measurement", "modbus")
-    monitoring.unit = connection.unit
-    monitoring.check_names(connection.output_format)
-    if connection.output_format == "prom":
-        monitoring.check_point_names(points)
-    return connection
+    metrics = Metrics(settings, connection.unit)
+    metrics.check_names()
+    if settings.output_format == "prom":
+        metrics.check_point_names(points)
+    return settings, metrics
 
 
 def _read_bits(
-    connection: Connection, kind, address: int, count: int, interval=None, polls=None, table=None
+    connection: Connection,
+    settings: Settings,
+    kind,
+    address: int,
+    count: int,
+    interval=None,
+    polls=None,
+    table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
 
     request = kind(address, count)
     # What every poll shares, made once: a poll's result is its bits in this frame.
@@ -172,11 +167,12 @@ def _read_bits(
             connection.unit, kind.function_code, kind.name, address, values, refs=refs, addresses=addresses
         )
 
-    _run(connection, request, to_result, interval, polls)
+    _run(connection, settings, request, to_result, interval, polls)
 
 
 def _read_registers(
     connection: Connection,
+    settings: Settings,
     kind,
     address: int,
     count: int,
@@ -187,7 +183,7 @@ def _read_registers(
     table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
 
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
@@ -228,29 +224,29 @@ def _read_registers(
             addresses,
         )
 
-    _run(connection, request, to_result, interval, polls)
+    _run(connection, settings, request, to_result, interval, polls)
 
 
 @device_command("read-coils", readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
-def read_coils(connection, address, count, interval, polls):
+def read_coils(connection, settings, address, count, interval, polls):
     """Read coils (FC 01). COUNT (default 1, at most 2000) bits from ADDRESS."""
     from mbtool.codec.data_access import ReadCoils
 
-    _read_bits(connection, ReadCoils, address, count, interval, polls)
+    _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
 
 
 @device_command("read-discrete-inputs", readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
-def read_discrete_inputs(connection, address, count, interval, polls):
+def read_discrete_inputs(connection, settings, address, count, interval, polls):
     """Read discrete inputs (FC 02). COUNT (default 1, at most 2000) bits from ADDRESS."""
     from mbtool.codec.data_access import ReadDiscreteInputs
 
-    _read_bits(connection, ReadDiscreteInputs, address, count, interval, polls)
+    _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
 
 
 def _refs(table, addresses: list[int]) -> list[str]:
@@ -263,7 +259,7 @@ def _refs(table, addresses: list[int]) -> list[str]:
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
-def read_holding_registers(connection, address, count, value_type, order, interval, polls):
+def read_holding_registers(connection, settings, address, count, value_type, order, interval, polls):
     """Read holding registers (FC 03). COUNT (default 1) from ADDRESS, at most 125.
 
     With --type, COUNT counts values of that type (float32: 2 registers each);
@@ -271,14 +267,16 @@ def read_holding_registers(connection, address, count, value_type, order, interv
     """
     from mbtool.codec.data_access import ReadHoldingRegisters
 
-    _read_registers(connection, ReadHoldingRegisters, address, count, value_type, order, interval, polls)
+    _read_registers(
+        connection, settings, ReadHoldingRegisters, address, count, value_type, order, interval, polls
+    )
 
 
 @device_command("read-input-registers", types=VALUE_TYPES, order_all=True, readings=True, polls=True)
 @click.argument("address", type=ADDRESS)
 @click.argument("count", type=COUNT, default=1)
 @polling_options
-def read_input_registers(connection, address, count, value_type, order, interval, polls):
+def read_input_registers(connection, settings, address, count, value_type, order, interval, polls):
     """Read input registers (FC 04). COUNT (default 1) from ADDRESS, at most 125.
 
     With --type, COUNT counts values of that type (float32: 2 registers each);
@@ -286,7 +284,9 @@ def read_input_registers(connection, address, count, value_type, order, interval
     """
     from mbtool.codec.data_access import ReadInputRegisters
 
-    _read_registers(connection, ReadInputRegisters, address, count, value_type, order, interval, polls)
+    _read_registers(
+        connection, settings, ReadInputRegisters, address, count, value_type, order, interval, polls
+    )
 
 
 # --- read: by reference, or by a register map's names ------------------------------------
@@ -296,7 +296,7 @@ def read_input_registers(connection, address, count, value_type, order, interval
 @click.argument("targets", nargs=-1, metavar="REF [COUNT] | NAME...")
 @map_option("points by name, scaled, with units")
 @polling_options
-def read(connection, targets, map, value_type, order, interval, polls):
+def read(connection, settings, targets, map, value_type, order, interval, polls):
     """Read by a device manual's reference, or a register map's points by name.
 
     REF is a Modicon reference: 00001 coil 1, 10001 discrete input 1, 30001 input
@@ -310,31 +310,31 @@ def read(connection, targets, map, value_type, order, interval, polls):
     """
     given = type_options_given(map)
     if map:
-        _read_map(connection, map, targets, interval, polls)
+        _read_map(connection, settings, map, targets, interval, polls)
         return
     from mbtool.codec.tables import READS
 
     table, address, count = reference_target(targets, "read", given)
     kind = READS[table.name]
     if table.bits:
-        _read_bits(connection, kind, address, count, interval, polls, table)
+        _read_bits(connection, settings, kind, address, count, interval, polls, table)
     else:
-        _read_registers(connection, kind, address, count, value_type, order, interval, polls, table)
+        _read_registers(connection, settings, kind, address, count, value_type, order, interval, polls, table)
 
 
-def _read_map(connection: Connection, path: str, names, interval, polls) -> None:
-    from mbtool.cli.render import PointFailure, PointRow, Points
+def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
+    from mbtool.cli.results import PointFailure, PointRow, Points
     from mbtool.registermap.load import load_map
     from mbtool.registermap.plan import MapReader
 
     register_map = load_map(path)
     points = register_map.select(names)
     reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
-    requests = [block.request() for block in reader.blocks]
-    if connection.dry_run:  # no read depends on another's reply: show them all
+    requests = [block.request for block in reader.blocks]
+    if settings.dry_run:  # no read depends on another's reply: show them all
         from mbtool.cli.session import open_client
 
-        with open_client(connection, requests[0].name) as client:
+        with open_client(connection, settings, requests[0].name) as client:
             for request in requests:
                 client.show(connection.unit, request)
             client.finish(connection.unit)
@@ -363,4 +363,4 @@ def _read_map(connection: Connection, path: str, names, interval, polls) -> None
         ]
         return Points(connection.unit, register_map.source, rows, failed=failed)
 
-    _run(connection, requests[0], to_result, interval, polls, run, points)
+    _run(connection, settings, requests[0], to_result, interval, polls, run, points)

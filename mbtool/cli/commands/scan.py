@@ -22,7 +22,8 @@ import time
 
 import click
 
-from mbtool.cli.options import ADDRESS, COUNT, Choice, device_command, parse_units, units_text
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary
@@ -186,9 +187,10 @@ class Output:
     """Found units as they come (plain, csv: a long scan shows its progress in a pipe),
     or all at the end (table, json)."""
 
-    def __init__(self, fmt: str, sweeping: bool) -> None:
+    def __init__(self, fmt: str, sweeping: bool, csv_header: bool = True) -> None:
         self.fmt = fmt
         self.sweeping = sweeping
+        self.csv_header = csv_header  # the run's settings (False with --no-header)
         self.header_done = False
 
     def found(self, answer: Answer) -> None:
@@ -211,7 +213,7 @@ class Output:
         from mbtool.cli.render import wants_csv_header
 
         where = ["baud", "parity"] if self.sweeping else []
-        if wants_csv_header(sys.stdout):
+        if wants_csv_header(sys.stdout, self.csv_header):
             csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
         self.header_done = True
 
@@ -224,7 +226,7 @@ class Output:
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
         if self.fmt == "json":
-            from mbtool.cli.render import to_json
+            from mbtool.cli.json_text import to_json
 
             data = {
                 **head,
@@ -314,7 +316,7 @@ class Output:
     help="Sweep these parities (N,E,O) instead of --parity.",
 )
 @click.option("--first", is_flag=True, help="Stop at the first unit that answers.")
-def scan(connection, probe, address, count, bauds, parities, first):
+def scan(connection, settings, probe, address, count, bauds, parities, first):
     """Find the unit ids that answer on a bus, and optionally the serial settings.
 
     Probes each unit of --units once, with a short timeout (-t, 0.2 s by default).
@@ -339,25 +341,25 @@ def scan(connection, probe, address, count, bauds, parities, first):
     sweeping = bauds is not None or parities is not None
     if sweeping:
         _check_sweepable(connection.port)
-    settings = [
+    lines = [
         Setting(baud=baud, parity=parity, bytesize=connection.bytesize, stopbits=connection.stopbits)
         for baud in (bauds or (connection.baud,))
         for parity in (parities or (connection.parity,))
     ]
-    if connection.dry_run:
-        _dry_run(connection, request, units, settings, sweeping)
+    if settings.dry_run:
+        _dry_run(connection, settings, request, units, lines, sweeping)
         return
     from mbtool.cli.render import default_format
     from mbtool.cli.session import trace_for
 
-    fmt = connection.output_format or default_format()
-    output = Output(fmt, sweeping)
+    fmt = settings.output_format or default_format()
+    output = Output(fmt, sweeping, settings.csv_header)
     started = time.monotonic()
-    progress = Progress(len(units) * len(settings), sys.stderr.isatty() and not connection.hex)
+    progress = Progress(len(units) * len(lines), sys.stderr.isatty() and not settings.hex)
     try:
-        tally = Scan(
-            connection, request, units, settings, sweeping, first, output, trace_for(connection)
-        ).run(progress)
+        tally = Scan(connection, request, units, lines, sweeping, first, output, trace_for(settings)).run(
+            progress
+        )
     finally:
         progress.stop()
     head = {"function": request.function_code, "name": request.name, "timeout": connection.timeout}
@@ -377,12 +379,12 @@ def _check_sweepable(port: str | None) -> None:
         raise RequestError(f"--bauds/--parities sweep serial settings, and {why}")
 
 
-def _dry_run(connection, request, units: list[int], settings: list[Setting], sweeping: bool) -> None:
+def _dry_run(connection, settings, request, units: list[int], lines: list[Setting], sweeping: bool) -> None:
     from mbtool.cli.session import open_client
 
     then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
-    then += f" at each of {len(settings)} serial settings)" if sweeping else ")"
-    with open_client(replace(connection, unit=units[0]), request.name, then=then) as client:
+    then += f" at each of {len(lines)} serial settings)" if sweeping else ")"
+    with open_client(replace(connection, unit=units[0]), settings, request.name, then=then) as client:
         client.execute(units[0], request)
 
 

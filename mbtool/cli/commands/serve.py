@@ -13,17 +13,9 @@ import time
 
 import click
 
-from mbtool.cli.options import (
-    Choice,
-    Number,
-    PositiveFloat,
-    QuickHelp,
-    parse_int,
-    parse_units,
-    serial_line_options,
-    tcp_client_options,
-    units_text,
-)
+from mbtool.cli.options import serial_line_options, tcp_client_options
+from mbtool.cli.param_types import Choice, Number, PositiveFloat, parse_int, parse_units, units_text
+from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"

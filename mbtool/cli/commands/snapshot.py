@@ -1,364 +1,19 @@
-"""Snapshots of a device: ``dump`` writes what a device holds to a file that
-``mbtool serve --data`` loads unchanged, so a dump is also a simulator of the device."""
+"""Snapshots of a device: ``diff`` compares a dump with the device or with another dump,
+and ``restore`` writes a dump's writable tables back into the device.  ``dump`` writes them
+(commands/dump.py); their file is cli/data_files.py's."""
 
 from __future__ import annotations
 
-import errno
-import signal
 import sys
-import time
 from functools import partial
 
 import click
 
-from mbtool.cli.options import Number, device_command, map_option
+from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
+from mbtool.cli.options import device_command, map_option
 from mbtool.codec.errors import RequestError
-from mbtool.errors import OutputFailed
-
-TABLE_SECTIONS = {  # a table's name in mbtool's messages -> its section in a data file
-    "coils": "coils",
-    "discrete": "discrete_inputs",
-    "input": "input_registers",
-    "holding": "holding_registers",
-}
-RUN = 16  # equal values in a row written as one { value, count }: long runs stay compact
-
-
-def parse_span(text: str):
-    """TABLE:FIRST-LAST (holding:0-999), TABLE:ADDRESS, or TABLE alone (0-65535)."""
-    from mbtool.codec.tables import table_named
-    from mbtool.link.dump import Span
-
-    name, _, where = text.partition(":")
-    table = table_named(name.strip())
-    if not where:
-        return Span(table)
-    first, dash, last = where.partition("-")
-    try:
-        low = int(first, 0)
-        high = int(last, 0) if dash else low
-    except ValueError:
-        raise RequestError(f"--range {text}: write it as TABLE:FIRST-LAST, such as holding:0-999") from None
-    if not 0 <= low <= high <= 0xFFFF:
-        raise RequestError(f"--range {text}: addresses run 0..65535, FIRST no more than LAST")
-    return Span(table, low, high)
-
-
-def data_file(dumps, identity: dict, complete: bool) -> dict:
-    """The dump as ``serve --data`` reads it: sparse, so an address it lacks is exception 02."""
-    document: dict = {"sparse": True}
-    if not complete:
-        document["complete"] = False
-    for dump in dumps:
-        section: dict = {}
-        for first, values in dump.runs:
-            for start, chunk in _chunks(first, [int(v) for v in values]):
-                section[str(start)] = chunk
-        if section:
-            document[TABLE_SECTIONS[dump.table.name]] = section
-    if identity:
-        document["identity"] = identity
-    return document
-
-
-def _chunks(first: int, values: list[int]):
-    """(address, values or a run) pieces of one readable run."""
-    plain: list[int] = []
-    start = i = 0
-    while i < len(values):
-        same = i
-        while same < len(values) and values[same] == values[i]:
-            same += 1
-        if same - i >= RUN:
-            if plain:
-                yield first + start, plain
-            yield first + i, {"value": values[i], "count": same - i}
-            plain, start = [], same
-        else:
-            if not plain:
-                start = i
-            plain.extend(values[i:same])
-        i = same
-    if plain:
-        yield first + start, plain
-
-
-def _text_or_bytes(value: bytes):
-    try:
-        text = value.decode("utf-8")
-    except UnicodeDecodeError:
-        return list(value)
-    return text if text.isprintable() else list(value)
-
-
-def _identity(execute) -> dict:
-    """FC 17 and FC 43/14, when the device answers them: what serve --data replays, byte
-    for byte (a run indicator that is neither 00 nor FF as its byte, no extra bytes as "",
-    the conformity level, and exactly the objects the device has); ``refused`` lists those
-    of the two it answered exception 01 (no such function), which the copy refuses too."""
-    from mbtool.codec.device_id import ReadDeviceIdentification
-    from mbtool.codec.errors import ModbusException, ProtocolError
-    from mbtool.codec.pdu import ExceptionCode
-    from mbtool.codec.serial_line import ReportSlaveId
-    from mbtool.errors import NoResponse
-    from mbtool.link.dump import read_identification
-
-    identity: dict = {}
-    refused = []
-    try:
-        reply = execute(ReportSlaveId())
-        run = reply.run_indicator if reply.run_indicator_byte is None else reply.run_indicator_byte
-        identity |= {"slave_id": reply.slave_id, "run": run, "extra": _text_or_bytes(reply.extra)}
-    except ModbusException as error:
-        if error.exception_code == ExceptionCode.ILLEGAL_FUNCTION:
-            refused.append(ReportSlaveId.function_code)  # Modbus TCP devices often have no FC 17
-    except (ProtocolError, NoResponse):
-        pass  # silence or a bad reply says nothing of the function: the copy keeps its own
-    for read_code in (0x03, 0x02, 0x01):  # extended: every object; a lesser device may refuse it
-        try:
-            objects, conformity = read_identification(execute, read_code)
-        except ModbusException as error:
-            if error.exception_code == ExceptionCode.ILLEGAL_FUNCTION:
-                refused.append(ReadDeviceIdentification.function_code)  # no FC 43/14 at all
-                break
-            continue
-        except (ProtocolError, NoResponse):
-            break
-        if objects:
-            identity["conformity"] = conformity
-            identity["objects"] = {str(key): _text_or_bytes(value) for key, value in objects.items()}
-        break
-    if refused:
-        identity["refused"] = refused
-    return identity
-
-
-@device_command("dump", output=False)
-@click.argument("file", type=click.Path(dir_okay=False, allow_dash=True))
-@click.option(
-    "--range",
-    "ranges",
-    multiple=True,
-    metavar="TABLE:FIRST-LAST",
-    help="Dump only these (repeatable): coils, discrete, input or holding, with an address "
-    "range such as holding:0-999. Default: all four tables, 0-65535 each.",
-)
-@click.option(
-    "--max-requests",
-    type=Number(1, 10**9, "requests"),
-    help="Stop after N requests; the file keeps what was read, marked complete = false, "
-    "and the exit status is 8 (partial) unless the dump finished within them.",
-)
-def dump(connection, file, ranges, max_requests):
-    """Dump a device's tables, and its identity, to FILE (- for stdout).
-
-    FILE is TOML that mbtool serve --data loads unchanged: sparse, holding exactly the
-    addresses the device has, so the dump serves as a copy of the device. Reads are as
-    large as the spec allows; a read refused with exception 02 is narrowed until every
-    address is known to be there or not (each missing address costs one request).
-    Ctrl-C or SIGTERM keeps what was read so far, in a valid file marked complete =
-    false; a second one while it is written is ignored. FILE is replaced only by a whole
-    dump (written beside it, then renamed), and a FILE that cannot be written is an
-    error before anything is read.
-    """
-    import tomli_w
-
-    from mbtool.cli.session import open_client
-    from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary
-    from mbtool.link.dump import Dumper, OutOfRequests, TableDump
-
-    spans = [parse_span(text) for text in ranges] or [parse_span(name) for name in TABLE_SECTIONS]
-    dumps = {span.table.name: TableDump(span.table) for span in spans}
-    total = sum(span.size for span in spans)
-    # A place that cannot be written fails here, before the device is read.
-    output = None if file == "-" or connection.dry_run else _DataFile(file)
-    began = time.monotonic()
-    stopped, failure, identity, out_of_requests, dumper = "", None, {}, False, None
-    try:
-        with _Interrupts() as interrupts:
-            try:
-                with open_client(connection, "Read Holding Registers") as client:
-                    execute = partial(client.execute, connection.unit)
-
-                    dumper = Dumper(execute, max_requests)
-                    bar = _Bar(total) if sys.stderr.isatty() and not connection.dry_run else None
-                    try:
-                        for span in spans:
-                            done = bar.done if bar else 0
-                            progress = bar and (lambda n, done=done: bar.at(done + n))
-                            dumper.dump(span, dumps[span.table.name], progress)
-                            if bar:
-                                bar.at(done + span.size)
-                        identity = _identity(execute)
-                    except OutOfRequests:
-                        stopped = f"stopped after {dumper.requests} requests (--max-requests)"
-                        out_of_requests = True
-                    except KNOWN_ERRORS as error:
-                        if connection.dry_run:
-                            raise
-                        stopped, failure = f"stopped: {error}", error
-                    finally:
-                        if bar:
-                            bar.close()
-                    interrupts.hold()
-            except KeyboardInterrupt:
-                stopped = "interrupted"
-            interrupts.hold()  # from here on a signal cannot stop the file being written
-            if stopped == "interrupted" and (dumper is None or not dumper.requests):
-                raise KeyboardInterrupt  # before anything was read: FILE stays as it was
-            text = tomli_w.dumps(data_file(dumps.values(), identity, complete=not stopped))
-            if output is None:
-                sys.stdout.write(text)
-            else:
-                output.commit(text)
-    finally:
-        if output is not None:
-            output.discard()
-    found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
-    refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
-    summary = f"dump: {found}; {dumper.requests} requests{refused} in {time.monotonic() - began:.1f} s"
-    if stopped:
-        summary += f"; {stopped}: the file has what was read, marked complete = false"
-    code = ExitCode.OK
-    if stopped == "interrupted":
-        code = ExitCode.INTERRUPTED
-    elif out_of_requests:
-        code = ExitCode.PARTIAL  # part of what was asked: a finished dump must not look like it
-    elif failure is not None:
-        from mbtool.errors import exit_code_for
-
-        code = exit_code_for(failure)
-    raise Summary(summary, code)
-
-
-class _Interrupts:
-    """SIGINT and SIGTERM while a dump runs.  The first stops the reading (KeyboardInterrupt,
-    as everywhere in mbtool); a later one, or any once ``hold`` is called, is ignored, as
-    the dump ends once the file is written anyway: a second Ctrl-C, or a SIGTERM on top of
-    one, must not lose what was read (issue 29).  A signal the shell left ignored (a
-    background job's SIGINT) stays ignored."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __enter__(self) -> _Interrupts:
-        self.raised = self.holding = False
-        self.previous = {}
-        for sig in self.SIGNALS:
-            if signal.getsignal(sig) is not signal.SIG_IGN:
-                self.previous[sig] = signal.signal(sig, self._arrived)
-        return self
-
-    def _arrived(self, signum, frame) -> None:
-        if not (self.raised or self.holding):
-            self.raised = True
-            raise KeyboardInterrupt
-
-    def hold(self) -> None:
-        self.holding = True
-
-    def __exit__(self, *exc) -> None:
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-
-
-class _DataFile:
-    """FILE written whole or not at all.  The dump goes to a temporary file beside FILE, made
-    before the device is read (a place that cannot be written fails at once), and renamed
-    over FILE once written and synced: FILE is the previous dump or the new one, never a
-    part of one (a SIGKILL, a full disk).  The new FILE keeps the previous one's permissions."""
-
-    def __init__(self, path: str) -> None:
-        import os
-        import tempfile
-
-        self.path = path
-        self.target = os.path.realpath(path)  # through a symbolic link: the link stays
-        folder, name = os.path.split(self.target)
-        try:
-            try:
-                mode = os.stat(self.target).st_mode & 0o7777
-                if not os.access(self.target, os.W_OK):
-                    raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), path)
-            except FileNotFoundError:
-                umask = os.umask(0)
-                os.umask(umask)
-                mode = 0o666 & ~umask  # as open() would make it
-            fd, self.temp = tempfile.mkstemp(prefix=f".{name}.", suffix=".part", dir=folder)
-        except OSError as error:
-            raise OutputFailed(path, error) from None
-        self.file = os.fdopen(fd, "w", encoding="utf-8")
-        os.fchmod(fd, mode)
-
-    def commit(self, text: str) -> None:
-        import os
-
-        try:
-            self.file.write(text)
-            self.file.flush()
-            os.fsync(self.file.fileno())
-            self.file.close()
-            os.replace(self.temp, self.target)
-        except OSError as error:
-            raise OutputFailed(self.path, error) from None
-        self.temp = None
-
-    def discard(self) -> None:
-        """Remove the temporary file unless it became FILE."""
-        import contextlib
-        import os
-
-        with contextlib.suppress(OSError):
-            self.file.close()  # a write that failed may fail again here
-        if self.temp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(self.temp)
-            self.temp = None
-
-
-class _Bar:
-    """A progress bar on a terminal's stderr: addresses covered of all asked for."""
-
-    def __init__(self, total: int) -> None:
-        from rich.console import Console
-        from rich.progress import Progress
-
-        self.done = 0
-        self.progress = Progress(console=Console(stderr=True), transient=True)
-        self.task = self.progress.add_task("dump", total=total)
-        self.progress.start()
-
-    def at(self, done: int) -> None:
-        self.done = done
-        self.progress.update(self.task, completed=done)
-
-    def close(self) -> None:
-        self.progress.stop()
-
 
 # --- diff: two snapshots, or a snapshot and the device ------------------------------------
-
-
-def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
-    """A data file's listed addresses and their values, by table (coils, discrete, input,
-    holding), and whether the file is complete (a dump cut short says complete = false).
-
-    One device's tables: a file with [units.N] sections (serve's, one set a unit) is
-    refused rather than read as something it is not."""
-    from mbtool.device.datafile import load_data
-
-    model, units = load_data(path, frozenset(range(1, 256)), listed_only=True)
-    if units:
-        raise RequestError(
-            f"{path} has [units.{min(units)}]: diff and restore take one device's tables, "
-            "as mbtool dump writes them, not serve's sections a unit"
-        )
-    out: dict[str, dict[int, int]] = {}
-    for name, section in TABLE_SECTIONS.items():
-        mask = model.defined.get(section)
-        if mask:
-            values = getattr(model, section)
-            out[name] = {address: int(values[address]) for address, there in enumerate(mask) if there}
-    return out, model.complete
 
 
 def read_live(execute, wanted: dict[str, dict[int, int]]) -> dict[str, dict[int, int]]:
@@ -452,7 +107,7 @@ def _as_read(difference: dict, register_map) -> tuple:
 @click.argument("a", metavar="A")
 @click.argument("b", metavar="[B]", required=False)
 @map_option("differences at its points by name, in their units")
-def diff(connection, a, b, map):
+def diff(connection, settings, a, b, map):
     """Compare two dumps, or a dump with the device itself (-p and friends).
 
     A side named device (B when left out) is the device: only the dump's addresses are
@@ -460,7 +115,8 @@ def diff(connection, a, b, map):
     -> 23 m3/h with -m, a bit off -> on); "missing" where a side lacks the address. Exit 0 when equal, 1
     when they differ (as diff(1)), other codes as everywhere.
     """
-    from mbtool.cli.render import default_format, to_json
+    from mbtool.cli.json_text import to_json
+    from mbtool.cli.render import default_format
     from mbtool.errors import ExitCode, Summary
 
     register_map = None
@@ -478,11 +134,11 @@ def diff(connection, a, b, map):
         from mbtool.cli.session import open_client
 
         (dumped,) = files.values()
-        with open_client(connection, "Read Holding Registers") as client:
+        with open_client(connection, settings, "Read Holding Registers") as client:
             files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
     left, right = files[a], files[b]
     found = differences(left, right, register_map)
-    fmt = connection.output_format or default_format()
+    fmt = settings.output_format or default_format()
     if fmt == "json":
         print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
     elif fmt == "csv":
@@ -491,7 +147,7 @@ def diff(connection, a, b, map):
         from mbtool.cli.render import wants_csv_header
 
         writer = csv.writer(sys.stdout, lineterminator="\n")
-        if wants_csv_header(sys.stdout):
+        if wants_csv_header(sys.stdout, settings.csv_header):
             writer.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
         for d in found:
             writer.writerow(
@@ -598,7 +254,7 @@ def restore_plan(current: dict, wanted: dict, register_map=None, everything: boo
     "--all", "everything", is_flag=True, help="Write every coil and register, not only those that differ."
 )
 @map_option("each point written whole, its registers in one request, and named in the report")
-def restore(connection, file, everything, map):
+def restore(connection, settings, file, everything, map):
     """Write a dump's holding registers and coils back into the device, then read back.
 
     Only what differs from the device is written (--all: everything), in the fewest FC
@@ -637,16 +293,16 @@ def restore(connection, file, everything, map):
     head = {"unit": connection.unit, "file": file} | ({"map": map} if map else {})
     read_back, trouble = False, None
     # The reads are needed even for --dry-run: it lists only the writes that differ.
-    with open_client(replace(connection, dry_run=False), "Read Holding Registers") as client:
+    with open_client(connection, replace(settings, dry_run=False), "Read Holding Registers") as client:
         execute = partial(client.execute, connection.unit)
 
         current = {} if everything else read_live(execute, wanted)
         steps, changes, partial_points = restore_plan(current, wanted, register_map, everything)
         items = [item for step in steps for item in step.items]
-        if connection.dry_run:
+        if settings.dry_run:
             from mbtool.cli.dryrun import DryRunDone
 
-            report(connection, items, head)
+            report(settings, items, head)
             raise DryRunDone(
                 f"dry run: the device was read; nothing was sent: {len(steps)} request"
                 f"{'s' if len(steps) != 1 else ''} would write {len(items)} value{'s' if len(items) != 1 else ''}"
@@ -696,7 +352,7 @@ def restore(connection, file, everything, map):
             text += "; read back and confirmed"
         summary = Summary(text, code)
     end = {"error": str(summary)} if code else {}
-    report(connection, items, head, end | {"exit_code": int(code)})
+    report(settings, items, head, end | {"exit_code": int(code)})
     raise summary
 
 

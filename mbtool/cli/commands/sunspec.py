@@ -7,7 +7,8 @@ import sys
 
 import click
 
-from mbtool.cli.options import Number, device_command
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import Number
 from mbtool.codec.errors import RequestError
 
 SMA_UNIT = 126  # SMA inverters answer SunSpec on unit 126 (their own register map on 3)
@@ -35,7 +36,7 @@ MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper
     type=click.Path(dir_okay=False),
     help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll.",
 )
-def sunspec(connection, base, model_ids, map_path):
+def sunspec(connection, settings, base, model_ids, map_path):
     """Find a SunSpec device's models and name every point: solar inverters, meters, batteries.
 
     Looks for the marker "SunS" at holding register 40000, 0 and 50000 (--base: only
@@ -57,9 +58,9 @@ def sunspec(connection, base, model_ids, map_path):
 
     if map_path is not None and not map_path.lower().endswith(".toml"):
         raise RequestError(f"--map writes a TOML map: {map_path} is not a .toml file name")
-    fmt = connection.output_format or default_format()
+    fmt = settings.output_format or default_format()
     bases = (base,) if base is not None else None
-    chain, unit = _walk(connection, bases, set(model_ids))
+    chain, unit = _walk(connection, settings, bases, set(model_ids))
     wanted = [m for m in chain.models if not model_ids or m.layout.model_id in model_ids]
     if model_ids and not wanted:
         found = ", ".join(str(m.layout.model_id) for m in chain.models) or "none"
@@ -69,7 +70,10 @@ def sunspec(connection, base, model_ids, map_path):
         print(f"mbtool: warning: {warning}", file=sys.stderr)
     unwritten = _write_map(map_path, connection, unit, chain, wanted) if map_path is not None else None
     tree = _tree(chain, unit, wanted)
-    {"json": _json, "csv": _csv, "table": _table}.get(fmt, _plain)(tree)
+    if fmt == "csv":
+        _csv(tree, settings.csv_header)
+    else:
+        {"json": _json, "table": _table}.get(fmt, _plain)(tree)
     refused = [m for m in wanted if m.error is not None]
     if refused or unwritten:
         from mbtool.errors import ExitCode, Summary
@@ -83,7 +87,7 @@ def sunspec(connection, base, model_ids, map_path):
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
 
 
-def _walk(connection, bases, model_ids: set[int]):
+def _walk(connection, settings, bases, model_ids: set[int]):
     """The chain and the unit it was found on."""
     from functools import partial
 
@@ -96,9 +100,9 @@ def _walk(connection, bases, model_ids: set[int]):
 
     bases = bases or BASES
     with open_client(
-        connection, ReadHoldingRegisters.name, then="then the chain of models after the marker"
+        connection, settings, ReadHoldingRegisters.name, then="then the chain of models after the marker"
     ) as client:
-        if connection.dry_run:
+        if settings.dry_run:
             client.execute(connection.unit, ReadHoldingRegisters(bases[0], 2))
         try:
             return discover(partial(client.execute, connection.unit), bases, model_ids), connection.unit
@@ -203,7 +207,7 @@ NOT_IMPLEMENTED = "not implemented"
 def _value_text(point: dict) -> str:
     """A point's value as a person reads it: not implemented, or the value, its unit and a
     bitfield's set bits; a value whose scale factor is not implemented says so."""
-    from mbtool.cli.render import value_text
+    from mbtool.cli.results import value_text
 
     if not point["implemented"]:
         return NOT_IMPLEMENTED
@@ -267,7 +271,7 @@ def _plain_groups(groups: dict, indent: str) -> list[str]:
 
 
 def _json(tree: dict) -> None:
-    from mbtool.cli.render import to_json
+    from mbtool.cli.json_text import to_json
 
     sys.stdout.write(to_json(tree) + "\n")
 
@@ -275,14 +279,15 @@ def _json(tree: dict) -> None:
 CSV_HEADER = ["model", "name", "value", "unit", "address", "registers", "implemented"]
 
 
-def _csv(tree: dict) -> None:
+def _csv(tree: dict, header: bool = True) -> None:
     """A row a point (scale factors too), by its name in the map."""
     import csv
 
-    from mbtool.cli.render import value_text, wants_csv_header
+    from mbtool.cli.render import wants_csv_header
+    from mbtool.cli.results import value_text
 
     writer = csv.writer(sys.stdout, lineterminator="\n")
-    if wants_csv_header(sys.stdout):
+    if wants_csv_header(sys.stdout, header):
         writer.writerow(CSV_HEADER)
     for model in tree["models"]:
         for point in _every_point(model):

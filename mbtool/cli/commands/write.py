@@ -9,15 +9,14 @@ import sys
 import click
 
 from mbtool.cli.options import (
-    ADDRESS,
     NONFINITE_OPTION,
     ONE_REGISTER_TYPES,
     VALUE_TYPES,
-    Number,
     device_command,
     map_option,
     type_options_given,
 )
+from mbtool.cli.param_types import ADDRESS, Number
 from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.errors import ModbusException, RequestError
 
@@ -36,15 +35,16 @@ def parse_bit(text: str) -> bool:
 @device_command("write-coil")
 @click.argument("address", type=ADDRESS)
 @click.argument("state", metavar="on|off|1|0")
-def write_coil(connection, address, state):
+def write_coil(connection, settings, address, state):
     """Write one coil (FC 05). Switch the coil at ADDRESS on or off (also 1|0|true|false)."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteSingleCoil
 
     request = WriteSingleCoil(address, parse_bit(state))
-    execute(connection, request)
+    execute(connection, settings, request)
     show(
         connection,
+        settings,
         Result(connection.unit, request.function_code, request.name, address, [request.on]),
     )
 
@@ -52,19 +52,20 @@ def write_coil(connection, address, state):
 @device_command("write-register", types=ONE_REGISTER_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("value")
-def write_register(connection, address, value, value_type, order):
+def write_register(connection, settings, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteSingleRegister
     from mbtool.codec.values import decode_values, parse_registers
 
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
-    execute(connection, request)
+    execute(connection, settings, request)
     # As write-registers does: the value as the register now holds it, in the user's --type.
     (written,) = decode_values((register,), value_type, order)
     show(
         connection,
+        settings,
         Result(
             connection.unit,
             request.function_code,
@@ -80,39 +81,44 @@ def write_register(connection, address, value, value_type, order):
 @device_command("write-coils")
 @click.argument("address", type=ADDRESS)
 @click.argument("bits", nargs=-1, required=True, metavar="BIT...")
-def write_coils(connection, address, bits):
+def write_coils(connection, settings, address, bits):
     """Write coils (FC 15). BITs (on|off|1|0|true|false) from ADDRESS, at most 1968."""
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteMultipleCoils
 
     values = tuple(parse_bit(bit) for bit in bits)
     request = WriteMultipleCoils(address, values)
-    execute(connection, request)
-    show(connection, Result(connection.unit, request.function_code, request.name, address, list(values)))
+    execute(connection, settings, request)
+    show(
+        connection,
+        settings,
+        Result(connection.unit, request.function_code, request.name, address, list(values)),
+    )
 
 
 @device_command("write-registers", types=VALUE_TYPES)
 @click.argument("address", type=ADDRESS)
 @click.argument("values", nargs=-1, required=True, metavar="VALUE...")
 @NONFINITE_OPTION
-def write_registers(connection, address, values, allow_nonfinite, value_type, order):
+def write_registers(connection, settings, address, values, allow_nonfinite, value_type, order):
     """Write registers (FC 16). VALUEs from ADDRESS, at most 123 registers.
 
     Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
     fills 2 registers in --order).
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.data_access import WriteMultipleRegisters
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
     registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = WriteMultipleRegisters(address, tuple(registers))
-    execute(connection, request)
+    execute(connection, settings, request)
     # Report the values as the device now holds them, read back through the same type.
     typed = decode_values(registers, value_type, order)
     addresses = value_addresses(value_type, address, len(registers))
     show(
         connection,
+        settings,
         Result(
             connection.unit,
             request.function_code,
@@ -148,7 +154,7 @@ RMW_OPTION = click.option(
 @MULTIPLE_OPTION
 @RMW_OPTION
 @NONFINITE_OPTION
-def write(connection, targets, map, multiple, rmw, allow_nonfinite, value_type, order):
+def write(connection, settings, targets, map, multiple, rmw, allow_nonfinite, value_type, order):
     """Write by a device manual's reference, or a register map's points by name.
 
     REF is a Modicon reference: 00001 coil 1, 40001 holding register 1 (six digits up
@@ -165,17 +171,19 @@ def write(connection, targets, map, multiple, rmw, allow_nonfinite, value_type, 
     """
     type_options_given(map)  # refused with a map
     if map:
-        _write_map(connection, map, targets, multiple, rmw, allow_nonfinite)
+        _write_map(connection, settings, map, targets, multiple, rmw, allow_nonfinite)
         return
     if len(targets) < 2:
         raise click.UsageError("give a reference and a value, such as 40001 17, or -m MAP NAME=VALUE")
-    _write_reference(connection, targets[0], targets[1:], multiple, value_type, order, allow_nonfinite)
+    _write_reference(
+        connection, settings, targets[0], targets[1:], multiple, value_type, order, allow_nonfinite
+    )
 
 
 def _write_reference(
-    connection, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
+    connection, settings, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
 ) -> None:
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.tables import parse_reference, reference, write_of
     from mbtool.codec.values import decode_values, parse_registers, value_addresses
 
@@ -198,10 +206,11 @@ def _write_reference(
         written = decode_values(registers, value_type, order)
         addresses = value_addresses(value_type, address, len(registers))
         kind = value_type
-    execute(connection, request)
+    execute(connection, settings, request)
     refs = [reference(table, at) for at in addresses]
     show(
         connection,
+        settings,
         Result(
             connection.unit,
             request.function_code,
@@ -216,8 +225,10 @@ def _write_reference(
     )
 
 
-def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool) -> None:
-    from mbtool.cli.render import PointRow, Points, value_text
+def _write_map(
+    connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
+) -> None:
+    from mbtool.cli.results import PointRow, Points, value_text
     from mbtool.cli.writes import Step, failure, report, send_all
     from mbtool.codec.framing import is_broadcast
     from mbtool.link.connection import framer_name
@@ -270,10 +281,10 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
             )
         )
 
-    with open_client(connection, RMW_NEEDS if bits_by_rmw else "") as client:
+    with open_client(connection, settings, RMW_NEEDS if bits_by_rmw else "") as client:
         # A scaled point (SunSpec's WMaxLimPct with its WMaxLimPct_SF) is written in the
         # scale the device reports now: its scale factors are read first.
-        scale = _scale_factors(connection, client, factors, register_map.max_gap)
+        scale = _scale_factors(connection, settings, client, factors, register_map.max_gap)
         steps, warnings = [], []
         for point, text in wanted:
             factor = scale.get(point.scale_ref.name) if point.scale_ref is not None else None
@@ -291,7 +302,7 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
             steps.append(Step(f"{point.name} ({point.ref})", (item,), (point, value, request, factor)))
         for warning in warnings:
             print(f"mbtool: warning: {warning}", file=sys.stderr)
-        if connection.dry_run:  # no write depends on a reply: show every frame
+        if settings.dry_run:  # no write depends on a reply: show every frame
             for step in steps:
                 point, _, request, _ = step.work
                 if point.bit is not None and rmw:
@@ -303,12 +314,12 @@ def _write_map(connection, path: str, assignments, multiple: bool, rmw: bool, no
         summary = failure("write", outcome)
         items = [item for step in steps for item in step.items]
         end = {"error": str(summary), "exit_code": int(summary.exit_code)}
-        report(connection, items, {"unit": connection.unit, "map": register_map.source}, end)
+        report(settings, items, {"unit": connection.unit, "map": register_map.source}, end)
         raise summary
-    show(connection, Points(connection.unit, register_map.source, rows))
+    show(connection, settings, Points(connection.unit, register_map.source, rows))
 
 
-def _scale_factors(connection, client, factors: list, max_gap: int) -> dict:
+def _scale_factors(connection, settings, client, factors: list, max_gap: int) -> dict:
     """The value each scale-factor point holds now (None: it has none), read before any
     write; with --dry-run their reads are shown and the run ends there, as the writes
     depend on the replies."""
@@ -319,9 +330,9 @@ def _scale_factors(connection, client, factors: list, max_gap: int) -> dict:
     if not factors:
         return {}
     reader = MapReader(factors, max_gap)
-    if connection.dry_run:
+    if settings.dry_run:
         for block in reader.blocks:
-            client.show(connection.unit, block.request())
+            client.show(connection.unit, block.request)
         client.then = "then each point is written in the scale its scale factor reads"
         client.finish(connection.unit)
     return {
@@ -377,7 +388,7 @@ def _write_bit(connection, client, address: int, bit: int, on: bool, rmw: bool) 
 @click.argument("bit", type=Number(0, 15, "bit"))
 @click.argument("state", metavar="on|off")
 @RMW_OPTION
-def write_bit(connection, ref, bit, state, rmw):
+def write_bit(connection, settings, ref, bit, state, rmw):
     """Set or clear one BIT (0-15, 0 the least significant) of a holding register.
 
     REF is a Modicon reference of a holding register (40001, 400001, 4x0001). Mask
@@ -385,7 +396,7 @@ def write_bit(connection, ref, bit, state, rmw):
     FC 22 answers exception 01, and --rmw reads the register and writes it back
     (FC 03, then FC 06) instead, which is not atomic.
     """
-    from mbtool.cli.render import Result
+    from mbtool.cli.results import Result
     from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference
 
     table, address = parse_reference(ref)
@@ -394,8 +405,8 @@ def write_bit(connection, ref, bit, state, rmw):
             f"{ref} is {table.item} {address + 1}: write-bit changes a bit of a holding register (4xxxx)"
         )
     on = parse_bit(state)
-    with open_client(connection, RMW_NEEDS if rmw else "") as client:
-        if connection.dry_run:
+    with open_client(connection, settings, RMW_NEEDS if rmw else "") as client:
+        if settings.dry_run:
             from mbtool.registermap.plan import bit_request
 
             client.show(connection.unit, _rmw_read(address) if rmw else bit_request(address, bit, on))
@@ -403,4 +414,6 @@ def write_bit(connection, ref, bit, state, rmw):
         raw = _write_bit(connection, client, address, bit, on, rmw)
     function, name = (0x06, "Write Single Register") if rmw else (0x16, "Mask Write Register")
     extra = {"bit": bit} | ({"register": raw[0]} if raw else {})
-    show(connection, Result(connection.unit, function, name, address, [on], extra=extra, refs=[ref]))
+    show(
+        connection, settings, Result(connection.unit, function, name, address, [on], extra=extra, refs=[ref])
+    )

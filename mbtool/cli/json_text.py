@@ -1,0 +1,136 @@
+"""JSON text: the one writer of it in the CLI, for every object a command prints.
+
+One rule for all: json's separators, and NaN and the infinities as null (they are no
+JSON; jq would choke on them).  One object (a one-shot read, an error) is written by
+``to_json``, without the json module: importing it costs ~2 ms that every one-shot
+``-o json`` from cron would pay.  A poll writes many: ``json_line`` uses json's C
+encoder, made once, and ``JsonLines`` keeps what a command's polls share.
+"""
+
+from __future__ import annotations
+
+import math
+
+from mbtool.cli.results import as_dict
+
+
+def to_json(value: object) -> str:
+    """JSON text of plain data (dict, list, tuple, str, int, float, bool, None).
+
+    Not the json module: importing it costs ~2 ms (its decoder too) that every
+    one-shot ``-o json`` from cron would pay; strings are escaped by the same C
+    function json itself uses.
+    """
+    from _json import encode_basestring_ascii
+
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "null"  # NaN and infinities are not JSON; jq would choke on them
+    if value is True:
+        return "true"
+    if value is False:
+        return "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return encode_basestring_ascii(value)
+    if isinstance(value, dict):
+        return (
+            "{"
+            + ", ".join(f"{encode_basestring_ascii(str(k))}: {to_json(v)}" for k, v in value.items())
+            + "}"
+        )
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(to_json(item) for item in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def error_json(message: str, code: int, **first: object) -> str:
+    """The object -o json writes for a failure, one-shot or a poll's: {"error", "exit_code"}."""
+    return to_json({**first, "error": message, "exit_code": code})
+
+
+def json_line(data: dict) -> str:
+    """A poll's JSON line, by the json module's C encoder: a sustained poll spends more on
+    JSON than on Modbus with to_json, and json's import is nothing to a loop.  The same text, since
+    to_json keeps json's separators; NaN and infinities, which json would write as
+    invalid JSON, go the to_json way (null)."""
+    global _ENCODER
+    if _ENCODER is None:
+        import json
+
+        # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
+        _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
+    try:
+        return _ENCODER.encode(data) + "\n"
+    except ValueError:
+        return to_json(data) + "\n"
+
+
+_ENCODER = None
+
+
+class JsonLines:
+    """A poll's JSON line, as ``json_line({"time": ..., **as_dict(result)})`` writes it, with
+    less work a poll: the polls of one command differ only in their time, values and raw
+    registers, so the rest of the line (unit, function, name, address, type, addresses,
+    refs) is encoded once and kept while the result's shape stays the same; and a poll
+    whose result is the one before (its values unchanged: ``Deferred``) writes only its
+    time anew."""
+
+    def __init__(self) -> None:
+        self.shape: tuple | None = None
+        self.parts: list[str] = []  # the text around the time, the values and the registers
+        self.integers = False  # the values are ints (an integer type, one order)
+        self.result = None  # the last result written,
+        self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
+
+    def line(self, when: str, result) -> str:
+        if result is not self.result:
+            self.result, self.rest = result, self._rest(result)
+        if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
+            return json_line({"time": when, **as_dict(result)})
+        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
+        return self.parts[0] + '"' + when + '"' + self.rest
+
+    def _rest(self, result) -> str | None:
+        """The line after the time: the values and registers within the text kept for the shape."""
+        shape = (
+            result.unit,
+            result.function,
+            result.name,
+            result.address,
+            result.addresses,
+            result.type,
+            result.refs,
+            result.extra,
+            result.registers is None,
+        )
+        if shape != self.shape:
+            self.shape, self.parts = shape, self._parts(result)
+            from mbtool.codec.values import TYPES  # polling only: a one-shot write needs none
+
+            self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
+        # A list of ints is the same text in Python's repr as in JSON (json writes an int by
+        # its repr, and a list with ", "), at a third of the encoder's cost; registers are
+        # always ints.  Other values (floats that may be NaN, strings, bits) take the encoder.
+        values = result.values
+        try:
+            text = repr(values) if self.integers and type(values) is list else _ENCODER.encode(values)
+        except ValueError:
+            return None
+        parts = self.parts
+        if len(parts) == 3:
+            return parts[1] + text + parts[2]
+        return parts[1] + text + parts[2] + repr(list(result.registers)) + parts[3]
+
+    @staticmethod
+    def _parts(result) -> list[str]:
+        """The line's text, cut where the time, the values and the registers go."""
+        data = {"time": _MARK, **as_dict(result), "values": _MARK}
+        if "registers" in data:
+            data["registers"] = _MARK
+        text = json_line(data)
+        return text.split(_ENCODER.encode(_MARK))
+
+
+_MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded

@@ -1,0 +1,248 @@
+"""What a command learned, as records: values at addresses (``Result``), a register map's
+points (``Points``), named rows (``Report``); and each as the plain data JSON carries.
+
+The renderers (``render``, ``poll_output``, ``metrics``) turn these into text in the
+run's format; a record knows no format.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from mbtool.codec.record import record
+
+
+@record
+class Result:
+    """What a command learned (or wrote): values at addresses, and their context."""
+
+    unit: int
+    function: int
+    name: str
+    address: int
+    values: list  # bits, or values of ``type``; {order: value} each with --order all
+    type: str | None = None  # None for bits; a register type from codec.values otherwise
+    registers: Sequence[int] | None = None  # the raw registers behind typed values, as read
+    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
+    extra: dict | None = None  # more keys for JSON
+    refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
+    addresses: list[int] | None = None  # where each value starts; None: one a value from address
+
+    def __init__(
+        self,
+        unit: int,
+        function: int,
+        name: str,
+        address: int,
+        values: list,
+        type: str | None = None,
+        registers: Sequence[int] | None = None,
+        note: str = "",
+        extra: dict | None = None,
+        refs: list[str] | None = None,
+        addresses: list[int] | None = None,
+    ) -> None:
+        # By hand: one a poll (codec/record.py).
+        fields = self.__dict__
+        fields["unit"] = unit
+        fields["function"] = function
+        fields["name"] = name
+        fields["address"] = address
+        fields["values"] = values
+        fields["type"] = type
+        fields["registers"] = registers
+        fields["note"] = note
+        fields["extra"] = extra
+        fields["refs"] = refs
+        # One value a register or a bit, from ``address`` on, unless the command says otherwise.
+        fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
+
+    @property
+    def table(self) -> str:
+        """The table a read of FC 01-04 read (coils, discrete, input, holding); else the
+        function's name."""
+        from mbtool.codec.tables import TABLE_OF_READ
+
+        return TABLE_OF_READ.get(self.function, self.name)
+
+
+def value_text(value: object) -> str:
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, dict):  # --order all: the value in each word order
+        return " ".join(f"{order}={value_text(each)}" for order, each in value.items())
+    return str(value)
+
+
+def as_dict(result: Result) -> dict:
+    data: dict = {
+        "unit": result.unit,
+        "function": result.function,
+        "name": result.name,
+        "address": result.address,
+    }
+    if result.type:
+        data["type"] = result.type
+    data["values"] = result.values
+    data["addresses"] = result.addresses
+    if result.refs is not None:
+        data["refs"] = result.refs
+    if result.registers is not None and result.type not in (None, "uint16"):
+        data["registers"] = result.registers
+    data.update(result.extra or {})
+    return data
+
+
+# --- a register map's points: name, value, unit ------------------------------------------
+
+
+@record
+class PointRow:
+    """One point of a register map as read: ``value`` in engineering units (or its enum
+    label, or on/off), ``raw`` the registers (or bits) it came from."""
+
+    name: str
+    value: object
+    unit: str
+    ref: str
+    raw: tuple
+    bits: bool  # a coil or discrete input: raw holds bits, not registers
+    description: str = ""
+    number: int | float | None = None  # the number behind the value (Point.number_of)
+    no_label: bool = False  # a value the point's enum does not label (Point.no_label)
+
+    def __init__(
+        self,
+        name: str,
+        value: object,
+        unit: str,
+        ref: str,
+        raw: tuple,
+        bits: bool,
+        description: str = "",
+        number: int | float | None = None,
+        no_label: bool = False,
+    ) -> None:
+        # By hand: one a point a poll (codec/record.py).
+        fields = self.__dict__
+        fields["name"] = name
+        fields["value"] = value
+        fields["unit"] = unit
+        fields["ref"] = ref
+        fields["raw"] = raw
+        fields["bits"] = bits
+        fields["description"] = description
+        fields["number"] = number
+        fields["no_label"] = no_label
+
+    @property
+    def shown(self) -> str:
+        return point_text(self.value) + (" (no label)" if self.no_label else "")
+
+
+INVALID = "invalid"  # a raw value the map's invalid key names: the device has no value to give
+
+
+def point_text(value: object) -> str:
+    """A map's point's value as text: a bit is on or off; no value (the map's invalid key)
+    is invalid."""
+    if value is None:
+        return INVALID
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return value_text(value)
+
+
+@record
+class PointFailure:
+    """A point of a map the device refused: its name, ref and the device's answer."""
+
+    name: str
+    ref: str
+    error: str
+
+
+@record
+class Points:
+    """What ``read -m MAP`` learned.  Plain: ``NAME VALUE UNIT`` lines; JSON: the unit id,
+    the map, and each point's name, value, unit, ref and raw registers; CSV: a row a point.
+    The points the device refused (a partial read) are in ``failed``: in JSON and the table,
+    and on stderr; plain and CSV lines are values only."""
+
+    unit: int
+    source: str  # the map file
+    rows: list[PointRow]
+    note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
+    failed: list[PointFailure] = ()
+
+
+def points_dict(points: Points) -> dict:
+    return {
+        "unit": points.unit,
+        "map": points.source,
+        "points": [
+            {
+                "name": row.name,
+                "value": row.value,
+                "unit": row.unit,
+                "ref": row.ref,
+                "bits" if row.bits else "registers": list(row.raw),
+                **({"invalid": True} if row.value is None else {}),
+            }
+            for row in points.rows
+        ],
+        **(
+            {"failed": [{"name": f.name, "ref": f.ref, "error": f.error} for f in points.failed]}
+            if points.failed
+            else {}
+        ),
+    }
+
+
+# --- structured results: fields, counters, event lists, decoded frames -----------------
+
+
+@record
+class Row:
+    """One named item of a Report.
+
+    ``name`` is one token (a script splits the plain line at the first space);
+    ``value`` is plain data for JSON; ``text`` is how a person reads it (default:
+    the value); ``raw`` the bytes on the wire it came from (offline decoding).
+    """
+
+    name: str
+    value: object
+    text: str | None = None
+    raw: bytes | None = None
+
+    @property
+    def shown(self) -> str:
+        return value_text(self.value) if self.text is None else self.text
+
+
+@record
+class Report:
+    """What a command learned that is not a run of addressed values: named rows.
+
+    Plain: one ``NAME VALUE`` line per row.  JSON: ``unit``, ``function``, ``name``,
+    then ``data`` (default: each row's name and value).  CSV: ``name,value`` rows
+    (plus ``bytes`` when rows carry them).  Table: one rich table.
+    """
+
+    unit: int | None
+    function: int | None
+    name: str
+    rows: list[Row]
+    data: dict | None = None
+    note: str = ""
+    title: str = ""  # the table's heading; default name, function code and unit
+    header: bool = True  # CSV header (off for the second and later of several reports)
+
+
+def report_dict(report: Report) -> dict:
+    head: dict = {"unit": report.unit, "function": report.function, "name": report.name}
+    body = report.data if report.data is not None else {row.name: row.value for row in report.rows}
+    return {**head, **body}
