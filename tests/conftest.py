@@ -444,6 +444,20 @@ def not_finite(tmp_path_factory):
         yield server
 
 
+@pytest.fixture(scope="session")
+def pki(tmp_path_factory):
+    """A CA and the certificates the TLS tests need, made by ``openssl`` into a tmp dir
+    (tests/peers/certs.py: with and without the role extension, expired, for another name,
+    self-signed, from an unknown CA); never committed keys."""
+    import shutil
+
+    from peers.certs import make_pki
+
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command is not installed (Debian: apt-get install openssl)")
+    return make_pki(tmp_path_factory.mktemp("pki"))
+
+
 @pytest.fixture
 def pymodbus_tcp_client(tcp_device):
     """pymodbus's own client on the tcp_device: the independent check of what mbtool wrote."""
