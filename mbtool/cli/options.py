@@ -428,13 +428,51 @@ LINK_OPTIONS = [
     ),
 ]
 
+# Modbus/TCP Security's certificates (tls:// targets), shared by the device commands and bridge;
+# each is a profile and inventory link key too (cli/profiles.py).
+TLS_OPTIONS = [
+    click.option(
+        "--cert",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security "
+        "is mutual.",
+    ),
+    click.option(
+        "--key",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the certificate's private key (PEM) where --cert's file has none; an "
+        "encrypted one's password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
+    ),
+    click.option(
+        "--ca",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the CA certificates to trust (PEM), or a device's own certificate to trust "
+        "that one self-signed device; default: the system's CAs.",
+    ),
+    click.option(
+        "--insecure",
+        is_flag=True,
+        help="tls://: do not check the server's certificate (a warning each run): anyone on the "
+        "way can then read and change the traffic.",
+    ),
+    click.option(
+        "--server-name",
+        metavar="NAME",
+        help="tls://: the name the server's certificate has, where it is not the host in -p.",
+    ),
+]
+
 PORT_OPTION = click.option(
     "-p",
     "--port",
     envvar="MBTOOL_PORT",
     metavar="TARGET",
     shell_complete=complete_port,
-    help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
+    help="tcp://HOST[:PORT], tls://HOST[:PORT] (Modbus/TCP Security, port 802), udp://HOST[:PORT], "
+    "rtu+udp://HOST:PORT, a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
     "loop:// or sim:// (the built-in device).",
     show_envvar=True,
 )
@@ -451,7 +489,7 @@ UNIT_OPTION = click.option(
 FRAMER_OPTION = click.option(
     "--framer",
     type=Choice(["rtu", "ascii", "tcp"]),
-    help="Framing: tcp for tcp:// targets, rtu otherwise.",
+    help="Framing: tcp for tcp://, tls:// and udp:// targets, rtu otherwise.",
 )
 RECONNECT_EACH_OPTION = click.option(
     "--reconnect-each",
@@ -499,6 +537,11 @@ CONNECTION_KEYS = (
     "lenient",
     "rs485",
     "rs485_delays",
+    "cert",
+    "key",
+    "ca",
+    "insecure",
+    "server_name",
     "reconnect_each",
     "hex_trace",
     "output_format",
@@ -516,6 +559,7 @@ def connection_options(unit: bool = True, output: bool = True, polls: bool = Fal
         FRAMER_OPTION,
         *SERIAL_LINE_OPTIONS,
         *LINK_OPTIONS,
+        *TLS_OPTIONS,
         *([RECONNECT_EACH_OPTION] if polls else []),
         HEX_OPTION,
         *([OUTPUT_FORMAT_OPTION, NO_HEADER_OPTION] if output else []),
@@ -676,6 +720,12 @@ def device_command(
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
                 connection = replace(connection, **changes) if changes else connection
+            if connection.insecure and not connection.dry_run:
+                from mbtool.cli.session import warn_insecure
+                from mbtool.link.connection import check
+
+                check(connection)  # a mistake in the options is said alone, not after the warning
+                warn_insecure(connection)
             return function(connection, **kwargs)
 
         run = PROFILE_OPTION(run)

@@ -21,12 +21,16 @@ import socket
 import struct
 import sys
 import time
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link import IN_PROCESS
+
+if TYPE_CHECKING:
+    from mbtool.link.tls import TlsSettings
 
 MODBUS_TCP_PORT = 502
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
@@ -69,6 +73,7 @@ class Transport:
     """What the client needs of a link.  ``serial_line`` links keep t3.5 silences."""
 
     serial_line = True
+    datagrams = False  # each read is one whole datagram (UDP): its end ends a frame
     default_framer = "rtu"
     description = ""
 
@@ -140,9 +145,9 @@ class SerialTransport(Transport):
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
                 raise ConnectionFailed(
-                    f"cannot open {url}: it refused {settings}: {_reason(error)}"
+                    f"cannot open {url}: it refused {settings}: {reason(error)}"
                 ) from None
-            raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot open {url}: {reason(error)}") from None
         self._serial_error = serial.SerialException
         self._rts_switching: tuple[float, float] | None = None
         if settings.rs485 is not None:
@@ -176,7 +181,7 @@ class SerialTransport(Transport):
             self.port.rts = False  # receive until there is something to send
         except (self._serial_error, OSError, ValueError) as error:
             self.port.close()
-            raise ConnectionFailed(f"cannot drive RTS of {url} for --rs485: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot drive RTS of {url} for --rs485: {reason(error)}") from None
         self._rts_switching = delays
 
     def write(self, data: bytes) -> None:
@@ -201,9 +206,9 @@ class SerialTransport(Transport):
                 # The frame was handed over, then the port went away (a pty's other end
                 # closed, an adapter unplugged): a hang-up, like one during the reply.
                 raise ConnectionClosed(
-                    f"{self.description} went away while sending ({_reason(error)})"
+                    f"{self.description} went away while sending ({reason(error)})"
                 ) from None
-            raise ConnectionFailed(f"cannot write to {self.description}: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot write to {self.description}: {reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
         try:
@@ -223,7 +228,7 @@ class SerialTransport(Transport):
                 data += self.port.read(self.port.in_waiting)
             return data
         except (self._serial_error, OSError) as error:
-            raise ConnectionClosed(f"{self.description}: {_reason(error)}{self.silence_hint}") from None
+            raise ConnectionClosed(f"{self.description}: {reason(error)}{self.silence_hint}") from None
 
     def input_waiting(self) -> bool:
         try:
@@ -268,13 +273,7 @@ class TcpTransport(Transport):
 
     def __init__(self, host: str, port: int, timeout: float) -> None:
         self.description = f"tcp://{host}:{port}"
-        try:
-            # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
-            address = host.encode("ascii") if host.isascii() else host
-            self.sock = socket.create_connection((address, port), timeout=timeout)
-        except OSError as error:
-            raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock = connect(host, port, timeout)
         # Blocking, with the kernel keeping time (SO_RCVTIMEO, SO_SNDTIMEO): a reply's wait is
         # then one recv system call, where select and recv, or Python's socket timeout (poll
         # and recv), make two a read -- a polling loop's largest cost after the device itself.
@@ -294,7 +293,7 @@ class TcpTransport(Transport):
                 f"cannot send to {self.description}: the peer has not read for {WRITE_TIMEOUT:g} s"
             ) from None
         except OSError as error:
-            raise ConnectionFailed(f"cannot send to {self.description}: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot send to {self.description}: {reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
         try:
@@ -308,7 +307,7 @@ class TcpTransport(Transport):
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
-            raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
+            raise ConnectionClosed(f"{self.description}: {reason(error)}") from None
         if not data:
             raise ConnectionClosed(f"{self.description} closed the connection")
         return data
@@ -346,20 +345,48 @@ class TcpTransport(Transport):
         self.sock.close()
 
 
+def connect(host: str, port: int, timeout: float) -> socket.socket:
+    """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
+    off: a request is one small write that must leave at once."""
+    try:
+        # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
+        address = host.encode("ascii") if host.isascii() else host
+        sock = socket.create_connection((address, port), timeout=timeout)
+    except OSError as error:
+        raise ConnectionFailed(f"cannot connect to {host}:{port}: {reason(error)}") from None
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return sock
+
+
 @record
 class Target:
     """What a ``--port`` names, checked before anything is opened."""
 
-    scheme: str  # "tcp", "serial" (a device path or a pyserial URL), or an in-process scheme ("sim")
+    # "tcp", "tls", "udp", "rtu+udp" (NETWORK_SCHEMES), "serial" (a device path or a pyserial
+    # URL), or an in-process scheme ("sim")
+    scheme: str
     host: str = ""
     port: int = 0
     path: str = ""  # the device path or URL handed to pyserial
 
     def __str__(self) -> str:
-        if self.scheme == "tcp":
+        if self.scheme in NETWORK_SCHEMES:
             host = f"[{self.host}]" if ":" in self.host else self.host
-            return f"tcp://{host}:{self.port}"
+            return f"{self.scheme}://{host}:{self.port}"
         return self.path or f"{self.scheme}://"
+
+
+MODBUS_TLS_PORT = 802  # Modbus/TCP Security's registered port (MB-TCP-Security-v21)
+# The schemes of links mbtool opens itself, with a host and a port: the port each defaults
+# to (None: the port must be given) and the transport's protocol, for messages.
+NETWORK_SCHEMES = {
+    "tcp": (MODBUS_TCP_PORT, "TCP"),
+    "tls": (MODBUS_TLS_PORT, "TCP"),  # Modbus/TCP Security: MBAP inside TLS
+    "udp": (MODBUS_TCP_PORT, "UDP"),  # MBAP, one ADU a datagram
+    "rtu+udp": (None, "UDP"),  # RTU frames in datagrams: serial device servers in UDP mode
+}
+# The network schemes whose frames are MBAP unless --framer says otherwise.
+MBAP_SCHEMES = ("tcp", "tls", "udp")
 
 
 # pyserial's URL handlers (serial.serial_for_url) that take a host and port, and those
@@ -370,13 +397,16 @@ OTHER_SERIAL_SCHEMES = ("loop", "spy", "alt", "hwgrep", "cp2110")
 
 def schemes() -> list[str]:
     """Every scheme a --port may start with, for completion and messages."""
-    return ["tcp", *BRIDGE_SCHEMES, *IN_PROCESS, *OTHER_SERIAL_SCHEMES]
+    return [*NETWORK_SCHEMES, *BRIDGE_SCHEMES, *IN_PROCESS, *OTHER_SERIAL_SCHEMES]
 
 
 def target_forms() -> str:
     """What a ``--port`` may be, for messages."""
     in_process = "".join(f"{scheme}://, " for scheme in IN_PROCESS)
-    return f"tcp://HOST[:PORT], socket://HOST:PORT, rfc2217://HOST:PORT, {in_process}or a serial device"
+    return (
+        "tcp://HOST[:PORT], tls://HOST[:PORT], udp://HOST[:PORT], rtu+udp://HOST:PORT, "
+        f"socket://HOST:PORT, rfc2217://HOST:PORT, {in_process}or a serial device"
+    )
 
 
 _HOST_LIKE = re.compile(
@@ -396,9 +426,9 @@ def parse_target(text: str, listening: bool = False) -> Target:
         if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
             raise RequestError(f"{text} is not a serial device; did you mean tcp://{text}?")
         return Target("serial", path=text)
-    if scheme == "tcp":
-        host, port = _host_and_port(text, rest, MODBUS_TCP_PORT, 0 if listening else 1)
-        return Target("tcp", host, port)
+    if scheme in NETWORK_SCHEMES:
+        host, port = _host_and_port(text, rest, NETWORK_SCHEMES[scheme][0], 0 if listening else 1)
+        return Target(scheme, host, port)
     if scheme in IN_PROCESS:
         return Target(scheme, path=f"{scheme}://")
     if scheme in BRIDGE_SCHEMES:
@@ -429,13 +459,25 @@ def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tu
             raise RequestError(f"no port in {text} (expected {scheme}://HOST:PORT)")
         return host, default
     if not port_text.isascii() or not port_text.isdigit() or not lowest <= int(port_text) <= 65535:
-        raise RequestError(f"bad port {port_text} in {text}: a TCP port is {lowest}..65535")
+        protocol = NETWORK_SCHEMES.get(scheme, (None, "TCP"))[1]
+        raise RequestError(f"bad port {port_text} in {text}: a {protocol} port is {lowest}..65535")
     return host, int(port_text)
 
 
-def open_transport(target: str, settings: SerialSettings, timeout: float, framer: str | None) -> Transport:
-    """Open the link a ``--port`` target names (checked first: a bad one opens nothing)."""
+def open_transport(
+    target: str, settings: SerialSettings, timeout: float, framer: str | None, tls: TlsSettings | None = None
+) -> Transport:
+    """Open the link a ``--port`` target names (checked first: a bad one opens nothing);
+    ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
+    if where.scheme == "tls":
+        from mbtool.link.tls import TlsSettings, TlsTransport  # ssl costs an import only here
+
+        return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
+    if where.scheme in ("udp", "rtu+udp"):
+        from mbtool.link.udp import UdpTransport
+
+        return UdpTransport(where.scheme, where.host, where.port)
     if where.scheme == "tcp":
         link = TcpTransport(where.host, where.port, timeout)
         # Serial frames chosen over tcp:// and only silence back: a Modbus TCP device ignores
@@ -459,8 +501,15 @@ def _port_of(url: str) -> int | None:
 
 
 def default_framer(target: str) -> str:
-    """tcp for tcp://, rtu for everything else (serial lines, bridges, sim://)."""
-    return "tcp" if target.lower().startswith("tcp://") else "rtu"
+    """tcp (MBAP) for tcp://, tls:// and udp://; rtu for everything else (serial lines,
+    bridges, rtu+udp://, sim://)."""
+    return "tcp" if target.lower().startswith(tuple(f"{scheme}://" for scheme in MBAP_SCHEMES)) else "rtu"
+
+
+def is_network(target: str) -> bool:
+    """A tcp://, tls://, udp:// or rtu+udp:// target: no serial line of mbtool's own (no echo,
+    no RTS), whatever it carries."""
+    return target.lower().partition("://")[0] in NETWORK_SCHEMES and "://" in target
 
 
 def _is_socket_url(port) -> bool:
@@ -497,7 +546,7 @@ def _errno(error: BaseException) -> int | None:
     return number
 
 
-def _reason(error: BaseException) -> str:
+def reason(error: BaseException) -> str:
     import os
 
     number = _errno(error)
