@@ -465,6 +465,39 @@ TLS_OPTIONS = [
     ),
 ]
 
+WRITE_ROLES_OPTION = click.option(
+    "--write-roles",
+    metavar="ROLE,...",
+    help="tls://: the roles (from the clients' certificates, extension 1.3.6.1.4.1.50316.802.1) "
+    "that may write; a write from any other gets exception 01. Default: a data file's "
+    "write_roles, else every client may write.",
+)
+# serve's: its own certificate, and the CA its clients' certificates must be signed by.
+SERVE_TLS_OPTIONS = [
+    click.option(
+        "--cert",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the server's certificate (PEM, its chain after it).",
+    ),
+    click.option(
+        "--key",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: its private key (PEM) where --cert's file has none; an encrypted one's "
+        "password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
+    ),
+    click.option(
+        "--ca",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the CA certificates (PEM) the clients' certificates must be signed by: "
+        "Modbus/TCP Security requires one from every client.",
+    ),
+    WRITE_ROLES_OPTION,
+]
+serve_tls_options = with_options(SERVE_TLS_OPTIONS)
+
 PORT_OPTION = click.option(
     "-p",
     "--port",

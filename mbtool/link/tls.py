@@ -256,7 +256,12 @@ class TlsTransport(Transport):
                 if not chunk:
                     break
                 stale += chunk
-        except OSError:  # nothing more now (SSLWantReadError), or the next read reports it
+        except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+            pass  # nothing more now
+        except ssl.SSLError as error:
+            if _refusal(error):  # the server's verdict on the certificate, come in the meantime
+                raise self._lost(error) from None
+        except OSError:  # the next read reports it
             pass
         return bytes(stale)
 
