@@ -17,7 +17,7 @@ import socket
 import time
 from collections.abc import Callable
 
-from mbtool.codec.framing import device_framer
+from mbtool.codec.framing import Frame, Rejected, device_framer
 from mbtool.device.serving import OUT_LIMIT, TICK, Answerer, IoFaults, Serving, Stats
 from mbtool.errors import ConnectionFailed
 from mbtool.link.transport import Target
@@ -91,12 +91,18 @@ class UdpServer(Serving):
         framer = self.framer
         framer.reset()
         framer.feed(data)
-        event = framer.silence()  # the datagram is whole: whatever is left is no frame
-        while event is not None:
+        # The datagram is whole: what is left when its frames are out is no frame, and one
+        # run of such bytes is one thing that went wrong, however the framer cut it up.
+        events: list[Frame | Rejected] = []
+        while (event := framer.silence()) is not None:
+            if isinstance(event, Rejected) and events and isinstance(events[-1], Rejected):
+                events[-1] = Rejected(events[-1].data + event.data, events[-1].error)
+            else:
+                events.append(event)
+        for event in events:
             reply = self.responder.answer(event, framer, peer)
             if reply:
                 self._reply(reply, sender, peer)
-            event = framer.silence()
 
     def _reply(self, reply: bytes, sender, peer: str) -> None:
         if not self.faults.delay:
