@@ -19,6 +19,7 @@ from mbtool.cli.options import (
     Number,
     PositiveFloat,
     QuickHelp,
+    complete_port,
     parse_int,
     parse_units,
     serial_line_options,
@@ -73,6 +74,7 @@ class Fraction(click.ParamType):
     "target",
     metavar="TARGET",
     default=DEFAULT_TARGET,
+    shell_complete=complete_port,
     show_default=True,
     help="Where to listen: tcp://HOST:PORT (PORT 0 picks a free one), tls://HOST:PORT "
     "(Modbus/TCP Security: --cert, --key and --ca), udp://HOST:PORT (MBAP in datagrams), "
