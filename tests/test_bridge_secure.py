@@ -79,7 +79,16 @@ def test_writes_from_a_role_that_may_not_write_get_01_and_never_reach_the_bus(rt
 def test_a_tls_front_on_a_plain_tcp_device(tcp_device, pki):
     with bridge("-p", tcp_device.target, *tls_args(pki), listen="tls://127.0.0.1:0") as running:
         res = expect_ok(
-            run_mbtool("read-holding-registers", "0", "3", "-u", "2", "-p", running.listening, *identity(pki, "viewer"))
+            run_mbtool(
+                "read-holding-registers",
+                "0",
+                "3",
+                "-u",
+                "2",
+                "-p",
+                running.listening,
+                *identity(pki, "viewer"),
+            )
         )
         assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:3])]
         res = run_mbtool("read-holding-registers", "0", "-p", running.listening, "--ca", str(pki.ca.cert))

@@ -41,22 +41,43 @@ ca = "ca.pem"
 """
 
 
-def test_a_profile_carries_the_tls_settings_relative_to_its_file(beside, tls_device, monkeypatch, tmp_path_factory):
+def test_a_profile_carries_the_tls_settings_relative_to_its_file(
+    beside, tls_device, monkeypatch, tmp_path_factory
+):
     (beside / "config.toml").write_text(PROFILE.format(target=tls_device.target, more=""))
     elsewhere = tmp_path_factory.mktemp("cwd")
     monkeypatch.chdir(elsewhere)
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}))
+    res = expect_ok(
+        run_mbtool(
+            "read-holding-registers",
+            "0",
+            "2",
+            "-P",
+            "plc",
+            env={"MBTOOL_CONFIG": str(beside / "config.toml")},
+        )
+    )
     assert plain_pairs(res) == [(0, str(HOLDING[0])), (1, str(HOLDING[1]))]
 
 
 def test_a_profiles_insecure_warns_and_its_server_name_is_taken(beside, tls_device):
     text = PROFILE.format(target=tls_device.target, more='server_name = "localhost"')
     (beside / "config.toml").write_text(text)
-    expect_ok(run_mbtool("read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}))
+    expect_ok(
+        run_mbtool(
+            "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}
+        )
+    )
     text = PROFILE.format(target=tls_device.target, more="insecure = true").replace('ca = "ca.pem"\n', "")
     (beside / "config.toml").write_text(text)
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}))
-    assert res.stderr.startswith(f"mbtool: warning: --insecure: the certificate of {tls_device.target} is not checked")
+    res = expect_ok(
+        run_mbtool(
+            "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}
+        )
+    )
+    assert res.stderr.startswith(
+        f"mbtool: warning: --insecure: the certificate of {tls_device.target} is not checked"
+    )
 
 
 @pytest.mark.parametrize(
@@ -68,7 +89,9 @@ def test_a_profiles_insecure_warns_and_its_server_name_is_taken(beside, tls_devi
 )
 def test_a_profiles_tls_key_of_the_wrong_kind_is_exit_2(tmp_path, line, words):
     (tmp_path / "config.toml").write_text(f'[profiles.plc]\nport = "tls://127.0.0.1:1"\n{line}\n')
-    res = run_mbtool("read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(tmp_path / "config.toml")})
+    res = run_mbtool(
+        "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(tmp_path / "config.toml")}
+    )
     assert words in assert_one_error_line(res, 2)
 
 
@@ -86,7 +109,9 @@ read = ["40001 3"]
 """
 
 
-def test_poll_takes_tls_links_with_their_files_beside_the_inventory(beside, tls_device, monkeypatch, tmp_path_factory):
+def test_poll_takes_tls_links_with_their_files_beside_the_inventory(
+    beside, tls_device, monkeypatch, tmp_path_factory
+):
     (beside / "plant.toml").write_text(INVENTORY.format(target=tls_device.target, trust='ca = "ca.pem"'))
     monkeypatch.chdir(tmp_path_factory.mktemp("cwd"))
     res = expect_ok(run_mbtool("poll", str(beside / "plant.toml"), "--once", "-o", "json"))

@@ -435,8 +435,7 @@ TLS_OPTIONS = [
         "--cert",
         metavar="FILE",
         type=click.Path(dir_okay=False),
-        help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security "
-        "is mutual.",
+        help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security is mutual.",
     ),
     click.option(
         "--key",

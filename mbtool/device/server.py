@@ -81,7 +81,9 @@ class Server:
         elif target.scheme == "tls":
             from mbtool.device.tls_server import TlsServer
 
-            assert tls_context is not None, "a tls:// server needs its context (mbtool.link.tls.server_context)"
+            assert tls_context is not None, (
+                "a tls:// server needs its context (mbtool.link.tls.server_context)"
+            )
             self.port = TlsServer(
                 target,
                 framer_name,

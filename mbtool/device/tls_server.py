@@ -77,7 +77,9 @@ class RoleCheck:
         shown = f"role {role}" if role is not None else "no role"
         why = f"write refused: {shown} may not write (exception 01)"
         reply = framer.build(
-            event.unit, bytes([event.pdu[0] | 0x80, ExceptionCode.ILLEGAL_FUNCTION]), event.transaction_id or 0
+            event.unit,
+            bytes([event.pdu[0] | 0x80, ExceptionCode.ILLEGAL_FUNCTION]),
+            event.transaction_id or 0,
         )
         self.stats.requests += 1
         self.stats.replies += 1

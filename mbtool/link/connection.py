@@ -81,7 +81,13 @@ def check(connection: Connection, needs: str = "") -> str:
     return name
 
 
-TLS_OPTIONS = {"cert": "--cert", "key": "--key", "ca": "--ca", "insecure": "--insecure", "server_name": "--server-name"}
+TLS_OPTIONS = {
+    "cert": "--cert",
+    "key": "--key",
+    "ca": "--ca",
+    "insecure": "--insecure",
+    "server_name": "--server-name",
+}
 
 
 def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
@@ -89,7 +95,9 @@ def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
     given = [option for field, option in TLS_OPTIONS.items() if getattr(connection, field)]
     if scheme != "tls":
         if given and connection.port:
-            raise RequestError(f"{given[0]} is for tls:// targets (Modbus/TCP Security); {connection.port} is not one")
+            raise RequestError(
+                f"{given[0]} is for tls:// targets (Modbus/TCP Security); {connection.port} is not one"
+            )
         return
     if framing != "tcp":
         raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framing}")
@@ -102,7 +110,9 @@ def tls_settings(connection: Connection):
     """The TlsSettings of a tls:// connection (mbtool.link.tls)."""
     from mbtool.link.tls import TlsSettings
 
-    return TlsSettings(connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name)
+    return TlsSettings(
+        connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name
+    )
 
 
 @contextmanager

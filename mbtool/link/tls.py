@@ -24,8 +24,7 @@ import sys
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed
-from mbtool.link.transport import READ_CHUNK, WRITE_TIMEOUT, ConnectionClosed, Transport, connect, reason
-
+from mbtool.link.base import READ_CHUNK, WRITE_TIMEOUT, ConnectionClosed, Transport, connect, reason
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
 
@@ -137,7 +136,9 @@ def _identity(context: ssl.SSLContext, cert: str, key: str | None) -> None:
         if isinstance(error, ssl.SSLError) and error.reason == "KEY_VALUES_MISMATCH":
             raise RequestError(f"--key {key} is not the key of --cert {cert}") from None
         if isinstance(error, ssl.SSLError) and asked:
-            raise RequestError(f"cannot decrypt {asked[0]}: wrong password (${KEY_PASSWORD_VARIABLE})") from None
+            raise RequestError(
+                f"cannot decrypt {asked[0]}: wrong password (${KEY_PASSWORD_VARIABLE})"
+            ) from None
         if isinstance(error, ssl.SSLError):
             where = f"--cert {cert}" + (f" and --key {key}" if key else "")
             raise RequestError(f"{where}: not a certificate and its private key in PEM") from None

@@ -3,6 +3,8 @@
 * Serial lines through ``serial.serial_for_url``: device paths, ``socket://``
   and ``rfc2217://`` TCP-bridged serial ports, ``loop://`` (pyserial url handlers).
 * Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
+* Modbus/TCP Security (``tls://host[:port]``, port 802): ``mbtool.link.tls``.
+* Modbus over UDP (``udp://host[:port]``, ``rtu+udp://host:port``): ``mbtool.link.udp``.
 * ``sim://``: the built-in simulated device, answering in-process (registered by
   the CLI: ``mbtool.link.register_scheme``).
 
@@ -26,21 +28,28 @@ from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
-from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
+from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
+    READ_CHUNK,
+    WRITE_TIMEOUT,
+    ConnectionClosed,
+    Transport,
+    _errno,
+    connect,
+    reason,
+)
 
 if TYPE_CHECKING:
     from mbtool.link.tls import TlsSettings
 
 MODBUS_TCP_PORT = 502
-WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 # The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
 # this goes by select, which is exact; a longer one may end a tick or two late.
 KERNEL_TIMER_MIN = 0.05
 # A read's time left differs from the last by the work between reads: within this, the
 # socket's timeout is left as it is rather than set again (a system call).
 KERNEL_TIMER_SLACK = 0.005
-READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
 DISCARD_BUDGET = 65536  # stale bytes dropped before a request, at most (a flood never ends)
 # Windows leaves a socket whose receive timed out in an undefined state: waits go by select.
 KERNEL_TIMED_READS = sys.platform != "win32"
@@ -63,41 +72,6 @@ class SerialSettings:
         from mbtool.codec.timing import character_bits
 
         return character_bits(self.parity, self.bytesize, self.stopbits)
-
-
-class ConnectionClosed(NoResponse):
-    """The peer closed the connection; no (further) reply can come."""
-
-
-class Transport:
-    """What the client needs of a link.  ``serial_line`` links keep t3.5 silences."""
-
-    serial_line = True
-    datagrams = False  # each read is one whole datagram (UDP): its end ends a frame
-    default_framer = "rtu"
-    description = ""
-
-    def write(self, data: bytes) -> None:
-        raise ConnectionFailed(f"{self.description}: not writable")
-
-    def read(self, timeout: float) -> bytes:
-        """Wait up to ``timeout`` seconds for bytes; return what arrived (b"" if none)."""
-        time.sleep(max(timeout, 0))
-        return b""
-
-    def discard_input(self) -> bytes:
-        """Drop (and return) bytes that arrived before a request: stale replies, noise."""
-        return b""
-
-    def input_waiting(self) -> bool:
-        """Whether bytes have come that were not read yet (True where the link cannot tell)."""
-        return True
-
-    def close(self) -> None:
-        """Release the link."""
-
-    # Appended to "no response" and "closed the connection": what may explain them on this link.
-    silence_hint = ""
 
 
 class SerialTransport(Transport):
@@ -144,9 +118,7 @@ class SerialTransport(Transport):
                 raise ConnectionFailed(f"cannot open {url}: no such device ({_serial_ports()})") from None
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
-                raise ConnectionFailed(
-                    f"cannot open {url}: it refused {settings}: {reason(error)}"
-                ) from None
+                raise ConnectionFailed(f"cannot open {url}: it refused {settings}: {reason(error)}") from None
             raise ConnectionFailed(f"cannot open {url}: {reason(error)}") from None
         self._serial_error = serial.SerialException
         self._rts_switching: tuple[float, float] | None = None
@@ -345,19 +317,6 @@ class TcpTransport(Transport):
         self.sock.close()
 
 
-def connect(host: str, port: int, timeout: float) -> socket.socket:
-    """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
-    off: a request is one small write that must leave at once."""
-    try:
-        # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
-        address = host.encode("ascii") if host.isascii() else host
-        sock = socket.create_connection((address, port), timeout=timeout)
-    except OSError as error:
-        raise ConnectionFailed(f"cannot connect to {host}:{port}: {reason(error)}") from None
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    return sock
-
-
 @record
 class Target:
     """What a ``--port`` names, checked before anything is opened."""
@@ -537,24 +496,3 @@ def _termios_error() -> tuple[type[Exception], ...]:
     except ImportError:  # not on Windows
         return ()
     return (termios.error,)
-
-
-def _errno(error: BaseException) -> int | None:
-    number = getattr(error, "errno", None)
-    if number is None and error.args and isinstance(error.args[0], int):
-        number = error.args[0]  # termios.error carries (errno, text) as plain args
-    return number
-
-
-def reason(error: BaseException) -> str:
-    import os
-
-    number = _errno(error)
-    if isinstance(number, int) and number > 0:
-        return os.strerror(number)
-    text = getattr(error, "strerror", None) or str(error) or type(error).__name__
-    text = text.split("\n")[0]
-    if text.startswith("Could not open port "):
-        # pyserial's wrapping repeats the port the message already names: keep its reason
-        text = re.sub(r"^\[Errno -?\d+\] ", "", text.rsplit(": ", 1)[-1])
-    return text

@@ -18,7 +18,7 @@ import select
 import socket
 
 from mbtool.errors import ConnectionFailed
-from mbtool.link.transport import READ_CHUNK, Transport, reason
+from mbtool.link.base import READ_CHUNK, Transport, reason
 
 DISCARD_DATAGRAMS = 64  # stale datagrams dropped before a request, at most (a flood never ends)
 

@@ -59,7 +59,11 @@ def test_pymodbus_tls_client_reads_and_writes(tmp_path, pki):
 
 def test_mbtool_reads_its_own_tls_server_and_hex_shows_plaintext(tmp_path, pki):
     with tls_serve(tmp_path, pki, quiet=True) as server:
-        res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", server.target, *identity(pki, "viewer"), "--hex"))
+        res = expect_ok(
+            run_mbtool(
+                "read-holding-registers", "0", "2", "-p", server.target, *identity(pki, "viewer"), "--hex"
+            )
+        )
         assert plain_pairs(res) == [(0, "0"), (1, "1")]
         assert "TX 00 01 00 00 00 06 01 03 00 00 00 02" in res.stderr
 
@@ -84,7 +88,9 @@ def test_mutual_tls_refuses_a_client_without_a_certificate(tmp_path, pki):
             "certificate (Modbus/TCP Security is mutual: give --cert FILE --key FILE, signed by a CA the "
             "server trusts)"
         )
-        assert wait_until(lambda: server.log().count("TLS handshake failed: the client sent no certificate") == 2, 5)
+        assert wait_until(
+            lambda: server.log().count("TLS handshake failed: the client sent no certificate") == 2, 5
+        )
 
 
 def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
@@ -95,14 +101,18 @@ def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
             f"mbtool: TLS handshake with {server.host}:{server.port} failed: the server refused mbtool's "
             "client certificate: it does not trust the CA that signed it"
         )
-        assert wait_until(lambda: "the client's certificate does not verify: unable to get local issuer" in server.log(), 5)
+        assert wait_until(
+            lambda: "the client's certificate does not verify: unable to get local issuer" in server.log(), 5
+        )
 
 
 def test_a_plain_modbus_tcp_client_is_told_apart(tmp_path, pki):
     with tls_serve(tmp_path, pki) as server:
         res = run_mbtool("read-holding-registers", "0", "-p", f"tcp://{server.host}:{server.port}", "-t", "1")
         assert res.returncode == 3, str(res)
-        assert wait_until(lambda: "TLS handshake failed: not TLS (a plain Modbus TCP client?)" in server.log(), 5)
+        assert wait_until(
+            lambda: "TLS handshake failed: not TLS (a plain Modbus TCP client?)" in server.log(), 5
+        )
 
 
 WRITES = [
@@ -132,12 +142,16 @@ def test_a_refused_write_changes_nothing_and_pymodbus_sees_exception_01(tmp_path
         try:
             reply = viewer.write_register(3, 999, device_id=1)
             assert reply.isError() and reply.exception_code == 1
-            reply = viewer.readwrite_registers(read_address=3, read_count=1, write_address=3, values=[999], device_id=1)
+            reply = viewer.readwrite_registers(
+                read_address=3, read_count=1, write_address=3, values=[999], device_id=1
+            )
             assert reply.isError() and reply.exception_code == 1
             assert viewer.read_holding_registers(3, count=1, device_id=1).registers == [3]
         finally:
             viewer.close()
-        assert wait_until(lambda: "write refused: role viewer may not write (exception 01)" in server.log(), 5)
+        assert wait_until(
+            lambda: "write refused: role viewer may not write (exception 01)" in server.log(), 5
+        )
 
 
 def test_a_data_file_names_the_write_roles(tmp_path, pki):
@@ -165,7 +179,9 @@ def test_a_client_that_stalls_its_handshake_holds_nobody_up(tmp_path, pki):
         silent = socket.create_connection((server.host, server.port), timeout=5)
         try:
             started = time.monotonic()
-            expect_ok(run_mbtool("read-holding-registers", "0", "-p", server.target, *identity(pki, "viewer")))
+            expect_ok(
+                run_mbtool("read-holding-registers", "0", "-p", server.target, *identity(pki, "viewer"))
+            )
             assert time.monotonic() - started < 10
             assert wait_until(lambda: server.log().count("first-request timeout") == 2, 5), server.log()
         finally:
@@ -176,13 +192,36 @@ def test_a_client_that_stalls_its_handshake_holds_nobody_up(tmp_path, pki):
 @pytest.mark.parametrize(
     "args, words",
     [
-        (["-p", "tls://127.0.0.1:0", "--cert", "{server.cert}", "--key", "{server.key}"], "serving on tls:// needs --ca FILE"),
-        (["-p", "tls://127.0.0.1:0", "--ca", "{ca.cert}"], "serving on tls:// needs --cert FILE and --key FILE"),
-        (["-p", "tcp://127.0.0.1:0", "--ca", "{ca.cert}"], "--ca is for a tls:// server (Modbus/TCP Security); tcp://127.0.0.1:0 is not one"),
-        (["-p", "udp://127.0.0.1:0", "--write-roles", "x"], "--write-roles is for a tls:// server"),
-        (["-p", "tls://127.0.0.1:0", "--framer", "rtu"], "Modbus/TCP Security carries MBAP: tls:// takes no --framer rtu"),
         (
-            ["-p", "tls://127.0.0.1:0", "--cert", "{server.cert}", "--key", "{server.key}", "--ca", "{ca.cert}", "--write-roles", "a,,b"],
+            ["-p", "tls://127.0.0.1:0", "--cert", "{server.cert}", "--key", "{server.key}"],
+            "serving on tls:// needs --ca FILE",
+        ),
+        (
+            ["-p", "tls://127.0.0.1:0", "--ca", "{ca.cert}"],
+            "serving on tls:// needs --cert FILE and --key FILE",
+        ),
+        (
+            ["-p", "tcp://127.0.0.1:0", "--ca", "{ca.cert}"],
+            "--ca is for a tls:// server (Modbus/TCP Security); tcp://127.0.0.1:0 is not one",
+        ),
+        (["-p", "udp://127.0.0.1:0", "--write-roles", "x"], "--write-roles is for a tls:// server"),
+        (
+            ["-p", "tls://127.0.0.1:0", "--framer", "rtu"],
+            "Modbus/TCP Security carries MBAP: tls:// takes no --framer rtu",
+        ),
+        (
+            [
+                "-p",
+                "tls://127.0.0.1:0",
+                "--cert",
+                "{server.cert}",
+                "--key",
+                "{server.key}",
+                "--ca",
+                "{ca.cert}",
+                "--write-roles",
+                "a,,b",
+            ],
             "--write-roles a,,b: an empty role",
         ),
     ],

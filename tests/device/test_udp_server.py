@@ -94,11 +94,16 @@ def test_mbap_in_datagrams_answers_each_with_its_transaction_id(tmp_path):
         peer.settimeout(3)
         try:
             for tid in (7, 0xBEEF):
-                peer.sendto(struct.pack(">HHHB", tid, 0, 6, 1) + bytes.fromhex("03 0001 0001"), (server.host, server.port))
+                peer.sendto(
+                    struct.pack(">HHHB", tid, 0, 6, 1) + bytes.fromhex("03 0001 0001"),
+                    (server.host, server.port),
+                )
             replies = {peer.recvfrom(512)[0] for _ in range(2)}
         finally:
             peer.close()
-        assert replies == {struct.pack(">HHHB", tid, 0, 5, 1) + bytes.fromhex("03 02 0001") for tid in (7, 0xBEEF)}
+        assert replies == {
+            struct.pack(">HHHB", tid, 0, 5, 1) + bytes.fromhex("03 02 0001") for tid in (7, 0xBEEF)
+        }
 
 
 def test_faults_of_tcp_clients_do_not_apply_to_datagrams():

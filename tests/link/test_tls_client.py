@@ -78,7 +78,9 @@ def test_the_host_may_be_a_name_the_certificate_has(pki, tls_devices):
 
 
 def test_hex_shows_the_plaintext_adus(pki, tls_devices):
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", tls_devices().target, *identity(pki), "--hex"))
+    res = expect_ok(
+        run_mbtool("read-holding-registers", "0", "2", "-p", tls_devices().target, *identity(pki), "--hex")
+    )
     frames = parse_hex_lines(res.stderr)
     assert [f.direction for f in frames] == ["TX", "RX"]
     assert frames[0].data[2:] == bytes.fromhex("0000 0006 01 03 0000 0002")
@@ -94,7 +96,9 @@ def test_ca_may_be_the_devices_own_certificate_to_pin_one_self_signed_device(pki
 def test_insecure_skips_the_check_with_a_warning_each_run(pki, tls_devices):
     device = tls_devices("server_self_signed")
     for _ in range(2):
-        res = expect_ok(run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4], "--insecure"))
+        res = expect_ok(
+            run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4], "--insecure")
+        )
         assert res.stderr == (
             f"mbtool: warning: --insecure: the certificate of {device.target} is not checked, so anyone "
             "on the way can read and change the traffic\n"
@@ -104,7 +108,15 @@ def test_insecure_skips_the_check_with_a_warning_each_run(pki, tls_devices):
 def test_server_name_accepts_a_certificate_for_another_name(pki, tls_devices):
     device = tls_devices("server_other_name")
     expect_ok(
-        run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki), "--server-name", "plc7.plant.example")
+        run_mbtool(
+            "read-holding-registers",
+            "0",
+            "-p",
+            device.target,
+            *identity(pki),
+            "--server-name",
+            "plc7.plant.example",
+        )
     )
 
 
@@ -137,7 +149,9 @@ def test_server_name_accepts_a_certificate_for_another_name(pki, tls_devices):
 )
 def test_a_server_certificate_that_does_not_verify_says_why(pki, tls_devices, server, words):
     device = tls_devices(server)
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)), 6)
+    line = assert_one_error_line(
+        run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)), 6
+    )
     host_port = device.target.removeprefix("tls://")
     assert line == f"mbtool: TLS handshake with {host_port} failed: " + words.format(ca=pki.ca.cert)
 
@@ -152,8 +166,14 @@ def test_without_ca_the_systems_cas_are_trusted_and_the_test_ca_is_not_one(pki, 
 @pytest.mark.parametrize(
     "who, words",
     [
-        (None, "the server may require a client certificate (Modbus/TCP Security is mutual: give --cert FILE --key FILE"),
-        ("stranger", "the server may have refused mbtool's certificate ({cert}): is it signed by a CA the server trusts"),
+        (
+            None,
+            "the server may require a client certificate (Modbus/TCP Security is mutual: give --cert FILE --key FILE",
+        ),
+        (
+            "stranger",
+            "the server may have refused mbtool's certificate ({cert}): is it signed by a CA the server trusts",
+        ),
     ],
 )
 def test_a_client_certificate_pymodbus_refuses_is_exit_6(pki, tls_devices, who, words):
@@ -164,7 +184,9 @@ def test_a_client_certificate_pymodbus_refuses_is_exit_6(pki, tls_devices, who, 
     res = run_mbtool("read-holding-registers", "0", "-p", device.target, *given, "--retries", "1")
     line = assert_one_error_line(res, 6)
     cert = getattr(pki, who).cert if who else ""
-    assert line.startswith(f"mbtool: {device.target} closed the connection after the TLS handshake, before any reply: ")
+    assert line.startswith(
+        f"mbtool: {device.target} closed the connection after the TLS handshake, before any reply: "
+    )
     assert words.format(cert=cert) in line
 
 
@@ -178,7 +200,9 @@ def test_a_plain_modbus_tcp_port_does_not_speak_tls(pki, tcp_device):
 def test_a_port_that_says_nothing_to_the_hello_times_out_as_not_tls(pki):
     silent = SilentServer()
     try:
-        res = run_mbtool("read-holding-registers", "0", "-p", f"tls://127.0.0.1:{silent.port}", *identity(pki), "-t", "0.5")
+        res = run_mbtool(
+            "read-holding-registers", "0", "-p", f"tls://127.0.0.1:{silent.port}", *identity(pki), "-t", "0.5"
+        )
     finally:
         silent.close()
     line = assert_one_error_line(res, 6)
@@ -191,17 +215,34 @@ def test_a_port_that_says_nothing_to_the_hello_times_out_as_not_tls(pki):
 @pytest.mark.parametrize(
     "options, words",
     [
-        (["--cert", "missing.pem", "--key", "missing.key"], "cannot read --cert missing.pem: No such file or directory"),
-        (["--key", "{operator.key}"], "--key {operator.key} goes with --cert FILE, the certificate it is the key of"),
-        (["--cert", "{operator.cert}", "--key", "{viewer.key}"], "--key {viewer.key} is not the key of --cert {operator.cert}"),
+        (
+            ["--cert", "missing.pem", "--key", "missing.key"],
+            "cannot read --cert missing.pem: No such file or directory",
+        ),
+        (
+            ["--key", "{operator.key}"],
+            "--key {operator.key} goes with --cert FILE, the certificate it is the key of",
+        ),
+        (
+            ["--cert", "{operator.cert}", "--key", "{viewer.key}"],
+            "--key {viewer.key} is not the key of --cert {operator.cert}",
+        ),
         (["--cert", "{ca_serial}"], "--cert {ca_serial}: not a certificate and its private key in PEM"),
         (["--ca", "{ca_serial}"], "--ca {ca_serial} holds no certificate in PEM"),
         (["--ca", "missing.pem"], "cannot read --ca missing.pem: No such file or directory"),
-        (["--insecure", "--ca", "{ca.cert}"], "--insecure checks no certificate: --ca would have nothing to check"),
+        (
+            ["--insecure", "--ca", "{ca.cert}"],
+            "--insecure checks no certificate: --ca would have nothing to check",
+        ),
     ],
 )
 def test_a_file_that_cannot_be_used_is_exit_2_and_nothing_is_sent(pki, options, words):
-    values = {"operator": pki.operator, "viewer": pki.viewer, "ca": pki.ca, "ca_serial": pki.folder / "ca.srl"}
+    values = {
+        "operator": pki.operator,
+        "viewer": pki.viewer,
+        "ca": pki.ca,
+        "ca_serial": pki.folder / "ca.srl",
+    }
     silent = SilentServer()
     try:
         given = [option.format(**values) for option in options]
@@ -216,7 +257,9 @@ def test_a_file_that_cannot_be_used_is_exit_2_and_nothing_is_sent(pki, options, 
 def test_tls_options_need_a_tls_target():
     line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", "sim://", "--insecure"), 2)
     assert line == "mbtool: --insecure is for tls:// targets (Modbus/TCP Security); sim:// is not one"
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", "tls://h", "--framer", "rtu"), 2)
+    line = assert_one_error_line(
+        run_mbtool("read-holding-registers", "0", "-p", "tls://h", "--framer", "rtu"), 2
+    )
     assert line == "mbtool: Modbus/TCP Security carries MBAP: tls:// takes no --framer rtu"
 
 
@@ -226,9 +269,16 @@ def test_tls_options_need_a_tls_target():
 def test_an_encrypted_key_reads_its_password_from_the_environment(pki, tls_devices):
     target = tls_devices().target
     locked = identity(pki, "locked")
-    expect_ok(run_mbtool("read-holding-registers", "0", "-p", target, *locked, env={"MBTOOL_KEY_PASSWORD": KEY_PASSWORD}))
+    expect_ok(
+        run_mbtool(
+            "read-holding-registers", "0", "-p", target, *locked, env={"MBTOOL_KEY_PASSWORD": KEY_PASSWORD}
+        )
+    )
     line = assert_one_error_line(
-        run_mbtool("read-holding-registers", "0", "-p", target, *locked, env={"MBTOOL_KEY_PASSWORD": "wrong"}), 2
+        run_mbtool(
+            "read-holding-registers", "0", "-p", target, *locked, env={"MBTOOL_KEY_PASSWORD": "wrong"}
+        ),
+        2,
     )
     assert line == f"mbtool: cannot decrypt {pki.locked.key}: wrong password ($MBTOOL_KEY_PASSWORD)"
     line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", target, *locked), 2)
@@ -250,7 +300,16 @@ def test_an_encrypted_key_asks_its_password_on_the_terminal(pki, tls_devices):
     """As a user at a terminal sees it: a prompt, the password typed (not echoed), the read."""
     master, slave = os.openpty()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "read-holding-registers", "0", "-p", tls_devices().target, *identity(pki, "locked")],
+        [
+            sys.executable,
+            "-m",
+            "mbtool",
+            "read-holding-registers",
+            "0",
+            "-p",
+            tls_devices().target,
+            *identity(pki, "locked"),
+        ],
         cwd=REPO_ROOT,
         env=mbtool_env(),
         stdin=slave,

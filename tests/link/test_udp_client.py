@@ -81,7 +81,17 @@ def test_retries_recover_what_a_lossy_path_drops_and_nothing_is_mismatched(udp_d
     proxy = LossyUdpProxy(udp_device.port)
     try:
         (tmp_path / "plant.toml").write_text(INVENTORY.format(target=f"{scheme}://{proxy.target}"))
-        res = run_mbtool("poll", str(tmp_path / "plant.toml"), "--rounds", "40", "-o", "json", "--stats", "json", timeout=100)
+        res = run_mbtool(
+            "poll",
+            str(tmp_path / "plant.toml"),
+            "--rounds",
+            "40",
+            "-o",
+            "json",
+            "--stats",
+            "json",
+            timeout=100,
+        )
     finally:
         proxy.close()
     assert res.returncode == 0, str(res)
@@ -150,18 +160,26 @@ def test_a_datagram_ends_its_frame_so_a_short_one_never_swallows_the_next(udp_re
     datagram is a frame of its own, not the rest of the short one (which would have read
     wrong values)."""
     peer = udp_responder(lambda request: [mbap_reply(request, READ_3)[:-4], mbap_reply(request, READ_3)])
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex"))
+    res = expect_ok(
+        run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
+    )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "truncated" in res.stderr
 
 
 def test_a_reply_with_another_transaction_id_is_dropped_as_not_ours(udp_responder):
-    peer = udp_responder(lambda request: [mbap_reply(request, READ_3, tid=0x4242), mbap_reply(request, READ_3)])
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex"))
+    peer = udp_responder(
+        lambda request: [mbap_reply(request, READ_3, tid=0x4242), mbap_reply(request, READ_3)]
+    )
+    res = expect_ok(
+        run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
+    )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "reply has transaction id 16962, expected 1\n" in res.stderr  # the --hex trace's note
     only_strangers = udp_responder(lambda request: [mbap_reply(request, READ_3, tid=0x4242)])
-    res = run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{only_strangers.port}", "-t", "0.3")
+    res = run_mbtool(
+        "read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{only_strangers.port}", "-t", "0.3"
+    )
     line = assert_one_error_line(res, 5)
     assert "reply has transaction id 16962, expected 1, discarded" in line
 
@@ -177,7 +195,9 @@ def test_a_lost_datagram_is_a_timeout_that_retries_resend(udp_responder):
     target = f"udp://127.0.0.1:{peer.port}"
     line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "3", "-p", target, "-t", "0.3"), 3)
     assert line == "mbtool: no response from unit 1 within 0.3 s"
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", target, "-t", "0.3", "--retries", "1"))
+    res = expect_ok(
+        run_mbtool("read-holding-registers", "0", "3", "-p", target, "-t", "0.3", "--retries", "1")
+    )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert len(peer.requests) == 3
 
@@ -188,14 +208,18 @@ def test_rtu_in_datagrams_checks_the_crc(udp_responder):
         return [frame + bytes([crc16(frame)[0] ^ 0xFF, crc16(frame)[1]]), frame + crc16(frame)]
 
     peer = udp_responder(answer)
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", f"rtu+udp://127.0.0.1:{peer.port}", "--hex"))
+    res = expect_ok(
+        run_mbtool("read-holding-registers", "0", "3", "-p", f"rtu+udp://127.0.0.1:{peer.port}", "--hex")
+    )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "BAD" in res.stderr
 
 
 def test_nothing_on_the_port_is_exit_6():
     port = free_udp_port()
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", f"udp://127.0.0.1:{port}"), 6)
+    line = assert_one_error_line(
+        run_mbtool("read-holding-registers", "0", "-p", f"udp://127.0.0.1:{port}"), 6
+    )
     assert line == f"mbtool: nothing listens on udp://127.0.0.1:{port} (the host says: port unreachable)"
 
 

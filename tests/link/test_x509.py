@@ -52,9 +52,7 @@ def test_the_names_are_those_openssl_reads_in_subject_alt_name(pki):
             timeout=30,
             check=True,
         ).stdout
-        openssl_names = [
-            part.split(":", 1)[1] for part in shown.splitlines()[-1].strip().split(", ")
-        ]
+        openssl_names = [part.split(":", 1)[1] for part in shown.splitlines()[-1].strip().split(", ")]
         assert x509.names(der(pair.cert)) == openssl_names == expected
     assert x509.names(der(pki.operator.cert)) == []
 

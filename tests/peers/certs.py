@@ -75,7 +75,9 @@ def _leaf(
     key = _key(folder, name, password)
     request = folder / f"{name}.csr"
     passin = ["-passin", f"pass:{password}"] if password else []
-    _openssl("req", "-new", "-key", str(key), *passin, "-subj", f"/CN={name}", "-out", str(request), cwd=folder)
+    _openssl(
+        "req", "-new", "-key", str(key), *passin, "-subj", f"/CN={name}", "-out", str(request), cwd=folder
+    )
     config = folder / f"{name}.cnf"
     cert = folder / f"{name}.pem"
     if dates is None:

@@ -18,7 +18,9 @@ import time
 
 
 class LossyUdpProxy:
-    def __init__(self, server_port: int, drop_every: int = 5, hold_every: int = 7, hold_for: float = 0.4) -> None:
+    def __init__(
+        self, server_port: int, drop_every: int = 5, hold_every: int = 7, hold_for: float = 0.4
+    ) -> None:
         self.server = ("127.0.0.1", server_port)
         self.drop_every = drop_every
         self.hold_every = hold_every

@@ -77,8 +77,7 @@ class BridgeCommand(QuickHelp, click.Command):
 @click.option(
     "--framer",
     type=Choice(["rtu", "ascii"]),
-    help="The serial side's framing (default rtu); tcp://, tls:// and udp:// always speak "
-    "Modbus TCP (MBAP).",
+    help="The serial side's framing (default rtu); tcp://, tls:// and udp:// always speak Modbus TCP (MBAP).",
 )
 @click.option(
     "--units",
