@@ -82,6 +82,9 @@ def client_context(settings: TlsSettings) -> ssl.SSLContext:
         context.verify_mode = ssl.CERT_NONE
     elif settings.ca:
         _trust(context, settings.ca)
+        # A device's own certificate in --ca is trusted as it is, whoever signed it (pinning):
+        # the chain may end at any certificate the user gave, not only at a root.
+        context.verify_flags |= ssl.VERIFY_X509_PARTIAL_CHAIN
     else:
         context.load_default_certs(ssl.Purpose.SERVER_AUTH)
     if settings.key and not settings.cert:

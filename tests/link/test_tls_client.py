@@ -93,6 +93,16 @@ def test_ca_may_be_the_devices_own_certificate_to_pin_one_self_signed_device(pki
     expect_ok(run_mbtool("read-holding-registers", "0", "-p", device.target, *pinned))
 
 
+def test_ca_may_pin_a_devices_certificate_whoever_signed_it(pki, tls_devices):
+    pinned = [*identity(pki)[:4], "--ca", str(pki.server.cert)]  # the leaf alone, not its CA
+    expect_ok(run_mbtool("read-holding-registers", "0", "-p", tls_devices().target, *pinned))
+    other = [*identity(pki)[:4], "--ca", str(pki.server_other_name.cert)]  # another device's
+    line = assert_one_error_line(
+        run_mbtool("read-holding-registers", "0", "-p", tls_devices().target, *other), 6
+    )
+    assert "signed by a CA not among the --ca given" in line
+
+
 def test_insecure_skips_the_check_with_a_warning_each_run(pki, tls_devices):
     device = tls_devices("server_self_signed")
     for _ in range(2):
