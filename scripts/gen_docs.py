@@ -39,6 +39,8 @@ EXTRA_ENVIRONMENT = {
     "(see https://no-color.org).",
     "MBTOOL_DEBUG": "When set to a non-empty value, an internal error (exit status 1) shows its "
     "Python traceback instead of a one-line message.",
+    "MBTOOL_KEY_PASSWORD": "The password of an encrypted --key (tls://, serve and bridge on tls://). "
+    "Without it mbtool asks on the terminal; with no terminal to ask on it stops with exit status 2.",
 }
 
 # After the exit statuses: what a run of several writes that stops part-way exits with.
@@ -58,7 +60,9 @@ EXIT_DESCRIPTIONS = {
     "EXCEPTION": "The device answered with a Modbus exception response.",
     "INVALID_RESPONSE": "Invalid response: CRC/LRC mismatch, framing error, wrong unit, function "
     "or transaction id, or a wrong byte count.",
-    "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused).",
+    "CONNECTION": "Cannot open the port or connect (no such device, port busy, connection refused, "
+    "nothing on a UDP port), or a TLS handshake failed (the line says why: a certificate self-signed, "
+    "from an unknown CA, expired or for another name, the client's refused, or no TLS at all).",
     "OUTPUT": "Cannot write the output: a full disk, a file size limit (a --capture file is cut back "
     "to its last whole record).",
     "PARTIAL": "Part of what was asked was done: a map read got some points and not others (the "
@@ -83,7 +87,7 @@ def files() -> list[tuple[str, str]]:
             "$MBTOOL_CONFIG, else $XDG_CONFIG_HOME/mbtool/config.toml (~/.config/mbtool/config.toml)",
             "Profiles for -P/--profile NAME: a [profiles.NAME] table of these keys: "
             + "; ".join(f"{key} ({what})" for key, (_, what) in KEYS.items())
-            + ". A relative map path is read from the config file's folder. An option on the "
+            + ". A relative map, cert, key or ca path is read from the config file's folder. An option on the "
             "command line, then MBTOOL_PORT and MBTOOL_UNIT, override them. A file that is not "
             "UTF-8 TOML, an unknown key or a value of the wrong type is exit status 2.",
         ),

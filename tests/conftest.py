@@ -60,6 +60,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def crc16(data: bytes) -> bytes:
     """Modbus RTU CRC-16 (poly 0xA001, init 0xFFFF), low byte first. Independent of mbtool."""
     crc = 0xFFFF
@@ -309,14 +316,24 @@ def start_device(
     pty_echo: bool = False,
     holes: bool = False,
     port: int | None = None,
+    tls: tuple[str, ...] = (),
+    udp: bool = False,
 ):
     """Start tests/peers/pymodbus_device.py; yield a Device; always stop it.
 
     ``holes``: the device's address map has gaps (pymodbus_device.HOLED); ``port``: the TCP
-    port to listen on (a free one by default), e.g. to bring a stopped device back."""
+    port to listen on (a free one by default), e.g. to bring a stopped device back; ``tls``:
+    Modbus/TCP Security, with these arguments (--cert S --key K [--ca CA]), target tls://;
+    ``udp``: datagrams, target udp:// (``framer`` socket) or rtu+udp:// (rtu)."""
     errf = tempfile.NamedTemporaryFile(prefix="mbtool-device-", suffix=".log", delete=False)
     pty = None
-    if tcp:
+    if tls:
+        port = port or free_port()
+        where = ["--tls", f"127.0.0.1:{port}", *tls]
+    elif udp:
+        port = port or free_udp_port()
+        where = ["--udp", f"127.0.0.1:{port}"]
+    elif tcp:
         port = port or free_port()
         where = ["--tcp", f"127.0.0.1:{port}"]
     else:
@@ -347,8 +364,13 @@ def start_device(
             raise RuntimeError(
                 f"{exc}\ndevice stderr:\n{Path(errf.name).read_text(errors='replace')[-3000:]}"
             ) from None
-        if tcp:
-            scheme = "tcp" if framer == "socket" else "socket"
+        if tcp or tls or udp:
+            if tls:
+                scheme = "tls"
+            elif udp:
+                scheme = "udp" if framer == "socket" else "rtu+udp"
+            else:
+                scheme = "tcp" if framer == "socket" else "socket"
             dev = Device(
                 f"{scheme}://127.0.0.1:{port}",
                 framer,
@@ -442,6 +464,20 @@ def not_finite(tmp_path_factory):
     with serve("--data", str(where / "data.toml")) as server:
         server.map = where / "map.toml"
         yield server
+
+
+@pytest.fixture(scope="session")
+def pki(tmp_path_factory):
+    """A CA and the certificates the TLS tests need, made by ``openssl`` into a tmp dir
+    (tests/peers/certs.py: with and without the role extension, expired, for another name,
+    self-signed, from an unknown CA); never committed keys."""
+    import shutil
+
+    from peers.certs import make_pki
+
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command is not installed (Debian: apt-get install openssl)")
+    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 @pytest.fixture

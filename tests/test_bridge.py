@@ -51,10 +51,10 @@ class Bridge:
         self.proc = proc
         self.first_line = first_line  # "bridging tcp://127.0.0.1:PORT (tcp) to ... "
         self.out_path = out_path
-        where = first_line.split()[1]
+        where = self.listening = first_line.split()[1]
         self.host, self.port = "", 0
-        if where.startswith("tcp://"):
-            host, _, port = where[6:].rpartition(":")
+        if where.startswith(("tcp://", "tls://", "udp://", "rtu+udp://")):
+            host, _, port = where.split("://", 1)[1].rpartition(":")
             self.host, self.port = host, int(port)
         self.result: tuple[int, str, str] | None = None
 

@@ -207,8 +207,11 @@ def test_completes_commands_options_and_choices():
 
 def test_completes_port_schemes_and_serial_devices():
     offered = _plain("mbtool read-coils -p ")
-    assert offered[:4] == ["tcp://", "socket://", "rfc2217://", "sim://"]
+    assert offered[:7] == ["tcp://", "tls://", "udp://", "rtu+udp://", "socket://", "rfc2217://", "sim://"]
     assert _plain("mbtool read-coils -p so") == ["socket://"]
+    assert _plain("mbtool read-coils -p t") == ["tcp://", "tls://"]
+    assert _plain("mbtool serve -p r") == ["rtu+udp://", "rfc2217://"]
+    assert _plain("mbtool bridge --listen u") == ["udp://"]
     devices = sorted(
         {str(p) for pattern in ("ttyUSB*", "ttyACM*", "ttyAMA*", "ttyS*") for p in Path("/dev").glob(pattern)}
     )

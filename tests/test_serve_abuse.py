@@ -42,10 +42,10 @@ class Served:
         self.log_path = log_path
         self.err_path = err_path
         self.first_line = first_line
-        where = first_line.split()[1]
+        where = self.target = first_line.split()[1]
         self.host, self.port = "", 0
-        if where.startswith("tcp://"):
-            host, _, port = where[6:].rpartition(":")
+        if where.startswith(("tcp://", "tls://", "udp://", "rtu+udp://")):
+            host, _, port = where.split("://", 1)[1].rpartition(":")
             self.host, self.port = host, int(port)
 
     def log(self) -> str:

@@ -35,6 +35,9 @@ pytestmark = pytest.mark.timeout(60)
         ("tcp://127.0.0.1:65536", "bad port 65536"),
         ("tcp://127.0.0.1:http", "bad port http"),
         ("tcp://:502", "no host in tcp://:502"),
+        ("rtu+udp://10.0.0.7", r"no port in rtu\+udp://10.0.0.7 \(expected rtu\+udp://HOST:PORT\)"),
+        ("udp://127.0.0.1:0", "bad port 0 in udp://127.0.0.1:0: a UDP port is 1..65535"),
+        ("tls://[::1", "an IPv6 address goes in brackets"),
         ("foo://bar", r"unknown scheme foo:// in foo://bar: use tcp://HOST\[:PORT\]"),
         ("", "no port given"),
     ],
@@ -70,6 +73,11 @@ def test_a_file_named_like_a_host_is_still_a_device(tmp_path, monkeypatch):
     [
         ("tcp://10.0.0.5", "tcp", "10.0.0.5", 502),
         ("TCP://[::1]:5020/", "tcp", "::1", 5020),
+        ("tls://plc7.plant.example", "tls", "plc7.plant.example", 802),
+        ("tls://10.0.0.5:8802", "tls", "10.0.0.5", 8802),
+        ("udp://10.0.0.5", "udp", "10.0.0.5", 502),
+        ("UDP://[::1]:5020", "udp", "::1", 5020),
+        ("rtu+udp://10.0.0.7:4001", "rtu+udp", "10.0.0.7", 4001),
         ("socket://gw:4001?logging=debug", "serial", "", 0),
         ("sim://", "sim", "", 0),
         ("/dev/ttyUSB0", "serial", "", 0),
@@ -84,9 +92,27 @@ def test_good_targets(target, scheme, host, port):
 
 
 def test_a_server_may_listen_on_port_0():
-    assert parse_target("tcp://127.0.0.1:0", listening=True).port == 0
-    with pytest.raises(RequestError):
-        parse_target("tcp://127.0.0.1:0")
+    for scheme in ("tcp", "tls", "udp", "rtu+udp"):
+        assert parse_target(f"{scheme}://127.0.0.1:0", listening=True).port == 0
+        with pytest.raises(RequestError):
+            parse_target(f"{scheme}://127.0.0.1:0")
+
+
+@pytest.mark.parametrize(
+    "target, shown, framing",
+    [
+        ("tcp://[::1]:5020", "tcp://[::1]:5020", "tcp"),
+        ("tls://10.0.0.5", "tls://10.0.0.5:802", "tcp"),
+        ("udp://10.0.0.5", "udp://10.0.0.5:502", "tcp"),
+        ("rtu+udp://10.0.0.7:4001", "rtu+udp://10.0.0.7:4001", "rtu"),
+        ("/dev/ttyUSB0", "/dev/ttyUSB0", "rtu"),
+    ],
+)
+def test_a_target_shows_its_port_and_names_its_framing(target, shown, framing):
+    from mbtool.link.transport import default_framer
+
+    assert str(parse_target(target)) == shown
+    assert default_framer(target) == framing
 
 
 def test_a_missing_serial_device_lists_the_ports_that_exist():

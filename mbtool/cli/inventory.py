@@ -10,6 +10,12 @@
     target = "/dev/ttyUSB0"
     baud = 9600
 
+    [links.plc]                  # Modbus/TCP Security: cert, key and ca beside the file
+    target = "tls://plc7.plant.example"
+    cert = "poller.pem"
+    key = "poller.key"
+    ca = "plant-ca.pem"
+
     [devices.meter1]
     link = "bus1"
     unit = 1
@@ -93,7 +99,7 @@ def load_inventory(path: str) -> Inventory:
             defaults[key] = _setting(key, value, where)
     params, ctx = _link_params()
     links = {
-        name: _link(name, table, path, params, ctx)
+        name: _link(name, table, path, params, ctx, Path(path).parent)
         for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
     }
     devices = [
@@ -143,14 +149,17 @@ def _link_params() -> tuple[dict[str, click.Parameter], click.Context]:
     return {param.name: param for param in command.params}, click.Context(command)
 
 
-def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context) -> LinkSpec:
+def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, folder: Path) -> LinkSpec:
     settings = {}
     for key, value in table.items():
         where = f"{path}: [links.{name}] {key}"
         if key not in LINK_KEYS:
             raise RequestError(f"{where}: unknown key (known: {', '.join(LINK_KEYS)})")
         param = params["port" if key == "target" else key]
-        settings["port" if key == "target" else key] = profiles._convert(param, key, value, ctx, where)
+        value = profiles._convert(param, key, value, ctx, where)
+        if key in profiles.PATH_KEYS and value is not None:  # beside the inventory unless absolute
+            value = str(folder / Path(value).expanduser())
+        settings["port" if key == "target" else key] = value
     if "port" not in settings:
         raise RequestError(
             f'{path}: [links.{name}] has no target (such as "/dev/ttyUSB0" or "tcp://192.0.2.10")'
@@ -159,6 +168,13 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context) -
         parse_target(settings["port"])
         connection = Connection(**settings)
         check(connection)
+        if connection.port.lower().startswith("tls://"):
+            from mbtool.link.connection import tls_settings
+            from mbtool.link.tls import client_context
+
+            # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
+            # key's password is asked once, here, not by a link's worker on each reconnect.
+            client_context(tls_settings(connection))
     except RequestError as error:
         raise RequestError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)

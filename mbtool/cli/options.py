@@ -165,13 +165,83 @@ LINK_OPTIONS = [
     ),
 ]
 
+# Modbus/TCP Security's certificates (tls:// targets), shared by the device commands and bridge;
+# each is a profile and inventory link key too (cli/profiles.py).
+TLS_OPTIONS = [
+    click.option(
+        "--cert",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security is mutual.",
+    ),
+    click.option(
+        "--key",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the certificate's private key (PEM) where --cert's file has none; an "
+        "encrypted one's password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
+    ),
+    click.option(
+        "--ca",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the CA certificates to trust (PEM), or a device's own certificate to trust "
+        "that one self-signed device; default: the system's CAs.",
+    ),
+    click.option(
+        "--insecure",
+        is_flag=True,
+        help="tls://: do not check the server's certificate (a warning each run): anyone on the "
+        "way can then read and change the traffic.",
+    ),
+    click.option(
+        "--server-name",
+        metavar="NAME",
+        help="tls://: the name the server's certificate has, where it is not the host in -p.",
+    ),
+]
+
+WRITE_ROLES_OPTION = click.option(
+    "--write-roles",
+    metavar="ROLE,...",
+    help="tls://: the roles (from the clients' certificates, extension 1.3.6.1.4.1.50316.802.1) "
+    "that may write; a write from any other gets exception 01. Default: a data file's "
+    "write_roles, else every client may write.",
+)
+# serve's: its own certificate, and the CA its clients' certificates must be signed by.
+SERVE_TLS_OPTIONS = [
+    click.option(
+        "--cert",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the server's certificate (PEM, its chain after it).",
+    ),
+    click.option(
+        "--key",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: its private key (PEM) where --cert's file has none; an encrypted one's "
+        "password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
+    ),
+    click.option(
+        "--ca",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="tls://: the CA certificates (PEM) the clients' certificates must be signed by: "
+        "Modbus/TCP Security requires one from every client.",
+    ),
+    WRITE_ROLES_OPTION,
+]
+serve_tls_options = with_options(SERVE_TLS_OPTIONS)
+
 PORT_OPTION = click.option(
     "-p",
     "--port",
     envvar="MBTOOL_PORT",
     metavar="TARGET",
     shell_complete=complete_port,
-    help="tcp://HOST[:PORT], a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
+    help="tcp://HOST[:PORT], tls://HOST[:PORT] (Modbus/TCP Security, port 802), udp://HOST[:PORT], "
+    "rtu+udp://HOST:PORT, a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
     "loop:// or sim:// (the built-in device).",
     show_envvar=True,
 )
@@ -188,7 +258,7 @@ UNIT_OPTION = click.option(
 FRAMER_OPTION = click.option(
     "--framer",
     type=Choice(["rtu", "ascii", "tcp"]),
-    help="Framing: tcp for tcp:// targets, rtu otherwise.",
+    help="Framing: tcp for tcp://, tls:// and udp:// targets, rtu otherwise.",
 )
 RECONNECT_EACH_OPTION = click.option(
     "--reconnect-each",
@@ -237,6 +307,11 @@ CONNECTION_KEYS = (
     "lenient",
     "rs485",
     "rs485_delays",
+    "cert",
+    "key",
+    "ca",
+    "insecure",
+    "server_name",
     "reconnect_each",
 )
 SETTINGS_KEYS = ("hex_trace", "output_format", "no_header", "dry_run", "measurement", "textfile", "changes")
@@ -252,6 +327,7 @@ def connection_options(unit: bool = True, output: bool = True, polls: bool = Fal
         FRAMER_OPTION,
         *SERIAL_LINE_OPTIONS,
         *LINK_OPTIONS,
+        *TLS_OPTIONS,
         *([RECONNECT_EACH_OPTION] if polls else []),
         HEX_OPTION,
         *([OUTPUT_FORMAT_OPTION, NO_HEADER_OPTION] if output else []),
@@ -419,6 +495,12 @@ def device_command(
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
                 connection = replace(connection, **changes) if changes else connection
+            if connection.insecure and not settings.dry_run:
+                from mbtool.cli.session import warn_insecure
+                from mbtool.link.connection import check
+
+                check(connection)  # a mistake in the options is said alone, not after the warning
+                warn_insecure(connection)
             return function(connection, settings, **kwargs)
 
         run = PROFILE_OPTION(run)

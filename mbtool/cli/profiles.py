@@ -43,8 +43,17 @@ KEYS = {
     "connect_delay": ((int, float), "seconds, such as 0.5"),
     "reconnect_each": ((bool,), "true or false"),
     "lenient": ((bool,), "true or false"),
+    # tls:// (Modbus/TCP Security): files beside this file unless absolute, as a map is
+    "cert": ((str,), 'a certificate file (PEM), such as "client.pem" (beside this file unless absolute)'),
+    "key": ((str,), 'its private key (PEM), such as "client.key" (beside this file unless absolute)'),
+    "ca": ((str,), 'the CAs to trust (PEM), such as "plant-ca.pem" (beside this file unless absolute)'),
+    "insecure": ((bool,), "true or false"),
+    "server_name": ((str,), 'the name the server\'s certificate has, such as "plc7.plant.example"'),
     "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
 }
+# Keys that name a file: read from the folder of the file that names them (a profile's, an
+# inventory's), not from wherever mbtool happens to run.
+PATH_KEYS = ("cert", "key", "ca", "map")
 
 
 def _kind(value: object) -> str:
@@ -126,7 +135,7 @@ def defaults(name: str) -> dict:
         source = ctx.get_parameter_source(key)
         if source not in (None, click.core.ParameterSource.DEFAULT):
             continue  # given on the command line or in the environment: that wins
-        if key == "map":  # a relative path is read from the config file's folder
+        if key in PATH_KEYS and isinstance(raw, str):  # relative: from the config file's folder
             changes[key] = str(path.parent / Path(raw).expanduser())
             continue
         changes[key] = _convert(params[key], key, raw, ctx, f"{path}: profiles.{name}.{key}")
@@ -134,13 +143,13 @@ def defaults(name: str) -> dict:
 
 
 def _convert(param: click.Parameter, key: str, raw, ctx: click.Context, where: str):
-    if key in ("echo", "rs485", "reconnect_each", "lenient"):
+    if key in ("echo", "rs485", "reconnect_each", "lenient", "insecure"):
         if not isinstance(raw, bool):
             raise RequestError(f"{where}: {raw} is not true or false")
         return raw
     if isinstance(raw, bool) or not isinstance(raw, str | int | float):
         raise RequestError(f"{where}: {raw} is not a string or number")
-    if key in ("bytesize", "stopbits", "parity", "framer", "port", "rs485_delays"):
+    if key in ("bytesize", "stopbits", "parity", "framer", "port", "rs485_delays", "server_name"):
         raw = str(raw)
     elif key in ("unit", "baud", "retries") and isinstance(raw, float):
         raise RequestError(f"{where}: {raw} is not a whole number")

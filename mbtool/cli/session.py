@@ -40,6 +40,19 @@ def open_client(
             print(f"mbtool: warning: {deviation} (accepted: --lenient)", file=sys.stderr)
 
 
+def warn_insecure(connection: Connection, link: str = "") -> None:
+    """--insecure, on every run that uses it: the server's certificate goes unchecked.
+    ``link``: the inventory's name of the link (poll)."""
+    port = connection.port or ""
+    if connection.insecure and port.lower().startswith("tls://"):
+        named = f" (link {link})" if link else ""
+        print(
+            f"mbtool: warning: --insecure: the certificate of {port}{named} is not checked, so anyone "
+            "on the way can read and change the traffic",
+            file=sys.stderr,
+        )
+
+
 def trace_for(settings: Settings):
     """What makes a Client's trace from its framer: --hex's, or None for no trace."""
     if not settings.hex:

@@ -32,6 +32,38 @@ def load_data(
 
     ``listed_only``: mark the addresses the file lists, as a sparse file does, whatever
     it says (diff compares those and no others)."""
+    data = _read(path)
+    template = DataModel()
+    sparse = data.get("sparse", False)
+    if not isinstance(sparse, bool):
+        raise RequestError(f"data file {path}: sparse must be true or false")
+    if sparse or listed_only:
+        template.defined = {}  # only what the file lists exists; units.N add their own
+    per_unit_sections = data.get("units", {})
+    if not isinstance(per_unit_sections, dict):
+        raise RequestError(f"data file {path}: 'units' must map unit ids to sections")
+    complete = data.get("complete", True)  # mbtool dump marks a dump it did not finish
+    if not isinstance(complete, bool):
+        raise RequestError(f"data file {path}: complete must be true or false")
+    template.complete = complete
+    # write_roles is the server's rule, not the device's data (load_write_roles).
+    top = {k: v for k, v in data.items() if k not in ("units", "sparse", "complete", "write_roles")}
+    apply_data(template, top, path)
+    unit_models = {}
+    for key, section in per_unit_sections.items():
+        unit = _int(key, f"{path}: units", 1, 255)
+        if unit not in units:
+            raise RequestError(f"data file {path}: unit {unit} is not among the units served")
+        if not isinstance(section, dict):
+            raise RequestError(f"data file {path}: units.{key} must be a table")
+        model = template.copy()
+        apply_data(model, section, f"{path}: units.{key}")
+        unit_models[unit] = model
+    return template, unit_models
+
+
+def _read(path: str) -> dict:
+    """The data file as a table, JSON or TOML by its name; RequestError naming it if it is neither."""
     try:
         with open(path, "rb") as handle:
             raw = handle.read()
@@ -54,32 +86,18 @@ def load_data(
         ) from None
     if not isinstance(data, dict):
         raise RequestError(f"data file {path}: the top level must be a table of sections")
-    template = DataModel()
-    sparse = data.get("sparse", False)
-    if not isinstance(sparse, bool):
-        raise RequestError(f"data file {path}: sparse must be true or false")
-    if sparse or listed_only:
-        template.defined = {}  # only what the file lists exists; units.N add their own
-    per_unit_sections = data.get("units", {})
-    if not isinstance(per_unit_sections, dict):
-        raise RequestError(f"data file {path}: 'units' must map unit ids to sections")
-    complete = data.get("complete", True)  # mbtool dump marks a dump it did not finish
-    if not isinstance(complete, bool):
-        raise RequestError(f"data file {path}: complete must be true or false")
-    template.complete = complete
-    top = {k: v for k, v in data.items() if k not in ("units", "sparse", "complete")}
-    apply_data(template, top, path)
-    unit_models = {}
-    for key, section in per_unit_sections.items():
-        unit = _int(key, f"{path}: units", 1, 255)
-        if unit not in units:
-            raise RequestError(f"data file {path}: unit {unit} is not among the units served")
-        if not isinstance(section, dict):
-            raise RequestError(f"data file {path}: units.{key} must be a table")
-        model = template.copy()
-        apply_data(model, section, f"{path}: units.{key}")
-        unit_models[unit] = model
-    return template, unit_models
+    return data
+
+
+def load_write_roles(path: str) -> frozenset[str] | None:
+    """The roles a data file lets write on a tls:// server (``write_roles = ["operator"]``;
+    Modbus/TCP Security's authorization), None where it says nothing: every role may."""
+    roles = _read(path).get("write_roles")
+    if roles is None:
+        return None
+    if not isinstance(roles, list) or not all(isinstance(role, str) and role for role in roles):
+        raise RequestError(f'data file {path}: write_roles must be a list of roles, such as ["operator"]')
+    return frozenset(roles)
 
 
 def _kind(path: str) -> str:

@@ -1,10 +1,12 @@
-"""The server behind ``mbtool serve`` and ``mbtool bridge``: a TCP port or a serial line.
+"""The server behind ``mbtool serve`` and ``mbtool bridge``: a TCP, TLS or UDP port, or a serial line.
 
 ``Server`` is what the commands use: it picks the transport from the target, once, and
 stops cleanly on Ctrl-C and SIGTERM.  What a server does whatever the transport (who
 answers, the I/O layer's faults, the stats, the loop) is ``mbtool.device.serving``'s; each
 transport's loop is its own module: ``mbtool.device.tcp_server`` (many clients, none able
-to hold the others up) and ``mbtool.device.serial_server`` (a slave on a line).
+to hold the others up), ``mbtool.device.tls_server`` (the same inside TLS, Modbus/TCP
+Security, with its clients' roles), ``mbtool.device.udp_server`` (a datagram a request)
+and ``mbtool.device.serial_server`` (a slave on a line).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import contextlib
 import random
 import signal
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 from mbtool.codec.errors import RequestError
 from mbtool.device.device import Device
@@ -23,9 +26,13 @@ from mbtool.link import IN_PROCESS
 from mbtool.link.transport import SerialSettings, Target
 from mbtool.link.transport import parse_target as parse_link_target
 
+if TYPE_CHECKING:
+    import ssl
+
 
 def parse_target(text: str) -> Target:
-    """tcp://HOST[:PORT] (PORT 0: any free port) or a serial device path / pyserial URL."""
+    """tcp://, tls://, udp:// or rtu+udp://HOST[:PORT] (PORT 0: any free port), or a serial
+    device path / pyserial URL."""
     target = parse_link_target(text, listening=True)
     if target.scheme in IN_PROCESS:
         raise RequestError(f"{target} is the in-process device; serve on tcp://HOST:PORT or a serial port")
@@ -55,25 +62,43 @@ class Server:
         max_clients: int = MAX_CLIENTS,
         idle_timeout: float | None = IDLE_TIMEOUT,
         first_request_timeout: float | None = FIRST_REQUEST_TIMEOUT,
+        tls_context: ssl.SSLContext | None = None,
+        write_roles: frozenset[str] | None = None,
     ) -> None:
         faults = faults or IoFaults()
         self.stats = Stats()
         log = log or (lambda direction, peer, data, note: None)
         answerer = answerer or Responder(device, faults, self.stats, random.Random(seed), log)
         self.port: Serving
+        limits = {
+            "queued": queued,
+            "max_clients": max_clients,
+            "idle_timeout": idle_timeout,
+            "first_request_timeout": first_request_timeout,
+        }
         if target.scheme == "tcp":
-            self.port = TcpServer(
+            self.port = TcpServer(target, framer_name, answerer, faults, self.stats, log, **limits)
+        elif target.scheme == "tls":
+            from mbtool.device.tls_server import TlsServer
+
+            assert tls_context is not None, (
+                "a tls:// server needs its context (mbtool.link.tls.server_context)"
+            )
+            self.port = TlsServer(
                 target,
                 framer_name,
                 answerer,
                 faults,
                 self.stats,
                 log,
-                queued=queued,
-                max_clients=max_clients,
-                idle_timeout=idle_timeout,
-                first_request_timeout=first_request_timeout,
+                context=tls_context,
+                write_roles=write_roles,
+                **limits,
             )
+        elif target.scheme in ("udp", "rtu+udp"):
+            from mbtool.device.udp_server import UdpServer
+
+            self.port = UdpServer(target, framer_name, answerer, faults, self.stats, log)
         else:
             settings = settings or SerialSettings()
             self.port = SerialServer(target, framer_name, answerer, faults, self.stats, log, settings)

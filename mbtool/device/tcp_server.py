@@ -142,8 +142,8 @@ class TcpServer(Serving):
                 continue
             conn.setblocking(False)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            client = _Client(conn, peer, device_framer(self.framer_name))
-            self.selector.register(conn, client.events, client)
+            client = _Client(self._wrap(conn), peer, device_framer(self.framer_name))
+            self.selector.register(client.sock, client.events, client)
             self._clients.add(client)
             accepted.append(client)
             self.stats.clients += 1
@@ -195,9 +195,23 @@ class TcpServer(Serving):
         self.stats.clients -= 1
         self._log("close", client.peer, b"", why)
 
+    # -- the connection's bytes: a plain socket here, TLS in mbtool.device.tls_server ------------
+
+    def _wrap(self, conn: socket.socket) -> socket.socket:
+        """The socket a newly accepted connection is served through."""
+        return conn
+
+    def _recv(self, client: _Client) -> bytes:
+        """What the client sent, at most RECV_SIZE; b"" at its end, BlockingIOError for nothing now."""
+        return client.sock.recv(RECV_SIZE)
+
+    def _send(self, client: _Client, data: bytearray) -> int:
+        """Bytes of ``data`` the socket took now; BlockingIOError for none."""
+        return client.sock.send(data)
+
     def _receive(self, client: _Client) -> None:
         try:
-            data = client.sock.recv(RECV_SIZE)
+            data = self._recv(client)
         except (BlockingIOError, InterruptedError):
             return
         except OSError as error:
@@ -277,7 +291,7 @@ class TcpServer(Serving):
             return
         if client.out:
             try:
-                sent = client.sock.send(client.out)
+                sent = self._send(client, client.out)
             except (BlockingIOError, InterruptedError):
                 sent = 0
             except OSError as error:
@@ -466,6 +480,8 @@ class _Client:
         "on_bus",
         "bus",
         "bus_at",
+        "tls",
+        "role",
     )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
@@ -485,6 +501,8 @@ class _Client:
         self.on_bus = False  # a queued request of its is waiting for its answer
         self.bus = 0.0  # seconds of bus time it has used, decayed (BUS_HALF_LIFE)
         self.bus_at = self.connected  # when ``bus`` was last brought up to date
+        self.tls = ""  # TLS (mbtool.device.tls_server): "handshake", "ready" or "refused"
+        self.role: str | None = None  # its certificate's Modbus role, once the handshake is done
 
     def bus_time(self, now: float) -> float:
         """The bus time it has used, each second counting half after BUS_HALF_LIFE."""

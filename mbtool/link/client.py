@@ -272,7 +272,8 @@ class Client:
                         self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
                         watch.seen = False  # traced once; echoed stays True
                 self.framer.feed(data)
-                event = self.framer.next_event()
+                # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
+                event = self.framer.silence() if self.transport.datagrams else self.framer.next_event()
             else:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
                 event = self.framer.silence() if waiting else self.framer.next_event()

@@ -35,6 +35,14 @@ class Connection:
     connect_delay: float = 0.0  # seconds to wait after opening the link, before the first request
     reconnect_each: bool = False  # polling: a new link for every poll
     lenient: bool = False  # accept replies that break the spec harmlessly, with a warning
+    # tls:// (Modbus/TCP Security): the client's certificate and key (PEM), the CAs (or the
+    # device's own certificate) to trust, no check of the server's certificate, and the name
+    # it must have where it is not the host's.
+    cert: str | None = None
+    key: str | None = None
+    ca: str | None = None
+    insecure: bool = False
+    server_name: str | None = None
 
 
 def framer_name(connection: Connection) -> str:
@@ -56,14 +64,52 @@ def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
+    from mbtool.link.transport import is_network
+
     name = framer_name(connection)
-    if connection.echo and (connection.port or "").lower().startswith("tcp://"):
-        raise RequestError("--echo strips a half-duplex serial adapter's echo; a tcp:// link has none")
+    port = connection.port or ""
+    scheme = port.partition("://")[0].lower()
+    if connection.echo and is_network(port):
+        raise RequestError(f"--echo strips a half-duplex serial adapter's echo; a {scheme}:// link has none")
+    _check_tls(connection, scheme, name)
     if needs and is_broadcast(connection.unit, name):
         raise RequestError(
             f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"
         )
     return name
+
+
+TLS_OPTIONS = {
+    "cert": "--cert",
+    "key": "--key",
+    "ca": "--ca",
+    "insecure": "--insecure",
+    "server_name": "--server-name",
+}
+
+
+def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
+    """The TLS options go with a tls:// target, which carries MBAP (Modbus/TCP Security)."""
+    given = [option for field, option in TLS_OPTIONS.items() if getattr(connection, field)]
+    if scheme != "tls":
+        if given and connection.port:
+            raise RequestError(
+                f"{given[0]} is for tls:// targets (Modbus/TCP Security); {connection.port} is not one"
+            )
+        return
+    if framing != "tcp":
+        raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framing}")
+    if connection.insecure and connection.ca:  # (--server-name still names the server it asks for: SNI)
+        raise RequestError("--insecure checks no certificate: --ca would have nothing to check")
+
+
+def tls_settings(connection: Connection):
+    """The TlsSettings of a tls:// connection (mbtool.link.tls)."""
+    from mbtool.link.tls import TlsSettings
+
+    return TlsSettings(
+        connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name
+    )
 
 
 @contextmanager
@@ -91,7 +137,8 @@ def open_client(
         connection.stopbits,
         rs485_direction(connection),
     )
-    transport = open_transport(connection.port, settings, connection.timeout, name)
+    secure = tls_settings(connection) if connection.port.lower().startswith("tls://") else None
+    transport = open_transport(connection.port, settings, connection.timeout, name, secure)
     try:
         framer = framer or make_framer(name)
         client = Client(
@@ -127,9 +174,12 @@ def close_quietly(link: ExitStack) -> None:
 
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     """RTS lead and trail in seconds when RTS switches the line's direction, else None."""
+    from mbtool.link.transport import is_network
+
     delays = rs485_delays(connection.rs485, connection.rs485_delays)
-    if delays and (connection.port or "").lower().startswith("tcp://"):
-        raise RequestError("--rs485 drives the RTS line of a serial port; a tcp:// target has none")
+    if delays and is_network(connection.port or ""):
+        scheme = (connection.port or "").partition("://")[0].lower()
+        raise RequestError(f"--rs485 drives the RTS line of a serial port; a {scheme}:// target has none")
     return delays
 
 

@@ -3,6 +3,8 @@
 * Serial lines through ``serial.serial_for_url``: device paths, ``socket://``
   and ``rfc2217://`` TCP-bridged serial ports, ``loop://`` (pyserial url handlers).
 * Modbus TCP (``tcp://host[:port]``, default port 502): a plain socket.
+* Modbus/TCP Security (``tls://host[:port]``, port 802): ``mbtool.link.tls``.
+* Modbus over UDP (``udp://host[:port]``, ``rtu+udp://host:port``): ``mbtool.link.udp``.
 * ``sim://``: the built-in simulated device, answering in-process (registered by
   the CLI: ``mbtool.link.register_scheme``).
 
@@ -21,22 +23,33 @@ import socket
 import struct
 import sys
 import time
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
-from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
+from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
+    READ_CHUNK,
+    WRITE_TIMEOUT,
+    ConnectionClosed,
+    Transport,
+    _errno,
+    connect,
+    reason,
+)
+
+if TYPE_CHECKING:
+    from mbtool.link.tls import TlsSettings
 
 MODBUS_TCP_PORT = 502
-WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 # The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
 # this goes by select, which is exact; a longer one may end a tick or two late.
 KERNEL_TIMER_MIN = 0.05
 # A read's time left differs from the last by the work between reads: within this, the
 # socket's timeout is left as it is rather than set again (a system call).
 KERNEL_TIMER_SLACK = 0.005
-READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
 DISCARD_BUDGET = 65536  # stale bytes dropped before a request, at most (a flood never ends)
 # Windows leaves a socket whose receive timed out in an undefined state: waits go by select.
 KERNEL_TIMED_READS = sys.platform != "win32"
@@ -59,40 +72,6 @@ class SerialSettings:
         from mbtool.codec.timing import character_bits
 
         return character_bits(self.parity, self.bytesize, self.stopbits)
-
-
-class ConnectionClosed(NoResponse):
-    """The peer closed the connection; no (further) reply can come."""
-
-
-class Transport:
-    """What the client needs of a link.  ``serial_line`` links keep t3.5 silences."""
-
-    serial_line = True
-    default_framer = "rtu"
-    description = ""
-
-    def write(self, data: bytes) -> None:
-        raise ConnectionFailed(f"{self.description}: not writable")
-
-    def read(self, timeout: float) -> bytes:
-        """Wait up to ``timeout`` seconds for bytes; return what arrived (b"" if none)."""
-        time.sleep(max(timeout, 0))
-        return b""
-
-    def discard_input(self) -> bytes:
-        """Drop (and return) bytes that arrived before a request: stale replies, noise."""
-        return b""
-
-    def input_waiting(self) -> bool:
-        """Whether bytes have come that were not read yet (True where the link cannot tell)."""
-        return True
-
-    def close(self) -> None:
-        """Release the link."""
-
-    # Appended to "no response" and "closed the connection": what may explain them on this link.
-    silence_hint = ""
 
 
 class SerialTransport(Transport):
@@ -139,10 +118,8 @@ class SerialTransport(Transport):
                 raise ConnectionFailed(f"cannot open {url}: no such device ({_serial_ports()})") from None
             if _errno(error) == errno.EINVAL:
                 # e.g. a pseudo-terminal refuses 7 data bits: name the settings it refused
-                raise ConnectionFailed(
-                    f"cannot open {url}: it refused {settings}: {_reason(error)}"
-                ) from None
-            raise ConnectionFailed(f"cannot open {url}: {_reason(error)}") from None
+                raise ConnectionFailed(f"cannot open {url}: it refused {settings}: {reason(error)}") from None
+            raise ConnectionFailed(f"cannot open {url}: {reason(error)}") from None
         self._serial_error = serial.SerialException
         self._rts_switching: tuple[float, float] | None = None
         if settings.rs485 is not None:
@@ -176,7 +153,7 @@ class SerialTransport(Transport):
             self.port.rts = False  # receive until there is something to send
         except (self._serial_error, OSError, ValueError) as error:
             self.port.close()
-            raise ConnectionFailed(f"cannot drive RTS of {url} for --rs485: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot drive RTS of {url} for --rs485: {reason(error)}") from None
         self._rts_switching = delays
 
     def write(self, data: bytes) -> None:
@@ -201,9 +178,9 @@ class SerialTransport(Transport):
                 # The frame was handed over, then the port went away (a pty's other end
                 # closed, an adapter unplugged): a hang-up, like one during the reply.
                 raise ConnectionClosed(
-                    f"{self.description} went away while sending ({_reason(error)})"
+                    f"{self.description} went away while sending ({reason(error)})"
                 ) from None
-            raise ConnectionFailed(f"cannot write to {self.description}: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot write to {self.description}: {reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
         try:
@@ -223,7 +200,7 @@ class SerialTransport(Transport):
                 data += self.port.read(self.port.in_waiting)
             return data
         except (self._serial_error, OSError) as error:
-            raise ConnectionClosed(f"{self.description}: {_reason(error)}{self.silence_hint}") from None
+            raise ConnectionClosed(f"{self.description}: {reason(error)}{self.silence_hint}") from None
 
     def input_waiting(self) -> bool:
         try:
@@ -268,13 +245,7 @@ class TcpTransport(Transport):
 
     def __init__(self, host: str, port: int, timeout: float) -> None:
         self.description = f"tcp://{host}:{port}"
-        try:
-            # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
-            address = host.encode("ascii") if host.isascii() else host
-            self.sock = socket.create_connection((address, port), timeout=timeout)
-        except OSError as error:
-            raise ConnectionFailed(f"cannot connect to {host}:{port}: {_reason(error)}") from None
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock = connect(host, port, timeout)
         # Blocking, with the kernel keeping time (SO_RCVTIMEO, SO_SNDTIMEO): a reply's wait is
         # then one recv system call, where select and recv, or Python's socket timeout (poll
         # and recv), make two a read -- a polling loop's largest cost after the device itself.
@@ -294,7 +265,7 @@ class TcpTransport(Transport):
                 f"cannot send to {self.description}: the peer has not read for {WRITE_TIMEOUT:g} s"
             ) from None
         except OSError as error:
-            raise ConnectionFailed(f"cannot send to {self.description}: {_reason(error)}") from None
+            raise ConnectionFailed(f"cannot send to {self.description}: {reason(error)}") from None
 
     def read(self, timeout: float) -> bytes:
         try:
@@ -308,7 +279,7 @@ class TcpTransport(Transport):
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
-            raise ConnectionClosed(f"{self.description}: {_reason(error)}") from None
+            raise ConnectionClosed(f"{self.description}: {reason(error)}") from None
         if not data:
             raise ConnectionClosed(f"{self.description} closed the connection")
         return data
@@ -350,16 +321,31 @@ class TcpTransport(Transport):
 class Target:
     """What a ``--port`` names, checked before anything is opened."""
 
-    scheme: str  # "tcp", "serial" (a device path or a pyserial URL), or an in-process scheme ("sim")
+    # "tcp", "tls", "udp", "rtu+udp" (NETWORK_SCHEMES), "serial" (a device path or a pyserial
+    # URL), or an in-process scheme ("sim")
+    scheme: str
     host: str = ""
     port: int = 0
     path: str = ""  # the device path or URL handed to pyserial
 
     def __str__(self) -> str:
-        if self.scheme == "tcp":
+        if self.scheme in NETWORK_SCHEMES:
             host = f"[{self.host}]" if ":" in self.host else self.host
-            return f"tcp://{host}:{self.port}"
+            return f"{self.scheme}://{host}:{self.port}"
         return self.path or f"{self.scheme}://"
+
+
+MODBUS_TLS_PORT = 802  # Modbus/TCP Security's registered port (MB-TCP-Security-v21)
+# The schemes of links mbtool opens itself, with a host and a port: the port each defaults
+# to (None: the port must be given) and the transport's protocol, for messages.
+NETWORK_SCHEMES = {
+    "tcp": (MODBUS_TCP_PORT, "TCP"),
+    "tls": (MODBUS_TLS_PORT, "TCP"),  # Modbus/TCP Security: MBAP inside TLS
+    "udp": (MODBUS_TCP_PORT, "UDP"),  # MBAP, one ADU a datagram
+    "rtu+udp": (None, "UDP"),  # RTU frames in datagrams: serial device servers in UDP mode
+}
+# The network schemes whose frames are MBAP unless --framer says otherwise.
+MBAP_SCHEMES = ("tcp", "tls", "udp")
 
 
 # pyserial's URL handlers (serial.serial_for_url) that take a host and port, and those
@@ -370,13 +356,16 @@ OTHER_SERIAL_SCHEMES = ("loop", "spy", "alt", "hwgrep", "cp2110")
 
 def schemes() -> list[str]:
     """Every scheme a --port may start with, for completion and messages."""
-    return ["tcp", *BRIDGE_SCHEMES, *IN_PROCESS, *OTHER_SERIAL_SCHEMES]
+    return [*NETWORK_SCHEMES, *BRIDGE_SCHEMES, *IN_PROCESS, *OTHER_SERIAL_SCHEMES]
 
 
 def target_forms() -> str:
     """What a ``--port`` may be, for messages."""
     in_process = "".join(f"{scheme}://, " for scheme in IN_PROCESS)
-    return f"tcp://HOST[:PORT], socket://HOST:PORT, rfc2217://HOST:PORT, {in_process}or a serial device"
+    return (
+        "tcp://HOST[:PORT], tls://HOST[:PORT], udp://HOST[:PORT], rtu+udp://HOST:PORT, "
+        f"socket://HOST:PORT, rfc2217://HOST:PORT, {in_process}or a serial device"
+    )
 
 
 _HOST_LIKE = re.compile(
@@ -396,9 +385,9 @@ def parse_target(text: str, listening: bool = False) -> Target:
         if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
             raise RequestError(f"{text} is not a serial device; did you mean tcp://{text}?")
         return Target("serial", path=text)
-    if scheme == "tcp":
-        host, port = _host_and_port(text, rest, MODBUS_TCP_PORT, 0 if listening else 1)
-        return Target("tcp", host, port)
+    if scheme in NETWORK_SCHEMES:
+        host, port = _host_and_port(text, rest, NETWORK_SCHEMES[scheme][0], 0 if listening else 1)
+        return Target(scheme, host, port)
     if scheme in IN_PROCESS:
         return Target(scheme, path=f"{scheme}://")
     if scheme in BRIDGE_SCHEMES:
@@ -429,13 +418,25 @@ def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tu
             raise RequestError(f"no port in {text} (expected {scheme}://HOST:PORT)")
         return host, default
     if not port_text.isascii() or not port_text.isdigit() or not lowest <= int(port_text) <= 65535:
-        raise RequestError(f"bad port {port_text} in {text}: a TCP port is {lowest}..65535")
+        protocol = NETWORK_SCHEMES.get(scheme, (None, "TCP"))[1]
+        raise RequestError(f"bad port {port_text} in {text}: a {protocol} port is {lowest}..65535")
     return host, int(port_text)
 
 
-def open_transport(target: str, settings: SerialSettings, timeout: float, framer: str | None) -> Transport:
-    """Open the link a ``--port`` target names (checked first: a bad one opens nothing)."""
+def open_transport(
+    target: str, settings: SerialSettings, timeout: float, framer: str | None, tls: TlsSettings | None = None
+) -> Transport:
+    """Open the link a ``--port`` target names (checked first: a bad one opens nothing);
+    ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
+    if where.scheme == "tls":
+        from mbtool.link.tls import TlsSettings, TlsTransport  # ssl costs an import only here
+
+        return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
+    if where.scheme in ("udp", "rtu+udp"):
+        from mbtool.link.udp import UdpTransport
+
+        return UdpTransport(where.scheme, where.host, where.port)
     if where.scheme == "tcp":
         link = TcpTransport(where.host, where.port, timeout)
         # Serial frames chosen over tcp:// and only silence back: a Modbus TCP device ignores
@@ -459,8 +460,15 @@ def _port_of(url: str) -> int | None:
 
 
 def default_framer(target: str) -> str:
-    """tcp for tcp://, rtu for everything else (serial lines, bridges, sim://)."""
-    return "tcp" if target.lower().startswith("tcp://") else "rtu"
+    """tcp (MBAP) for tcp://, tls:// and udp://; rtu for everything else (serial lines,
+    bridges, rtu+udp://, sim://)."""
+    return "tcp" if target.lower().startswith(tuple(f"{scheme}://" for scheme in MBAP_SCHEMES)) else "rtu"
+
+
+def is_network(target: str) -> bool:
+    """A tcp://, tls://, udp:// or rtu+udp:// target: no serial line of mbtool's own (no echo,
+    no RTS), whatever it carries."""
+    return target.lower().partition("://")[0] in NETWORK_SCHEMES and "://" in target
 
 
 def _is_socket_url(port) -> bool:
@@ -488,24 +496,3 @@ def _termios_error() -> tuple[type[Exception], ...]:
     except ImportError:  # not on Windows
         return ()
     return (termios.error,)
-
-
-def _errno(error: BaseException) -> int | None:
-    number = getattr(error, "errno", None)
-    if number is None and error.args and isinstance(error.args[0], int):
-        number = error.args[0]  # termios.error carries (errno, text) as plain args
-    return number
-
-
-def _reason(error: BaseException) -> str:
-    import os
-
-    number = _errno(error)
-    if isinstance(number, int) and number > 0:
-        return os.strerror(number)
-    text = getattr(error, "strerror", None) or str(error) or type(error).__name__
-    text = text.split("\n")[0]
-    if text.startswith("Could not open port "):
-        # pyserial's wrapping repeats the port the message already names: keep its reason
-        text = re.sub(r"^\[Errno -?\d+\] ", "", text.rsplit(": ", 1)[-1])
-    return text

@@ -6,6 +6,11 @@ Run as a subprocess by tests/conftest.py:
     python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15020 --framer socket --units 1
     python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15021 --framer rtu
     python tests/peers/pymodbus_device.py --serial /dev/pts/7 --framer ascii
+    python tests/peers/pymodbus_device.py --tls 127.0.0.1:15802 --cert S.pem --key S.key --ca CA.pem
+    python tests/peers/pymodbus_device.py --udp 127.0.0.1:15020 --framer rtu
+
+--tls: Modbus/TCP Security (MBAP inside TLS), with --ca the clients' certificates required
+and checked against it.  --udp: one ADU a datagram, MBAP (--framer socket) or RTU.
 
 Data served (per unit, separate blocks for the four tables, addresses 0..TABLE_SIZE-1):
     holding registers 0..19 = 100..119, input registers 0..19 = 200..219,
@@ -100,6 +105,11 @@ def parse_args(argv):
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--tcp", metavar="HOST:PORT")
     where.add_argument("--serial", metavar="PATH")
+    where.add_argument("--tls", metavar="HOST:PORT")
+    where.add_argument("--udp", metavar="HOST:PORT")
+    p.add_argument("--cert", help="--tls: the server's certificate (PEM)")
+    p.add_argument("--key", help="--tls: its key (PEM)")
+    p.add_argument("--ca", help="--tls: require client certificates signed by this CA")
     p.add_argument("--framer", choices=["socket", "rtu", "ascii"], default=None)
     p.add_argument("--units", default="1", help="comma separated device ids (default 1)")
     p.add_argument("--baud", type=int, default=19200)
@@ -110,21 +120,40 @@ def parse_args(argv):
     p.add_argument("--holes", action="store_true", help="the HOLED address map instead of full tables")
     args = p.parse_args(argv)
     if args.framer is None:
-        args.framer = "socket" if args.tcp else "rtu"
+        args.framer = "socket" if args.tcp or args.tls or args.udp else "rtu"
     if args.serial and args.framer == "socket":
         p.error("--framer socket needs --tcp")
+    if args.tls and not (args.cert and args.key):
+        p.error("--tls needs --cert and --key")
     args.unit_list = [int(u, 0) for u in args.units.split(",") if u.strip()]
     return args
 
 
 async def run(args) -> int:
     from pymodbus import FramerType
-    from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+    from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer, ModbusUdpServer
 
     build = build_holed_device if args.holes else build_device
     devices = [build(u) for u in args.unit_list]
     framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[args.framer]
-    if args.tcp:
+    if args.tls:
+        import ssl
+
+        host, _, port = args.tls.rpartition(":")
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.load_cert_chain(args.cert, args.key)
+        if args.ca:
+            context.load_verify_locations(args.ca)
+            context.verify_mode = ssl.CERT_REQUIRED
+        server = ModbusTlsServer(
+            devices, address=(host or "127.0.0.1", int(port)), sslctx=context, identity=build_identity()
+        )
+    elif args.udp:
+        host, _, port = args.udp.rpartition(":")
+        server = ModbusUdpServer(
+            devices, framer=framer, address=(host or "127.0.0.1", int(port)), identity=build_identity()
+        )
+    elif args.tcp:
         host, _, port = args.tcp.rpartition(":")
         server = ModbusTcpServer(
             devices, framer=framer, address=(host or "127.0.0.1", int(port)), identity=build_identity()

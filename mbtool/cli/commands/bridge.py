@@ -18,6 +18,8 @@ from mbtool.cli.completion import complete_port
 from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     LINK_OPTIONS,
+    TLS_OPTIONS,
+    WRITE_ROLES_OPTION,
     output_chosen,
     serial_line_options,
     tcp_client_options,
@@ -54,8 +56,10 @@ class BridgeCommand(QuickHelp, click.Command):
     shell_complete=complete_port,
     show_default=True,
     help="Where requests come from: tcp://HOST:PORT (Modbus TCP clients; PORT 0 picks a free "
-    "one), or a serial device or pyserial URL (mbtool is then a slave on that line). Only "
-    "loopback by default: tcp://0.0.0.0:502 opens the bus to the network, a choice you type.",
+    "one), tls://HOST:PORT (Modbus/TCP Security: --cert, --key, --ca), udp://HOST:PORT or "
+    "rtu+udp://HOST:PORT (datagrams), or a serial device or pyserial URL (mbtool is then a "
+    "slave on that line). Only loopback by default: tcp://0.0.0.0:502 opens the bus to the "
+    "network, a choice you type.",
 )
 @click.option(
     "-p",
@@ -65,12 +69,13 @@ class BridgeCommand(QuickHelp, click.Command):
     required=True,
     shell_complete=complete_port,
     help="Where requests go: a serial device or pyserial URL (the bus), tcp://HOST[:PORT] "
-    "(a Modbus TCP device), or sim:// (the built-in device).",
+    "(a Modbus TCP device), tls://HOST[:PORT], udp://HOST[:PORT], rtu+udp://HOST:PORT, or "
+    "sim:// (the built-in device).",
 )
 @click.option(
     "--framer",
     type=Choice(["rtu", "ascii"]),
-    help="The serial side's framing (default rtu); tcp:// always speaks Modbus TCP (MBAP).",
+    help="The serial side's framing (default rtu); tcp://, tls:// and udp:// always speak Modbus TCP (MBAP).",
 )
 @click.option(
     "--units",
@@ -100,6 +105,8 @@ class BridgeCommand(QuickHelp, click.Command):
 )
 @serial_line_options
 @with_options(LINK_OPTIONS)
+@with_options(TLS_OPTIONS)
+@WRITE_ROLES_OPTION
 @tcp_client_options
 @click.option(
     "--hex",
@@ -138,6 +145,12 @@ def bridge(
     lenient,
     rs485,
     rs485_delays,
+    cert,
+    key,
+    ca,
+    insecure,
+    server_name,
+    write_roles,
     max_clients,
     idle_timeout,
     first_request_timeout,
@@ -168,12 +181,14 @@ def bridge(
     The reverse, mbtool as a slave on a serial line in front of a TCP device:
       mbtool bridge --listen /dev/ttyUSB1 -p tcp://192.0.2.10
     """
+    from mbtool.cli.listen import tls_server_settings
+    from mbtool.cli.session import warn_insecure
     from mbtool.device.server import Server, parse_target
     from mbtool.link import IN_PROCESS
     from mbtool.link.connection import Connection, check, open_client
     from mbtool.link.connection import rs485_delays as rs485_delays_of
     from mbtool.link.forward import Forwarder
-    from mbtool.link.transport import SerialSettings, default_framer
+    from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
 
     if quiet and (output_format or hex_trace):
         shown = " and ".join(name for name, given in (("-o", output_format), ("--hex", hex_trace)) if given)
@@ -181,7 +196,7 @@ def bridge(
     where = parse_target(listen)
     forwarded = parse_units(units, broadcast=True)
     serial_framer = framer or "rtu"
-    listening_framer = "tcp" if where.scheme == "tcp" else serial_framer
+    listening_framer = "tcp" if where.scheme in MBAP_SCHEMES else serial_framer
     link_framer = "tcp" if default_framer(target) == "tcp" else serial_framer
     if framer and "tcp" == listening_framer == link_framer:
         raise RequestError("--framer sets the serial side's framing, and both sides are tcp://")
@@ -191,9 +206,22 @@ def bridge(
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
     # --rs485 drives the RTS line of the serial side, whichever side that is.
     direction = rs485_delays_of(rs485, rs485_delays)
-    link_serial = link_framer != "tcp" and not target.startswith(tuple(f"{s}://" for s in IN_PROCESS))
+    link_serial = (
+        link_framer != "tcp"
+        and not target.startswith(tuple(f"{s}://" for s in IN_PROCESS))
+        and not is_network(target)
+    )
     if direction and where.scheme != "serial" and not link_serial:
         raise RequestError("--rs485 drives the RTS line of a serial port, and neither side is one")
+    # --cert, --key and --ca are the bridge's one identity: the server's on a tls:// --listen,
+    # the client's towards a tls:// -p, both where both are.
+    link_tls = target.lower().startswith("tls://")
+    if where.scheme != "tls" and not link_tls:
+        given = [o for o, v in (("--cert", cert), ("--key", key), ("--ca", ca)) if v]
+        if given:
+            raise RequestError(f"{given[0]} is for tls:// (Modbus/TCP Security), and neither side is tls://")
+    listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
+    context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
     connection = Connection(
         port=target,
         unit=1,
@@ -209,8 +237,14 @@ def bridge(
         connect_delay=connect_delay,
         lenient=lenient,
         rs485_delays=direction if link_serial else None,
+        cert=cert if link_tls else None,
+        key=key if link_tls else None,
+        ca=ca if link_tls else None,
+        insecure=insecure,
+        server_name=server_name,
     )
     check(connection)
+    warn_insecure(connection)
     fmt = output_format or ("table" if sys.stdout.isatty() else "plain")
     show = Show(fmt, hex_trace, quiet)
     forwarder = Forwarder(
@@ -228,6 +262,8 @@ def bridge(
         max_clients=max_clients,
         idle_timeout=idle_timeout,
         first_request_timeout=first_request_timeout,
+        tls_context=context,
+        write_roles=roles,
     )
     show.on_failure = server.stop
     try:
@@ -244,7 +280,8 @@ def bridge(
         show.close()
     if show.failure is not None:
         raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
-    click.echo(f"stopped: {show.summary(server.stats.connections, where.scheme == 'tcp')}", err=True)
+    connections = server.stats.connections if where.scheme in ("tcp", "tls") else None
+    click.echo(f"stopped: {show.summary(connections, listening_framer == 'tcp')}", err=True)
     for unit, stats in sorted(forwarder.stats.items()):  # what became of each unit's transactions
         click.echo(f"unit {unit}: {stats}", err=True)
 
@@ -353,7 +390,9 @@ class Show:
             sys.stdout.write("".join(line + "\n" for _, line in lines))
             sys.stdout.flush()
 
-    def summary(self, connections: int, tcp: bool) -> str:
+    def summary(self, connections: int | None, tcp: bool) -> str:
+        """The tally; ``connections``: a TCP or TLS server's (None: no connections to count),
+        ``tcp``: its clients speak MBAP, and are told 0A (a serial line's slaves are not)."""
         counts = self.counts
         parts = [
             f"{counts[REPLY]} replies",
@@ -364,7 +403,7 @@ class Show:
             f"{counts[INVALID]} invalid (01, 03)",
         ]
         text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
-        if tcp:
+        if connections is not None:
             text += f"; {connections} connections"
         if self.timed:
             text += (

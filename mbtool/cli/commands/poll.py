@@ -77,6 +77,10 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     opened.
     """
     plant = load_inventory(inventory)
+    from mbtool.cli.session import warn_insecure
+
+    for name, link in plant.links.items():
+        warn_insecure(link.connection, name)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"

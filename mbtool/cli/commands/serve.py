@@ -13,7 +13,9 @@ import time
 
 import click
 
-from mbtool.cli.options import serial_line_options, tcp_client_options
+from mbtool.cli.completion import complete_port
+from mbtool.cli.listen import tls_server_settings
+from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_client_options
 from mbtool.cli.param_types import Choice, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
@@ -63,8 +65,11 @@ class Fraction(click.ParamType):
     "target",
     metavar="TARGET",
     default=DEFAULT_TARGET,
+    shell_complete=complete_port,
     show_default=True,
-    help="Where to listen: tcp://HOST:PORT (PORT 0 picks a free one), or a serial device or "
+    help="Where to listen: tcp://HOST:PORT (PORT 0 picks a free one), tls://HOST:PORT "
+    "(Modbus/TCP Security: --cert, --key and --ca), udp://HOST:PORT (MBAP in datagrams), "
+    "rtu+udp://HOST:PORT (RTU frames in datagrams), or a serial device or "
     "pyserial URL. Only loopback by default: binding another address (tcp://0.0.0.0:502) "
     "exposes the device to the network and is a choice you type.",
 )
@@ -83,8 +88,8 @@ class Fraction(click.ParamType):
 @click.option(
     "--framer",
     type=Choice(["rtu", "ascii", "tcp"]),
-    help="Framing: tcp (MBAP) for tcp:// targets, rtu otherwise; rtu or ascii on tcp:// "
-    "serves like a serial device server.",
+    help="Framing: tcp (MBAP) for tcp://, tls:// and udp:// targets, rtu otherwise; rtu or ascii "
+    "on tcp:// or udp:// serves like a serial device server.",
 )
 @serial_line_options
 @click.option(
@@ -157,6 +162,7 @@ class Fraction(click.ParamType):
     "(server device busy) for the first SECONDS after start.",
 )
 @tcp_client_options
+@serve_tls_options
 @click.option("--seed", type=Number(0, 2**32 - 1, "seed"), help="Random seed for --drop and --corrupt.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the line saying where it serves (for scripts).")
 def serve(
@@ -183,6 +189,10 @@ def serve(
     max_clients,
     idle_timeout,
     first_request_timeout,
+    cert,
+    key,
+    ca,
+    write_roles,
     seed,
     quiet,
 ):
@@ -207,19 +217,22 @@ def serve(
     from mbtool.device.model import demo_model
     from mbtool.device.server import Server, parse_target
     from mbtool.device.serving import IoFaults
-    from mbtool.link.transport import SerialSettings
+    from mbtool.link.transport import SerialSettings, default_framer
 
     unit_set = parse_units(units)
     where = parse_target(target)
-    framer = framer or ("tcp" if where.scheme == "tcp" else "rtu")
-    if where.scheme == "serial" and framer == "tcp":
-        raise RequestError("--framer tcp (MBAP) needs a tcp:// target; a serial line takes rtu or ascii")
+    framer = framer or default_framer(target)
+    if where.scheme in ("serial", "rtu+udp") and framer == "tcp":
+        raise RequestError(
+            f"--framer tcp (MBAP) needs a tcp://, tls:// or udp:// target; {where} takes rtu or ascii"
+        )
     if framer == "rtu" and bytesize == "7":
         raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
-    if (min_gap or settle or connection_requests) and where.scheme != "tcp":
+    if (min_gap or settle or connection_requests) and where.scheme not in ("tcp", "tls"):
         raise RequestError(
             "--min-gap, --settle and --connection-requests are faults of TCP clients: serve on tcp://HOST:PORT"
         )
+    context, roles = tls_server_settings(where, framer, cert, key, ca, write_roles, data_file)
     if (pad or byte_count_off or reply_unit is not None) and framer != "tcp":
         raise RequestError(
             "--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing"
@@ -260,10 +273,14 @@ def serve(
         max_clients=max_clients,
         idle_timeout=idle_timeout,
         first_request_timeout=first_request_timeout,
+        tls_context=context,
+        write_roles=roles,
     )
     server.open()
     unit_text = units_text(unit_set)
     refusal = " read-only: writes get exception 01" if read_only else ""
+    if roles is not None:
+        refusal += f" writes by role {','.join(sorted(roles))} only" if roles else " no role may write"
     click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
     sys.stdout.flush()
 
@@ -284,8 +301,9 @@ def serve(
             )
             if count
         )
+        peers = "peers" if where.scheme in ("udp", "rtu+udp") else "connections"
         click.echo(
-            f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} connections"
+            f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} {peers}"
             + turned_away
         )
 
