@@ -11,6 +11,7 @@ written: link_lost).  An answer that came on a retry is also counted as a retry 
 from __future__ import annotations
 
 import math
+from bisect import bisect_left
 from collections import Counter, deque
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
@@ -20,6 +21,11 @@ from mbtool.link.transport import ConnectionClosed
 # Round-trip times kept for the 95th percentile: the most recent, so a run left going for
 # weeks keeps a bounded window and a percentile of the device as it is now.
 RTT_WINDOW = 1000
+
+# The round-trip histogram's upper bounds in seconds, one list for every count of it: each
+# bucket holds the round trips up to its bound (Prometheus's "le"), one more those past the
+# last.  1 ms is a loopback TCP device, 10 s a slow gateway behind a 1200-baud line.
+RTT_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
 OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost")
 
@@ -57,6 +63,7 @@ class Stats:
         self.rtt_total = 0.0
         self.rtt_min = math.inf
         self.rtt_max = 0.0
+        self.rtt_buckets = [0] * (len(RTT_BUCKETS) + 1)  # per bucket, not cumulative
 
     def transaction(self, error: BaseException | None, attempts: int) -> None:
         """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
@@ -75,6 +82,7 @@ class Stats:
         self.rtt_total += seconds
         self.rtt_min = min(self.rtt_min, seconds)
         self.rtt_max = max(self.rtt_max, seconds)
+        self.rtt_buckets[bisect_left(RTT_BUCKETS, seconds)] += 1
 
     def poll(self, ok: bool) -> None:
         self.polls += 1
@@ -94,6 +102,18 @@ class Stats:
         self.rtt_total += other.rtt_total
         self.rtt_min = min(self.rtt_min, other.rtt_min)
         self.rtt_max = max(self.rtt_max, other.rtt_max)
+        self.rtt_buckets = [
+            mine + theirs for mine, theirs in zip(self.rtt_buckets, other.rtt_buckets, strict=True)
+        ]
+
+    def rtt_histogram(self) -> list[tuple[float, int]]:
+        """(upper bound, round trips that took at most that long), cumulative, the last bound
+        infinity: a Prometheus histogram's buckets."""
+        running, out = 0, []
+        for bound, count in zip((*RTT_BUCKETS, math.inf), self.rtt_buckets, strict=True):
+            running += count
+            out.append((bound, running))
+        return out
 
     def rtt_figures(self) -> dict[str, float] | None:
         """min, avg, p95 and max round-trip time in seconds; None before the first answer."""
