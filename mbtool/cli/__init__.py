@@ -69,6 +69,7 @@ COMMANDS = {
     "diff": "snapshot",
     "restore": "snapshot",
     "poll": "poll",
+    "exporter": "exporter",
 }
 
 
