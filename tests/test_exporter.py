@@ -16,6 +16,7 @@ import math
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -27,7 +28,14 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 import pytest
-from conftest import REPO_ROOT, first_line, mbtool_env, run_mbtool, signals_as_from_a_shell
+from conftest import (
+    REPO_ROOT,
+    assert_one_error_line,
+    first_line,
+    mbtool_env,
+    run_mbtool,
+    signals_as_from_a_shell,
+)
 from test_serve import serve
 
 from mbtool.errors import NoResponse
@@ -321,3 +329,268 @@ def test_scrapes_of_one_target_take_turns_and_of_others_run_at_once(monkeypatch)
         thread.join(30)
     assert most == {"tcp://192.0.2.1:502": 1, "tcp://192.0.2.2:502": 1, "all": 2}
     assert max(running.values()) == 0
+
+
+# --- inventory: /metrics from memory --------------------------------------------------------------
+
+
+def wait_for(exporter: Running, ready, seconds: float = 30.0) -> str:
+    """/metrics once ``ready(text)`` holds; the test fails with the last text after ``seconds``."""
+    end = time.monotonic() + seconds
+    text = ""
+    while time.monotonic() < end:
+        status, _, text = exporter.get("/metrics")
+        assert status == 200, text
+        try:
+            if ready(text):
+                return text
+        except AssertionError:
+            pass
+        time.sleep(0.2)
+    pytest.fail(f"/metrics not ready after {seconds} s:\n{text}\n{exporter.stderr.read_text()}")
+
+
+def test_inventory_metrics_are_every_devices_latest_values_and_statistics(meter, tmp_path, refused_port):
+    shutil.copy(METER_MAP, tmp_path / "meter.toml")
+    plant = tmp_path / "plant.toml"
+    plant.write_text(f"""
+[poll]
+interval = 0.3
+offline_after = 1
+
+[links.gw]
+target = "{meter.target}"
+timeout = 0.3
+
+[links.lost]
+target = "tcp://127.0.0.1:{refused_port}"
+
+[devices.meter1]
+link = "gw"
+unit = 1
+map = "meter.toml"
+tags = {{ site = "north" }}
+
+[devices.dead]
+link = "gw"
+unit = 9
+read = ["40001 1"]
+
+[devices.gone]
+link = "lost"
+read = ["40001 1"]
+""")
+    with exporting(plant, tmp_path=tmp_path) as exporter:
+        assert "3 devices of" in exporter.line and "on 2 links" in exporter.line
+        text = wait_for(
+            exporter,
+            lambda text: (
+                value(text, "modbus_up", device="meter1", site="north") == 1
+                and value(text, "modbus_transactions_total", device="dead", outcome="timeout") >= 2
+                and value(text, "modbus_link_open_failures_total", link="lost") >= 1
+            ),
+        )
+        one_family_each(text)
+        assert value(text, "modbus_voltage_l1", device="meter1", site="north", ref="30001") == 230.1
+        assert value(text, "modbus_tariff", device="meter1", site="north", ref="40001") == 1  # "day"
+        assert value(text, "modbus_up", device="dead") == 0 and value(text, "modbus_up", device="gone") == 0
+        assert (
+            abs(
+                value(text, "modbus_last_success_timestamp_seconds", device="meter1", site="north")
+                - time.time()
+            )
+            < 60
+        )
+        answered = value(text, "modbus_transactions_total", device="meter1", outcome="answered")
+        assert answered >= 3  # three requests a poll: input registers, holding registers, coils
+        # Every reply's round trip is in the histogram, whose buckets count up to +Inf.
+        assert value(text, "modbus_request_duration_seconds_count", device="meter1") == answered
+        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="+Inf") == answered
+        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="10.0") == answered
+        assert value(text, "modbus_polls_total", device="dead") == value(
+            text, "modbus_failed_polls_total", device="dead"
+        )
+        assert (
+            value(text, "modbus_link_up", link="gw") == 1 and value(text, "modbus_link_up", link="lost") == 0
+        )
+        link_answered = value(text, "modbus_link_transactions_total", link="gw", outcome="answered")
+        assert link_answered >= answered
+        assert value(text, "modbus_link_request_duration_seconds_count", link="gw") == link_answered
+        # The exporter's own process, from prometheus_client's default registry.
+        assert value(text, "process_cpu_seconds_total") > 0
+        assert [key for key in samples(text) if key[0] == "python_info"]
+        # No value for a device that is down: the last one read would be scraped as current.
+        assert not [
+            key for key in samples(text) if dict(key[1]).get("device") == "dead" and key[0] == "modbus_40001"
+        ]
+    events = exporter.stderr.read_text()
+    assert "dead offline: no response from unit 9" in events and "link lost offline: cannot connect" in events
+
+
+def test_an_inventory_scrape_answers_at_once_while_a_slow_device_is_polled(tmp_path):
+    """Scrapes never touch the bus: a device that takes 2 s a reply is polled while scrapes
+    come, and each is answered from what the last poll left."""
+    with serve("--delay", "2", "--data", str(METER_DATA)) as slow:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(f"""
+[poll]
+interval = 0.1
+
+[links.slow]
+target = "{slow.target}"
+timeout = 5
+
+[devices.meter]
+link = "slow"
+read = ["40001 1"]
+""")
+        with exporting(plant, tmp_path=tmp_path) as exporter:
+            wait_for(exporter, lambda text: value(text, "modbus_polls_total", device="meter") >= 1)
+            took = []
+            for _ in range(20):  # 2 s and more: a poll is under way all along
+                began = time.monotonic()
+                status, _, text = exporter.get("/metrics")
+                took.append(time.monotonic() - began)
+                assert status == 200 and value(text, "modbus_40001", device="meter", ref="40001") == 1
+                time.sleep(0.1)
+            assert max(took) < 1.0, took  # never the 2 s a reply takes
+
+
+def test_several_scrapers_at_once_each_get_a_whole_exposition(meter, tmp_path):
+    plant = tmp_path / "plant.toml"
+    shutil.copy(METER_MAP, tmp_path / "meter.toml")
+    plant.write_text(
+        "[poll]\ninterval = 0.05\n"
+        + f'[links.gw]\ntarget = "{meter.target}"\n'
+        + "".join(f'[devices.m{n}]\nlink = "gw"\nmap = "meter.toml"\n' for n in range(5))
+    )
+    with exporting(plant, tmp_path=tmp_path) as exporter:
+        wait_for(exporter, lambda text: all(value(text, "modbus_up", device=f"m{n}") == 1 for n in range(5)))
+        texts: list[str] = []
+
+        def scrape() -> None:
+            for _ in range(20):
+                texts.append(exporter.get("/metrics")[2])
+
+        threads = [threading.Thread(target=scrape) for _ in range(6)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(60)
+    assert len(texts) == 120
+    for text in texts:
+        one_family_each(text)
+        for n in range(5):
+            assert value(text, "modbus_voltage_l1", device=f"m{n}", ref="30001") == 230.1
+
+
+def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each_family_once():
+    """In-process, on examples/plant.toml (sim://): what PlantMetrics joins is one exposition."""
+    from mbtool.cli import main  # noqa: F401  (registers sim://)
+    from mbtool.cli.commands.exporter import PlantMetrics
+    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.schedule import Plant
+
+    plant = load_inventory(str(REPO_ROOT / "examples" / "plant.toml"))
+    metrics = PlantMetrics()
+    runner = Plant(plant.links, plant.devices, metrics.report, rounds=1)
+    metrics.watch(runner)
+    before = metrics.text()
+    one_family_each(before)
+    assert {
+        name for name in ("meter1", "plc", "spare") if value(before, "modbus_up", **_labels(plant, name)) == 0
+    } == {
+        "meter1",
+        "plc",
+        "spare",
+    }
+    assert value(before, "modbus_link_up", link="bus1") == 0
+    runner.run(30)
+    after = metrics.text()
+    one_family_each(after)
+    assert value(after, "modbus_up", **_labels(plant, "meter1")) == 1
+    assert value(after, "modbus_up", **_labels(plant, "spare")) == 0
+    assert value(after, "modbus_polls_total", device="plc") == 1
+    assert value(after, "modbus_transactions_total", device="spare", outcome="timeout") == 1
+    assert value(after, "modbus_link_up", link="bus1") == 1
+
+
+def _labels(plant, name: str) -> dict[str, str]:
+    spec = next(device for device in plant.devices if device.name == name)
+    return {"device": name, **(spec.tags or {})}
+
+
+# --- the command line --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        ((), "nothing to export"),
+        (("--maps", "{maps}"), "--maps reads maps from the targets --allow-target allows"),
+        (("--maps", "{maps}", "--allow-target", "*", "--listen", "9502"), "--listen 9502: expected HOST:PORT"),
+        (("--maps", "{maps}", "--allow-target", "*", "--listen", ":9502"), "--listen :9502: expected HOST:PORT"),
+        (("--maps", "{maps}", "--allow-target", "*", "--listen", "::1:9502"), "goes in brackets"),
+        (("--maps", "{maps}", "--allow-target", "*", "--listen", "127.0.0.1:70000"), "0..65535"),
+        (("--maps", "{maps}/nosuch", "--allow-target", "*"), "--maps"),
+        (("{clash}",), "point up: its metric, modbus_up, is one the exporter has of its own"),
+        (("{stats_clash}",), "point transactions_total: its metric, modbus_transactions_total"),
+        (("{bad}",), "unknown table [plant]"),
+    ],
+    ids=["nothing", "maps-alone", "no-host", "empty-host", "ipv6", "port", "no-folder", "clash",
+         "stats-clash", "bad-inventory"],
+)  # fmt: skip
+def test_bad_options_or_inventory_are_exit_2_with_one_line_and_nothing_served(
+    tmp_path, silent_server, args, words
+):
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "up.toml").write_text("[points.up]\nref = 40001\n")
+    (tmp_path / "counter.toml").write_text("[points.transactions_total]\nref = 40001\n")
+    for name, map_name in (("clash", "up.toml"), ("stats_clash", "counter.toml")):
+        (tmp_path / f"{name}.toml").write_text(
+            f'[links.a]\ntarget = "{silent_server.tcp_target}"\n[devices.d]\nlink = "a"\nmap = "{map_name}"\n'
+        )
+    (tmp_path / "bad.toml").write_text("[plant]\n")
+    paths = {name: tmp_path / f"{name}.toml" for name in ("clash", "stats_clash", "bad")}
+    argv = [arg.format(maps=tmp_path / "maps", **paths) for arg in args]
+    line = assert_one_error_line(run_mbtool("exporter", *argv), 2)
+    assert words in line, line
+    assert silent_server.connections == 0
+
+
+def test_a_port_already_taken_is_exit_6(tmp_path):
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen(1)
+    try:
+        port = taken.getsockname()[1]
+        res = run_mbtool(
+            "exporter", "--maps", tmp_path, "--allow-target", "*", "--listen", f"127.0.0.1:{port}"
+        )
+        line = assert_one_error_line(res, 6)
+        assert f"cannot listen on 127.0.0.1:{port}" in line
+    finally:
+        taken.close()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["read", "-m", "examples/energy-meter.toml", "-p", "sim://", "-o", "prom"],
+        ["poll", "examples/plant.toml", "--once", "-o", "prom"],
+    ],
+    ids=["read-m", "poll"],
+)
+def test_prometheus_client_is_loaded_by_the_exporter_alone(argv):
+    """A one-shot read (and poll's Prometheus text) never pays for importing it."""
+    code = (
+        f"import sys; from mbtool.cli import main; sys.argv = ['mbtool', *{argv!r}]\n"
+        "import atexit; atexit.register(lambda: print('LOADED' if 'prometheus_client' in sys.modules "
+        "else 'NOT LOADED', file=sys.stderr))\n"
+        "main()"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO_ROOT
+    )
+    assert "NOT LOADED" in result.stderr, result.stderr
+    assert "modbus_" in result.stdout
