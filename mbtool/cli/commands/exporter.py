@@ -32,7 +32,7 @@ from pathlib import Path
 
 import click
 
-from mbtool.cli.options import Number, PositiveFloat
+from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.codec.errors import RequestError
 
 # 9502: no port of Prometheus's default port allocations is mbtool's (modbus_exporter has
@@ -82,21 +82,7 @@ IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle bef
     "string, such as 'tcp://192.0.2.1[0-9]:502' (* matches dots too) (repeatable). The "
     "inventory's links are allowed; any other target is refused with nothing opened.",
 )
-@click.option(
-    "--timeout",
-    type=PositiveFloat(),
-    default=1.0,
-    show_default=True,
-    help="/modbus: seconds to wait for each reply, never past the scrape's deadline (an "
-    "inventory link's target keeps the link's own settings).",
-)
-@click.option(
-    "--retries",
-    type=Number(0, 100, "retries"),
-    default=0,
-    show_default=True,
-    help="/modbus: times to resend after a timeout or a bad reply, within the deadline.",
-)
+@with_options(LINK_OPTIONS[:2])  # -t/--timeout and --retries, as every command that reads has them
 def exporter(inventory, listen, maps, allowed, timeout, retries):
     """A Prometheus exporter. With PLANT.toml it polls the plant as poll does (the same
     inventory and scheduler), and /metrics serves every device's latest values from
@@ -109,7 +95,8 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     the map NAME from TARGET on each scrape, within the deadline Prometheus sends
     (X-Prometheus-Scrape-Timeout-Seconds, less a quarter of a second). A device that fails
     is HTTP 200 with modbus_up 0 and modbus_error_info{kind,reason}; a target not allowed is
-    403, a bad request 400, each one line, with nothing opened.
+    403, a bad request 400, each one line, with nothing opened. --timeout and --retries are
+    for those reads, never past the deadline; an inventory link's target keeps the link's own.
 
     /metrics also has the exporter's process metrics. Ctrl-C or SIGTERM stops it with exit
     status 0; 2 for bad options or inventory, 6 when it cannot listen.
