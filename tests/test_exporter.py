@@ -279,9 +279,12 @@ def test_a_target_no_pattern_allows_is_refused_with_one_line_and_nothing_opened(
         ("target={s}&module=energy-meter&unit=0", 400, "unit 0 is broadcast"),
         ("target=tcp://127.0.0.1:99999&module=energy-meter", 400, "target tcp://127.0.0.1:99999"),
         ("target={t}&module=clash", 500, "point up: its metric, modbus_up, is one the exporter has"),
+        ("target=tcp://10.0.0.1%0A:502&module=energy-meter", 403, "target 'tcp://10.0.0.1\\n:502' is not allowed"),
+        ("target={t}&module=energy-meter&unit=%C2%B2", 400, "unit '²': a unit id is a number"),
+        ("target={t}&module=energy-meter&unit=" + "9" * 5000, 400, "a unit id is a number, 0..255"),
     ],
     ids=["no-target", "no-module", "dot-dot", "slash", "unknown", "unit-range", "unit-text", "twice",
-         "broadcast", "bad-target", "clash"],
+         "broadcast", "bad-target", "clash", "newline", "unicode-digit", "long-unit"],
 )  # fmt: skip
 def test_a_bad_scrape_is_one_line_with_its_status_and_nothing_opened(
     meter, tmp_path, silent_server, query, status, words

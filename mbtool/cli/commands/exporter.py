@@ -123,8 +123,10 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     if plant is not None:
         check_plant_names(plant)
     links = {} if plant is None else {link.connection.port: link for link in plant.links.values()}
-    modules = Modules(Path(maps) if maps else None, {} if plant is None else plant.maps)
-    scraper = TargetScraper(modules, allowed, links, timeout, retries)
+    scraper = None
+    if maps or (plant is not None and plant.maps):
+        modules = Modules(Path(maps) if maps else None, {} if plant is None else plant.maps)
+        scraper = TargetScraper(modules, allowed, links, timeout, retries)
     runner = metrics = None
     if plant is not None:
         from mbtool.plant.schedule import Plant
@@ -132,7 +134,7 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         metrics = PlantMetrics()
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
-    server = open_server(host, port, family, Exporter(metrics, scraper if (maps or plant.maps) else None))
+    server = open_server(host, port, family, Exporter(metrics, scraper))
     click.echo(_serving_line(server, plant, maps, allowed))
     sys.stdout.flush()
     try:
@@ -180,7 +182,7 @@ def parse_listen(text: str) -> tuple[str, int, socket.AddressFamily]:
         host, family = host[1:-1], socket.AF_INET6
     elif ":" in host:
         raise RequestError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
-    if not port_text.isdigit() or int(port_text) > 65535:
+    if not (port_text.isascii() and port_text.isdigit() and len(port_text) <= 5 and int(port_text) <= 65535):
         raise RequestError(f"--listen {text}: the port is a number, 0..65535")
     return host, int(port_text), family
 
@@ -429,6 +431,12 @@ def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
 # --- multi-target: a map read from a target on each scrape ----------------------------------
 
 
+def _shown(text: str) -> str:
+    """Text from a request, in a one-line answer: as it is, or quoted when it holds a
+    control character (a %0A in the query must not make the answer two lines)."""
+    return text if text.isprintable() else repr(text)
+
+
 class Refused(Exception):
     """A scrape that is not read: the HTTP status and the one line that says why."""
 
@@ -540,18 +548,20 @@ class TargetScraper:
             raise Refused(400, f"the query {query!r} cannot be read: {error}") from None
         for name, values in params.items():
             if len(values) > 1:
-                raise Refused(400, f"{name} is given {len(values)} times: give it once")
+                raise Refused(400, f"{_shown(name)} is given {len(values)} times: give it once")
         for name in ("target", "module"):
             if not params.get(name, [""])[0]:
                 raise Refused(400, f"no {name}: /modbus?target=tcp://192.0.2.10:502&module=NAME&unit=1")
         target, module = params["target"][0], params["module"][0]
         unit_text = params.get("unit", ["1"])[0]
-        if not unit_text.isdigit() or int(unit_text) > 255:
+        if not (
+            unit_text.isascii() and unit_text.isdigit() and len(unit_text) <= 3 and int(unit_text) <= 255
+        ):
             raise Refused(400, f"unit {unit_text!r}: a unit id is a number, 0..255")
         if target not in self.links and not any(fnmatchcase(target, p) for p in self.patterns):
             raise Refused(
                 403,
-                f"target {target} is not allowed: no --allow-target pattern matches it"
+                f"target {_shown(target)} is not allowed: no --allow-target pattern matches it"
                 + (", and it is no link of the inventory" if self.links else ""),
             )
         return target, module, int(unit_text)
@@ -572,7 +582,7 @@ class TargetScraper:
             parse_target(target)
             check(connection, "a scrape's read")
         except RequestError as error:
-            raise Refused(400, f"target {target}: {error}") from None
+            raise Refused(400, f"target {_shown(target)}: {_shown(str(error))}") from None
         return connection
 
     def _lock(self, target: str) -> threading.Lock:
@@ -738,7 +748,12 @@ def open_server(host: str, port: int, family, exporter: Exporter):
 
         def do_GET(self) -> None:
             url = urlsplit(self.path)
-            status, kind, body = exporter.answer(url.path, url.query, self.headers.get(DEADLINE_HEADER))
+            try:
+                status, kind, body = exporter.answer(url.path, url.query, self.headers.get(DEADLINE_HEADER))
+            except Exception as error:  # a bug: one line to the scraper and on stderr, never a traceback
+                line = f"internal error: {type(error).__name__}: {error}"
+                print(f"mbtool: {line} (answering {_shown(self.path)})", file=sys.stderr, flush=True)
+                status, kind, body = 500, TEXT, f"{_shown(line)}\n".encode()
             self.send_response(status)
             self.send_header("Content-Type", kind)
             self.send_header("Content-Length", str(len(body)))
