@@ -500,7 +500,7 @@ def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each
     metrics = PlantMetrics()
     runner = Plant(plant.links, plant.devices, metrics.report, rounds=1)
     metrics.watch(runner)
-    before = metrics.text()
+    before = metrics.text().decode()
     one_family_each(before)
     assert {
         name for name in ("meter1", "plc", "spare") if value(before, "modbus_up", **_labels(plant, name)) == 0
@@ -511,7 +511,7 @@ def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each
     }
     assert value(before, "modbus_link_up", link="bus1") == 0
     runner.run(30)
-    after = metrics.text()
+    after = metrics.text().decode()
     one_family_each(after)
     assert value(after, "modbus_up", **_labels(plant, "meter1")) == 1
     assert value(after, "modbus_up", **_labels(plant, "spare")) == 0

@@ -5,6 +5,8 @@ of state prints on stderr.  Commands do not import one another; this is the one 
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 from mbtool.cli.render import local_time
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
@@ -14,23 +16,28 @@ def point_metric(reading) -> tuple[str, str, int | float] | None:
     """A point's reading as a gauge: the metric's name, its help (the point's description
     and unit) and the number; None when it has no sample: the point failed, its value is
     one the map calls invalid (a sample would be scraped as current), or text."""
-    from mbtool.cli.monitoring import _metric_name
-
     if reading.error is not None or reading.value is None:
         return None
     point = reading.point
     number = point.number_of(reading.value)  # an enum label's raw value, 1 or 0 for a bit
     if number is None:
         return None
-    about = (point.description or point.name) + (f" ({point.unit})" if point.unit else "")
-    return _metric_name(f"modbus_{point.name}"), about, number
+    return *_named(point.name, point.description, point.unit), number
+
+
+@lru_cache(maxsize=4096)
+def _named(name: str, description: str, unit: str) -> tuple[str, str]:
+    """A point's metric name and help, worked out once: a plant writes them every poll."""
+    from mbtool.cli.monitoring import _metric_name
+
+    return _metric_name(f"modbus_{name}"), (description or name) + (f" ({unit})" if unit else "")
 
 
 def prom_text(states: list) -> str:
     """The exposition of the devices' latest polls: modbus_up and the last success a device,
     and a gauge a point read; a device down shows no value (it would be scraped as current).
     ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
-    from mbtool.cli.monitoring import _exposition, _label_pairs, _sample_value
+    from mbtool.cli.monitoring import _exposition, _label_pairs, _label_value, _sample_value
 
     metrics = {
         UP: ("1 when the device answered its last poll, 0 when it could not be read", []),
@@ -53,8 +60,9 @@ def prom_text(states: list) -> str:
             shown = _sample_value(number)
             if shown is None:
                 continue
+            # The device's labels, then ref: _label_pairs(base | {"ref": ...}), escaped once a device.
             metrics.setdefault(name, (about, []))[1].append(
-                f"{name}{{{_label_pairs(base | {'ref': reading.point.ref})}}} {shown}"
+                f'{name}{{{pairs},ref="{_label_value(reading.point.ref)}"}} {shown}'
             )
     if not metrics[LAST_SUCCESS][1]:
         del metrics[LAST_SUCCESS]

@@ -237,6 +237,8 @@ class PlantMetrics:
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
+        self.changes = 0  # blocks written so far
+        self.joined: tuple[int, bytes] = (-1, b"")  # the text as of that many changes
         self.states: dict = {}
         self.workers: dict = {}
 
@@ -282,11 +284,15 @@ class PlantMetrics:
         families = split_families(text)
         with self.lock:
             self.blocks[key] = families
+            self.changes += 1
 
-    def text(self) -> str:
-        """Every device's and link's families, one HELP and TYPE a family, its samples together."""
+    def text(self) -> bytes:
+        """Every device's and link's families, one HELP and TYPE a family, its samples together
+        (joined again only when a device or link has reported since)."""
         with self.lock:
-            blocks = list(self.blocks.values())
+            changes, blocks = self.changes, list(self.blocks.values())
+            if self.joined[0] == changes:
+                return self.joined[1]
         heads: dict[str, str] = {}
         samples: dict[str, list[str]] = {}
         for families in blocks:
@@ -294,7 +300,11 @@ class PlantMetrics:
                 if name not in heads:
                     heads[name], samples[name] = head, []
                 samples[name].append(body)
-        return "".join(head + "".join(samples[name]) for name, head in heads.items())
+        text = "".join(head + "".join(samples[name]) for name, head in heads.items()).encode()
+        with self.lock:
+            if self.changes == changes:
+                self.joined = (changes, text)
+        return text
 
 
 def split_families(text: str) -> list[tuple[str, str, str]]:
@@ -717,7 +727,7 @@ class Exporter:
         if path == "/metrics":
             from prometheus_client import REGISTRY, generate_latest
 
-            text = self.plant.text().encode() if self.plant is not None else b""
+            text = self.plant.text() if self.plant is not None else b""
             return 200, CONTENT_TYPE, text + generate_latest(REGISTRY)
         if path == "/modbus":
             if self.scraper is None:
