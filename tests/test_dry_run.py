@@ -48,8 +48,9 @@ EXAMPLES = {
 # Commands that never send a request of their own: offline tools, the simulator, the gateway
 # (it forwards its clients' requests) and the passive monitor.
 OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor"}
-# poll takes its links and units from its inventory file, not from -p and -u.
-INVENTORY = {"poll"}
+# poll takes its links and units from its inventory file, not from -p and -u; the exporter
+# too, or from each scrape's target.
+INVENTORY = {"poll", "exporter"}
 
 
 def run(capsys, line: str) -> tuple[int, str, str]:

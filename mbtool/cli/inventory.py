@@ -76,6 +76,7 @@ class Inventory:
     output: str | None
     links: dict
     devices: list
+    maps: dict  # device name -> the path of its register map (those with a map)
 
 
 def load_inventory(path: str) -> Inventory:
@@ -102,13 +103,13 @@ def load_inventory(path: str) -> Inventory:
         name: _link(name, table, path, params, ctx, Path(path).parent)
         for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
     }
-    devices = [
-        _device(name, table, path, links, defaults)
-        for name, table in _table(data, "devices", path, "[devices.NAME]", nested=True).items()
-    ]
+    tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
+    devices = [_device(name, table, path, links, defaults) for name, table in tables.items()]
     if not devices:
         raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
-    return Inventory(path, output, links, devices)
+    folder = Path(path).parent
+    maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
+    return Inventory(path, output, links, devices, maps)
 
 
 def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:
@@ -223,7 +224,7 @@ def _reader(table: dict, where: str, folder: Path) -> MapReader:
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise RequestError(f"{where} points: expected a list of the map's point names")
         try:
-            register_map = load_map(folder / Path(table["map"]).expanduser())
+            register_map = load_map(_map_path(table, folder))
             return MapReader(register_map.select(names), register_map.max_gap)
         except MapError as error:
             raise RequestError(f"{where} map: {error}") from None
@@ -248,6 +249,11 @@ def _reader(table: dict, where: str, folder: Path) -> MapReader:
                 raise RequestError(f"{where} read: {point.name} is read twice")
             points[point.name] = point
     return MapReader(points.values())
+
+
+def _map_path(table: dict, folder: Path) -> Path:
+    """A device's map: its path relative to the inventory's folder, ~ expanded."""
+    return folder / Path(table["map"]).expanduser()
 
 
 def _tags(tags, where: str) -> dict[str, str]:

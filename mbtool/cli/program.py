@@ -71,6 +71,7 @@ COMMANDS = {
     "diff": "snapshot",
     "restore": "snapshot",
     "poll": "poll",
+    "exporter": "exporter",
     "sunspec": "sunspec",
 }
 

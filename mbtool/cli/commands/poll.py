@@ -18,6 +18,7 @@ import click
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
 from mbtool.cli.param_types import PositiveFloat
+from mbtool.cli.plant_text import event_line, prom_text
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.stamps import local_time
@@ -133,13 +134,7 @@ class PlantOutput:
             sys.stdout.flush()
 
     def _event(self, event: Event) -> None:
-        what = f"link {event.name}" if event.kind == "link" else event.name
-        line = f"{local_time(event.time)} {what} {event.state}"
-        if event.reason:
-            line += f": {event.reason}"
-        if event.retry_in is not None:
-            line += f"; next try in {event.retry_in:g} s"
-        print(f"mbtool: {line}", file=sys.stderr, flush=True)
+        print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
         if self.fmt == "json":
             record = {"time": local_time(event.time), "event": event.state, event.kind: event.name}
             if event.reason:
@@ -242,7 +237,7 @@ def _json_record(poll: Poll, when: str) -> dict:
     return record
 
 
-# --- influx and Prometheus: tagged by device -----------------------------------------------
+# --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
 
 
 def influx_line(poll: Poll) -> str:
@@ -266,43 +261,6 @@ def influx_line(poll: Poll) -> str:
         f",{_escape(key, KEY_SPECIALS)}={_escape(value, KEY_SPECIALS)}" for key, value in sorted(tags.items())
     )
     return f"{head} {','.join(fields)} {int(poll.time * 1_000_000_000)}\n"
-
-
-def prom_text(states: list) -> str:
-    """The exposition of the devices' latest polls: modbus_up and the last success a device,
-    and a gauge a point read; a device down shows no value (it would be scraped as current)."""
-    from mbtool.cli.metrics import _exposition, _label_pairs, _metric_name, _sample_value
-
-    up_name, last_name = "modbus_up", "modbus_last_success_timestamp_seconds"
-    metrics = {
-        up_name: ("1 when the device answered its last poll, 0 when it could not be read", []),
-        last_name: ("When the device last answered a poll, in seconds since the epoch", []),
-    }
-    for state in states:
-        device = state.spec
-        base = {"device": device.name} | (device.tags or {})
-        pairs = _label_pairs(base)
-        poll = state.last_poll
-        up = poll is not None and poll.readings is not None
-        metrics[up_name][1].append(f"{up_name}{{{pairs}}} {int(up)}")
-        if state.last_success is not None:
-            metrics[last_name][1].append(f"{last_name}{{{pairs}}} {state.last_success!r}")
-        for reading in poll.readings if up else ():
-            if reading.error is not None or reading.value is None:
-                continue
-            point = reading.point
-            number = point.number_of(reading.value)
-            shown = _sample_value(reading.value if number is None else number)
-            if shown is None:
-                continue
-            name = _metric_name(f"modbus_{point.name}")
-            about = (point.description or point.name) + (f" ({point.unit})" if point.unit else "")
-            metrics.setdefault(name, (about, []))[1].append(
-                f"{name}{{{_label_pairs(base | {'ref': point.ref})}}} {shown}"
-            )
-    if not metrics[last_name][1]:
-        del metrics[last_name]
-    return _exposition(metrics)
 
 
 # --- on a terminal: a live view ------------------------------------------------------------

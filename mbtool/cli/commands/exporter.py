@@ -1,0 +1,795 @@
+"""``mbtool exporter``: a Prometheus exporter, on prometheus_client (the library Prometheus
+documents for exporters in Python), in two modes that one process may serve together.
+
+* Multi-target, ``GET /modbus?target=tcp://192.0.2.10:502&module=NAME&unit=1``: the register
+  map NAME (``--maps DIR``, or a map an inventory device names) is read from the target on
+  each scrape, as ``read -m`` reads it (MapReader through link.connection.open_client),
+  within the deadline the scraper sends in X-Prometheus-Scrape-Timeout-Seconds.  A device
+  that fails is HTTP 200 with modbus_up 0 and the reason on modbus_error_info: Prometheus
+  keeps why (modbus_exporter answered 500 to every fault, its issue 69, and only said the
+  scrape failed).  A target that no ``--allow-target`` pattern allows, and that is no link of
+  the inventory, is refused (403) with nothing opened: an exporter on a network must not be
+  a way to reach any address.
+* Inventory, ``mbtool exporter PLANT.toml``: the plant is polled as ``poll`` polls it
+  (plant.schedule), and /metrics serves every device's latest values from memory: scrapes
+  never touch a bus, answer at once however slow the devices are, and several Prometheus
+  servers may scrape at once.
+
+A scrape of /modbus is a fresh prometheus_client registry holding that read's families;
+/metrics carries the exporter's own process metrics (prometheus_client's default registry)
+after the plant's text, which is poll's, kept ready (PlantMetrics).  This module alone
+imports prometheus_client: a one-shot read never loads it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import socket
+import sys
+import threading
+import time
+from contextlib import ExitStack
+from fnmatch import fnmatchcase
+from pathlib import Path
+
+import click
+
+from mbtool.cli.options import LINK_OPTIONS, with_options
+from mbtool.codec.errors import RequestError
+
+# 9502: no port of Prometheus's default port allocations is mbtool's (modbus_exporter has
+# 9602, so the two can run on one host); loopback unless the user types another address.
+DEFAULT_LISTEN = "127.0.0.1:9502"
+DEADLINE_HEADER = "X-Prometheus-Scrape-Timeout-Seconds"
+DEFAULT_SCRAPE_TIMEOUT = 10.0  # Prometheus's own default, for a scraper that sends no deadline
+# Taken from the scraper's deadline for answering (rendering and sending take milliseconds;
+# the rest is for the network): the read ends this much before Prometheus gives up.
+DEADLINE_MARGIN = 0.25
+# The text format the expositions are in (prometheus_client's generate_latest writes it,
+# and poll's Prometheus text is it).
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+TEXT = "text/plain; charset=utf-8"
+IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle before it is closed
+
+
+@click.command(
+    "exporter",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="Serve Prometheus: a plant's latest values from memory, or a register map read "
+    "from a target on each scrape.",
+)
+@click.argument("inventory", required=False, type=click.Path(dir_okay=False))
+@click.option(
+    "--listen",
+    metavar="HOST:PORT",
+    default=DEFAULT_LISTEN,
+    show_default=True,
+    help="Where to serve HTTP; PORT 0 picks a free one. Only loopback by default: another "
+    "address (0.0.0.0:9502, [::]:9502) exposes the exporter to the network and is a choice "
+    "you type.",
+)
+@click.option(
+    "--maps",
+    metavar="DIR",
+    type=click.Path(exists=True, file_okay=False),
+    help="/modbus: the register maps a scrape's module names, DIR/NAME.toml or DIR/NAME.csv "
+    "(before the inventory's maps, each named by its file name without .toml or .csv).",
+)
+@click.option(
+    "--allow-target",
+    "allowed",
+    metavar="PATTERN",
+    multiple=True,
+    help="/modbus: a target a scrape may read, as a shell pattern over the whole target "
+    "string, such as 'tcp://192.0.2.1[0-9]:502' (* matches dots too) (repeatable). The "
+    "inventory's links are allowed; any other target is refused with nothing opened.",
+)
+@with_options(LINK_OPTIONS[:2])  # -t/--timeout and --retries, as every command that reads has them
+def exporter(inventory, listen, maps, allowed, timeout, retries):
+    """A Prometheus exporter. With PLANT.toml it polls the plant as poll does (the same
+    inventory and scheduler), and /metrics serves every device's latest values from
+    memory, so scrapes never touch a bus: a gauge a point (labels device and the device's
+    tags), modbus_up, modbus_last_success_timestamp_seconds, and each device's and link's
+    transactions by outcome, exceptions by code, retries that recovered and the
+    round-trip time as a histogram (modbus_request_duration_seconds).
+
+    With --maps DIR and --allow-target, GET /modbus?target=TARGET&module=NAME&unit=N reads
+    the map NAME from TARGET on each scrape, within the deadline Prometheus sends
+    (X-Prometheus-Scrape-Timeout-Seconds, less a quarter of a second). A device that fails
+    is HTTP 200 with modbus_up 0 and modbus_error_info{kind,reason}; a target not allowed is
+    403, a bad request 400, each one line, with nothing opened. --timeout and --retries are
+    for those reads, never past the deadline; an inventory link's target keeps the link's own.
+
+    /metrics also has the exporter's process metrics. Ctrl-C or SIGTERM stops it with exit
+    status 0; 2 for bad options or inventory, 6 when it cannot listen.
+    """
+    host, port, family = parse_listen(listen)
+    plant = None
+    if inventory is not None:
+        from mbtool.cli.inventory import load_inventory
+
+        plant = load_inventory(inventory)
+    if plant is None and maps is None:
+        raise RequestError(
+            "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "
+            "--allow-target PATTERN for /modbus"
+        )
+    if plant is None and not allowed:
+        raise RequestError(
+            "--maps reads maps from the targets --allow-target allows: give a pattern, such as "
+            "--allow-target 'tcp://192.0.2.*:502'"
+        )
+    if plant is not None:
+        check_plant_names(plant)
+    links = {} if plant is None else {link.connection.port: link for link in plant.links.values()}
+    scraper = None
+    if maps or (plant is not None and plant.maps):
+        modules = Modules(Path(maps) if maps else None, {} if plant is None else plant.maps)
+        scraper = TargetScraper(modules, allowed, links, timeout, retries)
+    runner = metrics = None
+    if plant is not None:
+        from mbtool.plant.schedule import Plant
+
+        metrics = PlantMetrics()
+        runner = Plant(plant.links, plant.devices, metrics.report)
+        metrics.watch(runner)
+    server = open_server(host, port, family, Exporter(metrics, scraper))
+    click.echo(_serving_line(server, plant, maps, allowed))
+    sys.stdout.flush()
+    try:
+        if runner is None:
+            server.serve_forever(poll_interval=0.5)
+        else:
+            thread = threading.Thread(target=server.serve_forever, name="http", daemon=True)
+            thread.start()
+            try:
+                runner.run()
+            finally:
+                server.shutdown()
+    except KeyboardInterrupt:
+        pass  # Ctrl-C and SIGTERM (cli.main makes it one) stop a service: exit 0
+    finally:
+        server.server_close()
+
+
+def _serving_line(server, plant, maps, allowed) -> str:
+    """The first line: where it serves, and what each path serves."""
+    host, port = server.server_address[:2]
+    where = f"[{host}]" if ":" in host else host
+    if plant is not None:
+        links = {device.link for device in plant.devices}
+        parts = [f"/metrics: {len(plant.devices)} devices of {plant.path} on {len(links)} links"]
+    else:
+        parts = ["/metrics: the exporter's process"]
+    sources = ([f"maps in {maps}"] if maps else []) + (
+        ["the inventory's maps"] if plant and plant.maps else []
+    )
+    if sources:
+        targets = [*allowed, *(["the inventory's links"] if plant is not None else [])]
+        parts.append(f"/modbus: {' and '.join(sources)}, targets {', '.join(targets)}")
+    return f"exporting on http://{where}:{port} ({'; '.join(parts)})"
+
+
+def parse_listen(text: str) -> tuple[str, int, socket.AddressFamily]:
+    """--listen HOST:PORT: the host (an IPv6 address in brackets) and port; RequestError if not."""
+    usage = f"--listen {text}: expected HOST:PORT, such as 127.0.0.1:9502 (0.0.0.0:9502 for every interface)"
+    host, colon, port_text = text.rpartition(":")
+    if not colon or not host:
+        raise RequestError(usage)
+    family = socket.AF_INET
+    if host.startswith("[") and host.endswith("]"):
+        host, family = host[1:-1], socket.AF_INET6
+    elif ":" in host:
+        raise RequestError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
+    if not (port_text.isascii() and port_text.isdigit() and len(port_text) <= 5 and int(port_text) <= 65535):
+        raise RequestError(f"--listen {text}: the port is a number, 0..65535")
+    return host, int(port_text), family
+
+
+# --- names: a point's metric must not be one of the exporter's own ---------------------------
+
+# /modbus: the families of a scrape besides the points'.
+SCRAPE_NAMES = ("modbus_up", "modbus_error_info", "modbus_scrape_duration_seconds")
+
+
+def _clash(points, own: set[str]) -> str:
+    """The first point whose metric is one of ``own``, as a sentence; "" for none."""
+    from mbtool.cli.metrics import _metric_name
+
+    for point in points:
+        name = _metric_name(f"modbus_{point.name}")
+        if name in own:
+            return f"point {point.name}: its metric, {name}, is one the exporter has of its own; rename the point"
+    return ""
+
+
+def check_plant_names(plant) -> None:
+    """Refuse, before anything is opened, an inventory whose map points would be named as
+    the exporter's own metrics (two families of one name are no exposition)."""
+    from mbtool.cli.plant_text import LAST_SUCCESS, UP
+    from mbtool.link.stats import Stats
+    from mbtool.plant.stats import PollStats
+
+    own = {UP, LAST_SUCCESS}
+    for text in (device_stats_text("", PollStats()), link_stats_text("", Stats(), False, 0)):
+        own |= set(re.findall(r"^(?:# TYPE )?([a-zA-Z_:][a-zA-Z0-9_:]*)", text, re.M))  # families, samples
+    for spec in plant.devices:
+        clash = _clash(spec.reader.points, own)
+        if clash:
+            raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+
+
+# --- inventory: the plant's metrics, rendered as each device reports --------------------------
+
+
+class PlantMetrics:
+    """The plant's exposition, kept ready for any number of scrapes.
+
+    A device's families (its points, modbus_up and its last success, as poll's Prometheus
+    text has them; its statistics) and its link's are written when the device's poll is
+    reported, in the link's thread, where the device's state is whole.  A scrape joins what
+    was written, under a lock, and neither waits on a device nor renders the plant's
+    samples itself: prometheus_client's generate_latest takes some 16 ms for 50 devices of
+    10 points, and a scrape should answer in a few.  The statistics are written as poll's
+    text is, not through generate_latest: 15 us a device report rather than 400, which
+    matters when 50 devices report at once and a scrape waits for the interpreter."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
+        self.changes = 0  # blocks written so far
+        self.joined: tuple[int, bytes] = (-1, b"")  # the text as of that many changes
+        self.states: dict = {}
+        self.workers: dict = {}
+
+    def watch(self, runner) -> None:
+        """The plant's devices and links, each shown (down, unknown) before its first poll."""
+        self.states = runner.devices
+        self.workers = {worker.spec.name: worker for worker in runner.workers}
+        for state in self.states.values():
+            self._device(state)
+        for worker in runner.workers:
+            self._link(worker)
+
+    def report(self, item) -> None:
+        """What a link's worker reports (plant.schedule): a poll, or a change of state."""
+        from mbtool.plant.schedule import Event
+
+        if isinstance(item, Event):
+            from mbtool.cli.plant_text import event_line
+
+            print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
+            if item.kind == "link" and item.name in self.workers:
+                self._link(self.workers[item.name])
+            return
+        state = self.states[item.device.name]
+        self._device(state)
+        self._link(self.workers[state.spec.link])
+
+    def _device(self, state) -> None:
+        from mbtool.cli.plant_text import prom_text
+
+        self._keep(
+            ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
+        )
+
+    def _link(self, worker) -> None:
+        from mbtool.plant.schedule import ONLINE
+
+        total = _link_totals(state.stats for state in worker.devices)
+        text = link_stats_text(worker.spec.name, total, worker.state == ONLINE, worker.open_failures)
+        self._keep(("link", worker.spec.name), text)
+
+    def _keep(self, key: tuple[str, str], text: str) -> None:
+        families = split_families(text)
+        with self.lock:
+            self.blocks[key] = families
+            self.changes += 1
+
+    def text(self) -> bytes:
+        """Every device's and link's families, one HELP and TYPE a family, its samples together
+        (joined again only when a device or link has reported since)."""
+        with self.lock:
+            changes, blocks = self.changes, list(self.blocks.values())
+            if self.joined[0] == changes:
+                return self.joined[1]
+        heads: dict[str, str] = {}
+        samples: dict[str, list[str]] = {}
+        for families in blocks:
+            for name, head, body in families:
+                if name not in heads:
+                    heads[name], samples[name] = head, []
+                samples[name].append(body)
+        text = "".join(head + "".join(samples[name]) for name, head in heads.items()).encode()
+        with self.lock:
+            if self.changes == changes:
+                self.joined = (changes, text)
+        return text
+
+
+def split_families(text: str) -> list[tuple[str, str, str]]:
+    """An exposition in the text format cut into its families: (name, its HELP and TYPE
+    lines, its samples).  A family starts at its HELP line; a newline in a HELP text or a
+    label value is escaped (\\n), so a line starting "# HELP " starts a family."""
+    out = []
+    for block in ("\n" + text).split("\n# HELP ")[1:]:
+        help_rest, _, rest = block.partition("\n")
+        type_line, _, body = rest.partition("\n")
+        if body and not body.endswith("\n"):
+            body += "\n"
+        out.append((help_rest.split(" ", 1)[0], f"# HELP {help_rest}\n{type_line}\n", body))
+    return out
+
+
+def _link_totals(stats_list):
+    """A link's transactions: its devices' counts added up, as Stats.add adds them, without
+    the window of recent round trips (the exporter shows none, and it is 1000 a device)."""
+    from mbtool.link.stats import Stats
+
+    total = Stats()
+    for stats in stats_list:
+        total.transactions += stats.transactions
+        total.outcomes.update(stats.outcomes)
+        total.exceptions.update(stats.exceptions)
+        total.recovered += stats.recovered
+        total.rtt.count += stats.rtt.count
+        total.rtt.total += stats.rtt.total
+        total.rtt.counts = [
+            mine + theirs for mine, theirs in zip(total.rtt.counts, stats.rtt.counts, strict=True)
+        ]
+    return total
+
+
+def _family(name: str, kind: str, about: str, samples) -> str:
+    return f"# HELP {name} {about}\n# TYPE {name} {kind}\n" + "".join(f"{sample}\n" for sample in samples)
+
+
+def _le(bound: float) -> str:
+    """A bucket's bound as Prometheus writes it (Go's float formatting): 0.001, 1.0, +Inf."""
+    return "+Inf" if bound == math.inf else repr(float(bound))
+
+
+def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
+    """Every transaction's outcome, the exceptions by code, the retries that recovered and
+    the round-trip histogram (link.stats), each sample labelled ``pair``."""
+    from mbtool.link.stats import OUTCOMES
+
+    name = f"{prefix}request_duration_seconds"
+    return (
+        _family(
+            f"{prefix}transactions_total",
+            "counter",
+            f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
+            "framing error), not_ours (a frame for another unit or transaction), link_lost",
+            (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
+        )
+        + _family(
+            f"{prefix}exceptions_total",
+            "counter",
+            f"Exception responses {whose}, by exception code (hex, as the spec writes them)",
+            (
+                f'{prefix}exceptions_total{{{pair},code="{code:02X}"}} {count}'
+                for code, count in sorted(stats.exceptions.items())
+            ),
+        )
+        + _family(
+            f"{prefix}retries_recovered_total",
+            "counter",
+            f"Transactions {whose} answered on a retry",
+            [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
+        )
+        + _family(
+            name,
+            "histogram",
+            f"Round-trip time of the replies {whose}: from a request to its reply, in seconds",
+            [
+                *(
+                    f'{name}_bucket{{{pair},le="{_le(bound)}"}} {count}'
+                    for bound, count in stats.rtt.buckets()
+                ),
+                f"{name}_sum{{{pair}}} {stats.rtt.total!r}",
+                f"{name}_count{{{pair}}} {stats.rtt.count}",
+            ],
+        )
+    )
+
+
+def device_stats_text(name: str, stats) -> str:
+    """A device's statistics in the text format: its polls and its transactions."""
+    from mbtool.cli.metrics import _label_pairs
+
+    pair = _label_pairs({"device": name})
+    return (
+        _family(
+            "modbus_polls_total",
+            "counter",
+            "Polls of the device",
+            [f"modbus_polls_total{{{pair}}} {stats.polls}"],
+        )
+        + _family(
+            "modbus_failed_polls_total",
+            "counter",
+            "Polls of the device that read nothing",
+            [f"modbus_failed_polls_total{{{pair}}} {stats.failed_polls}"],
+        )
+        + _transactions_text("modbus_", pair, "with the device", stats)
+    )
+
+
+def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
+    """A link's state and statistics in the text format: its devices' transactions added up."""
+    from mbtool.cli.metrics import _label_pairs
+
+    pair = _label_pairs({"link": name})
+    return (
+        _family(
+            "modbus_link_up",
+            "gauge",
+            "1 when the link is open, 0 when it cannot be opened or has not been",
+            [f"modbus_link_up{{{pair}}} {int(up)}"],
+        )
+        + _family(
+            "modbus_link_open_failures_total",
+            "counter",
+            "Times the link could not be opened",
+            [f"modbus_link_open_failures_total{{{pair}}} {open_failures}"],
+        )
+        + _transactions_text("modbus_link_", pair, "over the link", stats)
+    )
+
+
+# --- multi-target: a map read from a target on each scrape ----------------------------------
+
+
+def _shown(text: str) -> str:
+    """Text from a request, in a one-line answer: as it is, or quoted when it holds a
+    control character (a %0A in the query must not make the answer two lines)."""
+    return text if text.isprintable() else repr(text)
+
+
+class Refused(Exception):
+    """A scrape that is not read: the HTTP status and the one line that says why."""
+
+    def __init__(self, status: int, text: str) -> None:
+        super().__init__(text)
+        self.status = status
+
+
+class Modules:
+    """The register maps a scrape may name: --maps DIR/NAME.toml or .csv, then the maps of
+    the inventory's devices, each named by its file name without the extension.  A map is
+    loaded once and again when its file changes."""
+
+    def __init__(self, folder: Path | None, inventory_maps: dict[str, str]) -> None:
+        self.folder = folder
+        self.named: dict[str, list[Path]] = {}
+        for path in inventory_maps.values():
+            paths = self.named.setdefault(Path(path).stem, [])
+            if Path(path).resolve() not in [p.resolve() for p in paths]:
+                paths.append(Path(path))
+        self.lock = threading.Lock()
+        self.loaded: dict[Path, tuple[tuple[int, int], object]] = {}
+
+    def path_of(self, name: str) -> Path:
+        if not name or "/" in name or "\\" in name or ".." in name or not name.isprintable():
+            raise Refused(400, f"module {name!r}: a map's name, without a folder (no / nor ..)")
+        if self.folder is not None:
+            for suffix in (".toml", ".csv"):
+                path = self.folder / (name + suffix)
+                if path.is_file():
+                    return path
+        paths = self.named.get(name, [])
+        if len(paths) > 1:
+            raise Refused(
+                400, f"module {name}: the inventory has two maps of that name: {paths[0]}, {paths[1]}"
+            )
+        if paths:
+            return paths[0]
+        where = [f"{self.folder} has no {name}.toml nor {name}.csv"] if self.folder is not None else []
+        if self.named:
+            where.append(f"the inventory's maps are {', '.join(sorted(self.named))}")
+        raise Refused(400, f"no module {name}: {'; '.join(where) or 'no maps'}")
+
+    def load(self, path: Path):
+        """The map at ``path``, its points checked against the scrape's own names; MapError if
+        it cannot be used."""
+        from mbtool.registermap.load import MapError, load_map
+
+        try:
+            info = path.stat()
+            stamp = (info.st_mtime_ns, info.st_size)
+        except OSError as error:
+            raise MapError(f"cannot read map {path}: {error.strerror or error}") from None
+        with self.lock:
+            kept = self.loaded.get(path)
+        if kept is not None and kept[0] == stamp:
+            return kept[1]
+        register_map = load_map(path)
+        clash = _clash(register_map.points.values(), set(SCRAPE_NAMES))
+        if clash:
+            raise MapError(f"{path}: {clash}")
+        with self.lock:
+            self.loaded[path] = (stamp, register_map)
+        return register_map
+
+
+class TargetScraper:
+    """/modbus: a target's map read on each scrape, one scrape of a target at a time (a bus
+    has one master, and many devices take one connection)."""
+
+    def __init__(self, modules: Modules, patterns, links: dict, timeout: float, retries: int) -> None:
+        self.modules = modules
+        self.patterns = tuple(patterns)
+        self.links = links  # target -> the inventory's LinkSpec
+        self.timeout = timeout
+        self.retries = retries
+        self.locks: dict[str, threading.Lock] = {}
+        self.guard = threading.Lock()
+
+    def scrape(self, query: str, deadline_header: str | None) -> tuple[int, str, bytes]:
+        """(HTTP status, content type, body) of one scrape."""
+        started = time.monotonic()
+        budget = scrape_budget(deadline_header)
+        try:
+            target, module, unit = self._asked(query)
+            connection = self._connection(target, unit)
+            path = self.modules.path_of(module)
+        except Refused as refusal:
+            return refusal.status, TEXT, f"{refusal}\n".encode()
+        from mbtool.errors import KNOWN_ERRORS
+
+        try:
+            register_map = self.modules.load(path)
+        except KNOWN_ERRORS as error:  # the exporter's configuration, not the device: 500
+            return 500, TEXT, f"module {module}: {error}\n".encode()
+        readings, error, kind = self._read(target, connection, register_map, started + budget, budget)
+        from prometheus_client import CollectorRegistry, generate_latest
+
+        registry = CollectorRegistry()
+        registry.register(_ScrapeCollector(str(unit), readings, error, kind, time.monotonic() - started))
+        return 200, CONTENT_TYPE, generate_latest(registry)
+
+    def _asked(self, query: str) -> tuple[str, str, int]:
+        from urllib.parse import parse_qs
+
+        try:
+            params = parse_qs(query, keep_blank_values=True, strict_parsing=bool(query), max_num_fields=16)
+        except ValueError as error:
+            raise Refused(400, f"the query {query!r} cannot be read: {error}") from None
+        for name, values in params.items():
+            if len(values) > 1:
+                raise Refused(400, f"{_shown(name)} is given {len(values)} times: give it once")
+        for name in ("target", "module"):
+            if not params.get(name, [""])[0]:
+                raise Refused(400, f"no {name}: /modbus?target=tcp://192.0.2.10:502&module=NAME&unit=1")
+        target, module = params["target"][0], params["module"][0]
+        unit_text = params.get("unit", ["1"])[0]
+        if not (
+            unit_text.isascii() and unit_text.isdigit() and len(unit_text) <= 3 and int(unit_text) <= 255
+        ):
+            raise Refused(400, f"unit {unit_text!r}: a unit id is a number, 0..255")
+        if target not in self.links and not any(fnmatchcase(target, p) for p in self.patterns):
+            raise Refused(
+                403,
+                f"target {_shown(target)} is not allowed: no --allow-target pattern matches it"
+                + (", and it is no link of the inventory" if self.links else ""),
+            )
+        return target, module, int(unit_text)
+
+    def _connection(self, target: str, unit: int):
+        from mbtool.codec.record import replace
+        from mbtool.link.connection import Connection, check
+        from mbtool.link.transport import parse_target
+
+        link = self.links.get(target)
+        base = (
+            link.connection
+            if link is not None
+            else Connection(target, timeout=self.timeout, retries=self.retries)
+        )
+        connection = replace(base, unit=unit)
+        try:
+            parse_target(target)
+            check(connection, "a scrape's read")
+        except RequestError as error:
+            raise Refused(400, f"target {_shown(target)}: {_shown(str(error))}") from None
+        return connection
+
+    def _lock(self, target: str) -> threading.Lock:
+        with self.guard:
+            return self.locks.setdefault(target, threading.Lock())
+
+    def _read(self, target: str, connection, register_map, deadline: float, budget: float):
+        """(readings or None, the error or None, its kind) of the map read within ``deadline``."""
+        from mbtool.errors import NoResponse
+
+        lock = self._lock(target)
+        if not lock.acquire(timeout=max(0.0, deadline - time.monotonic())):
+            busy = NoResponse(
+                f"another scrape of {target} held it past this scrape's deadline ({budget:g} s)"
+            )
+            return None, busy, "busy"
+        try:
+            return _read_map(connection, register_map, deadline, budget)
+        finally:
+            lock.release()
+
+
+def scrape_budget(header: str | None) -> float:
+    """Seconds the read may take: the scraper's deadline less a margin for the answer."""
+    try:
+        seconds = float(header) if header else DEFAULT_SCRAPE_TIMEOUT
+    except ValueError:
+        seconds = DEFAULT_SCRAPE_TIMEOUT
+    if not 0 < seconds < math.inf:
+        seconds = DEFAULT_SCRAPE_TIMEOUT
+    return max(seconds - DEADLINE_MARGIN, seconds / 2)
+
+
+def _read_map(connection, register_map, deadline: float, budget: float):
+    """A map read over a link of its own, as read -m reads it; each reply awaited no longer
+    than the deadline leaves, and no retry past it."""
+    from mbtool.codec.record import replace
+    from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead
+    from mbtool.link.connection import close_quietly, open_client
+    from mbtool.link.stats import outcome_of
+    from mbtool.registermap.plan import MapReader
+
+    left = deadline - time.monotonic()
+    if left <= 0:
+        return (
+            None,
+            NoResponse(f"the scrape's deadline ({budget:g} s) passed before the read began"),
+            "timeout",
+        )
+    timeout, retries, unit = connection.timeout, connection.retries, connection.unit
+    link = ExitStack()
+    try:
+        client = link.enter_context(open_client(replace(connection, timeout=min(timeout, left))))
+    except (*KNOWN_ERRORS, OSError) as error:
+        close_quietly(link)
+        return None, error if not isinstance(error, OSError) else ConnectionFailed(str(error)), "connection"
+
+    def execute(request):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise NoResponse(f"the scrape's deadline ({budget:g} s) passed before the read ended")
+        client.timeout = min(timeout, math.floor(left * 1000) / 1000 or left)  # "within 0.747 s"
+        client.retries = min(retries, max(0, int(left / client.timeout) - 1))
+        return client.execute(unit, request)
+
+    try:
+        return MapReader(register_map.points.values(), register_map.max_gap).read(execute), None, ""
+    except PartialRead as partial:
+        return partial.readings, partial, "partial"
+    except (*KNOWN_ERRORS, OSError) as failure:
+        error = failure if not isinstance(failure, OSError) else ConnectionFailed(str(failure))
+        return None, error, outcome_of(error)
+    finally:
+        close_quietly(link)
+
+
+class _ScrapeCollector:
+    """One scrape's families: modbus_up, why it failed, how long it took, a gauge a point."""
+
+    def __init__(self, unit: str, readings, error, kind: str, seconds: float) -> None:
+        self.unit, self.readings, self.error, self.kind, self.seconds = unit, readings, error, kind, seconds
+
+    def collect(self):
+        from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily
+
+        from mbtool.cli.plant_text import point_metric
+
+        up = GaugeMetricFamily(
+            "modbus_up",
+            "1 when the device answered the scrape's read, 0 when it could not be read (no value is shown then)",
+            labels=["unit"],
+        )
+        up.add_metric([self.unit], int(self.readings is not None))
+        yield up
+        if self.error is not None:
+            error = InfoMetricFamily(
+                "modbus_error",
+                "Why the read failed, in whole or in part: kind is timeout, exception, corrupt, "
+                "not_ours, link_lost, connection, busy or partial; reason the error's own line",
+                labels=["unit"],
+            )
+            error.add_metric([self.unit], {"kind": self.kind, "reason": str(self.error)})
+            yield error
+        duration = GaugeMetricFamily(
+            "modbus_scrape_duration_seconds", "Seconds the scrape took, the read included", labels=["unit"]
+        )
+        duration.add_metric([self.unit], self.seconds)
+        yield duration
+        families: dict[str, GaugeMetricFamily] = {}
+        for reading in self.readings or ():
+            metric = point_metric(reading)
+            if metric is None:
+                continue
+            name, about, number = metric
+            if name not in families:
+                families[name] = GaugeMetricFamily(name, about, labels=["unit", "ref"])
+            families[name].add_metric([self.unit, reading.point.ref], number)
+        yield from families.values()
+
+
+# --- HTTP ------------------------------------------------------------------------------------
+
+
+class Exporter:
+    """What the HTTP handlers answer: /metrics, /modbus and a page that names them."""
+
+    def __init__(self, plant: PlantMetrics | None, scraper: TargetScraper | None) -> None:
+        self.plant = plant
+        self.scraper = scraper
+
+    def answer(self, path: str, query: str, deadline_header: str | None) -> tuple[int, str, bytes]:
+        if path == "/metrics":
+            from prometheus_client import REGISTRY, generate_latest
+
+            text = self.plant.text() if self.plant is not None else b""
+            return 200, CONTENT_TYPE, text + generate_latest(REGISTRY)
+        if path == "/modbus":
+            if self.scraper is None:
+                return 404, TEXT, b"/modbus reads register maps: start the exporter with --maps DIR\n"
+            return self.scraper.scrape(query, deadline_header)
+        if path == "/":
+            lines = ["mbtool exporter", "/metrics: the plant's latest values and the exporter's process"]
+            if self.scraper is not None:
+                lines.append("/modbus?target=TARGET&module=NAME&unit=N: a map read from a target")
+            return 200, TEXT, ("\n".join(lines) + "\n").encode()
+        return 404, TEXT, f"no page {path}: /metrics, /modbus\n".encode()
+
+
+def open_server(host: str, port: int, family, exporter: Exporter):
+    """The HTTP server, bound; ConnectionFailed (exit 6) if it cannot be."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+    from urllib.parse import urlsplit
+
+    from mbtool.errors import ConnectionFailed
+
+    class Handler(BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"  # Prometheus keeps its connection from scrape to scrape
+        server_version = "mbtool-exporter"
+        timeout = IDLE_CONNECTION
+        # The headers and the body leave in two writes: with Nagle's algorithm the body would
+        # wait for the scraper's delayed ACK of the headers (tens of milliseconds a scrape).
+        disable_nagle_algorithm = True
+
+        def do_GET(self) -> None:
+            url = urlsplit(self.path)
+            try:
+                status, kind, body = exporter.answer(url.path, url.query, self.headers.get(DEADLINE_HEADER))
+            except Exception as error:  # a bug: one line to the scraper and on stderr, never a traceback
+                line = f"internal error: {type(error).__name__}: {error}"
+                print(f"mbtool: {line} (answering {_shown(self.path)})", file=sys.stderr, flush=True)
+                status, kind, body = 500, TEXT, f"{_shown(line)}\n".encode()
+            self.send_response(status)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format, *args) -> None:
+            pass  # a scrape every few seconds is no news
+
+    class Server(ThreadingHTTPServer):
+        address_family = family
+        daemon_threads = True
+
+        def handle_error(self, request, client_address) -> None:
+            # One line, never a traceback; a scraper that went away is no error.
+            error = sys.exc_info()[1]
+            if not isinstance(error, ConnectionError | TimeoutError):
+                print(
+                    f"mbtool: internal error answering {client_address[0]}: {type(error).__name__}: {error}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+
+    try:
+        return Server((host, port), Handler)
+    except OSError as error:
+        shown = f"[{host}]" if ":" in host else host
+        raise ConnectionFailed(f"cannot listen on {shown}:{port}: {error.strerror or error}") from None
