@@ -187,10 +187,10 @@ def _scan_in_process(monkeypatch, capsys, refused: str, *args: str) -> tuple[int
 
     real = transport.open_transport
 
-    def open_transport(target, settings, timeout, framer):
+    def open_transport(target, settings, timeout, framer, tls=None):
         if settings.parity in refused:
             raise ConnectionFailed(f"cannot open {target}: it refused {settings}: Invalid argument")
-        return real(target, settings, timeout, framer)
+        return real(target, settings, timeout, framer, tls)
 
     monkeypatch.setattr(transport, "open_transport", open_transport)
     with pytest.raises(SystemExit) as done:

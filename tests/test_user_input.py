@@ -21,7 +21,7 @@ SENT: list[bytes] = []
 def recording_transport(monkeypatch):
     real = mbtool.link.transport.open_transport
 
-    def open_recording(target, settings, timeout, framer):
+    def open_recording(target, settings, timeout, framer, tls=None):
         inner = real("sim://", settings, timeout, framer)
         original = inner.write
 
