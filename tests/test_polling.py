@@ -670,7 +670,9 @@ def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_pa
         res = expect_ok(mbtool("read", "-m", path, "-p", server.target, "--interval", "0", "--polls", "3"))
     assert summary(res)["replies"] == 3
     request, poll = latencies(res.stderr)
-    assert request[0] >= 100 and poll[0] >= 300, res.stderr
+    # The device's 0.1 s runs from when it read the request, which may be a moment before
+    # mbtool stamps it as sent (the write returns, then the clock is read): a little slack.
+    assert request[0] >= 98 and poll[0] >= 294, res.stderr
     # A poll's three requests take their time one after another, within the poll's.
     assert 3 * request[1] <= poll[1] + 0.1, res.stderr
 
