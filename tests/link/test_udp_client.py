@@ -56,7 +56,7 @@ def test_reads_and_writes_one_adu_a_datagram(udp_device):
 INVENTORY = """\
 [links.lossy]
 target = "{target}"
-timeout = 0.3
+timeout = 0.15  # a lost datagram costs this; loopback answers in milliseconds
 retries = 10
 
 [devices.a]
