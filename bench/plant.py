@@ -140,7 +140,7 @@ def transaction_on_the_line(master: str, baud: int, polls: int) -> float:
                "--interval", "0", "--polls", str(polls), "-t", "0.2", "-o", "plain"),
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
-    rate = done.stderr.strip().splitlines()[-1].rsplit(", ", 1)[-1]  # "23 polls/s"
+    rate = done.stderr.strip().splitlines()[-1].split("; ", 1)[0].rsplit(", ", 1)[-1]  # "23 polls/s"
     if done.returncode or not rate.endswith("polls/s"):
         sys.exit(f"bench: the polling loop failed: {done.stderr[-500:]}")
     return 1 / float(rate.split()[0])

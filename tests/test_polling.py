@@ -30,7 +30,7 @@ def summary(res) -> dict:
     match = re.match(
         r"^mbtool: (?:interrupted; )?polls (\d+), replies (\d+), partial \d+, timeouts (\d+), errors (\d+), skipped (\d+), "
         r"latency per request min/avg/max (?:[\d.]+/[\d.]+/[\d.]+ ms|-), per poll (?:[\d.]+/[\d.]+/[\d.]+ ms|-)"
-        r"(?:, [\d.]+ polls/s)?$",
+        r"(?:, [\d.]+ polls/s)?; transactions \d+: .*; rtt .*$",
         line,
     )
     assert match, f"no summary line\n{res}"
@@ -40,7 +40,7 @@ def summary(res) -> dict:
 
 def rate(res) -> float:
     """The summary's polls a second, first poll to last."""
-    match = re.search(r", ([\d.]+) polls/s$", res.stderr.strip().splitlines()[-1])
+    match = re.search(r", ([\d.]+) polls/s; ", res.stderr.strip().splitlines()[-1])
     assert match, f"no rate in the summary\n{res}"
     return float(match.group(1))
 
@@ -729,3 +729,24 @@ def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
     """The timeout is the device's time to answer: it runs from when mbtool is free to read."""
     text, failures = _poll_slowly(tcp_device.target, 0.2)
     assert failures == [] and "replies 3, partial 0, timeouts 0" in text, (failures, text)
+
+
+def test_the_summary_counts_every_transaction_by_its_outcome_and_stats_json_gives_it_whole(mbtool):
+    """Issue 32: the classification of link.stats in polling's summary too, and --stats json.
+    A device that drops every other reply (serve --drop 0.5), with one retry: answered
+    transactions, retries that recovered them, and a round-trip histogram."""
+    from test_serve import serve
+
+    with serve("--drop", "0.5", "--seed", "3") as server:
+        res = mbtool(
+            "read-holding-registers", "0", "1", "-p", server.target, "-t", "0.2", "--retries", "3",
+            "--interval", "0", "--polls", "10", "--stats", "json",
+        )  # fmt: skip
+    assert res.returncode == 0, res
+    *_, figures_line, line = res.stderr.strip().splitlines()
+    figures = json.loads(figures_line)
+    assert figures["polls"] == figures["replies"] == figures["transactions"] == figures["answered"] == 10
+    assert 0 < figures["retries_recovered"] <= 10
+    assert figures["rtt_buckets"][-1] == [None, 10]  # every round trip under +Inf
+    assert "transactions 10: answered 10, exception 0, timeout 0" in line
+    assert f"retries recovered {figures['retries_recovered']}" in line

@@ -314,7 +314,16 @@ CONNECTION_KEYS = (
     "server_name",
     "reconnect_each",
 )
-SETTINGS_KEYS = ("hex_trace", "output_format", "no_header", "dry_run", "measurement", "textfile", "changes")
+SETTINGS_KEYS = (
+    "hex_trace",
+    "output_format",
+    "no_header",
+    "dry_run",
+    "measurement",
+    "textfile",
+    "changes",
+    "stats",
+)
 
 
 def connection_options(unit: bool = True, output: bool = True, polls: bool = False) -> list[Callable]:
@@ -486,6 +495,7 @@ def device_command(
                 # alone, which implies -o prom, has never carried it.
                 device=(profile or "") if output_format in MONITORING_FORMATS else "",
                 changes=shown.get("changes", False),
+                stats=shown.get("stats", "line"),
             )
             if profile:
                 from mbtool.cli.profiles import defaults

@@ -34,3 +34,4 @@ class Settings:
     textfile: str = ""  # --textfile PATH: the Prometheus text goes there, atomically
     device: str = ""  # the profile's name (-P): a tag and a label of the metrics
     changes: bool = False  # --changes: polling prints the values that changed
+    stats: str = "line"  # --stats: polling's summary as its line, or also as JSON

@@ -71,6 +71,12 @@ class Latency:
             return "-"
         return f"{self.low * 1000:.1f}/{self.total / self.count * 1000:.1f}/{self.high * 1000:.1f} ms"
 
+    def as_dict(self) -> dict | None:
+        """min, avg and max in ms (None before the first)."""
+        if not self.count:
+            return None
+        return {"min": self.low * 1000, "avg": self.total / self.count * 1000, "max": self.high * 1000}
+
 
 def _rate(per_second: float) -> str:
     """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
@@ -85,13 +91,17 @@ def poll(
     polls: int | None,
     trace: Callable | None = None,
     run: Callable | None = None,
+    figures: Callable[[dict], None] | None = None,
 ) -> None:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
 
-    ``trace``: makes each link's Client trace from its framer (--hex).  ``run(client)``:
-    what one poll does when it is more than one request (a register map's reads);
-    ``request`` then stands for them in the link's checks (broadcast)."""
+    ``trace``: makes each link's Client trace from its framer (--hex).  ``run(execute)``:
+    what one poll does when it is more than one request (a register map's reads), given the
+    link's ``execute(unit, request)``; ``request`` then stands for them in the link's checks
+    (broadcast).  ``figures``: given the summary's figures as a dict at the end (--stats
+    json), as well as the line."""
     from mbtool.link.connection import close_quietly, open_client
+    from mbtool.link.stats import Counted, Stats
     from mbtool.link.transport import ConnectionClosed
 
     if interval is None:
@@ -103,6 +113,7 @@ def poll(
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
     # mbtool's own work while a reply is on its way (the poll before written) is in neither.
     per_request, per_poll = Latency(), Latency()
+    stats = Stats()  # every transaction's outcome (link.stats): the summary's last part
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
@@ -151,6 +162,7 @@ def poll(
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
                     client.ended_at = ended_at  # the device still wants its pause after that
                     client.timed = per_request.add
+                    execute = Counted(client, stats)
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
                         # starts with the first link open: opening sim:// (its imports) or a
@@ -158,7 +170,7 @@ def poll(
                         gc.freeze()
                         start = time.monotonic()
                 client.while_waiting = request_sent
-                reply = client.execute(connection.unit, request) if run is None else run(client)
+                reply = execute(connection.unit, request) if run is None else run(execute)
                 per_poll.add(client.replied_at - client.work_done_at)
                 replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
@@ -226,6 +238,7 @@ def poll(
     )
     if done > 1 and last_when > first_when:
         summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
+    summary += f"; {stats}"
     if accepted:
         summary += f"; accepted (--lenient): {'; '.join(accepted)}"
     if interrupted:
@@ -233,4 +246,18 @@ def poll(
     code = last_failure
     if interrupted and done == 0:
         code = ExitCode.INTERRUPTED
+    if figures is not None:
+        figures(
+            {
+                "polls": done,
+                "replies": replies,
+                "partial": partial,
+                "timeouts": timeouts,
+                "errors": errors,
+                "skipped": skipped,
+                "interrupted": interrupted,
+                "latency_ms": {"per_request": per_request.as_dict(), "per_poll": per_poll.as_dict()},
+                **stats.as_dict(),
+            }
+        )
     raise Summary(summary, code)

@@ -95,6 +95,9 @@ class Stats:
             "exceptions_by_code": exceptions_by_code(self.exceptions),
             "retries_recovered": self.recovered,
             "rtt_seconds": self.rtt_figures(),
+            # The histogram: how many round trips took at most each bound (cumulative, as
+            # Prometheus's buckets), the last bound +Inf (null in JSON).
+            "rtt_buckets": [[bound, count] for bound, count in self.rtt.buckets()],
         }
 
     def outcomes_text(self) -> str:

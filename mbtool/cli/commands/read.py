@@ -59,6 +59,14 @@ def polling_options(function):
         "collector (implies -o prom; each poll rewrites it).",
     )(function)
     function = click.option(
+        "--stats",
+        type=click.Choice(["line", "json"]),
+        default="line",
+        show_default=True,
+        help="Polling: the summary on exit as its line on stderr, or also as one JSON object "
+        "(polls, latency, every transaction's outcome, the round-trip histogram) before it.",
+    )(function)
+    function = click.option(
         "--polls",
         type=Number(0, 10**9, "polls"),
         help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
@@ -74,7 +82,7 @@ def polling_options(function):
 def _run(
     connection: Connection, settings: Settings, request, to_result, interval, polls, run=None, points=()
 ) -> None:
-    """Once, or polled.  ``run(client)``: a read of several requests (a map's ``points``),
+    """Once, or polled.  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
     from mbtool.cli.settings import MONITORING_FORMATS
 
@@ -101,7 +109,16 @@ def _run(
     if settings.changes:
         output = ChangesOnly(output)
     shown = Deferred(output, to_result)
-    poll(connection, request, shown, interval, polls, trace_for(settings), run)
+    figures = None
+    if settings.stats == "json":
+        import sys
+
+        from mbtool.cli.json_text import to_json
+
+        def figures(summary: dict) -> None:  # the summary as one JSON object, before its line
+            print(to_json(summary), file=sys.stderr, flush=True)
+
+    poll(connection, request, shown, interval, polls, trace_for(settings), run, figures)
 
 
 def _once(connection: Connection, settings: Settings, request, to_result, run=None, metrics=None) -> None:
@@ -113,7 +130,7 @@ def _once(connection: Connection, settings: Settings, request, to_result, run=No
 
     with open_client(connection, settings, request.name) as client:
         try:
-            result = to_result(run(client))
+            result = to_result(run(client.execute))
         except PartialRead as partial:  # what was read is shown; the failure ends the run
             show(connection, settings, to_result(partial.readings), metrics)
             raise
@@ -339,8 +356,8 @@ def _read_map(connection: Connection, settings: Settings, path: str, names, inte
                 client.show(connection.unit, request)
             client.finish(connection.unit)
 
-    def run(client):
-        return reader.read(partial(client.execute, connection.unit))
+    def run(execute):
+        return reader.read(partial(execute, connection.unit))
 
     def to_result(readings):
         rows = [
