@@ -49,8 +49,11 @@ class Durations:
         self.count += 1
         self.total += seconds
         self.squares += seconds * seconds
-        self.low = min(self.low, seconds)
-        self.high = max(self.high, seconds)
+        # Comparisons, not min() and max(): a poll runs this between a reply and its next request.
+        if seconds < self.low:
+            self.low = seconds
+        if seconds > self.high:
+            self.high = seconds
         self.counts[bisect_left(BUCKETS, seconds)] += 1
         self.recent.append(seconds)
 

@@ -53,6 +53,8 @@ class Framer(ABC):
     checksum_name = ""
     # The unit id every device on a serial line hears and none answers (spec §2).
     broadcast_unit: int | None = 0
+    # The last frame made from the reply predicted (MBAP): it is what was asked for.
+    predicted_frame: Frame | None = None
 
     def __init__(self, responses: bool = True) -> None:
         self.responses = responses  # reading replies (a master) or requests (a device)

@@ -56,7 +56,7 @@ class TcpFramer(Framer):
             super().feed(data)
         else:
             # The reply a poll nearly always gets: its frame is known without the parse.
-            self._ready = Frame(self._predicted[2], pdu, data, self._predicted[3])
+            self._ready = self.predicted_frame = Frame(self._predicted[2], pdu, data, self._predicted[3])
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

@@ -21,7 +21,7 @@ import math
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.errors import (
@@ -34,6 +34,9 @@ from mbtool.errors import (
     Summary,
     exit_code_for,
 )
+
+if TYPE_CHECKING:
+    from mbtool.durations import Durations
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -65,17 +68,24 @@ class Latency:
         if seconds > self.high:
             self.high = seconds
 
-    def __str__(self) -> str:
-        """min/avg/max in ms."""
-        if not self.count:
-            return "-"
-        return f"{self.low * 1000:.1f}/{self.total / self.count * 1000:.1f}/{self.high * 1000:.1f} ms"
 
-    def as_dict(self) -> dict | None:
-        """min, avg and max in ms (None before the first)."""
-        if not self.count:
-            return None
-        return {"min": self.low * 1000, "avg": self.total / self.count * 1000, "max": self.high * 1000}
+def _text(figures: Latency | Durations) -> str:
+    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted (both
+    keep count, total, low and high)."""
+    if not figures.count:
+        return "-"
+    return f"{figures.low * 1000:.1f}/{figures.total / figures.count * 1000:.1f}/{figures.high * 1000:.1f} ms"
+
+
+def _dict(figures: Latency | Durations) -> dict | None:
+    """min, avg and max in ms (None before the first)."""
+    if not figures.count:
+        return None
+    return {
+        "min": figures.low * 1000,
+        "avg": figures.total / figures.count * 1000,
+        "max": figures.high * 1000,
+    }
 
 
 def _rate(per_second: float) -> str:
@@ -109,11 +119,11 @@ def poll(
     if polls is None:
         polls = 0
     done = replies = partial = timeouts = errors = skipped = 0
-    # A request's latency runs from it leaving to its reply; a poll's from its first request
+    # A request's latency runs from it leaving to its reply (the client's rtt, which
+    # link.stats counts with every transaction's outcome); a poll's from its first request
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
     # mbtool's own work while a reply is on its way (the poll before written) is in neither.
-    per_request, per_poll = Latency(), Latency()
-    stats = Stats()  # every transaction's outcome (link.stats): the summary's last part
+    stats, per_poll = Stats(), Latency()
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
@@ -161,7 +171,6 @@ def poll(
                     link = ExitStack()
                     client = link.enter_context(open_client(connection, request.name, trace=trace))
                     client.ended_at = ended_at  # the device still wants its pause after that
-                    client.timed = per_request.add
                     execute = Counted(client, stats)
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
@@ -234,7 +243,7 @@ def poll(
         close_quietly(link)
     summary = (
         f"polls {done}, replies {replies}, partial {partial}, timeouts {timeouts}, errors {errors}, "
-        f"skipped {skipped}, latency per request min/avg/max {per_request}, per poll {per_poll}"
+        f"skipped {skipped}, latency per request min/avg/max {_text(stats.rtt)}, per poll {_text(per_poll)}"
     )
     if done > 1 and last_when > first_when:
         summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
@@ -256,7 +265,7 @@ def poll(
                 "errors": errors,
                 "skipped": skipped,
                 "interrupted": interrupted,
-                "latency_ms": {"per_request": per_request.as_dict(), "per_poll": per_poll.as_dict()},
+                "latency_ms": {"per_request": _dict(stats.rtt), "per_poll": _dict(per_poll)},
                 **stats.as_dict(),
             }
         )

@@ -57,6 +57,16 @@ class Stats:
         self.recovered = 0  # answers that came on a retry
         self.rtt = Durations()  # request to reply, for every reply (exceptions too)
 
+    def answered(self, attempts: int, rtt: float | None) -> None:
+        """A transaction answered (transaction(None, ...)'s outcome, counted the short way: a
+        poll's every transaction)."""
+        self.transactions += 1
+        self.outcomes["answered"] += 1
+        if attempts > 1:
+            self.recovered += 1
+        if rtt is not None:
+            self.rtt.add(rtt)
+
     def transaction(self, error: BaseException | None, attempts: int, rtt: float | None = None) -> str:
         """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
         requests on the wire, ``rtt`` seconds from the request to its reply if one came.  Its
@@ -116,7 +126,8 @@ class Stats:
 
 class Counted:
     """``client.execute``, each transaction counted in ``stats``: its outcome, the attempts it
-    took and its round-trip time.  ``rtt`` is the last one's (None: no reply came).
+    took and its round-trip time (the client's ``rtt``; ``rtt`` here is the last one's, None
+    when no reply came).
 
     A transaction with nothing to judge (a broadcast, a request no reply is due for, which
     execute returns None for) is not counted unless it failed.  An interrupt (Ctrl-C) in the
@@ -125,25 +136,18 @@ class Counted:
     def __init__(self, client, stats: Stats) -> None:
         self.client = client
         self.stats = stats
-        self.rtt: float | None = None
-        self._inner = None  # the client's own ``timed``, called as ever
+
+    @property
+    def rtt(self) -> float | None:
+        return self.client.rtt
 
     def __call__(self, unit: int, request: Request) -> Response | None:
         client = self.client
-        self.rtt = None
-        self._inner, client.timed = client.timed, self._timed
         try:
             reply = client.execute(unit, request)
         except Exception as error:
-            self.stats.transaction(error, client.attempts, self.rtt)
+            self.stats.transaction(error, client.attempts, client.rtt)
             raise
-        finally:
-            client.timed = self._inner
         if reply is not None:
-            self.stats.transaction(None, client.attempts, self.rtt)
+            self.stats.answered(client.attempts, client.rtt)
         return reply
-
-    def _timed(self, seconds: float) -> None:
-        self.rtt = seconds
-        if self._inner is not None:
-            self._inner(seconds)
