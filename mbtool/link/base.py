@@ -7,6 +7,7 @@ Apart from ``transport`` so that the transports in modules of their own (``mbtoo
 
 from __future__ import annotations
 
+import os
 import re
 import socket
 import time
@@ -73,8 +74,6 @@ def _errno(error: BaseException) -> int | None:
 
 
 def reason(error: BaseException) -> str:
-    import os
-
     number = _errno(error)
     if isinstance(number, int) and number > 0:
         return os.strerror(number)

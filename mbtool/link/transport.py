@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
+from mbtool.codec.timing import character_bits
 from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
 from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
@@ -69,15 +70,13 @@ class SerialSettings:
     @property
     def char_bits(self) -> int:
         """Bits one character takes on this line (its t3.5 is 3.5 of them)."""
-        from mbtool.codec.timing import character_bits
-
         return character_bits(self.parity, self.bytesize, self.stopbits)
 
 
 class SerialTransport(Transport):
     def __init__(self, url: str, settings: SerialSettings, listen_only: bool = False) -> None:
         """``listen_only``: a monitor's port, opened with RTS low and never written to."""
-        import serial  # pyserial costs an import only when a serial line is used
+        import serial  # noqa: PLC0415 - pyserial costs an import only when a serial line is used
 
         self.description = url
         if url.lower().startswith("socket://"):
@@ -133,7 +132,7 @@ class SerialTransport(Transport):
         """RS-485 direction by RTS: the kernel driver's RS-485 mode switches it in time with
         the UART's last stop bit; where the driver has none, mbtool switches RTS around each
         write, which costs the OS's timing slack (pyserial's serial.rs485 does the same)."""
-        import serial.rs485
+        import serial.rs485  # noqa: PLC0415 - pyserial: --rs485 only
 
         before, after = delays
         if type(self.port).__module__ == "serial.serialposix":
@@ -430,11 +429,11 @@ def open_transport(
     ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
     if where.scheme == "tls":
-        from mbtool.link.tls import TlsSettings, TlsTransport  # ssl costs an import only here
+        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
 
         return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
     if where.scheme in ("udp", "rtu+udp"):
-        from mbtool.link.udp import UdpTransport
+        from mbtool.link.udp import UdpTransport  # noqa: PLC0415 - udp:// only, off the one-shot reads
 
         return UdpTransport(where.scheme, where.host, where.port)
     if where.scheme == "tcp":
@@ -478,7 +477,7 @@ def _is_socket_url(port) -> bool:
 def _serial_ports() -> str:
     """The serial ports this machine has, for a user who named one it has not."""
     try:
-        from serial.tools.list_ports import comports
+        from serial.tools.list_ports import comports  # noqa: PLC0415 - pyserial: a missing port only
 
         ports = sorted(port.device for port in comports())
     except (ImportError, OSError):
@@ -492,7 +491,7 @@ def _serial_ports() -> str:
 def _termios_error() -> tuple[type[Exception], ...]:
     """termios.error: what pyserial lets through when a port refuses its settings."""
     try:
-        import termios
+        import termios  # noqa: PLC0415 - a refused serial setting only; not on Windows
     except ImportError:  # not on Windows
         return ()
     return (termios.error,)
