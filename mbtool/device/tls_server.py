@@ -20,6 +20,7 @@ the bus (``RoleCheck``).
 
 from __future__ import annotations
 
+import selectors
 import socket
 import ssl
 from collections.abc import Callable
@@ -30,6 +31,7 @@ from mbtool.device.handlers import changes_state
 from mbtool.device.serving import Answerer, IoFaults, Stats
 from mbtool.device.tcp_server import RECV_SIZE, TcpServer, _Client
 from mbtool.link.transport import Target
+from mbtool.link.x509 import role
 
 # What a failed handshake means, by OpenSSL's reason, in the server's words.
 FAILURES = {
@@ -169,7 +171,6 @@ class TlsServer(TcpServer):
         client.tls = "ready"
         self._want(client, 0)
         der = client.sock.getpeercert(binary_form=True)
-        from mbtool.link.x509 import role
 
         note = ""
         try:
@@ -183,8 +184,6 @@ class TlsServer(TcpServer):
 
     def _want(self, client: _Client, writing: int) -> None:
         """Wait for the socket to be readable, or writable too, for the handshake."""
-        import selectors
-
         events = selectors.EVENT_READ | (selectors.EVENT_WRITE if writing else 0)
         if events != client.events:
             client.events = events
