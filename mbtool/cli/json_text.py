@@ -21,7 +21,7 @@ def to_json(value: object) -> str:
     one-shot ``-o json`` from cron would pay; strings are escaped by the same C
     function json itself uses.
     """
-    from _json import encode_basestring_ascii  # noqa: PLC0415 - 0.2 ms: JSON output only; every command loads this module
+    from _json import encode_basestring_ascii  # noqa: PLC0415 - 0.2 ms: -o json only; all commands load this
 
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "null"  # NaN and infinities are not JSON; jq would choke on them
@@ -107,7 +107,7 @@ class JsonLines:
         )
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
-            from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; crc, decode and report-id load this module
+            from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
 
             self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
         # A list of ints is the same text in Python's repr as in JSON (json writes an int by

@@ -57,7 +57,7 @@ class Metrics:
         would end the point and make the rest a point of its own (in a measurement of its
         own).  Its measurement cannot be empty, and one starting with # makes the line a
         comment.  A map's point names are held to one line when the map is loaded."""
-        from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: not for a read without a map
+        from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         measurement, device = self.measurement, self.device
         names = [("--measurement", measurement, "a measurement")]

@@ -413,7 +413,7 @@ def reference_target(targets: tuple[str, ...], command: str, types_given: list[s
 
     A name where a reference goes is told about -m; --type or --order on coils and
     discrete inputs is refused (they hold bits)."""
-    from mbtool.codec.tables import parse_reference  # noqa: PLC0415 - REF only; every command loads this module
+    from mbtool.codec.tables import parse_reference  # noqa: PLC0415 - REF only; all commands load this
 
     if not targets:
         raise click.UsageError("give a reference such as 40001 (and a count), or -m MAP and point names")
@@ -500,7 +500,7 @@ def device_command(
                 stats=shown.get("stats", "line"),
             )
             if profile:
-                from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; every command loads this module
+                from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; all commands load this
 
                 changes = defaults(profile)
                 # A profile's key for the command's own option (map) goes to the command.

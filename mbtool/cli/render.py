@@ -154,7 +154,7 @@ def _table(result: Result, out: TextIO) -> None:
         table.add_column("Hex", justify="right")
     typed_registers = not bits and not plain_registers and result.registers is not None
     if typed_registers:
-        from mbtool.codec.values import TYPES  # noqa: PLC0415 - crc and report-id load this module, not codec.values
+        from mbtool.codec.values import TYPES  # noqa: PLC0415 - typed registers only; crc loads this too
 
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")

@@ -30,7 +30,7 @@ def open_client(
     ``then``: with --dry-run, what the command would send after the first reply.
     """
     if settings.dry_run:
-        from mbtool.cli.dryrun import DryRunClient  # noqa: PLC0415 - with codec.describe, 0.8 ms: --dry-run only
+        from mbtool.cli.dryrun import DryRunClient  # noqa: PLC0415 - describe, 0.8 ms: --dry-run only
 
         name = check(connection, needs, opening=False)
         yield DryRunClient(framer or make_framer(name), settings, then)

@@ -126,7 +126,10 @@ def open_client(
     more-follows; sim:// keeps its state only as long as its link).
     """
     from mbtool.link.client import Client  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
-    from mbtool.link.transport import SerialSettings, open_transport  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
+    from mbtool.link.transport import (  # noqa: PLC0415 - socket, 4 ms: crc loads this too
+        SerialSettings,
+        open_transport,
+    )
 
     name = check(connection, needs)
     settings = SerialSettings(

@@ -274,7 +274,7 @@ def _reference_values(
 
 
 def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list[Checked]:
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: -m only
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
     register_map = load_map(path)

@@ -258,8 +258,8 @@ class _Bar:
     """A progress bar on a terminal's stderr: addresses covered of all asked for."""
 
     def __init__(self, total: int) -> None:
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: the progress bar on a terminal only
-        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: the progress bar on a terminal only
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
 
         self.done = 0
         self.progress = Progress(console=Console(stderr=True), transient=True)

@@ -529,7 +529,10 @@ class TargetScraper:
         except KNOWN_ERRORS as error:  # the exporter's configuration, not the device: 500
             return 500, TEXT, f"module {module}: {error}\n".encode()
         readings, error, kind = self._read(target, connection, register_map, started + budget, budget)
-        from prometheus_client import CollectorRegistry, generate_latest  # noqa: PLC0415 - 32 ms: not for mbtool --help, which imports every command
+        from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+            CollectorRegistry,
+            generate_latest,
+        )
 
         registry = CollectorRegistry()
         registry.register(_ScrapeCollector(str(unit), readings, error, kind, time.monotonic() - started))
@@ -648,7 +651,10 @@ class _ScrapeCollector:
         self.unit, self.readings, self.error, self.kind, self.seconds = unit, readings, error, kind, seconds
 
     def collect(self):
-        from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily  # noqa: PLC0415 - 32 ms: not for mbtool --help, which imports every command
+        from prometheus_client.core import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+            GaugeMetricFamily,
+            InfoMetricFamily,
+        )
 
         up = GaugeMetricFamily(
             "modbus_up",
@@ -695,7 +701,10 @@ class Exporter:
 
     def answer(self, path: str, query: str, deadline_header: str | None) -> tuple[int, str, bytes]:
         if path == "/metrics":
-            from prometheus_client import REGISTRY, generate_latest  # noqa: PLC0415 - 32 ms: not for mbtool --help, which imports every command
+            from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+                REGISTRY,
+                generate_latest,
+            )
 
             text = self.plant.text() if self.plant is not None else b""
             return 200, CONTENT_TYPE, text + generate_latest(REGISTRY)

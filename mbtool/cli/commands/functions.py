@@ -16,6 +16,13 @@ from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.errors import RequestError
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
+from mbtool.codec.values import (
+    decode_values,
+    parse_register,
+    parse_registers,
+    registers_needed,
+    value_addresses,
+)
 
 # --- FC 07 ---------------------------------------------------------------------------------
 
@@ -27,7 +34,7 @@ def read_exception_status(connection, settings):
     Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
-    from mbtool.codec.serial_line import ReadExceptionStatus  # noqa: PLC0415 - 0.7 ms: the serial-line functions only
+    from mbtool.codec.serial_line import ReadExceptionStatus  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = ReadExceptionStatus()
     reply = execute(connection, settings, request)
@@ -50,7 +57,7 @@ def event_counter(connection, settings):
 
     The status (busy or idle) and the count of successful messages.
     """
-    from mbtool.codec.serial_line import GetCommEventCounter  # noqa: PLC0415 - 0.7 ms: the serial-line functions only
+    from mbtool.codec.serial_line import GetCommEventCounter  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = GetCommEventCounter()
     reply = execute(connection, settings, request)
@@ -69,7 +76,10 @@ def event_log(connection, settings):
 
     Status, event and message counts, and each event byte (0 = newest) in words.
     """
-    from mbtool.codec.serial_line import GetCommEventLog, describe_event  # noqa: PLC0415 - 0.7 ms: the serial-line functions only
+    from mbtool.codec.serial_line import (  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
+        GetCommEventLog,
+        describe_event,
+    )
 
     request = GetCommEventLog()
     reply = execute(connection, settings, request)
@@ -118,8 +128,12 @@ def report_id(connection, settings):
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
-    from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout  # noqa: PLC0415 - report-id only
-    from mbtool.codec.serial_line import ReportSlaveId  # noqa: PLC0415 - 0.7 ms: the serial-line functions only
+    from mbtool.codec.modicon import (  # noqa: PLC0415 - report-id only
+        SLAVE_IDS,
+        modicon_fields,
+        modicon_layout,
+    )
+    from mbtool.codec.serial_line import ReportSlaveId  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = ReportSlaveId()
     reply = execute(connection, settings, request)
@@ -178,7 +192,10 @@ def read_file_record(connection, settings, groups):
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
-    from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord  # noqa: PLC0415 - the file records only
+    from mbtool.codec.file_record import (  # noqa: PLC0415 - the file records only
+        FileRecordRequest,
+        ReadFileRecord,
+    )
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
     if len(numbers) % 3:
@@ -206,7 +223,6 @@ def write_file_record(connection, settings, groups):
     Each VALUE is -32768..65535 or 0x hex.
     """
     from mbtool.codec.file_record import FileRecord, WriteFileRecord  # noqa: PLC0415 - the file records only
-    from mbtool.codec.values import parse_register  # noqa: PLC0415 - FC 21 and 23 only
 
     parts = []
     for group in _groups(groups):
@@ -240,7 +256,10 @@ def mask_write_register(connection, settings, address, and_mask, or_mask):
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
-    from mbtool.codec.data_access import MaskWriteRegister, mask_formula  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
+    from mbtool.codec.data_access import (  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
+        MaskWriteRegister,
+        mask_formula,
+    )
 
     request = MaskWriteRegister(address, and_mask, or_mask)
     execute(connection, settings, request)
@@ -268,7 +287,6 @@ def read_write_registers(
     125 read; with --type both sides count values of that type.
     """
     from mbtool.codec.data_access import ReadWriteMultipleRegisters  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
-    from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses  # noqa: PLC0415 - FC 21 and 23 only
 
     registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = ReadWriteMultipleRegisters(
@@ -333,7 +351,11 @@ def device_id(connection, settings, level, object_id):
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
-    from mbtool.codec.device_id import ReadDeviceIdentification, conformity_name, object_name  # noqa: PLC0415 - device-id only
+    from mbtool.codec.device_id import (  # noqa: PLC0415 - device-id only
+        ReadDeviceIdentification,
+        conformity_name,
+        object_name,
+    )
 
     objects: dict[int, bytes] = {}
     conformity = None

@@ -323,7 +323,7 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
 
 
 def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: -m only
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
     register_map = load_map(path)

@@ -137,9 +137,14 @@ class Progress:
         self.bar = None
         if not enabled:
             return
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: the progress bar on a terminal only
-        from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn  # noqa: PLC0415 - rich, 12-26 ms: the progress bar on a terminal only
-        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: the progress bar on a terminal only
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import (  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+            BarColumn,
+            MofNCompleteColumn,
+            TextColumn,
+            TimeRemainingColumn,
+        )
+        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
 
         self.bar = Bar(
             TextColumn("{task.description}"),

@@ -325,7 +325,7 @@ def _log_line(framer: str, direction: str, peer: str, data: bytes, note: str) ->
 
 
 def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]) -> None:
-    from rich.console import Console, Group  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    from rich.console import Console, Group  # noqa: PLC0415 - rich, 12-20 ms: the live display only
     from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
     from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
     from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only

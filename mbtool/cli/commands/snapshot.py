@@ -126,7 +126,7 @@ def diff(connection, settings, a, b, map):
     """
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: -m only
+        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         register_map = load_map(map)
     b = b or DEVICE
@@ -257,7 +257,7 @@ def restore(connection, settings, file, everything, map):
     snap, complete = snapshot(file)
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: -m only
+        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         register_map = load_map(map)
     if not complete:
@@ -282,7 +282,7 @@ def restore(connection, settings, file, everything, map):
         steps, changes, partial_points = restore_plan(current, wanted, register_map, everything)
         items = [item for step in steps for item in step.items]
         if settings.dry_run:
-            from mbtool.cli.dryrun import DryRunDone  # noqa: PLC0415 - with codec.describe, 0.8 ms: --dry-run only
+            from mbtool.cli.dryrun import DryRunDone  # noqa: PLC0415 - describe, 0.8 ms: --dry-run only
 
             report(settings, items, head)
             raise DryRunDone(

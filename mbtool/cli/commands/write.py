@@ -181,7 +181,11 @@ def write(connection, settings, targets, map, multiple, rmw, allow_nonfinite, va
 def _write_reference(
     connection, settings, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
 ) -> None:
-    from mbtool.codec.tables import parse_reference, reference, write_of  # noqa: PLC0415 - REF and write-bit only
+    from mbtool.codec.tables import (  # noqa: PLC0415 - REF, write-bit only
+        parse_reference,
+        reference,
+        write_of,
+    )
 
     if "=" in text:
         raise RequestError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
@@ -225,8 +229,8 @@ def _write_map(
     connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
 ) -> None:
     from mbtool.cli.writes import Step, failure, report, send_all  # noqa: PLC0415 - write -m only
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader (tomllib, decimal), 4-8 ms: -m only
-    from mbtool.registermap.plan import write_request  # noqa: PLC0415 - with decimal, 2 ms: -m and write-bit only
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.registermap.plan import write_request  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
     from mbtool.registermap.point import NoScaleFactor  # noqa: PLC0415 - with decimal, 1 ms: -m only
 
     register_map = load_map(path)
@@ -350,7 +354,10 @@ def _write_bit(connection, client, address: int, bit: int, on: bool, rmw: bool) 
     """Set or clear one bit of a holding register: FC 22 (spec §3), or with ``rmw`` FC 03
     then FC 06.  The register as written when it is known (rmw), else ()."""
     from mbtool.codec.tables import HOLDING_REGISTERS, reference  # noqa: PLC0415 - REF and write-bit only
-    from mbtool.registermap.plan import bit_request, with_bit  # noqa: PLC0415 - with decimal, 2 ms: -m and write-bit only
+    from mbtool.registermap.plan import (  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
+        bit_request,
+        with_bit,
+    )
 
     if not rmw:
         try:
@@ -384,7 +391,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
     FC 22 answers exception 01, and --rmw reads the register and writes it back
     (FC 03, then FC 06) instead, which is not atomic.
     """
-    from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference  # noqa: PLC0415 - REF and write-bit only
+    from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference  # noqa: PLC0415 - REF, write-bit only
 
     table, address = parse_reference(ref)
     if table is not HOLDING_REGISTERS:
@@ -394,7 +401,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
     on = parse_bit(state)
     with open_client(connection, settings, RMW_NEEDS if rmw else "") as client:
         if settings.dry_run:
-            from mbtool.registermap.plan import bit_request  # noqa: PLC0415 - with decimal, 2 ms: -m and write-bit only
+            from mbtool.registermap.plan import bit_request  # noqa: PLC0415 - decimal, 2 ms: write-bit only
 
             client.show(connection.unit, _rmw_read(address) if rmw else bit_request(address, bit, on))
             client.finish(connection.unit)
