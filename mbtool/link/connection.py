@@ -12,6 +12,8 @@ from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import record
 from mbtool.errors import KNOWN_ERRORS
 
+# link.transport and link.client are imported where a link is opened or checked: every command
+# loads Connection (cli.options), crc too, and they cost it 5-7 M instructions.
 if TYPE_CHECKING:
     from mbtool.codec.framer import Framer
     from mbtool.link.client import Client, Trace
@@ -48,7 +50,7 @@ class Connection:
 
 
 def framer_name(connection: Connection) -> str:
-    from mbtool.link.transport import default_framer  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
+    from mbtool.link.transport import default_framer  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     return connection.framer or default_framer(connection.port or "")
 
@@ -64,7 +66,7 @@ def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
-    from mbtool.link.transport import is_network  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
+    from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     name = framer_name(connection)
     port = connection.port or ""
@@ -125,8 +127,8 @@ def open_client(
     (--hex).  Several transactions can share the link (diag counters, device-id's
     more-follows; sim:// keeps its state only as long as its link).
     """
-    from mbtool.link.client import Client  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
-    from mbtool.link.transport import (  # noqa: PLC0415 - socket, 4 ms: crc loads this too
+    from mbtool.link.client import Client  # noqa: PLC0415 - 5-7 M instructions: crc too
+    from mbtool.link.transport import (  # noqa: PLC0415 - 5-7 M instructions: crc too
         SerialSettings,
         open_transport,
     )
@@ -174,7 +176,7 @@ def close_quietly(link: ExitStack) -> None:
 
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     """RTS lead and trail in seconds when RTS switches the line's direction, else None."""
-    from mbtool.link.transport import is_network  # noqa: PLC0415 - socket, 4 ms: crc loads Connection too
+    from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     delays = rs485_delays(connection.rs485, connection.rs485_delays)
     if delays and is_network(connection.port or ""):

@@ -14,12 +14,14 @@ timed by the kernel, may end a few milliseconds late); the client owns the clock
 
 from __future__ import annotations
 
+# The socket options' numbers, from the module socket.py wraps: socket itself (link.base.connect
+# imports it) costs 14 M instructions that a sim:// or serial read need not pay.
+import _socket
 import contextlib
 import errno
 import os
 import re
 import select
-import socket
 import struct
 import sys
 import time
@@ -230,7 +232,7 @@ class SerialTransport(Transport):
             # pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects", which
             # every one-shot command would pay on exit; close the bridge's socket at once.
             with contextlib.suppress(OSError):
-                bridge.shutdown(socket.SHUT_RDWR)
+                bridge.shutdown(_socket.SHUT_RDWR)
             bridge.close()
             self.port._socket = None
             self.port.is_open = False
@@ -251,9 +253,9 @@ class TcpTransport(Transport):
         self.sock.settimeout(None)
         # A struct timeval's fields are as wide as the kernel says: two longs, or two 64-bit
         # counts on a 32-bit system built with a 64-bit time_t.
-        wide = len(self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16)) == 16
+        wide = len(self.sock.getsockopt(_socket.SOL_SOCKET, _socket.SO_RCVTIMEO, 16)) == 16
         self._timeval = "@qq" if wide else "@ll"
-        self._set_timeout(socket.SO_SNDTIMEO, WRITE_TIMEOUT)
+        self._set_timeout(_socket.SO_SNDTIMEO, WRITE_TIMEOUT)
         self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
 
     def write(self, data: bytes) -> None:
@@ -270,7 +272,7 @@ class TcpTransport(Transport):
         try:
             if timeout >= KERNEL_TIMER_MIN and KERNEL_TIMED_READS:
                 if abs(timeout - self._read_timeout) > KERNEL_TIMER_SLACK:
-                    self._set_timeout(socket.SO_RCVTIMEO, timeout)
+                    self._set_timeout(_socket.SO_RCVTIMEO, timeout)
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
@@ -310,7 +312,7 @@ class TcpTransport(Transport):
         else:
             whole = int(seconds)
             value = struct.pack(self._timeval, whole, int((seconds - whole) * 1e6))
-        self.sock.setsockopt(socket.SOL_SOCKET, option, value)
+        self.sock.setsockopt(_socket.SOL_SOCKET, option, value)
 
     def close(self) -> None:
         self.sock.close()
