@@ -169,7 +169,7 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
         connection = Connection(**settings)
         check(connection)
         if connection.port.lower().startswith("tls://"):
-            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
+            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
             # key's password is asked once, here, not by a link's worker on each reconnect.

@@ -40,7 +40,7 @@ def tls_server_settings(
         return None, None
     if framer != "tcp":
         raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framer}")
-    from mbtool.link.tls import server_context  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
+    from mbtool.link.tls import server_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
     roles = parse_roles(write_roles) if write_roles is not None else None
     if roles is None and data_file:

@@ -80,7 +80,7 @@ class Server:
         if target.scheme == "tcp":
             self.port = TcpServer(target, framer_name, answerer, faults, self.stats, log, **limits)
         elif target.scheme == "tls":
-            from mbtool.device.tls_server import TlsServer  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
+            from mbtool.device.tls_server import TlsServer  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             assert tls_context is not None, (
                 "a tls:// server needs its context (mbtool.link.tls.server_context)"

@@ -107,7 +107,7 @@ def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
 
 def tls_settings(connection: Connection):
     """The TlsSettings of a tls:// connection (mbtool.link.tls)."""
-    from mbtool.link.tls import TlsSettings  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
+    from mbtool.link.tls import TlsSettings  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
     return TlsSettings(
         connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name

@@ -78,7 +78,7 @@ class SerialSettings:
 class SerialTransport(Transport):
     def __init__(self, url: str, settings: SerialSettings, listen_only: bool = False) -> None:
         """``listen_only``: a monitor's port, opened with RTS low and never written to."""
-        import serial  # noqa: PLC0415 - pyserial costs an import only when a serial line is used
+        import serial  # noqa: PLC0415 - pyserial: a serial line only
 
         self.description = url
         if url.lower().startswith("socket://"):
@@ -431,11 +431,11 @@ def open_transport(
     ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
     if where.scheme == "tls":
-        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl costs 6 ms: tls:// only
+        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
         return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
     if where.scheme in ("udp", "rtu+udp"):
-        from mbtool.link.udp import UdpTransport  # noqa: PLC0415 - udp:// only, off the one-shot reads
+        from mbtool.link.udp import UdpTransport  # noqa: PLC0415 - socket, 14 M instructions: udp:// only
 
         return UdpTransport(where.scheme, where.host, where.port)
     if where.scheme == "tcp":

@@ -302,7 +302,7 @@ def raw(connection, settings, data, adu):
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """
-    from mbtool.link.client import Trace  # noqa: PLC0415 - socket, 4 ms: raw only, not crc or decode
+    from mbtool.link.client import Trace  # noqa: PLC0415 - 5-7 M instructions: raw only, not crc
 
     name = framer_name(connection)
     text = " ".join(data)
