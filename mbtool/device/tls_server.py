@@ -30,8 +30,8 @@ from mbtool.codec.pdu import ExceptionCode, function_type
 from mbtool.device.handlers import changes_state
 from mbtool.device.serving import Answerer, IoFaults, Stats
 from mbtool.device.tcp_server import RECV_SIZE, TcpServer, _Client
+from mbtool.link import x509
 from mbtool.link.transport import Target
-from mbtool.link.x509 import role
 
 # What a failed handshake means, by OpenSSL's reason, in the server's words.
 FAILURES = {
@@ -174,7 +174,7 @@ class TlsServer(TcpServer):
 
         note = ""
         try:
-            client.role = role(der) if der else None
+            client.role = x509.role(der) if der else None
         except ValueError as error:
             note = f" ({error}: taken as no role)"
         self.roles[client.peer] = client.role

@@ -24,8 +24,8 @@ import sys
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed
+from mbtool.link import x509
 from mbtool.link.base import READ_CHUNK, WRITE_TIMEOUT, ConnectionClosed, Transport, connect, reason
-from mbtool.link.x509 import names
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
 
@@ -341,7 +341,7 @@ def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> li
     try:
         with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)
-        return names(der) if der else []
+        return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):
         return []
 
