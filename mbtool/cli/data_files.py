@@ -4,6 +4,7 @@ sections, writing one (``dump``), and reading one back (``diff``, ``restore``)."
 from __future__ import annotations
 
 from mbtool.codec.errors import RequestError
+from mbtool.device.datafile import load_data
 
 TABLE_SECTIONS = {  # a table's name in mbtool's messages -> its section in a data file
     "coils": "coils",
@@ -59,8 +60,6 @@ def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
 
     One device's tables: a file with [units.N] sections (serve's, one set a unit) is
     refused rather than read as something it is not."""
-    from mbtool.device.datafile import load_data
-
     model, units = load_data(path, frozenset(range(1, 256)), listed_only=True)
     if units:
         raise RequestError(

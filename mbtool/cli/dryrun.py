@@ -8,6 +8,10 @@ first request with ``DryRunDone``, which leaves through exit 0.
 
 from __future__ import annotations
 
+from mbtool.cli.frames import frame_report
+from mbtool.cli.render import default_format, render
+from mbtool.cli.settings import FORMATS
+from mbtool.codec.describe import describe
 from mbtool.errors import ExitCode, MbtoolError
 
 
@@ -29,11 +33,6 @@ class DryRunClient:
 
     def show(self, unit: int, request) -> None:
         """Print the frame that would go out for this request."""
-        from mbtool.cli.frames import frame_report
-        from mbtool.cli.render import default_format, render
-        from mbtool.cli.settings import FORMATS
-        from mbtool.codec.describe import describe
-
         # Transaction id 1: the first one a real Client would use.
         adu = self.framer.build(unit, request.encode(), 1)
         name = self.framer.name

@@ -40,10 +40,11 @@ from pathlib import Path
 import click
 
 from mbtool.cli import profiles
+from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
-from mbtool.link.connection import Connection, check
+from mbtool.link.connection import Connection, check, tls_settings
 from mbtool.link.transport import parse_target
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
 from mbtool.registermap.load import MapError, load_map, one_line
@@ -144,8 +145,6 @@ def _setting(key: str, value, where: str):
 def _link_params() -> tuple[dict[str, click.Parameter], click.Context]:
     """The device commands' options, whose types convert a link's values as they convert a
     profile's (profiles._convert): one place for what --parity or --timeout accepts."""
-    from mbtool.cli.options import device_command
-
     command = device_command("link", polls=True)(lambda connection, settings: connection)
     return {param.name: param for param in command.params}, click.Context(command)
 
@@ -170,8 +169,7 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
         connection = Connection(**settings)
         check(connection)
         if connection.port.lower().startswith("tls://"):
-            from mbtool.link.connection import tls_settings
-            from mbtool.link.tls import client_context
+            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
             # key's password is asked once, here, not by a link's worker on each reconnect.

@@ -21,7 +21,7 @@ def to_json(value: object) -> str:
     one-shot ``-o json`` from cron would pay; strings are escaped by the same C
     function json itself uses.
     """
-    from _json import encode_basestring_ascii
+    from _json import encode_basestring_ascii  # noqa: PLC0415 - 0.2 ms: -o json only; all commands load this
 
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "null"  # NaN and infinities are not JSON; jq would choke on them
@@ -56,7 +56,7 @@ def json_line(data: dict) -> str:
     invalid JSON, go the to_json way (null)."""
     global _ENCODER
     if _ENCODER is None:
-        import json
+        import json  # noqa: PLC0415 - 1 ms: polling only
 
         # Made once (json.dumps makes one a call); a poll's data has no cycles to look for.
         _ENCODER = json.JSONEncoder(allow_nan=False, check_circular=False)
@@ -107,7 +107,7 @@ class JsonLines:
         )
         if shape != self.shape:
             self.shape, self.parts = shape, self._parts(result)
-            from mbtool.codec.values import TYPES  # polling only: a one-shot write needs none
+            from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
 
             self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
         # A list of ints is the same text in Python's repr as in JSON (json writes an int by

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from mbtool.codec.errors import RequestError
+from mbtool.device.datafile import load_write_roles
 
 if TYPE_CHECKING:
     from mbtool.link.transport import Target
@@ -39,11 +40,9 @@ def tls_server_settings(
         return None, None
     if framer != "tcp":
         raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framer}")
-    from mbtool.link.tls import server_context
+    from mbtool.link.tls import server_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
     roles = parse_roles(write_roles) if write_roles is not None else None
     if roles is None and data_file:
-        from mbtool.device.datafile import load_write_roles
-
         roles = load_write_roles(data_file)
     return server_context(cert, key, ca), roles

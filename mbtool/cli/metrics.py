@@ -27,7 +27,8 @@ import time
 
 from mbtool.cli.results import Points
 from mbtool.cli.settings import Settings
-from mbtool.errors import ExitCode, exit_code_for
+from mbtool.codec.errors import RequestError
+from mbtool.errors import ExitCode, OutputFailed, exit_code_for
 
 # The failures that mean the device could not be read: no reply, an exception (to every
 # point of a map), a reply that is not one, a link that cannot be opened.
@@ -56,8 +57,7 @@ class Metrics:
         would end the point and make the rest a point of its own (in a measurement of its
         own).  Its measurement cannot be empty, and one starting with # makes the line a
         comment.  A map's point names are held to one line when the map is loaded."""
-        from mbtool.codec.errors import RequestError
-        from mbtool.registermap.load import one_line
+        from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         measurement, device = self.measurement, self.device
         names = [("--measurement", measurement, "a measurement")]
@@ -85,8 +85,6 @@ class Metrics:
 
     def check_point_names(self, points) -> None:
         """Refuse, before anything is sent, a map point whose metric would be a status metric."""
-        from mbtool.codec.errors import RequestError
-
         for point in points:
             metric = _metric_name(f"{self.measurement}_{point.name}")
             if metric in self.status_names():
@@ -324,9 +322,7 @@ def write_textfile(text: str, path: str, sweep: bool = True) -> None:
     the user creates (the umask), as node_exporter runs as another user.  Its name,
     ``.NAME.PID.XXXXXXXX.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
     gives no chance to clean up) is removed at a run's first write (``sweep``)."""
-    import tempfile
-
-    from mbtool.errors import OutputFailed
+    import tempfile  # noqa: PLC0415 - 3 ms or more: --textfile only
 
     folder, name = os.path.split(os.path.abspath(path))
     if sweep:

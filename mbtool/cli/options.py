@@ -12,9 +12,11 @@ import click
 from mbtool.cli.completion import complete_port, complete_profile
 from mbtool.cli.param_types import COUNT, PARITY, Choice, Number, PositiveFloat, Rs485Delays, Seconds
 from mbtool.cli.parsing import DeviceCommand
+from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
 from mbtool.codec.errors import RequestError
-from mbtool.link.connection import Connection
+from mbtool.codec.record import replace
+from mbtool.link.connection import Connection, check
 
 # --- shared options ------------------------------------------------------------------
 
@@ -411,7 +413,7 @@ def reference_target(targets: tuple[str, ...], command: str, types_given: list[s
 
     A name where a reference goes is told about -m; --type or --order on coils and
     discrete inputs is refused (they hold bits)."""
-    from mbtool.codec.tables import parse_reference
+    from mbtool.codec.tables import parse_reference  # noqa: PLC0415 - REF only; all commands load this
 
     if not targets:
         raise click.UsageError("give a reference such as 40001 (and a count), or -m MAP and point names")
@@ -498,17 +500,13 @@ def device_command(
                 stats=shown.get("stats", "line"),
             )
             if profile:
-                from mbtool.cli.profiles import defaults
-                from mbtool.codec.record import replace
+                from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; all commands load this
 
                 changes = defaults(profile)
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
                 connection = replace(connection, **changes) if changes else connection
             if connection.insecure and not settings.dry_run:
-                from mbtool.cli.session import warn_insecure
-                from mbtool.link.connection import check
-
                 check(connection)  # a mistake in the options is said alone, not after the warning
                 warn_insecure(connection)
             return function(connection, settings, **kwargs)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+from mbtool.cli.metrics import _exposition, _label_pairs, _label_value, _metric_name, _sample_value
 from mbtool.cli.stamps import local_time
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
@@ -28,8 +29,6 @@ def point_metric(reading) -> tuple[str, str, int | float] | None:
 @lru_cache(maxsize=4096)
 def _named(name: str, description: str, unit: str) -> tuple[str, str]:
     """A point's metric name and help, worked out once: a plant writes them every poll."""
-    from mbtool.cli.metrics import _metric_name
-
     return _metric_name(f"modbus_{name}"), (description or name) + (f" ({unit})" if unit else "")
 
 
@@ -37,8 +36,6 @@ def prom_text(states: list) -> str:
     """The exposition of the devices' latest polls: modbus_up and the last success a device,
     and a gauge a point read; a device down shows no value (it would be scraped as current).
     ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
-    from mbtool.cli.metrics import _exposition, _label_pairs, _label_value, _sample_value
-
     metrics = {
         UP: ("1 when the device answered its last poll, 0 when it could not be read", []),
         LAST_SUCCESS: ("When the device last answered a poll, in seconds since the epoch", []),

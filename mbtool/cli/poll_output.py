@@ -87,7 +87,7 @@ class Output:
         elif self.fmt == "plain":
             self._emit("".join(f"{when} {point_line(row)}\n" for row in points.rows))
         else:
-            from rich.text import Text
+            from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
             self._show_table(Text(f"{points_heading(points)} · {when}"), points_table(points))
 
@@ -128,8 +128,8 @@ class Output:
         self._flush_at = time.monotonic() + FLUSH_GAP
 
     def _table(self, when: str, result) -> None:
-        from rich.table import Table
-        from rich.text import Text
+        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
         # The heading above, not as the table's title: a title wraps to the table's width.
         heading = Text(f"{result.name} · {function_code_text(result.function)} · unit {result.unit} · {when}")
@@ -144,13 +144,13 @@ class Output:
         self._show_table(heading, table)
 
     def _show_table(self, heading, table) -> None:
-        from rich.console import Group
-        from rich.live import Live
+        from rich.console import Group  # noqa: PLC0415 - rich, 12-20 ms: tables only
+        from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
         if not self.out.isatty():
             # Into a file or a pipe every poll's table stays, each ending its line: a table
             # refreshed in place would leave only the last one, without a final newline.
-            from rich.console import Console
+            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
             Console(file=self.out).print(Group(heading, table))
             return

@@ -73,7 +73,7 @@ def config_path() -> Path:
 def read_toml(path: Path, what: str = "profile file") -> dict:
     """A TOML file (the config file, poll's inventory); RequestError (exit 2) naming the
     file for any problem."""
-    import tomllib
+    import tomllib  # noqa: PLC0415 - 2 ms: -P and inventories only
 
     try:
         with open(path, "rb") as file:

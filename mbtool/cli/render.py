@@ -127,7 +127,7 @@ def _json(result: Result, out: TextIO) -> None:
 
 
 def _csv(result: Result, out: TextIO, wanted: bool) -> None:
-    import csv
+    import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
 
     writer = csv.writer(out, lineterminator="\n")
     header, rows = csv_cells(result)
@@ -137,8 +137,8 @@ def _csv(result: Result, out: TextIO, wanted: bool) -> None:
 
 
 def _table(result: Result, out: TextIO) -> None:
-    from rich.console import Console
-    from rich.table import Table
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
     bits = result.type is None
     orders = by_order(result)
@@ -154,7 +154,7 @@ def _table(result: Result, out: TextIO) -> None:
         table.add_column("Hex", justify="right")
     typed_registers = not bits and not plain_registers and result.registers is not None
     if typed_registers:
-        from mbtool.codec.values import TYPES
+        from mbtool.codec.values import TYPES  # noqa: PLC0415 - typed registers only; crc loads this too
 
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
@@ -202,8 +202,8 @@ def point_cells(row: PointRow) -> list[str]:
 
 def points_table(points: Points, heading: str = ""):
     """The rich table of a map read (its heading above it, as polling draws it too)."""
-    from rich.markup import escape
-    from rich.table import Table
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
     described = any(row.description for row in points.rows)
     table = Table()
@@ -228,8 +228,8 @@ def points_heading(points: Points) -> str:
 
 
 def _points_table(points: Points, out: TextIO) -> None:
-    from rich.console import Console
-    from rich.markup import escape
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
     console = Console(file=out) if out is not sys.stdout else Console()
     console.print(f"[bold]{escape(points_heading(points))}[/]", highlight=False)
@@ -247,7 +247,7 @@ def _points_json(points: Points, out: TextIO) -> None:
 
 
 def _points_csv(points: Points, out: TextIO, wanted: bool) -> None:
-    import csv
+    import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
 
     writer = csv.writer(out, lineterminator="\n")
     if wants_csv_header(out, wanted):
@@ -267,7 +267,7 @@ def _report_json(report: Report, out: TextIO) -> None:
 
 
 def _report_csv(report: Report, out: TextIO, wanted: bool) -> None:
-    import csv
+    import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
 
     writer = csv.writer(out, lineterminator="\n")
     with_raw = any(row.raw is not None for row in report.rows)
@@ -281,9 +281,9 @@ def _report_csv(report: Report, out: TextIO, wanted: bool) -> None:
 
 
 def _report_table(report: Report, out: TextIO) -> None:
-    from rich.console import Console
-    from rich.markup import escape
-    from rich.table import Table
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
     with_raw = any(row.raw is not None for row in report.rows)
     table = Table()

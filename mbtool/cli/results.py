@@ -61,7 +61,7 @@ class Result:
     def table(self) -> str:
         """The table a read of FC 01-04 read (coils, discrete, input, holding); else the
         function's name."""
-        from mbtool.codec.tables import TABLE_OF_READ
+        from mbtool.codec.tables import TABLE_OF_READ  # noqa: PLC0415 - -o influx and prom only
 
         return TABLE_OF_READ.get(self.function, self.name)
 

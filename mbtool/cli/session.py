@@ -12,7 +12,9 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from mbtool.cli.render import default_format, render
 from mbtool.cli.settings import Settings
+from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import replace
 from mbtool.link.connection import Connection, check, framer_name
 from mbtool.link.connection import open_client as open_link
@@ -28,8 +30,7 @@ def open_client(
     ``then``: with --dry-run, what the command would send after the first reply.
     """
     if settings.dry_run:
-        from mbtool.cli.dryrun import DryRunClient
-        from mbtool.codec.framing import make_framer
+        from mbtool.cli.dryrun import DryRunClient  # noqa: PLC0415 - describe, 0.8 ms: --dry-run only
 
         name = check(connection, needs, opening=False)
         yield DryRunClient(framer or make_framer(name), settings, then)
@@ -57,7 +58,7 @@ def trace_for(settings: Settings):
     """What makes a Client's trace from its framer: --hex's, or None for no trace."""
     if not settings.hex:
         return None
-    from mbtool.cli.frames import HexTrace
+    from mbtool.cli.frames import HexTrace  # noqa: PLC0415 - --hex only
 
     return HexTrace
 
@@ -72,9 +73,6 @@ def show(connection: Connection, settings: Settings, result, metrics=None) -> No
     """Print a command's result; a write to unit 0 says on stderr that nobody confirmed it.
     ``metrics``: the run's cli.metrics.Metrics, which writes -o influx and prom (only the
     read commands offer them: device_command)."""
-    from mbtool.cli.render import default_format, render
-    from mbtool.codec.framing import is_broadcast
-
     if is_broadcast(connection.unit, framer_name(connection)):
         result = replace(result, note="broadcast: no device confirms a write to unit 0")
         print(f"mbtool: {result.note}", file=sys.stderr)

@@ -17,9 +17,13 @@ Ctrl-C.
 
 from __future__ import annotations
 
+import csv
 import sys
 from collections.abc import Callable, Sequence
 
+from mbtool.cli.json_text import to_json
+from mbtool.cli.render import change_parts, default_format, wants_csv_header
+from mbtool.cli.results import value_text
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
 from mbtool.errors import KNOWN_ERRORS, Summary, exit_code_for
@@ -127,8 +131,6 @@ def _counts(outcome: Outcome, read_back: bool | None = None) -> str:
 def item_line(item: dict) -> str:
     """``confirmed holding 744: 0 -> 11``, ``written setpoint (40501): 22.5 m3/h``; without a
     status (a dry run) exactly as diff prints a difference."""
-    from mbtool.cli.render import change_parts
-
     where, old, new = change_parts(item, item.get("old"), item["new"], item.get("unit", ""))
     line = f"{where}: {old} -> {new}" if "old" in item else f"{where}: {new}"
     if "reads" in item:
@@ -139,9 +141,6 @@ def item_line(item: dict) -> str:
 def report(settings, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
     """Print the items in the run's format (its Settings): ``head`` (unit, map, file) and
     ``end`` (error, exit_code) frame them in JSON."""
-    from mbtool.cli.json_text import to_json
-    from mbtool.cli.render import default_format
-
     fmt = settings.output_format or default_format()
     if fmt == "json":
         print(to_json({**head, "writes": list(items), **(end or {})}))
@@ -157,11 +156,6 @@ CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 
 
 def _csv(items: Sequence[dict], header: bool) -> None:
-    import csv
-
-    from mbtool.cli.render import wants_csv_header
-    from mbtool.cli.results import value_text
-
     writer = csv.writer(sys.stdout, lineterminator="\n")
     if wants_csv_header(sys.stdout, header):
         writer.writerow(CSV_HEADER)
@@ -173,11 +167,9 @@ def _csv(items: Sequence[dict], header: bool) -> None:
 
 
 def _table(items: Sequence[dict], head: dict) -> None:
-    from rich.console import Console
-    from rich.markup import escape
-    from rich.table import Table
-
-    from mbtool.cli.render import change_parts
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
     statuses = any("status" in item for item in items)
     olds = any("old" in item for item in items)

@@ -14,6 +14,7 @@ that once per function code.
 from __future__ import annotations
 
 import struct
+from importlib import import_module
 from typing import ClassVar
 
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name, function_code_text
@@ -346,8 +347,6 @@ def function_type(code: int) -> type[Request] | None:
     """The request type of a function code, or None if the codec does not know it."""
     kind = FUNCTIONS.get(code)
     if kind is None and code in _MODULE_OF:
-        from importlib import import_module
-
         import_module(f"mbtool.codec.{_MODULE_OF[code]}")
         kind = FUNCTIONS[code]
     return kind

@@ -544,7 +544,12 @@ class ReportSlaveIdResponse(Response):
 
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list[Field]:
-        from mbtool.codec.modicon import MODICON_BYTES, SLAVE_IDS, modicon_fields, modicon_layout
+        from mbtool.codec.modicon import (  # noqa: PLC0415 - FC17's dissection only; sim:// loads this module
+            MODICON_BYTES,
+            SLAVE_IDS,
+            modicon_fields,
+            modicon_layout,
+        )
 
         slave_id, run = pdu[2], pdu[3]
         extra = bytes(pdu[4:])

@@ -181,7 +181,7 @@ def float_value(number, type_name: str, shown: str, nonfinite: bool = False) -> 
     """``number`` (text or a Decimal) as the float type holds it.  A decimal beyond the
     type's range is refused: float() would make it an infinity, and struct would send
     7F 80 00 00 for a value the user never typed.  nan and inf only with ``nonfinite``."""
-    from decimal import Decimal, InvalidOperation  # only for a float written
+    from decimal import Decimal, InvalidOperation  # noqa: PLC0415 - decimal, 1 ms: a float written only
 
     kind = TYPES[type_name]
     try:

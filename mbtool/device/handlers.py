@@ -6,8 +6,9 @@ unit's ``Station`` (``mbtool.device.model``); ``HANDLERS`` lists them by functio
 handler raises ``RequestError`` for an exception reply and returns None when no reply is
 due.  ``mbtool.device.device.Device`` chooses the station and does the bookkeeping.
 
-The reply types are imported where they are used, so a one-shot ``sim://`` command loads
-only the codec modules of the function it asks for.
+The tables' replies (``codec.data_access``, which every read loads) are imported at the top; the
+other families' where they are used, so a one-shot ``sim://`` read loads no codec module it
+does not need.
 """
 
 from __future__ import annotations
@@ -15,9 +16,15 @@ from __future__ import annotations
 import struct
 from array import array
 
+from mbtool.codec.data_access import (
+    MAX_FIFO_COUNT,
+    BitsResponse,
+    ReadFifoQueueResponse,
+    RegistersResponse,
+    WriteMultipleResponse,
+)
 from mbtool.codec.errors import RequestError
 from mbtool.codec.pdu import ExceptionCode
-from mbtool.codec.serial_line import RUN_OFF, RUN_ON
 from mbtool.device.model import (
     COUNTER_SUBS,
     EVENT_LISTEN_ONLY,
@@ -70,8 +77,6 @@ def changes_state(pdu: bytes) -> bool:
 
 
 def _read_bits(model: DataModel, request, name: str):
-    from mbtool.codec.data_access import BitsResponse
-
     model.require(name, request.address, request.count)
     table = getattr(model, name)
     bits = tuple(bool(b) for b in table[request.address : request.address + request.count])
@@ -79,8 +84,6 @@ def _read_bits(model: DataModel, request, name: str):
 
 
 def _read_registers(model: DataModel, request, name: str):
-    from mbtool.codec.data_access import RegistersResponse
-
     model.require(name, request.address, request.count)
     table = getattr(model, name)
     return RegistersResponse(
@@ -101,8 +104,6 @@ def _write_single_register(station: Station, request):
 
 
 def _write_multiple_coils(station: Station, request):
-    from mbtool.codec.data_access import WriteMultipleResponse
-
     station.model.require("coils", request.address, len(request.values))
     end = request.address + len(request.values)
     station.model.writable("coils")[request.address : end] = bytes(request.values)
@@ -110,8 +111,6 @@ def _write_multiple_coils(station: Station, request):
 
 
 def _write_multiple_registers(station: Station, request):
-    from mbtool.codec.data_access import WriteMultipleResponse
-
     station.model.require("holding_registers", request.address, len(request.values))
     end = request.address + len(request.values)
     station.model.writable("holding_registers")[request.address : end] = array("H", request.values)
@@ -127,8 +126,6 @@ def _mask_write_register(station: Station, request):
 
 def _read_write_registers(station: Station, request):
     """FC23: the write is done before the read (spec §3), once both ranges are known to exist."""
-    from mbtool.codec.data_access import RegistersResponse
-
     model = station.model
     model.require("holding_registers", request.write_address, len(request.values))
     model.require("holding_registers", request.read_address, request.read_count)
@@ -140,8 +137,6 @@ def _read_write_registers(station: Station, request):
 
 def _read_fifo_queue(station: Station, request):
     """FC24: the FIFO pointer register holds the count, the entries follow it (README)."""
-    from mbtool.codec.data_access import MAX_FIFO_COUNT, ReadFifoQueueResponse
-
     model = station.model
     model.require("holding_registers", request.address, 1)
     table = model.holding_registers
@@ -159,7 +154,7 @@ def _read_fifo_queue(station: Station, request):
 
 
 def _read_file_record(station: Station, request):
-    from mbtool.codec.file_record import ReadFileRecordResponse
+    from mbtool.codec.file_record import ReadFileRecordResponse  # noqa: PLC0415 - FC 20 only
 
     for group in request.groups:
         station.model.require(group.file, group.record, group.length)
@@ -188,13 +183,13 @@ def _write_file_record(station: Station, request):
 
 
 def _read_exception_status(station: Station, request):
-    from mbtool.codec.serial_line import ExceptionStatusResponse
+    from mbtool.codec.serial_line import ExceptionStatusResponse  # noqa: PLC0415 - FC 07 only
 
     return ExceptionStatusResponse(station.model.exception_status & 0xFF)
 
 
 def _diagnostics(station: Station, request):
-    from mbtool.codec.serial_line import DiagnosticsResponse
+    from mbtool.codec.serial_line import DiagnosticsResponse  # noqa: PLC0415 - FC 08 only
 
     sub, data = int(request.sub_function), request.data
     if sub == SUB_QUERY:
@@ -259,13 +254,13 @@ def restart(station: Station, data: bytes) -> None:
 
 
 def _comm_event_counter(station: Station, request):
-    from mbtool.codec.serial_line import CommEventCounterResponse
+    from mbtool.codec.serial_line import CommEventCounterResponse  # noqa: PLC0415 - FC 11 only
 
     return CommEventCounterResponse(0x0000, station.event_count)
 
 
 def _comm_event_log(station: Station, request):
-    from mbtool.codec.serial_line import CommEventLogResponse
+    from mbtool.codec.serial_line import CommEventLogResponse  # noqa: PLC0415 - FC 12 only
 
     return CommEventLogResponse(
         0x0000, station.event_count, station.bus["bus_messages"], bytes(station.events)
@@ -273,12 +268,12 @@ def _comm_event_log(station: Station, request):
 
 
 def _report_slave_id(station: Station, request):
-    from mbtool.codec.serial_line import ReportSlaveIdResponse
+    from mbtool.codec.serial_line import RUN_OFF, RUN_ON, ReportSlaveIdResponse  # noqa: PLC0415 - FC 17 only
 
     model = station.model
     _unless_refused(model, request)
     slave_id = station.unit if model.slave_id is None else model.slave_id
-    run = model.run_indicator
+    run = RUN_ON if model.run_indicator is None else model.run_indicator
     return ReportSlaveIdResponse(
         slave_id & 0xFF,
         run != RUN_OFF,
@@ -292,7 +287,7 @@ def _report_slave_id(station: Station, request):
 
 def _read_device_identification(station: Station, request):
     """FC43/14: stream access 1-3 from the object asked for, 4 one object (spec §3)."""
-    from mbtool.codec.device_id import DeviceIdentificationResponse
+    from mbtool.codec.device_id import DeviceIdentificationResponse  # noqa: PLC0415 - FC 43 only
 
     _unless_refused(station.model, request)
     objects = station.model.objects

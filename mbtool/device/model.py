@@ -22,7 +22,6 @@ from collections import deque
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.pdu import ExceptionCode
-from mbtool.codec.serial_line import RUN_ON
 
 TABLE_SIZE = 0x10000  # every table spans the whole 16-bit address space (spec §1)
 TABLES = ("coils", "discrete_inputs", "holding_registers", "input_registers")
@@ -88,8 +87,9 @@ class DataModel:
         self.exception_status = 0  # FC07: eight device-defined bits
         self.diagnostic_register = 0  # FC08 sub 02
         self.slave_id: int | None = None  # FC17; None: the unit id
-        # The FC17 run indicator byte: FF on, 00 off, or whatever else a dumped device sent.
-        self.run_indicator = RUN_ON
+        # The FC17 run indicator byte: FF on, 00 off, or whatever else a dumped device sent;
+        # None: ON (the handler says FF), so the device loads no codec.serial_line to start.
+        self.run_indicator: int | None = None
         self.slave_id_extra = b"mbtool"
         self.objects: dict[int, bytes] = dict(DEFAULT_OBJECTS)  # FC43/14
         self.conformity: int | None = None  # FC43/14's conformity level; None: from the objects

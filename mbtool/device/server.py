@@ -22,6 +22,7 @@ from mbtool.device.device import Device
 from mbtool.device.serial_server import SerialServer
 from mbtool.device.serving import Answerer, IoFaults, Responder, Serving, Stats
 from mbtool.device.tcp_server import FIRST_REQUEST_TIMEOUT, IDLE_TIMEOUT, MAX_CLIENTS, TcpServer
+from mbtool.device.udp_server import UdpServer
 from mbtool.link import IN_PROCESS
 from mbtool.link.transport import SerialSettings, Target
 from mbtool.link.transport import parse_target as parse_link_target
@@ -79,7 +80,7 @@ class Server:
         if target.scheme == "tcp":
             self.port = TcpServer(target, framer_name, answerer, faults, self.stats, log, **limits)
         elif target.scheme == "tls":
-            from mbtool.device.tls_server import TlsServer
+            from mbtool.device.tls_server import TlsServer  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             assert tls_context is not None, (
                 "a tls:// server needs its context (mbtool.link.tls.server_context)"
@@ -96,8 +97,6 @@ class Server:
                 **limits,
             )
         elif target.scheme in ("udp", "rtu+udp"):
-            from mbtool.device.udp_server import UdpServer
-
             self.port = UdpServer(target, framer_name, answerer, faults, self.stats, log)
         else:
             settings = settings or SerialSettings()

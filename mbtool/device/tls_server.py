@@ -20,6 +20,7 @@ the bus (``RoleCheck``).
 
 from __future__ import annotations
 
+import selectors
 import socket
 import ssl
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from mbtool.codec.pdu import ExceptionCode, function_type
 from mbtool.device.handlers import changes_state
 from mbtool.device.serving import Answerer, IoFaults, Stats
 from mbtool.device.tcp_server import RECV_SIZE, TcpServer, _Client
+from mbtool.link import x509
 from mbtool.link.transport import Target
 
 # What a failed handshake means, by OpenSSL's reason, in the server's words.
@@ -169,11 +171,10 @@ class TlsServer(TcpServer):
         client.tls = "ready"
         self._want(client, 0)
         der = client.sock.getpeercert(binary_form=True)
-        from mbtool.link.x509 import role
 
         note = ""
         try:
-            client.role = role(der) if der else None
+            client.role = x509.role(der) if der else None
         except ValueError as error:
             note = f" ({error}: taken as no role)"
         self.roles[client.peer] = client.role
@@ -183,8 +184,6 @@ class TlsServer(TcpServer):
 
     def _want(self, client: _Client, writing: int) -> None:
         """Wait for the socket to be readable, or writable too, for the handshake."""
-        import selectors
-
         events = selectors.EVENT_READ | (selectors.EVENT_WRITE if writing else 0)
         if events != client.events:
             client.events = events

@@ -13,6 +13,7 @@ as UDP allows.
 
 from __future__ import annotations
 
+import select
 import socket
 import time
 from collections.abc import Callable
@@ -67,8 +68,6 @@ class UdpServer(Serving):
         self.stats.listening = f"{self.target.scheme}://{shown}:{bound[1]}"
 
     def _serve(self) -> None:
-        import select
-
         while not self._stop:
             if select.select([self.sock], [], [], self._wait(TICK))[0]:
                 for _ in range(DATAGRAMS_PER_TURN):

@@ -7,11 +7,15 @@ Apart from ``transport`` so that the transports in modules of their own (``mbtoo
 
 from __future__ import annotations
 
+import os
 import re
-import socket
 import time
+from typing import TYPE_CHECKING
 
 from mbtool.errors import ConnectionFailed, NoResponse
+
+if TYPE_CHECKING:
+    import socket
 
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
@@ -55,6 +59,10 @@ class Transport:
 def connect(host: str, port: int, timeout: float) -> socket.socket:
     """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
     off: a request is one small write that must leave at once."""
+    # socket.py costs 14 M instructions (7% of a one-shot read: its enums), which sim:// and
+    # serial lines never need; the transports take its numbers from _socket.
+    import socket  # noqa: PLC0415 - 14 M instructions: tcp:// and tls:// only
+
     try:
         # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
         address = host.encode("ascii") if host.isascii() else host
@@ -73,8 +81,6 @@ def _errno(error: BaseException) -> int | None:
 
 
 def reason(error: BaseException) -> str:
-    import os
-
     number = _errno(error)
     if isinstance(number, int) and number > 0:
         return os.strerror(number)

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
 from mbtool.codec.framer import Frame, Framer, Rejected
-from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
+from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response, pdu_length
 from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
 from mbtool.errors import MbtoolError, NoResponse
 from mbtool.link.transport import ConnectionClosed, Transport
@@ -411,8 +411,6 @@ class Client:
         """A reply PDU made whole, and what was wrong with it, when the fault is harmless and
         unambiguous: bytes after a complete reply (MBAP counted them), or a byte count that
         disagrees with data that is exactly what was asked for.  None otherwise."""
-        from mbtool.codec.pdu import pdu_length
-
         if pdu and pdu[0] & 0x80:
             return None
         whole = pdu_length(pdu, True, request)

@@ -8,8 +8,12 @@ from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
 from mbtool.codec.errors import RequestError
+from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import record
+from mbtool.errors import KNOWN_ERRORS
 
+# link.transport and link.client are imported where a link is opened or checked: every command
+# loads Connection (cli.options), crc too, and they cost it 5-7 M instructions.
 if TYPE_CHECKING:
     from mbtool.codec.framer import Framer
     from mbtool.link.client import Client, Trace
@@ -46,7 +50,7 @@ class Connection:
 
 
 def framer_name(connection: Connection) -> str:
-    from mbtool.link.transport import default_framer
+    from mbtool.link.transport import default_framer  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     return connection.framer or default_framer(connection.port or "")
 
@@ -58,13 +62,11 @@ def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
     for writes only, spec §2; an empty ``needs`` allows it).  ``opening``: the link is to
     be opened, so a port is needed (a dry run opens none).
     """
-    from mbtool.codec.framing import is_broadcast
-
     if not connection.port and opening:
         raise RequestError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
-    from mbtool.link.transport import is_network
+    from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     name = framer_name(connection)
     port = connection.port or ""
@@ -105,7 +107,7 @@ def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
 
 def tls_settings(connection: Connection):
     """The TlsSettings of a tls:// connection (mbtool.link.tls)."""
-    from mbtool.link.tls import TlsSettings
+    from mbtool.link.tls import TlsSettings  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
     return TlsSettings(
         connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name
@@ -125,9 +127,11 @@ def open_client(
     (--hex).  Several transactions can share the link (diag counters, device-id's
     more-follows; sim:// keeps its state only as long as its link).
     """
-    from mbtool.codec.framing import make_framer
-    from mbtool.link.client import Client
-    from mbtool.link.transport import SerialSettings, open_transport
+    from mbtool.link.client import Client  # noqa: PLC0415 - 5-7 M instructions: crc too
+    from mbtool.link.transport import (  # noqa: PLC0415 - 5-7 M instructions: crc too
+        SerialSettings,
+        open_transport,
+    )
 
     name = check(connection, needs)
     settings = SerialSettings(
@@ -164,8 +168,6 @@ def open_client(
 
 def close_quietly(link: ExitStack) -> None:
     """Close a link that may already have broken (polling, scan): nothing left to report."""
-    from mbtool.errors import KNOWN_ERRORS
-
     try:
         link.close()
     except (*KNOWN_ERRORS, OSError):
@@ -174,7 +176,7 @@ def close_quietly(link: ExitStack) -> None:
 
 def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     """RTS lead and trail in seconds when RTS switches the line's direction, else None."""
-    from mbtool.link.transport import is_network
+    from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     delays = rs485_delays(connection.rs485, connection.rs485_delays)
     if delays and is_network(connection.port or ""):

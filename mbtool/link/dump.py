@@ -29,7 +29,8 @@ from mbtool.codec.data_access import (
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
 )
-from mbtool.codec.errors import ModbusException
+from mbtool.codec.device_id import ReadDeviceIdentification
+from mbtool.codec.errors import FrameError, ModbusException
 from mbtool.codec.pdu import ExceptionCode, Request
 from mbtool.codec.record import record
 from mbtool.codec.tables import READS, Table
@@ -130,8 +131,6 @@ def read_identification(execute: Callable[[Request], object], read_code: int) ->
     """Every object of a level of FC 43/14 (spec §3), following more-follows across
     requests; and the device's conformity level (codec.device_id.conformity_name names it).  A more-follows that points back at an
     object already asked for is a bad reply (FrameError), not a loop."""
-    from mbtool.codec.device_id import ReadDeviceIdentification
-    from mbtool.codec.errors import FrameError
 
     objects: dict[int, bytes] = {}
     next_id, asked = 0, set()

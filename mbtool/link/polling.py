@@ -34,6 +34,9 @@ from mbtool.errors import (
     Summary,
     exit_code_for,
 )
+from mbtool.link.connection import close_quietly, open_client
+from mbtool.link.stats import Counted, Stats
+from mbtool.link.transport import ConnectionClosed
 
 if TYPE_CHECKING:
     from mbtool.durations import Durations
@@ -110,9 +113,6 @@ def poll(
     link's ``execute(unit, request)``; ``request`` then stands for them in the link's checks
     (broadcast).  ``figures``: given the summary's figures as a dict at the end (--stats
     json), as well as the line."""
-    from mbtool.link.connection import close_quietly, open_client
-    from mbtool.link.stats import Counted, Stats
-    from mbtool.link.transport import ConnectionClosed
 
     if interval is None:
         interval = DEFAULT_INTERVAL

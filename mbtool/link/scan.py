@@ -19,8 +19,22 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from typing import Protocol
 
-from mbtool.codec.errors import FrameError, MismatchError, ModbusException, ProtocolError
+from mbtool.codec import data_access
+from mbtool.codec.data_access import BitsResponse, RegistersResponse
+from mbtool.codec.device_id import DeviceIdentificationResponse, ReadDeviceIdCode, ReadDeviceIdentification
+from mbtool.codec.errors import FrameError, MismatchError, ModbusException, ProtocolError, exception_name
+from mbtool.codec.framer import Frame
+from mbtool.codec.framing import make_framer
+from mbtool.codec.pdu import ExceptionResponse, printable, text_of
 from mbtool.codec.record import record, replace
+from mbtool.codec.serial_line import (
+    DEFAULT_QUERY_DATA,
+    Diagnostics,
+    DiagnosticsResponse,
+    DiagnosticSubFunction,
+    ReportSlaveId,
+    ReportSlaveIdResponse,
+)
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.connection import close_quietly, framer_name, open_client
 from mbtool.link.stats import Counted, Stats
@@ -91,8 +105,6 @@ class Tally:
 def probe_request(function: str, address: int, count: int):
     """The request each unit is asked; built before anything is opened (bad input: exit 2)."""
     if function in READS:
-        from mbtool.codec import data_access
-
         kind = {
             "read-holding-registers": data_access.ReadHoldingRegisters,
             "read-input-registers": data_access.ReadInputRegisters,
@@ -101,24 +113,15 @@ def probe_request(function: str, address: int, count: int):
         }[function]
         return kind(address, count)
     if function == "report-id":
-        from mbtool.codec.serial_line import ReportSlaveId
-
         return ReportSlaveId()
     if function == "device-id":
-        from mbtool.codec.device_id import ReadDeviceIdCode, ReadDeviceIdentification
-
         return ReadDeviceIdentification(ReadDeviceIdCode.BASIC, 0)
-    from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, Diagnostics, DiagnosticSubFunction
 
     return Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, DEFAULT_QUERY_DATA)
 
 
 def _reply_answer(unit: int, reply, ms: float | None) -> Answer:
     """What a reply says about the device, for people (text) and for scripts (fields)."""
-    from mbtool.codec.data_access import BitsResponse, RegistersResponse
-    from mbtool.codec.device_id import DeviceIdentificationResponse
-    from mbtool.codec.pdu import printable, text_of
-    from mbtool.codec.serial_line import DiagnosticsResponse, ReportSlaveIdResponse
 
     fields: dict = {}
     text = "reply"
@@ -180,8 +183,6 @@ class Listener:
 
 def frames_in(framer_name: str, data: bytes) -> list:
     """The whole, valid frames in ``data``, read as replies."""
-    from mbtool.codec.framer import Frame
-    from mbtool.codec.framing import make_framer
 
     framer = make_framer(framer_name)
     framer.feed(data)
@@ -228,7 +229,6 @@ def _ms(began: float) -> float:
 
 def _late(frame, request, probed: set[int], found: set[int]) -> Answer | None:
     """A stray frame as the late answer of a unit probed earlier on this link, if it is one."""
-    from mbtool.codec.pdu import ExceptionResponse
 
     if frame.unit not in probed or frame.unit in found:
         return None
@@ -247,7 +247,6 @@ def _late(frame, request, probed: set[int], found: set[int]) -> Answer | None:
 
 def _exception_answer(unit: int, code: int, ms: float | None) -> Answer | None:
     """An exception proves a device is there, except a gateway's 0A/0B: nobody behind it answered."""
-    from mbtool.codec.errors import exception_name
 
     if code in GATEWAY_EXCEPTIONS:
         return None

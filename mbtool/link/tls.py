@@ -24,6 +24,7 @@ import sys
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed
+from mbtool.link import x509
 from mbtool.link.base import READ_CHUNK, WRITE_TIMEOUT, ConnectionClosed, Transport, connect, reason
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
@@ -158,7 +159,7 @@ def key_password(key: str) -> str:
             f"the key {key} is encrypted and there is no terminal to ask its password on: "
             f"set {KEY_PASSWORD_VARIABLE}"
         )
-    import getpass
+    import getpass  # noqa: PLC0415 - with termios, 0.4 ms: an encrypted key only
 
     try:
         return getpass.getpass(f"password for {key}: ")
@@ -336,12 +337,11 @@ def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> li
     context.minimum_version = ssl.TLSVersion.TLSv1_2
     context.check_hostname = False
     context.verify_mode = ssl.CERT_NONE
-    from mbtool.link.x509 import names
 
     try:
         with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)
-        return names(der) if der else []
+        return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):
         return []
 

@@ -14,12 +14,14 @@ timed by the kernel, may end a few milliseconds late); the client owns the clock
 
 from __future__ import annotations
 
+# The socket options' numbers, from the module socket.py wraps: socket itself (link.base.connect
+# imports it) costs 14 M instructions that a sim:// or serial read need not pay.
+import _socket
 import contextlib
 import errno
 import os
 import re
 import select
-import socket
 import struct
 import sys
 import time
@@ -28,6 +30,7 @@ from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
+from mbtool.codec.timing import character_bits
 from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
 from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
@@ -69,15 +72,13 @@ class SerialSettings:
     @property
     def char_bits(self) -> int:
         """Bits one character takes on this line (its t3.5 is 3.5 of them)."""
-        from mbtool.codec.timing import character_bits
-
         return character_bits(self.parity, self.bytesize, self.stopbits)
 
 
 class SerialTransport(Transport):
     def __init__(self, url: str, settings: SerialSettings, listen_only: bool = False) -> None:
         """``listen_only``: a monitor's port, opened with RTS low and never written to."""
-        import serial  # pyserial costs an import only when a serial line is used
+        import serial  # noqa: PLC0415 - pyserial: a serial line only
 
         self.description = url
         if url.lower().startswith("socket://"):
@@ -133,7 +134,7 @@ class SerialTransport(Transport):
         """RS-485 direction by RTS: the kernel driver's RS-485 mode switches it in time with
         the UART's last stop bit; where the driver has none, mbtool switches RTS around each
         write, which costs the OS's timing slack (pyserial's serial.rs485 does the same)."""
-        import serial.rs485
+        import serial.rs485  # noqa: PLC0415 - pyserial: --rs485 only
 
         before, after = delays
         if type(self.port).__module__ == "serial.serialposix":
@@ -231,7 +232,7 @@ class SerialTransport(Transport):
             # pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects", which
             # every one-shot command would pay on exit; close the bridge's socket at once.
             with contextlib.suppress(OSError):
-                bridge.shutdown(socket.SHUT_RDWR)
+                bridge.shutdown(_socket.SHUT_RDWR)
             bridge.close()
             self.port._socket = None
             self.port.is_open = False
@@ -252,9 +253,9 @@ class TcpTransport(Transport):
         self.sock.settimeout(None)
         # A struct timeval's fields are as wide as the kernel says: two longs, or two 64-bit
         # counts on a 32-bit system built with a 64-bit time_t.
-        wide = len(self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16)) == 16
+        wide = len(self.sock.getsockopt(_socket.SOL_SOCKET, _socket.SO_RCVTIMEO, 16)) == 16
         self._timeval = "@qq" if wide else "@ll"
-        self._set_timeout(socket.SO_SNDTIMEO, WRITE_TIMEOUT)
+        self._set_timeout(_socket.SO_SNDTIMEO, WRITE_TIMEOUT)
         self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
 
     def write(self, data: bytes) -> None:
@@ -271,7 +272,7 @@ class TcpTransport(Transport):
         try:
             if timeout >= KERNEL_TIMER_MIN and KERNEL_TIMED_READS:
                 if abs(timeout - self._read_timeout) > KERNEL_TIMER_SLACK:
-                    self._set_timeout(socket.SO_RCVTIMEO, timeout)
+                    self._set_timeout(_socket.SO_RCVTIMEO, timeout)
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
@@ -311,7 +312,7 @@ class TcpTransport(Transport):
         else:
             whole = int(seconds)
             value = struct.pack(self._timeval, whole, int((seconds - whole) * 1e6))
-        self.sock.setsockopt(socket.SOL_SOCKET, option, value)
+        self.sock.setsockopt(_socket.SOL_SOCKET, option, value)
 
     def close(self) -> None:
         self.sock.close()
@@ -430,11 +431,11 @@ def open_transport(
     ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
     if where.scheme == "tls":
-        from mbtool.link.tls import TlsSettings, TlsTransport  # ssl costs an import only here
+        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
         return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
     if where.scheme in ("udp", "rtu+udp"):
-        from mbtool.link.udp import UdpTransport
+        from mbtool.link.udp import UdpTransport  # noqa: PLC0415 - socket, 14 M instructions: udp:// only
 
         return UdpTransport(where.scheme, where.host, where.port)
     if where.scheme == "tcp":
@@ -478,7 +479,7 @@ def _is_socket_url(port) -> bool:
 def _serial_ports() -> str:
     """The serial ports this machine has, for a user who named one it has not."""
     try:
-        from serial.tools.list_ports import comports
+        from serial.tools.list_ports import comports  # noqa: PLC0415 - pyserial: a missing port only
 
         ports = sorted(port.device for port in comports())
     except (ImportError, OSError):
@@ -492,7 +493,7 @@ def _serial_ports() -> str:
 def _termios_error() -> tuple[type[Exception], ...]:
     """termios.error: what pyserial lets through when a port refuses its settings."""
     try:
-        import termios
+        import termios  # noqa: PLC0415 - a refused serial setting only; not on Windows
     except ImportError:  # not on Windows
         return ()
     return (termios.error,)

@@ -12,6 +12,7 @@ import csv
 import io
 import math
 import tomllib
+import unicodedata
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -380,8 +381,6 @@ ONE_LINE = "is written on one line: no control characters (newline, tab...)"
 
 def one_line(text: str) -> bool:
     """No control character, line or paragraph separator: the text stays on its line."""
-    import unicodedata
-
     return not any(unicodedata.category(char) in ("Cc", "Zl", "Zp") for char in text)
 
 

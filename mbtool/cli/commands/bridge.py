@@ -15,7 +15,9 @@ import threading
 import click
 
 from mbtool.cli.completion import complete_port
+from mbtool.cli.frames import one_line, shown_frame
 from mbtool.cli.json_text import to_json
+from mbtool.cli.listen import tls_server_settings
 from mbtool.cli.options import (
     LINK_OPTIONS,
     TLS_OPTIONS,
@@ -27,9 +29,17 @@ from mbtool.cli.options import (
 )
 from mbtool.cli.param_types import Choice, Seconds, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
+from mbtool.codec.describe import describe
 from mbtool.codec.errors import RequestError, function_code_text
-from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY
+from mbtool.codec.framing import make_framer
+from mbtool.device.server import Server, parse_target
+from mbtool.link import IN_PROCESS
+from mbtool.link.connection import Connection, check, open_client
+from mbtool.link.connection import rs485_delays as rs485_delays_of
+from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY, Forwarder
+from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
@@ -181,15 +191,6 @@ def bridge(
     The reverse, mbtool as a slave on a serial line in front of a TCP device:
       mbtool bridge --listen /dev/ttyUSB1 -p tcp://192.0.2.10
     """
-    from mbtool.cli.listen import tls_server_settings
-    from mbtool.cli.session import warn_insecure
-    from mbtool.device.server import Server, parse_target
-    from mbtool.link import IN_PROCESS
-    from mbtool.link.connection import Connection, check, open_client
-    from mbtool.link.connection import rs485_delays as rs485_delays_of
-    from mbtool.link.forward import Forwarder
-    from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
-
     if quiet and (output_format or hex_trace):
         shown = " and ".join(name for name, given in (("-o", output_format), ("--hex", hex_trace)) if given)
         raise RequestError(f"-q shows no transaction: {shown} would have nothing to show")
@@ -306,7 +307,7 @@ class Show:
         self.bus_longest = 0.0
         self.console = None
         if fmt == "table" and not quiet:
-            from rich.console import Console
+            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
             self.console = Console(highlight=False, soft_wrap=True)
         self.failure: OSError | None = None
@@ -428,16 +429,11 @@ STYLES = {
 
 
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
-    from mbtool.cli.frames import shown_frame
-    from mbtool.codec.describe import describe
-
     return describe(shown_frame(adu) if framing == "ascii" else adu.hex(), framing, direction, previous)
 
 
 def decoded_lines(passage) -> list[tuple[str, str]]:
     """The request and what became of it, decoded as monitor prints frames: (style, line)."""
-    from mbtool.cli.frames import one_line
-
     request = _describe(passage.request, passage.upstream, "request")
     head = f"{local_time(passage.time)} {passage.peer}"
     fc = function_code_text(passage.function & 0x7F)
@@ -481,16 +477,11 @@ def _after(passage) -> str:
 
 
 def _wire(adu: bytes, framing: str) -> str:
-    from mbtool.cli.frames import shown_frame
-    from mbtool.codec.framing import make_framer
-
     return f"{shown_frame(adu)}  {make_framer(framing).check(adu)}"
 
 
 def passage_record(passage) -> dict:
     """One JSON object a transaction."""
-    from mbtool.cli.frames import one_line, shown_frame
-
     request = _describe(passage.request, passage.upstream, "request")
     reply = _describe(passage.reply, passage.upstream, "response", request) if passage.reply else None
     return {

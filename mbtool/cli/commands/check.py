@@ -30,7 +30,12 @@ import click
 from mbtool.cli.options import VALUE_TYPES, device_command, map_option, reference_target, type_options_given
 from mbtool.cli.param_types import Choice
 from mbtool.cli.parsing import DeviceCommand
+from mbtool.cli.program import discard_stdout
+from mbtool.cli.session import execute, open_client
 from mbtool.codec.errors import RequestError
+from mbtool.codec.tables import READS, reference
+from mbtool.codec.values import decode_values, registers_needed, value_addresses
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, PartialRead, exit_code_for
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
 UNKNOWN = 3
@@ -51,8 +56,6 @@ def plugin_exit(state: int, text: str, perfdata: str = "") -> None:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
     except OSError as error:  # a full disk, a closed stdout or its reader gone: no line can go
-        from mbtool.cli.program import discard_stdout
-
         discard_stdout()
         reason = error.strerror or error
         print(f"mbtool: cannot write the plugin's line to standard output: {reason}", file=sys.stderr)
@@ -86,8 +89,6 @@ class PluginCommand(DeviceCommand):
             plugin_exit(UNKNOWN, _interrupted(stop))
 
     def invoke(self, ctx):
-        from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, exit_code_for
-
         try:
             return super().invoke(ctx)
         except click.exceptions.Exit:
@@ -122,9 +123,7 @@ def _range(text: str | None, what: str, typed: bool = False):
     """A threshold range, [@][START:][END] as nagiosplugin reads it; a bad one is a
     RequestError in the check's own words.  ``typed``: from the command line, where an
     unquoted ~:10 arrives as the home directory (the shell expands the ~)."""
-    import os
-
-    import nagiosplugin
+    import nagiosplugin  # noqa: PLC0415 - nagiosplugin, 12 ms: not for mbtool --help
 
     if text is None or text == "":
         return None
@@ -225,7 +224,7 @@ class Checked:
         return shown
 
     def perfdata(self) -> str:
-        import nagiosplugin
+        import nagiosplugin  # noqa: PLC0415 - nagiosplugin, 12 ms: not for mbtool --help
 
         unit = self.unit if self.unit in PERFDATA_UNITS and self.number is not None else ""
         warn, crit = self.warn or "", self.crit or ""
@@ -240,7 +239,7 @@ def _perf_value(number: float) -> str:
         return "U"
     if not isinstance(number, float):
         return str(number)
-    from decimal import Decimal
+    from decimal import Decimal  # noqa: PLC0415 - 1 ms: a float's perfdata only
 
     return format(Decimal(repr(number)).normalize(), "f")
 
@@ -256,10 +255,6 @@ def _number(value, what: str) -> float:
 def _reference_values(
     connection, settings, targets, given, value_type, order, warn, crit, unjudged
 ) -> list[Checked]:
-    from mbtool.cli.session import execute
-    from mbtool.codec.tables import READS, reference
-    from mbtool.codec.values import decode_values, registers_needed, value_addresses
-
     table, address, count = reference_target(targets, "check", given)
     if table.bits:
         reply = execute(connection, settings, READS[table.name](address, count))
@@ -279,10 +274,8 @@ def _reference_values(
 
 
 def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list[Checked]:
-    from mbtool.cli.session import open_client
-    from mbtool.errors import PartialRead
-    from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import MapReader
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
     register_map = load_map(path)
     points = register_map.select(names)

@@ -8,8 +8,22 @@ import click
 
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import Choice, parse_int
-from mbtool.codec.errors import RequestError
-from mbtool.codec.serial_line import DEFAULT_QUERY_DATA, SUB_FUNCTION_NAMES, sub_function_number
+from mbtool.cli.results import Report, Row
+from mbtool.cli.session import execute, open_client, show
+from mbtool.codec.describe import parse_hex
+from mbtool.codec.errors import MismatchError, ModbusException, RequestError
+from mbtool.codec.framing import is_broadcast
+from mbtool.codec.modicon import MODBUS_PLUS_WORDS, diagnostic_register_bits
+from mbtool.codec.raw import RawRequest
+from mbtool.codec.serial_line import (
+    DEFAULT_QUERY_DATA,
+    ECHO_SUB_FUNCTIONS,
+    SUB_FUNCTION_NAMES,
+    Diagnostics,
+    sub_function_number,
+)
+from mbtool.errors import NoResponse
+from mbtool.link.connection import framer_name
 
 # command-line name -> sub-function (spec §4)
 SUB_FUNCTIONS = {name: code for code, name in SUB_FUNCTION_NAMES.items()}
@@ -32,8 +46,6 @@ def _sub_function(text: str) -> int:
 
 
 def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
-    from mbtool.codec.describe import parse_hex
-
     if sub == 0x01:
         if text is not None:
             raise RequestError("restart-comms takes no DATA: use --clear-log to also clear the event log")
@@ -85,10 +97,6 @@ def diag(connection, settings, sub_function, data, clear_log, controller):
     slave-busy-count, bus-char-overrun-count, iop-overrun-count, clear-overrun,
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
-    from mbtool.cli.session import show
-    from mbtool.codec.framing import is_broadcast
-    from mbtool.link.connection import framer_name
-
     if is_broadcast(connection.unit, framer_name(connection)):
         raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
     if sub_function.lower() == "counters":
@@ -102,19 +110,12 @@ def diag(connection, settings, sub_function, data, clear_log, controller):
 
 
 def _one(connection, settings, sub: int, data: bytes, controller: str | None):
-    from mbtool.cli.results import Report, Row
-    from mbtool.cli.session import execute
-    from mbtool.codec.errors import MismatchError
-    from mbtool.codec.serial_line import ECHO_SUB_FUNCTIONS, Diagnostics
-    from mbtool.errors import NoResponse
-
     request = Diagnostics(sub, data)
     name = NAMES.get(sub, f"sub-function {sub_function_number(sub)}")
     title = f"Diagnostics: {name}"
     rows = [Row("sub_function", sub, f"{sub_function_number(sub)} {name}")]
     if sub == 0x00:
         # Our own echo check, to say "matched" or show both sides rather than only fail.
-        from mbtool.codec.raw import RawRequest
 
         reply = execute(connection, settings, RawRequest(request.encode()))
         echoed = bytes(reply.pdu[3:])
@@ -125,8 +126,6 @@ def _one(connection, settings, sub: int, data: bytes, controller: str | None):
             Row("echo", matched, "matched" if matched else "MISMATCH"),
         ]
         if not matched:
-            from mbtool.cli.session import show
-
             show(connection, settings, Report(connection.unit, 8, title, rows))
             raise MismatchError(
                 f"return-query-data echo {echoed.hex(' ').upper()} differs from {data.hex(' ').upper()}"
@@ -174,9 +173,6 @@ def _one(connection, settings, sub: int, data: bytes, controller: str | None):
 
 def _statistics_rows(words: tuple[int, ...]):
     """Modbus Plus statistics, each word named as seed 002 does; byte pairs shown as LO/HI."""
-    from mbtool.cli.results import Row
-    from mbtool.codec.modicon import MODBUS_PLUS_WORDS
-
     rows = []
     for i, word in enumerate(words):
         name = MODBUS_PLUS_WORDS[i] if i < len(MODBUS_PLUS_WORDS) else "not named in seed 002"
@@ -189,9 +185,6 @@ def _statistics_rows(words: tuple[int, ...]):
 
 
 def _register_rows(value: int, controller: str | None):
-    from mbtool.cli.results import Row
-    from mbtool.codec.modicon import diagnostic_register_bits
-
     rows = [Row("diagnostic_register", value, f"0x{value:04X}")]
     if controller:
         found = diagnostic_register_bits(value, controller)
@@ -204,11 +197,6 @@ def _register_rows(value: int, controller: str | None):
 
 
 def _counters(connection, settings):
-    from mbtool.cli.results import Report, Row
-    from mbtool.cli.session import open_client
-    from mbtool.codec.errors import ModbusException
-    from mbtool.codec.serial_line import Diagnostics
-
     rows, data, answered, refused = [], {}, 0, None
     with open_client(connection, settings, "diag counters") as client:
         if settings.dry_run:

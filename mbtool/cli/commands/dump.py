@@ -3,26 +3,33 @@ unchanged, so a dump is also a simulator of the device."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import os
 import signal
 import sys
+import tempfile
 import time
 from functools import partial
 
 import click
+import tomli_w
 
 from mbtool.cli.data_files import TABLE_SECTIONS, data_file
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import Number
-from mbtool.codec.errors import RequestError
-from mbtool.errors import OutputFailed
+from mbtool.cli.session import open_client
+from mbtool.codec.device_id import ReadDeviceIdentification
+from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
+from mbtool.codec.pdu import ExceptionCode
+from mbtool.codec.serial_line import ReportSlaveId
+from mbtool.codec.tables import table_named
+from mbtool.errors import KNOWN_ERRORS, ExitCode, NoResponse, OutputFailed, Summary, exit_code_for
+from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
 
 
 def parse_span(text: str):
     """TABLE:FIRST-LAST (holding:0-999), TABLE:ADDRESS, or TABLE alone (0-65535)."""
-    from mbtool.codec.tables import table_named
-    from mbtool.link.dump import Span
-
     name, _, where = text.partition(":")
     table = table_named(name.strip())
     if not where:
@@ -51,13 +58,6 @@ def _identity(execute) -> dict:
     for byte (a run indicator that is neither 00 nor FF as its byte, no extra bytes as "",
     the conformity level, and exactly the objects the device has); ``refused`` lists those
     of the two it answered exception 01 (no such function), which the copy refuses too."""
-    from mbtool.codec.device_id import ReadDeviceIdentification
-    from mbtool.codec.errors import ModbusException, ProtocolError
-    from mbtool.codec.pdu import ExceptionCode
-    from mbtool.codec.serial_line import ReportSlaveId
-    from mbtool.errors import NoResponse
-    from mbtool.link.dump import read_identification
-
     identity: dict = {}
     refused = []
     try:
@@ -116,12 +116,6 @@ def dump(connection, settings, file, ranges, max_requests):
     dump (written beside it, then renamed), and a FILE that cannot be written is an
     error before anything is read.
     """
-    import tomli_w
-
-    from mbtool.cli.session import open_client
-    from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary
-    from mbtool.link.dump import Dumper, OutOfRequests, TableDump
-
     spans = [parse_span(text) for text in ranges] or [parse_span(name) for name in TABLE_SECTIONS]
     dumps = {span.table.name: TableDump(span.table) for span in spans}
     total = sum(span.size for span in spans)
@@ -180,8 +174,6 @@ def dump(connection, settings, file, ranges, max_requests):
     elif out_of_requests:
         code = ExitCode.PARTIAL  # part of what was asked: a finished dump must not look like it
     elif failure is not None:
-        from mbtool.errors import exit_code_for
-
         code = exit_code_for(failure)
     raise Summary(summary, code)
 
@@ -223,9 +215,6 @@ class _DataFile:
     part of one (a SIGKILL, a full disk).  The new FILE keeps the previous one's permissions."""
 
     def __init__(self, path: str) -> None:
-        import os
-        import tempfile
-
         self.path = path
         self.target = os.path.realpath(path)  # through a symbolic link: the link stays
         folder, name = os.path.split(self.target)
@@ -245,8 +234,6 @@ class _DataFile:
         os.fchmod(fd, mode)
 
     def commit(self, text: str) -> None:
-        import os
-
         try:
             self.file.write(text)
             self.file.flush()
@@ -259,9 +246,6 @@ class _DataFile:
 
     def discard(self) -> None:
         """Remove the temporary file unless it became FILE."""
-        import contextlib
-        import os
-
         with contextlib.suppress(OSError):
             self.file.close()  # a write that failed may fail again here
         if self.temp is not None:
@@ -274,8 +258,8 @@ class _Bar:
     """A progress bar on a terminal's stderr: addresses covered of all asked for."""
 
     def __init__(self, total: int) -> None:
-        from rich.console import Console
-        from rich.progress import Progress
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
 
         self.done = 0
         self.progress = Progress(console=Console(stderr=True), transient=True)

@@ -31,12 +31,26 @@ import threading
 import time
 from contextlib import ExitStack
 from fnmatch import fnmatchcase
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
 import click
 
+from mbtool.cli.inventory import load_inventory
+from mbtool.cli.metrics import _label_pairs, _metric_name
 from mbtool.cli.options import LINK_OPTIONS, with_options
+from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, point_metric, prom_text
 from mbtool.codec.errors import RequestError
+from mbtool.codec.record import replace
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead
+from mbtool.link.connection import Connection, check, close_quietly, open_client
+from mbtool.link.stats import OUTCOMES, Stats, outcome_of
+from mbtool.link.transport import parse_target
+from mbtool.plant.schedule import ONLINE, Event, Plant
+from mbtool.plant.stats import PollStats
+from mbtool.registermap.load import MapError, load_map
+from mbtool.registermap.plan import MapReader
 
 # 9502: no port of Prometheus's default port allocations is mbtool's (modbus_exporter has
 # 9602, so the two can run on one host); loopback unless the user types another address.
@@ -107,8 +121,6 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     host, port, family = parse_listen(listen)
     plant = None
     if inventory is not None:
-        from mbtool.cli.inventory import load_inventory
-
         plant = load_inventory(inventory)
     if plant is None and maps is None:
         raise RequestError(
@@ -129,8 +141,6 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         scraper = TargetScraper(modules, allowed, links, timeout, retries)
     runner = metrics = None
     if plant is not None:
-        from mbtool.plant.schedule import Plant
-
         metrics = PlantMetrics()
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
@@ -195,8 +205,6 @@ SCRAPE_NAMES = ("modbus_up", "modbus_error_info", "modbus_scrape_duration_second
 
 def _clash(points, own: set[str]) -> str:
     """The first point whose metric is one of ``own``, as a sentence; "" for none."""
-    from mbtool.cli.metrics import _metric_name
-
     for point in points:
         name = _metric_name(f"modbus_{point.name}")
         if name in own:
@@ -207,10 +215,6 @@ def _clash(points, own: set[str]) -> str:
 def check_plant_names(plant) -> None:
     """Refuse, before anything is opened, an inventory whose map points would be named as
     the exporter's own metrics (two families of one name are no exposition)."""
-    from mbtool.cli.plant_text import LAST_SUCCESS, UP
-    from mbtool.link.stats import Stats
-    from mbtool.plant.stats import PollStats
-
     own = {UP, LAST_SUCCESS}
     for text in (device_stats_text("", PollStats()), link_stats_text("", Stats(), False, 0)):
         own |= set(re.findall(r"^(?:# TYPE )?([a-zA-Z_:][a-zA-Z0-9_:]*)", text, re.M))  # families, samples
@@ -254,11 +258,7 @@ class PlantMetrics:
 
     def report(self, item) -> None:
         """What a link's worker reports (plant.schedule): a poll, or a change of state."""
-        from mbtool.plant.schedule import Event
-
         if isinstance(item, Event):
-            from mbtool.cli.plant_text import event_line
-
             print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
             if item.kind == "link" and item.name in self.workers:
                 self._link(self.workers[item.name])
@@ -268,15 +268,11 @@ class PlantMetrics:
         self._link(self.workers[state.spec.link])
 
     def _device(self, state) -> None:
-        from mbtool.cli.plant_text import prom_text
-
         self._keep(
             ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
         )
 
     def _link(self, worker) -> None:
-        from mbtool.plant.schedule import ONLINE
-
         total = _link_totals(state.stats for state in worker.devices)
         text = link_stats_text(worker.spec.name, total, worker.state == ONLINE, worker.open_failures)
         self._keep(("link", worker.spec.name), text)
@@ -325,8 +321,6 @@ def split_families(text: str) -> list[tuple[str, str, str]]:
 def _link_totals(stats_list):
     """A link's transactions: its devices' counts added up, as Stats.add adds them, without
     the window of recent round trips (the exporter shows none, and it is 1000 a device)."""
-    from mbtool.link.stats import Stats
-
     total = Stats()
     for stats in stats_list:
         total.transactions += stats.transactions
@@ -353,8 +347,6 @@ def _le(bound: float) -> str:
 def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
     """Every transaction's outcome, the exceptions by code, the retries that recovered and
     the round-trip histogram (link.stats), each sample labelled ``pair``."""
-    from mbtool.link.stats import OUTCOMES
-
     name = f"{prefix}request_duration_seconds"
     return (
         _family(
@@ -397,8 +389,6 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
 
 def device_stats_text(name: str, stats) -> str:
     """A device's statistics in the text format: its polls and its transactions."""
-    from mbtool.cli.metrics import _label_pairs
-
     pair = _label_pairs({"device": name})
     return (
         _family(
@@ -419,8 +409,6 @@ def device_stats_text(name: str, stats) -> str:
 
 def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
     """A link's state and statistics in the text format: its devices' transactions added up."""
-    from mbtool.cli.metrics import _label_pairs
-
     pair = _label_pairs({"link": name})
     return (
         _family(
@@ -494,8 +482,6 @@ class Modules:
     def load(self, path: Path):
         """The map at ``path``, its points checked against the scrape's own names; MapError if
         it cannot be used."""
-        from mbtool.registermap.load import MapError, load_map
-
         try:
             info = path.stat()
             stamp = (info.st_mtime_ns, info.st_size)
@@ -537,22 +523,22 @@ class TargetScraper:
             path = self.modules.path_of(module)
         except Refused as refusal:
             return refusal.status, TEXT, f"{refusal}\n".encode()
-        from mbtool.errors import KNOWN_ERRORS
 
         try:
             register_map = self.modules.load(path)
         except KNOWN_ERRORS as error:  # the exporter's configuration, not the device: 500
             return 500, TEXT, f"module {module}: {error}\n".encode()
         readings, error, kind = self._read(target, connection, register_map, started + budget, budget)
-        from prometheus_client import CollectorRegistry, generate_latest
+        from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+            CollectorRegistry,
+            generate_latest,
+        )
 
         registry = CollectorRegistry()
         registry.register(_ScrapeCollector(str(unit), readings, error, kind, time.monotonic() - started))
         return 200, CONTENT_TYPE, generate_latest(registry)
 
     def _asked(self, query: str) -> tuple[str, str, int]:
-        from urllib.parse import parse_qs
-
         try:
             params = parse_qs(query, keep_blank_values=True, strict_parsing=bool(query), max_num_fields=16)
         except ValueError as error:
@@ -578,10 +564,6 @@ class TargetScraper:
         return target, module, int(unit_text)
 
     def _connection(self, target: str, unit: int):
-        from mbtool.codec.record import replace
-        from mbtool.link.connection import Connection, check
-        from mbtool.link.transport import parse_target
-
         link = self.links.get(target)
         base = (
             link.connection
@@ -602,8 +584,6 @@ class TargetScraper:
 
     def _read(self, target: str, connection, register_map, deadline: float, budget: float):
         """(readings or None, the error or None, its kind) of the map read within ``deadline``."""
-        from mbtool.errors import NoResponse
-
         lock = self._lock(target)
         if not lock.acquire(timeout=max(0.0, deadline - time.monotonic())):
             busy = NoResponse(
@@ -630,12 +610,6 @@ def scrape_budget(header: str | None) -> float:
 def _read_map(connection, register_map, deadline: float, budget: float):
     """A map read over a link of its own, as read -m reads it; each reply awaited no longer
     than the deadline leaves, and no retry past it."""
-    from mbtool.codec.record import replace
-    from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead
-    from mbtool.link.connection import close_quietly, open_client
-    from mbtool.link.stats import outcome_of
-    from mbtool.registermap.plan import MapReader
-
     left = deadline - time.monotonic()
     if left <= 0:
         return (
@@ -677,9 +651,10 @@ class _ScrapeCollector:
         self.unit, self.readings, self.error, self.kind, self.seconds = unit, readings, error, kind, seconds
 
     def collect(self):
-        from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily
-
-        from mbtool.cli.plant_text import point_metric
+        from prometheus_client.core import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+            GaugeMetricFamily,
+            InfoMetricFamily,
+        )
 
         up = GaugeMetricFamily(
             "modbus_up",
@@ -726,7 +701,10 @@ class Exporter:
 
     def answer(self, path: str, query: str, deadline_header: str | None) -> tuple[int, str, bytes]:
         if path == "/metrics":
-            from prometheus_client import REGISTRY, generate_latest
+            from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
+                REGISTRY,
+                generate_latest,
+            )
 
             text = self.plant.text() if self.plant is not None else b""
             return 200, CONTENT_TYPE, text + generate_latest(REGISTRY)
@@ -744,10 +722,6 @@ class Exporter:
 
 def open_server(host: str, port: int, family, exporter: Exporter):
     """The HTTP server, bound; ConnectionFailed (exit 6) if it cannot be."""
-    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-    from urllib.parse import urlsplit
-
-    from mbtool.errors import ConnectionFailed
 
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"  # Prometheus keeps its connection from scrape to scrape

@@ -11,8 +11,18 @@ import click
 
 from mbtool.cli.options import NONFINITE_OPTION, VALUE_TYPES, device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, Number, parse_int
-from mbtool.cli.session import execute, show
+from mbtool.cli.results import Report, Result, Row
+from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.errors import RequestError
+from mbtool.codec.pdu import printable, text_of
+from mbtool.codec.record import replace
+from mbtool.codec.values import (
+    decode_values,
+    parse_register,
+    parse_registers,
+    registers_needed,
+    value_addresses,
+)
 
 # --- FC 07 ---------------------------------------------------------------------------------
 
@@ -24,8 +34,7 @@ def read_exception_status(connection, settings):
     Eight device-defined status bits, each ON or OFF (a serial-line function).
     On Modicon controllers they are coils 1-8 (484: 257-264, 884: 761-768).
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.serial_line import ReadExceptionStatus
+    from mbtool.codec.serial_line import ReadExceptionStatus  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = ReadExceptionStatus()
     reply = execute(connection, settings, request)
@@ -48,8 +57,7 @@ def event_counter(connection, settings):
 
     The status (busy or idle) and the count of successful messages.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.serial_line import GetCommEventCounter
+    from mbtool.codec.serial_line import GetCommEventCounter  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = GetCommEventCounter()
     reply = execute(connection, settings, request)
@@ -68,8 +76,10 @@ def event_log(connection, settings):
 
     Status, event and message counts, and each event byte (0 = newest) in words.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.serial_line import GetCommEventLog, describe_event
+    from mbtool.codec.serial_line import (  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
+        GetCommEventLog,
+        describe_event,
+    )
 
     request = GetCommEventLog()
     reply = execute(connection, settings, request)
@@ -99,9 +109,6 @@ def event_log(connection, settings):
 def _with_warnings(report, reply):
     """What a strict reader noticed in the reply (e.g. a status word neither busy nor idle):
     a ``warning`` row, and a ``warnings`` list in JSON; stderr stays for the one error line."""
-    from mbtool.cli.results import Row
-    from mbtool.codec.record import replace
-
     warnings = list(getattr(reply, "warnings", ()))
     if not warnings:
         return report
@@ -121,10 +128,12 @@ def report_id(connection, settings):
     584 and 984 controllers are decoded field by field (status word, machine
     state, stop code).
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.modicon import SLAVE_IDS, modicon_fields, modicon_layout
-    from mbtool.codec.pdu import printable
-    from mbtool.codec.serial_line import ReportSlaveId
+    from mbtool.codec.modicon import (  # noqa: PLC0415 - report-id only
+        SLAVE_IDS,
+        modicon_fields,
+        modicon_layout,
+    )
+    from mbtool.codec.serial_line import ReportSlaveId  # noqa: PLC0415 - 0.7 ms: FC 07-17 only
 
     request = ReportSlaveId()
     reply = execute(connection, settings, request)
@@ -183,8 +192,10 @@ def read_file_record(connection, settings, groups):
     LENGTH registers from RECORD (0..9999) of FILE (1..65535). Several groups go in one request: read-file-record 4 1 2 3 9 2.
     Output lines are FILE:RECORD VALUE.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.file_record import FileRecordRequest, ReadFileRecord
+    from mbtool.codec.file_record import (  # noqa: PLC0415 - the file records only
+        FileRecordRequest,
+        ReadFileRecord,
+    )
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
     if len(numbers) % 3:
@@ -211,9 +222,7 @@ def write_file_record(connection, settings, groups):
     VALUEs from RECORD (0..9999) of FILE (1..65535). Separate several groups with a lone comma: write-file-record 4 7 0x6AF 0x4BE , 3 9 100.
     Each VALUE is -32768..65535 or 0x hex.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.file_record import FileRecord, WriteFileRecord
-    from mbtool.codec.values import parse_register
+    from mbtool.codec.file_record import FileRecord, WriteFileRecord  # noqa: PLC0415 - the file records only
 
     parts = []
     for group in _groups(groups):
@@ -247,8 +256,10 @@ def mask_write_register(connection, settings, address, and_mask, or_mask):
     The register at ADDRESS becomes (current AND AND_MASK) OR (OR_MASK AND NOT
     AND_MASK). E.g. mask-write-register 4 0xF2 0x25 turns 0x12 into 0x17.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.data_access import MaskWriteRegister, mask_formula
+    from mbtool.codec.data_access import (  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
+        MaskWriteRegister,
+        mask_formula,
+    )
 
     request = MaskWriteRegister(address, and_mask, or_mask)
     execute(connection, settings, request)
@@ -275,9 +286,7 @@ def read_write_registers(
     Write VALUEs at WRITE_ADDRESS, then read READ_COUNT from READ_ADDRESS. The device writes before it reads (spec). At most 121 registers written and
     125 read; with --type both sides count values of that type.
     """
-    from mbtool.cli.results import Result
-    from mbtool.codec.data_access import ReadWriteMultipleRegisters
-    from mbtool.codec.values import decode_values, parse_registers, registers_needed, value_addresses
+    from mbtool.codec.data_access import ReadWriteMultipleRegisters  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
 
     registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = ReadWriteMultipleRegisters(
@@ -305,8 +314,7 @@ def fifo(connection, settings, address):
 
     The entries queued behind the pointer register at ADDRESS. Output: "count N", then INDEX VALUE lines, the oldest entry first; at most 31.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.data_access import ReadFifoQueue
+    from mbtool.codec.data_access import ReadFifoQueue  # noqa: PLC0415 - 0.8 ms: FC 22-24 only
 
     request = ReadFifoQueue(address)
     reply = execute(connection, settings, request)
@@ -343,10 +351,11 @@ def device_id(connection, settings, level, object_id):
 
     Vendor, product code, revision and more, by level or one object. Follows more-follows across requests until every object of the level is read.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.cli.session import open_client
-    from mbtool.codec.device_id import ReadDeviceIdentification, conformity_name, object_name
-    from mbtool.codec.pdu import text_of
+    from mbtool.codec.device_id import (  # noqa: PLC0415 - device-id only
+        ReadDeviceIdentification,
+        conformity_name,
+        object_name,
+    )
 
     objects: dict[int, bytes] = {}
     conformity = None
@@ -358,7 +367,7 @@ def device_id(connection, settings, level, object_id):
             conformity = reply.conformity_name
             objects.update(reply.objects)
         else:
-            from mbtool.link.dump import read_identification
+            from mbtool.link.dump import read_identification  # noqa: PLC0415 - device-id only
 
             objects, conformity_code = read_identification(
                 partial(client.execute, connection.unit), LEVELS[level]

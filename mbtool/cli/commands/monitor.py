@@ -20,12 +20,20 @@ import time
 import click
 
 from mbtool.cli.frames import frame_report, one_line
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
 from mbtool.cli.param_types import Choice, Number, PositiveFloat
 from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.profiles import defaults
+from mbtool.cli.render import default_format
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
+from mbtool.codec.timing import char_time, character_bits, silent_interval
 from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
+from mbtool.link.transport import SerialSettings, SerialTransport
+from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
+from mbtool.monitor.pcap import BusCapture, is_pcap, packets
+from mbtool.monitor.stats import BusStats
 
 TICK = 0.05  # longest wait for bytes before the clock (silence, timeouts, --duration) is looked at
 # On a UART t3.5 ends a frame (spec §2), but ptys and USB adapters deliver one frame in
@@ -40,8 +48,6 @@ class MonitorCommand(QuickHelp, click.Command):
 
 
 def default_silence(framer: str, baud: int) -> float:
-    from mbtool.codec.timing import silent_interval
-
     return ASCII_SILENCE if framer == "ascii" else max(silent_interval(baud), MIN_RTU_SILENCE)
 
 
@@ -147,14 +153,9 @@ def monitor(
     --stats counts instead, per unit, to tell which device is sick: a table on exit (and
     every --stats-interval), or one JSON object each time with -o json.
     """
-    from mbtool.cli.render import default_format
-    from mbtool.monitor.bus import BusMonitor, Tally
-
     ctx = click.get_current_context()
     profile = ctx.meta.get("mbtool.profile")
     if profile:
-        from mbtool.cli.profiles import defaults
-
         line = defaults(profile)  # port, framer and the serial settings of a device's profile
         port = port if from_file else line.get("port", port)  # a recording needs no port
         framer = line.get("framer", framer)
@@ -178,8 +179,6 @@ def monitor(
     next_stats = time.monotonic() + stats_interval if stats_interval else None
     recorder = None
     if capture:
-        from mbtool.monitor.pcap import BusCapture
-
         try:
             recorder = BusCapture.create(capture)
         except OSError as error:
@@ -187,8 +186,6 @@ def monitor(
 
     def show(seen) -> bool:
         """Show what the sniffer found; False once --frames is reached."""
-        from mbtool.monitor.bus import BusFrame
-
         nonlocal next_stats
         for item in seen:
             if frame_limit and tally.frames >= frame_limit:
@@ -233,9 +230,6 @@ def monitor(
 
 def _bus_stats(framer, baud, parity, bytesize, stopbits, timed: bool, from_file):
     """The counts --stats shows, with the line's t3.5 (none on ASCII: spec §2) and character time."""
-    from mbtool.codec.timing import char_time, character_bits, silent_interval
-    from mbtool.monitor.stats import BusStats
-
     bits = character_bits(parity, int(bytesize), int(stopbits))
     t35 = silent_interval(baud, bits) if framer == "rtu" else None
     # Listening, the time watched starts now; a recording's at its first frame.
@@ -274,8 +268,6 @@ def _check_port(port: str | None) -> None:
 def _recording(path: str) -> tuple[bytes, bool]:
     """A recording's bytes, and whether it has time stamps: a pcap file (--capture's) has,
     raw bytes from a line have none."""
-    from mbtool.monitor.pcap import is_pcap
-
     try:
         with open(path, "rb") as file:
             data = file.read()
@@ -286,8 +278,6 @@ def _recording(path: str) -> tuple[bytes, bool]:
 
 def _replay(path: str, data: bytes, sniffer, show) -> None:
     """A recording: a pcap file with its time stamps, else raw bytes with none."""
-    from mbtool.monitor.pcap import packets
-
     if not sniffer.timed:  # frames split by their implicit length alone; the summary says so
         now = time.time()  # no time of its own: what --capture stamps its packets with
         if show(sniffer.feed(now, data)):
@@ -311,8 +301,6 @@ def _replay(path: str, data: bytes, sniffer, show) -> None:
 
 def _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show) -> str | None:
     """Read the line until --duration, --frames or an interrupt; the reason if the port was lost."""
-    from mbtool.link.transport import SerialSettings, SerialTransport
-
     settings = SerialSettings(baud=baud, parity=parity, bytesize=int(bytesize), stopbits=int(stopbits))
     # Opened with RTS low: it never drives the bus. ConnectionFailed (exit 6) if it cannot open.
     transport = SerialTransport(port, settings, listen_only=True)
@@ -373,8 +361,6 @@ def _when(item, timed: bool) -> str | None:
 
 def as_dict(item, timed: bool = True) -> dict:
     """One JSON object per frame, garbage run or unanswered request."""
-    from mbtool.monitor.bus import Unanswered
-
     if isinstance(item, Unanswered):
         request = item.request
         return {
@@ -412,8 +398,6 @@ def as_dict(item, timed: bool = True) -> dict:
 
 
 def plain_line(item, timed: bool = True) -> str:
-    from mbtool.monitor.bus import Unanswered
-
     when = _when(item, timed) or "-"
     if isinstance(item, Unanswered):
         request = item.request
@@ -452,14 +436,12 @@ class Output:
         # Imported now, not while the first frame arrives: a read delayed by an import
         # stamps its bytes late and shrinks the gap and latency shown.
         if fmt == "table":
-            from rich.console import Console
+            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
             self.console = Console(file=self.out, highlight=False, soft_wrap=True)
 
     def write(self, item) -> None:
         if self.fmt == "json":
-            from mbtool.cli.json_text import to_json
-
             self.out.write(to_json(as_dict(item, self.timed)) + "\n")
         elif self.fmt == "plain":
             self.out.write(plain_line(item, self.timed) + "\n")
@@ -468,9 +450,7 @@ class Output:
         self.out.flush()
 
     def _coloured(self, item) -> None:
-        from rich.markup import escape
-
-        from mbtool.monitor.bus import Unanswered
+        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
         if isinstance(item, Unanswered):
             request = item.request
@@ -508,8 +488,6 @@ class Output:
     def stats(self, counts, now: float | None) -> None:
         """The statistics so far (monitor.stats.BusStats): a table, or one JSON object."""
         if self.fmt == "json":
-            from mbtool.cli.json_text import to_json
-
             # A recording's are as of its last frame; raw bytes have no time at all.
             when = now if now is not None else counts.last
             record = {"event": "stats", "time": local_time(when) if counts.timed and when else None}

@@ -11,7 +11,18 @@ from mbtool.cli.frames import frame_report
 from mbtool.cli.options import NO_HEADER_OPTION, device_command, output_chosen
 from mbtool.cli.param_types import Choice
 from mbtool.cli.parsing import QuickHelp
-from mbtool.codec.errors import RequestError
+from mbtool.cli.render import default_format, render
+from mbtool.cli.results import Report, Row
+from mbtool.cli.session import open_client
+from mbtool.codec.checksum import crc16
+from mbtool.codec.checksum import lrc as lrc8
+from mbtool.codec.describe import describe, describe_pdu, looks_whole, parse_hex, split_frame
+from mbtool.codec.errors import ChecksumError, FrameError, ModbusException, RequestError
+from mbtool.codec.framing import FRAMERS, Frame
+from mbtool.codec.raw import RawRequest
+from mbtool.codec.record import replace
+from mbtool.errors import KNOWN_ERRORS
+from mbtool.link.connection import framer_name
 
 FORMAT_OPTION = click.option(
     "-o",
@@ -28,8 +39,6 @@ class OfflineCommand(QuickHelp, click.Command):
 
 
 def _render(report, output_format: str | None, no_header: bool) -> None:
-    from mbtool.cli.render import default_format, render
-
     render(report, output_format or default_format(), csv_header=not no_header)
 
 
@@ -59,9 +68,6 @@ def decode(frame, framer, direction, output_format, no_header):
     its request is checked against it. A line that is no frame is named on stderr and
     passed over. Exit 5 when a frame's checksum or a field is wrong.
     """
-    from mbtool.codec.describe import describe
-    from mbtool.codec.errors import FrameError
-
     if frame and frame != ("-",):
         described = describe(" ".join(frame), framer, direction)
         _render(frame_report(described), output_format, no_header)
@@ -69,7 +75,6 @@ def decode(frame, framer, direction, output_format, no_header):
         if problem:
             raise FrameError(problem)
         return
-    from mbtool.cli.render import default_format
 
     if sys.stdin.isatty():
         print("mbtool: reading frames from stdin, one per line; Ctrl-D ends", file=sys.stderr)
@@ -79,11 +84,6 @@ def decode(frame, framer, direction, output_format, no_header):
 def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
     """Each frame in the lines decoded and written as it comes, in constant memory.  Only
     frames decide the exit status: a line that is no frame is named on stderr and passed over."""
-    from mbtool.codec.describe import describe
-    from mbtool.codec.errors import FrameError
-    from mbtool.codec.record import replace
-    from mbtool.errors import KNOWN_ERRORS
-
     frames = failed = 0  # frames decoded, and of them those with a problem
     first_failure = ""
     previous = None
@@ -136,8 +136,6 @@ def frames_in(lines):
     frame a line, --hex's TX and RX lines, monitor's lines (-o plain and json), and socat -x
     dumps.  Blank lines, comments and what those tools write that is no frame (monitor's
     garbage and unanswered lines, socat's --) are passed over."""
-    from mbtool.codec.describe import parse_hex
-
     socat = _SocatBlocks()
     for number, line in enumerate(lines, start=1):
         text = line.strip()
@@ -204,8 +202,6 @@ class _SocatBlocks:
         return done
 
     def _settle(self) -> list:
-        from mbtool.codec.describe import looks_whole
-
         block, self.block, done = self.block, None, []
         if block is None:
             return done
@@ -233,7 +229,7 @@ class _SocatBlocks:
 def _monitor_json(text: str) -> tuple | None:
     """A line of monitor -o json: (frame, direction) for a frame, () for what is none
     (garbage, unanswered); None when the line is not monitor's JSON."""
-    import json
+    import json  # noqa: PLC0415 - 1 ms: decode of monitor's JSON lines only
 
     try:
         record = json.loads(text)
@@ -258,10 +254,6 @@ def crc(data, output_format, no_header):
 
     The CRC of HEX, and the RTU frame with it appended (low byte first).
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.checksum import crc16
-    from mbtool.codec.describe import parse_hex
-
     body = parse_hex(" ".join(data))
     value = crc16(body)
     wire = value.to_bytes(2, "little")
@@ -286,10 +278,6 @@ def lrc(data, output_format, no_header):
 
     The LRC of HEX (unit through last data byte), and the ASCII frame with it.
     """
-    from mbtool.cli.results import Report, Row
-    from mbtool.codec.checksum import lrc as lrc8
-    from mbtool.codec.describe import parse_hex
-
     body = parse_hex(" ".join(data))
     value = lrc8(body)
     text = ":" + (body + bytes([value])).hex().upper()
@@ -314,12 +302,7 @@ def raw(connection, settings, data, adu):
     a reply of unknown length ends when the line goes quiet. With --adu the
     bytes go out exactly as typed, a wrong checksum too.
     """
-    from mbtool.cli.session import open_client
-    from mbtool.codec.describe import describe_pdu, parse_hex, split_frame
-    from mbtool.codec.errors import FrameError, ModbusException
-    from mbtool.codec.raw import RawRequest
-    from mbtool.link.client import Trace
-    from mbtool.link.connection import framer_name
+    from mbtool.link.client import Trace  # noqa: PLC0415 - 5-7 M instructions: raw only, not crc
 
     name = framer_name(connection)
     text = " ".join(data)
@@ -356,7 +339,6 @@ def raw(connection, settings, data, adu):
 
         def rejected(self, frame: bytes, error) -> None:
             self.inner.rejected(frame, error)
-            from mbtool.codec.errors import ChecksumError
 
             if isinstance(error, ChecksumError):
                 self.other = frame
@@ -369,8 +351,6 @@ def raw(connection, settings, data, adu):
             client.execute(unit, request)
         except (ModbusException, FrameError) as error:
             failure = error
-    from mbtool.cli.render import default_format, render
-    from mbtool.cli.results import Report, Row
 
     heard = capture.reply or capture.other
     if heard is None:
@@ -406,9 +386,6 @@ def raw(connection, settings, data, adu):
 
 def _exact_framer(name: str, exact: bytes | None):
     """The framer for ``name``; with ``exact``, one that sends those bytes instead of building a frame."""
-    from mbtool.codec.framing import FRAMERS, Frame
-    from mbtool.codec.record import replace
-
     base = FRAMERS[name]
     if exact is None:
         return base()

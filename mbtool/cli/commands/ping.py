@@ -16,8 +16,15 @@ import click
 
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import ADDRESS, Choice, Number, PositiveFloat
+from mbtool.cli.session import open_client
+from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
+from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
+from mbtool.durations import Durations
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
+from mbtool.link.connection import close_quietly
+from mbtool.link.scan import GATEWAY_EXCEPTIONS
+from mbtool.link.stats import Counted, Stats, outcome_of
 
 # What each --function asks: a read of one holding register, or the diagnostics echo.
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
@@ -65,8 +72,6 @@ def ping(connection, settings, count, interval, function, address, quiet):
     request_for = _requests(function, address)
     unit = connection.unit
     if settings.dry_run:
-        from mbtool.cli.session import open_client
-
         with open_client(connection, settings, "ping", then="then the same again every --interval") as client:
             client.execute(unit, request_for(1))
         return
@@ -77,11 +82,8 @@ def _requests(function: str, address: int):
     """The request of each sequence number: FC 08's echo carries the number, so a late echo of
     an earlier one is told from its own (it is not ours)."""
     if function == "03":
-        from mbtool.codec.data_access import ReadHoldingRegisters
-
         request = ReadHoldingRegisters(address, 1)
         return lambda seq: request
-    from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 
     return lambda seq: Diagnostics(DiagnosticSubFunction.RETURN_QUERY_DATA, (seq & 0xFFFF).to_bytes(2, "big"))
 
@@ -90,9 +92,6 @@ class Pinger:
     """The requests one after another, each shown as it ends, and the summary they add up to."""
 
     def __init__(self, connection, settings, request_for, quiet: bool) -> None:
-        from mbtool.durations import Durations
-        from mbtool.link.stats import Stats
-
         self.connection = connection
         self.settings = settings
         self.request_for = request_for
@@ -102,10 +101,6 @@ class Pinger:
         self.alive_rtt = Durations()  # their round trips, ping(8)'s rtt
 
     def run(self, count: int | None, interval: float) -> Summary:
-        from mbtool.cli.session import open_client
-        from mbtool.link.connection import close_quietly
-        from mbtool.link.stats import Counted, outcome_of
-
         connection, unit = self.connection, self.connection.unit
         request = self.request_for(1)
         if not self.quiet:
@@ -167,9 +162,6 @@ class Pinger:
         self._line(seq, f"{what}{_time(rtt)}{retried}")
 
     def _failed(self, seq: int, error: BaseException, rtt: float | None, attempts: int) -> None:
-        from mbtool.link.scan import GATEWAY_EXCEPTIONS
-        from mbtool.link.stats import outcome_of
-
         if isinstance(error, ModbusException):
             code = f"exception {error.exception_code:02X} {error.name}"
             if error.exception_code in GATEWAY_EXCEPTIONS:

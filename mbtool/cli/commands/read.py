@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import sys
 from functools import partial
 
 import click
 
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     ORDER_ALL,
     VALUE_TYPES,
@@ -16,9 +18,15 @@ from mbtool.cli.options import (
     type_options_given,
 )
 from mbtool.cli.param_types import ADDRESS, COUNT, Number, PositiveFloat
-from mbtool.cli.session import execute, show
-from mbtool.cli.settings import Settings
+from mbtool.cli.render import default_format
+from mbtool.cli.results import PointFailure, PointRow, Points, Result
+from mbtool.cli.session import execute, open_client, show, trace_for
+from mbtool.cli.settings import MONITORING_FORMATS, Settings
+from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
 from mbtool.codec.errors import RequestError
+from mbtool.codec.record import replace
+from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
+from mbtool.errors import PartialRead
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -84,8 +92,6 @@ def _run(
 ) -> None:
     """Once, or polled.  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
-    from mbtool.cli.settings import MONITORING_FORMATS
-
     metrics = None
     if settings.textfile or settings.output_format in MONITORING_FORMATS:
         settings, metrics = _metrics(connection, settings, points)
@@ -94,15 +100,11 @@ def _run(
             _once(connection, settings, request, to_result, run, metrics)
         except Exception as error:
             if metrics is not None:  # -o prom says the device is down
-                import sys
-
                 metrics.emit_failure(error, sys.stdout)
             raise
         return
-    from mbtool.cli.poll_output import ChangesOnly, Deferred, Output
-    from mbtool.cli.render import default_format
-    from mbtool.cli.session import trace_for
-    from mbtool.link.polling import poll
+    from mbtool.cli.poll_output import ChangesOnly, Deferred, Output  # noqa: PLC0415 - polling only
+    from mbtool.link.polling import poll  # noqa: PLC0415 - polling only
 
     fmt = settings.output_format or default_format()
     output = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
@@ -111,9 +113,6 @@ def _run(
     shown = Deferred(output, to_result)
     figures = None
     if settings.stats == "json":
-        import sys
-
-        from mbtool.cli.json_text import to_json
 
         def figures(summary: dict) -> None:  # the summary as one JSON object, before its line
             print(to_json(summary), file=sys.stderr, flush=True)
@@ -125,8 +124,6 @@ def _once(connection: Connection, settings: Settings, request, to_result, run=No
     if run is None:
         show(connection, settings, to_result(execute(connection, settings, request)), metrics)
         return
-    from mbtool.cli.session import open_client
-    from mbtool.errors import PartialRead
 
     with open_client(connection, settings, request.name) as client:
         try:
@@ -143,8 +140,7 @@ def _once(connection: Connection, settings: Settings, request, to_result, run=No
 def _metrics(connection: Connection, settings: Settings, points=()):
     """-o influx / prom and --textfile: the run's settings for them (--textfile is -o prom)
     and its Metrics, checked before anything is sent (with a map's ``points``)."""
-    from mbtool.cli.metrics import Metrics
-    from mbtool.codec.record import replace
+    from mbtool.cli.metrics import Metrics  # noqa: PLC0415 - -o influx and prom only
 
     fmt = settings.output_format
     if settings.textfile:
@@ -171,8 +167,6 @@ def _read_bits(
     table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.results import Result
-
     request = kind(address, count)
     # What every poll shares, made once: a poll's result is its bits in this frame.
     addresses = list(range(address, address + count))
@@ -200,9 +194,6 @@ def _read_registers(
     table=None,
 ) -> None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
-    from mbtool.cli.results import Result
-    from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
         raise RequestError(
             f"--order all shows 32- and 64-bit values in each word order; {value_type} is not one: "
@@ -250,8 +241,6 @@ def _read_registers(
 @polling_options
 def read_coils(connection, settings, address, count, interval, polls):
     """Read coils (FC 01). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    from mbtool.codec.data_access import ReadCoils
-
     _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
 
 
@@ -261,13 +250,11 @@ def read_coils(connection, settings, address, count, interval, polls):
 @polling_options
 def read_discrete_inputs(connection, settings, address, count, interval, polls):
     """Read discrete inputs (FC 02). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    from mbtool.codec.data_access import ReadDiscreteInputs
-
     _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
 
 
 def _refs(table, addresses: list[int]) -> list[str]:
-    from mbtool.codec.tables import reference
+    from mbtool.codec.tables import reference  # noqa: PLC0415 - read REF only
 
     return [reference(table, address) for address in addresses]
 
@@ -282,8 +269,6 @@ def read_holding_registers(connection, settings, address, count, value_type, ord
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    from mbtool.codec.data_access import ReadHoldingRegisters
-
     _read_registers(
         connection, settings, ReadHoldingRegisters, address, count, value_type, order, interval, polls
     )
@@ -299,8 +284,6 @@ def read_input_registers(connection, settings, address, count, value_type, order
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    from mbtool.codec.data_access import ReadInputRegisters
-
     _read_registers(
         connection, settings, ReadInputRegisters, address, count, value_type, order, interval, polls
     )
@@ -329,7 +312,7 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
     if map:
         _read_map(connection, settings, map, targets, interval, polls)
         return
-    from mbtool.codec.tables import READS
+    from mbtool.codec.tables import READS  # noqa: PLC0415 - read REF only
 
     table, address, count = reference_target(targets, "read", given)
     kind = READS[table.name]
@@ -340,17 +323,14 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
 
 
 def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
-    from mbtool.cli.results import PointFailure, PointRow, Points
-    from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import MapReader
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
     register_map = load_map(path)
     points = register_map.select(names)
     reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
     requests = [block.request for block in reader.blocks]
     if settings.dry_run:  # no read depends on another's reply: show them all
-        from mbtool.cli.session import open_client
-
         with open_client(connection, settings, requests[0].name) as client:
             for request in requests:
                 client.show(connection.unit, request)

@@ -17,13 +17,17 @@ recognised by its unit id and reported as "late" (raise -t).
 
 from __future__ import annotations
 
+import csv
 import sys
 import time
 
 import click
 
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
+from mbtool.cli.render import default_format, wants_csv_header
+from mbtool.cli.session import open_client, trace_for
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary
@@ -133,9 +137,14 @@ class Progress:
         self.bar = None
         if not enabled:
             return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
-        from rich.progress import Progress as Bar
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import (  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+            BarColumn,
+            MofNCompleteColumn,
+            TextColumn,
+            TimeRemainingColumn,
+        )
+        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
 
         self.bar = Bar(
             TextColumn("{task.description}"),
@@ -198,8 +207,6 @@ class Output:
         if self.fmt == "plain":
             print(" ".join([str(answer.unit), answer.answer, *where, answer.text]), flush=True)
         elif self.fmt == "csv":
-            import csv
-
             if not self.header_done:
                 self._csv_header()
             csv.writer(sys.stdout, lineterminator="\n").writerow(
@@ -208,10 +215,6 @@ class Output:
             sys.stdout.flush()
 
     def _csv_header(self) -> None:
-        import csv
-
-        from mbtool.cli.render import wants_csv_header
-
         where = ["baud", "parity"] if self.sweeping else []
         if wants_csv_header(sys.stdout, self.csv_header):
             csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
@@ -226,8 +229,6 @@ class Output:
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
         if self.fmt == "json":
-            from mbtool.cli.json_text import to_json
-
             data = {
                 **head,
                 "units": [answer_dict(a) for a in tally.found],
@@ -256,9 +257,9 @@ class Output:
             self._table(tally, title)
 
     def _table(self, tally: Tally, title: str) -> None:
-        from rich.console import Console
-        from rich.markup import escape
-        from rich.table import Table
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
         table = Table()
         table.add_column("Unit", justify="right")
@@ -349,8 +350,6 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     if settings.dry_run:
         _dry_run(connection, settings, request, units, lines, sweeping)
         return
-    from mbtool.cli.render import default_format
-    from mbtool.cli.session import trace_for
 
     fmt = settings.output_format or default_format()
     output = Output(fmt, sweeping, settings.csv_header)
@@ -380,8 +379,6 @@ def _check_sweepable(port: str | None) -> None:
 
 
 def _dry_run(connection, settings, request, units: list[int], lines: list[Setting], sweeping: bool) -> None:
-    from mbtool.cli.session import open_client
-
     then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
     then += f" at each of {len(lines)} serial settings)" if sweeping else ")"
     with open_client(replace(connection, unit=units[0]), settings, request.name, then=then) as client:

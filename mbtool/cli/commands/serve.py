@@ -19,6 +19,12 @@ from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_clien
 from mbtool.cli.param_types import Choice, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
+from mbtool.device.datafile import load_data
+from mbtool.device.device import Device, Faults
+from mbtool.device.model import demo_model
+from mbtool.device.server import Server, parse_target
+from mbtool.device.serving import IoFaults
+from mbtool.link.transport import SerialSettings, default_framer
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 
@@ -212,13 +218,6 @@ def serve(
       mbtool serve                                   (in one terminal)
       mbtool read-holding-registers 0 10 -p tcp://127.0.0.1:5020
     """
-    from mbtool.device.datafile import load_data
-    from mbtool.device.device import Device, Faults
-    from mbtool.device.model import demo_model
-    from mbtool.device.server import Server, parse_target
-    from mbtool.device.serving import IoFaults
-    from mbtool.link.transport import SerialSettings, default_framer
-
     unit_set = parse_units(units)
     where = parse_target(target)
     framer = framer or default_framer(target)
@@ -326,10 +325,10 @@ def _log_line(framer: str, direction: str, peer: str, data: bytes, note: str) ->
 
 
 def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]) -> None:
-    from rich.console import Console, Group
-    from rich.live import Live
-    from rich.table import Table
-    from rich.text import Text
+    from rich.console import Console, Group  # noqa: PLC0415 - rich, 12-20 ms: the live display only
+    from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
     console = Console()
     shown_units = sorted(units)[:4]

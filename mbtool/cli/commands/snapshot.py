@@ -10,8 +10,22 @@ from functools import partial
 import click
 
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command, map_option
-from mbtool.codec.errors import RequestError
+from mbtool.cli.render import change_line, change_parts, default_format, wants_csv_header
+from mbtool.cli.session import open_client
+from mbtool.cli.writes import CONFIRMED, DIFFERS, Step, failure, report, send_all
+from mbtool.codec.data_access import (
+    MAX_WRITE_COILS,
+    MAX_WRITE_REGISTERS,
+    WriteMultipleCoils,
+    WriteMultipleRegisters,
+)
+from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.record import replace
+from mbtool.codec.tables import reference, table_named
+from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
+from mbtool.link.dump import Dumper, Span, TableDump, runs_of
 
 # --- diff: two snapshots, or a snapshot and the device ------------------------------------
 
@@ -19,9 +33,6 @@ from mbtool.codec.errors import RequestError
 def read_live(execute, wanted: dict[str, dict[int, int]]) -> dict[str, dict[int, int]]:
     """What the device holds at the addresses ``wanted`` lists: each run read exactly (an
     address the device lacks is left out, as a dump would)."""
-    from mbtool.codec.tables import table_named
-    from mbtool.link.dump import Dumper, Span, TableDump, runs_of
-
     dumper = Dumper(execute)
     out: dict[str, dict[int, int]] = {}
     for name, values in wanted.items():
@@ -46,8 +57,6 @@ def _scale_factor(point, registers: dict) -> int | None:
 def differences(a: dict, b: dict, register_map=None) -> list[dict]:
     """Each difference: a map's point (by name, in its units) where one covers the address,
     else the table and address with the raw values; None where a side lacks the address."""
-    from mbtool.codec.tables import reference, table_named
-
     out, covered = [], set()
     for point in register_map.points.values() if register_map else ():
         name = point.table.name
@@ -115,13 +124,9 @@ def diff(connection, settings, a, b, map):
     -> 23 m3/h with -m, a bit off -> on); "missing" where a side lacks the address. Exit 0 when equal, 1
     when they differ (as diff(1)), other codes as everywhere.
     """
-    from mbtool.cli.json_text import to_json
-    from mbtool.cli.render import default_format
-    from mbtool.errors import ExitCode, Summary
-
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map
+        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         register_map = load_map(map)
     b = b or DEVICE
@@ -131,8 +136,6 @@ def diff(connection, settings, a, b, map):
         )
     files = {side: snapshot(side)[0] for side in (a, b) if side != DEVICE}
     if DEVICE in (a, b):
-        from mbtool.cli.session import open_client
-
         (dumped,) = files.values()
         with open_client(connection, settings, "Read Holding Registers") as client:
             files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
@@ -142,9 +145,7 @@ def diff(connection, settings, a, b, map):
     if fmt == "json":
         print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
     elif fmt == "csv":
-        import csv
-
-        from mbtool.cli.render import wants_csv_header
+        import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
 
         writer = csv.writer(sys.stdout, lineterminator="\n")
         if wants_csv_header(sys.stdout, settings.csv_header):
@@ -154,8 +155,6 @@ def diff(connection, settings, a, b, map):
                 [d["table"], d["address"], d["ref"], d.get("name", ""), d["a"], d["b"], d.get("unit", "")]
             )
     else:
-        from mbtool.cli.render import change_line
-
         sys.stdout.write(
             "".join(change_line(d, *_as_read(d, register_map), d.get("unit", "")) + "\n" for d in found)
         )
@@ -172,14 +171,6 @@ def write_requests(changes: dict[str, dict[int, int]], spans=()) -> list:
 
     ``spans``: (table, first, end) ranges no request may cut, a map's points: a meter
     refuses half a float32, so a cut that would fall inside one falls before it."""
-    from mbtool.codec.data_access import (
-        MAX_WRITE_COILS,
-        MAX_WRITE_REGISTERS,
-        WriteMultipleCoils,
-        WriteMultipleRegisters,
-    )
-    from mbtool.link.dump import runs_of
-
     requests = []
     for name, kind, limit in (
         ("coils", WriteMultipleCoils, MAX_WRITE_COILS),
@@ -203,9 +194,6 @@ def restore_plan(current: dict, wanted: dict, register_map=None, everything: boo
     difference, named as diff names it, and one Step a request.  A map's point is written
     whole, its registers in one request, when any of them differs.  Also the points the
     dump holds only in part, which are not written."""
-    from mbtool.cli.render import change_parts
-    from mbtool.cli.writes import Step
-
     changes: dict[str, dict[int, int]] = {}
     spans, halves, placed = [], [], []
     for difference in differences(current, wanted, register_map):
@@ -266,16 +254,10 @@ def restore(connection, settings, file, everything, map):
     (a meter may refuse half a float32) and named. Input registers and discrete inputs
     cannot be written: they are reported as skipped.
     """
-    from mbtool.cli.session import open_client
-    from mbtool.cli.writes import DIFFERS, failure, report, send_all
-    from mbtool.codec.errors import ModbusException
-    from mbtool.codec.record import replace
-    from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
-
     snap, complete = snapshot(file)
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map
+        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
         register_map = load_map(map)
     if not complete:
@@ -300,7 +282,7 @@ def restore(connection, settings, file, everything, map):
         steps, changes, partial_points = restore_plan(current, wanted, register_map, everything)
         items = [item for step in steps for item in step.items]
         if settings.dry_run:
-            from mbtool.cli.dryrun import DryRunDone
+            from mbtool.cli.dryrun import DryRunDone  # noqa: PLC0415 - describe, 0.8 ms: --dry-run only
 
             report(settings, items, head)
             raise DryRunDone(
@@ -359,8 +341,6 @@ def restore(connection, settings, file, everything, map):
 def _confirm(step, sent: dict, after: dict, register_map) -> None:
     """Each item of a step written: confirmed when every address it covers reads back as
     written, else differs, with what it reads (its point's value with a map)."""
-    from mbtool.cli.writes import CONFIRMED, DIFFERS
-
     _, spans = step.work
     for item, addresses in zip(step.items, spans, strict=True):
         table = item["table"]

@@ -3,13 +3,29 @@ written by hand; ``--map`` writes the register map of what it found (issue 34)."
 
 from __future__ import annotations
 
+import csv
+import math
 import sys
+from functools import partial
 
 import click
+import tomli_w
 
+from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import Number
-from mbtool.codec.errors import RequestError
+from mbtool.cli.profiles import defaults
+from mbtool.cli.render import default_format, wants_csv_header
+from mbtool.cli.results import value_text
+from mbtool.cli.session import open_client
+from mbtool.codec.data_access import ReadHoldingRegisters
+from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.errors import ExitCode, NoResponse, OutputFailed, Summary
+from mbtool.registermap.load import build_map
+from mbtool.sunspec.discover import NotSunSpec, discover
+from mbtool.sunspec.layout import map_rows
+from mbtool.sunspec.models import BASES
+from mbtool.sunspec.values import read_values
 
 SMA_UNIT = 126  # SMA inverters answer SunSpec on unit 126 (their own register map on 3)
 MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper than a request
@@ -54,8 +70,6 @@ def sunspec(connection, settings, base, model_ids, map_path):
     a model SunSpec does not define (shown raw) are each a warning on stderr; the walk
     goes on. A model whose registers the device refuses is named, the others shown: exit 8.
     """
-    from mbtool.cli.render import default_format
-
     if map_path is not None and not map_path.lower().endswith(".toml"):
         raise RequestError(f"--map writes a TOML map: {map_path} is not a .toml file name")
     fmt = settings.output_format or default_format()
@@ -76,8 +90,6 @@ def sunspec(connection, settings, base, model_ids, map_path):
         {"json": _json, "table": _table}.get(fmt, _plain)(tree)
     refused = [m for m in wanted if m.error is not None]
     if refused or unwritten:
-        from mbtool.errors import ExitCode, Summary
-
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
         if refused:
             named.append(f"{len(wanted) - len(refused)} of {len(wanted)} models read")
@@ -89,15 +101,6 @@ def sunspec(connection, settings, base, model_ids, map_path):
 
 def _walk(connection, settings, bases, model_ids: set[int]):
     """The chain and the unit it was found on."""
-    from functools import partial
-
-    from mbtool.cli.session import open_client
-    from mbtool.codec.data_access import ReadHoldingRegisters
-    from mbtool.codec.errors import ModbusException
-    from mbtool.errors import NoResponse
-    from mbtool.sunspec.discover import NotSunSpec, discover
-    from mbtool.sunspec.models import BASES
-
     bases = bases or BASES
     with open_client(
         connection, settings, ReadHoldingRegisters.name, then="then the chain of models after the marker"
@@ -123,8 +126,6 @@ def _walk(connection, settings, bases, model_ids: set[int]):
 
 
 def _why(error: BaseException) -> str:
-    from mbtool.errors import NoResponse
-
     return "no response" if isinstance(error, NoResponse) else str(error)
 
 
@@ -136,7 +137,6 @@ def _unit_given() -> bool:
     profile = ctx.meta.get("mbtool.profile")
     if not profile:
         return False
-    from mbtool.cli.profiles import defaults
 
     return "unit" in defaults(profile)
 
@@ -145,8 +145,6 @@ def _unit_given() -> bool:
 
 
 def _tree(chain, unit: int, models) -> dict:
-    from mbtool.sunspec.values import read_values
-
     out = {"unit": unit, "base": chain.base, "models": []}
     for model in models:
         layout = model.layout
@@ -207,8 +205,6 @@ NOT_IMPLEMENTED = "not implemented"
 def _value_text(point: dict) -> str:
     """A point's value as a person reads it: not implemented, or the value, its unit and a
     bitfield's set bits; a value whose scale factor is not implemented says so."""
-    from mbtool.cli.results import value_text
-
     if not point["implemented"]:
         return NOT_IMPLEMENTED
     if point["value"] is None:
@@ -271,8 +267,6 @@ def _plain_groups(groups: dict, indent: str) -> list[str]:
 
 
 def _json(tree: dict) -> None:
-    from mbtool.cli.json_text import to_json
-
     sys.stdout.write(to_json(tree) + "\n")
 
 
@@ -281,11 +275,6 @@ CSV_HEADER = ["model", "name", "value", "unit", "address", "registers", "impleme
 
 def _csv(tree: dict, header: bool = True) -> None:
     """A row a point (scale factors too), by its name in the map."""
-    import csv
-
-    from mbtool.cli.render import wants_csv_header
-    from mbtool.cli.results import value_text
-
     writer = csv.writer(sys.stdout, lineterminator="\n")
     if wants_csv_header(sys.stdout, header):
         writer.writerow(CSV_HEADER)
@@ -313,9 +302,9 @@ def _every_point(group: dict):
 def _table(tree: dict) -> None:
     """A table a model; a repeating group's repeats as the rows of a table of their own,
     a column a point."""
-    from rich.console import Console
-    from rich.markup import escape
-    from rich.table import Table
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
     console = Console()
     console.print(
@@ -339,8 +328,8 @@ def _table(tree: dict) -> None:
 
 
 def _table_groups(console, groups: dict, prefix: str = "") -> None:
-    from rich.markup import escape
-    from rich.table import Table
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
     by_name: dict[str, list] = {}
     for title, points, inner in _repeats(groups, prefix):
@@ -367,11 +356,6 @@ def _write_map(path: str, connection, unit: int, chain, models) -> str | None:
     """A map of every point of the models read, scaled by their scale factors (scale_ref),
     SunSpec's unimplemented values as invalid; checked by the map loader before it is written.
     Why no map was written, when no point was read that a map could name."""
-    from mbtool.errors import OutputFailed
-    from mbtool.registermap.load import build_map
-    from mbtool.sunspec.layout import map_rows
-    from mbtool.sunspec.values import read_values
-
     rows: dict = {}
     left_out: list[str] = []
     for model in models:
@@ -428,16 +412,10 @@ def _toml(device: dict, rows: dict) -> str:
 
 
 def _toml_key(key: str) -> str:
-    import tomli_w
-
     return tomli_w.dumps({key: 0}).rsplit(" = ", 1)[0]
 
 
 def _toml_value(value) -> str:
-    import math
-
-    import tomli_w
-
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):

@@ -5,6 +5,7 @@ which takes a device manual's references or a register map's point names; and
 from __future__ import annotations
 
 import sys
+from functools import partial
 
 import click
 
@@ -17,8 +18,19 @@ from mbtool.cli.options import (
     type_options_given,
 )
 from mbtool.cli.param_types import ADDRESS, Number
+from mbtool.cli.results import PointRow, Points, Result, value_text
 from mbtool.cli.session import execute, open_client, show
+from mbtool.codec.data_access import (
+    ReadHoldingRegisters,
+    WriteMultipleCoils,
+    WriteMultipleRegisters,
+    WriteSingleCoil,
+    WriteSingleRegister,
+)
 from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.framing import is_broadcast
+from mbtool.codec.values import decode_values, parse_registers, value_addresses
+from mbtool.link.connection import framer_name
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
 
@@ -37,9 +49,6 @@ def parse_bit(text: str) -> bool:
 @click.argument("state", metavar="on|off|1|0")
 def write_coil(connection, settings, address, state):
     """Write one coil (FC 05). Switch the coil at ADDRESS on or off (also 1|0|true|false)."""
-    from mbtool.cli.results import Result
-    from mbtool.codec.data_access import WriteSingleCoil
-
     request = WriteSingleCoil(address, parse_bit(state))
     execute(connection, settings, request)
     show(
@@ -54,10 +63,6 @@ def write_coil(connection, settings, address, state):
 @click.argument("value")
 def write_register(connection, settings, address, value, value_type, order):
     """Write one register (FC 06). VALUE (-32768..65535 or 0x hex) at ADDRESS."""
-    from mbtool.cli.results import Result
-    from mbtool.codec.data_access import WriteSingleRegister
-    from mbtool.codec.values import decode_values, parse_registers
-
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
     execute(connection, settings, request)
@@ -83,9 +88,6 @@ def write_register(connection, settings, address, value, value_type, order):
 @click.argument("bits", nargs=-1, required=True, metavar="BIT...")
 def write_coils(connection, settings, address, bits):
     """Write coils (FC 15). BITs (on|off|1|0|true|false) from ADDRESS, at most 1968."""
-    from mbtool.cli.results import Result
-    from mbtool.codec.data_access import WriteMultipleCoils
-
     values = tuple(parse_bit(bit) for bit in bits)
     request = WriteMultipleCoils(address, values)
     execute(connection, settings, request)
@@ -106,10 +108,6 @@ def write_registers(connection, settings, address, values, allow_nonfinite, valu
     Each VALUE is -32768..65535 or 0x hex, or a value of --type (a float32
     fills 2 registers in --order).
     """
-    from mbtool.cli.results import Result
-    from mbtool.codec.data_access import WriteMultipleRegisters
-    from mbtool.codec.values import decode_values, parse_registers, value_addresses
-
     registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = WriteMultipleRegisters(address, tuple(registers))
     execute(connection, settings, request)
@@ -183,9 +181,11 @@ def write(connection, settings, targets, map, multiple, rmw, allow_nonfinite, va
 def _write_reference(
     connection, settings, text: str, values, multiple: bool, value_type: str, order: str, nonfinite: bool
 ) -> None:
-    from mbtool.cli.results import Result
-    from mbtool.codec.tables import parse_reference, reference, write_of
-    from mbtool.codec.values import decode_values, parse_registers, value_addresses
+    from mbtool.codec.tables import (  # noqa: PLC0415 - REF, write-bit only
+        parse_reference,
+        reference,
+        write_of,
+    )
 
     if "=" in text:
         raise RequestError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
@@ -228,13 +228,10 @@ def _write_reference(
 def _write_map(
     connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
 ) -> None:
-    from mbtool.cli.results import PointRow, Points, value_text
-    from mbtool.cli.writes import Step, failure, report, send_all
-    from mbtool.codec.framing import is_broadcast
-    from mbtool.link.connection import framer_name
-    from mbtool.registermap.load import load_map
-    from mbtool.registermap.plan import write_request
-    from mbtool.registermap.point import NoScaleFactor
+    from mbtool.cli.writes import Step, failure, report, send_all  # noqa: PLC0415 - write -m only
+    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.registermap.plan import write_request  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
+    from mbtool.registermap.point import NoScaleFactor  # noqa: PLC0415 - with decimal, 1 ms: -m only
 
     register_map = load_map(path)
     wanted = []  # every value checked before anything is sent
@@ -323,9 +320,7 @@ def _scale_factors(connection, settings, client, factors: list, max_gap: int) ->
     """The value each scale-factor point holds now (None: it has none), read before any
     write; with --dry-run their reads are shown and the run ends there, as the writes
     depend on the replies."""
-    from functools import partial
-
-    from mbtool.registermap.plan import MapReader
+    from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m and write-bit only
 
     if not factors:
         return {}
@@ -352,17 +347,17 @@ class MaskWriteUnsupported(ModbusException):
 
 
 def _rmw_read(address: int):
-    from mbtool.codec.data_access import ReadHoldingRegisters
-
     return ReadHoldingRegisters(address, 1)
 
 
 def _write_bit(connection, client, address: int, bit: int, on: bool, rmw: bool) -> tuple:
     """Set or clear one bit of a holding register: FC 22 (spec §3), or with ``rmw`` FC 03
     then FC 06.  The register as written when it is known (rmw), else ()."""
-    from mbtool.codec.data_access import WriteSingleRegister
-    from mbtool.codec.tables import HOLDING_REGISTERS, reference
-    from mbtool.registermap.plan import bit_request, with_bit
+    from mbtool.codec.tables import HOLDING_REGISTERS, reference  # noqa: PLC0415 - REF and write-bit only
+    from mbtool.registermap.plan import (  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
+        bit_request,
+        with_bit,
+    )
 
     if not rmw:
         try:
@@ -396,8 +391,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
     FC 22 answers exception 01, and --rmw reads the register and writes it back
     (FC 03, then FC 06) instead, which is not atomic.
     """
-    from mbtool.cli.results import Result
-    from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference
+    from mbtool.codec.tables import HOLDING_REGISTERS, parse_reference  # noqa: PLC0415 - REF, write-bit only
 
     table, address = parse_reference(ref)
     if table is not HOLDING_REGISTERS:
@@ -407,7 +401,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
     on = parse_bit(state)
     with open_client(connection, settings, RMW_NEEDS if rmw else "") as client:
         if settings.dry_run:
-            from mbtool.registermap.plan import bit_request
+            from mbtool.registermap.plan import bit_request  # noqa: PLC0415 - decimal, 2 ms: write-bit only
 
             client.show(connection.unit, _rmw_read(address) if rmw else bit_request(address, bit, on))
             client.finish(connection.unit)
