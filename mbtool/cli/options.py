@@ -10,7 +10,16 @@ from collections.abc import Callable
 import click
 
 from mbtool.cli.completion import complete_port, complete_profile
-from mbtool.cli.param_types import COUNT, PARITY, Choice, Number, PositiveFloat, Rs485Delays, Seconds
+from mbtool.cli.param_types import (
+    COUNT,
+    PARITY,
+    Choice,
+    FilePath,
+    Number,
+    PositiveFloat,
+    Rs485Delays,
+    Seconds,
+)
 from mbtool.cli.parsing import DeviceCommand
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
@@ -173,20 +182,20 @@ TLS_OPTIONS = [
     click.option(
         "--cert",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security is mutual.",
     ),
     click.option(
         "--key",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: the certificate's private key (PEM) where --cert's file has none; an "
         "encrypted one's password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
     ),
     click.option(
         "--ca",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: the CA certificates to trust (PEM), or a device's own certificate to trust "
         "that one self-signed device; default: the system's CAs.",
     ),
@@ -215,20 +224,20 @@ SERVE_TLS_OPTIONS = [
     click.option(
         "--cert",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: the server's certificate (PEM, its chain after it).",
     ),
     click.option(
         "--key",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: its private key (PEM) where --cert's file has none; an encrypted one's "
         "password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
     ),
     click.option(
         "--ca",
         metavar="FILE",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="tls://: the CA certificates (PEM) the clients' certificates must be signed by: "
         "Modbus/TCP Security requires one from every client.",
     ),
@@ -389,7 +398,7 @@ def map_option(what: str) -> Callable:
         "--map",
         "map",
         metavar="MAP",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help=f"A register map (TOML, or CSV with a header row): {what}. Also a profile's map key.",
     )
 

@@ -17,7 +17,7 @@ import tomli_w
 
 from mbtool.cli.data_files import TABLE_SECTIONS, data_file
 from mbtool.cli.options import device_command
-from mbtool.cli.param_types import Number
+from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.session import open_client
 from mbtool.codec.device_id import ReadDeviceIdentification
 from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
@@ -89,7 +89,7 @@ def _identity(execute) -> dict:
 
 
 @device_command("dump", output=False)
-@click.argument("file", type=click.Path(dir_okay=False, allow_dash=True))
+@click.argument("file", type=FilePath(dir_okay=False, allow_dash=True))
 @click.option(
     "--range",
     "ranges",

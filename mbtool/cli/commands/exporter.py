@@ -40,6 +40,7 @@ import click
 from mbtool.cli.inventory import load_inventory
 from mbtool.cli.metrics import _label_pairs, _metric_name
 from mbtool.cli.options import LINK_OPTIONS, with_options
+from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, point_metric, prom_text
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
@@ -73,7 +74,7 @@ IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle bef
     short_help="Serve Prometheus: a plant's latest values from memory, or a register map read "
     "from a target on each scrape.",
 )
-@click.argument("inventory", required=False, type=click.Path(dir_okay=False))
+@click.argument("inventory", required=False, type=FilePath(dir_okay=False))
 @click.option(
     "--listen",
     metavar="HOST:PORT",
@@ -86,7 +87,7 @@ IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle bef
 @click.option(
     "--maps",
     metavar="DIR",
-    type=click.Path(exists=True, file_okay=False),
+    type=FilePath(exists=True, file_okay=False),
     help="/modbus: the register maps a scrape's module names, DIR/NAME.toml or DIR/NAME.csv "
     "(before the inventory's maps, each named by its file name without .toml or .csv).",
 )

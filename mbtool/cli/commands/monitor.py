@@ -22,7 +22,7 @@ import click
 from mbtool.cli.frames import frame_report, one_line
 from mbtool.cli.json_text import to_json
 from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
-from mbtool.cli.param_types import Choice, Number, PositiveFloat
+from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat
 from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.profiles import defaults
 from mbtool.cli.render import default_format
@@ -91,13 +91,13 @@ def default_silence(framer: str, baud: int) -> float:
 @click.option(
     "--capture",
     metavar="FILE",
-    type=click.Path(dir_okay=False),
+    type=FilePath(dir_okay=False),
     help="Also write every frame to a pcap file that Wireshark decodes as Modbus RTU.",
 )
 @click.option(
     "--from-file",
     metavar="FILE",
-    type=click.Path(exists=True, dir_okay=False),
+    type=FilePath(exists=True, dir_okay=False),
     help="Analyse a recording instead of listening: a pcap file (as --capture writes), with its "
     "time stamps, or raw bytes from a line, with no timing (frames split by their implicit length; "
     "no time, gap or latency shown).",

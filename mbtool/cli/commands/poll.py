@@ -19,7 +19,7 @@ from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
 from mbtool.cli.metrics import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value, write_textfile
-from mbtool.cli.param_types import PositiveFloat
+from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import event_line, prom_text
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
@@ -37,7 +37,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     context_settings={"help_option_names": ["-h", "--help"]},
     short_help="Poll every device of a plant: several buses and gateways, from one process.",
 )
-@click.argument("inventory", type=click.Path(dir_okay=False))
+@click.argument("inventory", type=FilePath(dir_okay=False))
 @click.option(
     "-o",
     "--format",
@@ -50,7 +50,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 @click.option(
     "--textfile",
     metavar="PATH",
-    type=click.Path(dir_okay=False),
+    type=FilePath(dir_okay=False),
     help="Rewrite the whole plant's metrics (Prometheus text) to PATH atomically after each "
     "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
 )

@@ -17,7 +17,7 @@ from mbtool.cli.options import (
     reference_target,
     type_options_given,
 )
-from mbtool.cli.param_types import ADDRESS, COUNT, Number, PositiveFloat
+from mbtool.cli.param_types import ADDRESS, COUNT, FilePath, Number, PositiveFloat
 from mbtool.cli.render import default_format
 from mbtool.cli.results import PointFailure, PointRow, Points, Result
 from mbtool.cli.session import execute, open_client, show, trace_for
@@ -62,7 +62,7 @@ def polling_options(function):
     function = click.option(
         "--textfile",
         metavar="PATH",
-        type=click.Path(dir_okay=False),
+        type=FilePath(dir_okay=False),
         help="Write the Prometheus text there, atomically, for node_exporter's textfile "
         "collector (implies -o prom; each poll rewrites it).",
     )(function)

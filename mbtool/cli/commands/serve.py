@@ -16,7 +16,7 @@ import click
 from mbtool.cli.completion import complete_port
 from mbtool.cli.listen import tls_server_settings
 from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_client_options
-from mbtool.cli.param_types import Choice, Number, PositiveFloat, parse_int, parse_units, units_text
+from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
 from mbtool.codec.errors import RequestError
 from mbtool.device.datafile import load_data
@@ -102,7 +102,7 @@ class Fraction(click.ParamType):
     "--data",
     "data_file",
     metavar="FILE",
-    type=click.Path(dir_okay=False),
+    type=FilePath(dir_okay=False),
     help="Initial tables and device identity from a JSON or TOML file (see README); with "
     "sparse = true in it, addresses it does not list answer exception 02. "
     "Without it the device starts with the sim:// demo data.",

@@ -12,6 +12,7 @@ import click
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
 from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command, map_option
+from mbtool.cli.param_types import FilePath
 from mbtool.cli.render import change_line, change_parts, default_format, wants_csv_header
 from mbtool.cli.session import open_client
 from mbtool.cli.writes import CONFIRMED, DIFFERS, Step, failure, report, send_all
@@ -237,7 +238,7 @@ def restore_plan(current: dict, wanted: dict, register_map=None, everything: boo
 
 
 @device_command("restore")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=FilePath(dir_okay=False))
 @click.option(
     "--all", "everything", is_flag=True, help="Write every coil and register, not only those that differ."
 )

@@ -13,7 +13,7 @@ import tomli_w
 
 from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
-from mbtool.cli.param_types import Number
+from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.profiles import defaults
 from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.results import value_text
@@ -49,7 +49,7 @@ MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper
     "--map",
     "map_path",
     metavar="FILE",
-    type=click.Path(dir_okay=False),
+    type=FilePath(dir_okay=False),
     help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll.",
 )
 def sunspec(connection, settings, base, model_ids, map_path):
