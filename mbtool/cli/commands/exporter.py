@@ -38,17 +38,24 @@ from urllib.parse import parse_qs, urlsplit
 import click
 
 from mbtool.cli.inventory import load_inventory
-from mbtool.cli.metrics import _label_pairs, _metric_name
+from mbtool.cli.metrics import _metric_name
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, point_metric, prom_text
+from mbtool.cli.plant_text import (
+    LAST_SUCCESS,
+    UP,
+    PlantMetrics,
+    device_stats_text,
+    link_stats_text,
+    point_metric,
+)
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead
 from mbtool.link.connection import Connection, check, close_quietly, open_client
-from mbtool.link.stats import OUTCOMES, Stats, outcome_of
+from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import parse_target
-from mbtool.plant.schedule import ONLINE, Event, Plant
+from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import MapReader
@@ -223,209 +230,6 @@ def check_plant_names(plant) -> None:
         clash = _clash(spec.reader.points, own)
         if clash:
             raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
-
-
-# --- inventory: the plant's metrics, rendered as each device reports --------------------------
-
-
-class PlantMetrics:
-    """The plant's exposition, kept ready for any number of scrapes.
-
-    A device's families (its points, modbus_up and its last success, as poll's Prometheus
-    text has them; its statistics) and its link's are written when the device's poll is
-    reported, in the link's thread, where the device's state is whole.  A scrape joins what
-    was written, under a lock, and neither waits on a device nor renders the plant's
-    samples itself: prometheus_client's generate_latest takes some 16 ms for 50 devices of
-    10 points, and a scrape should answer in a few.  The statistics are written as poll's
-    text is, not through generate_latest: 15 us a device report rather than 400, which
-    matters when 50 devices report at once and a scrape waits for the interpreter."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
-        self.changes = 0  # blocks written so far
-        self.joined: tuple[int, bytes] = (-1, b"")  # the text as of that many changes
-        self.states: dict = {}
-        self.workers: dict = {}
-
-    def watch(self, runner) -> None:
-        """The plant's devices and links, each shown (down, unknown) before its first poll."""
-        self.states = runner.devices
-        self.workers = {worker.spec.name: worker for worker in runner.workers}
-        for state in self.states.values():
-            self._device(state)
-        for worker in runner.workers:
-            self._link(worker)
-
-    def report(self, item) -> None:
-        """What a link's worker reports (plant.schedule): a poll, or a change of state."""
-        if isinstance(item, Event):
-            print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
-            if item.kind == "link" and item.name in self.workers:
-                self._link(self.workers[item.name])
-            return
-        state = self.states[item.device.name]
-        self._device(state)
-        self._link(self.workers[state.spec.link])
-
-    def _device(self, state) -> None:
-        self._keep(
-            ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
-        )
-
-    def _link(self, worker) -> None:
-        total = _link_totals(state.stats for state in worker.devices)
-        text = link_stats_text(worker.spec.name, total, worker.state == ONLINE, worker.open_failures)
-        self._keep(("link", worker.spec.name), text)
-
-    def _keep(self, key: tuple[str, str], text: str) -> None:
-        families = split_families(text)
-        with self.lock:
-            self.blocks[key] = families
-            self.changes += 1
-
-    def text(self) -> bytes:
-        """Every device's and link's families, one HELP and TYPE a family, its samples together
-        (joined again only when a device or link has reported since)."""
-        with self.lock:
-            changes, blocks = self.changes, list(self.blocks.values())
-            if self.joined[0] == changes:
-                return self.joined[1]
-        heads: dict[str, str] = {}
-        samples: dict[str, list[str]] = {}
-        for families in blocks:
-            for name, head, body in families:
-                if name not in heads:
-                    heads[name], samples[name] = head, []
-                samples[name].append(body)
-        text = "".join(head + "".join(samples[name]) for name, head in heads.items()).encode()
-        with self.lock:
-            if self.changes == changes:
-                self.joined = (changes, text)
-        return text
-
-
-def split_families(text: str) -> list[tuple[str, str, str]]:
-    """An exposition in the text format cut into its families: (name, its HELP and TYPE
-    lines, its samples).  A family starts at its HELP line; a newline in a HELP text or a
-    label value is escaped (\\n), so a line starting "# HELP " starts a family."""
-    out = []
-    for block in ("\n" + text).split("\n# HELP ")[1:]:
-        help_rest, _, rest = block.partition("\n")
-        type_line, _, body = rest.partition("\n")
-        if body and not body.endswith("\n"):
-            body += "\n"
-        out.append((help_rest.split(" ", 1)[0], f"# HELP {help_rest}\n{type_line}\n", body))
-    return out
-
-
-def _link_totals(stats_list):
-    """A link's transactions: its devices' counts added up, as Stats.add adds them, without
-    the window of recent round trips (the exporter shows none, and it is 1000 a device)."""
-    total = Stats()
-    for stats in stats_list:
-        total.transactions += stats.transactions
-        total.outcomes.update(stats.outcomes)
-        total.exceptions.update(stats.exceptions)
-        total.recovered += stats.recovered
-        total.rtt.count += stats.rtt.count
-        total.rtt.total += stats.rtt.total
-        total.rtt.counts = [
-            mine + theirs for mine, theirs in zip(total.rtt.counts, stats.rtt.counts, strict=True)
-        ]
-    return total
-
-
-def _family(name: str, kind: str, about: str, samples) -> str:
-    return f"# HELP {name} {about}\n# TYPE {name} {kind}\n" + "".join(f"{sample}\n" for sample in samples)
-
-
-def _le(bound: float) -> str:
-    """A bucket's bound as Prometheus writes it (Go's float formatting): 0.001, 1.0, +Inf."""
-    return "+Inf" if bound == math.inf else repr(float(bound))
-
-
-def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
-    """Every transaction's outcome, the exceptions by code, the retries that recovered and
-    the round-trip histogram (link.stats), each sample labelled ``pair``."""
-    name = f"{prefix}request_duration_seconds"
-    return (
-        _family(
-            f"{prefix}transactions_total",
-            "counter",
-            f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
-            "framing error), not_ours (a frame for another unit or transaction), link_lost",
-            (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
-        )
-        + _family(
-            f"{prefix}exceptions_total",
-            "counter",
-            f"Exception responses {whose}, by exception code (hex, as the spec writes them)",
-            (
-                f'{prefix}exceptions_total{{{pair},code="{code:02X}"}} {count}'
-                for code, count in sorted(stats.exceptions.items())
-            ),
-        )
-        + _family(
-            f"{prefix}retries_recovered_total",
-            "counter",
-            f"Transactions {whose} answered on a retry",
-            [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
-        )
-        + _family(
-            name,
-            "histogram",
-            f"Round-trip time of the replies {whose}: from a request to its reply, in seconds",
-            [
-                *(
-                    f'{name}_bucket{{{pair},le="{_le(bound)}"}} {count}'
-                    for bound, count in stats.rtt.buckets()
-                ),
-                f"{name}_sum{{{pair}}} {stats.rtt.total!r}",
-                f"{name}_count{{{pair}}} {stats.rtt.count}",
-            ],
-        )
-    )
-
-
-def device_stats_text(name: str, stats) -> str:
-    """A device's statistics in the text format: its polls and its transactions."""
-    pair = _label_pairs({"device": name})
-    return (
-        _family(
-            "modbus_polls_total",
-            "counter",
-            "Polls of the device",
-            [f"modbus_polls_total{{{pair}}} {stats.polls}"],
-        )
-        + _family(
-            "modbus_failed_polls_total",
-            "counter",
-            "Polls of the device that read nothing",
-            [f"modbus_failed_polls_total{{{pair}}} {stats.failed_polls}"],
-        )
-        + _transactions_text("modbus_", pair, "with the device", stats)
-    )
-
-
-def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
-    """A link's state and statistics in the text format: its devices' transactions added up."""
-    pair = _label_pairs({"link": name})
-    return (
-        _family(
-            "modbus_link_up",
-            "gauge",
-            "1 when the link is open, 0 when it cannot be opened or has not been",
-            [f"modbus_link_up{{{pair}}} {int(up)}"],
-        )
-        + _family(
-            "modbus_link_open_failures_total",
-            "counter",
-            "Times the link could not be opened",
-            [f"modbus_link_open_failures_total{{{pair}}} {open_failures}"],
-        )
-        + _transactions_text("modbus_link_", pair, "over the link", stats)
-    )
 
 
 # --- multi-target: a map read from a target on each scrape ----------------------------------
