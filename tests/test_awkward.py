@@ -5,8 +5,7 @@ from __future__ import annotations
 import re
 
 import pytest
-from conftest import run_mbtool
-from test_serve import serve
+from helpers import run_mbtool, serve
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -9,145 +9,42 @@ start line on stderr says which), stopped with SIGTERM at the end of its test.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import select
 import shutil
 import signal
 import socket
-import struct
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from types import SimpleNamespace
 
 import pytest
-from conftest import (
+from helpers import (
     PTY_SERIAL_OPTS,
+    REPO_ROOT,
+    Bridge,
     PtyPair,
     assert_one_error_line,
+    bridge,
     crc16,
     expect_ok,
     first_line,
+    mbap,
     mbtool_env,
     plain_pairs,
+    pymodbus_tcp,
+    read_mbap,
     rtu,
     run_mbtool,
+    serve,
     signals_as_from_a_shell,
     start_device,
 )
-from test_serve_abuse import serve
 
 pytestmark = pytest.mark.timeout(90)
-
-REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-class Bridge:
-    def __init__(self, proc: subprocess.Popen, first_line: str, out_path: str) -> None:
-        self.proc = proc
-        self.first_line = first_line  # "bridging tcp://127.0.0.1:PORT (tcp) to ... "
-        self.out_path = out_path
-        where = self.listening = first_line.split()[1]
-        self.host, self.port = "", 0
-        if where.startswith(("tcp://", "tls://", "udp://", "rtu+udp://")):
-            host, _, port = where.split("://", 1)[1].rpartition(":")
-            self.host, self.port = host, int(port)
-        self.result: tuple[int, str, str] | None = None
-
-    @property
-    def target(self) -> str:
-        return f"tcp://{self.host}:{self.port}"
-
-    def output(self) -> str:
-        with open(self.out_path, encoding="utf-8") as out:
-            return out.read()
-
-    def records(self) -> list[dict]:
-        """The JSON records, once the bridge has stopped: a transaction is printed after its
-        reply has gone, so a client's reply does not mean its record is out yet."""
-        _, out, _ = self.stop()
-        return [json.loads(line) for line in out.splitlines()]
-
-    def stop(self, sig: int = signal.SIGTERM) -> tuple[int, str, str]:
-        """(exit code, stdout, stderr) once it has stopped."""
-        if self.result is None:
-            if self.proc.poll() is None:
-                self.proc.send_signal(sig)
-            try:
-                _, err = self.proc.communicate(timeout=15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                _, err = self.proc.communicate(timeout=5)
-            self.result = (self.proc.returncode, self.output(), self.first_line + "\n" + err)
-        return self.result
-
-
-@contextlib.contextmanager
-def bridge(*args: str, listen: str = "tcp://127.0.0.1:0", fmt: str = "json"):
-    """A running ``mbtool bridge``; its stdout goes to a file (a pipe nobody reads would fill).
-
-    Its timeout is 2 s unless ``args`` say otherwise (a busy test machine can keep pymodbus's
-    device from answering in 1 s); a client through it waits longer than that.
-    """
-    out = tempfile.NamedTemporaryFile(prefix="mbtool-bridge-", suffix=".out", delete=False)
-    shape = [] if "-q" in args else ["-o", fmt]  # -q shows no transaction to shape
-    argv = [sys.executable, "-m", "mbtool", "bridge", "--listen", listen, *shape, "-t", "2", *args]
-    proc = subprocess.Popen(
-        argv,
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdin=subprocess.DEVNULL,
-        stdout=out,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    out.close()
-    running = None
-    try:
-        running = Bridge(proc, first_line(proc, "bridging ", proc.stderr), out.name)
-        yield running
-    finally:
-        if running is not None:
-            code, _, err = running.stop()
-            assert code == 0, f"bridge exited {code}: {err}"
-            assert "Traceback" not in err, err
-        elif proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=5)
-        os.unlink(out.name)
-
-
-def tcp_client(running: Bridge, timeout: float = 5.0):
-    from pymodbus.client import ModbusTcpClient
-
-    client = ModbusTcpClient(running.host, port=running.port, timeout=timeout, retries=0)
-    assert client.connect()
-    return client
-
-
-def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
-    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
-
-
-def read_mbap(sock: socket.socket) -> tuple[int, int, bytes]:
-    """(transaction id, unit, PDU) of one reply."""
-    header = _read_exactly(sock, 7)
-    tid, _, length, unit = struct.unpack(">HHHB", header)
-    return tid, unit, _read_exactly(sock, length - 1)
-
-
-def _read_exactly(sock: socket.socket, size: int) -> bytes:
-    data = b""
-    while len(data) < size:
-        chunk = sock.recv(size - len(data))
-        assert chunk, "the bridge closed the connection"
-        data += chunk
-    return data
 
 
 @pytest.fixture(scope="module")
@@ -158,13 +55,13 @@ def rtu_bus():
 
 
 @pytest.fixture(scope="module")
-def shared_bus(tmp_path_factory):
+def shared_bus():
     """``mbtool serve -u 1,2`` on a pty pair: silent to other units' requests, as slaves on a
     shared bus are (pymodbus 3.16's server answers them exception 04), so a unit that is not
     there costs the bridge its timeout.  Its ``pty`` is the tap: what reached the bus."""
     pair = PtyPair()
     try:
-        with serve(tmp_path_factory.mktemp("bus"), "-u", "1,2", *PTY_SERIAL_OPTS, target=pair.device_path):
+        with serve("-u", "1,2", *PTY_SERIAL_OPTS, target=pair.device_path):
             yield SimpleNamespace(target=pair.mbtool_path, pty=pair)
     finally:
         pair.close()
@@ -175,7 +72,7 @@ def shared_bus(tmp_path_factory):
 
 def test_pymodbus_client_reads_and_writes_through_the_bridge(rtu_bus):
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS) as running:
-        client = tcp_client(running)
+        client = pymodbus_tcp(running, timeout=5.0)
         try:
             assert client.read_holding_registers(0, count=5, device_id=1).registers == [
                 100,
@@ -212,7 +109,7 @@ def test_mbpoll_reads_and_writes_through_the_bridge(rtu_bus):
         alongside: list[object] = []
 
         def poll() -> None:
-            client = tcp_client(running)
+            client = pymodbus_tcp(running, timeout=5.0)
             try:
                 alongside.extend(
                     client.read_input_registers(0, count=1, device_id=2).registers for _ in range(20)
@@ -281,7 +178,7 @@ def test_several_clients_at_once_are_each_answered_their_own_values(rtu_bus):
         failures: list[str] = []
 
         def work(number: int) -> None:
-            client = tcp_client(running, timeout=10)
+            client = pymodbus_tcp(running, timeout=10)
             try:
                 for poll in range(8):
                     address = (number * 3 + poll) % 18
@@ -458,19 +355,19 @@ def test_a_unit_that_does_not_answer_gets_exception_0B(pty_pair):
     assert records[0]["received"] is None
 
 
-def test_the_summary_on_exit_counts_each_units_transactions_by_outcome(tmp_path):
+def test_the_summary_on_exit_counts_each_units_transactions_by_outcome():
     """Per unit, what became of each request forwarded (issue 32), as every summary counts
     transactions: unit 1 answers, unit 2 refuses writes (02), unit 9 is not on the bus."""
-    from test_serve import serve as serve_on
-
     pair = PtyPair()
     try:
         with (
-            serve_on("-u", "1,2", "--exception", "6:2", *PTY_SERIAL_OPTS, target=pair.device_path),
+            serve("-u", "1,2", "--exception", "6:2", *PTY_SERIAL_OPTS, target=pair.device_path),
             bridge("-p", pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3", "-q") as running,
         ):
             for _ in range(2):
-                expect_ok(run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "1", "-t", "5"))
+                expect_ok(
+                    run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "1", "-t", "5")
+                )
             run_mbtool("write-register", "0", "7", "-p", running.target, "-u", "2", "-t", "5")
             for _ in range(2):  # the second is answered 0B without the bus (--silent-hold)
                 run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "9", "-t", "5")
@@ -484,7 +381,9 @@ def test_the_summary_on_exit_counts_each_units_transactions_by_outcome(tmp_path)
         "unit 1: transactions 2: answered 2, exception 0, timeout 0, corrupt 0, not ours 0, link lost 0;"
     ), err
     assert "rtt min/avg/p95/max " in units["unit 1"]
-    assert units["unit 2"].startswith("unit 2: transactions 1: answered 0, exception 1 (02:1), timeout 0,"), err
+    assert units["unit 2"].startswith("unit 2: transactions 1: answered 0, exception 1 (02:1), timeout 0,"), (
+        err
+    )
     assert units["unit 9"].startswith("unit 9: transactions 1: answered 0, exception 0, timeout 1,"), err
     assert units["unit 9"].endswith("rtt -"), err
 
@@ -502,7 +401,7 @@ def test_a_unit_not_forwarded_gets_exception_0A_and_nothing_goes_on_the_bus(rtu_
     assert "unit 1 is not forwarded (--units)" in records[0]["why"]
 
 
-def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again(tmp_path):
+def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again():
     """TCP behind the bridge: the device goes away (0A), comes back (answered again)."""
     with start_device(tcp=True, framer="socket", units="1") as device:
         port = device.port
@@ -620,7 +519,10 @@ def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
         code, out, err = running.stop()
     lines = [line for line in out.splitlines() if " > " in line or " < " in line]
     assert "> unit 1 FC 03 (0x03) Read Holding Registers: starting_address=0 quantity=2" in lines[0]
-    assert "< unit 1 FC 03 (0x03) Read Holding Registers: byte_count=4 register[0]=100 register[1]=101" in lines[1]
+    assert (
+        "< unit 1 FC 03 (0x03) Read Holding Registers: byte_count=4 register[0]=100 register[1]=101"
+        in lines[1]
+    )
     assert " | bus " in lines[1] and " ms, total " in lines[1]
     assert any(line.endswith("connected") for line in out.splitlines())
     assert code == 0

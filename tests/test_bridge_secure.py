@@ -10,8 +10,7 @@ from __future__ import annotations
 import ssl
 
 import pytest
-from conftest import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_mbtool, start_device
-from test_bridge import bridge
+from helpers import HOLDING, assert_one_error_line, bridge, expect_ok, plain_pairs, run_mbtool, start_device
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -9,7 +9,7 @@ import sys
 import time
 
 import pytest
-from conftest import HOLDING, REPO_ROOT, mbtool_env, run_mbtool, signals_as_from_a_shell
+from helpers import HOLDING, REPO_ROOT, mbtool_env, run_mbtool, start_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -172,11 +172,7 @@ def test_what_keeps_check_from_judging_is_unknown_on_one_line(tmp_path, args, co
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT], ids=lambda s: s.name)
 def test_a_signal_is_unknown_on_one_line(silent_server, sig):
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "check", "40001", "-t", "20", "-p", silent_server.tcp_target],
-        cwd=REPO_ROOT, env=mbtool_env(), preexec_fn=signals_as_from_a_shell,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc = start_mbtool("check", "40001", "-t", "20", "-p", silent_server.tcp_target)
     deadline = time.monotonic() + 15
     while not silent_server.received_bytes(settle=0.05) and time.monotonic() < deadline:
         pass  # until the request is out and check waits for the reply

@@ -4,7 +4,7 @@ that came before the command are told where they go."""
 from __future__ import annotations
 
 import pytest
-from conftest import assert_one_error_line, run_mbtool
+from helpers import assert_one_error_line, run_mbtool
 
 
 def test_choices_take_any_case_and_mean_the_same():

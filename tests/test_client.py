@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from helpers import FakeClock, ScriptedLink
 
 from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes
@@ -13,46 +14,12 @@ from mbtool.codec.rtu import RtuFramer
 from mbtool.codec.timing import character_bits, silent_interval
 from mbtool.errors import NoResponse
 from mbtool.link.client import Client, Trace
-from mbtool.link.transport import ConnectionClosed, Transport
+from mbtool.link.transport import ConnectionClosed
 
 
 def rtu(hex_text: str) -> bytes:
     body = bytes.fromhex(hex_text)
     return body + crc_bytes(body)
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-        self.sleeps: list[float] = []
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.sleeps.append(seconds)
-        self.now += seconds
-
-
-class ScriptedLink(Transport):
-    """Answers each request with the next scripted list of chunks; time passes on silence."""
-
-    def __init__(self, clock: FakeClock, replies: list[list[bytes]], serial_line: bool = True) -> None:
-        self.clock = clock
-        self.replies = replies
-        self.serial_line = serial_line
-        self.written: list[bytes] = []
-        self.pending: list[bytes] = []
-
-    def write(self, data: bytes) -> None:
-        self.written.append(data)
-        self.pending = list(self.replies.pop(0)) if self.replies else []
-
-    def read(self, timeout: float) -> bytes:
-        if self.pending:
-            return self.pending.pop(0)
-        self.clock.now += timeout
-        return b""
 
 
 def client(link: ScriptedLink, clock: FakeClock, framer=None, **options) -> Client:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import random
 
 import pytest
+from helpers import drain_events, settle_events
 
 from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di
@@ -15,7 +16,6 @@ from mbtool.codec.framer import Frame, Rejected
 from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import UNKNOWN
 from mbtool.codec.rtu import RtuFramer
-from tests.conftest import drain_events, settle_events
 
 REQUEST = da.ReadHoldingRegisters(107, 3)
 REPLY = da.RegistersResponse(3, (555, 0, 100))

@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 import pytest
+from helpers import drain_events, settle_events
 
 from mbtool.codec import data_access, device_id, file_record, serial_line  # noqa: F401  (register every FC)
 from mbtool.codec.ascii import AsciiFramer
@@ -53,7 +54,6 @@ from mbtool.codec.serial_line import (
     ReadExceptionStatus,
     ReportSlaveId,
 )
-from tests.conftest import drain_events, settle_events
 
 VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
 SERIAL = {v["name"]: v for v in VECTORS["serial"]}

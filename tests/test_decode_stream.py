@@ -11,7 +11,7 @@ import sys
 import time
 
 import pytest
-from conftest import REPO_ROOT, mbtool_env, run_mbtool
+from helpers import REPO_ROOT, assert_one_error_line, crc16, free_port, mbtool_env, run_mbtool, serve
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -104,7 +104,6 @@ def test_a_saved_hex_trace_decodes():
 
 
 def test_text_that_is_not_hex_is_quoted_as_typed():
-    from conftest import assert_one_error_line
 
     line = assert_one_error_line(run_mbtool("decode", "2024-05-26T00:12:34.567+02:00", "01", "03"), 2)
     assert line == "mbtool: 2024-05-26T00:12:34.567+02:00 is not hex"
@@ -114,8 +113,6 @@ def test_text_that_is_not_hex_is_quoted_as_typed():
 
 def _monitor_recording(tmp_path, fmt: str) -> str:
     """monitor's own output (-o plain or json) for a recording of a request and its reply."""
-    from conftest import crc16
-
     request = bytes.fromhex(REQUEST.replace(" ", ""))
     reply = bytes.fromhex(REPLY.replace(" ", ""))
     exception = bytes([0x01, 0x83, 0x02]) + crc16(bytes([0x01, 0x83, 0x02]))
@@ -143,9 +140,6 @@ def _socat_x(tmp_path, *flags: str) -> str:
     """A real socat -x dump of a read through it: mbtool -> socat -> serve (RTU over TCP)."""
     import shutil
     import signal
-
-    from conftest import free_port
-    from test_serve import serve
 
     if shutil.which("socat") is None:
         pytest.skip("socat is not installed")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 import pytest
-from conftest import run_mbtool
+from helpers import run_mbtool
 
 from mbtool.cli import cli
 
@@ -418,7 +418,9 @@ def _slug(heading: str) -> str:
 
 
 def _anchors(path: Path) -> set[str]:
-    return {_slug(heading) for heading in re.findall(r"^#+ (.+)$", _prose(path.read_text(encoding="utf-8")), re.M)}
+    return {
+        _slug(heading) for heading in re.findall(r"^#+ (.+)$", _prose(path.read_text(encoding="utf-8")), re.M)
+    }
 
 
 def _code_lines(path: Path) -> list[str]:

@@ -7,7 +7,7 @@ import shlex
 import sys
 
 import pytest
-from conftest import run_mbtool
+from helpers import run_mbtool
 
 import mbtool.cli.render
 import mbtool.link.transport

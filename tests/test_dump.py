@@ -7,7 +7,21 @@ import json
 import random
 
 import pytest
-from test_registermap import _execute as executor
+from helpers import (
+    REPO_ROOT,
+    assert_one_error_line,
+    expect_ok,
+    interrupt_after,
+    mbap,
+    mbtool_env,
+    parse_hex_lines,
+    pymodbus_tcp,
+    read_mbap,
+    run_mbtool,
+    serve,
+    start_mbtool,
+)
+from helpers import device_executor as executor
 
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.tables import COILS, HOLDING_REGISTERS
@@ -189,7 +203,6 @@ def _expanded(section: dict) -> dict[int, int]:
 def test_a_dump_of_a_device_with_holes_finds_them_exactly(holed_device, tmp_path):
     import tomllib
 
-    from conftest import expect_ok, run_mbtool
     from pymodbus.client import ModbusTcpClient
 
     path = tmp_path / "device.toml"
@@ -222,9 +235,7 @@ def test_a_dump_of_a_device_with_holes_finds_them_exactly(holed_device, tmp_path
 
 
 def test_serve_of_a_dump_answers_as_the_device_did(holed_device, tmp_path):
-    from conftest import expect_ok, run_mbtool
     from pymodbus.client import ModbusTcpClient
-    from test_serve import serve
 
     path = tmp_path / "device.toml"
     expect_ok(run_mbtool("dump", path, *RANGES, "-p", holed_device.target))
@@ -293,8 +304,6 @@ def _identity_replies(host: str, port: int, asked: list[bytes] | None = None) ->
     MBAP replies.  ``asked``: send these requests instead (the other side's)."""
     import socket
 
-    from test_bridge import mbap, read_mbap
-
     requests = list(asked) if asked is not None else [b"\x11"]
     replies = []
     with socket.create_connection((host, port), timeout=5) as sock:
@@ -330,9 +339,6 @@ def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_dev
     as many Modbus TCP devices answer FC 17): the copy answers as the device did."""
     import tomllib
 
-    from conftest import expect_ok, run_mbtool
-    from test_serve import serve
-
     with contextlib.ExitStack() as stack:
         if original == "pymodbus":  # its FC 17 sends text first: run indicator byte 79 ('y')
             host, port = holed_device.host, holed_device.port
@@ -356,8 +362,6 @@ def test_a_device_that_refuses_the_extended_stream_still_gets_its_objects_dumped
     import struct
     import tomllib
 
-    from conftest import expect_ok, run_mbtool
-
     def basic_only(request: bytes) -> bytes:
         pdu = request[7:]
         if pdu[:2] == b"\x2b\x0e" and pdu[2] in (2, 3):  # exception 03: no such read code here
@@ -376,8 +380,6 @@ def test_a_device_that_refuses_the_extended_stream_still_gets_its_objects_dumped
 def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_path):
     import tomllib
 
-    from conftest import run_mbtool
-
     path = tmp_path / "part.toml"
     res = run_mbtool("dump", path, *RANGES, "--max-requests", "5", "-p", holed_device.target)
     # Not 0: a dump that did not finish must not look like one that did (issue 28).
@@ -392,13 +394,10 @@ def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
     import signal
     import tomllib
 
-    from test_polling import _interrupt_after
-    from test_serve import serve
-
     path = tmp_path / "part.toml"
     with serve("--delay", "0.02") as server:
         target = f"tcp://{server.host}:{server.port}"
-        code, _, err = _interrupt_after(["dump", str(path), "-p", target], 0, signal.SIGINT)
+        code, _, err = interrupt_after(["dump", str(path), "-p", target], 0, signal.SIGINT)
     assert code == 130, err
     assert "interrupted: the file has what was read, marked complete = false" in err
     data = tomllib.loads(path.read_text())
@@ -406,33 +405,18 @@ def test_ctrl_c_keeps_what_was_read_in_a_valid_file(tmp_path):
 
 
 def _requests_served(server, count: int, wait: float = 30.0) -> None:
-    """Return once ``serve`` (log mode, in a pipe) has logged ``count`` requests."""
-    import os
-    import select
+    """Return once ``serve`` (log mode) has logged ``count`` requests."""
     import time
 
-    fd, seen, end = server.proc.stdout.fileno(), b"", time.monotonic() + wait
-    while seen.count(b" RX ") < count:
-        assert time.monotonic() < end, f"serve logged {seen.count(b' RX ')} requests in {wait} s"
-        if select.select([fd], [], [], 0.1)[0]:
-            seen += os.read(fd, 65536)
+    end = time.monotonic() + wait
+    while (seen := server.log().count(" RX ")) < count:
+        assert time.monotonic() < end, f"serve logged {seen} requests in {wait} s"
+        time.sleep(0.02)
 
 
 def _dump_process(args):
-    import subprocess
-    import sys
 
-    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
-
-    return subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "dump", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return start_mbtool("dump", *args)
 
 
 @pytest.mark.parametrize(
@@ -442,8 +426,6 @@ def test_a_second_interrupt_still_saves_what_was_read(tmp_path, first, second):
     import signal
     import time
     import tomllib
-
-    from test_serve import serve
 
     path = tmp_path / "part.toml"
     with serve("--delay", "0.01", quiet=False) as server:
@@ -468,8 +450,6 @@ def test_a_dump_that_cannot_be_written_whole_leaves_the_previous_one(tmp_path):
     import subprocess
     import sys
     import tomllib
-
-    from conftest import REPO_ROOT, mbtool_env
 
     path = tmp_path / "device.toml"
     previous = "sparse = true\n\n[holding_registers]\n0 = [1, 2, 3]\n"
@@ -506,7 +486,6 @@ def test_a_dump_that_cannot_be_written_whole_leaves_the_previous_one(tmp_path):
 
 
 def test_a_dump_to_an_unwritable_place_fails_before_reading_the_device(tmp_path, silent_server):
-    from conftest import assert_one_error_line, run_mbtool
 
     path = tmp_path / "no-such-folder" / "device.toml"
     line = assert_one_error_line(run_mbtool("dump", path, "-p", silent_server.tcp_target), 7)
@@ -518,7 +497,6 @@ def test_a_dump_to_an_unwritable_place_fails_before_reading_the_device(tmp_path,
 
 
 def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, tmp_path):
-    from conftest import expect_ok, run_mbtool
     from pymodbus.client import ModbusTcpClient
 
     path = tmp_path / "before.toml"
@@ -557,7 +535,6 @@ def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, 
 
 
 def test_diff_of_two_files_names_what_one_side_lacks(tmp_path):
-    from conftest import run_mbtool
 
     (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 2, 3]\n[coils]\n4 = 1\n")
     (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 5]\n[coils]\n4 = 1\n")
@@ -572,7 +549,6 @@ def test_diff_of_two_files_names_what_one_side_lacks(tmp_path):
 
 
 def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path):
-    from conftest import expect_ok, parse_hex_lines, run_mbtool
     from pymodbus.client import ModbusTcpClient
 
     path = tmp_path / "saved.toml"
@@ -629,26 +605,14 @@ def test_write_requests_are_the_fewest_the_limits_allow():
 def _poll_while_writing(args, writes):
     """Run a polling mbtool; while it polls, make the writes through pymodbus's client."""
     import select
-    import subprocess
-    import sys
     import time
-
-    from conftest import REPO_ROOT, mbtool_env
-    from test_serve import serve, tcp_client
 
     with serve() as server:
         target = f"tcp://{server.host}:{server.port}"
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", *args, "-p", target],
-            cwd=REPO_ROOT,
-            env=mbtool_env(),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        proc = start_mbtool(*args, "-p", target)
         # Wait for the first poll's output without reading it (communicate reads it all).
         assert select.select([proc.stdout.fileno()], [], [], 15)[0], "no first poll"
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             for address, value in writes:
                 client.write_register(address, value, device_id=1)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from conftest import (
+from helpers import (
     PTY_SERIAL_OPTS,
     assert_one_error_line,
     expect_ok,

@@ -9,7 +9,7 @@ import socket
 import time
 
 import pytest
-from conftest import COILS, DISCRETE, HOLDING, INPUT, crc16, rtu
+from helpers import COILS, DISCRETE, HOLDING, INPUT, crc16, rtu
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -13,8 +13,7 @@ import threading
 import pytest
 import serial
 import serial.rfc2217
-
-from tests.conftest import PTY_SERIAL_OPTS, expect_ok, parse_hex_lines, plain_pairs, run_mbtool
+from helpers import PTY_SERIAL_OPTS, expect_ok, parse_hex_lines, plain_pairs, run_mbtool
 
 
 class _Writer:

@@ -1,7 +1,7 @@
 """mbtool over a pseudo-terminal serial line (RTU and ASCII) and over socket:// (RTU over TCP),
 with pymodbus's server on the other end.
 
-Every mbtool run on a pty passes --parity N: Linux ptys reject PARENB (see conftest).
+Every mbtool run on a pty passes --parity N: Linux ptys reject PARENB (see helpers.py).
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import (
+from helpers import (
     COILS,
     DISCRETE,
     HOLDING,

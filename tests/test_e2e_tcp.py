@@ -10,7 +10,7 @@ import json
 import struct
 
 import pytest
-from conftest import (
+from helpers import (
     COILS,
     DISCRETE,
     HOLDING,
@@ -19,6 +19,7 @@ from conftest import (
     parse_hex_lines,
     plain_pairs,
     run_mbtool,
+    start_mbtool,
 )
 
 pytestmark = pytest.mark.timeout(60)
@@ -306,21 +307,12 @@ def test_terminal_default_is_table_not_plain(tcp_device):
     import os
     import pty
     import select
-    import subprocess
-    import sys
     import time
-
-    from conftest import REPO_ROOT, mbtool_env
 
     master, slave = pty.openpty()
     try:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", "read-holding-registers", "0", "2", "-p", tcp_device.target],
-            stdout=slave,
-            stderr=subprocess.PIPE,
-            stdin=subprocess.DEVNULL,
-            cwd=REPO_ROOT,
-            env=mbtool_env(),
+        proc = start_mbtool(
+            "read-holding-registers", "0", "2", "-p", tcp_device.target, stdout=slave, text=False
         )
         os.close(slave)
         slave = -1

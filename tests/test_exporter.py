@@ -11,92 +11,32 @@ scrape the exporter.
 
 from __future__ import annotations
 
-import contextlib
 import re
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-import urllib.error
-import urllib.request
-from dataclasses import dataclass
-from pathlib import Path
 from urllib.parse import urlencode
 
 import pytest
-from conftest import (
+from helpers import (
+    METER_DATA,
+    METER_MAP,
     REPO_ROOT,
+    Running,
     assert_one_error_line,
-    first_line,
-    mbtool_env,
+    exporting,
     run_mbtool,
-    signals_as_from_a_shell,
+    serve,
 )
-from test_serve import serve
 
 from mbtool.errors import NoResponse
 
 pytestmark = pytest.mark.timeout(120)
 
 # --- the exporter as a user runs it ------------------------------------------------------------
-
-METER_DATA = REPO_ROOT / "examples" / "energy-meter-data.toml"
-METER_MAP = REPO_ROOT / "examples" / "energy-meter.toml"
-
-
-@dataclass
-class Running:
-    proc: subprocess.Popen
-    url: str  # http://127.0.0.1:PORT
-    line: str  # the first line it printed
-    stderr: Path
-
-    def get(self, path: str, headers: dict[str, str] | None = None, timeout: float = 30.0):
-        return http_get(self.url + path, headers, timeout)
-
-
-@contextlib.contextmanager
-def exporting(*args: str, tmp_path: Path):
-    """mbtool exporter ARGS on a free loopback port; stopped by SIGTERM, which must end it with
-    exit 0 and no traceback."""
-    stderr = tmp_path / f"exporter-{len(list(tmp_path.glob('exporter-*')))}.err"
-    with open(stderr, "w") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", "exporter", "--listen", "127.0.0.1:0", *map(str, args)],
-            cwd=REPO_ROOT,
-            env=mbtool_env(),
-            preexec_fn=signals_as_from_a_shell,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=err,
-        )
-    try:
-        line = first_line(proc, "exporting on ")
-        yield Running(proc, re.search(r"http://[^ ]+", line)[0], line, stderr)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate(timeout=5)
-            pytest.fail("the exporter did not stop on SIGTERM within 10 s")
-        assert proc.returncode == 0, stderr.read_text()
-        assert "Traceback" not in stderr.read_text()
-
-
-def http_get(url: str, headers: dict[str, str] | None = None, timeout: float = 30.0) -> tuple[int, str, str]:
-    """(status, content type, body) of a GET, whatever the status."""
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # loopback, never a proxy
-    try:
-        with opener.open(urllib.request.Request(url, headers=headers or {}), timeout=timeout) as response:
-            return response.status, response.headers["Content-Type"], response.read().decode()
-    except urllib.error.HTTPError as error:
-        return error.code, error.headers["Content-Type"], error.read().decode()
 
 
 def samples(text: str) -> dict[tuple[str, frozenset], float]:

@@ -20,9 +20,7 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 import pytest
-from conftest import free_port, start_device
-from test_exporter import METER_DATA, METER_MAP, exporting, http_get
-from test_serve import serve
+from helpers import METER_DATA, METER_MAP, exporting, free_port, http_get, serve, start_device
 
 pytestmark = [
     pytest.mark.timeout(180),

@@ -17,8 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import PtyPair, assert_one_error_line, build_libmodbus, run_mbtool
-from test_serve_abuse import PROMPT, mbap, serve
+from helpers import PROMPT, PtyPair, assert_one_error_line, build_libmodbus, mbap, run_mbtool, serve
 
 from mbtool.codec.framing import make_framer
 from mbtool.device.datafile import load_data
@@ -65,7 +64,7 @@ def test_serial_framing_unit_0_stays_a_broadcast(framer_name):
 def test_pymodbus_unit_0_over_tcp_reads_and_writes_the_device(tmp_path):
     from pymodbus.client import ModbusTcpClient
 
-    with serve(tmp_path, "-u", "1,17") as server:
+    with serve("-u", "1,17") as server:
         client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
         assert client.connect()
         try:
@@ -83,7 +82,7 @@ def test_rtu_over_tcp_unit_0_stays_a_broadcast(tmp_path):
     from pymodbus import FramerType
     from pymodbus.client import ModbusTcpClient
 
-    with serve(tmp_path, "-u", "1,17", "--framer", "rtu") as server:
+    with serve("-u", "1,17", "--framer", "rtu") as server:
         client = ModbusTcpClient(
             server.host, port=server.port, framer=FramerType.RTU, timeout=PROMPT, retries=0
         )
@@ -146,7 +145,7 @@ def libmodbus_client(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("unit", [0, 0xFF])
 def test_libmodbus_unit_0_over_tcp_gets_answers(tmp_path, libmodbus_client, unit):
-    with serve(tmp_path, "-u", "1,17") as server:
+    with serve("-u", "1,17") as server:
         run = subprocess.run(
             [str(libmodbus_client), server.host, str(server.port), str(unit)],
             capture_output=True,
@@ -317,7 +316,7 @@ def test_pymodbus_reads_a_sparse_serve_over_tcp(tmp_path):
 
     path = tmp_path / "sparse.toml"
     path.write_text(SPARSE)
-    with serve(tmp_path, "--data", str(path), "-u", "1,17") as server:
+    with serve("--data", str(path), "-u", "1,17") as server:
         client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
         assert client.connect()
         try:
@@ -337,7 +336,7 @@ def test_pymodbus_reads_a_sparse_serve_over_a_serial_line(tmp_path):
     path.write_text(SPARSE)
     pair = PtyPair()
     try:
-        with serve(tmp_path, "--data", str(path), "-u", "1,17", "--parity", "N", target=pair.device_path):
+        with serve("--data", str(path), "-u", "1,17", "--parity", "N", target=pair.device_path):
             client = ModbusSerialClient(
                 pair.mbtool_path, framer=FramerType.RTU, baudrate=19200, timeout=PROMPT, retries=0
             )
@@ -383,7 +382,7 @@ def test_pymodbus_restart_keeps_the_diagnostic_register(tmp_path):
 
     path = tmp_path / "diag.toml"
     path.write_text("diagnostic_register = 0x1234\n")
-    with serve(tmp_path, "--data", str(path)) as server:
+    with serve("--data", str(path)) as server:
         client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
         assert client.connect()
         try:
@@ -462,7 +461,7 @@ def test_read_only_serve_with_pymodbus_and_mbtool(tmp_path):
     from pymodbus.client import ModbusTcpClient
     from pymodbus.pdu.file_message import FileRecord
 
-    with serve(tmp_path, "--read-only") as server:
+    with serve("--read-only") as server:
         assert "read-only" in server.first_line, server.first_line
         client = ModbusTcpClient(server.host, port=server.port, timeout=PROMPT, retries=0)
         assert client.connect()
@@ -489,7 +488,7 @@ def test_read_only_serve_with_pymodbus_and_mbtool(tmp_path):
 
 def test_read_only_serve_cannot_be_silenced_by_one_client(tmp_path):
     """Issue 29 item 6: FC08 sub 04 from one client made the device deaf to every client."""
-    with serve(tmp_path, "--read-only") as server:
+    with serve("--read-only") as server:
         with server.connect() as hostile:
             for tid, pdu in enumerate(STATE_CHANGING_DIAGNOSTICS):
                 hostile.sendall(mbap(tid, 1, H(pdu.replace(" ", ""))))
@@ -500,7 +499,7 @@ def test_read_only_serve_cannot_be_silenced_by_one_client(tmp_path):
 
 
 def test_read_only_startup_line_in_the_log(tmp_path):
-    with serve(tmp_path, "--read-only", quiet=False) as server:
+    with serve("--read-only", quiet=False) as server:
         pass
     first = server.log().splitlines()[0]
     assert first.endswith("read-only: writes get exception 01"), first

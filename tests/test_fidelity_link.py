@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import HOLDING, assert_one_error_line, build_libmodbus, free_port, run_mbtool
+from helpers import HOLDING, assert_one_error_line, build_libmodbus, free_port, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -14,7 +14,7 @@ import threading
 import time
 
 import pytest
-from conftest import run_mbtool
+from helpers import run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

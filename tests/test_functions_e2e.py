@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import (
+from helpers import (
     HOLDING,
     PTY_SERIAL_OPTS,
     assert_one_error_line,

@@ -13,9 +13,8 @@ import json
 import math
 
 import pytest
-from conftest import assert_one_error_line, expect_ok, run_mbtool
+from helpers import assert_one_error_line, expect_ok, run_mbtool, serve
 from prometheus_client.parser import text_string_to_metric_families
-from test_serve import serve
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -275,7 +274,6 @@ def test_read_m_and_check_honour_a_maps_invalid_values(tmp_path):
     sample, and nothing check can judge (UNKNOWN, or --state-on-error's state) (issue 31)."""
     from line_protocol_parser import parse_line
     from prometheus_client.parser import text_string_to_metric_families
-    from test_serve import serve
 
     data = tmp_path / "data.toml"
     data.write_text("[holding_registers]\n0 = [0xFFFF, 230]\n")

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import random
 import select
 import shutil
@@ -22,24 +21,27 @@ import subprocess
 import sys
 import threading
 import time
-import tty
 from datetime import datetime
 
 import pytest
-from conftest import REPO_ROOT, assert_one_error_line, crc16, lrc, mbtool_env, rtu
+from helpers import (
+    REPO_ROOT,
+    Line,
+    Result,
+    ascii_frame,
+    assert_one_error_line,
+    bad_crc,
+    crc16,
+    finish,
+    json_lines,
+    mbtool_env,
+    rtu,
+    start_monitor,
+)
 
 from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
 
 DEADLINE = 20.0  # seconds for any one monitor run
-
-
-def bad_crc(frame: bytes) -> bytes:
-    return frame[:-1] + bytes([frame[-1] ^ 0xFF])
-
-
-def ascii_frame(body_hex: str) -> bytes:
-    body = bytes.fromhex(body_hex)
-    return b":" + (body + bytes([lrc(body)])).hex().upper().encode() + b"\r\n"
 
 
 READ_REQ = rtu(bytes.fromhex("11 03 00 6B 00 03"))  # spec §8: unit 17, read 3 registers at 107
@@ -184,8 +186,8 @@ def test_a_frame_cut_short_by_silence_is_garbage():
 
 
 def test_ascii_frames_bad_lrc_and_garbage():
-    request = ascii_frame("11 03 00 6B 00 03")
-    response = ascii_frame("11 03 06 AE 41 56 52 43 40")
+    request = ascii_frame(0x11, bytes.fromhex("03 00 6B 00 03"))
+    response = ascii_frame(0x11, bytes.fromhex("03 06 AE 41 56 52 43 40"))
     damaged = request.replace(b"7E\r", b"7F\r")
     assert damaged != request
     chunks = [(1.0, request[:7]), (1.2, request[7:]), (1.3, b"xx" + response), (2.0, damaged), (4.0, None)]
@@ -263,10 +265,6 @@ def run_cli(*args: str, timeout: float = DEADLINE) -> subprocess.CompletedProces
         timeout=timeout,
         stdin=subprocess.DEVNULL,
     )
-
-
-def json_lines(stdout: str) -> list[dict]:
-    return [json.loads(line) for line in stdout.splitlines() if line.strip()]
 
 
 def test_from_file_plain_and_json(tmp_path):
@@ -447,39 +445,10 @@ def test_a_port_that_cannot_be_opened_is_exit_6():
 
 
 def _as_result(completed: subprocess.CompletedProcess, args):
-    from conftest import Result
-
     return Result(list(args), completed.returncode, completed.stdout, completed.stderr, 0.0)
 
 
 # --- listening on a pseudo-terminal ------------------------------------------------------------
-
-
-class Line:
-    """One pty pair: the test writes the bus traffic into the master, mbtool listens on the slave."""
-
-    def __init__(self) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.master)
-        tty.setraw(self.slave)  # no echo: anything readable on the master was written by mbtool
-        self.path = os.ttyname(self.slave)
-
-    def send(self, *frames: bytes) -> None:
-        os.write(self.master, b"".join(frames))
-
-    def written_by_monitor(self) -> bytes:
-        data = b""
-        while select.select([self.master], [], [], 0.2)[0]:
-            chunk = os.read(self.master, 4096)
-            if not chunk:
-                break
-            data += chunk
-        return data
-
-    def close(self) -> None:
-        for fd in (self.master, self.slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
 
 
 @pytest.fixture
@@ -487,39 +456,6 @@ def line():
     pair = Line()
     yield pair
     pair.close()
-
-
-def start_monitor(*args: str, env: dict | None = None) -> subprocess.Popen:
-    """The CLI, started and listening (it says so on stderr): only then are bytes sent."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "monitor", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(env),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        stdin=subprocess.DEVNULL,
-    )
-    seen = b""
-    end = time.monotonic() + DEADLINE
-    while not seen.endswith(b"nothing is sent\n"):
-        if time.monotonic() > end or proc.poll() is not None:
-            proc.kill()
-            out, err = proc.communicate(timeout=5)
-            pytest.fail(f"monitor did not start listening: {seen + err!r}")
-        if select.select([proc.stderr], [], [], 0.1)[0]:
-            seen += os.read(proc.stderr.fileno(), 4096)
-    proc.listening = seen.decode()
-    return proc
-
-
-def finish(proc: subprocess.Popen) -> tuple[int, str, str]:
-    try:
-        out, err = proc.communicate(timeout=DEADLINE)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, err = proc.communicate(timeout=5)
-        pytest.fail(f"monitor did not stop within {DEADLINE}s\n{out.decode()}\n{err.decode()}")
-    return proc.returncode, out.decode(), proc.listening + err.decode()
 
 
 # The pty test's traffic: (pause before, bytes written at once).  The pauses are far above
@@ -655,8 +591,8 @@ def _check_with_tshark(capture) -> None:
 
 
 def test_ascii_on_a_pty(line, tmp_path):
-    request = ascii_frame("11 03 00 6B 00 03")
-    response = ascii_frame("11 03 06 AE 41 56 52 43 40")
+    request = ascii_frame(0x11, bytes.fromhex("03 00 6B 00 03"))
+    response = ascii_frame(0x11, bytes.fromhex("03 06 AE 41 56 52 43 40"))
     capture = tmp_path / "ascii.pcap"
     proc = start_monitor(
         "-p", line.path, "--parity", "N", "--framer", "ascii", "--frames", "2", "--duration", "15",
@@ -806,7 +742,9 @@ def test_raw_bytes_from_a_file_say_they_have_no_timing(tmp_path):
     assert [line.split(" ", 2)[:2] for line in lines if " gap=" in line] == [["-", "gap=-"]] * 5
     assert "latency=" not in plain.stdout and "0.0ms" not in plain.stdout
     assert " #2 response unit=17 FC 03 (0x03) " in lines[1] and lines[1].endswith("request=#1")
-    assert "- unanswered #3 unit=1 FC 04 (0x04) Read Input Registers | another request followed" in plain.stdout
+    assert (
+        "- unanswered #3 unit=1 FC 04 (0x04) Read Input Registers | another request followed" in plain.stdout
+    )
     (summary,) = plain.stderr.splitlines()
     assert summary.startswith("mbtool: frames 5, ")
     assert summary.endswith(f"; {recording} is raw bytes with no time stamps: no time, gap or latency")

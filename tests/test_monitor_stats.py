@@ -14,8 +14,17 @@ import json
 import time
 
 import pytest
-from conftest import assert_one_error_line, rtu, run_mbtool
-from test_monitor import Line, bad_crc, finish, json_lines, start_monitor
+from helpers import (
+    Line,
+    assert_one_error_line,
+    bad_crc,
+    finish,
+    json_lines,
+    lrc,
+    rtu,
+    run_mbtool,
+    start_monitor,
+)
 
 from mbtool.monitor.bus import BusMonitor
 from mbtool.monitor.stats import BusStats
@@ -194,7 +203,6 @@ def test_bad_stats_options_are_one_line_and_exit_2(args, words):
 
 def test_the_counts_in_process_with_an_ascii_bus_have_no_t35():
     # ASCII has no t3.5 (spec §2): frames end at CR LF, and no break is counted.
-    from conftest import lrc
 
     def ascii(body: str) -> bytes:
         data = bytes.fromhex(body)

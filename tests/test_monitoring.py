@@ -11,7 +11,15 @@ import sys
 import time
 
 import pytest
-from conftest import COILS, HOLDING, REPO_ROOT, assert_one_error_line, expect_ok, mbtool_env, run_mbtool
+from helpers import (
+    COILS,
+    HOLDING,
+    assert_one_error_line,
+    expect_ok,
+    run_mbtool,
+    start_device,
+    start_mbtool,
+)
 from line_protocol_parser import parse_line
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -475,15 +483,23 @@ def test_prom_on_stdout_says_the_device_cannot_be_read(silent_server):
 
 
 def test_a_polled_textfile_follows_the_device_down(tmp_path):
-    from conftest import start_device
 
     path = tmp_path / "modbus.prom"
     with start_device(tcp=True, framer="socket", units="1") as device:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", "read", "40001", "--textfile", str(path), "--interval", "0.1",
-             "--polls", "600", "-t", "0.2", "-p", device.target],
-            cwd=REPO_ROOT, env=mbtool_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
+        proc = start_mbtool(
+            "read",
+            "40001",
+            "--textfile",
+            path,
+            "--interval",
+            "0.1",
+            "--polls",
+            "600",
+            "-t",
+            "0.2",
+            "-p",
+            device.target,
+        )
         try:
             found = _wait_for(path, lambda found: status(found)[0] == 1)
             assert found["modbus_value"].samples[0].value == HOLDING[0]

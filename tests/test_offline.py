@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import assert_one_error_line, expect_ok, parse_hex_lines, rtu, run_mbtool
+from helpers import assert_one_error_line, expect_ok, parse_hex_lines, rtu, run_mbtool
 
 VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
 SERIAL = VECTORS["serial"]

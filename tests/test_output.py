@@ -12,7 +12,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO_ROOT, assert_one_error_line, mbtool_env, run_mbtool
+from helpers import REPO_ROOT, assert_one_error_line, mbtool_env, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

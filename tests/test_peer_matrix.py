@@ -5,7 +5,7 @@ This is the contract docs/exit-codes.md documents.  Each case is
 a scripted peer that reads the real request mbtool sent and builds its reply from it
 (the request's transaction id and unit, or deliberately not), writing it in pieces with
 delays where the case says so.  The peer frames its replies with the CRC/LRC helpers of
-conftest, never with mbtool's codec.
+tests/helpers.py, never with mbtool's codec.
 
 Links:
 
@@ -38,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import pytest
-from conftest import PTY_SERIAL_OPTS, assert_one_error_line, crc16, lrc, run_mbtool
+from helpers import PTY_SERIAL_OPTS, assert_one_error_line, crc16, lrc, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -434,7 +434,9 @@ CASES = [
     Case("wrong transaction id", wrong_tid, ("tcp",), 5, r"transaction id \d+, expected \d+"),
     Case("stale reply then the right one", stale_then_right, ALL, 0),
     Case("reply from another unit", other_unit, ALL, 5, r"reply from unit 7, expected unit 1"),
-    Case("another function code", other_function, ALL, 5, r"reply has FC 04 \(0x04\), expected FC 03 \(0x03\)"),
+    Case(
+        "another function code", other_function, ALL, 5, r"reply has FC 04 \(0x04\), expected FC 03 \(0x03\)"
+    ),
     Case("byte count disagrees with quantity", byte_count, ALL, 5, r"byte count 4 does not fit 1 registers"),
     Case(
         "truncated reply",

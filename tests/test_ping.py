@@ -13,22 +13,19 @@ from __future__ import annotations
 import re
 import signal
 import struct
-import subprocess
-import sys
 import time
 
 import pytest
-from conftest import (
+from helpers import (
     CLOSE,
     PTY_SERIAL_OPTS,
     assert_one_error_line,
-    mbtool_env,
+    bridge,
     rtu,
     run_mbtool,
-    signals_as_from_a_shell,
+    serve,
+    start_mbtool,
 )
-from test_bridge import bridge
-from test_serve import REPO_ROOT, serve
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -200,16 +197,7 @@ def test_exception_0B_from_a_gateway_is_lost(pty_pair):
 
 
 def test_without_count_it_pings_until_interrupted_and_exits_0_after_replies(tcp_device):
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "ping", "-p", tcp_device.target, "-i", "0.05"],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = start_mbtool("ping", "-p", tcp_device.target, "-i", "0.05")
     try:
         deadline = time.monotonic() + 20
         lines = []

@@ -15,17 +15,19 @@ import struct
 from pathlib import Path
 
 import pytest
-from conftest import (
+from helpers import (
     COILS,
     HOLDING,
     INPUT,
     PTY_SERIAL_OPTS,
+    PtyPair,
     assert_one_error_line,
     expect_ok,
     parse_hex_lines,
+    pymodbus_tcp,
     run_mbtool,
+    serve,
 )
-from test_serve import serve, tcp_client
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -398,7 +400,7 @@ def test_a_bit_is_written_with_mask_write_register(tcp_device, pump, pymodbus_tc
 def test_a_device_without_fc22_names_rmw_and_rmw_writes_the_bit():
     with serve("--exception", "22:1") as server:
         target = f"tcp://{server.host}:{server.port}"
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             client.write_register(30, 0x1000, device_id=1)
             res = run_mbtool("write-bit", "40031", "2", "on", "-p", target)
@@ -418,7 +420,7 @@ def test_map_and_references_against_mbtool_serve(pump):
     with serve() as server:
         target = f"tcp://{server.host}:{server.port}"
         expect_ok(run_mbtool("write", "-m", pump, "setpoint=12.3", "alarm=on", "-p", target))
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             assert client.read_holding_registers(500, count=1, device_id=1).registers == [123]
             assert client.read_holding_registers(520, count=1, device_id=1).registers[0] & 0x08
@@ -544,7 +546,6 @@ def test_a_map_read_as_a_table_names_value_unit_ref_and_raw(tcp_device, pump):
 
 
 def test_references_maps_and_bits_against_mbtool_serve_over_a_serial_line(pump):
-    from conftest import PtyPair
 
     pair = PtyPair()
     try:

@@ -20,20 +20,21 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import (
+from helpers import (
     HOLDING,
     PTY_SERIAL_OPTS,
     REPO_ROOT,
     PtyPair,
-    _stop,
     assert_one_error_line,
+    bridge,
     free_port,
     mbtool_env,
     run_mbtool,
+    serve,
     start_device,
+    start_mbtool,
+    stop_device,
 )
-from test_bridge import bridge
-from test_serve import serve
 
 from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState
 
@@ -240,7 +241,7 @@ read = ["40001 1"]
                 text=True,
             )
             time.sleep(2.5)
-            _stop(tcp_device.proc)  # killed mid-run ...
+            stop_device(tcp_device.proc)  # killed mid-run ...
             time.sleep(2.5)
             device.__exit__(None, None, None)
             device = start_device(tcp=True, framer="socket", units="1", port=port)  # ... and back
@@ -383,11 +384,17 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     from prometheus_client.parser import text_string_to_metric_families
 
     textfile = tmp_path / "plant.prom"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "poll", str(small_plant), "--textfile", str(textfile), "-o", "json",
-         "--duration", "4"],
-        cwd=REPO_ROOT, env=mbtool_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc = start_mbtool(
+        "poll",
+        small_plant,
+        "--textfile",
+        textfile,
+        "-o",
+        "json",
+        "--duration",
+        "4",
+        stdout=subprocess.DEVNULL,
+    )
     reads, seen, stop = [], set(), threading.Event()
 
     def reader() -> None:
@@ -468,14 +475,7 @@ def _on_a_terminal(argv: list[str], seconds: float) -> tuple[int, str, str]:
     import signal
 
     master, slave = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", *argv],
-        stdout=slave,
-        stderr=subprocess.PIPE,
-        stdin=subprocess.DEVNULL,
-        cwd=REPO_ROOT,
-        env=mbtool_env({"COLUMNS": "160"}),
-    )
+    proc = start_mbtool(*argv, env={"COLUMNS": "160"}, stdout=slave, text=False)
     os.close(slave)
     shown = b""
     try:

@@ -14,14 +14,17 @@ import time
 from datetime import datetime
 from types import SimpleNamespace
 
-from conftest import (
+from helpers import (
     HOLDING,
     REPO_ROOT,
     assert_one_error_line,
     expect_ok,
+    free_port,
+    interrupt_after,
     mbtool_env,
-    signals_as_from_a_shell,
+    serve,
     start_device,
+    start_mbtool,
 )
 
 
@@ -198,26 +201,8 @@ def test_device_killed_mid_run_polling_goes_on():
     assert polls == 6 and replies >= 1 and replies + timeouts + errors == 6 and timeouts + errors >= 1
 
 
-def _interrupt_after(args, wait_lines: int, sig=signal.SIGTERM):
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    got = [proc.stdout.readline() for _ in range(wait_lines)]
-    if not wait_lines:
-        time.sleep(1.0)  # past start-up, into the wait before the first slot
-    proc.send_signal(sig)
-    out, err = proc.communicate(timeout=10)
-    return proc.returncode, "".join(got) + out, err
-
-
 def test_sigterm_ends_with_summary_and_status_of_the_polls():
-    code, out, err = _interrupt_after(
+    code, out, err = interrupt_after(
         ["read-coils", "0", "1", "-p", "sim://", "--interval", "0.1", "-o", "json"], 2
     )
     assert code == 0, err
@@ -235,7 +220,7 @@ def test_interrupted_before_any_poll_is_130(tmp_path):
         listener.bind(("127.0.0.1", 0))
         listener.listen(1)
         port = listener.getsockname()[1]
-        code, out, err = _interrupt_after(
+        code, out, err = interrupt_after(
             ["read-coils", "0", "1", "-p", f"tcp://127.0.0.1:{port}", "-t", "5", "--interval", "1"], 0
         )
     assert code == 130, err
@@ -281,18 +266,20 @@ def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(mbto
 def test_polling_goes_on_until_a_device_that_was_not_up_answers():
     """The device is down when polling starts, and comes up: its first polls fail as a lost
     link's would, and polling goes on to read it."""
-    from conftest import free_port
 
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "read-holding-registers", "0", "1", "-p", f"tcp://127.0.0.1:{port}"]
-        + ["-t", "0.2", "--interval", "0.2", "-o", "json"],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = start_mbtool(
+        "read-holding-registers",
+        "0",
+        "1",
+        "-p",
+        f"tcp://127.0.0.1:{port}",
+        "-t",
+        "0.2",
+        "--interval",
+        "0.2",
+        "-o",
+        "json",
     )
     try:
         first = proc.stdout.readline()
@@ -498,7 +485,6 @@ def test_pause_spaces_every_poll_the_first_two_as_well_as_their_stamps_show(mbto
     """serve --min-gap drops a request that comes too soon after its reply before: every poll
     answered says the pause held on the wire, and the stamps must say so too, from the
     first poll to the second as between the later ones."""
-    from test_serve import serve
 
     with serve("--min-gap", "0.3") as server:
         res = expect_ok(
@@ -563,14 +549,7 @@ def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, 
 
 def _line_times(args: list[str], lines: int) -> list[float]:
     """When each of a polling mbtool's first ``lines`` lines of stdout came, on the monotonic clock."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = start_mbtool(*args)
     times = []
     try:
         for _ in range(lines):
@@ -586,7 +565,6 @@ def _line_times(args: list[str], lines: int) -> list[float]:
 
 
 def test_a_polls_line_is_not_held_back_for_the_pause_after_it():
-    from test_serve import serve
 
     with serve() as server:
         first, second = _line_times(
@@ -662,7 +640,6 @@ def latencies(stderr: str) -> tuple[list[float], list[float]]:
 def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_path):
     """A map read of three requests from a device that takes 0.1 s to answer each: 0.1 s a
     request, 0.3 s a poll, and the summary says which is which."""
-    from test_serve import serve
 
     path = tmp_path / "map.toml"
     path.write_text("[points.a]\nref = 40001\n[points.b]\nref = 40201\n[points.c]\nref = 40401\n")
@@ -735,7 +712,6 @@ def test_the_summary_counts_every_transaction_by_its_outcome_and_stats_json_give
     """Issue 32: the classification of link.stats in polling's summary too, and --stats json.
     A device that drops every other reply (serve --drop 0.5), with one retry: answered
     transactions, retries that recovered them, and a round-trip histogram."""
-    from test_serve import serve
 
     with serve("--drop", "0.5", "--seed", "3") as server:
         res = mbtool(

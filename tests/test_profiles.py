@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from conftest import assert_one_error_line, expect_ok, plain_pairs
+from helpers import assert_one_error_line, expect_ok, plain_pairs
 
 
 def config(tmp_path, text: str) -> dict[str, str]:

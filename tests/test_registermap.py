@@ -5,9 +5,9 @@ from __future__ import annotations
 import struct
 
 import pytest
+from helpers import device_executor
 
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.codec.pdu import ExceptionResponse
 from mbtool.codec.tables import (
     COILS,
     DISCRETE_INPUTS,
@@ -468,17 +468,6 @@ def test_blocks_respect_the_read_limits():
     assert all(b.count <= 125 for b in blocks)
 
 
-def _execute(device: Device, requests: list):
-    def execute(request):
-        requests.append(request)
-        reply = request.decode_response(device.handle(1, request.encode()))
-        if isinstance(reply, ExceptionResponse):
-            raise ModbusException(reply.function_code, reply.exception_code)
-        return reply
-
-    return execute
-
-
 def test_read_points_decodes_every_point(tmp_path):
     pump = load_map(_write(tmp_path, PUMP))
     device = Device(DataModel())
@@ -488,7 +477,7 @@ def test_read_points_decodes_every_point(tmp_path):
     device.model.coils[0] = 1
     device.model.input_registers[4] = struct.unpack(">H", struct.pack(">h", -40))[0]
     requests: list = []
-    readings = read_points(_execute(device, requests), list(pump.points.values()), pump.max_gap)
+    readings = read_points(device_executor(device, requests), list(pump.points.values()), pump.max_gap)
     values = {r.point.name: r.value for r in readings}
     assert values == {
         "flow": pytest.approx(12.34, rel=1e-6),
@@ -511,7 +500,7 @@ def test_a_merged_read_refused_with_exception_02_is_retried_point_by_point(tmp_p
     device.model.holding_registers[2] = 7
     points = [_point(name="a", address=0), _point(name="b", address=2)]
     requests: list = []
-    readings = read_points(_execute(device, requests), points, max_gap=5)
+    readings = read_points(device_executor(device, requests), points, max_gap=5)
     assert [r.value for r in readings] == [5, 7]
     assert [(r.address, r.count) for r in requests] == [(0, 3), (0, 1), (2, 1)]
 
@@ -524,7 +513,7 @@ def test_the_point_at_fault_is_named_and_the_others_are_read(tmp_path):
     device.model.holding_registers[0] = 5
     points = [_point(name="a", address=0), _point(name="missing", address=1)]
     with pytest.raises(PartialRead, match=r"missing \(40002\): exception 02 Illegal Data Address") as caught:
-        read_points(_execute(device, []), points)
+        read_points(device_executor(device, []), points)
     assert str(caught.value).endswith("; 1 of 2 points read")
     assert exit_code_for(caught.value) == ExitCode.PARTIAL
     a, missing = caught.value.readings
@@ -541,7 +530,7 @@ def test_a_refused_merged_read_stays_split_for_the_next_read():
     reader = MapReader(points, max_gap=20)
     requests: list = []
     for _ in range(3):
-        assert [r.value for r in reader.read(_execute(device, requests))] == [0, 0, 0]
+        assert [r.value for r in reader.read(device_executor(device, requests))] == [0, 0, 0]
     assert [(r.address, r.count) for r in requests] == [(0, 11), (0, 1), (2, 1), (10, 1)] + [
         (0, 1),
         (2, 1),
@@ -557,9 +546,9 @@ def test_a_point_the_device_refuses_outright_fails_alone_and_all_refused_is_the_
     # holding register is read.
     points = [_point(name="h", address=0), _point(name="i", table=INPUT_REGISTERS, address=0)]
     with pytest.raises(PartialRead, match=r"^i \(30001\): exception 02"):
-        read_points(_execute(device, []), points)
+        read_points(device_executor(device, []), points)
     with pytest.raises(ModbusException, match=r"^i \(30001\): exception 02") as caught:
-        read_points(_execute(device, []), points[1:])
+        read_points(device_executor(device, []), points[1:])
     assert exit_code_for(caught.value) == ExitCode.EXCEPTION
 
 

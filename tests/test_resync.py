@@ -20,13 +20,13 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import assert_one_error_line, drain_events, run_mbtool, settle_events
 
 from mbtool.codec import data_access as da
 from mbtool.codec import serial_line as sl
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.framer import Frame, Rejected
 from mbtool.codec.rtu import RTU_MAX_ADU, DeviceRtuFramer, RtuFramer
-from tests.conftest import assert_one_error_line, drain_events, run_mbtool, settle_events
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 import serial
-from conftest import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
+from helpers import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
 
 from mbtool.errors import ConnectionFailed
 from mbtool.link.transport import SerialSettings, SerialTransport

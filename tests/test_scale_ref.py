@@ -12,8 +12,7 @@ import json
 import struct
 
 import pytest
-from conftest import run_mbtool
-from test_serve import serve
+from helpers import run_mbtool, serve
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError

@@ -2,7 +2,7 @@
 
 Peers: pymodbus's server on a pseudo-terminal and on TCP (several unit ids),
 sim:// (the built-in device, unit 1 only), and small misbehaving TCP peers from
-conftest (silent, answering with a bad CRC, answering as another unit, answering
+tests/helpers.py (silent, answering with a bad CRC, answering as another unit, answering
 late).  Every run has a deadline (run_mbtool's), and every wait below has one.
 """
 
@@ -18,7 +18,7 @@ import sys
 import time
 
 import pytest
-from conftest import (
+from helpers import (
     HOLDING,
     PTY_SERIAL_OPTS,
     REPO_ROOT,
@@ -27,8 +27,8 @@ from conftest import (
     expect_ok,
     mbtool_env,
     rtu,
-    signals_as_from_a_shell,
     start_device,
+    start_mbtool,
 )
 
 FAST = ("-t", "0.1")  # a short per-unit timeout keeps the silent units cheap
@@ -513,15 +513,7 @@ def _wait_for(stream, needle: bytes, deadline: float) -> bytes:
 
 
 def test_ctrl_c_stops_and_still_prints_what_was_found():
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "scan", "-p", "sim://", "-t", "0.5", "--hex", "-o", "json"],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
+    proc = start_mbtool("scan", "-p", "sim://", "-t", "0.5", "--hex", "-o", "json", text=False)
     try:
         early = _wait_for(proc.stderr, b"TX 02 03", 20)  # unit 1 has answered, unit 2 is being probed
         proc.send_signal(signal.SIGINT)

@@ -8,7 +8,7 @@ import json
 import shutil
 
 import pytest
-from conftest import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_mbtool, start_device
+from helpers import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_mbtool, start_device
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -14,90 +14,27 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import time
 
 import pytest
-from conftest import (
+from helpers import (
     PTY_SERIAL_OPTS,
     PtyPair,
+    Served,
     assert_one_error_line,
     crc16,
     expect_ok,
-    first_line,
     free_port,
-    mbtool_env,
     plain_pairs,
+    pymodbus_tcp,
     run_mbtool,
-    signals_as_from_a_shell,
+    serve,
+    start_mbtool,
 )
 
 pytestmark = pytest.mark.timeout(60)
 
-REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-READY = 10.0  # seconds for the server to print where it serves
-
-
-class Serve:
-    def __init__(self, proc: subprocess.Popen, first_line: str) -> None:
-        self.proc = proc
-        self.first_line = first_line
-        where = first_line.split()[1]
-        self.target = where
-        self.host, self.port = "", 0
-        if where.startswith("tcp://"):
-            host, _, port = where[6:].rpartition(":")
-            self.host, self.port = host, int(port)
-
-    @property
-    def socket_target(self) -> str:
-        return f"socket://{self.host}:{self.port}"
-
-    def stop(self, sig: int = signal.SIGTERM) -> tuple[int, str, str]:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            out, err = self.proc.communicate(timeout=5)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate(timeout=5)
-        return self.proc.returncode, out, err
-
-
-@contextlib.contextmanager
-def serve(*args: str, target: str = "tcp://127.0.0.1:0", quiet: bool = True):
-    argv = [sys.executable, "-m", "mbtool", "serve", "-p", target, *(["-q"] if quiet else []), *args]
-    proc = subprocess.Popen(
-        argv,
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    server = None
-    try:
-        line = first_line(proc, "serving ")
-        server = Serve(proc, line)
-        yield server
-    finally:
-        if server is not None:
-            code, _, err = server.stop()
-            assert code == 0, f"serve exited {code}: {err}"
-            assert "Traceback" not in err
-        elif proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=5)
-
-
-def tcp_client(server: Serve, **kw):
-    from pymodbus.client import ModbusTcpClient
-
-    client = ModbusTcpClient(server.host, port=server.port, timeout=2, retries=0, **kw)
-    assert client.connect()
-    return client
+READY = 10.0  # seconds for the live view to show its first screen
 
 
 def mb(server_target: str, *args: str, **kw):
@@ -184,7 +121,7 @@ def exercise_every_function(client, unit: int = 1, variable: bool = True) -> Non
 
 def test_pymodbus_tcp_every_function_code():
     with serve() as server:
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             exercise_every_function(client)
             # exceptions, as pymodbus sees them
@@ -197,7 +134,7 @@ def test_pymodbus_tcp_every_function_code():
 def test_pymodbus_tcp_several_units_and_unit_0():
     with serve("-u", "1-3,17") as server:
         assert "units 1-3,17" in server.first_line
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             client.write_register(50, 77, device_id=2)
             # Unit 0 on Modbus TCP is the device itself (the lowest unit), answered, no
@@ -216,7 +153,7 @@ def test_pymodbus_tcp_several_units_and_unit_0():
 
 def test_many_concurrent_clients():
     with serve() as server:
-        clients = [tcp_client(server) for _ in range(8)]
+        clients = [pymodbus_tcp(server) for _ in range(8)]
         try:
             for round_ in range(5):
                 for i, client in enumerate(clients):
@@ -350,7 +287,7 @@ def test_mbtool_client_over_serial_rtu():
 # --- bad clients never hurt the server or the other clients -------------------------------
 
 
-def _raw(server: Serve) -> socket.socket:
+def _raw(server: Served) -> socket.socket:
     s = socket.create_connection((server.host, server.port), timeout=2)
     s.settimeout(2)
     return s
@@ -362,7 +299,7 @@ def _mbap(tid: int, unit: int, pdu: bytes) -> bytes:
 
 def test_bad_requests_over_tcp():
     with serve() as server:
-        good = tcp_client(server)
+        good = pymodbus_tcp(server)
         try:
             with _raw(server) as s:
                 s.sendall(_mbap(1, 1, b"\x41"))  # unknown function code
@@ -451,7 +388,7 @@ def test_data_file_toml(tmp_path):
     with serve("--data", str(path)) as server:
         res = expect_ok(mb(server.target, "read-holding-registers", "0", "3"))
         assert plain_pairs(res) == [(0, "11"), (1, "22"), (2, "0")]
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             assert client.read_device_information(read_code=1).information[0] == b"ACME"
         finally:
@@ -494,15 +431,8 @@ class LiveView:
 def live_view(*args: str):
     master, slave = os.openpty()
     port = free_port()
-    env = mbtool_env({"COLUMNS": "120", "LINES": "40", "TERM": "xterm"})
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "serve", "-p", f"tcp://127.0.0.1:{port}", *args],
-        cwd=REPO_ROOT,
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=slave,
-        stderr=slave,
-    )
+    env = {"COLUMNS": "120", "LINES": "40", "TERM": "xterm"}
+    proc = start_mbtool("serve", "-p", f"tcp://127.0.0.1:{port}", *args, env=env, stdout=slave, stderr=slave)
     os.close(slave)
     try:
         view = LiveView(master, proc, port)

@@ -14,169 +14,34 @@ import contextlib
 import os
 import random
 import select
-import signal
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
-from conftest import PtyPair, assert_one_error_line, crc16, lrc, mbtool_env, run_mbtool
+from helpers import (
+    PROMPT,
+    PtyPair,
+    ascii_frame,
+    assert_one_error_line,
+    closed_by_peer,
+    crc16,
+    mbap,
+    pymodbus_tcp,
+    run_mbtool,
+    serve,
+    serving_line,
+    start_serve,
+    stop_serve,
+    timed_read,
+)
 
 from mbtool.device.model import MAX_FILES
 
 pytestmark = pytest.mark.timeout(60)
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-READY = 10.0  # seconds for the server to print where it serves
-PROMPT = 2.0  # a reply under abuse; generous, since other test runs share the two cores
 MB = 1024 * 1024
-
-
-class Served:
-    def __init__(self, proc: subprocess.Popen, log_path: Path, err_path: Path, first_line: str) -> None:
-        self.proc = proc
-        self.log_path = log_path
-        self.err_path = err_path
-        self.first_line = first_line
-        where = self.target = first_line.split()[1]
-        self.host, self.port = "", 0
-        if where.startswith(("tcp://", "tls://", "udp://", "rtu+udp://")):
-            host, _, port = where.split("://", 1)[1].rpartition(":")
-            self.host, self.port = host, int(port)
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def rss_kb(self) -> int:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-        raise AssertionError("no VmRSS for the server")
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def connect(self, **kw) -> socket.socket:
-        sock = socket.create_connection((self.host, self.port), timeout=PROMPT, **kw)
-        sock.settimeout(PROMPT)
-        return sock
-
-
-def _start(args: list[str], tmp_path: Path, quiet: bool) -> tuple[subprocess.Popen, Path, Path]:
-    log_path = tmp_path / f"serve-{time.monotonic_ns()}.out"
-    err_path = log_path.with_suffix(".err")
-    with open(log_path, "wb") as out, open(err_path, "wb") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mbtool", "serve", *(["-q"] if quiet else []), *args],
-            cwd=REPO_ROOT,
-            env=mbtool_env(),
-            stdin=subprocess.DEVNULL,
-            stdout=out,
-            stderr=err,
-        )
-    return proc, log_path, err_path
-
-
-def _first_line(proc: subprocess.Popen, log_path: Path) -> str | None:
-    """The "serving ..." line, or None if the server exited first."""
-    end = time.monotonic() + READY
-    while time.monotonic() < end:
-        text = log_path.read_text(errors="replace")
-        if "\n" in text:
-            return text.split("\n")[0]
-        if proc.poll() is not None:
-            return None
-        time.sleep(0.02)
-    return None
-
-
-def _stop(proc: subprocess.Popen) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-    try:
-        return proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(timeout=5)
-        return -9
-
-
-@contextlib.contextmanager
-def serve(tmp_path: Path, *args: str, target: str = "tcp://127.0.0.1:0", quiet: bool = True):
-    proc, log_path, err_path = _start(["-p", target, *args], tmp_path, quiet)
-    try:
-        line = _first_line(proc, log_path)
-        assert line and line.startswith("serving "), (
-            f"mbtool serve did not start: {log_path.read_text()!r} {err_path.read_text()!r}"
-        )
-        server = Served(proc, log_path, err_path, line)
-        yield server
-        assert server.alive(), f"the server died: {err_path.read_text()}"
-    finally:
-        code = _stop(proc)
-    err = err_path.read_text(errors="replace")
-    assert "Traceback" not in err, err
-    assert code == 0, f"serve exited {code}: {err}"
-
-
-def wait_until(predicate, deadline: float, step: float = 0.05) -> bool:
-    end = time.monotonic() + deadline
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
-
-
-def pymodbus_tcp(server: Served, framer: str = "tcp"):
-    from pymodbus import FramerType
-    from pymodbus.client import ModbusTcpClient
-
-    kind = {"tcp": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[framer]
-    client = ModbusTcpClient(server.host, port=server.port, framer=kind, timeout=PROMPT, retries=0)
-    assert client.connect()
-    return client
-
-
-def timed_read(client, address: int = 7) -> float:
-    """One FC03 read checked against the demo data (register N holds N); seconds it took."""
-    t0 = time.monotonic()
-    response = client.read_holding_registers(address, count=1)
-    elapsed = time.monotonic() - t0
-    assert not response.isError(), response
-    assert response.registers == [address]
-    return elapsed
-
-
-def closed_by_peer(sock: socket.socket, wait: float = 0.0) -> bool:
-    """Has the server closed this socket (EOF or reset)?  Reads and discards what is pending."""
-    end = time.monotonic() + wait
-    while True:
-        ready, _, _ = select.select([sock], [], [], max(0.0, end - time.monotonic()))
-        if not ready:
-            return False
-        try:
-            if not sock.recv(65536):
-                return True
-        except (ConnectionResetError, BrokenPipeError):
-            return True
-        except (BlockingIOError, TimeoutError):
-            pass
-        if time.monotonic() >= end:
-            return False
-
-
-def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
-    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
-
-
-def ascii_frame(unit: int, pdu: bytes) -> bytes:
-    body = bytes([unit]) + pdu
-    return b":" + (body + bytes([lrc(body)])).hex().upper().encode() + b"\r\n"
 
 
 # --- where it listens ---------------------------------------------------------------------
@@ -205,9 +70,9 @@ def _reachable(host: str, port: int) -> bool:
 def test_default_listen_address_is_loopback(tmp_path):
     # Without -p: 127.0.0.1:5020.  Another test run may hold 5020; then the refusal still
     # names the address it tried, which is what matters here.
-    proc, log_path, err_path = _start([], tmp_path, quiet=True)
+    proc, log_path, err_path = start_serve([], tmp_path, quiet=True)
     try:
-        line = _first_line(proc, log_path)
+        line = serving_line(proc, log_path)
         if line is None:
             assert proc.wait(timeout=5) == 6, err_path.read_text()
             assert "cannot listen on 127.0.0.1:5020" in err_path.read_text()
@@ -217,17 +82,17 @@ def test_default_listen_address_is_loopback(tmp_path):
             if other:
                 assert not _reachable(other, 5020), f"the default listener answers on {other}"
     finally:
-        _stop(proc)
+        stop_serve(proc)
     assert "Traceback" not in err_path.read_text()
 
     other = _non_loopback_address()
     if other is None:
         pytest.skip("this host has no address but loopback to try from")
     # A loopback target is reachable on loopback only; an address the user names is used as is.
-    with serve(tmp_path) as server:
+    with serve() as server:
         assert _reachable("127.0.0.1", server.port)
         assert not _reachable(other, server.port)
-    with serve(tmp_path, target="tcp://0.0.0.0:0") as server:
+    with serve(target="tcp://0.0.0.0:0") as server:
         assert server.host == "0.0.0.0"
         assert _reachable(other, server.port)
 
@@ -236,7 +101,7 @@ def test_default_listen_address_is_loopback(tmp_path):
 
 
 @pytest.mark.parametrize("framer", ["tcp", "rtu"])
-def test_idle_and_dripping_clients_are_closed_active_ones_kept(tmp_path, framer):
+def test_idle_and_dripping_clients_are_closed_active_ones_kept(framer):
     idle_timeout = 1.0
     request = mbap(1, 1, bytes.fromhex("0300000001")) if framer == "tcp" else bytes.fromhex("010300000001")
     if framer == "rtu":
@@ -244,7 +109,7 @@ def test_idle_and_dripping_clients_are_closed_active_ones_kept(tmp_path, framer)
     else:
         # The header promises a 253-byte PDU: it never completes at one byte a turn.
         request = struct.pack(">HHHB", 1, 0, 254, 1) + b"\x10" * 253
-    with serve(tmp_path, "--framer", framer, "--idle-timeout", str(idle_timeout), quiet=False) as server:
+    with serve("--framer", framer, "--idle-timeout", str(idle_timeout), quiet=False) as server:
         active = pymodbus_tcp(server, framer)
         try:
             silent = server.connect()
@@ -292,12 +157,12 @@ def test_idle_and_dripping_clients_are_closed_active_ones_kept(tmp_path, framer)
     assert ", 2 timed out (--idle-timeout)" in log.splitlines()[-1]
 
 
-def test_connection_cap_refuses_newcomers_while_every_client_is_busy(tmp_path):
+def test_connection_cap_refuses_newcomers_while_every_client_is_busy():
     # A newcomer past the cap takes an idle client's slot (tests/test_serve_guard.py); with
     # every client owed a reply (--delay) none is idle, and a newcomer is closed at once.
     cap, delay = 3, 3.0
     with serve(
-        tmp_path, "--max-clients", str(cap), "--idle-timeout", "0", "--delay", str(delay), quiet=False
+        "--max-clients", str(cap), "--idle-timeout", "0", "--delay", str(delay), quiet=False
     ) as server:
         served = [server.connect() for _ in range(cap)]
         extra: list[socket.socket] = []
@@ -384,10 +249,10 @@ def _ascii_garbage(total: int):
 
 
 @pytest.mark.parametrize(("framer", "total"), [("ascii", 8 * MB), ("rtu", 256 * 1024)])
-def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, total):
+def test_garbage_flood_keeps_memory_bounded_and_others_served(framer, total):
     # RTU resynchronises byte by byte (about 8 µs a byte today), so it gets less garbage;
     # ASCII gets far more than the memory bound, so a buffer that kept it would show.
-    with serve(tmp_path, "--framer", framer) as server:
+    with serve("--framer", framer) as server:
         good = pymodbus_tcp(server, framer)
         flooder = server.connect()
         try:
@@ -440,7 +305,7 @@ def test_garbage_flood_keeps_memory_bounded_and_others_served(tmp_path, framer, 
         assert max(peak, after) - before < 4 * 1024, (before, peak, after)  # far less than the garbage
 
 
-def test_bad_mbap_requests_on_many_connections(tmp_path):
+def test_bad_mbap_requests_on_many_connections():
     """Truncated, oversized, zero-length, wrong protocol id, garbage: each on its own
     connection, interleaved with a good client; the server answers what it can, hangs
     up on what cannot be resynchronised, and the good client never waits."""
@@ -454,7 +319,7 @@ def test_bad_mbap_requests_on_many_connections(tmp_path):
         rng.randbytes(256 * 1024),  # garbage
         mbap(6, 1, b"\x41"),  # an unknown function code: exception 01
     ]
-    with serve(tmp_path) as server:
+    with serve() as server:
         good = pymodbus_tcp(server)
         try:
             timed_read(good)
@@ -482,7 +347,7 @@ def test_bad_mbap_requests_on_many_connections(tmp_path):
 
 
 @pytest.mark.parametrize("framer", ["rtu", "ascii"])
-def test_bad_frames_on_a_serial_line(tmp_path, framer):
+def test_bad_frames_on_a_serial_line(framer):
     """Truncated, oversized and garbage frames on a pty; then pymodbus's serial client is answered."""
     from pymodbus import FramerType
     from pymodbus.client import ModbusSerialClient
@@ -505,7 +370,7 @@ def test_bad_frames_on_a_serial_line(tmp_path, framer):
         ]
     pair = PtyPair()
     try:
-        with serve(tmp_path, "--framer", framer, "--parity", "N", target=pair.device_path) as server:
+        with serve("--framer", framer, "--parity", "N", target=pair.device_path) as server:
             fd = os.open(pair.mbtool_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
             try:
                 end = time.monotonic() + 20
@@ -549,9 +414,9 @@ def test_bad_frames_on_a_serial_line(tmp_path, framer):
 # --- clients that do not read -------------------------------------------------------------
 
 
-def test_pipelined_requests_are_all_answered_in_order(tmp_path):
+def test_pipelined_requests_are_all_answered_in_order():
     """The reply queue behind the non-blocking sends loses and reorders nothing."""
-    with serve(tmp_path) as server:
+    with serve() as server:
         with server.connect() as sock:
             count = 3000
             requests = b"".join(mbap(tid, 1, struct.pack(">BHH", 3, tid % 100, 1)) for tid in range(count))
@@ -567,9 +432,9 @@ def test_pipelined_requests_are_all_answered_in_order(tmp_path):
     assert bytes(got) == expected
 
 
-def test_client_that_never_reads_blocks_nobody_and_is_closed(tmp_path):
+def test_client_that_never_reads_blocks_nobody_and_is_closed():
     idle_timeout = 1.0
-    with serve(tmp_path, "--idle-timeout", str(idle_timeout)) as server:
+    with serve("--idle-timeout", str(idle_timeout)) as server:
         good = pymodbus_tcp(server)
         slow = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # fill up soon
@@ -623,9 +488,9 @@ def _mbap_replies(sock: socket.socket, count: int) -> list[bytes]:
     return pdus
 
 
-def test_writes_to_thousands_of_files_get_exception_02_past_the_bound(tmp_path):
+def test_writes_to_thousands_of_files_get_exception_02_past_the_bound():
     files = 4000
-    with serve(tmp_path) as server:
+    with serve() as server:
         good = pymodbus_tcp(server)
         hostile = server.connect()
         try:
@@ -651,10 +516,10 @@ def test_writes_to_thousands_of_files_get_exception_02_past_the_bound(tmp_path):
         assert latency < PROMPT
 
 
-def test_replies_held_back_by_delay_count_towards_the_output_limit(tmp_path):
+def test_replies_held_back_by_delay_count_towards_the_output_limit():
     # --delay holds each reply for 30 s: a client that pipelines requests made the server hold
     # every reply it owed, 150 MB in 8 s.
-    with serve(tmp_path, "--delay", "30", "--idle-timeout", "0") as server:
+    with serve("--delay", "30", "--idle-timeout", "0") as server:
         flooder = server.connect()
         try:
             before = server.rss_kb()

@@ -16,7 +16,7 @@ import threading
 import time
 
 import pytest
-from test_serve_abuse import PROMPT, closed_by_peer, mbap, pymodbus_tcp, serve, timed_read
+from helpers import PROMPT, closed_by_peer, mbap, pymodbus_tcp, serve, timed_read
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -31,11 +31,9 @@ def one_byte_clients(server, count: int) -> list[socket.socket]:
     return socks
 
 
-def test_a_connection_without_a_request_is_closed_after_the_first_request_timeout(tmp_path):
+def test_a_connection_without_a_request_is_closed_after_the_first_request_timeout():
     first = 0.5
-    with serve(
-        tmp_path, "--first-request-timeout", str(first), "--idle-timeout", "60", quiet=False
-    ) as server:
+    with serve("--first-request-timeout", str(first), "--idle-timeout", "60", quiet=False) as server:
         used = pymodbus_tcp(server)
         try:
             timed_read(used)
@@ -58,9 +56,9 @@ def test_a_connection_without_a_request_is_closed_after_the_first_request_timeou
     assert ", 2 sent no request (--first-request-timeout)" in log.splitlines()[-1]
 
 
-def test_64_one_byte_clients_cannot_keep_a_normal_client_out(tmp_path):
+def test_64_one_byte_clients_cannot_keep_a_normal_client_out():
     # The first-request timeout is far off: only giving a slot can let the normal client in.
-    with serve(tmp_path, "--first-request-timeout", "30", quiet=False) as server:
+    with serve("--first-request-timeout", "30", quiet=False) as server:
         attackers = one_byte_clients(server, 64)
         try:
             time.sleep(0.3)  # the server has taken all 64
@@ -109,10 +107,10 @@ def _reconnecting_attacker(server, count: int, stop: threading.Event, made: list
                 sock.close()
 
 
-def test_a_reconnecting_attacker_cannot_keep_a_normal_client_out(tmp_path):
+def test_a_reconnecting_attacker_cannot_keep_a_normal_client_out():
     cap = 16
     args = ("--max-clients", str(cap), "--first-request-timeout", "0.5")
-    with serve(tmp_path, *args) as server:
+    with serve(*args) as server:
         stop = threading.Event()
         made = [0]
         attacker = threading.Thread(
@@ -146,9 +144,9 @@ def test_a_reconnecting_attacker_cannot_keep_a_normal_client_out(tmp_path):
         assert max(latencies) < PROMPT
 
 
-def test_a_busy_client_keeps_its_slot_and_used_ones_go_by_last_use(tmp_path):
+def test_a_busy_client_keeps_its_slot_and_used_ones_go_by_last_use():
     """Past the cap with no unused connection, the client longest without a request goes."""
-    with serve(tmp_path, "--max-clients", "2", quiet=False) as server:
+    with serve("--max-clients", "2", quiet=False) as server:
         older = server.connect()
         newer = server.connect()
         try:

@@ -12,8 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO_ROOT, PtyPair, run_mbtool
-from test_serve import serve
+from helpers import REPO_ROOT, PtyPair, run_mbtool, serve
 
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.layout import lay_out, map_rows

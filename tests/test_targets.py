@@ -13,7 +13,7 @@ import threading
 import tty
 
 import pytest
-from conftest import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
+from helpers import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
 
 from mbtool.cli.program import register_schemes
 from mbtool.codec.errors import RequestError

@@ -18,8 +18,7 @@ import time
 import tty
 
 import pytest
-from conftest import CLOSE, PtyPair, rtu
-from test_serve import serve
+from helpers import CLOSE, PtyPair, rtu, serve
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.errors import KNOWN_ERRORS

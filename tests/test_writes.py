@@ -14,15 +14,17 @@ import json
 import struct
 
 import pytest
-from conftest import (
+from helpers import (
     CLOSE,
     assert_one_error_line,
     expect_ok,
     parse_hex_lines,
+    pymodbus_tcp,
     run_mbtool,
+    serve,
     start_device,
+    start_mbtool,
 )
-from test_serve import serve, tcp_client
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -197,7 +199,7 @@ def test_a_restore_refused_part_way_lists_each_write_and_its_fate(tmp_path):
             "refused holding 10: missing -> 7",
             "not-sent holding 20: 0 -> 8",
         ]
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             assert client.read_coils(0, count=1, device_id=1).bits[0] is True
             assert client.read_holding_registers(0, count=2, device_id=1).registers == [5, 6]
@@ -247,25 +249,13 @@ def test_a_device_that_stops_answering_or_hangs_up_mid_restore(raw_responder, tm
 
 def test_ctrl_c_mid_restore_lists_what_was_written(raw_responder, tmp_path):
     import signal
-    import subprocess
-    import sys
     import time
-
-    from conftest import REPO_ROOT, mbtool_env, signals_as_from_a_shell
 
     saved = tmp_path / "saved.toml"
     saved.write_text(RUNS)
     plant = TcpPlant(answered=2, then=None)  # the third write waits for a reply that never comes
     server = raw_responder(plant)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "restore", str(saved), "--timeout", "30", "-p", server.tcp_target],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=signals_as_from_a_shell,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = start_mbtool("restore", saved, "--timeout", "30", "-p", server.tcp_target)
     deadline = time.monotonic() + 20  # until the third write is out, waiting for its reply
     while sum(request[7] == 0x10 for request in server.requests) < 3 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -340,7 +330,7 @@ def test_restore_with_a_map_writes_a_point_whole_and_its_dry_run_reads_like_diff
             "confirmed level (40101): 2.5 m -> 1.5 m",
             "confirmed alarm (40111): off -> on",
         ]
-        client = tcp_client(server)
+        client = pymodbus_tcp(server)
         try:
             assert client.read_holding_registers(100, count=2, device_id=1).registers == [0x3FC0, 0]
         finally:

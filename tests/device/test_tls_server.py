@@ -11,8 +11,7 @@ import ssl
 import time
 
 import pytest
-from conftest import assert_one_error_line, expect_ok, plain_pairs, run_mbtool
-from test_serve_abuse import serve, wait_until
+from helpers import assert_one_error_line, expect_ok, plain_pairs, run_mbtool, serve, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -21,8 +20,8 @@ def server_args(pki, *more: str) -> list[str]:
     return ["--cert", str(pki.server.cert), "--key", str(pki.server.key), "--ca", str(pki.ca.cert), *more]
 
 
-def tls_serve(tmp_path, pki, *more: str, quiet: bool = False):
-    return serve(tmp_path, *server_args(pki, *more), target="tls://127.0.0.1:0", quiet=quiet)
+def tls_serve(pki, *more: str, quiet: bool = False):
+    return serve(*server_args(pki, *more), target="tls://127.0.0.1:0", quiet=quiet)
 
 
 def pymodbus_client(server, pki, who: str | None = "operator"):
@@ -43,7 +42,7 @@ def identity(pki, who: str) -> list[str]:
 
 
 def test_pymodbus_tls_client_reads_and_writes(tmp_path, pki):
-    with tls_serve(tmp_path, pki) as server:
+    with tls_serve(pki) as server:
         assert server.first_line.startswith("serving tls://127.0.0.1:")
         client = pymodbus_client(server, pki)
         assert client.connect()
@@ -58,7 +57,7 @@ def test_pymodbus_tls_client_reads_and_writes(tmp_path, pki):
 
 
 def test_mbtool_reads_its_own_tls_server_and_hex_shows_plaintext(tmp_path, pki):
-    with tls_serve(tmp_path, pki, quiet=True) as server:
+    with tls_serve(pki, quiet=True) as server:
         res = expect_ok(
             run_mbtool(
                 "read-holding-registers", "0", "2", "-p", server.target, *identity(pki, "viewer"), "--hex"
@@ -69,7 +68,7 @@ def test_mbtool_reads_its_own_tls_server_and_hex_shows_plaintext(tmp_path, pki):
 
 
 def test_mutual_tls_refuses_a_client_without_a_certificate(tmp_path, pki):
-    with tls_serve(tmp_path, pki) as server:
+    with tls_serve(pki) as server:
         client = pymodbus_client(server, pki, who=None)
         try:
             connected = client.connect()
@@ -94,7 +93,7 @@ def test_mutual_tls_refuses_a_client_without_a_certificate(tmp_path, pki):
 
 
 def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
-    with tls_serve(tmp_path, pki) as server:
+    with tls_serve(pki) as server:
         res = run_mbtool("read-holding-registers", "0", "-p", server.target, *identity(pki, "stranger"))
         line = assert_one_error_line(res, 6)
         assert line == (
@@ -107,7 +106,7 @@ def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
 
 
 def test_a_plain_modbus_tcp_client_is_told_apart(tmp_path, pki):
-    with tls_serve(tmp_path, pki) as server:
+    with tls_serve(pki) as server:
         res = run_mbtool("read-holding-registers", "0", "-p", f"tcp://{server.host}:{server.port}", "-t", "1")
         assert res.returncode == 3, str(res)
         assert wait_until(
@@ -125,7 +124,7 @@ WRITES = [
 
 @pytest.mark.parametrize("write", WRITES, ids=lambda w: w[0])
 def test_only_the_write_roles_may_write_others_get_exception_01(tmp_path, pki, write):
-    with tls_serve(tmp_path, pki, "--write-roles", "operator,engineer", quiet=True) as server:
+    with tls_serve(pki, "--write-roles", "operator,engineer", quiet=True) as server:
         assert server.first_line.endswith("writes by role engineer,operator only")
         for who in ("viewer", "no_role"):
             res = run_mbtool(*write, "-p", server.target, *identity(pki, who))
@@ -136,7 +135,7 @@ def test_only_the_write_roles_may_write_others_get_exception_01(tmp_path, pki, w
 
 
 def test_a_refused_write_changes_nothing_and_pymodbus_sees_exception_01(tmp_path, pki):
-    with tls_serve(tmp_path, pki, "--write-roles", "operator") as server:
+    with tls_serve(pki, "--write-roles", "operator") as server:
         viewer = pymodbus_client(server, pki, "viewer")
         assert viewer.connect()
         try:
@@ -157,23 +156,23 @@ def test_a_refused_write_changes_nothing_and_pymodbus_sees_exception_01(tmp_path
 def test_a_data_file_names_the_write_roles(tmp_path, pki):
     data = tmp_path / "plant.toml"
     data.write_text('write_roles = ["operator"]\n[holding_registers]\n0 = 42\n')
-    with tls_serve(tmp_path, pki, "--data", str(data), quiet=True) as server:
+    with tls_serve(pki, "--data", str(data), quiet=True) as server:
         assert server.first_line.endswith("writes by role operator only")
         res = run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer"))
         assert_one_error_line(res, 4)
         expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "operator")))
     # --write-roles beats the file, as the command line beats a file everywhere
-    with tls_serve(tmp_path, pki, "--data", str(data), "--write-roles", "viewer", quiet=True) as server:
+    with tls_serve(pki, "--data", str(data), "--write-roles", "viewer", quiet=True) as server:
         expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer")))
 
 
 def test_without_write_roles_every_authenticated_client_may_write(tmp_path, pki):
-    with tls_serve(tmp_path, pki, quiet=True) as server:
+    with tls_serve(pki, quiet=True) as server:
         expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "no_role")))
 
 
 def test_a_client_that_stalls_its_handshake_holds_nobody_up(tmp_path, pki):
-    with tls_serve(tmp_path, pki, "--first-request-timeout", "1") as server:
+    with tls_serve(pki, "--first-request-timeout", "1") as server:
         stalled = socket.create_connection((server.host, server.port), timeout=5)
         stalled.sendall(bytes.fromhex("16 03 01 02 00 01 00 01 fc 03 03"))  # the start of a ClientHello
         silent = socket.create_connection((server.host, server.port), timeout=5)

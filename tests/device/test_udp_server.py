@@ -9,9 +9,8 @@ import socket
 import struct
 
 import pytest
-from conftest import assert_one_error_line, crc16, expect_ok, plain_pairs, run_mbtool
+from helpers import assert_one_error_line, crc16, expect_ok, plain_pairs, run_mbtool, serve, wait_until
 from peers.lossy_udp import LossyUdpProxy
-from test_serve_abuse import serve, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -30,7 +29,7 @@ def pymodbus_client(port: int, scheme: str, retries: int = 0, timeout: float = 2
 
 @pytest.mark.parametrize("scheme", FRAMINGS)
 def test_pymodbus_udp_client_reads_and_writes(tmp_path, scheme):
-    with serve(tmp_path, "-u", "1,2", target=f"{scheme}://127.0.0.1:0") as server:
+    with serve("-u", "1,2", target=f"{scheme}://127.0.0.1:0") as server:
         assert server.first_line == f"serving {scheme}://127.0.0.1:{server.port} units 1-2 framer " + (
             "tcp" if scheme == "udp" else "rtu"
         )
@@ -48,7 +47,7 @@ def test_pymodbus_through_a_lossy_path_recovers_with_retries_and_nothing_is_mism
     """Requests for two units in turn, through a proxy that drops every fifth datagram each
     way and swaps or delays every seventh: pymodbus's retries recover each, and each reply is
     its own request's (unit 1 holds 0..4 at 0, unit 2 10..12 at 10)."""
-    with serve(tmp_path, "-u", "1,2", target=f"{scheme}://127.0.0.1:0") as server:
+    with serve("-u", "1,2", target=f"{scheme}://127.0.0.1:0") as server:
         proxy = LossyUdpProxy(server.port)
         client = pymodbus_client(proxy.port, scheme, retries=10, timeout=0.3)
         try:
@@ -66,13 +65,13 @@ def test_pymodbus_through_a_lossy_path_recovers_with_retries_and_nothing_is_mism
 
 @pytest.mark.parametrize("scheme", FRAMINGS)
 def test_mbtool_reads_its_own_udp_server(tmp_path, scheme):
-    with serve(tmp_path, target=f"{scheme}://127.0.0.1:0") as server:
+    with serve(target=f"{scheme}://127.0.0.1:0") as server:
         res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", server.target))
         assert plain_pairs(res) == [(0, "0"), (1, "1"), (2, "2")]
 
 
 def test_a_datagram_that_is_no_frame_is_logged_and_dropped_and_the_next_is_answered(tmp_path):
-    with serve(tmp_path, quiet=False, target="rtu+udp://127.0.0.1:0") as server:
+    with serve(quiet=False, target="rtu+udp://127.0.0.1:0") as server:
         peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         peer.settimeout(3)
         try:
@@ -89,7 +88,7 @@ def test_a_datagram_that_is_no_frame_is_logged_and_dropped_and_the_next_is_answe
 
 
 def test_mbap_in_datagrams_answers_each_with_its_transaction_id(tmp_path):
-    with serve(tmp_path, target="udp://127.0.0.1:0") as server:
+    with serve(target="udp://127.0.0.1:0") as server:
         peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         peer.settimeout(3)
         try:

@@ -17,7 +17,7 @@ import termios
 import time
 
 import pytest
-from conftest import (
+from helpers import (
     HOLDING,
     REPO_ROOT,
     SilentServer,

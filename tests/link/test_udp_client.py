@@ -13,7 +13,7 @@ import threading
 from collections.abc import Callable
 
 import pytest
-from conftest import (
+from helpers import (
     HOLDING,
     assert_one_error_line,
     crc16,
