@@ -7,10 +7,9 @@ followed by trailing bytes; all three must yield the same Frame.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
-from helpers import drain_events, settle_events
+from helpers import TESTS_DIR, drain_events, settle_events
 
 from mbtool.codec import data_access, device_id, file_record, serial_line  # noqa: F401  (register every FC)
 from mbtool.codec.ascii import AsciiFramer
@@ -55,7 +54,7 @@ from mbtool.codec.serial_line import (
     ReportSlaveId,
 )
 
-VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
+VECTORS = json.loads((TESTS_DIR / "data" / "vectors.json").read_text())
 SERIAL = {v["name"]: v for v in VECTORS["serial"]}
 
 # Requests whose reply is an echo: the same bytes also make a valid reply.

@@ -4,15 +4,13 @@ through every framer and the client's receive path end in a reply or one of mbto
 from __future__ import annotations
 
 import importlib.util
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
+from helpers import REPO_ROOT
 
 
 def load_fuzz():
-    spec = importlib.util.spec_from_file_location("fuzz", ROOT / "scripts" / "fuzz.py")
+    spec = importlib.util.spec_from_file_location("fuzz", REPO_ROOT / "scripts" / "fuzz.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

@@ -17,10 +17,9 @@ import random
 import socket
 import threading
 import time
-from pathlib import Path
 
 import pytest
-from helpers import assert_one_error_line, drain_events, run_mbtool, settle_events
+from helpers import REPO_ROOT, assert_one_error_line, drain_events, run_mbtool, settle_events
 
 from mbtool.codec import data_access as da
 from mbtool.codec import serial_line as sl
@@ -28,11 +27,9 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.framer import Frame, Rejected
 from mbtool.codec.rtu import RTU_MAX_ADU, DeviceRtuFramer, RtuFramer
 
-ROOT = Path(__file__).resolve().parent.parent
-
 
 def load(name: str, path: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / path)
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

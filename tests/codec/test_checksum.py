@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
+from helpers import TESTS_DIR
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mbtool.codec.checksum import crc16, crc_bytes, lrc
 
-VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
+VECTORS = json.loads((TESTS_DIR / "data" / "vectors.json").read_text())
 SERIAL = VECTORS["serial"]
 
 
