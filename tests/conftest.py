@@ -17,6 +17,7 @@ from __future__ import annotations
 import shutil
 import socket
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from helpers import (
@@ -29,6 +30,16 @@ from helpers import (
     start_device,
 )
 from peers.certs import make_pki
+
+E2E_DIR = Path(__file__).resolve().parent / "e2e"
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest."""
+    for item in items:
+        if item.path.is_relative_to(E2E_DIR):
+            item.add_marker(pytest.mark.e2e)
 
 
 @pytest.fixture

@@ -5,7 +5,7 @@ target on each scrape, within the deadline the scraper sends; a device that fail
 200 with modbus_up 0 and the reason, a target no --allow-target pattern allows is refused
 with nothing opened.  Inventory: the plant is polled as `mbtool poll` polls it, and
 /metrics serves the latest values from memory.  Every exposition here is read back with
-prometheus_client's own parser; tests/test_exporter_prometheus.py has Prometheus itself
+prometheus_client's own parser; tests/e2e/test_exporter_prometheus.py has Prometheus itself
 scrape the exporter.
 """
 

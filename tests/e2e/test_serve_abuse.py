@@ -158,7 +158,7 @@ def test_idle_and_dripping_clients_are_closed_active_ones_kept(framer):
 
 
 def test_connection_cap_refuses_newcomers_while_every_client_is_busy():
-    # A newcomer past the cap takes an idle client's slot (tests/test_serve_guard.py); with
+    # A newcomer past the cap takes an idle client's slot (tests/e2e/test_serve_guard.py); with
     # every client owed a reply (--delay) none is idle, and a newcomer is closed at once.
     cap, delay = 3, 3.0
     with serve(

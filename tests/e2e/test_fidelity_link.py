@@ -13,14 +13,13 @@ import socket
 import subprocess
 import threading
 import time
-from pathlib import Path
 
 import pytest
-from helpers import HOLDING, assert_one_error_line, build_libmodbus, free_port, run_mbtool
+from helpers import HOLDING, TESTS_DIR, assert_one_error_line, build_libmodbus, free_port, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
-LIBMODBUS_SERVER = (Path(__file__).parent / "peers" / "libmodbus_server.c").read_text()
+LIBMODBUS_SERVER = (TESTS_DIR / "peers" / "libmodbus_server.c").read_text()
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,16 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import PROMPT, PtyPair, assert_one_error_line, build_libmodbus, mbap, run_mbtool, serve
+from helpers import (
+    PROMPT,
+    REPO_ROOT,
+    PtyPair,
+    assert_one_error_line,
+    build_libmodbus,
+    mbap,
+    run_mbtool,
+    serve,
+)
 
 from mbtool.codec.framing import make_framer
 from mbtool.device.datafile import load_data
@@ -265,7 +274,7 @@ def test_not_sparse_stays_as_it_was(tmp_path):
 
 def test_readme_sparse_example(tmp_path):
     """The sparse TOML example of docs/simulator.md's "Simulating a device" does what the text says."""
-    page = (Path(__file__).resolve().parent.parent / "docs" / "simulator.md").read_text(encoding="utf-8")
+    page = (REPO_ROOT / "docs" / "simulator.md").read_text(encoding="utf-8")
     section = page.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
     blocks = [text.split("```", 1)[0] for text in section.split("```toml\n")[1:]]
     path = tmp_path / "sparse.toml"

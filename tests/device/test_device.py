@@ -6,9 +6,9 @@ from __future__ import annotations
 import json
 import struct
 import time
-from pathlib import Path
 
 import pytest
+from helpers import REPO_ROOT
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer
@@ -505,7 +505,7 @@ def test_sim_device_startup_is_cheap():
 
 def test_readme_example_data_file_loads(tmp_path):
     """The TOML example of docs/simulator.md's "Simulating a device" is a working data file."""
-    page = (Path(__file__).resolve().parent.parent / "docs" / "simulator.md").read_text(encoding="utf-8")
+    page = (REPO_ROOT / "docs" / "simulator.md").read_text(encoding="utf-8")
     section = page.split("## Simulating a device", 1)[1].split("\n## ", 1)[0]
     example = section.split("```toml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "plant.toml"

@@ -18,11 +18,10 @@ from pathlib import Path
 
 import click
 import pytest
-from helpers import run_mbtool
+from helpers import REPO_ROOT, run_mbtool
 
 from mbtool.cli import cli
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 GEN_DOCS = REPO_ROOT / "scripts" / "gen_docs.py"
 REGENERATE = "run python scripts/gen_docs.py"
 MAN_PAGE = "man/mbtool.1"

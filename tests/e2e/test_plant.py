@@ -20,6 +20,7 @@ from helpers import (
     HOLDING,
     INPUT,
     PTY_SERIAL_OPTS,
+    REPO_ROOT,
     PtyPair,
     assert_one_error_line,
     expect_ok,
@@ -464,9 +465,8 @@ def test_references_and_maps_over_a_serial_line(serial_rtu_device, pump):
 
 def test_the_readme_energy_meter_reads_as_the_readme_shows():
     """The meter of docs/maps-and-references.md's "Register maps" (once in the README)."""
-    root = Path(__file__).resolve().parent.parent
-    meter = root / "examples/energy-meter.toml"
-    with serve("--data", str(root / "examples/energy-meter-data.toml")) as server:
+    meter = REPO_ROOT / "examples/energy-meter.toml"
+    with serve("--data", str(REPO_ROOT / "examples/energy-meter-data.toml")) as server:
         target = f"tcp://{server.host}:{server.port}"
         res = expect_ok(run_mbtool("read", "-m", meter, "--hex", "-p", target))
         assert lines(res) == [
@@ -492,10 +492,9 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
 def test_an_example_maps_header_commands_read_its_twin(example):
     """The commands an example's header says to try, run as written (but for the port):
     its twin served with the data file it names, then read with the map."""
-    root = Path(__file__).resolve().parent.parent
     header = [
         row[1:].strip()
-        for row in (root / "examples" / example).read_text().splitlines()
+        for row in (REPO_ROOT / "examples" / example).read_text().splitlines()
         if row.startswith("#")
     ]
     commands = [row.removesuffix("&").split() for row in header if row.startswith("mbtool ")]

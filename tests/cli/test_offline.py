@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
-from helpers import assert_one_error_line, expect_ok, parse_hex_lines, rtu, run_mbtool
+from helpers import TESTS_DIR, assert_one_error_line, expect_ok, parse_hex_lines, rtu, run_mbtool
 
-VECTORS = json.loads((Path(__file__).parent / "data" / "vectors.json").read_text())
+VECTORS = json.loads((TESTS_DIR / "data" / "vectors.json").read_text())
 SERIAL = VECTORS["serial"]
 
 
