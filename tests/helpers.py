@@ -221,9 +221,13 @@ def run_cli(*args: str, env: dict[str, str] | None = None) -> Result:
     environ = dict(os.environ)
     os.environ.clear()
     os.environ.update(mbtool_env(env))
-    sys.stdin = io.TextIOWrapper(io.BytesIO(), encoding="utf-8")
-    sys.stdout = io.TextIOWrapper(out, encoding="utf-8")
-    sys.stderr = io.TextIOWrapper(err, encoding="utf-8", errors="backslashreplace", line_buffering=True)
+    # Held here as well as in sys: a wrapper dropped by sys would close its buffer with it.
+    captured = (
+        io.TextIOWrapper(io.BytesIO(), encoding="utf-8"),
+        io.TextIOWrapper(out, encoding="utf-8"),
+        io.TextIOWrapper(err, encoding="utf-8", errors="backslashreplace", line_buffering=True),
+    )
+    sys.stdin, sys.stdout, sys.stderr = captured
     t0 = time.monotonic()
     try:
         with contextlib.chdir(REPO_ROOT):
@@ -233,7 +237,7 @@ def run_cli(*args: str, env: dict[str, str] | None = None) -> Result:
         code = 0 if done.code is None else done.code if isinstance(done.code, int) else 1
     finally:
         elapsed = time.monotonic() - t0
-        for stream in (sys.stdout, sys.stderr):
+        for stream in captured[1:]:
             with contextlib.suppress(ValueError, OSError):
                 stream.flush()
         sys.stdin, sys.stdout, sys.stderr = streams
@@ -972,6 +976,19 @@ def http_get(url: str, headers: dict[str, str] | None = None, timeout: float = 3
             return response.status, response.headers["Content-Type"], response.read().decode()
     except urllib.error.HTTPError as error:
         return error.code, error.headers["Content-Type"], error.read().decode()
+
+
+# ----------------------------------------------------------------------------- a bus's frames (monitor)
+
+# What the monitor's tests put on a bus, or in a file of its bytes.
+READ_REQ = rtu(bytes.fromhex("11 03 00 6B 00 03"))  # spec §8: unit 17, read 3 registers at 107
+READ_RSP = rtu(bytes.fromhex("11 03 06 AE 41 56 52 43 40"))
+WRITE_REQ = rtu(bytes.fromhex("01 06 00 01 00 03"))  # its response is an echo
+COILS_REQ = rtu(bytes.fromhex("02 01 00 00 00 08"))
+INPUT_REQ = rtu(bytes.fromhex("01 04 00 00 00 01"))
+EXCEPTION_RSP = rtu(bytes.fromhex("01 84 02"))
+DAMAGED_REQ = bad_crc(rtu(bytes.fromhex("01 03 00 00 00 01")))
+GARBAGE = bytes.fromhex("FF FF 00")
 
 
 # ----------------------------------------------------------------------------- mbtool monitor on a pty

@@ -1,19 +1,17 @@
-"""Dumping a device (issue 16): the exact scan of link/dump.py, against the device model with holes."""
+"""Dumping a device end to end (issue 16): mbtool dump of pymodbus's device with holes and of
+crafted identities, serve --data of the dump answering as the device did, a dump interrupted,
+diff and restore against a device, and --changes while the device's values change."""
 
 from __future__ import annotations
 
 import contextlib
 import json
-import random
 
 import pytest
 from helpers import (
-    REPO_ROOT,
-    assert_one_error_line,
     expect_ok,
     interrupt_after,
     mbap,
-    mbtool_env,
     parse_hex_lines,
     pymodbus_tcp,
     read_mbap,
@@ -21,156 +19,6 @@ from helpers import (
     serve,
     start_mbtool,
 )
-from helpers import device_executor as executor
-
-from mbtool.codec.errors import ModbusException
-from mbtool.codec.tables import COILS, HOLDING_REGISTERS
-from mbtool.device.device import Device
-from mbtool.device.model import DataModel
-from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, runs_of
-
-
-def sparse_device(defined: dict[str, list[int]]) -> Device:
-    """A device that has only the addresses listed, each holding a value of its own."""
-    model = DataModel()
-    model.defined = {}
-    for table, addresses in defined.items():
-        mask = model.defines(table, 65536)
-        values = getattr(model, table)
-        for address in addresses:
-            mask[address] = 1
-            values[address] = (address * 7 + 3) & (1 if table in ("coils", "discrete_inputs") else 0xFFFF)
-    return Device(model)
-
-
-@pytest.mark.parametrize("seed", range(8))
-def test_the_dump_finds_every_hole_exactly(seed):
-    rng = random.Random(seed)
-    present = sorted(rng.sample(range(2000), rng.randint(1, 600)))
-    present += list(range(3000, 3000 + rng.randint(1, 400)))  # and a long block
-    device = sparse_device({"holding_registers": present})
-    sent: list = []
-    dump = TableDump(HOLDING_REGISTERS)
-    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 3999), dump)
-    assert [(first, first + len(values) - 1) for first, values in dump.runs] == runs_of(sorted(present))
-    values = {first + i: v for first, vs in dump.runs for i, v in enumerate(vs)}
-    assert values == {a: (a * 7 + 3) & 0xFFFF for a in present}
-    assert all(request.count <= 125 for request in sent)
-
-
-def test_a_full_table_takes_one_request_per_limit():
-    device = sparse_device({"holding_registers": list(range(1000))})
-    sent: list = []
-    dump = TableDump(HOLDING_REGISTERS)
-    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 999), dump)
-    assert dump.count == 1000 and len(sent) == 8  # ceil(1000 / 125)
-
-
-def test_a_hole_costs_one_request_and_a_block_few_more_than_its_reads():
-    # Blocks of 100 with holes of 20 between them: each hole address is one refused
-    # read; each block a handful of reads as the scan gallops back up to the limit.
-    present = [a for a in range(1200) if a % 120 < 100]
-    device = sparse_device({"holding_registers": present})
-    sent: list = []
-    dumper = Dumper(executor(device, sent))
-    dumper.dump(Span(HOLDING_REGISTERS, 0, 1199), TableDump(HOLDING_REGISTERS))
-    holes, blocks = 1200 - len(present), 10
-    assert holes <= len(sent) <= holes + blocks * 16
-    assert holes <= dumper.refused < len(sent)  # every hole is a refusal, counted
-
-
-def test_scattered_registers_take_at_most_two_answered_reads_a_block():
-    """Issue (reads that scale): registers scattered one by one, as in bench/dump.py."""
-    present = sorted(random.Random(7).sample(range(5000), 750))
-    device = sparse_device({"holding_registers": present})
-    sent: list = []
-    dumper = Dumper(executor(device, sent))
-    dump = TableDump(HOLDING_REGISTERS)
-    dumper.dump(Span(HOLDING_REGISTERS, 0, 4999), dump)
-    assert dump.count == len(present)
-    answered = len(sent) - dumper.refused
-    assert answered <= 2 * len(runs_of(present))
-
-
-def test_bits_are_read_up_to_2000_at_a_time():
-    device = sparse_device({"coils": list(range(5000))})
-    sent: list = []
-    dump = TableDump(COILS)
-    Dumper(executor(device, sent)).dump(Span(COILS, 0, 4999), dump)
-    assert dump.count == 5000 and [r.count for r in sent] == [2000, 2000, 1000]
-    assert dump.runs[0][1][:4] == [1, 0, 1, 0]  # (a * 7 + 3) & 1
-
-
-def test_a_table_the_device_lacks_is_absent():
-    device = sparse_device({"holding_registers": [0]})
-    device.model  # noqa: B018 - the model answers exception 01 for nothing; a stand-in does
-    sent: list = []
-
-    def no_coils(request):
-        sent.append(request)
-        raise ModbusException(0x01, 0x01)
-
-    dump = TableDump(COILS)
-    Dumper(no_coils).dump(Span(COILS, 0, 65535), dump)
-    assert dump.absent and dump.runs == [] and len(sent) == 1
-
-
-def test_the_budget_stops_the_scan_with_what_was_read():
-    device = sparse_device({"holding_registers": list(range(1000))})
-    dump = TableDump(HOLDING_REGISTERS)
-    with pytest.raises(OutOfRequests):
-        Dumper(executor(device, []), max_requests=3).dump(Span(HOLDING_REGISTERS, 0, 999), dump)
-    assert dump.runs == [(0, [(a * 7 + 3) & 0xFFFF for a in range(375)])]
-
-
-def test_other_exceptions_end_the_dump():
-    def failing(request):
-        raise ModbusException(0x03, 0x04)
-
-    with pytest.raises(ModbusException):
-        Dumper(failing).dump(Span(HOLDING_REGISTERS, 0, 10), TableDump(HOLDING_REGISTERS))
-
-
-def test_scattered_registers_cost_little_over_one_request_per_hole_and_run():
-    # Exactness costs at least one request per hole (a refused read confirms at most one
-    # address) plus one per run; the scan stays within a quarter of that.
-    present = sorted(random.Random(7).sample(range(8000), 1500))
-    device = sparse_device({"holding_registers": present})
-    sent: list = []
-    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 7999), TableDump(HOLDING_REGISTERS))
-    floor = (8000 - len(present)) + len(runs_of(present))
-    assert floor <= len(sent) <= 1.25 * floor
-
-
-def test_a_data_file_takes_runs_and_a_completeness_mark(tmp_path):
-    from mbtool.device.datafile import load_data
-
-    path = tmp_path / "dump.toml"
-    path.write_text(
-        "sparse = true\ncomplete = false\n[holding_registers]\n0 = [1, 2]\n"
-        "[holding_registers.10]\nvalue = 7\ncount = 3\n"
-    )
-    model, _ = load_data(str(path), frozenset({1}))
-    assert list(model.holding_registers[10:13]) == [7, 7, 7] and model.holding_registers[13] == 0
-    device = Device(model)
-    sent: list = []
-    dump = TableDump(HOLDING_REGISTERS)
-    Dumper(executor(device, sent)).dump(Span(HOLDING_REGISTERS, 0, 20), dump)
-    assert dump.runs == [(0, [1, 2]), (10, [7, 7, 7])]
-
-
-@pytest.mark.parametrize(
-    "run, words", [("{ value = 1 }", "a run is"), ("{ value = 1, count = 0 }", "out of range")]
-)
-def test_a_bad_run_is_refused_naming_it(tmp_path, run, words):
-    from mbtool.codec.errors import RequestError
-    from mbtool.device.datafile import load_data
-
-    path = tmp_path / "bad.toml"
-    path.write_text(f"[holding_registers]\n5 = {run}\n")
-    with pytest.raises(RequestError, match=words):
-        load_data(str(path), frozenset({1}))
-
 
 # --- mbtool dump end to end: pymodbus's device with holes, and serve --data of its dump ----------
 
@@ -445,54 +293,6 @@ def test_a_second_interrupt_still_saves_what_was_read(tmp_path, first, second):
     assert [p.name for p in tmp_path.iterdir()] == ["part.toml"]  # no temporary file left
 
 
-def test_a_dump_that_cannot_be_written_whole_leaves_the_previous_one(tmp_path):
-    import resource
-    import subprocess
-    import sys
-    import tomllib
-
-    path = tmp_path / "device.toml"
-    previous = "sparse = true\n\n[holding_registers]\n0 = [1, 2, 3]\n"
-    path.write_text(previous)
-
-    def small_files():  # a file size limit: the new dump cannot be written whole (EFBIG)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (200, 200))
-
-    res = subprocess.run(
-        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        preexec_fn=small_files,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert res.returncode == 7, res.stderr
-    assert f"cannot write to {path}" in res.stderr and "Traceback" not in res.stderr
-    assert path.read_text() == previous  # the previous dump, whole
-    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
-    # Without the limit the new dump replaces it, with a new file's permissions.
-    expect_ok_res = subprocess.run(
-        [sys.executable, "-m", "mbtool", "dump", str(path), "--range", "holding:0-999", "-p", "sim://"],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert expect_ok_res.returncode == 0, expect_ok_res.stderr
-    assert tomllib.loads(path.read_text())["holding_registers"]
-    assert [p.name for p in tmp_path.iterdir()] == ["device.toml"]
-
-
-def test_a_dump_to_an_unwritable_place_fails_before_reading_the_device(tmp_path, silent_server):
-
-    path = tmp_path / "no-such-folder" / "device.toml"
-    line = assert_one_error_line(run_mbtool("dump", path, "-p", silent_server.tcp_target), 7)
-    assert line == f"mbtool: cannot write to {path}: No such file or directory"
-    assert silent_server.connections == 0 and silent_server.received_bytes() == b""
-
-
 # --- mbtool diff ----------------------------------------------------------------------------
 
 
@@ -534,17 +334,6 @@ def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, 
         client.close()
 
 
-def test_diff_of_two_files_names_what_one_side_lacks(tmp_path):
-
-    (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 2, 3]\n[coils]\n4 = 1\n")
-    (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n0 = [1, 5]\n[coils]\n4 = 1\n")
-    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml")
-    assert res.returncode == 1
-    assert res.stdout.splitlines() == ["holding 1: 2 -> 5", "holding 2: 3 -> missing"]
-    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "nothere.toml")
-    assert res.returncode == 2 and "cannot read data file" in res.stderr
-
-
 # --- mbtool restore -------------------------------------------------------------------------
 
 
@@ -582,21 +371,6 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
         assert run_mbtool("diff", path, "-p", tcp_device.target).returncode == 0
     finally:
         client.close()
-
-
-def test_write_requests_are_the_fewest_the_limits_allow():
-    from mbtool.cli.commands.snapshot import write_requests
-
-    changes = {"holding": {a: a & 0xFFFF for a in [*range(0, 300), 400, 401, 500]}, "coils": {7: 1}}
-    requests = write_requests(changes)
-    assert [(r.function_code, r.address, len(r.values)) for r in requests] == [
-        (0x0F, 7, 1),
-        (0x10, 0, 123),
-        (0x10, 123, 123),
-        (0x10, 246, 54),
-        (0x10, 400, 2),
-        (0x10, 500, 1),
-    ]
 
 
 # --- --changes on polling -------------------------------------------------------------------

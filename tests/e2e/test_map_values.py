@@ -13,7 +13,7 @@ import json
 import math
 
 import pytest
-from helpers import assert_one_error_line, expect_ok, run_mbtool, serve
+from helpers import TESTS_DIR, assert_one_error_line, expect_ok, run_mbtool, serve
 from prometheus_client.parser import text_string_to_metric_families
 
 pytestmark = pytest.mark.timeout(90)
@@ -301,3 +301,28 @@ def test_read_m_and_check_honour_a_maps_invalid_values(tmp_path):
     assert "modbus_voltage" in names and "modbus_power" not in names
     assert checked.returncode == 3 and "power not read (UNKNOWN: no data (invalid))" in checked.stdout
     assert critical.returncode == 2
+
+
+# --- a point scaled by another (scale_ref): write -m reads the scale factor, then writes ----------
+
+INVERTER = (TESTS_DIR / "data" / "scale-ref-inverter.toml").read_text()
+
+
+def test_write_m_reads_the_scale_factor_then_writes_in_its_scale(tmp_path):
+    data = tmp_path / "data.toml"
+    data.write_text("[holding_registers]\n100 = 0\n120 = 0xFFFE\n")  # W_SF -2
+    path = tmp_path / "inverter.toml"
+    path.write_text(INVERTER)
+    with serve("--data", str(data)) as device:
+        res = run_mbtool("write", "-m", path, "W=12.34", "-p", device.target, "-o", "json", "--hex")
+        assert res.returncode == 0, res
+        written = json.loads(res.stdout)["points"][0]
+        assert written["value"] == 12.34 and written["registers"] == [1234]
+        back = run_mbtool("read-holding-registers", "100", "-p", device.target, "-o", "json")
+        assert json.loads(back.stdout)["values"] == [1234]
+        # The scale factor read first (FC 03 of W_SF alone: W is not read), then FC 06.
+        sent = [line.split()[7:12] for line in res.stderr.splitlines() if line.startswith("TX")]
+        assert sent == [["01", "03", "00", "78", "00"], ["01", "06", "00", "64", "04"]], res.stderr
+        refused = run_mbtool("write", "-m", path, "W=12.345", "-p", device.target)
+        assert refused.returncode == 2 and "not a whole number of steps of 0.01" in refused.stderr
+        assert "Traceback" not in refused.stderr

@@ -1,452 +1,41 @@
-"""mbtool monitor: a passive bus monitor (sans-IO splitter, the command on ptys and bridges, pcap).
-
-The sans-IO tests feed recorded byte streams with their arrival times and compare the
-frame list; the end-to-end tests write into one end of a pseudo-terminal (or a TCP
-"serial bridge") with pauses made by sleeping, run the real CLI on the other end, and
-check that it wrote nothing.  The pcap is read back with tshark (when installed) and
-parsed here with struct, independently of mbtool.
+"""mbtool monitor, a passive bus monitor, listening: the tests write into one end of a
+pseudo-terminal (or a TCP "serial bridge") with pauses made by sleeping, run the real CLI on
+the other end, and check that it wrote nothing.  The pcap is read back with tshark (when
+installed) and parsed here with struct, independently of mbtool.  tests/monitor/test_bus.py
+has the splitter sans-IO, tests/cli/test_monitor_files.py the command on recordings.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import random
 import select
 import shutil
 import signal
 import socket
 import struct
 import subprocess
-import sys
 import threading
 import time
-from datetime import datetime
 
 import pytest
 from helpers import (
-    REPO_ROOT,
+    COILS_REQ,
+    DAMAGED_REQ,
+    EXCEPTION_RSP,
+    GARBAGE,
+    INPUT_REQ,
+    MONITOR_DEADLINE,
+    READ_REQ,
+    READ_RSP,
+    WRITE_REQ,
     Line,
-    Result,
     ascii_frame,
-    assert_one_error_line,
-    bad_crc,
-    crc16,
     finish,
     json_lines,
-    mbtool_env,
     rtu,
     start_monitor,
 )
-
-from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
-
-DEADLINE = 20.0  # seconds for any one monitor run
-
-
-READ_REQ = rtu(bytes.fromhex("11 03 00 6B 00 03"))  # spec §8: unit 17, read 3 registers at 107
-READ_RSP = rtu(bytes.fromhex("11 03 06 AE 41 56 52 43 40"))
-WRITE_REQ = rtu(bytes.fromhex("01 06 00 01 00 03"))  # its response is an echo
-COILS_REQ = rtu(bytes.fromhex("02 01 00 00 00 08"))
-INPUT_REQ = rtu(bytes.fromhex("01 04 00 00 00 01"))
-EXCEPTION_RSP = rtu(bytes.fromhex("01 84 02"))
-DAMAGED_REQ = bad_crc(rtu(bytes.fromhex("01 03 00 00 00 01")))
-GARBAGE = bytes.fromhex("FF FF 00")
-
-
-def run(monitor: BusMonitor, chunks: list[tuple[float, bytes | None]], end: float) -> list:
-    """Feed (time, bytes) chunks; None means a read that returned nothing at that time."""
-    seen = []
-    for when, data in chunks:
-        seen += monitor.feed(when, data) if data else monitor.idle(when)
-    return seen + monitor.finish(end)
-
-
-def frames_of(seen: list) -> list[tuple]:
-    """What a test compares: (direction, wire, flags) per frame, ("unanswered", number) per note."""
-    out = []
-    for item in seen:
-        if isinstance(item, Unanswered):
-            out.append(("unanswered", item.request.number))
-        else:
-            out.append((item.direction, item.wire, item.flags))
-    return out
-
-
-# --- the splitter, sans-IO ------------------------------------------------------------------
-
-
-def test_whole_frames_pair_request_and_response_with_latency():
-    seen = run(BusMonitor(silence=0.02), [(10.0, READ_REQ), (10.030, READ_RSP)], end=10.5)
-    assert frames_of(seen) == [("request", READ_REQ, ()), ("response", READ_RSP, ())]
-    request, response = seen
-    assert (request.number, request.unit, request.function, request.gap) == (1, 17, 3, None)
-    assert response.request == 1 and response.latency == pytest.approx(0.030)
-    assert response.gap == pytest.approx(0.030)
-    assert request.checksum == "CRC 76 87 ok" and request.checksum_ok
-    assert request.described.name == "Read Holding Registers"
-    assert [f.value for f in response.described.fields if f.name.startswith("register")] == [
-        0xAE41,
-        0x5652,
-        0x4340,
-    ]
-
-
-def test_frames_split_across_reads_are_joined_by_their_implicit_length():
-    chunks = [(1.000, READ_REQ[:1]), (1.004, READ_REQ[1:5]), (1.009, READ_REQ[5:]), (1.050, READ_RSP[:4])]
-    chunks += [(1.060, READ_RSP[4:9]), (1.070, READ_RSP[9:])]
-    seen = run(BusMonitor(silence=0.02), chunks, end=1.5)
-    assert frames_of(seen) == [("request", READ_REQ, ()), ("response", READ_RSP, ())]
-    # A frame's time is its first byte's, its end its last byte's: the latency runs between.
-    assert (seen[0].time, seen[0].end) == (1.000, 1.009)
-    assert seen[1].latency == pytest.approx(0.041)
-
-
-def test_two_frames_back_to_back_and_with_a_gap():
-    # The echo of a write comes in the same read as the request: split by length alone.
-    chunks = [(5.0, WRITE_REQ + WRITE_REQ), (5.25, COILS_REQ)]
-    seen = run(BusMonitor(silence=0.02, response_timeout=10), chunks, end=5.3)
-    assert frames_of(seen) == [
-        ("request", WRITE_REQ, ()),
-        ("response", WRITE_REQ, ()),
-        ("request", COILS_REQ, ()),
-    ]
-    assert seen[1].gap == 0 and seen[1].request == 1
-    assert seen[2].gap == pytest.approx(0.25)
-
-
-def test_a_bad_crc_is_flagged_and_silence_ends_it():
-    chunks = [(1.0, DAMAGED_REQ), (1.01, None), (1.05, None), (1.3, READ_REQ)]
-    seen = run(BusMonitor(silence=0.02), chunks, end=1.31)
-    assert frames_of(seen) == [("request", DAMAGED_REQ, ("bad-checksum",)), ("request", READ_REQ, ())]
-    assert seen[0].checksum == "CRC 84 F5 BAD, expected 84 0A"
-    # A slave ignores a frame with a bad CRC (spec §2): nothing waits for its response.
-    assert not any(isinstance(item, Unanswered) for item in seen)
-
-
-def test_a_bad_crc_right_before_a_good_frame_is_a_damaged_frame_not_garbage():
-    seen = run(BusMonitor(silence=0.02), [(1.0, DAMAGED_REQ + READ_REQ)], end=1.01)
-    assert frames_of(seen) == [("request", DAMAGED_REQ, ("bad-checksum",)), ("request", READ_REQ, ())]
-
-
-def test_garbage_before_a_frame_and_alone():
-    chunks = [(1.0, GARBAGE + READ_REQ), (1.5, GARBAGE), (1.51, None), (1.6, None)]
-    seen = run(BusMonitor(silence=0.02, response_timeout=10), chunks, end=1.7)
-    assert frames_of(seen) == [
-        ("garbage", GARBAGE, ("garbage",)),
-        ("request", READ_REQ, ()),
-        ("garbage", GARBAGE, ("garbage",)),
-    ]
-    assert seen[2].gap == pytest.approx(0.5)
-
-
-def test_unanswered_requests_by_another_request_and_by_timeout_and_a_late_response():
-    chunks = [(1.0, COILS_REQ), (1.2, READ_REQ), (2.0, None), (2.3, None), (2.5, READ_RSP)]
-    seen = run(BusMonitor(silence=0.02, response_timeout=1.0), chunks, end=3.0)
-    assert frames_of(seen) == [
-        ("request", COILS_REQ, ()),
-        ("unanswered", 1),
-        ("request", READ_REQ, ()),
-        ("unanswered", 2),
-        ("response", READ_RSP, ("late",)),
-    ]
-    assert "another request followed after 200 ms" in seen[1].reason
-    assert seen[3].reason == "no response within 1000 ms" and seen[3].time == pytest.approx(2.2)
-    assert seen[4].request == 2
-
-
-def test_an_exception_response_and_a_response_to_no_request():
-    chunks = [(1.0, READ_RSP), (1.5, INPUT_REQ), (1.52, EXCEPTION_RSP)]
-    seen = run(BusMonitor(silence=0.02), chunks, end=2.0)
-    assert frames_of(seen) == [
-        ("response", READ_RSP, ("unsolicited",)),
-        ("request", INPUT_REQ, ()),
-        ("response", EXCEPTION_RSP, ("exception",)),
-    ]
-    assert seen[2].described.name == "exception to Read Input Registers"
-
-
-def test_broadcast_expects_no_response():
-    broadcast = rtu(bytes.fromhex("00 06 00 05 00 00"))
-    seen = run(BusMonitor(silence=0.02, response_timeout=0.1), [(1.0, broadcast), (2.0, None)], end=3.0)
-    assert frames_of(seen) == [("request", broadcast, ("broadcast",))]
-
-
-def test_an_unknown_function_code_is_ended_by_silence():
-    odd = rtu(bytes.fromhex("05 41 01 02 03"))
-    seen = run(BusMonitor(silence=0.02), [(1.0, odd), (1.01, None), (1.05, None)], end=1.1)
-    assert frames_of(seen) == [("request", odd, ())]
-    assert seen[0].described.kind == "unknown"
-
-
-def test_a_frame_cut_short_by_silence_is_garbage():
-    seen = run(BusMonitor(silence=0.02), [(1.0, READ_REQ[:5]), (1.1, READ_RSP)], end=1.2)
-    assert [item.direction for item in seen] == ["garbage", "response"]
-    assert seen[0].note == "a frame cut short by silence"
-
-
-def test_ascii_frames_bad_lrc_and_garbage():
-    request = ascii_frame(0x11, bytes.fromhex("03 00 6B 00 03"))
-    response = ascii_frame(0x11, bytes.fromhex("03 06 AE 41 56 52 43 40"))
-    damaged = request.replace(b"7E\r", b"7F\r")
-    assert damaged != request
-    chunks = [(1.0, request[:7]), (1.2, request[7:]), (1.3, b"xx" + response), (2.0, damaged), (4.0, None)]
-    seen = run(BusMonitor("ascii", silence=1.0, response_timeout=10), chunks, end=4.0)
-    assert frames_of(seen) == [
-        ("request", request, ()),
-        ("garbage", b"xx", ("garbage",)),
-        ("response", response, ()),
-        ("request", damaged, ("bad-checksum",)),
-    ]
-    assert seen[2].latency == pytest.approx(0.1) and seen[3].checksum == "LRC 7F BAD, expected 7E"
-
-
-def test_every_byte_comes_out_once_in_order():
-    """Whatever the stream, frames and garbage together are exactly the bytes fed."""
-    rng = random.Random(5)
-    pieces = [READ_REQ, READ_RSP, WRITE_REQ, DAMAGED_REQ, EXCEPTION_RSP, GARBAGE, COILS_REQ]
-    for _ in range(50):
-        stream = b"".join(rng.choice(pieces) if rng.random() < 0.8 else rng.randbytes(3) for _ in range(12))
-        monitor = BusMonitor(silence=0.02)
-        seen, at, when = [], 0, 0.0
-        while at < len(stream):
-            size = rng.randint(1, 12)
-            when += rng.choice((0.001, 0.005, 0.05))
-            seen += monitor.feed(when, stream[at : at + size])
-            at += size
-        seen += monitor.finish(when + 1)
-        frames = [item for item in seen if isinstance(item, BusFrame)]
-        assert b"".join(frame.wire for frame in frames) == stream
-        assert [frame.number for frame in frames] == list(range(1, len(frames) + 1))
-
-
-def test_garbage_costs_linear_time():
-    monitor = BusMonitor(silence=0.02)
-    noise = random.Random(1).randbytes(32 * 1024)
-    started = time.process_time()
-    seen = []
-    for at in range(0, len(noise), 16):
-        seen += monitor.feed(1.0 + at * 1e-6, noise[at : at + 16])
-    seen += monitor.finish(2.0)
-    assert time.process_time() - started < 10
-    assert sum(len(item.wire) for item in seen if isinstance(item, BusFrame)) == len(noise)
-
-
-def test_the_tally():
-    seen = run(
-        BusMonitor(silence=0.02),
-        [
-            (1.0, INPUT_REQ),
-            (1.01, EXCEPTION_RSP),
-            (1.5, DAMAGED_REQ + GARBAGE),
-            (1.6, COILS_REQ),
-            (1.7, READ_REQ),
-        ],
-        end=1.8,
-    )
-    tally = Tally()
-    for item in seen:
-        tally.count(item)
-    assert str(tally) == (
-        "frames 5, requests 4, responses 1, unanswered 1, exceptions 1, checksum errors 1, garbage bytes 3"
-    )
-
-
-# --- the command ------------------------------------------------------------------------------
-
-
-def run_cli(*args: str, timeout: float = DEADLINE) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "mbtool", "monitor", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        stdin=subprocess.DEVNULL,
-    )
-
-
-def test_from_file_plain_and_json(tmp_path):
-    recording = tmp_path / "bus.bin"
-    recording.write_bytes(READ_REQ + READ_RSP + GARBAGE + INPUT_REQ + EXCEPTION_RSP)
-    plain = run_cli("--from-file", str(recording))
-    assert plain.returncode == 0, plain.stderr
-    lines = plain.stdout.splitlines()
-    assert len(lines) == 5
-    assert (
-        " #1 request unit=17 FC 03 (0x03) [11 03 00 6B 00 03 76 87] CRC 76 87 ok | Read Holding Registers:"
-        in lines[0]
-    )
-    assert "starting_address=107 quantity=3" in lines[0]
-    assert " #2 response unit=17 FC 03 (0x03) " in lines[1] and "request=#1" in lines[1]
-    assert " #3 garbage 3 bytes [FF FF 00]" in lines[2]
-    assert lines[4].endswith("| flags=exception")
-    assert plain.stderr.splitlines() == [
-        "mbtool: frames 4, requests 2, responses 2, unanswered 0, exceptions 1, checksum errors 0, "
-        f"garbage bytes 3; {recording} is raw bytes with no time stamps: no time, gap or latency"
-    ]
-    records = json_lines(run_cli("--from-file", str(recording), "-o", "json").stdout)
-    assert [(r["event"], r["direction"], r["unit"], r["function"]) for r in records] == [
-        ("frame", "request", 17, 3),
-        ("frame", "response", 17, 3),
-        ("garbage", "garbage", None, None),
-        ("frame", "request", 1, 4),
-        ("frame", "response", 1, 0x84),
-    ]
-    assert records[1]["request"] == 1 and records[1]["checksum"] == {"ok": True, "verdict": "CRC 49 AD ok"}
-    assert records[4]["flags"] == ["exception"]
-    assert {
-        "name": "exception_code",
-        "bytes": "02",
-        "value": 2,
-        "text": "02 Illegal Data Address",
-    } in records[4]["fields"]
-
-
-def _pcap(packets, order="<", magic=0xA1B2C3D4, linktype=147, scale=1_000_000) -> bytes:
-    """A classic pcap written here by hand: (time, bytes) packets, raw on a user link type."""
-    out = struct.pack(order + "IHHiIII", magic, 2, 4, 0, 0, 65535, linktype)
-    for when, data in packets:
-        seconds = int(when)
-        out += struct.pack(order + "IIII", seconds, round((when - seconds) * scale), len(data), len(data))
-        out += data
-    return out
-
-
-T0 = 1_700_000_000.0
-
-
-@pytest.mark.parametrize(
-    ("order", "magic", "scale"),
-    [("<", 0xA1B2C3D4, 1_000_000), (">", 0xA1B2C3D4, 1_000_000), ("<", 0xA1B23C4D, 1_000_000_000)],
-    ids=["little-endian-us", "big-endian-us", "nanoseconds"],
-)
-def test_from_file_pcap_keeps_its_time_stamps(tmp_path, order, magic, scale):
-    """A pcap replays with its timing: gaps, latency and an unanswered request, all from the
-    packets' time stamps (each a frame's first byte)."""
-    recording = tmp_path / "bus.pcap"
-    recording.write_bytes(
-        _pcap(
-            [
-                (T0, READ_REQ),
-                (T0 + 0.0123, READ_RSP),
-                (T0 + 0.5, GARBAGE),
-                (T0 + 1.0, INPUT_REQ),  # never answered: the next request comes 2 s later
-                (T0 + 3.0, INPUT_REQ),
-                (T0 + 3.0081, EXCEPTION_RSP),
-            ],
-            order,
-            magic,
-            scale=scale,
-        )
-    )
-    result = run_cli("--from-file", str(recording), "-o", "json")
-    assert result.returncode == 0, result.stderr
-    records = json_lines(result.stdout)
-    assert [(r["event"], r.get("direction")) for r in records] == [
-        ("frame", "request"),
-        ("frame", "response"),
-        ("garbage", "garbage"),
-        ("frame", "request"),
-        ("unanswered", None),
-        ("frame", "request"),
-        ("frame", "response"),
-    ]
-    assert records[1]["latency_ms"] == 12.3 and records[1]["gap_ms"] == 12.3
-    assert records[6]["latency_ms"] == 8.1 and records[6]["flags"] == ["exception"]
-    assert records[5]["gap_ms"] == 2000.0
-    assert records[4]["request"] == 4 and records[4]["reason"] == "no response within 1000 ms"
-    assert [datetime.fromisoformat(r["time"]).timestamp() for r in records] == pytest.approx(
-        [T0, T0 + 0.012, T0 + 0.5, T0 + 1.0, T0 + 2.0, T0 + 3.0, T0 + 3.008], abs=0.0011
-    )
-    assert result.stderr.splitlines() == [
-        "mbtool: frames 5, requests 3, responses 2, unanswered 1, exceptions 1, checksum errors 0, garbage bytes 3"
-    ]
-
-
-def test_a_capture_replays_as_the_frames_it_recorded(tmp_path):
-    """--capture's file read back by --from-file: the same frames, bytes and verdicts."""
-    raw, capture = tmp_path / "bus.bin", tmp_path / "bus.pcap"
-    raw.write_bytes(READ_REQ + READ_RSP + GARBAGE + INPUT_REQ + EXCEPTION_RSP + READ_RSP[:-1] + b"\x00")
-    first = run_cli("--from-file", str(raw), "--capture", str(capture), "-o", "json")
-    assert first.returncode == 0, first.stderr
-    again = run_cli("--from-file", str(capture), "-o", "json")
-    assert again.returncode == 0, again.stderr
-
-    def seen(stdout):
-        return [(r["event"], r.get("direction"), r.get("frame"), r.get("flags")) for r in json_lines(stdout)]
-
-    assert seen(again.stdout) == seen(first.stdout)
-    assert again.stderr.rstrip() == first.stderr.split(";")[0]  # the raw bytes' note aside
-
-
-@pytest.mark.parametrize(
-    ("content", "words"),
-    [
-        (struct.pack("<I", 0x0A0D0D0A) + bytes(28), "pcapng"),
-        (_pcap([(T0, READ_REQ)])[:-3], "truncated after 0 packets"),
-    ],
-    ids=["pcapng", "truncated"],
-)
-def test_a_pcap_that_cannot_be_read_is_one_line_and_exit_2(tmp_path, content, words):
-    recording = tmp_path / "bus.pcap"
-    recording.write_bytes(content)
-    args = ("--from-file", str(recording))
-    line = assert_one_error_line(_as_result(run_cli(*args), args), 2)
-    assert words in line
-
-
-def test_a_pcap_replays_only_as_rtu(tmp_path):
-    recording = tmp_path / "bus.pcap"
-    recording.write_bytes(_pcap([(T0, READ_REQ)]))
-    args = ("--from-file", str(recording), "--framer", "ascii")
-    line = assert_one_error_line(_as_result(run_cli(*args), args), 2)
-    assert "holds RTU frames" in line
-
-
-def test_frames_option_stops_after_n_frames(tmp_path):
-    recording = tmp_path / "bus.bin"
-    recording.write_bytes(READ_REQ + READ_RSP + INPUT_REQ + EXCEPTION_RSP)
-    result = run_cli("--from-file", str(recording), "--frames", "3", "-o", "json")
-    assert result.returncode == 0, result.stderr
-    assert [r["number"] for r in json_lines(result.stdout)] == [1, 2, 3]
-    assert result.stderr.startswith("mbtool: frames 3, ")
-
-
-@pytest.mark.parametrize(
-    ("args", "words"),
-    [
-        (("--framer", "tcp", "-p", "/dev/null"), "tcp"),
-        (("-p", "tcp://127.0.0.1:502"), "serial line"),
-        (("-p", "sim://"), "serial line"),
-        ((), "no port given"),
-        (("-p", "/dev/null", "--duration", "0"), "more than 0"),
-        (("-p", "/dev/null", "--frames", "0"), "out of range"),
-        (("--from-file", "/nonexistent/bus.bin"), "does not exist"),
-        (("-p", "/dev/ttyS99", "--from-file", __file__), "not both"),
-        (("--from-file", __file__, "--capture", "/nonexistent/dir/x.pcap"), "cannot write capture file"),
-        # Options a recording leaves nothing to do (issue 28: no command takes an option it ignores).
-        (("--from-file", __file__, "--duration", "5"), "--duration is for listening"),
-        (("--from-file", __file__, "--silence", "0.1"), "--silence measures time, and"),
-        (("--from-file", __file__, "--response-timeout", "2"), "is raw bytes with no time stamps"),
-    ],
-)
-def test_bad_input_is_one_line_and_exit_2(args, words):
-    result = run_cli(*args)
-    line = assert_one_error_line(_as_result(result, args), 2)
-    assert words in line
-
-
-def test_a_port_that_cannot_be_opened_is_exit_6():
-    result = run_cli("-p", "/dev/mbtool-no-such-port")
-    line = assert_one_error_line(_as_result(result, ()), 6)
-    assert "cannot open /dev/mbtool-no-such-port" in line
-
-
-def _as_result(completed: subprocess.CompletedProcess, args):
-    return Result(list(args), completed.returncode, completed.stdout, completed.stderr, 0.0)
-
 
 # --- listening on a pseudo-terminal ------------------------------------------------------------
 
@@ -666,7 +255,7 @@ def test_sigterm_stops_cleanly_with_a_summary(line, frames, code):
     proc = start_monitor("-p", line.path, "--parity", "N", "--silence", SILENCE, "-o", "json")
     if frames:
         line.send(READ_REQ)
-        end = time.monotonic() + DEADLINE
+        end = time.monotonic() + MONITOR_DEADLINE
         while not select.select([proc.stdout], [], [], 0.1)[0]:  # the frame was shown
             assert time.monotonic() < end, "no frame shown"
     proc.send_signal(signal.SIGTERM)
@@ -685,7 +274,7 @@ def test_socket_bridge_is_only_read(tmp_path):
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(1)
-    server.settimeout(DEADLINE)
+    server.settimeout(MONITOR_DEADLINE)
     received = bytearray()
     done = threading.Event()
 
@@ -726,28 +315,3 @@ def test_socket_bridge_is_only_read(tmp_path):
     assert code == 0, err
     assert [(r["direction"], r["unit"]) for r in json_lines(out)] == [("request", 17), ("response", 17)]
     assert bytes(received) == b""
-
-
-def test_crc_helper_matches_spec():
-    assert crc16(bytes.fromhex("11 03 00 6B 00 03")) == bytes.fromhex("76 87")
-
-
-def test_raw_bytes_from_a_file_say_they_have_no_timing(tmp_path):
-    """Raw bytes keep no time stamps: no time, gap or latency is made up for them (issue 28)."""
-    recording = tmp_path / "bus.bin"
-    recording.write_bytes(READ_REQ + READ_RSP + INPUT_REQ + INPUT_REQ + EXCEPTION_RSP)
-    plain = run_cli("--from-file", str(recording))
-    assert plain.returncode == 0, plain.stderr
-    lines = plain.stdout.splitlines()
-    assert [line.split(" ", 2)[:2] for line in lines if " gap=" in line] == [["-", "gap=-"]] * 5
-    assert "latency=" not in plain.stdout and "0.0ms" not in plain.stdout
-    assert " #2 response unit=17 FC 03 (0x03) " in lines[1] and lines[1].endswith("request=#1")
-    assert (
-        "- unanswered #3 unit=1 FC 04 (0x04) Read Input Registers | another request followed" in plain.stdout
-    )
-    (summary,) = plain.stderr.splitlines()
-    assert summary.startswith("mbtool: frames 5, ")
-    assert summary.endswith(f"; {recording} is raw bytes with no time stamps: no time, gap or latency")
-    records = json_lines(run_cli("--from-file", str(recording), "-o", "json").stdout)
-    assert {(r["time"], r.get("gap_ms"), r.get("latency_ms")) for r in records} == {(None, None, None)}
-    assert [r["request"] for r in records if r["event"] == "frame"] == [None, 1, None, None, 4]

@@ -20,14 +20,11 @@ from helpers import (
     bad_crc,
     finish,
     json_lines,
-    lrc,
     rtu,
+    run_cli,
     run_mbtool,
     start_monitor,
 )
-
-from mbtool.monitor.bus import BusMonitor
-from mbtool.monitor.stats import BusStats
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -177,7 +174,7 @@ def test_stats_interval_prints_them_as_they_grow():
 def test_raw_bytes_with_no_time_stamps_have_no_times_to_count(tmp_path):
     recording = tmp_path / "bus.bin"
     recording.write_bytes(READ_1 + REPLY_1 + READ_2 + EXCEPTION_2)
-    res = run_mbtool("monitor", "--from-file", str(recording), "--stats", "-o", "json")
+    res = run_cli("monitor", "--from-file", str(recording), "--stats", "-o", "json")
     assert res.returncode == 0, res
     (stats,) = json_lines(res.stdout)
     assert stats["t35_breaks"] is None and stats["utilisation"] is None and stats["seconds"] is None
@@ -197,25 +194,5 @@ def test_raw_bytes_with_no_time_stamps_have_no_times_to_count(tmp_path):
     ],
 )
 def test_bad_stats_options_are_one_line_and_exit_2(args, words):
-    res = run_mbtool("monitor", "-p", "/dev/null-no-such-port", *args)
+    res = run_cli("monitor", "-p", "/dev/null-no-such-port", *args)
     assert words in assert_one_error_line(res, 2)
-
-
-def test_the_counts_in_process_with_an_ascii_bus_have_no_t35():
-    # ASCII has no t3.5 (spec §2): frames end at CR LF, and no break is counted.
-
-    def ascii(body: str) -> bytes:
-        data = bytes.fromhex(body)
-        return b":" + (data + bytes([lrc(data)])).hex().upper().encode() + b"\r\n"
-
-    monitor = BusMonitor("ascii", silence=1.0)
-    stats = BusStats(None, 10 / 9600, started=100.0)
-    for when, data in [(100.0, ascii("010300000001")), (100.0, ascii("0103020007"))]:
-        for item in monitor.feed(when, data):
-            stats.count(item)
-    for item in monitor.finish(101.0):
-        stats.count(item)
-    record = stats.as_dict(101.0)
-    assert record["t35_breaks"] is None and record["units"][0]["t35_breaks"] is None
-    assert (record["units"][0]["requests"], record["units"][0]["replies"]) == (1, 1)
-    assert record["seconds"] == 1.0

@@ -4,7 +4,8 @@ The plant of the end-to-end test is made of real peers the test starts: two seri
 (pseudo-terminal pairs) with `mbtool serve -u 1-3` on one and pymodbus's RTU server on the
 other, a TCP gateway (`mbtool bridge`) in front of a third bus, a pymodbus TCP device that is
 stopped mid-run and started again, a unit that never answers and a link whose port does
-not exist.  Outputs are read back with their own parsers.
+not exist.  Outputs are read back with their own parsers.  The inventory's checks are
+tests/cli/test_poll_inventory.py's, a device's state tests/plant/test_schedule.py's.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ from helpers import (
     PTY_SERIAL_OPTS,
     REPO_ROOT,
     PtyPair,
-    assert_one_error_line,
     bridge,
     free_port,
     mbtool_env,
@@ -36,80 +36,10 @@ from helpers import (
     stop_device,
 )
 
-from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState
-
 
 def write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
-
-
-# --- the inventory: checked whole before anything is opened --------------------------------
-
-
-@pytest.mark.parametrize(
-    "text, words",
-    [
-        ("[poll]\ninterval = 1\ncolour = 1\n", "[poll] colour: unknown key"),
-        ("[plant]\n", "unknown table [plant]"),
-        ('[links.a]\ntarget = "{t}"\nbaud = "fast"\n[devices.d]\nlink = "a"\nread = ["40001"]\n', "[links.a] baud"),
-        ('[links.a]\nbaud = 9600\n[devices.d]\nlink = "a"\nread = ["40001"]\n', "[links.a] has no target"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "b"\nread = ["40001"]\n', "[devices.d] link: no [links.b]"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\nspeed = 1\n', "[devices.d] speed: unknown key"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nmap = "nosuch.toml"\n', "[devices.d] map: cannot read map"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\n', "[devices.d]: give either map"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["4o001 2"]\n', "[devices.d] read: '4o001 2'"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\ntags = {{ "a-b" = "x" }}\n', "tags: 'a-b'"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\nunit = 300\n', "[devices.d] unit"),
-        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n[devices.d]\nunit = 2\n', "not valid TOML"),
-        ("[poll]\ninterval = 1\n", "no [devices.NAME]"),
-    ],
-    ids=[
-        "poll-key", "table", "link-value", "no-target", "missing-link", "device-key", "map",
-        "map-or-read", "reference", "tag-name", "unit", "two-devices-one-name", "no-devices",
-    ],
-)  # fmt: skip
-def test_a_bad_inventory_is_exit_2_naming_file_table_and_key_and_nothing_is_opened(
-    tmp_path, silent_server, text, words
-):
-    path = write(tmp_path / "plant.toml", text.format(t=silent_server.socket_target.replace("socket", "tcp")))
-    line = assert_one_error_line(run_mbtool("poll", path, "--once"), 2)
-    assert str(path) in line and words in line
-    assert silent_server.received_bytes() == b""
-
-
-# --- a device's state: offline after failures, backed off, back online ----------------------
-
-
-def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:
-    spec = DeviceSpec("m", "bus", 1, None, {}, interval, offline_after, max_backoff)
-    return DeviceState(spec, 0.0)
-
-
-def test_a_device_goes_offline_after_failures_in_a_row_and_is_backed_off_doubling():
-    state = _state()
-    assert state.failed(0.0, 0.0, "silence") is None and state.due == 1.0
-    assert state.succeeded(1.0, 1.0) is None and state.failures == 0  # not in a row
-    assert state.failed(2.0, 2.0, "silence") is None
-    assert state.failed(3.0, 3.0, "silence") is None
-    event = state.failed(4.0, 4.0, "silence")
-    assert (event.state, event.reason, event.retry_in) == (OFFLINE, "silence", 2.0)
-    assert state.state == OFFLINE and state.due == 6.0
-    waits = []
-    for now in (6.0, 10.0, 18.0, 28.0):
-        assert state.failed(now, now, "silence") is None  # one event for the change, not a probe
-        waits.append(state.due - now)
-    assert waits == [4.0, 8.0, 10.0, 10.0]  # doubling, up to max_backoff
-    event = state.succeeded(38.0, 38.0)
-    assert event.state == ONLINE and state.state == ONLINE and state.due == 39.0
-
-
-def test_a_device_keeps_its_schedule_and_skips_slots_it_missed():
-    state = _state(interval=2.0)
-    state.succeeded(0.1, 0.1)
-    assert state.due == 2.0  # its slot, not 2 s after this poll
-    state.succeeded(7.5, 7.5)  # slots 4.0 and 6.0 passed while the link was busy
-    assert state.due == 7.5
 
 
 # --- the plant end to end --------------------------------------------------------------------

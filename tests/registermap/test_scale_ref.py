@@ -12,7 +12,7 @@ import json
 import struct
 
 import pytest
-from helpers import run_mbtool, serve
+from helpers import TESTS_DIR, run_cli
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
@@ -21,33 +21,7 @@ from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import MapReader, plan_reads, write_request
 from mbtool.registermap.point import NoScaleFactor
 
-INVERTER = """\
-[points.W]
-table = "holding"
-address = 100
-type = "int16"
-unit = "W"
-scale_ref = "W_SF"
-access = "rw"
-
-[points.A]
-table = "holding"
-address = 90
-unit = "A"
-scale_ref = "A_SF"
-
-[points.A_SF]
-table = "holding"
-address = 94
-type = "int16"
-invalid = [0x8000]
-
-[points.W_SF]
-table = "holding"
-address = 120
-type = "int16"
-invalid = [0x8000]
-"""
+INVERTER = (TESTS_DIR / "data" / "scale-ref-inverter.toml").read_text()
 
 
 def _map(tmp_path, text=INVERTER):
@@ -238,33 +212,13 @@ def test_a_scaled_point_is_not_written_without_its_scale_factor(tmp_path):
     assert not isinstance(caught.value, NoScaleFactor)
 
 
-# --- end to end: write -m reads the scale factor, then writes -------------------------------------
-
-
-def test_write_m_reads_the_scale_factor_then_writes_in_its_scale(tmp_path):
-    data = tmp_path / "data.toml"
-    data.write_text("[holding_registers]\n100 = 0\n120 = 0xFFFE\n")  # W_SF -2
-    path = tmp_path / "inverter.toml"
-    path.write_text(INVERTER)
-    with serve("--data", str(data)) as device:
-        res = run_mbtool("write", "-m", path, "W=12.34", "-p", device.target, "-o", "json", "--hex")
-        assert res.returncode == 0, res
-        written = json.loads(res.stdout)["points"][0]
-        assert written["value"] == 12.34 and written["registers"] == [1234]
-        back = run_mbtool("read-holding-registers", "100", "-p", device.target, "-o", "json")
-        assert json.loads(back.stdout)["values"] == [1234]
-        # The scale factor read first (FC 03 of W_SF alone: W is not read), then FC 06.
-        sent = [line.split()[7:12] for line in res.stderr.splitlines() if line.startswith("TX")]
-        assert sent == [["01", "03", "00", "78", "00"], ["01", "06", "00", "64", "04"]], res.stderr
-        refused = run_mbtool("write", "-m", path, "W=12.345", "-p", device.target)
-        assert refused.returncode == 2 and "not a whole number of steps of 0.01" in refused.stderr
-        assert "Traceback" not in refused.stderr
+# --- write -m and diff -m, in-process ------------------------------------------------------------
 
 
 def test_write_m_dry_run_shows_the_scale_factor_read_and_sends_nothing(tmp_path):
     path = tmp_path / "inverter.toml"
     path.write_text(INVERTER)
-    res = run_mbtool("write", "-m", path, "W=12.5", "-p", "tcp://127.0.0.1:9", "--dry-run")
+    res = run_cli("write", "-m", path, "W=12.5", "-p", "tcp://127.0.0.1:9", "--dry-run")
     assert res.returncode == 0, res
     assert "Read Holding Registers" in res.stdout and "Write" not in res.stdout
     assert "then each point is written in the scale its scale factor reads" in res.stderr
@@ -273,7 +227,7 @@ def test_write_m_dry_run_shows_the_scale_factor_read_and_sends_nothing(tmp_path)
 def test_write_m_of_a_scaled_point_to_unit_0_is_refused_before_anything_is_sent(tmp_path):
     path = tmp_path / "inverter.toml"
     path.write_text(INVERTER)
-    res = run_mbtool("write", "-m", path, "W=12.5", "-p", "/dev/null", "-u", "0")
+    res = run_cli("write", "-m", path, "W=12.5", "-p", "/dev/null", "-u", "0")
     assert res.returncode == 2
     assert "W_SF is read first, to scale what is written: unit 0 (broadcast) cannot be read" in res.stderr
 
@@ -285,7 +239,7 @@ def test_diff_m_scales_each_side_by_its_own_scale_factor(tmp_path):
     after.write_text("sparse = true\n[holding_registers]\n100 = 1235\n120 = 0xFFFE\n")
     path = tmp_path / "inverter.toml"
     path.write_text(INVERTER)
-    res = run_mbtool("diff", before, after, "-m", path, "-o", "json")
+    res = run_cli("diff", before, after, "-m", path, "-o", "json")
     assert res.returncode == 1, res
     changes = {change["name"]: (change["a"], change["b"]) for change in json.loads(res.stdout)["differences"]}
     assert changes == {"W": (123.4, 12.35), "W_SF": (-1, -2)}
