@@ -11,7 +11,7 @@ import sys
 import time
 
 import pytest
-from helpers import REPO_ROOT, assert_one_error_line, crc16, mbtool_env, run_mbtool
+from helpers import REPO_ROOT, assert_one_error_line, crc16, mbtool_env, run_cli, run_mbtool
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -91,7 +91,7 @@ def test_100000_lines_with_garbage_every_valid_frame_decoded():
 
 
 def test_a_saved_hex_trace_decodes():
-    trace = run_mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--hex").stderr
+    trace = run_cli("read-holding-registers", "0", "2", "-p", "sim://", "--hex").stderr
     assert trace.startswith("TX ") and "\nRX " in trace
     res = run_mbtool("decode", "-o", "json", input=trace)
     assert res.returncode == 0, str(res)
@@ -105,9 +105,9 @@ def test_a_saved_hex_trace_decodes():
 
 def test_text_that_is_not_hex_is_quoted_as_typed():
 
-    line = assert_one_error_line(run_mbtool("decode", "2024-05-26T00:12:34.567+02:00", "01", "03"), 2)
+    line = assert_one_error_line(run_cli("decode", "2024-05-26T00:12:34.567+02:00", "01", "03"), 2)
     assert line == "mbtool: 2024-05-26T00:12:34.567+02:00 is not hex"
-    line = assert_one_error_line(run_mbtool("decode", "01 03 0:0G"), 2)
+    line = assert_one_error_line(run_cli("decode", "01 03 0:0G"), 2)
     assert line == "mbtool: 0:0G is not hex"
 
 
@@ -118,7 +118,7 @@ def _monitor_recording(tmp_path, fmt: str) -> str:
     exception = bytes([0x01, 0x83, 0x02]) + crc16(bytes([0x01, 0x83, 0x02]))
     path = tmp_path / "bus.bin"
     path.write_bytes(request + reply + request + exception + b"\x55\x55")  # and 2 garbage bytes
-    res = run_mbtool("monitor", "--from-file", path, "-o", fmt)
+    res = run_cli("monitor", "--from-file", path, "-o", fmt)
     assert res.returncode == 0 and res.stdout, str(res)
     return res.stdout
 
@@ -154,7 +154,7 @@ def test_a_frame_socat_saw_in_pieces_is_joined():
 
 def test_lines_that_are_no_frames_are_named_and_do_not_fail_the_run():
     # What 2>&1 mixes in with --hex's lines: values read and mbtool's own lines.
-    trace = run_mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--hex")
+    trace = run_cli("read-holding-registers", "0", "2", "-p", "sim://", "--hex")
     mixed = trace.stderr + trace.stdout + "mbtool: a line of mbtool's own\n"
     res = run_mbtool("decode", input=mixed)
     assert res.returncode == 0, str(res)

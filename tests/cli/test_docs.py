@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 import pytest
-from helpers import REPO_ROOT, run_mbtool
+from helpers import REPO_ROOT, run_cli
 
 from mbtool.cli import cli
 
@@ -489,5 +489,5 @@ SIM_EXAMPLES = sorted(
 def test_the_sim_examples_run(page, example):
     """Each example the README and docs/ show against sim:// works as typed, on files the
     repository has."""
-    result = run_mbtool(*shlex.split(example)[1:])
+    result = run_cli(*shlex.split(example)[1:])
     assert result.returncode == 0, f"{page}: {result}"

@@ -4,14 +4,12 @@ every write to unit 0 says on stderr that no device confirms it."""
 from __future__ import annotations
 
 import shlex
-import sys
 
 import pytest
-from helpers import run_mbtool
+from helpers import run_cli
 
-import mbtool.cli.render
 import mbtool.link.transport
-from mbtool.cli import COMMANDS, main
+from mbtool.cli import COMMANDS
 
 # One valid invocation of every command that talks to a device.
 EXAMPLES = {
@@ -53,14 +51,9 @@ OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor"}
 INVENTORY = {"poll", "exporter"}
 
 
-def run(capsys, line: str) -> tuple[int, str, str]:
-    # render() and default_format() bind sys.stdout at import: give them this test's capture.
-    mbtool.cli.render.render.__defaults__ = (sys.stdout,)
-    mbtool.cli.render.default_format.__defaults__ = (sys.stdout,)
-    with pytest.raises(SystemExit) as done:
-        main(shlex.split(line))
-    out, err = capsys.readouterr()
-    return done.value.code, out, err
+def run(line: str) -> tuple[int, str, str]:
+    res = run_cli(*shlex.split(line))
+    return res.returncode, res.stdout, res.stderr
 
 
 @pytest.fixture
@@ -83,9 +76,9 @@ def test_every_device_command_has_an_example():
 
 @pytest.mark.parametrize("framing", ["rtu", "ascii", "tcp"])
 @pytest.mark.parametrize("command", sorted(EXAMPLES))
-def test_dry_run_prints_the_frame_and_opens_nothing(capsys, no_port, command, framing):
+def test_dry_run_prints_the_frame_and_opens_nothing(no_port, command, framing):
     plain = "" if command in NO_FORMAT else " -o plain"  # captured: plain anyway
-    code, out, err = run(capsys, f"{EXAMPLES[command]} --dry-run -p /dev/ttyUSB0 --framer {framing}{plain}")
+    code, out, err = run(f"{EXAMPLES[command]} --dry-run -p /dev/ttyUSB0 --framer {framing}{plain}")
     assert code == 0, err
     raw, out = out.split("\n", 1)
     assert raw.startswith("raw ")
@@ -97,38 +90,38 @@ def test_dry_run_prints_the_frame_and_opens_nothing(capsys, no_port, command, fr
     assert len(lines) == 1 and lines[0].startswith("mbtool: dry run: nothing sent"), err
 
 
-def test_dry_run_shows_the_exact_rtu_frame(capsys, no_port):
-    code, out, _ = run(capsys, "read-holding-registers 107 3 -u 17 --dry-run -p /dev/ttyUSB0 -o json")
+def test_dry_run_shows_the_exact_rtu_frame(no_port):
+    code, out, _ = run("read-holding-registers 107 3 -u 17 --dry-run -p /dev/ttyUSB0 -o json")
     assert code == 0
     assert '"frame": "11 03 00 6B 00 03 76 87"' in out
 
 
-def test_dry_run_needs_no_port(capsys, no_port, monkeypatch):
+def test_dry_run_needs_no_port(no_port, monkeypatch):
     monkeypatch.delenv("MBTOOL_PORT", raising=False)
-    code, out, _ = run(capsys, "write-coil 0 on --dry-run -o plain")
+    code, out, _ = run("write-coil 0 on --dry-run -o plain")
     assert code == 0 and "crc" in out
 
 
-def test_dry_run_of_multi_request_commands_says_what_follows(capsys, no_port):
-    code, out, err = run(capsys, "device-id --level regular --dry-run -p /dev/ttyUSB0 -o plain")
+def test_dry_run_of_multi_request_commands_says_what_follows(no_port):
+    code, out, err = run("device-id --level regular --dry-run -p /dev/ttyUSB0 -o plain")
     assert code == 0 and out.count("frame rtu request") == 1
     assert "further request depends on the reply" in err
-    code, out, err = run(capsys, "diag counters --dry-run -p /dev/ttyUSB0 -o plain")
+    code, out, err = run("diag counters --dry-run -p /dev/ttyUSB0 -o plain")
     assert code == 0 and out.count("frame rtu request") == 8  # FC08 0B..12, all known in advance
 
 
-def test_dry_run_keeps_the_checksum_typed_by_the_user(capsys, no_port):
-    code, out, _ = run(capsys, "raw --adu 01 03 00 00 00 02 00 00 --dry-run -p /dev/ttyUSB0 -o plain")
+def test_dry_run_keeps_the_checksum_typed_by_the_user(no_port):
+    code, out, _ = run("raw --adu 01 03 00 00 00 02 00 00 --dry-run -p /dev/ttyUSB0 -o plain")
     assert code == 0 and "crc 00 00 BAD, expected C4 0B" in out
 
 
-def test_dry_run_still_refuses_bad_input(capsys, no_port):
-    code, _, err = run(capsys, "read-coils 0 1 -u 0 --dry-run -p /dev/ttyUSB0")
+def test_dry_run_still_refuses_bad_input(no_port):
+    code, _, err = run("read-coils 0 1 -u 0 --dry-run -p /dev/ttyUSB0")
     assert code == 2 and "broadcast" in err
 
 
-def test_dry_run_of_a_broadcast_says_nobody_confirms(capsys, no_port):
-    code, _, err = run(capsys, "write-register 5 0 -u 0 --dry-run -p /dev/ttyUSB0")
+def test_dry_run_of_a_broadcast_says_nobody_confirms(no_port):
+    code, _, err = run("write-register 5 0 -u 0 --dry-run -p /dev/ttyUSB0")
     assert code == 0 and "no device would confirm" in err
 
 
@@ -144,9 +137,9 @@ def test_dry_run_of_a_broadcast_says_nobody_confirms(capsys, no_port):
         "raw 00 06 00 01 00 03",
     ],
 )
-def test_every_broadcast_write_says_nobody_confirms_it(capsys, line):
+def test_every_broadcast_write_says_nobody_confirms_it(line):
     unit = "" if line.startswith("raw ") else " -u 0"  # raw's unit is its first byte
-    code, _, err = run(capsys, f"{line}{unit} -p sim://")
+    code, _, err = run(f"{line}{unit} -p sim://")
     assert code == 0, err
     assert err.splitlines() == ["mbtool: broadcast: no device confirms a write to unit 0"]
 
@@ -167,9 +160,9 @@ def test_dry_run_shows_the_exact_bytes_in_every_format(framing, raw):
     import json
 
     args = ("write-register", "10", "5", *framing, "--dry-run")
-    assert f"raw {raw}\n" in run_mbtool(*args, "-o", "plain").stdout
-    data = json.loads(run_mbtool(*args, "-o", "json").stdout)
+    assert f"raw {raw}\n" in run_cli(*args, "-o", "plain").stdout
+    data = json.loads(run_cli(*args, "-o", "json").stdout)
     assert data["raw"] == raw + ("\r\n" if raw.startswith(":") else "")
-    assert f"raw,{raw}" in run_mbtool(*args, "-o", "csv").stdout
-    assert raw in run_mbtool(*args, "-o", "table").stdout
-    assert run_mbtool(*args, "--hex").stdout.startswith(f"raw {raw}\n")
+    assert f"raw,{raw}" in run_cli(*args, "-o", "csv").stdout
+    assert raw in run_cli(*args, "-o", "table").stdout
+    assert run_cli(*args, "--hex").stdout.startswith(f"raw {raw}\n")

@@ -12,7 +12,7 @@ import subprocess
 import sys
 
 import pytest
-from helpers import REPO_ROOT, assert_one_error_line, mbtool_env, run_mbtool
+from helpers import REPO_ROOT, assert_one_error_line, mbtool_env, run_cli, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -55,10 +55,10 @@ def test_csv_into_a_new_file_or_a_pipe_has_its_header(tmp_path):
 
 
 def test_no_header_leaves_it_out_always():
-    assert run_mbtool(*READ, "-o", "csv", "--no-header").stdout == "0,0\n1,1\n"
-    polled = run_mbtool(*READ, "-o", "csv", "--no-header", "--polls", "2", "--interval", "0").stdout
+    assert run_cli(*READ, "-o", "csv", "--no-header").stdout == "0,0\n1,1\n"
+    polled = run_cli(*READ, "-o", "csv", "--no-header", "--polls", "2", "--interval", "0").stdout
     assert len(polled.splitlines()) == 4 and "time" not in polled
-    decoded = run_mbtool("decode", "01 03 00 00 00 02 C4 0B", "-o", "csv", "--no-header").stdout
+    decoded = run_cli("decode", "01 03 00 00 00 02 C4 0B", "-o", "csv", "--no-header").stdout
     assert not decoded.startswith("name,")
 
 
@@ -75,13 +75,13 @@ def test_no_header_leaves_it_out_always():
     ids=["refused", "bad-count", "silent-unit"],
 )
 def test_a_failed_one_shot_writes_a_json_error_object(args, code):
-    res = run_mbtool(*args, "-o", "json")
+    res = run_cli(*args, "-o", "json")
     line = assert_one_error_line(res, code)
     assert json.loads(res.stdout) == {"error": line.removeprefix("mbtool: "), "exit_code": code}
 
 
 def test_polling_json_keeps_its_per_poll_objects_and_no_summary_object():
-    res = run_mbtool("read-holding-registers", "0", "-p", "sim://", "-u", "7", "-t", "0.1", "--polls", "2",
+    res = run_cli("read-holding-registers", "0", "-p", "sim://", "-u", "7", "-t", "0.1", "--polls", "2",
                      "--interval", "0", "-o", "json")  # fmt: skip
     objects = [json.loads(line) for line in res.stdout.splitlines()]
     assert len(objects) == 2 and all(o["exit_code"] == 3 and "time" in o for o in objects)
@@ -184,18 +184,18 @@ def test_a_polled_table_into_a_file_keeps_every_table_and_ends_its_line(tmp_path
 
 def test_write_register_echoes_the_value_in_the_users_type():
     one = json.loads(
-        run_mbtool("write-register", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
+        run_cli("write-register", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
     )
     many = json.loads(
-        run_mbtool("write-registers", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
+        run_cli("write-registers", "10", "-5", "--type", "int16", "-p", "sim://", "-o", "json").stdout
     )
     assert (one["type"], one["values"], one["registers"]) == ("int16", [-5], [65531])
     assert (many["type"], many["values"]) == (one["type"], one["values"])
-    assert run_mbtool("write-register", "10", "-5", "--type", "int16", "-p", "sim://").stdout == "10 -5\n"
+    assert run_cli("write-register", "10", "-5", "--type", "int16", "-p", "sim://").stdout == "10 -5\n"
 
 
 def test_a_fraction_for_a_register_names_float32():
-    res = run_mbtool("write-registers", "20", "1.5", "-p", "sim://")
+    res = run_cli("write-registers", "20", "1.5", "-p", "sim://")
     line = assert_one_error_line(res, 2)
     assert (
         line
@@ -208,7 +208,7 @@ def test_monitor_shows_coils_as_bits_and_exceptions_by_name(tmp_path):
     frames = ["01 01 00 00 00 0A BC 0D", "01 01 02 CD 01 2C AC", "01 03 00 00 00 01 84 0A", "01 83 02 C0 F1"]
     recording = tmp_path / "bus.bin"
     recording.write_bytes(bytes.fromhex(" ".join(frames)))
-    out = run_mbtool("monitor", "--from-file", str(recording), "-o", "plain").stdout.splitlines()
+    out = run_cli("monitor", "--from-file", str(recording), "-o", "plain").stdout.splitlines()
     assert "data[0]=0xCD coils 0-7: ON OFF ON ON OFF OFF ON ON" in out[1]
     assert "exception_code=02 Illegal Data Address" in out[3]
     assert "starting_address=0 quantity=1" in out[2]
@@ -216,8 +216,8 @@ def test_monitor_shows_coils_as_bits_and_exceptions_by_name(tmp_path):
 
 def test_sub_functions_are_written_one_way():
     """Two hex digits, as function codes are, and the name diag takes: never 15, 000F or 0x0F."""
-    assert run_mbtool("diag", "15", "-p", "sim://").stdout.startswith(
+    assert run_cli("diag", "15", "-p", "sim://").stdout.startswith(
         "sub_function 0F slave-no-response-count\n"
     )
-    decoded = run_mbtool("decode", "01 08 00 0F 00 00 D0 08").stdout
+    decoded = run_cli("decode", "01 08 00 0F 00 00 D0 08").stdout
     assert "sub_function 0F slave-no-response-count" in decoded

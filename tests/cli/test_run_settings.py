@@ -17,19 +17,6 @@ from mbtool.cli.program import cli
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture(autouse=True)
-def _output_to_the_runners_stdout():
-    """render() writes to the sys.stdout of the moment unless told otherwise; tests that ran
-    main() in this process before (test_user_input, test_dry_run) left their own, closed,
-    capture as its default stream."""
-    import mbtool.cli.render
-
-    saved = mbtool.cli.render.render.__defaults__, mbtool.cli.render.default_format.__defaults__
-    mbtool.cli.render.render.__defaults__ = mbtool.cli.render.default_format.__defaults__ = (None,)
-    yield
-    mbtool.cli.render.render.__defaults__, mbtool.cli.render.default_format.__defaults__ = saved
-
-
 def invoke(*args, env: dict | None = None):
     return CliRunner().invoke(cli, [str(arg) for arg in args], env=env)
 

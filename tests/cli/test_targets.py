@@ -13,7 +13,7 @@ import threading
 import tty
 
 import pytest
-from helpers import PTY_SERIAL_OPTS, assert_one_error_line, run_mbtool
+from helpers import PTY_SERIAL_OPTS, assert_one_error_line, run_cli
 
 from mbtool.cli.program import register_schemes
 from mbtool.codec.errors import RequestError
@@ -43,7 +43,7 @@ pytestmark = pytest.mark.timeout(60)
     ],
 )
 def test_a_malformed_target_is_exit_2_before_anything_is_opened(target, words):
-    res = run_mbtool("read-holding-registers", "0", "-p", target, "-t", "0.5")
+    res = run_cli("read-holding-registers", "0", "-p", target, "-t", "0.5")
     line = assert_one_error_line(res, 2)
     assert re.search(words, line), line
 
@@ -57,7 +57,7 @@ def test_a_malformed_target_is_exit_2_before_anything_is_opened(target, words):
     ],
 )
 def test_a_bare_host_gets_the_url_it_probably_meant(target, meant):
-    res = run_mbtool("read-holding-registers", "0", "-p", target)
+    res = run_cli("read-holding-registers", "0", "-p", target)
     line = assert_one_error_line(res, 2)
     assert line == f"mbtool: {target} is not a serial device; did you mean {meant}?"
 
@@ -116,7 +116,7 @@ def test_a_target_shows_its_port_and_names_its_framing(target, shown, framing):
 
 
 def test_a_missing_serial_device_lists_the_ports_that_exist():
-    res = run_mbtool("read-holding-registers", "0", "-p", "/dev/ttyNOPE0")
+    res = run_cli("read-holding-registers", "0", "-p", "/dev/ttyNOPE0")
     line = assert_one_error_line(res, 6)
     assert line.startswith("mbtool: cannot open /dev/ttyNOPE0: no such device (")
     assert "serial ports here:" in line or "no serial ports found here" in line
@@ -143,12 +143,12 @@ def test_a_serial_port_in_use_is_port_busy_and_nothing_is_sent():
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
     try:
-        res = run_mbtool("read-holding-registers", "0", "-p", path, *PTY_SERIAL_OPTS, "-t", "0.3")
+        res = run_cli("read-holding-registers", "0", "-p", path, *PTY_SERIAL_OPTS, "-t", "0.3")
         line = assert_one_error_line(res, 6)
         assert line == f"mbtool: cannot open {path}: port busy (another program has it open)"
         holder.close()
         # Free again: mbtool opens it (and times out on the silent line).
-        res = run_mbtool("read-holding-registers", "0", "-p", path, *PTY_SERIAL_OPTS, "-t", "0.3")
+        res = run_cli("read-holding-registers", "0", "-p", path, *PTY_SERIAL_OPTS, "-t", "0.3")
         assert res.returncode == 3, str(res)
     finally:
         stop.set()

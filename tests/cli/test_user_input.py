@@ -10,9 +10,9 @@ from __future__ import annotations
 import shlex
 
 import pytest
+from helpers import run_cli
 
 import mbtool.link.transport
-from mbtool.cli import main
 
 SENT: list[bytes] = []
 
@@ -37,19 +37,9 @@ def recording_transport(monkeypatch):
     yield
 
 
-def run(capsys, line: str) -> tuple[int, str, str]:
-    import sys
-
-    import mbtool.cli.render
-
-    # render() and default_format() bind sys.stdout when mbtool.cli.render is first imported, which in one pytest
-    # process may be an earlier test's (closed) capture: point it at this test's.
-    mbtool.cli.render.render.__defaults__ = (sys.stdout,)
-    mbtool.cli.render.default_format.__defaults__ = (sys.stdout,)
-    with pytest.raises(SystemExit) as done:
-        main(shlex.split(line) + ["-p", "/dev/ttyNOWHERE"])
-    out, err = capsys.readouterr()
-    return done.value.code, out, err
+def run(line: str) -> tuple[int, str, str]:
+    res = run_cli(*shlex.split(line), "-p", "/dev/ttyNOWHERE")
+    return res.returncode, res.stdout, res.stderr
 
 
 INVALID = [
@@ -172,8 +162,8 @@ INVALID = [
 
 
 @pytest.mark.parametrize("line", INVALID)
-def test_invalid_input_exits_2_with_one_line_and_sends_nothing(capsys, line):
-    code, out, err = run(capsys, line)
+def test_invalid_input_exits_2_with_one_line_and_sends_nothing(line):
+    code, out, err = run(line)
     assert code == 2, (code, err)
     lines = err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("mbtool: "), err
@@ -185,8 +175,8 @@ def test_invalid_input_exits_2_with_one_line_and_sends_nothing(capsys, line):
     "line",
     ["read-coils 0 1", "write-register 0 -5", "raw 01 03 00 00 00 01", "diag counters", "device-id"],
 )
-def test_valid_controls_are_recorded(capsys, line):
+def test_valid_controls_are_recorded(line):
     """The recorder does see frames: the cases above sent nothing because they were refused."""
-    code, _, err = run(capsys, line)
+    code, _, err = run(line)
     assert code == 0, err
     assert SENT

@@ -4,22 +4,18 @@ and CRC tell where it is).  bench/resync.py measures the speed; issue 6.
 The reply behind 1 to 65536 bytes of garbage is recovered with a bounded buffer, and so is a
 request by the device's framer; offsets the framer leaves unjudged change nothing when no
 request is outstanding, nor on the device's side; with one outstanding,
-frames that could answer it (or be reported as mismatches) are still found amid garbage; and
-endless garbage ends at the deadline.  Speed is measured, not asserted: the time bound here
+frames that could answer it (or be reported as mismatches) are still found amid garbage (and
+endless garbage from a peer ends at the deadline: tests/e2e/test_flood.py).  Speed is measured, not asserted: the time bound here
 only catches a return to quadratic time, which took seconds.
 """
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import random
-import socket
-import threading
-import time
 
 import pytest
-from helpers import REPO_ROOT, assert_one_error_line, drain_events, run_mbtool, settle_events
+from helpers import REPO_ROOT, drain_events, settle_events
 
 from mbtool.codec import data_access as da
 from mbtool.codec import serial_line as sl
@@ -234,55 +230,3 @@ def test_the_awaited_reply_starting_in_a_corrupted_frame_is_still_waited_for():
 
 
 # --- endless garbage --------------------------------------------------------------------------
-
-
-class Babbler:
-    """A TCP peer that sends random bytes, never a frame, as fast as they are read, until closed."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket()
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.listen(1)
-        self.sock.settimeout(5)
-        self.port = self.sock.getsockname()[1]
-        self.sent = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._babble, daemon=True)
-        self._thread.start()
-
-    def _babble(self) -> None:
-        rng = random.Random(3)
-        try:
-            conn, _ = self.sock.accept()
-        except OSError:
-            return
-        with conn:
-            while not self._stop.is_set():
-                try:
-                    conn.sendall(rng.randbytes(4096))
-                except OSError:
-                    return
-                self.sent += 4096
-
-    def close(self) -> None:
-        self._stop.set()
-        with contextlib.suppress(OSError):
-            self.sock.close()
-        self._thread.join(timeout=2)
-
-
-@pytest.fixture
-def babbler():
-    peer = Babbler()
-    yield peer
-    peer.close()
-
-
-def test_endless_garbage_ends_at_the_deadline_with_one_error(babbler):
-    start = time.monotonic()
-    res = run_mbtool("read-holding-registers", "0", "-p", f"socket://127.0.0.1:{babbler.port}", "-t", "0.5")
-    elapsed = time.monotonic() - start
-    assert res.returncode in (3, 5), str(res)
-    assert_one_error_line(res, res.returncode)
-    assert elapsed < 0.5 + 1.5, f"took {elapsed:.2f} s with -t 0.5\n{res}"
-    assert babbler.sent > 64 * 1024, "the peer should have sent more than the framer holds"

@@ -2,11 +2,14 @@
 
 The flooder answers the first bytes of each connection with noise, as fast as the socket
 takes it, until the test stops it.  Every command must end within its deadlines:
-timeout × (retries + 1) a transaction, plus 0.5 s and Python's start-up.
+timeout × (retries + 1) a transaction, plus 0.5 s and Python's start-up.  A peer that
+babbles endlessly after any request is the resync's (codec/rtu.py) worst case: it too ends at
+the deadline with one error.
 """
 
 from __future__ import annotations
 
+import contextlib
 import random
 import select
 import socket
@@ -14,7 +17,7 @@ import threading
 import time
 
 import pytest
-from helpers import run_mbtool
+from helpers import assert_one_error_line, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -119,3 +122,55 @@ def test_scan_under_a_garbage_flood_ends_on_time(flooder, start_up):
     res = run_mbtool("scan", "-p", f"tcp://127.0.0.1:{flooder.port}", "--units", "1-3", "-t", str(TIMEOUT))
     assert res.returncode == 5, str(res)  # only garbled answers came
     assert res.elapsed <= 3 * TIMEOUT + 0.5 + start_up, res.elapsed
+
+
+class Babbler:
+    """A TCP peer that sends random bytes, never a frame, as fast as they are read, until closed."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(1)
+        self.sock.settimeout(5)
+        self.port = self.sock.getsockname()[1]
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._babble, daemon=True)
+        self._thread.start()
+
+    def _babble(self) -> None:
+        rng = random.Random(3)
+        try:
+            conn, _ = self.sock.accept()
+        except OSError:
+            return
+        with conn:
+            while not self._stop.is_set():
+                try:
+                    conn.sendall(rng.randbytes(4096))
+                except OSError:
+                    return
+                self.sent += 4096
+
+    def close(self) -> None:
+        self._stop.set()
+        with contextlib.suppress(OSError):
+            self.sock.close()
+        self._thread.join(timeout=2)
+
+
+@pytest.fixture
+def babbler():
+    peer = Babbler()
+    yield peer
+    peer.close()
+
+
+def test_endless_garbage_ends_at_the_deadline_with_one_error(babbler):
+    start = time.monotonic()
+    res = run_mbtool("read-holding-registers", "0", "-p", f"socket://127.0.0.1:{babbler.port}", "-t", "0.5")
+    elapsed = time.monotonic() - start
+    assert res.returncode in (3, 5), str(res)
+    assert_one_error_line(res, res.returncode)
+    assert elapsed < 0.5 + 1.5, f"took {elapsed:.2f} s with -t 0.5\n{res}"
+    assert babbler.sent > 64 * 1024, "the peer should have sent more than the framer holds"

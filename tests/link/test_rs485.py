@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 import serial
-from helpers import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok
+from helpers import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok, run_cli
 
 from mbtool.errors import ConnectionFailed
 from mbtool.link.transport import SerialSettings, SerialTransport
@@ -158,36 +158,36 @@ def test_without_rs485_rts_is_never_touched(monkeypatch):
 # --- the command line ----------------------------------------------------------------
 
 
-def test_on_a_pty_rs485_is_one_clear_error_and_nothing_is_sent(mbtool, pty_pair):
-    res = mbtool("read-holding-registers", "0", "2", "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "--rs485")
+def test_on_a_pty_rs485_is_one_clear_error_and_nothing_is_sent(pty_pair):
+    res = run_cli("read-holding-registers", "0", "2", "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "--rs485")
     line = assert_one_error_line(res, 6)
     assert "cannot drive RTS" in line and "--rs485" in line
     assert pty_pair.sent_by_mbtool() == b""
 
 
-def test_rs485_on_tcp_is_refused_before_connecting(mbtool, silent_server):
-    res = mbtool("read-holding-registers", "0", "2", "-p", silent_server.tcp_target, "--rs485")
+def test_rs485_on_tcp_is_refused_before_connecting(silent_server):
+    res = run_cli("read-holding-registers", "0", "2", "-p", silent_server.tcp_target, "--rs485")
     assert "tcp:// target has none" in assert_one_error_line(res, 2)
     assert silent_server.connections == 0
 
 
 @pytest.mark.parametrize("delays", ["x", "1,2,3", "-1", "5000", "1,"])
-def test_bad_delays_are_refused(mbtool, delays):
-    res = mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", delays)
+def test_bad_delays_are_refused(delays):
+    res = run_cli("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", delays)
     assert "--rs485-delays" in assert_one_error_line(res, 2)
 
 
-def test_sim_accepts_rs485_so_a_cron_line_can_be_tried_first(mbtool):
+def test_sim_accepts_rs485_so_a_cron_line_can_be_tried_first():
     res = expect_ok(
-        mbtool("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", "1,2", "-o", "json")
+        run_cli("read-holding-registers", "0", "2", "-p", "sim://", "--rs485-delays", "1,2", "-o", "json")
     )
     assert '"values"' in res.stdout
 
 
-def test_a_profile_can_turn_rs485_on(mbtool, pty_pair, tmp_path):
+def test_a_profile_can_turn_rs485_on(pty_pair, tmp_path):
     config = tmp_path / "config.toml"
     config.write_text(f'[profiles.bus]\nport = "{pty_pair.mbtool_path}"\nparity = "N"\nrs485 = true\n')
-    res = mbtool("read-holding-registers", "0", "2", "-P", "bus", env={"MBTOOL_CONFIG": str(config)})
+    res = run_cli("read-holding-registers", "0", "2", "-P", "bus", env={"MBTOOL_CONFIG": str(config)})
     assert "cannot drive RTS" in assert_one_error_line(res, 6)
 
 
