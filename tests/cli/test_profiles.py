@@ -67,7 +67,7 @@ def test_profile_on_other_device_commands(tmp_path):
     expect_ok(run_cli("read-exception-status", "-P", "s", env=env))
 
 
-def test_xdg_config_home(mbtool, tmp_path):
+def test_xdg_config_home(tmp_path):
     (tmp_path / "mbtool").mkdir()
     (tmp_path / "mbtool" / "config.toml").write_text('[profiles.s]\nport = "sim://"\n')
     expect_ok(run_cli("read-coils", "0", "1", "-P", "s", env={"XDG_CONFIG_HOME": str(tmp_path)}))
@@ -135,7 +135,7 @@ def test_keys_a_command_has_no_option_for_are_checked_too(tmp_path):
     assert "profiles.s.unit" in line
 
 
-def test_a_file_that_is_not_utf8_is_named(mbtool, tmp_path):
+def test_a_file_that_is_not_utf8_is_named(tmp_path):
     path = tmp_path / "config.toml"
     path.write_bytes(b'[profiles.s]\nport = "/dev/tty\xe9"\n')
     line = assert_one_error_line(

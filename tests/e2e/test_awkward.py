@@ -5,13 +5,13 @@ from __future__ import annotations
 import re
 
 import pytest
-from helpers import run_mbtool, serve
+from helpers import run_cli, serve
 
 pytestmark = pytest.mark.timeout(60)
 
 
 def polls(target: str, *options: str):
-    return run_mbtool(
+    return run_cli(
         "read-holding-registers",
         "0",
         "1",
@@ -37,7 +37,7 @@ def test_pause_lets_a_device_that_drops_back_to_back_requests_answer_every_poll(
         # A profile can say so for the device.
         config = tmp_path / "config.toml"
         config.write_text(f'[profiles.slow]\nport = "{target}"\npause = 0.25\n')
-        res = run_mbtool(
+        res = run_cli(
             "read-holding-registers",
             "0",
             "1",
@@ -60,8 +60,8 @@ def test_pause_spaces_the_requests_of_one_command(tmp_path):
     path.write_text("[points.a]\nref = 40001\n[points.b]\nref = 40201\n")
     with serve("--min-gap", "0.2") as server:
         target = f"tcp://{server.host}:{server.port}"
-        assert run_mbtool("read", "-m", path, "-t", "0.3", "-p", target).returncode == 3
-        res = run_mbtool("read", "-m", path, "-t", "0.3", "--pause", "0.25", "-p", target)
+        assert run_cli("read", "-m", path, "-t", "0.3", "-p", target).returncode == 3
+        res = run_cli("read", "-m", path, "-t", "0.3", "--pause", "0.25", "-p", target)
         assert res.returncode == 0 and res.stdout.splitlines() == [
             "a 0",
             "b 3",
@@ -71,11 +71,9 @@ def test_pause_spaces_the_requests_of_one_command(tmp_path):
 def test_connect_delay_waits_out_a_device_that_drops_the_first_request():
     with serve("--settle", "0.3") as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = run_mbtool("read-holding-registers", "0", "1", "-t", "0.2", "-p", target)
+        res = run_cli("read-holding-registers", "0", "1", "-t", "0.2", "-p", target)
         assert res.returncode == 3
-        res = run_mbtool(
-            "read-holding-registers", "0", "1", "-t", "0.2", "--connect-delay", "0.4", "-p", target
-        )
+        res = run_cli("read-holding-registers", "0", "1", "-t", "0.2", "--connect-delay", "0.4", "-p", target)
         assert res.returncode == 0 and res.stdout.splitlines() == ["0 0"]
 
 
@@ -89,7 +87,7 @@ def test_reconnect_each_gets_past_a_gateway_that_leaks_connections():
 
 
 def test_the_faults_are_for_tcp_clients():
-    res = run_mbtool("serve", "-p", "/dev/null", "--min-gap", "1")
+    res = run_cli("serve", "-p", "/dev/null", "--min-gap", "1")
     assert res.returncode == 2 and "faults of TCP clients" in res.stderr
 
 
@@ -104,9 +102,9 @@ def test_the_faults_are_for_tcp_clients():
 def test_lenient_accepts_a_harmless_deviation_with_one_warning(fault, deviation):
     with serve(*fault) as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = run_mbtool("read-holding-registers", "0", "2", "-t", "0.3", "-p", target)
+        res = run_cli("read-holding-registers", "0", "2", "-t", "0.3", "-p", target)
         assert res.returncode == 5 and "--lenient" in res.stderr and res.stdout == ""
-        res = run_mbtool("read-holding-registers", "0", "2", "-t", "0.3", "--lenient", "-p", target)
+        res = run_cli("read-holding-registers", "0", "2", "-t", "0.3", "--lenient", "-p", target)
         assert res.returncode == 0 and res.stdout.splitlines() == ["0 0", "1 1"]
         assert res.stderr == f"mbtool: warning: {deviation} (accepted: --lenient)\n"
 
@@ -116,7 +114,7 @@ def test_lenient_does_not_guess_at_an_ambiguous_reply():
     # the data is no longer what was asked for, and nothing says which byte is extra.
     with serve("--byte-count-off", "1", "--pad", "1") as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = run_mbtool("read-holding-registers", "0", "2", "--lenient", "-t", "0.3", "-p", target)
+        res = run_cli("read-holding-registers", "0", "2", "--lenient", "-t", "0.3", "-p", target)
         assert res.returncode == 5 and res.stdout == "" and "warning" not in res.stderr
 
 

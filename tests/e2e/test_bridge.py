@@ -38,6 +38,7 @@ from helpers import (
     pymodbus_tcp,
     read_mbap,
     rtu,
+    run_cli,
     run_mbtool,
     serve,
     signals_as_from_a_shell,
@@ -148,7 +149,7 @@ def test_mbtool_reads_through_the_bridge_to_an_ascii_bus():
     with start_device(tcp=False, framer="ascii") as device:
         with bridge("-p", device.target, "--framer", "ascii", *PTY_SERIAL_OPTS) as running:
             res = expect_ok(
-                run_mbtool("read-holding-registers", "3", "2", "-p", running.target, "-u", "2", "-t", "5")
+                run_cli("read-holding-registers", "3", "2", "-p", running.target, "-u", "2", "-t", "5")
             )
             assert plain_pairs(res) == [(3, "103"), (4, "104")]
             records = running.records()
@@ -365,12 +366,10 @@ def test_the_summary_on_exit_counts_each_units_transactions_by_outcome():
             bridge("-p", pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3", "-q") as running,
         ):
             for _ in range(2):
-                expect_ok(
-                    run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "1", "-t", "5")
-                )
-            run_mbtool("write-register", "0", "7", "-p", running.target, "-u", "2", "-t", "5")
+                expect_ok(run_cli("read-holding-registers", "0", "-p", running.target, "-u", "1", "-t", "5"))
+            run_cli("write-register", "0", "7", "-p", running.target, "-u", "2", "-t", "5")
             for _ in range(2):  # the second is answered 0B without the bus (--silent-hold)
-                run_mbtool("read-holding-registers", "0", "-p", running.target, "-u", "9", "-t", "5")
+                run_cli("read-holding-registers", "0", "-p", running.target, "-u", "9", "-t", "5")
             code, _, err = running.stop()
     finally:
         pair.close()
@@ -391,7 +390,7 @@ def test_the_summary_on_exit_counts_each_units_transactions_by_outcome():
 def test_a_unit_not_forwarded_gets_exception_0A_and_nothing_goes_on_the_bus(rtu_bus):
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "2") as running:
         rtu_bus.pty.clear()
-        res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-u", "1")
+        res = run_cli("read-holding-registers", "0", "1", "-p", running.target, "-u", "1")
         assert rtu_bus.pty.sent_by_mbtool() == b""
         records = running.records()
     assert_one_error_line(res, 4)
@@ -406,18 +405,16 @@ def test_a_link_that_cannot_be_used_gets_exception_0A_and_is_opened_again():
     with start_device(tcp=True, framer="socket", units="1") as device:
         port = device.port
         with bridge("-p", device.target) as running:
-            res = expect_ok(run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5"))
+            res = expect_ok(run_cli("read-holding-registers", "0", "1", "-p", running.target, "-t", "5"))
             assert plain_pairs(res) == [(0, "100")]
             device.proc.send_signal(signal.SIGTERM)
             device.proc.wait(10)
-            res = run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
+            res = run_cli("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
             assert_one_error_line(res, 4)
             assert "exception 0A Gateway Path Unavailable" in res.stderr
             with start_device(tcp=True, framer="socket", units="1", port=port) as again:
                 assert again.port == port
-                res = expect_ok(
-                    run_mbtool("read-holding-registers", "0", "1", "-p", running.target, "-t", "5")
-                )
+                res = expect_ok(run_cli("read-holding-registers", "0", "1", "-p", running.target, "-t", "5"))
                 assert plain_pairs(res) == [(0, "100")]
             records = running.records()
     assert [r["outcome"] for r in records] == ["reply", "no path", "reply"]
@@ -515,7 +512,7 @@ def test_broadcasts_obey_units_and_only_writes_are_broadcast(rtu_bus):
 
 def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
     with bridge("-p", rtu_bus.target, *PTY_SERIAL_OPTS, fmt="plain") as running:
-        expect_ok(run_mbtool("read-holding-registers", "0", "2", "-p", running.target, "-t", "5"))
+        expect_ok(run_cli("read-holding-registers", "0", "2", "-p", running.target, "-t", "5"))
         code, out, err = running.stop()
     lines = [line for line in out.splitlines() if " > " in line or " < " in line]
     assert "> unit 1 FC 03 (0x03) Read Holding Registers: starting_address=0 quantity=2" in lines[0]
@@ -671,14 +668,14 @@ def test_reverse_mbtool_as_master_on_the_serial_side(tcp_behind):
             "-p", tcp_behind.target, "--framer", "rtu", "--units", "1,2", listen=pty.device_path
         ) as running:
             serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
-            res = expect_ok(run_mbtool("read-holding-registers", "2", "3", *serial, "-u", "2", "-t", "5"))
+            res = expect_ok(run_cli("read-holding-registers", "2", "3", *serial, "-u", "2", "-t", "5"))
             assert plain_pairs(res) == [(2, "102"), (3, "103"), (4, "104")]
-            expect_ok(run_mbtool("write-registers", "620", "5", "6", *serial, "-t", "5"))
-            res = expect_ok(run_mbtool("read-holding-registers", "620", "2", *serial, "--hex", "-t", "5"))
+            expect_ok(run_cli("write-registers", "620", "5", "6", *serial, "-t", "5"))
+            res = expect_ok(run_cli("read-holding-registers", "620", "2", *serial, "--hex", "-t", "5"))
             assert plain_pairs(res) == [(620, "5"), (621, "6")]
             assert "CRC" in res.stderr and " ok" in res.stderr  # RTU on the serial side
             # A unit not forwarded is another slave's: no answer at all, not an exception.
-            res = run_mbtool("read-holding-registers", "0", "1", *serial, "-u", "3", "-t", "0.5")
+            res = run_cli("read-holding-registers", "0", "1", *serial, "-u", "3", "-t", "0.5")
             assert_one_error_line(res, 3)
             records = running.records()
     finally:
@@ -715,10 +712,10 @@ def test_reverse_the_link_lost_after_start_answers_0A_on_the_serial_line():
         with start_device(tcp=True, framer="socket", units="1") as device:
             with bridge("-p", device.target, listen=pty.device_path) as running:
                 serial = (*PTY_SERIAL_OPTS, "-p", pty.mbtool_path)
-                expect_ok(run_mbtool("read-holding-registers", "0", "1", *serial, "-t", "5"))
+                expect_ok(run_cli("read-holding-registers", "0", "1", *serial, "-t", "5"))
                 device.proc.send_signal(signal.SIGTERM)
                 device.proc.wait(10)
-                res = run_mbtool("read-holding-registers", "0", "1", *serial, "-t", "5")
+                res = run_cli("read-holding-registers", "0", "1", *serial, "-t", "5")
                 assert_one_error_line(res, 4)
                 assert "exception 0A Gateway Path Unavailable" in res.stderr
                 assert [r["outcome"] for r in running.records()] == ["reply", "no path"]
@@ -766,12 +763,12 @@ def test_reverse_a_malformed_request_on_the_serial_line_is_answered_there(tcp_be
     ],
 )
 def test_bad_arguments_are_one_line_and_exit_2(args, says):
-    res = run_mbtool("bridge", *args)
+    res = run_cli("bridge", *args)
     line = assert_one_error_line(res, 2)
     assert says in line
 
 
 def test_a_serial_port_that_does_not_exist_is_exit_6_before_listening():
-    res = run_mbtool("bridge", "-p", "/dev/ttyNOSUCH0", "--listen", "tcp://127.0.0.1:0")
+    res = run_cli("bridge", "-p", "/dev/ttyNOSUCH0", "--listen", "tcp://127.0.0.1:0")
     line = assert_one_error_line(res, 6)
     assert "/dev/ttyNOSUCH0" in line

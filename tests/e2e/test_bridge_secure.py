@@ -10,7 +10,15 @@ from __future__ import annotations
 import ssl
 
 import pytest
-from helpers import HOLDING, assert_one_error_line, bridge, expect_ok, plain_pairs, run_mbtool, start_device
+from helpers import (
+    HOLDING,
+    assert_one_error_line,
+    bridge,
+    expect_ok,
+    plain_pairs,
+    run_cli,
+    start_device,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -78,7 +86,7 @@ def test_writes_from_a_role_that_may_not_write_get_01_and_never_reach_the_bus(rt
 def test_a_tls_front_on_a_plain_tcp_device(tcp_device, pki):
     with bridge("-p", tcp_device.target, *tls_args(pki), listen="tls://127.0.0.1:0") as running:
         res = expect_ok(
-            run_mbtool(
+            run_cli(
                 "read-holding-registers",
                 "0",
                 "3",
@@ -90,7 +98,7 @@ def test_a_tls_front_on_a_plain_tcp_device(tcp_device, pki):
             )
         )
         assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:3])]
-        res = run_mbtool("read-holding-registers", "0", "-p", running.listening, "--ca", str(pki.ca.cert))
+        res = run_cli("read-holding-registers", "0", "-p", running.listening, "--ca", str(pki.ca.cert))
         assert_one_error_line(res, 6)  # no client certificate: refused before any request
 
 
@@ -101,7 +109,7 @@ def test_a_plain_tcp_front_on_a_tls_device(pki):
         tls=("--cert", str(server.cert), "--key", str(server.key), "--ca", str(pki.ca.cert)),
     ) as device:  # fmt: skip
         with bridge("-p", device.target, *identity(pki, "operator")) as running:
-            res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", running.target))
+            res = expect_ok(run_cli("read-holding-registers", "0", "3", "-p", running.target))
             assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:3])]
 
 
@@ -127,14 +135,14 @@ def test_pymodbus_udp_client_through_the_bridge_to_an_rtu_bus(rtu_bus, scheme):
 def test_a_tcp_front_on_a_udp_device(framer):
     with start_device(tcp=False, udp=True, framer=framer, units="1") as device:
         with bridge("-p", device.target) as running:
-            res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", running.target))
+            res = expect_ok(run_cli("read-holding-registers", "0", "3", "-p", running.target))
             assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:3])]
 
 
 def test_tls_options_on_a_bridge_without_tls_are_exit_2(rtu_bus, pki):
-    res = run_mbtool("bridge", "-p", rtu_bus.target, "--ca", str(pki.ca.cert))
+    res = run_cli("bridge", "-p", rtu_bus.target, "--ca", str(pki.ca.cert))
     line = assert_one_error_line(res, 2)
     assert line == "mbtool: --ca is for tls:// (Modbus/TCP Security), and neither side is tls://"
-    res = run_mbtool("bridge", "-p", rtu_bus.target, "--write-roles", "operator")
+    res = run_cli("bridge", "-p", rtu_bus.target, "--write-roles", "operator")
     line = assert_one_error_line(res, 2)
     assert line.startswith("mbtool: --write-roles is for a tls:// server")

@@ -9,13 +9,13 @@ import sys
 import time
 
 import pytest
-from helpers import HOLDING, REPO_ROOT, mbtool_env, run_mbtool, start_mbtool
+from helpers import HOLDING, REPO_ROOT, mbtool_env, run_cli, start_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 
 
 def check(*args, port="sim://"):
-    res = run_mbtool("check", *args, "-p", port)
+    res = run_cli("check", *args, "-p", port)
     lines = res.stdout.splitlines()
     assert len(lines) == 1 and res.stderr == "", str(res)  # one line on stdout, nothing else
     return res.returncode, lines[0]
@@ -164,7 +164,7 @@ def _config(tmp_path, text: str) -> dict:
     ids=["no-profile", "broken-config", "bad-profile-key", "prom", "bad-timeout"],
 )
 def test_what_keeps_check_from_judging_is_unknown_on_one_line(tmp_path, args, config, words):
-    res = run_mbtool("check", *args, env=_config(tmp_path, config))
+    res = run_cli("check", *args, env=_config(tmp_path, config))
     assert res.returncode == 3 and res.stderr == "", str(res)
     (line,) = res.stdout.splitlines()
     assert line.startswith("MODBUS UNKNOWN - ") and words in line

@@ -8,7 +8,7 @@ import subprocess
 import time
 
 import pytest
-from helpers import free_port, run_mbtool, serve
+from helpers import free_port, run_cli, run_mbtool, serve
 
 
 def _socat_x(tmp_path, *flags: str) -> str:
@@ -28,7 +28,7 @@ def _socat_x(tmp_path, *flags: str) -> str:
         try:
             deadline = time.monotonic() + 10
             while True:
-                res = run_mbtool("read-holding-registers", "0", "2", "-p", f"socket://127.0.0.1:{port}")
+                res = run_cli("read-holding-registers", "0", "2", "-p", f"socket://127.0.0.1:{port}")
                 if res.returncode == 0 or time.monotonic() > deadline:
                     break
                 time.sleep(0.1)  # socat not listening yet

@@ -15,7 +15,7 @@ from helpers import (
     parse_hex_lines,
     pymodbus_tcp,
     read_mbap,
-    run_mbtool,
+    run_cli,
     serve,
     start_mbtool,
 )
@@ -54,7 +54,7 @@ def test_a_dump_of_a_device_with_holes_finds_them_exactly(holed_device, tmp_path
     from pymodbus.client import ModbusTcpClient
 
     path = tmp_path / "device.toml"
-    res = expect_ok(run_mbtool("dump", path, *RANGES, "-p", holed_device.target))
+    res = expect_ok(run_cli("dump", path, *RANGES, "-p", holed_device.target))
     assert res.stdout == "" and len(res.stderr.splitlines()) == 1  # in a pipe: the summary only
     data = tomllib.loads(path.read_text())
     assert data["sparse"] is True and "complete" not in data
@@ -86,7 +86,7 @@ def test_serve_of_a_dump_answers_as_the_device_did(holed_device, tmp_path):
     from pymodbus.client import ModbusTcpClient
 
     path = tmp_path / "device.toml"
-    expect_ok(run_mbtool("dump", path, *RANGES, "-p", holed_device.target))
+    expect_ok(run_cli("dump", path, *RANGES, "-p", holed_device.target))
     original = ModbusTcpClient(holed_device.host, port=holed_device.port, timeout=2, retries=0)
     assert original.connect()
     with serve("--data", str(path)) as server:
@@ -196,7 +196,7 @@ def test_serve_of_a_dump_answers_fc17_and_fc43_byte_for_byte(original, holed_dev
             device = stack.enter_context(serve("--exception", "17:1", "--exception", "43:1"))
             host, port = device.host, device.port
         path = tmp_path / "device.toml"
-        expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
+        expect_ok(run_cli("dump", path, "--range", "holding:0-9", "-p", f"tcp://{host}:{port}"))
         identity = tomllib.loads(path.read_text())["identity"]
         assert ("refused" in identity) == (original == "without")
         requests, expected = _identity_replies(host, port)
@@ -219,7 +219,7 @@ def test_a_device_that_refuses_the_extended_stream_still_gets_its_objects_dumped
 
     device = raw_responder(basic_only)
     path = tmp_path / "device.toml"
-    expect_ok(run_mbtool("dump", path, "--range", "holding:0-9", "-p", f"tcp://127.0.0.1:{device.port}"))
+    expect_ok(run_cli("dump", path, "--range", "holding:0-9", "-p", f"tcp://127.0.0.1:{device.port}"))
     identity = tomllib.loads(path.read_text())["identity"]
     assert identity["objects"] == {"0": "ACME", "1": "PLC-7", "2": "2.1"} and identity["conformity"] == 0x81
     assert identity["run"] is False and identity["extra"] == [1, 2, *b"v1.0"]
@@ -229,12 +229,12 @@ def test_a_dump_cut_short_is_a_valid_file_marked_incomplete(holed_device, tmp_pa
     import tomllib
 
     path = tmp_path / "part.toml"
-    res = run_mbtool("dump", path, *RANGES, "--max-requests", "5", "-p", holed_device.target)
+    res = run_cli("dump", path, *RANGES, "--max-requests", "5", "-p", holed_device.target)
     # Not 0: a dump that did not finish must not look like one that did (issue 28).
     assert res.returncode == 8 and "stopped after 5 requests (--max-requests)" in res.stderr
     data = tomllib.loads(path.read_text())
     assert data["complete"] is False and data["sparse"] is True
-    res = run_mbtool("dump", "-", "--range", "holding:5-2", "-p", holed_device.target)
+    res = run_cli("dump", "-", "--range", "holding:5-2", "-p", holed_device.target)
     assert res.returncode == 2 and "FIRST no more than LAST" in res.stderr
 
 
@@ -301,21 +301,21 @@ def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, 
 
     path = tmp_path / "before.toml"
     ranges = ("--range", "holding:700-720", "--range", "coils:700-710")
-    expect_ok(run_mbtool("dump", path, *ranges, "-p", tcp_device.target))
-    res = run_mbtool("diff", path, "-p", tcp_device.target)
+    expect_ok(run_cli("dump", path, *ranges, "-p", tcp_device.target))
+    res = run_cli("diff", path, "-p", tcp_device.target)
     assert res.returncode == 0 and res.stdout == "" and res.stderr == ""
     client = ModbusTcpClient(tcp_device.host, port=tcp_device.port, timeout=2, retries=0)
     assert client.connect()
     try:
         client.write_register(705, 99, device_id=1)
-        res = run_mbtool("diff", path, "-p", tcp_device.target)
+        res = run_cli("diff", path, "-p", tcp_device.target)
         assert res.returncode == 1 and res.stdout.splitlines() == ["holding 705: 0 -> 99"]
         assert res.stderr == "mbtool: 1 difference\n"
-        res = run_mbtool("diff", "device", path, "-p", tcp_device.target)  # either side may be the device
+        res = run_cli("diff", "device", path, "-p", tcp_device.target)  # either side may be the device
         assert res.returncode == 1 and res.stdout.splitlines() == ["holding 705: 99 -> 0"]
         mapped = tmp_path / "map.toml"
         mapped.write_text('[points.setpoint]\nref = 40706\nscale = 0.5\nunit = "bar"\n')
-        res = run_mbtool("diff", path, "-m", mapped, "-p", tcp_device.target, "-o", "json")
+        res = run_cli("diff", path, "-m", mapped, "-p", tcp_device.target, "-o", "json")
         data = json.loads(res.stdout)
         assert res.returncode == 1 and data["equal"] is False
         assert data["differences"] == [
@@ -342,14 +342,14 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
 
     path = tmp_path / "saved.toml"
     ranges = ("--range", "holding:740-760", "--range", "coils:740-750", "--range", "input:0-3")
-    expect_ok(run_mbtool("dump", path, *ranges, "-p", tcp_device.target))
+    expect_ok(run_cli("dump", path, *ranges, "-p", tcp_device.target))
     client = ModbusTcpClient(tcp_device.host, port=tcp_device.port, timeout=2, retries=0)
     assert client.connect()
     try:
         client.write_registers(744, [11, 12], device_id=1)
         client.write_register(750, 13, device_id=1)
         client.write_coil(745, True, device_id=1)
-        res = expect_ok(run_mbtool("restore", path, "--dry-run", "-o", "plain", "-p", tcp_device.target))
+        res = expect_ok(run_cli("restore", path, "--dry-run", "-o", "plain", "-p", tcp_device.target))
         # Only what differs, as diff lists it: the coil, then 744-745 and 750 (3 requests).
         assert res.stdout.splitlines() == [
             "coils 745: 1 -> 0",
@@ -359,7 +359,7 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
         ]
         assert "nothing was sent: 3 requests would write 4 values" in res.stderr
         assert client.read_holding_registers(744, count=2, device_id=1).registers == [11, 12]
-        res = expect_ok(run_mbtool("restore", path, "--hex", "-p", tcp_device.target))
+        res = expect_ok(run_cli("restore", path, "--hex", "-p", tcp_device.target))
         writes = [line.data[7] for line in parse_hex_lines(res.stderr) if line.direction == "TX"]
         assert writes.count(0x10) == 2 and writes.count(0x0F) == 1 and 0x06 not in writes
         assert "restore: wrote 1 coil, 3 holding registers in 3 requests" in res.stderr
@@ -368,7 +368,7 @@ def test_restore_writes_back_only_what_differs_and_confirms(tcp_device, tmp_path
         assert res.stdout.splitlines()[0] == "confirmed coils 745: 1 -> 0"  # each write, and its fate
         assert client.read_holding_registers(744, count=7, device_id=1).registers == [0] * 7
         assert client.read_coils(745, count=1, device_id=1).bits[0] is False
-        assert run_mbtool("diff", path, "-p", tcp_device.target).returncode == 0
+        assert run_cli("diff", path, "-p", tcp_device.target).returncode == 0
     finally:
         client.close()
 

@@ -15,6 +15,7 @@ from helpers import (
     parse_hex_lines,
     plain_pairs,
     rtu,
+    run_cli,
     run_mbtool,
 )
 
@@ -24,7 +25,7 @@ pytestmark = pytest.mark.timeout(60)
 
 
 def test_exit_0(tcp_device):
-    res = run_mbtool("read-holding-registers", "0", "-p", tcp_device.target)
+    res = run_cli("read-holding-registers", "0", "-p", tcp_device.target)
     assert res.returncode == 0 and res.stderr == "", str(res)
     assert res.stdout == "0 100\n"
 
@@ -67,7 +68,7 @@ BAD_INPUTS = {
 def test_bad_input_exit_2_nothing_sent_tcp(silent_server, args):
     cmd, *rest = args
     # our -p/-t come first so that a bad -t in the case itself wins (last option wins)
-    res = run_mbtool(cmd, "-p", silent_server.tcp_target, "-t", "0.3", *rest)
+    res = run_cli(cmd, "-p", silent_server.tcp_target, "-t", "0.3", *rest)
     assert_one_error_line(res, 2)
     assert silent_server.received_bytes() == b"", f"bytes were sent for bad input\n{res}"
 
@@ -85,7 +86,7 @@ def test_bad_input_exit_2_nothing_sent_tcp(silent_server, args):
 )
 def test_bad_input_exit_2_nothing_sent_serial(pty_pair, args):
     cmd, *rest = args
-    res = run_mbtool(cmd, "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3", *rest)
+    res = run_cli(cmd, "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3", *rest)
     assert_one_error_line(res, 2)
     assert pty_pair.sent_by_mbtool() == b"", f"bytes reached the serial line for bad input\n{res}"
 
@@ -107,7 +108,7 @@ LIMITS_OK = {
 @pytest.mark.parametrize("args", list(LIMITS_OK.values()), ids=list(LIMITS_OK))
 def test_limits_are_accepted_and_sent(silent_server, args):
     cmd, *rest = args
-    res = run_mbtool(cmd, "-p", silent_server.tcp_target, "-t", "0.3", *rest)
+    res = run_cli(cmd, "-p", silent_server.tcp_target, "-t", "0.3", *rest)
     assert_one_error_line(res, 3)
     assert len(silent_server.received_bytes()) > 0
 
@@ -125,7 +126,7 @@ def test_silent_tcp_device_exit_3_quickly(silent_server):
 
 
 def test_silent_socket_device_exit_3(silent_server):
-    res = run_mbtool("read-coils", "0", "8", "-p", silent_server.socket_target, "-t", "0.3")
+    res = run_cli("read-coils", "0", "8", "-p", silent_server.socket_target, "-t", "0.3")
     assert_one_error_line(res, 3)
     assert silent_server.received_bytes() == rtu(bytes.fromhex("010100000008"))
 
@@ -151,7 +152,7 @@ def test_retries_resend_after_timeout(silent_server):
 
 
 def test_exception_02_tcp(tcp_device):
-    res = run_mbtool("read-holding-registers", "5000", "-p", tcp_device.target)
+    res = run_cli("read-holding-registers", "5000", "-p", tcp_device.target)
     line = assert_one_error_line(res, 4)
     assert "02 Illegal Data Address" in line
     assert res.stdout == ""
@@ -159,7 +160,7 @@ def test_exception_02_tcp(tcp_device):
 
 def test_exception_from_raw_responder(raw_responder):
     srv = raw_responder(rtu(bytes.fromhex("018302")))
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5")
+    res = run_cli("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5")
     line = assert_one_error_line(res, 4)
     assert "02 Illegal Data Address" in line
 
@@ -172,7 +173,7 @@ GOOD_RTU_REPLY = rtu(bytes.fromhex("0103020064"))  # 1 register = 100
 def test_raw_responder_control_good_reply(raw_responder):
     """Control: the raw responder with a correct reply makes mbtool succeed."""
     srv = raw_responder(GOOD_RTU_REPLY)
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5"))
+    res = expect_ok(run_cli("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5"))
     assert plain_pairs(res) == [(0, "100")]
 
 
@@ -200,15 +201,15 @@ def test_invalid_rtu_response_exit_5(raw_responder, reply):
 def test_an_rtu_over_tcp_gateway_read_as_modbus_tcp_is_named(raw_responder):
     """The commonest mix-up on site: tcp:// (MBAP) to a gateway that speaks RTU over TCP."""
     srv = raw_responder(GOOD_RTU_REPLY)
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
+    res = run_cli("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
     line = assert_one_error_line(res, 5)
     assert "an RTU frame with a good CRC" in line and "--framer rtu" in line
-    expect_ok(run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "--framer", "rtu", "-t", "0.3"))
+    expect_ok(run_cli("read-holding-registers", "0", "-p", srv.tcp_target, "--framer", "rtu", "-t", "0.3"))
 
 
 def test_a_bad_mbap_header_that_is_no_rtu_frame_gets_no_gateway_hint(raw_responder):
     srv = raw_responder(corrupt_crc(GOOD_RTU_REPLY))
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
+    res = run_cli("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
     line = assert_one_error_line(res, 5)
     assert "MBAP protocol id" in line and "gateway" not in line
 
@@ -216,7 +217,7 @@ def test_a_bad_mbap_header_that_is_no_rtu_frame_gets_no_gateway_hint(raw_respond
 def test_corrupted_crc_hex_says_bad(raw_responder):
     """Contract: the RX line's checksum verdict contains "BAD" (and the error is one 'mbtool: ' line)."""
     srv = raw_responder(corrupt_crc(GOOD_RTU_REPLY))
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5", "--hex")
+    res = run_cli("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5", "--hex")
     assert res.returncode == 5, str(res)
     assert "Traceback" not in res.stderr
     errors = [ln for ln in res.stderr.splitlines() if ln.startswith("mbtool: ")]
@@ -228,7 +229,7 @@ def test_corrupted_crc_hex_says_bad(raw_responder):
 def test_corrupted_crc_hex_shows_the_frame_received(raw_responder):
     """The RX line carries the bytes that were received: the whole 7-byte reply, once."""
     srv = raw_responder(corrupt_crc(GOOD_RTU_REPLY))
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5", "--hex")
+    res = run_cli("read-holding-registers", "0", "-p", srv.socket_target, "-t", "0.5", "--hex")
     assert res.returncode == 5, str(res)
     rx = [h for h in parse_hex_lines(res.stderr) if h.direction == "RX"]
     assert b"".join(h.data for h in rx) == corrupt_crc(GOOD_RTU_REPLY), str(res)
@@ -242,20 +243,20 @@ ASCII_BAD_LRC = b":010302006497\r\n"
 def test_ascii_raw_responder_control_good_reply(raw_responder):
     srv = raw_responder(ASCII_GOOD)
     res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "--framer", "ascii", "-t", "0.5")
+        run_cli("read-holding-registers", "0", "-p", srv.socket_target, "--framer", "ascii", "-t", "0.5")
     )
     assert plain_pairs(res) == [(0, "100")]
 
 
 def test_ascii_bad_lrc_exit_5(raw_responder):
     srv = raw_responder(ASCII_BAD_LRC)
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.socket_target, "--framer", "ascii", "-t", "0.5")
+    res = run_cli("read-holding-registers", "0", "-p", srv.socket_target, "--framer", "ascii", "-t", "0.5")
     assert_one_error_line(res, 5)
 
 
 def test_ascii_bad_lrc_hex_says_bad(raw_responder):
     srv = raw_responder(ASCII_BAD_LRC)
-    res = run_mbtool(
+    res = run_cli(
         "read-holding-registers", "0", "-p", srv.socket_target, "--framer", "ascii", "-t", "0.5", "--hex"
     )
     assert res.returncode == 5, str(res)
@@ -273,7 +274,7 @@ def _tcp_reply(tid_delta: int = 0, unit: int = 1, pdu: bytes = bytes.fromhex("03
 
 def test_tcp_raw_responder_control_good_reply(raw_responder):
     srv = raw_responder(_tcp_reply())
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.5"))
+    res = expect_ok(run_cli("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.5"))
     assert plain_pairs(res) == [(0, "100")]
 
 
@@ -289,7 +290,7 @@ def test_tcp_raw_responder_control_good_reply(raw_responder):
 )
 def test_invalid_tcp_response_exit_5(raw_responder, reply_kw):
     srv = raw_responder(_tcp_reply(**reply_kw))
-    res = run_mbtool("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
+    res = run_cli("read-holding-registers", "0", "-p", srv.tcp_target, "-t", "0.3")
     assert_one_error_line(res, 5)
 
 
@@ -304,7 +305,7 @@ def test_refused_port_exit_6(refused_port):
 
 
 def test_refused_socket_port_exit_6(refused_port):
-    res = run_mbtool("read-holding-registers", "0", "-p", f"socket://127.0.0.1:{refused_port}", "-t", "0.5")
+    res = run_cli("read-holding-registers", "0", "-p", f"socket://127.0.0.1:{refused_port}", "-t", "0.5")
     # pyserial's "Could not open port ...: [Errno 111]" wrapping is unwrapped: the port once, the reason
     assert assert_one_error_line(res, 6) == (
         f"mbtool: cannot open socket://127.0.0.1:{refused_port}: Connection refused"
@@ -312,7 +313,7 @@ def test_refused_socket_port_exit_6(refused_port):
 
 
 def test_missing_device_path_exit_6():
-    res = run_mbtool("read-holding-registers", "0", "-p", "/dev/nonexistent-mbtool", "-t", "0.5")
+    res = run_cli("read-holding-registers", "0", "-p", "/dev/nonexistent-mbtool", "-t", "0.5")
     assert_one_error_line(res, 6)
 
 
@@ -321,7 +322,7 @@ def test_default_tcp_port_is_502(raw_responder):
         srv = raw_responder(_tcp_reply(), port=502)
     except OSError as exc:  # environment: cannot bind 502 (not root, or in use)
         pytest.skip(f"cannot bind 127.0.0.1:502 here: {exc}")
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "-p", "tcp://127.0.0.1", "-t", "0.5"))
+    res = expect_ok(run_cli("read-holding-registers", "0", "-p", "tcp://127.0.0.1", "-t", "0.5"))
     assert plain_pairs(res) == [(0, "100")]
     assert len(srv.received_bytes()) == 12
 
@@ -330,7 +331,7 @@ def test_default_tcp_port_is_502(raw_responder):
 
 
 def test_sim_read_holding_registers():
-    res = run_mbtool("read-holding-registers", "0", "5", "-p", "sim://")
+    res = run_cli("read-holding-registers", "0", "5", "-p", "sim://")
     assert res.returncode == 0, str(res)
     assert len(res.lines) == 5, str(res)
     assert [a for a, _ in plain_pairs(res)] == [0, 1, 2, 3, 4]

@@ -28,7 +28,7 @@ from helpers import (
     Running,
     assert_one_error_line,
     exporting,
-    run_mbtool,
+    run_cli,
     serve,
 )
 
@@ -77,7 +77,7 @@ def meter(tmp_path_factory):
 
 
 def test_a_scrape_reads_the_module_from_the_target_as_read_m_does(meter, tmp_path):
-    read_m = run_mbtool("read", "-m", METER_MAP, "-p", meter.target, "-o", "prom")
+    read_m = run_cli("read", "-m", METER_MAP, "-p", meter.target, "-o", "prom")
     assert read_m.returncode == 0, read_m
     expected = {
         (name, dict(labels)["ref"]): number
@@ -478,7 +478,7 @@ def test_bad_options_or_inventory_are_exit_2_with_one_line_and_nothing_served(
     (tmp_path / "bad.toml").write_text("[plant]\n")
     paths = {name: tmp_path / f"{name}.toml" for name in ("clash", "stats_clash", "bad")}
     argv = [arg.format(maps=tmp_path / "maps", **paths) for arg in args]
-    line = assert_one_error_line(run_mbtool("exporter", *argv), 2)
+    line = assert_one_error_line(run_cli("exporter", *argv), 2)
     assert words in line, line
     assert silent_server.connections == 0
 
@@ -489,9 +489,7 @@ def test_a_port_already_taken_is_exit_6(tmp_path):
     taken.listen(1)
     try:
         port = taken.getsockname()[1]
-        res = run_mbtool(
-            "exporter", "--maps", tmp_path, "--allow-target", "*", "--listen", f"127.0.0.1:{port}"
-        )
+        res = run_cli("exporter", "--maps", tmp_path, "--allow-target", "*", "--listen", f"127.0.0.1:{port}")
         line = assert_one_error_line(res, 6)
         assert f"cannot listen on 127.0.0.1:{port}" in line
     finally:

@@ -24,7 +24,7 @@ from helpers import (
     assert_one_error_line,
     build_libmodbus,
     mbap,
-    run_mbtool,
+    run_cli,
     serve,
 )
 
@@ -164,9 +164,7 @@ def test_libmodbus_unit_0_over_tcp_gets_answers(tmp_path, libmodbus_client, unit
         assert run.returncode == 0, run.stderr
         assert run.stdout.split() == ["38", "39", "4321", "41", "1", "1"]
         # the device itself is unit 1, the lowest served: what libmodbus wrote is there
-        res = run_mbtool(
-            "read-holding-registers", "40", "-u", "1", "-p", f"tcp://{server.host}:{server.port}"
-        )
+        res = run_cli("read-holding-registers", "40", "-u", "1", "-p", f"tcp://{server.host}:{server.port}")
         assert res.returncode == 0 and res.stdout.split() == ["40", "4321"], str(res)
 
 
@@ -491,7 +489,7 @@ def test_read_only_serve_with_pymodbus_and_mbtool(tmp_path):
         finally:
             client.close()
         target = f"tcp://{server.host}:{server.port}"
-        line = assert_one_error_line(run_mbtool("write-register", "1", "9", "-p", target), 4)
+        line = assert_one_error_line(run_cli("write-register", "1", "9", "-p", target), 4)
         assert "exception 01" in line, line
 
 

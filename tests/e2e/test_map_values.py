@@ -13,7 +13,7 @@ import json
 import math
 
 import pytest
-from helpers import TESTS_DIR, assert_one_error_line, expect_ok, run_mbtool, serve
+from helpers import TESTS_DIR, assert_one_error_line, expect_ok, run_cli, serve
 from prometheus_client.parser import text_string_to_metric_families
 
 pytestmark = pytest.mark.timeout(90)
@@ -75,7 +75,7 @@ def _lines(res) -> list[str]:
 
 def test_nan_and_infinity_read_scaled_or_not(served):
     target, plant = served
-    res = expect_ok(run_mbtool("read", "-m", plant, "hot", "cold", "fault", "plain_nan", "-p", target))
+    res = expect_ok(run_cli("read", "-m", plant, "hot", "cold", "fault", "plain_nan", "-p", target))
     # +Inf x 0.1 is +Inf; -Inf x -2 + 5 is +Inf; NaN stays NaN, scaled or not.
     assert _lines(res) == ["hot inf C", "cold inf", "fault nan", "plain_nan nan"]
     assert res.stderr == ""
@@ -83,10 +83,10 @@ def test_nan_and_infinity_read_scaled_or_not(served):
 
 def test_nan_and_infinity_as_json_and_prometheus(served):
     target, plant = served
-    res = expect_ok(run_mbtool("read", "-m", plant, "hot", "fault", "-o", "json", "-p", target))
+    res = expect_ok(run_cli("read", "-m", plant, "hot", "fault", "-o", "json", "-p", target))
     points = {point["name"]: point for point in json.loads(res.stdout)["points"]}
     assert points["hot"]["registers"] == PLUS_INF and points["fault"]["registers"] == NAN
-    res = expect_ok(run_mbtool("read", "-m", plant, "hot", "cold", "-o", "prom", "-p", target))
+    res = expect_ok(run_cli("read", "-m", plant, "hot", "cold", "-o", "prom", "-p", target))
     samples = {
         sample.name: sample.value
         for family in text_string_to_metric_families(res.stdout)
@@ -98,26 +98,26 @@ def test_nan_and_infinity_as_json_and_prometheus(served):
 
 def test_check_judges_infinity_and_cannot_judge_nan(served):
     target, plant = served
-    res = run_mbtool("check", "-m", plant, "hot", "-w", "0:10", "-c", "0:20", "-p", target)
+    res = run_cli("check", "-m", plant, "hot", "-w", "0:10", "-c", "0:20", "-p", target)
     assert res.returncode == 2 and res.stdout.startswith("MODBUS CRITICAL - hot=inf C"), str(res)
-    res = run_mbtool("check", "-m", plant, "cold", "-w", "10:", "-p", target)
+    res = run_cli("check", "-m", plant, "cold", "-w", "10:", "-p", target)
     assert res.returncode == 0 and res.stdout.startswith("MODBUS OK - cold=inf"), str(res)
     for args in (("-m", plant, "fault"), ("-m", plant, "plain_nan"), ("40005", "--type", "float32")):
-        res = run_mbtool("check", *args, "-w", "0:10", "-c", "0:20", "-p", target)
+        res = run_cli("check", *args, "-w", "0:10", "-c", "0:20", "-p", target)
         assert res.returncode == 3, str(res)
         assert res.stdout.startswith("MODBUS UNKNOWN - ") and "not a number" in res.stdout, str(res)
-        res = run_mbtool(
+        res = run_cli(
             "check", *args, "-w", "0:10", "-c", "0:20", "--state-on-error", "critical", "-p", target
         )
         assert res.returncode == 2 and res.stdout.startswith("MODBUS CRITICAL - "), str(res)
     # Without thresholds NaN is still no reading to call OK.
-    res = run_mbtool("check", "-m", plant, "fault", "-p", target)
+    res = run_cli("check", "-m", plant, "fault", "-p", target)
     assert res.returncode == 3 and "not a number" in res.stdout, str(res)
 
 
 def test_a_nan_among_other_values_sets_the_state(served):
     target, plant = served
-    res = run_mbtool("check", "-m", plant, "state", "fault", "-w", "0:10", "-p", target)
+    res = run_cli("check", "-m", plant, "state", "fault", "-w", "0:10", "-p", target)
     assert res.returncode == 3, str(res)
     assert res.stdout.startswith("MODBUS UNKNOWN - state=7, fault=nan (UNKNOWN: not a number"), str(res)
 
@@ -130,7 +130,7 @@ def test_diff_of_a_map_point_that_became_infinite(tmp_path):
         '[points.hot]\nref = 40001\ntype = "float32"\nscale = 0.1\n'
         '[points.fault]\nref = 40003\ntype = "float32"\nscale = 0.1\n'
     )
-    res = run_mbtool("diff", before, after, "-m", plant)
+    res = run_cli("diff", before, after, "-m", plant)
     assert res.returncode == 1, str(res)
     assert _lines(res) == ["hot (40001): 0 -> inf", "fault (40003): 0 -> nan"]
 
@@ -140,12 +140,12 @@ def test_nan_written_into_pymodbus_is_unknown_to_check(tcp_device, pymodbus_tcp_
     plant.write_text('[points.level]\nref = 40901\ntype = "float32"\nscale = 0.01\nunit = "m"\n')
     assert not pymodbus_tcp_client.write_registers(900, NAN, device_id=1).isError()
     try:
-        res = run_mbtool("check", "-m", plant, "-w", "0:10", "-c", "0:20", "-p", tcp_device.target)
+        res = run_cli("check", "-m", plant, "-w", "0:10", "-c", "0:20", "-p", tcp_device.target)
         assert res.returncode == 3 and res.stdout.startswith("MODBUS UNKNOWN - level=nan m"), str(res)
         assert not pymodbus_tcp_client.write_registers(900, MINUS_INF, device_id=1).isError()
-        res = run_mbtool("check", "-m", plant, "-w", "0:10", "-c", "0:20", "-p", tcp_device.target)
+        res = run_cli("check", "-m", plant, "-w", "0:10", "-c", "0:20", "-p", tcp_device.target)
         assert res.returncode == 2 and res.stdout.startswith("MODBUS CRITICAL - level=-inf m"), str(res)
-        res = expect_ok(run_mbtool("read", "-m", plant, "-p", tcp_device.target))
+        res = expect_ok(run_cli("read", "-m", plant, "-p", tcp_device.target))
         assert _lines(res) == ["level -inf m"]
     finally:
         pymodbus_tcp_client.write_registers(900, [0, 0], device_id=1)
@@ -156,24 +156,22 @@ def test_nan_written_into_pymodbus_is_unknown_to_check(tcp_device, pymodbus_tcp_
 
 def test_a_value_without_a_label_says_so(served):
     target, plant = served
-    res = expect_ok(run_mbtool("read", "-m", plant, "state", "-p", target))
+    res = expect_ok(run_cli("read", "-m", plant, "state", "-p", target))
     assert _lines(res) == ["state 7 (no label)"]
-    res = expect_ok(run_mbtool("read", "-m", plant, "state", "-o", "json", "-p", target))
+    res = expect_ok(run_cli("read", "-m", plant, "state", "-o", "json", "-p", target))
     assert json.loads(res.stdout)["points"][0]["value"] == 7  # a number for scripts
     rw = plant.parent / "rw.toml"
     rw.write_text(
         MAP.replace('enum = { 0 = "stopped", 1 = "running" }', 'enum = { 0 = "stopped" }\naccess = "rw"')
     )
-    res = expect_ok(run_mbtool("write", "-m", rw, "state=5", "-p", "sim://"))
+    res = expect_ok(run_cli("write", "-m", rw, "state=5", "-p", "sim://"))
     assert _lines(res) == ["state 5 (no label)"]
-    assert _lines(expect_ok(run_mbtool("write", "-m", rw, "state=stopped", "-p", "sim://"))) == [
-        "state stopped"
-    ]
+    assert _lines(expect_ok(run_cli("write", "-m", rw, "state=stopped", "-p", "sim://"))) == ["state stopped"]
 
 
 def test_an_enum_on_a_float32_point(served):
     target, plant = served
-    assert _lines(expect_ok(run_mbtool("read", "-m", plant, "mode", "-p", target))) == ["mode cool"]
+    assert _lines(expect_ok(run_cli("read", "-m", plant, "mode", "-p", target))) == ["mode cool"]
 
 
 # --- a map that cannot be used opens nothing --------------------------------------------------
@@ -195,10 +193,10 @@ def test_a_bad_map_is_exit_2_and_nothing_is_opened(silent_server, tmp_path, name
     path.write_text(text)
     for command in ("read", "write"):
         extra = ("flow=1",) if command == "write" else ()
-        res = run_mbtool(command, "-m", path, *extra, "-p", silent_server.tcp_target)
+        res = run_cli(command, "-m", path, *extra, "-p", silent_server.tcp_target)
         line = assert_one_error_line(res, 2)
         assert str(path) in line and words in line, line
-    res = run_mbtool("check", "-m", path, "-p", silent_server.tcp_target)
+    res = run_cli("check", "-m", path, "-p", silent_server.tcp_target)
     assert res.returncode == 3 and str(path) in res.stdout and words in res.stdout, str(res)
     assert silent_server.received_bytes() == b"" and silent_server.connections == 0
 
@@ -208,16 +206,16 @@ def test_a_bad_map_is_exit_2_and_nothing_is_opened(silent_server, tmp_path, name
 
 @pytest.mark.parametrize("names", [("voltage_l1",), ("voltage_l1", "current_l1"), ("l2",)])
 def test_a_name_without_a_map_is_told_about_m(silent_server, names):
-    res = run_mbtool("read", *names, "-p", silent_server.tcp_target)
+    res = run_cli("read", *names, "-p", silent_server.tcp_target)
     line = assert_one_error_line(res, 2)
     assert f"{names[0]} is not a reference" in line and "give its map: -m MAP" in line
-    res = run_mbtool("check", *names, "-p", silent_server.tcp_target)
+    res = run_cli("check", *names, "-p", silent_server.tcp_target)
     assert res.returncode == 3 and "give its map: -m MAP" in res.stdout, str(res)
     assert silent_server.received_bytes() == b"" and silent_server.connections == 0
 
 
 def test_a_mistyped_reference_is_not_taken_for_a_name(silent_server):
-    res = run_mbtool("read", "4o001", "-p", silent_server.tcp_target)
+    res = run_cli("read", "4o001", "-p", silent_server.tcp_target)
     line = assert_one_error_line(res, 2)
     assert "a reference has 5 or 6 digits" in line and "-m MAP" not in line
 
@@ -235,10 +233,10 @@ def test_a_mistyped_reference_is_not_taken_for_a_name(silent_server):
 def test_a_data_file_or_dump_nested_too_deeply_is_exit_2(silent_server, tmp_path, name, text):
     path = tmp_path / name
     path.write_text(text)
-    res = run_mbtool("serve", "--data", path, "-p", "tcp://127.0.0.1:0")
+    res = run_cli("serve", "--data", path, "-p", "tcp://127.0.0.1:0")
     line = assert_one_error_line(res, 2)
     assert str(path) in line and "nested too deeply" in line
-    res = run_mbtool("diff", path, "-p", silent_server.tcp_target)
+    res = run_cli("diff", path, "-p", silent_server.tcp_target)
     line = assert_one_error_line(res, 2)
     assert str(path) in line and "nested too deeply" in line
     assert silent_server.received_bytes() == b"" and silent_server.connections == 0
@@ -247,7 +245,7 @@ def test_a_data_file_or_dump_nested_too_deeply_is_exit_2(silent_server, tmp_path
 def test_a_profile_file_nested_too_deeply_is_exit_2(silent_server, tmp_path):
     config = tmp_path / "config.toml"
     config.write_text("[profiles.meter]\nport = " + "[" * 5000 + "]" * 5000 + "\n")
-    res = run_mbtool(
+    res = run_cli(
         "read", "40001", "-P", "meter", "-p", silent_server.tcp_target, env={"MBTOOL_CONFIG": str(config)}
     )
     line = assert_one_error_line(res, 2)
@@ -263,7 +261,7 @@ def test_a_nan_that_stays_nan_is_no_change(served):
         ("40005", "--type", "float32"),
         ("40005", "--type", "float32", "--order", "all"),
     ):
-        res = expect_ok(run_mbtool("read", *args, *polls))
+        res = expect_ok(run_cli("read", *args, *polls))
         assert "->" not in res.stdout, str(res)  # NaN equals nothing, itself included
         assert len(_lines(res)) == (2 if "-m" in args else 1), str(res)
 
@@ -284,13 +282,11 @@ def test_read_m_and_check_honour_a_maps_invalid_values(tmp_path):
     )
     with serve("--data", str(data)) as device:
         read = [
-            run_mbtool("read", "-m", meter, "-o", fmt, "-p", device.target)
+            run_cli("read", "-m", meter, "-o", fmt, "-p", device.target)
             for fmt in ("plain", "json", "influx", "prom")
         ]
-        checked = run_mbtool("check", "-m", meter, "power", "-w", "0:100", "-p", device.target)
-        critical = run_mbtool(
-            "check", "-m", meter, "power", "--state-on-error", "critical", "-p", device.target
-        )
+        checked = run_cli("check", "-m", meter, "power", "-w", "0:100", "-p", device.target)
+        critical = run_cli("check", "-m", meter, "power", "--state-on-error", "critical", "-p", device.target)
     plain, as_json, influx, prom = (res.stdout for res in read)
     assert all(res.returncode == 0 for res in read), read
     assert plain.splitlines() == ["power invalid", "voltage 230 V"]
@@ -314,15 +310,15 @@ def test_write_m_reads_the_scale_factor_then_writes_in_its_scale(tmp_path):
     path = tmp_path / "inverter.toml"
     path.write_text(INVERTER)
     with serve("--data", str(data)) as device:
-        res = run_mbtool("write", "-m", path, "W=12.34", "-p", device.target, "-o", "json", "--hex")
+        res = run_cli("write", "-m", path, "W=12.34", "-p", device.target, "-o", "json", "--hex")
         assert res.returncode == 0, res
         written = json.loads(res.stdout)["points"][0]
         assert written["value"] == 12.34 and written["registers"] == [1234]
-        back = run_mbtool("read-holding-registers", "100", "-p", device.target, "-o", "json")
+        back = run_cli("read-holding-registers", "100", "-p", device.target, "-o", "json")
         assert json.loads(back.stdout)["values"] == [1234]
         # The scale factor read first (FC 03 of W_SF alone: W is not read), then FC 06.
         sent = [line.split()[7:12] for line in res.stderr.splitlines() if line.startswith("TX")]
         assert sent == [["01", "03", "00", "78", "00"], ["01", "06", "00", "64", "04"]], res.stderr
-        refused = run_mbtool("write", "-m", path, "W=12.345", "-p", device.target)
+        refused = run_cli("write", "-m", path, "W=12.345", "-p", device.target)
         assert refused.returncode == 2 and "not a whole number of steps of 0.01" in refused.stderr
         assert "Traceback" not in refused.stderr

@@ -22,7 +22,6 @@ from helpers import (
     json_lines,
     rtu,
     run_cli,
-    run_mbtool,
     start_monitor,
 )
 
@@ -128,7 +127,7 @@ def test_monitor_stats_count_exactly_what_was_on_a_bus_with_two_units(tmp_path):
     assert "frames 11" in err.splitlines()[-1]  # the summary line is as ever
 
     # The capture replayed: the same counts, timed by its time stamps.
-    replayed = run_mbtool("monitor", "--from-file", str(capture), "--response-timeout", str(RESPONSE_TIMEOUT), "--stats",
+    replayed = run_cli("monitor", "--from-file", str(capture), "--response-timeout", str(RESPONSE_TIMEOUT), "--stats",
                           "-o", "json", "--baud", str(BAUD), "--parity", "N")  # fmt: skip
     assert replayed.returncode == 0, replayed
     (again,) = json_lines(replayed.stdout)
@@ -136,7 +135,7 @@ def test_monitor_stats_count_exactly_what_was_on_a_bus_with_two_units(tmp_path):
     assert again["time"] and again["time"] <= records[0]["time"]  # as of the last frame recorded
 
     # And as a table.
-    shown = run_mbtool("monitor", "--from-file", str(capture), "--response-timeout", str(RESPONSE_TIMEOUT), "--stats",
+    shown = run_cli("monitor", "--from-file", str(capture), "--response-timeout", str(RESPONSE_TIMEOUT), "--stats",
                        "--baud", str(BAUD), "--parity", "N", "-o", "plain")  # fmt: skip
     rows = [row.split() for row in shown.stdout.splitlines()]
     assert rows[0][:7] == ["unit", "requests", "replies", "exceptions", "unanswered", "corrupt", "t3.5"]

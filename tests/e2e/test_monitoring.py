@@ -16,7 +16,7 @@ from helpers import (
     HOLDING,
     assert_one_error_line,
     expect_ok,
-    run_mbtool,
+    run_cli,
     start_device,
     start_mbtool,
 )
@@ -63,14 +63,14 @@ def families(text: str) -> dict:
 
 
 def test_influx_one_line_a_read_with_integer_fields_and_a_nanosecond_time(tcp_device):
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-o", "influx", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read-holding-registers", "0", "3", "-o", "influx", "-p", tcp_device.target))
     (line,) = res.stdout.splitlines()
     parsed = parse_line(line)
     assert parsed["measurement"] == "modbus" and parsed["tags"] == {"unit": "1", "table": "holding"}
     assert parsed["fields"] == {"0": HOLDING[0], "1": HOLDING[1], "2": HOLDING[2]}
     assert " 0=100i,1=101i,2=102i " in line  # integers carry the i
     assert 1.7e18 < parsed["time"] < 4e18  # nanoseconds since the epoch
-    res = expect_ok(run_mbtool("read", "00001", "2", "-o", "influx", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read", "00001", "2", "-o", "influx", "-p", tcp_device.target))
     parsed = parse_line(res.stdout.strip())
     assert parsed["tags"]["table"] == "coils" and parsed["fields"] == {"00001": COILS[0], "00002": COILS[1]}
 
@@ -79,7 +79,7 @@ def test_influx_escapes_map_names_tags_and_text(tcp_device, odd_map, tmp_path):
     config = tmp_path / "config.toml"
     config.write_text(f'[profiles."pump house, east=2"]\nport = "{tcp_device.target}"\n')
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read",
             "-m",
             odd_map,
@@ -101,7 +101,7 @@ def test_influx_escapes_map_names_tags_and_text(tcp_device, odd_map, tmp_path):
 
 def test_influx_polls_one_line_each(tcp_device):
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read-input-registers",
             "0",
             "2",
@@ -123,7 +123,7 @@ def test_influx_polls_one_line_each(tcp_device):
 
 
 def test_prom_registers_and_bits_as_one_gauge(tcp_device):
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
     family = families(res.stdout)["modbus_value"]
     assert family.type == "gauge" and "read by mbtool" in family.documentation
     assert [(s.labels, s.value) for s in family.samples] == [
@@ -133,7 +133,7 @@ def test_prom_registers_and_bits_as_one_gauge(tcp_device):
 
 
 def test_prom_map_points_by_name_with_their_unit_in_help(tcp_device, odd_map):
-    res = expect_ok(run_mbtool("read", "-m", odd_map, "-o", "prom", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read", "-m", odd_map, "-o", "prom", "-p", tcp_device.target))
     found = families(res.stdout)
     assert set(found) == {"modbus_flow_rate", "modbus_a_b_c", "modbus_state", "modbus_pump", *STATUS}
     flow = found["modbus_flow_rate"]
@@ -146,7 +146,7 @@ def test_prom_map_points_by_name_with_their_unit_in_help(tcp_device, odd_map):
 def test_textfile_is_written_whole_and_kept_fresh_by_polls(tcp_device, odd_map, tmp_path):
     path = tmp_path / "modbus.prom"
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read",
             "-m",
             odd_map,
@@ -174,7 +174,7 @@ def test_textfile_is_written_whole_and_kept_fresh_by_polls(tcp_device, odd_map, 
     ],
 )
 def test_monitoring_formats_refuse_what_they_cannot_carry(silent_server, args, words):
-    res = run_mbtool(*args, "-p", silent_server.tcp_target)
+    res = run_cli(*args, "-p", silent_server.tcp_target)
     assert res.returncode == 2 and words in res.stderr
     assert silent_server.received_bytes() == b""
 
@@ -182,10 +182,10 @@ def test_monitoring_formats_refuse_what_they_cannot_carry(silent_server, args, w
 def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
     path = tmp_path / "text.toml"
     path.write_text('[points.tag]\nref = 40001\ntype = "string"\ncount = 1\n[points.n]\nref = 40002\n')
-    res = expect_ok(run_mbtool("read", "-m", path, "-o", "influx", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read", "-m", path, "-o", "influx", "-p", tcp_device.target))
     fields = parse_line(res.stdout.strip())["fields"]
     assert fields == {"tag": "\\x00d", "n": HOLDING[1]}  # 0x0064: a NUL, then "d"
-    res = expect_ok(run_mbtool("read", "-m", path, "-o", "prom", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read", "-m", path, "-o", "prom", "-p", tcp_device.target))
     assert set(families(res.stdout)) == {"modbus_n", *STATUS}
 
 
@@ -221,7 +221,7 @@ def test_temporary_files_a_killed_mbtool_left_are_cleaned_up(tcp_device, tmp_pat
     live.write_text("half")
     other = tmp_path / ".other.prom.1.tmp"  # not this textfile's
     other.write_text("x")
-    expect_ok(run_mbtool("read", "40001", "--textfile", path, "-p", tcp_device.target))
+    expect_ok(run_cli("read", "40001", "--textfile", path, "-p", tcp_device.target))
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["modbus.prom", live.name, other.name])
 
 
@@ -242,7 +242,7 @@ def test_backslashes_never_swallow_the_separator_after_them(tcp_device, tmp_path
     config = tmp_path / "config.toml"
     config.write_text(f"[profiles.'east\\x']\nport = \"{tcp_device.target}\"\n")
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read", "-m", path, "-o", "influx", "--measurement", "m\\x", "-P", "east\\x",
             env={"MBTOOL_CONFIG": str(config)},
         )
@@ -280,7 +280,7 @@ def test_names_the_line_protocol_cannot_carry_are_refused_before_anything_is_sen
         f'[profiles."line\\nbreak"]\nport = "{silent_server.tcp_target}"\n'
         f"[profiles.'east\\']\nport = \"{silent_server.tcp_target}\"\n"
     )
-    res = run_mbtool(
+    res = run_cli(
         "read", "40001", "-o", "influx", *args, *([] if "-P" in args else ["-p", silent_server.tcp_target]),
         env={"MBTOOL_CONFIG": str(config)},
     )  # fmt: skip
@@ -303,7 +303,7 @@ def test_a_points_field_type_is_fixed_by_its_map_entry_whatever_the_value(tmp_pa
         "[points.label]\nref = 40015\nenum = { 14 = 'on' }\n"  # an enum carries its raw number
         "[points.float]\nref = 40101\ntype = 'float32'\n"  # 21.5
     )
-    res = expect_ok(run_mbtool("read", "-m", path, "-o", "influx", "-p", "sim://"))
+    res = expect_ok(run_cli("read", "-m", path, "-o", "influx", "-p", "sim://"))
     fields = parse_line(res.stdout.strip())["fields"]
     assert fields == {
         "scaled_fraction": 0.3,
@@ -322,7 +322,7 @@ def test_a_points_field_type_is_fixed_by_its_map_entry_whatever_the_value(tmp_pa
 
 
 def test_influx_leaves_a_value_that_is_not_a_number_out_with_a_warning(not_finite):
-    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "influx", "-p", not_finite.target))
+    res = expect_ok(run_cli("read", "-m", not_finite.map, "-o", "influx", "-p", not_finite.target))
     assert parse_line(res.stdout.strip())["fields"] == {"fine": 21.5}
     assert res.stderr.splitlines() == [
         f"mbtool: warning: {name} ({ref}) reads {value}: left out of the InfluxDB line (it has no NaN or infinity)"
@@ -334,7 +334,7 @@ def test_influx_leaves_a_value_that_is_not_a_number_out_with_a_warning(not_finit
     ]
     # Registers as well as points; and polling warns once a value, not once a poll.
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read", "40001", "4", "--type", "float32", "-o", "influx", "--polls", "3", "--interval", "0",
             "-p", not_finite.target,
         )
@@ -349,7 +349,7 @@ def test_influx_leaves_a_value_that_is_not_a_number_out_with_a_warning(not_finit
 def test_a_read_with_no_number_to_write_writes_no_influx_line(not_finite):
     """A line with no fields is no point: InfluxDB refuses the whole write."""
     res = expect_ok(
-        run_mbtool("read", "-m", not_finite.map, "nan", "inf", "-o", "influx", "-p", not_finite.target)
+        run_cli("read", "-m", not_finite.map, "nan", "inf", "-o", "influx", "-p", not_finite.target)
     )
     assert res.stdout == "" and len(res.stderr.splitlines()) == 2
 
@@ -357,10 +357,10 @@ def test_a_read_with_no_number_to_write_writes_no_influx_line(not_finite):
 def test_json_and_prom_carry_what_is_not_a_number_as_they_can(not_finite):
     import json
 
-    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "json", "-p", not_finite.target))
+    res = expect_ok(run_cli("read", "-m", not_finite.map, "-o", "json", "-p", not_finite.target))
     values = {p["name"]: p["value"] for p in json.loads(res.stdout)["points"]}
     assert values == {"nan": None, "inf": None, "minus_inf": None, "fine": 21.5}
-    res = expect_ok(run_mbtool("read", "-m", not_finite.map, "-o", "prom", "-p", not_finite.target))
+    res = expect_ok(run_cli("read", "-m", not_finite.map, "-o", "prom", "-p", not_finite.target))
     found = families(res.stdout)
     assert [
         str(found[f"modbus_{name}"].samples[0].value) for name in ("nan", "inf", "minus_inf", "fine")
@@ -399,7 +399,7 @@ def holed_map(tmp_path):
 
 
 def test_one_missing_point_no_longer_blanks_out_the_map_read(holed_device, holed_map):
-    res = run_mbtool("read", "-m", holed_map, "-o", "plain", "-p", holed_device.target)
+    res = run_cli("read", "-m", holed_map, "-o", "plain", "-p", holed_device.target)
     assert res.stdout == "flow 100\nlevel 200\n"
     line = assert_one_error_line(res, PARTIAL)
     assert "missing (40011): exception 02 Illegal Data Address" in line and "2 of 3 points read" in line
@@ -408,7 +408,7 @@ def test_one_missing_point_no_longer_blanks_out_the_map_read(holed_device, holed
 def test_json_names_the_point_it_could_not_read_in_its_one_object(holed_device, holed_map):
     import json
 
-    res = run_mbtool("read", "-m", holed_map, "-o", "json", "-p", holed_device.target)
+    res = run_cli("read", "-m", holed_map, "-o", "json", "-p", holed_device.target)
     assert_one_error_line(res, PARTIAL)
     data = json.loads(res.stdout)  # one object: the failure is in it, not a second one
     assert [(p["name"], p["value"]) for p in data["points"]] == [("flow", 100), ("level", 200)]
@@ -418,10 +418,10 @@ def test_json_names_the_point_it_could_not_read_in_its_one_object(holed_device, 
 
 
 def test_the_monitoring_outputs_export_the_points_read(holed_device, holed_map):
-    res = run_mbtool("read", "-m", holed_map, "-o", "influx", "-p", holed_device.target)
+    res = run_cli("read", "-m", holed_map, "-o", "influx", "-p", holed_device.target)
     assert res.returncode == PARTIAL
     assert parse_line(res.stdout.strip())["fields"] == {"flow": 100, "level": 200}
-    res = run_mbtool("read", "-m", holed_map, "-o", "prom", "-p", holed_device.target)
+    res = run_cli("read", "-m", holed_map, "-o", "prom", "-p", holed_device.target)
     assert res.returncode == PARTIAL
     found = families(res.stdout)
     assert found["modbus_flow"].samples[0].value == 100 and found["modbus_level"].samples[0].value == 200
@@ -429,7 +429,7 @@ def test_the_monitoring_outputs_export_the_points_read(holed_device, holed_map):
 
 
 def test_a_refused_merged_read_is_split_once_and_stays_split_while_polling(holed_device, holed_map):
-    res = run_mbtool(
+    res = run_cli(
         "read", "-m", holed_map, "-o", "plain", "--polls", "3", "--interval", "0", "--hex",
         "-p", holed_device.target,
     )  # fmt: skip
@@ -457,7 +457,7 @@ def status(found: dict) -> tuple[float, float | None]:
 
 def test_prom_says_the_device_answered_and_when(tcp_device):
     before = time.time()
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
+    res = expect_ok(run_cli("read-holding-registers", "0", "2", "-o", "prom", "-p", tcp_device.target))
     up, last = status(families(res.stdout))
     assert up == 1 and before <= last <= time.time()
 
@@ -466,9 +466,9 @@ def test_a_textfile_of_a_device_that_cannot_be_read_says_so_and_keeps_no_stale_v
     tcp_device, refused_port, tmp_path
 ):
     path = tmp_path / "modbus.prom"
-    expect_ok(run_mbtool("read", "40001", "2", "--textfile", path, "-p", tcp_device.target))
+    expect_ok(run_cli("read", "40001", "2", "--textfile", path, "-p", tcp_device.target))
     _, answered = status(families(path.read_text()))
-    res = run_mbtool("read", "40001", "2", "--textfile", path, "-p", f"tcp://127.0.0.1:{refused_port}")
+    res = run_cli("read", "40001", "2", "--textfile", path, "-p", f"tcp://127.0.0.1:{refused_port}")
     assert res.returncode == 6 and res.stdout == ""
     found = families(path.read_text())
     assert set(found) == set(STATUS)  # modbus_value is gone: no stale value is scraped as current
@@ -476,7 +476,7 @@ def test_a_textfile_of_a_device_that_cannot_be_read_says_so_and_keeps_no_stale_v
 
 
 def test_prom_on_stdout_says_the_device_cannot_be_read(silent_server):
-    res = run_mbtool("read", "40001", "-o", "prom", "-t", "0.2", "-p", silent_server.tcp_target)
+    res = run_cli("read", "40001", "-o", "prom", "-t", "0.2", "-p", silent_server.tcp_target)
     assert res.returncode == 3
     found = families(res.stdout)
     assert set(found) == {"modbus_up"} and status(found) == (0, None)  # no success to tell of
@@ -537,7 +537,7 @@ def test_a_point_named_as_a_status_metric_is_refused_before_anything_is_sent(
 ):
     path = tmp_path / "status.toml"
     path.write_text(f"[points.{name}]\nref = 40001\n")
-    res = run_mbtool(
+    res = run_cli(
         "read", "-m", path, "-o", "prom", "--measurement", measurement, "-p", silent_server.tcp_target
     )
     assert f"its metric, {measurement}_{name}, is the one that says" in assert_one_error_line(res, 2)

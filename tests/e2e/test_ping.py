@@ -22,7 +22,7 @@ from helpers import (
     assert_one_error_line,
     bridge,
     rtu,
-    run_mbtool,
+    run_cli,
     serve,
     start_mbtool,
 )
@@ -34,7 +34,7 @@ LINE = re.compile(r"^unit (\d+): seq=(\d+) (.*)$")
 
 def pinged(*args: str) -> tuple[list[tuple[int, str]], str, int]:
     """(seq, what) of each line, the summary line and the exit code of ``mbtool ping ARGS``."""
-    res = run_mbtool("ping", *args)
+    res = run_cli("ping", *args)
     assert "Traceback" not in res.stderr, str(res)
     lines = [ln for ln in res.stdout.splitlines() if ln.strip()]
     assert lines and lines[0].startswith("PING "), str(res)
@@ -216,7 +216,7 @@ def test_without_count_it_pings_until_interrupted_and_exits_0_after_replies(tcp_
 
 
 def test_quiet_prints_only_the_summary(tcp_device):
-    res = run_mbtool("ping", "-p", tcp_device.target, "-c", "2", "-i", "0", "-q")
+    res = run_cli("ping", "-p", tcp_device.target, "-c", "2", "-i", "0", "-q")
     assert res.returncode == 0 and res.stdout == ""
     assert "2 sent, 2 answered, 0% lost" in res.stderr
 
@@ -232,18 +232,18 @@ def test_quiet_prints_only_the_summary(tcp_device):
 )
 def test_bad_arguments_are_one_line_and_exit_2(raw_responder, args, says):
     srv = raw_responder(rtu(bytes.fromhex("0103020064")))
-    res = run_mbtool("ping", "-p", srv.socket_target, *args)
+    res = run_cli("ping", "-p", srv.socket_target, *args)
     assert says in assert_one_error_line(res, 2)
     assert srv.received_bytes() == b""  # nothing was sent
 
 
 def test_unit_0_on_a_serial_line_is_refused_before_anything_is_sent(raw_responder):
     srv = raw_responder(rtu(bytes.fromhex("0103020064")))
-    res = run_mbtool("ping", "-p", srv.socket_target, "-u", "0", "-c", "1")
+    res = run_cli("ping", "-p", srv.socket_target, "-u", "0", "-c", "1")
     assert "unit 0 is broadcast" in assert_one_error_line(res, 2)
     assert srv.received_bytes() == b""
 
 
 def test_a_device_that_cannot_be_reached_is_exit_6(refused_port):
-    res = run_mbtool("ping", "-p", f"tcp://127.0.0.1:{refused_port}", "-c", "1")
+    res = run_cli("ping", "-p", f"tcp://127.0.0.1:{refused_port}", "-c", "1")
     assert_one_error_line(res, 6)

@@ -26,7 +26,7 @@ from helpers import (
     expect_ok,
     parse_hex_lines,
     pymodbus_tcp,
-    run_mbtool,
+    run_cli,
     serve,
 )
 
@@ -96,7 +96,7 @@ def pump(tmp_path) -> Path:
 
 
 def tcp(device, *args, **kw):
-    return run_mbtool(*args, "-p", device.target, **kw)
+    return run_cli(*args, "-p", device.target, **kw)
 
 
 def lines(res) -> list[str]:
@@ -185,7 +185,7 @@ def _functions_sent(res) -> list[int]:
     ],
 )
 def test_an_invalid_reference_or_value_is_exit_2_with_nothing_sent(silent_server, args, words):
-    res = run_mbtool(*args, "-p", f"tcp://127.0.0.1:{silent_server.port}")
+    res = run_cli(*args, "-p", f"tcp://127.0.0.1:{silent_server.port}")
     line = assert_one_error_line(res, 2)
     assert words in line
     assert silent_server.received_bytes() == b""
@@ -203,12 +203,12 @@ def test_the_per_function_commands_keep_wire_addresses(tcp_device):
 
 def test_order_all_shows_each_word_order_side_by_side():
     # sim:// holds 21.5 as ABCD at 100-101 and as CDAB at 102-103.
-    res = expect_ok(run_mbtool("read", "40101", "2", "--type", "float32", "--order", "all", "-p", "sim://"))
+    res = expect_ok(run_cli("read", "40101", "2", "--type", "float32", "--order", "all", "-p", "sim://"))
     first, second = (dict(part.split("=") for part in line.split()[1:]) for line in lines(res))
     assert first["ABCD"] == "21.5" and second["CDAB"] == "21.5"
     assert set(first) == {"ABCD", "CDAB", "BADC", "DCBA"}
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers",
             "100",
             "2",
@@ -225,7 +225,7 @@ def test_order_all_shows_each_word_order_side_by_side():
     assert lines(res)[0] == "address,ABCD,CDAB,BADC,DCBA"
     assert lines(res)[1].split(",")[1] == "21.5" and lines(res)[2].split(",")[2] == "21.5"
     res = expect_ok(
-        run_mbtool("read", "40101", "2", "--type", "float32", "--order", "all", "-o", "json", "-p", "sim://")
+        run_cli("read", "40101", "2", "--type", "float32", "--order", "all", "-o", "json", "-p", "sim://")
     )
     data = json.loads(res.stdout)
     assert data["order"] == "all" and data["values"][0]["ABCD"] == 21.5 and data["values"][1]["CDAB"] == 21.5
@@ -322,7 +322,7 @@ def test_a_map_comes_from_a_profile_beside_the_config_file(tcp_device, tmp_path)
     (tmp_path / "pump.toml").write_text(PUMP)
     config = tmp_path / "config.toml"
     config.write_text(f'[profiles.pump]\nport = "{tcp_device.target}"\nmap = "pump.toml"\n')
-    res = expect_ok(run_mbtool("read", "-P", "pump", "speed", env={"MBTOOL_CONFIG": str(config)}))
+    res = expect_ok(run_cli("read", "-P", "pump", "speed", env={"MBTOOL_CONFIG": str(config)}))
     assert lines(res) == ["speed 10 rpm"]
 
 
@@ -380,7 +380,7 @@ def test_a_map_writes_in_engineering_units(tcp_device, pump, pymodbus_tcp_client
 )
 def test_an_invalid_map_write_is_exit_2_with_nothing_sent(silent_server, pump, assignment, words):
     # The valid first assignment is not sent either: every value is checked first.
-    res = run_mbtool(
+    res = run_cli(
         "write", "-m", pump, "setpoint=1", assignment, "-p", f"tcp://127.0.0.1:{silent_server.port}"
     )
     assert words in assert_one_error_line(res, 2)
@@ -404,14 +404,14 @@ def test_a_device_without_fc22_names_rmw_and_rmw_writes_the_bit():
         client = pymodbus_tcp(server)
         try:
             client.write_register(30, 0x1000, device_id=1)
-            res = run_mbtool("write-bit", "40031", "2", "on", "-p", target)
+            res = run_cli("write-bit", "40031", "2", "on", "-p", target)
             line = assert_one_error_line(res, 4)
             assert "exception 01 Illegal Function" in line and "--rmw" in line
-            res = expect_ok(run_mbtool("write-bit", "40031", "2", "on", "--rmw", "--hex", "-p", target))
+            res = expect_ok(run_cli("write-bit", "40031", "2", "on", "--rmw", "--hex", "-p", target))
             assert _functions_sent(res) == [0x03, 0x06]
             assert "not atomic" in res.stderr
             assert client.read_holding_registers(30, count=1, device_id=1).registers == [0x1004]
-            res = expect_ok(run_mbtool("write-bit", "40031", "12", "off", "--rmw", "-p", target))
+            res = expect_ok(run_cli("write-bit", "40031", "12", "off", "--rmw", "-p", target))
             assert client.read_holding_registers(30, count=1, device_id=1).registers == [0x0004]
         finally:
             client.close()
@@ -420,26 +420,24 @@ def test_a_device_without_fc22_names_rmw_and_rmw_writes_the_bit():
 def test_map_and_references_against_mbtool_serve(pump):
     with serve() as server:
         target = f"tcp://{server.host}:{server.port}"
-        expect_ok(run_mbtool("write", "-m", pump, "setpoint=12.3", "alarm=on", "-p", target))
+        expect_ok(run_cli("write", "-m", pump, "setpoint=12.3", "alarm=on", "-p", target))
         client = pymodbus_tcp(server)
         try:
             assert client.read_holding_registers(500, count=1, device_id=1).registers == [123]
             assert client.read_holding_registers(520, count=1, device_id=1).registers[0] & 0x08
         finally:
             client.close()
-        res = expect_ok(run_mbtool("read", "-m", pump, "setpoint", "alarm", "-p", target))
+        res = expect_ok(run_cli("read", "-m", pump, "setpoint", "alarm", "-p", target))
         assert lines(res) == ["setpoint 12.3 m3/h", "alarm on"]
-        res = expect_ok(run_mbtool("read", "40101", "--type", "float32", "-p", target))
+        res = expect_ok(run_cli("read", "40101", "--type", "float32", "-p", target))
         assert lines(res) == ["40101 21.5"]
 
 
 def test_map_and_references_on_sim(pump):
-    res = expect_ok(run_mbtool("read", "-m", pump, "speed", "running", "-p", "sim://"))
+    res = expect_ok(run_cli("read", "-m", pump, "speed", "running", "-p", "sim://"))
     assert lines(res) == ["speed 0 rpm", "running on"]
     res = expect_ok(
-        run_mbtool(
-            "write", "-m", pump, "setpoint=1", "state=fault", "--dry-run", "-p", "sim://", "-o", "plain"
-        )
+        run_cli("write", "-m", pump, "setpoint=1", "state=fault", "--dry-run", "-p", "sim://", "-o", "plain")
     )
     # Both frames shown (setpoint 1 m3/h is raw 10 at 500, state fault is 2 at 512), none sent.
     raws = [line for line in lines(res) if line.startswith("raw ")]
@@ -451,7 +449,7 @@ def test_map_and_references_on_sim(pump):
 
 def test_references_and_maps_over_a_serial_line(serial_rtu_device, pump):
     def ser(*args):
-        return run_mbtool(*args, "-p", serial_rtu_device.target, *PTY_SERIAL_OPTS)
+        return run_cli(*args, "-p", serial_rtu_device.target, *PTY_SERIAL_OPTS)
 
     assert lines(expect_ok(ser("read", "40002", "2"))) == [f"40002 {HOLDING[1]}", f"40003 {HOLDING[2]}"]
     assert lines(expect_ok(ser("read", "-m", pump, "speed", "pressure"))) == [
@@ -468,7 +466,7 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
     meter = REPO_ROOT / "examples/energy-meter.toml"
     with serve("--data", str(REPO_ROOT / "examples/energy-meter-data.toml")) as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = expect_ok(run_mbtool("read", "-m", meter, "--hex", "-p", target))
+        res = expect_ok(run_cli("read", "-m", meter, "--hex", "-p", target))
         assert lines(res) == [
             "voltage_l1 230.1 V",
             "current_l1 12.5 A",
@@ -482,9 +480,9 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
             "relay on",
         ]
         assert len(_functions_sent(res)) == 6  # as docs/maps-and-references.md says
-        res = expect_ok(run_mbtool("read", "30001", "--type", "float32", "--order", "all", "-p", target))
+        res = expect_ok(run_cli("read", "30001", "--type", "float32", "--order", "all", "-p", target))
         assert "CDAB=230.1" in res.stdout
-        res = run_mbtool("write", "-m", meter, "ct_ratio=102", "-p", target)
+        res = run_cli("write", "-m", meter, "ct_ratio=102", "-p", target)
         assert "the nearest writable values are 100 and 105" in assert_one_error_line(res, 2)
 
 
@@ -505,13 +503,13 @@ def test_an_example_maps_header_commands_read_its_twin(example):
     with serve(*serve_argv) as server:
         at = read_argv.index("-p")
         read_argv[at + 1] = f"tcp://{server.host}:{server.port}"
-        assert lines(expect_ok(run_mbtool(*read_argv)))[0] == "voltage_l1 230.1 V"
+        assert lines(expect_ok(run_cli(*read_argv)))[0] == "voltage_l1 230.1 V"
 
 
 def test_a_map_write_may_broadcast_but_rmw_may_not(pump, silent_server):
-    res = expect_ok(run_mbtool("write", "-m", pump, "setpoint=1", "-u", "0", "-p", "sim://"))
+    res = expect_ok(run_cli("write", "-m", pump, "setpoint=1", "-u", "0", "-p", "sim://"))
     assert lines(res) == ["setpoint 1 m3/h"] and "broadcast: no device confirms" in res.stderr
-    res = run_mbtool("write-bit", "40001", "1", "on", "--rmw", "-u", "0", "-p", silent_server.socket_target)
+    res = run_cli("write-bit", "40001", "1", "on", "--rmw", "-u", "0", "-p", silent_server.socket_target)
     assert "--rmw, which reads the register first, needs a unit 1..255" in assert_one_error_line(res, 2)
     assert silent_server.received_bytes() == b""
 
@@ -551,7 +549,7 @@ def test_references_maps_and_bits_against_mbtool_serve_over_a_serial_line(pump):
         with serve("--parity", "N", target=pair.device_path):
 
             def ser(*args):
-                return run_mbtool(*args, "-p", pair.mbtool_path, *PTY_SERIAL_OPTS)
+                return run_cli(*args, "-p", pair.mbtool_path, *PTY_SERIAL_OPTS)
 
             expect_ok(ser("write", "-m", pump, "setpoint=7.5", "state=fault"))
             assert lines(expect_ok(ser("read", "-m", pump, "setpoint", "state"))) == [

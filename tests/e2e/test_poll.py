@@ -29,7 +29,7 @@ from helpers import (
     bridge,
     free_port,
     mbtool_env,
-    run_mbtool,
+    run_cli,
     serve,
     start_device,
     start_mbtool,
@@ -278,7 +278,7 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
     from line_protocol_parser import parse_line
     from prometheus_client.parser import text_string_to_metric_families
 
-    res = run_mbtool("poll", small_plant, "--once", "-o", "json")
+    res = run_cli("poll", small_plant, "--once", "-o", "json")
     assert res.returncode == 8, res  # the dead unit failed, the others answered
     records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "event" not in r}
     assert records["meter1"]["points"] == [
@@ -289,19 +289,19 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
     assert "no response from unit 9" in records["dead"]["error"] and records["dead"]["exit_code"] == 3
     assert [p["value"] for p in records["plc"]["points"]] == [0, 1, True, False]
 
-    rows = list(csv.DictReader(io.StringIO(run_mbtool("poll", small_plant, "--once", "-o", "csv").stdout)))
+    rows = list(csv.DictReader(io.StringIO(run_cli("poll", small_plant, "--once", "-o", "csv").stdout)))
     assert {(r["device"], r["name"], r["value"], r["unit"], r["ref"]) for r in rows} >= {
         ("meter1", "voltage", "230.1", "V", "30001"),
         ("plc", "00001", "on", "", "00001"),
     }
 
-    lines = run_mbtool("poll", small_plant, "--once", "-o", "influx").stdout.splitlines()
+    lines = run_cli("poll", small_plant, "--once", "-o", "influx").stdout.splitlines()
     points = {p["tags"]["device"]: p for p in map(parse_line, lines)}
     assert set(points) == {"meter1", "meter2", "plc"}  # the dead unit writes no line
     assert points["meter1"]["tags"] == {"device": "meter1", "site": "north", "unit": "1"}
     assert points["meter1"]["fields"] == {"voltage": 230.1, "tariff": 1}
 
-    text = run_mbtool("poll", small_plant, "--once", "-o", "prom").stdout
+    text = run_cli("poll", small_plant, "--once", "-o", "prom").stdout
     samples = {
         (sample.name, tuple(sorted(sample.labels.items()))): sample.value
         for family in text_string_to_metric_families(text)
@@ -372,7 +372,7 @@ def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
             f'[links.a]\ntarget = "{device.target}"\n[devices.m]\nlink = "a"\nmap = "meter.toml"\n',
         )
         run = {
-            fmt: run_mbtool("poll", plant, "--once", "-o", fmt) for fmt in ("json", "plain", "influx", "prom")
+            fmt: run_cli("poll", plant, "--once", "-o", fmt) for fmt in ("json", "plain", "influx", "prom")
         }
     assert all(res.returncode == 0 for res in run.values()), run
     (record,) = map(json.loads, run["json"].stdout.splitlines())
@@ -452,7 +452,7 @@ def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent
         f'[links.a]\ntarget = "{silent_server.socket_target.replace("socket", "tcp")}"\ntimeout = 0.2\n'
         '[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
     )
-    res = run_mbtool("poll", plant, "--once", "--stats", "json")
+    res = run_cli("poll", plant, "--once", "--stats", "json")
     assert res.returncode == 3, res  # no response
     stats = json.loads(res.stderr.splitlines()[-2])
     assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"

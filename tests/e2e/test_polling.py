@@ -22,6 +22,7 @@ from helpers import (
     free_port,
     interrupt_after,
     mbtool_env,
+    run_cli,
     serve,
     start_device,
     start_mbtool,
@@ -54,9 +55,9 @@ def stamp(text: str) -> datetime:
     return datetime.fromisoformat(text)
 
 
-def test_json_lines_one_per_poll(mbtool):
+def test_json_lines_one_per_poll():
     res = expect_ok(
-        mbtool(
+        run_cli(
             "read-holding-registers",
             "0",
             "3",
@@ -80,9 +81,9 @@ def test_json_lines_one_per_poll(mbtool):
     assert len(res.stderr.strip().splitlines()) == 1
 
 
-def test_csv_header_once(mbtool):
+def test_csv_header_once():
     res = expect_ok(
-        mbtool("read-coils", "0", "2", "-p", "sim://", "--polls", "3", "--interval", "0.05", "-o", "csv")
+        run_cli("read-coils", "0", "2", "-p", "sim://", "--polls", "3", "--interval", "0.05", "-o", "csv")
     )
     lines = res.stdout.splitlines()
     assert lines[0] == "time,address,value"
@@ -94,9 +95,9 @@ def test_csv_header_once(mbtool):
         stamp(when)
 
 
-def test_plain_lines_prefixed_by_time(mbtool, tcp_device):
+def test_plain_lines_prefixed_by_time(tcp_device):
     res = expect_ok(
-        mbtool(
+        run_cli(
             "read-holding-registers", "0", "2", "-p", tcp_device.target, "--polls", "2", "--interval", "0.05"
         )
     )
@@ -135,8 +136,8 @@ def test_polls_alone_means_one_second_and_interval_respected(mbtool):
     assert 4 <= rate(res) <= 5.5  # the polls a second the interval asks for
 
 
-def test_failed_polls_are_counted_and_exit_with_their_code(mbtool, silent_server):
-    res = mbtool(
+def test_failed_polls_are_counted_and_exit_with_their_code(silent_server):
+    res = run_cli(
         "read-holding-registers",
         "0",
         "1",
@@ -227,19 +228,19 @@ def test_interrupted_before_any_poll_is_130(tmp_path):
     assert "interrupted; polls 0" in err
 
 
-def test_one_shot_unchanged_without_polling_options(mbtool):
-    res = expect_ok(mbtool("read-holding-registers", "0", "2", "-p", "sim://", "-o", "json"))
+def test_one_shot_unchanged_without_polling_options():
+    res = expect_ok(run_cli("read-holding-registers", "0", "2", "-p", "sim://", "-o", "json"))
     assert "time" not in json.loads(res.stdout) and res.stderr == ""
 
 
-def test_polling_help_documents_exit_status(mbtool):
-    res = expect_ok(mbtool("read-coils", "--help"))
+def test_polling_help_documents_exit_status():
+    res = expect_ok(run_cli("read-coils", "--help"))
     assert "--interval" in res.stdout and "--polls" in res.stdout
     assert "130 only if interrupted before any poll finished" in " ".join(res.stdout.split())
 
 
-def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(mbtool, refused_port):
-    res = mbtool(
+def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(refused_port):
+    res = run_cli(
         "read-coils",
         "0",
         "1",
@@ -260,7 +261,7 @@ def test_a_first_poll_that_cannot_connect_is_a_failed_poll_like_a_later_one(mbto
     assert [json.loads(line)["exit_code"] for line in res.stdout.splitlines()] == [6, 6, 6]
     assert summary(res) == {"polls": 3, "replies": 0, "timeouts": 0, "errors": 3, "skipped": 0}
     # A request that cannot be made is still one error, before any poll.
-    assert_one_error_line(mbtool("read-coils", "0", "1", "--interval", "0.1"), 2)
+    assert_one_error_line(run_cli("read-coils", "0", "1", "--interval", "0.1"), 2)
 
 
 def test_polling_goes_on_until_a_device_that_was_not_up_answers():
@@ -332,12 +333,12 @@ def test_interval_zero_polls_back_to_back_over_tcp(mbtool, tcp_device):
     assert 49 / (span + 0.002) <= rate(res) <= 49 / max(span - 0.002, 0.001)
 
 
-def test_negative_interval_is_refused(mbtool):
-    res = mbtool("read-coils", "0", "1", "-p", "sim://", "--interval", "-1", "--polls", "2")
+def test_negative_interval_is_refused():
+    res = run_cli("read-coils", "0", "1", "-p", "sim://", "--interval", "-1", "--polls", "2")
     assert "0 or more seconds" in assert_one_error_line(res, 2)
 
 
-def test_back_to_back_polls_keep_their_order_when_a_reply_stops(mbtool, raw_responder):
+def test_back_to_back_polls_keep_their_order_when_a_reply_stops(raw_responder):
     """With --interval 0 a poll's line is written while the next request is out: a failure
     after it must still come after it, on stdout and on stderr."""
     answered = []
@@ -349,7 +350,7 @@ def test_back_to_back_polls_keep_their_order_when_a_reply_stops(mbtool, raw_resp
         return request[:4] + b"\x00\x07" + request[6:8] + b"\x04\x00\x2a\x00\x2b"
 
     device = raw_responder(first_only)
-    res = mbtool(
+    res = run_cli(
         "read-holding-registers",
         "0",
         "2",
@@ -708,13 +709,13 @@ def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
     assert failures == [] and "replies 3, partial 0, timeouts 0" in text, (failures, text)
 
 
-def test_the_summary_counts_every_transaction_by_its_outcome_and_stats_json_gives_it_whole(mbtool):
+def test_the_summary_counts_every_transaction_by_its_outcome_and_stats_json_gives_it_whole():
     """Issue 32: the classification of link.stats in polling's summary too, and --stats json.
     A device that drops every other reply (serve --drop 0.5), with one retry: answered
     transactions, retries that recovered them, and a round-trip histogram."""
 
     with serve("--drop", "0.5", "--seed", "3") as server:
-        res = mbtool(
+        res = run_cli(
             "read-holding-registers", "0", "1", "-p", server.target, "-t", "0.2", "--retries", "3",
             "--interval", "0", "--polls", "10", "--stats", "json",
         )  # fmt: skip

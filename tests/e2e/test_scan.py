@@ -3,7 +3,7 @@
 Peers: pymodbus's server on a pseudo-terminal and on TCP (several unit ids),
 sim:// (the built-in device, unit 1 only), and small misbehaving TCP peers from
 tests/helpers.py (silent, answering with a bad CRC, answering as another unit, answering
-late).  Every run has a deadline (run_mbtool's), and every wait below has one.
+late).  Every run ends within the test's timeout, and every wait below has a deadline.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from helpers import (
     expect_ok,
     mbtool_env,
     rtu,
+    run_cli,
     start_device,
     start_mbtool,
 )
@@ -58,9 +59,9 @@ def rtu_bus():
         yield dev
 
 
-def test_scan_finds_the_units_of_an_rtu_bus(mbtool, rtu_bus):
+def test_scan_finds_the_units_of_an_rtu_bus(rtu_bus):
     res = expect_ok(
-        mbtool("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1-8", *GENEROUS, "-o", "json")
+        run_cli("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1-8", *GENEROUS, "-o", "json")
     )
     data = scan_json(res)
     units = by_unit(data)
@@ -80,17 +81,17 @@ def test_scan_finds_the_units_of_an_rtu_bus(mbtool, rtu_bus):
     assert "probes 8" in res.stderr
 
 
-def test_plain_output_is_one_line_per_unit_found(mbtool, rtu_bus):
+def test_plain_output_is_one_line_per_unit_found(rtu_bus):
     res = expect_ok(
-        mbtool("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1,3", *GENEROUS, "-o", "plain")
+        run_cli("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1,3", *GENEROUS, "-o", "plain")
     )
     assert res.lines == [f"1 reply registers {HOLDING[0]}", f"3 reply registers {HOLDING[0]}"], res
 
 
-def test_exception_answers_count_as_present(mbtool, rtu_bus):
+def test_exception_answers_count_as_present(rtu_bus):
     # Address 5000 is past pymodbus's tables: exception 02, which proves the unit is there.
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             rtu_bus.target,
@@ -109,9 +110,9 @@ def test_exception_answers_count_as_present(mbtool, rtu_bus):
     assert entry["exception"] == 2 and entry["exception_name"] == "Illegal Data Address"
 
 
-def test_report_id_probe_carries_the_identity(mbtool, rtu_bus):
+def test_report_id_probe_carries_the_identity(rtu_bus):
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             rtu_bus.target,
@@ -132,9 +133,9 @@ def test_report_id_probe_carries_the_identity(mbtool, rtu_bus):
     assert "PM-TEST" in entry["extra_text"] and isinstance(entry["run_indicator"], bool)
 
 
-def test_hex_shows_one_probe_per_unit(mbtool, rtu_bus):
+def test_hex_shows_one_probe_per_unit(rtu_bus):
     res = expect_ok(
-        mbtool("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1-3", *GENEROUS, "--hex")
+        run_cli("scan", "-p", rtu_bus.target, *PTY_SERIAL_OPTS, "--units", "1-3", *GENEROUS, "--hex")
     )
     sent = [line for line in res.stderr.splitlines() if line.startswith("TX ")]
     assert [line.split()[1] for line in sent] == ["01", "02", "03"], res
@@ -150,9 +151,9 @@ def test_hex_shows_one_probe_per_unit(mbtool, rtu_bus):
 # --first stopping), not that it finds the right baud: that needs a real serial line.
 
 
-def test_sweep_reports_the_settings_of_each_answer(mbtool, rtu_bus):
+def test_sweep_reports_the_settings_of_each_answer(rtu_bus):
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             rtu_bus.target,
@@ -175,14 +176,13 @@ def test_sweep_reports_the_settings_of_each_answer(mbtool, rtu_bus):
     assert data["probed"] == 4
 
 
-def _scan_in_process(monkeypatch, capsys, refused: str, *args: str) -> tuple[int, str, str]:
+def _scan_in_process(monkeypatch, refused: str, *args: str) -> tuple[int, str, str]:
     """Run mbtool scan in this process, with a port that refuses the parities in ``refused``.
 
     Linux ptys refuse some settings (EINVAL) but not consistently (it depends on the
     settings they had before), so the refusal is made here, where pyserial's is raised.
     """
     import mbtool.link.transport as transport
-    from mbtool.cli import main
     from mbtool.errors import ConnectionFailed
 
     real = transport.open_transport
@@ -193,16 +193,13 @@ def _scan_in_process(monkeypatch, capsys, refused: str, *args: str) -> tuple[int
         return real(target, settings, timeout, framer, tls)
 
     monkeypatch.setattr(transport, "open_transport", open_transport)
-    with pytest.raises(SystemExit) as done:
-        main(["scan", *args])
-    out, err = capsys.readouterr()
-    return done.value.code, out, err
+    res = run_cli("scan", *args)
+    return res.returncode, res.stdout, res.stderr
 
 
-def test_sweep_skips_a_setting_the_port_refuses(monkeypatch, capsys, rtu_bus):
+def test_sweep_skips_a_setting_the_port_refuses(monkeypatch, rtu_bus):
     code, out, err = _scan_in_process(
         monkeypatch,
-        capsys,
         "E",
         "-p",
         rtu_bus.target,
@@ -226,9 +223,9 @@ def test_sweep_skips_a_setting_the_port_refuses(monkeypatch, capsys, rtu_bus):
     assert "mbtool: 9600 8E1: cannot open" in err and "settings opened 1 of 2" in err
 
 
-def test_sweep_stops_at_the_first_unit_found(mbtool, rtu_bus):
+def test_sweep_stops_at_the_first_unit_found(rtu_bus):
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             rtu_bus.target,
@@ -248,10 +245,9 @@ def test_sweep_stops_at_the_first_unit_found(mbtool, rtu_bus):
     assert "probes 1," in res.stderr and "settings opened 1 of 1" in res.stderr
 
 
-def test_sweep_that_cannot_open_any_setting_is_exit_6(monkeypatch, capsys, pty_pair):
+def test_sweep_that_cannot_open_any_setting_is_exit_6(monkeypatch, pty_pair):
     code, out, err = _scan_in_process(
         monkeypatch,
-        capsys,
         "EO",
         "-p",
         pty_pair.mbtool_path,
@@ -274,25 +270,25 @@ def test_sweep_that_cannot_open_any_setting_is_exit_6(monkeypatch, capsys, pty_p
 # --- Modbus TCP and sim:// -----------------------------------------------------------------
 
 
-def test_scan_over_tcp(mbtool, tcp_device):
-    res = expect_ok(mbtool("scan", "-p", tcp_device.target, "--units", "1-3", "-t", "0.5", "-o", "json"))
+def test_scan_over_tcp(tcp_device):
+    res = expect_ok(run_cli("scan", "-p", tcp_device.target, "--units", "1-3", "-t", "0.5", "-o", "json"))
     units = by_unit(scan_json(res))
     assert {u for u, e in units.items() if e["answer"] == "reply"} == {1, 2}, res
     assert units[1]["values"] == [HOLDING[0]]
     assert units.get(3, {}).get("answer") != "reply"
 
 
-def test_scan_of_the_built_in_device(mbtool):
+def test_scan_of_the_built_in_device():
     # sim:// serves unit 1 only and stays silent for the others, as a device on a bus does.
-    res = expect_ok(mbtool("scan", "-p", "sim://", "--units", "1-4", "-t", "0.05", "-o", "json"))
+    res = expect_ok(run_cli("scan", "-p", "sim://", "--units", "1-4", "-t", "0.05", "-o", "json"))
     data = scan_json(res)
     assert [(e["unit"], e["answer"], e["values"]) for e in data["units"]] == [(1, "reply", [0])]
     assert data["probed"] == 4 and data["silent"] == 3
 
 
-def test_csv_has_a_header_and_a_row_per_unit(mbtool):
+def test_csv_has_a_header_and_a_row_per_unit():
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             "sim://",
@@ -313,15 +309,15 @@ def test_csv_has_a_header_and_a_row_per_unit(mbtool):
     assert len(res.lines) == 2
 
 
-def test_table_lists_the_units_found(mbtool):
-    res = expect_ok(mbtool("scan", "-p", "sim://", "--units", "1-2", "-t", "0.05", "-o", "table"))
+def test_table_lists_the_units_found():
+    res = expect_ok(run_cli("scan", "-p", "sim://", "--units", "1-2", "-t", "0.05", "-o", "table"))
     assert "Read Holding Registers" in res.stdout and "sim://" in res.stdout
     rows = [line for line in res.stdout.splitlines() if "registers 0" in line]
     assert len(rows) == 1 and rows[0].split()[1] == "1", res
 
 
-def test_nobody_answering_is_exit_3(mbtool, pty_pair):
-    res = mbtool(
+def test_nobody_answering_is_exit_3(pty_pair):
+    res = run_cli(
         "scan", "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, "--units", "1-3", "-t", "0.05", "-o", "json"
     )
     line = assert_one_error_line(res, 3)
@@ -341,13 +337,13 @@ def _mbap_reply(request: bytes, unit: int | None = None) -> bytes:
     return tid + struct.pack(">HHB", 0, 5, unit) + bytes([3, 2, 0, 42])
 
 
-def test_bad_crc_answers_are_garbled_not_found(mbtool, raw_responder):
+def test_bad_crc_answers_are_garbled_not_found(raw_responder):
     def reply(request: bytes) -> bytes:
         frame = rtu(bytes([request[0], 3, 2, 0, 42]))
         return frame[:-1] + bytes([frame[-1] ^ 0xFF])  # a wrong CRC
 
     srv = raw_responder(reply)
-    res = mbtool("scan", "-p", srv.socket_target, "--units", "1-2", *GENEROUS, "-o", "json")
+    res = run_cli("scan", "-p", srv.socket_target, "--units", "1-2", *GENEROUS, "-o", "json")
     assert res.returncode == 5, res
     data = scan_json(res)
     assert data["units"] == []
@@ -356,15 +352,15 @@ def test_bad_crc_answers_are_garbled_not_found(mbtool, raw_responder):
     assert "no unit answered cleanly" in res.stderr
 
 
-def test_an_answer_from_another_unit_is_not_credited_to_the_one_asked(mbtool, raw_responder):
+def test_an_answer_from_another_unit_is_not_credited_to_the_one_asked(raw_responder):
     srv = raw_responder(lambda request: _mbap_reply(request, unit=1))  # whoever is asked, unit 1 answers
-    res = expect_ok(mbtool("scan", "-p", srv.tcp_target, "--units", "1-2", "-t", "0.5", "-o", "json"))
+    res = expect_ok(run_cli("scan", "-p", srv.tcp_target, "--units", "1-2", "-t", "0.5", "-o", "json"))
     data = scan_json(res)
     assert [(e["unit"], e["values"]) for e in data["units"]] == [(1, [42])], res
     assert data["garbled"] == [] and data["silent"] == 1
 
 
-def test_a_gateway_saying_the_unit_is_unreachable_is_not_a_device(mbtool, raw_responder):
+def test_a_gateway_saying_the_unit_is_unreachable_is_not_a_device(raw_responder):
     def reply(request: bytes) -> bytes:
         if request[6] == 1:
             return _mbap_reply(request)
@@ -372,13 +368,13 @@ def test_a_gateway_saying_the_unit_is_unreachable_is_not_a_device(mbtool, raw_re
         return request[:2] + struct.pack(">HHB", 0, 3, request[6]) + bytes([0x83, 0x0B])
 
     srv = raw_responder(reply)
-    res = expect_ok(mbtool("scan", "-p", srv.tcp_target, "--units", "1-3", *GENEROUS, "-o", "json"))
+    res = expect_ok(run_cli("scan", "-p", srv.tcp_target, "--units", "1-3", *GENEROUS, "-o", "json"))
     data = scan_json(res)
     assert [e["unit"] for e in data["units"]] == [1], res
     assert data["gateway"] == 2 and "unreachable behind the gateway 2" in res.stderr
 
 
-def test_a_late_reply_is_credited_to_its_unit(mbtool, raw_responder):
+def test_a_late_reply_is_credited_to_its_unit(raw_responder):
     def reply(request: bytes) -> bytes | None:
         if request[6] != 2:
             return None  # only unit 2 is there
@@ -386,7 +382,7 @@ def test_a_late_reply_is_credited_to_its_unit(mbtool, raw_responder):
         return _mbap_reply(request)
 
     srv = raw_responder(reply)
-    res = expect_ok(mbtool("scan", "-p", srv.tcp_target, "--units", "1-10", *FAST, "-o", "json"))
+    res = expect_ok(run_cli("scan", "-p", srv.tcp_target, "--units", "1-10", *FAST, "-o", "json"))
     data = scan_json(res)
     (entry,) = data["units"]
     assert entry["unit"] == 2 and entry["late"] is True and entry["values"] == [42], res
@@ -394,7 +390,7 @@ def test_a_late_reply_is_credited_to_its_unit(mbtool, raw_responder):
     assert data["silent"] == 9
 
 
-def test_the_summary_counts_every_probe_by_its_outcome(mbtool, raw_responder):
+def test_the_summary_counts_every_probe_by_its_outcome(raw_responder):
     """Each probe is one transaction, classified as every summary of mbtool counts them
     (issue 32): in the stderr line and in -o json's "transactions"."""
 
@@ -412,7 +408,7 @@ def test_the_summary_counts_every_probe_by_its_outcome(mbtool, raw_responder):
         return None  # unit 5: nobody
 
     srv = raw_responder(reply)
-    res = expect_ok(mbtool("scan", "-p", srv.socket_target, "--units", "1-5", "-t", "0.3", "-o", "json"))
+    res = expect_ok(run_cli("scan", "-p", srv.socket_target, "--units", "1-5", "-t", "0.3", "-o", "json"))
     counts = scan_json(res)["transactions"]
     assert {k: counts[k] for k in ("transactions", "answered", "exception", "timeout", "corrupt", "not_ours")} == {
         "transactions": 5, "answered": 1, "exception": 1, "timeout": 1, "corrupt": 1, "not_ours": 1,
@@ -448,34 +444,34 @@ def test_the_summary_counts_every_probe_by_its_outcome(mbtool, raw_responder):
     ],
     ids=lambda args: " ".join(args),
 )
-def test_bad_input_sends_nothing(mbtool, pty_pair, args):
-    res = mbtool("scan", "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, *args)
+def test_bad_input_sends_nothing(pty_pair, args):
+    res = run_cli("scan", "-p", pty_pair.mbtool_path, *PTY_SERIAL_OPTS, *args)
     assert_one_error_line(res, 2)
     assert pty_pair.sent_by_mbtool(SETTLE) == b""
 
 
 @pytest.mark.parametrize("target", ["tcp", "socket", "sim"])
-def test_sweep_needs_a_serial_line(mbtool, silent_server, target):
+def test_sweep_needs_a_serial_line(silent_server, target):
     port = {"tcp": silent_server.tcp_target, "socket": silent_server.socket_target, "sim": "sim://"}[target]
-    res = mbtool("scan", "-p", port, "--bauds", "9600,19200")
+    res = run_cli("scan", "-p", port, "--bauds", "9600,19200")
     line = assert_one_error_line(res, 2)
     assert "serial settings" in line
     assert silent_server.received_bytes(SETTLE) == b"" and silent_server.connections == 0
 
 
-def test_no_port_is_exit_2(mbtool):
-    res = mbtool("scan", "--units", "1")
+def test_no_port_is_exit_2():
+    res = run_cli("scan", "--units", "1")
     assert "no port given" in assert_one_error_line(res, 2)
 
 
-def test_unreadable_port_is_exit_6(mbtool):
-    res = mbtool("scan", "-p", "/dev/mbtool-no-such-port", "--units", "1", *FAST)
+def test_unreadable_port_is_exit_6():
+    res = run_cli("scan", "-p", "/dev/mbtool-no-such-port", "--units", "1", *FAST)
     assert "cannot open" in assert_one_error_line(res, 6)
 
 
-def test_dry_run_shows_the_first_probe_and_opens_nothing(mbtool, pty_pair):
+def test_dry_run_shows_the_first_probe_and_opens_nothing(pty_pair):
     res = expect_ok(
-        mbtool(
+        run_cli(
             "scan",
             "-p",
             pty_pair.mbtool_path,

@@ -8,7 +8,7 @@ import json
 import shutil
 
 import pytest
-from helpers import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_mbtool, start_device
+from helpers import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_cli, start_device
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -48,7 +48,7 @@ def test_a_profile_carries_the_tls_settings_relative_to_its_file(
     elsewhere = tmp_path_factory.mktemp("cwd")
     monkeypatch.chdir(elsewhere)
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers",
             "0",
             "2",
@@ -64,14 +64,14 @@ def test_a_profiles_insecure_warns_and_its_server_name_is_taken(beside, tls_devi
     text = PROFILE.format(target=tls_device.target, more='server_name = "localhost"')
     (beside / "config.toml").write_text(text)
     expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}
         )
     )
     text = PROFILE.format(target=tls_device.target, more="insecure = true").replace('ca = "ca.pem"\n', "")
     (beside / "config.toml").write_text(text)
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(beside / "config.toml")}
         )
     )
@@ -89,7 +89,7 @@ def test_a_profiles_insecure_warns_and_its_server_name_is_taken(beside, tls_devi
 )
 def test_a_profiles_tls_key_of_the_wrong_kind_is_exit_2(tmp_path, line, words):
     (tmp_path / "config.toml").write_text(f'[profiles.plc]\nport = "tls://127.0.0.1:1"\n{line}\n')
-    res = run_mbtool(
+    res = run_cli(
         "read-holding-registers", "0", "-P", "plc", env={"MBTOOL_CONFIG": str(tmp_path / "config.toml")}
     )
     assert words in assert_one_error_line(res, 2)
@@ -114,7 +114,7 @@ def test_poll_takes_tls_links_with_their_files_beside_the_inventory(
 ):
     (beside / "plant.toml").write_text(INVENTORY.format(target=tls_device.target, trust='ca = "ca.pem"'))
     monkeypatch.chdir(tmp_path_factory.mktemp("cwd"))
-    res = expect_ok(run_mbtool("poll", str(beside / "plant.toml"), "--once", "-o", "json"))
+    res = expect_ok(run_cli("poll", str(beside / "plant.toml"), "--once", "-o", "json"))
     record = json.loads(res.stdout)
     assert [point["value"] for point in record["points"]] == HOLDING[:3]
     assert "warning" not in res.stderr
@@ -122,7 +122,7 @@ def test_poll_takes_tls_links_with_their_files_beside_the_inventory(
 
 def test_poll_warns_of_an_insecure_link_by_name(beside, tls_device):
     (beside / "plant.toml").write_text(INVENTORY.format(target=tls_device.target, trust="insecure = true"))
-    res = expect_ok(run_mbtool("poll", str(beside / "plant.toml"), "--once", "-o", "json"))
+    res = expect_ok(run_cli("poll", str(beside / "plant.toml"), "--once", "-o", "json"))
     assert res.stderr.splitlines()[0] == (
         f"mbtool: warning: --insecure: the certificate of {tls_device.target} (link secure) is not checked, "
         "so anyone on the way can read and change the traffic"
@@ -133,7 +133,7 @@ def test_an_inventory_link_with_a_tls_key_off_tls_is_refused(tmp_path):
     (tmp_path / "plant.toml").write_text(
         '[links.bus]\ntarget = "tcp://127.0.0.1:1"\nca = "ca.pem"\n[devices.d]\nlink = "bus"\nread = ["40001"]\n'
     )
-    res = run_mbtool("poll", str(tmp_path / "plant.toml"), "--once")
+    res = run_cli("poll", str(tmp_path / "plant.toml"), "--once")
     line = assert_one_error_line(res, 2)
     assert line == (
         f"mbtool: {tmp_path / 'plant.toml'}: [links.bus]: --ca is for tls:// targets (Modbus/TCP Security); "
@@ -144,7 +144,7 @@ def test_an_inventory_link_with_a_tls_key_off_tls_is_refused(tmp_path):
 def test_an_inventory_links_certificate_is_read_before_anything_opens(beside, tls_device):
     (beside / "me.pem").unlink()
     (beside / "plant.toml").write_text(INVENTORY.format(target=tls_device.target, trust='ca = "ca.pem"'))
-    res = run_mbtool("poll", str(beside / "plant.toml"), "--once")
+    res = run_cli("poll", str(beside / "plant.toml"), "--once")
     line = assert_one_error_line(res, 2)
     assert line == (
         f"mbtool: {beside / 'plant.toml'}: [links.secure]: cannot read --cert {beside / 'me.pem'}: "

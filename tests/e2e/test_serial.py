@@ -20,7 +20,7 @@ from helpers import (
     parse_hex_lines,
     plain_pairs,
     rtu,
-    run_mbtool,
+    run_cli,
     start_device,
 )
 
@@ -38,7 +38,7 @@ def serial_device(request, serial_rtu_device, serial_ascii_device):
 
 def ser(dev, *args, **kw):
     extra = ["--framer", "ascii"] if dev.framer == "ascii" else []
-    return run_mbtool(*args, "-p", dev.target, *PTY_SERIAL_OPTS, *extra, **kw)
+    return run_cli(*args, "-p", dev.target, *PTY_SERIAL_OPTS, *extra, **kw)
 
 
 def pymodbus_serial_client(dev):
@@ -164,12 +164,10 @@ def test_local_echo_is_stripped():
     """--echo: a half-duplex adapter hears its own frame before the reply (pty relay echoes it)."""
     with start_device(tcp=False, framer="rtu", units="1", pty_echo=True) as dev:
         res = expect_ok(
-            run_mbtool("read-holding-registers", "0", "3", "-p", dev.target, *PTY_SERIAL_OPTS, "--echo")
+            run_cli("read-holding-registers", "0", "3", "-p", dev.target, *PTY_SERIAL_OPTS, "--echo")
         )
         assert plain_pairs(res) == [(0, "100"), (1, "101"), (2, "102")]
-        res = expect_ok(
-            run_mbtool("write-register", "230", "9", "-p", dev.target, *PTY_SERIAL_OPTS, "--echo")
-        )
+        res = expect_ok(run_cli("write-register", "230", "9", "-p", dev.target, *PTY_SERIAL_OPTS, "--echo"))
         assert plain_pairs(res) == [(230, "9")]
 
 
@@ -177,7 +175,7 @@ def test_local_echo_is_stripped():
 
 
 def sock(dev, *args, **kw):
-    return run_mbtool(*args, "-p", dev.target, **kw)
+    return run_cli(*args, "-p", dev.target, **kw)
 
 
 def test_socket_reads(socket_rtu_device):

@@ -27,7 +27,7 @@ from helpers import (
     free_port,
     plain_pairs,
     pymodbus_tcp,
-    run_mbtool,
+    run_cli,
     serve,
     start_mbtool,
 )
@@ -37,8 +37,9 @@ pytestmark = pytest.mark.timeout(60)
 READY = 10.0  # seconds for the live view to show its first screen
 
 
-def mb(server_target: str, *args: str, **kw):
-    return run_mbtool(*args, "-p", server_target, **kw)
+def mb(server_target: str, *args: str):
+    """mbtool ARGS -p TARGET in this process (a client of serve needs no process of its own)."""
+    return run_cli(*args, "-p", server_target)
 
 
 # --- pymodbus's client against mbtool serve -----------------------------------------------
@@ -264,11 +265,11 @@ def test_mbtool_client_over_serial_rtu():
     try:
         with serve("--parity", "N", "-u", "5", target=pair.device_path):
             args = ("-u", "5", *PTY_SERIAL_OPTS)
-            expect_ok(run_mbtool("write-register", "3", "333", "-p", pair.mbtool_path, *args))
-            res = expect_ok(run_mbtool("read-holding-registers", "2", "2", "-p", pair.mbtool_path, *args))
+            expect_ok(run_cli("write-register", "3", "333", "-p", pair.mbtool_path, *args))
+            res = expect_ok(run_cli("read-holding-registers", "2", "2", "-p", pair.mbtool_path, *args))
             assert plain_pairs(res) == [(2, "2"), (3, "333")]
             # a frame for another unit on the bus is ignored: no reply, so a timeout
-            res = run_mbtool(
+            res = run_cli(
                 "read-holding-registers",
                 "0",
                 "-p",
@@ -451,7 +452,7 @@ def live_view(*args: str):
 
 def test_live_view_on_a_terminal():
     with live_view() as view:
-        expect_ok(run_mbtool("read-coils", "0", "-p", view.target))
+        expect_ok(run_cli("read-coils", "0", "-p", view.target))
         assert view.until(b"01 01 00 00 00 01")  # the request in "last frames"
 
 
@@ -494,14 +495,14 @@ def test_live_view_shows_what_a_peer_sends_as_text_never_as_markup():
     ],
 )
 def test_usage_errors(args, code, text):
-    res = run_mbtool("serve", *args, timeout=10)
+    res = run_cli("serve", *args)
     line = assert_one_error_line(res, code)
     assert text in line
 
 
 def test_port_in_use_is_exit_6():
     with serve() as server:
-        res = run_mbtool("serve", "-p", f"tcp://127.0.0.1:{server.port}", "-q", timeout=10)
+        res = run_cli("serve", "-p", f"tcp://127.0.0.1:{server.port}", "-q")
         line = assert_one_error_line(res, 6)
         assert "cannot listen" in line
 

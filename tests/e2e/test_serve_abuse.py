@@ -29,7 +29,7 @@ from helpers import (
     crc16,
     mbap,
     pymodbus_tcp,
-    run_mbtool,
+    run_cli,
     serve,
     serving_line,
     start_serve,
@@ -536,7 +536,7 @@ def test_replies_held_back_by_delay_count_towards_the_output_limit():
 def test_a_data_file_with_more_files_than_a_unit_holds_is_refused(tmp_path):
     path = tmp_path / "files.toml"
     path.write_text("".join(f"[files.{n}]\n0 = 1\n" for n in range(1, MAX_FILES + 2)))
-    line = assert_one_error_line(run_mbtool("serve", "-q", "-p", "tcp://127.0.0.1:0", "--data", str(path)), 2)
+    line = assert_one_error_line(run_cli("serve", "-q", "-p", "tcp://127.0.0.1:0", "--data", str(path)), 2)
     assert f"{MAX_FILES + 1} files: a unit holds at most {MAX_FILES}" in line
-    help_text = " ".join(run_mbtool("serve", "--help").stdout.split())
+    help_text = " ".join(run_cli("serve", "--help").stdout.split())
     assert f"at most {MAX_FILES} files (FC 20/21)" in help_text  # the bound is stated

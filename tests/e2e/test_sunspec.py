@@ -10,7 +10,7 @@ import json
 import re
 
 import pytest
-from helpers import REPO_ROOT, PtyPair, run_mbtool, serve
+from helpers import REPO_ROOT, PtyPair, run_cli, serve
 
 from mbtool.sunspec.models import definition
 
@@ -20,7 +20,7 @@ TWIN_MODELS = [1, 103, 120, 121, 122, 123, 160, 203]
 
 
 def sunspec(target: str, *args: str):
-    res = run_mbtool("sunspec", "-p", target, "-o", "json", *args)
+    res = run_cli("sunspec", "-p", target, "-o", "json", *args)
     assert "Traceback" not in res.stderr, res
     return res
 
@@ -162,7 +162,7 @@ def test_groups_counted_by_points_one_inside_the_other_agree_with_pysunspec2():
     with serve("--data", str(QUIRKS / "nested-groups.toml")) as device:
         theirs = _pysunspec2_tcp(device)
         res = sunspec(device.target)
-        plain = run_mbtool("sunspec", "-p", device.target, "--model", "705")
+        plain = run_cli("sunspec", "-p", device.target, "--model", "705")
     tree = tree_of(res)
     assert _agree(theirs, tree) == 6 + 11 + 2 * (9 + 2 * 2)
     curves = tree["models"][1]["groups"]["Crv"]
@@ -175,7 +175,7 @@ def test_groups_counted_by_points_one_inside_the_other_agree_with_pysunspec2():
 
 
 def test_the_plain_output_names_each_model_and_a_module_a_line(twin):
-    res = run_mbtool("sunspec", "-p", twin.target)
+    res = run_cli("sunspec", "-p", twin.target)
     assert res.returncode == 0, res
     lines = res.stdout.splitlines()
     assert lines[0] == "SunSpec at 40000, unit 1: 8 models"
@@ -201,7 +201,7 @@ def test_csv_has_a_row_a_point_read_back_by_the_csv_module(twin):
     import csv
     import io
 
-    res = run_mbtool("sunspec", "-p", twin.target, "-o", "csv", "--model", "103")
+    res = run_cli("sunspec", "-p", twin.target, "-o", "csv", "--model", "103")
     rows = list(csv.DictReader(io.StringIO(res.stdout)))
     by_name = {row["name"]: row for row in rows}
     assert by_name["inverter_three_phase.Hz"]["value"] == "50.01"
@@ -242,7 +242,7 @@ def test_a_chain_ended_by_0x0000_alone_ends_there():
 def test_the_length_on_the_wire_wins_with_a_warning_naming_the_model():
     with serve("--data", str(QUIRKS / "model-lengths.toml")) as device:
         res = sunspec(device.target)
-        with_map = run_mbtool("sunspec", "-p", device.target, "--map", "/dev/null/x.toml")
+        with_map = run_cli("sunspec", "-p", device.target, "--map", "/dev/null/x.toml")
     tree = tree_of(res)
     common, longer, shorter = tree["models"]
     assert (common["length"], common["points"]["DA"]["value"], "Pad" in common["points"]) == (65, 1, False)
@@ -287,7 +287,7 @@ def test_a_repeating_group_counted_by_a_point_that_does_not_fit_is_left_raw():
 def test_a_model_sunspec_does_not_define_is_shown_raw_and_the_walk_goes_on():
     with serve("--data", str(QUIRKS / "unknown-model.toml")) as device:
         res = sunspec(device.target)
-        plain = run_mbtool("sunspec", "-p", device.target)
+        plain = run_cli("sunspec", "-p", device.target)
     tree = tree_of(res)
     assert [m["id"] for m in tree["models"]] == [1, 64999, 103]
     assert tree["models"][1]["raw"] == {"address": 40072, "registers": [1, 2, 3, 4]}
@@ -360,7 +360,7 @@ def test_a_model_the_device_refuses_is_named_the_others_shown_and_exit_8(tmp_pat
 @pytest.fixture(scope="module")
 def twin_map(twin, tmp_path_factory):
     path = tmp_path_factory.mktemp("sunspec") / "inverter.toml"
-    res = run_mbtool("sunspec", "-p", twin.target, "--map", path, "-o", "json")
+    res = run_cli("sunspec", "-p", twin.target, "--map", path, "-o", "json")
     assert res.returncode == 0, res
     assert f"wrote {path}: 247 points of 8 models" in res.stderr
     return path
@@ -394,14 +394,14 @@ def _flatten(values: dict, group: dict, prefix: str, out: dict) -> None:
 
 def test_read_m_of_the_map_sunspec_wrote_reads_what_pysunspec2_reads(twin, twin_map):
     theirs = _pysunspec2_points(twin)
-    res = run_mbtool("read", "-m", twin_map, "-p", twin.target, "-o", "json", "--hex")
+    res = run_cli("read", "-m", twin_map, "-p", twin.target, "-o", "json", "--hex")
     assert res.returncode == 0, res
     ours = {point["name"]: point["value"] for point in json.loads(res.stdout)["points"]}
     assert ours == theirs
     assert len(ours) == 247
     # 404 registers of eight models, gaps of 8 or fewer bridged: four reads.
     assert len([line for line in res.stderr.splitlines() if line.startswith("TX")]) == 4
-    plain = run_mbtool(
+    plain = run_cli(
         "read", "-m", twin_map, "inverter_three_phase.VAr", "inverter_three_phase.W", "-p", twin.target
     )
     assert plain.stdout == "inverter_three_phase.VAr invalid\ninverter_three_phase.W 8600 W\n"
@@ -415,13 +415,13 @@ def test_check_m_and_poll_with_the_map_give_pysunspec2s_values(twin, twin_map, t
         "mppt.module2.DCV",
         "ac_meter_abcn.TotWhExp",
     ]
-    check = run_mbtool("check", "-m", twin_map, *names, "-p", twin.target)
+    check = run_cli("check", "-m", twin_map, *names, "-p", twin.target)
     assert check.returncode == 0, check
     perfdata = dict(item.replace("'", "").split("=") for item in check.stdout.split(" | ")[1].split())
     assert {name: float(re.match(r"-?[\d.]+", perfdata[name]).group()) for name in names} == {
         name: theirs[name] for name in names
     }
-    status = run_mbtool(
+    status = run_cli(
         "check", "-m", twin_map, "inverter_three_phase.St", "-w", "4:4", "-c", "2:6", "-p", twin.target
     )
     assert status.returncode == 0 and status.stdout.startswith("MODBUS OK - inverter_three_phase.St=MPPT"), (
@@ -432,7 +432,7 @@ def test_check_m_and_poll_with_the_map_give_pysunspec2s_values(twin, twin_map, t
     plant.write_text(
         f'[links.roof]\ntarget = "{twin.target}"\n[devices.inverter]\nlink = "roof"\nmap = "{twin_map}"\n'
     )
-    poll = run_mbtool("poll", plant, "--once", "-o", "json")
+    poll = run_cli("poll", plant, "--once", "-o", "json")
     assert poll.returncode == 0, poll
     (record,) = map(json.loads, poll.stdout.splitlines())
     ours = {point["name"]: point["value"] for point in record["points"]}
@@ -442,9 +442,7 @@ def test_check_m_and_poll_with_the_map_give_pysunspec2s_values(twin, twin_map, t
 def test_a_scaled_control_written_through_the_map_is_read_back_by_pysunspec2(twin_map, tmp_path):
     """WMaxLimPct (model 123) in its scale factor's steps of 0.1 %: 55.5 % is 555 on the wire."""
     with serve("--data", str(TWIN)) as device:
-        res = run_mbtool(
-            "write", "-m", twin_map, "controls.WMaxLimPct=55.5", "-p", device.target, "-o", "json"
-        )
+        res = run_cli("write", "-m", twin_map, "controls.WMaxLimPct=55.5", "-p", device.target, "-o", "json")
         assert res.returncode == 0, res
         assert json.loads(res.stdout)["points"][0] | {} == {
             "name": "controls.WMaxLimPct",
@@ -454,7 +452,7 @@ def test_a_scaled_control_written_through_the_map_is_read_back_by_pysunspec2(twi
             "registers": [555],
         }
         theirs = _pysunspec2_tcp(device)
-        refused = run_mbtool("write", "-m", twin_map, "controls.WMaxLimPct=55.55", "-p", device.target)
+        refused = run_cli("write", "-m", twin_map, "controls.WMaxLimPct=55.55", "-p", device.target)
     controls = next(model for model in theirs if model["id"] == 123)
     assert controls["WMaxLimPct"] == 55.5
     assert refused.returncode == 2

@@ -18,6 +18,7 @@ from helpers import (
     expect_ok,
     parse_hex_lines,
     plain_pairs,
+    run_cli,
     run_mbtool,
     start_mbtool,
 )
@@ -25,8 +26,9 @@ from helpers import (
 pytestmark = pytest.mark.timeout(60)
 
 
-def mb(dev, *args, **kw):
-    return run_mbtool(*args, "-p", dev.target, **kw)
+def mb(dev, *args):
+    """mbtool ARGS -p DEV in this process: what a run reads and prints needs no process of its own."""
+    return run_cli(*args, "-p", dev.target)
 
 
 def bit(b: bool) -> str:
@@ -37,7 +39,7 @@ def bit(b: bool) -> str:
 
 
 def test_read_holding_registers(tcp_device):
-    res = expect_ok(mb(tcp_device, "read-holding-registers", "0", "20"))
+    res = expect_ok(run_mbtool("read-holding-registers", "0", "20", "-p", tcp_device.target))  # the program
     assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING)]
 
 
@@ -80,7 +82,7 @@ def test_unit_option_and_env(tcp_device):
     assert tx and tx[0].data[6] == 2, str(res)  # MBAP unit identifier
 
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers",
             "1",
             "-o",
@@ -122,7 +124,7 @@ def test_write_register_hex_value(tcp_device, pymodbus_tcp_client):
 
 def test_write_register_negative_without_double_dash(tcp_device, pymodbus_tcp_client):
     # exactly the contract's example: mbtool write-register 100 -5
-    res = expect_ok(run_mbtool("write-register", "100", "-5", "-p", tcp_device.target))
+    res = expect_ok(run_cli("write-register", "100", "-5", "-p", tcp_device.target))
     assert len(res.lines) == 1 and plain_pairs(res)[0][0] == 100, str(res)
     assert pymodbus_tcp_client.read_holding_registers(100, count=1, device_id=1).registers == [65531]
     back = expect_ok(mb(tcp_device, "read-holding-registers", "100"))
@@ -232,7 +234,7 @@ def test_float32_json_values_are_numbers(tcp_device):
 
 
 def test_plain_is_default_in_a_pipe_and_explicit(tcp_device):
-    default = expect_ok(mb(tcp_device, "read-holding-registers", "0", "3"))
+    default = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", tcp_device.target))  # a pipe
     plain = expect_ok(mb(tcp_device, "read-holding-registers", "0", "3", "-o", "plain"))
     assert default.stdout == plain.stdout == "0 100\n1 101\n2 102\n"
 

@@ -26,6 +26,7 @@ from helpers import (
     mbtool_env,
     parse_hex_lines,
     plain_pairs,
+    run_cli,
     run_mbtool,
     start_device,
 )
@@ -65,21 +66,21 @@ def identity(pki, who: str = "operator", ca: str = "ca") -> list[str]:
 def test_reads_and_writes_over_mutual_tls(pki, tls_devices):
     device = tls_devices()
     assert device.target.startswith("tls://127.0.0.1:")
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "5", "-p", device.target, *identity(pki)))
+    res = expect_ok(run_cli("read-holding-registers", "0", "5", "-p", device.target, *identity(pki)))
     assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:5])]
-    expect_ok(run_mbtool("write-register", "30", "4711", "-p", device.target, *identity(pki)))
-    res = expect_ok(run_mbtool("read-holding-registers", "30", "-p", device.target, *identity(pki)))
+    expect_ok(run_cli("write-register", "30", "4711", "-p", device.target, *identity(pki)))
+    res = expect_ok(run_cli("read-holding-registers", "30", "-p", device.target, *identity(pki)))
     assert plain_pairs(res) == [(30, "4711")]
 
 
 def test_the_host_may_be_a_name_the_certificate_has(pki, tls_devices):
     target = tls_devices().target.replace("127.0.0.1", "localhost")
-    expect_ok(run_mbtool("read-holding-registers", "0", "-p", target, *identity(pki)))
+    expect_ok(run_cli("read-holding-registers", "0", "-p", target, *identity(pki)))
 
 
 def test_hex_shows_the_plaintext_adus(pki, tls_devices):
     res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "2", "-p", tls_devices().target, *identity(pki), "--hex")
+        run_cli("read-holding-registers", "0", "2", "-p", tls_devices().target, *identity(pki), "--hex")
     )
     frames = parse_hex_lines(res.stderr)
     assert [f.direction for f in frames] == ["TX", "RX"]
@@ -90,15 +91,15 @@ def test_hex_shows_the_plaintext_adus(pki, tls_devices):
 def test_ca_may_be_the_devices_own_certificate_to_pin_one_self_signed_device(pki, tls_devices):
     device = tls_devices("server_self_signed")
     pinned = [*identity(pki)[:4], "--ca", str(pki.server_self_signed.cert)]
-    expect_ok(run_mbtool("read-holding-registers", "0", "-p", device.target, *pinned))
+    expect_ok(run_cli("read-holding-registers", "0", "-p", device.target, *pinned))
 
 
 def test_ca_may_pin_a_devices_certificate_whoever_signed_it(pki, tls_devices):
     pinned = [*identity(pki)[:4], "--ca", str(pki.server.cert)]  # the leaf alone, not its CA
-    expect_ok(run_mbtool("read-holding-registers", "0", "-p", tls_devices().target, *pinned))
+    expect_ok(run_cli("read-holding-registers", "0", "-p", tls_devices().target, *pinned))
     other = [*identity(pki)[:4], "--ca", str(pki.server_other_name.cert)]  # another device's
     line = assert_one_error_line(
-        run_mbtool("read-holding-registers", "0", "-p", tls_devices().target, *other), 6
+        run_cli("read-holding-registers", "0", "-p", tls_devices().target, *other), 6
     )
     assert "signed by a CA not among the --ca given" in line
 
@@ -107,7 +108,7 @@ def test_insecure_skips_the_check_with_a_warning_each_run(pki, tls_devices):
     device = tls_devices("server_self_signed")
     for _ in range(2):
         res = expect_ok(
-            run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4], "--insecure")
+            run_cli("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4], "--insecure")
         )
         assert res.stderr == (
             f"mbtool: warning: --insecure: the certificate of {device.target} is not checked, so anyone "
@@ -118,7 +119,7 @@ def test_insecure_skips_the_check_with_a_warning_each_run(pki, tls_devices):
 def test_server_name_accepts_a_certificate_for_another_name(pki, tls_devices):
     device = tls_devices("server_other_name")
     expect_ok(
-        run_mbtool(
+        run_cli(
             "read-holding-registers",
             "0",
             "-p",
@@ -160,7 +161,7 @@ def test_server_name_accepts_a_certificate_for_another_name(pki, tls_devices):
 def test_a_server_certificate_that_does_not_verify_says_why(pki, tls_devices, server, words):
     device = tls_devices(server)
     line = assert_one_error_line(
-        run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)), 6
+        run_cli("read-holding-registers", "0", "-p", device.target, *identity(pki)), 6
     )
     host_port = device.target.removeprefix("tls://")
     assert line == f"mbtool: TLS handshake with {host_port} failed: " + words.format(ca=pki.ca.cert)
@@ -168,7 +169,7 @@ def test_a_server_certificate_that_does_not_verify_says_why(pki, tls_devices, se
 
 def test_without_ca_the_systems_cas_are_trusted_and_the_test_ca_is_not_one(pki, tls_devices):
     device = tls_devices()
-    res = run_mbtool("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4])
+    res = run_cli("read-holding-registers", "0", "-p", device.target, *identity(pki)[:4])
     line = assert_one_error_line(res, 6)
     assert "signed by a CA not among this system's CAs: give the certificate of the CA" in line
 
@@ -191,7 +192,7 @@ def test_a_client_certificate_pymodbus_refuses_is_exit_6(pki, tls_devices, who, 
     say that the server left right after the handshake, and what may be why."""
     device = tls_devices()
     given = identity(pki, who) if who else ["--ca", str(pki.ca.cert)]
-    res = run_mbtool("read-holding-registers", "0", "-p", device.target, *given, "--retries", "1")
+    res = run_cli("read-holding-registers", "0", "-p", device.target, *given, "--retries", "1")
     line = assert_one_error_line(res, 6)
     cert = getattr(pki, who).cert if who else ""
     assert line.startswith(
@@ -202,7 +203,7 @@ def test_a_client_certificate_pymodbus_refuses_is_exit_6(pki, tls_devices, who, 
 
 def test_a_plain_modbus_tcp_port_does_not_speak_tls(pki, tcp_device):
     target = f"tls://127.0.0.1:{tcp_device.port}"
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", target, *identity(pki)), 6)
+    line = assert_one_error_line(run_cli("read-holding-registers", "0", "-p", target, *identity(pki)), 6)
     assert line.startswith(f"mbtool: TLS handshake with 127.0.0.1:{tcp_device.port} failed: ")
     assert line.endswith("(a plain Modbus TCP port? use tcp://)")
 
@@ -210,7 +211,7 @@ def test_a_plain_modbus_tcp_port_does_not_speak_tls(pki, tcp_device):
 def test_a_port_that_says_nothing_to_the_hello_times_out_as_not_tls(pki):
     silent = SilentServer()
     try:
-        res = run_mbtool(
+        res = run_cli(
             "read-holding-registers", "0", "-p", f"tls://127.0.0.1:{silent.port}", *identity(pki), "-t", "0.5"
         )
     finally:
@@ -256,7 +257,7 @@ def test_a_file_that_cannot_be_used_is_exit_2_and_nothing_is_sent(pki, options, 
     silent = SilentServer()
     try:
         given = [option.format(**values) for option in options]
-        res = run_mbtool("read-holding-registers", "0", "-p", f"tls://127.0.0.1:{silent.port}", *given)
+        res = run_cli("read-holding-registers", "0", "-p", f"tls://127.0.0.1:{silent.port}", *given)
         line = assert_one_error_line(res, 2)
         assert line == "mbtool: " + words.format(**values)
         assert silent.connections == 0
@@ -265,10 +266,10 @@ def test_a_file_that_cannot_be_used_is_exit_2_and_nothing_is_sent(pki, options, 
 
 
 def test_tls_options_need_a_tls_target():
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "-p", "sim://", "--insecure"), 2)
+    line = assert_one_error_line(run_cli("read-holding-registers", "0", "-p", "sim://", "--insecure"), 2)
     assert line == "mbtool: --insecure is for tls:// targets (Modbus/TCP Security); sim:// is not one"
     line = assert_one_error_line(
-        run_mbtool("read-holding-registers", "0", "-p", "tls://h", "--framer", "rtu"), 2
+        run_cli("read-holding-registers", "0", "-p", "tls://h", "--framer", "rtu"), 2
     )
     assert line == "mbtool: Modbus/TCP Security carries MBAP: tls:// takes no --framer rtu"
 
@@ -277,6 +278,8 @@ def test_tls_options_need_a_tls_target():
 
 
 def test_an_encrypted_key_reads_its_password_from_the_environment(pki, tls_devices):
+    # Processes of their own: link.tls.client_context keeps a decrypted key as long as the process
+    # lives, so a second run in this one would not ask for the password again.
     target = tls_devices().target
     locked = identity(pki, "locked")
     expect_ok(

@@ -11,7 +11,7 @@ import ssl
 import time
 
 import pytest
-from helpers import assert_one_error_line, expect_ok, plain_pairs, run_mbtool, serve, wait_until
+from helpers import assert_one_error_line, expect_ok, plain_pairs, run_cli, run_mbtool, serve, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -59,7 +59,7 @@ def test_pymodbus_tls_client_reads_and_writes(tmp_path, pki):
 def test_mbtool_reads_its_own_tls_server_and_hex_shows_plaintext(tmp_path, pki):
     with tls_serve(pki, quiet=True) as server:
         res = expect_ok(
-            run_mbtool(
+            run_cli(
                 "read-holding-registers", "0", "2", "-p", server.target, *identity(pki, "viewer"), "--hex"
             )
         )
@@ -80,7 +80,7 @@ def test_mutual_tls_refuses_a_client_without_a_certificate(tmp_path, pki):
                     client.read_holding_registers(0, count=1, device_id=1)
         finally:
             client.close()
-        res = run_mbtool("read-holding-registers", "0", "-p", server.target, "--ca", str(pki.ca.cert))
+        res = run_cli("read-holding-registers", "0", "-p", server.target, "--ca", str(pki.ca.cert))
         line = assert_one_error_line(res, 6)
         assert line == (
             f"mbtool: TLS handshake with {server.host}:{server.port} failed: the server requires a client "
@@ -94,7 +94,7 @@ def test_mutual_tls_refuses_a_client_without_a_certificate(tmp_path, pki):
 
 def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
     with tls_serve(pki) as server:
-        res = run_mbtool("read-holding-registers", "0", "-p", server.target, *identity(pki, "stranger"))
+        res = run_cli("read-holding-registers", "0", "-p", server.target, *identity(pki, "stranger"))
         line = assert_one_error_line(res, 6)
         assert line == (
             f"mbtool: TLS handshake with {server.host}:{server.port} failed: the server refused mbtool's "
@@ -107,7 +107,7 @@ def test_a_client_certificate_from_another_ca_is_refused(tmp_path, pki):
 
 def test_a_plain_modbus_tcp_client_is_told_apart(tmp_path, pki):
     with tls_serve(pki) as server:
-        res = run_mbtool("read-holding-registers", "0", "-p", f"tcp://{server.host}:{server.port}", "-t", "1")
+        res = run_cli("read-holding-registers", "0", "-p", f"tcp://{server.host}:{server.port}", "-t", "1")
         assert res.returncode == 3, str(res)
         assert wait_until(
             lambda: "TLS handshake failed: not TLS (a plain Modbus TCP client?)" in server.log(), 5
@@ -127,11 +127,11 @@ def test_only_the_write_roles_may_write_others_get_exception_01(tmp_path, pki, w
     with tls_serve(pki, "--write-roles", "operator,engineer", quiet=True) as server:
         assert server.first_line.endswith("writes by role engineer,operator only")
         for who in ("viewer", "no_role"):
-            res = run_mbtool(*write, "-p", server.target, *identity(pki, who))
+            res = run_cli(*write, "-p", server.target, *identity(pki, who))
             line = assert_one_error_line(res, 4)
             assert line.startswith("mbtool: exception 01 Illegal Function"), line
-            expect_ok(run_mbtool("read-holding-registers", "5", "-p", server.target, *identity(pki, who)))
-        expect_ok(run_mbtool(*write, "-p", server.target, *identity(pki, "operator")))
+            expect_ok(run_cli("read-holding-registers", "5", "-p", server.target, *identity(pki, who)))
+        expect_ok(run_cli(*write, "-p", server.target, *identity(pki, "operator")))
 
 
 def test_a_refused_write_changes_nothing_and_pymodbus_sees_exception_01(tmp_path, pki):
@@ -158,17 +158,17 @@ def test_a_data_file_names_the_write_roles(tmp_path, pki):
     data.write_text('write_roles = ["operator"]\n[holding_registers]\n0 = 42\n')
     with tls_serve(pki, "--data", str(data), quiet=True) as server:
         assert server.first_line.endswith("writes by role operator only")
-        res = run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer"))
+        res = run_cli("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer"))
         assert_one_error_line(res, 4)
-        expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "operator")))
+        expect_ok(run_cli("write-register", "0", "1", "-p", server.target, *identity(pki, "operator")))
     # --write-roles beats the file, as the command line beats a file everywhere
     with tls_serve(pki, "--data", str(data), "--write-roles", "viewer", quiet=True) as server:
-        expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer")))
+        expect_ok(run_cli("write-register", "0", "1", "-p", server.target, *identity(pki, "viewer")))
 
 
 def test_without_write_roles_every_authenticated_client_may_write(tmp_path, pki):
     with tls_serve(pki, quiet=True) as server:
-        expect_ok(run_mbtool("write-register", "0", "1", "-p", server.target, *identity(pki, "no_role")))
+        expect_ok(run_cli("write-register", "0", "1", "-p", server.target, *identity(pki, "no_role")))
 
 
 def test_a_client_that_stalls_its_handshake_holds_nobody_up(tmp_path, pki):
@@ -227,6 +227,6 @@ def test_a_client_that_stalls_its_handshake_holds_nobody_up(tmp_path, pki):
 )
 def test_tls_options_that_do_not_fit_are_exit_2(pki, args, words):
     values = {"server": pki.server, "ca": pki.ca}
-    res = run_mbtool("serve", *[arg.format(**values) for arg in args])
+    res = run_cli("serve", *[arg.format(**values) for arg in args])
     line = assert_one_error_line(res, 2)
     assert words in line, line

@@ -21,6 +21,7 @@ from helpers import (
     free_udp_port,
     parse_hex_lines,
     plain_pairs,
+    run_cli,
     run_mbtool,
     start_device,
 )
@@ -39,7 +40,7 @@ def udp_device(request):
 def test_reads_and_writes_one_adu_a_datagram(udp_device):
     scheme = "udp" if udp_device.framer == "socket" else "rtu+udp"
     assert udp_device.target.startswith(f"{scheme}://127.0.0.1:")
-    res = expect_ok(run_mbtool("read-holding-registers", "0", "5", "-p", udp_device.target, "--hex"))
+    res = expect_ok(run_cli("read-holding-registers", "0", "5", "-p", udp_device.target, "--hex"))
     assert plain_pairs(res) == [(i, str(v)) for i, v in enumerate(HOLDING[:5])]
     frames = parse_hex_lines(res.stderr)
     assert [f.direction for f in frames] == ["TX", "RX"]
@@ -48,8 +49,8 @@ def test_reads_and_writes_one_adu_a_datagram(udp_device):
         assert frames[1].verdict.endswith("ok") and frames[1].verdict.startswith("CRC")
     else:
         assert frames[0].data[2:] == bytes.fromhex("0000 0006 01 03 0000 0005")
-    expect_ok(run_mbtool("write-registers", "40", "7", "8", "-u", "2", "-p", udp_device.target))
-    res = expect_ok(run_mbtool("read-holding-registers", "40", "2", "-u", "2", "-p", udp_device.target))
+    expect_ok(run_cli("write-registers", "40", "7", "8", "-u", "2", "-p", udp_device.target))
+    res = expect_ok(run_cli("read-holding-registers", "40", "2", "-u", "2", "-p", udp_device.target))
     assert plain_pairs(res) == [(40, "7"), (41, "8")]
 
 
@@ -161,7 +162,7 @@ def test_a_datagram_ends_its_frame_so_a_short_one_never_swallows_the_next(udp_re
     wrong values)."""
     peer = udp_responder(lambda request: [mbap_reply(request, READ_3)[:-4], mbap_reply(request, READ_3)])
     res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
+        run_cli("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
     )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "truncated" in res.stderr
@@ -172,12 +173,12 @@ def test_a_reply_with_another_transaction_id_is_dropped_as_not_ours(udp_responde
         lambda request: [mbap_reply(request, READ_3, tid=0x4242), mbap_reply(request, READ_3)]
     )
     res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
+        run_cli("read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{peer.port}", "--hex")
     )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "reply has transaction id 16962, expected 1\n" in res.stderr  # the --hex trace's note
     only_strangers = udp_responder(lambda request: [mbap_reply(request, READ_3, tid=0x4242)])
-    res = run_mbtool(
+    res = run_cli(
         "read-holding-registers", "0", "3", "-p", f"udp://127.0.0.1:{only_strangers.port}", "-t", "0.3"
     )
     line = assert_one_error_line(res, 5)
@@ -193,11 +194,9 @@ def test_a_lost_datagram_is_a_timeout_that_retries_resend(udp_responder):
 
     peer = udp_responder(every_other)
     target = f"udp://127.0.0.1:{peer.port}"
-    line = assert_one_error_line(run_mbtool("read-holding-registers", "0", "3", "-p", target, "-t", "0.3"), 3)
+    line = assert_one_error_line(run_cli("read-holding-registers", "0", "3", "-p", target, "-t", "0.3"), 3)
     assert line == "mbtool: no response from unit 1 within 0.3 s"
-    res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "3", "-p", target, "-t", "0.3", "--retries", "1")
-    )
+    res = expect_ok(run_cli("read-holding-registers", "0", "3", "-p", target, "-t", "0.3", "--retries", "1"))
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert len(peer.requests) == 3
 
@@ -209,7 +208,7 @@ def test_rtu_in_datagrams_checks_the_crc(udp_responder):
 
     peer = udp_responder(answer)
     res = expect_ok(
-        run_mbtool("read-holding-registers", "0", "3", "-p", f"rtu+udp://127.0.0.1:{peer.port}", "--hex")
+        run_cli("read-holding-registers", "0", "3", "-p", f"rtu+udp://127.0.0.1:{peer.port}", "--hex")
     )
     assert plain_pairs(res) == [(0, "1"), (1, "2"), (2, "3")]
     assert "BAD" in res.stderr
@@ -217,14 +216,12 @@ def test_rtu_in_datagrams_checks_the_crc(udp_responder):
 
 def test_nothing_on_the_port_is_exit_6():
     port = free_udp_port()
-    line = assert_one_error_line(
-        run_mbtool("read-holding-registers", "0", "-p", f"udp://127.0.0.1:{port}"), 6
-    )
+    line = assert_one_error_line(run_cli("read-holding-registers", "0", "-p", f"udp://127.0.0.1:{port}"), 6)
     assert line == f"mbtool: nothing listens on udp://127.0.0.1:{port} (the host says: port unreachable)"
 
 
 def test_a_udp_link_has_no_echo_nor_rts():
-    line = assert_one_error_line(run_mbtool("read-coils", "0", "-p", "udp://127.0.0.1:9", "--echo"), 2)
+    line = assert_one_error_line(run_cli("read-coils", "0", "-p", "udp://127.0.0.1:9", "--echo"), 2)
     assert line == "mbtool: --echo strips a half-duplex serial adapter's echo; a udp:// link has none"
-    line = assert_one_error_line(run_mbtool("read-coils", "0", "-p", "rtu+udp://127.0.0.1:9", "--rs485"), 2)
+    line = assert_one_error_line(run_cli("read-coils", "0", "-p", "rtu+udp://127.0.0.1:9", "--rs485"), 2)
     assert line == "mbtool: --rs485 drives the RTS line of a serial port; a rtu+udp:// target has none"

@@ -9,7 +9,15 @@ import socket
 import struct
 
 import pytest
-from helpers import assert_one_error_line, crc16, expect_ok, plain_pairs, run_mbtool, serve, wait_until
+from helpers import (
+    assert_one_error_line,
+    crc16,
+    expect_ok,
+    plain_pairs,
+    run_cli,
+    serve,
+    wait_until,
+)
 from peers.lossy_udp import LossyUdpProxy
 
 pytestmark = pytest.mark.timeout(120)
@@ -66,7 +74,7 @@ def test_pymodbus_through_a_lossy_path_recovers_with_retries_and_nothing_is_mism
 @pytest.mark.parametrize("scheme", FRAMINGS)
 def test_mbtool_reads_its_own_udp_server(tmp_path, scheme):
     with serve(target=f"{scheme}://127.0.0.1:0") as server:
-        res = expect_ok(run_mbtool("read-holding-registers", "0", "3", "-p", server.target))
+        res = expect_ok(run_cli("read-holding-registers", "0", "3", "-p", server.target))
         assert plain_pairs(res) == [(0, "0"), (1, "1"), (2, "2")]
 
 
@@ -106,10 +114,10 @@ def test_mbap_in_datagrams_answers_each_with_its_transaction_id(tmp_path):
 
 
 def test_faults_of_tcp_clients_do_not_apply_to_datagrams():
-    res = run_mbtool("serve", "-p", "udp://127.0.0.1:0", "--settle", "1")
+    res = run_cli("serve", "-p", "udp://127.0.0.1:0", "--settle", "1")
     line = assert_one_error_line(res, 2)
     assert "are faults of TCP clients" in line
-    res = run_mbtool("serve", "-p", "rtu+udp://127.0.0.1:0", "--framer", "tcp")
+    res = run_cli("serve", "-p", "rtu+udp://127.0.0.1:0", "--framer", "tcp")
     line = assert_one_error_line(res, 2)
     assert line == (
         "mbtool: --framer tcp (MBAP) needs a tcp://, tls:// or udp:// target; rtu+udp://127.0.0.1:0 takes rtu or ascii"

@@ -20,7 +20,7 @@ from helpers import (
     expect_ok,
     parse_hex_lines,
     pymodbus_tcp,
-    run_mbtool,
+    run_cli,
     serve,
     start_device,
     start_mbtool,
@@ -115,7 +115,7 @@ def test_a_map_write_refused_part_way_lists_what_was_written(three):
     with start_device(tcp=True, framer="socket", units="1", holes=True) as device:
         from pymodbus.client import ModbusTcpClient
 
-        res = run_mbtool("write", "-m", three, "a=1", "b=2", "c=3", "-p", device.target)
+        res = run_cli("write", "-m", three, "a=1", "b=2", "c=3", "-p", device.target)
         line = one_summary(res, 4)  # the failure's own code: an exception reply
         assert "write stopped at b (40502): exception 02 Illegal Data Address" in line
         assert line.endswith("; 1 written, 1 refused, 1 not sent")
@@ -136,7 +136,7 @@ def test_a_map_write_refused_part_way_lists_what_was_written(three):
 def test_a_map_write_to_a_read_only_device_as_json(three):
     with serve("--read-only") as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = run_mbtool("write", "-m", three, "a=1", "b=2", "-o", "json", "-p", target)
+        res = run_cli("write", "-m", three, "a=1", "b=2", "-o", "json", "-p", target)
         one_summary(res, 4)
         data = json.loads(res.stdout)  # one object: the report carries the error itself
         assert data["exit_code"] == 4 and "exception 01 Illegal Function" in data["error"]
@@ -188,7 +188,7 @@ def test_a_restore_refused_part_way_lists_each_write_and_its_fate(tmp_path):
     data.write_text(SPARSE_DEVICE)  # no holding register 10: a write there is exception 02
     with serve("--data", str(data)) as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = run_mbtool("restore", saved, "-p", target)
+        res = run_cli("restore", saved, "-p", target)
         line = one_summary(res, 4)
         assert "restore stopped at holding 10: exception 02 Illegal Data Address" in line
         assert line.endswith("; 3 written (read back and confirmed), 1 refused, 1 not sent")
@@ -208,7 +208,7 @@ def test_a_restore_refused_part_way_lists_each_write_and_its_fate(tmp_path):
             client.write_registers(0, [0, 0], device_id=1)
         finally:
             client.close()
-        res = run_mbtool("restore", saved, "-o", "json", "-p", target)
+        res = run_cli("restore", saved, "-o", "json", "-p", target)
         one_summary(res, 4)
         report = json.loads(res.stdout)
         assert report["exit_code"] == 4 and report["file"] == str(saved)
@@ -230,7 +230,7 @@ def test_a_device_that_stops_answering_or_hangs_up_mid_restore(raw_responder, tm
     saved.write_text(RUNS)  # four runs: four requests
     plant = TcpPlant(answered=2, then=then)
     server = raw_responder(plant)
-    res = run_mbtool("restore", saved, *FAST, "-p", server.tcp_target)
+    res = run_cli("restore", saved, *FAST, "-p", server.tcp_target)
     line = one_summary(res, 3)  # no response, or the connection closed: exit 3 either way
     assert "restore stopped at holding 20: " in line and words in line
     # The device answered before: this is no framing mix-up, and no gateway is suggested.
@@ -278,7 +278,7 @@ def test_ctrl_c_mid_restore_lists_what_was_written(raw_responder, tmp_path):
 
 def test_a_map_write_to_a_device_that_hangs_up(raw_responder, three):
     server = raw_responder(TcpPlant(answered=1, then=CLOSE))
-    res = run_mbtool("write", "-m", three, "a=1", "b=2", "c=3", *FAST, "-p", server.tcp_target)
+    res = run_cli("write", "-m", three, "a=1", "b=2", "c=3", *FAST, "-p", server.tcp_target)
     line = one_summary(res, 3)
     assert "write stopped at b (40502)" in line and "closed the connection" in line
     assert res.stdout.splitlines() == [
@@ -311,18 +311,18 @@ def test_restore_with_a_map_writes_a_point_whole_and_its_dry_run_reads_like_diff
     data.write_text("sparse = true\n[holding_registers]\n100 = [0x4020, 0, 0, 0, 0]\n110 = [0]\n")
     with serve("--data", str(data)) as server:
         target = f"tcp://{server.host}:{server.port}"
-        res = expect_ok(run_mbtool("restore", saved, "--dry-run", "-m", meter, "-p", target))
+        res = expect_ok(run_cli("restore", saved, "--dry-run", "-m", meter, "-p", target))
         assert res.stdout.splitlines() == ["level (40101): 2.5 m -> 1.5 m", "alarm (40111): off -> on"]
-        assert res.stdout == run_mbtool("diff", "device", saved, "-m", meter, "-p", target).stdout
+        assert res.stdout == run_cli("diff", "device", saved, "-m", meter, "-p", target).stdout
         assert "raw " not in res.stdout  # no decoded frames
         assert "dry run: the device was read; nothing was sent: 2 requests would write 2 values" in res.stderr
-        res = expect_ok(run_mbtool("restore", saved, "--dry-run", "-p", target, "-o", "json"))
+        res = expect_ok(run_cli("restore", saved, "--dry-run", "-p", target, "-o", "json"))
         assert json.loads(res.stdout)["writes"] == [
             {"table": "holding", "address": 100, "ref": "40101", "old": 0x4020, "new": 0x3FC0},
             {"table": "holding", "address": 110, "ref": "40111", "old": 0, "new": 8},
         ]
         # Without a map only the word that differs is written; with one, the whole float32.
-        res = expect_ok(run_mbtool("restore", saved, "-m", meter, "--hex", "-p", target))
+        res = expect_ok(run_cli("restore", saved, "-m", meter, "--hex", "-p", target))
         writes = [line.data[7:12] for line in parse_hex_lines(res.stderr) if line.direction == "TX"]
         writes = [pdu for pdu in writes if pdu[0] == 0x10]
         assert writes == [bytes([0x10, 0, 100, 0, 2]), bytes([0x10, 0, 110, 0, 1])]
@@ -352,7 +352,7 @@ def test_write_requests_never_cut_a_point_in_two():
 def test_restore_of_an_incomplete_dump_warns(tmp_path):
     saved = tmp_path / "part.toml"
     saved.write_text("sparse = true\ncomplete = false\n[holding_registers]\n300 = [1]\n")
-    res = expect_ok(run_mbtool("restore", saved, "-p", "sim://"))
+    res = expect_ok(run_cli("restore", saved, "-p", "sim://"))
     assert (
         f"mbtool: warning: {saved} is marked complete = false: the dump stopped early, and only "
         "what it holds is restored" in stderr_lines(res)
@@ -364,7 +364,7 @@ def test_restore_of_an_incomplete_dump_warns(tmp_path):
 def test_diff_and_restore_refuse_per_unit_sections(silent_server, tmp_path, command):
     saved = tmp_path / "serve.toml"
     saved.write_text("[holding_registers]\n0 = [1]\n[units.2.holding_registers]\n0 = [2]\n")
-    res = run_mbtool(command, saved, *FAST, "-p", silent_server.tcp_target)
+    res = run_cli(command, saved, *FAST, "-p", silent_server.tcp_target)
     line = assert_one_error_line(res, 2)
     assert f"{saved} has [units.2]" in line
     assert silent_server.received_bytes() == b""
@@ -375,7 +375,7 @@ def test_diff_with_a_map_shows_bits_as_on_and_off(tmp_path):
     meter.write_text(METER + '\n[points.relay]\nref = "00001"\n')
     (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n110 = [0]\n[coils]\n0 = 1\n")
     (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n110 = [8]\n[coils]\n0 = 0\n")
-    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter)
+    res = run_cli("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter)
     assert res.returncode == 1
     assert res.stdout.splitlines() == ["alarm (40111): off -> on", "relay (00001): on -> off"]
 
@@ -386,9 +386,9 @@ def test_diff_with_a_map_says_a_value_an_enum_does_not_label(tmp_path):
     meter.write_text('[points.mode]\nref = 40121\nenum = { 1 = "auto", 2 = "manual" }\n')
     (tmp_path / "a.toml").write_text("sparse = true\n[holding_registers]\n120 = [1]\n")
     (tmp_path / "b.toml").write_text("sparse = true\n[holding_registers]\n120 = [7]\n")
-    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter)
+    res = run_cli("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter)
     assert res.returncode == 1 and res.stdout.splitlines() == ["mode (40121): auto -> 7 (no label)"]
-    res = run_mbtool("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter, "-o", "json")
+    res = run_cli("diff", tmp_path / "a.toml", tmp_path / "b.toml", "-m", meter, "-o", "json")
     (difference,) = json.loads(res.stdout)["differences"]
     assert (difference["a"], difference["b"]) == ("auto", 7)
 
@@ -448,34 +448,34 @@ def values_map(tmp_path):
 def test_a_value_the_point_cannot_hold_is_refused_and_nothing_sent(
     silent_server, values_map, assignments, words
 ):
-    res = run_mbtool("write", "-m", values_map, "word=0x10", *assignments, "-p", silent_server.tcp_target)
+    res = run_cli("write", "-m", values_map, "word=0x10", *assignments, "-p", silent_server.tcp_target)
     assert words in assert_one_error_line(res, 2)
     assert silent_server.received_bytes() == b""
 
 
 def test_nan_and_inf_are_written_when_the_user_insists(values_map):
     res = expect_ok(
-        run_mbtool(
+        run_cli(
             "write", "-m", values_map, "level=nan", "total=-inf", "--allow-nonfinite", "--hex", "-p", "sim://"
         )
     )
     sent = [line.data[1:] for line in parse_hex_lines(res.stderr) if line.direction == "TX"]
     assert sent[0][6:10] == bytes([0x7F, 0xC0, 0, 0]) and sent[1][6:14] == bytes([0xFF, 0xF0] + [0] * 6)
     assert res.stdout.splitlines() == ["level nan m", "total -inf"]
-    res = run_mbtool("write-registers", "0", "nan", "--type", "float32", "-p", "sim://")
+    res = run_cli("write-registers", "0", "nan", "--type", "float32", "-p", "sim://")
     assert "nan is not a finite number" in assert_one_error_line(res, 2)
     expect_ok(
-        run_mbtool("write-registers", "0", "nan", "--type", "float32", "--allow-nonfinite", "-p", "sim://")
+        run_cli("write-registers", "0", "nan", "--type", "float32", "--allow-nonfinite", "-p", "sim://")
     )
-    res = run_mbtool("write", "40001", "1e400", "--type", "float64", "--allow-nonfinite", "-p", "sim://")
+    res = run_cli("write", "40001", "1e400", "--type", "float64", "--allow-nonfinite", "-p", "sim://")
     assert "1e400 is out of float64's range" in assert_one_error_line(res, 2)
 
 
 def test_a_float_that_cannot_hold_the_decimal_given_warns_and_shows_what_is_written(values_map):
-    res = expect_ok(run_mbtool("write", "-m", values_map, "level=16777217", "word=0x00FF", "-p", "sim://"))
+    res = expect_ok(run_cli("write", "-m", values_map, "level=16777217", "word=0x00FF", "-p", "sim://"))
     assert stderr_lines(res) == [
         "mbtool: warning: level: a float32 cannot hold 16777217; writing 16777216.0 m"
     ]
     assert res.stdout.splitlines() == ["level 16777216.0 m", "word 0x00FF"]
-    res = expect_ok(run_mbtool("write", "-m", values_map, "level=1.5", "demand_period=0x0F", "-p", "sim://"))
+    res = expect_ok(run_cli("write", "-m", values_map, "level=1.5", "demand_period=0x0F", "-p", "sim://"))
     assert res.stderr == "" and res.stdout.splitlines() == ["level 1.5 m", "demand_period 15 min"]
