@@ -1,7 +1,7 @@
 """What the campaigns share: running an mbtool checkout, a ``serve`` to talk to, a recording
 proxy that says whether anything was sent, the RSS of a process, and the report.
 
-The peers the tests already have (tests/conftest.py: the pseudo-terminal pair that records
+The peers the tests already have (tests/helpers.py: the pseudo-terminal pair that records
 what crosses it, the environment mbtool runs in, the signal set-up of a child a test
 interrupts) are imported from there, not copied.
 """
@@ -26,14 +26,14 @@ from typing import NoReturn
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from conftest import (  # noqa: E402  (the tests' own peers and helpers)
+from helpers import (  # noqa: E402  (the tests' own peers and helpers)
     PTY_SERIAL_OPTS,
     PtyPair,
     mbtool_env,
     signals_as_from_a_shell,
 )
 
-__all__ = ["PTY_SERIAL_OPTS", "PtyPair"]  # for the campaigns, from tests/conftest.py
+__all__ = ["PTY_SERIAL_OPTS", "PtyPair"]  # for the campaigns, from tests/helpers.py
 
 TREE = ROOT  # the checkout whose mbtool runs (--mbtool DIR)
 RUN_DEADLINE = 30.0  # seconds any one mbtool run may take before it counts as a hang

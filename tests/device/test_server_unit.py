@@ -16,8 +16,7 @@ import threading
 import time
 
 import pytest
-from conftest import crc16, lrc, rtu
-from test_serve_abuse import ascii_frame, closed_by_peer, mbap, wait_until
+from helpers import ascii_frame, closed_by_peer, crc16, lrc, mbap, rtu, wait_until
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Rejected, device_framer

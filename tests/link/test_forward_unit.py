@@ -10,9 +10,7 @@ from __future__ import annotations
 import contextlib
 
 import pytest
-from conftest import rtu
-from test_client import FakeClock, ScriptedLink
-from test_serve_abuse import mbap
+from helpers import FakeClock, ScriptedLink, mbap, rtu
 
 from mbtool.codec.framing import Frame, Rejected, RtuFramer, device_framer
 from mbtool.errors import ConnectionFailed

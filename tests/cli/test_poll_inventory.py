@@ -1,0 +1,42 @@
+"""mbtool poll's inventory, checked whole before anything is opened (issue 31), in-process: a bad
+one is exit 2 with one line naming the file, the table and the key."""
+
+from __future__ import annotations
+
+import pytest
+from helpers import (
+    assert_one_error_line,
+    run_cli,
+)
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("[poll]\ninterval = 1\ncolour = 1\n", "[poll] colour: unknown key"),
+        ("[plant]\n", "unknown table [plant]"),
+        ('[links.a]\ntarget = "{t}"\nbaud = "fast"\n[devices.d]\nlink = "a"\nread = ["40001"]\n', "[links.a] baud"),
+        ('[links.a]\nbaud = 9600\n[devices.d]\nlink = "a"\nread = ["40001"]\n', "[links.a] has no target"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "b"\nread = ["40001"]\n', "[devices.d] link: no [links.b]"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\nspeed = 1\n', "[devices.d] speed: unknown key"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nmap = "nosuch.toml"\n', "[devices.d] map: cannot read map"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\n', "[devices.d]: give either map"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["4o001 2"]\n', "[devices.d] read: '4o001 2'"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\ntags = {{ "a-b" = "x" }}\n', "tags: 'a-b'"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\nunit = 300\n', "[devices.d] unit"),
+        ('[links.a]\ntarget = "{t}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n[devices.d]\nunit = 2\n', "not valid TOML"),
+        ("[poll]\ninterval = 1\n", "no [devices.NAME]"),
+    ],
+    ids=[
+        "poll-key", "table", "link-value", "no-target", "missing-link", "device-key", "map",
+        "map-or-read", "reference", "tag-name", "unit", "two-devices-one-name", "no-devices",
+    ],
+)  # fmt: skip
+def test_a_bad_inventory_is_exit_2_naming_file_table_and_key_and_nothing_is_opened(
+    tmp_path, silent_server, text, words
+):
+    path = tmp_path / "plant.toml"
+    path.write_text(text.format(t=silent_server.socket_target.replace("socket", "tcp")))
+    line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
+    assert str(path) in line and words in line
+    assert silent_server.received_bytes() == b""

@@ -1,0 +1,300 @@
+"""Framer robustness: garbage before a frame, frames back to back, truncated frames (spec §2)."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+from helpers import drain_events, settle_events
+
+from mbtool.codec import data_access as da
+from mbtool.codec import device_id as di
+from mbtool.codec import serial_line as sl
+from mbtool.codec.ascii import AsciiFramer
+from mbtool.codec.errors import ChecksumError, FrameError
+from mbtool.codec.framer import Frame, Rejected
+from mbtool.codec.mbap import TcpFramer
+from mbtool.codec.pdu import UNKNOWN
+from mbtool.codec.rtu import RtuFramer
+
+REQUEST = da.ReadHoldingRegisters(107, 3)
+REPLY = da.RegistersResponse(3, (555, 0, 100))
+UNIT = 0x11
+
+
+def frames(events) -> list[Frame]:
+    return [event for event in events if isinstance(event, Frame)]
+
+
+def garbage(n: int, seed: int) -> bytes:
+    return random.Random(seed).randbytes(n)
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("n", [1, 16, 256])
+@pytest.mark.parametrize("responses", [True, False], ids=["reply", "request"])
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer], ids=["rtu", "ascii"])
+def test_garbage_before_a_frame(framer_type, responses, n, seed):
+    framer = framer_type(responses=responses)
+    pdu = (REPLY if responses else REQUEST).encode()
+    adu = framer.build(UNIT, pdu)
+    noise = garbage(n, seed)
+    framer.feed(noise + adu)
+    events = drain_events(framer)  # no silence needed: the frame ends by its own length
+    assert frames(events) == [Frame(UNIT, pdu, adu)]
+    assert events[-1] == Frame(UNIT, pdu, adu)
+    rejected = b"".join(event.data for event in events if isinstance(event, Rejected))
+    assert rejected == noise
+    assert framer.buffered == 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer], ids=["rtu", "ascii"])
+def test_garbage_before_a_frame_fed_byte_by_byte(framer_type, seed):
+    framer = framer_type(responses=True)
+    framer.expect = REQUEST
+    adu = framer.build(UNIT, REPLY.encode())
+    noise = garbage(64, seed)
+    events = []
+    for byte in noise + adu:
+        framer.feed(bytes([byte]))
+        events += drain_events(framer)
+    assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
+    assert len(frames(events)) == 1
+
+
+def test_garbage_whose_length_cannot_be_told_does_not_hold_up_a_frame():
+    # A noise byte then 17 (unit 23) reads as the head of an FC23 request, whose byte count
+    # would sit past the end of the real, shorter request behind it.
+    framer = RtuFramer(responses=False)
+    adu = framer.build(0x17, REQUEST.encode())
+    framer.feed(b"\x42" + adu)
+    events = drain_events(framer)
+    assert events[-1] == Frame(0x17, REQUEST.encode(), adu)
+
+
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer, TcpFramer], ids=["rtu", "ascii", "tcp"])
+def test_two_frames_back_to_back(framer_type):
+    framer = framer_type(responses=True)
+    first = framer.build(UNIT, REPLY.encode(), 1)
+    second = framer.build(UNIT + 1, da.RegistersResponse(3, (1,)).encode(), 2)
+    framer.feed(first + second)
+    events = drain_events(framer)
+    assert [event.adu for event in events] == [first, second]
+    assert all(isinstance(event, Frame) for event in events)
+
+
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer], ids=["rtu", "ascii"])
+def test_a_frame_after_a_bad_one(framer_type):
+    framer = framer_type(responses=True)
+    good = framer.build(UNIT, REPLY.encode())
+    bad = bytearray(good)
+    bad[-3] ^= 0x01  # a data byte (RTU) or an LRC digit (ASCII) changed on the way
+    framer.feed(bytes(bad) + good)
+    events = drain_events(framer)
+    assert events[-1] == Frame(UNIT, REPLY.encode(), good)
+    assert isinstance(events[0], Rejected)
+
+
+@pytest.mark.parametrize("cut", [1, 2, 5, 10])
+@pytest.mark.parametrize("framer_type", [RtuFramer, AsciiFramer, TcpFramer], ids=["rtu", "ascii", "tcp"])
+def test_truncated_frame_is_rejected_on_silence(framer_type, cut):
+    framer = framer_type(responses=True)
+    adu = framer.build(UNIT, REPLY.encode(), 5)
+    framer.feed(adu[:-cut])
+    assert drain_events(framer) == []  # waiting for the rest
+    events = settle_events(framer)
+    assert events and all(isinstance(event, Rejected) for event in events)
+    assert all(isinstance(event.error, FrameError) for event in events)
+    assert b"".join(event.data for event in events) == adu[:-cut]
+
+
+def test_rtu_frame_cut_short_is_called_truncated_not_a_crc_error():
+    framer = RtuFramer(responses=True)
+    framer.expect = da.ReadHoldingRegisters(0, 1)
+    framer.feed(bytes.fromhex("01 03 02 00 64"))  # a 7-byte reply whose CRC never came
+    events = settle_events(framer)
+    assert all(isinstance(event, Rejected) for event in events)
+    assert b"".join(event.data for event in events) == bytes.fromhex("01 03 02 00 64")
+    # the first verdict is on the whole: what the client reports
+    assert not isinstance(events[0].error, ChecksumError)
+    assert str(events[0].error) == "truncated frame (5 of 7 bytes)"
+
+
+def test_rtu_frame_with_an_unknown_function_code_ends_on_silence():
+    framer = RtuFramer(responses=True)
+    adu = framer.build(UNIT, bytes.fromhex("41 01 02 03"))
+
+    class Raw(da.ReadFifoQueue):  # stands for a raw request of a function code the codec does not know
+        function_code = 0x41
+
+        def response_length(self, pdu):
+            return UNKNOWN
+
+    framer.expect = Raw(0)
+    framer.feed(adu)
+    assert drain_events(framer) == []
+    assert framer.waiting_for_silence
+    assert framer.silence() == Frame(UNIT, bytes.fromhex("41 01 02 03"), adu)
+
+
+def test_rtu_ends_a_reply_by_the_request_length_rule():
+    # A return-query-data echo of 6 data bytes: the class rule alone would assume 2.
+    request = sl.Diagnostics(0, bytes(range(6)))
+    framer = RtuFramer(responses=True)
+    framer.expect = request
+    adu = framer.build(UNIT, request.encode())
+    framer.feed(adu + b"\x00")
+    assert framer.next_event() == Frame(UNIT, request.encode(), adu)
+
+
+def test_rtu_device_identification_reply_in_pieces():
+    reply = di.DeviceIdentificationResponse(1, 0x81, False, 0, ((0, b"ACME"), (1, b"X1"), (2, b"1.0")))
+    framer = RtuFramer(responses=True)
+    adu = framer.build(UNIT, reply.encode())
+    for i in range(0, len(adu), 3):
+        framer.feed(adu[i : i + 3])
+        events = drain_events(framer)
+        if i + 3 < len(adu):
+            assert events == []
+    assert events == [Frame(UNIT, reply.encode(), adu)]
+
+
+def test_exception_reply_is_framed_for_every_function_code():
+    framer = RtuFramer(responses=True)
+    adu = framer.build(UNIT, bytes.fromhex("AB 01"))  # FC43 | 0x80, illegal function
+    framer.feed(adu)
+    assert framer.next_event() == Frame(UNIT, bytes.fromhex("AB 01"), adu)
+
+
+def test_bad_crc_carries_received_and_expected():
+    framer = RtuFramer(responses=False)
+    framer.feed(bytes.fromhex("11 03 00 6B 00 03 87 76"))  # CRC sent high byte first: wrong
+    event = settle_events(framer)[0]
+    assert isinstance(event.error, ChecksumError)
+    assert (event.error.expected, event.error.received) == (0x8776, 0x7687)
+
+
+def test_ascii_with_a_changed_delimiter():
+    framer = AsciiFramer(responses=False, delimiter=ord("!"))
+    adu = framer.build(UNIT, REQUEST.encode())
+    assert adu.endswith(b"\r!")
+    framer.feed(adu)
+    assert framer.next_event() == Frame(UNIT, REQUEST.encode(), adu)
+
+
+def test_tcp_length_field_out_of_range_is_rejected():
+    framer = TcpFramer(responses=True)
+    framer.feed(bytes.fromhex("0001 0000 0001 11"))  # length 1: a unit id and no PDU
+    events = settle_events(framer)
+    assert events and all(isinstance(event, Rejected) for event in events)
+
+
+def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_else_to_the_parse():
+    tcp = TcpFramer()
+    pdu = REPLY.encode()
+    reply = tcp.build(UNIT, pdu, 7)
+    framer = TcpFramer()
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    assert framer.predicted(reply) == pdu
+    framer.feed(reply)
+    assert framer.next_event() == Frame(UNIT, pdu, reply, 7)  # what the parse finds there
+    unlike = {
+        "another unit": tcp.build(UNIT + 1, pdu, 7),
+        "another transaction": tcp.build(UNIT, pdu, 8),
+        "an exception": tcp.build(UNIT, bytes.fromhex("83 02"), 7),
+        "another byte count, same size": tcp.build(UNIT, bytes([3, 4]) + pdu[2:], 7),
+        "cut short": reply[:-1],
+        "two replies in one read": reply + reply,
+    }
+    for why, data in unlike.items():
+        assert framer.predicted(data) is None, why
+    framer.feed(b"\x00")
+    assert framer.predicted(reply) is None, "bytes already buffered come first"
+    framer.reset()
+    framer.predict(UNIT, 7, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
+    assert framer.predicted(reply) is None
+    assert framer.predicted(b"") is None  # an empty read (an echo held back) is no reply
+    rtu = RtuFramer()
+    rtu.predict(UNIT, 0, REQUEST.reply_prefix)
+    broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
+    rtu.feed(broken)
+    assert not frames(settle_events(rtu))  # RTU predicts nothing: its CRC is to check
+
+
+def test_tcp_hands_over_the_reply_predicted_first_and_what_came_after_it_next():
+    framer = TcpFramer()
+    pdu = REPLY.encode()
+    reply, later = framer.build(UNIT, pdu, 7), framer.build(UNIT, pdu, 9)
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    framer.feed(reply)
+    framer.feed(reply)  # the same bytes again: behind the first, so parsed
+    framer.feed(later)
+    assert framer.buffered == 3 * len(reply)
+    assert drain_events(framer) == [
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, reply, 7),
+        Frame(UNIT, pdu, later, 9),
+    ]
+    assert framer.buffered == 0
+    framer.feed(reply)
+    framer.reset()  # another request: the reply predicted for the last one is dropped too
+    assert framer.buffered == 0 and framer.next_event() is None
+
+
+def test_corrupted_reply_is_held_until_silence_then_rejected_whole():
+    # Its last byte might be the unit of the real reply: only a pause on the line can tell.
+    framer = RtuFramer(responses=True)
+    framer.expect = REQUEST
+    good = framer.build(UNIT, REPLY.encode())
+    bad = good[:-1] + bytes([good[-1] ^ 0xFF])
+    framer.feed(bad)
+    assert drain_events(framer) == []
+    assert framer.waiting_for_silence
+    event = framer.silence()
+    assert isinstance(event, Rejected) and isinstance(event.error, ChecksumError)
+    assert event.data == bad
+    assert framer.silence() is None and framer.buffered == 0
+
+
+def test_reply_starting_on_the_last_byte_of_a_phantom_frame_is_kept():
+    # 61 16 ...: noise that reads as an FC22 frame of 10 bytes, ending on the reply's unit byte.
+    framer = RtuFramer(responses=True)
+    framer.expect = REQUEST
+    adu = framer.build(UNIT, REPLY.encode())
+    noise = bytes.fromhex("61 16 C6 E9 C9 2D 99 BF 35")
+    framer.feed(noise + adu[:1])
+    assert drain_events(framer) == []
+    framer.feed(adu[1:])
+    events = drain_events(framer)
+    assert events[-1] == Frame(UNIT, REPLY.encode(), adu)
+    assert b"".join(event.data for event in events[:-1]) == noise
+
+
+def test_the_framings_face_gives_every_envelope_name_and_loads_only_what_is_asked_for():
+    """Issue 30: one module an envelope, codec/framing.py on top.  Its names are the modules'
+    own, and taking the base's or the registry's imports no envelope (a one-shot read's
+    start-up pays for its own framing only)."""
+    import subprocess
+    import sys
+
+    from mbtool.codec import ascii, framer, framing, mbap, resync, rtu
+
+    for name, module in framing._DEFINED_IN.items():
+        assert getattr(framing, name) is getattr(
+            {"rtu": rtu, "ascii": ascii, "mbap": mbap, "resync": resync}[module], name
+        )
+    for name in ("Frame", "Framer", "Rejected", "Event"):
+        assert getattr(framing, name) is getattr(framer, name)
+    assert not hasattr(framing, "NoSuchFramer")
+    script = (
+        "import sys\n"
+        "from mbtool.codec.framing import Frame, Framer, Rejected, make_framer\n"
+        "make_framer('tcp')\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('mbtool.codec.'))))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert "mbtool.codec.mbap" in loaded
+    assert not {"mbtool.codec.rtu", "mbtool.codec.ascii", "mbtool.codec.resync"} & set(loaded)

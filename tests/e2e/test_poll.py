@@ -1,0 +1,459 @@
+"""mbtool poll: a plant's devices on several buses and gateways, from one process (issue 31).
+
+The plant of the end-to-end test is made of real peers the test starts: two serial buses
+(pseudo-terminal pairs) with `mbtool serve -u 1-3` on one and pymodbus's RTU server on the
+other, a TCP gateway (`mbtool bridge`) in front of a third bus, a pymodbus TCP device that is
+stopped mid-run and started again, a unit that never answers and a link whose port does
+not exist.  Outputs are read back with their own parsers.  The inventory's checks are
+tests/cli/test_poll_inventory.py's, a device's state tests/plant/test_schedule.py's.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from helpers import (
+    HOLDING,
+    PTY_SERIAL_OPTS,
+    REPO_ROOT,
+    PtyPair,
+    bridge,
+    free_port,
+    mbtool_env,
+    run_cli,
+    serve,
+    start_device,
+    start_mbtool,
+    stop_device,
+)
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+# --- the plant end to end --------------------------------------------------------------------
+
+INTERVAL = 0.5
+
+
+def _frames(crossings: list[tuple[float, str, bytes]]) -> list[tuple[str, int]]:
+    """(direction, unit) of each frame on an RTU bus: a request of the plant is 8 bytes
+    (FC 01-04 reads); a reply is the bytes up to the next request."""
+    frames, request = [], b""
+    for _, direction, data in crossings:
+        if direction == "request":
+            request += data
+            while len(request) >= 8:
+                frames.append(("request", request[0]))
+                request = request[8:]
+        elif not frames or frames[-1][0] == "request":
+            frames.append(("reply", data[0]))
+    return frames
+
+
+def _one_at_a_time(bus: PtyPair) -> None:
+    """No two requests on the bus at once: every reply answers the request just before it."""
+    frames = _frames(bus.crossings)
+    assert frames, "nothing crossed the bus"
+    for before, frame in zip(frames, frames[1:], strict=False):
+        if frame[0] == "reply":
+            assert before == ("request", frame[1]), f"a reply from unit {frame[1]} after {before}"
+
+
+def test_a_plant_of_buses_a_gateway_and_tcp_devices_polled_from_one_process(tmp_path):
+    write(
+        tmp_path / "meter.toml",
+        '[points.flow]\nref = 40001\nunit = "m3/h"\n[points.level]\nref = 40002\nscale = 0.1\nunit = "m"\n',
+    )
+    port = free_port()
+    bus_a, bus_gw = PtyPair(), PtyPair()
+    device = None
+    try:
+        serial = ["--framer", "rtu", *PTY_SERIAL_OPTS]
+        with (
+            serve("-u", "1-3", *serial, target=bus_a.device_path),
+            serve("-u", "1-2", *serial, target=bus_gw.device_path),
+            bridge("-p", bus_gw.mbtool_path, *PTY_SERIAL_OPTS, "-t", "1", "-q") as gateway,
+            start_device(tcp=False, framer="rtu", units="1,2") as bus_b,
+        ):
+            device = start_device(tcp=True, framer="socket", units="1", port=port)
+            tcp_device = device.__enter__()
+            plant = write(
+                tmp_path / "plant.toml",
+                f"""
+[poll]
+interval = {INTERVAL}
+offline_after = 2
+max_backoff = 2
+
+[links.bus_a]
+target = "{bus_a.mbtool_path}"
+parity = "N"
+timeout = 0.3
+
+[links.bus_b]
+target = "{bus_b.target}"
+parity = "N"
+timeout = 1
+
+[links.gw]
+target = "{gateway.target}"
+timeout = 2
+
+[links.tcp]
+target = "{tcp_device.target}"
+timeout = 0.5
+
+[links.missing]
+target = "/dev/ttyNOSUCH"
+
+{"".join(f'[devices.a{u}]{chr(10)}link = "bus_a"{chr(10)}unit = {u}{chr(10)}map = "meter.toml"{chr(10)}tags = {{ bus = "a" }}{chr(10)}' for u in (1, 2, 3))}
+[devices.ghost]
+link = "bus_a"
+unit = 9
+read = ["40001 1"]
+
+[devices.b1]
+link = "bus_b"
+unit = 1
+read = ["40001 2"]
+
+[devices.g1]
+link = "gw"
+unit = 1
+read = ["40001 2"]
+
+[devices.g2]
+link = "gw"
+unit = 2
+map = "meter.toml"
+
+[devices.pymodbus]
+link = "tcp"
+unit = 1
+read = ["40001 2"]
+
+[devices.far]
+link = "missing"
+unit = 1
+read = ["40001 1"]
+""",
+            )
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "mbtool",
+                    "poll",
+                    str(plant),
+                    "-o",
+                    "json",
+                    "--duration",
+                    "9",
+                    "--stats",
+                    "json",
+                ],
+                cwd=REPO_ROOT,
+                env=mbtool_env(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            time.sleep(2.5)
+            stop_device(tcp_device.proc)  # killed mid-run ...
+            time.sleep(2.5)
+            device.__exit__(None, None, None)
+            device = start_device(tcp=True, framer="socket", units="1", port=port)  # ... and back
+            device.__enter__()
+            out, err = proc.communicate(timeout=30)
+    finally:
+        if device is not None:
+            device.__exit__(None, None, None)
+        bus_a.close()
+        bus_gw.close()
+    assert proc.returncode == 8, err  # some devices answered, others did not
+    records = [json.loads(line) for line in out.splitlines()]
+    polls = [r for r in records if "event" not in r]
+    events = [r for r in records if "event" in r]
+    by_device: dict[str, list[dict]] = {}
+    for record in polls:
+        by_device.setdefault(record["device"], []).append(record)
+    rounds = 9 / INTERVAL
+    # Every live device, every round, with its values.
+    for name in ("a1", "a2", "a3", "b1", "g1", "g2"):
+        good = [r for r in by_device[name] if "points" in r]
+        assert len(good) >= rounds - 3, (name, len(good), err)
+        values = {p["name"]: p["value"] for p in good[-1]["points"]}
+        if name in ("b1",):
+            assert values == {"40001": HOLDING[0], "40002": HOLDING[1]}
+        elif name == "g1":
+            assert values == {"40001": 0, "40002": 1}
+        else:
+            assert values == {"flow": 0, "level": 0.1}
+    assert by_device["a1"][0]["tags"] == {"bus": "a"}
+    # The unit that never answers: offline after 2 polls, then tried once a back-off only.
+    ghost = by_device["ghost"]
+    assert {"event": "offline", "device": "ghost"}.items() <= next(
+        e for e in events if e.get("device") == "ghost"
+    ).items()
+    assert len(ghost) <= 2 + 9 / 1.0, len(ghost)  # 2 polls, then 1 s and 2 s back-offs
+    # The device killed mid-run went offline and came back.
+    changes = [e["event"] for e in events if e.get("device") == "pymodbus"]
+    assert changes == ["offline", "online"], (changes, err)
+    assert "points" in by_device["pymodbus"][-1]
+    # The link whose port does not exist: offline, its device too, and nothing else held up.
+    assert any(e.get("link") == "missing" and e["event"] == "offline" for e in events)
+    assert all("error" in r for r in by_device["far"])
+    # One request at a time on every bus.
+    _one_at_a_time(bus_a)
+    _one_at_a_time(bus_b.pty)
+    stats = json.loads(err.strip().splitlines()[-2])
+    assert stats["devices"]["ghost"]["timeout"] == stats["devices"]["ghost"]["transactions"] > 0
+    assert stats["devices"]["a1"]["answered"] == stats["devices"]["a1"]["transactions"]
+    assert stats["links"]["missing"]["open_failures"] >= 1
+
+
+# --- outputs, read back with their own parsers ------------------------------------------------
+
+
+@pytest.fixture
+def small_plant(tmp_path):
+    """Two mbtool serve devices over TCP, one with a map of a float and an enum; a dead unit."""
+    meter = write(
+        tmp_path / "meter.toml",
+        '[points.voltage]\nref = 30001\ntype = "float32"\norder = "CDAB"\nunit = "V"\n'
+        '[points.tariff]\nref = 40001\nenum = { 1 = "day", 2 = "night" }\n',
+    )
+    data = REPO_ROOT / "examples" / "energy-meter-data.toml"
+    with serve("-u", "1-2", "--data", str(data)) as first, serve() as second:
+        yield write(
+            tmp_path / "plant.toml",
+            f"""
+[poll]
+interval = 0.5
+offline_after = 2
+
+[links.gw]
+target = "{first.target}"
+timeout = 0.3
+
+[links.plc]
+target = "{second.target}"
+
+[devices.meter1]
+link = "gw"
+unit = 1
+map = "{meter.name}"
+tags = {{ site = "north" }}
+
+[devices.meter2]
+link = "gw"
+unit = 2
+map = "{meter.name}"
+
+[devices.dead]
+link = "gw"
+unit = 9
+read = ["40001 1"]
+
+[devices.plc]
+link = "plc"
+read = ["40001 2", "00001 2"]
+""",
+        )
+
+
+def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(small_plant):
+    from line_protocol_parser import parse_line
+    from prometheus_client.parser import text_string_to_metric_families
+
+    res = run_cli("poll", small_plant, "--once", "-o", "json")
+    assert res.returncode == 8, res  # the dead unit failed, the others answered
+    records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "event" not in r}
+    assert records["meter1"]["points"] == [
+        {"name": "voltage", "value": 230.1, "unit": "V", "ref": "30001"},
+        {"name": "tariff", "value": "day", "unit": "", "ref": "40001"},
+    ]
+    assert records["meter1"]["tags"] == {"site": "north"} and records["meter2"]["unit"] == 2
+    assert "no response from unit 9" in records["dead"]["error"] and records["dead"]["exit_code"] == 3
+    assert [p["value"] for p in records["plc"]["points"]] == [0, 1, True, False]
+
+    rows = list(csv.DictReader(io.StringIO(run_cli("poll", small_plant, "--once", "-o", "csv").stdout)))
+    assert {(r["device"], r["name"], r["value"], r["unit"], r["ref"]) for r in rows} >= {
+        ("meter1", "voltage", "230.1", "V", "30001"),
+        ("plc", "00001", "on", "", "00001"),
+    }
+
+    lines = run_cli("poll", small_plant, "--once", "-o", "influx").stdout.splitlines()
+    points = {p["tags"]["device"]: p for p in map(parse_line, lines)}
+    assert set(points) == {"meter1", "meter2", "plc"}  # the dead unit writes no line
+    assert points["meter1"]["tags"] == {"device": "meter1", "site": "north", "unit": "1"}
+    assert points["meter1"]["fields"] == {"voltage": 230.1, "tariff": 1}
+
+    text = run_cli("poll", small_plant, "--once", "-o", "prom").stdout
+    samples = {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+    }
+    assert samples[("modbus_voltage", (("device", "meter1"), ("ref", "30001"), ("site", "north")))] == 230.1
+
+
+def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    textfile = tmp_path / "plant.prom"
+    proc = start_mbtool(
+        "poll",
+        small_plant,
+        "--textfile",
+        textfile,
+        "-o",
+        "json",
+        "--duration",
+        "4",
+        stdout=subprocess.DEVNULL,
+    )
+    reads, seen, stop = [], set(), threading.Event()
+
+    def reader() -> None:
+        while not stop.is_set():
+            try:
+                text = textfile.read_text()
+            except FileNotFoundError:
+                continue
+            reads.append(text)
+            for family in text_string_to_metric_families(text):  # a half file would not parse
+                for sample in family.samples:
+                    if sample.name == "modbus_up":
+                        seen.add((sample.labels["device"], sample.value))
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    try:
+        proc.wait(timeout=30)
+    finally:
+        stop.set()
+        thread.join(10)
+    assert proc.returncode == 8, proc.stderr.read()
+    assert len(reads) > 10
+    assert ("dead", 0.0) in seen and ("meter1", 1.0) in seen and ("plc", 1.0) in seen
+    final = textfile.read_text()
+    assert 'modbus_up{device="dead"} 0' in final and "modbus_voltage{" in final
+    assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
+
+
+def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
+    """A meter sends 0xFFFF before its sensor is ready: no value (JSON null, "invalid": true),
+    never scaled into 6553.5, left out of influx and Prometheus; the other points as ever."""
+    from line_protocol_parser import parse_line
+    from prometheus_client.parser import text_string_to_metric_families
+
+    data = write(tmp_path / "data.toml", "[holding_registers]\n0 = [0xFFFF, 230]\n")
+    write(
+        tmp_path / "meter.toml",
+        '[device]\ninvalid = [0xFFFF]\n[points.power]\nref = 40001\nscale = 0.1\nunit = "kW"\n'
+        '[points.voltage]\nref = 40002\nunit = "V"\n',
+    )
+    with serve("--data", str(data)) as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n[devices.m]\nlink = "a"\nmap = "meter.toml"\n',
+        )
+        run = {
+            fmt: run_cli("poll", plant, "--once", "-o", fmt) for fmt in ("json", "plain", "influx", "prom")
+        }
+    assert all(res.returncode == 0 for res in run.values()), run
+    (record,) = map(json.loads, run["json"].stdout.splitlines())
+    assert record["points"][0] == {
+        "name": "power",
+        "value": None,
+        "unit": "kW",
+        "ref": "40001",
+        "invalid": True,
+    }
+    assert record["points"][1]["value"] == 230
+    assert [line.split(" ", 1)[1] for line in run["plain"].stdout.splitlines()] == [
+        "m power invalid",
+        "m voltage 230 V",
+    ]
+    assert parse_line(run["influx"].stdout)["fields"] == {"voltage": 230}
+    names = {
+        sample.name
+        for family in text_string_to_metric_families(run["prom"].stdout)
+        for sample in family.samples
+    }
+    assert "modbus_voltage" in names and "modbus_power" not in names
+
+
+def _on_a_terminal(argv: list[str], seconds: float) -> tuple[int, str, str]:
+    """Run mbtool with a pseudo-terminal as stdout for ``seconds``, then Ctrl-C: (status,
+    what the terminal showed, stderr)."""
+    import pty
+    import select
+    import signal
+
+    master, slave = pty.openpty()
+    proc = start_mbtool(*argv, env={"COLUMNS": "160"}, stdout=slave, text=False)
+    os.close(slave)
+    shown = b""
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                try:
+                    shown += os.read(master, 65536)
+                except OSError:
+                    break
+        proc.send_signal(signal.SIGINT)
+        end = time.monotonic() + 10
+        while proc.poll() is None and time.monotonic() < end:
+            if select.select([master], [], [], 0.1)[0]:
+                try:
+                    shown += os.read(master, 65536)
+                except OSError:
+                    break
+        proc.wait(timeout=10)
+        err = proc.stderr.read().decode()
+    finally:
+        os.close(master)
+        proc.stderr.close()
+    return proc.returncode, shown.decode(errors="replace"), err
+
+
+def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(small_plant):
+    code, shown, err = _on_a_terminal(["poll", str(small_plant)], 3)
+    assert code == 8, err  # interrupted with the dead unit failing and the others answering
+    for row in ("meter1", "meter2", "plc", "dead", "voltage=230.1", "tariff=day"):
+        assert row in shown, shown[-2000:]
+    assert "online" in shown and "offline" in shown
+    # The statistics on stderr: a row a device and a link.
+    table = err.splitlines()
+    assert table[0].split()[:4] == ["name", "state", "polls", "trans"]
+    rows = {line.split()[1]: line.split() for line in table[1:] if line.split()[:1] in (["device"], ["link"])}
+    assert rows["dead"][2] == "offline" and rows["meter1"][2] == "online" and rows["gw"][0] == "link"
+    assert "interrupted; 3 of 4 devices answered" in err.splitlines()[-1]
+
+
+def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent_server):
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{silent_server.socket_target.replace("socket", "tcp")}"\ntimeout = 0.2\n'
+        '[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+    )
+    res = run_cli("poll", plant, "--once", "--stats", "json")
+    assert res.returncode == 3, res  # no response
+    stats = json.loads(res.stderr.splitlines()[-2])
+    assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
+    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 devices answered: no response")

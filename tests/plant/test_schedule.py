@@ -1,0 +1,38 @@
+"""A plant device's state in mbtool poll's scheduler (mbtool.plant.schedule), in-process: offline
+after failures in a row, backed off doubling, back online; its slots kept and those missed skipped
+(issue 31)."""
+
+from __future__ import annotations
+
+from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState
+
+
+def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:
+    spec = DeviceSpec("m", "bus", 1, None, {}, interval, offline_after, max_backoff)
+    return DeviceState(spec, 0.0)
+
+
+def test_a_device_goes_offline_after_failures_in_a_row_and_is_backed_off_doubling():
+    state = _state()
+    assert state.failed(0.0, 0.0, "silence") is None and state.due == 1.0
+    assert state.succeeded(1.0, 1.0) is None and state.failures == 0  # not in a row
+    assert state.failed(2.0, 2.0, "silence") is None
+    assert state.failed(3.0, 3.0, "silence") is None
+    event = state.failed(4.0, 4.0, "silence")
+    assert (event.state, event.reason, event.retry_in) == (OFFLINE, "silence", 2.0)
+    assert state.state == OFFLINE and state.due == 6.0
+    waits = []
+    for now in (6.0, 10.0, 18.0, 28.0):
+        assert state.failed(now, now, "silence") is None  # one event for the change, not a probe
+        waits.append(state.due - now)
+    assert waits == [4.0, 8.0, 10.0, 10.0]  # doubling, up to max_backoff
+    event = state.succeeded(38.0, 38.0)
+    assert event.state == ONLINE and state.state == ONLINE and state.due == 39.0
+
+
+def test_a_device_keeps_its_schedule_and_skips_slots_it_missed():
+    state = _state(interval=2.0)
+    state.succeeded(0.1, 0.1)
+    assert state.due == 2.0  # its slot, not 2 s after this poll
+    state.succeeded(7.5, 7.5)  # slots 4.0 and 6.0 passed while the link was busy
+    assert state.due == 7.5
