@@ -649,8 +649,9 @@ def test_the_summary_gives_the_latency_of_a_request_and_of_a_poll(mbtool, tmp_pa
     assert summary(res)["replies"] == 3
     request, poll = latencies(res.stderr)
     # The device's 0.1 s runs from when it read the request, which may be a moment before
-    # mbtool stamps it as sent (the write returns, then the clock is read): a little slack.
-    assert request[0] >= 98 and poll[0] >= 294, res.stderr
+    # mbtool stamps it as sent (the write returns, then the clock is read; on a loaded machine
+    # mbtool may lose the processor in between): a little slack.
+    assert request[0] >= 90 and poll[0] >= 280, res.stderr
     # A poll's three requests take their time one after another, within the poll's.
     assert 3 * request[1] <= poll[1] + 0.1, res.stderr
 
