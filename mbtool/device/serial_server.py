@@ -14,9 +14,9 @@ from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Rejected, device_framer
 from mbtool.codec.timing import silent_interval
-from mbtool.device.serving import OUT_LIMIT, TICK, Answerer, IoFaults, Serving, Stats
+from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.transport import SerialSettings, SerialTransport, Target
+from mbtool.link.transport import SerialSettings, SerialTransport
 
 # On a serial line t3.5 ends a frame (spec §2), but ptys and USB adapters deliver bytes in
 # bursts with pauses of several ms inside one frame; a frame whose length is known never
@@ -29,18 +29,13 @@ class SerialServer(Serving):
 
     def __init__(
         self,
-        target: Target,
-        framer_name: str,
-        answerer: Answerer,
-        faults: IoFaults,
-        stats: Stats,
-        log: Callable[[str, str, bytes, str], None],
+        parts: ServerParts,
         settings: SerialSettings,
     ) -> None:
-        super().__init__(target, framer_name, answerer, faults, stats, log)
+        super().__init__(parts)
         self.settings = settings
         self.transport: SerialTransport | None = None  # once open
-        self.framer = device_framer(framer_name)
+        self.framer = device_framer(parts.framer_name)
         self._held = 0  # bytes of replies waiting in _pending (--delay)
 
     def open(self) -> None:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 from mbtool.codec.errors import RequestError
 from mbtool.device.device import Device
 from mbtool.device.serial_server import SerialServer
-from mbtool.device.serving import Answerer, IoFaults, Responder, Serving, Stats
+from mbtool.device.serving import Answerer, IoFaults, Responder, ServerParts, Serving, Stats
 from mbtool.device.tcp_server import FIRST_REQUEST_TIMEOUT, IDLE_TIMEOUT, MAX_CLIENTS, TcpServer
 from mbtool.device.udp_server import UdpServer
 from mbtool.link import IN_PROCESS
@@ -77,30 +77,20 @@ class Server:
             "idle_timeout": idle_timeout,
             "first_request_timeout": first_request_timeout,
         }
+        parts = ServerParts(target, framer_name, answerer, faults, self.stats, log)
         if target.scheme == "tcp":
-            self.port = TcpServer(target, framer_name, answerer, faults, self.stats, log, **limits)
+            self.port = TcpServer(parts, **limits)
         elif target.scheme == "tls":
             from mbtool.device.tls_server import TlsServer  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             assert tls_context is not None, (
                 "a tls:// server needs its context (mbtool.link.tls.server_context)"
             )
-            self.port = TlsServer(
-                target,
-                framer_name,
-                answerer,
-                faults,
-                self.stats,
-                log,
-                context=tls_context,
-                write_roles=write_roles,
-                **limits,
-            )
+            self.port = TlsServer(parts, context=tls_context, write_roles=write_roles, **limits)
         elif target.scheme in ("udp", "rtu+udp"):
-            self.port = UdpServer(target, framer_name, answerer, faults, self.stats, log)
+            self.port = UdpServer(parts)
         else:
-            settings = settings or SerialSettings()
-            self.port = SerialServer(target, framer_name, answerer, faults, self.stats, log, settings)
+            self.port = SerialServer(parts, settings or SerialSettings())
 
     def open(self) -> None:
         """Bind the port or open the serial line; ConnectionFailed (exit 6) if it cannot be."""

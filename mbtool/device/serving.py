@@ -166,6 +166,19 @@ def corrupt_checksum(adu: bytes, framer_name: str) -> bytes:
     return adu
 
 
+@record
+class ServerParts:
+    """What every server is given, whatever its transport: where it serves, its framer's
+    name, who answers, the I/O layer's faults it plays, its stats and its log."""
+
+    target: Target
+    framer_name: str
+    answerer: Answerer
+    faults: IoFaults
+    stats: Stats
+    log: Callable[[str, str, bytes, str], None]
+
+
 class Serving:
     """The loop of a server on one transport: runs until ``stop()`` (called from a signal
     handler) or a fatal error on the port, then closes it.
@@ -173,21 +186,13 @@ class Serving:
     ``open``, ``_serve`` (one turn after another until ``_stop``, calling ``_tick`` after
     each) and ``close`` are the transport's."""
 
-    def __init__(
-        self,
-        target: Target,
-        framer_name: str,
-        answerer: Answerer,
-        faults: IoFaults,
-        stats: Stats,
-        log: Callable[[str, str, bytes, str], None],
-    ) -> None:
-        self.target = target
-        self.framer_name = framer_name
-        self.responder = answerer
-        self.faults = faults
-        self.stats = stats
-        self._log = log
+    def __init__(self, parts: ServerParts) -> None:
+        self.target = parts.target
+        self.framer_name = parts.framer_name
+        self.responder = parts.answerer
+        self.faults = parts.faults
+        self.stats = parts.stats
+        self._log = parts.log
         self._stop = False
         self._tick: Callable[[], None] = lambda: None
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)

@@ -40,9 +40,8 @@ from collections import deque
 from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
-from mbtool.device.serving import OUT_LIMIT, TICK, Answerer, IoFaults, Serving, Stats
+from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
 from mbtool.errors import ConnectionFailed
-from mbtool.link.transport import Target
 
 TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is unknown
 MAX_CLIENTS = 64
@@ -62,19 +61,14 @@ class TcpServer(Serving):
 
     def __init__(
         self,
-        target: Target,
-        framer_name: str,
-        answerer: Answerer,
-        faults: IoFaults,
-        stats: Stats,
-        log: Callable[[str, str, bytes, str], None],
+        parts: ServerParts,
         *,
         queued: bool = False,
         max_clients: int = MAX_CLIENTS,
         idle_timeout: float | None = IDLE_TIMEOUT,
         first_request_timeout: float | None = FIRST_REQUEST_TIMEOUT,
     ) -> None:
-        super().__init__(target, framer_name, answerer, faults, stats, log)
+        super().__init__(parts)
         # queued: answers take a bus's time, given one at a time by a worker thread.
         self.queued = queued
         self._turns = _Turns()

@@ -27,11 +27,11 @@ from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected
 from mbtool.codec.pdu import ExceptionCode, function_type
+from mbtool.codec.record import replace
 from mbtool.device.handlers import changes_state
-from mbtool.device.serving import Answerer, IoFaults, Stats
+from mbtool.device.serving import Answerer, ServerParts, Stats
 from mbtool.device.tcp_server import RECV_SIZE, TcpServer, _Client
 from mbtool.link import x509
-from mbtool.link.transport import Target
 
 # What a failed handshake means, by OpenSSL's reason, in the server's words.
 FAILURES = {
@@ -97,12 +97,7 @@ class TlsServer(TcpServer):
 
     def __init__(
         self,
-        target: Target,
-        framer_name: str,
-        answerer: Answerer,
-        faults: IoFaults,
-        stats: Stats,
-        log: Callable[[str, str, bytes, str], None],
+        parts: ServerParts,
         *,
         context: ssl.SSLContext,
         write_roles: frozenset[str] | None = None,
@@ -110,8 +105,9 @@ class TlsServer(TcpServer):
     ) -> None:
         self.roles: dict[str, str | None] = {}
         if write_roles is not None:
-            answerer = RoleCheck(answerer, write_roles, self.roles, stats, log)
-        super().__init__(target, framer_name, answerer, faults, stats, log, **limits)
+            answerer = RoleCheck(parts.answerer, write_roles, self.roles, parts.stats, parts.log)
+            parts = replace(parts, answerer=answerer)
+        super().__init__(parts, **limits)
         self.context = context
 
     def open(self) -> None:

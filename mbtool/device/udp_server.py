@@ -16,12 +16,10 @@ from __future__ import annotations
 import select
 import socket
 import time
-from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Rejected, device_framer
-from mbtool.device.serving import OUT_LIMIT, TICK, Answerer, IoFaults, Serving, Stats
+from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
 from mbtool.errors import ConnectionFailed
-from mbtool.link.transport import Target
 
 DATAGRAMS_PER_TURN = 64  # read before the loop looks at the stop flag and the replies due
 MAX_DATAGRAM = 65536
@@ -31,17 +29,9 @@ PEERS_COUNTED = 4096  # distinct peers remembered for the count (a flood of forg
 class UdpServer(Serving):
     """Answers the datagrams that come to one UDP port."""
 
-    def __init__(
-        self,
-        target: Target,
-        framer_name: str,
-        answerer: Answerer,
-        faults: IoFaults,
-        stats: Stats,
-        log: Callable[[str, str, bytes, str], None],
-    ) -> None:
-        super().__init__(target, framer_name, answerer, faults, stats, log)
-        self.framer = device_framer(framer_name)
+    def __init__(self, parts: ServerParts) -> None:
+        super().__init__(parts)
+        self.framer = device_framer(parts.framer_name)
         self.sock: socket.socket | None = None  # once open
         self._peers: set[str] = set()
         self._held = 0  # bytes of replies --delay holds back (at most OUT_LIMIT)
