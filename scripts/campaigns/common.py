@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import re
 import select
 import signal
@@ -29,6 +28,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from helpers import (  # noqa: E402  (the tests' own peers and helpers)
     PTY_SERIAL_OPTS,
     PtyPair,
+    first_line,
     mbtool_env,
     signals_as_from_a_shell,
 )
@@ -125,22 +125,12 @@ def run(*args: object, deadline: float = RUN_DEADLINE, extra_env: dict[str, str]
 
 
 def first_stream_line(proc: subprocess.Popen, stream, starts: str, wait: float = 20.0) -> str:
-    """The first line a long-running mbtool prints on ``stream`` (a pipe of the process)."""
-    fd = stream.fileno()
-    end = time.monotonic() + wait
-    buf = b""
-    while time.monotonic() < end and b"\n" not in buf:
-        ready, _, _ = select.select([fd], [], [], 0.1)
-        if ready:
-            chunk = os.read(fd, 4096)
-            if not chunk:
-                break
-            buf += chunk
-    if not buf.startswith(starts.encode()):
-        proc.kill()
-        _, err = proc.communicate(timeout=5)
-        give_up(f"mbtool did not start: {buf!r} {err!r}")
-    return buf.split(b"\n")[0].decode()
+    """The first line a long-running mbtool prints on ``stream`` (a pipe of the process), as
+    the tests read it; a campaign gives up with the reason when it does not come."""
+    try:
+        return first_line(proc, starts, stream, wait)
+    except RuntimeError as failed:
+        give_up(str(failed))
 
 
 def stop(proc: subprocess.Popen, wait: float = 10.0) -> int | None:
