@@ -79,7 +79,10 @@ class Client:
         # Run once, right after the next request has left: polling stamps the poll's time
         # there, and writes the previous poll's output while the device turns it round.
         self.while_waiting: Callable[[], None] | None = None
-        self.work_done_at = 0.0  # when that work last ended (the clock's time)
+        # What the round trip of the request that last ran that work is timed from (the
+        # clock's time): its leaving, or the end of the work when its reply came meanwhile.
+        # Polling times a poll of several requests from there, by the rule of ``rtt``.
+        self.work_waited_from = 0.0
         self.replied_at = 0.0  # when the last reply came
         # The last execute's seconds from its request to its reply, the work above left out
         # (None: no reply came): what link.stats counts as the round trip.
@@ -217,13 +220,14 @@ class Client:
             # device's.  A reply that came meanwhile waited for mbtool, not mbtool for it: it
             # is timed from here, for its arrival is not known; one still to come, from the
             # request, as ever.
-            done = self.work_done_at = self.clock()
+            done = self.clock()
             if done + self.timeout > deadline:
                 deadline = done + self.timeout
             # Asked only when the work took long enough to matter: a reply in a shorter one
             # is timed from its request to within what the summary shows (0.1 ms).
             if done - sent_at > UNSEEN_WORK and transport.input_waiting():
                 waited_from = done
+            self.work_waited_from = waited_from
         if unit == framer.broadcast_unit:
             return None
         if not expects_response:

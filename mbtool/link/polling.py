@@ -183,7 +183,7 @@ def poll(
                     reply = execute(connection.unit, request)
                 else:
                     reply = run(execute)
-                    per_poll.add(client.replied_at - client.work_done_at)
+                    per_poll.add(client.replied_at - client.work_waited_from)
                 replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
                     accepted.update(client.deviations)

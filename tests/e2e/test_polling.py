@@ -14,6 +14,7 @@ import time
 from datetime import datetime
 from types import SimpleNamespace
 
+import pytest
 from helpers import (
     HOLDING,
     REPO_ROOT,
@@ -702,6 +703,40 @@ def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
     request, per_poll = latencies(text)
     # The device answers within the half second mbtool spends writing: none of that counts.
     assert request[2] < 500 and per_poll[2] < 500, text
+
+
+class ShortWriter(SlowWriter):
+    """Writes the poll before in a tenth of a second: less than the device takes to answer."""
+
+    def write(self) -> None:
+        if self.held:
+            self.held.clear()
+            time.sleep(0.1)
+
+
+def test_a_poll_of_several_requests_is_timed_by_the_rule_of_each_request():
+    """A map's poll of three requests to a device that takes 0.3 s each, the poll before
+    written in 0.1 s while the first is out: the first reply still came after the writing, so
+    that request is timed from its leaving, and so is the poll, which holds all three round
+    trips (it was timed from the end of the writing: 0.1 s short, less than its requests)."""
+    from mbtool.codec.data_access import ReadHoldingRegisters
+    from mbtool.errors import Summary
+    from mbtool.link.connection import Connection
+    from mbtool.link.polling import poll
+
+    requests = [ReadHoldingRegisters(0, 1), ReadHoldingRegisters(10, 1), ReadHoldingRegisters(20, 1)]
+
+    def three_reads(execute):
+        return [execute(1, request) for request in requests][-1]
+
+    shown = ShortWriter()
+    with serve("--delay", "0.3") as server:
+        with pytest.raises(Summary) as ended:
+            poll(Connection(port=server.target, timeout=2), requests[0], shown, 0, 3, run=three_reads)
+    assert shown.failures == [], shown.failures
+    request, per_poll = latencies(str(ended.value))
+    assert request[0] >= 280, ended.value
+    assert per_poll[0] >= 3 * request[0], ended.value
 
 
 def test_a_slow_writer_does_not_make_a_timeout_of_a_reply_that_came(tcp_device):
