@@ -269,12 +269,13 @@ def bridge(
     show.on_failure = server.stop
     try:
         server.open()
-        click.echo(
-            f"bridging {server.stats.listening} ({listening_framer}) to {target} ({link_framer}), "
-            f"units {units_text(forwarded)}",
-            err=True,
-        )
+        # The stop by signal is in place before the line that says the bridge is ready (as serve).
         with server.stopped_by_signals():
+            click.echo(
+                f"bridging {server.stats.listening} ({listening_framer}) to {target} ({link_framer}), "
+                f"units {units_text(forwarded)}",
+                err=True,
+            )
             server.run()
     finally:
         forwarder.close()

@@ -280,10 +280,11 @@ def serve(
     refusal = " read-only: writes get exception 01" if read_only else ""
     if roles is not None:
         refusal += f" writes by role {','.join(sorted(roles))} only" if roles else " no role may write"
-    click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
-    sys.stdout.flush()
-
+    # The stop by signal is in place before the line that says the server is ready: a
+    # supervisor may stop it as soon as it reads that line, and that is a clean stop (exit 0).
     with server.stopped_by_signals():
+        click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
+        sys.stdout.flush()
         if mode == "live":
             _run_live(server, device, framer, unit_text, unit_set)
         else:

@@ -1,0 +1,44 @@
+"""serve and bridge print a line when they are ready (``serving ...``, ``bridging ...``), and a
+supervisor or a test may stop them with SIGTERM as soon as it reads it: by then the stop by
+signal must be in place, for a clean stop (exit 0), not the program's own handler, which ends
+a run as interrupted (exit 130)."""
+
+from __future__ import annotations
+
+import signal
+
+import click
+from helpers import run_cli
+
+from mbtool.cli import program
+from mbtool.device.server import Server
+
+
+def handlers_when_ready(monkeypatch, ready: str) -> list:
+    """The SIGTERM handler in force each time a line starting with ``ready`` is written; the
+    server itself stops at once (its loop is not run)."""
+    seen = []
+    echo = click.echo
+
+    def watched(message=None, *args, **kwargs):
+        if isinstance(message, str) and message.startswith(ready):
+            seen.append(signal.getsignal(signal.SIGTERM))
+        return echo(message, *args, **kwargs)
+
+    monkeypatch.setattr(click, "echo", watched)
+    monkeypatch.setattr(Server, "run", lambda self, tick=None: None)
+    return seen
+
+
+def test_serve_is_stoppable_cleanly_once_it_says_it_is_serving(monkeypatch):
+    seen = handlers_when_ready(monkeypatch, "serving ")
+    res = run_cli("serve", "-p", "tcp://127.0.0.1:0", "-q")
+    assert res.returncode == 0, res
+    assert len(seen) == 1 and seen[0] is not program._terminate, seen
+
+
+def test_bridge_is_stoppable_cleanly_once_it_says_it_is_bridging(monkeypatch):
+    seen = handlers_when_ready(monkeypatch, "bridging ")
+    res = run_cli("bridge", "--listen", "tcp://127.0.0.1:0", "-p", "sim://", "-q")
+    assert res.returncode == 0, res
+    assert len(seen) == 1 and seen[0] is not program._terminate, seen
