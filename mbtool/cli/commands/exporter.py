@@ -153,9 +153,10 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
     server = open_server(host, port, family, Exporter(metrics, scraper))
-    click.echo(_serving_line(server, plant, maps, allowed))
-    sys.stdout.flush()
     try:
+        # Inside: a SIGTERM as soon as the line is read (a supervisor) is a clean stop too.
+        click.echo(_serving_line(server, plant, maps, allowed))
+        sys.stdout.flush()
         if runner is None:
             server.serve_forever(poll_interval=0.5)
         else:
