@@ -42,3 +42,21 @@ def test_bridge_is_stoppable_cleanly_once_it_says_it_is_bridging(monkeypatch):
     res = run_cli("bridge", "--listen", "tcp://127.0.0.1:0", "-p", "sim://", "-q")
     assert res.returncode == 0, res
     assert len(seen) == 1 and seen[0] is not program._terminate, seen
+
+
+def test_exporter_stops_cleanly_on_a_sigterm_right_after_its_first_line(monkeypatch, tmp_path):
+    """The exporter's stop is the KeyboardInterrupt the program's SIGTERM handler raises: one
+    raised as soon as ``exporting on ...`` is written (where a signal may land) is exit 0."""
+    echo = click.echo
+
+    def interrupted_after(message=None, *args, **kwargs):
+        echo(message, *args, **kwargs)
+        if isinstance(message, str) and message.startswith("exporting on "):
+            raise KeyboardInterrupt  # what program._terminate raises on SIGTERM
+
+    monkeypatch.setattr(click, "echo", interrupted_after)
+    res = run_cli(
+        "exporter", "--listen", "127.0.0.1:0", "--maps", tmp_path, "--allow-target", "tcp://127.0.0.1:*"
+    )
+    assert res.returncode == 0, res
+    assert res.stdout.startswith("exporting on http://127.0.0.1:"), res
