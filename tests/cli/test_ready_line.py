@@ -1,7 +1,6 @@
-"""serve and bridge print a line when they are ready (``serving ...``, ``bridging ...``), and a
-supervisor or a test may stop them with SIGTERM as soon as it reads it: by then the stop by
-signal must be in place, for a clean stop (exit 0), not the program's own handler, which ends
-a run as interrupted (exit 130)."""
+"""serve, bridge and the exporter print a line when they are ready (``serving ...``,
+``bridging ...``, ``exporting on ...``), and a supervisor or a test may stop them with SIGTERM
+as soon as it reads it: that is a clean stop (exit 0), not a run interrupted (exit 130)."""
 
 from __future__ import annotations
 
