@@ -514,14 +514,20 @@ def test_pause_spaces_every_poll_the_first_two_as_well_as_their_stamps_show(mbto
     assert all(gap >= 0.35 - 0.001 for gap in gaps), gaps  # stamps are cut to the millisecond
 
 
-def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, raw_responder):
-    arrived = []
+def arrivals_noted(raw_responder, clock) -> tuple:
+    """A TCP device whose holding register 0 holds 7, and the times (``clock()``) its requests
+    arrived, one a request."""
+    arrived: list[float] = []
 
     def answer(request: bytes) -> bytes:
-        arrived.append(time.time())
+        arrived.append(clock())
         return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
 
-    device = raw_responder(answer)
+    return raw_responder(answer), arrived
+
+
+def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, raw_responder):
+    device, arrived = arrivals_noted(raw_responder, time.time)
     res = expect_ok(
         mbtool(
             "read-holding-registers",
@@ -594,13 +600,7 @@ def test_a_polls_line_is_not_held_back_for_the_pause_after_it():
 def test_pause_holds_across_a_new_link_each_poll(mbtool, raw_responder):
     """--reconnect-each opens a new link for every poll; the device behind it is the same, and
     still needs the pause after its last reply."""
-    arrived = []
-
-    def answer(request: bytes) -> bytes:
-        arrived.append(time.monotonic())
-        return request[:4] + b"\x00\x05" + request[6:8] + b"\x02\x00\x07"
-
-    device = raw_responder(answer)
+    device, arrived = arrivals_noted(raw_responder, time.monotonic)
     res = expect_ok(
         mbtool(
             "read-holding-registers",
