@@ -13,6 +13,7 @@ from functools import lru_cache
 
 from mbtool.cli.metrics import _exposition, _label_pairs, _label_value, _metric_name, _sample_value
 from mbtool.cli.stamps import local_time
+from mbtool.codec.errors import RequestError
 from mbtool.link.stats import OUTCOMES, Stats
 from mbtool.plant.schedule import ONLINE, Event
 
@@ -70,6 +71,25 @@ def prom_text(states: list) -> str:
     if not metrics[LAST_SUCCESS][1]:
         del metrics[LAST_SUCCESS]
     return _exposition(metrics)
+
+
+def point_name_clash(points, own: set[str], whose: str) -> str:
+    """The first point whose metric is one of ``own`` (``whose`` metrics: "the exporter"), as
+    a sentence; "" for none.  Two families of one name are no exposition."""
+    for point in points:
+        name = _metric_name(f"modbus_{point.name}")
+        if name in own:
+            return f"point {point.name}: its metric, {name}, is one {whose} has of its own; rename the point"
+    return ""
+
+
+def refuse_point_names(plant, own: set[str], whose: str) -> None:
+    """RequestError (exit 2, before anything is opened) for an inventory whose map points
+    would be named as ``own`` metrics."""
+    for spec in plant.devices:
+        clash = point_name_clash(spec.reader.points, own, whose)
+        if clash:
+            raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
 
 
 def event_line(event) -> str:

@@ -40,3 +40,22 @@ def test_a_bad_inventory_is_exit_2_naming_file_table_and_key_and_nothing_is_open
     line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
     assert str(path) in line and words in line
     assert silent_server.received_bytes() == b""
+
+
+@pytest.mark.parametrize(
+    "output", [["-o", "prom"], ["--textfile", "{dir}/plant.prom"]], ids=["prom", "textfile"]
+)
+def test_a_point_named_as_a_devices_own_metric_is_refused_for_prometheus_text(
+    tmp_path, silent_server, output
+):
+    """A point `up` would be modbus_up, the family that says whether the device answered:
+    with -o prom or --textfile that is two families of one name, refused before anything is
+    opened; other outputs name the point as it is."""
+    (tmp_path / "map.toml").write_text("[points.up]\nref = 40001\n")
+    path = tmp_path / "plant.toml"
+    target = silent_server.socket_target.replace("socket", "tcp")
+    path.write_text(f'[links.a]\ntarget = "{target}"\n[devices.d]\nlink = "a"\nmap = "map.toml"\n')
+    args = [part.format(dir=tmp_path) for part in output]
+    line = assert_one_error_line(run_cli("poll", path, "--once", *args), 2)
+    assert str(path) in line and "point up: its metric, modbus_up" in line and "rename the point" in line
+    assert silent_server.received_bytes() == b"" and not (tmp_path / "plant.prom").exists()

@@ -38,7 +38,6 @@ from urllib.parse import parse_qs, urlsplit
 import click
 
 from mbtool.cli.inventory import load_inventory
-from mbtool.cli.metrics import _metric_name
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import (
@@ -48,6 +47,8 @@ from mbtool.cli.plant_text import (
     device_stats_text,
     link_stats_text,
     point_metric,
+    point_name_clash,
+    refuse_point_names,
 )
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
@@ -212,25 +213,13 @@ def parse_listen(text: str) -> tuple[str, int, socket.AddressFamily]:
 SCRAPE_NAMES = ("modbus_up", "modbus_error_info", "modbus_scrape_duration_seconds")
 
 
-def _clash(points, own: set[str]) -> str:
-    """The first point whose metric is one of ``own``, as a sentence; "" for none."""
-    for point in points:
-        name = _metric_name(f"modbus_{point.name}")
-        if name in own:
-            return f"point {point.name}: its metric, {name}, is one the exporter has of its own; rename the point"
-    return ""
-
-
 def check_plant_names(plant) -> None:
     """Refuse, before anything is opened, an inventory whose map points would be named as
-    the exporter's own metrics (two families of one name are no exposition)."""
+    the exporter's own metrics: a device's (as poll's) and the statistics'."""
     own = {UP, LAST_SUCCESS}
     for text in (device_stats_text("", PollStats()), link_stats_text("", Stats(), False, 0)):
         own |= set(re.findall(r"^(?:# TYPE )?([a-zA-Z_:][a-zA-Z0-9_:]*)", text, re.M))  # families, samples
-    for spec in plant.devices:
-        clash = _clash(spec.reader.points, own)
-        if clash:
-            raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+    refuse_point_names(plant, own, "the exporter")
 
 
 # --- multi-target: a map read from a target on each scrape ----------------------------------
@@ -298,7 +287,7 @@ class Modules:
         if kept is not None and kept[0] == stamp:
             return kept[1]
         register_map = load_map(path)
-        clash = _clash(register_map.points.values(), set(SCRAPE_NAMES))
+        clash = point_name_clash(register_map.points.values(), set(SCRAPE_NAMES), "the exporter")
         if clash:
             raise MapError(f"{path}: {clash}")
         with self.lock:

@@ -20,7 +20,7 @@ from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
 from mbtool.cli.metrics import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value, write_textfile
 from mbtool.cli.param_types import FilePath, PositiveFloat
-from mbtool.cli.plant_text import event_line, prom_text
+from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
@@ -88,6 +88,9 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    if fmt == "prom" or textfile:
+        # A point named as a device's own metrics (up) would make two families of one name.
+        refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
     if once:
         rounds = 1
     trace = None
