@@ -320,7 +320,7 @@ def write_textfile(text: str, path: str, sweep: bool = True) -> None:
     a symlink planted beside the textfile is never followed, and the rename replaces a
     symlink at PATH itself rather than writing through it.  It is made readable as any file
     the user creates (the umask), as node_exporter runs as another user.  Its name,
-    ``.NAME.PID.XXXXXXXX.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
+    ``.NAME.PID.<8 random characters>.tmp``, says whose it is: one a killed mbtool left behind (SIGKILL
     gives no chance to clean up) is removed at a run's first write (``sweep``)."""
     import tempfile  # noqa: PLC0415 - 3 ms or more: --textfile only
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import heapq
 import random
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
@@ -179,7 +180,7 @@ class ServerParts:
     log: Callable[[str, str, bytes, str], None]
 
 
-class Serving:
+class Serving(ABC):
     """The loop of a server on one transport: runs until ``stop()`` (called from a signal
     handler) or a fatal error on the port, then closes it.
 
@@ -198,15 +199,17 @@ class Serving:
         self._pending: list[tuple[float, int, Callable[[], None]]] = []  # (due, seq, send)
         self._seq = 0
 
+    @abstractmethod
     def open(self) -> None:
         """Bind the port or open the serial line; ConnectionFailed (exit 6) if it cannot be."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _serve(self) -> None:
-        raise NotImplementedError
+        """The transport's loop: turn after turn until ``_stop``, ``_tick`` after each."""
 
+    @abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Close the port or the line, and every client."""
 
     def stop(self) -> None:
         self._stop = True
