@@ -134,26 +134,28 @@ def cpu_of(argv: list[str], stdout=subprocess.DEVNULL) -> tuple[float, float]:
     return usage.ru_utime + usage.ru_stime, wall
 
 
+def mbtool_polling(port: int, n: int) -> list[str]:
+    """mbtool's arguments for n polls of the registers the clients read, back to back, as JSON."""
+    return [
+        "read-holding-registers",
+        "0",
+        str(COUNT),
+        "-p",
+        f"tcp://127.0.0.1:{port}",
+        "--interval",
+        "0",
+        "--polls",
+        str(n),
+        "-o",
+        "json",
+    ]
+
+
 def clients(client_c: Path, port: int) -> dict[str, callable]:
     env_python = [sys.executable, "-c"]
 
     def mbtool(n: int) -> list[str]:
-        return [
-            sys.executable,
-            "-m",
-            "mbtool",
-            "read-holding-registers",
-            "0",
-            str(COUNT),
-            "-p",
-            f"tcp://127.0.0.1:{port}",
-            "--interval",
-            "0",
-            "--polls",
-            str(n),
-            "-o",
-            "json",
-        ]
+        return [sys.executable, "-m", "mbtool", *mbtool_polling(port, n)]
 
     return {
         "libmodbus C": lambda n: [str(client_c), str(port), str(n)],

@@ -35,7 +35,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from polling_cpu import COUNT, PYMODBUS_LOOP, SERVER_C, build, free_port
+from polling_cpu import COUNT, PYMODBUS_LOOP, SERVER_C, build, free_port, mbtool_polling
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -154,23 +154,7 @@ def main() -> None:
                     label = "" if tree == ROOT else f" ({tree})"
                     figures[f"mbtool command over TCP{label}"] = per_transaction(
                         lambda n, tree=tree: instructions(
-                            [
-                                sys.executable,
-                                "-c",
-                                launcher,
-                                str(tree),
-                                "read-holding-registers",
-                                "0",
-                                str(COUNT),
-                                "-p",
-                                f"tcp://127.0.0.1:{port}",
-                                "--interval",
-                                "0",
-                                "--polls",
-                                str(n),
-                                "-o",
-                                "json",
-                            ]
+                            [sys.executable, "-c", launcher, str(tree), *mbtool_polling(port, n)]
                         ),
                         args.short,
                         args.long,
