@@ -40,6 +40,7 @@ from collections import deque
 from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
+from mbtool.codec.record import replace
 from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
 from mbtool.errors import ConnectionFailed
 
@@ -103,8 +104,7 @@ class TcpServer(Serving):
         listener.setblocking(False)
         self.listener = listener
         bound = listener.getsockname()
-        shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
-        self.stats.listening = f"tcp://{shown}:{bound[1]}"
+        self.stats.listening = str(replace(self.target, host=bound[0], port=bound[1]))  # tcp:// or tls://
         self.selector = selectors.DefaultSelector()
         self.selector.register(listener, selectors.EVENT_READ, None)
         if self.queued:
@@ -475,7 +475,6 @@ class _Client:
         "bus",
         "bus_at",
         "tls",
-        "role",
     )
 
     def __init__(self, sock: socket.socket, peer: str, framer: Framer) -> None:
@@ -496,7 +495,6 @@ class _Client:
         self.bus = 0.0  # seconds of bus time it has used, decayed (BUS_HALF_LIFE)
         self.bus_at = self.connected  # when ``bus`` was last brought up to date
         self.tls = ""  # TLS (mbtool.device.tls_server): "handshake", "ready" or "refused"
-        self.role: str | None = None  # its certificate's Modbus role, once the handshake is done
 
     def bus_time(self, now: float) -> float:
         """The bus time it has used, each second counting half after BUS_HALF_LIFE."""

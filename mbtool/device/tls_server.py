@@ -26,7 +26,7 @@ import ssl
 from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected
-from mbtool.codec.pdu import ExceptionCode, function_type
+from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, function_type
 from mbtool.codec.record import replace
 from mbtool.device.handlers import changes_state
 from mbtool.device.serving import Answerer, ServerParts, Stats
@@ -78,11 +78,8 @@ class RoleCheck:
             return self.answerer.answer(event, framer, peer)
         shown = f"role {role}" if role is not None else "no role"
         why = f"write refused: {shown} may not write (exception 01)"
-        reply = framer.build(
-            event.unit,
-            bytes([event.pdu[0] | 0x80, ExceptionCode.ILLEGAL_FUNCTION]),
-            event.transaction_id or 0,
-        )
+        refusal = ExceptionResponse(event.pdu[0], ExceptionCode.ILLEGAL_FUNCTION)
+        reply = framer.build(event.unit, refusal.encode(), event.transaction_id or 0)
         self.stats.requests += 1
         self.stats.replies += 1
         self.stats.frame("RX", peer, event.adu)
@@ -109,10 +106,6 @@ class TlsServer(TcpServer):
             parts = replace(parts, answerer=answerer)
         super().__init__(parts, **limits)
         self.context = context
-
-    def open(self) -> None:
-        super().open()
-        self.stats.listening = "tls" + self.stats.listening.removeprefix("tcp")
 
     def _wrap(self, conn: socket.socket) -> socket.socket:
         return self.context.wrap_socket(conn, server_side=True, do_handshake_on_connect=False)
@@ -170,11 +163,11 @@ class TlsServer(TcpServer):
 
         note = ""
         try:
-            client.role = x509.role(der) if der else None
+            role = x509.role(der) if der else None
         except ValueError as error:
-            note = f" ({error}: taken as no role)"
-        self.roles[client.peer] = client.role
-        shown = f"role {client.role}" if client.role is not None else "no role"
+            role, note = None, f" ({error}: taken as no role)"
+        self.roles[client.peer] = role
+        shown = f"role {role}" if role is not None else "no role"
         self._log("open", client.peer, b"", f"TLS {client.sock.version()}, {shown}{note}")
         return True
 

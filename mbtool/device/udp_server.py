@@ -18,6 +18,7 @@ import socket
 import time
 
 from mbtool.codec.framing import Frame, Rejected, device_framer
+from mbtool.codec.record import replace
 from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
 from mbtool.errors import ConnectionFailed
 
@@ -54,8 +55,7 @@ class UdpServer(Serving):
         sock.setblocking(False)
         self.sock = sock
         bound = sock.getsockname()
-        shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
-        self.stats.listening = f"{self.target.scheme}://{shown}:{bound[1]}"
+        self.stats.listening = str(replace(self.target, host=bound[0], port=bound[1]))
 
     def _serve(self) -> None:
         while not self._stop:

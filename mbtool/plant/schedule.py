@@ -185,7 +185,7 @@ class LinkWorker:
         except (*KNOWN_ERRORS, OSError) as error:
             self.client = None
             close_quietly(self.link)
-            reason = str(error if not isinstance(error, OSError) else ConnectionFailed(str(error)))
+            reason = str(error)
             now, when = time.monotonic(), time.time()
             first = self.state != OFFLINE
             longest = max(d.spec.max_backoff for d in self.devices)
