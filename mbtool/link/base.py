@@ -30,7 +30,6 @@ class Transport:
 
     serial_line = True
     datagrams = False  # each read is one whole datagram (UDP): its end ends a frame
-    default_framer = "rtu"
     description = ""
 
     def write(self, data: bytes) -> None:

@@ -21,9 +21,10 @@ import math
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from mbtool.codec.errors import RequestError
+from mbtool.durations import Durations
 from mbtool.errors import (
     KNOWN_ERRORS,
     ConnectionFailed,
@@ -37,9 +38,6 @@ from mbtool.errors import (
 from mbtool.link.connection import close_quietly, open_client
 from mbtool.link.stats import Counted, Stats
 from mbtool.link.transport import ConnectionClosed
-
-if TYPE_CHECKING:
-    from mbtool.durations import Durations
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -56,23 +54,7 @@ class Shown(Protocol):
     def close(self) -> None: ...
 
 
-class Latency:
-    """Min, average and max in constant memory: a poll left running for weeks keeps no list."""
-
-    def __init__(self) -> None:
-        self.count, self.total, self.low, self.high = 0, 0.0, math.inf, 0.0
-
-    def add(self, seconds: float) -> None:
-        self.count += 1
-        self.total += seconds
-        # Comparisons, not min() and max(): this runs between a reply and the next request.
-        if seconds < self.low:
-            self.low = seconds
-        if seconds > self.high:
-            self.high = seconds
-
-
-def _text(figures: Latency | Durations) -> str:
+def _text(figures: Durations) -> str:
     """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted (both
     keep count, total, low and high)."""
     if not figures.count:
@@ -80,7 +62,7 @@ def _text(figures: Latency | Durations) -> str:
     return f"{figures.low * 1000:.1f}/{figures.total / figures.count * 1000:.1f}/{figures.high * 1000:.1f} ms"
 
 
-def _dict(figures: Latency | Durations) -> dict | None:
+def _dict(figures: Durations) -> dict | None:
     """min, avg and max in ms (None before the first)."""
     if not figures.count:
         return None
@@ -123,7 +105,7 @@ def poll(
     # link.stats counts with every transaction's outcome); a poll's from its first request
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
     # mbtool's own work while a reply is on its way (the poll before written) is in neither.
-    stats, per_poll = Stats(), Latency()
+    stats, per_poll = Stats(), Durations()
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False

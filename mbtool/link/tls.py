@@ -172,7 +172,6 @@ class TlsTransport(Transport):
     plaintext ADUs (the --hex trace shows them), every wait bounded by the client's time."""
 
     serial_line = False
-    default_framer = "tcp"
 
     def __init__(self, host: str, port: int, timeout: float, settings: TlsSettings) -> None:
         self.address = f"{_shown(host)}:{port}"
@@ -333,11 +332,7 @@ def _unverified(
 def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> list[str]:
     """The names the server's certificate is for, from a second handshake that checks nothing
     and sends nothing but the handshake; [] if that fails too."""
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    context.minimum_version = ssl.TLSVersion.TLSv1_2
-    context.check_hostname = False
-    context.verify_mode = ssl.CERT_NONE
-
+    context = client_context(TlsSettings(insecure=True))  # no certificate of ours: nothing sent
     try:
         with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)

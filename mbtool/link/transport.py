@@ -242,7 +242,6 @@ class SerialTransport(Transport):
 
 class TcpTransport(Transport):
     serial_line = False
-    default_framer = "tcp"
 
     def __init__(self, host: str, port: int, timeout: float) -> None:
         self.description = f"tcp://{host}:{port}"

@@ -30,7 +30,6 @@ class UdpTransport(Transport):
     def __init__(self, scheme: str, host: str, port: int) -> None:
         shown = f"[{host}]" if ":" in host else host
         self.description = f"{scheme}://{shown}:{port}"
-        self.default_framer = "tcp" if scheme == "udp" else "rtu"
         try:
             family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
             self.sock = socket.socket(family, kind, proto)
