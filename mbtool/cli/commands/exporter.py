@@ -31,7 +31,6 @@ import threading
 import time
 from contextlib import ExitStack
 from fnmatch import fnmatchcase
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
@@ -517,6 +516,10 @@ class Exporter:
 
 def open_server(host: str, port: int, family, exporter: Exporter):
     """The HTTP server, bound; ConnectionFailed (exit 6) if it cannot be."""
+    from http.server import (  # noqa: PLC0415 - 20-27 ms (ssl, email): not for mbtool --help
+        BaseHTTPRequestHandler,
+        ThreadingHTTPServer,
+    )
 
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"  # Prometheus keeps its connection from scrape to scrape

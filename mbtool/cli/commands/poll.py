@@ -123,6 +123,7 @@ class PlantOutput:
     def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant) -> None:
         self.fmt = fmt
         self.textfile = textfile
+        self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.lock = threading.Lock()
         self.states: dict = {}
         self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
@@ -194,7 +195,8 @@ class PlantOutput:
                 self.pending = set(self.states)
 
     def _write_textfile(self) -> None:
-        write_textfile(prom_text(list(self.states.values())), self.textfile)
+        write_textfile(prom_text(list(self.states.values())), self.textfile, sweep=not self.swept)
+        self.swept = True
 
     def close(self) -> None:
         with self.lock:
