@@ -62,6 +62,12 @@ class ConnectionFailed(MbtoolError):
     exit_code = ExitCode.CONNECTION
 
 
+def link_failure(error: BaseException) -> BaseException:
+    """An OSError that opening or using a link raised (a refused connection, a port gone) as
+    the ConnectionFailed it means, exit 6, with its text; any other error as it is."""
+    return ConnectionFailed(str(error)) if isinstance(error, OSError) else error
+
+
 class OutputFailed(MbtoolError):
     """The output could not be written (stdout, a capture file): one line naming it and why."""
 

@@ -34,6 +34,7 @@ from mbtool.errors import (
     PartialRead,
     Summary,
     exit_code_for,
+    link_failure,
 )
 from mbtool.link.connection import close_quietly, open_client
 from mbtool.link.stats import Counted, Stats
@@ -189,8 +190,7 @@ def poll(
                         ended_at = client.ended_at
                     close_quietly(link)
                     client = None
-                if isinstance(error, OSError):
-                    error = ConnectionFailed(str(error))
+                error = link_failure(error)
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
             else:

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 
 from mbtool.codec.record import field, record
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
 from mbtool.link.connection import Connection, close_quietly, open_client
 from mbtool.link.stats import Counted
 from mbtool.link.transport import ConnectionClosed
@@ -220,7 +220,7 @@ class LinkWorker:
         except PartialRead as partial:
             readings, error = partial.readings, partial
         except (*KNOWN_ERRORS, OSError) as failure:
-            error = failure if not isinstance(failure, OSError) else ConnectionFailed(str(failure))
+            error = link_failure(failure)
             if isinstance(failure, OSError | ConnectionFailed | ConnectionClosed):
                 close_quietly(self.link)  # the link is gone: open it anew for the next poll
                 self.client = None

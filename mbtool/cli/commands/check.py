@@ -35,7 +35,7 @@ from mbtool.cli.session import execute, open_client
 from mbtool.codec.errors import RequestError
 from mbtool.codec.tables import READS, reference
 from mbtool.codec.values import decode_values, registers_needed, value_addresses
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, PartialRead, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, PartialRead, exit_code_for, link_failure
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
 UNKNOWN = 3
@@ -98,8 +98,7 @@ class PluginCommand(DeviceCommand):
         except KeyboardInterrupt as stop:
             plugin_exit(UNKNOWN, _interrupted(stop))
         except (*KNOWN_ERRORS, OSError) as error:
-            if isinstance(error, OSError):
-                error = ConnectionFailed(str(error))
+            error = link_failure(error)
             code = exit_code_for(error)
             if code == ExitCode.OK:
                 raise  # --dry-run has shown the frame

@@ -51,7 +51,7 @@ from mbtool.cli.plant_text import (
 )
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
 from mbtool.link.connection import Connection, check, close_quietly, open_client
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import parse_target
@@ -417,7 +417,7 @@ def _read_map(connection, register_map, deadline: float, budget: float):
         client = link.enter_context(open_client(replace(connection, timeout=min(timeout, left))))
     except (*KNOWN_ERRORS, OSError) as error:
         close_quietly(link)
-        return None, error if not isinstance(error, OSError) else ConnectionFailed(str(error)), "connection"
+        return None, link_failure(error), "connection"
 
     def execute(request):
         left = deadline - time.monotonic()
@@ -432,7 +432,7 @@ def _read_map(connection, register_map, deadline: float, budget: float):
     except PartialRead as partial:
         return partial.readings, partial, "partial"
     except (*KNOWN_ERRORS, OSError) as failure:
-        error = failure if not isinstance(failure, OSError) else ConnectionFailed(str(failure))
+        error = link_failure(failure)
         return None, error, outcome_of(error)
     finally:
         close_quietly(link)

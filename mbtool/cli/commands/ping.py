@@ -21,7 +21,7 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 from mbtool.durations import Durations
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary, link_failure
 from mbtool.link.connection import close_quietly
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
 from mbtool.link.stats import Counted, Stats, outcome_of
@@ -128,9 +128,7 @@ class Pinger:
                         link = ExitStack()
                         client = link.enter_context(open_client(connection, self.settings, "ping"))
                     except (ConnectionFailed, OSError) as error:
-                        failure = (
-                            error if isinstance(error, ConnectionFailed) else ConnectionFailed(str(error))
-                        )
+                        failure = link_failure(error)
                         self.stats.transaction(failure, 0)
                         self._line(seq, f"link lost: {failure}")
                         last_sent = time.monotonic()
