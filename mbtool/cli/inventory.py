@@ -47,7 +47,7 @@ from mbtool.codec.tables import parse_reference, reference
 from mbtool.link.connection import Connection, check, tls_settings
 from mbtool.link.transport import parse_target
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
-from mbtool.registermap.load import MapError, load_map, one_line
+from mbtool.registermap.load import MapError, RegisterMap, load_map, one_line
 from mbtool.registermap.plan import MapReader
 from mbtool.registermap.point import Point
 
@@ -105,7 +105,8 @@ def load_inventory(path: str) -> Inventory:
         for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
     }
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
-    devices = [_device(name, table, path, links, defaults) for name, table in tables.items()]
+    loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
+    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
     if not devices:
         raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
@@ -179,7 +180,9 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
     return LinkSpec(name, connection)
 
 
-def _device(name: str, table: dict, path: str, links: dict, defaults: dict) -> DeviceSpec:
+def _device(
+    name: str, table: dict, path: str, links: dict, defaults: dict, loaded: dict[Path, RegisterMap]
+) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
         if key not in DEVICE_KEYS:
@@ -204,15 +207,16 @@ def _device(name: str, table: dict, path: str, links: dict, defaults: dict) -> D
         name,
         link,
         unit,
-        _reader(table, where, Path(path).parent),
+        _reader(table, where, Path(path).parent, loaded),
         _tags(table.get("tags", {}), where),
         **settings,
     )
 
 
-def _reader(table: dict, where: str, folder: Path) -> MapReader:
+def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMap]) -> MapReader:
     """What the device reads: a map's points (all, or those ``points`` names), or the
-    references ``read`` lists, each a point named by its reference."""
+    references ``read`` lists, each a point named by its reference.  ``loaded``: the maps
+    this inventory has loaded so far, by path."""
     if ("map" in table) == ("read" in table):
         raise RequestError(f"{where}: give either map (a register map) or read (references with counts)")
     if "map" in table:
@@ -222,7 +226,10 @@ def _reader(table: dict, where: str, folder: Path) -> MapReader:
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise RequestError(f"{where} points: expected a list of the map's point names")
         try:
-            register_map = load_map(_map_path(table, folder))
+            map_path = _map_path(table, folder)
+            if map_path not in loaded:
+                loaded[map_path] = load_map(map_path)
+            register_map = loaded[map_path]
             return MapReader(register_map.select(names), register_map.max_gap)
         except MapError as error:
             raise RequestError(f"{where} map: {error}") from None
