@@ -193,7 +193,7 @@ def _scaled(readings: dict[str, Reading], reading: Reading) -> Reading:
     scale = readings[factor.name]
     if scale.error is not None:
         return Reading(reading.point, None, (), PointException(reading.point, scale.error, factor))
-    value = reading.point.value_of(list(reading.raw), scale.value)
+    value = reading.point.value_of(reading.raw, scale.value)
     return Reading(reading.point, value, reading.raw)
 
 
@@ -207,7 +207,9 @@ def _read_block(execute: Execute, block: Block) -> dict[str, Reading]:
     out = {}
     for point, first, end in block.spans:
         raw = data[first:end]
-        out[point.name] = Reading(point, point.value_of(raw), raw)
+        # A point with a scale_ref is worked out once its factor is read too (_scaled).
+        value = point.value_of(raw) if point.scale_ref is None else None
+        out[point.name] = Reading(point, value, raw)
     return out
 
 

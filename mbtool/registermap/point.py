@@ -96,13 +96,16 @@ class Point:
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
         value = self._decode(raw)[0]
-        if self.is_invalid(value):
+        if self.invalid and self.is_invalid(value):
             return None  # the device has no value to give: never a label, never scaled
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
-        scale = self.scale_for(scale_factor)
-        if scale is None and self.scale_ref is not None:
-            return None  # a value without its scale factor is no value
+        if self.scale_ref is None:
+            scale = self.scale
+        else:
+            scale = self.scale_for(scale_factor)
+            if scale is None:
+                return None  # a value without its scale factor is no value
         if scale is None and self.offset is None or isinstance(value, str):
             return value
         # Decimal keeps NaN and ±Infinity as IEEE 754 does (repr gives 'nan', 'inf').
