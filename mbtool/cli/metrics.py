@@ -149,13 +149,8 @@ class Metrics:
                 self._warn_left_out(f"{key} ({labels['ref']})" if points else f"{result.table} {key}", value)
                 continue
             fields.append(f"{_escape(key, KEY_SPECIALS)}={shown}")
-        if not fields:
-            return ""
-        head = _escape(self.measurement, MEASUREMENT_SPECIALS) + "".join(
-            f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
-        )
         stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
-        return f"{head} {','.join(fields)} {stamp}\n"
+        return influx_text(self.measurement, tags, fields, stamp)
 
     def _warn_left_out(self, what: str, value: float) -> None:
         if what not in self.warned:
@@ -310,6 +305,18 @@ def _exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
         escaped = help_text.replace("\\", "\\\\").replace("\n", "\\n")
         out += [f"# HELP {name} {escaped}", f"# TYPE {name} gauge", *samples]
     return "\n".join(out) + "\n"
+
+
+def influx_text(measurement: str, tags: dict[str, str], fields: list[str], stamp_ns: int) -> str:
+    """One line of the line protocol: the measurement and its tags escaped (sorted, an empty
+    one left out), the fields as given (``key=value``, escaped), the time in nanoseconds;
+    "" when there is no field, as a line must have one."""
+    if not fields:
+        return ""
+    head = _escape(measurement, MEASUREMENT_SPECIALS) + "".join(
+        f",{_escape(k, KEY_SPECIALS)}={_escape(v, KEY_SPECIALS)}" for k, v in sorted(tags.items()) if v
+    )
+    return f"{head} {','.join(fields)} {stamp_ns}\n"
 
 
 def write_textfile(text: str, path: str, sweep: bool = True) -> None:

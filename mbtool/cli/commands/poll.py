@@ -18,7 +18,7 @@ import click
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import KEY_SPECIALS, MEASUREMENT_SPECIALS, _escape, _field_value, write_textfile
+from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, write_textfile
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
@@ -256,13 +256,8 @@ def influx_line(poll: Poll) -> str:
         shown = _field_value(reading.value if number is None else number)
         if shown is not None:
             fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
-    if not fields:
-        return ""
     tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    head = _escape("modbus", MEASUREMENT_SPECIALS) + "".join(
-        f",{_escape(key, KEY_SPECIALS)}={_escape(value, KEY_SPECIALS)}" for key, value in sorted(tags.items())
-    )
-    return f"{head} {','.join(fields)} {int(poll.time * 1_000_000_000)}\n"
+    return influx_text("modbus", tags, fields, int(poll.time * 1_000_000_000))
 
 
 # --- on a terminal: a live view ------------------------------------------------------------
