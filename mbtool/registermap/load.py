@@ -401,6 +401,18 @@ def _as_held(kind: str, value):
     return value
 
 
+def _held_exactly(kind: str, number, key: str, fail):
+    """``number`` as the point's type holds it, refused under ``key`` when the type cannot
+    hold it exactly (a float32 past 2**24 skips whole numbers) or at all."""
+    try:
+        held = decode_values(encode_values([parse_value(str(number), kind)], kind), kind)[0]
+    except RequestError as error:
+        raise fail(key, str(error)) from None
+    if held != number:
+        raise fail(key, f"a {kind} cannot hold {number}: the nearest it holds is {held}")
+    return held
+
+
 def _invalid(row: dict, kind: str, fail) -> frozenset:
     """The raw values a device sends for "no data" (0xFFFF from a meter at night, 0x8000 for
     SunSpec's int16, NaN for its float32), each one the point's type holds; for a string,
@@ -424,13 +436,7 @@ def _invalid(row: dict, kind: str, fail) -> frozenset:
                 raise fail("invalid", f"a {kind} holds no NaN")
             out.add(value)  # Point.is_invalid looks for a NaN as NaN
             continue
-        try:
-            held = decode_values(encode_values([parse_value(str(value), kind)], kind), kind)[0]
-        except RequestError as error:
-            raise fail("invalid", str(error)) from None
-        if held != value:
-            raise fail("invalid", f"a {kind} cannot hold {value}: the nearest it holds is {held}")
-        out.add(held)
+        out.add(_held_exactly(kind, value, "invalid", fail))
     return frozenset(out)
 
 
@@ -484,12 +490,7 @@ def _enum(row: dict, kind: str, fail) -> dict[int, str]:
             raise fail("enum", f"{raw} is not a whole number") from None
         if number in out:
             raise fail("enum", f"raw value {number} is labelled twice ({out[number]} and {label})")
-        try:
-            held = decode_values(encode_values([parse_value(str(number), kind)], kind), kind)[0]
-        except RequestError as error:
-            raise fail("enum", str(error)) from None
-        if held != number:  # a float32 past 2**24 skips whole numbers
-            raise fail("enum", f"a {kind} cannot hold {number}: the nearest it holds is {held}")
+        _held_exactly(kind, number, "enum", fail)
         if not isinstance(label, str) or not label:
             raise fail("enum", f"the label of {raw} is not text")
         if not one_line(label):
