@@ -159,7 +159,7 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
         param = params["port" if key == "target" else key]
         value = profiles._convert(param, key, value, ctx, where)
         if key in profiles.PATH_KEYS and value is not None:  # beside the inventory unless absolute
-            value = str(folder / Path(value).expanduser())
+            value = str(profiles.beside(folder, value))
         settings["port" if key == "target" else key] = value
     if "port" not in settings:
         raise RequestError(
@@ -258,7 +258,7 @@ def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMa
 
 def _map_path(table: dict, folder: Path) -> Path:
     """A device's map: its path relative to the inventory's folder, ~ expanded."""
-    return folder / Path(table["map"]).expanduser()
+    return profiles.beside(folder, table["map"])
 
 
 def _tags(tags, where: str) -> dict[str, str]:

@@ -56,6 +56,12 @@ KEYS = {
 PATH_KEYS = ("cert", "key", "ca", "map")
 
 
+def beside(folder: Path, raw: str) -> Path:
+    """A path a file names (a profile's, an inventory's): relative to that file's folder
+    unless absolute, ~ expanded."""
+    return folder / Path(raw).expanduser()
+
+
 def _kind(value: object) -> str:
     return {bool: "true/false", int: "a number", float: "a number", str: "text"}.get(
         type(value), "a table or list"
@@ -136,7 +142,7 @@ def defaults(name: str) -> dict:
         if source not in (None, click.core.ParameterSource.DEFAULT):
             continue  # given on the command line or in the environment: that wins
         if key in PATH_KEYS and isinstance(raw, str):  # relative: from the config file's folder
-            changes[key] = str(path.parent / Path(raw).expanduser())
+            changes[key] = str(beside(path.parent, raw))
             continue
         changes[key] = _convert(params[key], key, raw, ctx, f"{path}: profiles.{name}.{key}")
     return changes
