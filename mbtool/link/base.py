@@ -55,6 +55,11 @@ class Transport:
     silence_hint = ""
 
 
+def host_text(host: str) -> str:
+    """A host as it goes before ``:PORT``: an IPv6 address in brackets (RFC 3986)."""
+    return f"[{host}]" if ":" in host else host
+
+
 def connect(host: str, port: int, timeout: float) -> socket.socket:
     """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
     off: a request is one small write that must leave at once."""

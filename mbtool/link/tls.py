@@ -25,7 +25,15 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed
 from mbtool.link import x509
-from mbtool.link.base import READ_CHUNK, WRITE_TIMEOUT, ConnectionClosed, Transport, connect, reason
+from mbtool.link.base import (
+    READ_CHUNK,
+    WRITE_TIMEOUT,
+    ConnectionClosed,
+    Transport,
+    connect,
+    host_text,
+    reason,
+)
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
 
@@ -174,7 +182,7 @@ class TlsTransport(Transport):
     serial_line = False
 
     def __init__(self, host: str, port: int, timeout: float, settings: TlsSettings) -> None:
-        self.address = f"{_shown(host)}:{port}"
+        self.address = f"{host_text(host)}:{port}"
         self.description = f"tls://{self.address}"
         self.settings = settings
         context = client_context(settings)  # the files first: a bad one sends nothing
@@ -277,7 +285,7 @@ def handshake_failure(
     error: BaseException, host: str, port: int, timeout: float, settings: TlsSettings
 ) -> str:
     """One line saying why the handshake with ``host:port`` failed, and what to do."""
-    return f"TLS handshake with {_shown(host)}:{port} failed: {_why(error, host, port, timeout, settings)}"
+    return f"TLS handshake with {host_text(host)}:{port} failed: {_why(error, host, port, timeout, settings)}"
 
 
 def _why(error: BaseException, host: str, port: int, timeout: float, settings: TlsSettings) -> str:
@@ -352,7 +360,3 @@ def _ssl_reason(error: BaseException) -> str:
     if isinstance(error, ssl.SSLError) and code:
         return code.lower().replace("_", " ")
     return reason(error)
-
-
-def _shown(host: str) -> str:
-    return f"[{host}]" if ":" in host else host

@@ -40,6 +40,7 @@ from mbtool.link.base import (  # noqa: F401  (the transports' shared part, name
     Transport,
     _errno,
     connect,
+    host_text,
     reason,
 )
 
@@ -330,8 +331,7 @@ class Target:
 
     def __str__(self) -> str:
         if self.scheme in NETWORK_SCHEMES:
-            host = f"[{self.host}]" if ":" in self.host else self.host
-            return f"{self.scheme}://{host}:{self.port}"
+            return f"{self.scheme}://{host_text(self.host)}:{self.port}"
         return self.path or f"{self.scheme}://"
 
 

@@ -18,7 +18,7 @@ import select
 import socket
 
 from mbtool.errors import ConnectionFailed
-from mbtool.link.base import READ_CHUNK, Transport, reason
+from mbtool.link.base import READ_CHUNK, Transport, host_text, reason
 
 DISCARD_DATAGRAMS = 64  # stale datagrams dropped before a request, at most (a flood never ends)
 
@@ -28,8 +28,7 @@ class UdpTransport(Transport):
     datagrams = True  # a read is one datagram, whole: its end is the end of a frame
 
     def __init__(self, scheme: str, host: str, port: int) -> None:
-        shown = f"[{host}]" if ":" in host else host
-        self.description = f"{scheme}://{shown}:{port}"
+        self.description = f"{scheme}://{host_text(host)}:{port}"
         try:
             family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
             self.sock = socket.socket(family, kind, proto)

@@ -52,6 +52,7 @@ from mbtool.cli.plant_text import (
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
+from mbtool.link.base import host_text
 from mbtool.link.connection import Connection, check, close_quietly, open_client
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import parse_target
@@ -175,7 +176,7 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
 def _serving_line(server, plant, maps, allowed) -> str:
     """The first line: where it serves, and what each path serves."""
     host, port = server.server_address[:2]
-    where = f"[{host}]" if ":" in host else host
+    where = host_text(host)
     if plant is not None:
         links = {device.link for device in plant.devices}
         parts = [f"/metrics: {len(plant.devices)} devices of {plant.path} on {len(links)} links"]
@@ -563,5 +564,6 @@ def open_server(host: str, port: int, family, exporter: Exporter):
     try:
         return Server((host, port), Handler)
     except OSError as error:
-        shown = f"[{host}]" if ":" in host else host
-        raise ConnectionFailed(f"cannot listen on {shown}:{port}: {error.strerror or error}") from None
+        raise ConnectionFailed(
+            f"cannot listen on {host_text(host)}:{port}: {error.strerror or error}"
+        ) from None
