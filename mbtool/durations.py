@@ -94,6 +94,14 @@ class Durations:
             "max": self.high,
         }
 
+    def cell(self) -> str:
+        """min/avg/p95/max in ms to a tenth, for a column of a table: "4.2/4.8/5.7/5.7", or "-"
+        before any."""
+        figures = self.figures()
+        if figures is None:
+            return "-"
+        return "/".join(f"{figures[name] * 1000:.1f}" for name in ("min", "avg", "p95", "max"))
+
     def text(self, names: tuple[str, ...] = ("min", "avg", "p95", "max")) -> str:
         """The figures named, in ms to the microsecond as ping(8) prints them:
         "min/avg/p95/max 1.204/3.417/5.600/7.815 ms", or "-" before any."""

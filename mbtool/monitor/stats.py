@@ -136,12 +136,7 @@ class BusStats:
                 "response min/avg/p95/max ms"]  # fmt: skip
         rows = [head]
         for unit, stats in sorted(self.units.items()):
-            figures = stats.response.figures()
-            response = (
-                "-"
-                if figures is None
-                else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
-            )
+            response = stats.response.cell()
             exceptions = exceptions_text(stats.exceptions)
             breaks = str(stats.breaks) if self.timed and self.t35 is not None else "-"
             rows.append([str(unit), str(stats.requests), str(stats.replies), exceptions, str(stats.unanswered),

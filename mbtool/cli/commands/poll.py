@@ -392,12 +392,7 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
     ]
     lines = [head]
     for kind, name, state, stats in rows:
-        figures = stats.rtt_figures()
-        rtt = (
-            "-"
-            if figures is None
-            else "/".join(f"{figures[k] * 1000:.1f}" for k in ("min", "avg", "p95", "max"))
-        )
+        rtt = stats.rtt.cell()
         exceptions = stats.exceptions_text()
         lines.append(
             [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
