@@ -215,9 +215,10 @@ read = ["40001 1"]
     # The link whose port does not exist: offline, its device too, and nothing else held up.
     assert any(e.get("link") == "missing" and e["event"] == "offline" for e in events)
     assert all("error" in r for r in by_device["far"])
-    # One request at a time on every bus.
+    # One request at a time on every bus, the one behind the gateway too.
     _one_at_a_time(bus_a)
     _one_at_a_time(bus_b.pty)
+    _one_at_a_time(bus_gw)
     stats = json.loads(err.strip().splitlines()[-2])
     assert stats["devices"]["ghost"]["timeout"] == stats["devices"]["ghost"]["transactions"] > 0
     assert stats["devices"]["a1"]["answered"] == stats["devices"]["a1"]["transactions"]
