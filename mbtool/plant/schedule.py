@@ -183,6 +183,7 @@ class LinkWorker:
             self.link = ExitStack()
             self.client = self.link.enter_context(open_client(self.spec.connection, trace=self.trace))
         except (*KNOWN_ERRORS, OSError) as error:
+            error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             self.client = None
             close_quietly(self.link)
             reason = str(error)
