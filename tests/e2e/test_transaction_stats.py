@@ -198,7 +198,10 @@ def test_on_a_serial_bus_every_outcome_is_told_apart():
     stats, seen = on_a_bus(
         [
             (0.0, REPLY),  # answered at once
-            (0.15, REPLY),  # answered after 150 ms: a round trip past the 0.1 s bucket
+            # Answered 160 ms after the device read it: a round trip of at least 150 ms as
+            # mbtool times it (from its own stamp, which may come a moment after the device
+            # read the request), past the 0.1 s bucket.
+            (0.16, REPLY),
             (0.0, CORRUPT),  # bad CRC: the wire
             (0.0, OTHER_UNIT),  # whole, but from unit 2
             (0.0, rtu(bytes.fromhex("018303"))),  # exception 03
