@@ -13,7 +13,8 @@ Standard library only, so that both sides of the wire may import it (pyproject's
 from __future__ import annotations
 
 import math
-from bisect import bisect_left
+import operator
+from bisect import bisect_right
 from collections import deque
 
 # Upper bounds in seconds, each bucket holding the durations up to its bound (Prometheus's
@@ -34,64 +35,113 @@ def percentile(values, fraction: float) -> float:
 
 
 class Durations:
-    """Durations added up as they come: the histogram, their figures and the recent window."""
+    """Durations added up as they come: the histogram, their figures and the recent window.
+
+    A polling loop adds one a transaction, so adding is an append to a batch; the batch is
+    folded into the sums, the extremes, the histogram and the window by C loops (sorted, sum,
+    bisect over the sorted batch) when it is full or when anything is read.  A transaction
+    then pays for an append, not for a dozen updates and a bisect of its own."""
 
     def __init__(self) -> None:
-        self.count = 0
-        self.total = 0.0
-        self.squares = 0.0  # the sum of their squares, for mdev
-        self.low = math.inf
-        self.high = 0.0
-        self.counts = [0] * (len(BUCKETS) + 1)  # per bucket, not cumulative; the last: past 10 s
-        self.recent: deque[float] = deque(maxlen=WINDOW)
+        self._count = 0
+        self._total = 0.0
+        self._squares = 0.0  # the sum of their squares, for mdev
+        self._low = math.inf
+        self._high = 0.0
+        self._counts = [0] * (len(BUCKETS) + 1)  # per bucket, not cumulative; the last: past 10 s
+        self._recent: deque[float] = deque(maxlen=WINDOW)
+        self._batch: list[float] = []  # added since the last fold, in the order they came
 
     def add(self, seconds: float) -> None:
-        self.count += 1
-        self.total += seconds
-        self.squares += seconds * seconds
-        # Comparisons, not min() and max(): a poll runs this between a reply and its next request.
-        if seconds < self.low:
-            self.low = seconds
-        if seconds > self.high:
-            self.high = seconds
-        self.counts[bisect_left(BUCKETS, seconds)] += 1
-        self.recent.append(seconds)
+        batch = self._batch
+        batch.append(seconds)
+        if len(batch) >= WINDOW:  # bounded, however long nothing reads them
+            self._fold()
 
-    def merge(self, other: Durations) -> None:
-        """Fold another's durations into these (a link's are its devices')."""
-        self.count += other.count
-        self.total += other.total
-        self.squares += other.squares
-        self.low = min(self.low, other.low)
-        self.high = max(self.high, other.high)
-        self.counts = [mine + theirs for mine, theirs in zip(self.counts, other.counts, strict=True)]
-        self.recent.extend(other.recent)
+    def _fold(self) -> None:
+        """Add the batch to the figures: every reader calls this first."""
+        batch = self._batch
+        if not batch:
+            return
+        ordered = sorted(batch)
+        self._count += len(ordered)
+        self._total += sum(ordered)
+        self._squares += sum(map(operator.mul, ordered, ordered))
+        self._low = min(self._low, ordered[0])
+        self._high = max(self._high, ordered[-1])
+        # Bucket i holds the durations above bound i-1 up to bound i (Prometheus's "le").
+        below = 0
+        for bucket, bound in enumerate(BUCKETS):
+            upto = bisect_right(ordered, bound)
+            self._counts[bucket] += upto - below
+            below = upto
+        self._counts[-1] += len(ordered) - below
+        self._recent.extend(batch)
+        batch.clear()
+
+    @property
+    def count(self) -> int:
+        self._fold()
+        return self._count
+
+    @property
+    def total(self) -> float:
+        self._fold()
+        return self._total
+
+    @property
+    def high(self) -> float:
+        self._fold()
+        return self._high
+
+    @property
+    def recent(self) -> deque[float]:
+        """The most recent WINDOW durations, oldest first (the 95th percentile's)."""
+        self._fold()
+        return self._recent
+
+    def merge(self, other: Durations, recent: bool = True) -> None:
+        """Fold another's durations into these (a link's are its devices'); ``recent=False``
+        leaves the window out (the exporter's link totals show no percentile)."""
+        self._fold()
+        other._fold()
+        self._count += other._count
+        self._total += other._total
+        self._squares += other._squares
+        self._low = min(self._low, other._low)
+        self._high = max(self._high, other._high)
+        self._counts = [mine + theirs for mine, theirs in zip(self._counts, other._counts, strict=True)]
+        if recent:
+            self._recent.extend(other._recent)
 
     def buckets(self) -> list[tuple[float, int]]:
         """(upper bound, how many took at most that long), cumulative, the last bound infinity:
         a Prometheus histogram's buckets."""
+        self._fold()
         running, out = 0, []
-        for bound, count in zip((*BUCKETS, math.inf), self.counts, strict=True):
+        for bound, count in zip((*BUCKETS, math.inf), self._counts, strict=True):
             running += count
             out.append((bound, running))
         return out
 
     def mdev(self) -> float:
         """The mean deviation as ping(8) prints it: sqrt(mean of squares - square of the mean)."""
-        if not self.count:
+        self._fold()
+        if not self._count:
             return 0.0
-        mean = self.total / self.count
-        return math.sqrt(max(0.0, self.squares / self.count - mean * mean))
+        mean = self._total / self._count
+        return math.sqrt(max(0.0, self._squares / self._count - mean * mean))
 
     def figures(self) -> dict[str, float] | None:
         """min, avg, p95 and max in seconds; None before the first duration."""
-        if not self.count:
+        self._fold()
+        if not self._count:
             return None
         return {
-            "min": self.low,
-            "avg": self.total / self.count,
-            "p95": percentile(self.recent, 0.95),
-            "max": self.high,
+            "min": self._low,
+            "avg": self._total / self._count,
+            "p95": percentile(self._recent, 0.95),
+            "max": self._high,
         }
 
     def cell(self) -> str:

@@ -90,7 +90,7 @@ class JsonLines:
         if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
             return json_line({"time": when, **as_dict(result)})
         # The time is local_time's digits and punctuation: quoted, it is its JSON string.
-        return self.parts[0] + '"' + when + '"' + self.rest
+        return f'{self.parts[0]}"{when}"{self.rest}'
 
     def _rest(self, result) -> str | None:
         """The line after the time: the values and registers within the text kept for the shape."""

@@ -199,19 +199,11 @@ def split_families(text: str) -> list[tuple[str, str, str]]:
 
 
 def _link_totals(stats_list):
-    """A link's transactions: its devices' counts added up, as Stats.add adds them, without
-    the window of recent round trips (the exporter shows none, and it is 1000 a device)."""
+    """A link's transactions: its devices' counts added up, without the window of recent round
+    trips (the exporter shows none, and it is 1000 a device)."""
     total = Stats()
     for stats in stats_list:
-        total.transactions += stats.transactions
-        total.outcomes.update(stats.outcomes)
-        total.exceptions.update(stats.exceptions)
-        total.recovered += stats.recovered
-        total.rtt.count += stats.rtt.count
-        total.rtt.total += stats.rtt.total
-        total.rtt.counts = [
-            mine + theirs for mine, theirs in zip(total.rtt.counts, stats.rtt.counts, strict=True)
-        ]
+        total.add(stats, recent=False)
     return total
 
 

@@ -21,7 +21,7 @@ def local_time(when: float | None = None) -> str:
         _SECOND[:] = [second, time.strftime("%Y-%m-%dT%H:%M:%S", local), zone]
         if not _MILLISECONDS:  # made on first use: a one-shot command stamps nothing
             _MILLISECONDS.extend(f".{ms:03d}" for ms in range(1000))
-    return _SECOND[1] + _MILLISECONDS[int((when - second) * 1000)] + _SECOND[2]
+    return f"{_SECOND[1]}{_MILLISECONDS[int((when - second) * 1000)]}{_SECOND[2]}"
 
 
 _SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)

@@ -15,26 +15,21 @@ them by name.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import NamedTuple
 
 from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.pdu import Request, pdu_length
 from mbtool.codec.record import record
 
 
-@record
-class Frame:
+class Frame(NamedTuple):
+    """A frame as it came, its envelope taken off.  A named tuple, not a record: a polling
+    loop makes one a transaction, and a tuple is made and read in C."""
+
     unit: int
     pdu: bytes
     adu: bytes  # the exact bytes on the wire
     transaction_id: int | None = None
-
-    def __init__(self, unit: int, pdu: bytes, adu: bytes, transaction_id: int | None = None) -> None:
-        # By hand: two frames a transaction in a polling loop (codec/record.py).
-        fields = self.__dict__
-        fields["unit"] = unit
-        fields["pdu"] = pdu
-        fields["adu"] = adu
-        fields["transaction_id"] = transaction_id
 
 
 @record

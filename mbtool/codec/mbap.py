@@ -39,24 +39,22 @@ class TcpFramer(Framer):
         header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
         self._predicted = (header + head, MBAP_HEADER + length, unit, transaction_id)
 
-    def predicted(self, data: bytes) -> bytes | None:
-        """``data``, as one read brought it, when it is exactly the reply predicted and
-        nothing else is buffered: its PDU.  None otherwise: the bytes then go the usual way
-        (the parse), which tells what they are."""
-        predicted = self._predicted
-        if predicted is None or len(data) != predicted[1] or not data.startswith(predicted[0]):
-            return None
-        if self._buffer or self._garbage or self._ready is not None:
-            return None
-        return data[MBAP_HEADER:]
-
     def feed(self, data: bytes) -> None:
-        pdu = self.predicted(data)
-        if pdu is None:
-            super().feed(data)
-        else:
-            # The reply a poll nearly always gets: its frame is known without the parse.
-            self._ready = self.predicted_frame = Frame(self._predicted[2], pdu, data, self._predicted[3])
+        # The reply a poll nearly always gets: ``data``, as one read brought it, is exactly the
+        # reply predicted and nothing else is buffered, so its frame is known without the
+        # parse.  Anything else goes the usual way (the parse), which tells what it is.
+        predicted = self._predicted
+        if (
+            predicted is None
+            or len(data) != predicted[1]
+            or not data.startswith(predicted[0])
+            or self._buffer
+            or self._garbage
+            or self._ready is not None
+        ):
+            self._buffer += data
+            return
+        self._ready = self.predicted_frame = Frame(predicted[2], data[MBAP_HEADER:], data, predicted[3])
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

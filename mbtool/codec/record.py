@@ -7,8 +7,8 @@ from cron pays that on every run; the issue's target (a read costs at most
 1.25 x ``python -c "import click"``) cannot be met with them.  These records
 share generic methods instead, so defining one costs microseconds.
 
-A record that is made in every transaction of a polling loop (a frame, a reply)
-writes its ``__init__`` by hand, as a plain class would: the generic one below
+A record that is made in every transaction of a polling loop (a reply) writes its
+``__init__`` by hand, as a plain class would: the generic one below
 costs a few microseconds more, which ``bench/polling_cpu.py`` shows.
 
 Supported: fields from annotations (``ClassVar`` ones skipped), inherited

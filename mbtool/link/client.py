@@ -75,6 +75,7 @@ class Client:
         # The transaction ids this request went out with, one an attempt: a late reply to an
         # earlier attempt answers the request as well as the last one's would (issue 12.2).
         self._attempt_ids: list[int] = []
+        self.attempts = 0  # the requests the last execute sent: 1, or more when it retried
         self._line_free_at = 0.0  # when the last frame on the line ended
         # Run once, right after the next request has left: polling stamps the poll's time
         # there, and writes the previous poll's output while the device turns it round.
@@ -127,6 +128,7 @@ class Client:
         self.rtt = None
         busy = False
         for attempt in range(attempts):
+            self.attempts = attempt + 1
             if busy:
                 # Spec §3, exception 06: the device is busy, retry later: the next attempt goes
                 # when this one's timeout would have ended, as after silence.
@@ -160,11 +162,6 @@ class Client:
         assert error is not None
         raise error
 
-    @property
-    def attempts(self) -> int:
-        """The requests the last ``execute`` sent: 1, or more when it retried."""
-        return len(self._attempt_ids)
-
     # -- one attempt ------------------------------------------------------------
 
     def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
@@ -191,16 +188,17 @@ class Client:
             if wait > 0:
                 self.sleep(wait)
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
-        # a polling loop spares itself the look (a system call a poll); a serial line has no
-        # ids, and after a timeout a late reply may be on its way anyway.
+        # a polling loop spares itself the look (a system call a poll) and keeps what the
+        # framer holds after the reply; a serial line has no ids, and after a timeout a late
+        # reply may be on its way anyway.
         if serial_line or not self._settled:
             stale = transport.discard_input()
             if stale:
                 self.trace.rejected(
                     stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
                 )
+            framer.reset()
         self._settled = False  # until this attempt ends with its reply
-        framer.reset()
         framer.expect = request
         framer.expect_unit = unit
         framer.predict(unit, tid, reply_prefix)

@@ -55,23 +55,20 @@ class Shown(Protocol):
     def close(self) -> None: ...
 
 
-def _text(figures: Durations) -> str:
-    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted (both
-    keep count, total, low and high)."""
-    if not figures.count:
+def _text(durations: Durations) -> str:
+    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted."""
+    figures = durations.figures()
+    if figures is None:
         return "-"
-    return f"{figures.low * 1000:.1f}/{figures.total / figures.count * 1000:.1f}/{figures.high * 1000:.1f} ms"
+    return f"{figures['min'] * 1000:.1f}/{figures['avg'] * 1000:.1f}/{figures['max'] * 1000:.1f} ms"
 
 
-def _dict(figures: Durations) -> dict | None:
+def _dict(durations: Durations) -> dict | None:
     """min, avg and max in ms (None before the first)."""
-    if not figures.count:
+    figures = durations.figures()
+    if figures is None:
         return None
-    return {
-        "min": figures.low * 1000,
-        "avg": figures.total / figures.count * 1000,
-        "max": figures.high * 1000,
-    }
+    return {name: figures[name] * 1000 for name in ("min", "avg", "max")}
 
 
 def _rate(per_second: float) -> str:

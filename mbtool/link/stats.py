@@ -82,13 +82,14 @@ class Stats:
             self.rtt.add(rtt)  # a reply's; not that of an attempt before a failure
         return outcome
 
-    def add(self, other: Stats) -> None:
-        """Fold another's counts into these (a link's are its devices')."""
+    def add(self, other: Stats, recent: bool = True) -> None:
+        """Fold another's counts into these (a link's are its devices'); ``recent=False``
+        leaves out the window of recent round trips (Durations.merge)."""
         self.transactions += other.transactions
         self.outcomes.update(other.outcomes)
         self.exceptions.update(other.exceptions)
         self.recovered += other.recovered
-        self.rtt.merge(other.rtt)
+        self.rtt.merge(other.rtt, recent)
 
     def rtt_figures(self) -> dict[str, float] | None:
         """min, avg, p95 and max round-trip time in seconds; None before the first answer."""

@@ -190,15 +190,21 @@ def test_tcp_length_field_out_of_range_is_rejected():
     assert events and all(isinstance(event, Rejected) for event in events)
 
 
+def _taken_as_predicted(framer: TcpFramer, data: bytes) -> bool:
+    """Whether the framer took ``data`` as the reply predicted, without the parse."""
+    framer.feed(data)
+    event = framer.next_event()
+    return event is not None and event is framer.predicted_frame
+
+
 def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_else_to_the_parse():
     tcp = TcpFramer()
     pdu = REPLY.encode()
     reply = tcp.build(UNIT, pdu, 7)
     framer = TcpFramer()
     framer.predict(UNIT, 7, REQUEST.reply_prefix)
-    assert framer.predicted(reply) == pdu
-    framer.feed(reply)
-    assert framer.next_event() == Frame(UNIT, pdu, reply, 7)  # what the parse finds there
+    assert _taken_as_predicted(framer, reply)
+    assert framer.predicted_frame == Frame(UNIT, pdu, reply, 7)  # what the parse finds there
     unlike = {
         "another unit": tcp.build(UNIT + 1, pdu, 7),
         "another transaction": tcp.build(UNIT, pdu, 8),
@@ -208,13 +214,17 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
         "two replies in one read": reply + reply,
     }
     for why, data in unlike.items():
-        assert framer.predicted(data) is None, why
+        framer.reset()
+        assert not _taken_as_predicted(framer, data), why
+    framer.reset()
     framer.feed(b"\x00")
-    assert framer.predicted(reply) is None, "bytes already buffered come first"
+    assert not _taken_as_predicted(framer, reply), "bytes already buffered come first"
     framer.reset()
     framer.predict(UNIT, 7, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
-    assert framer.predicted(reply) is None
-    assert framer.predicted(b"") is None  # an empty read (an echo held back) is no reply
+    assert not _taken_as_predicted(framer, reply)
+    framer.reset()
+    framer.predict(UNIT, 7, REQUEST.reply_prefix)
+    assert not _taken_as_predicted(framer, b"")  # an empty read (an echo held back) is no reply
     rtu = RtuFramer()
     rtu.predict(UNIT, 0, REQUEST.reply_prefix)
     broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
@@ -298,3 +308,12 @@ def test_the_framings_face_gives_every_envelope_name_and_loads_only_what_is_aske
     ).stdout.split()
     assert "mbtool.codec.mbap" in loaded
     assert not {"mbtool.codec.rtu", "mbtool.codec.ascii", "mbtool.codec.resync"} & set(loaded)
+
+
+def test_a_frame_is_a_value_that_cannot_be_changed():
+    frame = Frame(UNIT, REPLY.encode(), b"raw", 5)
+    assert frame == Frame(unit=UNIT, pdu=REPLY.encode(), adu=b"raw", transaction_id=5)
+    assert hash(frame) == hash(Frame(UNIT, REPLY.encode(), b"raw", 5))
+    assert Frame(UNIT, b"", b"").transaction_id is None  # RTU and ASCII carry none
+    with pytest.raises(AttributeError):
+        frame.unit = 2

@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 
 from mbtool.codec.data_access import BitsResponse, ReadHoldingRegisters, RegistersResponse
-from mbtool.codec.framer import Frame
 from mbtool.codec.record import FrozenInstanceError, field, fields, record, replace
 
 
@@ -82,11 +81,6 @@ def test_hand_written_init_is_kept_and_inherited_by_subclasses_without_fields():
 @pytest.mark.parametrize(
     "make, generic",
     [
-        (
-            lambda: Frame(1, b"\x03\x02\x00\x07", b"raw", 5),
-            lambda: Frame(unit=1, pdu=b"\x03\x02\x00\x07", adu=b"raw", transaction_id=5),
-        ),
-        (lambda: Frame(1, b"", b""), lambda: Frame(1, b"", b"", None)),
         (lambda: RegistersResponse(3, (1, 2)), lambda: RegistersResponse(function_code=3, registers=(1, 2))),
         (
             lambda: BitsResponse(1, (True, False), warnings=("odd",)),

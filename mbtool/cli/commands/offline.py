@@ -400,7 +400,7 @@ def _exact_framer(name: str, exact: bytes | None):
             # user's, so a reply to the user's id is handed over unnumbered.
             event = super().next_event()
             if tid is not None and isinstance(event, Frame) and event.transaction_id == tid:
-                event = replace(event, transaction_id=None)
+                event = event._replace(transaction_id=None)
             return event
 
     return Exact()
