@@ -254,23 +254,26 @@ class Deferred:
     def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
         self.output = output
         self.to_result = to_result
-        self.held: tuple[float, object] | None = None
+        self.held = None  # the reply to show, and when its request left (time.time())
+        self.held_when = 0.0
         # The last reply shown and its result: the client hands back the same response for
         # the same reply bytes, and a poll whose values have not changed is not worked out
         # again.
-        self.shown: tuple[object, object] = (None, None)
+        self.shown_reply = self.shown_result = None
 
     def hold(self, when: float, reply) -> None:
         """Keep a reply to show later; the one before it went out with the request."""
-        self.held = (when, reply)
+        self.held, self.held_when = reply, when
 
     def write(self) -> None:
-        if self.held is not None:
-            when, reply = self.held
-            self.held = None
-            if reply is not self.shown[0]:
-                self.shown = (reply, self.to_result(reply))
-            self.output.result(local_time(when), self.shown[1], when)
+        reply = self.held
+        if reply is None:
+            return
+        self.held = None
+        if reply is not self.shown_reply:
+            self.shown_reply, self.shown_result = reply, self.to_result(reply)
+        when = self.held_when
+        self.output.result(local_time(when), self.shown_result, when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
         if isinstance(error, PartialRead):  # what was read is shown, then what was not

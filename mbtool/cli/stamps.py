@@ -4,6 +4,13 @@ from __future__ import annotations
 
 import time
 
+# The last second stamped: its epoch second, its text and its UTC offset; one strftime a
+# second, however fast the polls come.
+_second: int | None = None
+_second_text = ""
+_zone = ""
+_MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
+
 
 def local_time(when: float | None = None) -> str:
     """Local time, ISO 8601 with milliseconds and UTC offset: what a log reader wants.
@@ -11,18 +18,16 @@ def local_time(when: float | None = None) -> str:
     Built from time.localtime, which knows the offset in force (a day-long poll crosses
     daylight saving time), at a third of datetime.astimezone's cost a poll.
     """
-    when = time.time() if when is None else when
+    global _second, _second_text, _zone
+    if when is None:
+        when = time.time()
     second = int(when)
-    if second != _SECOND[0]:  # one strftime a second, however fast the polls come
+    if second != _second:
         local = time.localtime(second)
         offset = local.tm_gmtoff // 60
         sign = "-" if offset < 0 else "+"
-        zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
-        _SECOND[:] = [second, time.strftime("%Y-%m-%dT%H:%M:%S", local), zone]
+        _second, _second_text = second, time.strftime("%Y-%m-%dT%H:%M:%S", local)
+        _zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
         if not _MILLISECONDS:  # made on first use: a one-shot command stamps nothing
             _MILLISECONDS.extend(f".{ms:03d}" for ms in range(1000))
-    return f"{_SECOND[1]}{_MILLISECONDS[int((when - second) * 1000)]}{_SECOND[2]}"
-
-
-_SECOND: list = [None, "", ""]  # the last second stamped: (epoch second, its text, UTC offset)
-_MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
+    return f"{_second_text}{_MILLISECONDS[int((when - second) * 1000)]}{_zone}"

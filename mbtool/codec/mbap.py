@@ -28,11 +28,12 @@ class TcpFramer(Framer):
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
     # The reply predicted: its bytes up to its data (the MBAP header, the function code and
-    # the byte count), its size, its unit and its transaction id; None when nothing is.
+    # the byte count), its size, its unit and its transaction id; None when nothing is.  It
+    # is for the first read after the request, and only that one.
     _predicted: tuple[bytes, int, int, int] | None = None
 
     def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
-        if prefix is None:
+        if prefix is None or self._buffer or self._garbage:  # bytes already here come first
             self._predicted = None
             return
         head, length = prefix
@@ -40,21 +41,18 @@ class TcpFramer(Framer):
         self._predicted = (header + head, MBAP_HEADER + length, unit, transaction_id)
 
     def feed(self, data: bytes) -> None:
-        # The reply a poll nearly always gets: ``data``, as one read brought it, is exactly the
-        # reply predicted and nothing else is buffered, so its frame is known without the
-        # parse.  Anything else goes the usual way (the parse), which tells what it is.
+        # The reply a poll nearly always gets: ``data``, the first read after the request, is
+        # exactly the reply predicted, so its frame is known without the parse.  Anything else
+        # goes the usual way (the parse), which tells what it is.
         predicted = self._predicted
-        if (
-            predicted is None
-            or len(data) != predicted[1]
-            or not data.startswith(predicted[0])
-            or self._buffer
-            or self._garbage
-            or self._ready is not None
-        ):
-            self._buffer += data
-            return
-        self._ready = self.predicted_frame = Frame(predicted[2], data[MBAP_HEADER:], data, predicted[3])
+        if predicted is not None:
+            self._predicted = None
+            if len(data) == predicted[1] and data.startswith(predicted[0]):
+                self._ready = self.predicted_frame = Frame(
+                    predicted[2], data[MBAP_HEADER:], data, predicted[3]
+                )
+                return
+        self._buffer += data
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

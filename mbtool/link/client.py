@@ -44,6 +44,10 @@ class Trace:
         """Bytes came in that are not a frame."""
 
 
+# The trace of a client nobody watches: a transaction's own frames skip the calls to it.
+UNWATCHED = Trace()
+
+
 class Client:
     def __init__(
         self,
@@ -66,7 +70,7 @@ class Client:
         self.timeout = timeout
         self.retries = retries
         self.echo = echo  # the adapter echoes what it sends (half-duplex RS-485)
-        self.trace = trace or Trace()
+        self.trace = trace or UNWATCHED
         self.clock = clock
         self.sleep = sleep
         self._transaction_id = 0
@@ -203,7 +207,8 @@ class Client:
         framer.expect_unit = unit
         framer.predict(unit, tid, reply_prefix)
         transport.write(adu)
-        self.trace.sent(adu)
+        if self.trace is not UNWATCHED:
+            self.trace.sent(adu)
         sent_at = self._sent_at = self.clock()
         on_wire = 0.0
         if serial_line:  # the line is busy while the request is on it
@@ -257,16 +262,15 @@ class Client:
         self, unit: int, request: Request, deadline: float, watch: _EchoWatch | None = None
     ) -> Response | ExceptionResponse:
         problem: FrameError | None = None
-        serial_line = self.transport.serial_line
+        framer, transport = self.framer, self.transport
+        serial_line = transport.serial_line
         while True:
             now = self.clock()
             if now >= deadline:
                 break
-            waiting = self.framer.waiting_for_silence
+            waiting = framer.waiting_for_silence
             try:
-                data = self.transport.read(
-                    min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
-                )
+                data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
             except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
                 self._release(watch)
                 return self._last_word(unit, request, problem, closed, hung_up=True)
@@ -278,18 +282,18 @@ class Client:
                     if watch.seen:
                         self.trace.received(watch.adu, "the request's own echo, skipped (--echo strips it)")
                         watch.seen = False  # traced once; echoed stays True
-                self.framer.feed(data)
+                framer.feed(data)
                 # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
-                event = self.framer.silence() if self.transport.datagrams else self.framer.next_event()
+                event = framer.silence() if transport.datagrams else framer.next_event()
             else:
                 self._release(watch)  # a pause: bytes held as a possible echo were not one
-                event = self.framer.silence() if waiting else self.framer.next_event()
+                event = framer.silence() if waiting else framer.next_event()
             while event is not None:  # judged until the reply, with no look for more
                 reply, problem = self._judge(event, unit, request, problem)
                 if reply is not None:
                     return reply
-                event = self.framer.next_event()
-            if isinstance(problem, ChecksumError) and not self.framer.buffered:
+                event = framer.next_event()
+            if isinstance(problem, ChecksumError) and not framer.buffered:
                 deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
         self._release(watch)
         if watch is not None and watch.echoed and problem is None and not self.echo:
@@ -401,7 +405,8 @@ class Client:
         if accepted:  # a reply taken as it is (--lenient): its trace line says why
             self.deviations.update(dict.fromkeys(accepted))
             note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
-        self.trace.received(event.adu, note)
+        if self.trace is not UNWATCHED:
+            self.trace.received(event.adu, note)
         return reply, problem
 
     def _ours(self, frame: Frame) -> bool:

@@ -96,8 +96,8 @@ def poll(
 
     if interval is None:
         interval = DEFAULT_INTERVAL
-    if polls is None:
-        polls = 0
+    if not polls:  # 0 or None: until interrupted
+        polls = math.inf
     done = replies = partial = timeouts = errors = skipped = 0
     # A request's latency runs from it leaving to its reply (the client's rtt, which
     # link.stats counts with every transaction's outcome); a poll's from its first request
@@ -107,7 +107,7 @@ def poll(
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
-    pause = connection.pause
+    pause, unit = connection.pause, connection.unit
     link = ExitStack()  # holds the open link; reopened only after the link itself failed
     client = None
     when = first_when = last_when = None  # time.time() of this poll, the first and the last
@@ -132,7 +132,7 @@ def poll(
         start = time.monotonic()
         slot = 0
         show_previous = shown.write  # bound once, not a method object a poll
-        while polls == 0 or done < polls:
+        while done < polls:
             if interval > 0:  # back to back (0) keeps no schedule
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
@@ -160,7 +160,7 @@ def poll(
                         start = time.monotonic()
                 client.while_waiting = request_sent
                 if run is None:  # one request: the poll's latency is the request's round trip
-                    reply = execute(connection.unit, request)
+                    reply = execute(unit, request)
                 else:
                     reply = run(execute)
                     per_poll.add(client.replied_at - client.work_waited_from)
@@ -212,7 +212,7 @@ def poll(
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
                     idle = True
-                elif behind > 0 and (polls == 0 or done < polls):
+                elif behind > 0 and done < polls:
                     missed = math.ceil(behind / interval)
                     skipped += missed
                     slot += missed

@@ -51,16 +51,19 @@ class Stats:
     """The transactions with one device (or over one link), added up as they end."""
 
     def __init__(self) -> None:
-        self.transactions = 0
-        self.outcomes: Counter[str] = Counter()
+        self.outcomes: Counter[str] = Counter()  # outcome -> the transactions that ended so
         self.exceptions: Counter[int] = Counter()  # exception code -> count
         self.recovered = 0  # answers that came on a retry
         self.rtt = Durations()  # request to reply, for every reply (exceptions too)
 
+    @property
+    def transactions(self) -> int:
+        """Every transaction that ended, whatever its outcome."""
+        return sum(self.outcomes.values())
+
     def answered(self, attempts: int, rtt: float | None) -> None:
         """A transaction answered (transaction(None, ...)'s outcome, counted the short way: a
         poll's every transaction)."""
-        self.transactions += 1
         self.outcomes["answered"] += 1
         if attempts > 1:
             self.recovered += 1
@@ -71,7 +74,6 @@ class Stats:
         """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
         requests on the wire, ``rtt`` seconds from the request to its reply if one came.  Its
         outcome, one of OUTCOMES."""
-        self.transactions += 1
         outcome = outcome_of(error)
         self.outcomes[outcome] += 1
         if outcome == "exception":
@@ -85,7 +87,6 @@ class Stats:
     def add(self, other: Stats, recent: bool = True) -> None:
         """Fold another's counts into these (a link's are its devices'); ``recent=False``
         leaves out the window of recent round trips (Durations.merge)."""
-        self.transactions += other.transactions
         self.outcomes.update(other.outcomes)
         self.exceptions.update(other.exceptions)
         self.recovered += other.recovered

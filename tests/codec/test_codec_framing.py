@@ -190,8 +190,13 @@ def test_tcp_length_field_out_of_range_is_rejected():
     assert events and all(isinstance(event, Rejected) for event in events)
 
 
-def _taken_as_predicted(framer: TcpFramer, data: bytes) -> bool:
-    """Whether the framer took ``data`` as the reply predicted, without the parse."""
+def _taken_as_predicted(data: bytes, prediction=REQUEST.reply_prefix, before: bytes = b"") -> bool:
+    """Whether a framer that predicted the reply to REQUEST (transaction 7) took ``data``, the
+    read after ``before``, as that reply, without the parse."""
+    framer = TcpFramer()
+    if before:
+        framer.feed(before)
+    framer.predict(UNIT, 7, prediction)
     framer.feed(data)
     event = framer.next_event()
     return event is not None and event is framer.predicted_frame
@@ -203,8 +208,8 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
     reply = tcp.build(UNIT, pdu, 7)
     framer = TcpFramer()
     framer.predict(UNIT, 7, REQUEST.reply_prefix)
-    assert _taken_as_predicted(framer, reply)
-    assert framer.predicted_frame == Frame(UNIT, pdu, reply, 7)  # what the parse finds there
+    framer.feed(reply)
+    assert framer.next_event() is framer.predicted_frame == Frame(UNIT, pdu, reply, 7)  # what the parse finds
     unlike = {
         "another unit": tcp.build(UNIT + 1, pdu, 7),
         "another transaction": tcp.build(UNIT, pdu, 8),
@@ -212,19 +217,18 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
         "another byte count, same size": tcp.build(UNIT, bytes([3, 4]) + pdu[2:], 7),
         "cut short": reply[:-1],
         "two replies in one read": reply + reply,
+        "an empty read (an echo held back)": b"",
     }
     for why, data in unlike.items():
-        framer.reset()
-        assert not _taken_as_predicted(framer, data), why
-    framer.reset()
-    framer.feed(b"\x00")
-    assert not _taken_as_predicted(framer, reply), "bytes already buffered come first"
-    framer.reset()
-    framer.predict(UNIT, 7, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
-    assert not _taken_as_predicted(framer, reply)
-    framer.reset()
-    framer.predict(UNIT, 7, REQUEST.reply_prefix)
-    assert not _taken_as_predicted(framer, b"")  # an empty read (an echo held back) is no reply
+        assert not _taken_as_predicted(data), why
+    assert _taken_as_predicted(reply)
+    assert not _taken_as_predicted(reply, before=b"\x00"), "bytes already buffered come first"
+    assert not _taken_as_predicted(reply, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
+    split = TcpFramer()
+    split.predict(UNIT, 7, REQUEST.reply_prefix)
+    split.feed(reply[:5])
+    split.feed(reply[5:])  # the rest of the reply in a second read: the parse finds it whole
+    assert split.next_event() == Frame(UNIT, pdu, reply, 7) and split.predicted_frame is None
     rtu = RtuFramer()
     rtu.predict(UNIT, 0, REQUEST.reply_prefix)
     broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
