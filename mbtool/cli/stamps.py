@@ -6,7 +6,7 @@ import time
 
 # The last second stamped: its epoch second, its text and its UTC offset; one strftime a
 # second, however fast the polls come.
-_second: int | None = None
+_second: float | None = None
 _second_text = ""
 _zone = ""
 _MILLISECONDS: list[str] = []  # ".000" to ".999": a poll looks its milliseconds up, not formats them
@@ -21,7 +21,8 @@ def local_time(when: float | None = None) -> str:
     global _second, _second_text, _zone
     if when is None:
         when = time.time()
-    second = int(when)
+    fraction = when % 1.0
+    second = when - fraction  # whole seconds, kept a float: no conversion a stamp
     if second != _second:
         local = time.localtime(second)
         offset = local.tm_gmtoff // 60
@@ -30,4 +31,4 @@ def local_time(when: float | None = None) -> str:
         _zone = f"{sign}{abs(offset) // 60:02d}:{abs(offset) % 60:02d}"
         if not _MILLISECONDS:  # made on first use: a one-shot command stamps nothing
             _MILLISECONDS.extend(f".{ms:03d}" for ms in range(1000))
-    return f"{_second_text}{_MILLISECONDS[int((when - second) * 1000)]}{_zone}"
+    return f"{_second_text}{_MILLISECONDS[int(fraction * 1000)]}{_zone}"

@@ -51,7 +51,9 @@ class Stats:
     """The transactions with one device (or over one link), added up as they end."""
 
     def __init__(self) -> None:
-        self.outcomes: Counter[str] = Counter()  # outcome -> the transactions that ended so
+        # outcome -> the transactions that ended so; a plain dict with every outcome in it, as
+        # a poll's every transaction adds one (a Counter's update costs several times more)
+        self.outcomes: dict[str, int] = dict.fromkeys(OUTCOMES, 0)
         self.exceptions: Counter[int] = Counter()  # exception code -> count
         self.recovered = 0  # answers that came on a retry
         self.rtt = Durations()  # request to reply, for every reply (exceptions too)
@@ -87,7 +89,8 @@ class Stats:
     def add(self, other: Stats, recent: bool = True) -> None:
         """Fold another's counts into these (a link's are its devices'); ``recent=False``
         leaves out the window of recent round trips (Durations.merge)."""
-        self.outcomes.update(other.outcomes)
+        for outcome, count in other.outcomes.items():
+            self.outcomes[outcome] += count
         self.exceptions.update(other.exceptions)
         self.recovered += other.recovered
         self.rtt.merge(other.rtt, recent)
