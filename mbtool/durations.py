@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import operator
+import threading
 from bisect import bisect_right
 from collections import deque
 
@@ -40,7 +41,11 @@ class Durations:
     A polling loop adds one a transaction, so adding is an append to a batch; the batch is
     folded into the sums, the extremes, the histogram and the window by C loops (sorted, sum,
     bisect over the sorted batch) when it is full or when anything is read.  A transaction
-    then pays for an append, not for a dozen updates and a bisect of its own."""
+    then pays for an append, not for a dozen updates and a bisect of its own.
+
+    Another thread may read while one adds (a plant's live view, its exporter): a fold takes
+    the durations batched so far under a lock and removes just those, so an append that comes
+    meanwhile stays for the next fold and none is counted twice."""
 
     def __init__(self) -> None:
         self._count = 0
@@ -51,6 +56,7 @@ class Durations:
         self._counts = [0] * (len(BUCKETS) + 1)  # per bucket, not cumulative; the last: past 10 s
         self._recent: deque[float] = deque(maxlen=WINDOW)
         self._batch: list[float] = []  # added since the last fold, in the order they came
+        self._folding = threading.Lock()
 
     def add(self, seconds: float) -> None:
         batch = self._batch
@@ -60,24 +66,26 @@ class Durations:
 
     def _fold(self) -> None:
         """Add the batch to the figures: every reader calls this first."""
-        batch = self._batch
-        if not batch:
+        if not self._batch:
             return
-        ordered = sorted(batch)
-        self._count += len(ordered)
-        self._total += sum(ordered)
-        self._squares += sum(map(operator.mul, ordered, ordered))
-        self._low = min(self._low, ordered[0])
-        self._high = max(self._high, ordered[-1])
-        # Bucket i holds the durations above bound i-1 up to bound i (Prometheus's "le").
-        below = 0
-        for bucket, bound in enumerate(BUCKETS):
-            upto = bisect_right(ordered, bound)
-            self._counts[bucket] += upto - below
-            below = upto
-        self._counts[-1] += len(ordered) - below
-        self._recent.extend(batch)
-        batch.clear()
+        with self._folding:
+            batch = self._batch
+            taken = batch[:]  # one C call each, as an append is: appends since stay in the batch
+            del batch[: len(taken)]
+            ordered = sorted(taken)
+            self._count += len(ordered)
+            self._total += sum(ordered)
+            self._squares += sum(map(operator.mul, ordered, ordered))
+            self._low = min(self._low, ordered[0])
+            self._high = max(self._high, ordered[-1])
+            # Bucket i holds the durations above bound i-1 up to bound i (Prometheus's "le").
+            below = 0
+            for bucket, bound in enumerate(BUCKETS):
+                upto = bisect_right(ordered, bound)
+                self._counts[bucket] += upto - below
+                below = upto
+            self._counts[-1] += len(ordered) - below
+            self._recent.extend(taken)
 
     @property
     def count(self) -> int:

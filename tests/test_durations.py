@@ -4,6 +4,8 @@ buckets, the figures a summary prints and the percentile rule."""
 from __future__ import annotations
 
 import math
+import sys
+import threading
 
 import pytest
 
@@ -74,3 +76,31 @@ def test_merged_durations_are_the_sum_of_both():
 )
 def test_the_percentile_is_the_nearest_rank(values, fraction, expected):
     assert percentile(values, fraction) == expected
+
+
+def test_a_thread_that_reads_while_another_adds_loses_none_and_counts_none_twice():
+    # A plant's live view and its exporter read a device's round trips while the device's
+    # link thread adds them; every read folds what is batched.
+    durations, added, seen = Durations(), 100 * WINDOW, []
+    done = threading.Event()
+
+    def read():
+        while not done.is_set():
+            seen.append(durations.count)
+            durations.buckets()
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads take turns as often as they can
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        for step in range(added):
+            durations.add(0.0005 + (step % 7) / 1000)
+    finally:
+        done.set()
+        reader.join()
+        sys.setswitchinterval(switch)
+    assert len(seen) > 10, "the reader read while the adder added"
+    assert seen == sorted(seen), "a count never goes back"
+    assert durations.count == added and durations.buckets()[-1][1] == added
+    assert dict(durations.buckets())[0.001] == sum(1 for step in range(added) if step % 7 == 0)  # the 0.5 ms
