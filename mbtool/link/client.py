@@ -399,14 +399,10 @@ class Client:
                 # if nothing fits).
                 self.trace.received(event.adu, str(misfit))
                 return None, _worse(problem, MismatchError(f"{misfit}, discarded", event.adu))
-        note = ""
-        if isinstance(reply, ExceptionResponse):  # the device's "no", marked where it is seen
-            note = str(ModbusException(reply.function_code, reply.exception_code))
-        if accepted:  # a reply taken as it is (--lenient): its trace line says why
+        if accepted:  # a reply taken as it is (--lenient): the summary says so
             self.deviations.update(dict.fromkeys(accepted))
-            note = "; ".join(f"accepted (--lenient): {d}" for d in accepted)
         if self.trace is not UNWATCHED:
-            self.trace.received(event.adu, note)
+            self.trace.received(event.adu, _reply_note(reply, accepted))
         return reply, problem
 
     def _ours(self, frame: Frame) -> bool:
@@ -505,6 +501,16 @@ class _EchoWatch:
         held, self.held = self.held, b""
         self.watching = False
         return held
+
+
+def _reply_note(reply: Response | ExceptionResponse, accepted: list[str]) -> str:
+    """What the trace says beside the reply: why --lenient took it as it is, or the device's
+    "no", marked where it is seen; nothing for a plain answer."""
+    if accepted:
+        return "; ".join(f"accepted (--lenient): {d}" for d in accepted)
+    if isinstance(reply, ExceptionResponse):
+        return str(ModbusException(reply.function_code, reply.exception_code))
+    return ""
 
 
 def _ids(ids: list[int]) -> str:
