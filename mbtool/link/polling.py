@@ -107,7 +107,7 @@ def poll(
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
     interrupted = False
-    pause, unit = connection.pause, connection.unit
+    pause, unit, reconnect_each = connection.pause, connection.unit, connection.reconnect_each
     link = ExitStack()  # holds the open link; reopened only after the link itself failed
     client = None
     when = first_when = last_when = None  # time.time() of this poll, the first and the last
@@ -196,7 +196,7 @@ def poll(
                 first_when = when
             last_when = when
             closed_on_purpose = False
-            if connection.reconnect_each and client is not None:
+            if reconnect_each and client is not None:
                 # --reconnect-each: a new link every poll, for devices and gateways that
                 # serve one client or leak connections; no wait, as nothing failed.
                 ended_at = client.ended_at
