@@ -7,6 +7,7 @@
   --reply-unit); the transports delay them (--delay) and drop requests a picky device
   would (--min-gap, --settle, --connection-requests).
 * ``Stats``: what the live view and the log show.
+* ``bind_port``: the socket the TCP, TLS and UDP servers listen on, bound one way for all.
 * ``Serving``: the loop both transports run (``mbtool.device.tcp_server``,
   ``mbtool.device.serial_server``): a stop flag, and replies held back until they are due.
   Every wait is bounded by ``TICK`` so a stop request (Ctrl-C, SIGTERM) is seen within a
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import heapq
 import random
+import socket
 import time
 from abc import ABC, abstractmethod
 from collections import deque
@@ -24,8 +26,9 @@ from collections.abc import Callable
 from typing import Protocol
 
 from mbtool.codec.framing import Frame, Framer, Rejected
-from mbtool.codec.record import record
+from mbtool.codec.record import record, replace
 from mbtool.device.device import Device
+from mbtool.errors import ConnectionFailed
 from mbtool.link.transport import Target
 
 TICK = 0.1  # longest wait before the loop looks at the stop flag again
@@ -178,6 +181,33 @@ class ServerParts:
     faults: IoFaults
     stats: Stats
     log: Callable[[str, str, bytes, str], None]
+
+
+def bind_port(target: Target, kind: int) -> tuple[socket.socket, str]:
+    """A non-blocking socket of ``kind`` bound to the target's host and port (a stream one
+    listening), and the target as bound, port 0 made the one the system gave: what the
+    TCP, TLS and UDP servers listen on.  ConnectionFailed (exit 6) if it cannot be bound."""
+    host, port = target.host, target.port
+    try:
+        family, _, proto, _, address = socket.getaddrinfo(host, port, type=kind, flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as error:
+        raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+    stream = kind == socket.SOCK_STREAM
+    try:
+        if stream:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        if stream:
+            # Room for a burst of connections: past max_clients they are accepted and closed
+            # at once, which beats leaving them to time out on a full backlog.
+            sock.listen(128)
+    except OSError as error:
+        sock.close()
+        raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+    sock.setblocking(False)
+    bound = sock.getsockname()
+    return sock, str(replace(target, host=bound[0], port=bound[1]))
 
 
 class Serving(ABC):

@@ -40,9 +40,7 @@ from collections import deque
 from collections.abc import Callable
 
 from mbtool.codec.framing import Frame, Framer, Rejected, device_framer
-from mbtool.codec.record import replace
-from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
-from mbtool.errors import ConnectionFailed
+from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving, bind_port
 
 TCP_GAP = 0.05  # RTU over TCP: a pause this long ends a frame whose length is unknown
 MAX_CLIENTS = 64
@@ -85,28 +83,9 @@ class TcpServer(Serving):
 
     def open(self) -> None:
         """Bind the port; ConnectionFailed (exit 6) if it cannot be."""
-        host, port = self.target.host, self.target.port
-        try:
-            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-            family, kind, proto, _, address = infos[0]
-            listener = socket.socket(family, kind, proto)
-        except OSError as error:
-            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
-        try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind(address)
-            # Room for a burst of connections: past max_clients they are accepted and closed
-            # at once, which beats leaving them to time out on a full backlog.
-            listener.listen(128)
-        except OSError as error:
-            listener.close()
-            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
-        listener.setblocking(False)
-        self.listener = listener
-        bound = listener.getsockname()
-        self.stats.listening = str(replace(self.target, host=bound[0], port=bound[1]))  # tcp:// or tls://
+        self.listener, self.stats.listening = bind_port(self.target, socket.SOCK_STREAM)  # tcp:// or tls://
         self.selector = selectors.DefaultSelector()
-        self.selector.register(listener, selectors.EVENT_READ, None)
+        self.selector.register(self.listener, selectors.EVENT_READ, None)
         if self.queued:
             # The worker wakes the loop with a byte when it has answered.
             self._wake, self._waker = socket.socketpair()

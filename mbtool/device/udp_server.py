@@ -18,9 +18,7 @@ import socket
 import time
 
 from mbtool.codec.framing import Frame, Rejected, device_framer
-from mbtool.codec.record import replace
-from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving
-from mbtool.errors import ConnectionFailed
+from mbtool.device.serving import OUT_LIMIT, TICK, ServerParts, Serving, bind_port
 
 DATAGRAMS_PER_TURN = 64  # read before the loop looks at the stop flag and the replies due
 MAX_DATAGRAM = 65536
@@ -39,23 +37,7 @@ class UdpServer(Serving):
 
     def open(self) -> None:
         """Bind the port; ConnectionFailed (exit 6) if it cannot be."""
-        host, port = self.target.host, self.target.port
-        try:
-            family, kind, proto, _, address = socket.getaddrinfo(
-                host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE
-            )[0]
-            sock = socket.socket(family, kind, proto)
-        except OSError as error:
-            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
-        try:
-            sock.bind(address)
-        except OSError as error:
-            sock.close()
-            raise ConnectionFailed(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
-        sock.setblocking(False)
-        self.sock = sock
-        bound = sock.getsockname()
-        self.stats.listening = str(replace(self.target, host=bound[0], port=bound[1]))
+        self.sock, self.stats.listening = bind_port(self.target, socket.SOCK_DGRAM)
 
     def _serve(self) -> None:
         while not self._stop:
