@@ -18,29 +18,21 @@ from mbtool.codec.framer import Event, Frame, Framer, Rejected
 __all__ = ["FRAMERS", "Event", "Frame", "Framer", "Rejected", "device_framer", "is_broadcast", "make_framer"]
 
 
+# Each framing's name and the framer type that reads it (defined where _DEFINED_IN says).
+_FRAMER_TYPES = {"rtu": "RtuFramer", "ascii": "AsciiFramer", "tcp": "TcpFramer"}
+
+
 class _Framers(Mapping):
-    """The framer type of each framing's name, imported on the first look-up."""
+    """The framer type of each framing's name, its module imported on the first look-up."""
 
     def __getitem__(self, name: str) -> type[Framer]:
-        if name == "rtu":
-            from mbtool.codec.rtu import RtuFramer  # noqa: PLC0415 - an envelope loads when asked for
-
-            return RtuFramer
-        if name == "ascii":
-            from mbtool.codec.ascii import AsciiFramer  # noqa: PLC0415 - an envelope loads when asked for
-
-            return AsciiFramer
-        if name == "tcp":
-            from mbtool.codec.mbap import TcpFramer  # noqa: PLC0415 - an envelope loads when asked for
-
-            return TcpFramer
-        raise KeyError(name)
+        return _defined(_FRAMER_TYPES[name])
 
     def __iter__(self) -> Iterator[str]:
-        return iter(("rtu", "ascii", "tcp"))
+        return iter(_FRAMER_TYPES)
 
     def __len__(self) -> int:
-        return 3
+        return len(_FRAMER_TYPES)
 
 
 FRAMERS: Mapping[str, type[Framer]] = _Framers()
@@ -57,10 +49,8 @@ def make_framer(name: str, responses: bool = True) -> Framer:
 
 def device_framer(name: str) -> Framer:
     """The framer a device reads requests with (mbtool serve and sim://)."""
-    if name == "rtu":
-        from mbtool.codec.rtu import DeviceRtuFramer  # noqa: PLC0415 - an envelope loads when asked for
-
-        return DeviceRtuFramer()
+    if name == "rtu":  # a device answers a function it does not know (DeviceRtuFramer)
+        return _defined("DeviceRtuFramer")()
     return make_framer(name, responses=False)
 
 
@@ -82,8 +72,12 @@ _DEFINED_IN = {
 }
 
 
+def _defined(name: str):
+    """One of the names above, from the module that defines it (imported now if not yet)."""
+    return getattr(import_module(f"mbtool.codec.{_DEFINED_IN[name]}"), name)
+
+
 def __getattr__(name: str):
-    module = _DEFINED_IN.get(name)
-    if module is None:
+    if name not in _DEFINED_IN:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(import_module(f"mbtool.codec.{module}"), name)
+    return _defined(name)
