@@ -17,6 +17,7 @@ import operator
 import threading
 from bisect import bisect_right
 from collections import deque
+from contextlib import contextmanager
 
 # Upper bounds in seconds, each bucket holding the durations up to its bound (Prometheus's
 # "le"); one more bucket holds those past the last.  1 ms is a loopback TCP device, 10 s a
@@ -43,9 +44,10 @@ class Durations:
     bisect over the sorted batch) when it is full or when anything is read.  A transaction
     then pays for an append, not for a dozen updates and a bisect of its own.
 
-    Another thread may read while one adds (a plant's live view, its exporter): a fold takes
-    the durations batched so far under a lock and removes just those, so an append that comes
-    meanwhile stays for the next fold and none is counted twice."""
+    Another thread may read while one adds (a plant's live view, its exporter): a fold and
+    every read hold a lock, and a fold takes the durations batched so far and removes just
+    those, so an append that comes meanwhile (without the lock) stays for the next fold,
+    none is counted twice and a reader sees every figure of the same folds."""
 
     def __init__(self) -> None:
         self._count = 0
@@ -62,95 +64,112 @@ class Durations:
         batch = self._batch
         batch.append(seconds)
         if len(batch) >= WINDOW:  # bounded, however long nothing reads them
-            self._fold()
+            with self._folding:
+                self._fold()
 
     def _fold(self) -> None:
-        """Add the batch to the figures: every reader calls this first."""
-        if not self._batch:
+        """Add the batch to the figures; the caller holds the lock."""
+        batch = self._batch
+        taken = batch[:]  # one C call each, as an append is: appends since stay in the batch
+        if not taken:
             return
+        del batch[: len(taken)]
+        ordered = sorted(taken)
+        self._count += len(ordered)
+        self._total += sum(ordered)
+        self._squares += sum(map(operator.mul, ordered, ordered))
+        self._low = min(self._low, ordered[0])
+        self._high = max(self._high, ordered[-1])
+        # Bucket i holds the durations above bound i-1 up to bound i (Prometheus's "le").
+        below = 0
+        for bucket, bound in enumerate(BUCKETS):
+            upto = bisect_right(ordered, bound)
+            self._counts[bucket] += upto - below
+            below = upto
+        self._counts[-1] += len(ordered) - below
+        self._recent.extend(taken)
+
+    @contextmanager
+    def _folded(self):
+        """What every reader reads within: the lock held, the batch folded in."""
         with self._folding:
-            batch = self._batch
-            taken = batch[:]  # one C call each, as an append is: appends since stay in the batch
-            del batch[: len(taken)]
-            ordered = sorted(taken)
-            self._count += len(ordered)
-            self._total += sum(ordered)
-            self._squares += sum(map(operator.mul, ordered, ordered))
-            self._low = min(self._low, ordered[0])
-            self._high = max(self._high, ordered[-1])
-            # Bucket i holds the durations above bound i-1 up to bound i (Prometheus's "le").
-            below = 0
-            for bucket, bound in enumerate(BUCKETS):
-                upto = bisect_right(ordered, bound)
-                self._counts[bucket] += upto - below
-                below = upto
-            self._counts[-1] += len(ordered) - below
-            self._recent.extend(taken)
+            self._fold()
+            yield
 
     @property
     def count(self) -> int:
-        self._fold()
-        return self._count
+        with self._folded():
+            return self._count
 
     @property
     def total(self) -> float:
-        self._fold()
-        return self._total
+        with self._folded():
+            return self._total
 
     @property
     def high(self) -> float:
-        self._fold()
-        return self._high
+        with self._folded():
+            return self._high
 
     @property
-    def recent(self) -> deque[float]:
+    def recent(self) -> list[float]:
         """The most recent WINDOW durations, oldest first (the 95th percentile's)."""
-        self._fold()
-        return self._recent
+        with self._folded():
+            return list(self._recent)
 
     def merge(self, other: Durations, recent: bool = True) -> None:
         """Fold another's durations into these (a link's are its devices'); ``recent=False``
         leaves the window out (the exporter's link totals show no percentile)."""
-        self._fold()
-        other._fold()
-        self._count += other._count
-        self._total += other._total
-        self._squares += other._squares
-        self._low = min(self._low, other._low)
-        self._high = max(self._high, other._high)
-        self._counts = [mine + theirs for mine, theirs in zip(self._counts, other._counts, strict=True)]
-        if recent:
-            self._recent.extend(other._recent)
+        with other._folded():
+            theirs = (
+                other._count,
+                other._total,
+                other._squares,
+                other._low,
+                other._high,
+                list(other._counts),
+            )
+            window = list(other._recent) if recent else []
+        count, total, squares, low, high, counts = theirs
+        with self._folded():
+            self._count += count
+            self._total += total
+            self._squares += squares
+            self._low = min(self._low, low)
+            self._high = max(self._high, high)
+            self._counts = [mine + their for mine, their in zip(self._counts, counts, strict=True)]
+            self._recent.extend(window)
 
     def buckets(self) -> list[tuple[float, int]]:
         """(upper bound, how many took at most that long), cumulative, the last bound infinity:
         a Prometheus histogram's buckets."""
-        self._fold()
+        with self._folded():
+            counts = list(self._counts)
         running, out = 0, []
-        for bound, count in zip((*BUCKETS, math.inf), self._counts, strict=True):
+        for bound, count in zip((*BUCKETS, math.inf), counts, strict=True):
             running += count
             out.append((bound, running))
         return out
 
     def mdev(self) -> float:
         """The mean deviation as ping(8) prints it: sqrt(mean of squares - square of the mean)."""
-        self._fold()
-        if not self._count:
-            return 0.0
-        mean = self._total / self._count
-        return math.sqrt(max(0.0, self._squares / self._count - mean * mean))
+        with self._folded():
+            if not self._count:
+                return 0.0
+            mean = self._total / self._count
+            return math.sqrt(max(0.0, self._squares / self._count - mean * mean))
 
     def figures(self) -> dict[str, float] | None:
         """min, avg, p95 and max in seconds; None before the first duration."""
-        self._fold()
-        if not self._count:
-            return None
-        return {
-            "min": self._low,
-            "avg": self._total / self._count,
-            "p95": percentile(self._recent, 0.95),
-            "max": self._high,
-        }
+        with self._folded():
+            if not self._count:
+                return None
+            return {
+                "min": self._low,
+                "avg": self._total / self._count,
+                "p95": percentile(self._recent, 0.95),
+                "max": self._high,
+            }
 
     def cell(self) -> str:
         """min/avg/p95/max in ms to a tenth, for a column of a table: "4.2/4.8/5.7/5.7", or "-"

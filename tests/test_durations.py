@@ -81,13 +81,18 @@ def test_the_percentile_is_the_nearest_rank(values, fraction, expected):
 def test_a_thread_that_reads_while_another_adds_loses_none_and_counts_none_twice():
     # A plant's live view and its exporter read a device's round trips while the device's
     # link thread adds them; every read folds what is batched.
-    durations, added, seen = Durations(), 100 * WINDOW, []
+    durations, added, seen, failed = Durations(), 100 * WINDOW, [], []
     done = threading.Event()
 
     def read():
-        while not done.is_set():
-            seen.append(durations.count)
-            durations.buckets()
+        try:
+            while not done.is_set():
+                seen.append(durations.count)
+                durations.buckets()
+                figures = durations.figures()
+                assert figures is None or figures["min"] <= figures["p95"] <= figures["max"]
+        except Exception as error:  # a thread's exception would not fail the test by itself
+            failed.append(error)
 
     switch = sys.getswitchinterval()
     sys.setswitchinterval(1e-6)  # threads take turns as often as they can
@@ -100,6 +105,7 @@ def test_a_thread_that_reads_while_another_adds_loses_none_and_counts_none_twice
         done.set()
         reader.join()
         sys.setswitchinterval(switch)
+    assert not failed, failed
     assert len(seen) > 10, "the reader read while the adder added"
     assert seen == sorted(seen), "a count never goes back"
     assert durations.count == added and durations.buckets()[-1][1] == added
