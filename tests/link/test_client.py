@@ -217,6 +217,34 @@ def test_tcp_looks_for_stale_bytes_only_after_a_transaction_that_did_not_end_cle
     assert looks == [1, 1, 1, 2, 2]
 
 
+def test_tcp_a_copy_of_the_reply_left_after_a_clean_transaction_is_told_by_its_id_next_time():
+    """After a clean MBAP transaction the framer keeps what came after the reply (as the
+    socket keeps what comes later): the next request's reply is matched by its transaction
+    id, and the copy is discarded, traced as the old transaction's."""
+    clock = FakeClock()
+    framer = TcpFramer()
+    first = framer.build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 64"), 1)
+    second = framer.build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 65"), 2)
+    link = ScriptedLink(clock, [[first + first], [second]], serial_line=False)
+
+    class Notes(Trace):
+        def __init__(self) -> None:
+            self.seen: list[tuple[bytes, str]] = []
+
+        def received(self, adu: bytes, note: str = "") -> None:
+            self.seen.append((adu, note))
+
+    notes = Notes()
+    tcp = client(link, clock, framer=TcpFramer(), trace=notes)
+    assert tcp.execute(0x11, REQUEST).registers == (555, 0, 100)
+    assert tcp.execute(0x11, REQUEST).registers == (555, 0, 101)
+    assert notes.seen == [
+        (first, ""),
+        (first, "reply has transaction id 1, expected 2"),
+        (second, ""),
+    ]
+
+
 def test_endless_garbage_ends_at_the_deadline():
     clock = FakeClock()
 
