@@ -276,14 +276,18 @@ class LiveView:
         self.previous: dict[str, dict[str, object]] = {}
         self.events: list[str] = []
         self.states: dict = {}
-        self.live = None
 
     def running(self, states: dict):
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
         self.states = states
-        self.live = Live(self._table(), refresh_per_second=4, transient=False)
-        return self.live
+        return Live(self, refresh_per_second=4, transient=False)
+
+    def __rich__(self):
+        """The screen as it is now, built when rich draws it (4 times a second), not on every
+        poll of every device."""
+        with self.lock:
+            return self._table()
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
@@ -300,8 +304,6 @@ class LiveView:
                     name for name, value in values.items() if before.get(name, value) != value
                 }
                 self.previous[item.device.name] = values
-            if self.live is not None:
-                self.live.update(self._table())
 
     def _table(self):
         from rich.console import Group  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
