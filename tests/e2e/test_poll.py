@@ -439,6 +439,7 @@ def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(s
     for row in ("meter1", "meter2", "plc", "dead", "voltage=230.1", "tariff=day"):
         assert row in shown, shown[-2000:]
     assert "online" in shown and "offline" in shown
+    assert "dead offline: " in shown, shown[-2000:]  # the event, as its line on stderr writes it
     # The statistics on stderr: a row a device and a link.
     table = err.splitlines()
     assert table[0].split()[:4] == ["name", "state", "polls", "trans"]

@@ -291,12 +291,8 @@ class LiveView:
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
-            if isinstance(item, Event):
-                what = f"link {item.name}" if item.kind == "link" else item.name
-                line = f"{local_time(item.time)} {what} {item.state} {item.reason}".rstrip()
-                if item.retry_in is not None:
-                    line += f"; next try in {item.retry_in:g} s"
-                self.events = (self.events + [line])[-5:]
+            if isinstance(item, Event):  # the line stderr gets too, the last five kept
+                self.events = (self.events + [event_line(item)])[-5:]
             elif item.readings is not None:
                 values = {r.point.name: r.value for r in item.readings if r.error is None}
                 before = self.previous.get(item.device.name, {})
