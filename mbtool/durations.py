@@ -121,16 +121,9 @@ class Durations:
         """Fold another's durations into these (a link's are its devices'); ``recent=False``
         leaves the window out (the exporter's link totals show no percentile)."""
         with other._folded():
-            theirs = (
-                other._count,
-                other._total,
-                other._squares,
-                other._low,
-                other._high,
-                list(other._counts),
-            )
+            count, total, squares = other._count, other._total, other._squares
+            low, high, counts = other._low, other._high, list(other._counts)
             window = list(other._recent) if recent else []
-        count, total, squares, low, high, counts = theirs
         with self._folded():
             self._count += count
             self._total += total
