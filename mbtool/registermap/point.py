@@ -100,12 +100,9 @@ class Point:
             return None  # the device has no value to give: never a label, never scaled
         if self.enum is not None and value in self.enum:  # a float's whole values too: 2.0 == 2
             return self.enum[value]
-        if self.scale_ref is None:
-            scale = self.scale
-        else:
-            scale = self.scale_for(scale_factor)
-            if scale is None:
-                return None  # a value without its scale factor is no value
+        scale = self.scale_for(scale_factor)
+        if scale is None and self.scale_ref is not None:
+            return None  # a value without its scale factor is no value
         if scale is None and self.offset is None or isinstance(value, str):
             return value
         # Decimal keeps NaN and ±Infinity as IEEE 754 does (repr gives 'nan', 'inf').
