@@ -19,6 +19,7 @@ from __future__ import annotations
 import _socket
 import contextlib
 import errno
+import math
 import os
 import re
 import select
@@ -29,7 +30,7 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import record
+from mbtool.codec.record import record, replace
 from mbtool.codec.timing import character_bits
 from mbtool.errors import ConnectionFailed
 from mbtool.link import IN_PROCESS
@@ -325,14 +326,41 @@ class Target:
     # "tcp", "tls", "udp", "rtu+udp" (NETWORK_SCHEMES), "serial" (a device path or a pyserial
     # URL), or an in-process scheme ("sim")
     scheme: str
-    host: str = ""
+    host: str = ""  # a network link's, or a serial bridge's (socket://, rfc2217://)
     port: int = 0
     path: str = ""  # the device path or URL handed to pyserial
+    handler: str = ""  # a pyserial URL's scheme (socket, loop...); "" for a device path
 
     def __str__(self) -> str:
         if self.scheme in NETWORK_SCHEMES:
             return f"{self.scheme}://{host_text(self.host)}:{self.port}"
         return self.path or f"{self.scheme}://"
+
+    def normalised(self) -> Target:
+        """One spelling of the link: the host as the resolver reads it (an IP address in its
+        usual form, 127.0.0.01 and 127.1 being 127.0.0.1; a name in lower case) and a serial
+        bridge without its options, so that two spellings of one link are one string."""
+        if self.scheme in NETWORK_SCHEMES:
+            return replace(self, host=canonical_host(self.host))
+        if self.handler in BRIDGE_SCHEMES:
+            host = canonical_host(self.host)
+            return replace(self, host=host, path=f"{self.handler}://{host_text(host)}:{self.port}")
+        return self
+
+
+def canonical_host(host: str) -> str:
+    """A host as the resolver reads it: an IPv4 address as inet_aton reads it (getaddrinfo
+    does the same for a numeric host: 127.1, 0x7f.0.0.1, 127.0.0.01 are 127.0.0.1), an IPv6
+    address compressed in lower case, any other name in lower case without a final dot."""
+    if host and all(c in "0123456789abcdefxABCDEFX." for c in host):
+        with contextlib.suppress(OSError):
+            return _socket.inet_ntoa(_socket.inet_aton(host))
+    if ":" in host:
+        address, percent, zone = host.partition("%")
+        with contextlib.suppress(OSError, ValueError):
+            packed = _socket.inet_pton(_socket.AF_INET6, address)
+            return _socket.inet_ntop(_socket.AF_INET6, packed) + percent + zone
+    return host.lower().rstrip(".")
 
 
 MODBUS_TLS_PORT = 802  # Modbus/TCP Security's registered port (MB-TCP-Security-v21)
@@ -392,11 +420,61 @@ def parse_target(text: str, listening: bool = False) -> Target:
         return Target(scheme, path=f"{scheme}://")
     if scheme in BRIDGE_SCHEMES:
         # pyserial takes options after "?" (socket://host:port?logging=debug): keep them.
-        _host_and_port(text, rest.split("?", 1)[0], None, 1)
-        return Target("serial", path=text)
+        address, _, options = rest.partition("?")
+        host, port = _host_and_port(text, address, None, 1)
+        _check_serial_options(text, scheme, options)
+        return Target("serial", host, port, path=text, handler=scheme)
     if scheme in OTHER_SERIAL_SCHEMES:
-        return Target("serial", path=text)
+        if scheme == "hwgrep":  # hwgrep://REGEXP&option...: the regular expression first
+            pattern, _, options = rest.partition("&")
+            try:
+                re.compile(pattern)
+            except re.error as error:
+                raise RequestError(f"{text}: {pattern!r} is no regular expression ({error})") from None
+        else:
+            options = urlsplit(text).query
+        _check_serial_options(text, scheme, options)
+        return Target("serial", path=text, handler=scheme)
     raise RequestError(f"unknown scheme {scheme}:// in {text}: use {target_forms()}")
+
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+# The options each of pyserial's URL handlers takes (its from_url), and what a value must be:
+# one of a tuple, a number (float, or int for hwgrep's n, the Nth port found from 2 on), any
+# text (str), or None for a flag.  pyserial meets some typos with KeyError or re.error, an
+# internal error to mbtool: checked here, a typo is bad input (exit 2), with nothing opened.
+SERIAL_URL_OPTIONS = {
+    "socket": {"logging": LOG_LEVELS},
+    "rfc2217": {"logging": LOG_LEVELS, "ign_set_control": None, "poll_modem": None, "timeout": float},
+    "loop": {"logging": LOG_LEVELS},
+    "spy": {"file": str, "color": None, "raw": None, "all": None},
+    "alt": {"class": str},
+    "hwgrep": {"n": int, "skip_busy": None},
+    "cp2110": {},
+}
+
+
+def _check_serial_options(text: str, scheme: str, options: str) -> None:
+    """RequestError unless ``options`` (a=1&b) are options pyserial's ``scheme``:// takes."""
+    takes = SERIAL_URL_OPTIONS[scheme]
+    known = ", ".join(takes) or "none"
+    for option in filter(None, options.split("&")):
+        name, equals, value = option.partition("=")
+        if name not in takes:
+            raise RequestError(f"{text}: {scheme}:// takes no option {name!r} (its options: {known})")
+        kind = takes[name]
+        if isinstance(kind, tuple) and value not in kind:
+            raise RequestError(f"{text}: {name} is one of {', '.join(kind)}")
+        if kind is str and not value:
+            raise RequestError(f"{text}: {name} needs a value ({name}=...)")
+        if kind in (int, float):
+            try:
+                number = kind(value)
+            except ValueError:
+                number = math.nan
+            if not (math.isfinite(number) and number >= (2 if kind is int else 0)):
+                lowest = "a whole number, 2 or more" if kind is int else "a number of seconds"
+                raise RequestError(f"{text}: {name}={value}: expected {lowest}")
 
 
 def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tuple[str, int]:

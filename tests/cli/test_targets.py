@@ -78,7 +78,7 @@ def test_a_file_named_like_a_host_is_still_a_device(tmp_path, monkeypatch):
         ("udp://10.0.0.5", "udp", "10.0.0.5", 502),
         ("UDP://[::1]:5020", "udp", "::1", 5020),
         ("rtu+udp://10.0.0.7:4001", "rtu+udp", "10.0.0.7", 4001),
-        ("socket://gw:4001?logging=debug", "serial", "", 0),
+        ("socket://gw:4001?logging=debug", "serial", "gw", 4001),
         ("sim://", "sim", "", 0),
         ("/dev/ttyUSB0", "serial", "", 0),
         ("loop://", "serial", "", 0),
@@ -89,6 +89,48 @@ def test_good_targets(target, scheme, host, port):
     assert (parsed.scheme, parsed.host, parsed.port) == (scheme, host, port)
     if scheme == "serial":
         assert parsed.path == target  # handed to pyserial as typed, options and all
+
+
+@pytest.mark.parametrize(
+    "target, words",
+    [
+        ("loop://?x=1", "loop://?x=1: loop:// takes no option 'x' (its options: logging)"),
+        ("loop://?logging=loud", "loop://?logging=loud: logging is one of debug, info, warning, error"),
+        ("hwgrep://((", "hwgrep://((: '((' is no regular expression"),
+        ("hwgrep://USB&n=x", "hwgrep://USB&n=x: n=x: expected a whole number, 2 or more"),
+        ("socket://127.0.0.1:1?logging=debug&x", "takes no option 'x'"),
+        ("rfc2217://127.0.0.1:1?timeout=inf", "timeout=inf: expected a number of seconds"),
+        ("spy://loop://?file=", "file needs a value"),
+    ],
+)
+def test_a_pyserial_url_with_a_bad_option_is_exit_2_in_read_and_poll(tmp_path, target, words):
+    """Issue 40.16: pyserial met these with KeyError or re.error, an internal error (exit 1)."""
+    res = run_cli("read-holding-registers", "0", "-p", target, "-t", "0.2")
+    assert words in assert_one_error_line(res, 2)
+    plant = tmp_path / "plant.toml"
+    plant.write_text(f'[links.a]\ntarget = "{target}"\n[devices.d]\nlink = "a"\nread = ["40001 1"]\n')
+    res = run_cli("poll", plant, "--once", "-o", "plain")
+    assert words in assert_one_error_line(res, 2)
+
+
+@pytest.mark.parametrize(
+    "target, one",
+    [
+        ("tcp://127.0.0.01", "tcp://127.0.0.1:502"),
+        ("TCP://127.1:502/", "tcp://127.0.0.1:502"),
+        ("tcp://0x7f.0.0.1", "tcp://127.0.0.1:502"),
+        ("tcp://2130706433", "tcp://127.0.0.1:502"),
+        ("tcp://127.0.0.010", "tcp://127.0.0.8:502"),  # octal, as the resolver reads it
+        ("udp://[0:0::1]:5020", "udp://[::1]:5020"),
+        ("tls://[FE80::1%eth0]", "tls://[fe80::1%eth0]:802"),
+        ("tcp://PLC7.Plant.Example.", "tcp://plc7.plant.example:502"),
+        ("socket://127.000.0.1:4001?logging=debug", "socket://127.0.0.1:4001"),
+        ("/dev/ttyUSB0", "/dev/ttyUSB0"),
+    ],
+)
+def test_a_targets_normalised_form_is_one_spelling_of_its_link(target, one):
+    """Issue 40.1: what an exporter's --allow-target patterns match, and its locks are keyed by."""
+    assert str(parse_target(target).normalised()) == one
 
 
 def test_a_server_may_listen_on_port_0():
