@@ -184,6 +184,50 @@ def test_a_target_no_pattern_allows_is_refused_with_one_line_and_nothing_opened(
     assert silent_server.connections == 0 and silent_server.received_bytes() == b""
 
 
+def test_a_scrape_never_opens_a_pyserial_url_handler_nor_a_file_outside_dev(meter, tmp_path):
+    """Issue 40.1: a pattern that starts with a wildcard matched spy://...?file=PATH, and one
+    GET truncated the file; a device pattern let ../.. through.  The target is parsed first:
+    network links and serial devices are opened, pyserial's URL handlers never."""
+    victim = tmp_path / "victim"
+    victim.write_text("kept\n")
+    ports = tmp_path / "ports"
+    ports.mkdir()
+    with exporting(
+        "--maps", meter.maps, "--allow-target", "*", "--allow-target", f"{ports}/*",
+        "--allow-target", "/dev/serial/by-id/*", tmp_path=tmp_path,
+    ) as exporter:  # fmt: skip
+        for target in (
+            f"spy://loop://?file={victim}",
+            "loop://",
+            "alt://loop://?class=Serial",
+            "hwgrep://.*",
+            "rfc2217://127.0.0.1:1",  # not without a pattern that names rfc2217:// itself
+            "sim://",
+            f"{ports}/../victim",
+            "/dev/serial/by-id/../../../etc/hostname",
+        ):
+            status, _, text = exporter.get(f"/modbus?{urlencode({'target': target, 'module': 'energy-meter'})}")
+            assert status == 403, (target, text)
+            assert text.startswith(f"target {target} ") and text.count("\n") == 1, text
+        # A pattern matches the target as the resolver reads it: 127.0.0.01 is 127.0.0.1.
+        port = meter.target.rsplit(":", 1)[1]
+        status, _, text = exporter.get(f"/modbus?target=TCP://127.0.0.01:{port}/&module=energy-meter")
+        assert status == 200 and value(text, "modbus_up", unit="1") == 1, text
+    assert victim.read_text() == "kept\n"
+
+
+def test_an_allow_target_pattern_matches_the_normalised_target(meter, tmp_path):
+    port = meter.target.rsplit(":", 1)[1]
+    with exporting(
+        "--maps", meter.maps, "--allow-target", f"tcp://127.0.0.1:{port}", tmp_path=tmp_path
+    ) as exporter:
+        for target in (f"tcp://127.1:{port}", f"tcp://0x7f.0.0.1:{port}", f"tcp://127.0.0.1:{port}/"):
+            status, _, text = exporter.get(f"/modbus?target={target}&module=energy-meter")
+            assert status == 200 and value(text, "modbus_up", unit="1") == 1, (target, text)
+        status, _, text = exporter.get(f"/modbus?target=tcp://127.0.0.2:{port}&module=energy-meter")
+        assert status == 403, text
+
+
 @pytest.mark.parametrize(
     "query, status, words",
     [
@@ -197,13 +241,15 @@ def test_a_target_no_pattern_allows_is_refused_with_one_line_and_nothing_opened(
         ("target={t}&module=energy-meter&module=energy-meter", 400, "module is given 2 times"),
         ("target={s}&module=energy-meter&unit=0", 400, "unit 0 is broadcast"),
         ("target=tcp://127.0.0.1:99999&module=energy-meter", 400, "target tcp://127.0.0.1:99999"),
+        ("target=loop://?x=1&module=energy-meter", 400, "loop:// takes no option 'x'"),
+        ("target=hwgrep://((&module=energy-meter", 400, "is no regular expression"),
         ("target={t}&module=clash", 500, "point up: its metric, modbus_up, is one the exporter has"),
         ("target=tcp://10.0.0.1%0A:502&module=energy-meter", 403, "target 'tcp://10.0.0.1\\n:502' is not allowed"),
         ("target={t}&module=energy-meter&unit=%C2%B2", 400, "unit '²': a unit id is a number"),
         ("target={t}&module=energy-meter&unit=" + "9" * 5000, 400, "a unit id is a number, 0..255"),
     ],
     ids=["no-target", "no-module", "dot-dot", "slash", "unknown", "unit-range", "unit-text", "twice",
-         "broadcast", "bad-target", "clash", "newline", "unicode-digit", "long-unit"],
+         "broadcast", "bad-target", "loop-option", "hwgrep-regexp", "clash", "newline", "unicode-digit", "long-unit"],
 )  # fmt: skip
 def test_a_bad_scrape_is_one_line_with_its_status_and_nothing_opened(
     meter, tmp_path, silent_server, query, status, words
@@ -458,11 +504,12 @@ def _labels(plant, name: str) -> dict[str, str]:
         (("--maps", "{maps}", "--allow-target", "*", "--listen", "::1:9502"), "goes in brackets"),
         (("--maps", "{maps}", "--allow-target", "*", "--listen", "127.0.0.1:70000"), "0..65535"),
         (("--maps", "{maps}/nosuch", "--allow-target", "*"), "--maps"),
+        (("--maps", "{maps}", "--allow-target", "tcp://plc:99999"), "--allow-target tcp://plc:99999: bad port"),
         (("{clash}",), "point up: its metric, modbus_up, is one the exporter has of its own"),
         (("{stats_clash}",), "point transactions_total: its metric, modbus_transactions_total"),
         (("{bad}",), "unknown table [plant]"),
     ],
-    ids=["nothing", "maps-alone", "no-host", "empty-host", "ipv6", "port", "no-folder", "clash",
+    ids=["nothing", "maps-alone", "no-host", "empty-host", "ipv6", "port", "no-folder", "bad-pattern", "clash",
          "stats-clash", "bad-inventory"],
 )  # fmt: skip
 def test_bad_options_or_inventory_are_exit_2_with_one_line_and_nothing_served(

@@ -24,14 +24,16 @@ imports prometheus_client: a one-shot read never loads it.
 from __future__ import annotations
 
 import math
+import os
 import re
 import socket
+import stat
 import sys
 import threading
 import time
 from contextlib import ExitStack
 from fnmatch import fnmatchcase
-from pathlib import Path
+from pathlib import Path, PurePath
 from urllib.parse import parse_qs, urlsplit
 
 import click
@@ -55,7 +57,7 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRea
 from mbtool.link.base import host_text
 from mbtool.link.connection import Connection, check, close_quietly, open_client
 from mbtool.link.stats import Stats, outcome_of
-from mbtool.link.transport import parse_target
+from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
@@ -104,9 +106,11 @@ IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle bef
     "allowed",
     metavar="PATTERN",
     multiple=True,
-    help="/modbus: a target a scrape may read, as a shell pattern over the whole target "
-    "string, such as 'tcp://192.0.2.1[0-9]:502' (* matches dots too) (repeatable). The "
-    "inventory's links are allowed; any other target is refused with nothing opened.",
+    help="/modbus: a target a scrape may read, as a shell pattern over the target normalised "
+    "(port given, an IP address in its usual form), such as 'tcp://192.0.2.1[0-9]:502' (* "
+    "matches dots too) (repeatable). A serial device needs a pattern that starts with its path; "
+    "pyserial's URL handlers are never opened. The inventory's links are allowed; any other "
+    "target is refused with nothing opened.",
 )
 @with_options(LINK_OPTIONS[:2])  # -t/--timeout and --retries, as every command that reads has them
 def exporter(inventory, listen, maps, allowed, timeout, retries):
@@ -301,8 +305,9 @@ class TargetScraper:
 
     def __init__(self, modules: Modules, patterns, links: dict, timeout: float, retries: int) -> None:
         self.modules = modules
-        self.patterns = tuple(patterns)
-        self.links = links  # target -> the inventory's LinkSpec
+        self.patterns = allow_patterns(patterns)
+        # the inventory's links by their targets' keys (link_key): another spelling is one link
+        self.links = {link_key(parse_target(link.connection.port)): link for link in links.values()}
         self.timeout = timeout
         self.retries = retries
         self.locks: dict[str, threading.Lock] = {}
@@ -313,8 +318,9 @@ class TargetScraper:
         started = time.monotonic()
         budget = scrape_budget(deadline_header)
         try:
-            target, module, unit = self._asked(query)
-            connection = self._connection(target, unit)
+            where, module, unit = self._asked(query)
+            target = str(where)  # what was allowed is what is opened
+            connection = self._connection(where, unit)
             path = self.modules.path_of(module)
         except Refused as refusal:
             return refusal.status, TEXT, f"{refusal}\n".encode()
@@ -333,7 +339,7 @@ class TargetScraper:
         registry.register(_ScrapeCollector(str(unit), readings, error, kind, time.monotonic() - started))
         return 200, CONTENT_TYPE, generate_latest(registry)
 
-    def _asked(self, query: str) -> tuple[str, str, int]:
+    def _asked(self, query: str) -> tuple[Target, str, int]:
         try:
             params = parse_qs(query, keep_blank_values=True, strict_parsing=bool(query), max_num_fields=16)
         except ValueError as error:
@@ -350,27 +356,47 @@ class TargetScraper:
             unit_text.isascii() and unit_text.isdigit() and len(unit_text) <= 3 and int(unit_text) <= 255
         ):
             raise Refused(400, f"unit {unit_text!r}: a unit id is a number, 0..255")
-        if target not in self.links and not any(fnmatchcase(target, p) for p in self.patterns):
+        return self._allowed(target), module, int(unit_text)
+
+    def _allowed(self, text: str) -> Target:
+        """The target a scrape names, parsed and normalised, if it may be opened; Refused if
+        not (400: it names no target; 403: it is not allowed), with nothing opened."""
+        try:
+            where = parse_target(text).normalised()
+        except RequestError as error:
+            raise Refused(400, f"target {_shown(text)}: {_shown(str(error))}") from None
+        if link_key(where) in self.links:
+            return where
+        if where.handler and where.handler not in BRIDGE_SCHEMES:
             raise Refused(
                 403,
-                f"target {_shown(target)} is not allowed: no --allow-target pattern matches it"
+                f"target {_shown(text)} is a pyserial URL handler ({where.handler}://), which a "
+                "scrape never opens: network links and serial devices only",
+            )
+        if not any(_stands_for(pattern, where) for pattern in self.patterns):
+            raise Refused(
+                403,
+                f"target {_shown(text)} is not allowed: no --allow-target pattern matches it"
                 + (", and it is no link of the inventory" if self.links else ""),
             )
-        return target, module, int(unit_text)
+        if where.scheme == "serial" and not where.handler:
+            why = _not_a_serial_device(where.path)
+            if why:
+                raise Refused(403, f"target {_shown(text)} is not allowed: {why}")
+        return where
 
-    def _connection(self, target: str, unit: int):
-        link = self.links.get(target)
+    def _connection(self, where: Target, unit: int):
+        link = self.links.get(link_key(where))
         base = (
             link.connection
             if link is not None
-            else Connection(target, timeout=self.timeout, retries=self.retries)
+            else Connection(str(where), timeout=self.timeout, retries=self.retries)
         )
         connection = replace(base, unit=unit)
         try:
-            parse_target(target)
             check(connection, "a scrape's read")
         except RequestError as error:
-            raise Refused(400, f"target {_shown(target)}: {_shown(str(error))}") from None
+            raise Refused(400, f"target {_shown(str(where))}: {_shown(str(error))}") from None
         return connection
 
     def _lock(self, target: str) -> threading.Lock:
@@ -389,6 +415,72 @@ class TargetScraper:
             return _read_map(connection, register_map, deadline, budget)
         finally:
             lock.release()
+
+
+# --- what a scrape may open ------------------------------------------------------------------
+
+WILDCARDS = "*?["
+
+
+def allow_patterns(patterns) -> tuple[str, ...]:
+    """--allow-target's patterns as they are matched: the scheme in lower case, and a pattern
+    without a wildcard read as the target it names, normalised (tcp://192.0.2.10 allows
+    tcp://192.0.2.10:502 and its other spellings); RequestError (exit 2) if it names none."""
+    out = []
+    for pattern in patterns:
+        scheme, sep, rest = pattern.partition("://")
+        if sep and not any(c in scheme for c in WILDCARDS):
+            pattern = f"{scheme.lower()}://{rest}"
+        if not any(c in pattern for c in WILDCARDS):
+            try:
+                pattern = str(parse_target(pattern).normalised())
+            except RequestError as error:
+                raise RequestError(f"--allow-target {pattern}: {error}") from None
+        out.append(pattern)
+    return tuple(out)
+
+
+def _stands_for(pattern: str, where: Target) -> bool:
+    """Whether ``pattern`` allows ``where`` (normalised).  A network link (and socket://, its
+    serial frames over TCP) by any pattern that matches it; rfc2217://, sim:// and a serial
+    device only by a pattern that names them, its scheme or its first character typed:
+    '*:5020' stands for network links, never for a device or a remote serial port."""
+    text = str(where)
+    if not fnmatchcase(text, pattern):
+        return False
+    if where.scheme in NETWORK_SCHEMES or where.handler == "socket":
+        return True
+    if where.scheme == "serial" and not where.handler:  # a device path
+        return "://" not in pattern and pattern[:1] not in ("", *WILDCARDS)
+    scheme = where.handler or where.scheme
+    return pattern.lower().startswith(f"{scheme}://")
+
+
+def _not_a_serial_device(path: str) -> str:
+    """Why a device path is no serial device a scrape may open ("" if it may be): a path
+    with .., or one that resolves (symbolic links followed) to anything but a character
+    device under /dev.  A device that is not there is opened, and says so (modbus_up 0)."""
+    if ".." in PurePath(path).parts:
+        return "a device's path has no .. in it"
+    if os.name != "posix":
+        return ""  # COM3: no /dev to resolve into
+    real = os.path.realpath(path)
+    try:
+        mode = os.stat(real).st_mode
+    except OSError:
+        mode = None
+    if not real.startswith("/dev/") or (mode is not None and not stat.S_ISCHR(mode)):
+        return f"it is no serial device (it resolves to {_shown(real)})"
+    return ""
+
+
+def link_key(where: Target) -> str:
+    """One link's key, whatever its spelling: the normalised target, a device by the path
+    its symbolic links resolve to (/dev/serial/by-id/... is /dev/ttyUSB0)."""
+    where = where.normalised()
+    if where.scheme == "serial" and not where.handler:
+        return os.path.realpath(where.path)
+    return str(where)
 
 
 def scrape_budget(header: str | None) -> float:
