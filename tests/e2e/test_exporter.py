@@ -301,6 +301,71 @@ def test_scrapes_of_one_target_take_turns_and_of_others_run_at_once(monkeypatch)
     assert max(running.values()) == 0
 
 
+def _counting_read(monkeypatch, pause):
+    """_read_map replaced by one that takes ``pause(key)`` seconds and counts the reads under
+    way by the link's normalised target (key): the most at once of each."""
+    from mbtool.cli.commands import exporter
+    from mbtool.link.transport import parse_target
+
+    running: dict[str, int] = {}
+    most: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def read(connection, register_map, deadline, budget):
+        key = str(parse_target(connection.port).normalised())
+        with lock:
+            running[key] = running.get(key, 0) + 1
+            most[key] = max(most.get(key, 0), running[key])
+        time.sleep(pause(key))
+        with lock:
+            running[key] -= 1
+        return None, NoResponse("silence"), "timeout"
+
+    monkeypatch.setattr(exporter, "_read_map", read)
+    return most
+
+
+def test_other_spellings_of_one_target_take_turns_too(monkeypatch):
+    """Issue 40.2: the locks were keyed by the raw string, and six spellings of one address
+    made six connections at once."""
+    from mbtool.cli.commands import exporter
+
+    most = _counting_read(monkeypatch, lambda key: 0.2)
+    scraper = exporter.TargetScraper(exporter.Modules(METER_MAP.parent, {}), ["tcp://127.*"], {}, 1.0, 0)
+    spellings = ["127.0.0.1", "127.0.0.01", "127.1", "0x7f.0.0.1", "0177.0.0.1", "2130706433"]
+    threads = [
+        threading.Thread(target=scraper.scrape, args=(f"target=tcp://{host}:1502&module=energy-meter", "5"))
+        for host in spellings
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert most == {"tcp://127.0.0.1:1502": 1}
+
+
+def test_the_table_of_locks_is_bounded_and_keeps_a_lock_in_use(monkeypatch):
+    """Issue 40.2: 2,000 GETs of as many targets took the exporter from 29 to 105 MB.  The
+    table keeps the LOCKS_KEPT used last, never one a scrape holds or waits on: a second
+    scrape of a target under way waits for the first, however many others came between."""
+    from mbtool.cli.commands import exporter
+
+    held = "tcp://10.9.9.9:502"
+    most = _counting_read(monkeypatch, lambda key: 0.5 if key == held else 0.0)
+    scraper = exporter.TargetScraper(exporter.Modules(METER_MAP.parent, {}), ["tcp://10.*"], {}, 1.0, 0)
+    first = threading.Thread(target=scraper.scrape, args=(f"target={held}&module=energy-meter", "5"))
+    first.start()
+    time.sleep(0.1)
+    for n in range(2000):
+        scraper.scrape(f"target=tcp://10.{n // 250}.{n % 250}.1:502&module=energy-meter", "5")
+        assert len(scraper.locks) <= exporter.LOCKS_KEPT
+    second = threading.Thread(target=scraper.scrape, args=(f"target={held}&module=energy-meter", "5"))
+    second.start()
+    first.join(30)
+    second.join(30)
+    assert most[held] == 1 and len(most) == 2001
+
+
 # --- inventory: /metrics from memory --------------------------------------------------------------
 
 

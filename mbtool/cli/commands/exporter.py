@@ -31,7 +31,8 @@ import stat
 import sys
 import threading
 import time
-from contextlib import ExitStack
+from collections import OrderedDict
+from contextlib import ExitStack, contextmanager
 from fnmatch import fnmatchcase
 from pathlib import Path, PurePath
 from urllib.parse import parse_qs, urlsplit
@@ -310,8 +311,7 @@ class TargetScraper:
         self.links = {link_key(parse_target(link.connection.port)): link for link in links.values()}
         self.timeout = timeout
         self.retries = retries
-        self.locks: dict[str, threading.Lock] = {}
-        self.guard = threading.Lock()
+        self.locks = TargetLocks()
 
     def scrape(self, query: str, deadline_header: str | None) -> tuple[int, str, bytes]:
         """(HTTP status, content type, body) of one scrape."""
@@ -319,7 +319,6 @@ class TargetScraper:
         budget = scrape_budget(deadline_header)
         try:
             where, module, unit = self._asked(query)
-            target = str(where)  # what was allowed is what is opened
             connection = self._connection(where, unit)
             path = self.modules.path_of(module)
         except Refused as refusal:
@@ -329,7 +328,7 @@ class TargetScraper:
             register_map = self.modules.load(path)
         except KNOWN_ERRORS as error:  # the exporter's configuration, not the device: 500
             return 500, TEXT, f"module {module}: {error}\n".encode()
-        readings, error, kind = self._read(target, connection, register_map, started + budget, budget)
+        readings, error, kind = self._read(where, connection, register_map, started + budget, budget)
         from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
             CollectorRegistry,
             generate_latest,
@@ -399,22 +398,54 @@ class TargetScraper:
             raise Refused(400, f"target {_shown(str(where))}: {_shown(str(error))}") from None
         return connection
 
-    def _lock(self, target: str) -> threading.Lock:
-        with self.guard:
-            return self.locks.setdefault(target, threading.Lock())
-
-    def _read(self, target: str, connection, register_map, deadline: float, budget: float):
+    def _read(self, where: Target, connection, register_map, deadline: float, budget: float):
         """(readings or None, the error or None, its kind) of the map read within ``deadline``."""
-        lock = self._lock(target)
-        if not lock.acquire(timeout=max(0.0, deadline - time.monotonic())):
-            busy = NoResponse(
-                f"another scrape of {target} held it past this scrape's deadline ({budget:g} s)"
-            )
-            return None, busy, "busy"
-        try:
+        with self.locks.held(link_key(where), deadline) as turn:
+            if not turn:
+                busy = NoResponse(
+                    f"another scrape of {where} held it past this scrape's deadline ({budget:g} s)"
+                )
+                return None, busy, "busy"
             return _read_map(connection, register_map, deadline, budget)
+
+
+# Targets whose lock is kept: far more than are scraped at once (MAX_CONNECTIONS), so a lock in
+# use always stays, and few enough that scrapes of ever new targets cost no memory.
+LOCKS_KEPT = 1024
+
+
+class TargetLocks:
+    """One lock a link (by link_key), the LOCKS_KEPT used last kept: a lock that a scrape holds
+    or waits on is never dropped, or a second scrape would get a fresh one and read at once."""
+
+    def __init__(self) -> None:
+        self.guard = threading.Lock()
+        self.locks: OrderedDict[str, list] = OrderedDict()  # key -> [its lock, scrapes using it]
+
+    def __len__(self) -> int:
+        return len(self.locks)
+
+    @contextmanager
+    def held(self, key: str, deadline: float):
+        """Yield whether the link's lock was taken before ``deadline`` (monotonic)."""
+        with self.guard:
+            entry = self.locks.get(key) or [threading.Lock(), 0]
+            entry[1] += 1
+            self.locks[key] = entry
+            self.locks.move_to_end(key)
+            if len(self.locks) > LOCKS_KEPT:
+                idle = next((k for k, (_, users) in self.locks.items() if not users), None)
+                if idle is not None:
+                    del self.locks[idle]
+        lock = entry[0]
+        taken = lock.acquire(timeout=max(0.0, deadline - time.monotonic()))
+        try:
+            yield taken
         finally:
-            lock.release()
+            if taken:
+                lock.release()
+            with self.guard:
+                entry[1] -= 1
 
 
 # --- what a scrape may open ------------------------------------------------------------------
