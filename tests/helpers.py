@@ -946,12 +946,12 @@ class Running:
 
 
 @contextlib.contextmanager
-def exporting(*args: str, tmp_path: Path):
+def exporting(*args: str, tmp_path: Path, **popen):
     """mbtool exporter ARGS on a free loopback port; stopped by SIGTERM, which must end it with
-    exit 0 and no traceback."""
+    exit 0 and no traceback.  ``popen``: more of start_mbtool's arguments."""
     stderr = tmp_path / f"exporter-{len(list(tmp_path.glob('exporter-*')))}.err"
     with open(stderr, "w") as err:
-        proc = start_mbtool("exporter", "--listen", "127.0.0.1:0", *args, stderr=err, text=False)
+        proc = start_mbtool("exporter", "--listen", "127.0.0.1:0", *args, stderr=err, text=False, **popen)
     try:
         line = first_line(proc, "exporting on ")
         yield Running(proc, re.search(r"http://[^ ]+", line)[0], line, stderr)

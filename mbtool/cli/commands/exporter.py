@@ -35,7 +35,7 @@ from collections import OrderedDict
 from contextlib import ExitStack, contextmanager
 from fnmatch import fnmatchcase
 from pathlib import Path, PurePath
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs
 
 import click
 
@@ -76,7 +76,6 @@ DEADLINE_MARGIN = 0.25
 # and poll's Prometheus text is it).
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 TEXT = "text/plain; charset=utf-8"
-IDLE_CONNECTION = 60.0  # seconds a scraper's kept-alive connection may idle before it is closed
 
 
 @click.command(
@@ -640,52 +639,19 @@ class Exporter:
 
 def open_server(host: str, port: int, family, exporter: Exporter):
     """The HTTP server, bound; ConnectionFailed (exit 6) if it cannot be."""
-    from http.server import (  # noqa: PLC0415 - 20-27 ms (ssl, email): not for mbtool --help
-        BaseHTTPRequestHandler,
-        ThreadingHTTPServer,
-    )
+    from mbtool.cli.http_server import HttpServer  # noqa: PLC0415 - h11, selectors: serving only
 
-    class Handler(BaseHTTPRequestHandler):
-        protocol_version = "HTTP/1.1"  # Prometheus keeps its connection from scrape to scrape
-        server_version = "mbtool-exporter"
-        timeout = IDLE_CONNECTION
-        # The headers and the body leave in two writes: with Nagle's algorithm the body would
-        # wait for the scraper's delayed ACK of the headers (tens of milliseconds a scrape).
-        disable_nagle_algorithm = True
-
-        def do_GET(self) -> None:
-            url = urlsplit(self.path)
-            try:
-                status, kind, body = exporter.answer(url.path, url.query, self.headers.get(DEADLINE_HEADER))
-            except Exception as error:  # a bug: one line to the scraper and on stderr, never a traceback
-                line = f"internal error: {type(error).__name__}: {error}"
-                print(f"mbtool: {line} (answering {_shown(self.path)})", file=sys.stderr, flush=True)
-                status, kind, body = 500, TEXT, f"{_shown(line)}\n".encode()
-            self.send_response(status)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, format, *args) -> None:
-            pass  # a scrape every few seconds is no news
-
-    class Server(ThreadingHTTPServer):
-        address_family = family
-        daemon_threads = True
-
-        def handle_error(self, request, client_address) -> None:
-            # One line, never a traceback; a scraper that went away is no error.
-            error = sys.exc_info()[1]
-            if not isinstance(error, ConnectionError | TimeoutError):
-                print(
-                    f"mbtool: internal error answering {client_address[0]}: {type(error).__name__}: {error}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+    def answer(path: str, query: str, headers: dict[str, str]) -> tuple[int, str, bytes]:
+        try:
+            return exporter.answer(path, query, headers.get(DEADLINE_HEADER.lower()))
+        except Exception as error:  # a bug: one line to the scraper and on stderr, never a traceback
+            line = f"internal error: {type(error).__name__}: {error}"
+            asked = path + (f"?{query}" if query else "")
+            print(f"mbtool: {line} (answering {_shown(asked)})", file=sys.stderr, flush=True)
+            return 500, TEXT, f"{_shown(line)}\n".encode()
 
     try:
-        return Server((host, port), Handler)
+        return HttpServer(host, port, family, answer)
     except OSError as error:
         raise ConnectionFailed(
             f"cannot listen on {host_text(host)}:{port}: {error.strerror or error}"
