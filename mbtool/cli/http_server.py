@@ -268,7 +268,9 @@ class HttpServer:
             status, kind, body = self._answered(request)  # which never raises but for a bug
             data = http.send(
                 h11.Response(
-                    status_code=status, headers=[("Content-Type", kind), ("Content-Length", str(len(body)))]
+                    status_code=status,
+                    headers=[("Content-Type", kind), ("Content-Length", str(len(body)))],
+                    reason=HTTPStatus(status).phrase,
                 )
             )
             if request.method != b"HEAD":  # a HEAD's answer: the GET's headers, without its body

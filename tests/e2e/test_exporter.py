@@ -161,6 +161,20 @@ def test_the_read_ends_within_the_deadline_the_scraper_sends(meter, tmp_path):
                 assert took < float(deadline) + 1.0, f"answered {took:.2f} s after a {deadline} s deadline"
 
 
+def test_a_scrape_timeout_past_the_exporters_maximum_is_clamped_to_it(meter, tmp_path):
+    """Issue 40.15: a header of 9.3e9 s was HTTP 500 'internal error: OverflowError'."""
+    from mbtool.cli.commands.exporter import MAX_SCRAPE_TIMEOUT, scrape_budget
+
+    with exporting("--maps", meter.maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path) as exporter:
+        for seconds in ("9.3e9", "1e300", str(MAX_SCRAPE_TIMEOUT * 2)):
+            status, _, text = exporter.get(
+                f"/modbus?target={meter.target}&module=energy-meter",
+                {"X-Prometheus-Scrape-Timeout-Seconds": seconds},
+            )
+            assert status == 200 and value(text, "modbus_up", unit="1") == 1, text
+    assert scrape_budget("9.3e9") == scrape_budget(str(MAX_SCRAPE_TIMEOUT)) < MAX_SCRAPE_TIMEOUT
+
+
 def test_a_target_no_pattern_allows_is_refused_with_one_line_and_nothing_opened(
     meter, tmp_path, silent_server
 ):

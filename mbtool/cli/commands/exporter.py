@@ -69,6 +69,9 @@ from mbtool.registermap.plan import MapReader
 DEFAULT_LISTEN = "127.0.0.1:9502"
 DEADLINE_HEADER = "X-Prometheus-Scrape-Timeout-Seconds"
 DEFAULT_SCRAPE_TIMEOUT = 10.0  # Prometheus's own default, for a scraper that sends no deadline
+# The longest a scrape may read, whatever the scraper sends: a map of a slow serial bus takes
+# seconds, not minutes, and a wait has to fit the clocks' arithmetic (9.3e9 s overflowed it).
+MAX_SCRAPE_TIMEOUT = 300.0
 # Taken from the scraper's deadline for answering (rendering and sending take milliseconds;
 # the rest is for the network): the read ends this much before Prometheus gives up.
 DEADLINE_MARGIN = 0.25
@@ -514,13 +517,15 @@ def link_key(where: Target) -> str:
 
 
 def scrape_budget(header: str | None) -> float:
-    """Seconds the read may take: the scraper's deadline less a margin for the answer."""
+    """Seconds the read may take: the scraper's deadline (at most MAX_SCRAPE_TIMEOUT) less a
+    margin for the answer."""
     try:
         seconds = float(header) if header else DEFAULT_SCRAPE_TIMEOUT
     except ValueError:
         seconds = DEFAULT_SCRAPE_TIMEOUT
     if not 0 < seconds < math.inf:
         seconds = DEFAULT_SCRAPE_TIMEOUT
+    seconds = min(seconds, MAX_SCRAPE_TIMEOUT)
     return max(seconds - DEADLINE_MARGIN, seconds / 2)
 
 
