@@ -11,6 +11,7 @@ scrape the exporter.
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import socket
@@ -18,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+import tty
 from urllib.parse import urlencode
 
 import pytest
@@ -474,6 +476,63 @@ read = ["40001 1"]
         ]
     events = exporter.stderr.read_text()
     assert "dead offline: no response from unit 9" in events and "link lost offline: cannot connect" in events
+
+
+def test_modbus_of_a_link_the_inventory_polls_is_refused_with_the_reason(meter, tmp_path, silent_server):
+    """Issues 40.10 and 39.10: /modbus of a TCP link the inventory polls opened a second master
+    beside the plant's, and of a serial link it polls said 'port busy (another program has it
+    open)', the other program being the exporter itself.  Refused, whatever the spelling; a
+    link of the inventory that no device uses is read with its settings, as before."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    serial_path = os.ttyname(slave)
+    port = silent_server.port
+    plant = tmp_path / "plant.toml"
+    plant.write_text(f"""
+[poll]
+interval = 0.2
+
+[links.gw]
+target = "tcp://127.0.0.1:{port}"
+timeout = 0.2
+
+[links.bus1]
+target = "{serial_path}"
+timeout = 0.2
+
+[links.spare]
+target = "{meter.target}"
+
+[devices.meter]
+link = "gw"
+read = ["40001 1"]
+
+[devices.pump]
+link = "bus1"
+read = ["40001 1"]
+""")
+    try:
+        with exporting(
+            plant, "--maps", meter.maps, "--allow-target", "tcp://127.0.0.1:*",
+            "--allow-target", "/dev/pts/*", tmp_path=tmp_path,
+        ) as exporter:  # fmt: skip
+            wait_for(exporter, lambda text: value(text, "modbus_polls_total", device="pump") >= 1)
+            for target, link in (
+                (f"tcp://127.0.0.1:{port}", "gw"),
+                (f"TCP://127.0.0.01:{port}/", "gw"),
+                (serial_path, "bus1"),
+            ):
+                status, kind, text = exporter.get(
+                    f"/modbus?{urlencode({'target': target, 'module': 'energy-meter'})}"
+                )
+                assert (status, kind.split(";")[0]) == (409, "text/plain"), text
+                assert text == f"link {link} is polled by this exporter's inventory: scrape /metrics\n"
+            status, _, text = exporter.get(f"/modbus?target={meter.target}&module=energy-meter")
+            assert status == 200 and value(text, "modbus_up", unit="1") == 1, text
+        assert silent_server.connections == 1  # the plant's own, and no second master
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_an_inventory_scrape_answers_at_once_while_a_slow_device_is_polled(tmp_path):

@@ -9,7 +9,8 @@ documents for exporters in Python), in two modes that one process may serve toge
   keeps why (modbus_exporter answered 500 to every fault, its issue 69, and only said the
   scrape failed).  A target that no ``--allow-target`` pattern allows, and that is no link of
   the inventory, is refused (403) with nothing opened: an exporter on a network must not be
-  a way to reach any address.
+  a way to reach any address.  A link the inventory polls is refused (409): its values are
+  on /metrics, and a second master would overlap the plant's requests.
 * Inventory, ``mbtool exporter PLANT.toml``: the plant is polled as ``poll`` polls it
   (plant.schedule), and /metrics serves every device's latest values from memory: scrapes
   never touch a bus, answer at once however slow the devices are, and several Prometheus
@@ -128,7 +129,8 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     the map NAME from TARGET on each scrape, within the deadline Prometheus sends
     (X-Prometheus-Scrape-Timeout-Seconds, less a quarter of a second). A device that fails
     is HTTP 200 with modbus_up 0 and modbus_error_info{kind,reason}; a target not allowed is
-    403, a bad request 400, each one line, with nothing opened. --timeout and --retries are
+    403, a link the inventory polls 409 (scrape /metrics), a bad request 400, each one line,
+    with nothing opened. --timeout and --retries are
     for those reads, never past the deadline; an inventory link's target keeps the link's own.
 
     /metrics also has the exporter's process metrics. Ctrl-C or SIGTERM stops it with exit
@@ -150,11 +152,12 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         )
     if plant is not None:
         check_plant_names(plant)
-    links = {} if plant is None else {link.connection.port: link for link in plant.links.values()}
+    links = {} if plant is None else plant.links
     scraper = None
     if maps or (plant is not None and plant.maps):
         modules = Modules(Path(maps) if maps else None, {} if plant is None else plant.maps)
-        scraper = TargetScraper(modules, allowed, links, timeout, retries)
+        polled = {} if plant is None else {device.link for device in plant.devices}
+        scraper = TargetScraper(modules, allowed, links, timeout, retries, polled)
     runner = metrics = None
     if plant is not None:
         metrics = PlantMetrics()
@@ -306,11 +309,15 @@ class TargetScraper:
     """/modbus: a target's map read on each scrape, one scrape of a target at a time (a bus
     has one master, and many devices take one connection)."""
 
-    def __init__(self, modules: Modules, patterns, links: dict, timeout: float, retries: int) -> None:
+    def __init__(
+        self, modules: Modules, patterns, links: dict, timeout: float, retries: int, polled=()
+    ) -> None:
+        """``links``: the inventory's, by name; ``polled``: the names of those its plant polls."""
         self.modules = modules
         self.patterns = allow_patterns(patterns)
-        # the inventory's links by their targets' keys (link_key): another spelling is one link
+        # The inventory's links by their targets' keys (link_key): another spelling is one link.
         self.links = {link_key(parse_target(link.connection.port)): link for link in links.values()}
+        self.polled = {key for key, link in self.links.items() if link.name in polled}
         self.timeout = timeout
         self.retries = retries
         self.locks = TargetLocks()
@@ -366,7 +373,15 @@ class TargetScraper:
             where = parse_target(text).normalised()
         except RequestError as error:
             raise Refused(400, f"target {_shown(text)}: {_shown(str(error))}") from None
-        if link_key(where) in self.links:
+        key = link_key(where)
+        if key in self.polled:
+            # A second master beside the plant's on a TCP link (the device answers two at once,
+            # or not), "port busy" on a serial one, the exporter itself holding it: the plant's
+            # values are in /metrics already.
+            raise Refused(
+                409, f"link {self.links[key].name} is polled by this exporter's inventory: scrape /metrics"
+            )
+        if key in self.links:
             return where
         if where.handler and where.handler not in BRIDGE_SCHEMES:
             raise Refused(
