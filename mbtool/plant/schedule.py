@@ -25,9 +25,9 @@ from contextlib import ExitStack
 from mbtool.codec.record import field, record
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
 from mbtool.link.connection import Connection, close_quietly, open_client
-from mbtool.link.stats import Counted
+from mbtool.link.stats import Counted, Stats
 from mbtool.link.transport import ConnectionClosed
-from mbtool.plant.stats import PollStats
+from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
@@ -146,6 +146,7 @@ class LinkWorker:
         self.backoff = 0.0
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
+        self.stats = Stats()  # its devices' transactions, counted as they end
         self.crashed: BaseException | None = None
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
 
@@ -210,7 +211,7 @@ class LinkWorker:
         client, spec = self.client, device.spec
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
-        counted = Counted(client, device.stats)
+        counted = Counted(client, DeviceAndLink(device.stats, self.stats))
 
         def execute(request):
             return counted(spec.unit, request)

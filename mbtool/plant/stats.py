@@ -26,3 +26,23 @@ class PollStats(Stats):
 
     def as_dict(self) -> dict:
         return {"polls": self.polls, "failed_polls": self.failed_polls, **super().as_dict()}
+
+
+class DeviceAndLink:
+    """Where ``Counted`` counts a plant's transaction: in its device's statistics and in its
+    link's at once, so that a link's totals are kept as transactions end rather than added up
+    again from every device of the link after each poll (the exporter shows them after each)."""
+
+    __slots__ = ("device", "link")
+
+    def __init__(self, device: Stats, link: Stats) -> None:
+        self.device = device
+        self.link = link
+
+    def answered(self, attempts: int, rtt: float | None) -> None:
+        self.device.answered(attempts, rtt)
+        self.link.answered(attempts, rtt)
+
+    def transaction(self, error: BaseException | None, attempts: int, rtt: float | None = None) -> str:
+        self.link.transaction(error, attempts, rtt)
+        return self.device.transaction(error, attempts, rtt)
