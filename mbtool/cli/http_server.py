@@ -35,7 +35,9 @@ import h11
 HEAD_DEADLINE = 10.0  # seconds a request's head may take, from its first byte (or the connect)
 IDLE_CONNECTION = 60.0  # seconds a kept-alive connection may wait for its next request
 WRITE_DEADLINE = 10.0  # seconds an answer may take to be written (a scraper that stopped reading)
-MAX_HEAD = 16384  # bytes of a request's head: a scrape's is a few hundred
+# Bytes of an unfinished request head h11 holds (431 past them; a head that comes whole in
+# one read is bounded by the read's 64 KiB): a scrape's is a few hundred.
+MAX_HEAD = 16384
 MAX_CONNECTIONS = 256  # connections at once, at most a quarter of the descriptors (max_connections)
 ACCEPT_PAUSE = 0.1  # seconds accepting waits when descriptors ran out and no connection can go
 # What accept raises when the process or the system is out of descriptors or memory: waiting
