@@ -64,15 +64,16 @@ def max_connections() -> int:
     return max(4, min(MAX_CONNECTIONS, soft // 4))
 
 
-def plain(status: int, line: str, close: bool = False, extra: tuple[str, ...] = ()) -> bytes:
-    """A whole answer of one text line, written as it is (a refusal, whatever h11's state)."""
+def refusal_text(status: int, line: str, extra: tuple[str, ...] = ()) -> bytes:
+    """A refusal's whole answer: one text line, and the connection closed after it (written
+    as it is, whatever h11's state after a request it could not parse)."""
     body = f"{line}\n".encode()
     head = [
         f"HTTP/1.1 {status} {HTTPStatus(status).phrase}",
         "Content-Type: text/plain; charset=utf-8",
         f"Content-Length: {len(body)}",
         *extra,
-        *(["Connection: close"] if close else []),
+        "Connection: close",
     ]
     return ("\r\n".join(head) + "\r\n\r\n").encode() + body
 
@@ -138,7 +139,9 @@ class HttpServer:
                 elif key.fileobj is self.wake_reader:
                     self._take_back()
                 else:
-                    self._read(self.connections[key.fileobj])
+                    connection = self.connections.get(key.fileobj)
+                    if connection is not None:  # else dropped by an accept of this same round
+                        self._read(connection)
             self._expire(time.monotonic())
         for connection in list(self.connections.values()):
             if not connection.answering:
@@ -246,7 +249,7 @@ class HttpServer:
     def _refuse(self, connection: Connection, status: int, line: str, extra: tuple[str, ...] = ()) -> None:
         """One line, and the connection closed: what follows cannot be trusted to be a request."""
         try:
-            connection.sock.send(plain(status, line, close=True, extra=extra))
+            connection.sock.send(refusal_text(status, line, extra))
         except OSError:
             pass  # it is closed below either way
         self._close(connection)
@@ -260,9 +263,15 @@ class HttpServer:
     # --- answers: a thread each ---------------------------------------------------------------
 
     def _answer_in_a_thread(self, connection: Connection) -> None:
+        thread = threading.Thread(target=self._answer, args=(connection,), name="http answer", daemon=True)
         self.selector.unregister(connection.sock)
         connection.answering = True
-        threading.Thread(target=self._answer, args=(connection,), name="http answer", daemon=True).start()
+        try:
+            thread.start()
+        except RuntimeError:  # no thread to be had (memory, a limit): the scraper tries again
+            connection.answering = False
+            self.connections.pop(connection.sock, None)
+            self._refuse(connection, 503, "no thread to answer with: try again")
 
     def _answer(self, connection: Connection) -> None:
         request, http = connection.request, connection.http
@@ -287,11 +296,20 @@ class HttpServer:
                 connection.sock.setblocking(False)
         except (OSError, h11.LocalProtocolError):  # the scraper went away, or stopped reading
             connection.done = True
-        now = time.monotonic()
-        connection.request, connection.started = None, False
-        connection.waiting_since, connection.deadline = now, now + IDLE_CONNECTION
-        self.returned.append(connection)
-        self._wake()
+        except Exception as error:  # a bug: one line, never a traceback, and the connection closed
+            print(
+                f"mbtool: internal error answering: {type(error).__name__}: {error}",
+                file=sys.stderr,
+                flush=True,
+            )
+            connection.done = True
+        finally:  # the loop takes it back whatever happened, or it would count against the cap
+            now = time.monotonic()
+            connection.request, connection.started = None, False
+            connection.waiting_since, connection.deadline = now, now + IDLE_CONNECTION
+            connection.done = connection.done or http.their_state is h11.ERROR
+            self.returned.append(connection)
+            self._wake()
 
     def _answered(self, request: h11.Request) -> tuple[int, str, bytes]:
         url = urlsplit(request.target.decode("latin-1"))
