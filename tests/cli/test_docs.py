@@ -87,9 +87,24 @@ def _man_text() -> str:
 
 def test_generated_files_are_current():
     outputs = gen_docs.generate(cli)
-    assert set(outputs) == {MAN_PAGE, *COMPLETIONS}
+    assert set(outputs) == {MAN_PAGE, *COMPLETIONS, "README.md", "docs/plant.md"}
     stale = gen_docs.stale(outputs, REPO_ROOT)
     assert not stale, f"out of date: {', '.join(stale)}: {REGENERATE}"
+
+
+def test_the_live_view_captures_are_the_tools_own():
+    """README.md's and docs/plant.md's screens of poll's live view are what LiveView draws
+    (issue 39.11: they showed a change of state as the tool never wrote it)."""
+    capture = gen_docs.live_view_capture()
+    # The event line as poll writes it on stderr: a colon before the reason, the next try after.
+    assert "meter9 offline: no response from unit 9 within 0.3 s; next try in 4 s" in capture
+    assert capture.splitlines()[0] == "mbtool poll plant.toml: 5 devices, 4 online, 1 offline"
+    width, height = gen_docs.CAPTURE_SIZE
+    assert len(capture.splitlines()) <= height and max(map(len, capture.splitlines())) <= width
+    for path in gen_docs.CAPTURED_IN:
+        shown = _read(path).split(gen_docs.CAPTURE_MARK + "\n```text\n", 1)
+        assert len(shown) == 2, f"{path} has no generated capture of the live view: {REGENERATE}"
+        assert shown[1].split("```\n", 1)[0] == capture, f"{path}'s capture is stale: {REGENERATE}"
 
 
 def test_check_mode_passes():
