@@ -506,3 +506,27 @@ def test_the_sim_examples_run(page, example):
     repository has."""
     result = run_cli(*shlex.split(example)[1:])
     assert result.returncode == 0, f"{page}: {result}"
+
+
+def test_the_plant_pages_inventory_loads_where_the_page_says_to_save_it(tmp_path):
+    """docs/plant.md's end-to-end inventory names its map relative to itself: the page says
+    where to save it, and saved there it loads (issue 39.12: saved anywhere else it is exit 2,
+    'cannot read map')."""
+    from mbtool.cli.inventory import load_inventory
+    from mbtool.codec.errors import RequestError
+
+    section = _read("docs/plant.md").split("## A plant end to end", 1)[1].split("\n## ", 1)[0]
+    where = "save the inventory below as `plant.toml` in the root of mbtool's source tree"
+    assert where in " ".join(section.split()), "docs/plant.md does not say where to save its inventory"
+    inventory = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    saved = REPO_ROOT / f"plant-test-{os.getpid()}.toml"  # in the root, under a name of its own
+    saved.write_text(inventory)
+    try:
+        plant = load_inventory(str(saved))
+    finally:
+        saved.unlink()
+    assert [device.name for device in plant.devices] == ["meter1", "meter2", "meter9", "pump", "boiler"]
+    elsewhere = tmp_path / "plant.toml"
+    elsewhere.write_text(inventory)
+    with pytest.raises(RequestError, match="cannot read map"):
+        load_inventory(str(elsewhere))
