@@ -4,8 +4,12 @@ formula and its example (issue 39.13) and the TLS pages' openssl recipe (issue 3
 from __future__ import annotations
 
 import re
+import shlex
+import shutil
+import subprocess
 
-from helpers import REPO_ROOT, run_cli, serve
+import pytest
+from helpers import REPO_ROOT, run_cli, serve, wait_until
 
 
 def _page(name: str) -> str:
@@ -30,3 +34,46 @@ def test_the_mask_write_formula_is_stated_and_its_example_is_what_a_device_does(
         assert done.returncode == 0, done
         read = run_cli("read-holding-registers", "4", "1", "-o", "plain", "-p", device.target)
     assert read.stdout.split() == ["4", str(result)], read
+
+
+def _recipe() -> tuple[str, list[list[str]]]:
+    """The openssl recipe of docs/connecting.md as the page shows it, and the mbtool command
+    lines of the block after it, each split as a shell splits it."""
+    text = (REPO_ROOT / "docs" / "connecting.md").read_text(encoding="utf-8")
+    section = text.split("#### Making the certificates with openssl", 1)
+    assert len(section) == 2, "docs/connecting.md has no openssl recipe for the TLS certificates"
+    blocks = [block.split("```", 1)[0] for block in section[1].split("```sh\n")[1:3]]
+    return blocks[0], [shlex.split(line)[1:] for line in blocks[1].splitlines() if line.startswith("mbtool ")]
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+def test_the_tls_pages_openssl_recipe_makes_certificates_serve_and_mbtool_use(tmp_path):
+    """docs/connecting.md's recipe, run verbatim, makes the CA, the device's certificate (for
+    its name and for 127.0.0.1) and mbtool's client certificate with its role; the page's own
+    command lines then use them: serve on tls:// with --write-roles operator, a write (the
+    recipe's role may write) and a read by the device's name (issue 39.14)."""
+    recipe, commands = _recipe()
+    done = subprocess.run(
+        ["bash", "-e", "-c", recipe], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    (serve_line, *client_lines) = commands
+    assert serve_line[:3] == ["serve", "-p", "tls://127.0.0.1:8802"] and len(client_lines) == 2, commands
+
+    def here(args: list[str]) -> list[str]:  # the files the recipe made, where it made them
+        return [str(tmp_path / arg) if (tmp_path / arg).is_file() else arg for arg in args]
+
+    with serve(*here(serve_line[3:]), target="tls://127.0.0.1:0", quiet=False) as server:
+        results = [
+            run_cli(*here([server.target if arg == "tls://127.0.0.1:8802" else arg for arg in line]))
+            for line in client_lines
+        ]
+        assert wait_until(lambda: "role operator" in server.log(), 5), server.log()
+        wrong_name = run_cli(
+            "read-holding-registers", "10", "1", "-p", server.target, "--server-name", "plc7.plant.example",
+            *here(client_lines[1][client_lines[1].index("--cert"):]),
+        )  # fmt: skip
+    wrote, read = results
+    assert wrote.returncode == 0, wrote  # the role is the recipe's: operator may write
+    assert read.returncode == 0 and read.lines[0].split() == ["0", "1"], read  # by its name
+    assert wrong_name.returncode == 6, wrong_name  # and the name is checked: the SAN is what it says
