@@ -76,7 +76,11 @@ EXIT_DESCRIPTIONS = {
     "device refused them; the points read were printed and exported, and stderr names each one "
     "that failed), or dump --max-requests stopped before the end (the file is written, marked "
     "complete = false).",
-    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM). check alone has its own codes: every outcome "
+    "INTERRUPTED": "Interrupted (Ctrl-C or SIGTERM) before the command finished. The commands that run "
+    "until stopped take Ctrl-C as their way to end: poll and read --interval (ping and monitor too) print "
+    "their statistics and exit by their verdict: poll 0 when every device answered its last poll, 8 when "
+    "some did, else the failure's status; read --interval 0 when every poll got its reply, else the last "
+    "failed poll's status; 130 only when no poll had ended. check alone has its own codes: every outcome "
     "is a plugin state, 0 OK, 1 WARNING, 2 CRITICAL, 3 UNKNOWN.",
     "READER_GONE": "The reader of standard output went away (| head): mbtool stopped quietly, "
     "with the status of a program ended by SIGPIPE.",

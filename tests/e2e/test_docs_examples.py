@@ -1,15 +1,17 @@
 """What the pages of docs/ state, done as they state it against a real peer: the mask-write
-formula and its example (issue 39.13) and the TLS pages' openssl recipe (issue 39.14)."""
+formula and its example (issue 39.13), the TLS pages' openssl recipe (issue 39.14), and what
+Ctrl-C ends poll and read --interval with (issue 39.15)."""
 
 from __future__ import annotations
 
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 
 import pytest
-from helpers import REPO_ROOT, run_cli, serve, wait_until
+from helpers import REPO_ROOT, interrupt_after, run_cli, serve, wait_until
 
 
 def _page(name: str) -> str:
@@ -77,3 +79,36 @@ def test_the_tls_pages_openssl_recipe_makes_certificates_serve_and_mbtool_use(tm
     assert wrote.returncode == 0, wrote  # the role is the recipe's: operator may write
     assert read.returncode == 0 and read.lines[0].split() == ["0", "1"], read  # by its name
     assert wrong_name.returncode == 6, wrong_name  # and the name is checked: the SAN is what it says
+
+
+def test_ctrl_c_ends_poll_and_read_interval_by_their_verdict_as_the_pages_say(tmp_path):
+    """130 is "interrupted", but poll and read --interval end on Ctrl-C as their way to stop:
+    statistics, then the verdict's status (issue 39.15). The exit-code table, the man page
+    and docs/plant.md say so where 130 is, and the commands do it."""
+    plant = tmp_path / "plant.toml"
+    plant.write_text(
+        '[poll]\ninterval = 0.2\n[links.bus]\ntarget = "sim://"\ntimeout = 0.2\n'
+        '[devices.meter]\nlink = "bus"\nread = ["40001 2"]\n'
+        '[devices.dead]\nlink = "bus"\nunit = 9\nread = ["40001 1"]\n'
+    )
+    code, _, err = interrupt_after(["poll", str(plant), "-o", "plain"], 4, sig=signal.SIGINT)
+    assert code == 8 and "device  meter" in err and "interrupted; 1 of 2 devices answered" in err, err
+    code, _, err = interrupt_after(
+        ["read-holding-registers", "0", "2", "--interval", "0.1", "-p", "sim://"], 4, sig=signal.SIGINT
+    )
+    assert code == 0 and err.startswith("mbtool: interrupted; polls "), err
+
+    row = next(line for line in _page_lines("exit-codes.md") if line.startswith("| 130 |"))
+    for said in ("`poll`", "`read --interval`", "statistics", "verdict"):
+        assert said in row, f"docs/exit-codes.md's 130 row does not say {said}: {row}"
+    man = (REPO_ROOT / "man" / "mbtool.1").read_text(encoding="utf-8").replace("\\-", "-")
+    assert "poll and read --interval" in " ".join(man.split()), "the man page's 130 does not name them"
+    plant_page = _page("plant.md")
+    assert (
+        "Ctrl-C ends it cleanly, with the statistics on stderr, and the exit status of the verdict below"
+        in plant_page
+    )
+
+
+def _page_lines(name: str) -> list[str]:
+    return (REPO_ROOT / "docs" / name).read_text(encoding="utf-8").splitlines()
