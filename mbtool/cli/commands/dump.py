@@ -26,6 +26,7 @@ from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
 from mbtool.errors import KNOWN_ERRORS, ExitCode, NoResponse, OutputFailed, Summary, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
+from mbtool.words import counted
 
 
 def parse_span(text: str):
@@ -140,7 +141,7 @@ def dump(connection, settings, file, ranges, max_requests):
                                 bar.at(done + span.size)
                         identity = _identity(execute)
                     except OutOfRequests:
-                        stopped = f"stopped after {dumper.requests} requests (--max-requests)"
+                        stopped = f"stopped after {counted(dumper.requests, 'request')} (--max-requests)"
                         out_of_requests = True
                     except KNOWN_ERRORS as error:
                         if settings.dry_run:
@@ -165,7 +166,9 @@ def dump(connection, settings, file, ranges, max_requests):
             output.discard()
     found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
     refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
-    summary = f"dump: {found}; {dumper.requests} requests{refused} in {time.monotonic() - began:.1f} s"
+    summary = (
+        f"dump: {found}; {counted(dumper.requests, 'request')}{refused} in {time.monotonic() - began:.1f} s"
+    )
     if stopped:
         summary += f"; {stopped}: the file has what was read, marked complete = false"
     code = ExitCode.OK

@@ -28,6 +28,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
 from mbtool.plant.stats import PollStats
+from mbtool.words import counted
 
 CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 
@@ -451,7 +452,7 @@ def _verdict(runner: Plant, interrupted: bool) -> Summary:
     ]
     failed = [poll for poll in polls if poll.readings is None]
     partial = len(polls) - len(answered) - len(failed)
-    text = f"{len(answered)} of {len(runner.devices)} devices answered" + (
+    text = f"{len(answered)} of {counted(len(runner.devices), 'device')} answered" + (
         f", {partial} in part" if partial else ""
     )
     if interrupted and not polls:

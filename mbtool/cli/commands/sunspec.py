@@ -26,6 +26,7 @@ from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
 from mbtool.sunspec.models import BASES
 from mbtool.sunspec.values import read_values
+from mbtool.words import counted
 
 SMA_UNIT = 126  # SMA inverters answer SunSpec on unit 126 (their own register map on 3)
 MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper than a request
@@ -92,7 +93,7 @@ def sunspec(connection, settings, base, model_ids, map_path):
     if refused or unwritten:
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
         if refused:
-            named.append(f"{len(wanted) - len(refused)} of {len(wanted)} models read")
+            named.append(f"{len(wanted) - len(refused)} of {counted(len(wanted), 'model')} read")
         raise Summary("; ".join(named + ([unwritten] if unwritten else [])), ExitCode.PARTIAL)
 
 
@@ -221,14 +222,13 @@ def _shown(points: dict) -> dict:
 
 
 def _models(tree: dict) -> str:
-    count = len(tree["models"])
-    return f"{count} model{'s' * (count != 1)}"
+    return counted(len(tree["models"]), "model")
 
 
 def _model_title(model: dict) -> str:
     name = f" {model['name']}" if model["name"] else " (SunSpec defines no such model)"
     label = f" ({model['label']})" if model.get("label") and model["label"] != model["name"] else ""
-    return f"model {model['id']}{name}{label} at {model['address']}, {model['length']} registers"
+    return f"model {model['id']}{name}{label} at {model['address']}, {counted(model['length'], 'register')}"
 
 
 def _repeats(groups: dict, prefix: str = ""):
@@ -396,8 +396,10 @@ def _write_map(path: str, connection, unit: int, chain, models) -> str | None:
             out.write(text)
     except OSError as error:
         raise OutputFailed(path, error) from None
-    count = len(models)
-    print(f"mbtool: wrote {path}: {len(rows)} points of {count} model{'s' * (count != 1)}", file=sys.stderr)
+    print(
+        f"mbtool: wrote {path}: {counted(len(rows), 'point')} of {counted(len(models), 'model')}",
+        file=sys.stderr,
+    )
     return None
 
 
