@@ -8,10 +8,23 @@ from __future__ import annotations
 
 import json
 import re
+import resource
+import subprocess
+import sys
 
 import pytest
-from helpers import REPO_ROOT, PtyPair, run_cli, serve
+from helpers import (
+    REPO_ROOT,
+    PtyPair,
+    assert_one_error_line,
+    mbtool_env,
+    run_cli,
+    serve,
+    signals_as_from_a_shell,
+)
 
+from mbtool.errors import ExitCode
+from mbtool.registermap.load import load_map
 from mbtool.sunspec.models import definition
 
 TWIN = REPO_ROOT / "examples" / "sunspec-twin.toml"
@@ -457,3 +470,34 @@ def test_a_scaled_control_written_through_the_map_is_read_back_by_pysunspec2(twi
     assert controls["WMaxLimPct"] == 55.5
     assert refused.returncode == 2
     assert "controls.WMaxLimPct: 55.55 is not a whole number of steps of 0.1" in refused.stderr
+
+
+def test_a_map_write_that_fails_part_way_leaves_the_previous_map_whole(twin, tmp_path):
+    """Issue 40 item 9: --map replaces FILE whole or not at all.  A file-size limit
+    (RLIMIT_FSIZE) makes the write fail after a few kilobytes, as a full disk would: the map
+    written before is still there, byte for byte, and loads; no temporary is left beside it."""
+    path = tmp_path / "inverter.toml"
+    res = run_cli("sunspec", "-p", twin.target, "--model", "1", "--map", path, "-o", "json")
+    assert res.returncode == 0, res
+    good = path.read_bytes()
+    assert len(good) > 1024 and load_map(str(path)).points
+
+    def limited() -> None:
+        signals_as_from_a_shell()
+        resource.setrlimit(resource.RLIMIT_FSIZE, (len(good) // 2, len(good) // 2))
+
+    done = subprocess.run(
+        [sys.executable, "-m", "mbtool", "sunspec", "-p", twin.target, "--map", str(path), "-o", "json"],
+        env=mbtool_env(),
+        preexec_fn=limited,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
+    res = type(res)(["sunspec"], done.returncode, done.stdout, done.stderr, 0.0)
+    line = assert_one_error_line(res, ExitCode.OUTPUT)
+    assert line.startswith(f"mbtool: cannot write to {path}: "), line
+    assert path.read_bytes() == good
+    assert load_map(str(path)).points
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]

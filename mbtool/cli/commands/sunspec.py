@@ -18,9 +18,10 @@ from mbtool.cli.profiles import defaults
 from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.results import value_text
 from mbtool.cli.session import open_client
+from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import ExitCode, NoResponse, OutputFailed, Summary
+from mbtool.errors import ExitCode, NoResponse, Summary
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
@@ -51,7 +52,8 @@ MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper
     "map_path",
     metavar="FILE",
     type=FilePath(dir_okay=False),
-    help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll.",
+    help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll. "
+    "FILE is replaced whole (written beside it, then renamed), or left as it was.",
 )
 def sunspec(connection, settings, base, model_ids, map_path):
     """Find a SunSpec device's models and name every point: solar inverters, meters, batteries.
@@ -391,11 +393,8 @@ def _write_map(path: str, connection, unit: int, chain, models) -> str | None:
         *([f"# Left out: {', '.join(left_out)}."] if left_out else []),
     ]
     text = "\n".join(header) + "\n\n" + _toml({"max_gap": MAP_MAX_GAP}, rows)
-    try:
-        with open(path, "w", encoding="utf-8") as out:
-            out.write(text)
-    except OSError as error:
-        raise OutputFailed(path, error) from None
+    with WholeFile(path) as out:  # a write that fails leaves the previous map as it was
+        out.commit(text)
     print(
         f"mbtool: wrote {path}: {counted(len(rows), 'point')} of {counted(len(models), 'model')}",
         file=sys.stderr,
