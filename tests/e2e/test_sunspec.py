@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import resource
+import signal
 import subprocess
 import sys
 
@@ -21,10 +22,13 @@ from helpers import (
     run_cli,
     serve,
     signals_as_from_a_shell,
+    start_mbtool,
+    wait_until,
 )
 
 from mbtool.errors import ExitCode
 from mbtool.registermap.load import load_map
+from mbtool.sunspec.discover import MAX_MODELS, MAX_REGISTERS_READ
 from mbtool.sunspec.models import definition
 
 TWIN = REPO_ROOT / "examples" / "sunspec-twin.toml"
@@ -501,3 +505,65 @@ def test_a_map_write_that_fails_part_way_leaves_the_previous_map_whole(twin, tmp
     assert path.read_bytes() == good
     assert load_map(str(path)).points
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+# --- a hostile chain: the walk is bounded, and an interrupted walk shows what it found (40.13) -----
+
+
+def test_a_chain_of_zero_length_models_is_walked_to_the_bound_of_models_and_no_further():
+    with serve("--data", str(QUIRKS / "zero-length-models.toml"), quiet=False) as device:
+        res = sunspec(device.target)
+        served = device.stop()[1]
+    assert res.returncode == ExitCode.PARTIAL, res
+    tree = json.loads(res.stdout)
+    assert [m["id"] for m in tree["models"]] == [1] + [64998] * (MAX_MODELS - 1)
+    where = 40002 + 68 + 2 * (MAX_MODELS - 1)
+    said = f"the walk stopped after {MAX_MODELS} models, at register {where}: a chain holds no more"
+    assert tree["stopped"] == said
+    assert res.stderr.splitlines()[-1] == f"mbtool: {said}; the models found are shown"
+    assert served.count("\n") < 2 * (MAX_MODELS + 10)  # the serve's log: a line a frame, no more
+
+
+def test_a_model_past_the_register_budget_stops_the_walk_before_it_is_read(tmp_path):
+    length = MAX_REGISTERS_READ  # with the common model's, past the budget
+    data = tmp_path / "long-model.toml"
+    data.write_text(
+        (QUIRKS / "unknown-model.toml").read_text().split("# model 64999")[0]
+        + f"40070 = [64999, {length}]\n40072 = {{ value = 1, count = {length} }}\n"
+        + f"{40072 + length} = [0xFFFF, 0]\n"
+    )
+    with serve("--data", str(data), quiet=False) as device:
+        res = sunspec(device.target)
+        served = device.stop()[1]
+    assert res.returncode == ExitCode.PARTIAL, res
+    assert [m["id"] for m in json.loads(res.stdout)["models"]] == [1]
+    assert res.stderr.splitlines()[-1] == (
+        f"mbtool: the walk stopped at model 64999 at 40070: its {length} registers would take it past "
+        f"{MAX_REGISTERS_READ} registers read; the models found are shown"
+    )
+    assert served.count("\n") < 20  # not the 80 reads the model would take
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_walk_shows_the_models_it_found(sig):
+    with serve("--data", str(QUIRKS / "zero-length-models.toml"), "--delay", "0.02", quiet=False) as device:
+        proc = start_mbtool("sunspec", "-p", device.target)
+        try:
+            # The serve logs a line a frame: the walk is well past the common model.
+            assert wait_until(lambda: device.log().count("\n") > 30, 20), device.log()
+            proc.send_signal(sig)
+            out, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate(timeout=5)
+    assert proc.returncode == ExitCode.INTERRUPTED, err
+    assert "Traceback" not in err
+    lines = out.splitlines()
+    assert lines[0].startswith("SunSpec at 40000, unit 1: ") and "model 1 common (Common) at 40002" in out, out
+    found = [line for line in lines if line.startswith("model ")]
+    assert 2 <= len(found) < MAX_MODELS, out
+    last = err.splitlines()[-1]
+    assert last.startswith(
+        f"mbtool: interrupted; the walk stopped after {len(found)} models, at register "
+    ), err

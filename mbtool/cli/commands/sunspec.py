@@ -72,6 +72,9 @@ def sunspec(connection, settings, base, model_ids, map_path):
     definition's (the length on the wire is used), a repeating group that does not fit and
     a model SunSpec does not define (shown raw) are each a warning on stderr; the walk
     goes on. A model whose registers the device refuses is named, the others shown: exit 8.
+    The walk stops after 100 models, or before a model that would take it past 10,000
+    registers read: the models found are shown, exit 8. Ctrl-C or SIGTERM shows the models
+    found so far (and writes no map): exit 130.
     """
     if map_path is not None and not map_path.lower().endswith(".toml"):
         raise RequestError(f"--map writes a TOML map: {map_path} is not a .toml file name")
@@ -85,18 +88,29 @@ def sunspec(connection, settings, base, model_ids, map_path):
     # A model the device refused is laid out by its length alone: its layout says nothing.
     for warning in [*chain.warnings, *(w for m in wanted if m.error is None for w in m.layout.warnings)]:
         print(f"mbtool: warning: {warning}", file=sys.stderr)
-    unwritten = _write_map(map_path, connection, unit, chain, wanted) if map_path is not None else None
+    unwritten = None
+    if map_path is not None:
+        # An interrupted walk's map would be a part of the device's, put in place of a whole one.
+        if chain.interrupted:
+            unwritten = f"no map written to {map_path}"
+        else:
+            unwritten = _write_map(map_path, connection, unit, chain, wanted)
     tree = _tree(chain, unit, wanted)
     if fmt == "csv":
         _csv(tree, settings.csv_header)
     else:
         {"json": _json, "table": _table}.get(fmt, _plain)(tree)
     refused = [m for m in wanted if m.error is not None]
-    if refused or unwritten:
+    if refused or unwritten or chain.stopped:
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
         if refused:
             named.append(f"{len(wanted) - len(refused)} of {counted(len(wanted), 'model')} read")
-        raise Summary("; ".join(named + ([unwritten] if unwritten else [])), ExitCode.PARTIAL)
+        if chain.stopped:
+            named.append(f"{chain.stopped}; the models found are shown")
+        text = "; ".join(named + ([unwritten] if unwritten else []))
+        if chain.interrupted:
+            raise Summary(f"interrupted; {text}", ExitCode.INTERRUPTED)
+        raise Summary(text, ExitCode.PARTIAL)
 
 
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
@@ -172,6 +186,8 @@ def _tree(chain, unit: int, models) -> dict:
             entry["warnings"] = list(layout.warnings)
         out["models"].append(entry)
     out["warnings"] = list(chain.warnings)
+    if chain.stopped:
+        out["stopped"] = chain.stopped
     return out
 
 
