@@ -216,7 +216,8 @@ WRITE_ROLES_OPTION = click.option(
     "--write-roles",
     metavar="ROLE,...",
     help="tls://: the roles (from the clients' certificates, extension 1.3.6.1.4.1.50316.802.1) "
-    "that may write; a write from any other gets exception 01. Default: a data file's "
+    "that may write; any other may only read (FC 01-04, 07, 0B, 0C, 11, 14, 18, 43/14, and FC 08's "
+    "echo and counters): anything else it sends gets exception 01. Default: a data file's "
     "write_roles, else every client may write.",
 )
 # serve's: its own certificate, and the CA its clients' certificates must be signed by.
