@@ -17,7 +17,7 @@ import click
 from mbtool.cli.completion import complete_port
 from mbtool.cli.frames import one_line, shown_frame
 from mbtool.cli.json_text import to_json
-from mbtool.cli.listen import tls_server_settings
+from mbtool.cli.listen import check_udp_rate, datagrams_dropped, tls_server_settings
 from mbtool.cli.options import (
     LINK_OPTIONS,
     TLS_OPTIONS,
@@ -165,6 +165,7 @@ def bridge(
     max_clients,
     idle_timeout,
     first_request_timeout,
+    udp_rate,
     hex_trace,
     output_format,
     quiet,
@@ -224,6 +225,7 @@ def bridge(
             raise RequestError(f"{given[0]} is for tls:// (Modbus/TCP Security), and neither side is tls://")
     listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
+    check_udp_rate(where, udp_rate)
     connection = Connection(
         port=target,
         unit=1,
@@ -266,6 +268,7 @@ def bridge(
         first_request_timeout=first_request_timeout,
         tls_context=context,
         write_roles=roles,
+        udp_rate=udp_rate,
     )
     show.on_failure = server.stop
     try:
@@ -284,7 +287,8 @@ def bridge(
     if show.failure is not None:
         raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
     connections = server.stats.connections if where.scheme in ("tcp", "tls") else None
-    click.echo(f"stopped: {show.summary(connections, listening_framer == 'tcp')}", err=True)
+    summary = show.summary(connections, listening_framer == "tcp") + datagrams_dropped(server.stats)
+    click.echo(f"stopped: {summary}", err=True)
     for unit, stats in sorted(forwarder.stats.items()):  # what became of each unit's transactions
         click.echo(f"unit {unit}: {stats}", err=True)
 
