@@ -59,8 +59,8 @@ def check_udp_rate(where: Target, udp_rate: int | None) -> None:
         raise RequestError(f"--udp-rate is for a udp:// or rtu+udp:// server; {where} is not one")
 
 
-def datagrams_dropped(stats: Stats) -> str:
-    """What a UDP server dropped, for the summary on exit: '' when it dropped nothing."""
+def datagrams_dropped(stats: Stats) -> list[str]:
+    """What a UDP server dropped, for the summary on exit: nothing when it dropped nothing."""
     parts = []
     if stats.trailing:
         parts.append(
@@ -69,4 +69,4 @@ def datagrams_dropped(stats: Stats) -> str:
         )
     if stats.limited:
         parts.append(f"{counted(stats.limited, 'datagram')} over --udp-rate dropped")
-    return "".join(f", {part}" for part in parts)
+    return parts

@@ -287,7 +287,9 @@ def bridge(
     if show.failure is not None:
         raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
     connections = server.stats.connections if where.scheme in ("tcp", "tls") else None
-    summary = show.summary(connections, listening_framer == "tcp") + datagrams_dropped(server.stats)
+    summary = "; ".join(
+        [show.summary(connections, listening_framer == "tcp"), *datagrams_dropped(server.stats)]
+    )
     click.echo(f"stopped: {summary}", err=True)
     for unit, stats in sorted(forwarder.stats.items()):  # what became of each unit's transactions
         click.echo(f"unit {unit}: {stats}", err=True)

@@ -310,7 +310,7 @@ def serve(
             f"stopped: {counted(stats.requests, 'request')}, {counted(stats.replies, 'reply', 'replies')}, "
             f"{counted(stats.connections, peer)}"
             + turned_away
-            + datagrams_dropped(stats)
+            + "".join(f", {part}" for part in datagrams_dropped(stats))
         )
 
 
