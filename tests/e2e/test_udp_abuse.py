@@ -88,7 +88,7 @@ def test_a_datagram_packed_with_reads_gets_one_reply_no_bigger_than_itself(kind,
         assert sum(map(len, replies)) <= len(packed)  # no amplification
         summary = stop()
     assert (
-        f"1 datagrams held more than one ADU: {len(packed) - len(adu(scheme, 1, BIGGEST_READ))} bytes dropped"
+        f"1 datagram held more than one ADU: {len(packed) - len(adu(scheme, 1, BIGGEST_READ))} bytes dropped"
         in summary
     )
 
