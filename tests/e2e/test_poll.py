@@ -27,8 +27,10 @@ from helpers import (
     REPO_ROOT,
     PtyPair,
     bridge,
+    expositions,
     free_port,
     mbtool_env,
+    promtool_check,
     run_cli,
     serve,
     start_device,
@@ -309,6 +311,41 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
         for sample in family.samples
     }
     assert samples[("modbus_voltage", (("device", "meter1"), ("ref", "30001"), ("site", "north")))] == 230.1
+
+
+def _one_exposition(text: str) -> dict:
+    """An exposition checked by promtool and prometheus_client's parser: each family once
+    (a second HELP of one name is no exposition); its samples by (name, labels)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    promtool_check(text)
+    families = list(text_string_to_metric_families(text))
+    names = [family.name for family in families]
+    assert len(names) == len(set(names)), names
+    return {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in families
+        for sample in family.samples
+    }
+
+
+def test_prom_once_is_one_exposition_and_rounds_a_stream_of_whole_ones(small_plant):
+    """Cron writes `poll --once -o prom` into node_exporter's textfile folder: one exposition,
+    each family once with its samples together, as promtool checks it; --rounds 2 writes
+    whole expositions, one after another."""
+    res = run_cli("poll", small_plant, "--once", "-o", "prom")
+    assert res.returncode == 8, res
+    samples = _one_exposition(res.stdout)
+    ups = {dict(labels)["device"]: value for (name, labels), value in samples.items() if name == "modbus_up"}
+    assert ups == {"meter1": 1, "meter2": 1, "plc": 1, "dead": 0}
+    assert len(expositions(res.stdout)) == 1
+
+    res = run_cli("poll", small_plant, "--rounds", "2", "-o", "prom")
+    assert res.returncode == 8, res
+    stream = expositions(res.stdout)
+    assert len(stream) >= 2 and "".join(stream) == res.stdout
+    for text in stream:
+        assert ("modbus_voltage", (("device", "meter2"), ("ref", "30001"))) in _one_exposition(text)
 
 
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):

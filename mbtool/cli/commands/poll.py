@@ -129,6 +129,7 @@ class PlantOutput:
         self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
         self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
+        self.unwritten = False  # a device has reported since the last exposition
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
@@ -184,24 +185,31 @@ class PlantOutput:
             line = influx_line(poll)
             if line:
                 sys.stdout.write(line)
-        elif self.fmt == "prom":
-            sys.stdout.write(prom_text([self.states[device.name]]))
-        if self.textfile:
-            # A round: every device has reported since the last write, but those offline,
-            # tried once a back-off, which would hold every other device's values back.
+        if self.fmt == "prom" or self.textfile:
+            # The Prometheus text is the whole plant's, one exposition a round: every device
+            # has reported since the last, but those offline, tried once a back-off, which
+            # would hold every other device's values back.
             self.pending.discard(device.name)
+            self.unwritten = True
             if all(self.states[name].state == OFFLINE for name in self.pending):
-                self._write_textfile()
-                self.pending = set(self.states)
+                self._expose()
 
-    def _write_textfile(self) -> None:
-        write_textfile(prom_text(list(self.states.values())), self.textfile, sweep=not self.swept)
-        self.swept = True
+    def _expose(self) -> None:
+        """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
+        the textfile, rewritten whole."""
+        text = prom_text(list(self.states.values()))
+        if self.fmt == "prom":
+            sys.stdout.write(text)
+        if self.textfile:
+            write_textfile(text, self.textfile, sweep=not self.swept)
+            self.swept = True
+        self.pending = set(self.states)
+        self.unwritten = False
 
     def close(self) -> None:
         with self.lock:
-            if self.textfile and self.states:
-                self._write_textfile()  # the last state of every device, whatever the round
+            if self.unwritten:
+                self._expose()  # the last state of every device, whatever the round
             sys.stdout.flush()
 
 
