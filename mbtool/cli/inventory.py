@@ -209,6 +209,7 @@ def _device(
         unit,
         _reader(table, where, Path(path).parent, loaded),
         _tags(table.get("tags", {}), where),
+        raw="read" in table,
         **settings,
     )
 

@@ -30,6 +30,8 @@ from mbtool.cli.settings import Settings
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, OutputFailed, exit_code_for
 
+# The help of the family of raw registers and bits, modbus_value{table,address}.
+VALUE_HELP = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
 # The failures that mean the device could not be read: no reply, an exception (to every
 # point of a map), a reply that is not one, a link that cannot be opened.
 DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
@@ -180,7 +182,7 @@ class Metrics:
                 help_text = about or "a register map's point, read by mbtool"
             else:
                 name = _metric_name(f"{self.measurement}_value")
-                help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
+                help_text = VALUE_HELP
             metrics.setdefault(name, (help_text, []))[1].append(
                 f"{name}{{{_label_pairs(base | labels)}}} {shown}"
             )

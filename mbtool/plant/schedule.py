@@ -45,6 +45,7 @@ class DeviceSpec:
     interval: float = 10.0
     offline_after: int = 3
     max_backoff: float = 300.0
+    raw: bool = False  # it reads references (raw registers and bits), not a map's points
 
 
 @record

@@ -348,6 +348,29 @@ def test_prom_once_is_one_exposition_and_rounds_a_stream_of_whole_ones(small_pla
         assert ("modbus_voltage", (("device", "meter2"), ("ref", "30001"))) in _one_exposition(text)
 
 
+def test_raw_registers_are_one_family_as_read_writes_them_and_points_keep_their_names(small_plant, tmp_path):
+    """read -o prom writes registers as modbus_value{table,address}: poll's -o prom and
+    --textfile too, labelled by device, not a metric a register (modbus_40001)."""
+    textfile = tmp_path / "plant.prom"
+    res = run_cli("poll", small_plant, "--once", "-o", "prom", "--textfile", str(textfile))
+    for text in (res.stdout, textfile.read_text()):
+        samples = _one_exposition(text)
+        plc = {
+            (labels["table"], labels["address"], labels["ref"]): value
+            for (name, pairs), value in samples.items()
+            if name == "modbus_value" and (labels := dict(pairs))["device"] == "plc"
+        }
+        assert plc == {
+            ("holding", "0", "40001"): 0,
+            ("holding", "1", "40002"): 1,
+            ("coils", "0", "00001"): 1,
+            ("coils", "1", "00002"): 0,
+        }
+        names = {name for name, _ in samples}
+        assert "modbus_voltage" in names and "modbus_tariff" in names  # a map's points by name
+        assert not [name for name in names if name[len("modbus_") :][:1].isdigit()], names
+
+
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
     from prometheus_client.parser import text_string_to_metric_families
 
