@@ -86,7 +86,8 @@ class Metrics:
                 )
 
     def check_point_names(self, points) -> None:
-        """Refuse, before anything is sent, a map point whose metric would be a status metric."""
+        """Refuse, before anything is sent, a map point whose metric would be a status metric;
+        warn of one named as a counter's."""
         for point in points:
             metric = _metric_name(f"{self.measurement}_{point.name}")
             if metric in self.status_names():
@@ -94,6 +95,7 @@ class Metrics:
                     f"point {point.name}: its metric, {metric}, is the "
                     "one that says whether the device answered; rename the point or give --measurement"
                 )
+        warn_counter_names(points, self.measurement)
 
     def emit(self, result, out, when: float | None = None) -> None:
         """One read: to ``out``, or with --textfile to that file."""
@@ -275,6 +277,35 @@ def _field_value(value) -> str | None:
 def _metric_name(name: str) -> str:
     name = re.sub(r"[^a-zA-Z0-9_:]", "_", name)
     return name if re.match(r"[a-zA-Z_:]", name) else "_" + name
+
+
+# The ends of a name Prometheus keeps for a counter (_total) and for the series of a histogram
+# or a summary: promtool flags a gauge named so, and a reader would take rate() of it.
+COUNTER_ENDS = {
+    "_total": "counters",
+    "_count": "histograms and summaries",
+    "_sum": "histograms and summaries",
+    "_bucket": "histograms",
+}
+
+
+def warn_counter_names(points, prefix: str = "modbus", where: str = "", warned: set | None = None) -> None:
+    """One warning on stderr for each map point whose metric ends as a counter's does
+    (_total, _count, _sum, _bucket): a point is a gauge.  ``where``: what names the map
+    ("PATH: "); ``warned``: the metrics warned of already (a map several devices share)."""
+    warned = set() if warned is None else warned
+    for point in points:
+        metric = _metric_name(f"{prefix}_{point.name}")
+        end = next((end for end in COUNTER_ENDS if metric.endswith(end)), None)
+        if end is None or metric in warned:
+            continue
+        warned.add(metric)
+        print(
+            f"mbtool: warning: {where}point {point.name}: its metric, {metric}, is a gauge, but Prometheus "
+            f"keeps names ending in {end} for {COUNTER_ENDS[end]}; rename the point",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _label_value(text: str) -> str:

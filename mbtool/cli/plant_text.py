@@ -18,6 +18,7 @@ from mbtool.cli.metrics import (
     _label_value,
     _metric_name,
     _sample_value,
+    warn_counter_names,
 )
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
@@ -98,13 +99,18 @@ def point_name_clash(points, own: set[str], whose: str) -> str:
 
 def refuse_point_names(plant, own: set[str], whose: str) -> None:
     """RequestError (exit 2, before anything is opened) for an inventory whose map points
-    would be named as ``own`` metrics, or as its raw registers' family (modbus_value)."""
+    would be named as ``own`` metrics, or as its raw registers' family (modbus_value); a
+    warning for a point named as a counter (metrics.warn_counter_names)."""
     if any(spec.raw for spec in plant.devices):
         own = own | {VALUE}
     for spec in plant.devices:
         clash = point_name_clash(spec.reader.points, own, whose)
         if clash:
             raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+    warned: set[str] = set()  # a map's points once, however many devices read them
+    for spec in plant.devices:
+        if not spec.raw:
+            warn_counter_names(spec.reader.points, where=f"{plant.maps[spec.name]}: ", warned=warned)
 
 
 def event_line(event) -> str:

@@ -371,6 +371,25 @@ def test_raw_registers_are_one_family_as_read_writes_them_and_points_keep_their_
         assert not [name for name in names if name[len("modbus_") :][:1].isdigit()], names
 
 
+def test_a_map_point_named_as_a_counter_is_warned_of_once_for_the_plant(tmp_path):
+    """Two devices share a map whose point would be modbus_energy_total, a gauge: one warning
+    naming the map, when the inventory is loaded for Prometheus; none for plain output."""
+    write(tmp_path / "meter.toml", '[points.energy_total]\nref = 40001\n')
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n[devices.m1]\nlink = "a"\nunit = 1\nmap = "meter.toml"\n'
+            '[devices.m2]\nlink = "a"\nunit = 2\nmap = "meter.toml"\n',
+        )
+        prom = run_cli("poll", plant, "--once", "-o", "prom")
+        plain = run_cli("poll", plant, "--once", "-o", "plain")
+    assert prom.returncode == 0 and plain.returncode == 0, (prom, plain)
+    warnings = [line for line in prom.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "meter.toml: point energy_total" in warnings[0], prom.stderr
+    assert "modbus_energy_total, is a gauge" in warnings[0]
+    assert "warning" not in plain.stderr
+
+
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
     from prometheus_client.parser import text_string_to_metric_families
 
