@@ -286,8 +286,9 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
     records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "event" not in r}
     assert records["meter1"]["points"] == [
         {"name": "voltage", "value": 230.1, "unit": "V", "ref": "30001"},
-        {"name": "tariff", "value": "day", "unit": "", "ref": "40001"},
+        {"name": "tariff", "value": "day", "ref": "40001"},  # no unit: no "unit" key beside the unit id
     ]
+    assert not [p for p in records["plc"]["points"] if "unit" in p] and records["plc"]["unit"] == 1
     assert records["meter1"]["tags"] == {"site": "north"} and records["meter2"]["unit"] == 2
     assert "no response from unit 9" in records["dead"]["error"] and records["dead"]["exit_code"] == 3
     assert [p["value"] for p in records["plc"]["points"]] == [0, 1, True, False]

@@ -236,7 +236,10 @@ def _json_record(poll: Poll, when: str) -> dict:
     for reading in poll.readings:
         point = reading.point
         if reading.error is None:
-            entry = {"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref}
+            # A point's "unit" is its engineering unit, left out when it has none: the
+            # record's own "unit" is the device's unit id.
+            engineering = {"unit": point.unit} if point.unit else {}
+            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
             if reading.value is None:
                 entry["invalid"] = True  # the device sent a value its map says means no data
             points.append(entry)
