@@ -391,6 +391,29 @@ def test_a_map_point_named_as_a_counter_is_warned_of_once_for_the_plant(tmp_path
     assert "warning" not in plain.stderr
 
 
+def test_a_refused_point_is_named_once_on_stderr_and_in_json(tmp_path, holed_device):
+    """pymodbus's holed device refuses 40011 (exception 02): its line names the device and the
+    point once (a point named by its reference, the reference once), and JSON's failed[].error
+    is the device's answer alone, beside its own name and ref."""
+    write(tmp_path / "holed.toml", "[points.flow]\nref = 40001\n[points.missing]\nref = 40011\n")
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{holed_device.target}"\n'
+        '[devices.m]\nlink = "a"\nmap = "holed.toml"\n[devices.r]\nlink = "a"\nread = ["40010 2"]\n',
+    )
+    res = run_cli("poll", plant, "--once", "-o", "json")
+    assert res.returncode == 8, res  # each device read in part
+    refused = {line.split()[2]: line.split(" ", 3)[3] for line in res.stderr.splitlines() if "exception" in line}
+    assert refused["m"].startswith("missing (40011): exception 02"), res.stderr
+    assert refused["r"].startswith("40011: exception 02"), res.stderr
+    assert all(text.count("40011") == 1 for text in refused.values()), refused
+    records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "device" in r}
+    (failed,) = records["m"]["failed"]
+    assert failed["name"] == "missing" and failed["ref"] == "40011"
+    assert failed["error"].startswith("exception 02") and "40011" not in failed["error"], failed
+    assert records["r"]["failed"][0]["error"] == failed["error"]
+
+
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
     from prometheus_client.parser import text_string_to_metric_families
 

@@ -156,12 +156,8 @@ class PlantOutput:
                 print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
         else:
             for reading in poll.readings:
-                if reading.error is not None:
-                    point = reading.point
-                    print(
-                        f"mbtool: {when} {device.name} {point.name} ({point.ref}): {reading.error}",
-                        file=sys.stderr,
-                    )
+                if reading.error is not None:  # its message names the point (plan.PointException)
+                    print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
         if self.fmt == "plain":
             for reading in poll.readings or ():
                 if reading.error is None:
@@ -244,7 +240,7 @@ def _json_record(poll: Poll, when: str) -> dict:
                 entry["invalid"] = True  # the device sent a value its map says means no data
             points.append(entry)
         else:
-            failed.append({"name": point.name, "ref": point.ref, "error": str(reading.error)})
+            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
     record["state"] = poll.state
     record["points"] = points
     if failed:
