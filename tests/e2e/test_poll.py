@@ -458,6 +458,37 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
 
 
+def test_a_textfile_follows_the_fastest_device_not_the_slowest(tmp_path):
+    """A device polled every 0.2 s beside one polled hourly: the textfile is rewritten every
+    round of the fast one (not once an hour, serving its values as current meanwhile), each
+    device with its own last success."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    textfile = tmp_path / "plant.prom"
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n'
+            '[devices.fast]\nlink = "a"\nunit = 1\ninterval = 0.2\nread = ["40001 1"]\n'
+            '[devices.slow]\nlink = "a"\nunit = 2\ninterval = 3600\nread = ["40001 1"]\n',
+        )
+        proc = start_mbtool("poll", plant, "--textfile", textfile, "--duration", "2.5", stdout=subprocess.DEVNULL)
+        seen: dict[str, set[float]] = {"fast": set(), "slow": set()}
+        while proc.poll() is None:
+            try:
+                text = textfile.read_text()
+            except FileNotFoundError:
+                continue
+            for family in text_string_to_metric_families(text):
+                for sample in family.samples:
+                    if sample.name == "modbus_last_success_timestamp_seconds":
+                        seen[sample.labels["device"]].add(sample.value)
+            time.sleep(0.02)
+        assert proc.wait(timeout=10) == 0, proc.stderr.read()
+    assert len(seen["fast"]) >= 5, seen  # about 12 rounds in 2.5 s
+    assert len(seen["slow"]) == 1 and max(seen["slow"]) < max(seen["fast"]), seen
+
+
 def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
     """A meter sends 0xFFFF before its sensor is ready: no value (JSON null, "invalid": true),
     never scaled into 6553.5, left out of influx and Prometheus; the other points as ever."""

@@ -52,7 +52,8 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     metavar="PATH",
     type=FilePath(dir_okay=False),
     help="Rewrite the whole plant's metrics (Prometheus text) to PATH atomically after each "
-    "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
+    "round of the fastest devices, for node_exporter's textfile collector; a dead device shows "
+    "as modbus_up 0.",
 )
 @click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
 @click.option("--rounds", type=click.IntRange(1), help="Poll every device this many times, then exit.")
@@ -130,6 +131,7 @@ class PlantOutput:
         self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
         self.unwritten = False  # a device has reported since the last exposition
+        self.exposed = False  # the first round is written
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
@@ -182,13 +184,22 @@ class PlantOutput:
             if line:
                 sys.stdout.write(line)
         if self.fmt == "prom" or self.textfile:
-            # The Prometheus text is the whole plant's, one exposition a round: every device
-            # has reported since the last, but those offline, tried once a back-off, which
-            # would hold every other device's values back.
+            # The Prometheus text is the whole plant's, one exposition a round.
             self.pending.discard(device.name)
             self.unwritten = True
-            if all(self.states[name].state == OFFLINE for name in self.pending):
+            if self._round_done():
                 self._expose()
+
+    def _round_done(self) -> bool:
+        """The first round: every device has reported since the start, but those offline, tried
+        once a back-off, which would hold every other device's values back.  After it, a round
+        of the fastest devices not offline: one polled hourly must not hold back the values of
+        one polled every second, and each device's samples carry its own last success."""
+        live = [state for state in self.states.values() if state.state != OFFLINE]
+        if self.exposed and live:
+            shortest = min(state.spec.interval for state in live)
+            live = [state for state in live if state.spec.interval == shortest]
+        return not any(state.spec.name in self.pending for state in live)
 
     def _expose(self) -> None:
         """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
@@ -201,6 +212,7 @@ class PlantOutput:
             self.swept = True
         self.pending = set(self.states)
         self.unwritten = False
+        self.exposed = True
 
     def close(self) -> None:
         with self.lock:
