@@ -582,6 +582,30 @@ def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(s
     assert "interrupted; 3 of 4 devices answered" in err.splitlines()[-1]
 
 
+def test_the_statistics_table_has_a_column_for_every_outcome(tmp_path, raw_responder):
+    """A device that hangs up on each request: its transactions are link_lost, in a column of
+    their own, not transactions whose every outcome reads 0."""
+    from helpers import CLOSE
+
+    peer = raw_responder(lambda request: CLOSE)
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+    )
+    res = run_cli("poll", plant, "--rounds", "2")
+    assert res.returncode == 3, res  # no response: the peer closed the connection
+    table = [line for line in res.stderr.splitlines() if not line.startswith("mbtool:")]
+    head = table[0]
+    for column in ("answered", "timeout", "corrupt", "not ours", "link lost", "exc"):
+        assert column in head, head
+
+    def cell(row: str, column: str) -> str:
+        return row[head.index(column) :].split()[0]
+
+    (device,) = [row for row in table if row.startswith("device")]
+    assert cell(device, "trans") == "2" and cell(device, "link lost") == "2", table
+
+
 def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent_server):
     plant = write(
         tmp_path / "plant.toml",

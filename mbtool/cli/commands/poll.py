@@ -26,6 +26,7 @@ from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
 from mbtool.plant.stats import PollStats
 
@@ -393,30 +394,19 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         return
     rows = [("device", name, s.state, s.stats) for name, s in runner.devices.items()]
     rows += [("link", name, state, total) for name, (total, state) in links.items()]
-    head = [
-        "",
-        "name",
-        "state",
-        "polls",
-        "trans",
-        "answered",
-        "timeout",
-        "corrupt",
-        "not ours",
-        "exc",
-        "recovered",
-        "rtt min/avg/p95/max ms",
-    ]
-    lines = [head]
+    # A column for every outcome a transaction may have (link.stats), the exceptions last, by code.
+    outcomes = [outcome for outcome in OUTCOMES if outcome != "exception"]
+    lines = [
+        ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
+         "rtt min/avg/p95/max ms"]
+    ]  # fmt: skip
     for kind, name, state, stats in rows:
-        rtt = stats.rtt.cell()
-        exceptions = stats.exceptions_text()
+        counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
         lines.append(
-            [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
-             str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),
-             exceptions, str(stats.recovered), rtt]
+            [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
+             str(stats.recovered), stats.rtt.cell()]
         )  # fmt: skip
-    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
         print(
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
