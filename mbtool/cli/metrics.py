@@ -53,37 +53,15 @@ class Metrics:
         self.swept = False  # the textfile's stale temporaries have been looked for
 
     def check_names(self) -> None:
-        """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
-
-        Each is written on one line: the line protocol has no escape for a newline, which
-        would end the point and make the rest a point of its own (in a measurement of its
-        own).  Its measurement cannot be empty, and one starting with # makes the line a
-        comment.  A map's point names are held to one line when the map is loaded."""
-        from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
-
-        measurement, device = self.measurement, self.device
-        names = [("--measurement", measurement, "a measurement")]
-        if device:
-            names.append(("profile", device, "a tag or label"))
+        """Refuse, before anything is sent, a measurement or profile name the output cannot
+        carry (name_problem).  A map's point names are held to one line when the map is loaded."""
+        names = [("--measurement", self.measurement, "a measurement")]
+        if self.device:
+            names.append(("profile", self.device, "a tag or label"))
         for option, name, what in names:
-            if not name:
-                raise RequestError(f"{option} {name!r}: {what} has a name")
-            if not one_line(name):
-                raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
-        if self.fmt != "influx":
-            return
-        if measurement.startswith("#"):
-            raise RequestError(
-                f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB"
-            )
-        for option, name, what in names:
-            if name.endswith("\\"):
-                # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
-                # a backslash in a measurement or tag value as escaped, the separator too.
-                raise RequestError(
-                    f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
-                    "it to InfluxDB 1.x"
-                )
+            problem = name_problem(name, what, influx=self.fmt == "influx")
+            if problem:
+                raise RequestError(f"{option} {name!r}: {problem}")
 
     def check_point_names(self, points) -> None:
         """Refuse, before anything is sent, a map point whose metric would be a status metric;
@@ -217,6 +195,27 @@ class Metrics:
                 [f"{last_name}{{{pairs}}} {self.last_success!r}"],
             )
         return metrics
+
+
+def name_problem(name: str, what: str, influx: bool) -> str:
+    """Why ``name`` (``what``: "a measurement", "a tag or label") cannot be written; "" when it can.
+
+    Each is written on one line: the line protocol has no escape for a newline, which would
+    end the point and make the rest a point of its own (in a measurement of its own).  It
+    cannot be empty; to InfluxDB a measurement starting with # makes the line a comment."""
+    from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+
+    if not name:
+        return f"{what} has a name"
+    if not one_line(name):
+        return f"{what} is written on one line: no control characters"
+    if influx and what == "a measurement" and name.startswith("#"):
+        return "a line starting with # is a comment to InfluxDB"
+    if influx and name.endswith("\\"):
+        # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after a
+        # backslash in a measurement or tag value as escaped, the separator too.
+        return f"a backslash at the end of {what} escapes the separator after it to InfluxDB 1.x"
+    return ""
 
 
 def _values(result) -> list[tuple[dict, object, str]]:

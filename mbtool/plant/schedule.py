@@ -46,6 +46,7 @@ class DeviceSpec:
     offline_after: int = 3
     max_backoff: float = 300.0
     raw: bool = False  # it reads references (raw registers and bits), not a map's points
+    measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
 
 
 @record

@@ -414,6 +414,21 @@ def test_a_refused_point_is_named_once_on_stderr_and_in_json(tmp_path, holed_dev
     assert records["r"]["failed"][0]["error"] == failed["error"]
 
 
+def test_influx_measurement_from_the_command_line_and_per_device(small_plant):
+    """Telegraf users set the measurement per input: --measurement for the plant, and a
+    device's own `measurement =` beats it."""
+    from line_protocol_parser import parse_line
+
+    text = small_plant.read_text().replace('unit = 2\n', 'unit = 2\nmeasurement = "meters"\n')
+    small_plant.write_text(text)
+    res = run_cli("poll", small_plant, "--once", "-o", "influx", "--measurement", "plant floor")
+    assert res.returncode == 8, res
+    measurements = {p["tags"]["device"]: p["measurement"] for p in map(parse_line, res.stdout.splitlines())}
+    assert measurements == {"meter1": "plant floor", "meter2": "meters", "plc": "plant floor"}
+    res = run_cli("poll", small_plant, "--once", "-o", "influx")
+    assert {parse_line(line)["measurement"] for line in res.stdout.splitlines()} == {"modbus", "meters"}
+
+
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
     from prometheus_client.parser import text_string_to_metric_families
 

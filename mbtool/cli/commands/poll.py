@@ -18,13 +18,14 @@ import click
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, write_textfile
+from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, name_problem, write_textfile
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
+from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
@@ -67,9 +68,26 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     show_default=True,
     help="Statistics on exit, on stderr: a table per device and per link, or one JSON object.",
 )
+@click.option(
+    "--measurement",
+    metavar="NAME",
+    help="-o influx: the measurement of the devices that name none of their own "
+    "(measurement = in the inventory). Default: modbus.",
+)
 @click.option("--no-header", is_flag=True, help="CSV without its header row.")
 @click.option("--hex", "hex_trace", is_flag=True, help="Print every frame sent and received (stderr).")
-def poll(inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace):
+def poll(
+    inventory,
+    output_format,
+    textfile,
+    once,
+    rounds,
+    duration,
+    stats_format,
+    measurement,
+    no_header,
+    hex_trace,
+):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
 
@@ -90,6 +108,12 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    if measurement is not None:
+        problem = name_problem(measurement, "a measurement", influx=True)
+        if fmt != "influx":
+            problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
+        if problem:
+            raise RequestError(f"--measurement {measurement!r}: {problem}")
     if fmt == "prom" or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -98,7 +122,7 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     trace = None
     if hex_trace:
         trace = HexTrace
-    output = PlantOutput(fmt, textfile, no_header, plant)
+    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
     runner = Plant(plant.links, plant.devices, view.report if view else output.report, rounds or 0, trace)
     output.states = runner.devices
@@ -122,8 +146,9 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
 class PlantOutput:
     """What the workers report, written as it comes (one writer at a time: a lock)."""
 
-    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant) -> None:
+    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
         self.fmt = fmt
+        self.measurement = measurement  # -o influx's, for the devices that name none
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.lock = threading.Lock()
@@ -181,7 +206,7 @@ class PlantOutput:
                         [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
                     )
         elif self.fmt == "influx":
-            line = influx_line(poll)
+            line = influx_line(poll, device.measurement or self.measurement)
             if line:
                 sys.stdout.write(line)
         if self.fmt == "prom" or self.textfile:
@@ -264,8 +289,8 @@ def _json_record(poll: Poll, when: str) -> dict:
 # --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
 
 
-def influx_line(poll: Poll) -> str:
-    """One line a device poll: measurement modbus, tags device, unit and the device's tags, a
+def influx_line(poll: Poll, measurement: str) -> str:
+    """One line a device poll: its measurement, tags device, unit and the device's tags, a
     field a point read (its type fixed by its map entry; NaN and infinities left out)."""
     device = poll.device
     fields = []
@@ -277,7 +302,7 @@ def influx_line(poll: Poll) -> str:
         if shown is not None:
             fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
     tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    return influx_text("modbus", tags, fields, int(poll.time * 1_000_000_000))
+    return influx_text(measurement, tags, fields, int(poll.time * 1_000_000_000))
 
 
 # --- on a terminal: a live view ------------------------------------------------------------
