@@ -28,6 +28,7 @@ from helpers import (
     Running,
     assert_one_error_line,
     exporting,
+    promtool_check,
     run_cli,
     serve,
 )
@@ -315,6 +316,7 @@ read = ["40001 1"]
             ),
         )
         one_family_each(text)
+        promtool_check(text)  # the example map's points as gauges Prometheus's lint accepts
         assert value(text, "modbus_voltage_l1", device="meter1", site="north", ref="30001") == 230.1
         assert value(text, "modbus_tariff", device="meter1", site="north", ref="40001") == 1  # "day"
         assert value(text, "modbus_up", device="dead") == 0 and value(text, "modbus_up", device="gone") == 0
