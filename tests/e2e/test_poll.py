@@ -631,4 +631,4 @@ def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent
     assert res.returncode == 3, res  # no response
     stats = json.loads(res.stderr.splitlines()[-2])
     assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
-    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 devices answered: no response")
+    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 device answered: no response")

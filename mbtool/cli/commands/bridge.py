@@ -40,6 +40,7 @@ from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.connection import rs485_delays as rs485_delays_of
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY, Forwarder
 from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
+from mbtool.words import counted
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
@@ -397,16 +398,16 @@ class Show:
         ``tcp``: its clients speak MBAP, and are told 0A (a serial line's slaves are not)."""
         counts = self.counts
         parts = [
-            f"{counts[REPLY]} replies",
-            f"{counts[REFUSED]} exceptions from devices",
+            counted(counts[REPLY], "reply", "replies"),
+            f"{counted(counts[REFUSED], 'exception')} from devices",
             f"{counts[NO_RESPONSE]} unanswered (0B)",
             f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
-            f"{counts[BROADCAST]} broadcasts",
+            counted(counts[BROADCAST], "broadcast"),
             f"{counts[INVALID]} invalid (01, 03)",
         ]
-        text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
+        text = f"{counted(sum(counts.values()), 'transaction')}: " + ", ".join(parts)
         if connections is not None:
-            text += f"; {connections} connections"
+            text += f"; {counted(connections, 'connection')}"
         if self.timed:
             text += (
                 f"; bus time mean {self.bus_total / self.timed * 1000:.1f} ms, "

@@ -61,6 +61,7 @@ from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import MapReader
+from mbtool.words import counted
 
 # 9502: no port of Prometheus's default port allocations is mbtool's (modbus_exporter has
 # 9602, so the two can run on one host); loopback unless the user types another address.
@@ -180,7 +181,9 @@ def _serving_line(server, plant, maps, allowed) -> str:
     where = host_text(host)
     if plant is not None:
         links = {device.link for device in plant.devices}
-        parts = [f"/metrics: {len(plant.devices)} devices of {plant.path} on {len(links)} links"]
+        parts = [
+            f"/metrics: {counted(len(plant.devices), 'device')} of {plant.path} on {counted(len(links), 'link')}"
+        ]
     else:
         parts = ["/metrics: the exporter's process"]
     sources = ([f"maps in {maps}"] if maps else []) + (

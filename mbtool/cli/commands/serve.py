@@ -25,6 +25,7 @@ from mbtool.device.model import demo_model
 from mbtool.device.server import Server, parse_target
 from mbtool.device.serving import IoFaults
 from mbtool.link.transport import SerialSettings, default_framer
+from mbtool.words import counted
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 
@@ -301,10 +302,10 @@ def serve(
             )
             if count
         )
-        peers = "peers" if where.scheme in ("udp", "rtu+udp") else "connections"
+        peer = "peer" if where.scheme in ("udp", "rtu+udp") else "connection"
         click.echo(
-            f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} {peers}"
-            + turned_away
+            f"stopped: {counted(stats.requests, 'request')}, {counted(stats.replies, 'reply', 'replies')}, "
+            f"{counted(stats.connections, peer)}" + turned_away
         )
 
 
