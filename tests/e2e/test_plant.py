@@ -470,7 +470,7 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
         assert lines(res) == [
             "voltage_l1 230.1 V",
             "current_l1 12.5 A",
-            "power_total 8625.0 W",
+            "active_power 8625.0 W",
             "frequency 50.0 Hz",
             "energy_import 15342.7 kWh",
             "tariff day",

@@ -37,6 +37,7 @@ from urllib.parse import parse_qs, urlsplit
 import click
 
 from mbtool.cli.inventory import load_inventory
+from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import (
@@ -293,6 +294,7 @@ class Modules:
         clash = point_name_clash(register_map.points.values(), set(SCRAPE_NAMES), "the exporter")
         if clash:
             raise MapError(f"{path}: {clash}")
+        warn_counter_names(register_map.points.values(), where=f"{path}: ")
         with self.lock:
             self.loaded[path] = (stamp, register_map)
         return register_map

@@ -18,14 +18,16 @@ import click
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, write_textfile
+from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, name_problem, write_textfile
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
+from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
@@ -53,7 +55,8 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     metavar="PATH",
     type=FilePath(dir_okay=False),
     help="Rewrite the whole plant's metrics (Prometheus text) to PATH atomically after each "
-    "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
+    "round of the fastest devices, for node_exporter's textfile collector; a dead device shows "
+    "as modbus_up 0.",
 )
 @click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
 @click.option("--rounds", type=click.IntRange(1), help="Poll every device this many times, then exit.")
@@ -66,9 +69,26 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     show_default=True,
     help="Statistics on exit, on stderr: a table per device and per link, or one JSON object.",
 )
+@click.option(
+    "--measurement",
+    metavar="NAME",
+    help="-o influx: the measurement of the devices that name none of their own "
+    "(measurement = in the inventory). Default: modbus.",
+)
 @click.option("--no-header", is_flag=True, help="CSV without its header row.")
 @click.option("--hex", "hex_trace", is_flag=True, help="Print every frame sent and received (stderr).")
-def poll(inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace):
+def poll(
+    inventory,
+    output_format,
+    textfile,
+    once,
+    rounds,
+    duration,
+    stats_format,
+    measurement,
+    no_header,
+    hex_trace,
+):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
 
@@ -89,6 +109,12 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    if measurement is not None:
+        problem = name_problem(measurement, "a measurement", influx=True)
+        if fmt != "influx":
+            problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
+        if problem:
+            raise RequestError(f"--measurement {measurement!r}: {problem}")
     if fmt == "prom" or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -97,7 +123,7 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     trace = None
     if hex_trace:
         trace = HexTrace
-    output = PlantOutput(fmt, textfile, no_header, plant)
+    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
     runner = Plant(plant.links, plant.devices, view.report if view else output.report, rounds or 0, trace)
     output.states = runner.devices
@@ -121,8 +147,9 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
 class PlantOutput:
     """What the workers report, written as it comes (one writer at a time: a lock)."""
 
-    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant) -> None:
+    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
         self.fmt = fmt
+        self.measurement = measurement  # -o influx's, for the devices that name none
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.lock = threading.Lock()
@@ -130,6 +157,8 @@ class PlantOutput:
         self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
         self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
+        self.unwritten = False  # a device has reported since the last exposition
+        self.exposed = False  # the first round is written
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
@@ -156,12 +185,8 @@ class PlantOutput:
                 print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
         else:
             for reading in poll.readings:
-                if reading.error is not None:
-                    point = reading.point
-                    print(
-                        f"mbtool: {when} {device.name} {point.name} ({point.ref}): {reading.error}",
-                        file=sys.stderr,
-                    )
+                if reading.error is not None:  # its message names the point (plan.PointException)
+                    print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
         if self.fmt == "plain":
             for reading in poll.readings or ():
                 if reading.error is None:
@@ -182,27 +207,44 @@ class PlantOutput:
                         [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
                     )
         elif self.fmt == "influx":
-            line = influx_line(poll)
+            line = influx_line(poll, device.measurement or self.measurement)
             if line:
                 sys.stdout.write(line)
-        elif self.fmt == "prom":
-            sys.stdout.write(prom_text([self.states[device.name]]))
-        if self.textfile:
-            # A round: every device has reported since the last write, but those offline,
-            # tried once a back-off, which would hold every other device's values back.
+        if self.fmt == "prom" or self.textfile:
+            # The Prometheus text is the whole plant's, one exposition a round.
             self.pending.discard(device.name)
-            if all(self.states[name].state == OFFLINE for name in self.pending):
-                self._write_textfile()
-                self.pending = set(self.states)
+            self.unwritten = True
+            if self._round_done():
+                self._expose()
 
-    def _write_textfile(self) -> None:
-        write_textfile(prom_text(list(self.states.values())), self.textfile, sweep=not self.swept)
-        self.swept = True
+    def _round_done(self) -> bool:
+        """The first round: every device has reported since the start, but those offline, tried
+        once a back-off, which would hold every other device's values back.  After it, a round
+        of the fastest devices not offline: one polled hourly must not hold back the values of
+        one polled every second, and each device's samples carry its own last success."""
+        live = [state for state in self.states.values() if state.state != OFFLINE]
+        if self.exposed and live:
+            shortest = min(state.spec.interval for state in live)
+            live = [state for state in live if state.spec.interval == shortest]
+        return not any(state.spec.name in self.pending for state in live)
+
+    def _expose(self) -> None:
+        """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
+        the textfile, rewritten whole."""
+        text = prom_text(list(self.states.values()))
+        if self.fmt == "prom":
+            sys.stdout.write(text)
+        if self.textfile:
+            write_textfile(text, self.textfile, sweep=not self.swept)
+            self.swept = True
+        self.pending = set(self.states)
+        self.unwritten = False
+        self.exposed = True
 
     def close(self) -> None:
         with self.lock:
-            if self.textfile and self.states:
-                self._write_textfile()  # the last state of every device, whatever the round
+            if self.unwritten:
+                self._expose()  # the last state of every device, whatever the round
             sys.stdout.flush()
 
 
@@ -229,12 +271,15 @@ def _json_record(poll: Poll, when: str) -> dict:
     for reading in poll.readings:
         point = reading.point
         if reading.error is None:
-            entry = {"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref}
+            # A point's "unit" is its engineering unit, left out when it has none: the
+            # record's own "unit" is the device's unit id.
+            engineering = {"unit": point.unit} if point.unit else {}
+            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
             if reading.value is None:
                 entry["invalid"] = True  # the device sent a value its map says means no data
             points.append(entry)
         else:
-            failed.append({"name": point.name, "ref": point.ref, "error": str(reading.error)})
+            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
     record["state"] = poll.state
     record["points"] = points
     if failed:
@@ -245,8 +290,8 @@ def _json_record(poll: Poll, when: str) -> dict:
 # --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
 
 
-def influx_line(poll: Poll) -> str:
-    """One line a device poll: measurement modbus, tags device, unit and the device's tags, a
+def influx_line(poll: Poll, measurement: str) -> str:
+    """One line a device poll: its measurement, tags device, unit and the device's tags, a
     field a point read (its type fixed by its map entry; NaN and infinities left out)."""
     device = poll.device
     fields = []
@@ -258,7 +303,7 @@ def influx_line(poll: Poll) -> str:
         if shown is not None:
             fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
     tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    return influx_text("modbus", tags, fields, int(poll.time * 1_000_000_000))
+    return influx_text(measurement, tags, fields, int(poll.time * 1_000_000_000))
 
 
 # --- on a terminal: a live view ------------------------------------------------------------
@@ -412,30 +457,19 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         return
     rows = [("device", name, s.state, s.stats) for name, s in runner.devices.items()]
     rows += [("link", name, state, total) for name, (total, state) in links.items()]
-    head = [
-        "",
-        "name",
-        "state",
-        "polls",
-        "trans",
-        "answered",
-        "timeout",
-        "corrupt",
-        "not ours",
-        "exc",
-        "recovered",
-        "rtt min/avg/p95/max ms",
-    ]
-    lines = [head]
+    # A column for every outcome a transaction may have (link.stats), the exceptions last, by code.
+    outcomes = [outcome for outcome in OUTCOMES if outcome != "exception"]
+    lines = [
+        ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
+         "rtt min/avg/p95/max ms"]
+    ]  # fmt: skip
     for kind, name, state, stats in rows:
-        rtt = stats.rtt.cell()
-        exceptions = stats.exceptions_text()
+        counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
         lines.append(
-            [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
-             str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),
-             exceptions, str(stats.recovered), rtt]
+            [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
+             str(stats.recovered), stats.rtt.cell()]
         )  # fmt: skip
-    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
         print(
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
