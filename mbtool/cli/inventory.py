@@ -21,6 +21,7 @@
     unit = 1
     map = "maps/sdm630.toml"     # relative to the inventory file; points = [...] picks some
     tags = { site = "north" }
+    measurement = "meters"       # -o influx's measurement for it (else --measurement, modbus)
 
     [devices.plc]
     link = "bus1"
@@ -40,6 +41,7 @@ from pathlib import Path
 import click
 
 from mbtool.cli import profiles
+from mbtool.cli.metrics import name_problem
 from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
@@ -59,7 +61,7 @@ POLL_KEYS = {
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again",
 }
 # A device may set its own interval, offline_after and max_backoff.
-DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", *POLL_KEYS.keys() - {"output"})
+DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", "measurement", *POLL_KEYS.keys() - {"output"})
 # A link takes what a profile does, but the unit (each device has its own) and a map.
 LINK_KEYS = {"target": profiles.KEYS["port"]} | {
     key: about for key, about in profiles.KEYS.items() if key not in ("port", "unit", "map")
@@ -203,12 +205,22 @@ def _device(
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults[key]
         for key in DEFAULTS
     }
+    measurement = table.get("measurement")  # -o influx's, for this device
+    if measurement is not None and not isinstance(measurement, str):
+        raise RequestError(
+            f'{where} measurement: expected the name of an InfluxDB measurement, such as "meters"'
+        )
+    problem = "" if measurement is None else name_problem(measurement, "a measurement", influx=True)
+    if problem:
+        raise RequestError(f"{where} measurement: {problem}")
     return DeviceSpec(
         name,
         link,
         unit,
         _reader(table, where, Path(path).parent, loaded),
         _tags(table.get("tags", {}), where),
+        raw="read" in table,
+        measurement=measurement,
         **settings,
     )
 
