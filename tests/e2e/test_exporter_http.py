@@ -234,3 +234,34 @@ def test_a_request_head_must_come_whole_within_its_deadline(monkeypatch):
         assert closed and took < 2.0, f"a trickled head was held {took:.2f} s past a 0.5 s deadline"
         raw, _ = exchange(where, b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
         assert raw.startswith(b"HTTP/1.1 200 "), raw
+
+
+def test_connections_past_the_cap_each_drop_the_longest_waiting_and_the_loop_goes_on(monkeypatch):
+    """More connections than the cap, each sending at once: every new one drops the one that
+    has waited longest (a drop in the same round as that one's bytes must not stop the loop),
+    and a whole request still gets its answer."""
+    from mbtool.cli import http_server
+
+    monkeypatch.setattr(http_server, "max_connections", lambda: 4)
+    with serving_here(monkeypatch) as where:
+        held = []
+        try:
+            for _ in range(300):
+                sock = socket.create_connection(where, timeout=5)
+                sock.sendall(b"GET / HTTP/1.1\r\n")
+                held.append(sock)
+            raw, _ = exchange(where, b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert raw.startswith(b"HTTP/1.1 200 "), raw
+            open_ones = 0
+            for sock in held:
+                sock.settimeout(0.5)
+                try:
+                    open_ones += sock.recv(1) != b""
+                except TimeoutError:
+                    open_ones += 1
+                except ConnectionResetError:
+                    pass
+            assert open_ones <= 4
+        finally:
+            for sock in held:
+                sock.close()
