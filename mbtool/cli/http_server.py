@@ -120,10 +120,20 @@ class HttpServer:
         self.connections: dict[socket.socket, Connection] = {}
         self.returned: collections.deque[Connection] = collections.deque()  # from the answering threads
         self.stopping = False
+        self.running = threading.Event()  # serve_forever is under way
+        self.stopped = threading.Event()  # and has ended
 
     # --- the loop: every connection's reads, in one thread ------------------------------------
 
     def serve_forever(self, poll_interval: float = 0.5) -> None:
+        self.running.set()
+        try:
+            self._loop(poll_interval)
+        finally:
+            self.running.clear()
+            self.stopped.set()
+
+    def _loop(self, poll_interval: float) -> None:
         while not self.stopping:
             now = time.monotonic()
             if not self.listening and now >= self.accept_at:
@@ -148,8 +158,12 @@ class HttpServer:
                 self._close(connection)
 
     def shutdown(self) -> None:
+        """Stop serve_forever and wait for it (as socketserver's does): server_close must not
+        close what its loop still uses."""
         self.stopping = True
         self._wake()
+        if self.running.is_set():
+            self.stopped.wait(5)
 
     def server_close(self) -> None:
         for connection in list(self.connections.values()):
