@@ -4,6 +4,7 @@ one is exit 2 with one line naming the file, the table and the key."""
 from __future__ import annotations
 
 import pytest
+from mbtool.cli.inventory import load_inventory
 from helpers import (
     assert_one_error_line,
     run_cli,
@@ -59,3 +60,44 @@ def test_a_point_named_as_a_devices_own_metric_is_refused_for_prometheus_text(
     line = assert_one_error_line(run_cli("poll", path, "--once", *args), 2)
     assert str(path) in line and "point up: its metric, modbus_up" in line and "rename the point" in line
     assert silent_server.received_bytes() == b"" and not (tmp_path / "plant.prom").exists()
+
+
+@pytest.mark.parametrize(
+    "first, second",
+    [
+        ("tcp://127.0.0.1:{port}", "tcp://127.0.0.1:{port}/"),
+        ("tcp://127.0.0.1:{port}", "socket://127.0.0.1:{port}"),  # RTU over the same TCP port
+        ("tcp://[::ffff:127.0.0.1]:{port}", "tls://[0:0:0:0:0:ffff:7f00:1]:{port}"),
+        ("tcp://Plc7.Example:{port}", "tcp://plc7.example.:{port}"),
+        ("{dir}/ttyUSB0", "{dir}/by-id/usb-FTDI-if00"),  # a serial port and a link to it
+    ],
+    ids=["same", "socket", "ipv6-spellings", "host-case", "serial-symlink"],
+)
+def test_two_links_on_one_target_are_refused_naming_both(tmp_path, silent_server, first, second):
+    """A serial port opens once (the second link's devices would never be polled: port busy,
+    by mbtool itself), and two links to one TCP device are two masters polling it at once:
+    refused at load, exit 2, naming both links, with nothing opened."""
+    (tmp_path / "ttyUSB0").write_text("")
+    (tmp_path / "by-id").mkdir()
+    (tmp_path / "by-id" / "usb-FTDI-if00").symlink_to(tmp_path / "ttyUSB0")
+    targets = [t.format(port=silent_server.port, dir=tmp_path) for t in (first, second)]
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[links.bus1]\ntarget = "{targets[0]}"\n[links.bus2]\ntarget = "{targets[1]}"\n'
+        '[devices.a]\nlink = "bus1"\nread = ["40001"]\n[devices.b]\nlink = "bus2"\nread = ["40001"]\n'
+    )
+    line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
+    assert str(path) in line and "[links.bus1]" in line and "[links.bus2]" in line, line
+    assert silent_server.received_bytes() == b""
+
+
+def test_links_on_different_targets_and_in_process_devices_load(tmp_path, silent_server):
+    """Not one target: UDP and TCP on one port number, two sim:// links (each a device of its own)."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[links.a]\ntarget = "tcp://127.0.0.1:{silent_server.port}"\n'
+        f'[links.b]\ntarget = "udp://127.0.0.1:{silent_server.port}"\n'
+        '[links.c]\ntarget = "sim://"\n[links.d]\ntarget = "sim://"\n'
+        + "".join(f'[devices.{n}]\nlink = "{n}"\nread = ["40001"]\n' for n in "abcd")
+    )
+    assert len(load_inventory(str(path)).links) == 4
