@@ -58,7 +58,7 @@ POLL_KEYS = {
     "interval": "seconds between polls of a device, such as 10",
     "output": "one of " + ", ".join(FORMATS),
     "offline_after": "failed polls in a row that make a device offline, such as 3",
-    "max_backoff": "the longest wait, in seconds, before an offline device is tried again",
+    "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
 }
 # A device may set its own interval, offline_after and max_backoff.
 DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", *POLL_KEYS.keys() - {"output"})
@@ -89,7 +89,7 @@ def load_inventory(path: str) -> Inventory:
         if key not in ("poll", "links", "devices"):
             raise RequestError(f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME])")
     poll = _table(data, "poll", path, "[poll]")
-    defaults = dict(DEFAULTS)
+    defaults = {}  # what [poll] gives; DEFAULTS for the rest
     output = None
     for key, value in poll.items():
         where = f"{path}: [poll] {key}"
@@ -245,9 +245,10 @@ def _device(
     except RequestError as error:
         raise RequestError(f"{where} unit: {error}") from None
     settings = {
-        key: _setting(key, table[key], f"{where} {key}") if key in table else defaults[key]
+        key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])
         for key in DEFAULTS
     }
+    _backoff(settings, table, defaults, where)
     return DeviceSpec(
         name,
         link,
@@ -256,6 +257,21 @@ def _device(
         _tags(table.get("tags", {}), where),
         **settings,
     )
+
+
+def _backoff(settings: dict, table: dict, defaults: dict, where: str) -> None:
+    """An offline device is never tried more often than an online one is polled: a max_backoff
+    below the interval (thousands of reconnects a second) is refused where it was given, and
+    the default, where none was, follows a longer interval."""
+    interval, longest = settings["interval"], settings["max_backoff"]
+    if "max_backoff" not in table and "max_backoff" not in defaults:
+        settings["max_backoff"] = max(longest, interval)
+    elif longest < interval:
+        source = "" if "max_backoff" in table else " (from [poll])"
+        raise RequestError(
+            f"{where} max_backoff: {longest:g} s{source} is below its interval, {interval:g} s: an offline "
+            f"device would be tried more often than an online one is polled (give {interval:g} or more)"
+        )
 
 
 def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMap]) -> MapReader:

@@ -101,3 +101,37 @@ def test_links_on_different_targets_and_in_process_devices_load(tmp_path, silent
         + "".join(f'[devices.{n}]\nlink = "{n}"\nread = ["40001"]\n' for n in "abcd")
     )
     assert len(load_inventory(str(path)).links) == 4
+
+
+@pytest.mark.parametrize(
+    "poll, device, words",
+    [
+        ("max_backoff = 0.5\n", "interval = 2\n", "[devices.d] max_backoff: 0.5 s (from [poll]) is below its interval, 2 s"),
+        ("", "interval = 2\nmax_backoff = 1\n", "[devices.d] max_backoff: 1 s is below its interval, 2 s"),
+        ("interval = 60\nmax_backoff = 30\n", "", "[devices.d] max_backoff: 30 s (from [poll]) is below its interval, 60 s"),
+    ],
+    ids=["poll", "device", "both-from-poll"],
+)  # fmt: skip
+def test_a_max_backoff_below_the_interval_is_refused(tmp_path, silent_server, poll, device, words):
+    """An offline device tried more often than an online one is polled: thousands of reconnects
+    a second (issue 40.19); refused at load, exit 2, nothing opened."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f"[poll]\n{poll}[links.a]\ntarget = \"{silent_server.tcp_target}\"\n"
+        f'[devices.d]\nlink = "a"\nread = ["40001"]\n{device}'
+    )
+    line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
+    assert str(path) in line and words in line, line
+    assert silent_server.received_bytes() == b""
+
+
+def test_the_default_max_backoff_is_never_below_the_interval(tmp_path):
+    """A device polled once an hour, max_backoff left out: backed off an hour at the least, not
+    the default 300 s (which would poll an offline device more often than an online one)."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        '[links.a]\ntarget = "sim://"\n[devices.slow]\nlink = "a"\nread = ["40001"]\ninterval = 3600\n'
+        '[devices.fast]\nlink = "a"\nunit = 2\nread = ["40001"]\ninterval = 2\n'
+    )
+    devices = {d.name: d for d in load_inventory(str(path)).devices}
+    assert devices["slow"].max_backoff == 3600 and devices["fast"].max_backoff == 300
