@@ -135,3 +135,17 @@ def test_the_default_max_backoff_is_never_below_the_interval(tmp_path):
     )
     devices = {d.name: d for d in load_inventory(str(path)).devices}
     assert devices["slow"].max_backoff == 3600 and devices["fast"].max_backoff == 300
+
+
+@pytest.mark.parametrize(
+    "where", ["{dir}/nosuch/plant.prom", "{dir}/plant.toml/plant.prom"], ids=["missing", "not-a-folder"]
+)
+def test_a_textfile_that_cannot_be_written_is_exit_7_before_any_link_is_opened(tmp_path, silent_server, where):
+    """--textfile in a folder that is not there, or is a file: found before any device is
+    polled (and before a dead one's timeout), as dump finds its file (issue 39.17)."""
+    path = tmp_path / "plant.toml"
+    path.write_text(f'[links.a]\ntarget = "{silent_server.tcp_target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n')
+    textfile = where.format(dir=tmp_path)
+    line = assert_one_error_line(run_cli("poll", path, "--once", "--textfile", textfile), 7)
+    assert textfile in line, line
+    assert silent_server.received_bytes() == b"" and silent_server.connections == 0

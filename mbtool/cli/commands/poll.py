@@ -18,7 +18,14 @@ import click
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, write_textfile
+from mbtool.cli.metrics import (
+    KEY_SPECIALS,
+    _escape,
+    _field_value,
+    check_textfile,
+    influx_text,
+    write_textfile,
+)
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
@@ -91,6 +98,8 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
     if fmt == "prom" or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
+    if textfile:
+        check_textfile(textfile)  # a folder that is not there: exit 7 now, not after a round
     if once:
         rounds = 1
     trace = None
