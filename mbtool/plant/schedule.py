@@ -13,16 +13,23 @@ of the others.  One good poll brings it back online.  A link that cannot be open
 missing port, a refused connection) backs off the same way, and its devices are offline
 meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``; both go to
 ``report`` as they happen, from the link's thread.
+
+A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
+would end after the run is announced without its next try.  With ``rounds`` a device is done
+once polled that many times, and an offline one is tried again only where its back-off ends
+before the last poll the link's other devices still have to make: so every device that
+answers gets its rounds, an offline one fewer, and the run does not wait out a back-off.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
 
-from mbtool.codec.record import field, record
+from mbtool.codec.record import field, record, replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
 from mbtool.link.connection import Connection, close_quietly, open_client
 from mbtool.link.stats import Counted
@@ -147,13 +154,38 @@ class LinkWorker:
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.crashed: BaseException | None = None
+        self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
 
     def finished(self) -> bool:
-        """--once, --rounds: every device has had its polls, or is offline after one at least."""
-        if not self.rounds:
-            return False
-        return all(d.polls >= self.rounds or (d.state == OFFLINE and d.polls) for d in self.devices)
+        """--once, --rounds: every device has had its polls, or will be tried no more."""
+        return bool(self.rounds) and not self._waiting()
+
+    def _waiting(self) -> list[DeviceState]:
+        """The devices this run will poll again."""
+        return [d for d in self.devices if d.due < math.inf and not (self.rounds and d.polls >= self.rounds)]
+
+    def _tried_again(self, device: DeviceState) -> bool:
+        """Whether the run will last until ``device`` is due again: never past its rounds or
+        its deadline; with rounds, an offline device only where its back-off ends before the
+        last poll the link's other devices have still to make.  A device that will not be is
+        done (due never), so the run does not wait for it."""
+        others = [d for d in self._waiting() if d is not device]
+        if self.rounds:
+            if device.polls >= self.rounds:
+                return False
+            if device.state == OFFLINE:
+                # The last slot of each other device, or the next try of an offline one (its
+                # later tries are as uncertain as this one's).
+                last = max(
+                    (d.due if d.state == OFFLINE else d.due + (self.rounds - d.polls - 1) * d.spec.interval
+                     for d in others),
+                    default=-math.inf,
+                )  # fmt: skip
+                if device.due > last:
+                    device.due = math.inf
+                    return False
+        return self.deadline is None or device.due < self.deadline
 
     def run(self) -> None:
         try:
@@ -167,7 +199,7 @@ class LinkWorker:
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
             now = time.monotonic()
-            waiting = [d for d in self.devices if not (self.rounds and d.polls >= self.rounds)]
+            waiting = self._waiting()
             due = [d for d in waiting if d.due <= now and self.open_at <= now]
             if not due:
                 wake = max(min(d.due for d in waiting), self.open_at)
@@ -195,11 +227,18 @@ class LinkWorker:
             self.open_at = now + self.backoff
             self.state = OFFLINE
             self.open_failures += 1
-            if first:
-                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff))
+            settled = []
             for device in due:  # its devices cannot be reached: offline meanwhile
-                self._end(device, None, error, when, at_once=True)
-                device.due = max(device.due, self.open_at)
+                settled.append(self._settle(device, None, error, when, not_before=self.open_at))
+            # Opened again only for a device the run will still poll, and before its end.
+            again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
+            if first:
+                self.report(
+                    Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff if again else None)
+                )
+            for items in settled:
+                for item in items:
+                    self.report(item)
             return False
         if self.state == OFFLINE:
             self.report(Event(time.time(), "link", self.spec.name, ONLINE))
@@ -229,7 +268,16 @@ class LinkWorker:
             client.while_waiting = None
         self._end(device, readings, error, stamp[0] if stamp else time.time())
 
-    def _end(self, device, readings, error, when: float, at_once: bool = False) -> None:
+    def _end(self, device, readings, error, when: float) -> None:
+        for item in self._settle(device, readings, error, when):
+            self.report(item)
+
+    def _settle(
+        self, device, readings, error, when: float, not_before: float | None = None
+    ) -> list[Poll | Event]:
+        """A poll's outcome in the device's state: the Poll, and the Event of its change of
+        state if it had one, to report.  ``not_before``: its link cannot be opened, so the
+        device is offline now and not tried before the link is."""
         now = time.monotonic()
         device.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
@@ -237,12 +285,14 @@ class LinkWorker:
         if ok:
             event = device.succeeded(now, when)
         else:
-            event = device.failed(now, when, str(error), at_once)
+            event = device.failed(now, when, str(error), at_once=not_before is not None)
+            device.due = max(device.due, not_before or 0.0)
+        again = self._tried_again(device)
+        if not again and event is not None and event.retry_in is not None:
+            event = replace(event, retry_in=None)  # the run ends first: no next try to announce
         poll = Poll(device.spec, when, readings, error, device.state)
         device.last_poll = poll
-        self.report(poll)
-        if event is not None:
-            self.report(event)
+        return [poll] if event is None else [poll, event]
 
 
 class Plant:
@@ -257,6 +307,7 @@ class Plant:
         trace=None,
     ) -> None:
         self.stop = threading.Event()
+        self.ended = False  # its duration ran out
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -272,15 +323,21 @@ class Plant:
         ]
         self.workers = [worker for worker in self.workers if worker.devices]
 
+    def completed(self) -> bool:
+        """The run ended as it was to end: every round polled, or its duration over."""
+        return self.ended or (bool(self.workers) and all(worker.finished() for worker in self.workers))
+
     def run(self, duration: float | None = None) -> None:
-        for worker in self.workers:
-            worker.thread.start()
         deadline = None if duration is None else time.monotonic() + duration
+        for worker in self.workers:
+            worker.deadline = deadline
+            worker.thread.start()
         try:
             for worker in self.workers:
                 while worker.thread.is_alive():
                     left = None if deadline is None else deadline - time.monotonic()
                     if left is not None and left <= 0:
+                        self.ended = True
                         self.stop.set()
                         left = None
                     # Short joins: Ctrl-C reaches the main thread between them.

@@ -459,3 +459,92 @@ def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent
     stats = json.loads(res.stderr.splitlines()[-2])
     assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
     assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 devices answered: no response")
+
+
+# --- runs that end: --once, --rounds, --duration ---------------------------------------------
+
+
+def _records(res) -> tuple[list[dict], list[dict]]:
+    """A -o json run's (poll records, event records)."""
+    records = [json.loads(line) for line in res.stdout.splitlines()]
+    return [r for r in records if "event" not in r], [r for r in records if "event" in r]
+
+
+def test_a_run_that_ends_first_announces_no_next_try(tmp_path):
+    """A link refused with --once, --rounds or --duration shorter than its back-off: no `next try
+    in 10 s` nor `retry_in` for a try that never comes (issue 39.7)."""
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[poll]\ninterval = 5\n[links.gone]\ntarget = "tcp://127.0.0.1:{free_port()}"\n'
+        '[devices.d]\nlink = "gone"\nread = ["40001"]\n',
+    )
+    for ending in (["--once"], ["--rounds", "3"], ["--duration", "1"]):
+        res = run_cli("poll", plant, *ending, "-o", "json")
+        assert res.returncode == 6, res
+        polls, events = _records(res)
+        assert {(e["event"], e.get("link", e.get("device"))) for e in events} == {("offline", "gone"), ("offline", "d")}
+        assert all("retry_in" not in event for event in events), (ending, events)
+        assert "next try" not in res.stderr and "Connection refused" in res.stderr, res.stderr
+        assert len(polls) == 1, ending  # --rounds 3: nothing is tried again, so the run ends
+
+
+def test_a_next_try_that_comes_within_the_run_is_announced_and_comes(tmp_path):
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[poll]\ninterval = 0.4\n[links.gone]\ntarget = "tcp://127.0.0.1:{free_port()}"\n'
+        '[devices.d]\nlink = "gone"\nread = ["40001"]\n',
+    )
+    res = run_cli("poll", plant, "--duration", "2.5", "-o", "json")
+    polls, events = _records(res)
+    link = next(e for e in events if e.get("link") == "gone")
+    assert link["retry_in"] == 0.8 and "next try in 0.8 s" in res.stderr
+    assert len(polls) >= 2  # the try announced came
+
+
+def test_rounds_counts_the_rounds_of_devices_that_answer_and_says_what_an_offline_one_got(tmp_path):
+    """--rounds 4 on a link with a dead unit: the unit that answers is polled 4 times; the dead
+    one, offline after one failure, is tried again only where its back-off ends within those
+    rounds, every try it was promised comes, and the last line says how many it got
+    (issue 39.8)."""
+    with serve("-u", "1") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[poll]\ninterval = 0.3\noffline_after = 1\n[links.gw]\ntarget = "{device.target}"\n'
+            'timeout = 0.1\n[devices.live]\nlink = "gw"\nread = ["40001"]\n'
+            '[devices.dead]\nlink = "gw"\nunit = 9\nread = ["40001"]\n',
+        )
+        res = run_cli("poll", plant, "--rounds", "4", "-o", "json")
+    assert res.returncode == 8, res
+    polls, events = _records(res)
+    assert [p["device"] for p in polls].count("live") == 4
+    dead = [p["time"] for p in polls if p["device"] == "dead"]
+    for event in events:
+        if "retry_in" in event:  # the try it announces is made
+            assert any(time > event["time"] for time in dead), (event, dead)
+    assert 1 <= len(dead) < 4
+    plural = "time" if len(dead) == 1 else "times"
+    assert f"dead polled {len(dead)} {plural} of 4 (offline)" in res.stderr.splitlines()[-1], res.stderr
+
+
+def test_a_finite_run_stopped_before_its_rounds_are_done_is_exit_130(tmp_path, silent_server):
+    """SIGTERM to --once while a slow device is still being read and another waits its turn on
+    that link: the round is not done, so not `1 of 3 devices answered` and a verdict, but 130
+    (issue 40.14)."""
+    import signal
+
+    with serve() as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.fast]\ntarget = "{device.target}"\n[links.slow]\ntarget = "{silent_server.tcp_target}"\n'
+            'timeout = 1\n[devices.a]\nlink = "fast"\nread = ["40001"]\n'
+            '[devices.b]\nlink = "slow"\nread = ["40001"]\n[devices.c]\nlink = "slow"\nunit = 2\nread = ["40001"]\n',
+        )
+        proc = start_mbtool("poll", plant, "--once", "-o", "json")
+        try:
+            assert json.loads(proc.stdout.readline())["device"] == "a"
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=10)
+        finally:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert err.splitlines()[-1].startswith("mbtool: interrupted"), err

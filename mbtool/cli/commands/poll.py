@@ -62,7 +62,12 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
 )
 @click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
-@click.option("--rounds", type=click.IntRange(1), help="Poll every device this many times, then exit.")
+@click.option(
+    "--rounds",
+    type=click.IntRange(1),
+    help="Poll every device that answers this many times, then exit. An offline device is tried "
+    "again only where its back-off ends within those rounds: the last line says how many polls it got.",
+)
 @click.option("--duration", type=PositiveFloat(), metavar="SECONDS", help="Stop after this long.")
 @click.option(
     "--stats",
@@ -86,7 +91,8 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
 
     Exit status: 0 when every device answered its last poll, 8 when some did and others
     did not, the failure's own status when none did; 2 for a bad inventory, with nothing
-    opened.
+    opened; 130 when --once, --rounds or --duration is stopped (Ctrl-C, SIGTERM) before
+    its end.
     """
     plant = load_inventory(inventory)
 
@@ -123,7 +129,7 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
         runner.stop.set()
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started)
-    raise _verdict(runner, interrupted)
+    raise _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
 class PlantOutput:
@@ -415,23 +421,34 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
     sys.stderr.flush()
 
 
-def _verdict(runner: Plant, interrupted: bool) -> Summary:
-    """0 when every device answered its last poll, 8 when some did, else the failure's code."""
+def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summary:
+    """0 when every device answered its last poll, 8 when some did, else the failure's code;
+    130 for a run that was to end (``ends``: --once, --rounds, --duration) stopped before it did,
+    and for any stopped before a poll."""
     polls = [state.last_poll for state in runner.devices.values() if state.last_poll is not None]
     answered = [
         poll for poll in polls if poll.readings is not None and not isinstance(poll.error, PartialRead)
     ]
     failed = [poll for poll in polls if poll.readings is None]
     partial = len(polls) - len(answered) - len(failed)
+    unpolled = len(runner.devices) - len(polls)  # stopped before its first poll: no answer either
     text = f"{len(answered)} of {len(runner.devices)} devices answered" + (
         f", {partial} in part" if partial else ""
     )
-    if interrupted and not polls:
-        return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
+    if interrupted and (not polls or (ends and not runner.completed())):
+        return Summary("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
     if interrupted:
         text = "interrupted; " + text
-    if not failed and not partial:
+    elif rounds:  # --rounds counts the rounds of devices that answer: say what an offline one got
+        short = [s for s in runner.devices.values() if s.polls < rounds]
+        text += "".join(
+            f"; {s.spec.name} polled {s.polls} time{'s' if s.polls != 1 else ''} of {rounds} ({s.state})"
+            for s in short
+        )
+    if not failed and not partial and not unpolled:
         return Summary(text, ExitCode.OK)
     if answered or partial:
         return Summary(text, ExitCode.PARTIAL)
+    if not failed:
+        return Summary(text, ExitCode.INTERRUPTED)
     return Summary(text + f": {failed[0].error}", exit_code_for(failed[0].error))
