@@ -26,6 +26,7 @@
     link = "bus1"
     unit = 3
     read = ["40001 10", "00001 16"]   # references with counts, as `read` takes them
+    timeout = 2.5                     # its own timeout and retries: the link's otherwise
 
 Everything is checked before anything is opened: an unknown key, a device that names a
 link the file does not have, a map that does not load, a target that names nothing, a
@@ -60,8 +61,19 @@ POLL_KEYS = {
     "offline_after": "failed polls in a row that make a device offline, such as 3",
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
 }
-# A device may set its own interval, offline_after and max_backoff.
-DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", *POLL_KEYS.keys() - {"output"})
+# A device may set its own interval, offline_after and max_backoff, and its own timeout and
+# retries where it is slower or less reliable than its link's other devices (the link's otherwise).
+OWN_LINK_KEYS = ("timeout", "retries")
+DEVICE_KEYS = (
+    "link",
+    "unit",
+    "map",
+    "points",
+    "read",
+    "tags",
+    *POLL_KEYS.keys() - {"output"},
+    *OWN_LINK_KEYS,
+)
 # A link takes what a profile does, but the unit (each device has its own) and a map.
 LINK_KEYS = {"target": profiles.KEYS["port"]} | {
     key: about for key, about in profiles.KEYS.items() if key not in ("port", "unit", "map")
@@ -109,7 +121,9 @@ def load_inventory(path: str) -> Inventory:
     _one_link_a_target(links, path)
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
     loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
-    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
+    devices = [
+        _device(name, table, path, links, defaults, loaded, params, ctx) for name, table in tables.items()
+    ]
     if not devices:
         raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
@@ -226,7 +240,14 @@ def _endpoint(target: str) -> tuple | None:
 
 
 def _device(
-    name: str, table: dict, path: str, links: dict, defaults: dict, loaded: dict[Path, RegisterMap]
+    name: str,
+    table: dict,
+    path: str,
+    links: dict,
+    defaults: dict,
+    loaded: dict[Path, RegisterMap],
+    params: dict,
+    ctx: click.Context,
 ) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
@@ -249,6 +270,9 @@ def _device(
         for key in DEFAULTS
     }
     _backoff(settings, table, defaults, where)
+    for key in OWN_LINK_KEYS:  # checked as a link's are: one place for what --timeout accepts
+        if key in table:
+            settings[key] = profiles._convert(params[key], key, table[key], ctx, f"{where} {key}")
     return DeviceSpec(
         name,
         link,

@@ -52,6 +52,8 @@ class DeviceSpec:
     interval: float = 10.0
     offline_after: int = 3
     max_backoff: float = 300.0
+    timeout: float | None = None  # its own, where it is slower than its link's other devices
+    retries: int | None = None  # None: the link's
 
 
 @record
@@ -60,6 +62,15 @@ class LinkSpec:
 
     name: str
     connection: Connection
+
+
+def limits(device: DeviceSpec, link: LinkSpec) -> tuple[float, int]:
+    """The timeout and retries a device's transactions have: its own, else its link's."""
+    connection = link.connection
+    return (
+        connection.timeout if device.timeout is None else device.timeout,
+        connection.retries if device.retries is None else device.retries,
+    )
 
 
 @record
@@ -157,6 +168,10 @@ class LinkWorker:
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
 
+    def limits(self) -> list[tuple[float, int]]:
+        """The timeout and retries of each of its devices' transactions."""
+        return [limits(d.spec, self.spec) for d in self.devices]
+
     def finished(self) -> bool:
         """--once, --rounds: every device has had its polls, or will be tried no more."""
         return bool(self.rounds) and not self._waiting()
@@ -249,6 +264,7 @@ class LinkWorker:
         client, spec = self.client, device.spec
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
+        client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
         counted = Counted(client, device.stats)
 
         def execute(request):
@@ -345,9 +361,9 @@ class Plant:
         finally:
             self.stop.set()
             for worker in self.workers:
-                # A worker ends its transaction first: at most the link's timeout and retries.
-                connection = worker.spec.connection
-                worker.thread.join(connection.timeout * (connection.retries + 1) + 1)
+                # A worker ends its poll's transaction first: at most a timeout a try.
+                longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
+                worker.thread.join(longest + 1)
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed

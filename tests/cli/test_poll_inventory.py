@@ -4,11 +4,13 @@ one is exit 2 with one line naming the file, the table and the key."""
 from __future__ import annotations
 
 import pytest
-from mbtool.cli.inventory import load_inventory
 from helpers import (
     assert_one_error_line,
     run_cli,
 )
+
+from mbtool.cli.inventory import load_inventory
+from mbtool.cli.program import register_schemes
 
 
 @pytest.mark.parametrize(
@@ -93,6 +95,7 @@ def test_two_links_on_one_target_are_refused_naming_both(tmp_path, silent_server
 
 def test_links_on_different_targets_and_in_process_devices_load(tmp_path, silent_server):
     """Not one target: UDP and TCP on one port number, two sim:// links (each a device of its own)."""
+    register_schemes()  # sim://, as main registers it
     path = tmp_path / "plant.toml"
     path.write_text(
         f'[links.a]\ntarget = "tcp://127.0.0.1:{silent_server.port}"\n'
@@ -117,7 +120,7 @@ def test_a_max_backoff_below_the_interval_is_refused(tmp_path, silent_server, po
     a second (issue 40.19); refused at load, exit 2, nothing opened."""
     path = tmp_path / "plant.toml"
     path.write_text(
-        f"[poll]\n{poll}[links.a]\ntarget = \"{silent_server.tcp_target}\"\n"
+        f'[poll]\n{poll}[links.a]\ntarget = "{silent_server.tcp_target}"\n'
         f'[devices.d]\nlink = "a"\nread = ["40001"]\n{device}'
     )
     line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
@@ -130,7 +133,7 @@ def test_the_default_max_backoff_is_never_below_the_interval(tmp_path):
     the default 300 s (which would poll an offline device more often than an online one)."""
     path = tmp_path / "plant.toml"
     path.write_text(
-        '[links.a]\ntarget = "sim://"\n[devices.slow]\nlink = "a"\nread = ["40001"]\ninterval = 3600\n'
+        '[links.a]\ntarget = "tcp://127.0.0.1:1"\n[devices.slow]\nlink = "a"\nread = ["40001"]\ninterval = 3600\n'
         '[devices.fast]\nlink = "a"\nunit = 2\nread = ["40001"]\ninterval = 2\n'
     )
     devices = {d.name: d for d in load_inventory(str(path)).devices}
@@ -140,11 +143,15 @@ def test_the_default_max_backoff_is_never_below_the_interval(tmp_path):
 @pytest.mark.parametrize(
     "where", ["{dir}/nosuch/plant.prom", "{dir}/plant.toml/plant.prom"], ids=["missing", "not-a-folder"]
 )
-def test_a_textfile_that_cannot_be_written_is_exit_7_before_any_link_is_opened(tmp_path, silent_server, where):
+def test_a_textfile_that_cannot_be_written_is_exit_7_before_any_link_is_opened(
+    tmp_path, silent_server, where
+):
     """--textfile in a folder that is not there, or is a file: found before any device is
     polled (and before a dead one's timeout), as dump finds its file (issue 39.17)."""
     path = tmp_path / "plant.toml"
-    path.write_text(f'[links.a]\ntarget = "{silent_server.tcp_target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n')
+    path.write_text(
+        f'[links.a]\ntarget = "{silent_server.tcp_target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n'
+    )
     textfile = where.format(dir=tmp_path)
     line = assert_one_error_line(run_cli("poll", path, "--once", "--textfile", textfile), 7)
     assert textfile in line, line

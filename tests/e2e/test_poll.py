@@ -14,6 +14,7 @@ import csv
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -482,7 +483,10 @@ def test_a_run_that_ends_first_announces_no_next_try(tmp_path):
         res = run_cli("poll", plant, *ending, "-o", "json")
         assert res.returncode == 6, res
         polls, events = _records(res)
-        assert {(e["event"], e.get("link", e.get("device"))) for e in events} == {("offline", "gone"), ("offline", "d")}
+        assert {(e["event"], e.get("link", e.get("device"))) for e in events} == {
+            ("offline", "gone"),
+            ("offline", "d"),
+        }
         assert all("retry_in" not in event for event in events), (ending, events)
         assert "next try" not in res.stderr and "Connection refused" in res.stderr, res.stderr
         assert len(polls) == 1, ending  # --rounds 3: nothing is tried again, so the run ends
@@ -548,3 +552,35 @@ def test_a_finite_run_stopped_before_its_rounds_are_done_is_exit_130(tmp_path, s
             proc.kill()
     assert proc.returncode == 130, err
     assert err.splitlines()[-1].startswith("mbtool: interrupted"), err
+
+
+def test_a_device_may_have_its_own_timeout_and_retries(tmp_path):
+    """A slow meter on a fast bus (issue 39.24): its own timeout, 1 s, reads it where the link's
+    0.15 s times out on its twin; its own retries try a dead unit three times a poll where the
+    link's none try once; --stats shows what each device used."""
+    with serve("-u", "1-2", "--delay", "0.3") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.gw]\ntarget = "{device.target}"\ntimeout = 0.15\n'
+            '[devices.slow]\nlink = "gw"\nread = ["40001"]\ntimeout = 1\n'
+            '[devices.twin]\nlink = "gw"\nunit = 2\nread = ["40001"]\n'
+            '[devices.dead]\nlink = "gw"\nunit = 9\nread = ["40001"]\nretries = 2\n',
+        )
+        res = run_cli("poll", plant, "--once", "-o", "json", "--stats", "json")
+        table = run_cli("poll", plant, "--once", "-o", "json", "--hex").stderr
+    assert res.returncode == 8, res
+    polls, _ = _records(res)
+    answered = {p["device"]: "points" in p for p in polls}
+    assert answered == {"slow": True, "twin": False, "dead": False}
+    stats = json.loads(res.stderr.splitlines()[-2])
+    devices = stats["devices"]
+    assert (devices["slow"]["timeout_seconds"], devices["slow"]["retries"]) == (1.0, 0)
+    assert (devices["twin"]["timeout_seconds"], devices["twin"]["retries"]) == (0.15, 0)
+    assert (devices["dead"]["timeout_seconds"], devices["dead"]["retries"]) == (0.15, 2)
+    # The requests sent to each unit (MBAP: the unit is the 7th byte), whatever labels the trace.
+    sent = [bytes.fromhex(m[1]) for m in re.finditer(r"TX ((?:[0-9A-F]{2} )*[0-9A-F]{2})", table)]
+    assert [frame[6] for frame in sent].count(9) == 3 and [frame[6] for frame in sent].count(2) == 1, table
+    assert (stats["links"]["gw"]["timeout_seconds"], stats["links"]["gw"]["retries"]) == (0.15, 0)
+    rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("device")}
+    head = next(line for line in table.splitlines() if line.split()[:2] == ["name", "state"]).split("  ")
+    assert "timeout s" in [h.strip() for h in head] and rows["slow"][-2:] == ["1", "0"], table

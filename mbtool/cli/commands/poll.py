@@ -33,7 +33,7 @@ from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
+from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
 
 CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
@@ -363,23 +363,33 @@ class LiveView:
 
 
 def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
-    links = {}
+    links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
         for state in worker.devices:
             total.add(state.stats)
         links[worker.spec.name] = (total, worker.state)
+        link_of[worker.spec.name] = worker.spec
+    # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
+    device_limits = {name: limits(s.spec, link_of[s.spec.link]) for name, s in runner.devices.items()}
+    link_limits = {name: (spec.connection.timeout, spec.connection.retries) for name, spec in link_of.items()}
     if fmt == "json":
         record = {
             "seconds": round(seconds, 3),
             "devices": {
-                name: {"link": s.spec.link, "state": s.state, **s.stats.as_dict()}
+                name: {
+                    "link": s.spec.link,
+                    "state": s.state,
+                    **_limits(device_limits[name]),
+                    **s.stats.as_dict(),
+                }
                 for name, s in runner.devices.items()
             },
             "links": {
                 worker.spec.name: {
                     "state": worker.state,
                     "open_failures": worker.open_failures,
+                    **_limits(link_limits[worker.spec.name]),
                     **links[worker.spec.name][0].as_dict(),
                 }
                 for worker in runner.workers
@@ -387,8 +397,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         }
         print(to_json(record), file=sys.stderr, flush=True)
         return
-    rows = [("device", name, s.state, s.stats) for name, s in runner.devices.items()]
-    rows += [("link", name, state, total) for name, (total, state) in links.items()]
+    rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
+    rows += [("link", name, state, total, link_limits[name]) for name, (total, state) in links.items()]
     head = [
         "",
         "name",
@@ -402,15 +412,17 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         "exc",
         "recovered",
         "rtt min/avg/p95/max ms",
+        "timeout s",
+        "retries",
     ]
     lines = [head]
-    for kind, name, state, stats in rows:
+    for kind, name, state, stats, (timeout, retries) in rows:
         rtt = stats.rtt.cell()
         exceptions = stats.exceptions_text()
         lines.append(
             [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
              str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),
-             exceptions, str(stats.recovered), rtt]
+             exceptions, str(stats.recovered), rtt, f"{timeout:g}", str(retries)]
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     for line in lines:
@@ -419,6 +431,11 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
             file=sys.stderr,
         )
     sys.stderr.flush()
+
+
+def _limits(pair: tuple[float, int]) -> dict:
+    """A device's or link's timeout and retries, beside its counts (``timeout`` counts timeouts)."""
+    return {"timeout_seconds": pair[0], "retries": pair[1]}
 
 
 def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summary:
