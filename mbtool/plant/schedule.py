@@ -2,7 +2,8 @@
 every link at once.
 
 A link (a serial bus, or a gateway or TCP device that takes one request at a time) has a
-worker thread of its own.  It opens the link, and polls its devices as they fall due: when
+worker thread of its own, every one started before any opens its link: a plant of more
+links than the system allows threads is refused whole (exit 6), not cut short mid-run.  It opens the link, and polls its devices as they fall due: when
 several are due, the one that has waited longest goes first.  A poll reads every point of
 the device (``MapReader``); the client keeps the line's silences and ``pause``.
 
@@ -151,8 +152,10 @@ class LinkWorker:
         stop: threading.Event,
         rounds: int = 0,
         trace=None,
+        go: threading.Event | None = None,
     ) -> None:
         self.spec = spec
+        self.go = go  # set once every link's worker has started: none opens a link before
         self.devices = devices
         self.report = report
         self.stop = stop
@@ -204,6 +207,8 @@ class LinkWorker:
 
     def run(self) -> None:
         try:
+            if self.go is not None:
+                self.go.wait()
             self._work()
         except BaseException as error:  # a bug: the plant stops, and says so on the main thread
             self.crashed = error
@@ -323,6 +328,7 @@ class Plant:
         trace=None,
     ) -> None:
         self.stop = threading.Event()
+        self.go = threading.Event()
         self.ended = False  # its duration ran out
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
@@ -334,6 +340,7 @@ class Plant:
                 self.stop,
                 rounds,
                 trace,
+                self.go,
             )
             for name, spec in links.items()
         ]
@@ -345,9 +352,22 @@ class Plant:
 
     def run(self, duration: float | None = None) -> None:
         deadline = None if duration is None else time.monotonic() + duration
-        for worker in self.workers:
+        for started, worker in enumerate(self.workers):
             worker.deadline = deadline
-            worker.thread.start()
+            try:
+                worker.thread.start()
+            except RuntimeError as error:  # "can't start new thread": the system's limits
+                # Said before any link is opened: those started wait for ``go``, and end.
+                self.stop.set()
+                self.go.set()
+                for each in self.workers[:started]:
+                    each.thread.join()
+                raise ConnectionFailed(
+                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
+                    f"started before the system refused a thread ({error}); poll fewer links a "
+                    "process, or raise its limits (ulimit -v, -u)"
+                ) from None
+        self.go.set()
         try:
             for worker in self.workers:
                 while worker.thread.is_alive():

@@ -30,6 +30,7 @@ from helpers import (
     bridge,
     free_port,
     mbtool_env,
+    signals_as_from_a_shell,
     run_cli,
     serve,
     start_device,
@@ -584,3 +585,37 @@ def test_a_device_may_have_its_own_timeout_and_retries(tmp_path):
     rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("device")}
     head = next(line for line in table.splitlines() if line.split()[:2] == ["name", "state"]).split("  ")
     assert "timeout s" in [h.strip() for h in head] and rows["slow"][-2:] == ["1", "0"], table
+
+
+def _address_space_capped() -> None:
+    import resource
+
+    signals_as_from_a_shell()
+    resource.setrlimit(resource.RLIMIT_AS, (768 << 20, 768 << 20))  # a thread's stack is 8 MiB of it
+
+
+def test_more_links_than_threads_the_system_allows_is_said_at_start(tmp_path):
+    """A worker thread a link: under an address-space cap, 400 links cannot all have one. Said at
+    start, exit 6 with the count, nothing polled (not `internal error: RuntimeError` mid-run,
+    without statistics) (issue 40.17)."""
+    links = 400
+    plant = write(
+        tmp_path / "plant.toml",
+        "".join(
+            f'[links.l{i}]\ntarget = "sim://"\n[devices.d{i}]\nlink = "l{i}"\nread = ["40001"]\n'
+            for i in range(links)
+        ),
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "poll", str(plant), "--once", "-o", "json"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=_address_space_capped,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 6, res.stderr[-3000:]
+    assert res.stdout == ""  # nothing was polled
+    (line,) = res.stderr.splitlines()
+    assert line.startswith("mbtool: ") and f"of {links} links" in line, line
