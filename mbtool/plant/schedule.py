@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from contextlib import ExitStack
 
 from mbtool.codec.record import field, record, replace
@@ -160,7 +160,10 @@ class LinkWorker:
         self.report = report
         self.stop = stop
         self.rounds = rounds  # 0: until stopped
-        self.trace = trace  # --hex: the client's trace, made from its framer
+        # --hex: the client's trace, made from its framer and a label naming the link and the
+        # device being polled, for the trace lines of several links and devices to tell apart
+        self.trace = trace
+        self.polling = ""  # the device whose poll is under way
         self.link = ExitStack()
         self.client = None
         self.open_at = 0.0  # monotonic: not before this may the link be opened again
@@ -233,7 +236,8 @@ class LinkWorker:
     def _open(self, due: list[DeviceState]) -> bool:
         try:
             self.link = ExitStack()
-            self.client = self.link.enter_context(open_client(self.spec.connection, trace=self.trace))
+            trace = (lambda framer: self.trace(framer, label=self._label)) if self.trace else None
+            self.client = self.link.enter_context(open_client(self.spec.connection, trace=trace))
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             self.client = None
@@ -265,8 +269,12 @@ class LinkWorker:
         self.state, self.backoff = ONLINE, 0.0
         return True
 
+    def _label(self) -> str:
+        return f"{self.spec.name} {self.polling}".rstrip()
+
     def _poll(self, device: DeviceState) -> None:
         client, spec = self.client, device.spec
+        self.polling = spec.name
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
         client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
@@ -326,7 +334,9 @@ class Plant:
         report: Callable[[Poll | Event], None],
         rounds: int = 0,
         trace=None,
+        traced: Collection[str] | None = None,
     ) -> None:
+        """``trace``: --hex's, for the links ``traced`` names (None: every link)."""
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
@@ -339,7 +349,7 @@ class Plant:
                 report,
                 self.stop,
                 rounds,
-                trace,
+                trace if traced is None or name in traced else None,
                 self.go,
             )
             for name, spec in links.items()

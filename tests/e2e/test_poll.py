@@ -27,6 +27,7 @@ from helpers import (
     PTY_SERIAL_OPTS,
     REPO_ROOT,
     PtyPair,
+    assert_one_error_line,
     bridge,
     free_port,
     mbtool_env,
@@ -619,3 +620,31 @@ def test_more_links_than_threads_the_system_allows_is_said_at_start(tmp_path):
     assert res.stdout == ""  # nothing was polled
     (line,) = res.stderr.splitlines()
     assert line.startswith("mbtool: ") and f"of {links} links" in line, line
+
+
+def test_hex_labels_each_frame_with_its_link_and_device_and_can_trace_one_link(tmp_path):
+    """--hex of a plant (issue 39.5): each trace line says whose frame it is, `[gw meter] TX …`,
+    so MBAP frames of the gateway and RTU frames of the bus are told apart; --hex-link LINK
+    traces that link alone (repeatable); a link the inventory lacks is exit 2."""
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.gw]\ntarget = "{device.target}"\n[links.bus]\ntarget = "sim://"\n'
+            '[devices.meter]\nlink = "gw"\nread = ["40001"]\n[devices.pump]\nlink = "gw"\nunit = 2\nread = ["40001"]\n'
+            '[devices.plc]\nlink = "bus"\nread = ["40001 2"]\n',
+        )
+        every = run_cli("poll", plant, "--once", "--hex")
+        one = run_cli("poll", plant, "--once", "--hex-link", "gw")
+        unknown = run_cli("poll", plant, "--once", "--hex-link", "nosuch")
+    assert every.returncode == 0 and one.returncode == 0, (every, one)
+    trace = [line for line in every.stderr.splitlines() if " TX " in line or " RX " in line]
+    labels = {line.split("] ")[0] + "]": line.split("] ")[1][:2] for line in trace}
+    assert set(labels) == {"[gw meter]", "[gw pump]", "[bus plc]"}, every.stderr
+    for line in trace:
+        label, frame = line.split("] ", 1)
+        unit = bytes.fromhex(frame[3:].split("  ")[0])[6 if label.startswith("[gw") else 0]
+        assert unit == {"[gw meter": 1, "[gw pump": 2, "[bus plc": 1}[label], line  # MBAP's unit is its 7th byte
+    traced = {line.split("] ")[0] + "]" for line in one.stderr.splitlines() if line.startswith("[")}
+    assert traced == {"[gw meter]", "[gw pump]"}, one.stderr
+    line = assert_one_error_line(unknown, 2)
+    assert "nosuch" in line and "gw" in line and "bus" in line, line

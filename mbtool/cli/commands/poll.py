@@ -32,6 +32,7 @@ from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
+from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
@@ -78,8 +79,23 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     help="Statistics on exit, on stderr: a table per device and per link, or one JSON object.",
 )
 @click.option("--no-header", is_flag=True, help="CSV without its header row.")
-@click.option("--hex", "hex_trace", is_flag=True, help="Print every frame sent and received (stderr).")
-def poll(inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace):
+@click.option(
+    "--hex",
+    "hex_trace",
+    is_flag=True,
+    help="Print every frame sent and received (stderr), each line labelled with its link and device: "
+    "[bus1 meter1] TX ...",
+)
+@click.option(
+    "--hex-link",
+    "hex_links",
+    metavar="LINK",
+    multiple=True,
+    help="--hex for this link alone (repeat it for several).",
+)
+def poll(
+    inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace, hex_links
+):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
 
@@ -108,12 +124,22 @@ def poll(inventory, output_format, textfile, once, rounds, duration, stats_forma
         check_textfile(textfile)  # a folder that is not there: exit 7 now, not after a round
     if once:
         rounds = 1
-    trace = None
-    if hex_trace:
-        trace = HexTrace
+    unknown = [name for name in hex_links if name not in plant.links]
+    if unknown:
+        raise RequestError(
+            f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
+        )
+    trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
     output = PlantOutput(fmt, textfile, no_header, plant)
     view = LiveView(plant) if live else None
-    runner = Plant(plant.links, plant.devices, view.report if view else output.report, rounds or 0, trace)
+    runner = Plant(
+        plant.links,
+        plant.devices,
+        view.report if view else output.report,
+        rounds or 0,
+        trace,
+        hex_links or None,
+    )
     output.states = runner.devices
     started = time.monotonic()
     interrupted = False
