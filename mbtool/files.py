@@ -34,15 +34,17 @@ def read_whole(path: str | os.PathLike, what: str) -> bytes:
         descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except OSError as error:
         raise RequestError(f"cannot read {what} {path}: {error.strerror or error}") from None
-    with open(descriptor, "rb") as file:
+    try:
         mode = os.fstat(descriptor).st_mode
-        if not stat.S_ISREG(mode):
+        if not stat.S_ISREG(mode):  # before a file object is made of it: a directory's refuses
             kind = next((name for test, name in _KINDS.items() if test(mode)), "not a file")
             raise RequestError(f"cannot read {what} {path}: not a regular file ({kind})")
-        try:
+        with open(descriptor, "rb", closefd=False) as file:
             data = file.read(MAX_FILE_BYTES + 1)  # a file that grows meanwhile is read no further
-        except OSError as error:
-            raise RequestError(f"cannot read {what} {path}: {error.strerror or error}") from None
+    except OSError as error:
+        raise RequestError(f"cannot read {what} {path}: {error.strerror or error}") from None
+    finally:
+        os.close(descriptor)
     if len(data) > MAX_FILE_BYTES:
         raise RequestError(
             f"cannot read {what} {path}: larger than {MAX_FILE_BYTES >> 20} MiB, too large to be one"

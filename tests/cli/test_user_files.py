@@ -41,7 +41,7 @@ def _run(*args, env=None) -> subprocess.CompletedProcess:
         pytest.fail(f"mbtool {' '.join(map(str, args))} still reading after 15 s")
 
 
-@pytest.fixture(params=["/dev/zero", "fifo", "too-big"])
+@pytest.fixture(params=["/dev/zero", "fifo", "too-big", "directory"])
 def hostile(request, tmp_path):
     """A path that is no file to read whole: a device, a FIFO no one writes, a sparse file
     past the bound."""
@@ -54,6 +54,8 @@ def hostile(request, tmp_path):
         with open(path, "wb") as file:
             file.truncate(MAX_FILE_BYTES + 1)
         return path, "larger than"
+    if request.param == "directory":
+        return tmp_path, "directory"  # on the command line, click says so first
     return request.param, "not a regular file"
 
 
