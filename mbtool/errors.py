@@ -10,6 +10,7 @@ from __future__ import annotations
 from enum import IntEnum
 
 from mbtool.codec.errors import FrameError, ModbusException, ProtocolError, RequestError
+from mbtool.words import counted
 
 
 class ExitCode(IntEnum):
@@ -50,7 +51,9 @@ class PartialRead(MbtoolError):
 
     def __init__(self, readings: list, failures: list[BaseException]) -> None:
         read = len(readings) - len(failures)
-        super().__init__("; ".join(map(str, failures)) + f"; {read} of {len(readings)} points read")
+        super().__init__(
+            "; ".join(map(str, failures)) + f"; {read} of {counted(len(readings), 'point')} read"
+        )
         self.readings = readings
 
 

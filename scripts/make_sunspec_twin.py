@@ -335,6 +335,9 @@ def _wrapped(text: str, width: int = 96) -> str:
     return ("\n    " + "\n    ".join(lines) + "\n") if len(lines) > 1 else lines[0]
 
 
+ZERO_LENGTH_MODELS = 300  # past the walk's bound of models (mbtool/sunspec/discover.py)
+
+
 def quirks() -> dict[str, tuple[str, list[int], str]]:
     """Each quirk's data file (and nested-groups, the tests' model of nested counted groups):
     what it is, its registers from 40000, and a note."""
@@ -379,6 +382,13 @@ def quirks() -> dict[str, tuple[str, list[int], str]]:
             "Volt-var curves (model 705): two curves of two points each, each count held by a point "
             "of the model (NCrv, NPt), the points a group inside each curve",
             chain([common, (705, VOLT_VAR)]),
+            "",
+        ),
+        "zero-length-models": (
+            "A hostile chain: after the common model, 300 models SunSpec does not define, each of "
+            "length 0, then the end model; unbounded, a walk of such a chain to register 65535 "
+            "took 12,768 reads (issue 40 item 13)",
+            chain([common] + [(64998, [])] * ZERO_LENGTH_MODELS),
             "",
         ),
         "unknown-model": (

@@ -21,6 +21,7 @@
     unit = 1
     map = "maps/sdm630.toml"     # relative to the inventory file; points = [...] picks some
     tags = { site = "north" }
+    measurement = "meters"       # -o influx's measurement for it (else --measurement, modbus)
 
     [devices.plc]
     link = "bus1"
@@ -43,6 +44,7 @@ from pathlib import Path
 import click
 
 from mbtool.cli import profiles
+from mbtool.cli.metrics import name_problem
 from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
@@ -61,7 +63,7 @@ POLL_KEYS = {
     "offline_after": "failed polls in a row that make a device offline, such as 3",
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
 }
-# A device may set its own interval, offline_after and max_backoff, and its own timeout and
+# A device may set its own interval, offline_after and max_backoff, its measurement, and its own timeout and
 # retries where it is slower or less reliable than its link's other devices (the link's otherwise).
 OWN_LINK_KEYS = ("timeout", "retries")
 DEVICE_KEYS = (
@@ -71,6 +73,7 @@ DEVICE_KEYS = (
     "points",
     "read",
     "tags",
+    "measurement",
     *POLL_KEYS.keys() - {"output"},
     *OWN_LINK_KEYS,
 )
@@ -269,6 +272,14 @@ def _device(
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])
         for key in DEFAULTS
     }
+    measurement = table.get("measurement")  # -o influx's, for this device
+    if measurement is not None and not isinstance(measurement, str):
+        raise RequestError(
+            f'{where} measurement: expected the name of an InfluxDB measurement, such as "meters"'
+        )
+    problem = "" if measurement is None else name_problem(measurement, "a measurement", influx=True)
+    if problem:
+        raise RequestError(f"{where} measurement: {problem}")
     _backoff(settings, table, defaults, where)
     for key in OWN_LINK_KEYS:  # checked as a link's are: one place for what --timeout accepts
         if key in table:
@@ -279,6 +290,8 @@ def _device(
         unit,
         _reader(table, where, Path(path).parent, loaded),
         _tags(table.get("tags", {}), where),
+        raw="read" in table,
+        measurement=measurement,
         **settings,
     )
 

@@ -1,5 +1,6 @@
-"""What ``serve`` and ``bridge --listen`` share about a tls:// port: the server's TLS context
-and the roles that may write (Modbus/TCP Security's authorization)."""
+"""What ``serve`` and ``bridge --listen`` share about the port they listen on: a tls:// port's
+TLS context and the roles that may write (Modbus/TCP Security's authorization), a UDP port's
+--udp-rate and what it dropped."""
 
 from __future__ import annotations
 
@@ -7,9 +8,13 @@ from typing import TYPE_CHECKING
 
 from mbtool.codec.errors import RequestError
 from mbtool.device.datafile import load_write_roles
+from mbtool.words import counted
 
 if TYPE_CHECKING:
+    from mbtool.device.serving import Stats
     from mbtool.link.transport import Target
+
+DATAGRAM_SCHEMES = ("udp", "rtu+udp")
 
 
 def parse_roles(text: str) -> frozenset[str]:
@@ -46,3 +51,22 @@ def tls_server_settings(
     if roles is None and data_file:
         roles = load_write_roles(data_file)
     return server_context(cert, key, ca), roles
+
+
+def check_udp_rate(where: Target, udp_rate: int | None) -> None:
+    """--udp-rate only where datagrams come: RequestError (exit 2) elsewhere."""
+    if udp_rate is not None and where.scheme not in DATAGRAM_SCHEMES:
+        raise RequestError(f"--udp-rate is for a udp:// or rtu+udp:// server; {where} is not one")
+
+
+def datagrams_dropped(stats: Stats) -> list[str]:
+    """What a UDP server dropped, for the summary on exit: nothing when it dropped nothing."""
+    parts = []
+    if stats.trailing:
+        parts.append(
+            f"{counted(stats.trailing, 'datagram')} held more than one ADU: "
+            f"{counted(stats.trailing_bytes, 'byte')} dropped"
+        )
+    if stats.limited:
+        parts.append(f"{counted(stats.limited, 'datagram')} over --udp-rate dropped")
+    return parts

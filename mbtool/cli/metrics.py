@@ -30,6 +30,8 @@ from mbtool.cli.settings import Settings
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, OutputFailed, exit_code_for
 
+# The help of the family of raw registers and bits, modbus_value{table,address}.
+VALUE_HELP = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
 # The failures that mean the device could not be read: no reply, an exception (to every
 # point of a map), a reply that is not one, a link that cannot be opened.
 DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
@@ -51,40 +53,19 @@ class Metrics:
         self.swept = False  # the textfile's stale temporaries have been looked for
 
     def check_names(self) -> None:
-        """Refuse, before anything is sent, a measurement or profile name the output cannot carry.
-
-        Each is written on one line: the line protocol has no escape for a newline, which
-        would end the point and make the rest a point of its own (in a measurement of its
-        own).  Its measurement cannot be empty, and one starting with # makes the line a
-        comment.  A map's point names are held to one line when the map is loaded."""
-        from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
-
-        measurement, device = self.measurement, self.device
-        names = [("--measurement", measurement, "a measurement")]
-        if device:
-            names.append(("profile", device, "a tag or label"))
+        """Refuse, before anything is sent, a measurement or profile name the output cannot
+        carry (name_problem).  A map's point names are held to one line when the map is loaded."""
+        names = [("--measurement", self.measurement, "a measurement")]
+        if self.device:
+            names.append(("profile", self.device, "a tag or label"))
         for option, name, what in names:
-            if not name:
-                raise RequestError(f"{option} {name!r}: {what} has a name")
-            if not one_line(name):
-                raise RequestError(f"{option} {name!r}: {what} is written on one line: no control characters")
-        if self.fmt != "influx":
-            return
-        if measurement.startswith("#"):
-            raise RequestError(
-                f"--measurement {measurement!r}: a line starting with # is a comment to InfluxDB"
-            )
-        for option, name, what in names:
-            if name.endswith("\\"):
-                # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after
-                # a backslash in a measurement or tag value as escaped, the separator too.
-                raise RequestError(
-                    f"{option} {name!r}: a backslash at the end of {what} escapes the separator after "
-                    "it to InfluxDB 1.x"
-                )
+            problem = name_problem(name, what, influx=self.fmt == "influx")
+            if problem:
+                raise RequestError(f"{option} {name!r}: {problem}")
 
     def check_point_names(self, points) -> None:
-        """Refuse, before anything is sent, a map point whose metric would be a status metric."""
+        """Refuse, before anything is sent, a map point whose metric would be a status metric;
+        warn of one named as a counter's."""
         for point in points:
             metric = _metric_name(f"{self.measurement}_{point.name}")
             if metric in self.status_names():
@@ -92,6 +73,7 @@ class Metrics:
                     f"point {point.name}: its metric, {metric}, is the "
                     "one that says whether the device answered; rename the point or give --measurement"
                 )
+        warn_counter_names(points, self.measurement)
 
     def emit(self, result, out, when: float | None = None) -> None:
         """One read: to ``out``, or with --textfile to that file."""
@@ -180,7 +162,7 @@ class Metrics:
                 help_text = about or "a register map's point, read by mbtool"
             else:
                 name = _metric_name(f"{self.measurement}_value")
-                help_text = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
+                help_text = VALUE_HELP
             metrics.setdefault(name, (help_text, []))[1].append(
                 f"{name}{{{_label_pairs(base | labels)}}} {shown}"
             )
@@ -213,6 +195,27 @@ class Metrics:
                 [f"{last_name}{{{pairs}}} {self.last_success!r}"],
             )
         return metrics
+
+
+def name_problem(name: str, what: str, influx: bool) -> str:
+    """Why ``name`` (``what``: "a measurement", "a tag or label") cannot be written; "" when it can.
+
+    Each is written on one line: the line protocol has no escape for a newline, which would
+    end the point and make the rest a point of its own (in a measurement of its own).  It
+    cannot be empty; to InfluxDB a measurement starting with # makes the line a comment."""
+    from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+
+    if not name:
+        return f"{what} has a name"
+    if not one_line(name):
+        return f"{what} is written on one line: no control characters"
+    if influx and what == "a measurement" and name.startswith("#"):
+        return "a line starting with # is a comment to InfluxDB"
+    if influx and name.endswith("\\"):
+        # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after a
+        # backslash in a measurement or tag value as escaped, the separator too.
+        return f"a backslash at the end of {what} escapes the separator after it to InfluxDB 1.x"
+    return ""
 
 
 def _values(result) -> list[tuple[dict, object, str]]:
@@ -273,6 +276,35 @@ def _field_value(value) -> str | None:
 def _metric_name(name: str) -> str:
     name = re.sub(r"[^a-zA-Z0-9_:]", "_", name)
     return name if re.match(r"[a-zA-Z_:]", name) else "_" + name
+
+
+# The ends of a name Prometheus keeps for a counter (_total) and for the series of a histogram
+# or a summary: promtool flags a gauge named so, and a reader would take rate() of it.
+COUNTER_ENDS = {
+    "_total": "counters",
+    "_count": "histograms and summaries",
+    "_sum": "histograms and summaries",
+    "_bucket": "histograms",
+}
+
+
+def warn_counter_names(points, prefix: str = "modbus", where: str = "", warned: set | None = None) -> None:
+    """One warning on stderr for each map point whose metric ends as a counter's does
+    (_total, _count, _sum, _bucket): a point is a gauge.  ``where``: what names the map
+    ("PATH: "); ``warned``: the metrics warned of already (a map several devices share)."""
+    warned = set() if warned is None else warned
+    for point in points:
+        metric = _metric_name(f"{prefix}_{point.name}")
+        end = next((end for end in COUNTER_ENDS if metric.endswith(end)), None)
+        if end is None or metric in warned:
+            continue
+        warned.add(metric)
+        print(
+            f"mbtool: warning: {where}point {point.name}: its metric, {metric}, is a gauge, but Prometheus "
+            f"keeps names ending in {end} for {COUNTER_ENDS[end]}; rename the point",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _label_value(text: str) -> str:

@@ -78,7 +78,7 @@ def with_options(options: list[Callable]) -> Callable:
 serial_line_options = with_options(SERIAL_LINE_OPTIONS)
 
 
-# How a server treats its TCP clients, shared by serve and bridge.
+# How a server treats its TCP clients and UDP sources, shared by serve and bridge.
 TCP_CLIENT_OPTIONS = [
     click.option(
         "--max-clients",
@@ -103,6 +103,15 @@ TCP_CLIENT_OPTIONS = [
         default=5.0,
         show_default=True,
         help="TCP: close a client that has not completed a request SECONDS after connecting; 0 for never.",
+    ),
+    click.option(
+        "--udp-rate",
+        type=Number(1, 1_000_000, "datagrams a second"),
+        metavar="N",
+        help="UDP: answer at most N datagrams a second from one source address (bursts of N); "
+        "the rest are dropped, counted and logged once a run. Default: no limit. Whatever the "
+        "rate, a datagram is one ADU: bytes after its first are dropped, so one datagram gets "
+        "one reply at most.",
     ),
 ]
 
@@ -216,7 +225,8 @@ WRITE_ROLES_OPTION = click.option(
     "--write-roles",
     metavar="ROLE,...",
     help="tls://: the roles (from the clients' certificates, extension 1.3.6.1.4.1.50316.802.1) "
-    "that may write; a write from any other gets exception 01. Default: a data file's "
+    "that may write; any other may only read (FC 01-04, 07, 0B, 0C, 11, 14, 18, 43/14, and FC 08's "
+    "echo and counters): anything else it sends gets exception 01. Default: a data file's "
     "write_roles, else every client may write.",
 )
 # serve's: its own certificate, and the CA its clients' certificates must be signed by.

@@ -11,13 +11,22 @@ import sys
 import threading
 from functools import lru_cache
 
-from mbtool.cli.metrics import _exposition, _label_pairs, _label_value, _metric_name, _sample_value
+from mbtool.cli.metrics import (
+    VALUE_HELP,
+    _exposition,
+    _label_pairs,
+    _label_value,
+    _metric_name,
+    _sample_value,
+    warn_counter_names,
+)
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.link.stats import OUTCOMES, Stats
 from mbtool.plant.schedule import ONLINE, Event
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
+VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
 
 
 def point_metric(reading) -> tuple[str, str, int | float] | None:
@@ -41,8 +50,9 @@ def _named(name: str, description: str, unit: str) -> tuple[str, str]:
 
 def prom_text(states: list) -> str:
     """The exposition of the devices' latest polls: modbus_up and the last success a device,
-    and a gauge a point read; a device down shows no value (it would be scraped as current).
-    ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
+    and a gauge a point read, a map's point named after it, a raw register or bit in
+    modbus_value{table,address,ref}; a device down shows no value (it would be scraped as
+    current).  ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
     metrics = {
         UP: ("1 when the device answered its last poll, 0 when it could not be read", []),
         LAST_SUCCESS: ("When the device last answered a poll, in seconds since the epoch", []),
@@ -64,10 +74,14 @@ def prom_text(states: list) -> str:
             shown = _sample_value(number)
             if shown is None:
                 continue
-            # The device's labels, then ref: _label_pairs(base | {"ref": ...}), escaped once a device.
-            metrics.setdefault(name, (about, []))[1].append(
-                f'{name}{{{pairs},ref="{_label_value(reading.point.ref)}"}} {shown}'
-            )
+            # The device's labels, then the point's: _label_pairs(base | {...}), escaped once a device.
+            point = reading.point
+            if device.raw:
+                name, about = VALUE, VALUE_HELP
+                where = f'table="{point.table.name}",address="{point.address}",ref="{point.ref}"'
+            else:
+                where = f'ref="{_label_value(point.ref)}"'
+            metrics.setdefault(name, (about, []))[1].append(f"{name}{{{pairs},{where}}} {shown}")
     if not metrics[LAST_SUCCESS][1]:
         del metrics[LAST_SUCCESS]
     return _exposition(metrics)
@@ -85,11 +99,18 @@ def point_name_clash(points, own: set[str], whose: str) -> str:
 
 def refuse_point_names(plant, own: set[str], whose: str) -> None:
     """RequestError (exit 2, before anything is opened) for an inventory whose map points
-    would be named as ``own`` metrics."""
+    would be named as ``own`` metrics, or as its raw registers' family (modbus_value); a
+    warning for a point named as a counter (metrics.warn_counter_names)."""
+    if any(spec.raw for spec in plant.devices):
+        own = own | {VALUE}
     for spec in plant.devices:
         clash = point_name_clash(spec.reader.points, own, whose)
         if clash:
             raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+    warned: set[str] = set()  # a map's points once, however many devices read them
+    for spec in plant.devices:
+        if not spec.raw:
+            warn_counter_names(spec.reader.points, where=f"{plant.maps[spec.name]}: ", warned=warned)
 
 
 def event_line(event) -> str:

@@ -179,6 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
+    if sys.stderr is None:
+        _closed_stderr_as_nowhere()
     error: BaseException | None = None
     meta: dict = {}  # the run's click context's: what the options noted as they were parsed
     try:
@@ -245,6 +247,18 @@ def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | No
         failed = OutputFailed("standard output", failure)
         return failed, failed.exit_code
     return error, code
+
+
+def _closed_stderr_as_nowhere() -> None:
+    """Started with stderr closed (``2>&-``; Python then has no sys.stderr, and print(file=None)
+    writes to stdout): /dev/null takes its place, so warnings, events and statistics go
+    nowhere, never into stdout's data nor a crash, and fd 2 is taken: no socket or file
+    opened later becomes stderr."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    if null != 2:  # fd 2 is the lowest free one but when stdin or stdout is closed too
+        os.dup2(null, 2)
+        os.close(null)
+    sys.stderr = open(2, "w", encoding="utf-8", closefd=False)
 
 
 def _closed_stdout_as_a_gone_reader() -> None:

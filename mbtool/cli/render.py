@@ -96,6 +96,12 @@ def labels(result: Result) -> list:
     return result.refs if result.refs is not None else result.addresses
 
 
+def value_texts(result: Result) -> list[str]:
+    """Each value as plain, table and CSV say it: the command's own words where it gave them
+    (write-bit's ``bit 2 on``), else the value's text."""
+    return result.texts if result.texts is not None else [value_text(value) for value in result.values]
+
+
 def by_order(result: Result) -> tuple[str, ...]:
     """The word orders of a --order all result (its values are {order: value}); () otherwise."""
     first = result.values[0] if result.values else None
@@ -106,19 +112,19 @@ def csv_cells(result: Result) -> tuple[list[str], list[list[str]]]:
     """The CSV header and rows of a result: one column a word order with --order all."""
     orders = by_order(result)
     header = ["ref" if result.refs is not None else "address", *(orders or ["value"])]
-    rows = [
-        [str(label), *([value_text(value[o]) for o in orders] if orders else [value_text(value)])]
-        for label, value in zip(labels(result), result.values, strict=True)
-    ]
+    if orders:
+        rows = [
+            [str(label), *(value_text(value[o]) for o in orders)]
+            for label, value in zip(labels(result), result.values, strict=True)
+        ]
+    else:
+        rows = [[str(label), text] for label, text in zip(labels(result), value_texts(result), strict=True)]
     return header, rows
 
 
 def _plain(result: Result, out: TextIO) -> None:
     out.write(
-        "".join(
-            f"{label} {value_text(value)}\n"
-            for label, value in zip(labels(result), result.values, strict=True)
-        )
+        "".join(f"{label} {text}\n" for label, text in zip(labels(result), value_texts(result), strict=True))
     )
 
 
@@ -159,14 +165,18 @@ def _table(result: Result, out: TextIO) -> None:
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
     refs = result.refs if result.refs is not None else [None] * len(result.values)
-    for ref, address, value in zip(refs, result.addresses, result.values, strict=True):
+    for index, (ref, address, value) in enumerate(zip(refs, result.addresses, result.values, strict=True)):
         cells = [] if ref is None else [ref]
         if ref is None or not orders:
             cells.append(str(address))
-        if bits:
+        if result.texts is not None:
+            cells.append(result.texts[index])
+        elif bits:
             cells.append("[green]ON[/]" if value else "[dim]OFF[/]")
         elif plain_registers:
-            cells += [str(value), f"0x{value:04X}"]
+            # The register as it holds the value: a write of -5 holds 0xFFFB.
+            register = value if result.registers is None else result.registers[index]
+            cells += [str(value), f"0x{register:04X}"]
         else:
             cells += [value_text(value[o]) for o in orders] if orders else [value_text(value)]
         if typed_registers:

@@ -27,6 +27,7 @@ class Result:
     extra: dict | None = None  # more keys for JSON
     refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
     addresses: list[int] | None = None  # where each value starts; None: one a value from address
+    texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
 
     def __init__(
         self,
@@ -41,6 +42,7 @@ class Result:
         extra: dict | None = None,
         refs: list[str] | None = None,
         addresses: list[int] | None = None,
+        texts: list[str] | None = None,
     ) -> None:
         # By hand: one a poll (codec/record.py).
         fields = self.__dict__
@@ -56,6 +58,7 @@ class Result:
         fields["refs"] = refs
         # One value a register or a bit, from ``address`` on, unless the command says otherwise.
         fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
+        fields["texts"] = texts
 
     @property
     def table(self) -> str:
@@ -89,7 +92,10 @@ def as_dict(result: Result) -> dict:
     data["addresses"] = result.addresses
     if result.refs is not None:
         data["refs"] = result.refs
-    if result.registers is not None and result.type not in (None, "uint16"):
+    # The registers behind typed values, or behind plain ones echoed as typed (-5: 65531).
+    if result.registers is not None and (
+        result.type not in (None, "uint16") or list(result.registers) != result.values
+    ):
         data["registers"] = result.registers
     data.update(result.extra or {})
     return data

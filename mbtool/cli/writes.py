@@ -117,8 +117,10 @@ def _counts(outcome: Outcome, read_back: bool | None = None) -> str:
         parts.append(f"{done} written{note}")
     if status.count(REFUSED):
         parts.append(f"{status.count(REFUSED)} refused")
-    if status.count(FAILED):
-        parts.append(f"{status.count(FAILED)} failed (no valid reply: it may or may not have been written)")
+    failed = status.count(FAILED)
+    if failed:
+        them = "it" if failed == 1 else "they"
+        parts.append(f"{failed} failed (no valid reply: {them} may or may not have been written)")
     if status.count(NOT_SENT):
         parts.append(f"{status.count(NOT_SENT)} not sent")
     return ", ".join(parts)

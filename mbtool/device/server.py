@@ -45,8 +45,8 @@ class Server:
 
     ``device`` answers, or ``answerer`` (a gateway's forwarder) where it is None.  On TCP,
     ``queued`` answers take a bus's time, one at a time (``bridge``), and ``max_clients``,
-    ``idle_timeout`` and ``first_request_timeout`` bound the clients; on a serial line,
-    ``settings`` are the line's."""
+    ``idle_timeout`` and ``first_request_timeout`` bound the clients; on UDP ``udp_rate`` caps
+    the datagrams answered a second for one source; on a serial line, ``settings`` are the line's."""
 
     def __init__(
         self,
@@ -65,6 +65,7 @@ class Server:
         first_request_timeout: float | None = FIRST_REQUEST_TIMEOUT,
         tls_context: ssl.SSLContext | None = None,
         write_roles: frozenset[str] | None = None,
+        udp_rate: float | None = None,
     ) -> None:
         faults = faults or IoFaults()
         self.stats = Stats()
@@ -88,7 +89,7 @@ class Server:
             )
             self.port = TlsServer(parts, context=tls_context, write_roles=write_roles, **limits)
         elif target.scheme in ("udp", "rtu+udp"):
-            self.port = UdpServer(parts)
+            self.port = UdpServer(parts, udp_rate)
         else:
             self.port = SerialServer(parts, settings or SerialSettings())
 

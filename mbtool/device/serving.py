@@ -71,6 +71,9 @@ class Stats:
         self.evicted = 0  # idle clients closed to give their slot to a newcomer
         self.expired = 0  # clients closed by the idle timeout
         self.unused = 0  # clients closed by the first-request timeout
+        self.trailing = 0  # datagrams with bytes after their one ADU (UDP), and those bytes, dropped
+        self.trailing_bytes = 0
+        self.limited = 0  # datagrams dropped past the source's --udp-rate
         self.frames: deque[tuple[float, str, str, bytes, str]] = deque(maxlen=12)
         self.listening = ""
 

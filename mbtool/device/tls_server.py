@@ -13,9 +13,9 @@ alert is not lost to a reset.
 
 Authorization (the specification's role-based rules): a client's role is the UTF8String of
 its certificate's extension 1.3.6.1.4.1.50316.802.1 (``mbtool.link.x509``).  With write roles
-given, a request that changes data or state from any other role (or none) is answered
-exception 01, Illegal Function, as the specification says, and never reaches the device or
-the bus (``RoleCheck``).
+given, a request from any other role (or none) that is not known to only read (``reads_only``,
+an allow-list) is answered exception 01, Illegal Function, as the specification says, and never
+reaches the device or the bus (``RoleCheck``): on ``serve`` and ``bridge`` alike.
 """
 
 from __future__ import annotations
@@ -25,10 +25,11 @@ import socket
 import ssl
 from collections.abc import Callable
 
+from mbtool.codec.device_id import MEI_TYPE
 from mbtool.codec.framing import Frame, Framer, Rejected
-from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, function_type
+from mbtool.codec.pdu import ExceptionCode, ExceptionResponse
 from mbtool.codec.record import replace
-from mbtool.device.handlers import changes_state
+from mbtool.codec.serial_line import DiagnosticSubFunction as Sub
 from mbtool.device.serving import Answerer, ServerParts, Stats
 from mbtool.device.tcp_server import RECV_SIZE, TcpServer, _Client
 from mbtool.link import x509
@@ -45,16 +46,40 @@ FAILURES = {
 }
 
 
-def writes(pdu: bytes) -> bool:
-    """Whether a request may change data or state: every write, every FC08 sub-function that
-    changes the device's state, and a function code the codec does not know (a gateway that
-    forwards it cannot tell what it does)."""
-    return changes_state(pdu) or not pdu or function_type(pdu[0]) is None
+# What a role that may not write may send: an allow-list of the requests that only read (spec
+# §6), so that nothing whose effect is unknown gets through: not FC 08's reserved sub-functions
+# (05-09, 13, 15 and up: what a device does with them nobody can promise), not FC 43's other MEI
+# types (0D, CANopen general reference, can write), not a function code nobody knows.
+READ_FUNCTIONS = frozenset({0x01, 0x02, 0x03, 0x04, 0x07, 0x0B, 0x0C, 0x11, 0x14, 0x18})
+READ_DEVICE_ID = (0x2B, MEI_TYPE)  # FC 43 / 14: Read Device Identification
+# FC 08: the query's echo, the diagnostic register and the counters 0B-12 (the spec's FC 08
+# table, codec.serial_line: 13 is reserved there, 14 clears).
+READ_DIAGNOSTICS = frozenset(
+    {
+        Sub.RETURN_QUERY_DATA,
+        Sub.RETURN_DIAGNOSTIC_REGISTER,
+        *range(Sub.BUS_MESSAGE_COUNT, Sub.BUS_CHAR_OVERRUN_COUNT + 1),
+    }
+)
+
+
+def reads_only(pdu: bytes) -> bool:
+    """Whether a request only reads, by its function code (and FC 08's sub-function, FC 43's MEI
+    type): what a client whose role may not write may send."""
+    if not pdu:
+        return False
+    code = pdu[0]
+    if code in READ_FUNCTIONS:
+        return True
+    if code == 0x08:
+        return len(pdu) >= 3 and int.from_bytes(pdu[1:3], "big") in READ_DIAGNOSTICS
+    return tuple(pdu[:2]) == READ_DEVICE_ID
 
 
 class RoleCheck:
-    """An answerer in front of another: a write from a client whose role may not write is
-    answered exception 01 at once; everything else goes on to ``answerer``."""
+    """An answerer in front of another: a request that does more than read (``reads_only``),
+    from a client whose role may not write, is answered exception 01 at once; everything else
+    goes on to ``answerer``."""
 
     def __init__(
         self,
@@ -71,7 +96,7 @@ class RoleCheck:
         self.log = log
 
     def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
-        if isinstance(event, Rejected) or not writes(event.pdu):
+        if isinstance(event, Rejected) or reads_only(event.pdu):
             return self.answerer.answer(event, framer, peer)
         role = self.roles.get(peer)
         if role in self.write_roles:

@@ -21,6 +21,7 @@ from collections import Counter
 from mbtool.codec.errors import exceptions_by_code, exceptions_text
 from mbtool.durations import Durations
 from mbtool.monitor.bus import BusFrame, Unanswered
+from mbtool.words import counted
 
 
 class UnitStats:
@@ -145,9 +146,9 @@ class BusStats:
         lines = [
             "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows
         ]
-        bus = f"bus: {self.frames} frames, {self.garbage_bytes} garbage bytes"
+        bus = f"bus: {counted(self.frames, 'frame')}, {counted(self.garbage_bytes, 'garbage byte')}"
         if self.timed and self.t35 is not None:
-            bus += f", {self.breaks} t3.5 breaks"
+            bus += f", {counted(self.breaks, 't3.5 break')}"
         utilisation, seconds = self.utilisation(now), self.seconds(now)
         if utilisation is not None:
             bus += f", utilisation {100 * utilisation:.1f}% over {seconds:.1f} s"

@@ -53,6 +53,8 @@ class DeviceSpec:
     interval: float = 10.0
     offline_after: int = 3
     max_backoff: float = 300.0
+    raw: bool = False  # it reads references (raw registers and bits), not a map's points
+    measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
     timeout: float | None = None  # its own, where it is slower than its link's other devices
     retries: int | None = None  # None: the link's
 

@@ -221,9 +221,9 @@ class PointException(ModbusException):
         super().__init__(error.function_code, error.exception_code)
         answer = getattr(error, "answer", str(error))
         if factor is not None:
-            answer = f"its scale factor {factor.name} ({factor.ref}): {answer}"
+            answer = f"its scale factor {factor.named}: {answer}"
         self.answer = answer  # the device's answer alone, where the point is named apart
-        self.args = (f"{point.name} ({point.ref}): {answer}",)
+        self.args = (f"{point.named}: {answer}",)
 
 
 def write_request(

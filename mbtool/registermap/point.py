@@ -73,6 +73,12 @@ class Point:
         object.__setattr__(self, "_decode", value_decoder(self.type, self.order) if registers else None)
 
     @property
+    def named(self) -> str:
+        """The point as a message names it: ``voltage (30001)``, or its reference once when it
+        is named by it (``40011``: a plant device's read)."""
+        return self.ref if self.name == self.ref else f"{self.name} ({self.ref})"
+
+    @property
     def size(self) -> int:
         """Registers (or bits) the point occupies."""
         if self.table.bits or self.bit is not None:

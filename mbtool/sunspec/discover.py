@@ -13,6 +13,10 @@ end model, 0xFFFF.  Real devices end it in other ways, each a warning:
 
 A model whose registers the device refuses is named (its error kept) and the walk goes on
 past it: its length is known.
+
+The walk is bounded (MAX_MODELS, MAX_REGISTERS_READ), and one stopped there, or by Ctrl-C,
+keeps the models it found: a chain of zero-length models is not walked read by read to
+register 65535.
 """
 
 from __future__ import annotations
@@ -26,8 +30,17 @@ from mbtool.codec.record import record
 from mbtool.errors import ExitCode, MbtoolError
 from mbtool.sunspec.layout import Layout, lay_out
 from mbtool.sunspec.models import BASES, END_MODEL, MARKER, definition
+from mbtool.words import counted
 
 Execute = Callable[[ReadHoldingRegisters], object]
+
+# The walk's bounds (issue 40 item 13).  Each model moves the walk forward (its id, its
+# length, its registers: at least 2 registers), so it ends by register 65535 whatever the
+# device says; a device that says zero-length models took 12,768 reads to get there.  No
+# device's chain comes near these: the twin's is 8 models and 404 registers, and the largest
+# model SunSpec defines is 1,439 registers.
+MAX_MODELS = 100
+MAX_REGISTERS_READ = 10_000  # the marker, each model's id and length, and the registers read
 
 
 class NotSunSpec(MbtoolError):
@@ -57,42 +70,74 @@ class Chain:
     base: int  # where the marker is (0-based)
     models: tuple[Model, ...]
     warnings: tuple[str, ...]  # the chain's own quirks; each model's are in its layout
+    stopped: str = ""  # why the walk ended before the chain did: "" when it walked to its end
+    interrupted: bool = False  # Ctrl-C or SIGTERM stopped it
+
+
+class _Counted:
+    """``execute``, with the registers it has read counted: the walk's budget."""
+
+    def __init__(self, execute: Execute) -> None:
+        self.execute, self.registers = execute, 0
+
+    def __call__(self, request: ReadHoldingRegisters):
+        reply = self.execute(request)
+        self.registers += request.count
+        return reply
 
 
 def discover(execute: Execute, bases: tuple[int, ...] = BASES, wanted: set[int] | None = None) -> Chain:
     """The chain after the marker; ``wanted``: the model ids whose registers are read (the
-    others are walked past: their id and length only)."""
+    others are walked past: their id and length only).
+
+    The walk stops at MAX_MODELS models, or before a model whose registers would take it past
+    MAX_REGISTERS_READ; Ctrl-C or SIGTERM (KeyboardInterrupt) stops it too, once the marker is
+    found.  Then ``stopped`` says why, and the models found before are kept: a model whose
+    reads were cut short is left out."""
+    execute = _Counted(execute)
     base = find_marker(execute, bases)
     found: list[tuple[int, int, tuple[int, ...], ModbusException | None]] = []
     warnings: list[str] = []
+    stopped, interrupted = "", False
     address = base + 2
-    while True:
-        header = _header(execute, address, found[-1][0] if found else None, warnings)
-        if header is None:
-            break
-        model_id, length = header
-        if address + 2 + length > 65536:
-            warnings.append(
-                f"model {model_id} at {address}: its length, {length}, runs past register 65535; "
-                f"{65534 - address} registers read"
-            )
-            length = 65534 - address
-        error = None
-        try:
-            if wanted and model_id not in wanted:
-                registers = (0,) * length  # not read: laid out by its length alone
-            else:
-                registers = tuple(read_registers(execute, address + 2, length))
-        except ModbusException as refused:
-            registers, error = (0,) * length, refused
-        found.append((model_id, address, registers, error))
-        address += 2 + length
+    try:
+        while True:
+            if len(found) == MAX_MODELS:
+                stopped = f"the walk stopped after {MAX_MODELS} models, at register {address}: a chain holds no more"
+                break
+            header = _header(execute, address, found[-1][0] if found else None, warnings)
+            if header is None:
+                break
+            model_id, length = header
+            if address + 2 + length > 65536:
+                warnings.append(
+                    f"model {model_id} at {address}: its length, {length}, runs past register 65535; "
+                    f"{65534 - address} registers read"
+                )
+                length = 65534 - address
+            read = not wanted or model_id in wanted  # else walked past: laid out by its length alone
+            if read and execute.registers + length > MAX_REGISTERS_READ:
+                stopped = (
+                    f"the walk stopped at model {model_id} at {address}: its {length} registers would "
+                    f"take it past {MAX_REGISTERS_READ} registers read"
+                )
+                break
+            error = None
+            try:
+                registers = tuple(read_registers(execute, address + 2, length)) if read else (0,) * length
+            except ModbusException as refused:
+                registers, error = (0,) * length, refused
+            found.append((model_id, address, registers, error))
+            address += 2 + length
+    except KeyboardInterrupt:
+        stopped = f"the walk stopped after {counted(len(found), 'model')}, at register {address}"
+        interrupted = True
     keys = _keys([model_id for model_id, *_ in found])
     models = [
         Model(lay_out(model_id, key, address, registers), () if error else registers, error)
         for (model_id, address, registers, error), key in zip(found, keys, strict=True)
     ]
-    return Chain(base, tuple(models), tuple(warnings))
+    return Chain(base, tuple(models), tuple(warnings), stopped, interrupted)
 
 
 def find_marker(execute: Execute, bases: tuple[int, ...] = BASES) -> int:

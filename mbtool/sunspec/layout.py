@@ -21,6 +21,7 @@ from __future__ import annotations
 from mbtool.codec.data_access import MAX_READ_REGISTERS
 from mbtool.codec.record import field, record
 from mbtool.sunspec.models import TYPES, definition, point_size
+from mbtool.words import counted
 
 
 @record
@@ -71,6 +72,10 @@ class Layout:
         return f"model {self.model_id}" + (f" ({self.name})" if self.name else "")
 
 
+def _are(count: int) -> str:
+    return "is" if count == 1 else "are"
+
+
 def lay_out(model_id: int, key: str, address: int, registers: list[int] | tuple[int, ...]) -> Layout:
     """The model whose id is at ``address``, its ``registers`` those after the length."""
     definition_group = definition(model_id)
@@ -86,7 +91,9 @@ def lay_out(model_id: int, key: str, address: int, registers: list[int] | tuple[
             "",
             None,
             (address + 2, length) if length else None,
-            (f"{where}: SunSpec defines no model {model_id}: its {length} registers are shown raw",),
+            (
+                f"{where}: SunSpec defines no model {model_id}: its {counted(length, 'register')} {_are(length)} shown raw",
+            ),
         )
     laying = _Laying(model_id, key, address, registers)
     root, end = laying.group(definition_group, key, address, None, top=True)
@@ -97,13 +104,13 @@ def lay_out(model_id: int, key: str, address: int, registers: list[int] | tuple[
         raw = (end, laying.end - end)
         if not laying.leftover:
             warnings.append(
-                f"{title}: {length} registers on the wire, {end - address - 2} in its definition; "
-                f"the length on the wire is used: the {laying.end - end} registers past the "
-                "definition are shown raw"
+                f"{title}: {counted(length, 'register')} on the wire, {end - address - 2} in its definition; "
+                f"the length on the wire is used: the {counted(laying.end - end, 'register')} past the "
+                f"definition {_are(laying.end - end)} shown raw"
             )
     if laying.cut and not (model_id == 1 and length == 65 and laying.cut == ["Pad"]):
         warnings.append(
-            f"{title}: {length} registers on the wire, {end - address - 2} in its definition; "
+            f"{title}: {counted(length, 'register')} on the wire, {end - address - 2} in its definition; "
             f"the length on the wire is used: {', '.join(laying.cut)} past its end left out"
         )
     return Layout(
@@ -182,8 +189,8 @@ class _Laying:
             if left:
                 self.leftover = True
                 self.warnings.append(
-                    f"{where}: {left} registers after {fits} {sub['name']} group{'s' * (fits != 1)} "
-                    f"({size} registers each) do not make another: shown raw"
+                    f"{where}: {counted(left, 'register')} after {counted(fits, sub['name'] + ' group')} "
+                    f"({counted(size, 'register')} each) {'does' if left == 1 else 'do'} not make another: shown raw"
                 )
             return fits
         if isinstance(count, str):
@@ -198,7 +205,7 @@ class _Laying:
         if count > fits:
             self.leftover = True
             self.warnings.append(
-                f"{where}: {count} {sub['name']} group{'s' * (count != 1)} of {size} registers (its {sub['count']}) "
+                f"{where}: {counted(count, sub['name'] + ' group')} of {size} registers (its {sub['count']}) "
                 f"{'does' if count == 1 else 'do'} not fit in its length: {fits} shown, the registers left raw"
             )
             return fits

@@ -87,9 +87,24 @@ def _man_text() -> str:
 
 def test_generated_files_are_current():
     outputs = gen_docs.generate(cli)
-    assert set(outputs) == {MAN_PAGE, *COMPLETIONS}
+    assert set(outputs) == {MAN_PAGE, *COMPLETIONS, "README.md", "docs/plant.md"}
     stale = gen_docs.stale(outputs, REPO_ROOT)
     assert not stale, f"out of date: {', '.join(stale)}: {REGENERATE}"
+
+
+def test_the_live_view_captures_are_the_tools_own():
+    """README.md's and docs/plant.md's screens of poll's live view are what LiveView draws
+    (issue 39.11: they showed a change of state as the tool never wrote it)."""
+    capture = gen_docs.live_view_capture()
+    # The event line as poll writes it on stderr: a colon before the reason, the next try after.
+    assert "meter9 offline: no response from unit 9 within 0.3 s; next try in 4 s" in capture
+    assert capture.splitlines()[0] == "mbtool poll plant.toml: 5 devices, 4 online, 1 offline"
+    width, height = gen_docs.CAPTURE_SIZE
+    assert len(capture.splitlines()) <= height and max(map(len, capture.splitlines())) <= width
+    for path in gen_docs.CAPTURED_IN:
+        shown = _read(path).split(gen_docs.CAPTURE_MARK + "\n```text\n", 1)
+        assert len(shown) == 2, f"{path} has no generated capture of the live view: {REGENERATE}"
+        assert shown[1].split("```\n", 1)[0] == capture, f"{path}'s capture is stale: {REGENERATE}"
 
 
 def test_check_mode_passes():
@@ -491,3 +506,27 @@ def test_the_sim_examples_run(page, example):
     repository has."""
     result = run_cli(*shlex.split(example)[1:])
     assert result.returncode == 0, f"{page}: {result}"
+
+
+def test_the_plant_pages_inventory_loads_where_the_page_says_to_save_it(tmp_path):
+    """docs/plant.md's end-to-end inventory names its map relative to itself: the page says
+    where to save it, and saved there it loads (issue 39.12: saved anywhere else it is exit 2,
+    'cannot read map')."""
+    from mbtool.cli.inventory import load_inventory
+    from mbtool.codec.errors import RequestError
+
+    section = _read("docs/plant.md").split("## A plant end to end", 1)[1].split("\n## ", 1)[0]
+    where = "save the inventory below as `plant.toml` in the root of mbtool's source tree"
+    assert where in " ".join(section.split()), "docs/plant.md does not say where to save its inventory"
+    inventory = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    saved = REPO_ROOT / f"plant-test-{os.getpid()}.toml"  # in the root, under a name of its own
+    saved.write_text(inventory)
+    try:
+        plant = load_inventory(str(saved))
+    finally:
+        saved.unlink()
+    assert [device.name for device in plant.devices] == ["meter1", "meter2", "meter9", "pump", "boiler"]
+    elsewhere = tmp_path / "plant.toml"
+    elsewhere.write_text(inventory)
+    with pytest.raises(RequestError, match="cannot read map"):
+        load_inventory(str(elsewhere))

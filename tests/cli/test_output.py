@@ -132,6 +132,27 @@ def test_a_closed_stdout_is_a_reader_gone_not_an_internal_error(args, tmp_path):
     assert "Traceback" not in res.stderr and "internal error" not in res.stderr, res.stderr
 
 
+@pytest.mark.parametrize("fmt", ["json", "csv"])
+def test_a_closed_stderr_is_quiet_and_stdout_carries_data_only(fmt):
+    """`2>&-` (issue 40.8): poll's events, failed polls and statistics went into stdout, the
+    JSON or CSV stream, and the run crashed (AttributeError, 1). Now they go nowhere, and the
+    run ends as it would with stderr open: 8, the spare unit silent, the others answered."""
+    res = shell(f"{MBTOOL} poll examples/plant.toml --once -o {fmt} 2>&-")
+    assert res.returncode == 8, res
+    lines = res.stdout.splitlines()
+    if fmt == "json":
+        records = [json.loads(line) for line in lines]  # every line an object: no stray text
+        assert {r["device"] for r in records} == {"meter1", "plc", "spare"}
+    else:
+        assert lines[0] == "time,device,name,value,unit,ref" and all(line.count(",") == 5 for line in lines)
+    assert "mbtool:" not in res.stdout and "answered" not in res.stdout
+
+
+def test_a_closed_stderr_keeps_a_failures_exit_status():
+    res = shell(f"{MBTOOL} read 40001 -p tcp://127.0.0.1:1 -t 0.2 2>&-")
+    assert res.returncode == 6 and res.stdout == "", res
+
+
 # --- a full disk (13.3) ---------------------------------------------------------------------------
 
 

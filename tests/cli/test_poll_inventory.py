@@ -65,6 +65,49 @@ def test_a_point_named_as_a_devices_own_metric_is_refused_for_prometheus_text(
 
 
 @pytest.mark.parametrize(
+    "key, args, words",
+    [
+        (
+            'measurement = "#meters"',
+            ["-o", "influx"],
+            "[devices.d] measurement: a line starting with # is a comment",
+        ),
+        ('measurement = ""', ["-o", "influx"], "[devices.d] measurement: a measurement has a name"),
+        ("measurement = 3", ["-o", "influx"], "[devices.d] measurement: expected"),
+        ("", ["-o", "influx", "--measurement", "a\\"], "--measurement 'a\\\\': a backslash at the end"),
+        ("", ["-o", "prom", "--measurement", "plant"], "--measurement names InfluxDB's measurement"),
+    ],
+    ids=["comment", "empty", "number", "backslash", "not-influx"],
+)
+def test_a_measurement_influx_cannot_carry_is_exit_2_with_nothing_opened(
+    tmp_path, silent_server, key, args, words
+):
+    path = tmp_path / "plant.toml"
+    target = silent_server.socket_target.replace("socket", "tcp")
+    path.write_text(f'[links.a]\ntarget = "{target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n{key}\n')
+    line = assert_one_error_line(run_cli("poll", path, "--once", *args), 2)
+    assert words in line, line
+    assert silent_server.received_bytes() == b""
+
+
+def test_a_point_named_value_beside_a_device_of_raw_registers_is_refused_for_prometheus_text(
+    tmp_path, silent_server
+):
+    """modbus_value is the family of the registers a device's read lists: a map point `value`
+    beside such a device would be a second family of that name."""
+    (tmp_path / "map.toml").write_text("[points.value]\nref = 40001\n")
+    path = tmp_path / "plant.toml"
+    target = silent_server.socket_target.replace("socket", "tcp")
+    path.write_text(
+        f'[links.a]\ntarget = "{target}"\n[devices.m]\nlink = "a"\nmap = "map.toml"\n'
+        '[devices.r]\nlink = "a"\nread = ["40001 2"]\n'
+    )
+    line = assert_one_error_line(run_cli("poll", path, "--once", "-o", "prom"), 2)
+    assert "[devices.m] map: point value: its metric, modbus_value" in line
+    assert silent_server.received_bytes() == b""
+
+
+@pytest.mark.parametrize(
     "first, second",
     [
         ("tcp://127.0.0.1:{port}", "tcp://127.0.0.1:{port}/"),

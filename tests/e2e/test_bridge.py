@@ -523,7 +523,7 @@ def test_plain_lines_show_each_transaction_decoded_with_its_times(rtu_bus):
     assert " | bus " in lines[1] and " ms, total " in lines[1]
     assert any(line.endswith("connected") for line in out.splitlines())
     assert code == 0
-    assert "1 transactions: 1 replies" in err
+    assert "1 transaction: 1 reply" in err
 
 
 def test_hex_shows_every_frame_on_both_sides_with_checksums(rtu_bus):

@@ -28,6 +28,7 @@ from helpers import (
     Running,
     assert_one_error_line,
     exporting,
+    promtool_check,
     run_cli,
     serve,
 )
@@ -315,6 +316,7 @@ read = ["40001 1"]
             ),
         )
         one_family_each(text)
+        promtool_check(text)  # the example map's points as gauges Prometheus's lint accepts
         assert value(text, "modbus_voltage_l1", device="meter1", site="north", ref="30001") == 230.1
         assert value(text, "modbus_tariff", device="meter1", site="north", ref="40001") == 1  # "day"
         assert value(text, "modbus_up", device="dead") == 0 and value(text, "modbus_up", device="gone") == 0
@@ -345,7 +347,7 @@ read = ["40001 1"]
         assert [key for key in samples(text) if key[0] == "python_info"]
         # No value for a device that is down: the last one read would be scraped as current.
         assert not [
-            key for key in samples(text) if dict(key[1]).get("device") == "dead" and key[0] == "modbus_40001"
+            key for key in samples(text) if dict(key[1]).get("device") == "dead" and key[0] == "modbus_value"
         ]
     events = exporter.stderr.read_text()
     assert "dead offline: no response from unit 9" in events and "link lost offline: cannot connect" in events
@@ -375,7 +377,7 @@ read = ["40001 1"]
                 began = time.monotonic()
                 status, _, text = exporter.get("/metrics")
                 took.append(time.monotonic() - began)
-                assert status == 200 and value(text, "modbus_40001", device="meter", ref="40001") == 1
+                assert status == 200 and value(text, "modbus_value", device="meter", table="holding", address="0", ref="40001") == 1
                 time.sleep(0.1)
             assert max(took) < 1.5, took  # never the 3 s a reply takes
 

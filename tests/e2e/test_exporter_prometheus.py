@@ -168,7 +168,7 @@ scrape_configs:
                     == 230.1
                 )
                 assert stored(prom, 'modbus_up{job="plant",device="meter1"}', tmp_path) == 1
-                assert stored(prom, 'modbus_40001{job="plant",device="plc",ref="40001"}', tmp_path) == 100
+                assert stored(prom, 'modbus_value{job="plant",device="plc",table="holding",address="0"}', tmp_path) == 100
                 assert stored(prom, 'modbus_up{job="plant",device="dead"}', tmp_path) == 0
                 assert (
                     stored(

@@ -142,7 +142,7 @@ def test_monitor_stats_count_exactly_what_was_on_a_bus_with_two_units(tmp_path):
     assert rows[1][:7] == ["1", "3", "2", "0", "0", "1", "1"], shown
     assert rows[2][:7] == ["2", "3", "1", "02:1", "1", "0", "0"], shown
     assert shown.stdout.splitlines()[-1].startswith(
-        "bus: 11 frames, 3 garbage bytes, 1 t3.5 breaks, utilisation "
+        "bus: 11 frames, 3 garbage bytes, 1 t3.5 break, utilisation "
     )
 
 

@@ -15,8 +15,12 @@ from helpers import (
     COILS,
     HOLDING,
     assert_one_error_line,
+    METER_DATA,
+    METER_MAP,
     expect_ok,
+    promtool_check,
     run_cli,
+    serve,
     start_device,
     start_mbtool,
 )
@@ -141,6 +145,23 @@ def test_prom_map_points_by_name_with_their_unit_in_help(tcp_device, odd_map):
     assert [(s.labels, s.value) for s in flow.samples] == [({"unit": "1", "ref": "40001"}, 50)]
     assert found["modbus_state"].samples[0].value == 102  # an enum by its number
     assert found["modbus_pump"].samples[0].value == 1
+
+
+def test_the_example_map_as_prom_passes_promtool_and_a_counter_like_name_is_warned_of(tmp_path):
+    """A gauge named as a counter (modbus_power_total) is what promtool flags: the example
+    map has none, and a map point whose metric ends in _total, _count, _sum or _bucket is
+    warned of on stderr, once, before anything is read."""
+    with serve("--data", str(METER_DATA)) as meter:
+        res = expect_ok(run_cli("read", "-m", METER_MAP, "-o", "prom", "-p", meter.target))
+        promtool_check(res.stdout)
+        assert "warning" not in res.stderr
+        odd = tmp_path / "odd.toml"
+        odd.write_text('[points.energy_total]\nref = 30073\ntype = "float32"\n[points.runs_count]\nref = 40001\n')
+        res = expect_ok(run_cli("read", "-m", odd, "-o", "prom", "-p", meter.target))
+    warnings = [line for line in res.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 2 and "modbus_energy_total, is a gauge" in warnings[0], res.stderr
+    assert "ending in _total for counters" in warnings[0] and "ending in _count" in warnings[1]
+    assert "modbus_energy_total{" in res.stdout  # still read and written: a warning, not a refusal
 
 
 def test_textfile_is_written_whole_and_kept_fresh_by_polls(tcp_device, odd_map, tmp_path):

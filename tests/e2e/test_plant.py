@@ -458,7 +458,7 @@ def test_references_and_maps_over_a_serial_line(serial_rtu_device, pump):
     ]
     expect_ok(ser("write", "-m", pump, "setpoint=4.2", "alarm=on"))
     assert lines(expect_ok(ser("read", "-m", pump, "setpoint", "alarm"))) == ["setpoint 4.2 m3/h", "alarm on"]
-    assert lines(expect_ok(ser("write-bit", "40521", "3", "off"))) == ["40521 0"]
+    assert lines(expect_ok(ser("write-bit", "40521", "3", "off"))) == ["40521 bit 3 off"]
 
 
 def test_the_readme_energy_meter_reads_as_the_readme_shows():
@@ -470,7 +470,7 @@ def test_the_readme_energy_meter_reads_as_the_readme_shows():
         assert lines(res) == [
             "voltage_l1 230.1 V",
             "current_l1 12.5 A",
-            "power_total 8625.0 W",
+            "active_power 8625.0 W",
             "frequency 50.0 Hz",
             "energy_import 15342.7 kWh",
             "tariff day",
@@ -557,7 +557,7 @@ def test_references_maps_and_bits_against_mbtool_serve_over_a_serial_line(pump):
                 "state fault",
             ]
             assert lines(expect_ok(ser("read", "40101", "--type", "float32"))) == ["40101 21.5"]
-            assert lines(expect_ok(ser("write-bit", "40521", "2", "on"))) == ["40521 1"]
+            assert lines(expect_ok(ser("write-bit", "40521", "2", "on"))) == ["40521 bit 2 on"]
             assert lines(expect_ok(ser("read", "-m", pump, "alarm"))) == ["alarm off"]  # bit 3, not 2
     finally:
         pair.close()

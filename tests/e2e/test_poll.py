@@ -29,9 +29,11 @@ from helpers import (
     PtyPair,
     assert_one_error_line,
     bridge,
+    expositions,
     free_port,
     mbtool_env,
     signals_as_from_a_shell,
+    promtool_check,
     run_cli,
     serve,
     start_device,
@@ -287,8 +289,9 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
     records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "event" not in r}
     assert records["meter1"]["points"] == [
         {"name": "voltage", "value": 230.1, "unit": "V", "ref": "30001"},
-        {"name": "tariff", "value": "day", "unit": "", "ref": "40001"},
+        {"name": "tariff", "value": "day", "ref": "40001"},  # no unit: no "unit" key beside the unit id
     ]
+    assert not [p for p in records["plc"]["points"] if "unit" in p] and records["plc"]["unit"] == 1
     assert records["meter1"]["tags"] == {"site": "north"} and records["meter2"]["unit"] == 2
     assert "no response from unit 9" in records["dead"]["error"] and records["dead"]["exit_code"] == 3
     assert [p["value"] for p in records["plc"]["points"]] == [0, 1, True, False]
@@ -312,6 +315,123 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
         for sample in family.samples
     }
     assert samples[("modbus_voltage", (("device", "meter1"), ("ref", "30001"), ("site", "north")))] == 230.1
+
+
+def _one_exposition(text: str) -> dict:
+    """An exposition checked by promtool and prometheus_client's parser: each family once
+    (a second HELP of one name is no exposition); its samples by (name, labels)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    promtool_check(text)
+    families = list(text_string_to_metric_families(text))
+    names = [family.name for family in families]
+    assert len(names) == len(set(names)), names
+    return {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in families
+        for sample in family.samples
+    }
+
+
+def test_prom_once_is_one_exposition_and_rounds_a_stream_of_whole_ones(small_plant):
+    """Cron writes `poll --once -o prom` into node_exporter's textfile folder: one exposition,
+    each family once with its samples together, as promtool checks it; --rounds 2 writes
+    whole expositions, one after another."""
+    res = run_cli("poll", small_plant, "--once", "-o", "prom")
+    assert res.returncode == 8, res
+    samples = _one_exposition(res.stdout)
+    ups = {dict(labels)["device"]: value for (name, labels), value in samples.items() if name == "modbus_up"}
+    assert ups == {"meter1": 1, "meter2": 1, "plc": 1, "dead": 0}
+    assert len(expositions(res.stdout)) == 1
+
+    res = run_cli("poll", small_plant, "--rounds", "2", "-o", "prom")
+    assert res.returncode == 8, res
+    stream = expositions(res.stdout)
+    assert len(stream) >= 2 and "".join(stream) == res.stdout
+    for text in stream:
+        assert ("modbus_voltage", (("device", "meter2"), ("ref", "30001"))) in _one_exposition(text)
+
+
+def test_raw_registers_are_one_family_as_read_writes_them_and_points_keep_their_names(small_plant, tmp_path):
+    """read -o prom writes registers as modbus_value{table,address}: poll's -o prom and
+    --textfile too, labelled by device, not a metric a register (modbus_40001)."""
+    textfile = tmp_path / "plant.prom"
+    res = run_cli("poll", small_plant, "--once", "-o", "prom", "--textfile", str(textfile))
+    for text in (res.stdout, textfile.read_text()):
+        samples = _one_exposition(text)
+        plc = {
+            (labels["table"], labels["address"], labels["ref"]): value
+            for (name, pairs), value in samples.items()
+            if name == "modbus_value" and (labels := dict(pairs))["device"] == "plc"
+        }
+        assert plc == {
+            ("holding", "0", "40001"): 0,
+            ("holding", "1", "40002"): 1,
+            ("coils", "0", "00001"): 1,
+            ("coils", "1", "00002"): 0,
+        }
+        names = {name for name, _ in samples}
+        assert "modbus_voltage" in names and "modbus_tariff" in names  # a map's points by name
+        assert not [name for name in names if name[len("modbus_") :][:1].isdigit()], names
+
+
+def test_a_map_point_named_as_a_counter_is_warned_of_once_for_the_plant(tmp_path):
+    """Two devices share a map whose point would be modbus_energy_total, a gauge: one warning
+    naming the map, when the inventory is loaded for Prometheus; none for plain output."""
+    write(tmp_path / "meter.toml", "[points.energy_total]\nref = 40001\n")
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n[devices.m1]\nlink = "a"\nunit = 1\nmap = "meter.toml"\n'
+            '[devices.m2]\nlink = "a"\nunit = 2\nmap = "meter.toml"\n',
+        )
+        prom = run_cli("poll", plant, "--once", "-o", "prom")
+        plain = run_cli("poll", plant, "--once", "-o", "plain")
+    assert prom.returncode == 0 and plain.returncode == 0, (prom, plain)
+    warnings = [line for line in prom.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "meter.toml: point energy_total" in warnings[0], prom.stderr
+    assert "modbus_energy_total, is a gauge" in warnings[0]
+    assert "warning" not in plain.stderr
+
+
+def test_a_refused_point_is_named_once_on_stderr_and_in_json(tmp_path, holed_device):
+    """pymodbus's holed device refuses 40011 (exception 02): its line names the device and the
+    point once (a point named by its reference, the reference once), and JSON's failed[].error
+    is the device's answer alone, beside its own name and ref."""
+    write(tmp_path / "holed.toml", "[points.flow]\nref = 40001\n[points.missing]\nref = 40011\n")
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{holed_device.target}"\n'
+        '[devices.m]\nlink = "a"\nmap = "holed.toml"\n[devices.r]\nlink = "a"\nread = ["40010 2"]\n',
+    )
+    res = run_cli("poll", plant, "--once", "-o", "json")
+    assert res.returncode == 8, res  # each device read in part
+    refused = {
+        line.split()[2]: line.split(" ", 3)[3] for line in res.stderr.splitlines() if "exception" in line
+    }
+    assert refused["m"].startswith("missing (40011): exception 02"), res.stderr
+    assert refused["r"].startswith("40011: exception 02"), res.stderr
+    assert all(text.count("40011") == 1 for text in refused.values()), refused
+    records = {r["device"]: r for r in map(json.loads, res.stdout.splitlines()) if "device" in r}
+    (failed,) = records["m"]["failed"]
+    assert failed["name"] == "missing" and failed["ref"] == "40011"
+    assert failed["error"].startswith("exception 02") and "40011" not in failed["error"], failed
+    assert records["r"]["failed"][0]["error"] == failed["error"]
+
+
+def test_influx_measurement_from_the_command_line_and_per_device(small_plant):
+    """Telegraf users set the measurement per input: --measurement for the plant, and a
+    device's own `measurement =` beats it."""
+    from line_protocol_parser import parse_line
+
+    text = small_plant.read_text().replace("unit = 2\n", 'unit = 2\nmeasurement = "meters"\n')
+    small_plant.write_text(text)
+    res = run_cli("poll", small_plant, "--once", "-o", "influx", "--measurement", "plant floor")
+    assert res.returncode == 8, res
+    measurements = {p["tags"]["device"]: p["measurement"] for p in map(parse_line, res.stdout.splitlines())}
+    assert measurements == {"meter1": "plant floor", "meter2": "meters", "plc": "plant floor"}
+    res = run_cli("poll", small_plant, "--once", "-o", "influx")
+    assert {parse_line(line)["measurement"] for line in res.stdout.splitlines()} == {"modbus", "meters"}
 
 
 def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_path):
@@ -356,6 +476,39 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     final = textfile.read_text()
     assert 'modbus_up{device="dead"} 0' in final and "modbus_voltage{" in final
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
+
+
+def test_a_textfile_follows_the_fastest_device_not_the_slowest(tmp_path):
+    """A device polled every 0.2 s beside one polled hourly: the textfile is rewritten every
+    round of the fast one (not once an hour, serving its values as current meanwhile), each
+    device with its own last success."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    textfile = tmp_path / "plant.prom"
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.a]\ntarget = "{device.target}"\n'
+            '[devices.fast]\nlink = "a"\nunit = 1\ninterval = 0.2\nread = ["40001 1"]\n'
+            '[devices.slow]\nlink = "a"\nunit = 2\ninterval = 3600\nread = ["40001 1"]\n',
+        )
+        proc = start_mbtool(
+            "poll", plant, "--textfile", textfile, "--duration", "2.5", stdout=subprocess.DEVNULL
+        )
+        seen: dict[str, set[float]] = {"fast": set(), "slow": set()}
+        while proc.poll() is None:
+            try:
+                text = textfile.read_text()
+            except FileNotFoundError:
+                continue
+            for family in text_string_to_metric_families(text):
+                for sample in family.samples:
+                    if sample.name == "modbus_last_success_timestamp_seconds":
+                        seen[sample.labels["device"]].add(sample.value)
+            time.sleep(0.02)
+        assert proc.wait(timeout=10) == 0, proc.stderr.read()
+    assert len(seen["fast"]) >= 5, seen  # about 12 rounds in 2.5 s
+    assert len(seen["slow"]) == 1 and max(seen["slow"]) < max(seen["fast"]), seen
 
 
 def test_a_value_the_map_calls_invalid_is_no_value_in_every_format(tmp_path):
@@ -451,6 +604,30 @@ def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(s
     assert "interrupted; 3 of 4 devices answered" in err.splitlines()[-1]
 
 
+def test_the_statistics_table_has_a_column_for_every_outcome(tmp_path, raw_responder):
+    """A device that hangs up on each request: its transactions are link_lost, in a column of
+    their own, not transactions whose every outcome reads 0."""
+    from helpers import CLOSE
+
+    peer = raw_responder(lambda request: CLOSE)
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+    )
+    res = run_cli("poll", plant, "--rounds", "2")
+    assert res.returncode == 3, res  # no response: the peer closed the connection
+    table = [line for line in res.stderr.splitlines() if not line.startswith("mbtool:")]
+    head = table[0]
+    for column in ("answered", "timeout", "corrupt", "not ours", "link lost", "exc"):
+        assert column in head, head
+
+    def cell(row: str, column: str) -> str:
+        return row[head.index(column) :].split()[0]
+
+    (device,) = [row for row in table if row.startswith("device")]
+    assert cell(device, "trans") == "2" and cell(device, "link lost") == "2", table
+
+
 def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent_server):
     plant = write(
         tmp_path / "plant.toml",
@@ -461,7 +638,7 @@ def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent
     assert res.returncode == 3, res  # no response
     stats = json.loads(res.stderr.splitlines()[-2])
     assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
-    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 devices answered: no response")
+    assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 device answered: no response")
 
 
 # --- runs that end: --once, --rounds, --duration ---------------------------------------------
@@ -643,7 +820,9 @@ def test_hex_labels_each_frame_with_its_link_and_device_and_can_trace_one_link(t
     for line in trace:
         label, frame = line.split("] ", 1)
         unit = bytes.fromhex(frame[3:].split("  ")[0])[6 if label.startswith("[gw") else 0]
-        assert unit == {"[gw meter": 1, "[gw pump": 2, "[bus plc": 1}[label], line  # MBAP's unit is its 7th byte
+        assert unit == {"[gw meter": 1, "[gw pump": 2, "[bus plc": 1}[label], (
+            line
+        )  # MBAP's unit is its 7th byte
     traced = {line.split("] ")[0] + "]" for line in one.stderr.splitlines() if line.startswith("[")}
     assert traced == {"[gw meter]", "[gw pump]"}, one.stderr
     line = assert_one_error_line(unknown, 2)

@@ -403,7 +403,7 @@ def test_log_mode_prints_frames_and_sigint_exits_0():
         assert code == 0, err
         assert " RX 00 01 00 00 00 06 01 03 00 00 00 01" in out
         assert " TX 00 01 00 00 00 05 01 03 02 00 00" in out
-        assert "stopped: 1 requests, 1 replies" in out
+        assert "stopped: 1 request, 1 reply" in out
 
 
 class LiveView:

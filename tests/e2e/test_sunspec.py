@@ -8,10 +8,27 @@ from __future__ import annotations
 
 import json
 import re
+import resource
+import signal
+import subprocess
+import sys
 
 import pytest
-from helpers import REPO_ROOT, PtyPair, run_cli, serve
+from helpers import (
+    REPO_ROOT,
+    PtyPair,
+    assert_one_error_line,
+    mbtool_env,
+    run_cli,
+    serve,
+    signals_as_from_a_shell,
+    start_mbtool,
+    wait_until,
+)
 
+from mbtool.errors import ExitCode
+from mbtool.registermap.load import load_map
+from mbtool.sunspec.discover import MAX_MODELS, MAX_REGISTERS_READ
 from mbtool.sunspec.models import definition
 
 TWIN = REPO_ROOT / "examples" / "sunspec-twin.toml"
@@ -457,3 +474,96 @@ def test_a_scaled_control_written_through_the_map_is_read_back_by_pysunspec2(twi
     assert controls["WMaxLimPct"] == 55.5
     assert refused.returncode == 2
     assert "controls.WMaxLimPct: 55.55 is not a whole number of steps of 0.1" in refused.stderr
+
+
+def test_a_map_write_that_fails_part_way_leaves_the_previous_map_whole(twin, tmp_path):
+    """Issue 40 item 9: --map replaces FILE whole or not at all.  A file-size limit
+    (RLIMIT_FSIZE) makes the write fail after a few kilobytes, as a full disk would: the map
+    written before is still there, byte for byte, and loads; no temporary is left beside it."""
+    path = tmp_path / "inverter.toml"
+    res = run_cli("sunspec", "-p", twin.target, "--model", "1", "--map", path, "-o", "json")
+    assert res.returncode == 0, res
+    good = path.read_bytes()
+    assert len(good) > 1024 and load_map(str(path)).points
+
+    def limited() -> None:
+        signals_as_from_a_shell()
+        resource.setrlimit(resource.RLIMIT_FSIZE, (len(good) // 2, len(good) // 2))
+
+    done = subprocess.run(
+        [sys.executable, "-m", "mbtool", "sunspec", "-p", twin.target, "--map", str(path), "-o", "json"],
+        env=mbtool_env(),
+        preexec_fn=limited,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
+    res = type(res)(["sunspec"], done.returncode, done.stdout, done.stderr, 0.0)
+    line = assert_one_error_line(res, ExitCode.OUTPUT)
+    assert line.startswith(f"mbtool: cannot write to {path}: "), line
+    assert path.read_bytes() == good
+    assert load_map(str(path)).points
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+# --- a hostile chain: the walk is bounded, and an interrupted walk shows what it found (40.13) -----
+
+
+def test_a_chain_of_zero_length_models_is_walked_to_the_bound_of_models_and_no_further():
+    with serve("--data", str(QUIRKS / "zero-length-models.toml"), quiet=False) as device:
+        res = sunspec(device.target)
+        served = device.stop()[1]
+    assert res.returncode == ExitCode.PARTIAL, res
+    tree = json.loads(res.stdout)
+    assert [m["id"] for m in tree["models"]] == [1] + [64998] * (MAX_MODELS - 1)
+    where = 40002 + 68 + 2 * (MAX_MODELS - 1)
+    said = f"the walk stopped after {MAX_MODELS} models, at register {where}: a chain holds no more"
+    assert tree["stopped"] == said
+    assert res.stderr.splitlines()[-1] == f"mbtool: {said}; the models found are shown"
+    assert served.count("\n") < 2 * (MAX_MODELS + 10)  # the serve's log: a line a frame, no more
+
+
+def test_a_model_past_the_register_budget_stops_the_walk_before_it_is_read(tmp_path):
+    length = MAX_REGISTERS_READ  # with the common model's, past the budget
+    data = tmp_path / "long-model.toml"
+    data.write_text(
+        (QUIRKS / "unknown-model.toml").read_text().split("# model 64999")[0]
+        + f"40070 = [64999, {length}]\n40072 = {{ value = 1, count = {length} }}\n"
+        + f"{40072 + length} = [0xFFFF, 0]\n"
+    )
+    with serve("--data", str(data), quiet=False) as device:
+        res = sunspec(device.target)
+        served = device.stop()[1]
+    assert res.returncode == ExitCode.PARTIAL, res
+    assert [m["id"] for m in json.loads(res.stdout)["models"]] == [1]
+    assert res.stderr.splitlines()[-1] == (
+        f"mbtool: the walk stopped at model 64999 at 40070: its {length} registers would take it past "
+        f"{MAX_REGISTERS_READ} registers read; the models found are shown"
+    )
+    assert served.count("\n") < 20  # not the 80 reads the model would take
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_walk_shows_the_models_it_found(sig):
+    with serve("--data", str(QUIRKS / "zero-length-models.toml"), "--delay", "0.02", quiet=False) as device:
+        proc = start_mbtool("sunspec", "-p", device.target)
+        try:
+            # The serve logs a line a frame: the walk is well past the common model.
+            assert wait_until(lambda: device.log().count("\n") > 30, 20), device.log()
+            proc.send_signal(sig)
+            out, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate(timeout=5)
+    assert proc.returncode == ExitCode.INTERRUPTED, err
+    assert "Traceback" not in err
+    lines = out.splitlines()
+    assert lines[0].startswith("SunSpec at 40000, unit 1: ") and "model 1 common (Common) at 40002" in out, out
+    found = [line for line in lines if line.startswith("model ")]
+    assert 2 <= len(found) < MAX_MODELS, out
+    last = err.splitlines()[-1]
+    assert last.startswith(
+        f"mbtool: interrupted; the walk stopped after {len(found)} models, at register "
+    ), err

@@ -167,6 +167,32 @@ def test_write_registers_plain_output_is_one_line_per_register(tcp_device):
     assert plain_pairs(res) == [(150, "7"), (151, "8"), (152, "9")]
 
 
+def test_a_write_echoes_the_value_as_typed(tcp_device, pymodbus_tcp_client):
+    """Issue 39 item 19: -5 is echoed as -5 (not 65531, the same register), a bit of a register
+    as its reference, bit and state; the JSON keeps the register the device holds."""
+    assert expect_ok(mb(tcp_device, "write-register", "180", "-5")).stdout == "180 -5\n"
+    assert expect_ok(mb(tcp_device, "write-registers", "181", "-5", "7", "0x10")).stdout == (
+        "181 -5\n182 7\n183 16\n"
+    )
+    assert expect_ok(mb(tcp_device, "write", "40185", "-2")).stdout == "40185 -2\n"
+    assert pymodbus_tcp_client.read_holding_registers(180, count=5, device_id=1).registers == [
+        65531,
+        65531,
+        7,
+        16,
+        65534,
+    ]
+    doc = json.loads(expect_ok(mb(tcp_device, "write-register", "180", "-5", "-o", "json")).stdout)
+    assert (doc["values"], doc["registers"]) == ([-5], [65531])
+    table = expect_ok(mb(tcp_device, "write-register", "180", "-5", "-o", "table")).stdout
+    assert "-5" in table and "0xFFFB" in table
+    assert expect_ok(mb(tcp_device, "write-bit", "40187", "2", "on")).stdout == "40187 bit 2 on\n"
+    assert expect_ok(mb(tcp_device, "write-bit", "4x0187", "15", "0")).stdout == "4x0187 bit 15 off\n"
+    assert pymodbus_tcp_client.read_holding_registers(186, count=1, device_id=1).registers == [0x0004]
+    doc = json.loads(expect_ok(mb(tcp_device, "write-bit", "40187", "2", "on", "-o", "json")).stdout)
+    assert (doc["values"], doc["bit"], doc["refs"]) == ([True], 2, ["40187"])
+
+
 # ----------------------------------------------------------------------------- typed values
 
 

@@ -479,3 +479,18 @@ def test_a_float_that_cannot_hold_the_decimal_given_warns_and_shows_what_is_writ
     assert res.stdout.splitlines() == ["level 16777216.0 m", "word 0x00FF"]
     res = expect_ok(run_cli("write", "-m", values_map, "level=1.5", "demand_period=0x0F", "-p", "sim://"))
     assert res.stderr == "" and res.stdout.splitlines() == ["level 1.5 m", "demand_period 15 min"]
+
+
+@pytest.mark.parametrize("failing", [1, 2])
+def test_the_summary_of_a_failed_write_counts_in_words_that_agree(raw_responder, tmp_path, failing):
+    """Issue 39 item 21: a run of two registers whose write got no reply: "2 failed (...:
+    they may or may not have been written)", not "it"."""
+    saved = tmp_path / "saved.toml"
+    run = ", ".join(["5"] * failing)
+    saved.write_text(f"sparse = true\n[holding_registers]\n0 = [1]\n10 = [{run}]\n")
+    server = raw_responder(TcpPlant(answered=1, then=None))
+    line = one_summary(run_cli("restore", saved, *FAST, "-p", server.tcp_target), 3)
+    pronoun = "it" if failing == 1 else "they"
+    assert line.endswith(
+        f"; 1 written (not read back), {failing} failed (no valid reply: {pronoun} may or may not have been written)"
+    ), line

@@ -73,3 +73,23 @@ def test_map_must_be_a_toml_file_name_before_anything_is_sent():
     res = run_cli("sunspec", "-p", "tcp://127.0.0.1:9", "--map", "inverter.csv")
     assert res.returncode == 2
     assert "--map writes a TOML map: inverter.csv is not a .toml file name" in res.stderr
+
+
+def test_the_layouts_warnings_count_in_words_that_agree():
+    """Issue 39 item 21: one register is "1 register ... is", not "1 registers ... are"."""
+    common = definition(1)
+    fixed = sum(point_size(point) for point in common["points"]) - 2  # less the id and length
+    assert lay_out(64999, "model_64999", 40070, [7]).warnings == (
+        "model 64999 at 40070: SunSpec defines no model 64999: its 1 register is shown raw",
+    )
+    assert lay_out(1, "common", 40002, [0] * (fixed + 1)).warnings == (
+        f"model 1 at 40002 (common): {fixed + 1} registers on the wire, {fixed} in its definition; the "
+        "length on the wire is used: the 1 register past the definition is shown raw",
+    )
+    mppt = definition(160)
+    head = sum(point_size(point) for point in mppt["points"]) - 2
+    module = sum(point_size(point) for point in mppt["groups"][0]["points"])
+    (warning,) = lay_out(160, "mppt", 40070, [0] * (head + module + 1)).warnings
+    assert warning.endswith(
+        f"1 register after 1 module group ({module} registers each) does not make another: shown raw"
+    ), warning

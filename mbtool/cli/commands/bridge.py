@@ -17,7 +17,7 @@ import click
 from mbtool.cli.completion import complete_port
 from mbtool.cli.frames import one_line, shown_frame
 from mbtool.cli.json_text import to_json
-from mbtool.cli.listen import tls_server_settings
+from mbtool.cli.listen import check_udp_rate, datagrams_dropped, tls_server_settings
 from mbtool.cli.options import (
     LINK_OPTIONS,
     TLS_OPTIONS,
@@ -40,6 +40,7 @@ from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.connection import rs485_delays as rs485_delays_of
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY, Forwarder
 from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
+from mbtool.words import counted
 
 DEFAULT_LISTEN = "tcp://127.0.0.1:5020"
 EVERY_UNIT = "1-247"  # the addresses a serial line's slaves may have (spec §2)
@@ -164,6 +165,7 @@ def bridge(
     max_clients,
     idle_timeout,
     first_request_timeout,
+    udp_rate,
     hex_trace,
     output_format,
     quiet,
@@ -223,6 +225,7 @@ def bridge(
             raise RequestError(f"{given[0]} is for tls:// (Modbus/TCP Security), and neither side is tls://")
     listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
+    check_udp_rate(where, udp_rate)
     connection = Connection(
         port=target,
         unit=1,
@@ -265,6 +268,7 @@ def bridge(
         first_request_timeout=first_request_timeout,
         tls_context=context,
         write_roles=roles,
+        udp_rate=udp_rate,
     )
     show.on_failure = server.stop
     try:
@@ -283,7 +287,10 @@ def bridge(
     if show.failure is not None:
         raise show.failure  # cli.main: a reader gone (exit 141), or the output failed (exit 7)
     connections = server.stats.connections if where.scheme in ("tcp", "tls") else None
-    click.echo(f"stopped: {show.summary(connections, listening_framer == 'tcp')}", err=True)
+    summary = "; ".join(
+        [show.summary(connections, listening_framer == "tcp"), *datagrams_dropped(server.stats)]
+    )
+    click.echo(f"stopped: {summary}", err=True)
     for unit, stats in sorted(forwarder.stats.items()):  # what became of each unit's transactions
         click.echo(f"unit {unit}: {stats}", err=True)
 
@@ -397,16 +404,16 @@ class Show:
         ``tcp``: its clients speak MBAP, and are told 0A (a serial line's slaves are not)."""
         counts = self.counts
         parts = [
-            f"{counts[REPLY]} replies",
-            f"{counts[REFUSED]} exceptions from devices",
+            counted(counts[REPLY], "reply", "replies"),
+            f"{counted(counts[REFUSED], 'exception')} from devices",
             f"{counts[NO_RESPONSE]} unanswered (0B)",
             f"{counts[NO_PATH]} {'refused (0A)' if tcp else 'not forwarded or refused (0A)'}",
-            f"{counts[BROADCAST]} broadcasts",
+            counted(counts[BROADCAST], "broadcast"),
             f"{counts[INVALID]} invalid (01, 03)",
         ]
-        text = f"{sum(counts.values())} transactions: " + ", ".join(parts)
+        text = f"{counted(sum(counts.values()), 'transaction')}: " + ", ".join(parts)
         if connections is not None:
-            text += f"; {connections} connections"
+            text += f"; {counted(connections, 'connection')}"
         if self.timed:
             text += (
                 f"; bus time mean {self.bus_total / self.timed * 1000:.1f} ms, "

@@ -3,12 +3,8 @@ unchanged, so a dump is also a simulator of the device."""
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import os
 import signal
 import sys
-import tempfile
 import time
 from functools import partial
 
@@ -19,13 +15,15 @@ from mbtool.cli.data_files import TABLE_SECTIONS, data_file
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.session import open_client
+from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.device_id import ReadDeviceIdentification
 from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
 from mbtool.codec.pdu import ExceptionCode
 from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
-from mbtool.errors import KNOWN_ERRORS, ExitCode, NoResponse, OutputFailed, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, NoResponse, Summary, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
+from mbtool.words import counted
 
 
 def parse_span(text: str):
@@ -120,7 +118,7 @@ def dump(connection, settings, file, ranges, max_requests):
     dumps = {span.table.name: TableDump(span.table) for span in spans}
     total = sum(span.size for span in spans)
     # A place that cannot be written fails here, before the device is read.
-    output = None if file == "-" or settings.dry_run else _DataFile(file)
+    output = None if file == "-" or settings.dry_run else WholeFile(file)
     began = time.monotonic()
     stopped, failure, identity, out_of_requests, dumper = "", None, {}, False, None
     try:
@@ -140,7 +138,7 @@ def dump(connection, settings, file, ranges, max_requests):
                                 bar.at(done + span.size)
                         identity = _identity(execute)
                     except OutOfRequests:
-                        stopped = f"stopped after {dumper.requests} requests (--max-requests)"
+                        stopped = f"stopped after {counted(dumper.requests, 'request')} (--max-requests)"
                         out_of_requests = True
                     except KNOWN_ERRORS as error:
                         if settings.dry_run:
@@ -165,7 +163,9 @@ def dump(connection, settings, file, ranges, max_requests):
             output.discard()
     found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
     refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
-    summary = f"dump: {found}; {dumper.requests} requests{refused} in {time.monotonic() - began:.1f} s"
+    summary = (
+        f"dump: {found}; {counted(dumper.requests, 'request')}{refused} in {time.monotonic() - began:.1f} s"
+    )
     if stopped:
         summary += f"; {stopped}: the file has what was read, marked complete = false"
     code = ExitCode.OK
@@ -206,52 +206,6 @@ class _Interrupts:
     def __exit__(self, *exc) -> None:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
-
-
-class _DataFile:
-    """FILE written whole or not at all.  The dump goes to a temporary file beside FILE, made
-    before the device is read (a place that cannot be written fails at once), and renamed
-    over FILE once written and synced: FILE is the previous dump or the new one, never a
-    part of one (a SIGKILL, a full disk).  The new FILE keeps the previous one's permissions."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-        self.target = os.path.realpath(path)  # through a symbolic link: the link stays
-        folder, name = os.path.split(self.target)
-        try:
-            try:
-                mode = os.stat(self.target).st_mode & 0o7777
-                if not os.access(self.target, os.W_OK):
-                    raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), path)
-            except FileNotFoundError:
-                umask = os.umask(0)
-                os.umask(umask)
-                mode = 0o666 & ~umask  # as open() would make it
-            fd, self.temp = tempfile.mkstemp(prefix=f".{name}.", suffix=".part", dir=folder)
-        except OSError as error:
-            raise OutputFailed(path, error) from None
-        self.file = os.fdopen(fd, "w", encoding="utf-8")
-        os.fchmod(fd, mode)
-
-    def commit(self, text: str) -> None:
-        try:
-            self.file.write(text)
-            self.file.flush()
-            os.fsync(self.file.fileno())
-            self.file.close()
-            os.replace(self.temp, self.target)
-        except OSError as error:
-            raise OutputFailed(self.path, error) from None
-        self.temp = None
-
-    def discard(self) -> None:
-        """Remove the temporary file unless it became FILE."""
-        with contextlib.suppress(OSError):
-            self.file.close()  # a write that failed may fail again here
-        if self.temp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(self.temp)
-            self.temp = None
 
 
 class _Bar:

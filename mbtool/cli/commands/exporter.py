@@ -37,6 +37,7 @@ from urllib.parse import parse_qs, urlsplit
 import click
 
 from mbtool.cli.inventory import load_inventory
+from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import (
@@ -60,6 +61,7 @@ from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import MapReader
+from mbtool.words import counted
 
 # 9502: no port of Prometheus's default port allocations is mbtool's (modbus_exporter has
 # 9602, so the two can run on one host); loopback unless the user types another address.
@@ -179,7 +181,9 @@ def _serving_line(server, plant, maps, allowed) -> str:
     where = host_text(host)
     if plant is not None:
         links = {device.link for device in plant.devices}
-        parts = [f"/metrics: {len(plant.devices)} devices of {plant.path} on {len(links)} links"]
+        parts = [
+            f"/metrics: {counted(len(plant.devices), 'device')} of {plant.path} on {counted(len(links), 'link')}"
+        ]
     else:
         parts = ["/metrics: the exporter's process"]
     sources = ([f"maps in {maps}"] if maps else []) + (
@@ -290,6 +294,7 @@ class Modules:
         clash = point_name_clash(register_map.points.values(), set(SCRAPE_NAMES), "the exporter")
         if clash:
             raise MapError(f"{path}: {clash}")
+        warn_counter_names(register_map.points.values(), where=f"{path}: ")
         with self.lock:
             self.loaded[path] = (stamp, register_map)
         return register_map

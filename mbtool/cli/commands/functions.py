@@ -23,6 +23,7 @@ from mbtool.codec.values import (
     registers_needed,
     value_addresses,
 )
+from mbtool.words import counted
 
 # --- FC 07 ---------------------------------------------------------------------------------
 
@@ -327,7 +328,7 @@ def fifo(connection, settings, address):
         request.name,
         rows,
         data,
-        note=f"{len(reply.registers)} entries queued at pointer address {address}",
+        note=f"{counted(len(reply.registers), 'entry', 'entries')} queued at pointer address {address}",
     )
     show(connection, settings, report)
 

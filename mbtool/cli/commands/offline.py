@@ -23,6 +23,7 @@ from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS
 from mbtool.link.connection import framer_name
+from mbtool.words import counted
 
 FORMAT_OPTION = click.option(
     "-o",
@@ -113,7 +114,7 @@ def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
     if not frames:
         raise RequestError("no frame on stdin")
     if failed:
-        raise FrameError(f"{failed} of {frames} frames failed; the first: {first_failure}")
+        raise FrameError(f"{failed} of {counted(frames, 'frame')} failed; the first: {first_failure}")
 
 
 # What decode reads besides a frame a line: the lines mbtool itself writes, and socat's dumps.

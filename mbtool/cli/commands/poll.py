@@ -24,6 +24,7 @@ from mbtool.cli.metrics import (
     _field_value,
     check_textfile,
     influx_text,
+    name_problem,
     write_textfile,
 )
 from mbtool.cli.param_types import FilePath, PositiveFloat
@@ -34,8 +35,10 @@ from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
+from mbtool.words import counted
 
 CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 
@@ -60,7 +63,8 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     metavar="PATH",
     type=FilePath(dir_okay=False),
     help="Rewrite the whole plant's metrics (Prometheus text) to PATH atomically after each "
-    "round, for node_exporter's textfile collector; a dead device shows as modbus_up 0.",
+    "round of the fastest devices, for node_exporter's textfile collector; a dead device shows "
+    "as modbus_up 0.",
 )
 @click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
 @click.option(
@@ -78,6 +82,12 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     show_default=True,
     help="Statistics on exit, on stderr: a table per device and per link, or one JSON object.",
 )
+@click.option(
+    "--measurement",
+    metavar="NAME",
+    help="-o influx: the measurement of the devices that name none of their own "
+    "(measurement = in the inventory). Default: modbus.",
+)
 @click.option("--no-header", is_flag=True, help="CSV without its header row.")
 @click.option(
     "--hex",
@@ -94,7 +104,17 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     help="--hex for this link alone (repeat it for several).",
 )
 def poll(
-    inventory, output_format, textfile, once, rounds, duration, stats_format, no_header, hex_trace, hex_links
+    inventory,
+    output_format,
+    textfile,
+    once,
+    rounds,
+    duration,
+    stats_format,
+    measurement,
+    no_header,
+    hex_trace,
+    hex_links,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -117,6 +137,12 @@ def poll(
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    if measurement is not None:
+        problem = name_problem(measurement, "a measurement", influx=True)
+        if fmt != "influx":
+            problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
+        if problem:
+            raise RequestError(f"--measurement {measurement!r}: {problem}")
     if fmt == "prom" or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -130,7 +156,7 @@ def poll(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
-    output = PlantOutput(fmt, textfile, no_header, plant)
+    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
     runner = Plant(
         plant.links,
@@ -161,8 +187,9 @@ def poll(
 class PlantOutput:
     """What the workers report, written as it comes (one writer at a time: a lock)."""
 
-    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant) -> None:
+    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
         self.fmt = fmt
+        self.measurement = measurement  # -o influx's, for the devices that name none
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.lock = threading.Lock()
@@ -170,6 +197,8 @@ class PlantOutput:
         self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
         self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
+        self.unwritten = False  # a device has reported since the last exposition
+        self.exposed = False  # the first round is written
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
@@ -196,12 +225,8 @@ class PlantOutput:
                 print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
         else:
             for reading in poll.readings:
-                if reading.error is not None:
-                    point = reading.point
-                    print(
-                        f"mbtool: {when} {device.name} {point.name} ({point.ref}): {reading.error}",
-                        file=sys.stderr,
-                    )
+                if reading.error is not None:  # its message names the point (plan.PointException)
+                    print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
         if self.fmt == "plain":
             for reading in poll.readings or ():
                 if reading.error is None:
@@ -222,27 +247,44 @@ class PlantOutput:
                         [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
                     )
         elif self.fmt == "influx":
-            line = influx_line(poll)
+            line = influx_line(poll, device.measurement or self.measurement)
             if line:
                 sys.stdout.write(line)
-        elif self.fmt == "prom":
-            sys.stdout.write(prom_text([self.states[device.name]]))
-        if self.textfile:
-            # A round: every device has reported since the last write, but those offline,
-            # tried once a back-off, which would hold every other device's values back.
+        if self.fmt == "prom" or self.textfile:
+            # The Prometheus text is the whole plant's, one exposition a round.
             self.pending.discard(device.name)
-            if all(self.states[name].state == OFFLINE for name in self.pending):
-                self._write_textfile()
-                self.pending = set(self.states)
+            self.unwritten = True
+            if self._round_done():
+                self._expose()
 
-    def _write_textfile(self) -> None:
-        write_textfile(prom_text(list(self.states.values())), self.textfile, sweep=not self.swept)
-        self.swept = True
+    def _round_done(self) -> bool:
+        """The first round: every device has reported since the start, but those offline, tried
+        once a back-off, which would hold every other device's values back.  After it, a round
+        of the fastest devices not offline: one polled hourly must not hold back the values of
+        one polled every second, and each device's samples carry its own last success."""
+        live = [state for state in self.states.values() if state.state != OFFLINE]
+        if self.exposed and live:
+            shortest = min(state.spec.interval for state in live)
+            live = [state for state in live if state.spec.interval == shortest]
+        return not any(state.spec.name in self.pending for state in live)
+
+    def _expose(self) -> None:
+        """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
+        the textfile, rewritten whole."""
+        text = prom_text(list(self.states.values()))
+        if self.fmt == "prom":
+            sys.stdout.write(text)
+        if self.textfile:
+            write_textfile(text, self.textfile, sweep=not self.swept)
+            self.swept = True
+        self.pending = set(self.states)
+        self.unwritten = False
+        self.exposed = True
 
     def close(self) -> None:
         with self.lock:
-            if self.textfile and self.states:
-                self._write_textfile()  # the last state of every device, whatever the round
+            if self.unwritten:
+                self._expose()  # the last state of every device, whatever the round
             sys.stdout.flush()
 
 
@@ -269,12 +311,15 @@ def _json_record(poll: Poll, when: str) -> dict:
     for reading in poll.readings:
         point = reading.point
         if reading.error is None:
-            entry = {"name": point.name, "value": reading.value, "unit": point.unit, "ref": point.ref}
+            # A point's "unit" is its engineering unit, left out when it has none: the
+            # record's own "unit" is the device's unit id.
+            engineering = {"unit": point.unit} if point.unit else {}
+            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
             if reading.value is None:
                 entry["invalid"] = True  # the device sent a value its map says means no data
             points.append(entry)
         else:
-            failed.append({"name": point.name, "ref": point.ref, "error": str(reading.error)})
+            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
     record["state"] = poll.state
     record["points"] = points
     if failed:
@@ -285,8 +330,8 @@ def _json_record(poll: Poll, when: str) -> dict:
 # --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
 
 
-def influx_line(poll: Poll) -> str:
-    """One line a device poll: measurement modbus, tags device, unit and the device's tags, a
+def influx_line(poll: Poll, measurement: str) -> str:
+    """One line a device poll: its measurement, tags device, unit and the device's tags, a
     field a point read (its type fixed by its map entry; NaN and infinities left out)."""
     device = poll.device
     fields = []
@@ -298,20 +343,28 @@ def influx_line(poll: Poll) -> str:
         if shown is not None:
             fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
     tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    return influx_text("modbus", tags, fields, int(poll.time * 1_000_000_000))
+    return influx_text(measurement, tags, fields, int(poll.time * 1_000_000_000))
 
 
 # --- on a terminal: a live view ------------------------------------------------------------
 
 
 class LiveView:
-    """One row a device: its state in colour, the age of its last good poll, its round-trip
-    time and error counts, and its points' latest values, a changed one highlighted."""
+    """The plant on one screen, fit to the terminal whatever its size: a title with the count
+    of devices online and offline, a row a device (its state in colour, the age of its last
+    good poll, its round-trip time and error counts, and its points' latest values, a changed
+    one highlighted, cut at the row's end), and below them a band of the latest changes of
+    state, newest first.  The band is the only place that says why a device or a link is
+    offline, so it keeps its rows: a screen too short for the plant cuts the table, with a
+    line that counts the devices left out."""
 
     COLOURS = {ONLINE: "green", OFFLINE: "bold red", "unknown": "yellow"}
+    EVENT_ROWS = 5  # the band's rows, below its heading
+    COLUMNS = ("device", "link", "state", "last good", "rtt avg", "timeout", "corrupt", "exc", "values")
 
-    def __init__(self, plant) -> None:
+    def __init__(self, plant, clock=time.time) -> None:
         self.plant = plant
+        self.clock = clock  # the time "last good" is counted to (scripts/gen_docs.py: a fixed one)
         self.lock = threading.Lock()
         self.changed: dict[str, set[str]] = {}
         self.previous: dict[str, dict[str, object]] = {}
@@ -324,16 +377,16 @@ class LiveView:
         self.states = states
         return Live(self, refresh_per_second=4, transient=False)
 
-    def __rich__(self):
+    def __rich_console__(self, console, options):
         """The screen as it is now, built when rich draws it (4 times a second), not on every
-        poll of every device."""
+        poll of every device, and for the terminal's size then (it may have been resized)."""
         with self.lock:
-            return self._table()
+            yield from self._screen(console, options.max_width, options.size.height)
 
     def report(self, item: Poll | Event) -> None:
         with self.lock:
-            if isinstance(item, Event):  # the line stderr gets too, the last five kept
-                self.events = (self.events + [event_line(item)])[-5:]
+            if isinstance(item, Event):  # the line stderr gets too, the latest a band holds kept
+                self.events = (self.events + [event_line(item)])[-self.EVENT_ROWS :]
             elif item.readings is not None:
                 values = {r.point.name: r.value for r in item.readings if r.error is None}
                 before = self.previous.get(item.device.name, {})
@@ -342,47 +395,76 @@ class LiveView:
                 }
                 self.previous[item.device.name] = values
 
-    def _table(self):
-        from rich.console import Group  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    def _screen(self, console, width: int, height: int) -> list:
         from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
         from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
-        table = Table(title="mbtool poll", expand=False)
-        for column in (
-            "device",
-            "link",
-            "state",
-            "last good",
-            "rtt avg",
-            "timeouts",
-            "corrupt",
-            "exceptions",
-            "values",
-        ):
-            table.add_column(column)
-        now = time.time()
-        for name, state in self.states.items():
-            stats = state.stats
-            figures = stats.rtt_figures()
-            age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
-            values = Text()
-            for reading in (state.last_poll.readings or ()) if state.last_poll else ():
-                if reading.error is not None:
-                    continue
-                style = "reverse" if reading.point.name in self.changed.get(name, ()) else ""
-                values.append(f"{reading.point.name}={_shown(reading)} ", style=style)
-            table.add_row(
-                Text(name),
-                Text(state.spec.link),
-                Text(state.state, style=self.COLOURS.get(state.state, "")),
-                age,
-                "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
-                str(stats.outcomes["timeout"]),
-                str(stats.outcomes["corrupt"]),
-                str(stats.outcomes["exception"]),
-                values,
+        states = list(self.states.values())
+        offline = sum(state.state == OFFLINE for state in states)
+        online = sum(state.state == ONLINE for state in states)
+        title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
+        title.append(f"{len(states)} devices, {online} online, {offline} offline")
+        # A row a device in the room the title, the table's header and the band leave.
+        room = height - 2 - (1 + self.EVENT_ROWS)
+        shown = states if len(states) <= room else states[: max(room - 1, 0)]
+        # Every column but the values keeps its width, and the values' column takes what is
+        # left of the row (rich narrows the columns that may wrap first): the values are cut
+        # at the row's end, with an ellipsis, never folded a point a line.
+        table = Table(box=None, padding=(0, 1, 0, 0), pad_edge=False, header_style="bold", expand=False)
+        for column in self.COLUMNS:
+            table.add_column(column, no_wrap=column != "values")
+        now = self.clock()
+        for state in shown:
+            table.add_row(*self._row(state, now))
+        screen = [title, table]
+        if len(shown) < len(states):
+            hidden = states[len(shown) :]
+            down = sum(state.state == OFFLINE for state in hidden)
+            screen.append(
+                Text(f"+{len(hidden)} more devices" + (f" ({down} offline)" if down else ""), no_wrap=True)
             )
-        return Group(table, *(Text(line, style="dim") for line in self.events))
+        screen.append(Text("changes of state, newest first:", style="dim", no_wrap=True))
+        screen.extend(self._band(console, width))
+        return screen
+
+    def _row(self, state, now: float) -> tuple:
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        stats = state.stats
+        figures = stats.rtt_figures()
+        age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
+        values = Text(no_wrap=True, overflow="ellipsis")
+        changed = self.changed.get(state.spec.name, ())
+        for reading in (state.last_poll.readings or ()) if state.last_poll else ():
+            if reading.error is None:
+                style = "reverse" if reading.point.name in changed else ""
+                values.append(f"{reading.point.name}={_shown(reading)}", style=style)
+                values.append(" ")
+        values.rstrip()
+        return (
+            Text(state.spec.name),  # Text: a name is never read as rich's markup
+            Text(state.spec.link),
+            Text(state.state, style=self.COLOURS.get(state.state, "")),
+            age,
+            "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
+            str(stats.outcomes["timeout"]),
+            str(stats.outcomes["corrupt"]),
+            str(stats.outcomes["exception"]),
+            values,
+        )
+
+    def _band(self, console, width: int) -> list:
+        """The band's rows: the latest changes of state, newest first, each folded whole onto
+        as many rows as it needs (its reason is at its end), blank rows below them."""
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        rows = []
+        for line in reversed(self.events):
+            rows.extend(Text(line).wrap(console, width))
+        rows = rows[: self.EVENT_ROWS]
+        if not self.events:
+            rows = [Text("none yet", style="dim")]
+        return rows + [Text("")] * (self.EVENT_ROWS - len(rows))
 
 
 # --- on exit: statistics and the verdict ----------------------------------------------------
@@ -425,32 +507,19 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         return
     rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
     rows += [("link", name, state, total, link_limits[name]) for name, (total, state) in links.items()]
-    head = [
-        "",
-        "name",
-        "state",
-        "polls",
-        "trans",
-        "answered",
-        "timeout",
-        "corrupt",
-        "not ours",
-        "exc",
-        "recovered",
-        "rtt min/avg/p95/max ms",
-        "timeout s",
-        "retries",
-    ]
-    lines = [head]
+    # A column for every outcome a transaction may have (link.stats), the exceptions last, by code.
+    outcomes = [outcome for outcome in OUTCOMES if outcome != "exception"]
+    lines = [
+        ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
+         "rtt min/avg/p95/max ms", "timeout s", "retries"]
+    ]  # fmt: skip
     for kind, name, state, stats, (timeout, retries) in rows:
-        rtt = stats.rtt.cell()
-        exceptions = stats.exceptions_text()
+        counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
         lines.append(
-            [kind, name, state, str(stats.polls), str(stats.transactions), str(stats.outcomes["answered"]),
-             str(stats.outcomes["timeout"]), str(stats.outcomes["corrupt"]), str(stats.outcomes["not_ours"]),
-             exceptions, str(stats.recovered), rtt, f"{timeout:g}", str(retries)]
+            [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
+             str(stats.recovered), stats.rtt.cell(), f"{timeout:g}", str(retries)]
         )  # fmt: skip
-    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
         print(
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
@@ -475,7 +544,7 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
     failed = [poll for poll in polls if poll.readings is None]
     partial = len(polls) - len(answered) - len(failed)
     unpolled = len(runner.devices) - len(polls)  # stopped before its first poll: no answer either
-    text = f"{len(answered)} of {len(runner.devices)} devices answered" + (
+    text = f"{len(answered)} of {counted(len(runner.devices), 'device')} answered" + (
         f", {partial} in part" if partial else ""
     )
     if interrupted and (not polls or (ends and not runner.completed())):
@@ -485,8 +554,7 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
     elif rounds:  # --rounds counts the rounds of devices that answer: say what an offline one got
         short = [s for s in runner.devices.values() if s.polls < rounds]
         text += "".join(
-            f"; {s.spec.name} polled {s.polls} time{'s' if s.polls != 1 else ''} of {rounds} ({s.state})"
-            for s in short
+            f"; {s.spec.name} polled {counted(s.polls, 'time')} of {rounds} ({s.state})" for s in short
         )
     if not failed and not partial and not unpolled:
         return Summary(text, ExitCode.OK)

@@ -32,6 +32,7 @@ from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary
 from mbtool.link.scan import PROBES, READS, Answer, Scan, Setting, Tally, probe_request
+from mbtool.words import counted
 
 SCAN_TIMEOUT = 0.2  # seconds per unit: a reply at 1200 baud plus a slow device's turnaround
 DEFAULT_UNITS = "1-247"  # spec §2: 1..247 are the individual addresses, 248..255 reserved
@@ -379,8 +380,8 @@ def _check_sweepable(port: str | None) -> None:
 
 
 def _dry_run(connection, settings, request, units: list[int], lines: list[Setting], sweeping: bool) -> None:
-    then = f"then the same probe to units {units_text(frozenset(units))} ({len(units)} probes"
-    then += f" at each of {len(lines)} serial settings)" if sweeping else ")"
+    then = f"then the same probe to units {units_text(frozenset(units))} ({counted(len(units), 'probe')}"
+    then += f" at each of {counted(len(lines), 'serial setting')})" if sweeping else ")"
     with open_client(replace(connection, unit=units[0]), settings, request.name, then=then) as client:
         client.execute(units[0], request)
 

@@ -14,7 +14,7 @@ import time
 import click
 
 from mbtool.cli.completion import complete_port
-from mbtool.cli.listen import tls_server_settings
+from mbtool.cli.listen import DATAGRAM_SCHEMES, check_udp_rate, datagrams_dropped, tls_server_settings
 from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_client_options
 from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
@@ -25,6 +25,7 @@ from mbtool.device.model import demo_model
 from mbtool.device.server import Server, parse_target
 from mbtool.device.serving import IoFaults
 from mbtool.link.transport import SerialSettings, default_framer
+from mbtool.words import counted
 
 DEFAULT_TARGET = "tcp://127.0.0.1:5020"
 
@@ -195,6 +196,7 @@ def serve(
     max_clients,
     idle_timeout,
     first_request_timeout,
+    udp_rate,
     cert,
     key,
     ca,
@@ -232,6 +234,7 @@ def serve(
             "--min-gap, --settle and --connection-requests are faults of TCP clients: serve on tcp://HOST:PORT"
         )
     context, roles = tls_server_settings(where, framer, cert, key, ca, write_roles, data_file)
+    check_udp_rate(where, udp_rate)
     if (pad or byte_count_off or reply_unit is not None) and framer != "tcp":
         raise RequestError(
             "--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing"
@@ -274,6 +277,7 @@ def serve(
         first_request_timeout=first_request_timeout,
         tls_context=context,
         write_roles=roles,
+        udp_rate=udp_rate,
     )
     server.open()
     unit_text = units_text(unit_set)
@@ -301,10 +305,12 @@ def serve(
             )
             if count
         )
-        peers = "peers" if where.scheme in ("udp", "rtu+udp") else "connections"
+        peer = "peer" if where.scheme in DATAGRAM_SCHEMES else "connection"
         click.echo(
-            f"stopped: {stats.requests} requests, {stats.replies} replies, {stats.connections} {peers}"
+            f"stopped: {counted(stats.requests, 'request')}, {counted(stats.replies, 'reply', 'replies')}, "
+            f"{counted(stats.connections, peer)}"
             + turned_away
+            + "".join(f", {part}" for part in datagrams_dropped(stats))
         )
 
 

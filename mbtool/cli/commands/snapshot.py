@@ -27,6 +27,7 @@ from mbtool.codec.record import replace
 from mbtool.codec.tables import reference, table_named
 from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
 from mbtool.link.dump import Dumper, Span, TableDump, runs_of
+from mbtool.words import counted
 
 # --- diff: two snapshots, or a snapshot and the device ------------------------------------
 
@@ -160,7 +161,7 @@ def diff(connection, settings, a, b, map):
             "".join(change_line(d, *_as_read(d, register_map), d.get("unit", "")) + "\n" for d in found)
         )
     if found:
-        raise Summary(f"{len(found)} difference{'s' if len(found) != 1 else ''}", ExitCode(1))
+        raise Summary(counted(len(found), "difference"), ExitCode(1))
 
 
 # --- restore: a dump's writable tables back into the device --------------------------------
@@ -269,8 +270,8 @@ def restore(connection, settings, file, everything, map):
         )
     wanted = {name: snap[name] for name in ("coils", "holding") if name in snap}
     skipped = ", ".join(
-        f"{len(snap[name])} {label}"
-        for name, label in (("input", "input registers"), ("discrete", "discrete inputs"))
+        counted(len(snap[name]), noun)
+        for name, noun in (("input", "input register"), ("discrete", "discrete input"))
         if snap.get(name)
     )
     head = {"unit": connection.unit, "file": file} | ({"map": map} if map else {})
@@ -287,8 +288,8 @@ def restore(connection, settings, file, everything, map):
 
             report(settings, items, head)
             raise DryRunDone(
-                f"dry run: the device was read; nothing was sent: {len(steps)} request"
-                f"{'s' if len(steps) != 1 else ''} would write {len(items)} value{'s' if len(items) != 1 else ''}"
+                f"dry run: the device was read; nothing was sent: {counted(len(steps), 'request')} "
+                f"would write {counted(len(items), 'value')}"
             )
         outcome = send_all(steps, lambda step: execute(step.work[0]))
         # Read back what the device acknowledged, while it still answers: after a refusal it
@@ -313,13 +314,9 @@ def restore(connection, settings, file, everything, map):
     if outcome.error is not None:
         summary = failure("restore", outcome, read_back)
     else:
-        labels = {"coils": "coils", "holding": "holding registers"}
-        counted = ", ".join(
-            f"{len(values)} {labels[name] if len(values) != 1 else labels[name][:-1]}"
-            for name, values in changes.items()
-            if values
-        )
-        text = f"restore: wrote {counted or 'nothing'} in {len(steps)} requests"
+        nouns = {"coils": "coil", "holding": "holding register"}
+        wrote = ", ".join(counted(len(values), nouns[name]) for name, values in changes.items() if values)
+        text = f"restore: wrote {wrote or 'nothing'} in {counted(len(steps), 'request')}"
         if skipped:
             text += f"; skipped {skipped} (read-only)"
         if partial_points:

@@ -18,14 +18,16 @@ from mbtool.cli.profiles import defaults
 from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.results import value_text
 from mbtool.cli.session import open_client
+from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import ExitCode, NoResponse, OutputFailed, Summary
+from mbtool.errors import ExitCode, NoResponse, Summary
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
 from mbtool.sunspec.models import BASES
 from mbtool.sunspec.values import read_values
+from mbtool.words import counted
 
 SMA_UNIT = 126  # SMA inverters answer SunSpec on unit 126 (their own register map on 3)
 MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper than a request
@@ -50,7 +52,8 @@ MAP_MAX_GAP = 8  # a SunSpec chain has no holes: bridging 8 registers is cheaper
     "map_path",
     metavar="FILE",
     type=FilePath(dir_okay=False),
-    help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll.",
+    help="Write a register map (TOML) of the points found, for read -m, write -m, check -m and poll. "
+    "FILE is replaced whole (written beside it, then renamed), or left as it was.",
 )
 def sunspec(connection, settings, base, model_ids, map_path):
     """Find a SunSpec device's models and name every point: solar inverters, meters, batteries.
@@ -69,6 +72,9 @@ def sunspec(connection, settings, base, model_ids, map_path):
     definition's (the length on the wire is used), a repeating group that does not fit and
     a model SunSpec does not define (shown raw) are each a warning on stderr; the walk
     goes on. A model whose registers the device refuses is named, the others shown: exit 8.
+    The walk stops after 100 models, or before a model that would take it past 10,000
+    registers read: the models found are shown, exit 8. Ctrl-C or SIGTERM shows the models
+    found so far (and writes no map): exit 130.
     """
     if map_path is not None and not map_path.lower().endswith(".toml"):
         raise RequestError(f"--map writes a TOML map: {map_path} is not a .toml file name")
@@ -82,18 +88,29 @@ def sunspec(connection, settings, base, model_ids, map_path):
     # A model the device refused is laid out by its length alone: its layout says nothing.
     for warning in [*chain.warnings, *(w for m in wanted if m.error is None for w in m.layout.warnings)]:
         print(f"mbtool: warning: {warning}", file=sys.stderr)
-    unwritten = _write_map(map_path, connection, unit, chain, wanted) if map_path is not None else None
+    unwritten = None
+    if map_path is not None:
+        # An interrupted walk's map would be a part of the device's, put in place of a whole one.
+        if chain.interrupted:
+            unwritten = f"no map written to {map_path}"
+        else:
+            unwritten = _write_map(map_path, connection, unit, chain, wanted)
     tree = _tree(chain, unit, wanted)
     if fmt == "csv":
         _csv(tree, settings.csv_header)
     else:
         {"json": _json, "table": _table}.get(fmt, _plain)(tree)
     refused = [m for m in wanted if m.error is not None]
-    if refused or unwritten:
+    if refused or unwritten or chain.stopped:
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
         if refused:
-            named.append(f"{len(wanted) - len(refused)} of {len(wanted)} models read")
-        raise Summary("; ".join(named + ([unwritten] if unwritten else [])), ExitCode.PARTIAL)
+            named.append(f"{len(wanted) - len(refused)} of {counted(len(wanted), 'model')} read")
+        if chain.stopped:
+            named.append(f"{chain.stopped}; the models found are shown")
+        text = "; ".join(named + ([unwritten] if unwritten else []))
+        if chain.interrupted:
+            raise Summary(f"interrupted; {text}", ExitCode.INTERRUPTED)
+        raise Summary(text, ExitCode.PARTIAL)
 
 
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
@@ -169,6 +186,8 @@ def _tree(chain, unit: int, models) -> dict:
             entry["warnings"] = list(layout.warnings)
         out["models"].append(entry)
     out["warnings"] = list(chain.warnings)
+    if chain.stopped:
+        out["stopped"] = chain.stopped
     return out
 
 
@@ -221,14 +240,13 @@ def _shown(points: dict) -> dict:
 
 
 def _models(tree: dict) -> str:
-    count = len(tree["models"])
-    return f"{count} model{'s' * (count != 1)}"
+    return counted(len(tree["models"]), "model")
 
 
 def _model_title(model: dict) -> str:
     name = f" {model['name']}" if model["name"] else " (SunSpec defines no such model)"
     label = f" ({model['label']})" if model.get("label") and model["label"] != model["name"] else ""
-    return f"model {model['id']}{name}{label} at {model['address']}, {model['length']} registers"
+    return f"model {model['id']}{name}{label} at {model['address']}, {counted(model['length'], 'register')}"
 
 
 def _repeats(groups: dict, prefix: str = ""):
@@ -391,13 +409,12 @@ def _write_map(path: str, connection, unit: int, chain, models) -> str | None:
         *([f"# Left out: {', '.join(left_out)}."] if left_out else []),
     ]
     text = "\n".join(header) + "\n\n" + _toml({"max_gap": MAP_MAX_GAP}, rows)
-    try:
-        with open(path, "w", encoding="utf-8") as out:
-            out.write(text)
-    except OSError as error:
-        raise OutputFailed(path, error) from None
-    count = len(models)
-    print(f"mbtool: wrote {path}: {len(rows)} points of {count} model{'s' * (count != 1)}", file=sys.stderr)
+    with WholeFile(path) as out:  # a write that fails leaves the previous map as it was
+        out.commit(text)
+    print(
+        f"mbtool: wrote {path}: {counted(len(rows), 'point')} of {counted(len(models), 'model')}",
+        file=sys.stderr,
+    )
     return None
 
 

@@ -44,6 +44,16 @@ def parse_bit(text: str) -> bool:
         raise RequestError(f"{text} is not a bit: use on|off|1|0") from None
 
 
+def echoed_values(texts, registers: list[int], value_type: str, order: str) -> list:
+    """What a write echoes of its values (issue 39 item 19).  A plain register is the number
+    as typed: -5 stays -5, though the register holds 65531 (the same bits; the JSON's
+    ``registers`` say so).  A value of another --type is what the registers now hold, read back
+    through that type: a float32 shows the nearest float it could hold."""
+    if value_type == "uint16":
+        return [int(text, 0) for text in texts]  # parse_registers has checked each
+    return decode_values(registers, value_type, order)
+
+
 @device_command("write-coil")
 @click.argument("address", type=ADDRESS)
 @click.argument("state", metavar="on|off|1|0")
@@ -66,8 +76,7 @@ def write_register(connection, settings, address, value, value_type, order):
     (register,) = parse_registers((value,), value_type, order)
     request = WriteSingleRegister(address, register)
     execute(connection, settings, request)
-    # As write-registers does: the value as the register now holds it, in the user's --type.
-    (written,) = decode_values((register,), value_type, order)
+    (written,) = echoed_values((value,), [register], value_type, order)
     show(
         connection,
         settings,
@@ -111,8 +120,7 @@ def write_registers(connection, settings, address, values, allow_nonfinite, valu
     registers = parse_registers(values, value_type, order, allow_nonfinite)
     request = WriteMultipleRegisters(address, tuple(registers))
     execute(connection, settings, request)
-    # Report the values as the device now holds them, read back through the same type.
-    typed = decode_values(registers, value_type, order)
+    typed = echoed_values(values, registers, value_type, order)
     addresses = value_addresses(value_type, address, len(registers))
     show(
         connection,
@@ -203,7 +211,7 @@ def _write_reference(
     else:
         registers = parse_registers(values, value_type, order, nonfinite)
         request = write_of(table, address, registers, multiple)
-        written = decode_values(registers, value_type, order)
+        written = echoed_values(values, registers, value_type, order)
         addresses = value_addresses(value_type, address, len(registers))
         kind = value_type
     execute(connection, settings, request)
@@ -408,6 +416,11 @@ def write_bit(connection, settings, ref, bit, state, rmw):
         raw = _write_bit(connection, client, address, bit, on, rmw)
     function, name = (0x06, "Write Single Register") if rmw else (0x16, "Mask Write Register")
     extra = {"bit": bit} | ({"register": raw[0]} if raw else {})
+    # Echoed as typed (issue 39 item 19): "40011 bit 2 on", not "40011 1", which reads as the
+    # whole register's value.
+    texts = [f"bit {bit} {'on' if on else 'off'}"]
     show(
-        connection, settings, Result(connection.unit, function, name, address, [on], extra=extra, refs=[ref])
+        connection,
+        settings,
+        Result(connection.unit, function, name, address, [on], extra=extra, refs=[ref], texts=texts),
     )
