@@ -4,6 +4,7 @@ monitor print for one frame), a frame in one line, and the --hex trace."""
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from typing import TextIO
 
 from mbtool.cli.results import Report, Row
@@ -94,9 +95,12 @@ def frame_report(described, header: bool = True):
 class HexTrace:
     """``--hex``: every frame sent and received, in hex on stderr, its checksum judged."""
 
-    def __init__(self, framer: Framer, out: TextIO | None = None) -> None:
+    def __init__(
+        self, framer: Framer, out: TextIO | None = None, label: Callable[[], str] | None = None
+    ) -> None:
         self.framer = framer
         self.out = out or sys.stderr
+        self.label = label  # whose frames these are, asked at each line (poll: `bus1 meter1`)
 
     def sent(self, adu: bytes) -> None:
         self._line("TX", adu, self.framer.check(adu))
@@ -111,7 +115,8 @@ class HexTrace:
         self._line("RX", data, verdict)
 
     def _line(self, direction: str, data: bytes, verdict: str) -> None:
-        self.out.write(f"{direction} {shown_frame(data)}  {verdict}\n")
+        whose = f"[{self.label()}] " if self.label else ""
+        self.out.write(f"{whose}{direction} {shown_frame(data)}  {verdict}\n")
         self.out.flush()
 
 

@@ -27,6 +27,7 @@
     link = "bus1"
     unit = 3
     read = ["40001 10", "00001 16"]   # references with counts, as `read` takes them
+    timeout = 2.5                     # its own timeout and retries: the link's otherwise
 
 Everything is checked before anything is opened: an unknown key, a device that names a
 link the file does not have, a map that does not load, a target that names nothing, a
@@ -35,6 +36,8 @@ value of the wrong type are one RequestError (exit 2) naming the file, the table
 
 from __future__ import annotations
 
+import ipaddress
+import os
 import re
 from pathlib import Path
 
@@ -47,7 +50,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
 from mbtool.link.connection import Connection, check, tls_settings
-from mbtool.link.transport import parse_target
+from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, parse_target
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
 from mbtool.registermap.load import MapError, RegisterMap, load_map, one_line
 from mbtool.registermap.plan import MapReader
@@ -58,10 +61,22 @@ POLL_KEYS = {
     "interval": "seconds between polls of a device, such as 10",
     "output": "one of " + ", ".join(FORMATS),
     "offline_after": "failed polls in a row that make a device offline, such as 3",
-    "max_backoff": "the longest wait, in seconds, before an offline device is tried again",
+    "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
 }
-# A device may set its own interval, offline_after and max_backoff.
-DEVICE_KEYS = ("link", "unit", "map", "points", "read", "tags", "measurement", *POLL_KEYS.keys() - {"output"})
+# A device may set its own interval, offline_after and max_backoff, its measurement, and its own timeout and
+# retries where it is slower or less reliable than its link's other devices (the link's otherwise).
+OWN_LINK_KEYS = ("timeout", "retries")
+DEVICE_KEYS = (
+    "link",
+    "unit",
+    "map",
+    "points",
+    "read",
+    "tags",
+    "measurement",
+    *POLL_KEYS.keys() - {"output"},
+    *OWN_LINK_KEYS,
+)
 # A link takes what a profile does, but the unit (each device has its own) and a map.
 LINK_KEYS = {"target": profiles.KEYS["port"]} | {
     key: about for key, about in profiles.KEYS.items() if key not in ("port", "unit", "map")
@@ -89,7 +104,7 @@ def load_inventory(path: str) -> Inventory:
         if key not in ("poll", "links", "devices"):
             raise RequestError(f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME])")
     poll = _table(data, "poll", path, "[poll]")
-    defaults = dict(DEFAULTS)
+    defaults = {}  # what [poll] gives; DEFAULTS for the rest
     output = None
     for key, value in poll.items():
         where = f"{path}: [poll] {key}"
@@ -106,9 +121,12 @@ def load_inventory(path: str) -> Inventory:
         name: _link(name, table, path, params, ctx, Path(path).parent)
         for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
     }
+    _one_link_a_target(links, path)
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
     loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
-    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
+    devices = [
+        _device(name, table, path, links, defaults, loaded, params, ctx) for name, table in tables.items()
+    ]
     if not devices:
         raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
@@ -182,8 +200,57 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
     return LinkSpec(name, connection)
 
 
+def _one_link_a_target(links: dict[str, LinkSpec], path: str) -> None:
+    """Two links on one target are refused: a serial port opens once (the second link's
+    devices would never be polled, the port busy with mbtool itself), and two links to one
+    TCP device or gateway are two masters polling it at once."""
+    seen: dict[tuple, str] = {}
+    for name, link in links.items():
+        endpoint = _endpoint(link.connection.port)
+        if endpoint is None:
+            continue
+        if endpoint in seen:
+            raise RequestError(
+                f"{path}: [links.{seen[endpoint]}] and [links.{name}] both open "
+                f"{link.connection.port}: one link a target (put their devices on one link)"
+            )
+        seen[endpoint] = name
+
+
+def _endpoint(target: str) -> tuple | None:
+    """What a target opens, however it is spelled: a TCP or UDP host and port (an IP address
+    in its one form, a name in lower case; no name looked up), a serial device through its
+    symbolic links, or a pyserial URL; None for an in-process device (each sim:// link is a
+    device of its own)."""
+    where = parse_target(target)
+    scheme = target.partition("://")[0].lower() if "://" in target else ""
+    if where.scheme in NETWORK_SCHEMES:
+        protocol, host, port = NETWORK_SCHEMES[where.scheme][1], where.host, where.port
+    elif scheme in BRIDGE_SCHEMES:  # socket://, rfc2217://: TCP to a host and port
+        address = target.partition("://")[2].split("?", 1)[0].rstrip("/")
+        host, _, port_text = address.rpartition(":")
+        protocol, host, port = "TCP", host.strip("[]"), int(port_text)
+    elif where.scheme == "serial":
+        return ("serial", where.path.lower() if scheme else os.path.realpath(where.path))
+    else:
+        return None
+    try:
+        address = ipaddress.ip_address(host)
+        host = (getattr(address, "ipv4_mapped", None) or address).compressed  # ::ffff:a.b.c.d is a.b.c.d
+    except ValueError:
+        host = host.lower().rstrip(".")
+    return (protocol, host, port)
+
+
 def _device(
-    name: str, table: dict, path: str, links: dict, defaults: dict, loaded: dict[Path, RegisterMap]
+    name: str,
+    table: dict,
+    path: str,
+    links: dict,
+    defaults: dict,
+    loaded: dict[Path, RegisterMap],
+    params: dict,
+    ctx: click.Context,
 ) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
@@ -202,7 +269,7 @@ def _device(
     except RequestError as error:
         raise RequestError(f"{where} unit: {error}") from None
     settings = {
-        key: _setting(key, table[key], f"{where} {key}") if key in table else defaults[key]
+        key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])
         for key in DEFAULTS
     }
     measurement = table.get("measurement")  # -o influx's, for this device
@@ -213,6 +280,10 @@ def _device(
     problem = "" if measurement is None else name_problem(measurement, "a measurement", influx=True)
     if problem:
         raise RequestError(f"{where} measurement: {problem}")
+    _backoff(settings, table, defaults, where)
+    for key in OWN_LINK_KEYS:  # checked as a link's are: one place for what --timeout accepts
+        if key in table:
+            settings[key] = profiles._convert(params[key], key, table[key], ctx, f"{where} {key}")
     return DeviceSpec(
         name,
         link,
@@ -223,6 +294,21 @@ def _device(
         measurement=measurement,
         **settings,
     )
+
+
+def _backoff(settings: dict, table: dict, defaults: dict, where: str) -> None:
+    """An offline device is never tried more often than an online one is polled: a max_backoff
+    below the interval (thousands of reconnects a second) is refused where it was given, and
+    the default, where none was, follows a longer interval."""
+    interval, longest = settings["interval"], settings["max_backoff"]
+    if "max_backoff" not in table and "max_backoff" not in defaults:
+        settings["max_backoff"] = max(longest, interval)
+    elif longest < interval:
+        source = "" if "max_backoff" in table else " (from [poll])"
+        raise RequestError(
+            f"{where} max_backoff: {longest:g} s{source} is below its interval, {interval:g} s: an offline "
+            f"device would be tried more often than an online one is polled (give {interval:g} or more)"
+        )
 
 
 def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMap]) -> MapReader:

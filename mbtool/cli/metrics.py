@@ -382,6 +382,20 @@ def write_textfile(text: str, path: str, sweep: bool = True) -> None:
         raise OutputFailed(path, error) from None
 
 
+def check_textfile(path: str) -> None:
+    """OutputFailed (exit 7) now if write_textfile could not write at ``path``: its temporary
+    made in the folder and removed, before a long run polls anything (as dump finds its file)."""
+    import tempfile  # noqa: PLC0415 - 3 ms or more: --textfile only
+
+    folder, name = os.path.split(os.path.abspath(path))
+    try:
+        descriptor, temporary = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}.", suffix=".tmp", dir=folder)
+        os.close(descriptor)
+        os.unlink(temporary)
+    except OSError as error:
+        raise OutputFailed(path, error) from None
+
+
 def _umask() -> int:
     mask = os.umask(0)  # the only way to read it is to set it
     os.umask(mask)

@@ -23,6 +23,7 @@ from pathlib import Path
 import click
 
 from mbtool.codec.errors import RequestError
+from mbtool.files import read_whole
 
 # profile key (the option's parameter name, and the Connection field it sets) -> the TOML
 # types it takes, and how to say so
@@ -82,11 +83,7 @@ def read_toml(path: Path, what: str = "profile file") -> dict:
     import tomllib  # noqa: PLC0415 - 2 ms: -P and inventories only
 
     try:
-        with open(path, "rb") as file:
-            text = file.read().decode("utf-8")
-        return tomllib.loads(text)
-    except OSError as error:
-        raise RequestError(f"cannot read {what} {path}: {error.strerror or error}") from None
+        return tomllib.loads(read_whole(path, what).decode("utf-8"))
     except UnicodeDecodeError as error:
         raise RequestError(f"{path}: not UTF-8 text (byte {error.start}), as TOML must be") from None
     except tomllib.TOMLDecodeError as error:

@@ -13,6 +13,7 @@ from __future__ import annotations
 from mbtool.codec.errors import RequestError
 from mbtool.codec.serial_line import RUN_OFF, RUN_ON
 from mbtool.device.model import FILE_SIZE, IDENTITY_FUNCTIONS, MAX_PDU, TABLE_SIZE, TABLES, DataModel
+from mbtool.files import read_whole
 
 OBJECT_KEYS = {
     "vendor_name": 0x00,
@@ -64,11 +65,7 @@ def load_data(
 
 def _read(path: str) -> dict:
     """The data file as a table, JSON or TOML by its name; RequestError naming it if it is neither."""
-    try:
-        with open(path, "rb") as handle:
-            raw = handle.read()
-    except OSError as error:
-        raise RequestError(f"cannot read data file {path}: {error.strerror or error}") from None
+    raw = read_whole(path, "data file")
     try:
         if path.lower().endswith(".toml"):
             import tomllib  # noqa: PLC0415 - 2 ms: a .toml data file only

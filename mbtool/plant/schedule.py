@@ -2,7 +2,8 @@
 every link at once.
 
 A link (a serial bus, or a gateway or TCP device that takes one request at a time) has a
-worker thread of its own.  It opens the link, and polls its devices as they fall due: when
+worker thread of its own, every one started before any opens its link: a plant of more
+links than the system allows threads is refused whole (exit 6), not cut short mid-run.  It opens the link, and polls its devices as they fall due: when
 several are due, the one that has waited longest goes first.  A poll reads every point of
 the device (``MapReader``); the client keeps the line's silences and ``pause``.
 
@@ -13,16 +14,23 @@ of the others.  One good poll brings it back online.  A link that cannot be open
 missing port, a refused connection) backs off the same way, and its devices are offline
 meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``; both go to
 ``report`` as they happen, from the link's thread.
+
+A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
+would end after the run is announced without its next try.  With ``rounds`` a device is done
+once polled that many times, and an offline one is tried again only where its back-off ends
+before the last poll the link's other devices still have to make: so every device that
+answers gets its rounds, an offline one fewer, and the run does not wait out a back-off.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from contextlib import ExitStack
 
-from mbtool.codec.record import field, record
+from mbtool.codec.record import field, record, replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
 from mbtool.link.connection import Connection, close_quietly, open_client
 from mbtool.link.stats import Counted, Stats
@@ -47,6 +55,8 @@ class DeviceSpec:
     max_backoff: float = 300.0
     raw: bool = False  # it reads references (raw registers and bits), not a map's points
     measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
+    timeout: float | None = None  # its own, where it is slower than its link's other devices
+    retries: int | None = None  # None: the link's
 
 
 @record
@@ -55,6 +65,15 @@ class LinkSpec:
 
     name: str
     connection: Connection
+
+
+def limits(device: DeviceSpec, link: LinkSpec) -> tuple[float, int]:
+    """The timeout and retries a device's transactions have: its own, else its link's."""
+    connection = link.connection
+    return (
+        connection.timeout if device.timeout is None else device.timeout,
+        connection.retries if device.retries is None else device.retries,
+    )
 
 
 @record
@@ -135,13 +154,18 @@ class LinkWorker:
         stop: threading.Event,
         rounds: int = 0,
         trace=None,
+        go: threading.Event | None = None,
     ) -> None:
         self.spec = spec
+        self.go = go  # set once every link's worker has started: none opens a link before
         self.devices = devices
         self.report = report
         self.stop = stop
         self.rounds = rounds  # 0: until stopped
-        self.trace = trace  # --hex: the client's trace, made from its framer
+        # --hex: the client's trace, made from its framer and a label naming the link and the
+        # device being polled, for the trace lines of several links and devices to tell apart
+        self.trace = trace
+        self.polling = ""  # the device whose poll is under way
         self.link = ExitStack()
         self.client = None
         self.open_at = 0.0  # monotonic: not before this may the link be opened again
@@ -150,16 +174,47 @@ class LinkWorker:
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.crashed: BaseException | None = None
+        self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
 
+    def limits(self) -> list[tuple[float, int]]:
+        """The timeout and retries of each of its devices' transactions."""
+        return [limits(d.spec, self.spec) for d in self.devices]
+
     def finished(self) -> bool:
-        """--once, --rounds: every device has had its polls, or is offline after one at least."""
-        if not self.rounds:
-            return False
-        return all(d.polls >= self.rounds or (d.state == OFFLINE and d.polls) for d in self.devices)
+        """--once, --rounds: every device has had its polls, or will be tried no more."""
+        return bool(self.rounds) and not self._waiting()
+
+    def _waiting(self) -> list[DeviceState]:
+        """The devices this run will poll again."""
+        return [d for d in self.devices if d.due < math.inf and not (self.rounds and d.polls >= self.rounds)]
+
+    def _tried_again(self, device: DeviceState) -> bool:
+        """Whether the run will last until ``device`` is due again: never past its rounds or
+        its deadline; with rounds, an offline device only where its back-off ends before the
+        last poll the link's other devices have still to make.  A device that will not be is
+        done (due never), so the run does not wait for it."""
+        others = [d for d in self._waiting() if d is not device]
+        if self.rounds:
+            if device.polls >= self.rounds:
+                return False
+            if device.state == OFFLINE:
+                # The last slot of each other device, or the next try of an offline one (its
+                # later tries are as uncertain as this one's).
+                last = max(
+                    (d.due if d.state == OFFLINE else d.due + (self.rounds - d.polls - 1) * d.spec.interval
+                     for d in others),
+                    default=-math.inf,
+                )  # fmt: skip
+                if device.due > last:
+                    device.due = math.inf
+                    return False
+        return self.deadline is None or device.due < self.deadline
 
     def run(self) -> None:
         try:
+            if self.go is not None:
+                self.go.wait()
             self._work()
         except BaseException as error:  # a bug: the plant stops, and says so on the main thread
             self.crashed = error
@@ -170,7 +225,7 @@ class LinkWorker:
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
             now = time.monotonic()
-            waiting = [d for d in self.devices if not (self.rounds and d.polls >= self.rounds)]
+            waiting = self._waiting()
             due = [d for d in waiting if d.due <= now and self.open_at <= now]
             if not due:
                 wake = max(min(d.due for d in waiting), self.open_at)
@@ -184,7 +239,8 @@ class LinkWorker:
     def _open(self, due: list[DeviceState]) -> bool:
         try:
             self.link = ExitStack()
-            self.client = self.link.enter_context(open_client(self.spec.connection, trace=self.trace))
+            trace = (lambda framer: self.trace(framer, label=self._label)) if self.trace else None
+            self.client = self.link.enter_context(open_client(self.spec.connection, trace=trace))
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             self.client = None
@@ -198,21 +254,33 @@ class LinkWorker:
             self.open_at = now + self.backoff
             self.state = OFFLINE
             self.open_failures += 1
-            if first:
-                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff))
+            settled = []
             for device in due:  # its devices cannot be reached: offline meanwhile
-                self._end(device, None, error, when, at_once=True)
-                device.due = max(device.due, self.open_at)
+                settled.append(self._settle(device, None, error, when, not_before=self.open_at))
+            # Opened again only for a device the run will still poll, and before its end.
+            again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
+            if first:
+                self.report(
+                    Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff if again else None)
+                )
+            for items in settled:
+                for item in items:
+                    self.report(item)
             return False
         if self.state == OFFLINE:
             self.report(Event(time.time(), "link", self.spec.name, ONLINE))
         self.state, self.backoff = ONLINE, 0.0
         return True
 
+    def _label(self) -> str:
+        return f"{self.spec.name} {self.polling}".rstrip()
+
     def _poll(self, device: DeviceState) -> None:
         client, spec = self.client, device.spec
+        self.polling = spec.name
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
+        client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
         counted = Counted(client, DeviceAndLink(device.stats, self.stats))
 
         def execute(request):
@@ -232,7 +300,16 @@ class LinkWorker:
             client.while_waiting = None
         self._end(device, readings, error, stamp[0] if stamp else time.time())
 
-    def _end(self, device, readings, error, when: float, at_once: bool = False) -> None:
+    def _end(self, device, readings, error, when: float) -> None:
+        for item in self._settle(device, readings, error, when):
+            self.report(item)
+
+    def _settle(
+        self, device, readings, error, when: float, not_before: float | None = None
+    ) -> list[Poll | Event]:
+        """A poll's outcome in the device's state: the Poll, and the Event of its change of
+        state if it had one, to report.  ``not_before``: its link cannot be opened, so the
+        device is offline now and not tried before the link is."""
         now = time.monotonic()
         device.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
@@ -240,12 +317,14 @@ class LinkWorker:
         if ok:
             event = device.succeeded(now, when)
         else:
-            event = device.failed(now, when, str(error), at_once)
+            event = device.failed(now, when, str(error), at_once=not_before is not None)
+            device.due = max(device.due, not_before or 0.0)
+        again = self._tried_again(device)
+        if not again and event is not None and event.retry_in is not None:
+            event = replace(event, retry_in=None)  # the run ends first: no next try to announce
         poll = Poll(device.spec, when, readings, error, device.state)
         device.last_poll = poll
-        self.report(poll)
-        if event is not None:
-            self.report(event)
+        return [poll] if event is None else [poll, event]
 
 
 class Plant:
@@ -258,8 +337,12 @@ class Plant:
         report: Callable[[Poll | Event], None],
         rounds: int = 0,
         trace=None,
+        traced: Collection[str] | None = None,
     ) -> None:
+        """``trace``: --hex's, for the links ``traced`` names (None: every link)."""
         self.stop = threading.Event()
+        self.go = threading.Event()
+        self.ended = False  # its duration ran out
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -269,21 +352,41 @@ class Plant:
                 report,
                 self.stop,
                 rounds,
-                trace,
+                trace if traced is None or name in traced else None,
+                self.go,
             )
             for name, spec in links.items()
         ]
         self.workers = [worker for worker in self.workers if worker.devices]
 
+    def completed(self) -> bool:
+        """The run ended as it was to end: every round polled, or its duration over."""
+        return self.ended or (bool(self.workers) and all(worker.finished() for worker in self.workers))
+
     def run(self, duration: float | None = None) -> None:
-        for worker in self.workers:
-            worker.thread.start()
         deadline = None if duration is None else time.monotonic() + duration
+        for started, worker in enumerate(self.workers):
+            worker.deadline = deadline
+            try:
+                worker.thread.start()
+            except RuntimeError as error:  # "can't start new thread": the system's limits
+                # Said before any link is opened: those started wait for ``go``, and end.
+                self.stop.set()
+                self.go.set()
+                for each in self.workers[:started]:
+                    each.thread.join()
+                raise ConnectionFailed(
+                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
+                    f"started before the system refused a thread ({error}); poll fewer links a "
+                    "process, or raise its limits (ulimit -v, -u)"
+                ) from None
+        self.go.set()
         try:
             for worker in self.workers:
                 while worker.thread.is_alive():
                     left = None if deadline is None else deadline - time.monotonic()
                     if left is not None and left <= 0:
+                        self.ended = True
                         self.stop.set()
                         left = None
                     # Short joins: Ctrl-C reaches the main thread between them.
@@ -291,9 +394,9 @@ class Plant:
         finally:
             self.stop.set()
             for worker in self.workers:
-                # A worker ends its transaction first: at most the link's timeout and retries.
-                connection = worker.spec.connection
-                worker.thread.join(connection.timeout * (connection.retries + 1) + 1)
+                # A worker ends its poll's transaction first: at most a timeout a try.
+                longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
+                worker.thread.join(longest + 1)
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed

@@ -21,6 +21,7 @@ from mbtool.codec.record import replace
 from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
 from mbtool.errors import ExitCode, MbtoolError
+from mbtool.files import read_whole
 from mbtool.registermap.point import Point
 
 POINT_KEYS = {
@@ -73,9 +74,9 @@ class RegisterMap:
 def load_map(path: str | Path) -> RegisterMap:
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as error:
-        raise MapError(f"cannot read map {path}: {error.strerror or error}") from None
+        text = read_whole(path, "map").decode("utf-8")
+    except RequestError as error:
+        raise MapError(str(error)) from None
     except UnicodeDecodeError as error:
         raise MapError(f"{path}: not UTF-8 text (byte {error.start})") from None
     text = text.removeprefix("\ufeff")  # a byte order mark (Excel's "CSV UTF-8") is no text

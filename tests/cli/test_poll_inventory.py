@@ -9,6 +9,9 @@ from helpers import (
     run_cli,
 )
 
+from mbtool.cli.inventory import load_inventory
+from mbtool.cli.program import register_schemes
+
 
 @pytest.mark.parametrize(
     "text, words",
@@ -64,7 +67,11 @@ def test_a_point_named_as_a_devices_own_metric_is_refused_for_prometheus_text(
 @pytest.mark.parametrize(
     "key, args, words",
     [
-        ('measurement = "#meters"', ["-o", "influx"], "[devices.d] measurement: a line starting with # is a comment"),
+        (
+            'measurement = "#meters"',
+            ["-o", "influx"],
+            "[devices.d] measurement: a line starting with # is a comment",
+        ),
         ('measurement = ""', ["-o", "influx"], "[devices.d] measurement: a measurement has a name"),
         ("measurement = 3", ["-o", "influx"], "[devices.d] measurement: expected"),
         ("", ["-o", "influx", "--measurement", "a\\"], "--measurement 'a\\\\': a backslash at the end"),
@@ -72,7 +79,9 @@ def test_a_point_named_as_a_devices_own_metric_is_refused_for_prometheus_text(
     ],
     ids=["comment", "empty", "number", "backslash", "not-influx"],
 )
-def test_a_measurement_influx_cannot_carry_is_exit_2_with_nothing_opened(tmp_path, silent_server, key, args, words):
+def test_a_measurement_influx_cannot_carry_is_exit_2_with_nothing_opened(
+    tmp_path, silent_server, key, args, words
+):
     path = tmp_path / "plant.toml"
     target = silent_server.socket_target.replace("socket", "tcp")
     path.write_text(f'[links.a]\ntarget = "{target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n{key}\n')
@@ -96,3 +105,97 @@ def test_a_point_named_value_beside_a_device_of_raw_registers_is_refused_for_pro
     line = assert_one_error_line(run_cli("poll", path, "--once", "-o", "prom"), 2)
     assert "[devices.m] map: point value: its metric, modbus_value" in line
     assert silent_server.received_bytes() == b""
+
+
+@pytest.mark.parametrize(
+    "first, second",
+    [
+        ("tcp://127.0.0.1:{port}", "tcp://127.0.0.1:{port}/"),
+        ("tcp://127.0.0.1:{port}", "socket://127.0.0.1:{port}"),  # RTU over the same TCP port
+        ("tcp://[::ffff:127.0.0.1]:{port}", "tls://[0:0:0:0:0:ffff:7f00:1]:{port}"),
+        ("tcp://Plc7.Example:{port}", "tcp://plc7.example.:{port}"),
+        ("{dir}/ttyUSB0", "{dir}/by-id/usb-FTDI-if00"),  # a serial port and a link to it
+    ],
+    ids=["same", "socket", "ipv6-spellings", "host-case", "serial-symlink"],
+)
+def test_two_links_on_one_target_are_refused_naming_both(tmp_path, silent_server, first, second):
+    """A serial port opens once (the second link's devices would never be polled: port busy,
+    by mbtool itself), and two links to one TCP device are two masters polling it at once:
+    refused at load, exit 2, naming both links, with nothing opened."""
+    (tmp_path / "ttyUSB0").write_text("")
+    (tmp_path / "by-id").mkdir()
+    (tmp_path / "by-id" / "usb-FTDI-if00").symlink_to(tmp_path / "ttyUSB0")
+    targets = [t.format(port=silent_server.port, dir=tmp_path) for t in (first, second)]
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[links.bus1]\ntarget = "{targets[0]}"\n[links.bus2]\ntarget = "{targets[1]}"\n'
+        '[devices.a]\nlink = "bus1"\nread = ["40001"]\n[devices.b]\nlink = "bus2"\nread = ["40001"]\n'
+    )
+    line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
+    assert str(path) in line and "[links.bus1]" in line and "[links.bus2]" in line, line
+    assert silent_server.received_bytes() == b""
+
+
+def test_links_on_different_targets_and_in_process_devices_load(tmp_path, silent_server):
+    """Not one target: UDP and TCP on one port number, two sim:// links (each a device of its own)."""
+    register_schemes()  # sim://, as main registers it
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[links.a]\ntarget = "tcp://127.0.0.1:{silent_server.port}"\n'
+        f'[links.b]\ntarget = "udp://127.0.0.1:{silent_server.port}"\n'
+        '[links.c]\ntarget = "sim://"\n[links.d]\ntarget = "sim://"\n'
+        + "".join(f'[devices.{n}]\nlink = "{n}"\nread = ["40001"]\n' for n in "abcd")
+    )
+    assert len(load_inventory(str(path)).links) == 4
+
+
+@pytest.mark.parametrize(
+    "poll, device, words",
+    [
+        ("max_backoff = 0.5\n", "interval = 2\n", "[devices.d] max_backoff: 0.5 s (from [poll]) is below its interval, 2 s"),
+        ("", "interval = 2\nmax_backoff = 1\n", "[devices.d] max_backoff: 1 s is below its interval, 2 s"),
+        ("interval = 60\nmax_backoff = 30\n", "", "[devices.d] max_backoff: 30 s (from [poll]) is below its interval, 60 s"),
+    ],
+    ids=["poll", "device", "both-from-poll"],
+)  # fmt: skip
+def test_a_max_backoff_below_the_interval_is_refused(tmp_path, silent_server, poll, device, words):
+    """An offline device tried more often than an online one is polled: thousands of reconnects
+    a second (issue 40.19); refused at load, exit 2, nothing opened."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[poll]\n{poll}[links.a]\ntarget = "{silent_server.tcp_target}"\n'
+        f'[devices.d]\nlink = "a"\nread = ["40001"]\n{device}'
+    )
+    line = assert_one_error_line(run_cli("poll", path, "--once"), 2)
+    assert str(path) in line and words in line, line
+    assert silent_server.received_bytes() == b""
+
+
+def test_the_default_max_backoff_is_never_below_the_interval(tmp_path):
+    """A device polled once an hour, max_backoff left out: backed off an hour at the least, not
+    the default 300 s (which would poll an offline device more often than an online one)."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        '[links.a]\ntarget = "tcp://127.0.0.1:1"\n[devices.slow]\nlink = "a"\nread = ["40001"]\ninterval = 3600\n'
+        '[devices.fast]\nlink = "a"\nunit = 2\nread = ["40001"]\ninterval = 2\n'
+    )
+    devices = {d.name: d for d in load_inventory(str(path)).devices}
+    assert devices["slow"].max_backoff == 3600 and devices["fast"].max_backoff == 300
+
+
+@pytest.mark.parametrize(
+    "where", ["{dir}/nosuch/plant.prom", "{dir}/plant.toml/plant.prom"], ids=["missing", "not-a-folder"]
+)
+def test_a_textfile_that_cannot_be_written_is_exit_7_before_any_link_is_opened(
+    tmp_path, silent_server, where
+):
+    """--textfile in a folder that is not there, or is a file: found before any device is
+    polled (and before a dead one's timeout), as dump finds its file (issue 39.17)."""
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[links.a]\ntarget = "{silent_server.tcp_target}"\n[devices.d]\nlink = "a"\nread = ["40001"]\n'
+    )
+    textfile = where.format(dir=tmp_path)
+    line = assert_one_error_line(run_cli("poll", path, "--once", "--textfile", textfile), 7)
+    assert textfile in line, line
+    assert silent_server.received_bytes() == b"" and silent_server.connections == 0

@@ -14,6 +14,7 @@ import csv
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -26,10 +27,12 @@ from helpers import (
     PTY_SERIAL_OPTS,
     REPO_ROOT,
     PtyPair,
+    assert_one_error_line,
     bridge,
     expositions,
     free_port,
     mbtool_env,
+    signals_as_from_a_shell,
     promtool_check,
     run_cli,
     serve,
@@ -375,7 +378,7 @@ def test_raw_registers_are_one_family_as_read_writes_them_and_points_keep_their_
 def test_a_map_point_named_as_a_counter_is_warned_of_once_for_the_plant(tmp_path):
     """Two devices share a map whose point would be modbus_energy_total, a gauge: one warning
     naming the map, when the inventory is loaded for Prometheus; none for plain output."""
-    write(tmp_path / "meter.toml", '[points.energy_total]\nref = 40001\n')
+    write(tmp_path / "meter.toml", "[points.energy_total]\nref = 40001\n")
     with serve("-u", "1-2") as device:
         plant = write(
             tmp_path / "plant.toml",
@@ -403,7 +406,9 @@ def test_a_refused_point_is_named_once_on_stderr_and_in_json(tmp_path, holed_dev
     )
     res = run_cli("poll", plant, "--once", "-o", "json")
     assert res.returncode == 8, res  # each device read in part
-    refused = {line.split()[2]: line.split(" ", 3)[3] for line in res.stderr.splitlines() if "exception" in line}
+    refused = {
+        line.split()[2]: line.split(" ", 3)[3] for line in res.stderr.splitlines() if "exception" in line
+    }
     assert refused["m"].startswith("missing (40011): exception 02"), res.stderr
     assert refused["r"].startswith("40011: exception 02"), res.stderr
     assert all(text.count("40011") == 1 for text in refused.values()), refused
@@ -419,7 +424,7 @@ def test_influx_measurement_from_the_command_line_and_per_device(small_plant):
     device's own `measurement =` beats it."""
     from line_protocol_parser import parse_line
 
-    text = small_plant.read_text().replace('unit = 2\n', 'unit = 2\nmeasurement = "meters"\n')
+    text = small_plant.read_text().replace("unit = 2\n", 'unit = 2\nmeasurement = "meters"\n')
     small_plant.write_text(text)
     res = run_cli("poll", small_plant, "--once", "-o", "influx", "--measurement", "plant floor")
     assert res.returncode == 8, res
@@ -487,7 +492,9 @@ def test_a_textfile_follows_the_fastest_device_not_the_slowest(tmp_path):
             '[devices.fast]\nlink = "a"\nunit = 1\ninterval = 0.2\nread = ["40001 1"]\n'
             '[devices.slow]\nlink = "a"\nunit = 2\ninterval = 3600\nread = ["40001 1"]\n',
         )
-        proc = start_mbtool("poll", plant, "--textfile", textfile, "--duration", "2.5", stdout=subprocess.DEVNULL)
+        proc = start_mbtool(
+            "poll", plant, "--textfile", textfile, "--duration", "2.5", stdout=subprocess.DEVNULL
+        )
         seen: dict[str, set[float]] = {"fast": set(), "slow": set()}
         while proc.poll() is None:
             try:
@@ -632,3 +639,191 @@ def test_when_every_device_fails_the_status_is_the_failures_own(tmp_path, silent
     stats = json.loads(res.stderr.splitlines()[-2])
     assert stats["devices"]["d"]["timeout"] == 1 and stats["devices"]["d"]["state"] == "unknown"
     assert res.stderr.splitlines()[-1].startswith("mbtool: 0 of 1 device answered: no response")
+
+
+# --- runs that end: --once, --rounds, --duration ---------------------------------------------
+
+
+def _records(res) -> tuple[list[dict], list[dict]]:
+    """A -o json run's (poll records, event records)."""
+    records = [json.loads(line) for line in res.stdout.splitlines()]
+    return [r for r in records if "event" not in r], [r for r in records if "event" in r]
+
+
+def test_a_run_that_ends_first_announces_no_next_try(tmp_path):
+    """A link refused with --once, --rounds or --duration shorter than its back-off: no `next try
+    in 10 s` nor `retry_in` for a try that never comes (issue 39.7)."""
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[poll]\ninterval = 5\n[links.gone]\ntarget = "tcp://127.0.0.1:{free_port()}"\n'
+        '[devices.d]\nlink = "gone"\nread = ["40001"]\n',
+    )
+    for ending in (["--once"], ["--rounds", "3"], ["--duration", "1"]):
+        res = run_cli("poll", plant, *ending, "-o", "json")
+        assert res.returncode == 6, res
+        polls, events = _records(res)
+        assert {(e["event"], e.get("link", e.get("device"))) for e in events} == {
+            ("offline", "gone"),
+            ("offline", "d"),
+        }
+        assert all("retry_in" not in event for event in events), (ending, events)
+        assert "next try" not in res.stderr and "Connection refused" in res.stderr, res.stderr
+        assert len(polls) == 1, ending  # --rounds 3: nothing is tried again, so the run ends
+
+
+def test_a_next_try_that_comes_within_the_run_is_announced_and_comes(tmp_path):
+    plant = write(
+        tmp_path / "plant.toml",
+        f'[poll]\ninterval = 0.4\n[links.gone]\ntarget = "tcp://127.0.0.1:{free_port()}"\n'
+        '[devices.d]\nlink = "gone"\nread = ["40001"]\n',
+    )
+    res = run_cli("poll", plant, "--duration", "2.5", "-o", "json")
+    polls, events = _records(res)
+    link = next(e for e in events if e.get("link") == "gone")
+    assert link["retry_in"] == 0.8 and "next try in 0.8 s" in res.stderr
+    assert len(polls) >= 2  # the try announced came
+
+
+def test_rounds_counts_the_rounds_of_devices_that_answer_and_says_what_an_offline_one_got(tmp_path):
+    """--rounds 4 on a link with a dead unit: the unit that answers is polled 4 times; the dead
+    one, offline after one failure, is tried again only where its back-off ends within those
+    rounds, every try it was promised comes, and the last line says how many it got
+    (issue 39.8)."""
+    with serve("-u", "1") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[poll]\ninterval = 0.3\noffline_after = 1\n[links.gw]\ntarget = "{device.target}"\n'
+            'timeout = 0.1\n[devices.live]\nlink = "gw"\nread = ["40001"]\n'
+            '[devices.dead]\nlink = "gw"\nunit = 9\nread = ["40001"]\n',
+        )
+        res = run_cli("poll", plant, "--rounds", "4", "-o", "json")
+    assert res.returncode == 8, res
+    polls, events = _records(res)
+    assert [p["device"] for p in polls].count("live") == 4
+    dead = [p["time"] for p in polls if p["device"] == "dead"]
+    for event in events:
+        if "retry_in" in event:  # the try it announces is made
+            assert any(time > event["time"] for time in dead), (event, dead)
+    assert 1 <= len(dead) < 4
+    plural = "time" if len(dead) == 1 else "times"
+    assert f"dead polled {len(dead)} {plural} of 4 (offline)" in res.stderr.splitlines()[-1], res.stderr
+
+
+def test_a_finite_run_stopped_before_its_rounds_are_done_is_exit_130(tmp_path, silent_server):
+    """SIGTERM to --once while a slow device is still being read and another waits its turn on
+    that link: the round is not done, so not `1 of 3 devices answered` and a verdict, but 130
+    (issue 40.14)."""
+    import signal
+
+    with serve() as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.fast]\ntarget = "{device.target}"\n[links.slow]\ntarget = "{silent_server.tcp_target}"\n'
+            'timeout = 1\n[devices.a]\nlink = "fast"\nread = ["40001"]\n'
+            '[devices.b]\nlink = "slow"\nread = ["40001"]\n[devices.c]\nlink = "slow"\nunit = 2\nread = ["40001"]\n',
+        )
+        proc = start_mbtool("poll", plant, "--once", "-o", "json")
+        try:
+            assert json.loads(proc.stdout.readline())["device"] == "a"
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=10)
+        finally:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert err.splitlines()[-1].startswith("mbtool: interrupted"), err
+
+
+def test_a_device_may_have_its_own_timeout_and_retries(tmp_path):
+    """A slow meter on a fast bus (issue 39.24): its own timeout, 1 s, reads it where the link's
+    0.15 s times out on its twin; its own retries try a dead unit three times a poll where the
+    link's none try once; --stats shows what each device used."""
+    with serve("-u", "1-2", "--delay", "0.3") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.gw]\ntarget = "{device.target}"\ntimeout = 0.15\n'
+            '[devices.slow]\nlink = "gw"\nread = ["40001"]\ntimeout = 1\n'
+            '[devices.twin]\nlink = "gw"\nunit = 2\nread = ["40001"]\n'
+            '[devices.dead]\nlink = "gw"\nunit = 9\nread = ["40001"]\nretries = 2\n',
+        )
+        res = run_cli("poll", plant, "--once", "-o", "json", "--stats", "json")
+        table = run_cli("poll", plant, "--once", "-o", "json", "--hex").stderr
+    assert res.returncode == 8, res
+    polls, _ = _records(res)
+    answered = {p["device"]: "points" in p for p in polls}
+    assert answered == {"slow": True, "twin": False, "dead": False}
+    stats = json.loads(res.stderr.splitlines()[-2])
+    devices = stats["devices"]
+    assert (devices["slow"]["timeout_seconds"], devices["slow"]["retries"]) == (1.0, 0)
+    assert (devices["twin"]["timeout_seconds"], devices["twin"]["retries"]) == (0.15, 0)
+    assert (devices["dead"]["timeout_seconds"], devices["dead"]["retries"]) == (0.15, 2)
+    # The requests sent to each unit (MBAP: the unit is the 7th byte), whatever labels the trace.
+    sent = [bytes.fromhex(m[1]) for m in re.finditer(r"TX ((?:[0-9A-F]{2} )*[0-9A-F]{2})", table)]
+    assert [frame[6] for frame in sent].count(9) == 3 and [frame[6] for frame in sent].count(2) == 1, table
+    assert (stats["links"]["gw"]["timeout_seconds"], stats["links"]["gw"]["retries"]) == (0.15, 0)
+    rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("device")}
+    head = next(line for line in table.splitlines() if line.split()[:2] == ["name", "state"]).split("  ")
+    assert "timeout s" in [h.strip() for h in head] and rows["slow"][-2:] == ["1", "0"], table
+
+
+def _address_space_capped() -> None:
+    import resource
+
+    signals_as_from_a_shell()
+    resource.setrlimit(resource.RLIMIT_AS, (768 << 20, 768 << 20))  # a thread's stack is 8 MiB of it
+
+
+def test_more_links_than_threads_the_system_allows_is_said_at_start(tmp_path):
+    """A worker thread a link: under an address-space cap, 400 links cannot all have one. Said at
+    start, exit 6 with the count, nothing polled (not `internal error: RuntimeError` mid-run,
+    without statistics) (issue 40.17)."""
+    links = 400
+    plant = write(
+        tmp_path / "plant.toml",
+        "".join(
+            f'[links.l{i}]\ntarget = "sim://"\n[devices.d{i}]\nlink = "l{i}"\nread = ["40001"]\n'
+            for i in range(links)
+        ),
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "mbtool", "poll", str(plant), "--once", "-o", "json"],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        preexec_fn=_address_space_capped,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 6, res.stderr[-3000:]
+    assert res.stdout == ""  # nothing was polled
+    (line,) = res.stderr.splitlines()
+    assert line.startswith("mbtool: ") and f"of {links} links" in line, line
+
+
+def test_hex_labels_each_frame_with_its_link_and_device_and_can_trace_one_link(tmp_path):
+    """--hex of a plant (issue 39.5): each trace line says whose frame it is, `[gw meter] TX …`,
+    so MBAP frames of the gateway and RTU frames of the bus are told apart; --hex-link LINK
+    traces that link alone (repeatable); a link the inventory lacks is exit 2."""
+    with serve("-u", "1-2") as device:
+        plant = write(
+            tmp_path / "plant.toml",
+            f'[links.gw]\ntarget = "{device.target}"\n[links.bus]\ntarget = "sim://"\n'
+            '[devices.meter]\nlink = "gw"\nread = ["40001"]\n[devices.pump]\nlink = "gw"\nunit = 2\nread = ["40001"]\n'
+            '[devices.plc]\nlink = "bus"\nread = ["40001 2"]\n',
+        )
+        every = run_cli("poll", plant, "--once", "--hex")
+        one = run_cli("poll", plant, "--once", "--hex-link", "gw")
+        unknown = run_cli("poll", plant, "--once", "--hex-link", "nosuch")
+    assert every.returncode == 0 and one.returncode == 0, (every, one)
+    trace = [line for line in every.stderr.splitlines() if " TX " in line or " RX " in line]
+    labels = {line.split("] ")[0] + "]": line.split("] ")[1][:2] for line in trace}
+    assert set(labels) == {"[gw meter]", "[gw pump]", "[bus plc]"}, every.stderr
+    for line in trace:
+        label, frame = line.split("] ", 1)
+        unit = bytes.fromhex(frame[3:].split("  ")[0])[6 if label.startswith("[gw") else 0]
+        assert unit == {"[gw meter": 1, "[gw pump": 2, "[bus plc": 1}[label], (
+            line
+        )  # MBAP's unit is its 7th byte
+    traced = {line.split("] ")[0] + "]" for line in one.stderr.splitlines() if line.startswith("[")}
+    assert traced == {"[gw meter]", "[gw pump]"}, one.stderr
+    line = assert_one_error_line(unknown, 2)
+    assert "nosuch" in line and "gw" in line and "bus" in line, line

@@ -4,7 +4,10 @@ after failures in a row, backed off doubling, back online; its slots kept and th
 
 from __future__ import annotations
 
-from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState
+import math
+import threading
+
+from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState, LinkSpec, LinkWorker
 
 
 def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:
@@ -36,3 +39,30 @@ def test_a_device_keeps_its_schedule_and_skips_slots_it_missed():
     assert state.due == 2.0  # its slot, not 2 s after this poll
     state.succeeded(7.5, 7.5)  # slots 4.0 and 6.0 passed while the link was busy
     assert state.due == 7.5
+
+
+def _worker(rounds: int, *states: DeviceState, deadline: float | None = None) -> LinkWorker:
+    worker = LinkWorker(LinkSpec("bus", None), list(states), lambda item: None, threading.Event(), rounds)
+    worker.deadline = deadline
+    return worker
+
+
+def test_with_rounds_an_offline_device_is_tried_again_only_within_the_others_rounds():
+    """--rounds 4: the device that answers has polls due at 1, 2 and 3 (its last); an offline
+    one whose next try is at 2 is awaited, one whose next try is at 5 is done (issue 39.8)."""
+    live, dead = _state(), _state()
+    live.polls, live.due = 1, 1.0
+    dead.polls, dead.state, dead.due = 1, OFFLINE, 2.0
+    worker = _worker(4, live, dead)
+    assert worker._tried_again(dead) and not worker.finished()
+    dead.due = 5.0
+    assert not worker._tried_again(dead) and dead.due == math.inf
+    live.polls = 4
+    assert worker.finished()
+
+
+def test_a_try_after_the_deadline_is_not_promised():
+    state = _state()
+    state.due = 5.0
+    assert not _worker(0, state, deadline=4.0)._tried_again(state)
+    assert _worker(0, state, deadline=6.0)._tried_again(state) and _worker(0, state)._tried_again(state)

@@ -18,7 +18,15 @@ import click
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import KEY_SPECIALS, _escape, _field_value, influx_text, name_problem, write_textfile
+from mbtool.cli.metrics import (
+    KEY_SPECIALS,
+    _escape,
+    _field_value,
+    check_textfile,
+    influx_text,
+    name_problem,
+    write_textfile,
+)
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
@@ -28,7 +36,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll
+from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -59,7 +67,12 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     "as modbus_up 0.",
 )
 @click.option("--once", is_flag=True, help="Poll every device once (each link at once) and exit: for cron.")
-@click.option("--rounds", type=click.IntRange(1), help="Poll every device this many times, then exit.")
+@click.option(
+    "--rounds",
+    type=click.IntRange(1),
+    help="Poll every device that answers this many times, then exit. An offline device is tried "
+    "again only where its back-off ends within those rounds: the last line says how many polls it got.",
+)
 @click.option("--duration", type=PositiveFloat(), metavar="SECONDS", help="Stop after this long.")
 @click.option(
     "--stats",
@@ -76,7 +89,20 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     "(measurement = in the inventory). Default: modbus.",
 )
 @click.option("--no-header", is_flag=True, help="CSV without its header row.")
-@click.option("--hex", "hex_trace", is_flag=True, help="Print every frame sent and received (stderr).")
+@click.option(
+    "--hex",
+    "hex_trace",
+    is_flag=True,
+    help="Print every frame sent and received (stderr), each line labelled with its link and device: "
+    "[bus1 meter1] TX ...",
+)
+@click.option(
+    "--hex-link",
+    "hex_links",
+    metavar="LINK",
+    multiple=True,
+    help="--hex for this link alone (repeat it for several).",
+)
 def poll(
     inventory,
     output_format,
@@ -88,6 +114,7 @@ def poll(
     measurement,
     no_header,
     hex_trace,
+    hex_links,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -100,7 +127,8 @@ def poll(
 
     Exit status: 0 when every device answered its last poll, 8 when some did and others
     did not, the failure's own status when none did; 2 for a bad inventory, with nothing
-    opened.
+    opened; 130 when --once, --rounds or --duration is stopped (Ctrl-C, SIGTERM) before
+    its end.
     """
     plant = load_inventory(inventory)
 
@@ -118,14 +146,26 @@ def poll(
     if fmt == "prom" or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
+    if textfile:
+        check_textfile(textfile)  # a folder that is not there: exit 7 now, not after a round
     if once:
         rounds = 1
-    trace = None
-    if hex_trace:
-        trace = HexTrace
+    unknown = [name for name in hex_links if name not in plant.links]
+    if unknown:
+        raise RequestError(
+            f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
+        )
+    trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
-    runner = Plant(plant.links, plant.devices, view.report if view else output.report, rounds or 0, trace)
+    runner = Plant(
+        plant.links,
+        plant.devices,
+        view.report if view else output.report,
+        rounds or 0,
+        trace,
+        hex_links or None,
+    )
     output.states = runner.devices
     started = time.monotonic()
     interrupted = False
@@ -141,7 +181,7 @@ def poll(
         runner.stop.set()
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started)
-    raise _verdict(runner, interrupted)
+    raise _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
 class PlantOutput:
@@ -431,23 +471,33 @@ class LiveView:
 
 
 def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
-    links = {}
+    links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
         for state in worker.devices:
             total.add(state.stats)
         links[worker.spec.name] = (total, worker.state)
+        link_of[worker.spec.name] = worker.spec
+    # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
+    device_limits = {name: limits(s.spec, link_of[s.spec.link]) for name, s in runner.devices.items()}
+    link_limits = {name: (spec.connection.timeout, spec.connection.retries) for name, spec in link_of.items()}
     if fmt == "json":
         record = {
             "seconds": round(seconds, 3),
             "devices": {
-                name: {"link": s.spec.link, "state": s.state, **s.stats.as_dict()}
+                name: {
+                    "link": s.spec.link,
+                    "state": s.state,
+                    **_limits(device_limits[name]),
+                    **s.stats.as_dict(),
+                }
                 for name, s in runner.devices.items()
             },
             "links": {
                 worker.spec.name: {
                     "state": worker.state,
                     "open_failures": worker.open_failures,
+                    **_limits(link_limits[worker.spec.name]),
                     **links[worker.spec.name][0].as_dict(),
                 }
                 for worker in runner.workers
@@ -455,19 +505,19 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         }
         print(to_json(record), file=sys.stderr, flush=True)
         return
-    rows = [("device", name, s.state, s.stats) for name, s in runner.devices.items()]
-    rows += [("link", name, state, total) for name, (total, state) in links.items()]
+    rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
+    rows += [("link", name, state, total, link_limits[name]) for name, (total, state) in links.items()]
     # A column for every outcome a transaction may have (link.stats), the exceptions last, by code.
     outcomes = [outcome for outcome in OUTCOMES if outcome != "exception"]
     lines = [
         ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
-         "rtt min/avg/p95/max ms"]
+         "rtt min/avg/p95/max ms", "timeout s", "retries"]
     ]  # fmt: skip
-    for kind, name, state, stats in rows:
+    for kind, name, state, stats, (timeout, retries) in rows:
         counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
         lines.append(
             [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
-             str(stats.recovered), stats.rtt.cell()]
+             str(stats.recovered), stats.rtt.cell(), f"{timeout:g}", str(retries)]
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
@@ -478,23 +528,38 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
     sys.stderr.flush()
 
 
-def _verdict(runner: Plant, interrupted: bool) -> Summary:
-    """0 when every device answered its last poll, 8 when some did, else the failure's code."""
+def _limits(pair: tuple[float, int]) -> dict:
+    """A device's or link's timeout and retries, beside its counts (``timeout`` counts timeouts)."""
+    return {"timeout_seconds": pair[0], "retries": pair[1]}
+
+
+def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summary:
+    """0 when every device answered its last poll, 8 when some did, else the failure's code;
+    130 for a run that was to end (``ends``: --once, --rounds, --duration) stopped before it did,
+    and for any stopped before a poll."""
     polls = [state.last_poll for state in runner.devices.values() if state.last_poll is not None]
     answered = [
         poll for poll in polls if poll.readings is not None and not isinstance(poll.error, PartialRead)
     ]
     failed = [poll for poll in polls if poll.readings is None]
     partial = len(polls) - len(answered) - len(failed)
+    unpolled = len(runner.devices) - len(polls)  # stopped before its first poll: no answer either
     text = f"{len(answered)} of {counted(len(runner.devices), 'device')} answered" + (
         f", {partial} in part" if partial else ""
     )
-    if interrupted and not polls:
-        return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
+    if interrupted and (not polls or (ends and not runner.completed())):
+        return Summary("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
     if interrupted:
         text = "interrupted; " + text
-    if not failed and not partial:
+    elif rounds:  # --rounds counts the rounds of devices that answer: say what an offline one got
+        short = [s for s in runner.devices.values() if s.polls < rounds]
+        text += "".join(
+            f"; {s.spec.name} polled {counted(s.polls, 'time')} of {rounds} ({s.state})" for s in short
+        )
+    if not failed and not partial and not unpolled:
         return Summary(text, ExitCode.OK)
     if answered or partial:
         return Summary(text, ExitCode.PARTIAL)
+    if not failed:
+        return Summary(text, ExitCode.INTERRUPTED)
     return Summary(text + f": {failed[0].error}", exit_code_for(failed[0].error))
