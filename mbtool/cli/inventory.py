@@ -36,8 +36,6 @@ value of the wrong type are one RequestError (exit 2) naming the file, the table
 
 from __future__ import annotations
 
-import ipaddress
-import os
 import re
 from pathlib import Path
 
@@ -49,8 +47,9 @@ from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
+from mbtool.link import IN_PROCESS
 from mbtool.link.connection import Connection, check, tls_settings
-from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, parse_target
+from mbtool.link.transport import parse_target
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
 from mbtool.registermap.load import MapError, RegisterMap, load_map, one_line
 from mbtool.registermap.plan import MapReader
@@ -206,40 +205,16 @@ def _one_link_a_target(links: dict[str, LinkSpec], path: str) -> None:
     TCP device or gateway are two masters polling it at once."""
     seen: dict[tuple, str] = {}
     for name, link in links.items():
-        endpoint = _endpoint(link.connection.port)
-        if endpoint is None:
+        where = parse_target(link.connection.port)
+        if where.scheme in IN_PROCESS:  # each sim:// link is a device of its own
             continue
+        endpoint = where.endpoint()
         if endpoint in seen:
             raise RequestError(
                 f"{path}: [links.{seen[endpoint]}] and [links.{name}] both open "
                 f"{link.connection.port}: one link a target (put their devices on one link)"
             )
         seen[endpoint] = name
-
-
-def _endpoint(target: str) -> tuple | None:
-    """What a target opens, however it is spelled: a TCP or UDP host and port (an IP address
-    in its one form, a name in lower case; no name looked up), a serial device through its
-    symbolic links, or a pyserial URL; None for an in-process device (each sim:// link is a
-    device of its own)."""
-    where = parse_target(target)
-    scheme = target.partition("://")[0].lower() if "://" in target else ""
-    if where.scheme in NETWORK_SCHEMES:
-        protocol, host, port = NETWORK_SCHEMES[where.scheme][1], where.host, where.port
-    elif scheme in BRIDGE_SCHEMES:  # socket://, rfc2217://: TCP to a host and port
-        address = target.partition("://")[2].split("?", 1)[0].rstrip("/")
-        host, _, port_text = address.rpartition(":")
-        protocol, host, port = "TCP", host.strip("[]"), int(port_text)
-    elif where.scheme == "serial":
-        return ("serial", where.path.lower() if scheme else os.path.realpath(where.path))
-    else:
-        return None
-    try:
-        address = ipaddress.ip_address(host)
-        host = (getattr(address, "ipv4_mapped", None) or address).compressed  # ::ffff:a.b.c.d is a.b.c.d
-    except ValueError:
-        host = host.lower().rstrip(".")
-    return (protocol, host, port)
 
 
 def _device(

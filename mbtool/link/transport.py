@@ -347,11 +347,28 @@ class Target:
             return replace(self, host=host, path=f"{self.handler}://{host_text(host)}:{self.port}")
         return self
 
+    def endpoint(self) -> tuple:
+        """What the target opens, however it is spelled, so that two spellings of one link are
+        told from two links: a host and port by the transport's protocol (tcp:// and tls:// to
+        one port are one TCP endpoint, and so are socket:// and rfc2217://; no name is looked
+        up), a serial device by the path its symbolic links resolve to (/dev/serial/by-id/...
+        is /dev/ttyUSB0), an in-process device by its text."""
+        if self.scheme in NETWORK_SCHEMES:
+            return (NETWORK_SCHEMES[self.scheme][1], canonical_host(self.host), self.port)
+        if self.handler in BRIDGE_SCHEMES:
+            return ("TCP", canonical_host(self.host), self.port)
+        if self.scheme == "serial":
+            return ("serial", self.path.lower() if self.handler else os.path.realpath(self.path))
+        return (self.scheme, str(self))
+
+
+IPV4_MAPPED = bytes(10) + b"\xff\xff"  # RFC 4291 2.5.5.2
+
 
 def canonical_host(host: str) -> str:
     """A host as the resolver reads it: an IPv4 address as inet_aton reads it (getaddrinfo
     does the same for a numeric host: 127.1, 0x7f.0.0.1, 127.0.0.01 are 127.0.0.1), an IPv6
-    address compressed in lower case, any other name in lower case without a final dot."""
+    address compressed in lower case (an IPv4-mapped one as its IPv4 address), any other name in lower case without a final dot."""
     if host and all(c in "0123456789abcdefxABCDEFX." for c in host):
         with contextlib.suppress(OSError):
             return _socket.inet_ntoa(_socket.inet_aton(host))
@@ -359,6 +376,8 @@ def canonical_host(host: str) -> str:
         address, percent, zone = host.partition("%")
         with contextlib.suppress(OSError, ValueError):
             packed = _socket.inet_pton(_socket.AF_INET6, address)
+            if packed[:12] == IPV4_MAPPED:  # ::ffff:a.b.c.d is the IPv4 host a.b.c.d
+                return _socket.inet_ntoa(packed[12:])
             return _socket.inet_ntop(_socket.AF_INET6, packed) + percent + zone
     return host.lower().rstrip(".")
 

@@ -527,13 +527,9 @@ def _not_a_serial_device(path: str) -> str:
     return ""
 
 
-def link_key(where: Target) -> str:
-    """One link's key, whatever its spelling: the normalised target, a device by the path
-    its symbolic links resolve to (/dev/serial/by-id/... is /dev/ttyUSB0)."""
-    where = where.normalised()
-    if where.scheme == "serial" and not where.handler:
-        return os.path.realpath(where.path)
-    return str(where)
+def link_key(where: Target) -> tuple:
+    """One link's key, whatever its spelling (Target.endpoint)."""
+    return where.endpoint()
 
 
 def scrape_budget(header: str | None) -> float:
