@@ -73,6 +73,7 @@ COMMANDS = {
     "poll": "poll",
     "exporter": "exporter",
     "sunspec": "sunspec",
+    "maps": "library",
 }
 
 
