@@ -73,7 +73,9 @@ def main() -> int:
             value = word[0] | (1 << point.bit) if raw else word[0]
             held[point.address] = (value, f"{word[1]}; {note}".lstrip("; "))
             continue
-        for offset, word in enumerate(encode_values([raw], point.type, point.order)):
+        words = encode_values([raw], point.type, point.order)
+        words += [0] * (point.size - len(words))  # a string's unused registers hold NUL bytes
+        for offset, word in enumerate(words):
             held[point.address + offset] = (word, note if offset == 0 else "")
     header = register_map.header
     for probe in header.signature if header else ():

@@ -50,6 +50,11 @@ READ_CODES = {0x01, 0x02, 0x03, 0x04}
 NAMES = library_names()
 
 
+def test_the_library_has_maps_of_several_kinds():
+    kinds = {load_named_map(name).header.kind for name in NAMES}
+    assert len(NAMES) >= 10 and len(kinds) >= 2, (len(NAMES), kinds)
+
+
 @pytest.fixture(params=NAMES)
 def name(request):
     return request.param
