@@ -9,7 +9,8 @@ A point takes the value given as NAME=VALUE, else one that fits its unit (230.1 
 50.0 Hz...), else its enum's first label, else 1.  A signature probe's registers not held by
 a point take what it expects (``equals``: its first value; ``within``: the middle; ``answers``:
 1); a ``refuses`` probe's registers stay undefined, so the twin answers exception 02 there,
-as the device does.  Only those registers exist (``sparse = true``).
+as the device does.  Only those registers exist (``sparse = true``).  FC 17 and FC 43 are
+refused (exception 01) unless --identity gives the FC 43/14 objects the device has.
 """
 
 from __future__ import annotations
@@ -109,11 +110,12 @@ def main() -> int:
             value, note = held[address]
             shown = "true" if value is True else "false" if value is False else f"0x{value:04X}"
             print(f"{address} = {shown}" + (f"  # {note}" if note else ""))
-    if args.identity:
-        print("\n[identity]")
-        for item in args.identity:
-            key, _, text = item.partition("=")
-            print(f'{key} = "{text}"')
+    print("\n[identity]")
+    if not args.identity:  # the device answers neither FC 17 nor FC 43, as most meters
+        print("refused = [17, 43]")
+    for item in args.identity:
+        key, _, text = item.partition("=")
+        print(f'{key} = "{text}"')
     return 0
 
 

@@ -74,6 +74,7 @@ COMMANDS = {
     "exporter": "exporter",
     "sunspec": "sunspec",
     "maps": "library",
+    "identify": "library",
 }
 
 

@@ -89,6 +89,20 @@ def resolve_map(text: str, extra: list[Path] | tuple = (), base: Path = Path()) 
     )
 
 
+def signatures(extra: list[Path] | tuple = ()) -> dict:
+    """name -> DeviceHeader of every map that has a signature, in the user's folders and the
+    library (a user's map shadows the library's of its name): what identify judges."""
+    out = {}
+    for folder in reversed(folders(extra)):  # the first folder's map of a name wins
+        for path in sorted(folder.glob("*.toml")) if folder.is_dir() else ():
+            header = load_map(path).header
+            if header is not None and header.signature:
+                out[path.stem] = header
+            else:
+                out.pop(path.stem, None)
+    return dict(sorted(out.items()))
+
+
 def load_named_map(text: str, extra: list[Path] | tuple = ()) -> RegisterMap:
     """The register map a path or a name stands for (``-m``), loaded and checked."""
     return load_map(resolve_map(text, extra))

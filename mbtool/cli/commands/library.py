@@ -3,10 +3,19 @@ mbtool ships, mbtool/library/), and ``mbtool identify`` (which of them a device 
 
 from __future__ import annotations
 
+import time
+from functools import partial
+
 import click
 
+from mbtool.cli.options import device_command
+from mbtool.cli.param_types import Seconds
 from mbtool.cli.parsing import QuickHelp
-from mbtool.library import MAPS, library_names, load_named_map, resolve_map
+from mbtool.cli.session import open_client
+from mbtool.codec.errors import FrameError, ModbusException, exception_name
+from mbtool.codec.pdu import printable, text_of
+from mbtool.errors import NoResponse
+from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
 
 HELP = {"help_option_names": ["-h", "--help"]}
 
@@ -105,3 +114,173 @@ def _columns(rows: list[list[str]], titles: list[str]) -> None:
     for row in table:
         cells = [cell.ljust(width) for cell, width in zip(row, widths, strict=False)]
         click.echo("  ".join([*cells, row[-1]]).rstrip())
+
+
+# --- identify ----------------------------------------------------------------------------
+
+IDENTIFY_THEN = "identify's further reads (FC 17, SunSpec, the maps' signatures) follow the replies"
+
+
+@device_command("identify")
+@click.option(
+    "--budget",
+    type=Seconds(),
+    default=10.0,
+    show_default=True,
+    help="Seconds identify may take: the signatures not read by then are left out, and said to be.",
+)
+def identify(connection, settings, budget):
+    """Which device this is, and its map: mbtool read -m NAME reads it.
+
+    Asks the device what it says of itself (FC 43/14 device identification, basic and
+    regular objects; FC 17 report server id; the SunSpec marker), then reads the signature
+    of each library map (and each of your own maps with one): a few registers with an
+    expected shape. Prints the maps that fit, best first, with the evidence; "unknown
+    device", with what it saw, when none does. Reads only: nothing is ever written.
+    """
+    from mbtool.codec.device_id import ReadDeviceIdentification  # noqa: PLC0415 - identify only
+    from mbtool.library.identify import probe, rank  # noqa: PLC0415 - identify only
+
+    headers = signatures()
+    deadline = time.monotonic() + budget
+    with open_client(connection, settings, ReadDeviceIdentification.name, then=IDENTIFY_THEN) as client:
+        execute = partial(client.execute, connection.unit)
+        seen: dict[str, str] = {}
+        objects = _device_identification(execute, seen)
+        _server_id(execute, seen)
+        sunspec = _sunspec(execute, seen)
+        answers = probe(execute, headers, deadline)
+    if all(text == "no response" for text in seen.values()) and all(a.missing for a in answers.values()):
+        raise NoResponse(f"no response from unit {connection.unit} to any of identify's reads")
+    candidates = rank(headers, answers, objects)
+    budget_note = sum(1 for a in answers.values() if a.missing.startswith("not read"))
+    if budget_note:
+        seen["budget"] = f"{budget_note} signature reads left out: the {budget:g} s budget was spent"
+    _show_identity(connection.unit, settings, candidates, sunspec, seen)
+
+
+def _device_identification(execute, seen: dict[str, str]) -> dict[str, str]:
+    """FC 43/14's basic and regular objects by name ({} when the device has none)."""
+    from mbtool.codec.device_id import object_name  # noqa: PLC0415 - identify only
+    from mbtool.link.dump import read_identification  # noqa: PLC0415 - identify only
+
+    objects: dict[int, bytes] = {}
+    for level, code in (("basic", 1), ("regular", 2)):
+        try:
+            found, _ = read_identification(execute, code)
+        except ModbusException as error:
+            seen.setdefault("fc43", _refused(error))
+            break
+        except NoResponse:
+            seen.setdefault("fc43", "no response")
+            break
+        except FrameError as error:
+            seen.setdefault("fc43", f"a bad reply: {error}")
+            break
+        objects.update(found)
+        if level == "basic":
+            seen["fc43"] = ""
+    named = {object_name(i): text_of(value) for i, value in objects.items()}
+    if named:
+        seen["fc43"] = ", ".join(f'{key} "{value}"' for key, value in named.items())
+    return named
+
+
+def _server_id(execute, seen: dict[str, str]) -> None:
+    from mbtool.codec.serial_line import ReportSlaveId  # noqa: PLC0415 - identify only
+
+    try:
+        reply = execute(ReportSlaveId())
+    except ModbusException as error:
+        seen["fc17"] = _refused(error)
+        return
+    except NoResponse:
+        seen["fc17"] = "no response"
+        return
+    except FrameError as error:
+        seen["fc17"] = f"a bad reply: {error}"
+        return
+    extra = printable(reply.extra)
+    seen["fc17"] = f"server id {reply.slave_id}" + (f', "{extra}"' if extra else "")
+
+
+def _sunspec(execute, seen: dict[str, str]) -> dict | None:
+    """The SunSpec marker and the Common model's manufacturer and model (Mn, Md), if any."""
+    from mbtool.codec.data_access import ReadHoldingRegisters  # noqa: PLC0415 - identify only
+    from mbtool.codec.tables import HOLDING_REGISTERS, reference  # noqa: PLC0415 - identify only
+    from mbtool.codec.values import decode_values  # noqa: PLC0415 - identify only
+    from mbtool.sunspec.discover import NotSunSpec, find_marker  # noqa: PLC0415 - identify only
+
+    try:
+        base = find_marker(execute)
+    except NotSunSpec as error:
+        seen["sunspec"] = str(error)
+        return None
+    except NoResponse:
+        seen["sunspec"] = "no response"
+        return None
+    found = {"base": base, "ref": reference(HOLDING_REGISTERS, base)}
+    try:  # the Common model follows the marker: ID, L, Mn (16 registers), Md (16)
+        registers = execute(ReadHoldingRegisters(base + 4, 32)).registers
+        found["manufacturer"] = decode_values(list(registers[:16]), "string")[0].rstrip("\x00 ")
+        found["model"] = decode_values(list(registers[16:32]), "string")[0].rstrip("\x00 ")
+    except (ModbusException, NoResponse, FrameError):
+        pass
+    seen["sunspec"] = f'"SunS" at {found["ref"]}'
+    return found
+
+
+def _refused(error: ModbusException) -> str:
+    return f"exception {error.exception_code:02d} {exception_name(error.exception_code)}"
+
+
+SEEN_NAMES = {"fc43": "FC 43/14", "fc17": "FC 17", "sunspec": "SunSpec", "budget": "budget"}
+
+
+def _show_identity(unit: int, settings, candidates, sunspec: dict | None, seen: dict[str, str]) -> None:
+    best = candidates[0] if candidates and candidates[0].complete else None
+    if settings.output_format == "json":
+        from mbtool.cli.json_text import to_json  # noqa: PLC0415 - -o json only
+
+        data = {
+            "unit": unit,
+            "identified": best is not None or sunspec is not None,
+            "map": best.name if best else None,
+            "sunspec": sunspec,
+            "candidates": [
+                {
+                    "map": c.name,
+                    "manufacturer": c.header.manufacturer,
+                    "model": c.header.model,
+                    "kind": c.header.kind,
+                    "complete": c.complete,
+                    "fits": f"{c.fits}/{c.probes}",
+                    "score": c.score,
+                    "evidence": list(c.evidence),
+                }
+                for c in candidates
+            ],
+            "seen": {SEEN_NAMES[key]: value or "no objects" for key, value in seen.items()},
+        }
+        click.echo(to_json(data))
+        return
+    if best is not None:
+        click.echo(f"unit {unit}: {best.header.manufacturer} {best.header.model}, map {best.name}")
+    elif sunspec is not None:
+        named = " ".join(filter(None, (sunspec.get("manufacturer"), sunspec.get("model"))))
+        click.echo(
+            f"unit {unit}: SunSpec device {named}".rstrip()
+            + ": mbtool sunspec reads it (--map writes its map)"
+        )
+    else:
+        click.echo(f"unit {unit}: unknown device")
+    for candidate in candidates:
+        if candidate is not best:
+            how = "fits" if candidate.complete else f"partly ({candidate.fits} of {candidate.probes} probes)"
+            click.echo(
+                f"  also {how}: {candidate.header.manufacturer} {candidate.header.model}, map {candidate.name}"
+            )
+        for line in candidate.evidence:
+            click.echo(f"    {line}")
+    for key, value in seen.items():
+        click.echo(f"  seen: {SEEN_NAMES[key]}: {value or 'no objects'}")
