@@ -1,6 +1,8 @@
-"""`mbtool identify` (issue 43) against `mbtool serve` of every library twin, the SunSpec
-twin and pymodbus's device: the right map named first, "unknown device" with what was
-seen when nothing fits, and nothing but reads on the wire (serve's log of every frame)."""
+"""The device library on the wire (issue 43): `mbtool serve` of every library twin, read
+whole by `read -m NAME` and judged by `check -m NAME`; and `mbtool identify` against every
+twin, the SunSpec twin and pymodbus's device: the right map named first, "unknown device"
+with what was seen when nothing fits, and nothing but reads on the wire (serve's log of
+every frame)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,8 @@ import json
 import pytest
 from helpers import REPO_ROOT, run_cli, serve
 
-from mbtool.library import library_names, twin_path
+from mbtool.device.datafile import load_data
+from mbtool.library import library_names, load_named_map, twin_path
 
 # What identify may send: reads of the four tables, FC 17 and FC 43/14.
 READS = {0x01, 0x02, 0x03, 0x04, 0x11, 0x2B}
@@ -31,11 +34,42 @@ def identify(target: str, *args: str) -> dict:
     return json.loads(res.stdout)
 
 
+def held_values(name: str) -> dict:
+    """Every point's value as the twin holds it, scaled: what a read of it must print."""
+    register_map = load_named_map(name)
+    model, _ = load_data(str(twin_path(name)), frozenset({1}))
+    tables = {
+        "coils": "coils",
+        "discrete": "discrete_inputs",
+        "input": "input_registers",
+        "holding": "holding_registers",
+    }
+    out = {}
+    for point in register_map.points.values():
+        table = getattr(model, tables[point.table.name])
+        out[point.name] = point.value_of(
+            [table[point.address]]
+            if point.table.bits
+            else list(table[point.address : point.address + point.size])
+        )
+    return out
+
+
 @pytest.mark.parametrize("name", library_names())
-def test_identify_names_the_twins_map_first_and_only_reads(name):
+def test_every_twin_reads_through_its_map_and_is_identified_by_reads_alone(name):
     with serve("--data", str(twin_path(name)), quiet=False) as server:
+        read = run_cli("read", "-m", name, "-o", "json", "-p", server.target)
+        numbers = [p.name for p in load_named_map(name).points.values() if p.type not in ("hex", "string")]
+        checked = run_cli("check", "-m", name, *numbers, "-p", server.target)  # check judges numbers
         found = identify(server.target)
         log = server.log()
+    assert read.returncode == 0, read
+    points = json.loads(read.stdout)["points"]
+    expected = held_values(name)
+    assert {p["name"]: p["value"] for p in points} == {
+        key: float(value) if hasattr(value, "as_tuple") else value for key, value in expected.items()
+    }
+    assert checked.returncode == 0 and checked.stdout.startswith("MODBUS OK"), checked
     assert found["map"] == name, found["candidates"]
     assert found["identified"] and found["candidates"][0]["complete"]
     assert found["candidates"][0]["evidence"][0].startswith("signature: ")
