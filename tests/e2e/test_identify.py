@@ -7,9 +7,11 @@ every frame)."""
 from __future__ import annotations
 
 import json
+import re
+import tomllib
 
 import pytest
-from helpers import REPO_ROOT, run_cli, serve
+from helpers import PTY_SERIAL_OPTS, REPO_ROOT, PtyPair, run_cli, serve
 
 from mbtool.device.datafile import load_data
 from mbtool.library import library_names, load_named_map, twin_path
@@ -122,3 +124,74 @@ def test_a_silent_unit_is_no_response_within_the_budget(silent_server):
     assert res.returncode == 3, res
     assert "no response from unit 1" in res.stderr
     assert res.elapsed < 5
+
+
+# What each request identify may send is, as an RTU frame: unit, function, then its fixed
+# length: the reads 8 bytes, FC 17 4, FC 43/14 7 (unit, 2B, 0E, read code, object id, CRC).
+RTU_REQUEST_SIZES = {0x01: 8, 0x02: 8, 0x03: 8, 0x04: 8, 0x11: 4, 0x2B: 7}
+
+
+def rtu_functions(sent: bytes) -> list[int]:
+    """The function code of each request in the bytes mbtool sent; a function that is not
+    a read fails the test at once (its length is unknown: the walk cannot go on)."""
+    codes, at = [], 0
+    while at < len(sent):
+        code = sent[at + 1]
+        assert code in RTU_REQUEST_SIZES, f"function {code:#04x} on the wire: {sent[at : at + 12].hex(' ')}"
+        codes.append(code)
+        at += RTU_REQUEST_SIZES[code]
+    return codes
+
+
+def bus_of_twins(folder, names: list[str]):
+    """A serve --data file answering as each twin at its own unit: units 1, 2, ..."""
+    sections = ["sparse = true"]
+    for unit, name in enumerate(names, 1):
+        text = twin_path(name).read_text().replace("sparse = true\n", "")
+        sections.append(re.sub(r"^\[(\w+)\]$", rf"[units.{unit}.\1]", text, flags=re.M))
+    path = folder / "bus.toml"
+    path.write_text("\n".join(sections))
+    return path
+
+
+def test_all_units_on_a_serial_bus_writes_an_inventory_that_poll_reads_whole(tmp_path):
+    names = ["sdm630", "em24", "abb-b23", "dtsu666"]
+    pair = PtyPair()
+    try:
+        with serve(
+            "--data",
+            str(bus_of_twins(tmp_path, names)),
+            "-u",
+            "1-4",
+            *PTY_SERIAL_OPTS,
+            target=pair.device_path,
+        ):
+            plant = tmp_path / "plant.toml"
+            res = run_cli(
+                "identify", "-p", pair.mbtool_path, *PTY_SERIAL_OPTS, "-t", "0.3",
+                "--all-units", "--units", "1-5", "--inventory", plant,
+            )  # fmt: skip
+            assert res.returncode == 0, res
+            assert [line for line in res.lines if line.startswith("unit ")] == [
+                "unit 1: Eastron SDM630-Modbus V2, map sdm630",
+                "unit 2: Carlo Gavazzi EM24-DIN, map em24",
+                "unit 3: ABB B23 / B24, map abb-b23",
+                "unit 4: Chint DTSU666, map dtsu666",
+            ]
+            functions = rtu_functions(pair.sent_by_mbtool(settle=0.05))
+            assert set(functions) <= READS and 0x03 in functions
+            inventory = tomllib.loads(plant.read_text())
+            assert {name: device["map"] for name, device in inventory["devices"].items()} == {
+                f"{name}-{unit}": name for unit, name in enumerate(names, 1)
+            }
+            assert inventory["links"]["bus"]["parity"] == "N"
+            polled = run_cli("poll", plant, "--once", "-o", "json")
+        assert polled.returncode == 0, polled
+        polls = {poll["device"]: poll for poll in map(json.loads, polled.lines)}
+        for unit, name in enumerate(names, 1):
+            poll = polls[f"{name}-{unit}"]
+            assert not poll.get("failed") and [p["name"] for p in poll["points"]] == list(
+                load_named_map(name).points
+            )
+    finally:
+        pair.close()

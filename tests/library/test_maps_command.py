@@ -42,3 +42,8 @@ def test_show_toml_is_the_file():
 
 def test_show_of_an_unknown_name_is_one_line():
     assert "no map named sdm6300" in assert_one_error_line(run_cli("maps", "show", "sdm6300"), 2)
+
+
+def test_identify_refuses_the_bus_walks_options_without_all_units():
+    line = assert_one_error_line(run_cli("identify", "--inventory", "plant.toml", "-p", "tcp://192.0.2.1"), 2)
+    assert "--inventory goes with --all-units" in line

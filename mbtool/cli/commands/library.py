@@ -3,18 +3,21 @@ mbtool ships, mbtool/library/), and ``mbtool identify`` (which of them a device 
 
 from __future__ import annotations
 
+import sys
 import time
 from functools import partial
+from pathlib import Path
 
 import click
 
 from mbtool.cli.options import device_command
-from mbtool.cli.param_types import Seconds
+from mbtool.cli.param_types import FilePath, Seconds, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
-from mbtool.cli.session import open_client
-from mbtool.codec.errors import FrameError, ModbusException, exception_name
+from mbtool.cli.session import open_client, trace_for
+from mbtool.codec.errors import FrameError, ModbusException, RequestError, exception_name
 from mbtool.codec.pdu import printable, text_of
-from mbtool.errors import NoResponse
+from mbtool.codec.record import replace
+from mbtool.errors import NoResponse, OutputFailed
 from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
 
 HELP = {"help_option_names": ["-h", "--help"]}
@@ -127,9 +130,29 @@ IDENTIFY_THEN = "identify's further reads (FC 17, SunSpec, the maps' signatures)
     type=Seconds(),
     default=10.0,
     show_default=True,
-    help="Seconds identify may take: the signatures not read by then are left out, and said to be.",
+    help="Seconds identify may take a unit: the signatures not read by then are left out, and said to be.",
 )
-def identify(connection, settings, budget):
+@click.option(
+    "--all-units",
+    is_flag=True,
+    help="Walk the bus: find the units that answer (as scan does, over --units) and identify each.",
+)
+@click.option(
+    "--units",
+    "unit_set",
+    metavar="UNITS",
+    default="1-247",
+    show_default=True,
+    help="With --all-units: the unit ids to look for, 1-247, 1,5,10-20.",
+)
+@click.option(
+    "--inventory",
+    "inventory_path",
+    metavar="PLANT.toml",
+    type=FilePath(dir_okay=False),
+    help="With --all-units: write a poll inventory of the bus, each device with its map.",
+)
+def identify(connection, settings, budget, all_units, unit_set, inventory_path):
     """Which device this is, and its map: mbtool read -m NAME reads it.
 
     Asks the device what it says of itself (FC 43/14 device identification, basic and
@@ -138,10 +161,43 @@ def identify(connection, settings, budget):
     expected shape. Prints the maps that fit, best first, with the evidence; "unknown
     device", with what it saw, when none does. Reads only: nothing is ever written.
     """
+    ctx = click.get_current_context()
+    given = [
+        option
+        for name, option in (("unit_set", "--units"), ("inventory_path", "--inventory"))
+        if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
+    ]
+    if given and not all_units:
+        raise RequestError(f"{given[0]} goes with --all-units")
+    headers = signatures()
+    if not all_units:
+        found = _identify_unit(connection, settings, headers, budget)
+        _show_identity(connection.unit, settings, *found)
+        return
+    try:
+        wanted = sorted(parse_units(unit_set))
+    except RequestError as error:
+        raise RequestError(f"--units: {error}") from None
+    units = _answering_units(connection, settings, wanted)
+    if not units:
+        raise NoResponse(f"no unit of {units_text(frozenset(wanted))} answered on {connection.port}")
+    results = []
+    for unit in units:
+        try:
+            found = _identify_unit(replace(connection, unit=unit), settings, headers, budget)
+        except NoResponse:  # it answered the scan: say so, and go on with the others
+            found = ([], None, {"fc43": "no response"})
+        results.append((unit, *found))
+        _show_identity(unit, settings, *found)
+    if inventory_path:
+        _write_inventory(inventory_path, connection, results)
+
+
+def _identify_unit(connection, settings, headers: dict, budget: float):
+    """(the candidates ranked, the SunSpec device or None, what each step saw) of one unit."""
     from mbtool.codec.device_id import ReadDeviceIdentification  # noqa: PLC0415 - identify only
     from mbtool.library.identify import probe, rank  # noqa: PLC0415 - identify only
 
-    headers = signatures()
     deadline = time.monotonic() + budget
     with open_client(connection, settings, ReadDeviceIdentification.name, then=IDENTIFY_THEN) as client:
         execute = partial(client.execute, connection.unit)
@@ -152,11 +208,74 @@ def identify(connection, settings, budget):
         answers = probe(execute, headers, deadline)
     if all(text == "no response" for text in seen.values()) and all(a.missing for a in answers.values()):
         raise NoResponse(f"no response from unit {connection.unit} to any of identify's reads")
-    candidates = rank(headers, answers, objects)
-    budget_note = sum(1 for a in answers.values() if a.missing.startswith("not read"))
-    if budget_note:
-        seen["budget"] = f"{budget_note} signature reads left out: the {budget:g} s budget was spent"
-    _show_identity(connection.unit, settings, candidates, sunspec, seen)
+    left_out = sum(1 for a in answers.values() if a.missing.startswith("not read"))
+    if left_out:
+        seen["budget"] = f"{left_out} signature reads left out: the {budget:g} s budget was spent"
+    return rank(headers, answers, objects), sunspec, seen
+
+
+class _Quiet:
+    """What scan's walk reports to, when identify walks the bus: nothing is shown."""
+
+    def found(self, answer) -> None:
+        pass
+
+    def garbled(self, answer) -> None:
+        pass
+
+    def note(self, text: str) -> None:
+        pass
+
+    def at(self, setting, unit: int) -> None:
+        pass
+
+    def advance(self) -> None:
+        pass
+
+
+def _answering_units(connection, settings, units: list[int]) -> list[int]:
+    """The units that answer a read of holding register 0 (an exception is an answer), as
+    mbtool scan finds them, at the connection's settings."""
+    from mbtool.link.scan import Scan, Setting, probe_request  # noqa: PLC0415 - --all-units only
+
+    line = Setting(
+        baud=connection.baud,
+        parity=connection.parity,
+        bytesize=connection.bytesize,
+        stopbits=connection.stopbits,
+    )
+    request = probe_request("read-holding-registers", 0, 1)
+    quiet = _Quiet()
+    tally = Scan(connection, request, units, [line], False, False, quiet, trace_for(settings)).run(quiet)
+    return sorted({answer.unit for answer in tally.found})
+
+
+def _write_inventory(path: str, connection, results: list) -> None:
+    """A poll inventory of the bus: one link, a device a unit with the map identify named;
+    a unit it could not name is a comment saying what it saw."""
+    import tomli_w  # noqa: PLC0415 - --inventory only
+
+    link = {"target": connection.port}
+    if connection.port and "://" not in connection.port:  # a serial line: its settings
+        link |= {"baud": connection.baud, "parity": connection.parity, "stopbits": int(connection.stopbits)}
+    devices, unknown = {}, []
+    for unit, candidates, sunspec, _seen in results:
+        best = candidates[0] if candidates and candidates[0].complete else None
+        if best is None:
+            what = "a SunSpec device: mbtool sunspec --map writes its map" if sunspec else "unknown device"
+            unknown.append(f'# unit {unit}: {what}; give it map = "..." or read = ["40001 10"]')
+            continue
+        devices[f"{best.name}-{unit}"] = {"link": "bus", "unit": unit, "map": best.name}
+    text = (
+        f"# The devices mbtool identify --all-units found on {connection.port}, each with its map.\n"
+        + tomli_w.dumps({"links": {"bus": link}, "devices": devices})
+        + "".join(f"{line}\n" for line in unknown)
+    )
+    try:
+        Path(path).write_text(text, encoding="utf-8")
+    except OSError as error:
+        raise OutputFailed(f"cannot write {path}: {error.strerror or error}") from None
+    print(f"mbtool: wrote {path}: {len(devices)} devices, {len(unknown)} not identified", file=sys.stderr)
 
 
 def _device_identification(execute, seen: dict[str, str]) -> dict[str, str]:
