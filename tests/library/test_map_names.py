@@ -64,3 +64,11 @@ def test_the_exporters_modules_fall_back_to_the_library(tmp_path):
     (tmp_path / "sdm630.toml").write_text(OWN)
     assert Modules(None, {}).path_of("sdm630") == MAPS / "sdm630.toml"
     assert Modules(tmp_path, {}).path_of("sdm630") == tmp_path / "sdm630.toml"
+
+
+def test_a_profile_names_a_library_map(tmp_path):
+    config = tmp_path / "config.toml"
+    config.write_text('[profiles.meter]\nport = "tcp://192.0.2.1"\nmap = "sdm630"\n')
+    res = run_cli("read", "-P", "meter", "--dry-run", env={"MBTOOL_CONFIG": str(config)})
+    assert res.returncode == 0, res.stderr
+    assert request_lines(res)[0].endswith("01 04 00 00 00 12")
