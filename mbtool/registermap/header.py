@@ -46,7 +46,7 @@ HEADER_KEYS = {
     "kind": "meter, inverter, battery, charger or io",
     "transport": "rtu, tcp or both",
     "firmware": "the firmware versions the map is for (text)",
-    "default_unit": "the unit id the device leaves the factory with, 1..247",
+    "default_unit": "the unit id the device leaves the factory with (a TCP device may answer at 255)",
     "baud": "the serial default, such as 9600",
     "parity": 'the serial default: "N", "E" or "O"',
     "stopbits": "the serial default: 1 or 2",
@@ -155,7 +155,7 @@ def device_header(header: dict, make_point, fail) -> DeviceHeader | None:
                 raise fail(key, f"{header[key]} is none of {', '.join(choices)}")
             fields[key] = value
     if "default_unit" in header:
-        fields["default_unit"] = _whole(header["default_unit"], "default_unit", 1, 247, fail)
+        fields["default_unit"] = _whole(header["default_unit"], "default_unit", 0, 255, fail)
     if "baud" in header:
         fields["baud"] = _whole(header["baud"], "baud", 1, 10_000_000, fail)
         if fields["baud"] not in BAUDS:

@@ -82,7 +82,7 @@ def test_a_map_without_a_header_has_none(tmp_path):
         (("baud = 9600", "baud = 9601"), "[device]: key baud: 9601 is not a rate devices use"),
         (('parity = "none"', 'parity = "X"'), "[device]: key parity: X is none of"),
         (("stopbits = 1", "stopbits = 3"), "[device]: key stopbits: 3 is not a whole number in 1..2"),
-        (("default_unit = 1", "default_unit = 0"), "key default_unit: 0 is not a whole number in 1..247"),
+        (("default_unit = 1", "default_unit = 256"), "key default_unit: 256 is not a whole number in 0..255"),
         (('source = "Eastron', 'sourc = "Eastron'), "[device]: unknown key sourc (known: type, order"),
         (("equals = 0x0070", 'equals = "SDM"'), "key signature 2: equals: 'SDM' is not a value a uint16"),
         (("within = [100, 300]", "within = [300, 100]"), "key signature 1: within = [LOW, HIGH]"),
