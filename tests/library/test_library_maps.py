@@ -76,6 +76,13 @@ def test_units_come_from_the_list(name):
     assert units <= UNITS, f"{name}: {sorted(units - UNITS)} not among the library's units"
 
 
+def test_a_signature_says_something_of_the_values(name):
+    """A signature of registers that merely answer fits any device that answers everything
+    (pymodbus's default device does): one probe at least has a shape."""
+    expectations = {check.expect for check in load_named_map(name).header.signature}
+    assert expectations & {"equals", "within", "matches"}, f"{name}: only {sorted(expectations)}"
+
+
 def test_signature_probes_are_reads(name):
     for check in load_named_map(name).header.signature:
         point = check.point
