@@ -52,7 +52,7 @@ NAMES = library_names()
 
 def test_the_library_has_maps_of_several_kinds():
     kinds = {load_named_map(name).header.kind for name in NAMES}
-    assert len(NAMES) >= 18 and len(kinds) >= 4, (len(NAMES), kinds)
+    assert len(NAMES) >= 40 and len(kinds) >= 4, (len(NAMES), kinds)
 
 
 @pytest.fixture(params=NAMES)
