@@ -195,3 +195,20 @@ def test_all_units_on_a_serial_bus_writes_an_inventory_that_poll_reads_whole(tmp
             )
     finally:
         pair.close()
+
+
+def test_a_device_that_names_itself_in_fc43_ranks_first_with_that_evidence(tmp_path):
+    """A B23 that answers FC 43/14 with its vendor and product code: that is the first
+    evidence, before the signature's."""
+    twin = tmp_path / "b23.toml"
+    twin.write_text(
+        twin_path("abb-b23")
+        .read_text()
+        .replace("refused = [17, 43]", 'vendor_name = "ABB"\nproduct_code = "B23 312-100"\nrevision = "1.0"')
+    )
+    with serve("--data", str(twin)) as server:
+        found = identify(server.target)
+    best = found["candidates"][0]
+    assert found["map"] == "abb-b23" and best["complete"]
+    assert best["evidence"][0] == 'FC 43/14 VendorName "ABB", ProductCode "B23 312-100"'
+    assert found["seen"]["FC 43/14"].startswith('VendorName "ABB", ProductCode "B23 312-100"')

@@ -4,6 +4,8 @@ $XDG_CONFIG_HOME/mbtool/maps) comes first; a path is a path; an unknown name is 
 
 from __future__ import annotations
 
+import fnmatch
+import tomllib
 from pathlib import Path
 
 from helpers import assert_one_error_line, run_cli
@@ -72,3 +74,14 @@ def test_a_profile_names_a_library_map(tmp_path):
     res = run_cli("read", "-P", "meter", "--dry-run", env={"MBTOOL_CONFIG": str(config)})
     assert res.returncode == 0, res.stderr
     assert request_lines(res)[0].endswith("01 04 00 00 00 12")
+
+
+def test_the_package_ships_every_map_and_twin():
+    """pyproject's package data names every file of the library (a wheel without them would
+    know no map by name)."""
+    globs = tomllib.loads((MAPS.parent.parent.parent / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"
+    ]["mbtool.library"]
+    files = [path.relative_to(MAPS.parent).as_posix() for path in MAPS.parent.rglob("*.toml")]
+    assert len(files) >= 80
+    assert [f for f in files if not any(fnmatch.fnmatch(f, glob) for glob in globs)] == []
