@@ -4,9 +4,10 @@
 marker; cli/commands/library.py) and then reads each map's signature (registermap/header.py)
 with ``probe``: reads only, each register read once however many maps ask for it, and none
 once the time budget is spent.  ``rank`` puts the maps in order with their evidence: a map
-whose every probe fits first, by how much its probes say (a model code more than a value in
-a range, that more than a register that merely answers), a vendor and model the device
-names in FC 43/14 on top; maps that fit in part after them, said to be partial.
+whose vendor and model the device names in FC 43/14 first (the device says what it is),
+then those whose every probe fits, by how much their probes say (a model code more than a
+value in a range, that more than a register that merely answers); maps that fit in part
+after them, said to be partial.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 from collections.abc import Callable
 
 from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
-from mbtool.codec.errors import ModbusException, exception_name
+from mbtool.codec.errors import FrameError, ModbusException, exception_name
 from mbtool.codec.record import record
 from mbtool.codec.values import decode_values
 from mbtool.errors import NoResponse
@@ -57,6 +58,7 @@ class Candidate:
     header: DeviceHeader
     score: int
     complete: bool  # every probe of the signature fits
+    named: bool  # FC 43/14 names its vendor and model
     evidence: tuple  # lines of text
     fits: int  # probes that fit
     probes: int
@@ -67,7 +69,8 @@ def probe(
 ) -> dict[tuple, Answer]:
     """Every signature's reads, each (table, address, size) once, before ``deadline``.
     ``execute(request)`` returns the reply, raises ModbusException for an exception reply,
-    and NoResponse (or another link error) when there is none."""
+    NoResponse when there is none and FrameError for a bad one (each an answer of its own);
+    a link that fails raises out."""
     answers: dict[tuple, Answer] = {}
     for header in headers.values():
         for check in header.signature:
@@ -91,6 +94,8 @@ def _read(execute: Callable, point) -> Answer:
         return Answer(refused=f"exception {code:02d} {exception_name(code)}")
     except NoResponse:
         return Answer(missing="no response")
+    except FrameError as error:  # a garbled reply says nothing of the register: the next read may
+        return Answer(missing=f"a bad reply: {error}")
     return Answer(held=tuple(reply.bits[:1] if point.table.bits else reply.registers))
 
 
@@ -99,9 +104,8 @@ def judge(check: Probe, answers: dict[tuple, Answer]) -> tuple[bool, str]:
     point = check.point
     answer = answers[(point.table.name, point.address, point.size)]
     if answer.missing or answer.refused:
-        return check.judge(
-            None, bool(answer.refused)
-        ), f"{check.describe()}: {answer.missing or answer.refused}"
+        fits = check.judge(None, bool(answer.refused))
+        return fits, f"{check.describe()}: {answer.missing or answer.refused}"
     value = answer.value_for(point)
     shown = repr(value) if isinstance(value, str) else str(value)
     return check.judge(value, False), f"{check.describe()}: {shown}"
@@ -119,7 +123,8 @@ def identity_fits(header: DeviceHeader, objects: dict[str, str]) -> bool:
 def rank(
     headers: dict[str, DeviceHeader], answers: dict[tuple, Answer], objects: dict[str, str]
 ) -> list[Candidate]:
-    """The maps that fit, best first: every probe fitting before some, then by score."""
+    """The maps that fit, best first: the one FC 43/14 names, then those whose every probe
+    fits before those that fit in part, then by score."""
     out = []
     for name, header in headers.items():
         results = [judge(check, answers) for check in header.signature]
@@ -136,6 +141,7 @@ def rank(
         # beyond registers that merely answer.
         if named or complete or (2 * fits > len(results) and score > fits):
             misses = [f"not: {text}" for ok, text in results if not ok]
-            out.append(Candidate(name, header, score, complete, tuple(evidence + misses), fits, len(results)))
-    out.sort(key=lambda c: (not c.complete, -c.score, c.name))
+            evidence += misses
+            out.append(Candidate(name, header, score, complete, named, tuple(evidence), fits, len(results)))
+    out.sort(key=lambda c: (not c.named, not c.complete, -c.score, c.name))
     return out

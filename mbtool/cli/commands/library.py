@@ -250,6 +250,13 @@ def _answering_units(connection, settings, units: list[int]) -> list[int]:
     return sorted({answer.unit for answer in tally.found})
 
 
+def _best(candidates: list):
+    """The map identify names: the first candidate, when the device named it in FC 43/14 or
+    its whole signature fits; None otherwise."""
+    first = candidates[0] if candidates else None
+    return first if first is not None and (first.named or first.complete) else None
+
+
 def _write_inventory(path: str, connection, results: list) -> None:
     """A poll inventory of the bus: one link, a device a unit with the map identify named;
     a unit it could not name is a comment saying what it saw."""
@@ -260,7 +267,7 @@ def _write_inventory(path: str, connection, results: list) -> None:
         link |= {"baud": connection.baud, "parity": connection.parity, "stopbits": int(connection.stopbits)}
     devices, unknown = {}, []
     for unit, candidates, sunspec, _seen in results:
-        best = candidates[0] if candidates and candidates[0].complete else None
+        best = _best(candidates)
         if best is None:
             what = "a SunSpec device: mbtool sunspec --map writes its map" if sunspec else "unknown device"
             unknown.append(f'# unit {unit}: {what}; give it map = "..." or read = ["40001 10"]')
@@ -357,7 +364,7 @@ SEEN_NAMES = {"fc43": "FC 43/14", "fc17": "FC 17", "sunspec": "SunSpec", "budget
 
 
 def _show_identity(unit: int, settings, candidates, sunspec: dict | None, seen: dict[str, str]) -> None:
-    best = candidates[0] if candidates and candidates[0].complete else None
+    best = _best(candidates)
     if settings.output_format == "json":
         from mbtool.cli.json_text import to_json  # noqa: PLC0415 - -o json only
 
