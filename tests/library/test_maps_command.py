@@ -6,6 +6,7 @@ import json
 
 from helpers import assert_one_error_line, run_cli
 
+import mbtool.link.transport
 from mbtool.library import MAPS, library_names
 
 
@@ -47,3 +48,16 @@ def test_show_of_an_unknown_name_is_one_line():
 def test_identify_refuses_the_bus_walks_options_without_all_units():
     line = assert_one_error_line(run_cli("identify", "--inventory", "plant.toml", "-p", "tcp://192.0.2.1"), 2)
     assert "--inventory goes with --all-units" in line
+
+
+def test_a_dry_run_of_a_bus_walk_shows_its_first_probe_and_opens_nothing(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("a dry run opened the port")
+
+    monkeypatch.setattr(mbtool.link.transport, "open_transport", refuse)
+    res = run_cli(
+        "identify", "--all-units", "--units", "3-5", "--dry-run", "-p", "/dev/ttyUSB0", "-o", "plain"
+    )
+    assert res.returncode == 0, res
+    assert res.lines[0] == "raw 03 03 00 00 00 01 85 E8"  # unit 3, FC 03 holding register 0
+    assert "then the same read to units 4-5" in res.stderr

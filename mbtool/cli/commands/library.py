@@ -178,6 +178,9 @@ def identify(connection, settings, budget, all_units, unit_set, inventory_path):
         wanted = sorted(parse_units(unit_set))
     except RequestError as error:
         raise RequestError(f"--units: {error}") from None
+    if settings.dry_run:  # the walk's reads depend on the replies: its first is all there is to show
+        _dry_run_walk(connection, settings, wanted)
+        return
     units = _answering_units(connection, settings, wanted)
     if not units:
         raise NoResponse(f"no unit of {units_text(frozenset(wanted))} answered on {connection.port}")
@@ -233,6 +236,19 @@ class _Quiet:
         pass
 
 
+WALK_PROBE = ("read-holding-registers", 0, 1)  # scan's probe: any reply, an exception too, is a unit
+
+
+def _dry_run_walk(connection, settings, units: list[int]) -> None:
+    from mbtool.link.scan import probe_request  # noqa: PLC0415 - --all-units only
+
+    request = probe_request(*WALK_PROBE)
+    rest = f"then the same read to units {units_text(frozenset(units[1:]))}, " if units[1:] else ""
+    then = rest + "and identify's reads of each unit that answers"
+    with open_client(replace(connection, unit=units[0]), settings, request.name, then=then) as client:
+        client.execute(units[0], request)
+
+
 def _answering_units(connection, settings, units: list[int]) -> list[int]:
     """The units that answer a read of holding register 0 (an exception is an answer), as
     mbtool scan finds them, at the connection's settings."""
@@ -244,7 +260,7 @@ def _answering_units(connection, settings, units: list[int]) -> list[int]:
         bytesize=connection.bytesize,
         stopbits=connection.stopbits,
     )
-    request = probe_request("read-holding-registers", 0, 1)
+    request = probe_request(*WALK_PROBE)
     quiet = _Quiet()
     tally = Scan(connection, request, units, [line], False, False, quiet, trace_for(settings)).run(quiet)
     return sorted({answer.unit for answer in tally.found})
