@@ -91,6 +91,7 @@ def files() -> list[tuple[str, str]]:
     """The FILES section: the config file and register maps, their keys listed from the
     tables the loaders check them against, so a key added there is documented here."""
     from mbtool.cli.profiles import KEYS
+    from mbtool.registermap.header import HEADER_KEYS, PROBE_KEYS
     from mbtool.registermap.load import DEVICE_KEYS, POINT_KEYS
 
     return [
@@ -104,9 +105,15 @@ def files() -> list[tuple[str, str]]:
         ),
         (
             "MAP (read -m, write -m, diff -m, restore -m, check -m)",
-            "A register map: TOML with an optional [device] table of defaults ("
+            "A register map, a file or a map's name (mbtool maps list; a NAME.toml in "
+            "$XDG_CONFIG_HOME/mbtool/maps comes before mbtool's own): TOML with an optional "
+            "[device] table of defaults ("
             + ", ".join(DEVICE_KEYS)
-            + ") and a [points.NAME] table a point, of these keys: "
+            + ") and of what the device is: "
+            + "; ".join(f"{key} ({what})" for key, what in HEADER_KEYS.items())
+            + ", each probe of the signature a table of "
+            + ", ".join(PROBE_KEYS)
+            + "; and a [points.NAME] table a point, of these keys: "
             + "; ".join(f"{key} ({what})" for key, what in POINT_KEYS.items())
             + "; or CSV with a header row of the same keys plus name, read by the csv module's "
             "rules (a quoted cell may hold commas and line breaks; a UTF-8 byte order mark is "

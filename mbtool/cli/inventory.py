@@ -19,7 +19,8 @@
     [devices.meter1]
     link = "bus1"
     unit = 1
-    map = "maps/sdm630.toml"     # relative to the inventory file; points = [...] picks some
+    map = "sdm630"               # a map's name (mbtool maps list), or a file relative to the
+                                 # inventory's; points = [...] picks some
     tags = { site = "north" }
     measurement = "meters"       # -o influx's measurement for it (else --measurement, modbus)
 
@@ -47,6 +48,7 @@ from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
+from mbtool.library import resolve_map
 from mbtool.link import IN_PROCESS
 from mbtool.link.connection import Connection, check, tls_settings
 from mbtool.link.transport import parse_target
@@ -330,8 +332,9 @@ def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMa
 
 
 def _map_path(table: dict, folder: Path) -> Path:
-    """A device's map: its path relative to the inventory's folder, ~ expanded."""
-    return profiles.beside(folder, table["map"])
+    """A device's map: its path relative to the inventory's folder, ~ expanded; or a map's
+    name (``map = "sdm630"``), looked up in the inventory's folder, the user's and the library."""
+    return resolve_map(table["map"], [folder], base=folder)
 
 
 def _tags(tags, where: str) -> dict[str, str]:

@@ -409,7 +409,8 @@ def map_option(what: str) -> Callable:
         "map",
         metavar="MAP",
         type=FilePath(dir_okay=False),
-        help=f"A register map (TOML, or CSV with a header row): {what}. Also a profile's map key.",
+        help=f"A register map (TOML, or CSV with a header row), or a map's name (mbtool maps list): "
+        f"{what}. Also a profile's map key.",
     )
 
 

@@ -50,7 +50,10 @@ KEYS = {
     "ca": ((str,), 'the CAs to trust (PEM), such as "plant-ca.pem" (beside this file unless absolute)'),
     "insecure": ((bool,), "true or false"),
     "server_name": ((str,), 'the name the server\'s certificate has, such as "plc7.plant.example"'),
-    "map": ((str,), 'a register map file, such as "pump.toml" (beside this file unless absolute)'),
+    "map": (
+        (str,),
+        'a register map file, such as "pump.toml" (beside this file unless absolute), or a map\'s name, such as "sdm630"',
+    ),
 }
 # Keys that name a file: read from the folder of the file that names them (a profile's, an
 # inventory's), not from wherever mbtool happens to run.
@@ -138,6 +141,12 @@ def defaults(name: str) -> dict:
         source = ctx.get_parameter_source(key)
         if source not in (None, click.core.ParameterSource.DEFAULT):
             continue  # given on the command line or in the environment: that wins
+        if key == "map" and isinstance(raw, str):
+            from mbtool.library import is_name  # noqa: PLC0415 - a profile's map only
+
+            if is_name(raw, path.parent):  # a map's name (sdm630): -m finds it as it finds any
+                changes[key] = raw
+                continue
         if key in PATH_KEYS and isinstance(raw, str):  # relative: from the config file's folder
             changes[key] = str(beside(path.parent, raw))
             continue

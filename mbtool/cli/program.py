@@ -73,6 +73,8 @@ COMMANDS = {
     "poll": "poll",
     "exporter": "exporter",
     "sunspec": "sunspec",
+    "maps": "library",
+    "identify": "library",
 }
 
 

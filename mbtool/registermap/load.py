@@ -22,6 +22,7 @@ from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
 from mbtool.errors import ExitCode, MbtoolError
 from mbtool.files import read_whole
+from mbtool.registermap.header import HEADER_KEYS, DeviceHeader, device_header
 from mbtool.registermap.point import Point
 
 POINT_KEYS = {
@@ -55,10 +56,13 @@ class MapError(MbtoolError, ValueError):
 
 
 class RegisterMap:
-    def __init__(self, points: dict[str, Point], max_gap: int = 0, source: str = "") -> None:
+    def __init__(
+        self, points: dict[str, Point], max_gap: int = 0, source: str = "", header: DeviceHeader | None = None
+    ) -> None:
         self.points = points
         self.max_gap = max_gap
         self.source = source
+        self.header = header  # what [device] says of the device (registermap/header.py), if anything
 
     def select(self, names: tuple[str, ...] | list[str]) -> list[Point]:
         """The named points, in the order given; every point when none is named."""
@@ -109,12 +113,22 @@ def build_map(path: Path | str, device: dict, rows: dict[str, dict]) -> Register
     what it found."""
     defaults = _device(path, device)
     max_gap = defaults.pop("max_gap", 0)
+    header = {key: defaults.pop(key) for key in HEADER_KEYS if key in defaults}
     points = {name: _point(path, name, row, defaults) for name, row in rows.items()}
     if not points:
         raise MapError(f"{path}: the map has no points")
     _check_overlaps(path, points.values())
     _link_scale_refs(path, points, rows)
-    return RegisterMap(points, max_gap, str(path))
+
+    def fail(key: str, why: str) -> MapError:
+        return MapError(f"{path}: [device]: key {key}: {why}")
+
+    def probe(name: str, row: dict) -> Point:
+        if "scale_ref" in row:  # a probe's own keys are checked by device_header; this one is a point's
+            raise fail(name, "a probe reads its registers as they are: no scale_ref")
+        return _point(path, f"[device] {name}", row, defaults)
+
+    return RegisterMap(points, max_gap, str(path), device_header(header, probe, fail))
 
 
 def _csv_rows(path: Path, text: str) -> dict[str, dict]:
@@ -198,8 +212,9 @@ def _device(path: Path, device: object) -> dict:
     if not isinstance(device, dict):
         raise MapError(f"{path}: [device] is a table of defaults ({', '.join(DEVICE_KEYS)})")
     for key in device:
-        if key not in DEVICE_KEYS:
-            raise MapError(f"{path}: [device]: unknown key {key} (known: {', '.join(DEVICE_KEYS)})")
+        if key not in DEVICE_KEYS and key not in HEADER_KEYS:
+            known = ", ".join([*DEVICE_KEYS, *HEADER_KEYS])
+            raise MapError(f"{path}: [device]: unknown key {key} (known: {known})")
     defaults = dict(device)
     if "max_gap" in defaults:
         defaults["max_gap"] = _integer(path, "[device]", "max_gap", defaults["max_gap"], 0, 2000)
@@ -211,7 +226,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
         raise MapError(f"{path}: a point with an empty name (read, check and the monitoring formats show it)")
     if not one_line(name):
         raise MapError(f"{path}: point {name!r}: the name {ONE_LINE}")
-    where = f"{path}: point {name}"
+    where = f"{path}: {name}" if name.startswith("[") else f"{path}: point {name}"
 
     def fail(key: str, why: str) -> MapError:
         return MapError(f"{where}: key {key}: {why}")

@@ -42,10 +42,11 @@ EXAMPLES = {
     "scan": "scan -u 1-5",
     "sunspec": "sunspec",
     "ping": "ping -c 1",
+    "identify": "identify",
 }
 # Commands that never send a request of their own: offline tools, the simulator, the gateway
-# (it forwards its clients' requests) and the passive monitor.
-OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor"}
+# (it forwards its clients' requests), the passive monitor and the map library.
+OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor", "maps"}
 # poll takes its links and units from its inventory file, not from -p and -u; the exporter
 # too, or from each scrape's target.
 INVENTORY = {"poll", "exporter"}

@@ -273,10 +273,10 @@ def _reference_values(
 
 
 def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list[Checked]:
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
-    register_map = load_map(path)
+    register_map = load_named_map(path)
     points = register_map.select(names)
     # Every threshold is read before anything is sent: a bad one is bad arguments.
     limits = {

@@ -57,6 +57,7 @@ from mbtool.cli.plant_text import (
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
+from mbtool.library import find_named
 from mbtool.link.base import host_text
 from mbtool.link.connection import Connection, check, close_quietly, open_client
 from mbtool.link.stats import Stats, outcome_of
@@ -105,7 +106,8 @@ TEXT = "text/plain; charset=utf-8"
     metavar="DIR",
     type=FilePath(exists=True, file_okay=False),
     help="/modbus: the register maps a scrape's module names, DIR/NAME.toml or DIR/NAME.csv "
-    "(before the inventory's maps, each named by its file name without .toml or .csv).",
+    "(before the inventory's maps, each named by its file name without .toml or .csv, and "
+    "mbtool's library).",
 )
 @click.option(
     "--allow-target",
@@ -255,7 +257,8 @@ class Refused(Exception):
 
 class Modules:
     """The register maps a scrape may name: --maps DIR/NAME.toml or .csv, then the maps of
-    the inventory's devices, each named by its file name without the extension.  A map is
+    the inventory's devices, each named by its file name without the extension, then the
+    user's maps and mbtool's library (mbtool.library, as -m finds them).  A map is
     loaded once and again when its file changes."""
 
     def __init__(self, folder: Path | None, inventory_maps: dict[str, str]) -> None:
@@ -283,10 +286,14 @@ class Modules:
             )
         if paths:
             return paths[0]
+        path = find_named(name)  # the user's maps, then mbtool's library: as -m finds them
+        if path is not None:
+            return path
         where = [f"{self.folder} has no {name}.toml nor {name}.csv"] if self.folder is not None else []
         if self.named:
             where.append(f"the inventory's maps are {', '.join(sorted(self.named))}")
-        raise Refused(400, f"no module {name}: {'; '.join(where) or 'no maps'}")
+        where.append("mbtool's library has none (mbtool maps list)")
+        raise Refused(400, f"no module {name}: {'; '.join(where)}")
 
     def load(self, path: Path):
         """The map at ``path``, its points checked against the scrape's own names; MapError if

@@ -323,10 +323,10 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
 
 
 def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
-    register_map = load_map(path)
+    register_map = load_named_map(path)
     points = register_map.select(names)
     reader = MapReader(points, register_map.max_gap)  # one for every poll: a split read stays split
     requests = [block.request for block in reader.blocks]

@@ -128,9 +128,9 @@ def diff(connection, settings, a, b, map):
     """
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+        from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
-        register_map = load_map(map)
+        register_map = load_named_map(map)
     b = b or DEVICE
     if a == DEVICE == b:
         raise RequestError(
@@ -259,9 +259,9 @@ def restore(connection, settings, file, everything, map):
     snap, complete = snapshot(file)
     register_map = None
     if map:
-        from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+        from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
-        register_map = load_map(map)
+        register_map = load_named_map(map)
     if not complete:
         print(
             f"mbtool: warning: {file} is marked complete = false: the dump stopped early, and only "

@@ -237,11 +237,11 @@ def _write_map(
     connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
 ) -> None:
     from mbtool.cli.writes import Step, failure, report, send_all  # noqa: PLC0415 - write -m only
-    from mbtool.registermap.load import load_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
+    from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import write_request  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
     from mbtool.registermap.point import NoScaleFactor  # noqa: PLC0415 - with decimal, 1 ms: -m only
 
-    register_map = load_map(path)
+    register_map = load_named_map(path)
     wanted = []  # every value checked before anything is sent
     for assignment in assignments:
         name, sep, text = assignment.partition("=")
