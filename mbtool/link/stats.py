@@ -5,7 +5,8 @@ Every transaction the master makes ends as exactly one of: answered, an exceptio
 code), a timeout (nothing came), corrupt (a CRC/LRC or framing error: the wire), not ours (an
 intact frame for another unit or transaction id), or the link failing (it closed, or could not
 be written: link_lost).  An answer that came on a retry is also counted as a retry that
-recovered.  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
+recovered.  A reply's round trip is in the figures when its arrival is known, else the reply
+is counted as untimed (the client's ``rtt``).  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
 plant, ping, scan and the bridge call it rather than judge outcomes of their own.
 """
 
@@ -56,7 +57,8 @@ class Stats:
         self.outcomes: dict[str, int] = dict.fromkeys(OUTCOMES, 0)
         self.exceptions: Counter[int] = Counter()  # exception code -> count
         self.recovered = 0  # answers that came on a retry
-        self.rtt = Durations()  # request to reply, for every reply (exceptions too)
+        self.rtt = Durations()  # request to reply, for every reply (exceptions too) timed
+        self.untimed = 0  # replies whose round trip is not known (Client.rtt), left out of rtt
 
     @property
     def transactions(self) -> int:
@@ -71,19 +73,24 @@ class Stats:
             self.recovered += 1
         if rtt is not None:
             self.rtt.add(rtt)
+        else:
+            self.untimed += 1
 
     def transaction(self, error: BaseException | None, attempts: int, rtt: float | None = None) -> str:
         """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
-        requests on the wire, ``rtt`` seconds from the request to its reply if one came.  Its
-        outcome, one of OUTCOMES."""
+        requests on the wire, ``rtt`` seconds from the request to its reply if one came and its
+        arrival is known.  Its outcome, one of OUTCOMES."""
         outcome = outcome_of(error)
         self.outcomes[outcome] += 1
         if outcome == "exception":
             self.exceptions[error.exception_code] += 1
         elif outcome == "answered" and attempts > 1:
             self.recovered += 1
-        if rtt is not None and outcome in ("answered", "exception"):
-            self.rtt.add(rtt)  # a reply's; not that of an attempt before a failure
+        if outcome in ("answered", "exception"):  # a reply's; not that of an attempt before a failure
+            if rtt is not None:
+                self.rtt.add(rtt)
+            else:
+                self.untimed += 1
         return outcome
 
     def add(self, other: Stats, recent: bool = True) -> None:
@@ -93,6 +100,7 @@ class Stats:
             self.outcomes[outcome] += count
         self.exceptions.update(other.exceptions)
         self.recovered += other.recovered
+        self.untimed += other.untimed
         self.rtt.merge(other.rtt, recent)
 
     def rtt_figures(self) -> dict[str, float] | None:
@@ -113,6 +121,7 @@ class Stats:
             # The histogram: how many round trips took at most each bound (cumulative, as
             # Prometheus's buckets), the last bound +Inf (null in JSON).
             "rtt_buckets": [[bound, count] for bound, count in self.rtt.buckets()],
+            "rtt_untimed": self.untimed,  # replies left out of the figures: arrival not known
         }
 
     def outcomes_text(self) -> str:
@@ -124,9 +133,18 @@ class Stats:
         )
         return f"transactions {self.transactions}: {counts}; retries recovered {self.recovered}"
 
+    def rtt_text(self, names: tuple[str, ...] = ("min", "avg", "p95", "max")) -> str:
+        """The round trips' figures (Durations.text), and how many replies they leave out."""
+        return self.rtt.text(names) + untimed_text(self.untimed)
+
     def __str__(self) -> str:
         """One line for a summary: every outcome, the retries that recovered and the rtt."""
-        return f"{self.outcomes_text()}; rtt {self.rtt.text()}"
+        return f"{self.outcomes_text()}; rtt {self.rtt_text()}"
+
+
+def untimed_text(untimed: int) -> str:
+    """Beside round-trip figures: " (3 untimed)", the replies they leave out; "" when none."""
+    return f" ({untimed} untimed)" if untimed else ""
 
 
 class Counted:

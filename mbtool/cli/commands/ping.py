@@ -24,7 +24,7 @@ from mbtool.durations import Durations
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary, link_failure
 from mbtool.link.connection import close_quietly
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
-from mbtool.link.stats import Counted, Stats, outcome_of
+from mbtool.link.stats import Counted, Stats, outcome_of, untimed_text
 
 # What each --function asks: a read of one holding register, or the diagnostics echo.
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
@@ -99,6 +99,7 @@ class Pinger:
         self.stats = Stats()  # every transaction's outcome
         self.alive = 0  # replies from the device itself: answers and its exceptions
         self.alive_rtt = Durations()  # their round trips, ping(8)'s rtt
+        self.untimed = 0  # their replies whose round trip is not known (link.client's rtt)
 
     def run(self, count: int | None, interval: float) -> Summary:
         connection, unit = self.connection, self.connection.unit
@@ -156,6 +157,8 @@ class Pinger:
         self.alive += 1
         if rtt is not None:
             self.alive_rtt.add(rtt)
+        else:
+            self.untimed += 1
         retried = f" (after {attempts - 1} {'retry' if attempts == 2 else 'retries'})" if attempts > 1 else ""
         self._line(seq, f"{what}{_time(rtt)}{retried}")
 
@@ -164,7 +167,9 @@ class Pinger:
             code = f"exception {error.exception_code:02X} {error.name}"
             if error.exception_code in GATEWAY_EXCEPTIONS:
                 # The gateway speaks for a device that did not answer (spec §3): lost.
-                self._line(seq, f"lost: {code} from the gateway {_time(rtt)}")
+                self._line(
+                    seq, f"lost: {code} from the gateway" + (f" {_time(rtt)}" if rtt is not None else "")
+                )
             else:
                 self._answered(seq, rtt, attempts, code + " ")
             return
@@ -180,8 +185,8 @@ class Pinger:
         sent = stats.transactions
         lost = 0.0 if not sent else round(100 * (sent - self.alive) / sent, 1)
         text = f"{sent} sent, {self.alive} answered, {lost:g}% lost"
-        if self.alive_rtt.count:
-            text += f", rtt {self.alive_rtt.text(('min', 'avg', 'max', 'mdev'))}"
+        if self.alive:
+            text += f", rtt {self.alive_rtt.text(('min', 'avg', 'max', 'mdev'))}{untimed_text(self.untimed)}"
         text += f"; {stats.outcomes_text()}"
         if interrupted:
             text = "interrupted; " + text
@@ -191,9 +196,10 @@ class Pinger:
 
 
 def _time(rtt: float | None) -> str:
-    """ping(8)'s "time=0.045 ms", "time=4.21 ms", "time=38.5 ms", "time=1203 ms": three figures."""
+    """ping(8)'s "time=0.045 ms", "time=4.21 ms", "time=38.5 ms", "time=1203 ms": three figures;
+    "untimed" for a reply whose arrival is not known (it came while mbtool was busy)."""
     if rtt is None:
-        return ""
+        return "untimed"
     ms = rtt * 1000
     return f"time={ms:.{3 if ms < 1 else 2 if ms < 10 else 1 if ms < 100 else 0}f} ms"
 
