@@ -225,7 +225,8 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
             f"{prefix}transactions_total",
             "counter",
             f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
-            "framing error), not_ours (a frame for another unit or transaction), link_lost",
+            "framing error), not_ours (a frame for another unit or transaction), link_lost (the peer "
+            "hung up), connection (the link could not be opened or reached)",
             (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
         )
         + _family(

@@ -184,13 +184,14 @@ def poll(
                     timeouts += 1
                 else:
                     errors += 1
-                if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
+                error = link_failure(error)
+                if client is None:  # the link could not be opened: the request never went
+                    stats.transaction(error, 0)
+                elif isinstance(error, ConnectionFailed | ConnectionClosed):
                     # The link is gone (device restarted, cable pulled): open it anew next poll.
-                    if client is not None:
-                        ended_at = client.ended_at
+                    ended_at = client.ended_at
                     close_quietly(link)
                     client = None
-                error = link_failure(error)
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
             else:

@@ -3,8 +3,11 @@ wrong address or a sleeping device (timeouts) and from a slow one (the round-tri
 
 Every transaction the master makes ends as exactly one of: answered, an exception (by its
 code), a timeout (nothing came), corrupt (a CRC/LRC or framing error: the wire), not ours (an
-intact frame for another unit or transaction id), or the link failing (it closed, or could not
-be written: link_lost).  An answer that came on a retry is also counted as a retry that
+intact frame for another unit or transaction id), the link lost (the peer hung up, the port
+went away, before or during the reply: exit 3) or no connection (the link could not be opened,
+reached or written: refused, port unreachable, a TLS handshake that failed, no such serial
+port: exit 6).  The kind follows the exit code, so a failure is one kind wherever it is shown:
+the summaries, ping's lines, the exporter's ``modbus_error_info{kind}``.  An answer that came on a retry is also counted as a retry that
 recovered.  A reply's round trip is in the figures when its arrival is known, else the reply
 is counted as untimed (the client's ``rtt``).  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
 plant, ping, scan and the bridge call it rather than judge outcomes of their own.
@@ -27,7 +30,7 @@ from mbtool.durations import Durations
 from mbtool.errors import NoResponse
 from mbtool.link.transport import ConnectionClosed
 
-OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost")
+OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost", "connection")
 
 
 def outcome_of(error: BaseException | None) -> str:
@@ -43,9 +46,13 @@ def outcome_of(error: BaseException | None) -> str:
         return "not_ours"
     if isinstance(error, ChecksumError | FrameError):
         return "corrupt"
-    if isinstance(error, NoResponse) and not isinstance(error, ConnectionClosed):
+    if isinstance(error, ConnectionClosed):
+        return "link_lost"
+    if isinstance(error, NoResponse):
         return "timeout"
-    return "link_lost"
+    # Cannot open, reach or write the link: ConnectionFailed, or the OSError it stands for
+    # (link_failure), exit 6.
+    return "connection"
 
 
 class Stats:

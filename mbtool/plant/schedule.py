@@ -198,6 +198,9 @@ class LinkWorker:
             if first:
                 self.report(Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff))
             for device in due:  # its devices cannot be reached: offline meanwhile
+                # Each poll's request could not go: a transaction with no connection, counted
+                # as ping and read --interval count it.
+                device.stats.transaction(error, 0)
                 self._end(device, None, error, when, at_once=True)
                 device.due = max(device.due, self.open_at)
             return False
