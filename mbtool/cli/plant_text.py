@@ -245,9 +245,17 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
             [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
         )
         + _family(
+            f"{prefix}untimed_replies_total",
+            "counter",
+            f"Replies {whose} whose round trip is not known (they came while mbtool was busy, or "
+            "after a retry without transaction ids): left out of the histogram",
+            [f"{prefix}untimed_replies_total{{{pair}}} {stats.untimed}"],
+        )
+        + _family(
             name,
             "histogram",
-            f"Round-trip time of the replies {whose}: from a request to its reply, in seconds",
+            f"Round-trip time of the replies {whose}: from a request's last byte written to its "
+            "reply's last byte read, in seconds",
             [
                 *(
                     f'{name}_bucket{{{pair},le="{_le(bound)}"}} {count}'

@@ -194,6 +194,21 @@ def test_the_exporters_histogram_never_beats_the_device(slow_device, tmp_path):
             time.sleep(0.1)
     assert samples[("modbus_request_duration_seconds_count", None)] >= 10, samples
     assert samples[("modbus_request_duration_seconds_bucket", "0.01")] == 0, samples
+    # Every reply is in the histogram or counted as untimed, beside it.
+    answered = [
+        sample.value
+        for family in text_string_to_metric_families(body)
+        for sample in family.samples
+        if sample.name == "modbus_transactions_total"
+        and sample.labels["outcome"] in ("answered", "exception")
+    ]
+    untimed = [
+        sample.value
+        for family in text_string_to_metric_families(body)
+        for sample in family.samples
+        if sample.name == "modbus_untimed_replies_total"
+    ]
+    assert untimed and samples[("modbus_request_duration_seconds_count", None)] + untimed[0] == sum(answered)
 
 
 READ = ReadHoldingRegisters(0, 1)
