@@ -157,7 +157,7 @@ def untimed_text(untimed: int) -> str:
 class Counted:
     """``client.execute``, each transaction counted in ``stats``: its outcome, the attempts it
     took and its round-trip time (the client's ``rtt``; ``rtt`` here is the last one's, None
-    when no reply came).
+    when no reply came or its arrival is not known: counted as untimed).
 
     A transaction with nothing to judge (a broadcast, a request no reply is due for, which
     execute returns None for) is not counted unless it failed.  An interrupt (Ctrl-C) in the
