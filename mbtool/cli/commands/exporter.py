@@ -568,7 +568,8 @@ def _read_map(connection, register_map, deadline: float, budget: float):
         client = link.enter_context(open_client(replace(connection, timeout=min(timeout, left))))
     except (*KNOWN_ERRORS, OSError) as error:
         close_quietly(link)
-        return None, link_failure(error), "connection"
+        error = link_failure(error)
+        return None, error, outcome_of(error)
 
     def execute(request):
         left = deadline - time.monotonic()
