@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import click
 
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link import settings as link_settings
 from mbtool.link.settings import parse_whole as parse_int  # decimal or 0x hex: every number given
 
@@ -21,17 +21,17 @@ def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
     for part in text.split(","):
         part = part.strip()
         if not part:
-            raise RequestError(f"empty unit id in {text}")
+            raise UsageError(f"empty unit id in {text}")
         low_text, dash, high_text = part.partition("-")
         low = parse_int(low_text, "unit")
         high = parse_int(high_text, "unit") if dash else low
         if low > high:
-            raise RequestError(f"unit range {part} runs backwards")
+            raise UsageError(f"unit range {part} runs backwards")
         lowest = 0 if broadcast else 1
         for unit in (low, high):
             if not lowest <= unit <= 255:
                 why = "" if broadcast else " (unit 0 is broadcast: every unit hears it)"
-                raise RequestError(f"unit {unit} is out of range {lowest}..255{why}")
+                raise UsageError(f"unit {unit} is out of range {lowest}..255{why}")
         units.update(range(low, high + 1))
     return frozenset(units)
 
@@ -64,7 +64,7 @@ def _converted(kind: link_settings.Kind, value, param_type: click.ParamType, par
     """``value`` by ``kind``'s rule, its refusal click's usage error (exit 2, naming the option)."""
     try:
         return kind.convert(value)
-    except RequestError as error:
+    except UsageError as error:
         param_type.fail(str(error), param, ctx)
 
 

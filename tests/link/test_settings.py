@@ -11,12 +11,13 @@ import pytest
 
 from mbtool.cli import profiles
 from mbtool.cli.options import device_command
+from mbtool.cli.param_types import parse_units
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import fields
 from mbtool.errors import ExitCode, UsageError, exit_code_for
 from mbtool.link.connection import Connection, check
 from mbtool.link.settings import SETTINGS, Flag, OneOf
-from mbtool.plant.inventory import LINK_KEYS
+from mbtool.plant.inventory import LINK_KEYS, load_inventory
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -115,3 +116,19 @@ def test_each_sentence_that_refuses_a_link_setting_is_written_once():
         "drives the RTS line of a serial port",
     ):
         assert sum(text.count(words) for text in sources) <= 1, words
+
+
+def test_a_mistake_in_a_profile_an_inventory_or_an_option_is_a_usage_error(tmp_path):
+    """Issue 41.6: the config loaders and the shared options raise UsageError (exit 2), not
+    the codec's RequestError, whose raises in cli/ were mostly such mistakes."""
+    config = tmp_path / "config.toml"
+    config.write_text('[profiles.s]\nport = "sim://"\nspeed = 9600\n')
+    inventory = tmp_path / "plant.toml"
+    inventory.write_text('[links.a]\ntarget = "sim://"\n[devices.d]\nlink = "b"\nread = ["40001"]\n')
+    for mistake in (
+        lambda: profiles.load("s", config),
+        lambda: load_inventory(str(inventory)),
+        lambda: parse_units("3-1"),
+    ):
+        with pytest.raises(UsageError):
+            mistake()
