@@ -12,7 +12,6 @@ Click-free: the command line wraps each kind in a click type (``cli/param_types.
 
 from __future__ import annotations
 
-from mbtool.codec.record import record
 from mbtool.errors import UsageError
 
 SERIAL = "serial"  # a serial port (or a pyserial URL): baud, parity, RTS
@@ -145,25 +144,42 @@ class Delays(Kind):
 # --- the table ------------------------------------------------------------------------------
 
 
-@record
 class Setting:
     """One setting of a link.  ``name``: the Connection field, the profile's and the
     inventory's key, the option's parameter; ``flags``: the option's spellings; ``wanted``: what
     a file should give, in words; ``transport``: SERIAL or TLS where it is only for one (""
     for every link); ``misplaced``: the sentence that refuses it on another transport, where
-    it is refused ({option}, {scheme} and {port} filled in; "" where it is only unused)."""
+    it is refused ({option}, {scheme} and {port} filled in; "" where it is only unused).
 
-    name: str
-    kind: Kind
-    default: object
-    help: str
-    flags: tuple[str, ...]
-    wanted: str
-    transport: str = ""
-    misplaced: str = ""
-    metavar: str | None = None
-    show_default: bool = False
-    envvar: str | None = None
+    A plain class, not a record: every command makes the table as it starts, and a record's
+    generic ``__init__`` would cost the one-shot read a hundredth of its start-up."""
+
+    __slots__ = (
+        "name", "kind", "default", "help", "flags", "wanted", "transport", "misplaced", "metavar",
+        "show_default", "envvar",
+    )  # fmt: skip
+
+    def __init__(
+        self,
+        name: str,
+        kind: Kind,
+        default: object,
+        help: str,
+        flags: tuple[str, ...],
+        wanted: str,
+        transport: str = "",
+        misplaced: str = "",
+        *,
+        metavar: str | None = None,
+        show_default: bool = False,
+        envvar: str | None = None,
+    ) -> None:
+        self.name, self.kind, self.default, self.help, self.flags = name, kind, default, help, flags
+        self.wanted, self.transport, self.misplaced = wanted, transport, misplaced
+        self.metavar, self.show_default, self.envvar = metavar, show_default, envvar
+
+    def __repr__(self) -> str:
+        return f"Setting({self.name!r})"
 
     @property
     def option(self) -> str:
