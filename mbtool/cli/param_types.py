@@ -9,9 +9,8 @@ import click
 
 from mbtool.errors import UsageError
 from mbtool.link import settings as link_settings
-from mbtool.link.settings import parse_whole as parse_int  # decimal or 0x hex: every number given
 
-__all__ = ["parse_int"]
+parse_int = link_settings.parse_whole  # decimal or 0x hex: every number the command line takes
 
 
 def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
