@@ -597,7 +597,7 @@ def test_several_scrapers_at_once_each_get_a_whole_exposition(meter, tmp_path):
 def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each_family_once():
     """In-process, on examples/plant.toml (sim://): what PlantMetrics joins is one exposition."""
     from mbtool.cli.commands.exporter import PlantMetrics
-    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
     from mbtool.plant.schedule import Plant
 
@@ -630,7 +630,7 @@ def _polls_a_second(tmp_path, devices: int, exporting_metrics: bool, seconds: fl
     """Polls a second of ``devices`` on one sim:// link (every one due at once, all along),
     their reports going to the exporter's PlantMetrics or nowhere, as poll -o plain's do."""
     from mbtool.cli.commands.exporter import PlantMetrics
-    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
     from mbtool.plant.schedule import Plant
 

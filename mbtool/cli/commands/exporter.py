@@ -40,7 +40,6 @@ from urllib.parse import parse_qs
 
 import click
 
-from mbtool.cli.inventory import load_inventory
 from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
@@ -62,6 +61,7 @@ from mbtool.link.base import host_text
 from mbtool.link.connection import Connection, check, close_quietly, open_client
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
+from mbtool.plant.inventory import load_inventory
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
