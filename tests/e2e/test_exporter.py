@@ -456,10 +456,12 @@ read = ["40001 1"]
         )
         answered = value(text, "modbus_transactions_total", device="meter1", outcome="answered")
         assert answered >= 3  # three requests a poll: input registers, holding registers, coils
-        # Every reply's round trip is in the histogram, whose buckets count up to +Inf.
-        assert value(text, "modbus_request_duration_seconds_count", device="meter1") == answered
-        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="+Inf") == answered
-        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="10.0") == answered
+        # Every reply's round trip is in the histogram, whose buckets count up to +Inf, but for
+        # the replies that came while mbtool was busy, whose arrival is not known (counted apart).
+        timed = answered - value(text, "modbus_untimed_replies_total", device="meter1")
+        assert value(text, "modbus_request_duration_seconds_count", device="meter1") == timed
+        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="+Inf") == timed
+        assert value(text, "modbus_request_duration_seconds_bucket", device="meter1", le="10.0") == timed
         assert value(text, "modbus_polls_total", device="dead") == value(
             text, "modbus_failed_polls_total", device="dead"
         )
