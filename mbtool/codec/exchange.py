@@ -7,9 +7,9 @@ an adapter's echo of the request, the repair of a harmless fault (--lenient), an
 telling problem seen, raised when nothing better comes.  An exchange is driven with bytes
 and the news that the line paused or went quiet, like the framer under it:
 
-    adu = exchange.attempt(unit, request, fresh=True)   # write it, then:
-    reply = exchange.receive(data)                       # each read's bytes; None: read on
-    reply = exchange.paused(ends_frame)                  # a read that returned nothing
+    adu = exchange.attempt(unit, request, fresh=True)   # write it (retry=True: again), then:
+    reply = exchange.receive(data, ends_frame)           # each read's bytes (b"": a pause);
+                                                         # None: read on
     reply = exchange.close()                             # the deadline: the last word;
     raise exchange.problem or <silence>                  # None: nothing came that tells more
 """
@@ -96,16 +96,17 @@ class Exchange:
 
     # -- sending -----------------------------------------------------------------------
 
-    def begin(self) -> None:
-        """A new request: the ids of the last one's attempts no longer answer anything."""
-        self.attempt_ids.clear()
-
-    def attempt(self, unit: int, request: Request, fresh: bool) -> bytes:
+    def attempt(self, unit: int, request: Request, fresh: bool, retry: bool = False) -> bytes:
         """The next attempt's frame, under a transaction id of its own.  ``fresh``: the link's
-        stale input was discarded, so the framer forgets what it holds too."""
+        stale input was discarded, so the framer forgets what it holds too.  ``retry``: the
+        request again, whose earlier attempts' ids still answer it; else a new request, and the
+        last one's ids answer nothing."""
         framer = self.framer
         tid = self.transaction_id = (self.transaction_id + 1) & 0xFFFF
-        self.attempt_ids.append(tid)
+        if retry:
+            self.attempt_ids.append(tid)
+        else:
+            self.attempt_ids = [tid]
         if request is not self._prepared[0]:
             self._prepared = (
                 request,
@@ -137,38 +138,36 @@ class Exchange:
     # -- receiving ---------------------------------------------------------------------
 
     @property
-    def waiting_for_silence(self) -> bool:
-        """Only a pause on the line can end the frame held (RTU, a PDU of unknown length)."""
-        return self.framer.waiting_for_silence
-
-    @property
     def settling(self) -> bool:
         """A complete frame with a bad checksum came and nothing follows it: nearly always the
         reply itself, so a good one is waited for only a little longer."""
         return isinstance(self.problem, ChecksumError) and not self.framer.buffered
 
-    def receive(self, data: bytes, whole: bool = False) -> Response | ExceptionResponse | None:
-        """Bytes read: the reply if they complete it, else None.  ``whole``: they are a whole
-        datagram (UDP), whose end ends the frame as silence does on a line.
+    def receive(self, data: bytes, ends_frame: bool = False) -> Response | ExceptionResponse | None:
+        """A read's bytes, or b"" for a read that returned nothing (a pause): the reply if they
+        complete it, else None.  ``ends_frame``: the frame ends there, as a whole datagram
+        (UDP) ends, or a pause as long as the framer waits for (RTU, a frame of unknown
+        length).  The framer's events are judged until the reply, with no look for more.
 
         Raises FrameError for a reply that is ours (our transaction id) and bad."""
-        watch = self._watch
+        framer, watch = self.framer, self._watch
         if watch is not None:
-            data = watch.filter(data)
-            if watch.seen:
-                self.trace.received(watch.adu, ECHO_SKIPPED)
-                watch.seen = False  # traced once; echoed stays True
-        framer = self.framer
-        framer.feed(data)
-        return self._judge_events(framer.silence() if whole else framer.next_event())
-
-    def paused(self, ends_frame: bool) -> Response | ExceptionResponse | None:
-        """A read returned nothing: bytes held as a possible echo were not one, and where the
-        framer waited for silence (``ends_frame``: the read was as long as that takes) the
-        frame held has ended."""
-        self._release()
-        framer = self.framer
-        return self._judge_events(framer.silence() if ends_frame else framer.next_event())
+            if data:
+                data = watch.filter(data)
+                if watch.seen:
+                    self.trace.received(watch.adu, ECHO_SKIPPED)
+                    watch.seen = False  # traced once; echoed stays True
+            else:
+                self._release()  # a pause: bytes held as a possible echo were not one
+        if data:
+            framer.feed(data)
+        event = framer.silence() if ends_frame else framer.next_event()
+        while event is not None:
+            reply = self._judge(event)
+            if reply is not None:
+                return reply
+            event = framer.next_event()
+        return None
 
     def close(self, hung_up: bool = False) -> Response | ExceptionResponse | None:
         """Nothing more will come (the deadline passed, or the peer hung up: ``hung_up``):
@@ -182,21 +181,12 @@ class Exchange:
             self.problem = FrameError(
                 "the only reply was a copy of the request (an echoing adapter? try --echo)"
             )
-        return self._judge_events(self.framer.silence())
+        return self.receive(b"", ends_frame=True)
 
     def _release(self) -> None:
         """Hand the framer the bytes the watch held back as a possible echo: they were not one."""
         if self._watch is not None:
             self.framer.feed(self._watch.release())
-
-    def _judge_events(self, event: Frame | Rejected | None) -> Response | ExceptionResponse | None:
-        """Judge the framer's events from ``event`` on; judging stops at the reply, with no look for more."""
-        while event is not None:
-            reply = self._judge(event)
-            if reply is not None:
-                return reply
-            event = self.framer.next_event()
-        return None
 
     def _judge(self, event: Frame | Rejected) -> Response | ExceptionResponse | None:
         """Is this event our reply?  Otherwise keep the most telling problem seen so far."""

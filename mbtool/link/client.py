@@ -107,7 +107,6 @@ class Client:
         """
         attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
         error: MbtoolError | None = None
-        self.exchange.begin()
         # The attempts that ended without their reply, (transaction id, when it left): a reply
         # after a retry may be one of theirs, late.
         unanswered: list[tuple[int, float]] | None = None
@@ -121,7 +120,7 @@ class Client:
                 self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
             try:
                 try:
-                    reply = self._transact(unit, request)
+                    reply = self._transact(unit, request, attempt > 0)
                 finally:
                     if self.pause:
                         self.ended_at = self.clock()
@@ -156,7 +155,7 @@ class Client:
 
     # -- one attempt ------------------------------------------------------------
 
-    def _transact(self, unit: int, request: Request) -> Response | ExceptionResponse | None:
+    def _transact(self, unit: int, request: Request, retry: bool) -> Response | ExceptionResponse | None:
         exchange, transport = self.exchange, self.transport
         serial_line = transport.serial_line
         if serial_line:
@@ -177,7 +176,7 @@ class Client:
                     stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
                 )
         self._settled = False  # until this attempt ends with its reply
-        adu = exchange.attempt(unit, request, fresh)
+        adu = exchange.attempt(unit, request, fresh, retry)
         if exchange.trace is not UNWATCHED:
             # Traced before it goes: a trace that blocks (--hex on a slow terminal) delays the
             # request, not the look for its reply, and is no part of the round trip.
@@ -262,13 +261,13 @@ class Client:
     def _await_reply(self, unit: int, deadline: float) -> Response | ExceptionResponse:
         """Read until the exchange finds the reply, or the deadline passes: then its most
         telling problem is raised, or silence."""
-        exchange, transport = self.exchange, self.transport
+        exchange, framer, transport = self.exchange, self.framer, self.transport
         serial_line, datagrams = transport.serial_line, transport.datagrams
         while True:
             now = self.clock()
             if now >= deadline:
                 break
-            waiting = exchange.waiting_for_silence
+            waiting = framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
             try:
                 data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
             except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
@@ -283,9 +282,10 @@ class Client:
                 read_at = self.replied_at = self.clock()
                 if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
                     self._line_free_at = read_at
+                # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
                 reply = exchange.receive(data, datagrams)
             else:
-                reply = exchange.paused(waiting)
+                reply = exchange.receive(data, waiting)  # a pause: it ends a frame waiting for one
             if reply is not None:
                 return reply
             if exchange.settling:

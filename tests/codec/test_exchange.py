@@ -51,7 +51,6 @@ def tcp(**options) -> Exchange:
 
 
 def started(exchange: Exchange, request=REQUEST, unit: int = 0x11) -> bytes:
-    exchange.begin()
     return exchange.attempt(unit, request, fresh=True)
 
 
@@ -81,7 +80,7 @@ def test_noise_before_the_reply_is_traced_as_rejected_and_skipped():
 def test_silence_leaves_no_problem_for_the_client_to_call_a_timeout():
     exchange = serial()
     started(exchange)
-    assert exchange.paused(False) is None
+    assert exchange.receive(b"") is None
     assert exchange.close() is None and exchange.problem is None
 
 
@@ -142,12 +141,11 @@ def test_tcp_after_a_retry_the_late_reply_to_the_first_attempt_answers():
     exchange = tcp()
     started(exchange)
     exchange.close()  # the first attempt timed out
-    exchange.attempt(0x11, REQUEST, fresh=True)
+    exchange.attempt(0x11, REQUEST, fresh=True, retry=True)
     assert exchange.attempt_ids == [1, 2]
     assert exchange.receive(TcpFramer().build(0x11, REPLY_PDU, 1)).registers == (555, 0, 100)
     assert exchange.answered_id == 1, "the client times the round trip from the first attempt"
-    exchange.begin()  # the next request: the old ids answer nothing
-    exchange.attempt(0x11, REQUEST, fresh=True)
+    exchange.attempt(0x11, REQUEST, fresh=True)  # the next request: the old ids answer nothing
     assert exchange.attempt_ids == [3]
 
 
@@ -172,7 +170,7 @@ def test_an_echo_without_the_option_is_skipped_and_traced_as_one(framer_type):
     sent = started(exchange)
     assert exchange.receive(sent[:3]) is None
     assert exchange.receive(sent[3:]) is None
-    assert exchange.paused(False) is None
+    assert exchange.receive(b"") is None
     reply = framer_type().build(0x11, REPLY_PDU)
     assert exchange.receive(reply).registers == (555, 0, 100)
     assert notes.lines[0] == ("received", sent, "the request's own echo, skipped (--echo strips it)")
@@ -284,8 +282,8 @@ def test_a_pause_ends_a_frame_whose_length_only_silence_tells():
     started(exchange, request)
     reply = rtu("11 41 01 02 03")
     assert exchange.receive(reply) is None
-    assert exchange.waiting_for_silence
-    assert exchange.paused(True) is not None
+    assert exchange.framer.waiting_for_silence
+    assert exchange.receive(b"", ends_frame=True) is not None
 
 
 def test_the_most_telling_problem():
