@@ -80,8 +80,8 @@ class Exchange:
         self._request: Request | None = None
         self._sent = b""  # the attempt's frame, to tell a copy of it from a reply
         self._watch: EchoWatch | None = None
-        # The last request, its PDU, whether its echo could pass for a reply, whether it has
-        # one and what is known of it beforehand: the same for every poll of it, so worked
+        # The last request, its PDU, whether its echo is watched for, whether it has a reply
+        # and what is known of the reply beforehand: the same for every poll of it, so worked
         # out once.
         self._prepared: tuple[Request | None, bytes, bool, bool, tuple[bytes, int] | None] = (
             None,
@@ -108,16 +108,20 @@ class Exchange:
         else:
             self.attempt_ids = [tid]
         if request is not self._prepared[0]:
+            expects_response = request.expects_response
             self._prepared = (
                 request,
                 request.encode(),
-                # Only a serial line has an echo to watch for (a map's requests over TCP
-                # would pay for the look on every one).
-                self.watch_echo and EchoWatch.needed(request),
-                request.expects_response,
+                # The request's own bytes coming back first are an adapter's echo: with --echo
+                # always (even where the reply is a copy of the request, FC05/06), else where an
+                # echo cannot pass for the reply.  Only a serial line has an echo to watch for
+                # (a map's requests over TCP would pay for the look on every one), and a request
+                # with no reply waits only for a refusal, which no echo is mistaken for.
+                expects_response and self.watch_echo and (self.echo or EchoWatch.needed(request)),
+                expects_response,
                 request.reply_prefix,
             )
-        _, pdu, echo_watched, expects_response, reply_prefix = self._prepared
+        _, pdu, watched, expects_response, reply_prefix = self._prepared
         adu = framer.build(unit, pdu, tid)
         if fresh:
             framer.reset()
@@ -127,11 +131,7 @@ class Exchange:
         self._unit, self._request, self._sent = unit, request, adu
         self.expects_response = expects_response
         self.problem = None
-        # The request's own bytes coming back first are an adapter's echo: with --echo always
-        # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
-        # pass for the reply.  Bytes that differ from the request are the reply, shown as such.
-        # A request with no reply waits only for a refusal, which no echo is mistaken for.
-        watched = expects_response and self.watch_echo and (self.echo or echo_watched)
+        # Bytes that differ from the request are the reply, shown as such.
         self._watch = EchoWatch(adu) if watched else None
         return adu
 
@@ -195,7 +195,6 @@ class Exchange:
             self.problem = worse(self.problem, event.error)
             return None
         unit, request = self._unit, self._request
-        assert request is not None
         accepted: list[str] = []  # what this reply gets away with (--lenient), for its trace line
         # The frame the MBAP framer built from its prediction has the unit, function,
         # transaction id and byte count asked for: nothing to look at again.

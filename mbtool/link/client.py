@@ -188,7 +188,7 @@ class Client:
         # is long by the call's microseconds at most).
         sent_at = self.clock()
         transport.write(adu)
-        written = self.clock()
+        now = written = self.clock()
         deadline = written + self.timeout
         if serial_line:  # the line is busy while the request is on it
             on_wire = len(adu) * self._char_time
@@ -211,7 +211,7 @@ class Client:
             work()
             # The timeout runs from here at the earliest: the work was mbtool's time, not the
             # device's.
-            done = self.clock()
+            now = done = self.clock()
             if done + self.timeout > deadline:
                 deadline = done + self.timeout
             # A reply that came meanwhile waited for mbtool, not mbtool for it: when its last
@@ -226,12 +226,12 @@ class Client:
             # No reply is the outcome asked for (FC08 sub 04), but a device that does not
             # support the request still refuses it with an exception: wait for that.
             try:
-                return self._await_reply(unit, deadline)
+                return self._await_reply(unit, now, deadline)
             except ConnectionClosed:
                 raise
             except NoResponse:
                 return None
-        reply = self._await_reply(unit, deadline)
+        reply = self._await_reply(unit, now, deadline)
         # (A reply found without a read of its own is not timed either: replied_at is older.)
         replied_at = self.replied_at
         if timed_from is not None and replied_at > timed_from:
@@ -258,15 +258,12 @@ class Client:
         if wait > 0:
             self.sleep(wait)
 
-    def _await_reply(self, unit: int, deadline: float) -> Response | ExceptionResponse:
-        """Read until the exchange finds the reply, or the deadline passes: then its most
-        telling problem is raised, or silence."""
+    def _await_reply(self, unit: int, now: float, deadline: float) -> Response | ExceptionResponse:
+        """Read from ``now`` (the clock's last reading) until the exchange finds the reply, or
+        the deadline passes: then its most telling problem is raised, or silence."""
         exchange, framer, transport = self.exchange, self.framer, self.transport
         serial_line, datagrams = transport.serial_line, transport.datagrams
-        while True:
-            now = self.clock()
-            if now >= deadline:
-                break
+        while now < deadline:
             waiting = framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
             try:
                 data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
@@ -277,11 +274,12 @@ class Client:
                 if exchange.problem is not None:
                     raise ConnectionClosed(f"{closed}; what it sent before: {exchange.problem}") from None
                 raise
+            now = self.clock()
             if data:
                 # The reply's last byte, if these bytes end it, was read now.
-                read_at = self.replied_at = self.clock()
+                self.replied_at = now
                 if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
-                    self._line_free_at = read_at
+                    self._line_free_at = now
                 # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
                 reply = exchange.receive(data, datagrams)
             else:
@@ -289,7 +287,7 @@ class Client:
             if reply is not None:
                 return reply
             if exchange.settling:
-                deadline = min(deadline, self.clock() + SETTLE_AFTER_BAD_FRAME)
+                deadline = min(deadline, now + SETTLE_AFTER_BAD_FRAME)
         reply = exchange.close()
         if reply is not None:
             return reply
