@@ -274,18 +274,18 @@ class Client:
                 if exchange.problem is not None:
                     raise ConnectionClosed(f"{closed}; what it sent before: {exchange.problem}") from None
                 raise
-            now = self.clock()
             if data:
                 # The reply's last byte, if these bytes end it, was read now.
-                self.replied_at = now
+                read_at = self.replied_at = self.clock()
                 if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
-                    self._line_free_at = now
+                    self._line_free_at = read_at
                 # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
                 reply = exchange.receive(data, datagrams)
             else:
                 reply = exchange.receive(data, waiting)  # a pause: it ends a frame waiting for one
             if reply is not None:
                 return reply
+            now = self.clock()  # after the judging, which a flood of garbage makes long
             if exchange.settling:
                 deadline = min(deadline, now + SETTLE_AFTER_BAD_FRAME)
         reply = exchange.close()
