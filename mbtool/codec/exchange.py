@@ -195,7 +195,9 @@ class Exchange:
             self.problem = worse(self.problem, event.error)
             return None
         unit, request = self._unit, self._request
-        accepted: list[str] = []  # what this reply gets away with (--lenient), for its trace line
+        # What this reply gets away with (--lenient), for its trace line: a tuple, as the empty
+        # one is made once, not a list a reply.
+        accepted: tuple[str, ...] = ()
         # The frame the MBAP framer built from its prediction has the unit, function,
         # transaction id and byte count asked for: nothing to look at again.
         mismatch = "" if event is self.framer.predicted_frame else self._mismatch(event, unit)
@@ -206,7 +208,7 @@ class Exchange:
                 if not self.lenient:
                     mismatch += " (--lenient accepts a reply whose transaction id matches)"
                 else:
-                    accepted.append(f"reply from unit {event.unit}, expected unit {unit}")
+                    accepted += (f"reply from unit {event.unit}, expected unit {unit}",)
                     mismatch = ""
             if mismatch:
                 self.trace.received(event.adu, mismatch)
@@ -225,7 +227,7 @@ class Exchange:
             if repaired is not None and self.lenient:
                 pdu, deviation = repaired
                 reply = request.decode_response(pdu)
-                accepted.append(deviation)
+                accepted += (deviation,)
             elif event.transaction_id is not None:
                 self.trace.received(event.adu)
                 self._copy_check(event)
@@ -366,7 +368,7 @@ def worse(current: Problem | None, new: Problem) -> Problem:
     return current
 
 
-def _reply_note(reply: Response | ExceptionResponse, accepted: list[str]) -> str:
+def _reply_note(reply: Response | ExceptionResponse, accepted: tuple[str, ...]) -> str:
     """What the trace says beside the reply: why --lenient took it as it is, or the device's
     "no", marked where it is seen; nothing for a plain answer."""
     if accepted:
