@@ -20,14 +20,12 @@ import gc
 import math
 import time
 from collections.abc import Callable
-from contextlib import ExitStack
 from typing import Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.durations import Durations
 from mbtool.errors import (
     KNOWN_ERRORS,
-    ConnectionFailed,
     ExitCode,
     NoResponse,
     OutputFailed,
@@ -36,9 +34,9 @@ from mbtool.errors import (
     exit_code_for,
     link_failure,
 )
-from mbtool.link.connection import close_quietly, open_client
-from mbtool.link.stats import Counted, Stats
-from mbtool.link.transport import ConnectionClosed
+from mbtool.link.connection import open_client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -108,7 +106,15 @@ def poll(
     last_failure = ExitCode.OK
     interrupted = False
     pause, unit, reconnect_each = connection.pause, connection.unit, connection.reconnect_each
-    link = ExitStack()  # holds the open link; reopened only after the link itself failed
+    # The link is opened by the first poll, as by a poll after a lost link: a device that is not
+    # up yet is a failed poll, and polling goes on.  A link that failed is opened again at most
+    # once a timeout, as if a refusal had waited the timeout out, so a device that is restarting
+    # or unplugged is not hammered (with --interval 0) and the log gets a line a timeout, not
+    # thousands.  A port or unit that makes no sense is a RequestError, one error before
+    # anything is sent.
+    link = ManagedLink(
+        lambda: open_client(connection, request.name, trace=trace), Backoff(connection.timeout), stats, time
+    )
     client = None
     when = first_when = last_when = None  # time.time() of this poll, the first and the last
 
@@ -120,38 +126,24 @@ def poll(
         show_previous()
 
     try:
-        # The link is opened by the first poll, as by a poll after a lost link: a device that
-        # is not up yet is a failed poll, and polling goes on.  A port or unit that makes no
-        # sense is a RequestError, one error before anything is sent.
-        opened_at = -math.inf
-        closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
-        ended_at = -math.inf  # when the last link's last transaction ended (--pause)
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
         start = time.monotonic()
         slot = 0
         show_previous = shown.write  # bound once, not a method object a poll
+        execute = link.execute
         while done < polls:
             if interval > 0:  # back to back (0) keeps no schedule
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            if client is None and not closed_on_purpose:
-                # No link, or it failed: open it at most once a timeout, as if a refusal had
-                # waited the timeout out, so a device that is restarting or unplugged is not
-                # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
-                wait = opened_at + connection.timeout - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
+            link.wait()
             when = None  # until the request goes out
             try:
+                client = link.client
                 if client is None:
-                    opened_at = time.monotonic()
-                    link = ExitStack()
-                    client = link.enter_context(open_client(connection, request.name, trace=trace))
-                    client.ended_at = ended_at  # the device still wants its pause after that
-                    execute = Counted(client, stats)
+                    client = link.open()
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
                         # starts with the first link open: opening sim:// (its imports) or a
@@ -181,12 +173,8 @@ def poll(
                     timeouts += 1
                 else:
                     errors += 1
-                if isinstance(error, OSError | ConnectionFailed | ConnectionClosed):
-                    # The link is gone (device restarted, cable pulled): open it anew next poll.
-                    if client is not None:
-                        ended_at = client.ended_at
-                    close_quietly(link)
-                    client = None
+                # A lost link (device restarted, cable pulled) was closed by the managed link,
+                # which opens it anew next poll.
                 error = link_failure(error)
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
@@ -195,18 +183,15 @@ def poll(
             if done == 0:
                 first_when = when
             last_when = when
-            closed_on_purpose = False
-            if reconnect_each and client is not None:
+            if reconnect_each and link.client is not None:
                 # --reconnect-each: a new link every poll, for devices and gateways that
                 # serve one client or leak connections; no wait, as nothing failed.
-                ended_at = client.ended_at
-                close_quietly(link)
-                client, closed_on_purpose = None, True
+                link.drop(on_purpose=True)
             done += 1
             # Show the poll now unless the next request leaves at once (then it is shown while
             # that request's reply is on its way): a pause, a new link or a slot not yet due
             # come first.
-            idle = pause or client is None
+            idle = pause or link.client is None
             if interval > 0:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
@@ -222,7 +207,7 @@ def poll(
         interrupted = True
     finally:
         shown.close()
-        close_quietly(link)
+        link.close()
     poll_figures = stats.rtt if run is None else per_poll
     summary = (
         f"polls {done}, replies {replies}, partial {partial}, timeouts {timeouts}, errors {errors}, "

@@ -28,13 +28,12 @@ import math
 import threading
 import time
 from collections.abc import Callable, Collection
-from contextlib import ExitStack
 
 from mbtool.codec.record import field, record, replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
-from mbtool.link.connection import Connection, close_quietly, open_client
-from mbtool.link.stats import Counted, Stats
-from mbtool.link.transport import ConnectionClosed
+from mbtool.link.connection import Connection, open_client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
 from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.plan import MapReader, Reading
 
@@ -108,7 +107,8 @@ class DeviceState:
         self.due = now
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
-        self.backoff = 0.0
+        # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
+        self.backoff = Backoff(min(2 * spec.interval, spec.max_backoff), spec.max_backoff)
         self.polls = 0
         self.last_success: float | None = None  # time.time()
         self.last_poll: Poll | None = None
@@ -116,7 +116,8 @@ class DeviceState:
 
     def succeeded(self, now: float, when: float) -> Event | None:
         was = self.state
-        self.state, self.failures, self.backoff = ONLINE, 0, 0.0
+        self.state, self.failures = ONLINE, 0
+        self.backoff.reset()
         self.last_success = when
         self._next(now)
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
@@ -125,16 +126,14 @@ class DeviceState:
         """A failed poll; ``at_once``: offline now (its link cannot be opened)."""
         self.failures += 1
         if self.state == OFFLINE:
-            self.backoff = min(2 * self.backoff, self.spec.max_backoff)
-            self.due = now + self.backoff
+            self.due = now + self.backoff.failed()
             return None
         if self.failures < self.spec.offline_after and not at_once:
             self._next(now)
             return None
         self.state = OFFLINE
-        self.backoff = min(2 * self.spec.interval, self.spec.max_backoff)
-        self.due = now + self.backoff
-        return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff)
+        self.due = now + self.backoff.failed()
+        return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff.wait)
 
     def _next(self, now: float) -> None:
         """The next slot of its interval; one that has passed already is skipped, not made up."""
@@ -166,10 +165,18 @@ class LinkWorker:
         # device being polled, for the trace lines of several links and devices to tell apart
         self.trace = trace
         self.polling = ""  # the device whose poll is under way
-        self.link = ExitStack()
-        self.client = None
-        self.open_at = 0.0  # monotonic: not before this may the link be opened again
-        self.backoff = 0.0
+        # The link, opened when a device is due; one that cannot be opened is backed off by the
+        # one rule, from twice its devices' shortest interval up to their longest max_backoff.
+        traced = (lambda framer: trace(framer, label=self._label)) if trace else None
+        self.link = ManagedLink(
+            lambda: open_client(spec.connection, trace=traced),
+            Backoff(
+                min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
+                if devices
+                else 0.0,
+                max((d.spec.max_backoff for d in devices), default=0.0),
+            ),
+        )
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
@@ -220,71 +227,64 @@ class LinkWorker:
             self.crashed = error
             self.stop.set()
         finally:
-            close_quietly(self.link)
+            self.link.close()
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
             now = time.monotonic()
             waiting = self._waiting()
-            due = [d for d in waiting if d.due <= now and self.open_at <= now]
+            ready_at = self.link.ready_at if self.link.client is None else -math.inf
+            due = [d for d in waiting if d.due <= now and ready_at <= now]
             if not due:
-                wake = max(min(d.due for d in waiting), self.open_at)
+                wake = max(min(d.due for d in waiting), ready_at)
                 self.stop.wait(max(0.0, wake - now))
                 continue
             device = min(due, key=lambda d: d.due)  # the one that has waited longest
-            if self.client is None and not self._open(due):
+            if self.link.client is None and not self._open(due):
                 continue
             self._poll(device)
 
     def _open(self, due: list[DeviceState]) -> bool:
         try:
-            self.link = ExitStack()
-            trace = (lambda framer: self.trace(framer, label=self._label)) if self.trace else None
-            self.client = self.link.enter_context(open_client(self.spec.connection, trace=trace))
+            self.link.open()
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
-            self.client = None
-            close_quietly(self.link)
             reason = str(error)
-            now, when = time.monotonic(), time.time()
+            when = time.time()
             first = self.state != OFFLINE
-            longest = max(d.spec.max_backoff for d in self.devices)
-            shortest = min(d.spec.interval for d in self.devices)
-            self.backoff = min(2 * shortest if first else 2 * self.backoff, longest)
-            self.open_at = now + self.backoff
             self.state = OFFLINE
             self.open_failures += 1
             settled = []
             for device in due:  # its devices cannot be reached: offline meanwhile
-                settled.append(self._settle(device, None, error, when, not_before=self.open_at))
+                settled.append(self._settle(device, None, error, when, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
-                self.report(
-                    Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff if again else None)
-                )
+                retry_in = self.link.backoff.wait if again else None
+                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in))
             for items in settled:
                 for item in items:
                     self.report(item)
             return False
         if self.state == OFFLINE:
             self.report(Event(time.time(), "link", self.spec.name, ONLINE))
-        self.state, self.backoff = ONLINE, 0.0
+        self.state = ONLINE
         return True
 
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
 
     def _poll(self, device: DeviceState) -> None:
-        client, spec = self.client, device.spec
+        link, spec = self.link, device.spec
+        client = link.client
         self.polling = spec.name
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
         client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
-        counted = Counted(client, DeviceAndLink(device.stats, self.stats))
+        link.stats = DeviceAndLink(device.stats, self.stats)
 
         def execute(request):
-            return counted(spec.unit, request)
+            return link.execute(spec.unit, request)
 
         readings, error = None, None
         try:
@@ -292,10 +292,7 @@ class LinkWorker:
         except PartialRead as partial:
             readings, error = partial.readings, partial
         except (*KNOWN_ERRORS, OSError) as failure:
-            error = link_failure(failure)
-            if isinstance(failure, OSError | ConnectionFailed | ConnectionClosed):
-                close_quietly(self.link)  # the link is gone: open it anew for the next poll
-                self.client = None
+            error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
         self._end(device, readings, error, stamp[0] if stamp else time.time())

@@ -10,7 +10,6 @@ device that did not (spec §3): that request is lost.
 from __future__ import annotations
 
 import time
-from contextlib import ExitStack
 
 import click
 
@@ -21,10 +20,10 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 from mbtool.durations import Durations
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary, link_failure
-from mbtool.link.connection import close_quietly
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
+from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
-from mbtool.link.stats import Counted, Stats, outcome_of
+from mbtool.link.stats import Stats, outcome_of
 
 # What each --function asks: a read of one holding register, or the diagnostics echo.
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
@@ -108,48 +107,42 @@ class Pinger:
             if request.function_code == 0x03:
                 what += f" at {request.address}"
             click.echo(f"PING {connection.port} unit {unit}: {what}, timeout {connection.timeout:g} s")
-        link = ExitStack()
+        # The link is lost when it closes or breaks, and opened again at most once a timeout
+        # (-i 0 against a device that is restarting is not a flood of connections).
+        link = ManagedLink(
+            lambda: open_client(connection, self.settings, "ping"), Backoff(connection.timeout), self.stats
+        )
         # The first link is the command's: one that cannot be opened ends it (exit 6).
-        client = link.enter_context(open_client(connection, self.settings, "ping"))
-        counted = Counted(client, self.stats)
-        opened_at = last_sent = time.monotonic()
+        link.open()
+        last_sent = time.monotonic()
         interrupted = False
         try:
             while count is None or self.stats.transactions < count:
                 seq = self.stats.transactions + 1
                 if seq > 1:
                     _sleep_until(last_sent + interval)
-                if client is None:
-                    # The link was lost: open it again, at most once a timeout (-i 0 against
-                    # a device that is restarting is not a flood of connections).
-                    _sleep_until(opened_at + connection.timeout)
-                    opened_at = time.monotonic()
+                if link.client is None:
+                    link.wait()
                     try:
-                        link = ExitStack()
-                        client = link.enter_context(open_client(connection, self.settings, "ping"))
-                    except (ConnectionFailed, OSError) as error:
-                        failure = link_failure(error)
+                        link.open()
+                    except ConnectionFailed as failure:
                         self.stats.transaction(failure, 0)
                         self._line(seq, f"link lost: {failure}")
                         last_sent = time.monotonic()
                         continue
-                    counted = Counted(client, self.stats)
                 last_sent = time.monotonic()
                 try:
-                    counted(unit, self.request_for(seq))
+                    link.execute(unit, self.request_for(seq))
                 except RequestError:
                     raise  # the request itself is wrong: no later one can do better
                 except (*KNOWN_ERRORS, OSError) as error:
-                    self._failed(seq, error, counted.rtt, client.attempts)
-                    if outcome_of(error) == "link_lost":  # closed or broken: open it anew next time
-                        close_quietly(link)
-                        client = None
+                    self._failed(seq, error, link.rtt, link.attempts)
                 else:
-                    self._answered(seq, counted.rtt, client.attempts)
+                    self._answered(seq, link.rtt, link.attempts)
         except KeyboardInterrupt:
             interrupted = True
         finally:
-            close_quietly(link)
+            link.close()
         return self._summary(interrupted)
 
     def _answered(self, seq: int, rtt: float | None, attempts: int, what: str = "") -> None:
