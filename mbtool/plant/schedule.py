@@ -12,8 +12,11 @@ to every read) is offline: it is tried again after a back-off that doubles from 
 interval up to ``max_backoff``, so a dead meter costs one timeout a back-off, not one a poll
 of the others.  One good poll brings it back online.  A link that cannot be opened (a
 missing port, a refused connection) backs off the same way, and its devices are offline
-meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``; both go to
-``report`` as they happen, from the link's thread.
+meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``: immutable records that
+the link's thread publishes to one queue, drained by the thread that runs the plant, which
+alone hands them to ``report`` (the output, the live view, the exporter's text).  So data flows
+one way: a link thread is the only one that changes its devices' state, and what the rest of
+mbtool shows comes from the records.
 
 A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
 would end after the run is announced without its next try.  With ``rounds`` a device is done
@@ -25,6 +28,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 from __future__ import annotations
 
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable, Collection
@@ -336,7 +340,10 @@ class Plant:
         trace=None,
         traced: Collection[str] | None = None,
     ) -> None:
-        """``trace``: --hex's, for the links ``traced`` names (None: every link)."""
+        """``trace``: --hex's, for the links ``traced`` names (None: every link).  ``report``
+        is called on the thread that calls ``run``, with each record as the workers publish it."""
+        self.report = report
+        self.records: queue.SimpleQueue[Poll | Event] = queue.SimpleQueue()
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
@@ -346,7 +353,7 @@ class Plant:
             LinkWorker(
                 spec,
                 [state for state in self.devices.values() if state.spec.link == name],
-                report,
+                self.records.put,
                 self.stop,
                 rounds,
                 trace if traced is None or name in traced else None,
@@ -379,21 +386,45 @@ class Plant:
                 ) from None
         self.go.set()
         try:
-            for worker in self.workers:
-                while worker.thread.is_alive():
-                    left = None if deadline is None else deadline - time.monotonic()
-                    if left is not None and left <= 0:
-                        self.ended = True
-                        self.stop.set()
-                        left = None
-                    # Short joins: Ctrl-C reaches the main thread between them.
-                    worker.thread.join(0.2 if left is None else min(0.2, left))
-        finally:
-            self.stop.set()
-            for worker in self.workers:
-                # A worker ends its poll's transaction first: at most a timeout a try.
-                longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
-                worker.thread.join(longest + 1)
+            while any(worker.thread.is_alive() for worker in self.workers):
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    self.ended = True
+                    self.stop.set()
+                    left = None
+                # Short waits: Ctrl-C reaches this thread between them.
+                self._publish(0.2 if left is None else min(0.2, left))
+        except KeyboardInterrupt:
+            self._end()
+            self._publish()  # the polls the workers ended as they stopped
+            raise
+        except BaseException:
+            self._end()  # the output failed: nothing more can be shown
+            raise
+        self._end()
+        self._publish()
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed
+
+    def _publish(self, wait: float | None = None) -> None:
+        """Hand every record the workers have published to ``report``, on this thread; with
+        ``wait``, wait that long for the first one (None: take only those already there)."""
+        try:
+            item = self.records.get(timeout=wait) if wait is not None else self.records.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            self.report(item)
+            try:
+                item = self.records.get_nowait()
+            except queue.Empty:
+                return
+
+    def _end(self) -> None:
+        """Stop the workers and wait for them: each ends its poll's transaction first, at most a
+        timeout a try."""
+        self.stop.set()
+        for worker in self.workers:
+            longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
+            worker.thread.join(longest + 1)
