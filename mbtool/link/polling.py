@@ -9,9 +9,10 @@ says how many in the summary.
 What a poll shows is not decided here: the loop hands each reply and failure to a
 ``Shown`` (the CLI's writes them in the chosen format).
 
-The summary leaves as one ``mbtool:`` line through cli.main, like every error,
-carrying the exit code: 0 when every poll got its reply, otherwise the code of
-the last failure; 130 only when interrupted before any poll finished.
+The loop returns a ``Polled`` record: what the polls came to and the verdict's exit code (0
+when every poll got its reply, otherwise the code of the last failure; 130 only when
+interrupted before any poll finished).  It writes no words: cli/ turns the record into the
+summary line and the --stats json figures.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from mbtool.codec.errors import RequestError
+from mbtool.codec.record import field, record
 from mbtool.durations import Durations
 from mbtool.errors import (
     KNOWN_ERRORS,
@@ -30,7 +32,6 @@ from mbtool.errors import (
     NoResponse,
     OutputFailed,
     PartialRead,
-    Summary,
     exit_code_for,
     link_failure,
 )
@@ -53,25 +54,26 @@ class Shown(Protocol):
     def close(self) -> None: ...
 
 
-def _text(durations: Durations) -> str:
-    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted."""
-    figures = durations.figures()
-    if figures is None:
-        return "-"
-    return f"{figures['min'] * 1000:.1f}/{figures['avg'] * 1000:.1f}/{figures['max'] * 1000:.1f} ms"
+@record
+class Polled:
+    """What a run of polls came to: the counts, the transactions' outcomes (``stats``), each
+    poll's latency (``per_poll``: a map read's, from its first request to its last reply; a
+    single request's is its round trip), when the first and last poll were made (time.time()),
+    the deviations --lenient let through, and the verdict's exit code."""
 
-
-def _dict(durations: Durations) -> dict | None:
-    """min, avg and max in ms (None before the first)."""
-    figures = durations.figures()
-    if figures is None:
-        return None
-    return {name: figures[name] * 1000 for name in ("min", "avg", "max")}
-
-
-def _rate(per_second: float) -> str:
-    """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
-    return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
+    polls: int
+    replies: int
+    partial: int
+    timeouts: int
+    errors: int
+    skipped: int
+    interrupted: bool
+    stats: Stats = field(compare=False)
+    per_poll: Durations = field(compare=False)
+    first_when: float | None
+    last_when: float | None
+    accepted: tuple[str, ...]
+    exit_code: ExitCode
 
 
 def poll(
@@ -82,15 +84,13 @@ def poll(
     polls: int | None,
     trace: Callable | None = None,
     run: Callable | None = None,
-    figures: Callable[[dict], None] | None = None,
-) -> None:
+) -> Polled:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
 
     ``trace``: makes each link's Client trace from its framer (--hex).  ``run(execute)``:
     what one poll does when it is more than one request (a register map's reads), given the
     link's ``execute(unit, request)``; ``request`` then stands for them in the link's checks
-    (broadcast).  ``figures``: given the summary's figures as a dict at the end (--stats
-    json), as well as the line."""
+    (broadcast)."""
 
     if interval is None:
         interval = DEFAULT_INTERVAL
@@ -208,33 +208,21 @@ def poll(
     finally:
         shown.close()
         link.close()
-    poll_figures = stats.rtt if run is None else per_poll
-    summary = (
-        f"polls {done}, replies {replies}, partial {partial}, timeouts {timeouts}, errors {errors}, "
-        f"skipped {skipped}, latency per request min/avg/max {_text(stats.rtt)}, per poll {_text(poll_figures)}"
-    )
-    if done > 1 and last_when > first_when:
-        summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
-    summary += f"; {stats}"
-    if accepted:
-        summary += f"; accepted (--lenient): {'; '.join(accepted)}"
-    if interrupted:
-        summary = "interrupted; " + summary
     code = last_failure
     if interrupted and done == 0:
         code = ExitCode.INTERRUPTED
-    if figures is not None:
-        figures(
-            {
-                "polls": done,
-                "replies": replies,
-                "partial": partial,
-                "timeouts": timeouts,
-                "errors": errors,
-                "skipped": skipped,
-                "interrupted": interrupted,
-                "latency_ms": {"per_request": _dict(stats.rtt), "per_poll": _dict(poll_figures)},
-                **stats.as_dict(),
-            }
-        )
-    raise Summary(summary, code)
+    return Polled(
+        done,
+        replies,
+        partial,
+        timeouts,
+        errors,
+        skipped,
+        interrupted,
+        stats,
+        stats.rtt if run is None else per_poll,
+        first_when,
+        last_when,
+        tuple(accepted),
+        code,
+    )

@@ -85,6 +85,7 @@ def test_records_reach_report_on_the_thread_that_runs_the_plant(monkeypatch):
     """Data flows one way (issue 41.5): the link threads publish their Poll and Event records,
     and only the thread that runs the plant hands them to ``report`` -- the output, the live
     view and the exporter's text never run on a link's thread."""
+
     def refused(framer_name):
         raise ConnectionFailed("cannot open fake://: not there")
 

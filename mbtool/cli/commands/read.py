@@ -26,7 +26,7 @@ from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingR
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-from mbtool.errors import PartialRead
+from mbtool.errors import PartialRead, Summary
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -111,13 +111,63 @@ def _run(
     if settings.changes:
         output = ChangesOnly(output)
     shown = Deferred(output, to_result)
-    figures = None
-    if settings.stats == "json":
+    polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
+    if settings.stats == "json":  # the summary as one JSON object, before its line
+        print(to_json(polling_figures(polled)), file=sys.stderr, flush=True)
+    raise polling_summary(polled)
 
-        def figures(summary: dict) -> None:  # the summary as one JSON object, before its line
-            print(to_json(summary), file=sys.stderr, flush=True)
 
-    poll(connection, request, shown, interval, polls, trace_for(settings), run, figures)
+def polling_summary(polled) -> Summary:
+    """A run of polls (link.polling.Polled) in words: the one line that ends it, with its code."""
+    summary = (
+        f"polls {polled.polls}, replies {polled.replies}, partial {polled.partial}, "
+        f"timeouts {polled.timeouts}, errors {polled.errors}, skipped {polled.skipped}, "
+        f"latency per request min/avg/max {_latency(polled.stats.rtt)}, per poll {_latency(polled.per_poll)}"
+    )
+    if polled.polls > 1 and polled.last_when > polled.first_when:
+        summary += f", {_rate((polled.polls - 1) / (polled.last_when - polled.first_when))} polls/s"
+    summary += f"; {polled.stats}"
+    if polled.accepted:
+        summary += f"; accepted (--lenient): {'; '.join(polled.accepted)}"
+    if polled.interrupted:
+        summary = "interrupted; " + summary
+    return Summary(summary, polled.exit_code)
+
+
+def polling_figures(polled) -> dict:
+    """A run of polls as --stats json's object."""
+    return {
+        "polls": polled.polls,
+        "replies": polled.replies,
+        "partial": polled.partial,
+        "timeouts": polled.timeouts,
+        "errors": polled.errors,
+        "skipped": polled.skipped,
+        "interrupted": polled.interrupted,
+        "latency_ms": {"per_request": _ms(polled.stats.rtt), "per_poll": _ms(polled.per_poll)},
+        **polled.stats.as_dict(),
+    }
+
+
+def _latency(durations) -> str:
+    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted."""
+    figures = durations.figures()
+    if figures is None:
+        return "-"
+    return f"{figures['min'] * 1000:.1f}/{figures['avg'] * 1000:.1f}/{figures['max'] * 1000:.1f} ms"
+
+
+def _ms(durations) -> dict | None:
+    """min, avg and max in ms (None before the first)."""
+    figures = durations.figures()
+    if figures is None:
+        return None
+    return {name: figures[name] * 1000 for name in ("min", "avg", "max")}
+
+
+def _rate(per_second: float) -> str:
+    """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
+    return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
 
 
 def _once(connection: Connection, settings: Settings, request, to_result, run=None, metrics=None) -> None:
