@@ -38,7 +38,7 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_fail
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
-from mbtool.plant.stats import DeviceAndLink, PollStats
+from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
@@ -89,6 +89,44 @@ class Poll:
     readings: list[Reading] | None
     error: BaseException | None
     state: str  # the device's state after the poll
+    # The device and its link as the poll left them, copies no later poll changes: what a
+    # reader shows of them comes from here, never from the link thread's own state.
+    last_success: float | None = field(default=None, compare=False)  # time.time()
+    stats: PollStats | None = field(default=None, compare=False)
+    link: LinkView | None = field(default=None, compare=False)
+
+
+@record
+class LinkView:
+    """A link as its thread saw it when it published a record: its state, the opens that failed
+    and its devices' transactions."""
+
+    name: str
+    state: str
+    open_failures: int
+    stats: Stats = field(compare=False)
+
+
+@record
+class DeviceView:
+    """A device as a reader knows it: from its spec alone before its first poll, then from its
+    latest Poll (``view_of``).  The output, the live view and the exporter keep one each."""
+
+    spec: DeviceSpec
+    state: str = UNKNOWN
+    last_success: float | None = None
+    last_poll: Poll | None = field(default=None)
+    stats: PollStats = field(default=None, compare=False)
+
+
+def view_of(poll: Poll) -> DeviceView:
+    """The device as its latest poll left it."""
+    return DeviceView(poll.device, poll.state, poll.last_success, poll, poll.stats)
+
+
+def views(devices: list[DeviceSpec]) -> dict[str, DeviceView]:
+    """Every device as a reader knows it before any poll: by name, in the inventory's order."""
+    return {spec.name: DeviceView(spec, stats=PollStats()) for spec in devices}
 
 
 @record
@@ -101,6 +139,7 @@ class Event:
     state: str
     reason: str = ""
     retry_in: float | None = None  # seconds to the next try, when it is backed off
+    link: LinkView | None = field(default=None, compare=False)  # a link's event: the link then
 
 
 class DeviceState:
@@ -265,15 +304,20 @@ class LinkWorker:
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
                 retry_in = self.link.backoff.wait if again else None
-                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in))
+                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in, self.view()))
             for items in settled:
                 for item in items:
                     self.report(item)
             return False
         if self.state == OFFLINE:
-            self.report(Event(time.time(), "link", self.spec.name, ONLINE))
+            self.state = ONLINE
+            self.report(Event(time.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
         return True
+
+    def view(self) -> LinkView:
+        """The link as it is now, for a record: its own copy of the counts."""
+        return LinkView(self.spec.name, self.state, self.open_failures, copy_stats(self.stats))
 
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
@@ -323,7 +367,16 @@ class LinkWorker:
         again = self._tried_again(device)
         if not again and event is not None and event.retry_in is not None:
             event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        poll = Poll(device.spec, when, readings, error, device.state)
+        poll = Poll(
+            device.spec,
+            when,
+            readings,
+            error,
+            device.state,
+            device.last_success,
+            device.stats.copy(),
+            self.view(),
+        )
         device.last_poll = poll
         return [poll] if event is None else [poll, event]
 

@@ -8,7 +8,7 @@ import math
 import threading
 
 import mbtool.link
-from mbtool.errors import ConnectionFailed
+from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.connection import Connection
 from mbtool.plant.schedule import (
     OFFLINE,
@@ -20,6 +20,8 @@ from mbtool.plant.schedule import (
     LinkWorker,
     Plant,
     Poll,
+    view_of,
+    views,
 )
 
 
@@ -101,3 +103,19 @@ def test_records_reach_report_on_the_thread_that_runs_the_plant(monkeypatch):
     plant.run()
     assert [kind for kind, _ in seen] == [Event, Poll, Event]  # link offline, its poll, device offline
     assert {thread for _, thread in seen} == {threading.current_thread()}
+
+
+def test_a_poll_carries_copies_of_its_device_and_link_that_later_polls_do_not_change():
+    """Readers see records (issue 41.5): a Poll holds the device's state, last success and
+    counts and its link's as they were, so the output, the live view and the exporter never
+    read what a link's thread is changing."""
+    state = _state()
+    worker = _worker(0, state)
+    (poll,) = worker._settle(state, [], None, 5.0)
+    assert (poll.state, poll.last_success, poll.stats.polls, poll.link.name) == (ONLINE, 5.0, 1, "bus")
+    worker._settle(state, None, NoResponse("silence"), 6.0)
+    assert state.stats.polls == 2 and state.stats.failed_polls == 1
+    assert poll.stats.polls == 1 and poll.stats.failed_polls == 0  # its own copy
+    view = view_of(poll)
+    assert (view.spec, view.state, view.last_success, view.last_poll) == (state.spec, ONLINE, 5.0, poll)
+    assert [v.state for v in views([state.spec]).values()] == ["unknown"]  # before any poll
