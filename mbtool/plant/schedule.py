@@ -185,6 +185,20 @@ class DeviceState:
             self.due = now
 
 
+class Clock:
+    """The scheduler's clocks: ``monotonic`` for its slots and back-offs, ``time`` for the
+    records' stamps, and ``wait``, cut short when the run is stopped.  The tests give a fake
+    one, and run a worker on its own thread with it (no socket, no sleep)."""
+
+    monotonic = staticmethod(time.monotonic)
+    sleep = staticmethod(time.sleep)  # the managed link's; a worker waits with ``wait``
+    time = staticmethod(time.time)  # last: the module's name is the clock's from here on
+
+    @staticmethod
+    def wait(stop: threading.Event, seconds: float) -> None:
+        stop.wait(seconds)
+
+
 class LinkWorker:
     """One link's thread: its devices polled one transaction at a time."""
 
@@ -197,8 +211,13 @@ class LinkWorker:
         rounds: int = 0,
         trace=None,
         go: threading.Event | None = None,
+        clock=Clock,
+        open_link: Callable | None = None,
     ) -> None:
+        """``open_link``: opens the link (a context manager giving a Client); None: the
+        link's Connection, through link.connection.open_client."""
         self.spec = spec
+        self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
         self.devices = devices
         self.report = report
@@ -212,13 +231,14 @@ class LinkWorker:
         # one rule, from twice its devices' shortest interval up to their longest max_backoff.
         traced = (lambda framer: trace(framer, label=self._label)) if trace else None
         self.link = ManagedLink(
-            lambda: open_client(spec.connection, trace=traced),
+            open_link or (lambda: open_client(spec.connection, trace=traced)),
             Backoff(
                 min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
                 if devices
                 else 0.0,
                 max((d.spec.max_backoff for d in devices), default=0.0),
             ),
+            clock=clock,
         )
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
@@ -274,13 +294,13 @@ class LinkWorker:
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
-            now = time.monotonic()
+            now = self.clock.monotonic()
             waiting = self._waiting()
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
             due = [d for d in waiting if d.due <= now and ready_at <= now]
             if not due:
                 wake = max(min(d.due for d in waiting), ready_at)
-                self.stop.wait(max(0.0, wake - now))
+                self.clock.wait(self.stop, max(0.0, wake - now))
                 continue
             device = min(due, key=lambda d: d.due)  # the one that has waited longest
             if self.link.client is None and not self._open(due):
@@ -293,7 +313,7 @@ class LinkWorker:
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             reason = str(error)
-            when = time.time()
+            when = self.clock.time()
             first = self.state != OFFLINE
             self.state = OFFLINE
             self.open_failures += 1
@@ -311,7 +331,7 @@ class LinkWorker:
             return False
         if self.state == OFFLINE:
             self.state = ONLINE
-            self.report(Event(time.time(), "link", self.spec.name, ONLINE, link=self.view()))
+            self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
         return True
 
@@ -327,7 +347,7 @@ class LinkWorker:
         client = link.client
         self.polling = spec.name
         stamp: list[float] = []
-        client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
+        client.while_waiting = lambda: stamp.append(self.clock.time())  # the poll's time: its request out
         client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
         link.stats = DeviceAndLink(device.stats, self.stats)
 
@@ -343,7 +363,7 @@ class LinkWorker:
             error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
-        self._end(device, readings, error, stamp[0] if stamp else time.time())
+        self._end(device, readings, error, stamp[0] if stamp else self.clock.time())
 
     def _end(self, device, readings, error, when: float) -> None:
         for item in self._settle(device, readings, error, when):
@@ -355,7 +375,7 @@ class LinkWorker:
         """A poll's outcome in the device's state: the Poll, and the Event of its change of
         state if it had one, to report.  ``not_before``: its link cannot be opened, so the
         device is offline now and not tried before the link is."""
-        now = time.monotonic()
+        now = self.clock.monotonic()
         device.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
         device.stats.poll(ok)
