@@ -20,7 +20,7 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 from mbtool.durations import Durations
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Verdict
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
 from mbtool.link.stats import Stats, outcome_of
@@ -74,7 +74,7 @@ def ping(connection, settings, count, interval, function, address, quiet):
         with open_client(connection, settings, "ping", then="then the same again every --interval") as client:
             client.execute(unit, request_for(1))
         return
-    raise Pinger(connection, settings, request_for, quiet).run(count, interval)
+    return Pinger(connection, settings, request_for, quiet).run(count, interval)
 
 
 def _requests(function: str, address: int):
@@ -99,7 +99,7 @@ class Pinger:
         self.alive = 0  # replies from the device itself: answers and its exceptions
         self.alive_rtt = Durations()  # their round trips, ping(8)'s rtt
 
-    def run(self, count: int | None, interval: float) -> Summary:
+    def run(self, count: int | None, interval: float) -> Verdict:
         connection, unit = self.connection, self.connection.unit
         request = self.request_for(1)
         if not self.quiet:
@@ -168,7 +168,7 @@ class Pinger:
         if not self.quiet:
             click.echo(f"unit {self.connection.unit}: seq={seq} {text}")
 
-    def _summary(self, interrupted: bool) -> Summary:
+    def _summary(self, interrupted: bool) -> Verdict:
         stats = self.stats
         sent = stats.transactions
         lost = 0.0 if not sent else round(100 * (sent - self.alive) / sent, 1)
@@ -179,8 +179,8 @@ class Pinger:
         if interrupted:
             text = "interrupted; " + text
             if not sent:
-                return Summary(text, ExitCode.INTERRUPTED)
-        return Summary(text, ExitCode.OK if self.alive else ExitCode.TIMEOUT)
+                return Verdict(text, ExitCode.INTERRUPTED)
+        return Verdict(text, ExitCode.OK if self.alive else ExitCode.TIMEOUT)
 
 
 def _time(rtt: float | None) -> str:

@@ -34,7 +34,7 @@ from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -180,7 +180,7 @@ def poll(
         runner.stop.set()
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started)
-    raise _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
+    return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
 class PlantOutput:
@@ -531,7 +531,7 @@ def _limits(pair: tuple[float, int]) -> dict:
     return {"timeout_seconds": pair[0], "retries": pair[1]}
 
 
-def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summary:
+def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Verdict:
     """0 when every device answered its last poll, 8 when some did, else the failure's code;
     130 for a run that was to end (``ends``: --once, --rounds, --duration) stopped before it did,
     and for any stopped before a poll."""
@@ -546,7 +546,7 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
         f", {partial} in part" if partial else ""
     )
     if interrupted and (not polls or (ends and not runner.completed())):
-        return Summary("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
+        return Verdict("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
     if interrupted:
         text = "interrupted; " + text
     elif rounds:  # --rounds counts the rounds of devices that answer: say what an offline one got
@@ -555,9 +555,9 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
             f"; {s.spec.name} polled {counted(s.polls, 'time')} of {rounds} ({s.state})" for s in short
         )
     if not failed and not partial and not unpolled:
-        return Summary(text, ExitCode.OK)
+        return Verdict(text, ExitCode.OK)
     if answered or partial:
-        return Summary(text, ExitCode.PARTIAL)
+        return Verdict(text, ExitCode.PARTIAL)
     if not failed:
-        return Summary(text, ExitCode.INTERRUPTED)
-    return Summary(text + f": {failed[0].error}", exit_code_for(failed[0].error))
+        return Verdict(text, ExitCode.INTERRUPTED)
+    return Verdict(text + f": {failed[0].error}", exit_code_for(failed[0].error))

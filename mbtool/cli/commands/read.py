@@ -26,7 +26,7 @@ from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingR
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-from mbtool.errors import PartialRead, Summary
+from mbtool.errors import PartialRead, Verdict
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -89,8 +89,8 @@ def polling_options(function):
 
 def _run(
     connection: Connection, settings: Settings, request, to_result, interval, polls, run=None, points=()
-) -> None:
-    """Once, or polled.  ``run(execute)``: a read of several requests (a map's ``points``),
+) -> Verdict | None:
+    """Once (None), or polled (how the polls ended).  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
     metrics = None
     if settings.textfile or settings.output_format in MONITORING_FORMATS:
@@ -114,10 +114,10 @@ def _run(
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
         print(to_json(polling_figures(polled)), file=sys.stderr, flush=True)
-    raise polling_summary(polled)
+    return polling_summary(polled)
 
 
-def polling_summary(polled) -> Summary:
+def polling_summary(polled) -> Verdict:
     """A run of polls (link.polling.Polled) in words: the one line that ends it, with its code."""
     summary = (
         f"polls {polled.polls}, replies {polled.replies}, partial {polled.partial}, "
@@ -131,7 +131,7 @@ def polling_summary(polled) -> Summary:
         summary += f"; accepted (--lenient): {'; '.join(polled.accepted)}"
     if polled.interrupted:
         summary = "interrupted; " + summary
-    return Summary(summary, polled.exit_code)
+    return Verdict(summary, polled.exit_code)
 
 
 def polling_figures(polled) -> dict:
@@ -215,7 +215,7 @@ def _read_bits(
     interval=None,
     polls=None,
     table=None,
-) -> None:
+) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     request = kind(address, count)
     # What every poll shares, made once: a poll's result is its bits in this frame.
@@ -228,7 +228,7 @@ def _read_bits(
             connection.unit, kind.function_code, kind.name, address, values, refs=refs, addresses=addresses
         )
 
-    _run(connection, settings, request, to_result, interval, polls)
+    return _run(connection, settings, request, to_result, interval, polls)
 
 
 def _read_registers(
@@ -242,7 +242,7 @@ def _read_registers(
     interval=None,
     polls=None,
     table=None,
-) -> None:
+) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
         raise RequestError(
@@ -282,7 +282,7 @@ def _read_registers(
             addresses,
         )
 
-    _run(connection, settings, request, to_result, interval, polls)
+    return _run(connection, settings, request, to_result, interval, polls)
 
 
 @device_command("read-coils", readings=True, polls=True)
@@ -291,7 +291,7 @@ def _read_registers(
 @polling_options
 def read_coils(connection, settings, address, count, interval, polls):
     """Read coils (FC 01). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
+    return _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
 
 
 @device_command("read-discrete-inputs", readings=True, polls=True)
@@ -300,7 +300,7 @@ def read_coils(connection, settings, address, count, interval, polls):
 @polling_options
 def read_discrete_inputs(connection, settings, address, count, interval, polls):
     """Read discrete inputs (FC 02). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
+    return _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
 
 
 def _refs(table, addresses: list[int]) -> list[str]:
@@ -319,7 +319,7 @@ def read_holding_registers(connection, settings, address, count, value_type, ord
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    _read_registers(
+    return _read_registers(
         connection, settings, ReadHoldingRegisters, address, count, value_type, order, interval, polls
     )
 
@@ -334,7 +334,7 @@ def read_input_registers(connection, settings, address, count, value_type, order
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    _read_registers(
+    return _read_registers(
         connection, settings, ReadInputRegisters, address, count, value_type, order, interval, polls
     )
 
@@ -360,19 +360,21 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
     """
     given = type_options_given(map)
     if map:
-        _read_map(connection, settings, map, targets, interval, polls)
-        return
+        return _read_map(connection, settings, map, targets, interval, polls)
     from mbtool.codec.tables import READS  # noqa: PLC0415 - read REF only
 
     table, address, count = reference_target(targets, "read", given)
     kind = READS[table.name]
     if table.bits:
-        _read_bits(connection, settings, kind, address, count, interval, polls, table)
-    else:
-        _read_registers(connection, settings, kind, address, count, value_type, order, interval, polls, table)
+        return _read_bits(connection, settings, kind, address, count, interval, polls, table)
+    return _read_registers(
+        connection, settings, kind, address, count, value_type, order, interval, polls, table
+    )
 
 
-def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
+def _read_map(
+    connection: Connection, settings: Settings, path: str, names, interval, polls
+) -> Verdict | None:
     from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
@@ -410,4 +412,4 @@ def _read_map(connection: Connection, settings: Settings, path: str, names, inte
         ]
         return Points(connection.unit, register_map.source, rows, failed=failed)
 
-    _run(connection, settings, requests[0], to_result, interval, polls, run, points)
+    return _run(connection, settings, requests[0], to_result, interval, polls, run, points)
