@@ -138,7 +138,8 @@ def poll(
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            link.wait()
+            if link.client is None:  # a link that failed waits out its back-off
+                link.wait()
             when = None  # until the request goes out
             try:
                 client = link.client
