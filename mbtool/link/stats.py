@@ -5,8 +5,10 @@ Every transaction the master makes ends as exactly one of: answered, an exceptio
 code), a timeout (nothing came), corrupt (a CRC/LRC or framing error: the wire), not ours (an
 intact frame for another unit or transaction id), or the link failing (it closed, or could not
 be written: link_lost).  An answer that came on a retry is also counted as a retry that
-recovered.  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
-plant, ping, scan and the bridge call it rather than judge outcomes of their own.
+recovered.  Every command counts the same way: the managed link (``link.managed``, which
+polling, the plant, ping, scan, the bridge and the exporter's scrape take their links from)
+counts each transaction it carries in the ``Stats`` it is given, and ``Counted`` wraps a bare
+client's ``execute`` alike; none judges outcomes of its own.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ def copy_stats(stats: Stats) -> Stats:
 
 
 class DeviceAndLink:
-    """Where ``Counted`` counts a plant's transaction: in its device's statistics and in its
+    """Where the managed link counts a plant's transaction: in its device's statistics and in its
     link's at once, so that a link's totals are kept as transactions end rather than added up
     again from every device of the link after each poll (the exporter shows them after each)."""
 
