@@ -33,6 +33,21 @@ class MbtoolError(Exception):
     exit_code = ExitCode.INTERNAL
 
 
+class UsageError(RequestError, MbtoolError):
+    """A mistake in what the user gave: an option, a profile, an inventory, a setting that does
+    not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
+
+    Apart from the codec's RequestError, which is the spec refusing a request; it is one for
+    now only so that the code that catches a RequestError to say where it came from (a
+    file's table and key) says so of either.
+    """
+
+    exit_code = ExitCode.USAGE
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+
+
 class Summary(MbtoolError):
     """The end of a run (monitor, dump, sunspec, snapshot): the counts on one stderr line, the
     verdict in the exit code, leaving through cli.main like every error.  A run that can

@@ -799,7 +799,7 @@ def live_view_capture() -> str:
     from rich.console import Console
 
     from mbtool.cli.commands.poll import LiveView
-    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
     from mbtool.codec.record import replace
     from mbtool.link.connection import open_client

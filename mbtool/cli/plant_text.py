@@ -236,7 +236,8 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
             f"{prefix}transactions_total",
             "counter",
             f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
-            "framing error), not_ours (a frame for another unit or transaction), link_lost",
+            "framing error), not_ours (a frame for another unit or transaction), link_lost (the peer "
+            "hung up), connection (the link could not be opened or reached)",
             (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
         )
         + _family(
@@ -255,9 +256,17 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
             [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
         )
         + _family(
+            f"{prefix}untimed_replies_total",
+            "counter",
+            f"Replies {whose} whose round trip is not known (they came while mbtool was busy, or "
+            "after a retry without transaction ids): left out of the histogram",
+            [f"{prefix}untimed_replies_total{{{pair}}} {stats.untimed}"],
+        )
+        + _family(
             name,
             "histogram",
-            f"Round-trip time of the replies {whose}: from a request to its reply, in seconds",
+            f"Round-trip time of the replies {whose}: from a request's last byte written to its "
+            "reply's last byte read, in seconds",
             [
                 *(
                     f'{name}_bucket{{{pair},le="{_le(bound)}"}} {count}'

@@ -14,6 +14,9 @@ from mbtool.codec.pdu import MAX_PDU, UNKNOWN, Request, function_type, is_known
 from mbtool.codec.resync import FRAME, NO_FRAME, FrameSearch, Verdict
 
 RTU_MAX_ADU = 256
+# A Modbus TCP header and the unit after it (MBAP: transaction id, protocol id, length, unit).
+MBAP_HEADER_AND_UNIT = 7
+MODBUS_TCP_DEVICE = "the device speaks Modbus TCP: leave --framer out"
 
 
 def crc_verdict(adu: bytes) -> str:
@@ -124,8 +127,33 @@ class RtuFramer(Framer):
         # Only the first rejection of a garbage run is reported (next_event folds the rest
         # into it): say what this one is only then.  Formatting the reason for every
         # corrupted would-be frame amid garbage cost as much as judging it.
-        error = self._garbage_error if self._garbage else self._whole(bytes(buf[:size]))
-        return self._garbage_up_to_a_start(size, error)
+        if self._garbage:
+            return self._garbage_up_to_a_start(size, self._garbage_error)
+        return self._modbus_tcp_answer() or self._garbage_up_to_a_start(size, self._whole(bytes(buf[:size])))
+
+    def _modbus_tcp_answer(self) -> tuple[int, FrameError] | None:
+        """(bytes to skip, why) when the front is a Modbus TCP device's answer to our RTU request
+        (tcp:// with --framer rtu): the device read the request as an MBAP header, its unit and
+        function code the transaction id, its next two bytes (0) the protocol id, and answered
+        with that header and the unit it read (the request's seventh byte), whole (a PDU of
+        two bytes at least: a corrupted echo of a write is not taken for one).  The whole MBAP
+        frame is rejected as one, saying so, rather than a CRC error over its first bytes."""
+        buf, expect, unit = self._buffer, self.expect, self.expect_unit
+        if expect is None or unit is None or len(buf) < MBAP_HEADER_AND_UNIT or buf[2] or buf[3]:
+            return None
+        size = MBAP_HEADER_AND_UNIT + (buf[4] << 8 | buf[5]) - 1
+        if not MBAP_HEADER_AND_UNIT + 2 <= size <= len(buf) or size > MBAP_HEADER_AND_UNIT + MAX_PDU:
+            return None
+        asked = self.build(unit, expect.encode())
+        # (A request shorter than a header and a unit is no MBAP request to anyone.)
+        if len(asked) < MBAP_HEADER_AND_UNIT or buf[:2] != asked[:2] or buf[6] != asked[6]:
+            return None
+        reply = bytes(buf[:size])
+        return size, FrameError(
+            f"a Modbus TCP reply to the RTU request: {reply.hex(' ').upper()} is an MBAP header with "
+            f"the request's first bytes as transaction id and protocol id 0: {MODBUS_TCP_DEVICE}",
+            reply,
+        )
 
     def _silence_tells_corrupted(self) -> bool:
         """A whole frame with a bad CRC at the front: is it held until silence, not skipped?"""

@@ -26,8 +26,8 @@ SETTLE_AFTER_BAD_FRAME = 0.1
 # How long a pause ends an RTU frame whose length the codec cannot know
 # (an unknown function code, e.g. from `raw`).  USB adapters deliver in bursts.
 UNKNOWN_LENGTH_GAP = 0.05
-# Work done while a reply is on its way (polling writes the poll before) shorter than this
-# leaves the reply timed from its request, without asking the link whether it came meanwhile.
+# Work done while a reply is on its way (polling writes the poll before) shorter than this leaves the reply timed from its request, without asking the link
+# whether it came meanwhile: its round trip is then long by that much at most, never short.
 UNSEEN_WORK = 0.0001
 
 
@@ -75,22 +75,27 @@ class Client:
         self.sleep = sleep
         self._transaction_id = 0
         self._sent = b""  # the last request's frame, to tell a copy of it from a reply
-        self._sent_at = 0.0  # when it left
+        self._sent_at = 0.0  # when it left: what its round trip runs from
         # The transaction ids this request went out with, one an attempt: a late reply to an
         # earlier attempt answers the request as well as the last one's would (issue 12.2).
         self._attempt_ids: list[int] = []
+        self._answered_id: int | None = None  # the transaction id of the last reply (MBAP)
         self.attempts = 0  # the requests the last execute sent: 1, or more when it retried
         self._line_free_at = 0.0  # when the last frame on the line ended
         # Run once, right after the next request has left: polling stamps the poll's time
         # there, and writes the previous poll's output while the device turns it round.
         self.while_waiting: Callable[[], None] | None = None
-        # What the round trip of the request that last ran that work is timed from (the
-        # clock's time): its leaving, or the end of the work when its reply came meanwhile.
-        # Polling times a poll of several requests from there, by the rule of ``rtt``.
-        self.work_waited_from = 0.0
-        self.replied_at = 0.0  # when the last reply came
-        # The last execute's seconds from its request to its reply, the work above left out
-        # (None: no reply came): what link.stats counts as the round trip.
+        # When the request that last ran that work left (the clock's time): polling times a
+        # poll of several requests from there to the last reply.
+        self.work_sent_at = 0.0
+        self.replied_at = 0.0  # when the read that brought the last reply's last byte returned
+        # The last execute's round trip: seconds from its request's last byte written to its
+        # reply's last byte read, what link.stats counts.  None when no reply came, and when
+        # its arrival is not known: it came while mbtool was busy after sending (the output
+        # blocked on a slow pipe), or after a retry over a link whose frames carry no
+        # transaction id (the first request's, late, or the second's?).  Such a reply is
+        # left out of the figures rather than timed from the end of that work, which would
+        # make it the time it sat in the buffer, shorter than the device can answer.
         self.rtt: float | None = None
         self._settled = False  # the last transaction ended with its reply: nothing stale left
         # The last request, its PDU, whether its echo could pass for a reply, whether it has
@@ -129,6 +134,9 @@ class Client:
         attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
         error: MbtoolError | None = None
         self._attempt_ids.clear()
+        # The attempts that ended without their reply, (transaction id, when it left): a reply
+        # after a retry may be one of theirs, late.
+        unanswered: list[tuple[int, float]] | None = None
         self.rtt = None
         busy = False
         for attempt in range(attempts):
@@ -144,9 +152,15 @@ class Client:
                     if self.pause:
                         self.ended_at = self.clock()
                 self._settled = reply is not None
+                if unanswered is not None and reply is not None:
+                    self._time_from_attempt_answered(unanswered)
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
             except (NoResponse, FrameError) as failure:
+                # Its reply may still come, late, after the next attempt has left.
+                if unanswered is None:
+                    unanswered = []
+                unanswered.append((self._transaction_id, self._sent_at))
                 # Bytes that came (a CRC error, a wrong reply) tell more than a later silence.
                 error = _worse(error, failure)
                 busy = False
@@ -206,31 +220,49 @@ class Client:
         framer.expect = request
         framer.expect_unit = unit
         framer.predict(unit, tid, reply_prefix)
-        transport.write(adu)
         if self.trace is not UNWATCHED:
+            # Traced before it goes: a trace that blocks (--hex on a slow terminal) delays the
+            # request, not the look for its reply, and is no part of the round trip.
             self.trace.sent(adu)
-        sent_at = self._sent_at = self.clock()
-        on_wire = 0.0
+        # The round trip runs from the request's last byte written, never from later: a stamp
+        # taken after the write returns is late when the process is preempted there (a busy
+        # machine), and the round trip short.  A socket takes the whole frame within the call,
+        # so the call's start is as near as the clock can tell and never later (the round trip
+        # is long by the call's microseconds at most).
+        sent_at = self.clock()
+        transport.write(adu)
+        written = self.clock()
+        deadline = written + self.timeout
         if serial_line:  # the line is busy while the request is on it
             on_wire = len(adu) * self._char_time
-            self._line_free_at = sent_at + on_wire
-        deadline = sent_at + on_wire + self.timeout
-        waited_from = sent_at
-        if self.while_waiting is not None:
-            work, self.while_waiting = self.while_waiting, None
+            self._line_free_at = written + on_wire
+            deadline += on_wire
+            # A UART's flush returns when the last byte has left: then, or if it returned late,
+            # no sooner than the frame takes on the line from the write's start.
+            if written < sent_at + on_wire:
+                sent_at = written
+            else:
+                sent_at += on_wire
+        self._sent_at = sent_at
+        timed_from: float | None = sent_at
+        work = self.while_waiting
+        if work is not None:
+            # mbtool's own work while the reply is on its way (the poll before shown), which
+            # may block on a slow pipe.
+            self.while_waiting = None
+            self.work_sent_at = sent_at
             work()
             # The timeout runs from here at the earliest: the work was mbtool's time, not the
-            # device's.  A reply that came meanwhile waited for mbtool, not mbtool for it: it
-            # is timed from here, for its arrival is not known; one still to come, from the
-            # request, as ever.
+            # device's.
             done = self.clock()
             if done + self.timeout > deadline:
                 deadline = done + self.timeout
-            # Asked only when the work took long enough to matter: a reply in a shorter one
-            # is timed from its request to within what the summary shows (0.1 ms).
+            # A reply that came meanwhile waited for mbtool, not mbtool for it: when its last
+            # byte came is not known, so neither is its round trip.  Asked only when the work
+            # took long enough to matter (a reply in a shorter one is timed from its request,
+            # at most that much long).
             if done - sent_at > UNSEEN_WORK and transport.input_waiting():
-                waited_from = done
-            self.work_waited_from = waited_from
+                timed_from = None
         if unit == framer.broadcast_unit:
             return None
         if not expects_response:
@@ -248,9 +280,25 @@ class Client:
         watch = _EchoWatch(adu) if serial_line and (self.echo or echo_watched) else None
         self._sent = adu
         reply = self._await_reply(unit, request, deadline, watch)
-        replied_at = self.replied_at = self.clock()
-        self.rtt = replied_at - waited_from
+        # (A reply found without a read of its own is not timed either: replied_at is older.)
+        replied_at = self.replied_at
+        if timed_from is not None and replied_at > timed_from:
+            self.rtt = replied_at - timed_from
         return reply
+
+    def _time_from_attempt_answered(self, unanswered: list[tuple[int, float]]) -> None:
+        """A reply after a retry may answer an earlier attempt, late: over MBAP its transaction
+        id names the attempt, and its round trip runs from that one's request; without ids
+        (RTU, ASCII) a late reply cannot be told from a prompt one to the last request, so its
+        round trip is not known."""
+        answered = self._answered_id
+        if answered is None:
+            self.rtt = None
+            return
+        for tid, sent_at in unanswered:
+            if tid == answered:
+                self.rtt = self.replied_at - sent_at
+                return
 
     def _wait_for_silence(self) -> None:
         """A serial line: t3.5 since the last frame ended before the next may start (spec §2)."""
@@ -275,8 +323,10 @@ class Client:
                 self._release(watch)
                 return self._last_word(unit, request, problem, closed, hung_up=True)
             if data:
+                # The reply's last byte, if these bytes end it, was read now.
+                read_at = self.replied_at = self.clock()
                 if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
-                    self._line_free_at = self.clock()
+                    self._line_free_at = read_at
                 if watch is not None:
                     data = watch.filter(data)
                     if watch.seen:
@@ -403,6 +453,7 @@ class Client:
             self.deviations.update(dict.fromkeys(accepted))
         if self.trace is not UNWATCHED:
             self.trace.received(event.adu, _reply_note(reply, accepted))
+        self._answered_id = event.transaction_id
         return reply, problem
 
     def _ours(self, frame: Frame) -> bool:

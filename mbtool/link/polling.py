@@ -100,7 +100,8 @@ def poll(
     # A request's latency runs from it leaving to its reply (the client's rtt, which
     # link.stats counts with every transaction's outcome); a poll's from its first request
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
-    # mbtool's own work while a reply is on its way (the poll before written) is in neither.
+    # A reply that came while mbtool was busy (the poll before written to a slow pipe) has no
+    # known arrival: it is counted untimed, and the poll it is part of left out too.
     stats, per_poll = Stats(), Durations()
     accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
     last_failure = ExitCode.OK
@@ -155,8 +156,10 @@ def poll(
                 if run is None:  # one request: the poll's latency is the request's round trip
                     reply = execute(unit, request)
                 else:
+                    untimed = stats.untimed
                     reply = run(execute)
-                    per_poll.add(client.replied_at - client.work_waited_from)
+                    if stats.untimed == untimed:  # every reply of the poll timed
+                        per_poll.add(client.replied_at - client.work_sent_at)
                 replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
                     accepted.update(client.deviations)
@@ -174,9 +177,11 @@ def poll(
                     timeouts += 1
                 else:
                     errors += 1
+                error = link_failure(error)
+                if client is None:  # the link could not be opened: the request never went
+                    stats.transaction(error, 0)
                 # A lost link (device restarted, cable pulled) was closed by the managed link,
                 # which opens it anew next poll.
-                error = link_failure(error)
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
             else:

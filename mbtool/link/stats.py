@@ -3,12 +3,16 @@ wrong address or a sleeping device (timeouts) and from a slow one (the round-tri
 
 Every transaction the master makes ends as exactly one of: answered, an exception (by its
 code), a timeout (nothing came), corrupt (a CRC/LRC or framing error: the wire), not ours (an
-intact frame for another unit or transaction id), or the link failing (it closed, or could not
-be written: link_lost).  An answer that came on a retry is also counted as a retry that
-recovered.  Every command counts the same way: the managed link (``link.managed``, which
-polling, the plant, ping, scan, the bridge and the exporter's scrape take their links from)
-counts each transaction it carries in the ``Stats`` it is given, and ``Counted`` wraps a bare
-client's ``execute`` alike; none judges outcomes of its own.
+intact frame for another unit or transaction id), the link lost (the peer hung up, the port
+went away, before or during the reply: exit 3) or no connection (the link could not be opened,
+reached or written: refused, port unreachable, a TLS handshake that failed, no such serial
+port: exit 6).  The kind follows the exit code, so a failure is one kind wherever it is shown:
+the summaries, ping's lines, the exporter's ``modbus_error_info{kind}``.  An answer that came on a retry is also counted as a retry that
+recovered.  A reply's round trip is in the figures when its arrival is known, else the reply
+is counted as untimed (the client's ``rtt``).  Every command counts the same way: the managed link
+(``link.managed``, which polling, the plant, ping, scan, the bridge and the exporter's scrape
+take their links from) counts each transaction it carries in the ``Stats`` it is given, and
+``Counted`` wraps a bare client's ``execute`` alike; none judges outcomes of its own.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from mbtool.durations import Durations
 from mbtool.errors import NoResponse
 from mbtool.link.transport import ConnectionClosed
 
-OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost")
+OUTCOMES = ("answered", "exception", "timeout", "corrupt", "not_ours", "link_lost", "connection")
 
 
 def outcome_of(error: BaseException | None) -> str:
@@ -44,9 +48,13 @@ def outcome_of(error: BaseException | None) -> str:
         return "not_ours"
     if isinstance(error, ChecksumError | FrameError):
         return "corrupt"
-    if isinstance(error, NoResponse) and not isinstance(error, ConnectionClosed):
+    if isinstance(error, ConnectionClosed):
+        return "link_lost"
+    if isinstance(error, NoResponse):
         return "timeout"
-    return "link_lost"
+    # Cannot open, reach or write the link: ConnectionFailed, or the OSError it stands for
+    # (link_failure), exit 6.
+    return "connection"
 
 
 class Stats:
@@ -58,7 +66,8 @@ class Stats:
         self.outcomes: dict[str, int] = dict.fromkeys(OUTCOMES, 0)
         self.exceptions: Counter[int] = Counter()  # exception code -> count
         self.recovered = 0  # answers that came on a retry
-        self.rtt = Durations()  # request to reply, for every reply (exceptions too)
+        self.rtt = Durations()  # request to reply, for every reply (exceptions too) timed
+        self.untimed = 0  # replies whose round trip is not known (Client.rtt), left out of rtt
 
     @property
     def transactions(self) -> int:
@@ -73,19 +82,24 @@ class Stats:
             self.recovered += 1
         if rtt is not None:
             self.rtt.add(rtt)
+        else:
+            self.untimed += 1
 
     def transaction(self, error: BaseException | None, attempts: int, rtt: float | None = None) -> str:
         """A transaction ended: ``error`` is what it raised (None: answered), after ``attempts``
-        requests on the wire, ``rtt`` seconds from the request to its reply if one came.  Its
-        outcome, one of OUTCOMES."""
+        requests on the wire, ``rtt`` seconds from the request to its reply if one came and its
+        arrival is known.  Its outcome, one of OUTCOMES."""
         outcome = outcome_of(error)
         self.outcomes[outcome] += 1
         if outcome == "exception":
             self.exceptions[error.exception_code] += 1
         elif outcome == "answered" and attempts > 1:
             self.recovered += 1
-        if rtt is not None and outcome in ("answered", "exception"):
-            self.rtt.add(rtt)  # a reply's; not that of an attempt before a failure
+        if outcome in ("answered", "exception"):  # a reply's; not that of an attempt before a failure
+            if rtt is not None:
+                self.rtt.add(rtt)
+            else:
+                self.untimed += 1
         return outcome
 
     def add(self, other: Stats, recent: bool = True) -> None:
@@ -95,6 +109,7 @@ class Stats:
             self.outcomes[outcome] += count
         self.exceptions.update(other.exceptions)
         self.recovered += other.recovered
+        self.untimed += other.untimed
         self.rtt.merge(other.rtt, recent)
 
     def rtt_figures(self) -> dict[str, float] | None:
@@ -115,6 +130,7 @@ class Stats:
             # The histogram: how many round trips took at most each bound (cumulative, as
             # Prometheus's buckets), the last bound +Inf (null in JSON).
             "rtt_buckets": [[bound, count] for bound, count in self.rtt.buckets()],
+            "rtt_untimed": self.untimed,  # replies left out of the figures: arrival not known
         }
 
     def outcomes_text(self) -> str:
@@ -126,15 +142,24 @@ class Stats:
         )
         return f"transactions {self.transactions}: {counts}; retries recovered {self.recovered}"
 
+    def rtt_text(self, names: tuple[str, ...] = ("min", "avg", "p95", "max")) -> str:
+        """The round trips' figures (Durations.text), and how many replies they leave out."""
+        return self.rtt.text(names) + untimed_text(self.untimed)
+
     def __str__(self) -> str:
         """One line for a summary: every outcome, the retries that recovered and the rtt."""
-        return f"{self.outcomes_text()}; rtt {self.rtt.text()}"
+        return f"{self.outcomes_text()}; rtt {self.rtt_text()}"
+
+
+def untimed_text(untimed: int) -> str:
+    """Beside round-trip figures: " (3 untimed)", the replies they leave out; "" when none."""
+    return f" ({untimed} untimed)" if untimed else ""
 
 
 class Counted:
     """``client.execute``, each transaction counted in ``stats``: its outcome, the attempts it
     took and its round-trip time (the client's ``rtt``; ``rtt`` here is the last one's, None
-    when no reply came).
+    when no reply came or its arrival is not known: counted as untimed).
 
     A transaction with nothing to judge (a broadcast, a request no reply is due for, which
     execute returns None for) is not counted unless it failed.  An interrupt (Ctrl-C) in the

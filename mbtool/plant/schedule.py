@@ -319,6 +319,9 @@ class LinkWorker:
             self.open_failures += 1
             settled = []
             for device in due:  # its devices cannot be reached: offline meanwhile
+                # Each poll's request could not go: a transaction with no connection, counted
+                # as ping and read --interval count it.
+                DeviceAndLink(device.stats, self.stats).transaction(error, 0)
                 settled.append(self._settle(device, None, error, when, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())

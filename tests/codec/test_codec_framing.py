@@ -175,6 +175,60 @@ def test_bad_crc_carries_received_and_expected():
     assert (event.error.expected, event.error.received) == (0x8776, 0x7687)
 
 
+MODBUS_TCP_DEVICE = "the device speaks Modbus TCP: leave --framer out"
+
+
+@pytest.mark.parametrize(
+    "request_, unit, reply",
+    [
+        # pymodbus read "01 03 00 00 00 02 C4 0B" as MBAP: transaction 0x0103, protocol 0,
+        # length 2, unit 0xC4, FC 0B, and answered the comm event counter (issue 39.3).
+        (da.ReadHoldingRegisters(0, 2), 1, "01 03 0000 0006 C4 0B 0000 0000"),
+        # mbtool serve read "4D 03 00 00 00 02 CA 07" as FC 07 to unit 0xCA.
+        (da.ReadHoldingRegisters(0, 2), 77, "4D 03 0000 0003 CA 07 6D"),
+        # A write's reply, whose RTU length the function code alone tells (8 bytes).
+        (da.WriteSingleRegister(0, 2), 1, "01 06 0000 0003 08 8B 01"),
+    ],
+)
+def test_an_mbap_reply_to_an_rtu_request_says_the_device_speaks_modbus_tcp(request_, unit, reply):
+    framer = RtuFramer()
+    framer.expect, framer.expect_unit = request_, unit
+    data = bytes.fromhex(reply)
+    framer.feed(data)
+    events = settle_events(framer)
+    # One rejection, of the whole MBAP frame: the trace's line is the error's.
+    assert len(events) == 1 and isinstance(events[0], Rejected), events
+    assert MODBUS_TCP_DEVICE in str(events[0].error) and not isinstance(events[0].error, ChecksumError)
+    assert events[0].data == data
+
+
+def _broken(frame: bytes) -> bytes:
+    """The frame with its CRC's high byte changed, as noise does."""
+    return frame[:-1] + bytes([frame[-1] ^ 0xFF])
+
+
+@pytest.mark.parametrize(
+    "request_, reply",
+    [
+        # The echo of a write to register 0, its CRC broken: its first seven bytes are those of
+        # an MBAP header answering it (length: the value), but the frame is not that long.
+        (da.WriteSingleRegister(0, 2), _broken(RtuFramer().build(1, da.WriteSingleRegister(0, 2).encode()))),
+        (da.WriteSingleRegister(0, 3), _broken(RtuFramer().build(1, da.WriteSingleRegister(0, 3).encode()))),
+        (da.ReadHoldingRegisters(0, 2), _broken(RtuFramer().build(1, bytes.fromhex("03 04 0064 0065")))),
+        # Another unit's bytes in front of a Modbus TCP answer's.
+        (da.ReadHoldingRegisters(0, 2), bytes.fromhex("02 03 0000 0006 C4 0B 0000 0000")),
+        # A request of four bytes is no MBAP header: nothing answers it as one (found by fuzzing).
+        (sl.GetCommEventCounter(), bytes.fromhex("01 0B 0000 000A 260C 7E71 17A5 1DF1 874F 30F9")),
+    ],
+)
+def test_a_reply_with_a_bad_crc_is_not_taken_for_modbus_tcp(request_, reply):
+    framer = RtuFramer()
+    framer.expect, framer.expect_unit = request_, 1
+    framer.feed(reply)
+    events = settle_events(framer)
+    assert events and not any(MODBUS_TCP_DEVICE in str(event.error) for event in events), events
+
+
 def test_ascii_with_a_changed_delimiter():
     framer = AsciiFramer(responses=False, delimiter=ord("!"))
     adu = framer.build(UNIT, REQUEST.encode())

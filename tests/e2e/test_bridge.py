@@ -377,7 +377,7 @@ def test_the_summary_on_exit_counts_each_units_transactions_by_outcome():
     units = {line.split(":", 1)[0]: line for line in err.splitlines() if line.startswith("unit ")}
     assert set(units) == {"unit 1", "unit 2", "unit 9"}, err
     assert units["unit 1"].startswith(
-        "unit 1: transactions 2: answered 2, exception 0, timeout 0, corrupt 0, not ours 0, link lost 0;"
+        "unit 1: transactions 2: answered 2, exception 0, timeout 0, corrupt 0, not ours 0, link lost 0, connection 0;"
     ), err
     assert "rtt min/avg/p95/max " in units["unit 1"]
     assert units["unit 2"].startswith("unit 2: transactions 1: answered 0, exception 1 (02:1), timeout 0,"), (

@@ -416,7 +416,7 @@ def test_the_summary_counts_every_probe_by_its_outcome(raw_responder):
     assert counts["exceptions_by_code"] == {"02": 1} and counts["link_lost"] == 0
     assert counts["rtt_seconds"]["max"] < 0.3  # the reply's and the exception's round trips
     assert (
-        "transactions 5: answered 1, exception 1 (02:1), timeout 1, corrupt 1, not ours 1, link lost 0; "
+        "transactions 5: answered 1, exception 1 (02:1), timeout 1, corrupt 1, not ours 1, link lost 0, connection 0; "
         "retries recovered 0; rtt min/avg/p95/max " in res.stderr
     ), res
 

@@ -20,6 +20,7 @@ from helpers import (
     plain_pairs,
     run_cli,
     run_mbtool,
+    serve,
     start_mbtool,
 )
 
@@ -369,3 +370,34 @@ def test_terminal_default_is_table_not_plain(tcp_device):
     assert proc.returncode == 0, err
     assert "100" in text and "101" in text, text
     assert text != "0 100\n1 101\n", "plain output on a terminal; the table is expected there"
+
+
+# ----------------------------------------------------------------------------- the wrong framing
+
+
+def _speaks_modbus_tcp(res) -> None:
+    """--framer rtu to a Modbus TCP device that answered: exit 5, one line that says so, and the
+    trace's line of the reply is the error's (the same bytes, the same words)."""
+    assert res.returncode == 5, res
+    lines = res.stderr.strip().splitlines()
+    error = lines[-1]
+    assert error.startswith("mbtool: ") and "the device speaks Modbus TCP: leave --framer out" in error, res
+    assert "CRC error" not in error, res
+    received = [line for line in parse_hex_lines(res.stderr) if line.direction == "RX"]
+    assert len(received) == 1 and received[0].verdict.endswith(error.removeprefix("mbtool: ")), res
+    assert received[0].data.hex(" ").upper() in error, res
+
+
+def test_framer_rtu_to_pymodbus_says_the_device_speaks_modbus_tcp(tcp_device):
+    # pymodbus reads the RTU request as an MBAP header (protocol id 0) and answers it (issue 39.3).
+    _speaks_modbus_tcp(
+        run_cli("read-holding-registers", "0", "2", "-p", tcp_device.target, "--framer", "rtu", "--hex")
+    )
+
+
+def test_framer_rtu_to_serve_says_the_device_speaks_modbus_tcp():
+    with serve("-u", "1-247") as server:
+        res = run_cli(
+            "read-holding-registers", "0", "2", "-u", "77", "-p", server.target, "--framer", "rtu", "--hex"
+        )
+    _speaks_modbus_tcp(res)

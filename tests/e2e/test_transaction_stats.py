@@ -225,6 +225,7 @@ def test_on_a_serial_bus_every_outcome_is_told_apart():
         "corrupt": 1,
         "not_ours": 1,
         "link_lost": 0,
+        "connection": 0,
     }
     assert dict(stats.exceptions) == {3: 1}
     assert stats.rtt.count == 3  # the two answers and the exception

@@ -40,7 +40,6 @@ from urllib.parse import parse_qs
 
 import click
 
-from mbtool.cli.inventory import load_inventory
 from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
@@ -63,6 +62,7 @@ from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
+from mbtool.plant.inventory import load_inventory
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
@@ -568,7 +568,7 @@ def _read_map(connection, register_map, deadline: float, budget: float):
     try:
         client = link.open()
     except (*KNOWN_ERRORS, OSError) as error:  # an OSError is the ConnectionFailed it means
-        return None, error, "connection"
+        return None, error, outcome_of(error)
 
     def execute(request):
         left = deadline - time.monotonic()

@@ -23,7 +23,7 @@ from mbtool.durations import Durations
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Verdict
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
-from mbtool.link.stats import Stats, outcome_of
+from mbtool.link.stats import Stats, outcome_of, untimed_text
 
 # What each --function asks: a read of one holding register, or the diagnostics echo.
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
@@ -63,7 +63,8 @@ def ping(connection, settings, count, interval, function, address, quiet):
     gateway counts as lost: the gateway answered, the device behind it did not. With
     --retries, a reply that took a retry is shown with the retries and counted as recovered.
 
-    Exit 0 when any reply came, 3 when none did (130 when interrupted before the first).
+    Exit 0 when any reply came, 3 when none did, 6 when none did because the link could not be
+    opened or reached (130 when interrupted before the first).
     """
     ctx = click.get_current_context()
     if function == "08" and ctx.get_parameter_source("address") is not click.core.ParameterSource.DEFAULT:
@@ -98,6 +99,8 @@ class Pinger:
         self.stats = Stats()  # every transaction's outcome
         self.alive = 0  # replies from the device itself: answers and its exceptions
         self.alive_rtt = Durations()  # their round trips, ping(8)'s rtt
+        self.untimed = 0  # their replies whose round trip is not known (link.client's rtt)
+        self.failure = ""  # the outcome of the last request that got no reply (link.stats)
 
     def run(self, count: int | None, interval: float) -> Verdict:
         connection, unit = self.connection, self.connection.unit
@@ -126,8 +129,8 @@ class Pinger:
                     try:
                         link.open()
                     except ConnectionFailed as failure:
+                        self._failed(seq, failure, None, 0)
                         self.stats.transaction(failure, 0)
-                        self._line(seq, f"link lost: {failure}")
                         last_sent = time.monotonic()
                         continue
                 last_sent = time.monotonic()
@@ -149,20 +152,24 @@ class Pinger:
         self.alive += 1
         if rtt is not None:
             self.alive_rtt.add(rtt)
+        else:
+            self.untimed += 1
         retried = f" (after {attempts - 1} {'retry' if attempts == 2 else 'retries'})" if attempts > 1 else ""
         self._line(seq, f"{what}{_time(rtt)}{retried}")
 
     def _failed(self, seq: int, error: BaseException, rtt: float | None, attempts: int) -> None:
+        self.failure = outcome = outcome_of(error)
         if isinstance(error, ModbusException):
             code = f"exception {error.exception_code:02X} {error.name}"
             if error.exception_code in GATEWAY_EXCEPTIONS:
                 # The gateway speaks for a device that did not answer (spec §3): lost.
-                self._line(seq, f"lost: {code} from the gateway {_time(rtt)}")
+                self._line(
+                    seq, f"lost: {code} from the gateway" + (f" {_time(rtt)}" if rtt is not None else "")
+                )
             else:
                 self._answered(seq, rtt, attempts, code + " ")
             return
-        outcome = outcome_of(error).replace("_", " ")
-        self._line(seq, f"{outcome}: {error}")
+        self._line(seq, f"{outcome.replace('_', ' ')}: {error}")
 
     def _line(self, seq: int, text: str) -> None:
         if not self.quiet:
@@ -173,20 +180,25 @@ class Pinger:
         sent = stats.transactions
         lost = 0.0 if not sent else round(100 * (sent - self.alive) / sent, 1)
         text = f"{sent} sent, {self.alive} answered, {lost:g}% lost"
-        if self.alive_rtt.count:
-            text += f", rtt {self.alive_rtt.text(('min', 'avg', 'max', 'mdev'))}"
+        if self.alive:
+            text += f", rtt {self.alive_rtt.text(('min', 'avg', 'max', 'mdev'))}{untimed_text(self.untimed)}"
         text += f"; {stats.outcomes_text()}"
         if interrupted:
             text = "interrupted; " + text
             if not sent:
                 return Verdict(text, ExitCode.INTERRUPTED)
-        return Verdict(text, ExitCode.OK if self.alive else ExitCode.TIMEOUT)
+        if self.alive:
+            return Verdict(text, ExitCode.OK)
+        # No reply: 3, as ping(8) says "no reply", unless the link could not be reached at all
+        # (the last request's failure), which is 6 here as in every command.
+        return Verdict(text, ExitCode.CONNECTION if self.failure == "connection" else ExitCode.TIMEOUT)
 
 
 def _time(rtt: float | None) -> str:
-    """ping(8)'s "time=0.045 ms", "time=4.21 ms", "time=38.5 ms", "time=1203 ms": three figures."""
+    """ping(8)'s "time=0.045 ms", "time=4.21 ms", "time=38.5 ms", "time=1203 ms": three figures;
+    "untimed" for a reply whose arrival is not known (it came while mbtool was busy)."""
     if rtt is None:
-        return ""
+        return "untimed"
     ms = rtt * 1000
     return f"time={ms:.{3 if ms < 1 else 2 if ms < 10 else 1 if ms < 100 else 0}f} ms"
 

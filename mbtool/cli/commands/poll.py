@@ -16,7 +16,6 @@ import time
 import click
 
 from mbtool.cli.frames import HexTrace
-from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
 from mbtool.cli.metrics import (
     KEY_SPECIALS,
@@ -36,6 +35,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
+from mbtool.plant.inventory import FORMATS, load_inventory
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
