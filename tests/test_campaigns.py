@@ -12,6 +12,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts" / "campaigns"))
 
 import dump_kills  # noqa: E402
+import exporter_fuzz  # noqa: E402
 import hostile_names  # noqa: E402
 import textfile_kills  # noqa: E402
 
@@ -82,3 +83,18 @@ def test_dump_state_tells_a_kept_previous_dump_from_a_new_a_partial_and_an_empty
     assert dump_kills.state_of(path, previous) == "partial"
     path.write_bytes(b"")
     assert dump_kills.state_of(path, previous) == "0 bytes"
+
+
+def test_exporter_fuzz_reads_answers_whole_and_catches_a_cut_or_an_extra_one():
+    ok = b"HTTP/1.1 200 OK\r\nContent-Length: 3\r\n\r\nabc"
+    assert [s for s, _, _ in exporter_fuzz.Exchange.of(ok + ok, [b"GET", b"GET"]).answers] == [200, 200]
+    assert exporter_fuzz.Exchange.of(ok[:-1], [b"GET"]).error  # the body cut short
+    assert exporter_fuzz.Exchange.of(ok[:20], [b"GET"]).error  # the head cut short
+    assert exporter_fuzz.Exchange.of(b"garbage\r\n\r\n", [b"GET"]).error
+    # A HEAD's answer has no body: what follows it is the next answer.
+    head = b"HTTP/1.1 200 OK\r\nContent-Length: 3\r\n\r\n"
+    assert len(exporter_fuzz.Exchange.of(head + ok, [b"HEAD", b"GET"]).answers) == 2
+    # The deadline the exporter reads from the header, clamped as it clamps it.
+    assert exporter_fuzz.effective_timeout("9.3e9") == 300.0
+    assert exporter_fuzz.effective_timeout("nan") == exporter_fuzz.effective_timeout(None) == 10.0
+    assert exporter_fuzz.effective_timeout("0.5") == 0.5
