@@ -9,6 +9,7 @@ code of ``errors.ExitCode``.
 from __future__ import annotations
 
 import gc
+import io
 import os
 import signal
 import sys
@@ -183,6 +184,8 @@ def main(argv: list[str] | None = None) -> None:
         _closed_stdout_as_a_gone_reader()
     if sys.stderr is None:
         _closed_stderr_as_nowhere()
+    elif sys.stderr is sys.__stderr__:  # fd 2 itself, not a test's capture of it
+        _stderr_that_cannot_fail()
     error: BaseException | None = None
     meta: dict = {}  # the run's click context's: what the options noted as they were parsed
     try:
@@ -261,6 +264,39 @@ def _closed_stderr_as_nowhere() -> None:
         os.dup2(null, 2)
         os.close(null)
     sys.stderr = open(2, "w", encoding="utf-8", closefd=False)
+
+
+class _StderrOrNowhere(io.RawIOBase):
+    """fd 2 until a write to it fails (a full disk, ``2>/dev/full``; a pipe whose reader went
+    away): then /dev/null takes fd 2's place, as for a closed stderr.  A line for the human
+    that cannot be shown must not end the run, nor be taken for stdout failing (141, 7)."""
+
+    def writable(self) -> bool:
+        return True
+
+    def fileno(self) -> int:
+        return 2
+
+    def isatty(self) -> bool:
+        return os.isatty(2)
+
+    def write(self, data) -> int:
+        try:
+            return os.write(2, data)
+        except OSError:
+            _closed_stderr_as_nowhere()
+            return len(data)
+
+
+def _stderr_that_cannot_fail() -> None:
+    """sys.stderr, as Python opened it, but over a fd 2 whose failures are nowhere."""
+    sys.stderr = io.TextIOWrapper(
+        io.BufferedWriter(_StderrOrNowhere()),
+        encoding=sys.stderr.encoding,
+        errors=sys.stderr.errors,
+        line_buffering=True,
+        write_through=True,
+    )
 
 
 def _closed_stdout_as_a_gone_reader() -> None:
