@@ -180,6 +180,10 @@ def main(argv: list[str] | None = None) -> None:
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
     signal.signal(signal.SIGTERM, _terminate)
+    # A hang-up (the terminal or the ssh session gone) interrupts as SIGTERM does, so that a
+    # dump keeps what it read and leaves no temporary file; under nohup it stays ignored.
+    if signal.getsignal(signal.SIGHUP) is signal.SIG_DFL:
+        signal.signal(signal.SIGHUP, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
     if sys.stderr is None:
