@@ -23,6 +23,7 @@ from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.errors import (
     KNOWN_ERRORS,
+    STOP_SIGNALS,
     ExitCode,
     MbtoolError,
     OutputFailed,
@@ -179,11 +180,9 @@ def main(argv: list[str] | None = None) -> None:
         from click.shell_completion import shell_complete  # noqa: PLC0415 - TAB only, 0.5 ms
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
-    signal.signal(signal.SIGTERM, _terminate)
-    # A hang-up (the terminal or the ssh session gone) interrupts as SIGTERM does, so that a
-    # dump keeps what it read and leaves no temporary file; under nohup it stays ignored.
-    if signal.getsignal(signal.SIGHUP) is signal.SIG_DFL:
-        signal.signal(signal.SIGHUP, _terminate)
+    for stop in STOP_SIGNALS:  # SIGINT is Python's KeyboardInterrupt already
+        if stop != signal.SIGINT and signal.getsignal(stop) is not signal.SIG_IGN:
+            signal.signal(stop, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
     if sys.stderr is None:
