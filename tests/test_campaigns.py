@@ -14,6 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts" / "cam
 import dump_kills  # noqa: E402
 import exporter_fuzz  # noqa: E402
 import hostile_names  # noqa: E402
+import signals_and_streams  # noqa: E402
 import textfile_kills  # noqa: E402
 
 pytestmark = pytest.mark.timeout(20)
@@ -98,3 +99,17 @@ def test_exporter_fuzz_reads_answers_whole_and_catches_a_cut_or_an_extra_one():
     assert exporter_fuzz.effective_timeout("9.3e9") == 300.0
     assert exporter_fuzz.effective_timeout("nan") == exporter_fuzz.effective_timeout(None) == 10.0
     assert exporter_fuzz.effective_timeout("0.5") == 0.5
+
+
+def test_signals_judge_calls_a_cut_line_or_a_human_line_on_stdout_a_fault():
+    judge = signals_and_streams.judge_output
+    assert judge("json", '{"a": 1}\n{"b": 2}\n') == ""
+    assert judge("json", '{"a": 1}\n{"b": ') != ""  # cut mid-line
+    assert judge("json", '{"a": 1}\nmbtool: 1 of 2 devices answered\n') != ""  # stderr's line in stdout
+    assert judge("csv", "time,device,name\n1,a,b\n") == ""
+    assert judge("csv", "time,device,name\n1,a\n") != ""  # a row cut short
+    assert judge("influx", "modbus,unit=1 a=1i 1\n") == ""
+    assert judge("influx", "modbus,unit=1 a=\n") != ""
+    whole = '# HELP modbus_up up\n# TYPE modbus_up gauge\nmodbus_up{device="a"} 1\n'
+    assert judge("prom", whole) == ""
+    assert judge("prom", whole + 'modbus_up{device="b\n') != ""
