@@ -319,6 +319,8 @@ class Campaign:
         port = self.free_port
         return [
             f"spy://127.0.0.1:{port}?file={victim}",
+            f"spy://127.0.0.1:{port}?file={victim}&all=:{port}",  # ends as '*:PORT' wants
+            f"spy://127.0.0.1:{port}?file={new}&x=:{port}",
             f"spy://localhost:{port}?file={new}",
             f"spy:///dev/ttyUSB0?file={victim}",
             f"SPY://127.0.0.1:{port}?file={victim}",
