@@ -197,6 +197,16 @@ def test_all_units_on_a_serial_bus_writes_an_inventory_that_poll_reads_whole(tmp
         pair.close()
 
 
+def test_the_inventory_line_counts_one_device_in_the_singular(tmp_path):
+    """A new user's walk of docs/maps-library.md: one meter found said `1 devices`."""
+    plant = tmp_path / "plant.toml"
+    with serve("--data", str(twin_path("sdm630"))) as server:
+        args = ("-t", "0.2", "--all-units", "--units", "1-2", "--inventory", plant)
+        res = run_cli("identify", "-p", server.target, *args)
+    assert res.returncode == 0, res
+    assert f"mbtool: wrote {plant}: 1 device, 0 not identified" in res.stderr.splitlines(), res
+
+
 def test_a_device_that_names_itself_in_fc43_ranks_first_with_that_evidence(tmp_path):
     """A B23 that answers FC 43/14 with its vendor and product code: that is the first
     evidence, before the signature's."""
