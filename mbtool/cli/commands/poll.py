@@ -15,6 +15,7 @@ import time
 
 import click
 
+from mbtool.cli.broker import start_publisher, stats_line
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
@@ -36,6 +37,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.link.stats import OUTCOMES
+from mbtool.mqtt.settings import mqtt_settings
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
@@ -103,6 +105,13 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     multiple=True,
     help="--hex for this link alone (repeat it for several).",
 )
+@click.option(
+    "--mqtt",
+    "mqtt_url",
+    metavar="URL",
+    help="Publish every poll to the MQTT broker at URL (mqtt://HOST[:PORT], mqtts://HOST[:PORT]) "
+    "as well: the inventory's [mqtt] settings with this url, else the defaults (docs/mqtt.md).",
+)
 def poll(
     inventory,
     output_format,
@@ -115,6 +124,7 @@ def poll(
     no_header,
     hex_trace,
     hex_links,
+    mqtt_url,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -156,12 +166,20 @@ def poll(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
+    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
+    report = view.report if view else output.report
+    publisher = None
+    if mqtt is not None:
+        publisher = start_publisher(mqtt, plant, quiet=live)
+        report = _both(report, publisher.report)
+        if view:
+            view.publisher = publisher
     runner = Plant(
         plant.links,
         plant.devices,
-        view.report if view else output.report,
+        report,
         rounds or 0,
         trace,
         hex_links or None,
@@ -179,9 +197,21 @@ def poll(
         interrupted = True
     finally:
         runner.stop.set()
+        if publisher is not None:
+            publisher.close()
     output.close()
-    _statistics(runner, stats_format, time.monotonic() - started)
+    _statistics(runner, stats_format, time.monotonic() - started, publisher)
     raise _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
+
+
+def _both(first, second):
+    """A report to two consumers: the output, and the MQTT publisher (which only enqueues)."""
+
+    def report(item: Poll | Event) -> None:
+        first(item)
+        second(item)
+
+    return report
 
 
 class PlantOutput:
@@ -370,6 +400,7 @@ class LiveView:
         self.previous: dict[str, dict[str, object]] = {}
         self.events: list[str] = []
         self.states: dict = {}
+        self.publisher = None  # poll --mqtt's: the broker's state in the title
 
     def running(self, states: dict):
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
@@ -404,6 +435,8 @@ class LiveView:
         online = sum(state.state == ONLINE for state in states)
         title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
         title.append(f"{len(states)} devices, {online} online, {offline} offline")
+        if self.publisher is not None:
+            title.append("; " + stats_line(self.publisher.stats()))
         # A row a device in the room the title, the table's header and the band leave.
         room = height - 2 - (1 + self.EVENT_ROWS)
         shown = states if len(states) <= room else states[: max(room - 1, 0)]
@@ -470,7 +503,7 @@ class LiveView:
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
+def _statistics(runner: Plant, fmt: str, seconds: float, publisher=None) -> None:
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -503,6 +536,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
                 for worker in runner.workers
             },
         }
+        if publisher is not None:
+            record["mqtt"] = publisher.stats()
         print(to_json(record), file=sys.stderr, flush=True)
         return
     rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
@@ -525,6 +560,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
             file=sys.stderr,
         )
+    if publisher is not None:
+        print(stats_line(publisher.stats()), file=sys.stderr)
     sys.stderr.flush()
 
 

@@ -1,0 +1,240 @@
+"""The MQTT client of a plant: what the links' workers report, published on a thread of its
+own, so that a slow or absent broker never holds a poll up.
+
+``report`` only enqueues (a full queue drops the record, counted).  The publisher's thread
+turns each record into messages: the device's status when mbtool's judgement of it changes,
+and its points (all, or those ``change.ChangeFilter`` picks).  While the broker is connected
+they go to paho-mqtt, which sends them from its own network thread; while it is away a QoS 1
+message goes to the spool (``spool.py``) and a QoS 0 one is dropped, counted.  On each
+(re)connection the publisher says it is online (the birth, beside the last will that says
+offline for it), publishes each device's status and Home Assistant's discovery configs
+again (all retained), then the spooled messages in the order they were kept, before
+anything newer; paho reconnects with a back-off of 1 s doubling to 30 s.
+"""
+
+from __future__ import annotations
+
+import queue
+import ssl
+import threading
+import time
+from collections.abc import Callable
+
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+
+from mbtool.mqtt.change import ChangeFilter
+from mbtool.mqtt.discovery import configs
+from mbtool.mqtt.settings import MqttSettings
+from mbtool.mqtt.spool import Message, Spool
+from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
+from mbtool.plant.schedule import Poll
+
+QUEUED = 10_000  # records waiting for the publisher's thread at most
+STOP = object()
+RECONNECT = (1, 30)  # paho's back-off: from 1 s, doubling, to 30 s
+
+
+class MqttPublisher:
+    def __init__(
+        self,
+        settings: MqttSettings,
+        devices: list,
+        headers: dict | None = None,
+        notify: Callable[[str], None] = lambda line: None,
+    ) -> None:
+        """``headers``: each device's map header, for discovery; ``notify``: a line for each
+        change of the broker's state (connected, lost, refused)."""
+        self.settings = settings
+        self.devices = devices
+        self.headers = headers or {}
+        self.notify = notify
+        self.topics = Topics(settings, devices)
+        self.changes = ChangeFilter(settings)
+        self.spool = Spool(settings.spool_size, settings.spool)
+        self.queue: queue.Queue = queue.Queue(maxsize=QUEUED)
+        self.lock = threading.Lock()
+        # handed to paho; published: sent (QoS 0) or acknowledged (QoS 1); dropped: lost
+        self.counts = {"handed": 0, "published": 0, "dropped": 0}
+        self.state = "connecting"
+        self.live = False  # connected, and what the connection owes sent: new messages go to paho
+        self.announce = threading.Event()  # a connection came up: birth, statuses, the spool
+        self.device_states: dict[str, str] = {}  # what the broker has been told of each device
+        self.client = self._client()
+        self.thread = threading.Thread(target=self._run, name="mqtt", daemon=True)
+
+    # --- the plant's side ---------------------------------------------------------------
+
+    def report(self, item) -> None:
+        """A link's record (``Poll`` or ``Event``), queued for the publisher; never waits."""
+        try:
+            self.queue.put_nowait(item)
+        except queue.Full:
+            self._count("dropped")
+
+    def start(self) -> None:
+        settings = self.settings
+        self.client.connect_async(settings.host, settings.port, settings.keepalive)
+        self.client.loop_start()
+        self.thread.start()
+
+    def close(self, wait: float = 5.0) -> None:
+        """The records queued so far published, the poller's status set offline, the
+        connection closed: within ``wait`` seconds."""
+        deadline = time.monotonic() + wait
+        self.queue.put(STOP)
+        self.thread.join(max(0.0, deadline - time.monotonic()))
+        if self.live:
+            self._publish(Message(self.topics.status, OFFLINE.encode(), 1, True))
+            while self._unsent() and self.live and time.monotonic() < deadline:
+                time.sleep(0.01)
+        self.client.disconnect()
+        self.client.loop_stop()
+
+    def _unsent(self) -> int:
+        with self.lock:
+            return self.counts["handed"] - self.counts["published"]
+
+    def stats(self) -> dict:
+        with self.lock:
+            return {
+                "broker": f"{self.settings.host}:{self.settings.port}",
+                "state": self.state,
+                "published": self.counts["published"],
+                "dropped": self.counts["dropped"],
+                "spooled": len(self.spool),
+                "spool_dropped": self.spool.dropped,
+            }
+
+    # --- the client ---------------------------------------------------------------------
+
+    def _client(self) -> paho.Client:
+        settings = self.settings
+        version = paho.MQTTv5 if settings.version == "5" else paho.MQTTv311
+        client = paho.Client(CallbackAPIVersion.VERSION2, client_id=settings.client_id, protocol=version)
+        if settings.username is not None:
+            client.username_pw_set(settings.username, settings.password)
+        if settings.tls:
+            client.tls_set(
+                ca_certs=settings.ca,
+                certfile=settings.cert,
+                keyfile=settings.key,
+                cert_reqs=ssl.CERT_NONE if settings.insecure else ssl.CERT_REQUIRED,
+            )
+            client.tls_insecure_set(settings.insecure)
+        client.will_set(self.topics.status, OFFLINE, qos=1, retain=True)
+        client.reconnect_delay_set(*RECONNECT)
+        client.max_inflight_messages_set(100)
+        client.on_connect = self._connected
+        client.on_disconnect = self._disconnected
+        client.on_publish = self._published
+        return client
+
+    def _connected(self, client, userdata, flags, reason, properties) -> None:
+        if reason.is_failure:
+            self._state(f"refused: {reason}")
+            return
+        self._state("connected")
+        self.announce.set()
+
+    def _disconnected(self, client, userdata, flags, reason, properties) -> None:
+        self.live = False
+        if self.state == "connected":
+            self._state(f"lost: {reason}" if reason.is_failure else "disconnected")
+
+    def _published(self, client, userdata, mid, reason, properties) -> None:
+        self._count("published")
+
+    def _state(self, state: str) -> None:
+        with self.lock:
+            changed, self.state = self.state != state, state
+        if changed:
+            self.notify(f"broker {self.settings.host}:{self.settings.port} {state}")
+
+    def _count(self, key: str, more: int = 1) -> None:
+        with self.lock:
+            self.counts[key] += more
+
+    # --- the publisher's thread ---------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            if self.announce.is_set():
+                self.announce.clear()
+                self._announce()
+            try:
+                item = self.queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if item is STOP:
+                return
+            for message in self._messages(item):
+                self._send(message)
+
+    def _announce(self) -> None:
+        """What a new connection owes: the birth, every device's status, the discovery
+        configs, then what was spooled while the broker was away, in order."""
+        owed = [Message(self.topics.status, ONLINE.encode(), 1, True)]
+        owed += [
+            Message(self.topics.device_status(name), state.encode(), 1, True)
+            for name, state in self.device_states.items()
+        ]
+        if self.settings.discovery == "homeassistant":
+            owed += [
+                Message(topic, payload, 1, True)
+                for topic, payload in configs(self.settings, self.topics, self.devices, self.headers)
+            ]
+        owed += self.spool.take()
+        for message in owed:
+            self._publish(message)
+        self.live = True
+
+    def _messages(self, item) -> list[Message]:
+        if not isinstance(item, Poll):
+            return []  # a change of state shows in the polls' states, which say it per device
+        settings, name = self.settings, item.device.name
+        messages = []
+        if item.state in (ONLINE, OFFLINE) and self.device_states.get(name) != item.state:
+            self.device_states[name] = item.state
+            if self.live:  # else the next connection's announcement says it
+                messages.append(Message(self.topics.device_status(name), item.state.encode(), 1, True))
+        if item.readings:
+            values = {r.point.name: _value(r) for r in item.readings if r.error is None}
+            chosen = self.changes.select(name, item.time, values)
+            if chosen and settings.per_point:
+                messages += [
+                    Message(
+                        self.topics.point(name, point), point_payload(value), settings.qos, settings.retain
+                    )
+                    for point, value in chosen.items()
+                ]
+            elif chosen:
+                payload = device_payload(item.time, item.device.unit, chosen)
+                messages.append(Message(self.topics.device[name], payload, settings.qos, settings.retain))
+        return messages
+
+    def _send(self, message: Message) -> None:
+        if self.live:
+            self._publish(message)
+        elif message.qos:
+            self.spool.add(message)
+        else:
+            self._count("dropped")  # QoS 0: at most once, and the broker is away
+
+    def _publish(self, message: Message) -> None:
+        # Not under self.lock: paho calls on_publish holding its own lock, which publish takes.
+        info = self.client.publish(message.topic, message.payload, message.qos, message.retain)
+        # NO_CONN for QoS 1: paho keeps the message and sends it on reconnection.
+        handed = info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS or (
+            info.rc == MQTTErrorCode.MQTT_ERR_NO_CONN and message.qos
+        )
+        self._count("handed" if handed else "dropped")
+
+
+def _value(reading):
+    """A reading's value, a float point's whole number as a float (22.0, not 22): a consumer
+    that fixes a field's type at its first value (InfluxDB, Telegraf) takes every later one."""
+    value = reading.value
+    if reading.point.floating and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value

@@ -1,0 +1,206 @@
+"""poll publishing to a real MQTT broker (issue 42): Debian's mosquitto started on a free
+loopback port (tests/peers/broker.py), read back by paho-mqtt subscribers; the devices are
+``mbtool serve`` on pseudo-terminal buses and pymodbus's server over TCP.
+
+serve's registers hold their own address (40011 holds 10) and 40101-40102 the float32 21.5;
+pymodbus's device holds 100..119 from 40001.  Without mosquitto these tests skip, saying so.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from peers.broker import Subscriber, mosquitto, needs_mosquitto
+from helpers import (
+    PTY_SERIAL_OPTS,
+    REPO_ROOT,
+    PtyPair,
+    free_port,
+    mbtool_env,
+    run_mbtool,
+    serve,
+    start_device,
+    stop_device,
+)
+
+pytestmark = [pytest.mark.timeout(60), needs_mosquitto]
+
+METER = """\
+[points.level]
+ref = 40011
+scale = 0.1
+unit = "m"
+
+[points.flow]
+ref = 40101
+type = "float32"
+unit = "m3/h"
+
+[points.running]
+ref = "00001"
+
+[points.mode]
+ref = 40003
+enum = { 2 = "auto", 3 = "manual" }
+"""
+
+
+def _start_poll(plant: Path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "mbtool", "poll", str(plant), *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _poll(plant: Path, *args: str, wait: float = 20):
+    proc = _start_poll(plant, *args)
+    try:
+        out, err = proc.communicate(timeout=wait)
+    finally:
+        proc.kill()
+    assert "Traceback" not in err, err
+    return proc.returncode, out, err
+
+
+def _json(payloads: list[bytes]) -> list[dict]:
+    return [json.loads(payload) for payload in payloads]
+
+
+def test_a_plant_of_two_buses_and_a_tcp_device_publishes_every_point_of_every_poll(tmp_path):
+    (tmp_path / "meter.toml").write_text(METER)
+    bus_a, bus_b = PtyPair(), PtyPair()
+    serial = ["--framer", "rtu", *PTY_SERIAL_OPTS]
+    try:
+        with (
+            mosquitto() as broker,
+            serve("-u", "1-2", *serial, target=bus_a.device_path),
+            serve("-u", "5", *serial, target=bus_b.device_path),
+            start_device(tcp=True, framer="socket", units="1") as tcp_device,
+        ):
+            plant = tmp_path / "plant.toml"
+            plant.write_text(
+                f'[poll]\ninterval = 0.2\n[links.a]\ntarget = "{bus_a.mbtool_path}"\nparity = "N"\n'
+                f'[links.b]\ntarget = "{bus_b.mbtool_path}"\nparity = "N"\n'
+                f'[links.tcp]\ntarget = "{tcp_device.target}"\n'
+                '[devices.a1]\nlink = "a"\nunit = 1\nmap = "meter.toml"\ntags = { site = "north" }\n'
+                '[devices.a2]\nlink = "a"\nunit = 2\nmap = "meter.toml"\ntags = { site = "north" }\n'
+                '[devices.b5]\nlink = "b"\nunit = 5\nmap = "meter.toml"\ntags = { site = "south" }\n'
+                '[devices.pm]\nlink = "tcp"\nunit = 1\nread = ["40001 2"]\ntags = { site = "east" }\n'
+                '[mqtt]\ntopic = "plant/{site}/{device}"\nstatus_topic = "plant/poller"\n'
+            )
+            subscriber = Subscriber(broker.port, "plant/#")
+            code, out, err = _poll(plant, "--mqtt", broker.url, "--rounds", "3", "-o", "json")
+            assert code == 0, err
+            assert subscriber.wait_for(lambda messages: messages[-1][0] == "plant/poller", 5)
+            subscriber.close()
+    finally:
+        bus_a.close()
+        bus_b.close()
+    expected = {"level": 1.0, "flow": 21.5, "running": True, "mode": "auto"}
+    for topic, unit in (("plant/north/a1", 1), ("plant/north/a2", 2), ("plant/south/b5", 5)):
+        records = _json(subscriber.on(topic))
+        assert [record["points"] for record in records] == [expected] * 3, topic
+        assert {record["unit"] for record in records} == {unit}
+        assert all(record["time"].endswith("Z") for record in records)
+    assert [r["points"] for r in _json(subscriber.on("plant/east/pm"))] == [{"40001": 100, "40002": 101}] * 3
+    # What stdout says was read is what the broker carried, poll for poll.
+    polled = [json.loads(line) for line in out.splitlines()]
+    assert sum(len(r["points"]) for r in polled) == sum(
+        len(r["points"]) for t in ("plant/north/a1", "plant/north/a2", "plant/south/b5", "plant/east/pm")
+        for r in _json(subscriber.on(t))
+    )  # fmt: skip
+    for device in ("north/a1", "north/a2", "south/b5", "east/pm"):
+        assert subscriber.on(f"plant/{device}/status") == [b"online"]
+    assert subscriber.on("plant/poller") == [b"online", b"offline"]  # the birth, then a clean end
+    assert "mqtt 127.0.0.1" in err  # the statistics name the broker
+
+
+def test_on_change_publishes_a_steady_device_once_and_per_point_topics_carry_bare_values(tmp_path):
+    (tmp_path / "meter.toml").write_text(METER)
+    with mosquitto() as broker, serve("-u", "1") as device:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(
+            f'[poll]\ninterval = 0.1\n[links.l]\ntarget = "{device.target}"\n'
+            '[devices.m]\nlink = "l"\nmap = "meter.toml"\n'
+            '[mqtt]\non_change = true\npoints = "point"\ndeadband = "1%"\n'
+        )
+        subscriber = Subscriber(broker.port, "mbtool/#")
+        code, _, err = _poll(plant, "--mqtt", broker.url, "--rounds", "5")
+        assert code == 0, err
+        assert subscriber.wait_for(lambda messages: messages[-1][1] == b"offline", 5)
+        subscriber.close()
+    assert subscriber.on("mbtool/plant/m/level") == [b"1.0"]
+    assert subscriber.on("mbtool/plant/m/flow") == [b"21.5"]
+    assert subscriber.on("mbtool/plant/m/running") == [b"true"]
+    assert subscriber.on("mbtool/plant/m/mode") == [b"auto"]
+    assert "5 of" not in err and "published" in err
+
+
+def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sigkill_leaves_the_will(tmp_path):
+    port = free_port()
+    device = start_device(tcp=True, framer="socket", units="1", port=port)
+    pm = device.__enter__()
+    with mosquitto() as broker:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(
+            f'[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{pm.target}"\n'
+            'timeout = 0.3\n[devices.pm]\nlink = "l"\nread = ["40001 1"]\n'
+        )
+        subscriber = Subscriber(broker.port, "mbtool/#")
+        proc = _start_poll(plant, "--mqtt", broker.url, "-o", "json")
+        try:
+            status = "mbtool/plant/pm/status"
+            assert subscriber.wait_for(lambda m: (status, b"online", False) in m, 10)
+            killed = time.monotonic()
+            stop_device(pm.proc)
+            assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"offline"], 5)
+            took = time.monotonic() - killed
+            assert took < 3, f"offline {took:.1f} s after the device died"
+            device = start_device(tcp=True, framer="socket", units="1", port=port)
+            device.__enter__()
+            assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"online"], 15)
+            proc.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will
+            proc.wait(5)
+            assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/status")[-1:] == [b"offline"], 10)
+        finally:
+            proc.kill()
+            proc.communicate(timeout=5)
+            device.__exit__(None, None, None)
+            subscriber.close()
+        # The will is retained: a subscriber that comes later learns the poller is gone.
+        late = Subscriber(broker.port, "mbtool/plant/status")
+        assert late.wait_for(lambda m: m == [("mbtool/plant/status", b"offline", True)], 5)
+        late.close()
+    assert subscriber.on(status) == [b"online", b"offline", b"online"]
+
+
+def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
+    for table, says in (
+        ('url = "http://x"', "is not mqtt://"),
+        ('url = "mqtt://h"\nqos = 2', "qos: expected a whole number, 0..1"),
+        ('url = "mqtt://h"\ntopic = "a/{nope}/{device}"', "{nope} is not known"),
+        ('url = "mqtt://h"\ntopic = "a/+/{device}"', "not a topic to publish on"),
+        ('url = "mqtt://h"\ndeadband = "x%"', "not a percentage"),
+        ('url = "mqtt://h"\nbogus = 1', "bogus: unknown key"),
+        ('url = "mqtt://h"\nca = "ca.pem"', "mqtts:// settings"),
+        ("qos = 1", "has no url"),
+    ):
+        plant = tmp_path / "plant.toml"
+        plant.write_text(f'[links.l]\ntarget = "sim://"\n[devices.d]\nlink = "l"\nread = ["40001"]\n[mqtt]\n{table}\n')
+        res = run_mbtool("poll", str(plant), "--once")
+        assert res.returncode == 2, (table, res.stderr)
+        assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (table, res.stderr)
+    # --mqtt gives the url the table lacks; a broker that is not there holds nothing up.
+    res = run_mbtool("poll", str(plant), "--once", "--mqtt", f"mqtt://127.0.0.1:{free_port()}")
+    assert res.returncode == 0, res.stderr
+    assert "connecting: 0 published, 1 spooled" in res.stderr
