@@ -204,3 +204,118 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
     res = run_mbtool("poll", str(plant), "--once", "--mqtt", f"mqtt://127.0.0.1:{free_port()}")
     assert res.returncode == 0, res.stderr
     assert "connecting: 0 published, 1 spooled" in res.stderr
+
+
+# --- Home Assistant discovery ------------------------------------------------------------------
+
+# The fields Home Assistant's MQTT discovery documents for the components mbtool announces
+# (https://www.home-assistant.io/integrations/sensor.mqtt/, binary_sensor.mqtt/, and the
+# shared availability and device blocks); nothing else is allowed through.
+SENSOR_CLASSES = [
+    "apparent_power", "current", "duration", "energy", "enum", "frequency", "power", "pressure",
+    "reactive_power", "temperature", "voltage", "volume", "volume_flow_rate",
+]  # fmt: skip
+COMMON = {
+    "name": {"type": ["string", "null"]},
+    "unique_id": {"type": "string", "pattern": "^[a-zA-Z0-9_-]+$"},
+    "state_topic": {"type": "string", "pattern": "^[^+#]+$"},
+    "value_template": {"type": "string"},
+    "availability": {
+        "type": "array",
+        "minItems": 1,
+        "items": {
+            "type": "object",
+            "required": ["topic"],
+            "properties": {"topic": {"type": "string"}, "payload_available": {"type": "string"},
+                           "payload_not_available": {"type": "string"}, "value_template": {"type": "string"}},
+            "additionalProperties": False,
+        },
+    },  # fmt: skip
+    "availability_mode": {"enum": ["all", "any", "latest"]},
+    "device": {
+        "type": "object",
+        "required": ["identifiers"],
+        "properties": {
+            "identifiers": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+            "name": {"type": "string"}, "manufacturer": {"type": "string"}, "model": {"type": "string"},
+            "sw_version": {"type": "string"}, "via_device": {"type": "string"},
+        },  # fmt: skip
+        "additionalProperties": False,
+    },
+}
+SCHEMAS = {
+    "sensor": {
+        "type": "object",
+        "required": ["state_topic", "unique_id", "device"],
+        "properties": COMMON | {
+            "device_class": {"enum": SENSOR_CLASSES},
+            "state_class": {"enum": ["measurement", "total", "total_increasing"]},
+            "unit_of_measurement": {"type": "string"},
+            "options": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+        },
+        "additionalProperties": False,
+        # An enum sensor has options, and neither a unit nor a state class (HA refuses them).
+        "if": {"properties": {"device_class": {"const": "enum"}}, "required": ["device_class"]},
+        "then": {"required": ["options"], "not": {"anyOf": [{"required": ["state_class"]},
+                                                          {"required": ["unit_of_measurement"]}]}},
+        "else": {"not": {"required": ["options"]}},
+    },  # fmt: skip
+    "binary_sensor": {
+        "type": "object",
+        "required": ["state_topic", "unique_id", "device"],
+        "properties": COMMON | {"payload_on": {"type": "string"}, "payload_off": {"type": "string"},
+                                "device_class": {"type": "string"}},
+        "additionalProperties": False,
+    },  # fmt: skip
+}
+
+
+def test_home_assistant_discovery_configs_validate_and_name_the_right_component_for_each_point(tmp_path):
+    jsonschema = pytest.importorskip("jsonschema")
+    (tmp_path / "meter.toml").write_text(
+        '[device]\nmanufacturer = "Acme"\nmodel = "M-1"\n'
+        + METER
+        + '[points.energy]\nref = 40021\nunit = "kWh"\n[points.tag]\nref = 40031\ntype = "string"\ncount = 2\n'
+    )
+    with mosquitto() as broker, serve("-u", "1") as device:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(
+            f'[links.l]\ntarget = "{device.target}"\n[devices.pump]\nlink = "l"\nmap = "meter.toml"\n'
+            '[mqtt]\ndiscovery = "homeassistant"\n'
+        )
+        subscriber = Subscriber(broker.port, ["homeassistant/#", "mbtool/#"])
+        code, _, err = _poll(plant, "--mqtt", broker.url, "--once")
+        assert code == 0, err
+        assert subscriber.wait_for(lambda m: m and m[-1][1] == b"offline", 5)
+        subscriber.close()
+        # Retained: a Home Assistant started later still finds every entity.
+        late = Subscriber(broker.port, "homeassistant/#")
+        assert late.wait_for(lambda m: len(m) == 6 and all(retained for _, _, retained in m), 5)
+        late.close()
+    configs = {
+        topic: json.loads(payload) for topic, payload, _ in subscriber.messages if topic.startswith("homeassistant/")
+    }
+    components = {}
+    for topic, config in configs.items():
+        prefix, component, node, object_id, last = topic.split("/")
+        assert (prefix, last, node) == ("homeassistant", "config", "mbtool_plant_pump")
+        jsonschema.validate(config, SCHEMAS[component])
+        components[object_id] = component
+        assert config["state_topic"] == "mbtool/plant/pump"
+        assert [a["topic"] for a in config["availability"]] == ["mbtool/plant/status", "mbtool/plant/pump/status"]
+        assert config["device"] == {
+            "identifiers": ["mbtool_plant_pump"], "name": "pump", "manufacturer": "Acme", "model": "M-1",
+        }  # fmt: skip
+    assert components == {
+        "level": "sensor", "flow": "sensor", "running": "binary_sensor", "mode": "sensor", "energy": "sensor",
+        "tag": "sensor",
+    }  # fmt: skip
+    by_name = {config["name"]: config for config in configs.values()}
+    assert by_name["mode"]["options"] == ["auto", "manual"] and by_name["mode"]["device_class"] == "enum"
+    assert (by_name["energy"]["device_class"], by_name["energy"]["state_class"]) == ("energy", "total_increasing")
+    assert by_name["flow"]["unit_of_measurement"] == "m³/h"
+    assert by_name["flow"]["device_class"] == "volume_flow_rate"
+    assert "unit_of_measurement" not in by_name["tag"] and "state_class" not in by_name["tag"]
+    assert by_name["level"]["value_template"] == (
+        '{% if "level" in value_json.points %}{{ value_json.points["level"] }}{% else %}{{ this.state }}{% endif %}'
+    )
