@@ -35,5 +35,6 @@ def stats_line(stats: dict) -> str:
     """The broker's line of poll's statistics table."""
     return (
         f"mqtt {stats['broker']} {stats['state']}: {stats['published']} published, "
-        f"{stats['spooled']} spooled, {stats['spool_dropped'] + stats['dropped']} dropped"
+        f"{stats['spooled']} spooled ({stats['in_spool']} unsent), "
+        f"{stats['spool_dropped'] + stats['dropped']} dropped"
     )

@@ -102,7 +102,8 @@ class MqttPublisher:
                 "state": self.state,
                 "published": self.counts["published"],
                 "dropped": self.counts["dropped"],
-                "spooled": len(self.spool),
+                "spooled": self.spool.kept,  # while the broker was away
+                "in_spool": len(self.spool),  # still to send
                 "spool_dropped": self.spool.dropped,
             }
 

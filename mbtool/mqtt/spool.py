@@ -30,6 +30,7 @@ class Spool:
         self.size = size
         self.path = Path(path) if path else None
         self.messages: deque[Message] = deque()
+        self.kept = 0  # messages that came to the spool
         self.dropped = 0  # the oldest, dropped past the bound
         self.lines = 0  # lines in the file
         if self.path is not None and self.path.exists():
@@ -43,6 +44,7 @@ class Spool:
         return len(self.messages)
 
     def add(self, message: Message) -> None:
+        self.kept += 1
         self._keep(message)
         if self.path is not None:
             if self.lines >= 2 * self.size:

@@ -12,11 +12,13 @@ import json
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
 
 import pytest
-from peers.broker import Subscriber, mosquitto, needs_mosquitto
+from peers.broker import Broker, Subscriber, mosquitto, needs_mosquitto
 from helpers import (
     PTY_SERIAL_OPTS,
     REPO_ROOT,
@@ -203,7 +205,7 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
     # --mqtt gives the url the table lacks; a broker that is not there holds nothing up.
     res = run_mbtool("poll", str(plant), "--once", "--mqtt", f"mqtt://127.0.0.1:{free_port()}")
     assert res.returncode == 0, res.stderr
-    assert "connecting: 0 published, 1 spooled" in res.stderr
+    assert "connecting: 0 published, 1 spooled (1 unsent)" in res.stderr
 
 
 # --- Home Assistant discovery ------------------------------------------------------------------
@@ -319,3 +321,80 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
     assert by_name["level"]["value_template"] == (
         '{% if "level" in value_json.points %}{{ value_json.points["level"] }}{% else %}{{ this.state }}{% endif %}'
     )
+
+
+# --- the broker away ---------------------------------------------------------------------------
+
+
+def _outage(tmp_path: Path, spool_size: int, away: float):
+    """A device polled every 0.1 s, the broker stopped for ``away`` seconds mid-run and
+    started again on its port: (poll's JSON lines, its statistics, the device's messages as a
+    subscriber with a session on the broker received them, the spool file after)."""
+    with serve("-u", "1") as device, tempfile.TemporaryDirectory(prefix="mbtool-broker-") as folder:
+        broker = Broker(Path(folder), f"persistence true\npersistence_location {folder}/\n")
+        broker.start()
+        try:
+            plant = tmp_path / "plant.toml"
+            plant.write_text(
+                f'[poll]\ninterval = 0.1\n[links.l]\ntarget = "{device.target}"\n'
+                '[devices.m]\nlink = "l"\nread = ["40001 1"]\n'
+                f'[mqtt]\nspool = "spool.jsonl"\nspool_size = {spool_size}\n'
+            )
+            subscriber = Subscriber(broker.port, "mbtool/plant/m", session=True)
+            proc = _start_poll(plant, "--mqtt", broker.url, "-o", "json", "--duration", str(2 + away + 2.5),
+                               "--stats", "json")  # fmt: skip
+            try:
+                assert subscriber.wait_for(lambda m: len(m) >= 5, 10)
+                broker.stop()
+                stopped = time.monotonic()
+                time.sleep(away)
+                broker.start()
+                restarted = time.monotonic()
+                out, err = proc.communicate(timeout=30)
+            finally:
+                proc.kill()
+            assert proc.returncode == 0, err
+            assert subscriber.wait_for(lambda m: False, 1.5) is False  # what is owed has time to arrive
+            subscriber.close()
+        finally:
+            broker.stop()
+        polls = [json.loads(line) for line in out.splitlines()]
+        stats = json.loads(err.strip().splitlines()[-2])
+        return polls, stats, _json([p for _, p, _ in subscriber.messages]), (tmp_path / "spool.jsonl"), (
+            stopped, restarted
+        )
+
+
+def _stamps(records: list[dict]) -> list[float]:
+    return [round(datetime.fromisoformat(r["time"].replace("Z", "+00:00")).timestamp(), 3) for r in records]
+
+
+def _gaps(polls: list[dict]) -> list[float]:
+    times = _stamps(polls)
+    return [b - a for a, b in zip(times, times[1:], strict=False)]
+
+
+def test_the_broker_away_holds_no_poll_up_and_its_messages_come_in_order_when_it_is_back(tmp_path):
+    polls, stats, received, spool, _ = _outage(tmp_path, spool_size=1000, away=2)
+    assert max(_gaps(polls)) < 0.35, "polling slowed while the broker was away"
+    assert stats["mqtt"]["dropped"] == 0 and stats["mqtt"]["spool_dropped"] == 0
+    assert stats["mqtt"]["spooled"] >= 10 and stats["mqtt"]["in_spool"] == 0
+    times = _stamps(received)
+    assert times == sorted(times) and len(set(times)) == len(times), "out of order or twice"
+    # Every poll reached the subscriber: those made while the broker was away from the spool.
+    assert times == _stamps(polls)
+    assert spool.read_text() == ""  # sent, and emptied
+
+
+def test_past_the_spool_s_bound_the_oldest_are_dropped_and_counted_exactly(tmp_path):
+    polls, stats, received, spool, _ = _outage(tmp_path, spool_size=5, away=2)
+    mqtt = stats["mqtt"]
+    assert mqtt["spooled"] >= 10, mqtt
+    assert mqtt["spool_dropped"] == mqtt["spooled"] - 5 and mqtt["in_spool"] == 0
+    sent, got = _stamps(polls), _stamps(received)
+    assert len(got) == len(sent) - mqtt["spool_dropped"]
+    # The ones missing are the oldest of the outage, in one run: the spool kept the newest 5.
+    missing = [t for t in sent if t not in got]
+    first = sent.index(missing[0])
+    assert missing == sent[first : first + len(missing)]
+    assert got == sorted(got)

@@ -46,7 +46,7 @@ class Broker:
         conf.write_text(
             f"listener {self.port} 127.0.0.1\n"
             + ("allow_anonymous true\n" if "allow_anonymous" not in self.extra else "")
-            + "persistence false\n"
+            + ("persistence false\n" if "persistence" not in self.extra else "")
             + self.extra
         )
         self.log = open(self.folder / "mosquitto.log", "ab")  # noqa: SIM115 - closed by stop
@@ -89,11 +89,16 @@ class Subscriber:
     """A paho-mqtt client that keeps every message of the topics it subscribed to, in order:
     (topic, payload bytes, retain)."""
 
-    def __init__(self, port: int, topics: str | list[str] = "#", **login) -> None:
+    def __init__(self, port: int, topics: str | list[str] = "#", session: bool = False, **login) -> None:
+        """``session``: the broker keeps the subscription and queues what comes while this
+        subscriber is away (a broker stopped and started with persistence)."""
         self.messages: list[tuple[str, bytes, bool]] = []
         self.lock = threading.RLock()  # wait_for's predicate may call on()
         self.ready = threading.Event()
-        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"test-{time.monotonic_ns()}")
+        self.client = paho.Client(
+            CallbackAPIVersion.VERSION2, client_id=f"test-{time.monotonic_ns()}", clean_session=not session
+        )
+        self.client.reconnect_delay_set(0.1, 0.2)
         if login:
             self.client.username_pw_set(login["username"], login.get("password"))
         topics = [topics] if isinstance(topics, str) else topics
