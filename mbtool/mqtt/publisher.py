@@ -127,6 +127,7 @@ class MqttPublisher:
         client.reconnect_delay_set(*RECONNECT)
         client.max_inflight_messages_set(100)
         client.on_connect = self._connected
+        client.on_connect_fail = lambda client, userdata: self._state("unreachable (trying again)")
         client.on_disconnect = self._disconnected
         client.on_publish = self._published
         return client

@@ -398,3 +398,51 @@ def test_past_the_spool_s_bound_the_oldest_are_dropped_and_counted_exactly(tmp_p
     first = sent.index(missing[0])
     assert missing == sent[first : first + len(missing)]
     assert got == sorted(got)
+
+
+# --- a broker that asks who we are ---------------------------------------------------------------
+
+
+def test_a_password_and_mqtts_are_what_the_broker_asks_for_and_a_wrong_one_is_said(tmp_path, pki):
+    folder = tmp_path / "broker"
+    folder.mkdir()
+    passwords = folder / "passwd"
+    passwords.write_text("")
+    subprocess.run(["mosquitto_passwd", "-b", str(passwords), "poller", "s3cret"], check=True, timeout=10)
+    subprocess.run(["mosquitto_passwd", "-b", str(passwords), "reader", "r3ad"], check=True, timeout=10)
+    tls_port = free_port()
+    broker = Broker(
+        folder,
+        f"allow_anonymous false\npassword_file {passwords}\n"
+        f"listener {tls_port} 127.0.0.1\ncafile {pki.ca.cert}\ncertfile {pki.server.cert}\nkeyfile {pki.server.key}\n",
+    )
+    broker.start()
+    (tmp_path / "secret").write_text("s3cret\n")
+    try:
+        with serve("-u", "1") as device:
+            subscriber = Subscriber(broker.port, "mbtool/#", username="reader", password="r3ad")
+            for table, says in (
+                # the password from a file, the broker's certificate checked against the CA
+                (f'url = "mqtts://127.0.0.1:{tls_port}"\nusername = "poller"\npassword_file = "secret"\n'
+                 f'ca = "{pki.ca.cert}"', "connected"),
+                (f'url = "mqtt://127.0.0.1:{broker.port}"\nusername = "poller"\npassword = "wrong"',
+                 "refused: Not authorized"),
+                # a broker whose certificate no CA we trust signed
+                (f'url = "mqtts://127.0.0.1:{tls_port}"\nusername = "poller"\npassword_file = "secret"\n'
+                 f'ca = "{pki.other_ca.cert}"', "unreachable"),
+            ):  # fmt: skip
+                plant = tmp_path / "plant.toml"
+                plant.write_text(
+                    f'[poll]\ninterval = 0.2\n[links.l]\ntarget = "{device.target}"\n'
+                    f'[devices.d]\nlink = "l"\nread = ["40001 1"]\n[mqtt]\n{table}\n'
+                )
+                code, _, err = _poll(plant, "--rounds", "3")
+                assert code == 0, err  # polling goes on whatever the broker says
+                assert "mbtool: mqtt: broker 127.0.0.1:" in err and says in err, (table, err)
+            # Only the run that was let in published its 3 polls.
+            assert subscriber.wait_for(lambda m: len(subscriber.on("mbtool/plant/d")) == 3, 5)
+            time.sleep(0.3)
+            subscriber.close()
+            assert len(subscriber.on("mbtool/plant/d")) == 3
+    finally:
+        broker.stop()

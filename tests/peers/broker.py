@@ -7,6 +7,7 @@ it; ``apt-get install mosquitto`` does too)."""
 from __future__ import annotations
 
 import contextlib
+import getpass
 import shutil
 import socket
 import subprocess
@@ -47,6 +48,9 @@ class Broker:
             f"listener {self.port} 127.0.0.1\n"
             + ("allow_anonymous true\n" if "allow_anonymous" not in self.extra else "")
             + ("persistence false\n" if "persistence" not in self.extra else "")
+            # As the test's own user: started as root, mosquitto would become "mosquitto",
+            # who cannot read the test's files (its password file, its keys).
+            + f"user {getpass.getuser()}\n"
             + self.extra
         )
         self.log = open(self.folder / "mosquitto.log", "ab")  # noqa: SIM115 - closed by stop
