@@ -103,6 +103,7 @@ class MqttPublisher:
                 "published": self.counts["published"],
                 "dropped": self.counts["dropped"],
                 "spooled": self.spool.kept,  # while the broker was away
+                "spool_sent": self.spool.sent,  # sent once the broker was back
                 "in_spool": len(self.spool),  # still to send
                 "spool_dropped": self.spool.dropped,
             }

@@ -31,6 +31,7 @@ class Spool:
         self.path = Path(path) if path else None
         self.messages: deque[Message] = deque()
         self.kept = 0  # messages that came to the spool
+        self.sent = 0  # messages taken from it to send
         self.dropped = 0  # the oldest, dropped past the bound
         self.lines = 0  # lines in the file
         if self.path is not None and self.path.exists():
@@ -57,6 +58,7 @@ class Spool:
     def take(self) -> list[Message]:
         """Every message kept, oldest first; the spool is empty after."""
         messages = list(self.messages)
+        self.sent += len(messages)
         self.messages.clear()
         if self.path is not None:
             self._rewrite()

@@ -205,7 +205,7 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
     # --mqtt gives the url the table lacks; a broker that is not there holds nothing up.
     res = run_mbtool("poll", str(plant), "--once", "--mqtt", f"mqtt://127.0.0.1:{free_port()}")
     assert res.returncode == 0, res.stderr
-    assert "connecting: 0 published, 1 spooled (1 unsent)" in res.stderr
+    assert "unreachable (trying again): 0 published, 1 spooled (1 unsent)" in res.stderr
 
 
 # --- Home Assistant discovery ------------------------------------------------------------------
@@ -369,6 +369,16 @@ def _stamps(records: list[dict]) -> list[float]:
     return [round(datetime.fromisoformat(r["time"].replace("Z", "+00:00")).timestamp(), 3) for r in records]
 
 
+def _received(records: list[dict]) -> list[float]:
+    """The times of the messages received, in order, each once: QoS 1 is at least once, and
+    the message the broker took as it stopped, before it could acknowledge it, comes again."""
+    times = _stamps(records)
+    assert times == sorted(times), "out of order"
+    once = list(dict.fromkeys(times))
+    assert len(times) - len(once) <= 2, f"{len(times) - len(once)} messages twice"
+    return once
+
+
 def _gaps(polls: list[dict]) -> list[float]:
     times = _stamps(polls)
     return [b - a for a, b in zip(times, times[1:], strict=False)]
@@ -379,8 +389,7 @@ def test_the_broker_away_holds_no_poll_up_and_its_messages_come_in_order_when_it
     assert max(_gaps(polls)) < 0.35, "polling slowed while the broker was away"
     assert stats["mqtt"]["dropped"] == 0 and stats["mqtt"]["spool_dropped"] == 0
     assert stats["mqtt"]["spooled"] >= 10 and stats["mqtt"]["in_spool"] == 0
-    times = _stamps(received)
-    assert times == sorted(times) and len(set(times)) == len(times), "out of order or twice"
+    times = _received(received)
     # Every poll reached the subscriber: those made while the broker was away from the spool.
     assert times == _stamps(polls)
     assert spool.read_text() == ""  # sent, and emptied
@@ -390,8 +399,11 @@ def test_past_the_spool_s_bound_the_oldest_are_dropped_and_counted_exactly(tmp_p
     polls, stats, received, spool, _ = _outage(tmp_path, spool_size=5, away=2)
     mqtt = stats["mqtt"]
     assert mqtt["spooled"] >= 10, mqtt
-    assert mqtt["spool_dropped"] == mqtt["spooled"] - 5 and mqtt["in_spool"] == 0
-    sent, got = _stamps(polls), _stamps(received)
+    # Each message that came to the spool was sent from it or dropped: the newest 5 of the
+    # outage sent (and any polled before the first connection).
+    assert mqtt["spool_dropped"] == mqtt["spooled"] - mqtt["spool_sent"] and mqtt["in_spool"] == 0
+    assert 5 <= mqtt["spool_sent"] <= 7 and mqtt["spool_dropped"] >= 5
+    sent, got = _stamps(polls), _received(received)
     assert len(got) == len(sent) - mqtt["spool_dropped"]
     # The ones missing are the oldest of the outage, in one run: the spool kept the newest 5.
     missing = [t for t in sent if t not in got]
