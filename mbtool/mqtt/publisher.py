@@ -23,11 +23,13 @@ from collections.abc import Callable
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 
+from mbtool.codec.errors import RequestError
 from mbtool.mqtt.change import ChangeFilter
 from mbtool.mqtt.discovery import configs
 from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
 from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
+from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
 from mbtool.plant.schedule import Poll
 
 QUEUED = 10_000  # records waiting for the publisher's thread at most
@@ -42,9 +44,11 @@ class MqttPublisher:
         devices: list,
         headers: dict | None = None,
         notify: Callable[[str], None] = lambda line: None,
+        submit: Callable[[str, Callable], None] | None = None,
     ) -> None:
         """``headers``: each device's map header, for discovery; ``notify``: a line for each
-        change of the broker's state (connected, lost, refused)."""
+        change of the broker's state (connected, lost, refused) and each write; ``submit``:
+        hands a write to the worker of a device's link (``writes = true``)."""
         self.settings = settings
         self.devices = devices
         self.headers = headers or {}
@@ -56,6 +60,15 @@ class MqttPublisher:
         self.lock = threading.Lock()
         # handed to paho; published: sent (QoS 0) or acknowledged (QoS 1); dropped: lost
         self.counts = {"handed": 0, "published": 0, "dropped": 0}
+        self.writes = Writes(settings, self.topics, devices) if settings.writes else None
+        self.submit = submit
+        if self.writes is not None:
+            self.counts |= {
+                "writes_received": 0,
+                "writes_refused": 0,
+                "writes_written": 0,
+                "writes_failed": 0,
+            }
         self.state = "connecting"
         self.live = False  # connected, and what the connection owes sent: new messages go to paho
         self.announce = threading.Event()  # a connection came up: birth, statuses, the spool
@@ -100,8 +113,7 @@ class MqttPublisher:
             return {
                 "broker": f"{self.settings.host}:{self.settings.port}",
                 "state": self.state,
-                "published": self.counts["published"],
-                "dropped": self.counts["dropped"],
+                **{key: count for key, count in self.counts.items() if key != "handed"},
                 "spooled": self.spool.kept,  # while the broker was away
                 "spool_sent": self.spool.sent,  # sent once the broker was back
                 "in_spool": len(self.spool),  # still to send
@@ -131,6 +143,7 @@ class MqttPublisher:
         client.on_connect_fail = lambda client, userdata: self._state("unreachable (trying again)")
         client.on_disconnect = self._disconnected
         client.on_publish = self._published
+        client.on_message = self._message
         return client
 
     def _connected(self, client, userdata, flags, reason, properties) -> None:
@@ -138,12 +151,24 @@ class MqttPublisher:
             self._state(f"refused: {reason}")
             return
         self._state("connected")
+        for topic in self.writes.subscriptions() if self.writes else ():
+            client.subscribe(topic, qos=1)
         self.announce.set()
 
     def _disconnected(self, client, userdata, flags, reason, properties) -> None:
         self.live = False
         if self.state == "connected":
             self._state(f"lost: {reason}" if reason.is_failure else "disconnected")
+
+    def _message(self, client, userdata, message) -> None:
+        request = self.writes.request(message.topic, message.payload) if self.writes else None
+        if request is None:
+            return
+        self._count("writes_received")
+        if message.retain:  # a value left on the broker is no command: it would be written at each connection
+            self.report(WriteResult(request.device, request.point, "refused: a retained /set is not obeyed"))
+            return
+        self.report(request)
 
     def _published(self, client, userdata, mid, reason, properties) -> None:
         self._count("published")
@@ -171,6 +196,12 @@ class MqttPublisher:
                 continue
             if item is STOP:
                 return
+            if isinstance(item, SetRequest):
+                self._write(item)
+                continue
+            if isinstance(item, WriteResult):
+                self._result(item)
+                continue
             for message in self._messages(item):
                 self._send(message)
 
@@ -191,6 +222,22 @@ class MqttPublisher:
         for message in owed:
             self._publish(message)
         self.live = True
+
+    def _write(self, request: SetRequest) -> None:
+        """A write from the broker: refused here, or handed to its device's link."""
+        try:
+            point, write = self.writes.check(request)
+        except RequestError as error:
+            self._result(WriteResult(request.device, request.point, f"refused: {error}"))
+            return
+        self.submit(request.device, self.writes.job(request, point, write, self.report))
+
+    def _result(self, result: WriteResult) -> None:
+        outcome = result.result.partition(":")[0].partition(";")[0]
+        self._count({"written": "writes_written", "refused": "writes_refused"}.get(outcome, "writes_failed"))
+        self.notify(f"write {result.device} {result.point}: {result.result}")
+        topic = f"{self.topics.point(result.device, result.point)}/result"
+        self._send(Message(topic, result.result.encode(), 1, False))
 
     def _messages(self, item) -> list[Message]:
         if not isinstance(item, Poll):

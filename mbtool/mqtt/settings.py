@@ -51,6 +51,8 @@ KEYS = {
     "heartbeat": "seconds: every point published at least this often (0: only as on_change says)",
     "discovery": '"homeassistant"',
     "discovery_prefix": 'Home Assistant\'s discovery prefix (default "homeassistant")',
+    "writes": "true: a publish to <device topic>/<point>/set writes a writable point (default false)",
+    "allow": "the points that may be written, by name (default: every point the map marks rw)",
     "spool": "a file that keeps QoS 1 messages while the broker is away",
     "spool_size": "messages the spool keeps at most, the oldest dropped past it",
     "ca": "mqtts: the CA's certificate (PEM) the broker's is checked against",
@@ -99,6 +101,8 @@ class MqttSettings:
     heartbeat: float = 0.0
     discovery: str | None = None
     discovery_prefix: str = "homeassistant"
+    writes: bool = False
+    allow: tuple | None = None  # the points that may be written; None: every writable one
     spool: str | None = None
     spool_size: int = 10000
     ca: str | None = None
@@ -183,7 +187,11 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             changes[key] = _text(value, at)
         elif key == "password_file":
             changes["password"] = _password_file(value, at)
-        elif key in ("retain", "on_change", "insecure"):
+        elif key == "allow":
+            if not isinstance(value, list) or not all(isinstance(name, str) for name in value):
+                raise RequestError(f'{at}: expected a list of point names, such as ["setpoint"]')
+            changes[key] = tuple(value)
+        elif key in ("retain", "on_change", "insecure", "writes"):
             if not isinstance(value, bool):
                 raise RequestError(f"{at}: expected true or false")
             changes[key] = value
@@ -237,15 +245,23 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         value = getattr(settings, name)
         if value is not None and not Path(value).is_file():
             raise RequestError(f"{where} {name}: no file {value}")
+    if settings.allow is not None and not settings.writes:
+        raise RequestError(f"{where} allow: goes with writes = true")
+    for name in settings.allow or ():
+        if not any(name in _points(device) for device in devices):
+            raise RequestError(f"{where} allow: no device reads a point named {name}")
     for device in devices:
         for text, key in ((settings.topic, "topic"), (settings.status_topic, "status_topic")):
             _topic_problem(fill(text, settings, device if key == "topic" else None), f"{where} {key}", text)
-        points = [point.name for point in device.reader.points]
         if settings.per_point:
-            for point in points:
+            for point in _points(device):
                 _topic_problem(point, f'{where} points = "point": {device.name}\'s point', point)
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:
         raise RequestError(f"{where} topic: {settings.topic!r} must name {{device}}: a topic a device")
+
+
+def _points(device) -> list[str]:
+    return [point.name for point in device.reader.points]
 
 
 def fill(template: str, settings: MqttSettings, device=None) -> str:

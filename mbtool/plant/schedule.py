@@ -25,6 +25,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 from __future__ import annotations
 
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable, Collection
@@ -175,7 +176,36 @@ class LinkWorker:
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.crashed: BaseException | None = None
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
+        # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
+        # accept_jobs, and the link is then never opened a second time for it.
+        self.jobs: queue.SimpleQueue | None = None
+        self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+
+    def accept_jobs(self) -> None:
+        self.jobs = queue.SimpleQueue()
+
+    def submit(self, device: str, job: Callable) -> None:
+        """``job(client)`` run on this thread before its next poll, with ``device``'s timeout and
+        retries (``client`` None: the link is not open)."""
+        self.jobs.put((device, job))
+        self.poke.set()
+
+    def _run_jobs(self) -> None:
+        while self.jobs is not None and not self.jobs.empty():
+            device, job = self.jobs.get_nowait()
+            if self.client is not None:
+                spec = next(d.spec for d in self.devices if d.spec.name == device)
+                self.client.timeout, self.client.retries = limits(spec, self.spec)
+            job(self.client)
+
+    def _sleep(self, seconds: float) -> None:
+        """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        if self.jobs is None:
+            self.stop.wait(seconds)
+        else:  # in short slices, so that the run's stop is seen as soon as without jobs
+            self.poke.wait(min(seconds, 0.2))
+            self.poke.clear()
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -224,12 +254,13 @@ class LinkWorker:
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
+            self._run_jobs()
             now = time.monotonic()
             waiting = self._waiting()
             due = [d for d in waiting if d.due <= now and self.open_at <= now]
             if not due:
                 wake = max(min(d.due for d in waiting), self.open_at)
-                self.stop.wait(max(0.0, wake - now))
+                self._sleep(max(0.0, wake - now))
                 continue
             device = min(due, key=lambda d: d.due)  # the one that has waited longest
             if self.client is None and not self._open(due):

@@ -458,3 +458,79 @@ def test_a_password_and_mqtts_are_what_the_broker_asks_for_and_a_wrong_one_is_sa
             assert len(subscriber.on("mbtool/plant/d")) == 3
     finally:
         broker.stop()
+
+
+# --- writes from the broker ----------------------------------------------------------------------
+
+
+def _requests(bus: PtyPair) -> list[tuple[str, bytes]]:
+    """The frames that crossed an RTU bus, in order: (direction, bytes); mbtool's requests
+    here are all 8 bytes (FC 01-04 reads, FC 06)."""
+    frames, pending = [], b""
+    for _, direction, data in list(bus.crossings):
+        if direction == "request":
+            pending += data
+            while len(pending) >= 8:
+                frames.append(("request", pending[:8]))
+                pending = pending[8:]
+        elif frames and frames[-1][0] == "reply":
+            frames[-1] = ("reply", frames[-1][1] + data)
+        else:
+            frames.append(("reply", data))
+    return frames
+
+
+def test_a_set_publish_is_written_between_polls_read_back_and_a_bad_one_never_reaches_the_bus(tmp_path):
+    (tmp_path / "pump.toml").write_text(
+        '[points.level]\nref = 40011\nscale = 0.1\n'
+        '[points.setpoint]\nref = 40501\nscale = 0.1\nunit = "m3/h"\naccess = "rw"\n'
+        '[points.limit]\nref = 40502\naccess = "rw"\n'
+    )
+    bus = PtyPair()
+    try:
+        with mosquitto() as broker, serve("-u", "1", "--framer", "rtu", *PTY_SERIAL_OPTS, target=bus.device_path):
+            plant = tmp_path / "plant.toml"
+            plant.write_text(
+                f'[poll]\ninterval = 0.2\n[links.bus]\ntarget = "{bus.mbtool_path}"\nparity = "N"\n'
+                '[devices.pump]\nlink = "bus"\nmap = "pump.toml"\n'
+                f'[mqtt]\nurl = "{broker.url}"\nwrites = true\nallow = ["setpoint", "level"]\n'
+            )
+            subscriber = Subscriber(broker.port, "mbtool/#")
+            proc = _start_poll(plant, "-o", "json", "--stats", "json")
+            try:
+                assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/pump"), 10)
+                base = "mbtool/plant/pump"
+                for point, value, result in (
+                    ("setpoint", "12.5", b"written"),
+                    ("level", "3", b"refused: level (40011) is not writable: the map does not mark it rw"),
+                    ("limit", "3", b"refused: limit is not on the allow-list (setpoint, level)"),
+                    ("setpoint", "abc", b"refused: setpoint: abc is not a number"),
+                    ("setpoint", "99999", b"refused: setpoint: 99999 m3/h (raw 999990) is out of range"),
+                    ("nope", "1", b"refused: pump reads no point nope"),
+                ):
+                    subscriber.client.publish(f"{base}/{point}/set", value, qos=1)
+                    topic = f"{base}/{point}/result"
+                    count = len(subscriber.on(topic))
+                    assert subscriber.wait_for(lambda m, t=topic, c=count: len(subscriber.on(t)) > c, 5), point
+                    got = subscriber.on(topic)[-1]
+                    assert got.startswith(result), (point, value, got)
+                # The next poll reads what was written.
+                assert subscriber.wait_for(lambda m: json.loads(subscriber.on(base)[-1])["points"]["setpoint"] == 12.5, 5)
+            finally:
+                proc.send_signal(signal.SIGTERM)
+                out, err = proc.communicate(timeout=10)
+            subscriber.close()
+    finally:
+        bus.close()
+    assert "mbtool: mqtt: write pump setpoint: written" in err
+    stats = json.loads(err.strip().splitlines()[-2])["mqtt"]
+    assert (stats["writes_received"], stats["writes_written"], stats["writes_refused"]) == (6, 1, 5)
+    frames = _requests(bus)
+    writes = [frame for direction, frame in frames if direction == "request" and frame[1] == 0x06]
+    assert writes == [frames_06 := writes[0]] and frames_06[2:6] == bytes.fromhex("01F4 007D")  # 500 := 125
+    # One request at a time on the bus: every reply answers the request just before it.
+    for before, frame in zip(frames, frames[1:], strict=False):
+        if frame[0] == "reply":
+            assert before[0] == "request", "two replies in a row"
+        else:
+            assert before[0] == "reply", "a request sent before the last one was answered"

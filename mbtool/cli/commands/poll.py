@@ -15,7 +15,7 @@ import time
 
 import click
 
-from mbtool.cli.broker import start_publisher, stats_line
+from mbtool.cli.broker import hand_writes, make_publisher, stats_line
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
@@ -172,7 +172,7 @@ def poll(
     report = view.report if view else output.report
     publisher = None
     if mqtt is not None:
-        publisher = start_publisher(mqtt, plant, quiet=live)
+        publisher = make_publisher(mqtt, plant, quiet=live)
         report = _both(report, publisher.report)
         if view:
             view.publisher = publisher
@@ -185,6 +185,10 @@ def poll(
         hex_links or None,
     )
     output.states = runner.devices
+    if publisher is not None:
+        if mqtt.writes:
+            hand_writes(publisher, runner)
+        publisher.start()
     started = time.monotonic()
     interrupted = False
     try:
