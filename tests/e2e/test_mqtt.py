@@ -268,8 +268,34 @@ SCHEMAS = {
         "properties": COMMON | {"payload_on": {"type": "string"}, "payload_off": {"type": "string"},
                                 "device_class": {"type": "string"}},
         "additionalProperties": False,
-    },  # fmt: skip
-}
+    },
+    # https://www.home-assistant.io/integrations/switch.mqtt/, select.mqtt/, number.mqtt/
+    "switch": {
+        "type": "object",
+        "required": ["command_topic", "unique_id", "device"],
+        "properties": COMMON | {"command_topic": {"type": "string", "pattern": "^[^+#]+$"},
+                                "payload_on": {"type": "string"}, "payload_off": {"type": "string"}},
+        "additionalProperties": False,
+    },
+    "select": {
+        "type": "object",
+        "required": ["command_topic", "options", "unique_id", "device"],
+        "properties": COMMON | {"command_topic": {"type": "string", "pattern": "^[^+#]+$"},
+                                "options": {"type": "array", "items": {"type": "string"}, "minItems": 1}},
+        "additionalProperties": False,
+    },
+    "number": {
+        "type": "object",
+        "required": ["command_topic", "min", "max", "step", "unique_id", "device"],
+        "properties": COMMON | {"command_topic": {"type": "string", "pattern": "^[^+#]+$"},
+                                "min": {"type": "number"}, "max": {"type": "number"},
+                                "step": {"type": "number", "minimum": 0.001},
+                                "mode": {"enum": ["auto", "box", "slider"]},
+                                "unit_of_measurement": {"type": "string"},
+                                "device_class": {"enum": [c for c in SENSOR_CLASSES if c not in ("enum", "energy")]}},
+        "additionalProperties": False,
+    },
+}  # fmt: skip
 
 
 def test_home_assistant_discovery_configs_validate_and_name_the_right_component_for_each_point(tmp_path):
@@ -321,6 +347,37 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
     assert by_name["level"]["value_template"] == (
         '{% if "level" in value_json.points %}{{ value_json.points["level"] }}{% else %}{{ this.state }}{% endif %}'
     )
+
+
+def test_with_writes_a_writable_point_is_a_switch_a_select_or_a_number_whose_command_is_its_set(tmp_path):
+    jsonschema = pytest.importorskip("jsonschema")
+    (tmp_path / "pump.toml").write_text(
+        '[points.setpoint]\nref = 40501\nscale = 0.1\nunit = "m3/h"\naccess = "rw"\n'
+        '[points.pump_on]\nref = "00001"\naccess = "rw"\n'
+        '[points.mode]\nref = 40003\nenum = { 2 = "auto", 3 = "manual" }\naccess = "rw"\n'
+        '[points.limit]\nref = 40502\ntype = "int16"\naccess = "rw"\n'
+    )
+    with mosquitto() as broker, serve("-u", "1") as device:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(
+            f'[links.l]\ntarget = "{device.target}"\n[devices.pump]\nlink = "l"\nmap = "pump.toml"\n'
+            '[mqtt]\ndiscovery = "homeassistant"\nwrites = true\nallow = ["setpoint", "pump_on", "mode"]\n'
+        )
+        code, _, err = _poll(plant, "--mqtt", broker.url, "--once")
+        assert code == 0, err
+        late = Subscriber(broker.port, "homeassistant/#")
+        assert late.wait_for(lambda m: len(m) == 4, 5)
+        late.close()
+    configs = {topic.split("/")[3]: (topic.split("/")[1], json.loads(payload)) for topic, payload, _ in late.messages}
+    for component, config in configs.values():
+        jsonschema.validate(config, SCHEMAS[component])
+    assert {name: component for name, (component, _) in configs.items()} == {
+        "setpoint": "number", "pump_on": "switch", "mode": "select", "limit": "sensor",  # not on the allow-list
+    }  # fmt: skip
+    number = configs["setpoint"][1]
+    assert (number["min"], number["max"], number["step"]) == (0, 6553.5, 0.1)
+    assert number["command_topic"] == "mbtool/plant/pump/setpoint/set"
+    assert configs["mode"][1]["options"] == ["auto", "manual"]
 
 
 # --- the broker away ---------------------------------------------------------------------------
