@@ -6,5 +6,6 @@ holds up a link's thread.  ``settings.py`` checks the ``[mqtt]`` table of an inv
 ``--mqtt URL``); ``topics.py`` names the topics and writes the payloads; ``change.py``
 decides which points a poll publishes (on_change, deadband, heartbeat); ``discovery.py``
 writes Home Assistant's discovery configs; ``spool.py`` keeps QoS 1 messages while the
-broker is away; ``publisher.py`` runs the client (paho-mqtt, imported only when MQTT is used).
+broker is away; ``writes.py`` checks a ``/set`` and makes the job a link's worker runs;
+``publisher.py`` runs the client (paho-mqtt, imported only when MQTT is used).
 """
