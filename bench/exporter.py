@@ -238,7 +238,7 @@ def bench_inventory(args, folder: Path) -> None:
 
 
 def polls_a_second(folder: Path, devices: int, exporting: bool, seconds: float) -> float:
-    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.plant_text import PlantMetrics
     from mbtool.cli.program import register_schemes
     from mbtool.plant.schedule import Plant

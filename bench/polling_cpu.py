@@ -171,14 +171,16 @@ def main() -> None:
     parser.add_argument("--short", type=int, default=1000, help="reads in the short run")
     parser.add_argument("--long", type=int, default=20000, help="reads in the long run")
     parser.add_argument(
-        "--changing",
+        "--same",
         action="store_true",
-        help="the server's registers count up after every reply, so every poll's values are new "
-        "(by default they stay, as in a device whose readings change slower than it is polled)",
+        help="the server's registers keep their values, as in a device whose readings change slower"
+        " than it is polled (by default they count up after every reply, so every poll's values are new)",
     )
+    parser.add_argument("--changing", action="store_true", help=argparse.SUPPRESS)  # the default now
     args = parser.parse_args()
     os.chdir(ROOT)
-    server_c = ("#define CHANGING\n" if args.changing else "") + SERVER_C
+    changing = not args.same
+    server_c = ("#define CHANGING\n" if changing else "") + SERVER_C
     with tempfile.TemporaryDirectory() as work:
         server_bin, client_bin = build(Path(work), {"server": server_c, "client": TCP_CLIENT_C})
         port = free_port()
@@ -206,7 +208,7 @@ def main() -> None:
     base = statistics.median(per_tx["libmodbus C"])
     print(
         f"{args.rounds} rounds, {args.long} - {args.short} reads of {COUNT} registers, TCP loopback,"
-        f" libmodbus's C server{', values new every read' if args.changing else ''}"
+        f" libmodbus's C server{', values new every read' if changing else ', values that stay (--same)'}"
         f"{'; server and clients on separate cores' if PINNED else ''}"
     )
     print(f"{'client':<18} {'CPU us/tx':>10} {'x C':>6} {'tx/s':>8}   (per round: us/tx)")

@@ -33,13 +33,44 @@ class MbtoolError(Exception):
     exit_code = ExitCode.INTERNAL
 
 
+class UsageError(RequestError, MbtoolError):
+    """A mistake in what the user gave: an option, a profile, an inventory, a setting that does
+    not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
+
+    Apart from the codec's RequestError, which is the spec refusing a request; it is one for
+    now only so that the code that catches a RequestError to say where it came from (a
+    file's table and key) says so of either.
+    """
+
+    exit_code = ExitCode.USAGE
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+
+
 class Summary(MbtoolError):
-    """The end of a run (polling, scan, monitor): the counts on one stderr line, the verdict
-    in the exit code, leaving through cli.main like every error."""
+    """The end of a run (monitor, dump, sunspec, snapshot): the counts on one stderr line, the
+    verdict in the exit code, leaving through cli.main like every error.  A run that can
+    return its end says it with a Verdict instead: success is no exception."""
 
     def __init__(self, message: str, exit_code: ExitCode) -> None:
         super().__init__(message)
         self.exit_code = exit_code
+
+
+class Verdict:
+    """How a run that ran ended (read --interval, poll, ping, scan): the counts on one stderr
+    line and the verdict in the exit code.  A command returns it, and cli.program.main writes
+    the line after what the command wrote to stdout, and exits with the code."""
+
+    __slots__ = ("exit_code", "message")
+
+    def __init__(self, message: str, exit_code: ExitCode) -> None:
+        self.message = message
+        self.exit_code = exit_code
+
+    def __str__(self) -> str:
+        return self.message
 
 
 class PartialRead(MbtoolError):

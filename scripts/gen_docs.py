@@ -799,7 +799,7 @@ def live_view_capture() -> str:
     from rich.console import Console
 
     from mbtool.cli.commands.poll import LiveView
-    from mbtool.cli.inventory import load_inventory
+    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
     from mbtool.codec.record import replace
     from mbtool.link.connection import open_client
@@ -877,7 +877,7 @@ def _capture_poll(client, state, when: float, rtt: float) -> list:
     state.stats.poll(readings is not None)
     now = when - CAPTURE_START  # the scheduler's monotonic clock
     event = state.succeeded(now, when) if readings is not None else state.failed(now, when, str(error))
-    state.last_poll = Poll(spec, when, readings, error, state.state)
+    state.last_poll = Poll(spec, when, readings, error, state.state, state.last_success, state.stats.copy())
     return [state.last_poll] + ([event] if event is not None else [])
 
 

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from mbtool.codec.errors import RequestError
 from mbtool.device.datafile import load_write_roles
+from mbtool.errors import UsageError
+from mbtool.link.settings import SETTINGS, check_tls_framing, not_for_tls
 from mbtool.words import counted
 
 if TYPE_CHECKING:
@@ -21,7 +22,7 @@ def parse_roles(text: str) -> frozenset[str]:
     """--write-roles operator,engineer: the roles, each as the certificates spell it."""
     roles = [role.strip() for role in text.split(",")]
     if not all(roles):
-        raise RequestError(f"--write-roles {text}: an empty role (give ROLE,ROLE...)")
+        raise UsageError(f"--write-roles {text}: an empty role (give ROLE,ROLE...)")
     return frozenset(roles)
 
 
@@ -35,16 +36,15 @@ def tls_server_settings(
     data_file: str | None = None,
 ):
     """(the SSLContext, the roles that may write or None for any) of a server on ``where``;
-    (None, None) off tls://, where the options are refused (RequestError, exit 2)."""
-    given = [option for option, value in (("--cert", cert), ("--key", key), ("--ca", ca)) if value]
+    (None, None) off tls://, where the options are refused (UsageError, exit 2)."""
+    given = [SETTINGS[name].option for name, value in (("cert", cert), ("key", key), ("ca", ca)) if value]
     if write_roles is not None:
         given.append("--write-roles")
     if where.scheme != "tls":
         if given:
-            raise RequestError(f"{given[0]} is for a tls:// server (Modbus/TCP Security); {where} is not one")
+            raise not_for_tls(given[0], "a tls:// server", f"; {where} is not one")
         return None, None
-    if framer != "tcp":
-        raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framer}")
+    check_tls_framing(framer)
     from mbtool.link.tls import server_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
     roles = parse_roles(write_roles) if write_roles is not None else None
@@ -54,9 +54,9 @@ def tls_server_settings(
 
 
 def check_udp_rate(where: Target, udp_rate: int | None) -> None:
-    """--udp-rate only where datagrams come: RequestError (exit 2) elsewhere."""
+    """--udp-rate only where datagrams come: UsageError (exit 2) elsewhere."""
     if udp_rate is not None and where.scheme not in DATAGRAM_SCHEMES:
-        raise RequestError(f"--udp-rate is for a udp:// or rtu+udp:// server; {where} is not one")
+        raise UsageError(f"--udp-rate is for a udp:// or rtu+udp:// server; {where} is not one")
 
 
 def datagrams_dropped(stats: Stats) -> list[str]:

@@ -198,24 +198,11 @@ class Metrics:
 
 
 def name_problem(name: str, what: str, influx: bool) -> str:
-    """Why ``name`` (``what``: "a measurement", "a tag or label") cannot be written; "" when it can.
+    """Why ``name`` cannot be written; "" when it can (registermap.load.name_problem: the
+    inventory's loader checks a device's measurement by it too)."""
+    from mbtool.registermap.load import name_problem  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
 
-    Each is written on one line: the line protocol has no escape for a newline, which would
-    end the point and make the rest a point of its own (in a measurement of its own).  It
-    cannot be empty; to InfluxDB a measurement starting with # makes the line a comment."""
-    from mbtool.registermap.load import one_line  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
-
-    if not name:
-        return f"{what} has a name"
-    if not one_line(name):
-        return f"{what} is written on one line: no control characters"
-    if influx and what == "a measurement" and name.startswith("#"):
-        return "a line starting with # is a comment to InfluxDB"
-    if influx and name.endswith("\\"):
-        # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after a
-        # backslash in a measurement or tag value as escaped, the separator too.
-        return f"a backslash at the end of {what} escapes the separator after it to InfluxDB 1.x"
-    return ""
+    return name_problem(name, what, influx)
 
 
 def _values(result) -> list[tuple[dict, object, str]]:

@@ -10,58 +10,40 @@ from collections.abc import Callable
 import click
 
 from mbtool.cli.completion import complete_port, complete_profile
-from mbtool.cli.param_types import (
-    COUNT,
-    PARITY,
-    Choice,
-    FilePath,
-    Number,
-    PositiveFloat,
-    Rs485Delays,
-    Seconds,
-)
+from mbtool.cli.param_types import COUNT, Choice, FilePath, Number, Seconds, setting_type
 from mbtool.cli.parsing import DeviceCommand
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
+from mbtool.errors import UsageError
 from mbtool.link.connection import Connection, check
+from mbtool.link.settings import SECURITY, SERIAL_LINE, SETTINGS, USE, Flag, OneOf
 
 # --- shared options ------------------------------------------------------------------
 
 
+def link_option(name: str, **extra) -> Callable:
+    """The option of the link setting ``name``, made from its row in ``link.settings.SETTINGS``
+    (its spellings, type, default and help); ``extra``: what only the command line has."""
+    setting = SETTINGS[name]
+    attrs: dict = {"help": setting.help, "metavar": setting.metavar}
+    if isinstance(setting.kind, Flag):
+        attrs["is_flag"] = True
+    else:
+        attrs["type"] = setting_type(setting.kind)
+        if setting.default is not None:
+            # A choice of numbers (data bits) is offered as text, as --help lists it.
+            attrs["default"] = str(setting.default) if isinstance(setting.kind, OneOf) else setting.default
+        if setting.show_default:
+            attrs["show_default"] = True
+    if setting.envvar:
+        attrs |= {"envvar": setting.envvar, "show_envvar": True}
+    return click.option(*setting.flags, **attrs | extra)
+
+
 # The serial line's settings, shared by the master commands, serve and monitor.
-SERIAL_LINE_OPTIONS = [
-    click.option(
-        "-b",
-        "--baud",
-        type=Number(1, 4_000_000, "baud rate"),
-        default=Connection.baud,
-        show_default=True,
-        help="Serial baud rate (also sets the t3.5 silence).",
-    ),
-    click.option(
-        "--parity",
-        type=PARITY,
-        default=Connection.parity,
-        show_default=True,
-        help="Serial parity: N, E or O (none, even, odd).",
-    ),
-    click.option(
-        "--bytesize",
-        type=Choice(["7", "8"]),
-        default=str(Connection.bytesize),
-        show_default=True,
-        help="Serial data bits (ASCII mode classically uses 7).",
-    ),
-    click.option(
-        "--stopbits",
-        type=Choice(["1", "2"]),
-        default=str(Connection.stopbits),
-        show_default=True,
-        help="Serial stop bits.",
-    ),
-]
+SERIAL_LINE_OPTIONS = [link_option(name) for name in SERIAL_LINE]
 
 
 def with_options(options: list[Callable]) -> Callable:
@@ -134,92 +116,11 @@ NO_HEADER_OPTION = click.option(
 )
 
 # How the master uses its link, shared by the device commands and bridge.
-LINK_OPTIONS = [
-    click.option(
-        "-t",
-        "--timeout",
-        type=PositiveFloat(),
-        default=Connection.timeout,
-        show_default=True,
-        help="Seconds to wait for each reply.",
-    ),
-    click.option(
-        "--retries",
-        type=Number(0, 100, "retries"),
-        default=Connection.retries,
-        show_default=True,
-        help="Times to resend after a timeout or a bad reply.",
-    ),
-    click.option("--echo", is_flag=True, help="Strip the local echo of a half-duplex adapter."),
-    click.option(
-        "--pause",
-        type=PositiveFloat(zero_ok=True),
-        default=Connection.pause,
-        help="Seconds at least between a reply and the next request, for devices and gateways "
-        "that drop requests sent back to back (polling, scan and multi-request commands).",
-    ),
-    click.option(
-        "--connect-delay",
-        type=PositiveFloat(zero_ok=True),
-        default=Connection.connect_delay,
-        help="Seconds to wait after connecting before the first request, for devices that drop "
-        "a request sent right after the handshake.",
-    ),
-    click.option(
-        "--lenient",
-        is_flag=True,
-        help="Accept a Modbus TCP reply that breaks the spec harmlessly (bytes after a complete "
-        "reply, a byte count that disagrees with whole data, another unit id echoed), with a warning.",
-    ),
-    click.option(
-        "--rs485",
-        is_flag=True,
-        help="Drive RTS high while sending, for an RS-485 adapter without automatic direction "
-        "(the kernel driver's RS-485 mode where it has one, else mbtool switches RTS).",
-    ),
-    click.option(
-        "--rs485-delays",
-        type=Rs485Delays(),
-        metavar="MS[,MS]",
-        help="RTS raised this long before the frame and held this long after it; implies --rs485.",
-    ),
-]
+LINK_OPTIONS = [link_option(name) for name in USE]
 
 # Modbus/TCP Security's certificates (tls:// targets), shared by the device commands and bridge;
-# each is a profile and inventory link key too (cli/profiles.py).
-TLS_OPTIONS = [
-    click.option(
-        "--cert",
-        metavar="FILE",
-        type=FilePath(dir_okay=False),
-        help="tls://: mbtool's client certificate (PEM, its chain after it): Modbus/TCP Security is mutual.",
-    ),
-    click.option(
-        "--key",
-        metavar="FILE",
-        type=FilePath(dir_okay=False),
-        help="tls://: the certificate's private key (PEM) where --cert's file has none; an "
-        "encrypted one's password is asked on the terminal or read from MBTOOL_KEY_PASSWORD.",
-    ),
-    click.option(
-        "--ca",
-        metavar="FILE",
-        type=FilePath(dir_okay=False),
-        help="tls://: the CA certificates to trust (PEM), or a device's own certificate to trust "
-        "that one self-signed device; default: the system's CAs.",
-    ),
-    click.option(
-        "--insecure",
-        is_flag=True,
-        help="tls://: do not check the server's certificate (a warning each run): anyone on the "
-        "way can then read and change the traffic.",
-    ),
-    click.option(
-        "--server-name",
-        metavar="NAME",
-        help="tls://: the name the server's certificate has, where it is not the host in -p.",
-    ),
-]
+# each is a profile and inventory link key too.
+TLS_OPTIONS = [link_option(name) for name in SECURITY]
 
 WRITE_ROLES_OPTION = click.option(
     "--write-roles",
@@ -255,38 +156,10 @@ SERVE_TLS_OPTIONS = [
 ]
 serve_tls_options = with_options(SERVE_TLS_OPTIONS)
 
-PORT_OPTION = click.option(
-    "-p",
-    "--port",
-    envvar="MBTOOL_PORT",
-    metavar="TARGET",
-    shell_complete=complete_port,
-    help="tcp://HOST[:PORT], tls://HOST[:PORT] (Modbus/TCP Security, port 802), udp://HOST[:PORT], "
-    "rtu+udp://HOST:PORT, a serial device, socket://HOST:PORT, rfc2217://HOST:PORT, "
-    "loop:// or sim:// (the built-in device).",
-    show_envvar=True,
-)
-UNIT_OPTION = click.option(
-    "-u",
-    "--unit",
-    envvar="MBTOOL_UNIT",
-    type=Number(0, 255, "unit"),
-    default=Connection.unit,
-    show_default=True,
-    help="Unit (slave) id; 0 broadcasts a write.",
-    show_envvar=True,
-)
-FRAMER_OPTION = click.option(
-    "--framer",
-    type=Choice(["rtu", "ascii", "tcp"]),
-    help="Framing: tcp for tcp://, tls:// and udp:// targets, rtu otherwise.",
-)
-RECONNECT_EACH_OPTION = click.option(
-    "--reconnect-each",
-    is_flag=True,
-    help="Polling: close and reopen the link for every poll, for devices and gateways that "
-    "serve one client or leak connections.",
-)
+PORT_OPTION = link_option("port", shell_complete=complete_port)
+UNIT_OPTION = link_option("unit")
+FRAMER_OPTION = link_option("framer")
+RECONNECT_EACH_OPTION = link_option("reconnect_each")
 HEX_OPTION = click.option(
     "--hex",
     "hex_trace",
@@ -311,30 +184,8 @@ DRY_RUN_OPTION = click.option(
 
 
 # The parameters connection_options may give a command, as click names them: those that
-# make its Connection, and those that make its Settings.
-CONNECTION_KEYS = (
-    "port",
-    "unit",
-    "framer",
-    "baud",
-    "parity",
-    "bytesize",
-    "stopbits",
-    "timeout",
-    "retries",
-    "echo",
-    "pause",
-    "connect_delay",
-    "lenient",
-    "rs485",
-    "rs485_delays",
-    "cert",
-    "key",
-    "ca",
-    "insecure",
-    "server_name",
-    "reconnect_each",
-)
+# make its Connection (every link setting), and those that make its Settings.
+CONNECTION_KEYS = tuple(SETTINGS)
 SETTINGS_KEYS = (
     "hex_trace",
     "output_format",
@@ -416,7 +267,7 @@ def map_option(what: str) -> Callable:
 
 def type_options_given(map_path: str | None = None) -> list[str]:
     """--type and --order, those given rather than left at their default; with a map,
-    none may be: the map gives each point's own (RequestError, exit 2)."""
+    none may be: the map gives each point's own (UsageError, exit 2)."""
     ctx = click.get_current_context()
     given = [
         option
@@ -424,7 +275,7 @@ def type_options_given(map_path: str | None = None) -> list[str]:
         if ctx.get_parameter_source(param) is not click.core.ParameterSource.DEFAULT
     ]
     if map_path and given:
-        raise RequestError(f"{given[0]} does not apply with -m: the map gives each point's type and order")
+        raise UsageError(f"{given[0]} does not apply with -m: the map gives each point's type and order")
     return given
 
 
@@ -447,10 +298,10 @@ def reference_target(targets: tuple[str, ...], command: str, types_given: list[s
     except RequestError as error:
         if text[:1].isdigit():  # a reference mistyped (4o001); a name starts with a letter (voltage_l1)
             raise
-        raise RequestError(f"{error}; to {command} a point by name, give its map: -m MAP") from None
+        raise UsageError(f"{error}; to {command} a point by name, give its map: -m MAP") from None
     count = COUNT.convert(targets[1], None, click.get_current_context()) if len(targets) == 2 else 1
     if table.bits and types_given:
-        raise RequestError(f"{types_given[0]} is for registers; {text} is {table.item} {address + 1}, a bit")
+        raise UsageError(f"{types_given[0]} is for registers; {text} is {table.item} {address + 1}, a bit")
     return table, address, count
 
 
@@ -497,13 +348,12 @@ def device_command(
             # The command's own arguments stay in kwargs; the shared options make the
             # Connection and the Settings.
             shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
-            shared["bytesize"], shared["stopbits"] = int(shared["bytesize"]), int(shared["stopbits"])
             connection = Connection(**shared)
             shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
             output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
             if output_format in MONITORING_FORMATS and not readings:
-                raise RequestError(
+                raise UsageError(
                     f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
                 )
             settings = Settings(

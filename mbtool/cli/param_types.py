@@ -1,23 +1,16 @@
 """The command line's parameter types: numbers in decimal or hex within their range, unit
-lists, seconds, RS-485 delays, and one case rule for every choice."""
+lists, seconds, RS-485 delays, and one case rule for every choice.  The rules of those a link
+setting takes are the kinds of ``link.settings``, which convert a profile's and an inventory's
+values too: each type here hands its text to its kind and says the kind's refusal as click's."""
 
 from __future__ import annotations
 
 import click
 
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
+from mbtool.link import settings as link_settings
 
-
-def parse_int(text: str, what: str = "number") -> int:
-    """Decimal or 0x hex (also 0o / 0b); leading zeros are decimal, as a user means them."""
-    text = text.strip()
-    try:
-        if text.lstrip("+-").isdigit():
-            return int(text, 10)
-        return int(text, 0)
-    except ValueError:
-        shown = text or "(empty)"
-        raise RequestError(f"{what} {shown} is not a number (decimal or 0x hex)") from None
+parse_int = link_settings.parse_whole  # decimal or 0x hex: every number the command line takes
 
 
 def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
@@ -27,17 +20,17 @@ def parse_units(text: str, broadcast: bool = False) -> frozenset[int]:
     for part in text.split(","):
         part = part.strip()
         if not part:
-            raise RequestError(f"empty unit id in {text}")
+            raise UsageError(f"empty unit id in {text}")
         low_text, dash, high_text = part.partition("-")
         low = parse_int(low_text, "unit")
         high = parse_int(high_text, "unit") if dash else low
         if low > high:
-            raise RequestError(f"unit range {part} runs backwards")
+            raise UsageError(f"unit range {part} runs backwards")
         lowest = 0 if broadcast else 1
         for unit in (low, high):
             if not lowest <= unit <= 255:
                 why = "" if broadcast else " (unit 0 is broadcast: every unit hears it)"
-                raise RequestError(f"unit {unit} is out of range {lowest}..255{why}")
+                raise UsageError(f"unit {unit} is out of range {lowest}..255{why}")
         units.update(range(low, high + 1))
     return frozenset(units)
 
@@ -59,19 +52,19 @@ class Number(click.ParamType):
     name = "number"
 
     def __init__(self, low: int, high: int, what: str) -> None:
-        self.low, self.high, self.what = low, high, what
+        self.kind = link_settings.Whole(low, high, what)
+        self.low, self.high, self.what = low, high, what  # the man page names the range
 
     def convert(self, value, param, ctx):
-        if isinstance(value, int):
-            number = value
-        else:
-            try:
-                number = parse_int(value, self.what)
-            except RequestError as error:
-                self.fail(str(error), param, ctx)
-        if not self.low <= number <= self.high:
-            self.fail(f"{self.what} {number} is out of range {self.low}..{self.high}", param, ctx)
-        return number
+        return _converted(self.kind, value, self, param, ctx)
+
+
+def _converted(kind: link_settings.Kind, value, param_type: click.ParamType, param, ctx):
+    """``value`` by ``kind``'s rule, its refusal click's usage error (exit 2, naming the option)."""
+    try:
+        return kind.convert(value)
+    except UsageError as error:
+        param_type.fail(str(error), param, ctx)
 
 
 ADDRESS = Number(0, 0xFFFF, "address")
@@ -84,37 +77,20 @@ class PositiveFloat(click.ParamType):
     name = "seconds"
 
     def __init__(self, zero_ok: bool = False) -> None:
-        self.zero_ok = zero_ok
+        self.kind = link_settings.Seconds(zero_ok)
 
     def convert(self, value, param, ctx):
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value} is not a number of seconds", param, ctx)
-        if number != number or number == float("inf") or number < 0 or (number == 0 and not self.zero_ok):
-            least = "0 or more" if self.zero_ok else "more than 0"
-            self.fail(f"must be {least} seconds, not {value}", param, ctx)
-        return number
+        return _converted(self.kind, value, self, param, ctx)
 
 
 class Rs485Delays(click.ParamType):
     """BEFORE[,AFTER] in milliseconds, as modpoll's -4 takes them; kept in seconds."""
 
     name = "ms[,ms]"
-    LIMIT_MS = 1000  # the kernel keeps these in milliseconds; a second is already absurd
+    kind = link_settings.Delays()
 
     def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).split(",")
-        try:
-            delays = [float(part) for part in parts]
-        except ValueError:
-            self.fail(f"{value} is not BEFORE[,AFTER] in milliseconds", param, ctx)
-        if len(delays) > 2 or not all(0 <= d <= self.LIMIT_MS for d in delays):
-            self.fail(f"{value}: give BEFORE[,AFTER], each 0..{self.LIMIT_MS} ms", param, ctx)
-        before, after = (delays + [0.0])[:2]
-        return (before / 1000, after / 1000)
+        return _converted(self.kind, value, self, param, ctx)
 
 
 class Choice(click.Choice):
@@ -127,15 +103,19 @@ class Choice(click.Choice):
     help and completion show the choices in lower case from Click 8.2 on ([n|e|o] for a
     parity the docs write N, E, O)."""
 
-    def __init__(self, choices, aliases: dict[str, str] | None = None) -> None:
+    def __init__(self, choices, aliases: dict[str, str] | None = None, whole: bool = False) -> None:
         super().__init__(choices, case_sensitive=True)
         self.spelling = {choice.lower(): choice for choice in self.choices}
         self.spelling.update((word.lower(), choice) for word, choice in (aliases or {}).items())
+        self.whole = whole  # the choices are numbers (data bits): the command gets the number
 
     def convert(self, value, param, ctx):
+        if isinstance(value, int) and self.whole:
+            value = str(value)
         if isinstance(value, str):
             value = self.spelling.get(value.lower(), value)
-        return super().convert(value, param, ctx)
+        choice = super().convert(value, param, ctx)
+        return int(choice) if self.whole else choice
 
     def shell_complete(self, ctx, param, incomplete):
         from click.shell_completion import CompletionItem  # noqa: PLC0415 - TAB only, 0.5 ms
@@ -143,7 +123,22 @@ class Choice(click.Choice):
         return [CompletionItem(c) for c in self.choices if c.lower().startswith(incomplete.lower())]
 
 
-PARITY = Choice(["N", "E", "O"], aliases={"none": "N", "even": "E", "odd": "O"})
+def setting_type(kind: link_settings.Kind) -> click.ParamType | None:
+    """The click type of a link setting's kind (None: text as given)."""
+    if isinstance(kind, link_settings.Whole):
+        return Number(kind.low, kind.high, kind.what)
+    if isinstance(kind, link_settings.Seconds):
+        return PositiveFloat(kind.zero_ok)
+    if isinstance(kind, link_settings.OneOf):
+        return Choice(list(kind.choices), kind.aliases, kind.whole)
+    if isinstance(kind, link_settings.Delays):
+        return Rs485Delays()
+    if isinstance(kind, link_settings.File):
+        return FilePath(dir_okay=False)
+    return None
+
+
+PARITY = setting_type(link_settings.SETTINGS["parity"].kind)
 
 
 class Seconds(click.ParamType):

@@ -23,7 +23,7 @@ from mbtool.cli.metrics import (
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import ONLINE, Event
+from mbtool.plant.schedule import ONLINE, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
 VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
@@ -133,7 +133,8 @@ class PlantMetrics:
 
     A device's families (its points, modbus_up and its last success, as poll's Prometheus
     text has them; its statistics) and its link's are written when the device's poll is
-    reported, in the link's thread, where the device's state is whole.  A scrape joins what
+    reported, from the copies of the device's and the link's state that the Poll carries
+    (plant.schedule: a reader never looks at a link thread's own state).  A scrape joins what
     was written, under a lock, and neither waits on a device nor renders the plant's
     samples itself: prometheus_client's generate_latest takes some 16 ms for 50 devices of
     10 points, and a scrape should answer in a few.  The statistics are written as poll's
@@ -145,39 +146,36 @@ class PlantMetrics:
         self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
         self.changes = 0  # blocks written so far
         self.joined: tuple[int, bytes] = (-1, b"")  # the text as of that many changes
-        self.states: dict = {}
-        self.workers: dict = {}
 
     def watch(self, runner) -> None:
-        """The plant's devices and links, each shown (down, unknown) before its first poll."""
-        self.states = runner.devices
-        self.workers = {worker.spec.name: worker for worker in runner.workers}
-        for state in self.states.values():
-            self._device(state)
+        """The plant's devices and links, each shown (down, unknown) before its first poll
+        (before the plant runs: its links' threads have not started)."""
+        for view in views([state.spec for state in runner.devices.values()]).values():
+            self._device(view)
         for worker in runner.workers:
-            self._link(worker)
+            self._link(worker.view())
 
     def report(self, item) -> None:
         """What a link's worker reports (plant.schedule): a poll, or a change of state."""
         if isinstance(item, Event):
             print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
-            if item.kind == "link" and item.name in self.workers:
-                self._link(self.workers[item.name])
+            if item.link is not None:
+                self._link(item.link)
             return
-        state = self.states[item.device.name]
-        self._device(state)
-        self._link(self.workers[state.spec.link])
+        self._device(view_of(item))
+        self._link(item.link)
 
     def _device(self, state) -> None:
         self._keep(
             ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
         )
 
-    def _link(self, worker) -> None:
-        # The link's totals as the worker keeps them: adding up its every device again after
-        # each poll cost as much as the poll itself from a few hundred devices on.
-        text = link_stats_text(worker.spec.name, worker.stats, worker.state == ONLINE, worker.open_failures)
-        self._keep(("link", worker.spec.name), text)
+    def _link(self, link) -> None:
+        # The link's totals as the worker keeps them (plant.schedule.LinkView): adding up its
+        # every device again after each poll cost as much as the poll itself from a few hundred
+        # devices on.
+        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures)
+        self._keep(("link", link.name), text)
 
     def _keep(self, key: tuple[str, str], text: str) -> None:
         families = split_families(text)

@@ -27,6 +27,7 @@ from mbtool.errors import (
     OutputFailed,
     PartialRead,
     Summary,
+    Verdict,
     exit_code_for,
 )
 from mbtool.link import register_scheme
@@ -189,9 +190,12 @@ def main(argv: list[str] | None = None) -> None:
         # Not cli.main: it turns a closed pipe into exit 1 before any handler here sees it.
         with cli.make_context("mbtool", sys.argv[1:] if argv is None else list(argv)) as ctx:
             meta = ctx.meta
-            cli.invoke(ctx)
-        sys.stdout.flush()  # here, where a full disk is still ours to report
-        code = ExitCode.OK
+            ended = cli.invoke(ctx)
+        if isinstance(ended, Verdict):  # a run's end: its line after what it wrote to stdout
+            error, code = _flushed(ended, ended.exit_code)
+        else:
+            sys.stdout.flush()  # here, where a full disk is still ours to report
+            code = ExitCode.OK
     except click.exceptions.Exit as done:  # --help, --version
         error, code = _flushed(None, done.exit_code)
     except click.ClickException as failure:  # usage errors: nothing was sent
@@ -227,7 +231,11 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if code and meta.get(ERRORS_AS_JSON) and not isinstance(error, Summary | OutputFailed | PartialRead):
+        if (
+            code
+            and meta.get(ERRORS_AS_JSON)
+            and not isinstance(error, Summary | Verdict | OutputFailed | PartialRead)
+        ):
             # -o json: a script reading stdout alone gets an object for every outcome
             # (polling writes its own per poll, and its Summary is no error object; a
             # partial read's object names the points it could not read).

@@ -7,10 +7,10 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
-from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import record
-from mbtool.errors import KNOWN_ERRORS
+from mbtool.errors import KNOWN_ERRORS, UsageError
+from mbtool.link.settings import SECURITY, SETTINGS, check_tls_framing, default, misplaced
 
 # link.transport and link.client are imported where a link is opened or checked: every command
 # loads Connection (cli.options), crc too, and they cost it 5-7 M instructions.
@@ -21,32 +21,34 @@ if TYPE_CHECKING:
 
 @record
 class Connection:
-    """Built from keywords: what -p, -u and the line options say about the link."""
+    """Built from keywords: what -p, -u and the line options say about the link.  Each field is
+    a setting of ``link.settings.SETTINGS``, which gives its default, its help and its checks;
+    the fields are written out so that a reader (and a type checker) sees them."""
 
-    port: str | None = None
-    unit: int = 1
-    framer: str | None = None  # None: tcp for tcp://, rtu for everything else
-    baud: int = 19200
-    parity: str = "E"
-    bytesize: int = 8
-    stopbits: int = 1
-    timeout: float = 1.0
-    retries: int = 0
-    echo: bool = False  # a half-duplex adapter echoes every byte sent
-    rs485: bool = False  # drive RTS for the direction of a two-wire RS-485 line
-    rs485_delays: tuple[float, float] | None = None  # seconds RTS leads and trails a frame
-    pause: float = 0.0  # seconds at least between a reply and the next request (slow devices)
-    connect_delay: float = 0.0  # seconds to wait after opening the link, before the first request
-    reconnect_each: bool = False  # polling: a new link for every poll
-    lenient: bool = False  # accept replies that break the spec harmlessly, with a warning
+    port: str | None = default("port")
+    unit: int = default("unit")
+    framer: str | None = default("framer")  # None: tcp for tcp://, rtu for everything else
+    baud: int = default("baud")
+    parity: str = default("parity")
+    bytesize: int = default("bytesize")
+    stopbits: int = default("stopbits")
+    timeout: float = default("timeout")
+    retries: int = default("retries")
+    echo: bool = default("echo")  # a half-duplex adapter echoes every byte sent
+    rs485: bool = default("rs485")  # drive RTS for the direction of a two-wire RS-485 line
+    rs485_delays: tuple[float, float] | None = default("rs485_delays")  # seconds RTS leads and trails a frame
+    pause: float = default("pause")  # seconds at least between a reply and the next request (slow devices)
+    connect_delay: float = default("connect_delay")  # seconds to wait after opening the link
+    reconnect_each: bool = default("reconnect_each")  # polling: a new link for every poll
+    lenient: bool = default("lenient")  # accept replies that break the spec harmlessly, with a warning
     # tls:// (Modbus/TCP Security): the client's certificate and key (PEM), the CAs (or the
     # device's own certificate) to trust, no check of the server's certificate, and the name
     # it must have where it is not the host's.
-    cert: str | None = None
-    key: str | None = None
-    ca: str | None = None
-    insecure: bool = False
-    server_name: str | None = None
+    cert: str | None = default("cert")
+    key: str | None = default("key")
+    ca: str | None = default("ca")
+    insecure: bool = default("insecure")
+    server_name: str | None = default("server_name")
 
 
 def framer_name(connection: Connection) -> str:
@@ -56,53 +58,40 @@ def framer_name(connection: Connection) -> str:
 
 
 def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
-    """The framing's name, once the connection makes sense; RequestError (nothing sent) if not.
+    """The framing's name, once the connection makes sense; UsageError (nothing sent) if not.
 
     ``needs``: what the command does, named when it may not go to unit 0 (broadcast is
     for writes only, spec §2; an empty ``needs`` allows it).  ``opening``: the link is to
     be opened, so a port is needed (a dry run opens none).
     """
     if not connection.port and opening:
-        raise RequestError(
+        raise UsageError(
             "no port given: use -p TARGET or set MBTOOL_PORT (try -p sim:// for the built-in device)"
         )
     from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
     name = framer_name(connection)
     port = connection.port or ""
-    scheme = port.partition("://")[0].lower()
     if connection.echo and is_network(port):
-        raise RequestError(f"--echo strips a half-duplex serial adapter's echo; a {scheme}:// link has none")
-    _check_tls(connection, scheme, name)
+        raise misplaced(SETTINGS["echo"], port)
+    _check_tls(connection, port, name)
     if needs and is_broadcast(connection.unit, name):
-        raise RequestError(
+        raise UsageError(
             f"unit 0 is broadcast in {name.upper()} framing, which only writes may use; {needs} needs a unit 1..255"
         )
     return name
 
 
-TLS_OPTIONS = {
-    "cert": "--cert",
-    "key": "--key",
-    "ca": "--ca",
-    "insecure": "--insecure",
-    "server_name": "--server-name",
-}
-
-
-def _check_tls(connection: Connection, scheme: str, framing: str) -> None:
-    """The TLS options go with a tls:// target, which carries MBAP (Modbus/TCP Security)."""
-    given = [option for field, option in TLS_OPTIONS.items() if getattr(connection, field)]
-    if scheme != "tls":
-        if given and connection.port:
-            raise RequestError(
-                f"{given[0]} is for tls:// targets (Modbus/TCP Security); {connection.port} is not one"
-            )
+def _check_tls(connection: Connection, port: str, framing: str) -> None:
+    """The TLS settings go with a tls:// target, which carries MBAP (Modbus/TCP Security)."""
+    if port.partition("://")[0].lower() != "tls":
+        for name in SECURITY:
+            if getattr(connection, name) and port:
+                raise misplaced(SETTINGS[name], port)
         return
-    if framing != "tcp":
-        raise RequestError(f"Modbus/TCP Security carries MBAP: tls:// takes no --framer {framing}")
+    check_tls_framing(framing)
     if connection.insecure and connection.ca:  # (--server-name still names the server it asks for: SNI)
-        raise RequestError("--insecure checks no certificate: --ca would have nothing to check")
+        raise UsageError("--insecure checks no certificate: --ca would have nothing to check")
 
 
 def tls_settings(connection: Connection):
@@ -180,8 +169,7 @@ def rs485_direction(connection: Connection) -> tuple[float, float] | None:
 
     delays = rs485_delays(connection.rs485, connection.rs485_delays)
     if delays and is_network(connection.port or ""):
-        scheme = (connection.port or "").partition("://")[0].lower()
-        raise RequestError(f"--rs485 drives the RTS line of a serial port; a {scheme}:// target has none")
+        raise misplaced(SETTINGS["rs485"], connection.port or "")
     return delays
 
 

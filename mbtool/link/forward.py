@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from contextlib import AbstractContextManager, ExitStack
+from contextlib import AbstractContextManager
 
 from mbtool.codec.errors import FrameError, ModbusException, RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected, is_broadcast
@@ -38,8 +38,8 @@ from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.client import Client, Trace
-from mbtool.link.connection import close_quietly
-from mbtool.link.stats import Counted, Stats
+from mbtool.link.managed import LOST, Backoff, ManagedLink
+from mbtool.link.stats import Stats
 from mbtool.link.transport import ConnectionClosed
 
 # What became of a request, in the words the display and the summary use.
@@ -130,8 +130,9 @@ class Forwarder:
         self.silent_hold = silent_hold
         self._silent: dict[int, float] = {}  # unit -> when it last sent nothing (monotonic)
         self.stats: dict[int, Stats] = {}  # unit -> its transactions on the link
-        self._link = ExitStack()
-        self._client: Client | None = None
+        # Opened at the first request (or ``open``), and again after it was lost, at once: a
+        # request waits for no back-off, and its client is told why its request went nowhere.
+        self.link = ManagedLink(open_link, Backoff(0.0))
         self._watch = _Watch()
 
     def answer(self, event: Frame | Rejected, framer: Framer, peer: str) -> bytes | None:
@@ -181,7 +182,7 @@ class Forwarder:
         self._open()
 
     def close(self) -> None:
-        self._drop_link()
+        self.link.close()
 
     # -- forwarding --------------------------------------------------------------------
 
@@ -223,8 +224,7 @@ class Forwarder:
             self._silent.pop(unit, None)
             answer = _exception(refusal.function_code, refusal.exception_code)
             outcome, why = REFUSED, str(refusal)
-        except (ConnectionFailed, ConnectionClosed, OSError) as lost:
-            self._drop_link()
+        except LOST as lost:  # the managed link has closed it: a new one for the next request
             why = (lost.strerror or str(lost)) if isinstance(lost, OSError) else str(lost)
             answer, outcome = _exception(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE), NO_PATH
         except (NoResponse, FrameError) as failure:
@@ -245,29 +245,23 @@ class Forwarder:
         return answer, outcome, why
 
     def _execute(self, unit: int, request: RawRequest):
-        stats = self.stats.setdefault(unit, Stats())
-        reused = self._client is not None
+        link = self.link
+        link.stats = self.stats.setdefault(unit, Stats())
+        reused = link.client is not None
         try:
-            return Counted(self._open(), stats)(unit, request)
+            self._open()
+            return link.execute(unit, request)
         except (ConnectionClosed, ConnectionFailed):
             if not reused:
                 raise
             # A TCP device closes a connection left idle: once more, on a new one.
-            self._drop_link()
-            return Counted(self._open(), stats)(unit, request)
+            self._open()
+            return link.execute(unit, request)
 
     def _open(self) -> Client:
-        if self._client is None:
-            self._client = self._link.enter_context(self.open_link())
-        self._client.trace = self._watch
-        return self._client
-
-    def _drop_link(self) -> None:
-        """Close the link, broken or not (that is usually why it is dropped)."""
-        if self._client is not None:
-            self._client = None
-            close_quietly(self._link)
-            self._link = ExitStack()
+        client = self.link.open()
+        client.trace = self._watch
+        return client
 
 
 def _exception(function: int, code: int) -> bytes:

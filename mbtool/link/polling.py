@@ -9,9 +9,10 @@ says how many in the summary.
 What a poll shows is not decided here: the loop hands each reply and failure to a
 ``Shown`` (the CLI's writes them in the chosen format).
 
-The summary leaves as one ``mbtool:`` line through cli.main, like every error,
-carrying the exit code: 0 when every poll got its reply, otherwise the code of
-the last failure; 130 only when interrupted before any poll finished.
+The loop returns a ``Polled`` record: what the polls came to and the verdict's exit code (0
+when every poll got its reply, otherwise the code of the last failure; 130 only when
+interrupted before any poll finished).  It writes no words: cli/ turns the record into the
+summary line and the --stats json figures.
 """
 
 from __future__ import annotations
@@ -20,25 +21,23 @@ import gc
 import math
 import time
 from collections.abc import Callable
-from contextlib import ExitStack
 from typing import Protocol
 
 from mbtool.codec.errors import RequestError
+from mbtool.codec.record import field, record
 from mbtool.durations import Durations
 from mbtool.errors import (
     KNOWN_ERRORS,
-    ConnectionFailed,
     ExitCode,
     NoResponse,
     OutputFailed,
     PartialRead,
-    Summary,
     exit_code_for,
     link_failure,
 )
-from mbtool.link.connection import close_quietly, open_client
-from mbtool.link.stats import Counted, Stats
-from mbtool.link.transport import ConnectionClosed
+from mbtool.link.connection import open_client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -55,25 +54,26 @@ class Shown(Protocol):
     def close(self) -> None: ...
 
 
-def _text(durations: Durations) -> str:
-    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted."""
-    figures = durations.figures()
-    if figures is None:
-        return "-"
-    return f"{figures['min'] * 1000:.1f}/{figures['avg'] * 1000:.1f}/{figures['max'] * 1000:.1f} ms"
+@record
+class Polled:
+    """What a run of polls came to: the counts, the transactions' outcomes (``stats``), each
+    poll's latency (``per_poll``: a map read's, from its first request to its last reply; a
+    single request's is its round trip), when the first and last poll were made (time.time()),
+    the deviations --lenient let through, and the verdict's exit code."""
 
-
-def _dict(durations: Durations) -> dict | None:
-    """min, avg and max in ms (None before the first)."""
-    figures = durations.figures()
-    if figures is None:
-        return None
-    return {name: figures[name] * 1000 for name in ("min", "avg", "max")}
-
-
-def _rate(per_second: float) -> str:
-    """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
-    return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
+    polls: int
+    replies: int
+    partial: int
+    timeouts: int
+    errors: int
+    skipped: int
+    interrupted: bool
+    stats: Stats = field(compare=False)
+    per_poll: Durations = field(compare=False)
+    first_when: float | None
+    last_when: float | None
+    accepted: tuple[str, ...]
+    exit_code: ExitCode
 
 
 def poll(
@@ -84,15 +84,13 @@ def poll(
     polls: int | None,
     trace: Callable | None = None,
     run: Callable | None = None,
-    figures: Callable[[dict], None] | None = None,
-) -> None:
+) -> Polled:
     """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
 
     ``trace``: makes each link's Client trace from its framer (--hex).  ``run(execute)``:
     what one poll does when it is more than one request (a register map's reads), given the
     link's ``execute(unit, request)``; ``request`` then stands for them in the link's checks
-    (broadcast).  ``figures``: given the summary's figures as a dict at the end (--stats
-    json), as well as the line."""
+    (broadcast)."""
 
     if interval is None:
         interval = DEFAULT_INTERVAL
@@ -109,7 +107,15 @@ def poll(
     last_failure = ExitCode.OK
     interrupted = False
     pause, unit, reconnect_each = connection.pause, connection.unit, connection.reconnect_each
-    link = ExitStack()  # holds the open link; reopened only after the link itself failed
+    # The link is opened by the first poll, as by a poll after a lost link: a device that is not
+    # up yet is a failed poll, and polling goes on.  A link that failed is opened again at most
+    # once a timeout, as if a refusal had waited the timeout out, so a device that is restarting
+    # or unplugged is not hammered (with --interval 0) and the log gets a line a timeout, not
+    # thousands.  A port or unit that makes no sense is a RequestError, one error before
+    # anything is sent.
+    link = ManagedLink(
+        lambda: open_client(connection, request.name, trace=trace), Backoff(connection.timeout), stats, time
+    )
     client = None
     when = first_when = last_when = None  # time.time() of this poll, the first and the last
 
@@ -121,38 +127,25 @@ def poll(
         show_previous()
 
     try:
-        # The link is opened by the first poll, as by a poll after a lost link: a device that
-        # is not up yet is a failed poll, and polling goes on.  A port or unit that makes no
-        # sense is a RequestError, one error before anything is sent.
-        opened_at = -math.inf
-        closed_on_purpose = False  # the link was closed on purpose (--reconnect-each), not lost
-        ended_at = -math.inf  # when the last link's last transaction ended (--pause)
         # What start-up made (click, the codec's types) lives as long as the loop: keep the
         # garbage collector from walking it again every few hundred polls.
         gc.freeze()
         start = time.monotonic()
         slot = 0
         show_previous = shown.write  # bound once, not a method object a poll
+        execute = link.execute
         while done < polls:
             if interval > 0:  # back to back (0) keeps no schedule
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            if client is None and not closed_on_purpose:
-                # No link, or it failed: open it at most once a timeout, as if a refusal had
-                # waited the timeout out, so a device that is restarting or unplugged is not
-                # hammered (with --interval 0) and the log gets a line a timeout, not thousands.
-                wait = opened_at + connection.timeout - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
+            if link.client is None:  # a link that failed waits out its back-off
+                link.wait()
             when = None  # until the request goes out
             try:
+                client = link.client
                 if client is None:
-                    opened_at = time.monotonic()
-                    link = ExitStack()
-                    client = link.enter_context(open_client(connection, request.name, trace=trace))
-                    client.ended_at = ended_at  # the device still wants its pause after that
-                    execute = Counted(client, stats)
+                    client = link.open()
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
                         # starts with the first link open: opening sim:// (its imports) or a
@@ -187,11 +180,8 @@ def poll(
                 error = link_failure(error)
                 if client is None:  # the link could not be opened: the request never went
                     stats.transaction(error, 0)
-                elif isinstance(error, ConnectionFailed | ConnectionClosed):
-                    # The link is gone (device restarted, cable pulled): open it anew next poll.
-                    ended_at = client.ended_at
-                    close_quietly(link)
-                    client = None
+                # A lost link (device restarted, cable pulled) was closed by the managed link,
+                # which opens it anew next poll.
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
             else:
@@ -199,18 +189,15 @@ def poll(
             if done == 0:
                 first_when = when
             last_when = when
-            closed_on_purpose = False
-            if reconnect_each and client is not None:
+            if reconnect_each and link.client is not None:
                 # --reconnect-each: a new link every poll, for devices and gateways that
                 # serve one client or leak connections; no wait, as nothing failed.
-                ended_at = client.ended_at
-                close_quietly(link)
-                client, closed_on_purpose = None, True
+                link.drop(on_purpose=True)
             done += 1
             # Show the poll now unless the next request leaves at once (then it is shown while
             # that request's reply is on its way): a pause, a new link or a slot not yet due
             # come first.
-            idle = pause or client is None
+            idle = pause or link.client is None
             if interval > 0:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
@@ -226,34 +213,22 @@ def poll(
         interrupted = True
     finally:
         shown.close()
-        close_quietly(link)
-    poll_figures = stats.rtt if run is None else per_poll
-    summary = (
-        f"polls {done}, replies {replies}, partial {partial}, timeouts {timeouts}, errors {errors}, "
-        f"skipped {skipped}, latency per request min/avg/max {_text(stats.rtt)}, per poll {_text(poll_figures)}"
-    )
-    if done > 1 and last_when > first_when:
-        summary += f", {_rate((done - 1) / (last_when - first_when))} polls/s"
-    summary += f"; {stats}"
-    if accepted:
-        summary += f"; accepted (--lenient): {'; '.join(accepted)}"
-    if interrupted:
-        summary = "interrupted; " + summary
+        link.close()
     code = last_failure
     if interrupted and done == 0:
         code = ExitCode.INTERRUPTED
-    if figures is not None:
-        figures(
-            {
-                "polls": done,
-                "replies": replies,
-                "partial": partial,
-                "timeouts": timeouts,
-                "errors": errors,
-                "skipped": skipped,
-                "interrupted": interrupted,
-                "latency_ms": {"per_request": _dict(stats.rtt), "per_poll": _dict(poll_figures)},
-                **stats.as_dict(),
-            }
-        )
-    raise Summary(summary, code)
+    return Polled(
+        done,
+        replies,
+        partial,
+        timeouts,
+        errors,
+        skipped,
+        interrupted,
+        stats,
+        stats.rtt if run is None else per_poll,
+        first_when,
+        last_when,
+        tuple(accepted),
+        code,
+    )

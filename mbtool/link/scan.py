@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from contextlib import ExitStack
+from contextlib import contextmanager
 from typing import Protocol
 
 from mbtool.codec import data_access
@@ -36,8 +36,9 @@ from mbtool.codec.serial_line import (
     ReportSlaveIdResponse,
 )
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.connection import close_quietly, framer_name, open_client
-from mbtool.link.stats import Counted, Stats
+from mbtool.link.connection import framer_name, open_client
+from mbtool.link.managed import LOST, Backoff, ManagedLink
+from mbtool.link.stats import Stats
 from mbtool.link.transport import ConnectionClosed, SerialSettings
 
 GATEWAY_EXCEPTIONS = (0x0A, 0x0B)  # spec §3: path unavailable, target failed to respond
@@ -196,7 +197,7 @@ def frames_in(framer_name: str, data: bytes) -> list:
     return frames
 
 
-def ask(execute: Counted, unit: int, request, framer_name: str) -> Answer | str:
+def ask(execute: Callable, unit: int, request, framer_name: str) -> Answer | str:
     """Probe one unit through ``execute`` (the client's, counted): an Answer, or why there is
     none ("silent" or "gateway").
 
@@ -292,23 +293,29 @@ class Scan:
             tally.interrupted = True
         return tally
 
-    def _open(self, setting: Setting):
+    def _link_at(self, setting: Setting) -> ManagedLink:
+        """The link at one setting: opened again at once when it is lost (a gateway hanging up
+        on an unknown unit), each transaction counted in the tally."""
         # unit: a real one, for open_client's broadcast check (the option holds the whole set).
         connection = replace(self.connection, baud=setting.baud, parity=setting.parity, unit=self.units[0])
-        link = ExitStack()
-        client = link.enter_context(open_client(connection, self.request.name, trace=self.trace))
-        client.trace = Listener(client.trace, framer_name(connection))
-        return link, client
+
+        @contextmanager
+        def opened():
+            with open_client(connection, self.request.name, trace=self.trace) as client:
+                client.trace = Listener(client.trace, framer_name(connection))
+                yield client
+
+        return ManagedLink(opened, Backoff(0.0), self.tally.transactions)
 
     def _link(self, setting: Setting) -> bool:
         """Probe every unit at one setting; True when the scan should stop (--first)."""
 
         tally = self.tally
         name = framer_name(self.connection)
-        link = ExitStack()
+        link = self._link_at(setting)
         try:
             try:
-                link, client = self._open(setting)
+                link.open()
             except ConnectionFailed as error:
                 if not self.sweeping:
                     raise
@@ -317,28 +324,25 @@ class Scan:
             probed: set[int] = set()
             found: set[int] = set()
             here = len(tally.settings) - 1
-            execute = Counted(client, tally.transactions)
             for index, unit in enumerate(self.units):
                 self.progress.at(setting if self.sweeping else None, unit)
                 try:
-                    outcome = ask(execute, unit, self.request, name)
-                except (ConnectionFailed, ConnectionClosed, OSError) as error:
+                    outcome = ask(link.execute, unit, self.request, name)
+                except LOST as error:
                     # The link broke (a gateway hanging up on an unknown unit, a cable
                     # pulled): count this unit silent and go on over a new link.
-                    close_quietly(link)
                     try:
-                        link, client = self._open(setting)
+                        link.open()
                     except ConnectionFailed as again:
                         self._refused(setting, str(again), len(self.units) - index)
                         return False
-                    execute = Counted(client, tally.transactions)
                     outcome = "silent"
                     self.output.note(f"unit {unit}: {error}; link reopened")
                 tally.probes += 1
                 self.progress.advance()
                 # Only units asked before this one can answer late; a stray frame from this
                 # unit is something else (the adapter's echo of the probe, an old transaction).
-                answers = [_late(frame, self.request, probed, found) for frame in client.trace.take()]
+                answers = [_late(frame, self.request, probed, found) for frame in link.client.trace.take()]
                 probed.add(unit)
                 if outcome == "silent":
                     tally.silent.add((here, unit))
@@ -353,7 +357,7 @@ class Scan:
                     return True
             return False
         finally:
-            close_quietly(link)
+            link.close()
 
     def _record(self, answer: Answer, here: int, found: set[int]) -> None:
         """Keep an answer: garbled ones apart, each unit found once per setting."""

@@ -9,8 +9,10 @@ reached or written: refused, port unreachable, a TLS handshake that failed, no s
 port: exit 6).  The kind follows the exit code, so a failure is one kind wherever it is shown:
 the summaries, ping's lines, the exporter's ``modbus_error_info{kind}``.  An answer that came on a retry is also counted as a retry that
 recovered.  A reply's round trip is in the figures when its arrival is known, else the reply
-is counted as untimed (the client's ``rtt``).  ``Counted`` wraps a client's ``execute`` so that every command counts the same way:
-plant, ping, scan and the bridge call it rather than judge outcomes of their own.
+is counted as untimed (the client's ``rtt``).  Every command counts the same way: the managed link
+(``link.managed``, which polling, the plant, ping, scan, the bridge and the exporter's scrape
+take their links from) counts each transaction it carries in the ``Stats`` it is given, and
+``Counted`` wraps a bare client's ``execute`` alike; none judges outcomes of its own.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """A plant on an MQTT broker: what ``mbtool poll`` reads, published as it is read.
 
-The poller's records (``plant.schedule``'s ``Poll`` and ``Event``) reach this room through
-one entry point, ``publisher.MqttPublisher.report``, which only enqueues: publishing never
-holds up a link's thread.  ``settings.py`` checks the ``[mqtt]`` table of an inventory (and
+The plant's ``Poll`` records, handed on by the thread that runs the plant, reach this room
+through one entry point, ``publisher.MqttPublisher.report``, which only enqueues: publishing
+never holds up a link's thread or the plant's output.  ``settings.py`` checks the ``[mqtt]`` table of an inventory (and
 ``--mqtt URL``); ``topics.py`` names the topics and writes the payloads; ``change.py``
 decides which points a poll publishes (on_change, deadband, heartbeat); ``discovery.py``
 writes Home Assistant's discovery configs; ``spool.py`` keeps QoS 1 messages while the

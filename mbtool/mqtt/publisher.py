@@ -30,7 +30,6 @@ from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
 from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
 from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
-from mbtool.plant.schedule import Poll
 
 QUEUED = 10_000  # records waiting for the publisher's thread at most
 STOP = object()
@@ -79,7 +78,9 @@ class MqttPublisher:
     # --- the plant's side ---------------------------------------------------------------
 
     def report(self, item) -> None:
-        """A link's record (``Poll`` or ``Event``), queued for the publisher; never waits."""
+        """A plant's ``Poll`` (as the thread that runs the plant hands it on; its ``Event``s are
+        not wanted: each Poll carries its device's state), or a write's request or result,
+        queued for the publisher's thread; never waits."""
         try:
             self.queue.put_nowait(item)
         except queue.Full:
@@ -240,8 +241,7 @@ class MqttPublisher:
         self._send(Message(topic, result.result.encode(), 1, False))
 
     def _messages(self, item) -> list[Message]:
-        if not isinstance(item, Poll):
-            return []  # a change of state shows in the polls' states, which say it per device
+        """A Poll's messages: its device's status when it changed, and its points."""
         settings, name = self.settings, item.device.name
         messages = []
         if item.state in (ONLINE, OFFLINE) and self.device_states.get(name) != item.state:

@@ -1,5 +1,5 @@
 """The ``[mqtt]`` table of a plant inventory, and ``--mqtt URL``: checked whole before
-anything is opened, every problem one RequestError (exit 2) naming the file and the key.
+anything is opened, every problem one UsageError (exit 2) naming the file and the key.
 
 ::
 
@@ -28,8 +28,8 @@ import re
 import socket
 from pathlib import Path
 
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
+from mbtool.errors import UsageError
 from mbtool.files import read_whole
 
 KEYS = {
@@ -117,10 +117,10 @@ class MqttSettings:
 def parse_url(url, where: str) -> tuple[str, int, bool]:
     """(host, port, TLS) of an mqtt:// or mqtts:// URL."""
     if not isinstance(url, str):
-        raise RequestError(f"{where}: expected {KEYS['url']}")
+        raise UsageError(f"{where}: expected {KEYS['url']}")
     scheme, sep, rest = url.partition("://")
     if not sep or scheme.lower() not in DEFAULT_PORTS:
-        raise RequestError(f"{where}: {url!r} is not {KEYS['url']}")
+        raise UsageError(f"{where}: {url!r} is not {KEYS['url']}")
     scheme = scheme.lower()
     rest = rest.rstrip("/")
     host, port = rest, DEFAULT_PORTS[scheme]
@@ -132,13 +132,13 @@ def parse_url(url, where: str) -> tuple[str, int, bool]:
         host, _, text = rest.partition(":")
         port = _port(text, url, where)
     if not host or "/" in host or "@" in host:
-        raise RequestError(f"{where}: {url!r} names no host (such as mqtt://broker.example:1883)")
+        raise UsageError(f"{where}: {url!r} names no host (such as mqtt://broker.example:1883)")
     return host, port, scheme == "mqtts"
 
 
 def _port(text: str, url: str, where: str) -> int:
     if not text.isdigit() or not 1 <= int(text) <= 65535:
-        raise RequestError(f"{where}: {url!r}: the port is 1..65535")
+        raise UsageError(f"{where}: {url!r}: the port is 1..65535")
     return int(text)
 
 
@@ -159,10 +159,10 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     if table is None:
         table = {}
     if not isinstance(table, dict):
-        raise RequestError(f"{path}: mqtt must be a table, [mqtt]")
+        raise UsageError(f"{path}: mqtt must be a table, [mqtt]")
     for key in table:
         if key not in KEYS:
-            raise RequestError(f"{path}: [mqtt] {key}: unknown key (known: {', '.join(KEYS)})")
+            raise UsageError(f"{path}: [mqtt] {key}: unknown key (known: {', '.join(KEYS)})")
     folder = Path(path).parent
     given = {
         key: (
@@ -173,7 +173,7 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     if url is not None:
         given["url"] = url
     if "url" not in given:
-        raise RequestError(f'{path}: [mqtt] has no url (such as "mqtt://localhost:1883"), nor --mqtt')
+        raise UsageError(f'{path}: [mqtt] has no url (such as "mqtt://localhost:1883"), nor --mqtt')
     where = f"{path}: [mqtt]"
     host, port, tls = parse_url(given["url"], "--mqtt" if url is not None else f"{where} url")
     inventory = Path(path).stem
@@ -189,11 +189,11 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             changes["password"] = _password_file(value, at)
         elif key == "allow":
             if not isinstance(value, list) or not all(isinstance(name, str) for name in value):
-                raise RequestError(f'{at}: expected a list of point names, such as ["setpoint"]')
+                raise UsageError(f'{at}: expected a list of point names, such as ["setpoint"]')
             changes[key] = tuple(value)
         elif key in ("retain", "on_change", "insecure", "writes"):
             if not isinstance(value, bool):
-                raise RequestError(f"{at}: expected true or false")
+                raise UsageError(f"{at}: expected true or false")
             changes[key] = value
         elif key == "keepalive":
             changes[key] = _whole(value, 5, 3600, at)
@@ -203,25 +203,25 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             changes[key] = _whole(value, 1, 10_000_000, at)
         elif key == "version":
             if value not in ("3.1.1", "5", 5):
-                raise RequestError(f"{at}: expected {KEYS[key]}")
+                raise UsageError(f"{at}: expected {KEYS[key]}")
             changes[key] = str(value)
         elif key == "points":
             if value not in ("device", "point"):
-                raise RequestError(f"{at}: expected {KEYS[key]}")
+                raise UsageError(f"{at}: expected {KEYS[key]}")
             changes["per_point"] = value == "point"
         elif key == "heartbeat":
             if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 86400:
-                raise RequestError(f"{at}: expected seconds, 0..86400")
+                raise UsageError(f"{at}: expected seconds, 0..86400")
             changes[key] = float(value)
         elif key == "deadband":
             changes[key] = _deadband(value, at)
         elif key == "deadbands":
             if not isinstance(value, dict):
-                raise RequestError(f"{at}: expected {KEYS[key]}, such as {{ flow = 0.5 }}")
+                raise UsageError(f"{at}: expected {KEYS[key]}, such as {{ flow = 0.5 }}")
             changes[key] = {name: _deadband(band, f"{at}.{name}") for name, band in value.items()}
         elif key == "discovery":
             if value != "homeassistant":
-                raise RequestError(f"{at}: expected {KEYS[key]}")
+                raise UsageError(f"{at}: expected {KEYS[key]}")
             changes[key] = value
         elif key in PATH_KEYS:
             changes[key] = _text(value, at)
@@ -234,22 +234,22 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
 
 def _check(settings: MqttSettings, where: str, devices: list) -> None:
     if settings.password is not None and settings.username is None:
-        raise RequestError(f"{where}: a password goes with a username")
+        raise UsageError(f"{where}: a password goes with a username")
     if not settings.tls and (settings.ca or settings.cert or settings.key or settings.insecure):
-        raise RequestError(f"{where}: ca, cert, key and insecure are mqtts:// settings")
+        raise UsageError(f"{where}: ca, cert, key and insecure are mqtts:// settings")
     if settings.insecure and settings.ca:
-        raise RequestError(f"{where}: insecure checks no certificate: ca would have nothing to check")
+        raise UsageError(f"{where}: insecure checks no certificate: ca would have nothing to check")
     if (settings.cert is None) != (settings.key is None):
-        raise RequestError(f"{where}: cert and key go together")
+        raise UsageError(f"{where}: cert and key go together")
     for name in ("ca", "cert", "key"):
         value = getattr(settings, name)
         if value is not None and not Path(value).is_file():
-            raise RequestError(f"{where} {name}: no file {value}")
+            raise UsageError(f"{where} {name}: no file {value}")
     if settings.allow is not None and not settings.writes:
-        raise RequestError(f"{where} allow: goes with writes = true")
+        raise UsageError(f"{where} allow: goes with writes = true")
     for name in settings.allow or ():
         if not any(name in _points(device) for device in devices):
-            raise RequestError(f"{where} allow: no device reads a point named {name}")
+            raise UsageError(f"{where} allow: no device reads a point named {name}")
     for device in devices:
         for text, key in ((settings.topic, "topic"), (settings.status_topic, "status_topic")):
             _topic_problem(fill(text, settings, device if key == "topic" else None), f"{where} {key}", text)
@@ -257,7 +257,7 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
             for point in _points(device):
                 _topic_problem(point, f'{where} points = "point": {device.name}\'s point', point)
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:
-        raise RequestError(f"{where} topic: {settings.topic!r} must name {{device}}: a topic a device")
+        raise UsageError(f"{where} topic: {settings.topic!r} must name {{device}}: a topic a device")
 
 
 def _points(device) -> list[str]:
@@ -276,7 +276,7 @@ def fill(template: str, settings: MqttSettings, device=None) -> str:
         name = match.group(1)
         if name not in values:
             known = ", ".join(values) if device is not None else "inventory, host"
-            raise RequestError(
+            raise UsageError(
                 f"{template!r}: {{{name}}} is not known"
                 + (f" for device {device.name}" if device else "")
                 + f" (known: {known})"
@@ -289,22 +289,22 @@ def fill(template: str, settings: MqttSettings, device=None) -> str:
 def _topic_problem(topic: str, where: str, template: str) -> None:
     """A topic a publish may name: no wildcards, no empty level at either end, no NUL."""
     if not topic or "+" in topic or "#" in topic or "\0" in topic or topic.startswith("$"):
-        raise RequestError(
+        raise UsageError(
             f"{where}: {template!r} makes {topic!r}: not a topic to publish on (no +, #, $ first)"
         )
     if len(topic.encode()) > 65535:
-        raise RequestError(f"{where}: {template!r} makes a topic longer than MQTT allows")
+        raise UsageError(f"{where}: {template!r} makes a topic longer than MQTT allows")
 
 
 def _text(value, where: str) -> str:
     if not isinstance(value, str) or not value:
-        raise RequestError(f"{where}: expected text, not empty")
+        raise UsageError(f"{where}: expected text, not empty")
     return value
 
 
 def _whole(value, low: int, high: int, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise RequestError(f"{where}: expected a whole number, {low}..{high}")
+        raise UsageError(f"{where}: expected a whole number, {low}..{high}")
     return value
 
 
@@ -315,10 +315,10 @@ def _deadband(value, where: str) -> Deadband:
         except ValueError:
             amount = -1.0
         if not 0 <= amount < 1e6:
-            raise RequestError(f'{where}: {value!r} is not a percentage such as "1%"')
+            raise UsageError(f'{where}: {value!r} is not a percentage such as "1%"')
         return Deadband(amount, True)
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value < 1e300:
-        raise RequestError(f'{where}: expected a number of 0 or more, or a percentage such as "1%"')
+        raise UsageError(f'{where}: expected a number of 0 or more, or a percentage such as "1%"')
     return Deadband(float(value))
 
 
@@ -326,5 +326,5 @@ def _password_file(value, where: str) -> str:
     text = read_whole(Path(_text(value, where)), "password file").decode("utf-8", "replace")
     line = text.splitlines()[0] if text else ""
     if not line:
-        raise RequestError(f"{where}: {value} is empty")
+        raise UsageError(f"{where}: {value} is empty")
     return line

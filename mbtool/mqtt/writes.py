@@ -75,15 +75,16 @@ class Writes:
         return point, write_request(point, request.text)
 
     def job(self, request: SetRequest, point: Point, write, done: Callable[[WriteResult], None]):
-        """What the link's thread runs: the write, then the point read back."""
+        """What the link's thread runs (``LinkWorker.submit``): the write, then the point read
+        back, each through ``execute(request)``, a transaction with the device on its link."""
         device = self.devices[request.device]
 
-        def run(client) -> None:
-            if client is None:
+        def run(execute) -> None:
+            if execute is None:
                 done(WriteResult(device.name, point.name, f"not written: link {device.link} is not open"))
                 return
             try:
-                client.execute(device.unit, write)
+                execute(write)
             except ModbusException as error:
                 done(WriteResult(device.name, point.name, f"refused: {error}"))
                 return
@@ -91,7 +92,7 @@ class Writes:
                 done(WriteResult(device.name, point.name, f"not written: {error}"))
                 return
             try:
-                value = MapReader([point]).read(lambda req: client.execute(device.unit, req))[0].value
+                value = MapReader([point]).read(execute)[0].value
             except (*KNOWN_ERRORS, OSError) as error:
                 done(WriteResult(device.name, point.name, f"written; not read back: {error}"))
                 return

@@ -12,8 +12,11 @@ to every read) is offline: it is tried again after a back-off that doubles from 
 interval up to ``max_backoff``, so a dead meter costs one timeout a back-off, not one a poll
 of the others.  One good poll brings it back online.  A link that cannot be opened (a
 missing port, a refused connection) backs off the same way, and its devices are offline
-meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``; both go to
-``report`` as they happen, from the link's thread.
+meanwhile.  Each change of state is an ``Event``; each poll a ``Poll``: immutable records that
+the link's thread publishes to one queue, drained by the thread that runs the plant, which
+alone hands them to ``report`` (the output, the live view, the exporter's text).  So data flows
+one way: a link thread is the only one that changes its devices' state, and what the rest of
+mbtool shows comes from the records.
 
 A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
 would end after the run is announced without its next try.  With ``rounds`` a device is done
@@ -24,19 +27,19 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import functools
 import math
 import queue
 import threading
 import time
 from collections.abc import Callable, Collection
-from contextlib import ExitStack
 
 from mbtool.codec.record import field, record, replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
-from mbtool.link.connection import Connection, close_quietly, open_client
-from mbtool.link.stats import Counted, Stats
-from mbtool.link.transport import ConnectionClosed
-from mbtool.plant.stats import DeviceAndLink, PollStats
+from mbtool.link.connection import Connection, open_client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
+from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
@@ -87,6 +90,44 @@ class Poll:
     readings: list[Reading] | None
     error: BaseException | None
     state: str  # the device's state after the poll
+    # The device and its link as the poll left them, copies no later poll changes: what a
+    # reader shows of them comes from here, never from the link thread's own state.
+    last_success: float | None = field(default=None, compare=False)  # time.time()
+    stats: PollStats | None = field(default=None, compare=False)
+    link: LinkView | None = field(default=None, compare=False)
+
+
+@record
+class LinkView:
+    """A link as its thread saw it when it published a record: its state, the opens that failed
+    and its devices' transactions."""
+
+    name: str
+    state: str
+    open_failures: int
+    stats: Stats = field(compare=False)
+
+
+@record
+class DeviceView:
+    """A device as a reader knows it: from its spec alone before its first poll, then from its
+    latest Poll (``view_of``).  The output, the live view and the exporter keep one each."""
+
+    spec: DeviceSpec
+    state: str = UNKNOWN
+    last_success: float | None = None
+    last_poll: Poll | None = field(default=None)
+    stats: PollStats = field(default=None, compare=False)
+
+
+def view_of(poll: Poll) -> DeviceView:
+    """The device as its latest poll left it."""
+    return DeviceView(poll.device, poll.state, poll.last_success, poll, poll.stats)
+
+
+def views(devices: list[DeviceSpec]) -> dict[str, DeviceView]:
+    """Every device as a reader knows it before any poll: by name, in the inventory's order."""
+    return {spec.name: DeviceView(spec, stats=PollStats()) for spec in devices}
 
 
 @record
@@ -99,6 +140,7 @@ class Event:
     state: str
     reason: str = ""
     retry_in: float | None = None  # seconds to the next try, when it is backed off
+    link: LinkView | None = field(default=None, compare=False)  # a link's event: the link then
 
 
 class DeviceState:
@@ -109,7 +151,8 @@ class DeviceState:
         self.due = now
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
-        self.backoff = 0.0
+        # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
+        self.backoff = Backoff(min(2 * spec.interval, spec.max_backoff), spec.max_backoff)
         self.polls = 0
         self.last_success: float | None = None  # time.time()
         self.last_poll: Poll | None = None
@@ -117,7 +160,8 @@ class DeviceState:
 
     def succeeded(self, now: float, when: float) -> Event | None:
         was = self.state
-        self.state, self.failures, self.backoff = ONLINE, 0, 0.0
+        self.state, self.failures = ONLINE, 0
+        self.backoff.reset()
         self.last_success = when
         self._next(now)
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
@@ -126,22 +170,34 @@ class DeviceState:
         """A failed poll; ``at_once``: offline now (its link cannot be opened)."""
         self.failures += 1
         if self.state == OFFLINE:
-            self.backoff = min(2 * self.backoff, self.spec.max_backoff)
-            self.due = now + self.backoff
+            self.due = now + self.backoff.failed()
             return None
         if self.failures < self.spec.offline_after and not at_once:
             self._next(now)
             return None
         self.state = OFFLINE
-        self.backoff = min(2 * self.spec.interval, self.spec.max_backoff)
-        self.due = now + self.backoff
-        return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff)
+        self.due = now + self.backoff.failed()
+        return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff.wait)
 
     def _next(self, now: float) -> None:
         """The next slot of its interval; one that has passed already is skipped, not made up."""
         self.due += self.spec.interval
         if self.due < now:
             self.due = now
+
+
+class Clock:
+    """The scheduler's clocks: ``monotonic`` for its slots and back-offs, ``time`` for the
+    records' stamps, and ``wait``, cut short when the run is stopped.  The tests give a fake
+    one, and run a worker on its own thread with it (no socket, no sleep)."""
+
+    monotonic = staticmethod(time.monotonic)
+    sleep = staticmethod(time.sleep)  # the managed link's; a worker waits with ``wait``
+    time = staticmethod(time.time)  # last: the module's name is the clock's from here on
+
+    @staticmethod
+    def wait(stop: threading.Event, seconds: float) -> None:
+        stop.wait(seconds)
 
 
 class LinkWorker:
@@ -156,8 +212,13 @@ class LinkWorker:
         rounds: int = 0,
         trace=None,
         go: threading.Event | None = None,
+        clock=Clock,
+        open_link: Callable | None = None,
     ) -> None:
+        """``open_link``: opens the link (a context manager giving a Client); None: the
+        link's Connection, through link.connection.open_client."""
         self.spec = spec
+        self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
         self.devices = devices
         self.report = report
@@ -167,10 +228,19 @@ class LinkWorker:
         # device being polled, for the trace lines of several links and devices to tell apart
         self.trace = trace
         self.polling = ""  # the device whose poll is under way
-        self.link = ExitStack()
-        self.client = None
-        self.open_at = 0.0  # monotonic: not before this may the link be opened again
-        self.backoff = 0.0
+        # The link, opened when a device is due; one that cannot be opened is backed off by the
+        # one rule, from twice its devices' shortest interval up to their longest max_backoff.
+        traced = (lambda framer: trace(framer, label=self._label)) if trace else None
+        self.link = ManagedLink(
+            open_link or (lambda: open_client(spec.connection, trace=traced)),
+            Backoff(
+                min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
+                if devices
+                else 0.0,
+                max((d.spec.max_backoff for d in devices), default=0.0),
+            ),
+            clock=clock,
+        )
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
@@ -186,25 +256,32 @@ class LinkWorker:
         self.jobs = queue.SimpleQueue()
 
     def submit(self, device: str, job: Callable) -> None:
-        """``job(client)`` run on this thread before its next poll, with ``device``'s timeout and
-        retries (``client`` None: the link is not open)."""
+        """``job(execute)`` run on this thread before its next poll: ``execute(request)`` is one
+        transaction with ``device`` on the link's ManagedLink, with the device's timeout and
+        retries; None when the link is not open (it is not opened for a job: its devices' polls
+        open it, by the back-off rule)."""
         self.jobs.put((device, job))
         self.poke.set()
 
     def _run_jobs(self) -> None:
         while self.jobs is not None and not self.jobs.empty():
             device, job = self.jobs.get_nowait()
-            if self.client is not None:
-                spec = next(d.spec for d in self.devices if d.spec.name == device)
-                self.client.timeout, self.client.retries = limits(spec, self.spec)
-            job(self.client)
+            link = self.link
+            if link.client is None:
+                job(None)
+                continue
+            spec = next(d.spec for d in self.devices if d.spec.name == device)
+            self.polling = spec.name  # --hex's label
+            link.client.timeout, link.client.retries = limits(spec, self.spec)
+            link.stats = None  # a job is no poll: the device's and link's counts stay its polls'
+            job(functools.partial(link.execute, spec.unit))
 
     def _sleep(self, seconds: float) -> None:
         """Until the next poll, the run's stop, or (with jobs) a job handed in."""
         if self.jobs is None:
-            self.stop.wait(seconds)
+            self.clock.wait(self.stop, seconds)
         else:  # in short slices, so that the run's stop is seen as soon as without jobs
-            self.poke.wait(min(seconds, 0.2))
+            self.clock.wait(self.poke, min(seconds, 0.2))
             self.poke.clear()
 
     def limits(self) -> list[tuple[float, int]]:
@@ -250,39 +327,32 @@ class LinkWorker:
             self.crashed = error
             self.stop.set()
         finally:
-            close_quietly(self.link)
+            self.link.close()
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
             self._run_jobs()
-            now = time.monotonic()
+            now = self.clock.monotonic()
             waiting = self._waiting()
-            due = [d for d in waiting if d.due <= now and self.open_at <= now]
+            ready_at = self.link.ready_at if self.link.client is None else -math.inf
+            due = [d for d in waiting if d.due <= now and ready_at <= now]
             if not due:
-                wake = max(min(d.due for d in waiting), self.open_at)
+                wake = max(min(d.due for d in waiting), ready_at)
                 self._sleep(max(0.0, wake - now))
                 continue
             device = min(due, key=lambda d: d.due)  # the one that has waited longest
-            if self.client is None and not self._open(due):
+            if self.link.client is None and not self._open(due):
                 continue
             self._poll(device)
 
     def _open(self, due: list[DeviceState]) -> bool:
         try:
-            self.link = ExitStack()
-            trace = (lambda framer: self.trace(framer, label=self._label)) if self.trace else None
-            self.client = self.link.enter_context(open_client(self.spec.connection, trace=trace))
+            self.link.open()
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
-            self.client = None
-            close_quietly(self.link)
             reason = str(error)
-            now, when = time.monotonic(), time.time()
+            when = self.clock.time()
             first = self.state != OFFLINE
-            longest = max(d.spec.max_backoff for d in self.devices)
-            shortest = min(d.spec.interval for d in self.devices)
-            self.backoff = min(2 * shortest if first else 2 * self.backoff, longest)
-            self.open_at = now + self.backoff
             self.state = OFFLINE
             self.open_failures += 1
             settled = []
@@ -290,35 +360,40 @@ class LinkWorker:
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                settled.append(self._settle(device, None, error, when, not_before=self.open_at))
+                settled.append(self._settle(device, None, error, when, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
-                self.report(
-                    Event(when, "link", self.spec.name, OFFLINE, reason, self.backoff if again else None)
-                )
+                retry_in = self.link.backoff.wait if again else None
+                self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in, self.view()))
             for items in settled:
                 for item in items:
                     self.report(item)
             return False
         if self.state == OFFLINE:
-            self.report(Event(time.time(), "link", self.spec.name, ONLINE))
-        self.state, self.backoff = ONLINE, 0.0
+            self.state = ONLINE
+            self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
+        self.state = ONLINE
         return True
+
+    def view(self) -> LinkView:
+        """The link as it is now, for a record: its own copy of the counts."""
+        return LinkView(self.spec.name, self.state, self.open_failures, copy_stats(self.stats))
 
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
 
     def _poll(self, device: DeviceState) -> None:
-        client, spec = self.client, device.spec
+        link, spec = self.link, device.spec
+        client = link.client
         self.polling = spec.name
         stamp: list[float] = []
-        client.while_waiting = lambda: stamp.append(time.time())  # the poll's time: its request out
+        client.while_waiting = lambda: stamp.append(self.clock.time())  # the poll's time: its request out
         client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
-        counted = Counted(client, DeviceAndLink(device.stats, self.stats))
+        link.stats = DeviceAndLink(device.stats, self.stats)
 
         def execute(request):
-            return counted(spec.unit, request)
+            return link.execute(spec.unit, request)
 
         readings, error = None, None
         try:
@@ -326,13 +401,10 @@ class LinkWorker:
         except PartialRead as partial:
             readings, error = partial.readings, partial
         except (*KNOWN_ERRORS, OSError) as failure:
-            error = link_failure(failure)
-            if isinstance(failure, OSError | ConnectionFailed | ConnectionClosed):
-                close_quietly(self.link)  # the link is gone: open it anew for the next poll
-                self.client = None
+            error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
-        self._end(device, readings, error, stamp[0] if stamp else time.time())
+        self._end(device, readings, error, stamp[0] if stamp else self.clock.time())
 
     def _end(self, device, readings, error, when: float) -> None:
         for item in self._settle(device, readings, error, when):
@@ -344,7 +416,7 @@ class LinkWorker:
         """A poll's outcome in the device's state: the Poll, and the Event of its change of
         state if it had one, to report.  ``not_before``: its link cannot be opened, so the
         device is offline now and not tried before the link is."""
-        now = time.monotonic()
+        now = self.clock.monotonic()
         device.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
         device.stats.poll(ok)
@@ -356,7 +428,16 @@ class LinkWorker:
         again = self._tried_again(device)
         if not again and event is not None and event.retry_in is not None:
             event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        poll = Poll(device.spec, when, readings, error, device.state)
+        poll = Poll(
+            device.spec,
+            when,
+            readings,
+            error,
+            device.state,
+            device.last_success,
+            device.stats.copy(),
+            self.view(),
+        )
         device.last_poll = poll
         return [poll] if event is None else [poll, event]
 
@@ -373,7 +454,10 @@ class Plant:
         trace=None,
         traced: Collection[str] | None = None,
     ) -> None:
-        """``trace``: --hex's, for the links ``traced`` names (None: every link)."""
+        """``trace``: --hex's, for the links ``traced`` names (None: every link).  ``report``
+        is called on the thread that calls ``run``, with each record as the workers publish it."""
+        self.report = report
+        self.records: queue.SimpleQueue[Poll | Event] = queue.SimpleQueue()
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
@@ -383,7 +467,7 @@ class Plant:
             LinkWorker(
                 spec,
                 [state for state in self.devices.values() if state.spec.link == name],
-                report,
+                self.records.put,
                 self.stop,
                 rounds,
                 trace if traced is None or name in traced else None,
@@ -416,21 +500,45 @@ class Plant:
                 ) from None
         self.go.set()
         try:
-            for worker in self.workers:
-                while worker.thread.is_alive():
-                    left = None if deadline is None else deadline - time.monotonic()
-                    if left is not None and left <= 0:
-                        self.ended = True
-                        self.stop.set()
-                        left = None
-                    # Short joins: Ctrl-C reaches the main thread between them.
-                    worker.thread.join(0.2 if left is None else min(0.2, left))
-        finally:
-            self.stop.set()
-            for worker in self.workers:
-                # A worker ends its poll's transaction first: at most a timeout a try.
-                longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
-                worker.thread.join(longest + 1)
+            while any(worker.thread.is_alive() for worker in self.workers):
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    self.ended = True
+                    self.stop.set()
+                    left = None
+                # Short waits: Ctrl-C reaches this thread between them.
+                self._publish(0.2 if left is None else min(0.2, left))
+        except KeyboardInterrupt:
+            self._end()
+            self._publish()  # the polls the workers ended as they stopped
+            raise
+        except BaseException:
+            self._end()  # the output failed: nothing more can be shown
+            raise
+        self._end()
+        self._publish()
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed
+
+    def _publish(self, wait: float | None = None) -> None:
+        """Hand every record the workers have published to ``report``, on this thread; with
+        ``wait``, wait that long for the first one (None: take only those already there)."""
+        try:
+            item = self.records.get(timeout=wait) if wait is not None else self.records.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            self.report(item)
+            try:
+                item = self.records.get_nowait()
+            except queue.Empty:
+                return
+
+    def _end(self) -> None:
+        """Stop the workers and wait for them: each ends its poll's transaction first, at most a
+        timeout a try."""
+        self.stop.set()
+        for worker in self.workers:
+            longest = max(timeout * (retries + 1) for timeout, retries in worker.limits())
+            worker.thread.join(longest + 1)

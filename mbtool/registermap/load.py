@@ -400,6 +400,26 @@ def one_line(text: str) -> bool:
     return not any(unicodedata.category(char) in ("Cc", "Zl", "Zp") for char in text)
 
 
+def name_problem(name: str, what: str, influx: bool) -> str:
+    """Why ``name`` (``what``: "a measurement", "a tag or label") cannot be written in InfluxDB's
+    line protocol (``influx``) or Prometheus's text; "" when it can.
+
+    Each is written on one line: the line protocol has no escape for a newline, which would
+    end the point and make the rest a point of its own (in a measurement of its own).  It
+    cannot be empty; to InfluxDB a measurement starting with # makes the line a comment."""
+    if not name:
+        return f"{what} has a name"
+    if not one_line(name):
+        return f"{what} is written on one line: no control characters"
+    if influx and what == "a measurement" and name.startswith("#"):
+        return "a line starting with # is a comment to InfluxDB"
+    if influx and name.endswith("\\"):
+        # Even doubled: InfluxDB 1.x (and line_protocol_parser) take the character after a
+        # backslash in a measurement or tag value as escaped, the separator too.
+        return f"a backslash at the end of {what} escapes the separator after it to InfluxDB 1.x"
+    return ""
+
+
 def _string(row: dict, key: str, fail) -> str:
     value = row.get(key, "")
     if not isinstance(value, str):

@@ -9,8 +9,8 @@ from helpers import (
     run_cli,
 )
 
-from mbtool.cli.inventory import load_inventory
 from mbtool.cli.program import register_schemes
+from mbtool.plant.inventory import load_inventory
 
 
 @pytest.mark.parametrize(
@@ -199,3 +199,22 @@ def test_a_textfile_that_cannot_be_written_is_exit_7_before_any_link_is_opened(
     line = assert_one_error_line(run_cli("poll", path, "--once", "--textfile", textfile), 7)
     assert textfile in line, line
     assert silent_server.received_bytes() == b"" and silent_server.connections == 0
+
+
+@pytest.mark.parametrize(
+    "key, value", [("cert", "5"), ("baud", '"9600"'), ("echo", '"yes"'), ("framer", "5"), ("parity", '"X"')]
+)
+def test_a_links_key_is_read_as_a_profiles_key_is(tmp_path, key, value):
+    """Issue 41.3: one reading of a link setting, from the table of them: an inventory's link
+    says of a value what a profile says of it (cert = 5 was an internal error, exit 1; baud =
+    "9600" was taken by one and refused by the other)."""
+    inventory = tmp_path / "plant.toml"
+    inventory.write_text(
+        f'[links.a]\ntarget = "sim://"\n{key} = {value}\n[devices.d]\nlink = "a"\nread = ["40001"]\n'
+    )
+    config = tmp_path / "config.toml"
+    config.write_text(f'[profiles.s]\nport = "sim://"\n{key} = {value}\n')
+    polled = assert_one_error_line(run_cli("poll", str(inventory), "--once"), 2)
+    read = assert_one_error_line(run_cli("read-coils", "0", "-P", "s", env={"MBTOOL_CONFIG": str(config)}), 2)
+    said = read.split(f"profiles.s.{key}: ", 1)[1]
+    assert polled == f"mbtool: {inventory}: [links.a] {key}: {said}"

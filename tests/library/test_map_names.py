@@ -11,8 +11,8 @@ from pathlib import Path
 from helpers import assert_one_error_line, run_cli
 
 from mbtool.cli.commands.exporter import Modules
-from mbtool.cli.inventory import load_inventory
 from mbtool.library import MAPS, resolve_map
+from mbtool.plant.inventory import load_inventory
 
 OWN = "[points.own_point]\nref = 40001\n"
 

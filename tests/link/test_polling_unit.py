@@ -15,10 +15,11 @@ import time
 import pytest
 
 import mbtool.link
+from mbtool.cli.commands.read import polling_figures, polling_summary
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import RequestError
 from mbtool.device.sim import SimTransport
-from mbtool.errors import ConnectionFailed, ExitCode, Summary
+from mbtool.errors import ConnectionFailed, ExitCode, Verdict
 from mbtool.link import polling
 from mbtool.link.connection import Connection
 from mbtool.link.transport import ConnectionClosed
@@ -131,13 +132,13 @@ def bus(monkeypatch, clock):
     return make
 
 
-def run(connection: Connection, interval: float, polls: int) -> tuple[Summary, Shown, dict]:
-    """poll() to its end: the Summary it leaves with, what it showed, the figures (--stats json)."""
-    shown, figures = Shown(), {}
-    with pytest.raises(Summary) as ended:
-        polling.poll(connection, REQUEST, shown, interval, polls, figures=figures.update)
+def run(connection: Connection, interval: float, polls: int) -> tuple[Verdict, Shown, dict]:
+    """poll() to its end: the record it returns in words (the Verdict the command ends with),
+    what it showed, the figures (--stats json)."""
+    shown = Shown()
+    polled = polling.poll(connection, REQUEST, shown, interval, polls)
     assert shown.closed
-    return ended.value, shown, figures
+    return polling_summary(polled), shown, polling_figures(polled)
 
 
 def link(**options) -> Connection:

@@ -7,7 +7,22 @@ from __future__ import annotations
 import math
 import threading
 
-from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState, LinkSpec, LinkWorker
+import mbtool.link
+from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.link.connection import Connection
+from mbtool.plant.schedule import (
+    OFFLINE,
+    ONLINE,
+    DeviceSpec,
+    DeviceState,
+    Event,
+    LinkSpec,
+    LinkWorker,
+    Plant,
+    Poll,
+    view_of,
+    views,
+)
 
 
 def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:
@@ -66,3 +81,41 @@ def test_a_try_after_the_deadline_is_not_promised():
     state.due = 5.0
     assert not _worker(0, state, deadline=4.0)._tried_again(state)
     assert _worker(0, state, deadline=6.0)._tried_again(state) and _worker(0, state)._tried_again(state)
+
+
+def test_records_reach_report_on_the_thread_that_runs_the_plant(monkeypatch):
+    """Data flows one way (issue 41.5): the link threads publish their Poll and Event records,
+    and only the thread that runs the plant hands them to ``report`` -- the output, the live
+    view and the exporter's text never run on a link's thread."""
+
+    def refused(framer_name):
+        raise ConnectionFailed("cannot open fake://: not there")
+
+    monkeypatch.setitem(mbtool.link.IN_PROCESS, "fake", refused)
+    seen = []
+    device = DeviceSpec("m", "bus", 1, None, {}, 0.01, 3, 0.02)
+    plant = Plant(
+        {"bus": LinkSpec("bus", Connection(port="fake://", timeout=0.05))},
+        [device],
+        lambda item: seen.append((type(item), threading.current_thread())),
+        rounds=1,
+    )
+    plant.run()
+    assert [kind for kind, _ in seen] == [Event, Poll, Event]  # link offline, its poll, device offline
+    assert {thread for _, thread in seen} == {threading.current_thread()}
+
+
+def test_a_poll_carries_copies_of_its_device_and_link_that_later_polls_do_not_change():
+    """Readers see records (issue 41.5): a Poll holds the device's state, last success and
+    counts and its link's as they were, so the output, the live view and the exporter never
+    read what a link's thread is changing."""
+    state = _state()
+    worker = _worker(0, state)
+    (poll,) = worker._settle(state, [], None, 5.0)
+    assert (poll.state, poll.last_success, poll.stats.polls, poll.link.name) == (ONLINE, 5.0, 1, "bus")
+    worker._settle(state, None, NoResponse("silence"), 6.0)
+    assert state.stats.polls == 2 and state.stats.failed_polls == 1
+    assert poll.stats.polls == 1 and poll.stats.failed_polls == 0  # its own copy
+    view = view_of(poll)
+    assert (view.spec, view.state, view.last_success, view.last_poll) == (state.spec, ONLINE, 5.0, poll)
+    assert [v.state for v in views([state.spec]).values()] == ["unknown"]  # before any poll

@@ -32,13 +32,15 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.codec.describe import describe
-from mbtool.codec.errors import RequestError, function_code_text
+from mbtool.codec.errors import function_code_text
 from mbtool.codec.framing import make_framer
 from mbtool.device.server import Server, parse_target
+from mbtool.errors import UsageError
 from mbtool.link import IN_PROCESS
 from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.connection import rs485_delays as rs485_delays_of
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY, Forwarder
+from mbtool.link.settings import RS485_DRIVES, SETTINGS, check_data_bits, not_for_tls
 from mbtool.link.transport import MBAP_SCHEMES, SerialSettings, default_framer, is_network
 from mbtool.words import counted
 
@@ -195,18 +197,17 @@ def bridge(
     """
     if quiet and (output_format or hex_trace):
         shown = " and ".join(name for name, given in (("-o", output_format), ("--hex", hex_trace)) if given)
-        raise RequestError(f"-q shows no transaction: {shown} would have nothing to show")
+        raise UsageError(f"-q shows no transaction: {shown} would have nothing to show")
     where = parse_target(listen)
     forwarded = parse_units(units, broadcast=True)
     serial_framer = framer or "rtu"
     listening_framer = "tcp" if where.scheme in MBAP_SCHEMES else serial_framer
     link_framer = "tcp" if default_framer(target) == "tcp" else serial_framer
     if framer and "tcp" == listening_framer == link_framer:
-        raise RequestError("--framer sets the serial side's framing, and both sides are tcp://")
+        raise UsageError("--framer sets the serial side's framing, and both sides are tcp://")
     if where.scheme == "serial" and where.path == target:
-        raise RequestError(f"--listen and -p are both {target}: a bridge joins two links")
-    if bytesize == "7" and "rtu" in (listening_framer, link_framer):
-        raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
+        raise UsageError(f"--listen and -p are both {target}: a bridge joins two links")
+    check_data_bits(bytesize, (listening_framer, link_framer))
     # --rs485 drives the RTS line of the serial side, whichever side that is.
     direction = rs485_delays_of(rs485, rs485_delays)
     link_serial = (
@@ -215,14 +216,14 @@ def bridge(
         and not is_network(target)
     )
     if direction and where.scheme != "serial" and not link_serial:
-        raise RequestError("--rs485 drives the RTS line of a serial port, and neither side is one")
+        raise UsageError(f"{RS485_DRIVES}, and neither side is one")
     # --cert, --key and --ca are the bridge's one identity: the server's on a tls:// --listen,
     # the client's towards a tls:// -p, both where both are.
     link_tls = target.lower().startswith("tls://")
     if where.scheme != "tls" and not link_tls:
-        given = [o for o, v in (("--cert", cert), ("--key", key), ("--ca", ca)) if v]
+        given = [SETTINGS[name].option for name, value in (("cert", cert), ("key", key), ("ca", ca)) if value]
         if given:
-            raise RequestError(f"{given[0]} is for tls:// (Modbus/TCP Security), and neither side is tls://")
+            raise not_for_tls(given[0], "tls://", ", and neither side is tls://")
     listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
     check_udp_rate(where, udp_rate)
@@ -232,8 +233,8 @@ def bridge(
         framer=link_framer,
         baud=baud,
         parity=parity,
-        bytesize=int(bytesize),
-        stopbits=int(stopbits),
+        bytesize=bytesize,
+        stopbits=stopbits,
         timeout=timeout,
         retries=retries,
         echo=echo,
@@ -261,7 +262,7 @@ def bridge(
         listening_framer,
         answerer=forwarder,
         queued=True,
-        settings=SerialSettings(baud, parity, int(bytesize), int(stopbits), direction),
+        settings=SerialSettings(baud, parity, bytesize, stopbits, direction),
         log=show.event,
         max_clients=max_clients,
         idle_timeout=idle_timeout,

@@ -33,14 +33,13 @@ import sys
 import threading
 import time
 from collections import OrderedDict
-from contextlib import ExitStack, contextmanager
+from contextlib import contextmanager
 from fnmatch import fnmatchcase
 from pathlib import Path, PurePath
 from urllib.parse import parse_qs
 
 import click
 
-from mbtool.cli.inventory import load_inventory
 from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
@@ -59,9 +58,11 @@ from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
 from mbtool.library import find_named
 from mbtool.link.base import host_text
-from mbtool.link.connection import Connection, check, close_quietly, open_client
+from mbtool.link.connection import Connection, check, open_client
+from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
+from mbtool.plant.inventory import load_inventory
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
@@ -563,12 +564,10 @@ def _read_map(connection, register_map, deadline: float, budget: float):
             "timeout",
         )
     timeout, retries, unit = connection.timeout, connection.retries, connection.unit
-    link = ExitStack()
+    link = ManagedLink(lambda: open_client(replace(connection, timeout=min(timeout, left))), Backoff(0.0))
     try:
-        client = link.enter_context(open_client(replace(connection, timeout=min(timeout, left))))
-    except (*KNOWN_ERRORS, OSError) as error:
-        close_quietly(link)
-        error = link_failure(error)
+        client = link.open()
+    except (*KNOWN_ERRORS, OSError) as error:  # an OSError is the ConnectionFailed it means
         return None, error, outcome_of(error)
 
     def execute(request):
@@ -577,7 +576,7 @@ def _read_map(connection, register_map, deadline: float, budget: float):
             raise NoResponse(f"the scrape's deadline ({budget:g} s) passed before the read ended")
         client.timeout = min(timeout, math.floor(left * 1000) / 1000 or left)  # "within 0.747 s"
         client.retries = min(retries, max(0, int(left / client.timeout) - 1))
-        return client.execute(unit, request)
+        return link.execute(unit, request)
 
     try:
         return MapReader(register_map.points.values(), register_map.max_gap).read(execute), None, ""
@@ -587,7 +586,7 @@ def _read_map(connection, register_map, deadline: float, budget: float):
         error = link_failure(failure)
         return None, error, outcome_of(error)
     finally:
-        close_quietly(link)
+        link.close()
 
 
 class _ScrapeCollector:

@@ -10,7 +10,6 @@ device that did not (spec §3): that request is lost.
 from __future__ import annotations
 
 import time
-from contextlib import ExitStack
 
 import click
 
@@ -21,13 +20,10 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 from mbtool.durations import Durations
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Summary, link_failure
-from mbtool.link.connection import close_quietly
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Verdict
+from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
-from mbtool.link.stats import Counted, Stats, outcome_of, untimed_text
-
-# The outcomes (link.stats) of a link that failed: it is opened anew for the next request.
-LINK_FAILURES = ("link_lost", "connection")
+from mbtool.link.stats import Stats, outcome_of, untimed_text
 
 # What each --function asks: a read of one holding register, or the diagnostics echo.
 FUNCTIONS = {"03": "read one holding register", "08": "diagnostics, return query data (echo)"}
@@ -79,7 +75,7 @@ def ping(connection, settings, count, interval, function, address, quiet):
         with open_client(connection, settings, "ping", then="then the same again every --interval") as client:
             client.execute(unit, request_for(1))
         return
-    raise Pinger(connection, settings, request_for, quiet).run(count, interval)
+    return Pinger(connection, settings, request_for, quiet).run(count, interval)
 
 
 def _requests(function: str, address: int):
@@ -106,7 +102,7 @@ class Pinger:
         self.untimed = 0  # their replies whose round trip is not known (link.client's rtt)
         self.failure = ""  # the outcome of the last request that got no reply (link.stats)
 
-    def run(self, count: int | None, interval: float) -> Summary:
+    def run(self, count: int | None, interval: float) -> Verdict:
         connection, unit = self.connection, self.connection.unit
         request = self.request_for(1)
         if not self.quiet:
@@ -114,48 +110,42 @@ class Pinger:
             if request.function_code == 0x03:
                 what += f" at {request.address}"
             click.echo(f"PING {connection.port} unit {unit}: {what}, timeout {connection.timeout:g} s")
-        link = ExitStack()
+        # The link is lost when it closes or breaks, and opened again at most once a timeout
+        # (-i 0 against a device that is restarting is not a flood of connections).
+        link = ManagedLink(
+            lambda: open_client(connection, self.settings, "ping"), Backoff(connection.timeout), self.stats
+        )
         # The first link is the command's: one that cannot be opened ends it (exit 6).
-        client = link.enter_context(open_client(connection, self.settings, "ping"))
-        counted = Counted(client, self.stats)
-        opened_at = last_sent = time.monotonic()
+        link.open()
+        last_sent = time.monotonic()
         interrupted = False
         try:
             while count is None or self.stats.transactions < count:
                 seq = self.stats.transactions + 1
                 if seq > 1:
                     _sleep_until(last_sent + interval)
-                if client is None:
-                    # The link was lost: open it again, at most once a timeout (-i 0 against
-                    # a device that is restarting is not a flood of connections).
-                    _sleep_until(opened_at + connection.timeout)
-                    opened_at = time.monotonic()
+                if link.client is None:
+                    link.wait()
                     try:
-                        link = ExitStack()
-                        client = link.enter_context(open_client(connection, self.settings, "ping"))
-                    except (ConnectionFailed, OSError) as error:
-                        failure = link_failure(error)
+                        link.open()
+                    except ConnectionFailed as failure:
                         self._failed(seq, failure, None, 0)
                         self.stats.transaction(failure, 0)
                         last_sent = time.monotonic()
                         continue
-                    counted = Counted(client, self.stats)
                 last_sent = time.monotonic()
                 try:
-                    counted(unit, self.request_for(seq))
+                    link.execute(unit, self.request_for(seq))
                 except RequestError:
                     raise  # the request itself is wrong: no later one can do better
                 except (*KNOWN_ERRORS, OSError) as error:
-                    self._failed(seq, error, counted.rtt, client.attempts)
-                    if outcome_of(error) in LINK_FAILURES:  # closed or broken: open it anew next time
-                        close_quietly(link)
-                        client = None
+                    self._failed(seq, error, link.rtt, link.attempts)
                 else:
-                    self._answered(seq, counted.rtt, client.attempts)
+                    self._answered(seq, link.rtt, link.attempts)
         except KeyboardInterrupt:
             interrupted = True
         finally:
-            close_quietly(link)
+            link.close()
         return self._summary(interrupted)
 
     def _answered(self, seq: int, rtt: float | None, attempts: int, what: str = "") -> None:
@@ -185,7 +175,7 @@ class Pinger:
         if not self.quiet:
             click.echo(f"unit {self.connection.unit}: seq={seq} {text}")
 
-    def _summary(self, interrupted: bool) -> Summary:
+    def _summary(self, interrupted: bool) -> Verdict:
         stats = self.stats
         sent = stats.transactions
         lost = 0.0 if not sent else round(100 * (sent - self.alive) / sent, 1)
@@ -196,12 +186,12 @@ class Pinger:
         if interrupted:
             text = "interrupted; " + text
             if not sent:
-                return Summary(text, ExitCode.INTERRUPTED)
+                return Verdict(text, ExitCode.INTERRUPTED)
         if self.alive:
-            return Summary(text, ExitCode.OK)
+            return Verdict(text, ExitCode.OK)
         # No reply: 3, as ping(8) says "no reply", unless the link could not be reached at all
         # (the last request's failure), which is 6 here as in every command.
-        return Summary(text, ExitCode.CONNECTION if self.failure == "connection" else ExitCode.TIMEOUT)
+        return Verdict(text, ExitCode.CONNECTION if self.failure == "connection" else ExitCode.TIMEOUT)
 
 
 def _time(rtt: float | None) -> str:

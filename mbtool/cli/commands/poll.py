@@ -17,7 +17,6 @@ import click
 
 from mbtool.cli.broker import hand_writes, make_publisher, stats_line
 from mbtool.cli.frames import HexTrace
-from mbtool.cli.inventory import FORMATS, load_inventory
 from mbtool.cli.json_text import to_json
 from mbtool.cli.metrics import (
     KEY_SPECIALS,
@@ -35,10 +34,11 @@ from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
+from mbtool.plant.inventory import FORMATS, load_inventory
+from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -184,7 +184,6 @@ def poll(
         trace,
         hex_links or None,
     )
-    output.states = runner.devices
     if publisher is not None:
         if mqtt.writes:
             hand_writes(publisher, runner)
@@ -193,7 +192,7 @@ def poll(
     interrupted = False
     try:
         if view:
-            with view.running(runner.devices):
+            with view.running():
                 runner.run(duration)
         else:
             runner.run(duration)
@@ -205,29 +204,30 @@ def poll(
             publisher.close()
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started, publisher)
-    raise _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
+    return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
-def _both(first, second):
-    """A report to two consumers: the output, and the MQTT publisher (which only enqueues)."""
+def _both(first, publish):
+    """The plant's one report, on the thread that runs it, handed to the output and the MQTT
+    publisher: the publisher its Polls (it only enqueues them), which carry each device's state."""
 
     def report(item: Poll | Event) -> None:
         first(item)
-        second(item)
+        if isinstance(item, Poll):
+            publish(item)
 
     return report
 
 
 class PlantOutput:
-    """What the workers report, written as it comes (one writer at a time: a lock)."""
+    """What the workers report, written as it comes, on the one thread that runs the plant."""
 
     def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
         self.fmt = fmt
         self.measurement = measurement  # -o influx's, for the devices that name none
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
-        self.lock = threading.Lock()
-        self.states: dict = {}
+        self.states = views(plant.devices)  # each device as its latest Poll left it
         self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
         self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
@@ -235,12 +235,11 @@ class PlantOutput:
         self.exposed = False  # the first round is written
 
     def report(self, item: Poll | Event) -> None:
-        with self.lock:
-            if isinstance(item, Event):
-                self._event(item)
-            else:
-                self._poll(item)
-            sys.stdout.flush()
+        if isinstance(item, Event):
+            self._event(item)
+        else:
+            self._poll(item)
+        sys.stdout.flush()
 
     def _event(self, event: Event) -> None:
         print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
@@ -254,6 +253,7 @@ class PlantOutput:
 
     def _poll(self, poll: Poll) -> None:
         device, when = poll.device, local_time(poll.time)
+        self.states[device.name] = view_of(poll)
         if poll.readings is None:
             if poll.state != OFFLINE:  # an offline device's probes: its event said why
                 print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
@@ -316,10 +316,9 @@ class PlantOutput:
         self.exposed = True
 
     def close(self) -> None:
-        with self.lock:
-            if self.unwritten:
-                self._expose()  # the last state of every device, whatever the round
-            sys.stdout.flush()
+        if self.unwritten:
+            self._expose()  # the last state of every device, whatever the round
+        sys.stdout.flush()
 
 
 def _shown(reading) -> str:
@@ -403,13 +402,12 @@ class LiveView:
         self.changed: dict[str, set[str]] = {}
         self.previous: dict[str, dict[str, object]] = {}
         self.events: list[str] = []
-        self.states: dict = {}
+        self.states = views(plant.devices)  # each device as its latest Poll left it
         self.publisher = None  # poll --mqtt's: the broker's state in the title
 
-    def running(self, states: dict):
+    def running(self):
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
-        self.states = states
         return Live(self, refresh_per_second=4, transient=False)
 
     def __rich_console__(self, console, options):
@@ -422,7 +420,9 @@ class LiveView:
         with self.lock:
             if isinstance(item, Event):  # the line stderr gets too, the latest a band holds kept
                 self.events = (self.events + [event_line(item)])[-self.EVENT_ROWS :]
-            elif item.readings is not None:
+                return
+            self.states[item.device.name] = view_of(item)
+            if item.readings is not None:
                 values = {r.point.name: r.value for r in item.readings if r.error is None}
                 before = self.previous.get(item.device.name, {})
                 self.changed[item.device.name] = {
@@ -574,7 +574,7 @@ def _limits(pair: tuple[float, int]) -> dict:
     return {"timeout_seconds": pair[0], "retries": pair[1]}
 
 
-def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summary:
+def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Verdict:
     """0 when every device answered its last poll, 8 when some did, else the failure's code;
     130 for a run that was to end (``ends``: --once, --rounds, --duration) stopped before it did,
     and for any stopped before a poll."""
@@ -589,7 +589,7 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
         f", {partial} in part" if partial else ""
     )
     if interrupted and (not polls or (ends and not runner.completed())):
-        return Summary("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
+        return Verdict("interrupted before the run's end; " + text, ExitCode.INTERRUPTED)
     if interrupted:
         text = "interrupted; " + text
     elif rounds:  # --rounds counts the rounds of devices that answer: say what an offline one got
@@ -598,9 +598,9 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Summa
             f"; {s.spec.name} polled {counted(s.polls, 'time')} of {rounds} ({s.state})" for s in short
         )
     if not failed and not partial and not unpolled:
-        return Summary(text, ExitCode.OK)
+        return Verdict(text, ExitCode.OK)
     if answered or partial:
-        return Summary(text, ExitCode.PARTIAL)
+        return Verdict(text, ExitCode.PARTIAL)
     if not failed:
-        return Summary(text, ExitCode.INTERRUPTED)
-    return Summary(text + f": {failed[0].error}", exit_code_for(failed[0].error))
+        return Verdict(text, ExitCode.INTERRUPTED)
+    return Verdict(text + f": {failed[0].error}", exit_code_for(failed[0].error))

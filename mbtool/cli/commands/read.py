@@ -26,7 +26,7 @@ from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingR
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-from mbtool.errors import PartialRead
+from mbtool.errors import PartialRead, Verdict
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -89,8 +89,8 @@ def polling_options(function):
 
 def _run(
     connection: Connection, settings: Settings, request, to_result, interval, polls, run=None, points=()
-) -> None:
-    """Once, or polled.  ``run(execute)``: a read of several requests (a map's ``points``),
+) -> Verdict | None:
+    """Once (None), or polled (how the polls ended).  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
     metrics = None
     if settings.textfile or settings.output_format in MONITORING_FORMATS:
@@ -111,13 +111,63 @@ def _run(
     if settings.changes:
         output = ChangesOnly(output)
     shown = Deferred(output, to_result)
-    figures = None
-    if settings.stats == "json":
+    polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
+    if settings.stats == "json":  # the summary as one JSON object, before its line
+        print(to_json(polling_figures(polled)), file=sys.stderr, flush=True)
+    return polling_summary(polled)
 
-        def figures(summary: dict) -> None:  # the summary as one JSON object, before its line
-            print(to_json(summary), file=sys.stderr, flush=True)
 
-    poll(connection, request, shown, interval, polls, trace_for(settings), run, figures)
+def polling_summary(polled) -> Verdict:
+    """A run of polls (link.polling.Polled) in words: the one line that ends it, with its code."""
+    summary = (
+        f"polls {polled.polls}, replies {polled.replies}, partial {polled.partial}, "
+        f"timeouts {polled.timeouts}, errors {polled.errors}, skipped {polled.skipped}, "
+        f"latency per request min/avg/max {_latency(polled.stats.rtt)}, per poll {_latency(polled.per_poll)}"
+    )
+    if polled.polls > 1 and polled.last_when > polled.first_when:
+        summary += f", {_rate((polled.polls - 1) / (polled.last_when - polled.first_when))} polls/s"
+    summary += f"; {polled.stats}"
+    if polled.accepted:
+        summary += f"; accepted (--lenient): {'; '.join(polled.accepted)}"
+    if polled.interrupted:
+        summary = "interrupted; " + summary
+    return Verdict(summary, polled.exit_code)
+
+
+def polling_figures(polled) -> dict:
+    """A run of polls as --stats json's object."""
+    return {
+        "polls": polled.polls,
+        "replies": polled.replies,
+        "partial": polled.partial,
+        "timeouts": polled.timeouts,
+        "errors": polled.errors,
+        "skipped": polled.skipped,
+        "interrupted": polled.interrupted,
+        "latency_ms": {"per_request": _ms(polled.stats.rtt), "per_poll": _ms(polled.per_poll)},
+        **polled.stats.as_dict(),
+    }
+
+
+def _latency(durations) -> str:
+    """min/avg/max in ms, of a poll's latencies or the round trips link.stats counted."""
+    figures = durations.figures()
+    if figures is None:
+        return "-"
+    return f"{figures['min'] * 1000:.1f}/{figures['avg'] * 1000:.1f}/{figures['max'] * 1000:.1f} ms"
+
+
+def _ms(durations) -> dict | None:
+    """min, avg and max in ms (None before the first)."""
+    figures = durations.figures()
+    if figures is None:
+        return None
+    return {name: figures[name] * 1000 for name in ("min", "avg", "max")}
+
+
+def _rate(per_second: float) -> str:
+    """Polls a second, from first poll to last: whole numbers when fast, two figures when slow (cron)."""
+    return f"{per_second:.0f}" if per_second >= 10 else f"{per_second:.2g}"
 
 
 def _once(connection: Connection, settings: Settings, request, to_result, run=None, metrics=None) -> None:
@@ -165,7 +215,7 @@ def _read_bits(
     interval=None,
     polls=None,
     table=None,
-) -> None:
+) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     request = kind(address, count)
     # What every poll shares, made once: a poll's result is its bits in this frame.
@@ -178,7 +228,7 @@ def _read_bits(
             connection.unit, kind.function_code, kind.name, address, values, refs=refs, addresses=addresses
         )
 
-    _run(connection, settings, request, to_result, interval, polls)
+    return _run(connection, settings, request, to_result, interval, polls)
 
 
 def _read_registers(
@@ -192,7 +242,7 @@ def _read_registers(
     interval=None,
     polls=None,
     table=None,
-) -> None:
+) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
         raise RequestError(
@@ -232,7 +282,7 @@ def _read_registers(
             addresses,
         )
 
-    _run(connection, settings, request, to_result, interval, polls)
+    return _run(connection, settings, request, to_result, interval, polls)
 
 
 @device_command("read-coils", readings=True, polls=True)
@@ -241,7 +291,7 @@ def _read_registers(
 @polling_options
 def read_coils(connection, settings, address, count, interval, polls):
     """Read coils (FC 01). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
+    return _read_bits(connection, settings, ReadCoils, address, count, interval, polls)
 
 
 @device_command("read-discrete-inputs", readings=True, polls=True)
@@ -250,7 +300,7 @@ def read_coils(connection, settings, address, count, interval, polls):
 @polling_options
 def read_discrete_inputs(connection, settings, address, count, interval, polls):
     """Read discrete inputs (FC 02). COUNT (default 1, at most 2000) bits from ADDRESS."""
-    _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
+    return _read_bits(connection, settings, ReadDiscreteInputs, address, count, interval, polls)
 
 
 def _refs(table, addresses: list[int]) -> list[str]:
@@ -269,7 +319,7 @@ def read_holding_registers(connection, settings, address, count, value_type, ord
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    _read_registers(
+    return _read_registers(
         connection, settings, ReadHoldingRegisters, address, count, value_type, order, interval, polls
     )
 
@@ -284,7 +334,7 @@ def read_input_registers(connection, settings, address, count, value_type, order
     With --type, COUNT counts values of that type (float32: 2 registers each);
     for --type string it counts registers (2 characters each).
     """
-    _read_registers(
+    return _read_registers(
         connection, settings, ReadInputRegisters, address, count, value_type, order, interval, polls
     )
 
@@ -310,19 +360,21 @@ def read(connection, settings, targets, map, value_type, order, interval, polls)
     """
     given = type_options_given(map)
     if map:
-        _read_map(connection, settings, map, targets, interval, polls)
-        return
+        return _read_map(connection, settings, map, targets, interval, polls)
     from mbtool.codec.tables import READS  # noqa: PLC0415 - read REF only
 
     table, address, count = reference_target(targets, "read", given)
     kind = READS[table.name]
     if table.bits:
-        _read_bits(connection, settings, kind, address, count, interval, polls, table)
-    else:
-        _read_registers(connection, settings, kind, address, count, value_type, order, interval, polls, table)
+        return _read_bits(connection, settings, kind, address, count, interval, polls, table)
+    return _read_registers(
+        connection, settings, kind, address, count, value_type, order, interval, polls, table
+    )
 
 
-def _read_map(connection: Connection, settings: Settings, path: str, names, interval, polls) -> None:
+def _read_map(
+    connection: Connection, settings: Settings, path: str, names, interval, polls
+) -> Verdict | None:
     from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import MapReader  # noqa: PLC0415 - with decimal, 2 ms: -m only
 
@@ -360,4 +412,4 @@ def _read_map(connection: Connection, settings: Settings, path: str, names, inte
         ]
         return Points(connection.unit, register_map.source, rows, failed=failed)
 
-    _run(connection, settings, requests[0], to_result, interval, polls, run, points)
+    return _run(connection, settings, requests[0], to_result, interval, polls, run, points)

@@ -30,7 +30,7 @@ from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.session import open_client, trace_for
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
-from mbtool.errors import ExitCode, Summary
+from mbtool.errors import ExitCode, Verdict
 from mbtool.link.scan import PROBES, READS, Answer, Scan, Setting, Tally, probe_request
 from mbtool.words import counted
 
@@ -365,7 +365,7 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     head = {"function": request.function_code, "name": request.name, "timeout": connection.timeout}
     title = f"[bold]Scan[/] {request.name} · {function_code_text(request.function_code)} · {connection.port}"
     output.finish(tally, head, title)
-    raise _summary(tally, time.monotonic() - started, connection.timeout, sweeping)
+    return _summary(tally, time.monotonic() - started, connection.timeout, sweeping)
 
 
 def _check_sweepable(port: str | None) -> None:
@@ -386,7 +386,7 @@ def _dry_run(connection, settings, request, units: list[int], lines: list[Settin
         client.execute(units[0], request)
 
 
-def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Summary:
+def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Verdict:
     """One stderr line with the counts (like polling's), and the exit code the scan earned."""
     found = len(tally.found)
     text = (
@@ -399,15 +399,15 @@ def _summary(tally: Tally, seconds: float, timeout: float, sweeping: bool) -> Su
         text += f", settings opened {opened} of {len(tally.settings)}"
     text += f", {seconds:.1f} s; {tally.transactions}"
     if tally.interrupted:
-        return Summary("interrupted; " + text, ExitCode.INTERRUPTED)
+        return Verdict("interrupted; " + text, ExitCode.INTERRUPTED)
     if found:
-        return Summary("scan: " + text, ExitCode.OK)
+        return Verdict("scan: " + text, ExitCode.OK)
     if tally.garbled:
         # Something is on the line but nothing checked out: the settings are the suspects.
-        return Summary(
+        return Verdict(
             f"no unit answered cleanly ({text}): try other --baud/--parity/--framer",
             ExitCode.INVALID_RESPONSE,
         )
     if tally.settings and all(setting.error for setting in tally.settings):
-        return Summary(f"no setting could be opened ({text})", ExitCode.CONNECTION)
-    return Summary(f"no unit answered within {timeout:g} s ({text})", ExitCode.TIMEOUT)
+        return Verdict(f"no setting could be opened ({text})", ExitCode.CONNECTION)
+    return Verdict(f"no unit answered within {timeout:g} s ({text})", ExitCode.TIMEOUT)

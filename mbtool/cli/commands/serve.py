@@ -18,12 +18,13 @@ from mbtool.cli.listen import DATAGRAM_SCHEMES, check_udp_rate, datagrams_droppe
 from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_client_options
 from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
-from mbtool.codec.errors import RequestError
 from mbtool.device.datafile import load_data
 from mbtool.device.device import Device, Faults
 from mbtool.device.model import demo_model
 from mbtool.device.server import Server, parse_target
 from mbtool.device.serving import IoFaults
+from mbtool.errors import UsageError
+from mbtool.link.settings import check_data_bits
 from mbtool.link.transport import SerialSettings, default_framer
 from mbtool.words import counted
 
@@ -37,13 +38,13 @@ class ServeCommand(QuickHelp, click.Command):
 def parse_exception(text: str) -> tuple[int, int]:
     function, colon, code = text.partition(":")
     if not colon:
-        raise RequestError(f"--exception {text}: expected FC:CODE, e.g. 3:2 or 0x10:0x06")
+        raise UsageError(f"--exception {text}: expected FC:CODE, e.g. 3:2 or 0x10:0x06")
     fc = parse_int(function, "function code")
     ex = parse_int(code, "exception code")
     if not 1 <= fc <= 0x7F:
-        raise RequestError(f"function code {function} is out of range 1..127")
+        raise UsageError(f"function code {function} is out of range 1..127")
     if not 1 <= ex <= 0xFF:
-        raise RequestError(f"exception code {ex} is out of range 1..255")
+        raise UsageError(f"exception code {ex} is out of range 1..255")
     return fc, ex
 
 
@@ -224,25 +225,22 @@ def serve(
     where = parse_target(target)
     framer = framer or default_framer(target)
     if where.scheme in ("serial", "rtu+udp") and framer == "tcp":
-        raise RequestError(
+        raise UsageError(
             f"--framer tcp (MBAP) needs a tcp://, tls:// or udp:// target; {where} takes rtu or ascii"
         )
-    if framer == "rtu" and bytesize == "7":
-        raise RequestError("RTU frames carry 8 data bits (spec §2); 7 data bits are for --framer ascii")
+    check_data_bits(bytesize, (framer,))
     if (min_gap or settle or connection_requests) and where.scheme not in ("tcp", "tls"):
-        raise RequestError(
+        raise UsageError(
             "--min-gap, --settle and --connection-requests are faults of TCP clients: serve on tcp://HOST:PORT"
         )
     context, roles = tls_server_settings(where, framer, cert, key, ca, write_roles, data_file)
     check_udp_rate(where, udp_rate)
     if (pad or byte_count_off or reply_unit is not None) and framer != "tcp":
-        raise RequestError(
-            "--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing"
-        )
+        raise UsageError("--pad, --byte-count-off and --reply-unit bend Modbus TCP replies: use tcp framing")
     if seed is not None and not (drop or corrupt):
-        raise RequestError("--seed picks which replies --drop and --corrupt spoil: give one of them")
+        raise UsageError("--seed picks which replies --drop and --corrupt spoil: give one of them")
     if corrupt and framer == "tcp":
-        raise RequestError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
+        raise UsageError("--corrupt needs rtu or ascii framing: MBAP carries no CRC/LRC")
     injected = dict(parse_exception(text) for text in exceptions)
     if data_file:
         model, unit_models = load_data(data_file, unit_set)
@@ -251,7 +249,7 @@ def serve(
     device = Device(model, unit_set, unit_models)
     device.faults = Faults(injected or None, time.monotonic() + busy if busy else 0.0)
     device.read_only = read_only
-    settings = SerialSettings(baud, parity, int(bytesize), int(stopbits))
+    settings = SerialSettings(baud, parity, bytesize, stopbits)
     mode = "quiet" if quiet else ("live" if sys.stdout.isatty() else "log")
     log = functools.partial(_log_line, framer) if mode == "log" else None
     server = Server(

@@ -32,7 +32,8 @@
 
 Everything is checked before anything is opened: an unknown key, a device that names a
 link the file does not have, a map that does not load, a target that names nothing, a
-value of the wrong type are one RequestError (exit 2) naming the file, the table and the key.
+value of the wrong type are one UsageError (exit 2) naming the file, the table and the key.
+A link's keys are the link settings (``link.settings.SETTINGS``), read as a profile's are.
 """
 
 from __future__ import annotations
@@ -40,21 +41,19 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import click
-
-from mbtool.cli import profiles
-from mbtool.cli.metrics import name_problem
-from mbtool.cli.options import device_command
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
+from mbtool.errors import UsageError
+from mbtool.files import beside, read_toml
 from mbtool.library import resolve_map
 from mbtool.link import IN_PROCESS
 from mbtool.link.connection import Connection, check, tls_settings
+from mbtool.link.settings import SETTINGS, File, Setting
 from mbtool.link.transport import parse_target
 from mbtool.mqtt.settings import check_table
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
-from mbtool.registermap.load import MapError, RegisterMap, load_map, one_line
+from mbtool.registermap.load import MapError, RegisterMap, load_map, name_problem, one_line
 from mbtool.registermap.plan import MapReader
 from mbtool.registermap.point import Point
 
@@ -79,9 +78,9 @@ DEVICE_KEYS = (
     *POLL_KEYS.keys() - {"output"},
     *OWN_LINK_KEYS,
 )
-# A link takes what a profile does, but the unit (each device has its own) and a map.
-LINK_KEYS = {"target": profiles.KEYS["port"]} | {
-    key: about for key, about in profiles.KEYS.items() if key not in ("port", "unit", "map")
+# A link takes every link setting but the unit (each device has its own); its port is its target.
+LINK_KEYS: dict[str, Setting] = {"target": SETTINGS["port"]} | {
+    key: setting for key, setting in SETTINGS.items() if key not in ("port", "unit")
 }
 DEFAULTS = {"interval": 10.0, "offline_after": 3, "max_backoff": 300.0}
 # A tag is a Prometheus label and an influx tag: a name both can carry, and not one of the
@@ -94,18 +93,18 @@ RESERVED_TAGS = ("device", "name", "ref", "unit", "link")
 class Inventory:
     path: str
     output: str | None
-    links: dict
-    devices: list
-    maps: dict  # device name -> the path of its register map (those with a map)
+    links: dict[str, LinkSpec]
+    devices: list[DeviceSpec]
+    maps: dict[str, str]  # device name -> the path of its register map (those with a map)
     mqtt: dict | None = None  # its [mqtt] table, checked (mbtool/mqtt/settings.py): poll adds --mqtt's url
 
 
 def load_inventory(path: str) -> Inventory:
-    """The inventory at ``path``, checked whole; RequestError (exit 2) naming what is wrong."""
-    data = profiles.read_toml(Path(path), "inventory")
+    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong."""
+    data = read_toml(Path(path), "inventory")
     for key in data:
         if key not in ("poll", "links", "devices", "mqtt"):
-            raise RequestError(
+            raise UsageError(
                 f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME], [mqtt])"
             )
     poll = _table(data, "poll", path, "[poll]")
@@ -114,26 +113,23 @@ def load_inventory(path: str) -> Inventory:
     for key, value in poll.items():
         where = f"{path}: [poll] {key}"
         if key not in POLL_KEYS:
-            raise RequestError(f"{where}: unknown key (known: {', '.join(POLL_KEYS)})")
+            raise UsageError(f"{where}: unknown key (known: {', '.join(POLL_KEYS)})")
         if key == "output":
             if value not in FORMATS:
-                raise RequestError(f"{where}: {value!r} is not {POLL_KEYS[key]}")
+                raise UsageError(f"{where}: {value!r} is not {POLL_KEYS[key]}")
             output = value
         else:
             defaults[key] = _setting(key, value, where)
-    params, ctx = _link_params()
     links = {
-        name: _link(name, table, path, params, ctx, Path(path).parent)
+        name: _link(name, table, path, Path(path).parent)
         for name, table in _table(data, "links", path, "[links.NAME]", nested=True).items()
     }
     _one_link_a_target(links, path)
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
     loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
-    devices = [
-        _device(name, table, path, links, defaults, loaded, params, ctx) for name, table in tables.items()
-    ]
+    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
     if not devices:
-        raise RequestError(f"{path}: no [devices.NAME]: nothing to poll")
+        raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
     check_table(data.get("mqtt"), path, devices)
@@ -143,10 +139,10 @@ def load_inventory(path: str) -> Inventory:
 def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:
     table = data.get(key, {})
     if not isinstance(table, dict):
-        raise RequestError(f"{path}: {key} must be a table, {shown}")
+        raise UsageError(f"{path}: {key} must be a table, {shown}")
     for name, value in table.items() if nested else ():
         if not isinstance(value, dict):
-            raise RequestError(f"{path}: [{key}.{name}] must be a table")
+            raise UsageError(f"{path}: [{key}.{name}] must be a table")
         _name(name, f"{path}: [{key}.{name}]")
     return table
 
@@ -154,41 +150,33 @@ def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) ->
 def _name(name: str, where: str) -> None:
     """A link's or device's name: a label value and a tag, so on one line and not empty."""
     if not name or not one_line(name):
-        raise RequestError(f"{where}: a name must not be empty nor hold a control character")
+        raise UsageError(f"{where}: a name must not be empty nor hold a control character")
 
 
 def _setting(key: str, value, where: str):
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise RequestError(f"{where}: expected {POLL_KEYS[key]}")
+        raise UsageError(f"{where}: expected {POLL_KEYS[key]}")
     if key == "offline_after":
         if not isinstance(value, int) or value < 1:
-            raise RequestError(f"{where}: expected a whole number of polls, 1 or more")
+            raise UsageError(f"{where}: expected a whole number of polls, 1 or more")
         return value
     if not 0 < value <= 86400:
-        raise RequestError(f"{where}: expected seconds above 0, at most a day (86400)")
+        raise UsageError(f"{where}: expected seconds above 0, at most a day (86400)")
     return float(value)
 
 
-def _link_params() -> tuple[dict[str, click.Parameter], click.Context]:
-    """The device commands' options, whose types convert a link's values as they convert a
-    profile's (profiles._convert): one place for what --parity or --timeout accepts."""
-    command = device_command("link", polls=True)(lambda connection, settings: connection)
-    return {param.name: param for param in command.params}, click.Context(command)
-
-
-def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, folder: Path) -> LinkSpec:
+def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
     settings = {}
     for key, value in table.items():
         where = f"{path}: [links.{name}] {key}"
         if key not in LINK_KEYS:
-            raise RequestError(f"{where}: unknown key (known: {', '.join(LINK_KEYS)})")
-        param = params["port" if key == "target" else key]
-        value = profiles._convert(param, key, value, ctx, where)
-        if key in profiles.PATH_KEYS and value is not None:  # beside the inventory unless absolute
-            value = str(profiles.beside(folder, value))
-        settings["port" if key == "target" else key] = value
+            raise UsageError(f"{where}: unknown key (known: {', '.join(LINK_KEYS)})")
+        setting = LINK_KEYS[key]
+        settings[setting.name] = _read(setting, value, where, key)
+        if isinstance(setting.kind, File):  # beside the inventory unless absolute
+            settings[setting.name] = str(beside(folder, settings[setting.name]))
     if "port" not in settings:
-        raise RequestError(
+        raise UsageError(
             f'{path}: [links.{name}] has no target (such as "/dev/ttyUSB0" or "tcp://192.0.2.10")'
         )
     try:
@@ -202,8 +190,16 @@ def _link(name: str, table: dict, path: str, params: dict, ctx: click.Context, f
             # key's password is asked once, here, not by a link's worker on each reconnect.
             client_context(tls_settings(connection))
     except RequestError as error:
-        raise RequestError(f"{path}: [links.{name}]: {error}") from None
+        raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)
+
+
+def _read(setting: Setting, value, where: str, key: str):
+    """A link setting's value as a profile's is read: one rule for what --timeout accepts."""
+    try:
+        return setting.read(value, key)
+    except UsageError as error:
+        raise UsageError(f"{where}: {error}") from None
 
 
 def _one_link_a_target(links: dict[str, LinkSpec], path: str) -> None:
@@ -217,7 +213,7 @@ def _one_link_a_target(links: dict[str, LinkSpec], path: str) -> None:
             continue
         endpoint = where.endpoint()
         if endpoint in seen:
-            raise RequestError(
+            raise UsageError(
                 f"{path}: [links.{seen[endpoint]}] and [links.{name}] both open "
                 f"{link.connection.port}: one link a target (put their devices on one link)"
             )
@@ -231,41 +227,39 @@ def _device(
     links: dict,
     defaults: dict,
     loaded: dict[Path, RegisterMap],
-    params: dict,
-    ctx: click.Context,
 ) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
         if key not in DEVICE_KEYS:
-            raise RequestError(f"{where} {key}: unknown key (known: {', '.join(DEVICE_KEYS)})")
+            raise UsageError(f"{where} {key}: unknown key (known: {', '.join(DEVICE_KEYS)})")
     link = table.get("link")
     if not isinstance(link, str):
-        raise RequestError(f"{where}: link must name one of [links.NAME] ({', '.join(links) or 'none'})")
+        raise UsageError(f"{where}: link must name one of [links.NAME] ({', '.join(links) or 'none'})")
     if link not in links:
-        raise RequestError(f"{where} link: no [links.{link}] (links: {', '.join(links) or 'none'})")
+        raise UsageError(f"{where} link: no [links.{link}] (links: {', '.join(links) or 'none'})")
     unit = table.get("unit", 1)
     if isinstance(unit, bool) or not isinstance(unit, int) or not 0 <= unit <= 255:
-        raise RequestError(f"{where} unit: expected a whole number, 0..255")
+        raise UsageError(f"{where} unit: expected a whole number, 0..255")
     try:
         check(replace(links[link].connection, unit=unit), "polling")
     except RequestError as error:
-        raise RequestError(f"{where} unit: {error}") from None
+        raise UsageError(f"{where} unit: {error}") from None
     settings = {
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])
         for key in DEFAULTS
     }
     measurement = table.get("measurement")  # -o influx's, for this device
     if measurement is not None and not isinstance(measurement, str):
-        raise RequestError(
+        raise UsageError(
             f'{where} measurement: expected the name of an InfluxDB measurement, such as "meters"'
         )
     problem = "" if measurement is None else name_problem(measurement, "a measurement", influx=True)
     if problem:
-        raise RequestError(f"{where} measurement: {problem}")
+        raise UsageError(f"{where} measurement: {problem}")
     _backoff(settings, table, defaults, where)
     for key in OWN_LINK_KEYS:  # checked as a link's are: one place for what --timeout accepts
         if key in table:
-            settings[key] = profiles._convert(params[key], key, table[key], ctx, f"{where} {key}")
+            settings[key] = _read(SETTINGS[key], table[key], f"{where} {key}", key)
     return DeviceSpec(
         name,
         link,
@@ -287,7 +281,7 @@ def _backoff(settings: dict, table: dict, defaults: dict, where: str) -> None:
         settings["max_backoff"] = max(longest, interval)
     elif longest < interval:
         source = "" if "max_backoff" in table else " (from [poll])"
-        raise RequestError(
+        raise UsageError(
             f"{where} max_backoff: {longest:g} s{source} is below its interval, {interval:g} s: an offline "
             f"device would be tried more often than an online one is polled (give {interval:g} or more)"
         )
@@ -298,13 +292,13 @@ def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMa
     references ``read`` lists, each a point named by its reference.  ``loaded``: the maps
     this inventory has loaded so far, by path."""
     if ("map" in table) == ("read" in table):
-        raise RequestError(f"{where}: give either map (a register map) or read (references with counts)")
+        raise UsageError(f"{where}: give either map (a register map) or read (references with counts)")
     if "map" in table:
         if not isinstance(table["map"], str):
-            raise RequestError(f"{where} map: expected the path of a register map")
+            raise UsageError(f"{where} map: expected the path of a register map")
         names = table.get("points", [])
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise RequestError(f"{where} points: expected a list of the map's point names")
+            raise UsageError(f"{where} points: expected a list of the map's point names")
         try:
             map_path = _map_path(table, folder)
             if map_path not in loaded:
@@ -312,12 +306,12 @@ def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMa
             register_map = loaded[map_path]
             return MapReader(register_map.select(names), register_map.max_gap)
         except MapError as error:
-            raise RequestError(f"{where} map: {error}") from None
+            raise UsageError(f"{where} map: {error}") from None
     if "points" in table:
-        raise RequestError(f"{where} points: picks a map's points; read lists references")
+        raise UsageError(f"{where} points: picks a map's points; read lists references")
     reads = table["read"]
     if not isinstance(reads, list) or not reads or not all(isinstance(r, str) for r in reads):
-        raise RequestError(f'{where} read: expected references with counts, such as ["40001 10"]')
+        raise UsageError(f'{where} read: expected references with counts, such as ["40001 10"]')
     points: dict[str, Point] = {}
     for text in reads:
         ref, _, count_text = text.strip().partition(" ")
@@ -325,13 +319,13 @@ def _reader(table: dict, where: str, folder: Path, loaded: dict[Path, RegisterMa
             table_of, address = parse_reference(ref)
             count = int(count_text, 0) if count_text.strip() else 1
         except (RequestError, ValueError) as error:
-            raise RequestError(f"{where} read: {text!r}: {error}") from None
+            raise UsageError(f"{where} read: {text!r}: {error}") from None
         if not 1 <= count <= 2000 or address + count > 65536:
-            raise RequestError(f"{where} read: {text!r}: a count of 1..2000 that stays below 65536")
+            raise UsageError(f"{where} read: {text!r}: a count of 1..2000 that stays below 65536")
         for item in range(address, address + count):
             point = Point(reference(table_of, item), table_of, item, "bool" if table_of.bits else "uint16")
             if point.name in points:
-                raise RequestError(f"{where} read: {point.name} is read twice")
+                raise UsageError(f"{where} read: {point.name} is read twice")
             points[point.name] = point
     return MapReader(points.values())
 
@@ -344,17 +338,17 @@ def _map_path(table: dict, folder: Path) -> Path:
 
 def _tags(tags, where: str) -> dict[str, str]:
     if not isinstance(tags, dict):
-        raise RequestError(f'{where} tags: expected a table, such as {{ site = "north" }}')
+        raise UsageError(f'{where} tags: expected a table, such as {{ site = "north" }}')
     out = {}
     for key, value in tags.items():
         if not TAG_NAME.fullmatch(key) or key in RESERVED_TAGS:
-            raise RequestError(
+            raise UsageError(
                 f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(RESERVED_TAGS)})"
             )
         if isinstance(value, bool) or not isinstance(value, str | int | float):
-            raise RequestError(f"{where} tags.{key}: expected text or a number")
+            raise UsageError(f"{where} tags.{key}: expected text or a number")
         text = str(value)
         if not text or not one_line(text) or text.endswith("\\"):
-            raise RequestError(f"{where} tags.{key}: a tag's value is one line, not empty, no trailing \\")
+            raise UsageError(f"{where} tags.{key}: a tag's value is one line, not empty, no trailing \\")
         out[key] = text
     return out

@@ -1,0 +1,382 @@
+"""One transaction's judgement, sans-IO: of the bytes that come back, which frame is the reply.
+
+The client (``link/client.py``) owns time and the link: it waits, writes, reads until a
+deadline and retries.  Everything it decides about what came back is here, as the protocol
+reads, with no clock and no I/O: the transaction ids of the request's attempts, the watch for
+an adapter's echo of the request, the repair of a harmless fault (--lenient), and the most
+telling problem seen, raised when nothing better comes.  An exchange is driven with bytes
+and the news that the line paused or went quiet, like the framer under it:
+
+    adu = exchange.attempt(unit, request, fresh=True)   # write it (retry=True: again), then:
+    reply = exchange.receive(data, ends_frame)           # each read's bytes (b"": a pause);
+                                                         # None: read on
+    reply = exchange.close()                             # the deadline: the last word;
+    raise exchange.problem or <silence>                  # None: nothing came that tells more
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
+from mbtool.codec.framer import Frame, Framer, Rejected
+from mbtool.codec.pdu import ExceptionResponse, Request, Response, pdu_length
+
+Problem = TypeVar("Problem", bound=Exception)
+
+ECHO_SKIPPED = "the request's own echo, skipped (--echo strips it)"
+
+
+class Trace:
+    """Where the frames sent and received are reported (the --hex trace)."""
+
+    def sent(self, adu: bytes) -> None:
+        """A frame went out."""
+
+    def received(self, adu: bytes, note: str = "") -> None:
+        """A frame came in; ``note`` says why it is not the reply, if it is not."""
+
+    def rejected(self, data: bytes, error: FrameError) -> None:
+        """Bytes came in that are not a frame."""
+
+
+# The trace nobody watches: a transaction's own frames skip the calls to it.
+UNWATCHED = Trace()
+
+
+class Exchange:
+    """A master's side of its transactions with the devices behind one framer.
+
+    ``echo`` (--echo): the adapter echoes what it sends, always stripped; ``watch_echo``: the
+    link is a serial line, where an echo the option does not announce is looked for too.
+    ``lenient`` (--lenient): a reply that carries our transaction id and breaks the spec in a
+    harmless, unambiguous way is taken, each kind of deviation noted in ``deviations``.
+    """
+
+    def __init__(
+        self,
+        framer: Framer,
+        *,
+        echo: bool = False,
+        watch_echo: bool = False,
+        lenient: bool = False,
+        trace: Trace | None = None,
+    ) -> None:
+        self.framer = framer
+        self.echo = echo
+        self.watch_echo = watch_echo
+        self.lenient = lenient
+        self.trace = trace or UNWATCHED
+        self.transaction_id = 0  # the last attempt's (MBAP; the other framings ignore it)
+        # The transaction ids the request went out with, one an attempt: a late reply to an
+        # earlier attempt answers the request as well as the last one's would (issue 12.2).
+        self.attempt_ids: list[int] = []
+        self.answered_id: int | None = None  # the transaction id of the last reply (MBAP)
+        self.deviations: dict[str, None] = {}  # each kind once: a poll left running keeps no list
+        # The most telling problem of this attempt so far: what is raised if no reply comes.
+        self.problem: FrameError | None = None
+        self.expects_response = True  # the request asked has a reply (not FC08 sub 04)
+        self._unit = 0
+        self._request: Request | None = None
+        self._sent = b""  # the attempt's frame, to tell a copy of it from a reply
+        self._watch: EchoWatch | None = None
+        # The last request, its PDU, whether its echo is watched for, whether it has a reply
+        # and what is known of the reply beforehand: the same for every poll of it, so worked
+        # out once.
+        self._prepared: tuple[Request | None, bytes, bool, bool, tuple[bytes, int] | None] = (
+            None,
+            b"",
+            False,
+            True,
+            None,
+        )
+        # The last reply decoded: the request, the reply's PDU and what it decoded to.  A poll
+        # whose reply is the same bytes gets the same (immutable) response, decoded once.
+        self._decoded: tuple[Request | None, bytes, Response | ExceptionResponse | None] = (None, b"", None)
+
+    # -- sending -----------------------------------------------------------------------
+
+    def attempt(self, unit: int, request: Request, fresh: bool, retry: bool = False) -> bytes:
+        """The next attempt's frame, under a transaction id of its own.  ``fresh``: the link's
+        stale input was discarded, so the framer forgets what it holds too.  ``retry``: the
+        request again, whose earlier attempts' ids still answer it; else a new request, and the
+        last one's ids answer nothing."""
+        framer = self.framer
+        tid = self.transaction_id = (self.transaction_id + 1) & 0xFFFF
+        if retry:
+            self.attempt_ids.append(tid)
+        else:
+            self.attempt_ids = [tid]
+        if request is not self._prepared[0]:
+            expects_response = request.expects_response
+            self._prepared = (
+                request,
+                request.encode(),
+                # The request's own bytes coming back first are an adapter's echo: with --echo
+                # always (even where the reply is a copy of the request, FC05/06), else where an
+                # echo cannot pass for the reply.  Only a serial line has an echo to watch for
+                # (a map's requests over TCP would pay for the look on every one), and a request
+                # with no reply waits only for a refusal, which no echo is mistaken for.
+                expects_response and self.watch_echo and (self.echo or EchoWatch.needed(request)),
+                expects_response,
+                request.reply_prefix,
+            )
+        _, pdu, watched, expects_response, reply_prefix = self._prepared
+        adu = framer.build(unit, pdu, tid)
+        if fresh:
+            framer.reset()
+        framer.expect = request
+        framer.expect_unit = unit
+        framer.predict(unit, tid, reply_prefix)
+        self._unit, self._request, self._sent = unit, request, adu
+        self.expects_response = expects_response
+        self.problem = None
+        # Bytes that differ from the request are the reply, shown as such.
+        self._watch = EchoWatch(adu) if watched else None
+        return adu
+
+    # -- receiving ---------------------------------------------------------------------
+
+    @property
+    def settling(self) -> bool:
+        """A complete frame with a bad checksum came and nothing follows it: nearly always the
+        reply itself, so a good one is waited for only a little longer."""
+        return isinstance(self.problem, ChecksumError) and not self.framer.buffered
+
+    def receive(self, data: bytes, ends_frame: bool = False) -> Response | ExceptionResponse | None:
+        """A read's bytes, or b"" for a read that returned nothing (a pause): the reply if they
+        complete it, else None.  ``ends_frame``: the frame ends there, as a whole datagram
+        (UDP) ends, or a pause as long as the framer waits for (RTU, a frame of unknown
+        length).  The framer's events are judged until the reply, with no look for more.
+
+        Raises FrameError for a reply that is ours (our transaction id) and bad."""
+        framer, watch = self.framer, self._watch
+        if watch is not None:
+            if data:
+                data = watch.filter(data)
+                if watch.seen:
+                    self.trace.received(watch.adu, ECHO_SKIPPED)
+                    watch.seen = False  # traced once; echoed stays True
+            else:
+                self._release()  # a pause: bytes held as a possible echo were not one
+        if data:
+            framer.feed(data)
+        event = framer.silence() if ends_frame else framer.next_event()
+        while event is not None:
+            reply = self._judge(event)
+            if reply is not None:
+                return reply
+            event = framer.next_event()
+        return None
+
+    def close(self, hung_up: bool = False) -> Response | ExceptionResponse | None:
+        """Nothing more will come (the deadline passed, or the peer hung up: ``hung_up``):
+        judge what is still held.  The reply, or None, and then ``problem`` is the most telling
+        problem seen (None: only silence)."""
+        self._release()
+        watch = self._watch
+        if not hung_up and watch is not None and watch.echoed and self.problem is None and not self.echo:
+            # Bytes came back, but only the request's: an echo, or a device parroting a request
+            # it cannot answer.  Either way an invalid response, not silence.
+            self.problem = FrameError(
+                "the only reply was a copy of the request (an echoing adapter? try --echo)"
+            )
+        return self.receive(b"", ends_frame=True)
+
+    def _release(self) -> None:
+        """Hand the framer the bytes the watch held back as a possible echo: they were not one."""
+        if self._watch is not None:
+            self.framer.feed(self._watch.release())
+
+    def _judge(self, event: Frame | Rejected) -> Response | ExceptionResponse | None:
+        """Is this event our reply?  Otherwise keep the most telling problem seen so far."""
+        if isinstance(event, Rejected):
+            self.trace.rejected(event.data, event.error)
+            self.problem = worse(self.problem, event.error)
+            return None
+        unit, request = self._unit, self._request
+        # What this reply gets away with (--lenient), for its trace line: a tuple, as the empty
+        # one is made once, not a list a reply.
+        accepted: tuple[str, ...] = ()
+        # The frame the MBAP framer built from its prediction has the unit, function,
+        # transaction id and byte count asked for: nothing to look at again.
+        mismatch = "" if event is self.framer.predicted_frame else self._mismatch(event, unit)
+        if mismatch:
+            if event.unit != unit and self._ours(event) and not self._mismatch(event, event.unit):
+                # Our transaction id, the function asked for, only the unit is wrong: a gateway
+                # that echoes another unit id.
+                if not self.lenient:
+                    mismatch += " (--lenient accepts a reply whose transaction id matches)"
+                else:
+                    accepted += (f"reply from unit {event.unit}, expected unit {unit}",)
+                    mismatch = ""
+            if mismatch:
+                self.trace.received(event.adu, mismatch)
+                self.problem = worse(self.problem, MismatchError(mismatch + ", discarded", event.adu))
+                return None
+        # From the unit asked, to the function asked: the reply, unless it does not decode.
+        pdu = event.pdu
+        last_request, last_pdu, reply = self._decoded
+        try:
+            if request is not last_request or pdu != last_pdu:
+                # The same response as last time for the same request and bytes (immutable).
+                reply = request.decode_response(pdu)
+                self._decoded = (request, pdu, reply)
+        except FrameError as misfit:
+            repaired = repair(pdu, request) if self._ours(event) else None
+            if repaired is not None and self.lenient:
+                pdu, deviation = repaired
+                reply = request.decode_response(pdu)
+                accepted += (deviation,)
+            elif event.transaction_id is not None:
+                self.trace.received(event.adu)
+                self._copy_check(event)
+                if repaired is not None:
+                    raise FrameError(f"{misfit} ({repaired[1]}: --lenient accepts it)", event.adu) from None
+                raise  # it carries our transaction id: it is the reply, and a bad one
+            elif not isinstance(misfit, MismatchError):
+                self.trace.received(event.adu)
+                self._copy_check(event)
+                raise
+            else:
+                # Without a transaction id (RTU, ASCII), a frame from our unit whose byte
+                # count does not fit is most likely the late reply to an earlier request:
+                # discard it and keep waiting, as for another unit (its error is reported
+                # if nothing fits).
+                self.trace.received(event.adu, str(misfit))
+                self.problem = worse(self.problem, MismatchError(f"{misfit}, discarded", event.adu))
+                return None
+        assert reply is not None
+        if accepted:  # a reply taken as it is (--lenient): the summary says so
+            self.deviations.update(dict.fromkeys(accepted))
+        if self.trace is not UNWATCHED:
+            self.trace.received(event.adu, _reply_note(reply, accepted))
+        self.answered_id = event.transaction_id
+        return reply
+
+    def _ours(self, frame: Frame) -> bool:
+        """The frame carries the transaction id of one of this request's attempts (MBAP)."""
+        return frame.transaction_id is not None and frame.transaction_id in self.attempt_ids
+
+    def _copy_check(self, frame: Frame) -> None:
+        """A reply that does not decode and is the request itself: over TCP nothing echoes but a
+        misconfigured server or gateway, and that is the line to read, not the decoder's."""
+        if frame.transaction_id is not None and frame.adu == self._sent:
+            raise FrameError(
+                "the only reply was a copy of the request (the server, or a gateway on the way, echoes requests)",
+                frame.adu,
+            )
+
+    def _mismatch(self, frame: Frame, unit: int) -> str:
+        """Why the frame answers another transaction, or "" when it answers this one."""
+        tid = frame.transaction_id
+        if tid is not None and tid not in self.attempt_ids:  # not _ours(): a call less a reply
+            return f"reply has transaction id {tid}, expected {_ids(self.attempt_ids)}"
+        if frame.unit != unit:
+            return f"reply from unit {frame.unit}, expected unit {unit}"
+        pdu = frame.pdu
+        code = pdu[0] if pdu else None
+        assert self._request is not None
+        asked = self._request.function_code
+        if code != asked and code != asked | 0x80:
+            shown = "no function code" if code is None else function_code_text(code)
+            return f"reply has {shown}, expected {function_code_text(asked)}"
+        return ""
+
+
+def repair(pdu: bytes, request: Request) -> tuple[bytes, str] | None:
+    """A reply PDU made whole, and what was wrong with it, when the fault is harmless and
+    unambiguous: bytes after a complete reply (MBAP counted them), or a byte count that
+    disagrees with data that is exactly what was asked for.  None otherwise."""
+    if pdu and pdu[0] & 0x80:
+        return None
+    whole = pdu_length(pdu, True, request)
+    if isinstance(whole, int) and whole >= 2 and len(pdu) > whole:
+        try:
+            request.decode_response(pdu[:whole])
+        except FrameError:
+            pass
+        else:
+            return pdu[:whole], f"{len(pdu) - whole} bytes after a complete reply, ignored"
+    wanted = getattr(request, "reply_byte_count", None)  # reads of FC 01-04 know theirs
+    if wanted is not None and len(pdu) == 2 + wanted and pdu[1] != wanted:
+        whole_pdu = pdu[:1] + bytes([wanted]) + pdu[2:]
+        return whole_pdu, f"byte count {pdu[1]}, but the data is the {wanted} bytes asked for"
+    return None
+
+
+class EchoWatch:
+    """Without --echo: the request's own bytes coming back first are an adapter's echo.
+
+    A half-duplex RS-485 adapter that hears itself puts the request before the reply;
+    taken for a reply it reads as a CRC error or a nonsense byte count.  The watch holds
+    back bytes while they repeat the request, drops an exact copy of it, and hands back
+    anything else untouched.  Requests whose reply may be an exact copy of them (FC05,
+    FC06, FC08) are not watched: there an echo and a reply cannot be told apart.
+    """
+
+    def __init__(self, adu: bytes) -> None:
+        self.adu = adu
+        self.held = b""
+        self.watching = True
+        self.seen = False  # the echo just went by (for the trace)
+        self.echoed = False  # the echo went by in this transaction
+
+    @staticmethod
+    def needed(request: Request) -> bool:
+        """Whether an echo of ``request`` can be told from its reply (it cannot pass for one)."""
+        try:
+            request.decode_response(request.encode())
+        except Exception:  # whatever the reason, the request does not read as its own reply
+            return True
+        return False
+
+    def filter(self, data: bytes) -> bytes:
+        """What of ``data`` the framer should see now."""
+        if not self.watching:
+            return data
+        self.held += data
+        size = min(len(self.held), len(self.adu))
+        if self.held[:size] != self.adu[:size]:
+            return self.release()
+        if len(self.held) < len(self.adu):
+            return b""  # so far a copy of the request: wait for the rest
+        rest = self.held[len(self.adu) :]
+        self.held = b""
+        self.watching = False
+        self.seen = self.echoed = True
+        return rest
+
+    def release(self) -> bytes:
+        """Stop watching; the bytes held back, which were not an echo after all."""
+        held, self.held = self.held, b""
+        self.watching = False
+        return held
+
+
+def worse(current: Problem | None, new: Problem) -> Problem:
+    """The more telling of two problems: a checksum error or a mismatched reply tells more than
+    a run of garbage, and anything that came (a FrameError) tells more than what did not (the
+    client's silence) or a refusal; between equals, the first seen."""
+    if current is None:
+        return new
+    for telling in ((ChecksumError, MismatchError), FrameError):
+        if isinstance(new, telling) and not isinstance(current, telling):
+            return new
+        if isinstance(current, telling):
+            return current
+    return current
+
+
+def _reply_note(reply: Response | ExceptionResponse, accepted: tuple[str, ...]) -> str:
+    """What the trace says beside the reply: why --lenient took it as it is, or the device's
+    "no", marked where it is seen; nothing for a plain answer."""
+    if accepted:
+        return "; ".join(f"accepted (--lenient): {d}" for d in accepted)
+    if isinstance(reply, ExceptionResponse):
+        return str(ModbusException(reply.function_code, reply.exception_code))
+    return ""
+
+
+def _ids(ids: list[int]) -> str:
+    return str(ids[0]) if len(ids) == 1 else ", ".join(map(str, ids[:-1])) + f" or {ids[-1]}"

@@ -1,0 +1,252 @@
+"""The plant's engine (mbtool.plant.schedule.LinkWorker on a managed link) sans-IO, on a fake
+clock: slots, who goes first, offline and back-off, a link that cannot be opened or is lost,
+rounds and a run's end (issue 41, points 1 and 8).
+
+The worker runs on the test's own thread with a fake clock (its waits move the clock, they do
+not sleep) and a fake link (each device's transactions scripted), so every test takes
+milliseconds and says exactly when each poll was made."""
+
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+
+import pytest
+
+from mbtool.codec.errors import ModbusException
+from mbtool.errors import ConnectionFailed, NoResponse, PartialRead
+from mbtool.link.connection import Connection
+from mbtool.link.transport import ConnectionClosed
+from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState, Event, LinkSpec, LinkWorker, Poll
+
+EPOCH = 1_700_000_000.0
+
+
+class Clock:
+    """The scheduler's clocks, moved only by its waits (and by a transaction that takes time)."""
+
+    def __init__(self, stop_at: float | None = None) -> None:
+        self.now = 0.0
+        self.stop_at = stop_at  # the run's end: the wait that reaches it stops the worker
+        self.waits = 0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def time(self) -> float:
+        return EPOCH + self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+    def wait(self, stop: threading.Event, seconds: float) -> None:
+        self.waits += 1
+        assert self.waits < 10_000, "the worker never ends"
+        self.now += seconds
+        if self.stop_at is not None and self.now >= self.stop_at:
+            stop.set()
+
+
+class Reader:
+    """A device's map, as the worker uses it: one request a poll."""
+
+    points = ()
+
+    def read(self, execute):
+        return [execute("read")]
+
+
+class Client:
+    """The fake link's client: each unit's transactions as the test scripts them ("reply",
+    "silent", "lost", "exception", "partial"), then replies."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.while_waiting = None
+        self.timeout, self.retries = 1.0, 0
+        self.attempts, self.rtt, self.ended_at = 0, None, float("-inf")
+
+    def execute(self, unit: int, request):
+        link = self.link
+        link.asked.append((unit, link.clock.now, self.timeout, self.retries))
+        if self.while_waiting is not None:
+            self.while_waiting()
+        self.attempts, self.rtt = 1, None
+        steps = link.script.get(unit, [])
+        step = steps.pop(0) if steps else "reply"
+        if step == "silent":
+            raise NoResponse(f"no response from unit {unit}")
+        if step == "lost":
+            raise ConnectionClosed("the device closed the connection")
+        if step == "exception":
+            raise ModbusException(3, 2)
+        self.rtt = 0.01
+        if step == "partial":
+            raise PartialRead(["a value", "a refusal"], [ModbusException(3, 2)])
+        return f"reply from {unit}"
+
+
+class Link:
+    """``open_link`` for the worker: each open takes the next of ``opens`` ("ok", "refused")."""
+
+    def __init__(self, clock: Clock, script: dict, opens: list[str]) -> None:
+        self.clock = clock
+        self.script = {unit: list(steps) for unit, steps in script.items()}
+        self.opens = list(opens)
+        self.opened: list[float] = []
+        self.asked: list[tuple] = []
+
+    @contextmanager
+    def __call__(self):
+        self.opened.append(self.clock.now)
+        if (self.opens.pop(0) if self.opens else "ok") == "refused":
+            raise ConnectionRefusedError(111, "Connection refused")
+        yield Client(self)
+
+
+def device(name: str, unit: int, interval=1.0, offline_after=3, max_backoff=10.0, **options) -> DeviceSpec:
+    return DeviceSpec(name, "bus", unit, Reader(), {}, interval, offline_after, max_backoff, **options)
+
+
+def run(devices, script=None, opens=(), rounds=0, until=None, due=None):
+    """One link's worker to its end: the records it published, its link, the worker."""
+    clock = Clock(until)
+    states = [DeviceState(spec, clock.now) for spec in devices]
+    for state in states:
+        state.due = (due or {}).get(state.spec.name, state.due)
+    records: list[Poll | Event] = []
+    link = Link(clock, script or {}, list(opens))
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    worker = LinkWorker(spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link)
+    worker.deadline = None if until is None else until
+    worker.run()
+    if worker.crashed is not None:
+        raise worker.crashed
+    return records, link, worker
+
+
+def polls(records, name=None) -> list[tuple[str, float]]:
+    return [
+        (r.device.name, r.time - EPOCH)
+        for r in records
+        if isinstance(r, Poll) and name in (None, r.device.name)
+    ]
+
+
+def events(records) -> list[tuple]:
+    return [(r.kind, r.name, r.state, r.time - EPOCH, r.retry_in) for r in records if isinstance(r, Event)]
+
+
+def test_each_device_keeps_its_own_interval_on_one_link():
+    records, link, _ = run([device("a", 1, interval=1.0), device("b", 2, interval=2.0)], rounds=3)
+    assert polls(records) == [("a", 0), ("b", 0), ("a", 1), ("a", 2), ("b", 2), ("b", 4)]
+    assert link.opened == [0.0]  # one link, kept
+
+
+def test_of_the_devices_due_the_one_that_has_waited_longest_goes_first():
+    records, _, _ = run([device("a", 1), device("b", 2)], rounds=1, due={"a": 0.0, "b": -0.5})
+    assert [name for name, _ in polls(records)] == ["b", "a"]
+
+
+def test_a_slot_missed_is_skipped_not_made_up():
+    state = DeviceState(device("a", 1, interval=2.0), 0.0)
+    state.succeeded(0.1, 0.1)
+    assert state.due == 2.0
+    state.succeeded(7.5, 7.5)
+    assert state.due == 7.5
+
+
+def test_a_device_goes_offline_after_failures_in_a_row_and_is_tried_doubling_up_to_max_backoff():
+    records, _, _ = run([device("dead", 9)], script={9: ["silent"] * 20}, until=30)
+    assert [t for _, t in polls(records)] == [0, 1, 2, 4, 8, 16, 26]
+    assert events(records) == [("device", "dead", OFFLINE, 2, 2.0)]  # one event for the change
+    assert [r.state for r in records if isinstance(r, Poll)][:3] == ["unknown", "unknown", OFFLINE]
+
+
+def test_one_good_poll_brings_an_offline_device_back():
+    records, _, _ = run([device("m", 1)], script={1: ["silent"] * 3}, until=6)
+    assert [t for _, t in polls(records)] == [0, 1, 2, 4, 5]
+    assert events(records) == [("device", "m", OFFLINE, 2, 2.0), ("device", "m", ONLINE, 4, None)]
+
+
+def test_an_exception_to_every_read_is_a_failed_poll_but_a_partial_read_is_an_answer():
+    records, _, _ = run([device("m", 1, offline_after=1)], script={1: ["exception"]}, rounds=1)
+    assert events(records) == [("device", "m", OFFLINE, 0, None)]  # the run ends first: no next try
+    records, _, _ = run([device("m", 1, offline_after=1)], script={1: ["partial"]}, rounds=1)
+    (poll,) = [r for r in records if isinstance(r, Poll)]
+    assert isinstance(poll.error, PartialRead) and poll.readings == ["a value", "a refusal"]
+    assert poll.state == ONLINE and events(records) == []
+
+
+def test_a_link_that_cannot_be_opened_backs_off_by_the_one_rule_and_its_devices_are_offline():
+    records, link, worker = run([device("m", 1)], opens=["refused", "refused", "ok"], until=7)
+    assert link.opened == [0, 2, 6]  # twice the interval, doubling: 2 s, then 4 s
+    assert events(records) == [
+        ("link", "bus", OFFLINE, 0, 2.0),  # once, when it went offline
+        ("device", "m", OFFLINE, 0, 2.0),
+        ("link", "bus", ONLINE, 6, None),
+        ("device", "m", ONLINE, 6, None),
+    ]
+    failed = [r for r in records if isinstance(r, Poll) and r.readings is None]
+    assert [type(r.error) for r in failed] == [ConnectionFailed, ConnectionFailed]  # exit 6, not 1
+    assert worker.open_failures == 2 and worker.state == ONLINE
+
+
+def test_a_lost_link_is_opened_again_no_sooner_than_its_first_back_off_after_it_was_opened():
+    records, link, _ = run([device("m", 1, interval=0.5)], script={1: ["reply", "lost"]}, until=2)
+    assert link.opened == [0, 1.0]  # lost at 0.5: the next open waits out 2 x 0.5 s from 0
+    assert [t for _, t in polls(records)] == [0, 0.5, 1.0, 1.5]
+    lost = [r for r in records if isinstance(r, Poll) and r.readings is None]
+    assert [type(r.error) for r in lost] == [ConnectionClosed]
+
+
+def test_a_link_that_served_a_while_is_opened_again_at_once_when_lost():
+    records, link, _ = run([device("m", 1, interval=3.0)], script={1: ["reply", "lost"]}, until=7)
+    assert link.opened == [0, 6]  # lost at 3, long after it opened: the next poll opens it
+
+
+def test_with_rounds_an_offline_device_gets_fewer_and_the_run_does_not_wait_out_its_back_off():
+    records, _, worker = run(
+        [device("live", 1), device("dead", 2, offline_after=1)], script={2: ["silent"] * 9}, rounds=4
+    )
+    assert [t for _, t in polls(records, "live")] == [0, 1, 2, 3]
+    assert [t for _, t in polls(records, "dead")] == [0, 2]  # its next try, at 6, is after live's last
+    assert events(records) == [("device", "dead", OFFLINE, 0, 2.0)]
+    assert worker.finished() and worker.clock.now == 3  # the run ended with live's last poll
+
+
+def test_a_try_after_the_runs_end_is_not_announced():
+    records, _, _ = run([device("m", 1, offline_after=1)], script={1: ["silent"] * 9}, until=1.5)
+    assert events(records) == [("device", "m", OFFLINE, 0, None)]
+    records, _, _ = run([device("m", 1, offline_after=1)], script={1: ["silent"] * 9}, until=2.5)
+    assert events(records) == [("device", "m", OFFLINE, 0, 2.0)]
+
+
+def test_each_device_has_its_own_timeout_and_retries_on_the_link():
+    _, link, _ = run([device("slow", 1, timeout=0.8, retries=2), device("fast", 2)], rounds=1)
+    assert [(unit, timeout, retries) for unit, _, timeout, retries in link.asked] == [
+        (1, 0.8, 2),
+        (2, 0.1, 0),
+    ]
+
+
+def test_every_transaction_is_counted_for_its_device_and_its_link():
+    records, _, worker = run([device("a", 1), device("b", 2)], script={2: ["silent"]}, rounds=2)
+    a, b = worker.devices
+    assert (a.stats.transactions, a.stats.outcomes["answered"]) == (2, 2)
+    assert (b.stats.outcomes["answered"], b.stats.outcomes["timeout"]) == (1, 1)
+    assert worker.stats.transactions == 4 and worker.stats.outcomes["timeout"] == 1
+    last = [r for r in records if isinstance(r, Poll)][-1]
+    assert last.link.stats.transactions == 4  # the record carries the link's counts as they were
+
+
+def test_each_poll_is_stamped_when_its_request_left():
+    records, _, _ = run([device("a", 1, interval=2.0)], rounds=2)
+    assert [r.time for r in records if isinstance(r, Poll)] == [EPOCH, EPOCH + 2.0]
+
+
+@pytest.mark.parametrize("rounds", [1, 3])
+def test_rounds_end_the_run_once_every_device_has_had_them(rounds):
+    records, _, worker = run([device("a", 1), device("b", 2, interval=0.5)], rounds=rounds)
+    assert len(polls(records, "a")) == len(polls(records, "b")) == rounds
+    assert worker.finished()
