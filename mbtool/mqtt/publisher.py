@@ -72,6 +72,16 @@ class MqttPublisher:
         self.live = False  # connected, and what the connection owes sent: new messages go to paho
         self.announce = threading.Event()  # a connection came up: birth, statuses, the spool
         self.device_states: dict[str, str] = {}  # what the broker has been told of each device
+        # payload = "sparkplug_b": the edge node, each device's last values (its DBIRTH's), the
+        # devices born on this connection, and the bdSeq of the connection's will.
+        self.node = None
+        if settings.sparkplug:
+            from mbtool.mqtt.sparkplug import EdgeNode  # noqa: PLC0415 - protobuf: sparkplug_b only
+
+            self.node = EdgeNode(settings, devices)
+        self.values: dict[str, dict] = {}
+        self.born: set[str] = set()
+        self.bdseq = 0
         self.client = self._client()
         self.thread = threading.Thread(target=self._run, name="mqtt", daemon=True)
 
@@ -98,7 +108,9 @@ class MqttPublisher:
         deadline = time.monotonic() + wait
         self.queue.put(STOP)
         self.thread.join(max(0.0, deadline - time.monotonic()))
-        if self.live:
+        if self.live and self.node is not None:  # a node that leaves says so, as its will would
+            self._publish(Message(self.node.topic("NDEATH"), self.node.node_death(self.bdseq), 1, False))
+        elif self.live:
             self._publish(Message(self.topics.status, OFFLINE.encode(), 1, True))
             while self._unsent() and self.live and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -137,7 +149,10 @@ class MqttPublisher:
                 cert_reqs=ssl.CERT_NONE if settings.insecure else ssl.CERT_REQUIRED,
             )
             client.tls_insecure_set(settings.insecure)
-        client.will_set(self.topics.status, OFFLINE, qos=1, retain=True)
+        if self.node is not None:
+            client.will_set(self.node.topic("NDEATH"), self.node.will(), qos=1, retain=False)
+        else:
+            client.will_set(self.topics.status, OFFLINE, qos=1, retain=True)
         client.reconnect_delay_set(*RECONNECT)
         client.max_inflight_messages_set(100)
         client.on_connect = self._connected
@@ -152,7 +167,13 @@ class MqttPublisher:
             self._state(f"refused: {reason}")
             return
         self._state("connected")
-        for topic in self.writes.subscriptions() if self.writes else ():
+        topics = self.writes.subscriptions() if self.writes else []
+        if self.node is not None:
+            # This connection's NBIRTH says the bdSeq its will said; the next one's is one more.
+            self.bdseq, self.node.bdseq = self.node.bdseq, (self.node.bdseq + 1) % 256
+            client.will_set(self.node.topic("NDEATH"), self.node.will(), qos=1, retain=False)
+            topics = self.node.commands(self.writes is not None)
+        for topic in topics:
             client.subscribe(topic, qos=1)
         self.announce.set()
 
@@ -162,6 +183,9 @@ class MqttPublisher:
             self._state(f"lost: {reason}" if reason.is_failure else "disconnected")
 
     def _message(self, client, userdata, message) -> None:
+        if self.node is not None:
+            self._command(message)
+            return
         request = self.writes.request(message.topic, message.payload) if self.writes else None
         if request is None:
             return
@@ -170,6 +194,26 @@ class MqttPublisher:
             self.report(WriteResult(request.device, request.point, "refused: a retained /set is not obeyed"))
             return
         self.report(request)
+
+    def _command(self, message) -> None:
+        """An NCMD (a rebirth asked: the node born again) or a DCMD (writes, by /set's path)."""
+        node = self.node
+        if message.topic == node.topic("NCMD"):
+            if node.rebirth_asked(message.payload):
+                self.notify("rebirth asked (NCMD)")
+                self.announce.set()
+            return
+        device = message.topic.rpartition("/")[2]
+        if message.topic != node.topic("DCMD", device) or device not in node.devices or self.writes is None:
+            return
+        writes = node.writes(device, message.payload)
+        if isinstance(writes, str):
+            self._count("writes_received")
+            self.report(WriteResult(device, "DCMD", f"refused: {writes}"))
+            return
+        for point, text in writes:
+            self._count("writes_received")
+            self.report(SetRequest(device, point, text))
 
     def _published(self, client, userdata, mid, reason, properties) -> None:
         self._count("published")
@@ -209,6 +253,9 @@ class MqttPublisher:
     def _announce(self) -> None:
         """What a new connection owes: the birth, every device's status, the discovery
         configs, then what was spooled while the broker was away, in order."""
+        if self.node is not None:
+            self._births()
+            return
         owed = [Message(self.topics.status, ONLINE.encode(), 1, True)]
         owed += [
             Message(self.topics.device_status(name), state.encode(), 1, True)
@@ -224,6 +271,23 @@ class MqttPublisher:
             self._publish(message)
         self.live = True
 
+    def _births(self) -> None:
+        """Sparkplug's births, on a connection or a rebirth: NBIRTH, then each online
+        device's DBIRTH with its last values.  Nothing was spooled: Sparkplug's data is QoS 0,
+        and the births carry the values as they are now."""
+        node, now = self.node, time.time()
+        self.born = set()
+        self._publish(Message(node.topic("NBIRTH"), node.node_birth(self.bdseq, now), 0, False))
+        for name, state in self.device_states.items():
+            if state == ONLINE and name in self.values:
+                self.born.add(name)
+                self._publish(
+                    Message(
+                        node.topic("DBIRTH", name), node.device_birth(name, self.values[name], now), 0, False
+                    )
+                )
+        self.live = True
+
     def _write(self, request: SetRequest) -> None:
         """A write from the broker: refused here, or handed to its device's link."""
         try:
@@ -237,11 +301,15 @@ class MqttPublisher:
         outcome = result.result.partition(":")[0].partition(";")[0]
         self._count({"written": "writes_written", "refused": "writes_refused"}.get(outcome, "writes_failed"))
         self.notify(f"write {result.device} {result.point}: {result.result}")
+        if self.node is not None:  # Sparkplug has no result topic: the value read back is in DDATA
+            return
         topic = f"{self.topics.point(result.device, result.point)}/result"
         self._send(Message(topic, result.result.encode(), 1, False))
 
     def _messages(self, item) -> list[Message]:
         """A Poll's messages: its device's status when it changed, and its points."""
+        if self.node is not None:
+            return self._sparkplug(item)
         settings, name = self.settings, item.device.name
         messages = []
         if item.state in (ONLINE, OFFLINE) and self.device_states.get(name) != item.state:
@@ -262,6 +330,38 @@ class MqttPublisher:
                 payload = device_payload(item.time, item.device.unit, chosen)
                 messages.append(Message(self.topics.device[name], payload, settings.qos, settings.retain))
         return messages
+
+    def _sparkplug(self, item) -> list[Message]:
+        """A Poll's Sparkplug messages: DDEATH when its device went offline, DBIRTH when it is
+        first read on this connection (again after a death), else DDATA of what changed."""
+        node, name = self.node, item.device.name
+        values = {r.point.name: _value(r) for r in item.readings or () if r.error is None}
+        chosen = self.changes.select(name, item.time, values) if values else {}
+        self.values.setdefault(name, {}).update(values)
+        if item.state in (ONLINE, OFFLINE):
+            self.device_states[name] = item.state
+        if not self.live:
+            return []  # the next connection's births say it all
+        if item.state == OFFLINE:
+            if name not in self.born:
+                return []
+            self.born.discard(name)
+            return [Message(node.topic("DDEATH", name), node.device_death(item.time), 0, False)]
+        if name not in self.born:
+            if item.state != ONLINE:
+                return []
+            self.born.add(name)
+            return [
+                Message(
+                    node.topic("DBIRTH", name),
+                    node.device_birth(name, self.values[name], item.time),
+                    0,
+                    False,
+                )
+            ]
+        if not chosen:
+            return []
+        return [Message(node.topic("DDATA", name), node.device_data(name, chosen, item.time), 0, False)]
 
     def _send(self, message: Message) -> None:
         if self.live:

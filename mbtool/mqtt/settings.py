@@ -49,6 +49,9 @@ KEYS = {
     "deadband": 'a point\'s change that is not published: a number, or a percentage such as "1%"',
     "deadbands": "a table of point names and their own deadband",
     "heartbeat": "seconds: every point published at least this often (0: only as on_change says)",
+    "payload": '"json" (the default) or "sparkplug_b" (docs/mqtt.md, Sparkplug B)',
+    "group": "sparkplug_b: the Sparkplug group id (default: the site tag every device has, else the inventory's name)",
+    "edge_node": "sparkplug_b: the Sparkplug edge node id (default: the inventory's name)",
     "discovery": '"homeassistant"',
     "discovery_prefix": 'Home Assistant\'s discovery prefix (default "homeassistant")',
     "writes": "true: a publish to <device topic>/<point>/set writes a writable point (default false)",
@@ -99,6 +102,9 @@ class MqttSettings:
     deadband: Deadband = Deadband()
     deadbands: dict = field(default=None, compare=False)  # point name -> Deadband
     heartbeat: float = 0.0
+    sparkplug: bool = False  # payload = "sparkplug_b"
+    group: str = ""  # Sparkplug's group id and edge node id
+    edge_node: str = ""
     discovery: str | None = None
     discovery_prefix: str = "homeassistant"
     writes: bool = False
@@ -183,7 +189,16 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
         if key == "url":
             continue
         at = f"{where} {key}"
-        if key in ("client_id", "username", "password", "topic", "status_topic", "discovery_prefix"):
+        if key in (
+            "client_id",
+            "username",
+            "password",
+            "topic",
+            "status_topic",
+            "discovery_prefix",
+            "group",
+            "edge_node",
+        ):
             changes[key] = _text(value, at)
         elif key == "password_file":
             changes["password"] = _password_file(value, at)
@@ -219,12 +234,19 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             if not isinstance(value, dict):
                 raise UsageError(f"{at}: expected {KEYS[key]}, such as {{ flow = 0.5 }}")
             changes[key] = {name: _deadband(band, f"{at}.{name}") for name, band in value.items()}
+        elif key == "payload":
+            if value not in ("json", "sparkplug_b"):
+                raise UsageError(f"{at}: expected {KEYS[key]}")
+            changes["sparkplug"] = value == "sparkplug_b"
         elif key == "discovery":
             if value != "homeassistant":
                 raise UsageError(f"{at}: expected {KEYS[key]}")
             changes[key] = value
         elif key in PATH_KEYS:
             changes[key] = _text(value, at)
+    sites = {(device.tags or {}).get("site") for device in devices}
+    changes.setdefault("group", str(sites.pop()) if len(sites) == 1 and None not in sites else inventory)
+    changes.setdefault("edge_node", inventory)
     if "password" not in changes and os.environ.get("MBTOOL_MQTT_PASSWORD"):
         changes["password"] = os.environ["MBTOOL_MQTT_PASSWORD"]
     settings = replace(settings, **changes)
@@ -256,6 +278,15 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         if settings.per_point:
             for point in _points(device):
                 _topic_problem(point, f'{where} points = "point": {device.name}\'s point', point)
+    if settings.sparkplug:
+        for key in ("group", "edge_node"):
+            if re.search(r"[/+#]", getattr(settings, key)):
+                raise UsageError(f"{where} {key}: {getattr(settings, key)!r}: a Sparkplug id has no / + or #")
+        for device in devices:
+            if re.search(r"[/+#]", device.name):
+                raise UsageError(f"{where}: device {device.name!r}: a Sparkplug device id has no / + or #")
+        if settings.discovery or settings.per_point:
+            raise UsageError(f'{where}: discovery and points = "point" go with payload = "json"')
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:
         raise UsageError(f"{where} topic: {settings.topic!r} must name {{device}}: a topic a device")
 
