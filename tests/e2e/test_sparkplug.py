@@ -147,6 +147,11 @@ def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Paylo
             alias = {m.name: m.alias for m in dbirth.metrics}
             assert len(set(alias.values())) == len(alias) and all(alias.values())
 
+            # A DCMD to no point, or no payload, is refused and never sent (no DDATA follows).
+            wrong = Payload(timestamp=int(time.time() * 1000))
+            wrong.metrics.add(name="nope", datatype=DOUBLE, double_value=1.0)
+            subscriber.client.publish(f"{base}/DCMD/plant/pump", wrong.SerializeToString(), qos=0)
+            subscriber.client.publish(f"{base}/DCMD/plant/pump", b"\xff\xff\xff", qos=0)
             # DCMD: a write by the /set path; the value read back comes as DDATA, by alias alone.
             command = Payload(timestamp=int(time.time() * 1000))
             command.metrics.add(name="setpoint", datatype=DOUBLE, double_value=12.5)
@@ -188,6 +193,9 @@ def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Paylo
             assert [(m.name, m.datatype, _value(m)) for m in ndeath.metrics] == [("bdSeq", UINT64, bdseq)]
         finally:
             proc.kill()
-            proc.communicate(timeout=5)
+            _, err = proc.communicate(timeout=5)
             device.__exit__(None, None, None)
             subscriber.close()
+    assert "mbtool: mqtt: write pump nope: refused: pump reads no point nope" in err
+    assert "mbtool: mqtt: write pump DCMD: refused: not a Sparkplug B payload" in err
+    assert "mbtool: mqtt: write pump setpoint: written" in err
