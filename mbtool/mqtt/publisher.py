@@ -82,6 +82,8 @@ class MqttPublisher:
         self.values: dict[str, dict] = {}
         self.born: set[str] = set()
         self.bdseq = 0
+        self.rehome = threading.Event()  # the primary host went offline: NDEATH, connect again
+        self.host_online = False  # the primary host's STATE on this connection
         self.client = self._client()
         self.thread = threading.Thread(target=self._run, name="mqtt", daemon=True)
 
@@ -175,7 +177,9 @@ class MqttPublisher:
             topics = self.node.commands(self.writes is not None)
         for topic in topics:
             client.subscribe(topic, qos=1)
-        self.announce.set()
+        self.host_online = False
+        if self.node is None or self.node.state_topic is None:
+            self.announce.set()  # else once the primary host's STATE says it is online
 
     def _disconnected(self, client, userdata, flags, reason, properties) -> None:
         self.live = False
@@ -198,8 +202,15 @@ class MqttPublisher:
     def _command(self, message) -> None:
         """An NCMD (a rebirth asked: the node born again) or a DCMD (writes, by /set's path)."""
         node = self.node
+        if message.topic == node.state_topic:
+            self.host_online = node.host_online(message.payload)
+            if self.host_online and not self.live:
+                self.announce.set()
+            elif self.live:  # born while the host was online: it is gone, so is this node
+                self.rehome.set()
+            return
         if message.topic == node.topic("NCMD"):
-            if node.rebirth_asked(message.payload):
+            if node.rebirth_asked(message.payload) and (node.state_topic is None or self.host_online):
                 self.notify("rebirth asked (NCMD)")
                 self.announce.set()
             return
@@ -232,6 +243,9 @@ class MqttPublisher:
 
     def _run(self) -> None:
         while True:
+            if self.rehome.is_set():
+                self.rehome.clear()
+                self._rehome()
             if self.announce.is_set():
                 self.announce.clear()
                 self._announce()
@@ -287,6 +301,20 @@ class MqttPublisher:
                     )
                 )
         self.live = True
+
+    def _rehome(self) -> None:
+        """The primary host went offline (Sparkplug B): the node's NDEATH, then it leaves the
+        broker and connects again, to wait for the host's STATE before it is born again."""
+        self.live = False
+        self.notify(f"primary host {self.settings.primary_host} offline: NDEATH, connecting again")
+        self._publish(Message(self.node.topic("NDEATH"), self.node.node_death(self.bdseq), 1, False))
+        deadline = time.monotonic() + 2.0
+        while self._unsent() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        self.client.disconnect()
+        self.client.loop_stop()
+        self.client.connect_async(self.settings.host, self.settings.port, self.settings.keepalive)
+        self.client.loop_start()
 
     def _write(self, request: SetRequest) -> None:
         """A write from the broker: refused here, or handed to its device's link."""

@@ -52,6 +52,7 @@ KEYS = {
     "payload": '"json" (the default) or "sparkplug_b" (docs/mqtt.md, Sparkplug B)',
     "group": "sparkplug_b: the Sparkplug group id (default: the site tag every device has, else the inventory's name)",
     "edge_node": "sparkplug_b: the Sparkplug edge node id (default: the inventory's name)",
+    "primary_host": "sparkplug_b: the primary host application's id, whose STATE the node waits for before its births",
     "discovery": '"homeassistant"',
     "discovery_prefix": 'Home Assistant\'s discovery prefix (default "homeassistant")',
     "writes": "true: a publish to <device topic>/<point>/set writes a writable point (default false)",
@@ -105,6 +106,7 @@ class MqttSettings:
     sparkplug: bool = False  # payload = "sparkplug_b"
     group: str = ""  # Sparkplug's group id and edge node id
     edge_node: str = ""
+    primary_host: str | None = None
     discovery: str | None = None
     discovery_prefix: str = "homeassistant"
     writes: bool = False
@@ -198,6 +200,7 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             "discovery_prefix",
             "group",
             "edge_node",
+            "primary_host",
         ):
             changes[key] = _text(value, at)
         elif key == "password_file":
@@ -279,14 +282,16 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
             for point in _points(device):
                 _topic_problem(point, f'{where} points = "point": {device.name}\'s point', point)
     if settings.sparkplug:
-        for key in ("group", "edge_node"):
-            if re.search(r"[/+#]", getattr(settings, key)):
+        for key in ("group", "edge_node", "primary_host"):
+            if re.search(r"[/+#]", getattr(settings, key) or ""):
                 raise UsageError(f"{where} {key}: {getattr(settings, key)!r}: a Sparkplug id has no / + or #")
         for device in devices:
             if re.search(r"[/+#]", device.name):
                 raise UsageError(f"{where}: device {device.name!r}: a Sparkplug device id has no / + or #")
         if settings.discovery or settings.per_point:
             raise UsageError(f'{where}: discovery and points = "point" go with payload = "json"')
+    elif settings.primary_host is not None:
+        raise UsageError(f'{where} primary_host: goes with payload = "sparkplug_b"')
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:
         raise UsageError(f"{where} topic: {settings.topic!r} must name {{device}}: a topic a device")
 

@@ -13,7 +13,10 @@ device a Sparkplug device.  Topics are ``spBv1.0/<group>/<type>/<edge node>[/<de
 - ``DDEATH`` when mbtool judges a device offline;
 - every message but NDEATH carries ``seq``, 0 to 255 and round again, NBIRTH's 0.
 
-``NCMD`` with ``Node Control/Rebirth`` true makes the node born again (NBIRTH, then every
+With ``primary_host``, the node subscribes to ``spBv1.0/STATE/<primary_host>`` and is born
+only while that host says it is online; when it says offline, the node publishes its NDEATH,
+leaves the broker and connects again, to be born anew (with the next bdSeq) once the host is
+back.  ``NCMD`` with ``Node Control/Rebirth`` true makes the node born again (NBIRTH, then every
 online device's DBIRTH); ``DCMD`` metrics (by name or alias) are writes, checked and written by
 the same path as a ``/set`` publish (``writes.py``).
 
@@ -24,6 +27,8 @@ generated module is vendored; a field this subset does not name is kept as an un
 """
 
 from __future__ import annotations
+
+import json
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
@@ -134,6 +139,7 @@ class EdgeNode:
     def __init__(self, settings, devices: list) -> None:
         self.group, self.node = settings.group, settings.edge_node
         self.devices = {device.name: device for device in devices}
+        self.state_topic = f"{NAMESPACE}/STATE/{settings.primary_host}" if settings.primary_host else None
         self.bdseq = 0  # the will's: the connection's NBIRTH says the same
         self.seq = 0
         # Every point of the node an alias of its own, kept for the run.
@@ -148,8 +154,10 @@ class EdgeNode:
         return f"{NAMESPACE}/{self.group}/{kind}/{self.node}{tail}"
 
     def commands(self, writes: bool) -> list[str]:
-        """The topics a node subscribes to: its NCMD, and with writes every device's DCMD."""
-        return [self.topic("NCMD")] + ([self.topic("DCMD", "+")] if writes else [])
+        """The topics a node subscribes to: its NCMD, with writes every device's DCMD, and
+        the primary host's STATE where there is one."""
+        topics = [self.topic("NCMD")] + ([self.topic("DCMD", "+")] if writes else [])
+        return topics + ([self.state_topic] if self.state_topic else [])
 
     def will(self) -> bytes:
         """The next connection's will: NDEATH with the bdSeq its NBIRTH will say."""
@@ -195,6 +203,17 @@ class EdgeNode:
         payload = Payload(timestamp=int(now * 1000), seq=self.seq)
         self.seq = (self.seq + 1) % 256
         return payload
+
+    @staticmethod
+    def host_online(data: bytes) -> bool:
+        """Whether a primary host's STATE says it is online: Sparkplug 3.0's JSON
+        (``{"online": true, "timestamp": ...}``), or 2.2's ``ONLINE``."""
+        text = data.decode("utf-8", "replace").strip()
+        try:
+            state = json.loads(text)
+        except ValueError:
+            return text == "ONLINE"
+        return isinstance(state, dict) and state.get("online") is True
 
     def rebirth_asked(self, data: bytes) -> bool:
         """Whether an NCMD asks for a rebirth (``Node Control/Rebirth`` true)."""

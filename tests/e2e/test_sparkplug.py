@@ -199,3 +199,52 @@ def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Paylo
     assert "mbtool: mqtt: write pump nope: refused: pump reads no point nope" in err
     assert "mbtool: mqtt: write pump DCMD: refused: not a Sparkplug B payload" in err
     assert "mbtool: mqtt: write pump setpoint: written" in err
+
+
+def test_with_a_primary_host_the_node_is_born_only_while_its_state_says_online(tmp_path, Payload):
+    base = "spBv1.0/plant"
+    device = start_device(tcp=True, framer="socket", units="1")
+    pm = device.__enter__()
+    try:
+        with mosquitto() as broker:
+            plant = tmp_path / "plant.toml"
+            plant.write_text(
+                f'[poll]\ninterval = 0.2\n[links.l]\ntarget = "{pm.target}"\ntimeout = 0.3\n'
+                '[devices.pm]\nlink = "l"\nread = ["40001 2"]\n'
+                f'[mqtt]\nurl = "{broker.url}"\npayload = "sparkplug_b"\nprimary_host = "scada"\n'
+            )
+            subscriber = Subscriber(broker.port, "spBv1.0/#")
+            state = "spBv1.0/STATE/scada"
+
+            def births():
+                return [Payload.FromString(p) for p in subscriber.on(f"{base}/NBIRTH/plant")]
+
+            proc = _start_poll(plant, "-o", "json")
+            try:
+                # No STATE yet: polled, but not born.
+                assert not subscriber.wait_for(lambda m: births(), 1.5)
+                subscriber.client.publish(state, b'{"online": true, "timestamp": 1}', qos=1, retain=True)
+                assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/DBIRTH/plant/pm"), 10)
+                (first,) = births()
+                bdseq = {m.name: _value(m) for m in first.metrics}["bdSeq"]
+                # The host goes away: NDEATH, and no birth until it is back.
+                subscriber.client.publish(state, b'{"online": false, "timestamp": 2}', qos=1, retain=True)
+                assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/NDEATH/plant"), 10)
+                (ndeath,) = [Payload.FromString(p) for p in subscriber.on(f"{base}/NDEATH/plant")]
+                assert {m.name: _value(m) for m in ndeath.metrics} == {"bdSeq": bdseq}
+                assert not subscriber.wait_for(lambda m: len(births()) > 1, 1.5)
+                subscriber.client.publish(state, b'{"online": true, "timestamp": 3}', qos=1, retain=True)
+                assert subscriber.wait_for(lambda m: len(births()) == 2, 10)
+                again = births()[-1]
+                assert (
+                    again.seq == 0
+                    and {m.name: _value(m) for m in again.metrics}["bdSeq"] == (bdseq + 1) % 256
+                )
+            finally:
+                proc.send_signal(signal.SIGTERM)
+                _, err = proc.communicate(timeout=10)
+                subscriber.close()
+    finally:
+        device.__exit__(None, None, None)
+    assert "Traceback" not in err
+    assert "primary host scada offline" in err

@@ -49,6 +49,7 @@ def test_sparkplug_b_names_the_group_after_the_devices_site_and_the_edge_node_af
         ('payload = "protobuf"\n', '[mqtt] payload: expected "json"'),
         ('payload = "sparkplug_b"\ngroup = "a/b"\n', "[mqtt] group: 'a/b': a Sparkplug id has no / + or #"),
         ('payload = "sparkplug_b"\ndiscovery = "homeassistant"\n', 'discovery and points = "point" go with'),
+        ('primary_host = "scada"\n', 'primary_host: goes with payload = "sparkplug_b"'),
     ],
 )
 def test_a_sparkplug_setting_that_cannot_be_is_a_usage_error(tmp_path, table, message):
