@@ -45,6 +45,7 @@ import click
 from mbtool.cli import profiles
 from mbtool.cli.metrics import name_problem
 from mbtool.cli.options import device_command
+from mbtool.cli.sinks import PLANT, formats
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.tables import parse_reference, reference
@@ -57,7 +58,7 @@ from mbtool.registermap.load import MapError, RegisterMap, load_map, one_line
 from mbtool.registermap.plan import MapReader
 from mbtool.registermap.point import Point
 
-FORMATS = ("plain", "json", "csv", "influx", "prom")
+FORMATS = formats(PLANT)  # what poll -o offers
 POLL_KEYS = {
     "interval": "seconds between polls of a device, such as 10",
     "output": "one of " + ", ".join(FORMATS),

@@ -10,21 +10,21 @@ import sys
 import time
 from collections.abc import Callable
 
-from mbtool.cli.json_text import JsonLines, error_json, json_line
-from mbtool.cli.render import (
-    POINT_CSV_HEADER,
+from mbtool.cli.results import (
+    Points,
+    Result,
     by_order,
     change_parts,
-    csv_cells,
     labels,
-    point_cells,
-    point_line,
+    points_dict,
     points_heading,
-    points_table,
-    wants_csv_header,
+    value_text,
 )
-from mbtool.cli.results import Points, Result, points_dict, value_text
-from mbtool.cli.settings import MONITORING_FORMATS
+from mbtool.cli.sinks import READINGS, formats
+from mbtool.cli.sinks.csv import POINT_CSV_HEADER, point_cells, result_cells, wants_csv_header
+from mbtool.cli.sinks.json import JsonLines, error_json, json_line
+from mbtool.cli.sinks.plain import point_line
+from mbtool.cli.sinks.table import points_table
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import function_code_text
 from mbtool.errors import OutputFailed, PartialRead, exit_code_for
@@ -51,7 +51,7 @@ class Output:
         self._json = JsonLines()
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if self.fmt in MONITORING_FORMATS:
+        if self.fmt in formats(READINGS):
             # To stdout with the other writes (one flush a gap); a textfile is written at once.
             self.metrics.emit(result, None if self.metrics.textfile else _Pending(self), stamp)
         elif result.__class__ is Points:
@@ -59,7 +59,7 @@ class Output:
         elif self.fmt == "json":
             self._emit(self._json.line(when, result))
         elif self.fmt == "csv":
-            header, rows = csv_cells(result)
+            header, rows = result_cells(result)
             self._csv(when, header, rows)
         elif self.fmt == "plain":
             lines = zip(labels(result), result.values, strict=True)
@@ -101,7 +101,7 @@ class Output:
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.flush()  # the polls before it first, so stdout and stderr stay in order
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
-        if self.fmt in MONITORING_FORMATS:  # -o prom and --textfile say the device is down
+        if self.fmt in formats(READINGS):  # -o prom and --textfile say the device is down
             self.metrics.emit_failure(error, None if self.metrics.textfile else _Pending(self))
         if self.fmt == "json" and not isinstance(error, PartialRead):
             # jq consumers read stdout only: a failed poll must show up there too (a partial

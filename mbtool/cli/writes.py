@@ -20,9 +20,10 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Sequence
 
-from mbtool.cli.json_text import to_json
-from mbtool.cli.render import change_parts, default_format, wants_csv_header
-from mbtool.cli.results import value_text
+from mbtool.cli.results import change_parts, value_text
+from mbtool.cli.sinks import default_format
+from mbtool.cli.sinks.csv import wants_csv_header
+from mbtool.cli.sinks.json import to_json
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
 from mbtool.errors import KNOWN_ERRORS, Summary, exit_code_for

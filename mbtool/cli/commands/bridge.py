@@ -16,7 +16,6 @@ import click
 
 from mbtool.cli.completion import complete_port
 from mbtool.cli.frames import one_line, shown_frame
-from mbtool.cli.json_text import to_json
 from mbtool.cli.listen import check_udp_rate, datagrams_dropped, tls_server_settings
 from mbtool.cli.options import (
     LINK_OPTIONS,
@@ -30,6 +29,8 @@ from mbtool.cli.options import (
 from mbtool.cli.param_types import Choice, Seconds, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.session import warn_insecure
+from mbtool.cli.sinks import LOG, formats
+from mbtool.cli.sinks.json import to_json
 from mbtool.cli.stamps import local_time
 from mbtool.codec.describe import describe
 from mbtool.codec.errors import RequestError, function_code_text
@@ -129,7 +130,7 @@ class BridgeCommand(QuickHelp, click.Command):
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json"]),
+    type=Choice(formats(LOG)),
     callback=output_chosen,
     help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
     "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",

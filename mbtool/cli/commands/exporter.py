@@ -41,7 +41,6 @@ from urllib.parse import parse_qs
 import click
 
 from mbtool.cli.inventory import load_inventory
-from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import (
@@ -54,6 +53,7 @@ from mbtool.cli.plant_text import (
     point_name_clash,
     refuse_point_names,
 )
+from mbtool.cli.sinks.prom import warn_counter_names
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure

@@ -65,7 +65,7 @@ def list_maps(text, as_json) -> None:
         if text is None or text.lower() in searched:
             rows.append(row)
     if as_json:
-        from mbtool.cli.json_text import to_json  # noqa: PLC0415 - --json only
+        from mbtool.cli.sinks.json import to_json  # noqa: PLC0415 - --json only
 
         click.echo(to_json(rows))
         return
@@ -382,7 +382,7 @@ SEEN_NAMES = {"fc43": "FC 43/14", "fc17": "FC 17", "sunspec": "SunSpec", "budget
 def _show_identity(unit: int, settings, candidates, sunspec: dict | None, seen: dict[str, str]) -> None:
     best = _best(candidates)
     if settings.output_format == "json":
-        from mbtool.cli.json_text import to_json  # noqa: PLC0415 - -o json only
+        from mbtool.cli.sinks.json import to_json  # noqa: PLC0415 - -o json only
 
         data = {
             "unit": unit,

@@ -20,12 +20,12 @@ import time
 import click
 
 from mbtool.cli.frames import frame_report, one_line
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
 from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat
 from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.profiles import defaults
-from mbtool.cli.render import default_format
+from mbtool.cli.sinks import LOG, default_format, formats
+from mbtool.cli.sinks.json import to_json
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.timing import char_time, character_bits, silent_interval
@@ -106,7 +106,7 @@ def default_silence(framer: str, baud: int) -> float:
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json"]),
+    type=Choice(formats(LOG)),
     callback=output_chosen,
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )

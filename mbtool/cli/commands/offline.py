@@ -11,9 +11,9 @@ from mbtool.cli.frames import frame_report
 from mbtool.cli.options import NO_HEADER_OPTION, device_command, output_chosen
 from mbtool.cli.param_types import Choice
 from mbtool.cli.parsing import QuickHelp
-from mbtool.cli.render import default_format, render
 from mbtool.cli.results import Report, Row
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import RESULTS, default_format, formats, render
 from mbtool.codec.checksum import crc16
 from mbtool.codec.checksum import lrc as lrc8
 from mbtool.codec.describe import describe, describe_pdu, looks_whole, parse_hex, split_frame
@@ -29,7 +29,7 @@ FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json", "csv"]),
+    type=Choice(formats(RESULTS)),
     callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe.",
 )

@@ -8,7 +8,6 @@ view on a terminal, one line on stderr for each change of state, and statistics 
 
 from __future__ import annotations
 
-import csv
 import sys
 import threading
 import time
@@ -16,22 +15,15 @@ import time
 import click
 
 from mbtool.cli.frames import HexTrace
-from mbtool.cli.inventory import FORMATS, load_inventory
-from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import (
-    KEY_SPECIALS,
-    _escape,
-    _field_value,
-    check_textfile,
-    influx_text,
-    name_problem,
-    write_textfile,
-)
+from mbtool.cli.inventory import load_inventory
+from mbtool.cli.metrics import name_problem
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
-from mbtool.cli.render import wants_csv_header
-from mbtool.cli.results import point_text, value_text
+from mbtool.cli.results import reading_text
 from mbtool.cli.session import warn_insecure
+from mbtool.cli.sinks import PLANT, formats, sink
+from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
@@ -39,8 +31,6 @@ from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
-
-CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 
 
 @click.command(
@@ -53,7 +43,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     "-o",
     "--format",
     "output_format",
-    type=click.Choice(FORMATS),
+    type=click.Choice(formats(PLANT)),
     help="Output: plain lines, JSON lines (one a device poll), CSV (long form), InfluxDB line "
     "protocol or Prometheus text. Default: the inventory's [poll] output, else a live view on "
     "a terminal and plain lines in a pipe.",
@@ -137,13 +127,14 @@ def poll(
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    polls = sink(fmt).PlantPolls
     if measurement is not None:
         problem = name_problem(measurement, "a measurement", influx=True)
-        if fmt != "influx":
+        if not polls.measured:
             problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
         if problem:
             raise RequestError(f"--measurement {measurement!r}: {problem}")
-    if fmt == "prom" or textfile:
+    if polls.exposes or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
     if textfile:
@@ -185,17 +176,16 @@ def poll(
 
 
 class PlantOutput:
-    """What the workers report, written as it comes (one writer at a time: a lock)."""
+    """What the workers report, written as it comes (one writer at a time: a lock), by the
+    format's sink (its PlantPolls); the whole plant's Prometheus text a round, for -o prom
+    and --textfile."""
 
     def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
-        self.fmt = fmt
-        self.measurement = measurement  # -o influx's, for the devices that name none
+        self.polls = sink(fmt).PlantPolls(sys.stdout, not no_header, measurement)
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.lock = threading.Lock()
         self.states: dict = {}
-        self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
-        self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
         self.unwritten = False  # a device has reported since the last exposition
         self.exposed = False  # the first round is written
@@ -203,20 +193,11 @@ class PlantOutput:
     def report(self, item: Poll | Event) -> None:
         with self.lock:
             if isinstance(item, Event):
-                self._event(item)
+                print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
+                self.polls.event(item, local_time(item.time))
             else:
                 self._poll(item)
             sys.stdout.flush()
-
-    def _event(self, event: Event) -> None:
-        print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
-        if self.fmt == "json":
-            record = {"time": local_time(event.time), "event": event.state, event.kind: event.name}
-            if event.reason:
-                record["reason"] = event.reason
-            if event.retry_in is not None:
-                record["retry_in"] = event.retry_in
-            sys.stdout.write(to_json(record) + "\n")
 
     def _poll(self, poll: Poll) -> None:
         device, when = poll.device, local_time(poll.time)
@@ -227,30 +208,8 @@ class PlantOutput:
             for reading in poll.readings:
                 if reading.error is not None:  # its message names the point (plan.PointException)
                     print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
-        if self.fmt == "plain":
-            for reading in poll.readings or ():
-                if reading.error is None:
-                    unit = (
-                        f" {reading.point.unit}" if reading.point.unit and reading.value is not None else ""
-                    )
-                    sys.stdout.write(f"{when} {device.name} {reading.point.name} {_shown(reading)}{unit}\n")
-        elif self.fmt == "json":
-            sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
-        elif self.fmt == "csv":
-            if self.header:
-                self.writer.writerow(CSV_HEADER)
-                self.header = False
-            for reading in poll.readings or ():
-                if reading.error is None:
-                    point = reading.point
-                    self.writer.writerow(
-                        [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
-                    )
-        elif self.fmt == "influx":
-            line = influx_line(poll, device.measurement or self.measurement)
-            if line:
-                sys.stdout.write(line)
-        if self.fmt == "prom" or self.textfile:
+        self.polls.poll(poll, when)
+        if self.polls.exposes or self.textfile:
             # The Prometheus text is the whole plant's, one exposition a round.
             self.pending.discard(device.name)
             self.unwritten = True
@@ -272,7 +231,7 @@ class PlantOutput:
         """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
         the textfile, rewritten whole."""
         text = prom_text(list(self.states.values()))
-        if self.fmt == "prom":
+        if self.polls.exposes:
             sys.stdout.write(text)
         if self.textfile:
             write_textfile(text, self.textfile, sweep=not self.swept)
@@ -286,64 +245,6 @@ class PlantOutput:
             if self.unwritten:
                 self._expose()  # the last state of every device, whatever the round
             sys.stdout.flush()
-
-
-def _shown(reading) -> str:
-    """A reading as read -m shows it: on/off, invalid, a label, or a number (no label)."""
-    return point_text(reading.value) + (" (no label)" if reading.point.no_label(reading.value) else "")
-
-
-def _csv_value(reading) -> str:
-    if reading.value is None:
-        return ""  # no data: an empty cell, as a spreadsheet leaves one
-    return _shown(reading) if isinstance(reading.value, bool) else value_text(reading.value)
-
-
-def _json_record(poll: Poll, when: str) -> dict:
-    device = poll.device
-    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
-    if poll.readings is None:
-        record["state"] = poll.state
-        record["error"] = str(poll.error)
-        record["exit_code"] = int(exit_code_for(poll.error))
-        return record
-    points, failed = [], []
-    for reading in poll.readings:
-        point = reading.point
-        if reading.error is None:
-            # A point's "unit" is its engineering unit, left out when it has none: the
-            # record's own "unit" is the device's unit id.
-            engineering = {"unit": point.unit} if point.unit else {}
-            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
-            if reading.value is None:
-                entry["invalid"] = True  # the device sent a value its map says means no data
-            points.append(entry)
-        else:
-            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
-    record["state"] = poll.state
-    record["points"] = points
-    if failed:
-        record["failed"] = failed
-    return record
-
-
-# --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
-
-
-def influx_line(poll: Poll, measurement: str) -> str:
-    """One line a device poll: its measurement, tags device, unit and the device's tags, a
-    field a point read (its type fixed by its map entry; NaN and infinities left out)."""
-    device = poll.device
-    fields = []
-    for reading in poll.readings or ():
-        if reading.error is not None or reading.value is None:
-            continue
-        number = reading.point.number_of(reading.value)
-        shown = _field_value(reading.value if number is None else number)
-        if shown is not None:
-            fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
-    tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    return influx_text(measurement, tags, fields, int(poll.time * 1_000_000_000))
 
 
 # --- on a terminal: a live view ------------------------------------------------------------
@@ -438,7 +339,7 @@ class LiveView:
         for reading in (state.last_poll.readings or ()) if state.last_poll else ():
             if reading.error is None:
                 style = "reverse" if reading.point.name in changed else ""
-                values.append(f"{reading.point.name}={_shown(reading)}", style=style)
+                values.append(f"{reading.point.name}={reading_text(reading)}", style=style)
                 values.append(" ")
         values.rstrip()
         return (
@@ -470,7 +371,8 @@ class LiveView:
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
+def _statistics(runner: Plant, stats: str, seconds: float) -> None:
+    """``stats``: --stats, table or json (on stderr)."""
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -481,7 +383,7 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
     # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
     device_limits = {name: limits(s.spec, link_of[s.spec.link]) for name, s in runner.devices.items()}
     link_limits = {name: (spec.connection.timeout, spec.connection.retries) for name, spec in link_of.items()}
-    if fmt == "json":
+    if stats == "json":
         record = {
             "seconds": round(seconds, 3),
             "devices": {

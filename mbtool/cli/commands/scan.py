@@ -23,11 +23,12 @@ import time
 
 import click
 
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
-from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.session import open_client, trace_for
+from mbtool.cli.sinks import default_format
+from mbtool.cli.sinks.csv import wants_csv_header
+from mbtool.cli.sinks.json import to_json
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary

@@ -10,11 +10,14 @@ from functools import partial
 import click
 
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command, map_option
 from mbtool.cli.param_types import FilePath
-from mbtool.cli.render import change_line, change_parts, default_format, wants_csv_header
+from mbtool.cli.results import change_parts
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import default_format
+from mbtool.cli.sinks.csv import wants_csv_header
+from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.plain import change_line
 from mbtool.cli.writes import CONFIRMED, DIFFERS, Step, failure, report, send_all
 from mbtool.codec.data_access import (
     MAX_WRITE_COILS,

@@ -11,13 +11,14 @@ from functools import partial
 import click
 import tomli_w
 
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.profiles import defaults
-from mbtool.cli.render import default_format, wants_csv_header
 from mbtool.cli.results import value_text
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import default_format
+from mbtool.cli.sinks.csv import wants_csv_header
+from mbtool.cli.sinks.json import to_json
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError

@@ -1,0 +1,66 @@
+"""-o plain: lines a script reads with ``read``/``awk``, the default in a pipe.
+
+A value a line (``ADDRESS VALUE``, a map's ``NAME VALUE UNIT``, a report's ``NAME VALUE``);
+a change as ``WHAT: OLD -> NEW``.
+"""
+
+from __future__ import annotations
+
+from typing import TextIO
+
+from mbtool.cli.results import (
+    PointRow,
+    Points,
+    Report,
+    Result,
+    change_parts,
+    labels,
+    reading_text,
+    value_texts,
+)
+
+
+def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
+    out.write(text(result))
+
+
+def text(result: Result | Report | Points, when: str = "") -> str:
+    """The lines of a result, each after ``when`` (a poll's time) when given."""
+    stamp = f"{when} " if when else ""
+    if isinstance(result, Points):
+        lines = (point_line(row) for row in result.rows)
+    elif isinstance(result, Report):
+        lines = (f"{row.name} {row.shown}" for row in result.rows)
+    else:
+        lines = (f"{label} {shown}" for label, shown in zip(labels(result), value_texts(result), strict=True))
+    return "".join(f"{stamp}{line}\n" for line in lines)
+
+
+def point_line(row: PointRow) -> str:
+    return f"{row.name} {row.shown} {row.unit if row.value is not None else ''}".rstrip()
+
+
+def change_line(what: dict, old, new, unit: str = "") -> str:
+    """``holding 5: 5 -> 99``, ``setpoint (40006): 22.5 m3/h -> 23 m3/h``."""
+    where, before, after = change_parts(what, old, new, unit)
+    return f"{where}: {before} -> {after}"
+
+
+class PlantPolls:
+    """poll -o plain: a line a point read, ``TIME DEVICE NAME VALUE [UNIT]``."""
+
+    measured = False  # --measurement names its measurement
+    exposes = False  # the plant's Prometheus text is not this output
+
+    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+        self.out = out
+
+    def poll(self, poll, when: str) -> None:
+        device = poll.device
+        for reading in poll.readings or ():
+            if reading.error is None:
+                unit = f" {reading.point.unit}" if reading.point.unit and reading.value is not None else ""
+                self.out.write(f"{when} {device.name} {reading.point.name} {reading_text(reading)}{unit}\n")
+
+    def event(self, event, when: str) -> None:
+        """A change of state is on stderr only (plant_text.event_line)."""
