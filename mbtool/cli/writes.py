@@ -22,7 +22,6 @@ from collections.abc import Callable, Sequence
 
 from mbtool.cli.results import change_parts, value_text
 from mbtool.cli.sinks import default_format
-from mbtool.cli.sinks.csv import wants_csv_header
 from mbtool.cli.sinks.json import to_json
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
@@ -158,13 +157,13 @@ CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 
 
 def _csv(items: Sequence[dict], header: bool) -> None:
-    import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
+    from mbtool.cli.sinks.csv import wants_csv_header, writer  # noqa: PLC0415 - csv, 0.5 ms: -o csv only
 
-    writer = csv.writer(sys.stdout, lineterminator="\n")
+    rows = writer(sys.stdout)
     if wants_csv_header(sys.stdout, header):
-        writer.writerow(CSV_HEADER)
+        rows.writerow(CSV_HEADER)
     for item in items:
-        writer.writerow(
+        rows.writerow(
             "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
             for key in CSV_HEADER
         )
