@@ -102,3 +102,28 @@ def values_of(result) -> list[tuple[dict, object, str]]:
         else:
             out.append((labels, value, ""))
     return out
+
+
+class ReadingPolls:
+    """read --interval -o influx or -o prom: each poll through the run's Readings, to stdout
+    with the other writes (one flush a gap) or to the textfile at once; a failed poll, for
+    Prometheus, as the device down.  (A poll's Output, cli.poll_output, as the sinks' Polls.)"""
+
+    changes_as_rows = False
+
+    def __init__(self, output) -> None:
+        self.output = output
+
+    def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
+        """Never called: --changes goes with neither format (read refuses it before anything is sent)."""
+
+    def close(self) -> None:
+        pass
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        metrics = self.output.metrics
+        metrics.emit(result, None if metrics.textfile else self.output.pending, stamp)
+
+    def failure(self, when: str, error: BaseException) -> None:
+        metrics = self.output.metrics
+        metrics.emit_failure(error, None if metrics.textfile else self.output.pending)

@@ -22,6 +22,7 @@ from mbtool.cli.results import (
     value_text,
     value_texts,
 )
+from mbtool.cli.sinks.plain import Polls as PlainPolls
 
 POINT_CSV_HEADER = ["name", "value", "unit", "ref", "registers"]
 
@@ -139,3 +140,25 @@ def reading_cell(reading) -> str:
     if reading.value is None:
         return ""  # no data: an empty cell, as a spreadsheet leaves one
     return reading_text(reading) if isinstance(reading.value, bool) else value_text(reading.value)
+
+
+class Polls(PlainPolls):
+    """read --interval -o csv: a row a value after the poll's time, under one header; with
+    --changes the rows of the values that changed."""
+
+    changes_as_rows = True
+
+    def __init__(self, output) -> None:
+        super().__init__(output)
+        self.header_done = False
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        if result.__class__ is Points:
+            header, rows = POINT_CSV_HEADER, [point_cells(row) for row in result.rows]
+        else:
+            header, rows = result_cells(result)
+        if not self.header_done:
+            if wants_csv_header(self.output.out, self.output.csv_header):
+                self.output.emit(",".join(["time", *header]) + "\n")
+            self.header_done = True
+        self.output.emit("".join(",".join([when, *map(cell, row)]) + "\n" for row in rows))

@@ -12,9 +12,11 @@ import math
 import sys
 import time
 
+from mbtool.cli.metrics import ReadingPolls, values_of
 from mbtool.cli.metrics import Readings as MonitoringReadings
-from mbtool.cli.metrics import values_of
 from mbtool.cli.results import Points
+
+Polls = ReadingPolls  # read --interval: each poll through the run's Readings
 
 
 class Readings(MonitoringReadings):

@@ -13,7 +13,8 @@ import math
 from typing import TextIO
 
 from mbtool.cli.results import Points, Report, Result, as_dict, points_dict, report_dict
-from mbtool.errors import exit_code_for
+from mbtool.cli.sinks.plain import Polls as PlainPolls
+from mbtool.errors import PartialRead, exit_code_for
 
 
 def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
@@ -199,3 +200,28 @@ def poll_record(poll, when: str) -> dict:
     if failed:
         record["failed"] = failed
     return record
+
+
+class Polls(PlainPolls):
+    """read --interval -o json: a JSON line a poll, a change or a failed poll."""
+
+    def __init__(self, output) -> None:
+        super().__init__(output)
+        self.lines = JsonLines()
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        if result.__class__ is Points:
+            self.output.emit(json_line({"time": when, **points_dict(result)}))
+        else:
+            self.output.emit(self.lines.line(when, result))
+
+    def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
+        engineering = {"unit": unit} if unit else {}
+        self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering}))
+
+    def failure(self, when: str, error: BaseException) -> None:
+        if not isinstance(error, PartialRead):
+            # jq consumers read stdout only: a failed poll must show up there too (a partial
+            # read's line names the points it could not read).
+            code = int(exit_code_for(error))
+            self.output.emit(error_json(str(error), code, time=when) + "\n", now=True)

@@ -64,3 +64,31 @@ class PlantPolls:
 
     def event(self, event, when: str) -> None:
         """A change of state is on stderr only (plant_text.event_line)."""
+
+
+class Polls:
+    """read --interval -o plain: each poll's lines after its time; a change (--changes) as
+    ``TIME WHAT: OLD -> NEW``.  The other formats' polls are this one's subclasses, each
+    writing what it says otherwise.
+
+    ``output``: the poll's cli.poll_output.Output, whose ``emit`` joins the writes of polls
+    close together, and which has the stream, the run's settings and its Readings."""
+
+    changes_as_rows = False  # --changes writes the rows of the values that changed (CSV)
+
+    def __init__(self, output) -> None:
+        self.output = output
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        self.output.emit(text(result, when))
+
+    def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
+        """One value that changed since the poll before; ``where`` names it ("": as ``what`` does)."""
+        named, before, after = change_parts(what, old, new, unit)
+        self.output.emit(f"{when} {where or named}: {before} -> {after}\n")
+
+    def failure(self, when: str, error: BaseException) -> None:
+        """A failed poll: its line on stderr is the Output's; stdout has nothing of it."""
+
+    def close(self) -> None:
+        pass

@@ -17,14 +17,17 @@ import stat
 import sys
 import time
 
+from mbtool.cli.metrics import ReadingPolls, values_of
 from mbtool.cli.metrics import Readings as MonitoringReadings
-from mbtool.cli.metrics import values_of
 from mbtool.cli.results import Points
 from mbtool.codec.errors import RequestError
 from mbtool.errors import OutputFailed
 
 # The help of the family of raw registers and bits, modbus_value{table,address}.
 VALUE_HELP = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
+
+
+Polls = ReadingPolls  # read --interval: each poll through the run's Readings
 
 
 class Readings(MonitoringReadings):

@@ -8,7 +8,8 @@ from __future__ import annotations
 import sys
 from typing import TextIO
 
-from mbtool.cli.results import Points, Report, Result, by_order, points_heading, value_text
+from mbtool.cli.results import Points, Report, Result, by_order, labels, points_heading, value_text
+from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.codec.errors import function_code_text
 
 
@@ -141,3 +142,52 @@ def _report(report: Report, out: TextIO) -> None:
     shown.print(table)
     if report.note:
         shown.print(escape(report.note), style="dim")
+
+
+class Polls(PlainPolls):
+    """read --interval -o table: each poll's table under its heading, redrawn in place on a
+    terminal; into a file or a pipe every poll's table stays."""
+
+    def __init__(self, output) -> None:
+        super().__init__(output)
+        self.live = None
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: tables only
+
+        if result.__class__ is Points:
+            self._show(Text(f"{points_heading(result)} · {when}"), points_table(result))
+            return
+        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
+
+        # The heading above, not as the table's title: a title wraps to the table's width.
+        heading = Text(f"{result.name} · {function_code_text(result.function)} · unit {result.unit} · {when}")
+        orders = by_order(result)
+        table = Table()
+        table.add_column("Ref" if result.refs is not None else "Address", justify="right")
+        for column in orders or ["Value"]:
+            table.add_column(column, justify="right")
+        for label, value in zip(labels(result), result.values, strict=True):
+            values = [value_text(value[o]) for o in orders] if orders else [value_text(value)]
+            table.add_row(str(label), *values)
+        self._show(heading, table)
+
+    def _show(self, heading, table) -> None:
+        from rich.console import Group  # noqa: PLC0415 - rich, 12-20 ms: tables only
+        from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: tables only
+
+        out = self.output.out
+        if not out.isatty():
+            # Into a file or a pipe every poll's table stays, each ending its line: a table
+            # refreshed in place would leave only the last one, without a final newline.
+            console(out).print(Group(heading, table))
+            return
+        if self.live is None:
+            self.live = Live(Group(heading, table), auto_refresh=False)
+            self.live.start()
+        self.live.update(Group(heading, table), refresh=True)
+
+    def close(self) -> None:
+        if self.live is not None:
+            self.live.stop()
+            self.live = None
