@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 from mbtool.cli.results import change_parts, value_text
 from mbtool.cli.sinks import default_format
 from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.table import write_items
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
 from mbtool.errors import KNOWN_ERRORS, Summary, exit_code_for
@@ -148,7 +149,7 @@ def report(settings, items: Sequence[dict], head: dict, end: dict | None = None)
     elif fmt == "csv":
         _csv(items, settings.csv_header)
     elif fmt == "table":
-        _table(items, head)
+        write_items(items, head)
     else:
         sys.stdout.write("".join(item_line(item) + "\n" for item in items))
 
@@ -167,24 +168,3 @@ def _csv(items: Sequence[dict], header: bool) -> None:
             "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
             for key in CSV_HEADER
         )
-
-
-def _table(items: Sequence[dict], head: dict) -> None:
-    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
-
-    statuses = any("status" in item for item in items)
-    olds = any("old" in item for item in items)
-    table = Table()
-    for column, shown in (("Status", statuses), ("What", True), ("Old", olds), ("New", True)):
-        if shown:
-            table.add_column(column, justify="right" if column in ("Old", "New") else "left")
-    for item in items:
-        where, old, new = change_parts(item, item.get("old"), item["new"], item.get("unit", ""))
-        cells = ([item.get("status", "")] if statuses else []) + [where] + ([old] if olds else []) + [new]
-        table.add_row(*(escape(cell) for cell in cells))
-    console = Console()
-    source = head.get("file") or head.get("map") or ""
-    console.print(f"[bold]{escape(source)}[/] · unit {head.get('unit')}", highlight=False)
-    console.print(table)

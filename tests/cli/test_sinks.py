@@ -73,6 +73,15 @@ def _imports(path: Path):
             yield from ((node.module, alias.name) for alias in node.names)
 
 
+def test_rich_is_drawn_by_the_table_sink_alone():
+    users = sorted(
+        str(path.relative_to(ROOT))
+        for path in PACKAGE.rglob("*.py")
+        if any(module.split(".")[0] == "rich" for module, _ in _imports(path))
+    )
+    assert users == ["mbtool/cli/sinks/table.py"]
+
+
 def test_no_module_of_the_cli_borrows_another_modules_private_names():
     # plant_text.py took five of metrics.py's: the Prometheus text is the prom sink's, public.
     borrowed = sorted(

@@ -31,6 +31,7 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import LOG, formats
 from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.table import console
 from mbtool.cli.stamps import local_time
 from mbtool.codec.describe import describe
 from mbtool.codec.errors import RequestError, function_code_text
@@ -316,9 +317,7 @@ class Show:
         self.bus_longest = 0.0
         self.console = None
         if fmt == "table" and not quiet:
-            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-            self.console = Console(highlight=False, soft_wrap=True)
+            self.console = console(highlight=False, soft_wrap=True)
         self.failure: OSError | None = None
         self.not_shown = 0  # lines dropped because the display fell behind
         self._dropped = 0  # of those, the ones the display has not been told of yet

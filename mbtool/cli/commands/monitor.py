@@ -26,6 +26,7 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.profiles import defaults
 from mbtool.cli.sinks import LOG, default_format, formats
 from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.table import console, escape
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.timing import char_time, character_bits, silent_interval
@@ -436,9 +437,7 @@ class Output:
         # Imported now, not while the first frame arrives: a read delayed by an import
         # stamps its bytes late and shrinks the gap and latency shown.
         if fmt == "table":
-            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-            self.console = Console(file=self.out, highlight=False, soft_wrap=True)
+            self.console = console(self.out, highlight=False, soft_wrap=True)
 
     def write(self, item) -> None:
         if self.fmt == "json":
@@ -450,8 +449,6 @@ class Output:
         self.out.flush()
 
     def _coloured(self, item) -> None:
-        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
         if isinstance(item, Unanswered):
             request = item.request
             name = request.described.name if request.described else ""

@@ -19,16 +19,16 @@ from mbtool.cli.inventory import load_inventory
 from mbtool.cli.metrics import name_problem
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
-from mbtool.cli.results import reading_text
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
 from mbtool.cli.sinks.json import to_json
 from mbtool.cli.sinks.prom import check_textfile, write_textfile
+from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Summary, exit_code_for
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits
+from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -250,122 +250,12 @@ class PlantOutput:
 # --- on a terminal: a live view ------------------------------------------------------------
 
 
-class LiveView:
-    """The plant on one screen, fit to the terminal whatever its size: a title with the count
-    of devices online and offline, a row a device (its state in colour, the age of its last
-    good poll, its round-trip time and error counts, and its points' latest values, a changed
-    one highlighted, cut at the row's end), and below them a band of the latest changes of
-    state, newest first.  The band is the only place that says why a device or a link is
-    offline, so it keeps its rows: a screen too short for the plant cuts the table, with a
-    line that counts the devices left out."""
-
-    COLOURS = {ONLINE: "green", OFFLINE: "bold red", "unknown": "yellow"}
-    EVENT_ROWS = 5  # the band's rows, below its heading
-    COLUMNS = ("device", "link", "state", "last good", "rtt avg", "timeout", "corrupt", "exc", "values")
+class LiveView(PlantView):
+    """poll's live view of ``plant`` on a terminal (cli.sinks.table.PlantView), its changes of
+    state in the words stderr has."""
 
     def __init__(self, plant, clock=time.time) -> None:
-        self.plant = plant
-        self.clock = clock  # the time "last good" is counted to (scripts/gen_docs.py: a fixed one)
-        self.lock = threading.Lock()
-        self.changed: dict[str, set[str]] = {}
-        self.previous: dict[str, dict[str, object]] = {}
-        self.events: list[str] = []
-        self.states: dict = {}
-
-    def running(self, states: dict):
-        from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        self.states = states
-        return Live(self, refresh_per_second=4, transient=False)
-
-    def __rich_console__(self, console, options):
-        """The screen as it is now, built when rich draws it (4 times a second), not on every
-        poll of every device, and for the terminal's size then (it may have been resized)."""
-        with self.lock:
-            yield from self._screen(console, options.max_width, options.size.height)
-
-    def report(self, item: Poll | Event) -> None:
-        with self.lock:
-            if isinstance(item, Event):  # the line stderr gets too, the latest a band holds kept
-                self.events = (self.events + [event_line(item)])[-self.EVENT_ROWS :]
-            elif item.readings is not None:
-                values = {r.point.name: r.value for r in item.readings if r.error is None}
-                before = self.previous.get(item.device.name, {})
-                self.changed[item.device.name] = {
-                    name for name, value in values.items() if before.get(name, value) != value
-                }
-                self.previous[item.device.name] = values
-
-    def _screen(self, console, width: int, height: int) -> list:
-        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        states = list(self.states.values())
-        offline = sum(state.state == OFFLINE for state in states)
-        online = sum(state.state == ONLINE for state in states)
-        title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
-        title.append(f"{len(states)} devices, {online} online, {offline} offline")
-        # A row a device in the room the title, the table's header and the band leave.
-        room = height - 2 - (1 + self.EVENT_ROWS)
-        shown = states if len(states) <= room else states[: max(room - 1, 0)]
-        # Every column but the values keeps its width, and the values' column takes what is
-        # left of the row (rich narrows the columns that may wrap first): the values are cut
-        # at the row's end, with an ellipsis, never folded a point a line.
-        table = Table(box=None, padding=(0, 1, 0, 0), pad_edge=False, header_style="bold", expand=False)
-        for column in self.COLUMNS:
-            table.add_column(column, no_wrap=column != "values")
-        now = self.clock()
-        for state in shown:
-            table.add_row(*self._row(state, now))
-        screen = [title, table]
-        if len(shown) < len(states):
-            hidden = states[len(shown) :]
-            down = sum(state.state == OFFLINE for state in hidden)
-            screen.append(
-                Text(f"+{len(hidden)} more devices" + (f" ({down} offline)" if down else ""), no_wrap=True)
-            )
-        screen.append(Text("changes of state, newest first:", style="dim", no_wrap=True))
-        screen.extend(self._band(console, width))
-        return screen
-
-    def _row(self, state, now: float) -> tuple:
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        stats = state.stats
-        figures = stats.rtt_figures()
-        age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
-        values = Text(no_wrap=True, overflow="ellipsis")
-        changed = self.changed.get(state.spec.name, ())
-        for reading in (state.last_poll.readings or ()) if state.last_poll else ():
-            if reading.error is None:
-                style = "reverse" if reading.point.name in changed else ""
-                values.append(f"{reading.point.name}={reading_text(reading)}", style=style)
-                values.append(" ")
-        values.rstrip()
-        return (
-            Text(state.spec.name),  # Text: a name is never read as rich's markup
-            Text(state.spec.link),
-            Text(state.state, style=self.COLOURS.get(state.state, "")),
-            age,
-            "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
-            str(stats.outcomes["timeout"]),
-            str(stats.outcomes["corrupt"]),
-            str(stats.outcomes["exception"]),
-            values,
-        )
-
-    def _band(self, console, width: int) -> list:
-        """The band's rows: the latest changes of state, newest first, each folded whole onto
-        as many rows as it needs (its reason is at its end), blank rows below them."""
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        rows = []
-        for line in reversed(self.events):
-            rows.extend(Text(line).wrap(console, width))
-        rows = rows[: self.EVENT_ROWS]
-        if not self.events:
-            rows = [Text("none yet", style="dim")]
-        return rows + [Text("")] * (self.EVENT_ROWS - len(rows))
+        super().__init__(plant, event_line, clock)
 
 
 # --- on exit: statistics and the verdict ----------------------------------------------------

@@ -29,6 +29,7 @@ from mbtool.cli.session import open_client, trace_for
 from mbtool.cli.sinks import default_format
 from mbtool.cli.sinks.csv import wants_csv_header
 from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.table import ScanProgress, scan_answers
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Summary
@@ -132,56 +133,6 @@ def _scan_units(ctx: click.Context) -> list[int]:
 # --- output -------------------------------------------------------------------------------
 
 
-class Progress:
-    """A rich progress bar on stderr when it is a terminal; nothing otherwise."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.bar = None
-        if not enabled:
-            return
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-        from rich.progress import (  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-            BarColumn,
-            MofNCompleteColumn,
-            TextColumn,
-            TimeRemainingColumn,
-        )
-        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-
-        self.bar = Bar(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("found {task.fields[found]}"),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-            transient=True,
-            # Lines written meanwhile (found units, notes) go above the bar, not through it.
-            redirect_stdout=sys.stdout.isatty(),
-            redirect_stderr=True,
-        )
-        self.task = self.bar.add_task("scan", total=total, found=0)
-        self.bar.start()
-
-    def at(self, setting: Setting | None, unit: int) -> None:
-        if self.bar is not None:
-            where = f"{setting} " if setting else ""
-            self.bar.update(self.task, description=f"{where}unit {unit}")
-
-    def advance(self, steps: int = 1) -> None:
-        if self.bar is not None:
-            self.bar.advance(self.task, steps)
-
-    def found(self, count: int) -> None:
-        if self.bar is not None:
-            self.bar.update(self.task, found=count)
-
-    def stop(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-            self.bar = None
-
-
 def answer_dict(answer: Answer) -> dict:
     data: dict = {"unit": answer.unit, "answer": answer.answer}
     if answer.setting is not None:
@@ -256,35 +207,7 @@ class Output:
         elif self.fmt == "csv" and not self.header_done:
             self._csv_header()  # nothing found: still a CSV a reader can load
         elif self.fmt == "table" and (tally.found or tally.garbled):
-            self._table(tally, title)
-
-    def _table(self, tally: Tally, title: str) -> None:
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-        table = Table()
-        table.add_column("Unit", justify="right")
-        table.add_column("Answer")
-        if self.sweeping:
-            table.add_column("Baud", justify="right")
-            table.add_column("Parity")
-        table.add_column("Detail")
-        table.add_column("ms", justify="right")
-        for answer in sorted(tally.found, key=lambda a: a.unit) + tally.garbled:
-            where = [str(answer.setting.baud), answer.setting.parity] if answer.setting else []
-            style = "dim" if answer.answer == "garbled" else None
-            table.add_row(
-                str(answer.unit),
-                answer.answer,
-                *where,
-                escape(answer.text),
-                "" if answer.ms is None else f"{answer.ms:g}",
-                style=style,
-            )
-        console = Console()
-        console.print(title, highlight=False)
-        console.print(table)
+            scan_answers(sorted(tally.found, key=lambda a: a.unit) + tally.garbled, self.sweeping, title)
 
 
 # --- the command --------------------------------------------------------------------------
@@ -356,7 +279,7 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     fmt = settings.output_format or default_format()
     output = Output(fmt, sweeping, settings.csv_header)
     started = time.monotonic()
-    progress = Progress(len(units) * len(lines), sys.stderr.isatty() and not settings.hex)
+    progress = ScanProgress(len(units) * len(lines), sys.stderr.isatty() and not settings.hex)
     try:
         tally = Scan(connection, request, units, lines, sweeping, first, output, trace_for(settings)).run(
             progress

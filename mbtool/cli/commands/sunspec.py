@@ -19,6 +19,7 @@ from mbtool.cli.session import open_client
 from mbtool.cli.sinks import default_format
 from mbtool.cli.sinks.csv import wants_csv_header
 from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.table import titled_tables
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
@@ -319,37 +320,32 @@ def _every_point(group: dict):
 
 
 def _table(tree: dict) -> None:
-    """A table a model; a repeating group's repeats as the rows of a table of their own,
-    a column a point."""
-    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    titled_tables(_blocks(tree))
 
-    console = Console()
-    console.print(
-        f"[bold]SunSpec at {tree['base']} · unit {tree['unit']} · {_models(tree)}[/]", highlight=False
-    )
+
+def _blocks(tree: dict) -> list[tuple]:
+    """What -o table draws (cli.sinks.table.titled_tables): a table a model; a repeating
+    group's repeats as the rows of a table of their own, a column a point."""
+    blocks: list[tuple] = [("title", f"SunSpec at {tree['base']} · unit {tree['unit']} · {_models(tree)}")]
     for model in tree["models"]:
         if "error" in model:
-            console.print(f"{escape(_model_title(model))}: [red]{escape(model['error'])}[/]", highlight=False)
+            blocks.append(("error", _model_title(model), model["error"]))
             continue
-        console.print(f"[bold]{escape(_model_title(model))}[/]", highlight=False)
-        table = Table()
-        for column, justify in (("Point", "left"), ("Value", "right"), ("Address", "right")):
-            table.add_column(column, justify=justify)
-        for name, point in _shown(model.get("points", {})).items():
-            table.add_row(escape(name), escape(_value_text(point)), str(point["address"]))
+        blocks.append(("title", _model_title(model)))
+        rows = [
+            [name, _value_text(point), str(point["address"])]
+            for name, point in _shown(model.get("points", {})).items()
+        ]
         if "raw" in model:
             registers = " ".join(f"{r:04X}" for r in model["raw"]["registers"])
-            table.add_row("(raw)", registers, str(model["raw"]["address"]))
-        console.print(table)
-        _table_groups(console, model.get("groups", {}))
+            rows.append(["(raw)", registers, str(model["raw"]["address"])])
+        blocks.append(("table", [("Point", "left"), ("Value", "right"), ("Address", "right")], rows))
+        blocks += _group_blocks(model.get("groups", {}))
+    return blocks
 
 
-def _table_groups(console, groups: dict, prefix: str = "") -> None:
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
+def _group_blocks(groups: dict, prefix: str = "") -> list[tuple]:
+    blocks: list[tuple] = []
     by_name: dict[str, list] = {}
     for title, points, inner in _repeats(groups, prefix):
         by_name.setdefault(title.rsplit(" ", 1)[0] if title[-1].isdigit() else title, []).append(
@@ -357,15 +353,13 @@ def _table_groups(console, groups: dict, prefix: str = "") -> None:
         )
     for name, repeats in by_name.items():
         columns = list(_shown(repeats[0][1]))
-        table = Table()
-        table.add_column(escape(name))
-        for column in columns:
-            table.add_column(escape(column), justify="right")
-        for title, points, _ in repeats:
-            table.add_row(escape(title), *(escape(_value_text(points[c])) for c in columns if c in points))
-        console.print(table)
+        rows = [
+            [title, *(_value_text(points[c]) for c in columns if c in points)] for title, points, _ in repeats
+        ]
+        blocks.append(("table", [(name, "left"), *((column, "right") for column in columns)], rows))
         for title, _, inner in repeats:
-            _table_groups(console, inner, f"{title} ")
+            blocks += _group_blocks(inner, f"{title} ")
+    return blocks
 
 
 # --- --map: the register map of what was found -----------------------------------------------------

@@ -6,9 +6,21 @@ imported inside each function, as it costs a one-shot that writes no table 12-20
 from __future__ import annotations
 
 import sys
+import threading
+import time
 from typing import TextIO
 
-from mbtool.cli.results import Points, Report, Result, by_order, labels, points_heading, value_text
+from mbtool.cli.results import (
+    Points,
+    Report,
+    Result,
+    by_order,
+    change_parts,
+    labels,
+    points_heading,
+    reading_text,
+    value_text,
+)
 from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.codec.errors import function_code_text
 
@@ -22,11 +34,19 @@ def render(result: Result | Report | Points, out: TextIO, csv_header: bool = Tru
         _result(result, out)
 
 
-def console(out: TextIO | None = None):
-    """rich's console on ``out`` (stdout when None or stdout: rich then finds the terminal's width)."""
+def console(out: TextIO | None = None, **options):
+    """rich's console on ``out`` (stdout when None or stdout: rich then finds the terminal's
+    width); ``options``: rich's (highlight, soft_wrap, stderr)."""
     from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
 
-    return Console(file=out) if out is not None and out is not sys.stdout else Console()
+    return Console(file=out, **options) if out is not None and out is not sys.stdout else Console(**options)
+
+
+def escape(text: str) -> str:
+    """Text shown as it is in rich's markup: a device's or a user's words are never read as markup."""
+    from rich.markup import escape as escaped  # noqa: PLC0415 - rich, 12-20 ms: tables only
+
+    return escaped(text)
 
 
 def _result(result: Result, out: TextIO) -> None:
@@ -191,3 +211,358 @@ class Polls(PlainPolls):
         if self.live is not None:
             self.live.stop()
             self.live = None
+
+
+# --- the other things mbtool draws with rich ----------------------------------------------
+
+
+class ScanProgress:
+    """scan's progress bar on stderr (the unit probed, how many found) when ``enabled`` (a
+    terminal); nothing otherwise."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.bar = None
+        if not enabled:
+            return
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import (  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+            BarColumn,
+            MofNCompleteColumn,
+            TextColumn,
+            TimeRemainingColumn,
+        )
+        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+
+        self.bar = Bar(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("found {task.fields[found]}"),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+            transient=True,
+            # Lines written meanwhile (found units, notes) go above the bar, not through it.
+            redirect_stdout=sys.stdout.isatty(),
+            redirect_stderr=True,
+        )
+        self.task = self.bar.add_task("scan", total=total, found=0)
+        self.bar.start()
+
+    def at(self, setting, unit: int) -> None:
+        """``setting``: the serial settings being swept (scan.Setting), or None."""
+        if self.bar is not None:
+            where = f"{setting} " if setting else ""
+            self.bar.update(self.task, description=f"{where}unit {unit}")
+
+    def advance(self, steps: int = 1) -> None:
+        if self.bar is not None:
+            self.bar.advance(self.task, steps)
+
+    def found(self, count: int) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, found=count)
+
+    def stop(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+            self.bar = None
+
+
+class ProgressBar:
+    """A progress bar on a terminal's stderr (dump: addresses covered of all asked for)."""
+
+    def __init__(self, total: int, what: str) -> None:
+        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
+
+        self.done = 0
+        self.progress = Progress(console=Console(stderr=True), transient=True)
+        self.task = self.progress.add_task(what, total=total)
+        self.progress.start()
+
+    def at(self, done: int) -> None:
+        self.done = done
+        self.progress.update(self.task, completed=done)
+
+    def close(self) -> None:
+        self.progress.stop()
+
+
+def serve_live(server, device, framer: str, unit_text: str, units: frozenset[int], shown) -> None:
+    """serve's live display on a terminal: what it listens on and has served, the units'
+    FC 08 counters and the last frames, redrawn 4 times a second while ``server`` runs.
+    ``shown(data, framer)``: a frame's bytes as serve writes them."""
+    from rich.console import Console, Group  # noqa: PLC0415 - rich, 12-20 ms: the live display only
+    from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+    from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+    console = Console()
+    shown_units = sorted(units)[:4]
+
+    def view():
+        stats = server.stats
+        uptime = time.monotonic() - stats.started
+        head = Table.grid(padding=(0, 2))
+        head.add_row(
+            f"[b]mbtool serve[/b] {stats.listening}",
+            f"framer {framer}" + (", read-only" if device.read_only else ""),
+            f"units {unit_text}",
+            f"up {uptime:.0f} s",
+            f"clients {stats.clients}"
+            + (f", {stats.refused} refused" if stats.refused else "")
+            + (f", {stats.evicted} gave their slot" if stats.evicted else "")
+            + (f", {stats.expired + stats.unused} timed out" if stats.expired + stats.unused else ""),
+        )
+        head.add_row(
+            f"requests {stats.requests}",
+            f"replies {stats.replies}",
+            f"dropped {stats.dropped}",
+            f"corrupted {stats.corrupted}",
+            "Ctrl-C stops",
+        )
+        counters = Table(title="FC08 counters", title_justify="left")
+        counters.add_column("counter")
+        for unit in shown_units:
+            counters.add_column(f"unit {unit}", justify="right")
+        names = list(device.counters(shown_units[0])) if shown_units else []
+        values = {unit: device.counters(unit) if unit in device.stations else None for unit in shown_units}
+        for name in names:
+            counters.add_row(name, *(str(values[u][name]) if values[u] else "-" for u in shown_units))
+        counters.add_row(
+            "listen only",
+            *(
+                "yes" if u in device.stations and device.stations[u].listen_only else "no"
+                for u in shown_units
+            ),
+        )
+        served = Table(title="served", title_justify="left")
+        served.add_column("FC", justify="right")
+        served.add_column("requests", justify="right")
+        for code, count in sorted(device.served.items()):
+            served.add_row(f"{code:02X}", str(count))
+        frames = Table(title="last frames", title_justify="left")
+        frames.add_column("t", justify="right")
+        frames.add_column("dir")
+        frames.add_column("peer")
+        frames.add_column("bytes", overflow="fold")
+        frames.add_column("note", overflow="fold")
+        for at, direction, peer, data, note in stats.frames:
+            # Text, never markup: the frame is whatever a peer sent ("[/x]" in an ASCII frame),
+            # and the peer and the note come from outside too.
+            frames.add_row(f"{at:.3f}", direction, Text(peer), Text(shown(data, framer)), Text(note))
+        side = Table.grid(padding=(0, 4))
+        side.add_row(counters, served)
+        return Group(head, side, frames)
+
+    last = [0.0]
+    with Live(view(), console=console, auto_refresh=False, transient=False) as live:
+
+        def tick() -> None:
+            now = time.monotonic()
+            if now - last[0] >= 0.25:
+                last[0] = now
+                live.update(view(), refresh=True)
+
+        server.run(tick)
+
+
+def write_items(items, head: dict) -> None:
+    """The items of a write or restore (cli.writes), a row each, under what was written."""
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
+
+    statuses = any("status" in item for item in items)
+    olds = any("old" in item for item in items)
+    table = Table()
+    for column, shown in (("Status", statuses), ("What", True), ("Old", olds), ("New", True)):
+        if shown:
+            table.add_column(column, justify="right" if column in ("Old", "New") else "left")
+    for item in items:
+        where, old, new = change_parts(item, item.get("old"), item["new"], item.get("unit", ""))
+        cells = ([item.get("status", "")] if statuses else []) + [where] + ([old] if olds else []) + [new]
+        table.add_row(*(escape(cell) for cell in cells))
+    console = Console()
+    source = head.get("file") or head.get("map") or ""
+    console.print(f"[bold]{escape(source)}[/] · unit {head.get('unit')}", highlight=False)
+    console.print(table)
+
+
+class PlantView:
+    """The plant on one screen, fit to the terminal whatever its size: a title with the count
+    of devices online and offline, a row a device (its state in colour, the age of its last
+    good poll, its round-trip time and error counts, and its points' latest values, a changed
+    one highlighted, cut at the row's end), and below them a band of the latest changes of
+    state, newest first.  The band is the only place that says why a device or a link is
+    offline, so it keeps its rows: a screen too short for the plant cuts the table, with a
+    line that counts the devices left out."""
+
+    EVENT_ROWS = 5  # the band's rows, below its heading
+    COLUMNS = ("device", "link", "state", "last good", "rtt avg", "timeout", "corrupt", "exc", "values")
+
+    def __init__(self, plant, describe, clock=time.time) -> None:
+        """``describe(event)``: a change of state as its line (cli.plant_text.event_line)."""
+        # The scheduler's records and states: poll's alone, no other command pays for them.
+        from mbtool.plant import schedule  # noqa: PLC0415 - the plant's scheduler, 2-4 ms: poll only
+
+        self.schedule = schedule
+        self.colours = {schedule.ONLINE: "green", schedule.OFFLINE: "bold red", schedule.UNKNOWN: "yellow"}
+        self.plant = plant
+        self.describe = describe
+        self.clock = clock  # the time "last good" is counted to (scripts/gen_docs.py: a fixed one)
+        self.lock = threading.Lock()
+        self.changed: dict[str, set[str]] = {}
+        self.previous: dict[str, dict[str, object]] = {}
+        self.events: list[str] = []
+        self.states: dict = {}
+
+    def running(self, states: dict):
+        from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        self.states = states
+        return Live(self, refresh_per_second=4, transient=False)
+
+    def __rich_console__(self, console, options):
+        """The screen as it is now, built when rich draws it (4 times a second), not on every
+        poll of every device, and for the terminal's size then (it may have been resized)."""
+        with self.lock:
+            yield from self._screen(console, options.max_width, options.size.height)
+
+    def report(self, item) -> None:
+        with self.lock:
+            if isinstance(
+                item, self.schedule.Event
+            ):  # the line stderr gets too, the latest a band holds kept
+                self.events = (self.events + [self.describe(item)])[-self.EVENT_ROWS :]
+            elif item.readings is not None:
+                values = {r.point.name: r.value for r in item.readings if r.error is None}
+                before = self.previous.get(item.device.name, {})
+                self.changed[item.device.name] = {
+                    name for name, value in values.items() if before.get(name, value) != value
+                }
+                self.previous[item.device.name] = values
+
+    def _screen(self, console, width: int, height: int) -> list:
+        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        states = list(self.states.values())
+        offline = sum(state.state == self.schedule.OFFLINE for state in states)
+        online = sum(state.state == self.schedule.ONLINE for state in states)
+        title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
+        title.append(f"{len(states)} devices, {online} online, {offline} offline")
+        # A row a device in the room the title, the table's header and the band leave.
+        room = height - 2 - (1 + self.EVENT_ROWS)
+        shown = states if len(states) <= room else states[: max(room - 1, 0)]
+        # Every column but the values keeps its width, and the values' column takes what is
+        # left of the row (rich narrows the columns that may wrap first): the values are cut
+        # at the row's end, with an ellipsis, never folded a point a line.
+        table = Table(box=None, padding=(0, 1, 0, 0), pad_edge=False, header_style="bold", expand=False)
+        for column in self.COLUMNS:
+            table.add_column(column, no_wrap=column != "values")
+        now = self.clock()
+        for state in shown:
+            table.add_row(*self._row(state, now))
+        screen = [title, table]
+        if len(shown) < len(states):
+            hidden = states[len(shown) :]
+            down = sum(state.state == self.schedule.OFFLINE for state in hidden)
+            screen.append(
+                Text(f"+{len(hidden)} more devices" + (f" ({down} offline)" if down else ""), no_wrap=True)
+            )
+        screen.append(Text("changes of state, newest first:", style="dim", no_wrap=True))
+        screen.extend(self._band(console, width))
+        return screen
+
+    def _row(self, state, now: float) -> tuple:
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        stats = state.stats
+        figures = stats.rtt_figures()
+        age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
+        values = Text(no_wrap=True, overflow="ellipsis")
+        changed = self.changed.get(state.spec.name, ())
+        for reading in (state.last_poll.readings or ()) if state.last_poll else ():
+            if reading.error is None:
+                style = "reverse" if reading.point.name in changed else ""
+                values.append(f"{reading.point.name}={reading_text(reading)}", style=style)
+                values.append(" ")
+        values.rstrip()
+        return (
+            Text(state.spec.name),  # Text: a name is never read as rich's markup
+            Text(state.spec.link),
+            Text(state.state, style=self.colours.get(state.state, "")),
+            age,
+            "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
+            str(stats.outcomes["timeout"]),
+            str(stats.outcomes["corrupt"]),
+            str(stats.outcomes["exception"]),
+            values,
+        )
+
+    def _band(self, console, width: int) -> list:
+        """The band's rows: the latest changes of state, newest first, each folded whole onto
+        as many rows as it needs (its reason is at its end), blank rows below them."""
+        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
+
+        rows = []
+        for line in reversed(self.events):
+            rows.extend(Text(line).wrap(console, width))
+        rows = rows[: self.EVENT_ROWS]
+        if not self.events:
+            rows = [Text("none yet", style="dim")]
+        return rows + [Text("")] * (self.EVENT_ROWS - len(rows))
+
+
+def scan_answers(answers, sweeping: bool, title: str) -> None:
+    """scan's units found (and garbled answers), a row each, under ``title``."""
+    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+
+    table = Table()
+    table.add_column("Unit", justify="right")
+    table.add_column("Answer")
+    if sweeping:
+        table.add_column("Baud", justify="right")
+        table.add_column("Parity")
+    table.add_column("Detail")
+    table.add_column("ms", justify="right")
+    for answer in answers:
+        where = [str(answer.setting.baud), answer.setting.parity] if answer.setting else []
+        style = "dim" if answer.answer == "garbled" else None
+        table.add_row(
+            str(answer.unit),
+            answer.answer,
+            *where,
+            escape(answer.text),
+            "" if answer.ms is None else f"{answer.ms:g}",
+            style=style,
+        )
+    console = Console()
+    console.print(title, highlight=False)
+    console.print(table)
+
+
+def titled_tables(blocks: list[tuple]) -> None:
+    """Titles, errors and tables, one under another (sunspec's models): each block
+    ("title", TEXT), ("error", TITLE, ERROR) or ("table", [(COLUMN, JUSTIFY)...], ROWS).
+    Every text is the device's or the user's: shown as it is, never read as markup."""
+    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+
+    shown = console()
+    for kind, *parts in blocks:
+        if kind == "title":
+            shown.print(f"[bold]{escape(parts[0])}[/]", highlight=False)
+        elif kind == "error":
+            shown.print(f"{escape(parts[0])}: [red]{escape(parts[1])}[/]", highlight=False)
+        else:
+            columns, rows = parts
+            table = Table()
+            for column, justify in columns:
+                table.add_column(escape(column), justify=justify)
+            for row in rows:
+                table.add_row(*map(escape, row))
+            shown.print(table)
