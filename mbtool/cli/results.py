@@ -8,7 +8,7 @@ each value's text, a change of one) is here.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from mbtool.codec.record import record
 
@@ -297,3 +297,14 @@ def report_dict(report: Report) -> dict:
     head: dict = {"unit": report.unit, "function": report.function, "name": report.name}
     body = report.data if report.data is not None else {row.name: row.value for row in report.rows}
     return {**head, **body}
+
+
+@record
+class Listing:
+    """What a command lists in a shape of its own (a write's items, diff's differences,
+    sunspec's models): each format's view of it, worked out when that format is chosen."""
+
+    data: Callable[[], object]  # -o json: the object
+    table: Callable[[], tuple[list[str] | None, list[list]]]  # -o csv: the header (None: none) and rows
+    lines: Callable[[], list[str]]  # -o plain, and -o table where ``draw`` is None
+    draw: Callable[[], None] | None = None  # -o table: draws it (a function of cli/sinks/table.py)

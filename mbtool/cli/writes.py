@@ -17,12 +17,10 @@ Ctrl-C.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Sequence
 
-from mbtool.cli.results import change_parts, value_text
-from mbtool.cli.sinks import default_format
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.results import Listing, change_parts, value_text
+from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.table import write_items
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
@@ -143,28 +141,20 @@ def item_line(item: dict) -> str:
 def report(settings, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
     """Print the items in the run's format (its Settings): ``head`` (unit, map, file) and
     ``end`` (error, exit_code) frame them in JSON."""
-    fmt = settings.output_format or default_format()
-    if fmt == "json":
-        print(to_json({**head, "writes": list(items), **(end or {})}))
-    elif fmt == "csv":
-        _csv(items, settings.csv_header)
-    elif fmt == "table":
-        write_items(items, head)
-    else:
-        sys.stdout.write("".join(item_line(item) + "\n" for item in items))
+    listing = Listing(
+        data=lambda: {**head, "writes": list(items), **(end or {})},
+        table=lambda: (CSV_HEADER, [_cells(item) for item in items]),
+        lines=lambda: [item_line(item) for item in items],
+        draw=lambda: write_items(items, head),
+    )
+    render(listing, settings.output_format or default_format(), csv_header=settings.csv_header)
 
 
 CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 
 
-def _csv(items: Sequence[dict], header: bool) -> None:
-    from mbtool.cli.sinks.csv import wants_csv_header, writer  # noqa: PLC0415 - csv, 0.5 ms: -o csv only
-
-    rows = writer(sys.stdout)
-    if wants_csv_header(sys.stdout, header):
-        rows.writerow(CSV_HEADER)
-    for item in items:
-        rows.writerow(
-            "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
-            for key in CSV_HEADER
-        )
+def _cells(item: dict) -> list:
+    return [
+        "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
+        for key in CSV_HEADER
+    ]

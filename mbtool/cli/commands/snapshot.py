@@ -12,10 +12,9 @@ import click
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
 from mbtool.cli.options import device_command, map_option
 from mbtool.cli.param_types import FilePath
-from mbtool.cli.results import change_parts
+from mbtool.cli.results import Listing, change_parts
 from mbtool.cli.session import open_client
-from mbtool.cli.sinks import default_format
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.plain import change_line
 from mbtool.cli.writes import CONFIRMED, DIFFERS, Step, failure, report, send_all
 from mbtool.codec.data_access import (
@@ -145,23 +144,18 @@ def diff(connection, settings, a, b, map):
             files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
     left, right = files[a], files[b]
     found = differences(left, right, register_map)
-    fmt = settings.output_format or default_format()
-    if fmt == "json":
-        print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
-    elif fmt == "csv":
-        from mbtool.cli.sinks.csv import wants_csv_header, writer  # noqa: PLC0415 - csv, 0.5 ms: -o csv only
-
-        rows = writer(sys.stdout)
-        if wants_csv_header(sys.stdout, settings.csv_header):
-            rows.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
-        for d in found:
-            rows.writerow(
+    listing = Listing(
+        data=lambda: {"a": a, "b": b, "equal": not found, "differences": found},
+        table=lambda: (
+            ["table", "address", "ref", "name", "a", "b", "unit"],
+            [
                 [d["table"], d["address"], d["ref"], d.get("name", ""), d["a"], d["b"], d.get("unit", "")]
-            )
-    else:
-        sys.stdout.write(
-            "".join(change_line(d, *_as_read(d, register_map), d.get("unit", "")) + "\n" for d in found)
-        )
+                for d in found
+            ],
+        ),
+        lines=lambda: [change_line(d, *_as_read(d, register_map), d.get("unit", "")) for d in found],
+    )
+    render(listing, settings.output_format or default_format(), csv_header=settings.csv_header)
     if found:
         raise Summary(counted(len(found), "difference"), ExitCode(1))
 

@@ -3,7 +3,6 @@ written by hand; ``--map`` writes the register map of what it found (issue 34)."
 
 from __future__ import annotations
 
-import csv
 import math
 import sys
 from functools import partial
@@ -14,11 +13,9 @@ import tomli_w
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.profiles import defaults
-from mbtool.cli.results import value_text
+from mbtool.cli.results import Listing, value_text
 from mbtool.cli.session import open_client
-from mbtool.cli.sinks import default_format
-from mbtool.cli.sinks.csv import wants_csv_header
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.table import titled_tables
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
@@ -98,10 +95,13 @@ def sunspec(connection, settings, base, model_ids, map_path):
         else:
             unwritten = _write_map(map_path, connection, unit, chain, wanted)
     tree = _tree(chain, unit, wanted)
-    if fmt == "csv":
-        _csv(tree, settings.csv_header)
-    else:
-        {"json": _json, "table": _table}.get(fmt, _plain)(tree)
+    listing = Listing(
+        data=lambda: tree,
+        table=lambda: (CSV_HEADER, _rows(tree)),
+        lines=lambda: _lines(tree),
+        draw=lambda: titled_tables(_blocks(tree)),
+    )
+    render(listing, fmt, csv_header=settings.csv_header)
     refused = [m for m in wanted if m.error is not None]
     if refused or unwritten or chain.stopped:
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
@@ -260,7 +260,7 @@ def _repeats(groups: dict, prefix: str = ""):
             yield title, each["points"], each.get("groups", {})
 
 
-def _plain(tree: dict) -> None:
+def _lines(tree: dict) -> list[str]:
     """One model after another: its title, a point a line (NAME VALUE), a repeat of a
     group on one line of NAME VALUE pairs."""
     lines = [f"SunSpec at {tree['base']}, unit {tree['unit']}: {_models(tree)}"]
@@ -274,7 +274,7 @@ def _plain(tree: dict) -> None:
         if "raw" in model:
             registers = " ".join(f"{r:04X}" for r in model["raw"]["registers"])
             lines.append(f"  raw at {model['raw']['address']}: {registers}")
-    sys.stdout.write("\n".join(lines) + "\n")
+    return lines
 
 
 def _plain_groups(groups: dict, indent: str) -> list[str]:
@@ -286,41 +286,30 @@ def _plain_groups(groups: dict, indent: str) -> list[str]:
     return lines
 
 
-def _json(tree: dict) -> None:
-    sys.stdout.write(to_json(tree) + "\n")
-
-
 CSV_HEADER = ["model", "name", "value", "unit", "address", "registers", "implemented"]
 
 
-def _csv(tree: dict, header: bool = True) -> None:
+def _rows(tree: dict) -> list[list]:
     """A row a point (scale factors too), by its name in the map."""
-    writer = csv.writer(sys.stdout, lineterminator="\n")
-    if wants_csv_header(sys.stdout, header):
-        writer.writerow(CSV_HEADER)
-    for model in tree["models"]:
-        for point in _every_point(model):
-            writer.writerow(
-                [
-                    model["id"],
-                    point["name"],
-                    "" if point["value"] is None else value_text(point["value"]),
-                    point.get("unit", ""),
-                    point["address"],
-                    " ".join(map(str, point["registers"])),
-                    int(point["implemented"]),
-                ]
-            )
+    return [
+        [
+            model["id"],
+            point["name"],
+            "" if point["value"] is None else value_text(point["value"]),
+            point.get("unit", ""),
+            point["address"],
+            " ".join(map(str, point["registers"])),
+            int(point["implemented"]),
+        ]
+        for model in tree["models"]
+        for point in _every_point(model)
+    ]
 
 
 def _every_point(group: dict):
     yield from group.get("points", {}).values()
     for _, points, inner in _repeats(group.get("groups", {})):
         yield from _every_point({"points": points, "groups": inner})
-
-
-def _table(tree: dict) -> None:
-    titled_tables(_blocks(tree))
 
 
 def _blocks(tree: dict) -> list[tuple]:

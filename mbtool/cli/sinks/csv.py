@@ -12,6 +12,7 @@ import stat
 from typing import TextIO
 
 from mbtool.cli.results import (
+    Listing,
     PointRow,
     Points,
     Report,
@@ -58,6 +59,8 @@ def render(result: Result | Report | Points, out: TextIO, csv_header: bool = Tru
 
 def rows_of(result: Result | Report | Points) -> tuple[list[str] | None, list[list[str]]]:
     """A result's header (None: a report that has none) and rows, as text."""
+    if isinstance(result, Listing):
+        return result.table()
     if isinstance(result, Points):
         return POINT_CSV_HEADER, [point_cells(row) for row in result.rows]
     if isinstance(result, Report):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from typing import TextIO
 
-from mbtool.cli.results import Points, Report, Result, as_dict, points_dict, report_dict
+from mbtool.cli.results import Listing, Points, Report, Result, as_dict, points_dict, report_dict
 from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.errors import PartialRead, exit_code_for
 
@@ -21,8 +21,10 @@ def render(result: Result | Report | Points, out: TextIO, csv_header: bool = Tru
     out.write(to_json(data_of(result)) + "\n")
 
 
-def data_of(result: Result | Report | Points) -> dict:
+def data_of(result: Result | Report | Points | Listing) -> dict:
     """A result as the plain data of its JSON object."""
+    if isinstance(result, Listing):
+        return result.data()
     if isinstance(result, Points):
         return points_dict(result)
     if isinstance(result, Report):

@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TextIO
 
 from mbtool.cli.results import (
+    Listing,
     PointRow,
     Points,
     Report,
@@ -20,8 +21,11 @@ from mbtool.cli.results import (
 )
 
 
-def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
-    out.write(text(result))
+def render(result: Result | Report | Points | Listing, out: TextIO, csv_header: bool = True) -> None:
+    if isinstance(result, Listing):
+        out.write("".join(line + "\n" for line in result.lines()))
+    else:
+        out.write(text(result))
 
 
 def text(result: Result | Report | Points, when: str = "") -> str:

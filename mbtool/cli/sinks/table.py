@@ -11,6 +11,7 @@ import time
 from typing import TextIO
 
 from mbtool.cli.results import (
+    Listing,
     Points,
     Report,
     Result,
@@ -25,8 +26,13 @@ from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.codec.errors import function_code_text
 
 
-def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
-    if isinstance(result, Points):
+def render(result: Result | Report | Points | Listing, out: TextIO, csv_header: bool = True) -> None:
+    if isinstance(result, Listing):
+        if result.draw is None:  # no table of its own: its plain lines
+            out.write("".join(line + "\n" for line in result.lines()))
+        else:
+            result.draw()
+    elif isinstance(result, Points):
         _points(result, out)
     elif isinstance(result, Report):
         _report(result, out)
