@@ -305,6 +305,8 @@ class Listing:
     sunspec's models): each format's view of it, worked out when that format is chosen."""
 
     data: Callable[[], object]  # -o json: the object
-    table: Callable[[], tuple[list[str] | None, list[list]]]  # -o csv: the header (None: none) and rows
+    table: (
+        Callable[[], tuple[list[str] | None, list[list]]] | None
+    )  # -o csv: header (None: none), rows; None: its lines
     lines: Callable[[], list[str]]  # -o plain, and -o table where ``draw`` is None
     draw: Callable[[], None] | None = None  # -o table: draws it (a function of cli/sinks/table.py)

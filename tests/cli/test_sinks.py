@@ -93,6 +93,34 @@ def test_no_module_of_the_cli_borrows_another_modules_private_names():
     assert borrowed == []
 
 
+# The streams of a shape of their own not yet behind their sinks: scan's units as they are
+# found, monitor's frames, bridge's transactions, decode's stream; and -o's callback, which
+# notes -o json for a failure's JSON object.  Each is a count not to grow.
+STILL_TOLD = {
+    "mbtool/cli/commands/scan.py": 5,
+    "mbtool/cli/commands/monitor.py": 4,
+    "mbtool/cli/commands/bridge.py": 4,
+    "mbtool/cli/commands/offline.py": 2,
+    "mbtool/cli/options.py": 1,
+}
+
+
+def test_no_format_is_told_by_its_name_outside_the_sinks():
+    # fmt == "json" chains: a format's behaviour is its sink's, not a comparison in a command
+    # (47 in 13 modules before the sinks).
+    found = []
+    for path in (PACKAGE / "cli").rglob("*.py"):
+        if "sinks" in path.relative_to(PACKAGE).parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Compare):
+                names = [node.left, *node.comparators]
+                told = [n.value for n in names if isinstance(n, ast.Constant) and n.value in sinks.SINKS]
+                if told and any("fmt" in ast.unparse(n) or "format" in ast.unparse(n) for n in names):
+                    found.append(str(path.relative_to(ROOT)))
+    assert {path: found.count(path) for path in found} == STILL_TOLD
+
+
 TSV = '''"""-o tsv: tab-separated values, a row a value."""
 
 from mbtool.cli.sinks.csv import rows_of

@@ -49,7 +49,10 @@ def writer(out: TextIO):
     return csv.writer(out, lineterminator="\n")
 
 
-def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
+def render(result: Result | Report | Points | Listing, out: TextIO, csv_header: bool = True) -> None:
+    if isinstance(result, Listing) and result.table is None:  # no CSV of its own: its lines
+        out.write("".join(line + "\n" for line in result.lines()))
+        return
     header, rows = rows_of(result)
     rows_writer = writer(out)
     if header and wants_csv_header(out, csv_header):
