@@ -93,11 +93,10 @@ def test_no_module_of_the_cli_borrows_another_modules_private_names():
     assert borrowed == []
 
 
-# The streams of a shape of their own not yet behind their sinks: scan's units as they are
-# found, monitor's frames, bridge's transactions, decode's stream; and -o's callback, which
-# notes -o json for a failure's JSON object.  Each is a count not to grow.
+# The streams of a shape of their own not yet behind their sinks: monitor's frames, bridge's
+# transactions, decode's stream; and -o's callback, which notes -o json for a failure's JSON
+# object.  Each is a count not to grow.
 STILL_TOLD = {
-    "mbtool/cli/commands/scan.py": 5,
     "mbtool/cli/commands/monitor.py": 4,
     "mbtool/cli/commands/bridge.py": 4,
     "mbtool/cli/commands/offline.py": 2,

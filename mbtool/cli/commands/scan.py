@@ -17,7 +17,6 @@ recognised by its unit id and reported as "late" (raise -t).
 
 from __future__ import annotations
 
-import csv
 import sys
 import time
 
@@ -25,10 +24,9 @@ import click
 
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
+from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
-from mbtool.cli.sinks import default_format
-from mbtool.cli.sinks.csv import wants_csv_header
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks import default_format, sink
 from mbtool.cli.sinks.table import ScanProgress, scan_answers
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
@@ -147,31 +145,19 @@ def answer_dict(answer: Answer) -> dict:
 
 class Output:
     """Found units as they come (plain, csv: a long scan shows its progress in a pipe),
-    or all at the end (table, json)."""
+    or all at the end (table, json): the rows of the format's sink."""
 
     def __init__(self, fmt: str, sweeping: bool, csv_header: bool = True) -> None:
-        self.fmt = fmt
         self.sweeping = sweeping
-        self.csv_header = csv_header  # the run's settings (False with --no-header)
-        self.header_done = False
+        where = ["baud", "parity"] if sweeping else []
+        self.rows = sink(fmt).Rows(sys.stdout, ["unit", "answer", *where, "detail", "ms"], csv_header)
 
     def found(self, answer: Answer) -> None:
         where = [str(answer.setting.baud), answer.setting.parity] if answer.setting else []
-        if self.fmt == "plain":
-            print(" ".join([str(answer.unit), answer.answer, *where, answer.text]), flush=True)
-        elif self.fmt == "csv":
-            if not self.header_done:
-                self._csv_header()
-            csv.writer(sys.stdout, lineterminator="\n").writerow(
-                [answer.unit, answer.answer, *where, answer.text, "" if answer.ms is None else answer.ms]
-            )
-            sys.stdout.flush()
-
-    def _csv_header(self) -> None:
-        where = ["baud", "parity"] if self.sweeping else []
-        if wants_csv_header(sys.stdout, self.csv_header):
-            csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
-        self.header_done = True
+        self.rows.row(
+            [answer.unit, answer.answer, *where, answer.text, "" if answer.ms is None else answer.ms],
+            " ".join([str(answer.unit), answer.answer, *where, answer.text]),
+        )
 
     def garbled(self, answer: Answer) -> None:
         where = f" at {answer.setting}" if answer.setting else ""
@@ -181,7 +167,7 @@ class Output:
         print(f"mbtool: {text}", file=sys.stderr, flush=True)
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
-        if self.fmt == "json":
+        def data() -> dict:
             data = {
                 **head,
                 "units": [answer_dict(a) for a in tally.found],
@@ -203,11 +189,13 @@ class Output:
                     }
                     for s in tally.settings
                 ]
-            print(to_json(data), flush=True)
-        elif self.fmt == "csv" and not self.header_done:
-            self._csv_header()  # nothing found: still a CSV a reader can load
-        elif self.fmt == "table" and (tally.found or tally.garbled):
-            scan_answers(sorted(tally.found, key=lambda a: a.unit) + tally.garbled, self.sweeping, title)
+            return data
+
+        def draw() -> None:
+            if tally.found or tally.garbled:
+                scan_answers(sorted(tally.found, key=lambda a: a.unit) + tally.garbled, self.sweeping, title)
+
+        self.rows.end(Listing(data=data, table=None, lines=list, draw=draw))
 
 
 # --- the command --------------------------------------------------------------------------

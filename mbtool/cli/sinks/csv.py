@@ -113,6 +113,31 @@ def line(cells: list[str]) -> str:
     return ",".join(map(cell, cells)) + "\n"
 
 
+class Rows:
+    """A stream of rows as they come (scan's units as they are found): each row at once under
+    one header, which an empty stream has too (a CSV a reader can load)."""
+
+    def __init__(self, out: TextIO, header: list[str], csv_header: bool = True) -> None:
+        self.out = out
+        self.header = header
+        self.csv_header = csv_header
+        self.header_done = False
+
+    def row(self, cells: list, line: str) -> None:
+        self._header()
+        writer(self.out).writerow(cells)
+        self.out.flush()
+
+    def end(self, listing: Listing) -> None:
+        self._header()
+
+    def _header(self) -> None:
+        if not self.header_done:
+            if wants_csv_header(self.out, self.csv_header):
+                writer(self.out).writerow(self.header)
+            self.header_done = True
+
+
 PLANT_CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 
 

@@ -14,6 +14,7 @@ from typing import TextIO
 
 from mbtool.cli.results import Listing, Points, Report, Result, as_dict, points_dict, report_dict
 from mbtool.cli.sinks.plain import Polls as PlainPolls
+from mbtool.cli.sinks.plain import Rows as PlainRows
 from mbtool.errors import PartialRead, exit_code_for
 
 
@@ -202,6 +203,17 @@ def poll_record(poll, when: str) -> dict:
     if failed:
         record["failed"] = failed
     return record
+
+
+class Rows(PlainRows):
+    """A stream of rows (scan's units as they are found): one object at the end."""
+
+    def row(self, cells: list, line: str) -> None:
+        pass
+
+    def end(self, listing: Listing) -> None:
+        self.out.write(to_json(listing.data()) + "\n")
+        self.out.flush()
 
 
 class Polls(PlainPolls):

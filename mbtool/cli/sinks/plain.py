@@ -70,6 +70,21 @@ class PlantPolls:
         """A change of state is on stderr only (plant_text.event_line)."""
 
 
+class Rows:
+    """A stream of rows as they come, and its listing at the end (scan's units as they are
+    found): in plain, each row's line at once, flushed, and nothing at the end."""
+
+    def __init__(self, out: TextIO, header: list[str], csv_header: bool = True) -> None:
+        self.out = out
+
+    def row(self, cells: list, line: str) -> None:
+        self.out.write(line + "\n")
+        self.out.flush()
+
+    def end(self, listing: Listing) -> None:
+        pass
+
+
 class Polls:
     """read --interval -o plain: each poll's lines after its time; a change (--changes) as
     ``TIME WHAT: OLD -> NEW``.  The other formats' polls are this one's subclasses, each

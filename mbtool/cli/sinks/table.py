@@ -23,6 +23,7 @@ from mbtool.cli.results import (
     value_text,
 )
 from mbtool.cli.sinks.plain import Polls as PlainPolls
+from mbtool.cli.sinks.plain import Rows as PlainRows
 from mbtool.codec.errors import function_code_text
 
 
@@ -168,6 +169,16 @@ def _report(report: Report, out: TextIO) -> None:
     shown.print(table)
     if report.note:
         shown.print(escape(report.note), style="dim")
+
+
+class Rows(PlainRows):
+    """A stream of rows (scan's units as they are found): the listing's table at the end."""
+
+    def row(self, cells: list, line: str) -> None:
+        pass
+
+    def end(self, listing: Listing) -> None:
+        render(listing, self.out)
 
 
 class Polls(PlainPolls):
