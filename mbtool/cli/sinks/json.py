@@ -205,6 +205,23 @@ def poll_record(poll, when: str) -> dict:
     return record
 
 
+class Log:
+    """A stream of items as they are seen: a JSON object a line, flushed (``views.data(item)``;
+    None: an item JSON does not carry).  Its objects are the items alone: no server event."""
+
+    events = False
+
+    def __init__(self, out: TextIO, views, **console_options) -> None:
+        self.out = out
+        self.views = views
+
+    def write(self, item) -> None:
+        data = self.views.data(item)
+        if data is not None:
+            self.out.write(to_json(data) + "\n")
+            self.out.flush()
+
+
 class Rows(PlainRows):
     """A stream of rows (scan's units as they are found): one object at the end."""
 

@@ -85,6 +85,20 @@ class Rows:
         pass
 
 
+class Log:
+    """A stream of items a line each as they are seen (monitor's frames, bridge's
+    transactions): ``views.lines(item)``, the command's plain lines of an item."""
+
+    events = True  # a server's own events (clients connecting) are shown among the items
+
+    def __init__(self, out: TextIO, views, **console_options) -> None:
+        self.out = out
+        self.views = views
+
+    def write(self, item) -> None:
+        self.out.write("".join(line + "\n" for line in self.views.lines(item)))
+
+
 class Polls:
     """read --interval -o plain: each poll's lines after its time; a change (--changes) as
     ``TIME WHAT: OLD -> NEW``.  The other formats' polls are this one's subclasses, each

@@ -171,6 +171,22 @@ def _report(report: Report, out: TextIO) -> None:
         shown.print(escape(report.note), style="dim")
 
 
+class Log:
+    """A stream of items as they are seen, drawn in colour on a terminal:
+    ``views.draw(item, console)`` prints it with rich's console, made now, not while the first
+    item arrives: a frame read late, behind an import, would be stamped late."""
+
+    events = True
+
+    def __init__(self, out: TextIO, views, **console_options) -> None:
+        self.out = out
+        self.views = views
+        self.console = console(out, **console_options)
+
+    def write(self, item) -> None:
+        self.views.draw(item, self.console)
+
+
 class Rows(PlainRows):
     """A stream of rows (scan's units as they are found): the listing's table at the end."""
 
