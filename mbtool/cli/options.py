@@ -23,7 +23,7 @@ from mbtool.cli.param_types import (
 from mbtool.cli.parsing import DeviceCommand
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, Settings
-from mbtool.cli.sinks import READINGS, RESULTS, formats
+from mbtool.cli.sinks import READINGS, RESULTS, SINKS, formats
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.link.connection import Connection, check
@@ -123,7 +123,7 @@ tcp_client_options = with_options(TCP_CLIENT_OPTIONS)
 def output_chosen(ctx: click.Context, param: click.Parameter, fmt: str | None) -> str | None:
     """-o's callback: noted in the run's context as soon as it is parsed, so that even a
     failure after it gets its JSON object (cli.program.main)."""
-    if fmt == "json":
+    if fmt is not None and SINKS[fmt].errors:
         ctx.meta[ERRORS_AS_JSON] = True
     return fmt
 

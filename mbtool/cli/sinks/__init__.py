@@ -32,12 +32,14 @@ class Sink:
     name: str  # -o NAME, and the module mbtool.cli.sinks.NAME
     about: str  # what it writes, in a few words
     kinds: set[str]  # RESULTS, READINGS, PLANT, LOG: the outputs it writes
+    errors: bool = False  # a failure is one of its records too ({"error", "exit_code"}: program.main)
+    blocks: bool = False  # its results are blocks of text for people: a blank line between two
 
 
 REGISTRY = (
-    Sink("table", "a table on a terminal (rich)", {RESULTS, LOG}),
-    Sink("plain", "plain lines, a value a line", {RESULTS, PLANT, LOG}),
-    Sink("json", "a JSON object (a line each, when polling)", {RESULTS, PLANT, LOG}),
+    Sink("table", "a table on a terminal (rich)", {RESULTS, LOG}, blocks=True),
+    Sink("plain", "plain lines, a value a line", {RESULTS, PLANT, LOG}, blocks=True),
+    Sink("json", "a JSON object (a line each, when polling)", {RESULTS, PLANT, LOG}, errors=True),
     Sink("csv", "CSV: a header row, then a row a value", {RESULTS, PLANT}),
     Sink("influx", "InfluxDB line protocol", {READINGS, PLANT}),
     Sink("prom", "Prometheus text exposition", {READINGS, PLANT}),
