@@ -17,6 +17,7 @@ from mbtool.cli.results import (
     change_parts,
     labels,
     reading_text,
+    value_text,
     value_texts,
 )
 
@@ -113,7 +114,12 @@ class Polls:
         self.output = output
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        self.output.emit(text(result, when))
+        if result.__class__ is Points:
+            self.output.emit(text(result, when))
+            return
+        # A read's values straight to their lines: a poll's are never a command's own words.
+        lines = zip(labels(result), result.values, strict=True)
+        self.output.emit("".join(f"{when} {label} {value_text(value)}\n" for label, value in lines))
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
         """One value that changed since the poll before; ``where`` names it ("": as ``what`` does)."""
