@@ -18,9 +18,9 @@ from importlib import import_module
 import click
 
 from mbtool import __version__
-from mbtool.cli.json_text import error_json
 from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
+from mbtool.cli.sinks.json import error_json
 from mbtool.errors import (
     KNOWN_ERRORS,
     STOP_SIGNALS,

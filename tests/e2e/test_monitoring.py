@@ -216,7 +216,7 @@ def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
 def test_a_symlink_planted_beside_the_textfile_is_never_followed(tmp_path):
     """The old temporary name was .NAME.PID.tmp: a symlink planted there sent the write to
     another file and then became the textfile itself."""
-    from mbtool.cli import metrics as monitoring
+    from mbtool.cli.sinks import prom as monitoring
 
     victim = tmp_path / "victim"
     victim.write_text("precious\n")

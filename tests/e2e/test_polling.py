@@ -406,7 +406,7 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
     every line must still be exactly what encoding the whole dict gives."""
     import io
 
-    from mbtool.cli.json_text import json_line as _json_line
+    from mbtool.cli.sinks.json import json_line as _json_line
     from mbtool.cli.poll_output import Output
     from mbtool.cli.results import Result, as_dict
 

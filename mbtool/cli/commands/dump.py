@@ -15,6 +15,7 @@ from mbtool.cli.data_files import TABLE_SECTIONS, data_file
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks.table import ProgressBar
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.device_id import ReadDeviceIdentification
 from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
@@ -128,7 +129,7 @@ def dump(connection, settings, file, ranges, max_requests):
                     execute = partial(client.execute, connection.unit)
 
                     dumper = Dumper(execute, max_requests)
-                    bar = _Bar(total) if sys.stderr.isatty() and not settings.dry_run else None
+                    bar = ProgressBar(total, "dump") if sys.stderr.isatty() and not settings.dry_run else None
                     try:
                         for span in spans:
                             done = bar.done if bar else 0
@@ -206,23 +207,3 @@ class _Interrupts:
     def __exit__(self, *exc) -> None:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
-
-
-class _Bar:
-    """A progress bar on a terminal's stderr: addresses covered of all asked for."""
-
-    def __init__(self, total: int) -> None:
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-
-        self.done = 0
-        self.progress = Progress(console=Console(stderr=True), transient=True)
-        self.task = self.progress.add_task("dump", total=total)
-        self.progress.start()
-
-    def at(self, done: int) -> None:
-        self.done = done
-        self.progress.update(self.task, completed=done)
-
-    def close(self) -> None:
-        self.progress.stop()
