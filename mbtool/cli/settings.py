@@ -1,6 +1,6 @@
 """How a run shows what it does: one record, made from the options once and passed down.
 
-The renderers, the metrics outputs (``cli/metrics.py``) and the poll loop's output take
+The renderers, the metrics outputs (``cli/metrics.py``) and polling's output take
 what they need of it as arguments; no module keeps a setting a run wrote, so a second
 command run in the same process (a test, a program embedding the commands) does what its
 own options say.  The link's settings are ``link.connection.Connection``'s: this record
