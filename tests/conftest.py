@@ -1,4 +1,4 @@
-"""The fixtures of mbtool's tests, built on the helpers in tests/helpers.py.
+"""The fixtures of mbtool's tests, built on the helpers in tests/helpers/ (a module of each kind).
 
 Peers mbtool talks to in these tests:
 
@@ -21,16 +21,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from helpers import (
-    REPO_ROOT,
-    PtyPair,
-    RawResponder,
-    Result,
-    SilentServer,
-    run_mbtool,
-    serve,
-    start_device,
-)
+from helpers.devices import start_device
+from helpers.ptys import PtyPair
+from helpers.run import REPO_ROOT, Result, run_mbtool
+from helpers.served import serve
+from helpers.sockets import RawResponder, SilentServer
 from peers.certs import make_pki
 
 E2E_DIR = Path(__file__).resolve().parent / "e2e"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import signal
 
 import click
-from helpers import run_cli
+from helpers.run import run_cli
 
 from mbtool.cli import program
 from mbtool.device.server import Server
