@@ -401,7 +401,7 @@ class LiveView:
         offline = sum(state.state == OFFLINE for state in states)
         online = sum(state.state == ONLINE for state in states)
         title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
-        title.append(f"{len(states)} devices, {online} online, {offline} offline")
+        title.append(f"{counted(len(states), 'device')}, {online} online, {offline} offline")
         # A row a device in the room the title, the table's header and the band leave.
         room = height - 2 - (1 + self.EVENT_ROWS)
         shown = states if len(states) <= room else states[: max(room - 1, 0)]
