@@ -125,43 +125,46 @@ def _package_rows(text: str) -> dict[str, str]:
     return rows
 
 
+def _names(token: str, relative: str) -> bool:
+    """Whether a `token` of the text names the module at ``relative`` (link/managed.py): by its
+    path, or by its dotted name or something in it (`link.managed.ManagedLink`)."""
+    token = token.removeprefix("mbtool/").removeprefix("mbtool.")
+    dotted = relative.removesuffix(".py").replace("/", ".")
+    return token == relative or token == dotted or token.startswith(dotted + ".")
+
+
 def unnamed_modules(mbtool: Path, text: str) -> list[str]:
     rows = _package_rows(text)
-    named = set(re.findall(r"`([^`]+)`", text))
-    words = " ".join(named)
+    tokens = set(re.findall(r"`([^`]+)`", text))
     missing = []
     for path in sorted(mbtool.rglob("*.py")):
         relative = path.relative_to(mbtool).as_posix()  # link/managed.py
         folder = relative.rpartition("/")[0] + "/" if "/" in relative else ""
         if path.name == "__init__.py":
-            if not folder or folder in rows or f"{folder}" in named or f"mbtool/{folder}" in named:
+            if not folder or folder in rows or {folder, f"mbtool/{folder}"} & tokens:
                 continue
-            missing.append(relative)
+        elif any(_names(token, relative) for token in tokens):
             continue
-        dotted = relative.removesuffix(".py").replace("/", ".")
-        if re.search(rf"(?<![\w/.]){re.escape(relative)}\b|(?<![\w.]){re.escape(dotted)}\b", words):
-            continue
-        # The row of the nearest folder above it that has one names it by its path from there.
-        parts = relative.split("/")
-        for cut in range(len(parts) - 1, -1, -1):
-            row = rows.get("".join(part + "/" for part in parts[:cut]))
-            if row is not None:
-                tail = "/".join(parts[cut:])
-                if re.search(rf"`{re.escape(tail)}[`:]", row):
-                    break
-                missing.append(relative)
-                break
         else:
-            missing.append(relative)
+            # The row of the nearest folder above it names it by its path from there.
+            parts = relative.split("/")
+            cut = len(parts) - 1
+            while cut and "".join(part + "/" for part in parts[:cut]) not in rows:
+                cut -= 1
+            row = rows.get("".join(part + "/" for part in parts[:cut]), "")
+            if re.search(rf"`{re.escape('/'.join(parts[cut:]))}[`:]", row):
+                continue
+        missing.append(relative)
     return missing
 
 
 def stale_names(root: Path, text: str) -> list[str]:
     """The files ARCHITECTURE.md names (`x.py`, `link/x.py`) that are not there: from the
     repository, from mbtool/, or in a row, from the row's package."""
+    folders = {row: f"mbtool/{folder}" for folder, row in _package_rows(text).items()}
     stale = []
     for line in text.splitlines():
-        row = next((f"mbtool/{folder}" for folder, each in _package_rows(text).items() if each == line), None)
+        row = folders.get(line)
         for name in re.findall(r"`([\w/]+\.py)`", line):
             places = [root / name, root / "mbtool" / name]
             if row is not None:
