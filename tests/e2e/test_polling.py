@@ -14,19 +14,11 @@ import time
 from datetime import datetime
 from types import SimpleNamespace
 
-from helpers import (
-    HOLDING,
-    REPO_ROOT,
-    assert_one_error_line,
-    expect_ok,
-    free_port,
-    interrupt_after,
-    mbtool_env,
-    run_cli,
-    serve,
-    start_device,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.devices import HOLDING, start_device
+from helpers.run import REPO_ROOT, interrupt_after, mbtool_env, run_cli, start_mbtool
+from helpers.served import serve
+from helpers.sockets import free_port
 
 
 def summary(res) -> dict:
