@@ -24,7 +24,7 @@ from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.table import write_items
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
-from mbtool.errors import KNOWN_ERRORS, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, Verdict, exit_code_for
 
 # An item's fate.  One word each, so a script can split a plain line at its first space.
 CONFIRMED = "confirmed"  # written, and read back as written
@@ -84,14 +84,14 @@ def send_all(steps: Sequence[Step], send: Callable[[Step], object], broadcast: b
     return Outcome(tuple(steps), done, error)
 
 
-def failure(command: str, outcome: Outcome, read_back: bool | None = None) -> Summary:
+def failure(command: str, outcome: Outcome, read_back: bool | None = None) -> Verdict:
     """The stderr line of a plan that failed, with the failure's own exit code: where it
     stopped, why, and how many items were written, refused or failed, and not sent.
     ``read_back``: None for a command that never reads back (write -m), else whether it did."""
     step, error = outcome.failed, outcome.error
     assert step is not None and error is not None
     why = "interrupted" if isinstance(error, KeyboardInterrupt) else str(error)
-    return Summary(
+    return Verdict(
         f"{command} stopped at {step.label}: {why}; {_counts(outcome, read_back)}", exit_code_for(error)
     )
 

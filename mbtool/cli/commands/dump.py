@@ -22,7 +22,7 @@ from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
 from mbtool.codec.pdu import ExceptionCode
 from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
-from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
 from mbtool.words import counted
 
@@ -176,7 +176,7 @@ def dump(connection, settings, file, ranges, max_requests):
         code = ExitCode.PARTIAL  # part of what was asked: a finished dump must not look like it
     elif failure is not None:
         code = exit_code_for(failure)
-    raise Summary(summary, code)
+    return Verdict(summary, code)
 
 
 class _Interrupts:

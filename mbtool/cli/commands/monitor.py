@@ -30,7 +30,7 @@ from mbtool.cli.sinks.table import escape
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.timing import char_time, character_bits, silent_interval
-from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Verdict
 from mbtool.link.transport import SerialSettings, SerialTransport
 from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
 from mbtool.monitor.pcap import BusCapture, is_pcap, packets
@@ -225,8 +225,8 @@ def monitor(
     if lost is not None:
         raise ConnectionFailed(f"{lost}; {summary}")
     if interrupted:
-        raise Summary("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
-    raise Summary(summary, ExitCode.OK)
+        return Verdict("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
+    return Verdict(summary, ExitCode.OK)
 
 
 def _bus_stats(framer, baud, parity, bytesize, stopbits, timed: bool, from_file):

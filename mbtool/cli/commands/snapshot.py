@@ -26,7 +26,7 @@ from mbtool.codec.data_access import (
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.tables import reference, table_named
-from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, Span, TableDump, runs_of
 from mbtool.words import counted
 
@@ -157,7 +157,8 @@ def diff(connection, settings, a, b, map):
     )
     render(listing, settings.output_format or default_format(), csv_header=settings.csv_header)
     if found:
-        raise Summary(counted(len(found), "difference"), ExitCode(1))
+        return Verdict(counted(len(found), "difference"), ExitCode(1))
+    return None
 
 
 # --- restore: a dump's writable tables back into the device --------------------------------
@@ -326,10 +327,10 @@ def restore(connection, settings, file, everything, map):
             code = ExitCode.INVALID_RESPONSE
         elif items:
             text += "; read back and confirmed"
-        summary = Summary(text, code)
+        summary = Verdict(text, code)
     end = {"error": str(summary)} if code else {}
     report(settings, items, head, end | {"exit_code": int(code)})
-    raise summary
+    return summary
 
 
 def _confirm(step, sent: dict, after: dict, register_map) -> None:

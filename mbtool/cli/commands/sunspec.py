@@ -20,7 +20,7 @@ from mbtool.cli.sinks.table import titled_tables
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import ExitCode, NoResponse, Summary
+from mbtool.errors import ExitCode, NoResponse, Verdict
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
@@ -111,8 +111,9 @@ def sunspec(connection, settings, base, model_ids, map_path):
             named.append(f"{chain.stopped}; the models found are shown")
         text = "; ".join(named + ([unwritten] if unwritten else []))
         if chain.interrupted:
-            raise Summary(f"interrupted; {text}", ExitCode.INTERRUPTED)
-        raise Summary(text, ExitCode.PARTIAL)
+            return Verdict(f"interrupted; {text}", ExitCode.INTERRUPTED)
+        return Verdict(text, ExitCode.PARTIAL)
+    return None
 
 
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
