@@ -141,7 +141,8 @@ class PlantMetrics:
     text is, not through generate_latest: 15 us a device report rather than 400, which
     matters when 50 devices report at once and a scrape waits for the interpreter."""
 
-    def __init__(self) -> None:
+    def __init__(self, labels: dict[str, str] | None = None) -> None:
+        self.labels = labels or {}  # the inventory's [poll] site and instance, on the statistics too
         self.lock = threading.Lock()
         self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
         self.changes = 0  # blocks written so far
@@ -167,14 +168,14 @@ class PlantMetrics:
 
     def _device(self, state) -> None:
         self._keep(
-            ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
+            ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats, self.labels)
         )
 
     def _link(self, link) -> None:
         # The link's totals as the worker keeps them (plant.schedule.LinkView): adding up its
         # every device again after each poll cost as much as the poll itself from a few hundred
         # devices on.
-        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures)
+        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures, self.labels)
         self._keep(("link", link.name), text)
 
     def _keep(self, key: tuple[str, str], text: str) -> None:
@@ -279,9 +280,10 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
     )
 
 
-def device_stats_text(name: str, stats) -> str:
-    """A device's statistics in the text format: its polls and its transactions."""
-    pair = _label_pairs({"device": name})
+def device_stats_text(name: str, stats, labels: dict | None = None) -> str:
+    """A device's statistics in the text format: its polls and its transactions (``labels``:
+    the fleet's site and instance)."""
+    pair = _label_pairs({"device": name} | (labels or {}))
     return (
         _family(
             "modbus_polls_total",
@@ -299,9 +301,10 @@ def device_stats_text(name: str, stats) -> str:
     )
 
 
-def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
-    """A link's state and statistics in the text format: its devices' transactions added up."""
-    pair = _label_pairs({"link": name})
+def link_stats_text(name: str, stats, up: bool, open_failures: int, labels: dict | None = None) -> str:
+    """A link's state and statistics in the text format: its devices' transactions added up
+    (``labels``: the fleet's site and instance)."""
+    pair = _label_pairs({"link": name} | (labels or {}))
     return (
         _family(
             "modbus_link_up",

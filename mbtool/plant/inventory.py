@@ -5,6 +5,8 @@
     [poll]                       # defaults for every device
     interval = 10                # seconds between polls of a device
     output = "json"              # any -o format; the command line beats it
+    site = "north"               # labels on every record of every output (JSON keys, influx
+    instance = "poller-a"        # tags, Prometheus labels); instance: the host name if not given
 
     [links.bus1]                 # every key a profile takes but unit and map; target for port
     target = "/dev/ttyUSB0"
@@ -38,6 +40,7 @@ A link's keys are the link settings (``link.settings.SETTINGS``), read as a prof
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -62,7 +65,12 @@ POLL_KEYS = {
     "output": "one of " + ", ".join(FORMATS),
     "offline_after": "failed polls in a row that make a device offline, such as 3",
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
+    "site": 'the site this poller serves, a label on every record, such as "north"',
+    "instance": "this poller's name, a label on every record (default: the host name)",
 }
+# A fleet's labels: what tells one poller's records from another's where several feed one
+# Prometheus or one broker.  They are every device's tags, so every output carries them.
+FLEET_LABELS = ("site", "instance")
 # A device may set its own interval, offline_after and max_backoff, its measurement, and its own timeout and
 # retries where it is slower or less reliable than its link's other devices (the link's otherwise).
 OWN_LINK_KEYS = ("timeout", "retries")
@@ -74,7 +82,7 @@ DEVICE_KEYS = (
     "read",
     "tags",
     "measurement",
-    *POLL_KEYS.keys() - {"output"},
+    *POLL_KEYS.keys() - {"output", *FLEET_LABELS},
     *OWN_LINK_KEYS,
 )
 # A link takes every link setting but the unit (each device has its own); its port is its target.
@@ -95,6 +103,7 @@ class Inventory:
     links: dict[str, LinkSpec]
     devices: list[DeviceSpec]
     maps: dict[str, str]  # device name -> the path of its register map (those with a map)
+    labels: dict[str, str]  # [poll] site and instance: on every record of every output
 
 
 def load_inventory(path: str) -> Inventory:
@@ -106,6 +115,7 @@ def load_inventory(path: str) -> Inventory:
     poll = _table(data, "poll", path, "[poll]")
     defaults = {}  # what [poll] gives; DEFAULTS for the rest
     output = None
+    labels = {"instance": os.uname().nodename}
     for key, value in poll.items():
         where = f"{path}: [poll] {key}"
         if key not in POLL_KEYS:
@@ -114,6 +124,8 @@ def load_inventory(path: str) -> Inventory:
             if value not in FORMATS:
                 raise UsageError(f"{where}: {value!r} is not {POLL_KEYS[key]}")
             output = value
+        elif key in FLEET_LABELS:
+            labels[key] = _label(key, value, where)
         else:
             defaults[key] = _setting(key, value, where)
     links = {
@@ -123,12 +135,12 @@ def load_inventory(path: str) -> Inventory:
     _one_link_a_target(links, path)
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
     loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
-    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
+    devices = [_device(name, table, path, links, defaults, loaded, labels) for name, table in tables.items()]
     if not devices:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
-    return Inventory(path, output, links, devices, maps)
+    return Inventory(path, output, links, devices, maps, labels)
 
 
 def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:
@@ -158,6 +170,13 @@ def _setting(key: str, value, where: str):
     if not 0 < value <= 86400:
         raise UsageError(f"{where}: expected seconds above 0, at most a day (86400)")
     return float(value)
+
+
+def _label(key: str, value, where: str) -> str:
+    """A fleet label's value: text a tag's value may be."""
+    if not isinstance(value, str) or _tag_value_problem(value):
+        raise UsageError(f"{where}: expected {POLL_KEYS[key]} (one line, not empty, no trailing \\)")
+    return value
 
 
 def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
@@ -222,6 +241,7 @@ def _device(
     links: dict,
     defaults: dict,
     loaded: dict[Path, RegisterMap],
+    labels: dict[str, str],
 ) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
@@ -260,7 +280,7 @@ def _device(
         link,
         unit,
         _reader(table, where, Path(path).parent, loaded),
-        _tags(table.get("tags", {}), where),
+        labels | _tags(table.get("tags", {}), where, labels),
         raw="read" in table,
         measurement=measurement,
         **settings,
@@ -331,19 +351,30 @@ def _map_path(table: dict, folder: Path) -> Path:
     return resolve_map(table["map"], [folder], base=folder)
 
 
-def _tags(tags, where: str) -> dict[str, str]:
+def _tags(tags, where: str, labels: dict[str, str]) -> dict[str, str]:
+    """A device's tags; a fleet label [poll] gives (and instance, always given) is no tag's name:
+    a device's records would carry two values of one label."""
     if not isinstance(tags, dict):
         raise UsageError(f'{where} tags: expected a table, such as {{ site = "north" }}')
+    reserved = (*RESERVED_TAGS, *labels)
     out = {}
     for key, value in tags.items():
-        if not TAG_NAME.fullmatch(key) or key in RESERVED_TAGS:
+        if not TAG_NAME.fullmatch(key) or key in reserved:
             raise UsageError(
-                f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(RESERVED_TAGS)})"
+                f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(reserved)})"
             )
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise UsageError(f"{where} tags.{key}: expected text or a number")
         text = str(value)
-        if not text or not one_line(text) or text.endswith("\\"):
-            raise UsageError(f"{where} tags.{key}: a tag's value is one line, not empty, no trailing \\")
+        problem = _tag_value_problem(text)
+        if problem:
+            raise UsageError(f"{where} tags.{key}: {problem}")
         out[key] = text
     return out
+
+
+def _tag_value_problem(text: str) -> str:
+    """What keeps ``text`` from being a tag's value (influx and Prometheus alike); "" for nothing."""
+    if not text or not one_line(text) or text.endswith("\\"):
+        return "a tag's value is one line, not empty, no trailing \\"
+    return ""

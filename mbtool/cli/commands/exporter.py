@@ -165,7 +165,7 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         scraper = TargetScraper(modules, allowed, links, timeout, retries, polled)
     runner = metrics = None
     if plant is not None:
-        metrics = PlantMetrics()
+        metrics = PlantMetrics(plant.labels)
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
     server = open_server(host, port, family, Exporter(metrics, scraper))

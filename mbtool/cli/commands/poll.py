@@ -197,6 +197,7 @@ class PlantOutput:
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
         self.unwritten = False  # a device has reported since the last exposition
         self.exposed = False  # the first round is written
+        self.labels = plant.labels  # [poll] site and instance: keys of every JSON record
 
     def report(self, item: Poll | Event) -> None:
         if isinstance(item, Event):
@@ -208,7 +209,7 @@ class PlantOutput:
     def _event(self, event: Event) -> None:
         print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
         if self.fmt == "json":
-            record = {"time": local_time(event.time), "event": event.state, event.kind: event.name}
+            record = {"time": local_time(event.time), **self.labels, "event": event.state, event.kind: event.name}
             if event.reason:
                 record["reason"] = event.reason
             if event.retry_in is not None:
@@ -233,7 +234,7 @@ class PlantOutput:
                     )
                     sys.stdout.write(f"{when} {device.name} {reading.point.name} {_shown(reading)}{unit}\n")
         elif self.fmt == "json":
-            sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
+            sys.stdout.write(to_json(_json_record(poll, when, self.labels)) + "\n")
         elif self.fmt == "csv":
             if self.header:
                 self.writer.writerow(CSV_HEADER)
@@ -296,9 +297,11 @@ def _csv_value(reading) -> str:
     return _shown(reading) if isinstance(reading.value, bool) else value_text(reading.value)
 
 
-def _json_record(poll: Poll, when: str) -> dict:
+def _json_record(poll: Poll, when: str, fleet: dict[str, str]) -> dict:
     device = poll.device
-    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
+    tags = dict(device.tags or {})
+    labels = {key: tags.pop(key) for key in fleet if key in tags}  # [poll]'s: keys of their own
+    record = {"time": when, **labels, "device": device.name, "tags": tags, "unit": device.unit}
     if poll.readings is None:
         record["state"] = poll.state
         record["error"] = str(poll.error)
