@@ -40,6 +40,7 @@ from urllib.parse import parse_qs
 
 import click
 
+from mbtool.cli.log import log_format_option, run_log_format
 from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
@@ -93,6 +94,7 @@ TEXT = "text/plain; charset=utf-8"
     "from a target on each scrape.",
 )
 @click.argument("inventory", required=False, type=FilePath(dir_okay=False))
+@log_format_option
 @click.option(
     "--listen",
     metavar="HOST:PORT",
@@ -165,7 +167,7 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         scraper = TargetScraper(modules, allowed, links, timeout, retries, polled)
     runner = metrics = None
     if plant is not None:
-        metrics = PlantMetrics(plant.labels)
+        metrics = PlantMetrics(plant.labels, run_log_format())
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
     server = open_server(host, port, family, Exporter(metrics, scraper))

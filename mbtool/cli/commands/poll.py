@@ -17,6 +17,7 @@ import click
 
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.json_text import to_json
+from mbtool.cli.log import INFO, WARNING, log, log_format_option, run_log_format
 from mbtool.cli.metrics import (
     KEY_SPECIALS,
     _escape,
@@ -27,7 +28,7 @@ from mbtool.cli.metrics import (
     write_textfile,
 )
 from mbtool.cli.param_types import FilePath, PositiveFloat
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
+from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
@@ -96,6 +97,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@log_format_option
 @click.option(
     "--hex-link",
     "hex_links",
@@ -156,7 +158,8 @@ def poll(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
-    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
+    log_format = run_log_format()
+    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     runner = Plant(
         plant.links,
@@ -179,15 +182,18 @@ def poll(
     finally:
         runner.stop.set()
     output.close()
-    _statistics(runner, stats_format, time.monotonic() - started)
+    _statistics(runner, stats_format, time.monotonic() - started, log_format)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
 class PlantOutput:
     """What the workers report, written as it comes, on the one thread that runs the plant."""
 
-    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
+    def __init__(
+        self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str, log_format: str
+    ) -> None:
         self.fmt = fmt
+        self.log_format = log_format  # of the lines on stderr (cli.log)
         self.measurement = measurement  # -o influx's, for the devices that name none
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
@@ -207,9 +213,14 @@ class PlantOutput:
         sys.stdout.flush()
 
     def _event(self, event: Event) -> None:
-        print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
+        print(event_log(event, self.log_format), file=sys.stderr, flush=True)
         if self.fmt == "json":
-            record = {"time": local_time(event.time), **self.labels, "event": event.state, event.kind: event.name}
+            record = {
+                "time": local_time(event.time),
+                **self.labels,
+                "event": event.state,
+                event.kind: event.name,
+            }
             if event.reason:
                 record["reason"] = event.reason
             if event.retry_in is not None:
@@ -221,11 +232,13 @@ class PlantOutput:
         self.states[device.name] = view_of(poll)
         if poll.readings is None:
             if poll.state != OFFLINE:  # an offline device's probes: its event said why
-                print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
+                message = f"{when} {device.name}: {poll.error}"
+                log(WARNING, message, self.log_format, device=device.name, error=str(poll.error))
         else:
             for reading in poll.readings:
                 if reading.error is not None:  # its message names the point (plan.PointException)
-                    print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
+                    message = f"{when} {device.name} {reading.error}"
+                    log(WARNING, message, self.log_format, device=device.name, point=reading.point.name)
         if self.fmt == "plain":
             for reading in poll.readings or ():
                 if reading.error is None:
@@ -471,7 +484,9 @@ class LiveView:
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
+def _statistics(runner: Plant, fmt: str, seconds: float, log_format: str) -> None:
+    """The statistics on stderr: in the text log format as they are (a table, or one JSON
+    object), in the others each line an information record."""
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -504,7 +519,7 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
                 for worker in runner.workers
             },
         }
-        print(to_json(record), file=sys.stderr, flush=True)
+        _stats_line(to_json(record), log_format)
         return
     rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
     rows += [("link", name, state, total, link_limits[name]) for name, (total, state) in links.items()]
@@ -522,11 +537,17 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
-        print(
+        _stats_line(
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
-            file=sys.stderr,
+            log_format,
         )
-    sys.stderr.flush()
+
+
+def _stats_line(line: str, log_format: str) -> None:
+    if log_format == "text":
+        print(line, file=sys.stderr, flush=True)
+    else:
+        log(INFO, line, log_format)
 
 
 def _limits(pair: tuple[float, int]) -> dict:
