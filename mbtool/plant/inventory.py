@@ -40,6 +40,7 @@ A link's keys are the link settings (``link.settings.SETTINGS``), read as a prof
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from pathlib import Path
@@ -378,3 +379,28 @@ def _tag_value_problem(text: str) -> str:
     if not text or not one_line(text) or text.endswith("\\"):
         return "a tag's value is one line, not empty, no trailing \\"
     return ""
+
+
+# --- shards: N pollers, each the links whose names hash to its K ------------------------------
+
+
+def shard_of(name: str, count: int) -> int:
+    """The shard of ``count`` a link's name falls in, as Prometheus' ``hashmod`` relabelling
+    computes it (model/relabel: the last 8 bytes of the name's MD5 sum, a big-endian uint64,
+    modulo the count), so a scrape configuration and the pollers split one inventory alike."""
+    return int.from_bytes(hashlib.md5(name.encode()).digest()[8:], "big") % count  # noqa: S324 - a hash to split by, as Prometheus' hashmod
+
+
+def shard(inventory: Inventory, number: int, count: int) -> Inventory:
+    """The part of ``inventory`` shard ``number`` of ``count`` polls: the links whose names hash
+    to it, with every device of theirs (a device is never split from its link).  A shard of no
+    link is a UsageError: that poller would poll nothing."""
+    links = {name: link for name, link in inventory.links.items() if shard_of(name, count) == number}
+    if not links:
+        raise UsageError(
+            f"--shard {number}/{count}: no link of {inventory.path} hashes to {number} "
+            f"({len(inventory.links)} links): give fewer shards"
+        )
+    devices = [device for device in inventory.devices if device.link in links]
+    maps = {name: path for name, path in inventory.maps.items() if any(d.name == name for d in devices)}
+    return replace(inventory, links=links, devices=devices, maps=maps)

@@ -43,7 +43,7 @@ import click
 from mbtool.cli.log import log_format_option, run_log_format
 from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
-from mbtool.cli.param_types import FilePath
+from mbtool.cli.param_types import FilePath, shard_option
 from mbtool.cli.plant_text import (
     LAST_SUCCESS,
     UP,
@@ -63,7 +63,7 @@ from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
-from mbtool.plant.inventory import load_inventory
+from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
@@ -123,8 +123,9 @@ TEXT = "text/plain; charset=utf-8"
     "pyserial's URL handlers are never opened. The inventory's links are allowed; any other "
     "target is refused with nothing opened.",
 )
+@shard_option
 @with_options(LINK_OPTIONS[:2])  # -t/--timeout and --retries, as every command that reads has them
-def exporter(inventory, listen, maps, allowed, timeout, retries):
+def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
     """A Prometheus exporter. With PLANT.toml it polls the plant as poll does (the same
     inventory and scheduler), and /metrics serves every device's latest values from
     memory, so scrapes never touch a bus: a gauge a point (labels device and the device's
@@ -147,6 +148,10 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     plant = None
     if inventory is not None:
         plant = load_inventory(inventory)
+        if shard_part is not None:  # the other shards' links are no links of this exporter's
+            plant = shard(plant, *shard_part)
+    elif shard_part is not None:
+        raise RequestError("--shard splits an inventory's links: give the inventory (PLANT.toml)")
     if plant is None and maps is None:
         raise RequestError(
             "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "

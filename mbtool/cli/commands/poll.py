@@ -27,7 +27,7 @@ from mbtool.cli.metrics import (
     name_problem,
     write_textfile,
 )
-from mbtool.cli.param_types import FilePath, PositiveFloat
+from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
 from mbtool.cli.results import point_text, value_text
@@ -36,7 +36,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.inventory import FORMATS, load_inventory
+from mbtool.plant.inventory import FORMATS, load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
@@ -97,6 +97,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@shard_option
 @log_format_option
 @click.option(
     "--hex-link",
@@ -117,6 +118,7 @@ def poll(
     no_header,
     hex_trace,
     hex_links,
+    shard_part,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -133,6 +135,8 @@ def poll(
     its end.
     """
     plant = load_inventory(inventory)
+    if shard_part is not None:
+        plant = shard(plant, *shard_part)
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
