@@ -74,6 +74,7 @@ COMMANDS = {
     "restore": "snapshot",
     "poll": "poll",
     "exporter": "exporter",
+    "inventory": "inventory",
     "sunspec": "sunspec",
     "maps": "library",
     "identify": "library",

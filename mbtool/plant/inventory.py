@@ -108,7 +108,50 @@ class Inventory:
 
 
 def load_inventory(path: str) -> Inventory:
-    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong."""
+    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong, and
+    the line of the table or key it names (``FILE:LINE: [table] key: ...``)."""
+    try:
+        return _load(path)
+    except UsageError as error:
+        raise UsageError(_with_line(str(error), path)) from None
+
+
+# What a problem with a table or key names after the file: "[devices.d] speed: ..."
+_NAMED = re.compile(r"\[([A-Za-z0-9_]+)(?:\.([^\]]+))?\](?: ([A-Za-z0-9_]+))?")
+_HEADER = re.compile(
+    r"\s*\[\s*([A-Za-z0-9_]+)\s*(?:\.\s*(\"[^\"]*\"|'[^']*'|[A-Za-z0-9_-]+)\s*)?\]\s*(?:#.*)?$"
+)
+
+
+def _with_line(message: str, path: str) -> str:
+    """``message`` with the line of the file its table (and key) stand on; as it was when it
+    names none, or names what the file does not hold (a table that is missing)."""
+    prefix = f"{path}: "
+    named = _NAMED.match(message[len(prefix) :]) if message.startswith(prefix) else None
+    if named is None:
+        return message
+    table, name, key = named.groups()
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return message
+    found, inside = None, False
+    for number, line in enumerate(lines, 1):
+        header = _HEADER.match(line)
+        if header:
+            inside = header[1] == table and (name is None or header[2] in (name, f'"{name}"', f"'{name}'"))
+            if inside and found is None:
+                found = number
+            continue
+        if inside and key and re.match(rf"\s*{key}\s*=", line):
+            found = number
+            break
+    if found is None:
+        return message
+    return f"{path}:{found}: {message[len(prefix) :]}"
+
+
+def _load(path: str) -> Inventory:
     data = read_toml(Path(path), "inventory")
     for key in data:
         if key not in ("poll", "links", "devices"):
