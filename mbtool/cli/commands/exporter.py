@@ -42,6 +42,7 @@ import click
 
 from mbtool.cli.log import log_format_option, run_log_format
 from mbtool.cli.metrics import warn_counter_names
+from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath, shard_option
 from mbtool.cli.plant_text import (
@@ -176,10 +177,14 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
     server = open_server(host, port, family, Exporter(metrics, scraper))
+    notifier = systemd_notifier()  # systemd's Type=notify: ready once it listens, the watchdog fed
     try:
         # Inside: a SIGTERM as soon as the line is read (a supervisor) is a clean stop too.
-        click.echo(_serving_line(server, plant, maps, allowed))
+        line = _serving_line(server, plant, maps, allowed)
+        click.echo(line)
         sys.stdout.flush()
+        if notifier:
+            notifier.ready(line)
         if runner is None:
             server.serve_forever(poll_interval=0.5)
         else:
@@ -192,6 +197,8 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
     except KeyboardInterrupt:
         pass  # Ctrl-C and SIGTERM (cli.main makes it one) stop a service: exit 0
     finally:
+        if notifier:
+            notifier.stopping()
         server.server_close()
 
 

@@ -27,6 +27,7 @@ from mbtool.cli.metrics import (
     name_problem,
     write_textfile,
 )
+from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
 from mbtool.cli.render import wants_csv_header
@@ -175,6 +176,11 @@ def poll(
     )
     started = time.monotonic()
     interrupted = False
+    notifier = systemd_notifier()  # systemd's Type=notify: ready now, the watchdog fed while it runs
+    if notifier:
+        notifier.ready(
+            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}"
+        )
     try:
         if view:
             with view.running():
@@ -185,6 +191,8 @@ def poll(
         interrupted = True
     finally:
         runner.stop.set()
+        if notifier:
+            notifier.stopping()
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started, log_format)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
