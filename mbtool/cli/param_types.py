@@ -83,6 +83,20 @@ class PositiveFloat(click.ParamType):
         return _converted(self.kind, value, self, param, ctx)
 
 
+class Shard(click.ParamType):
+    """K/N: the shard K (0 to N-1) of N pollers that split one inventory (poll, exporter)."""
+
+    name = "K/N"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        number, slash, count = str(value).partition("/")
+        if slash and number.isdigit() and count.isdigit() and int(number) < int(count):
+            return int(number), int(count)
+        self.fail(f"{value!r}: expected K/N, a shard K from 0 to N-1 of N, such as 0/2", param, ctx)
+
+
 class Rs485Delays(click.ParamType):
     """BEFORE[,AFTER] in milliseconds, as modpoll's -4 takes them; kept in seconds."""
 
@@ -175,3 +189,14 @@ class FilePath(click.Path):
             None,
         )
         self.name = "file" if not dir_okay else "directory" if not file_okay else "path"
+
+
+# poll's and the exporter's: the part of the inventory this process polls.
+shard_option = click.option(
+    "--shard",
+    "shard_part",
+    type=Shard(),
+    help="Poll only the links whose names hash to K of N (MD5 modulo N, as Prometheus' hashmod "
+    "relabelling computes it), with their devices: N pollers, 0/N to N-1/N, split one inventory "
+    "without overlap.",
+)

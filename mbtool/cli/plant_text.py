@@ -10,6 +10,7 @@ import sys
 import threading
 from functools import lru_cache
 
+from mbtool.cli.log import INFO, WARNING, log_line
 from mbtool.cli.sinks.prom import (
     VALUE_HELP,
     exposition,
@@ -24,7 +25,7 @@ from mbtool.cli.sinks.prom import (
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import ONLINE, Event, view_of, views
+from mbtool.plant.schedule import OFFLINE, ONLINE, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
 VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
@@ -126,6 +127,21 @@ def event_line(event) -> str:
     return line
 
 
+def event_log(event, fmt: str) -> str:
+    """A change of state as a line of the run's log format: a device or link offline is a
+    warning, its return information (Telegraf's execd: W! and I!, never E!)."""
+    level = WARNING if event.state == OFFLINE else INFO
+    return log_line(
+        level,
+        event_line(event),
+        fmt,
+        **{event.kind: event.name},
+        state=event.state,
+        reason=event.reason or None,
+        retry_in=event.retry_in,
+    )
+
+
 # --- inventory: the plant's metrics, rendered as each device reports --------------------------
 
 
@@ -142,7 +158,9 @@ class PlantMetrics:
     text is, not through generate_latest: 15 us a device report rather than 400, which
     matters when 50 devices report at once and a scrape waits for the interpreter."""
 
-    def __init__(self) -> None:
+    def __init__(self, labels: dict[str, str] | None = None, log_format: str = "text") -> None:
+        self.log_format = log_format  # of its lines on stderr (cli.log)
+        self.labels = labels or {}  # the inventory's [poll] site and instance, on the statistics too
         self.lock = threading.Lock()
         self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
         self.changes = 0  # blocks written so far
@@ -159,7 +177,7 @@ class PlantMetrics:
     def report(self, item) -> None:
         """What a link's worker reports (plant.schedule): a poll, or a change of state."""
         if isinstance(item, Event):
-            print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
+            print(event_log(item, self.log_format), file=sys.stderr, flush=True)
             if item.link is not None:
                 self._link(item.link)
             return
@@ -168,14 +186,15 @@ class PlantMetrics:
 
     def _device(self, state) -> None:
         self._keep(
-            ("device", state.spec.name), prom_text([state]) + device_stats_text(state.spec.name, state.stats)
+            ("device", state.spec.name),
+            prom_text([state]) + device_stats_text(state.spec.name, state.stats, self.labels),
         )
 
     def _link(self, link) -> None:
         # The link's totals as the worker keeps them (plant.schedule.LinkView): adding up its
         # every device again after each poll cost as much as the poll itself from a few hundred
         # devices on.
-        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures)
+        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures, self.labels)
         self._keep(("link", link.name), text)
 
     def _keep(self, key: tuple[str, str], text: str) -> None:
@@ -271,9 +290,10 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
     )
 
 
-def device_stats_text(name: str, stats) -> str:
-    """A device's statistics in the text format: its polls and its transactions."""
-    pair = label_pairs({"device": name})
+def device_stats_text(name: str, stats, labels: dict | None = None) -> str:
+    """A device's statistics in the text format: its polls and its transactions (``labels``:
+    the fleet's site and instance)."""
+    pair = label_pairs({"device": name} | (labels or {}))
     return (
         family(
             "modbus_polls_total",
@@ -291,9 +311,10 @@ def device_stats_text(name: str, stats) -> str:
     )
 
 
-def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
-    """A link's state and statistics in the text format: its devices' transactions added up."""
-    pair = label_pairs({"link": name})
+def link_stats_text(name: str, stats, up: bool, open_failures: int, labels: dict | None = None) -> str:
+    """A link's state and statistics in the text format: its devices' transactions added up
+    (``labels``: the fleet's site and instance)."""
+    pair = label_pairs({"link": name} | (labels or {}))
     return (
         family(
             "modbus_link_up",

@@ -18,6 +18,7 @@ from importlib import import_module
 import click
 
 from mbtool import __version__
+from mbtool.cli.log import ERROR, INFO, WARNING, log, run_log_format
 from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.cli.sinks.json import error_json
@@ -74,6 +75,7 @@ COMMANDS = {
     "restore": "snapshot",
     "poll": "poll",
     "exporter": "exporter",
+    "inventory": "inventory",
     "sunspec": "sunspec",
     "maps": "library",
     "identify": "library",
@@ -210,7 +212,7 @@ def main(argv: list[str] | None = None) -> None:
         error = MbtoolError(f"{failure.format_message()}{hint}")
         code = ExitCode.USAGE
     except (KeyboardInterrupt, click.exceptions.Abort):
-        click.echo("mbtool: interrupted", err=True)
+        log(WARNING, "interrupted", run_log_format(meta))
         code = ExitCode.INTERRUPTED
     except BrokenPipeError:
         # The reader went away (| head): stop at once and quietly, with the status a shell
@@ -235,13 +237,21 @@ def main(argv: list[str] | None = None) -> None:
         )
         code = exit_code_for(failure)
     if error is not None:
-        click.echo(f"mbtool: {error}", err=True)
+        log(_level(code), str(error), run_log_format(meta), exit_code=int(code))
         if code and meta.get(ERRORS_AS_JSON) and not isinstance(error, Verdict | OutputFailed | PartialRead):
             # -o json: a script reading stdout alone gets an object for every outcome
             # (polling writes its own per poll, and a Verdict is no error object; a
             # partial read's object names the points it could not read).
             _write_quietly(error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))
+
+
+def _level(code: int) -> str:
+    """The level of a run's last line: a run that ran fine ends with information, one that
+    read some devices and not others (8) or was stopped (130) with a warning, else an error."""
+    if code == ExitCode.OK:
+        return INFO
+    return WARNING if code in (ExitCode.PARTIAL, ExitCode.INTERRUPTED) else ERROR
 
 
 def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | None, int]:

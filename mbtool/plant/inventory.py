@@ -5,6 +5,8 @@
     [poll]                       # defaults for every device
     interval = 10                # seconds between polls of a device
     output = "json"              # any -o format; the command line beats it
+    site = "north"               # labels on every record of every output (JSON keys, influx
+    instance = "poller-a"        # tags, Prometheus labels); instance: the host name if not given
 
     [links.bus1]                 # every key a profile takes but unit and map; target for port
     target = "/dev/ttyUSB0"
@@ -38,6 +40,7 @@ A link's keys are the link settings (``link.settings.SETTINGS``), read as a prof
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -62,7 +65,12 @@ POLL_KEYS = {
     "output": "one of poll's -o formats",
     "offline_after": "failed polls in a row that make a device offline, such as 3",
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
+    "site": 'the site this poller serves, a label on every record, such as "north"',
+    "instance": "this poller's name, a label on every record (default: the host name)",
 }
+# A fleet's labels: what tells one poller's records from another's where several feed one
+# Prometheus or one broker.  They are every device's tags, so every output carries them.
+FLEET_LABELS = ("site", "instance")
 # A device may set its own interval, offline_after and max_backoff, its measurement, and its own timeout and
 # retries where it is slower or less reliable than its link's other devices (the link's otherwise).
 OWN_LINK_KEYS = ("timeout", "retries")
@@ -74,7 +82,7 @@ DEVICE_KEYS = (
     "read",
     "tags",
     "measurement",
-    *POLL_KEYS.keys() - {"output"},
+    *POLL_KEYS.keys() - {"output", *FLEET_LABELS},
     *OWN_LINK_KEYS,
 )
 # A link takes every link setting but the unit (each device has its own); its port is its target.
@@ -95,13 +103,57 @@ class Inventory:
     links: dict[str, LinkSpec]
     devices: list[DeviceSpec]
     maps: dict[str, str]  # device name -> the path of its register map (those with a map)
+    labels: dict[str, str]  # [poll] site and instance: on every record of every output
     mqtt: dict | None = None  # its [mqtt] table, checked (mbtool/mqtt/settings.py): poll adds --mqtt's url
 
 
 def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
-    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong.
-    ``outputs``: the formats its [poll] output may name (cli's registry of sinks, which this
-    click-free room does not import); none given, any is taken."""
+    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong, and
+    the line of the table or key it names (``FILE:LINE: [table] key: ...``).  ``outputs``: the
+    formats its [poll] output may name (cli's registry of sinks, which this click-free room
+    does not import); none given, any is taken."""
+    try:
+        return _load(path, outputs)
+    except UsageError as error:
+        raise UsageError(_with_line(str(error), path)) from None
+
+
+# What a problem with a table or key names after the file: "[devices.d] speed: ..."
+_NAMED = re.compile(r"\[([A-Za-z0-9_]+)(?:\.([^\]]+))?\](?: ([A-Za-z0-9_]+))?")
+_HEADER = re.compile(
+    r"\s*\[\s*([A-Za-z0-9_]+)\s*(?:\.\s*(\"[^\"]*\"|'[^']*'|[A-Za-z0-9_-]+)\s*)?\]\s*(?:#.*)?$"
+)
+
+
+def _with_line(message: str, path: str) -> str:
+    """``message`` with the line of the file its table (and key) stand on; as it was when it
+    names none, or names what the file does not hold (a table that is missing)."""
+    prefix = f"{path}: "
+    named = _NAMED.match(message[len(prefix) :]) if message.startswith(prefix) else None
+    if named is None:
+        return message
+    table, name, key = named.groups()
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return message
+    found, inside = None, False
+    for number, line in enumerate(lines, 1):
+        header = _HEADER.match(line)
+        if header:
+            inside = header[1] == table and (name is None or header[2] in (name, f'"{name}"', f"'{name}'"))
+            if inside and found is None:
+                found = number
+            continue
+        if inside and key and re.match(rf"\s*{key}\s*=", line):
+            found = number
+            break
+    if found is None:
+        return message
+    return f"{path}:{found}: {message[len(prefix) :]}"
+
+
+def _load(path: str, outputs: tuple[str, ...]) -> Inventory:
     data = read_toml(Path(path), "inventory")
     for key in data:
         if key not in ("poll", "links", "devices", "mqtt"):
@@ -111,6 +163,7 @@ def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
     poll = _table(data, "poll", path, "[poll]")
     defaults = {}  # what [poll] gives; DEFAULTS for the rest
     output = None
+    labels = {"instance": os.uname().nodename}
     for key, value in poll.items():
         where = f"{path}: [poll] {key}"
         if key not in POLL_KEYS:
@@ -119,6 +172,8 @@ def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
             if outputs and value not in outputs:
                 raise UsageError(f"{where}: {value!r} is not one of {', '.join(outputs)}")
             output = value
+        elif key in FLEET_LABELS:
+            labels[key] = _label(key, value, where)
         else:
             defaults[key] = _setting(key, value, where)
     links = {
@@ -128,13 +183,13 @@ def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
     _one_link_a_target(links, path)
     tables = _table(data, "devices", path, "[devices.NAME]", nested=True)
     loaded: dict[Path, RegisterMap] = {}  # each map file once, however many devices share it
-    devices = [_device(name, table, path, links, defaults, loaded) for name, table in tables.items()]
+    devices = [_device(name, table, path, links, defaults, loaded, labels) for name, table in tables.items()]
     if not devices:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
     check_table(data.get("mqtt"), path, devices)
-    return Inventory(path, output, links, devices, maps, data.get("mqtt"))
+    return Inventory(path, output, links, devices, maps, labels, data.get("mqtt"))
 
 
 def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:
@@ -164,6 +219,13 @@ def _setting(key: str, value, where: str):
     if not 0 < value <= 86400:
         raise UsageError(f"{where}: expected seconds above 0, at most a day (86400)")
     return float(value)
+
+
+def _label(key: str, value, where: str) -> str:
+    """A fleet label's value: text a tag's value may be."""
+    if not isinstance(value, str) or _tag_value_problem(value):
+        raise UsageError(f"{where}: expected {POLL_KEYS[key]} (one line, not empty, no trailing \\)")
+    return value
 
 
 def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
@@ -228,6 +290,7 @@ def _device(
     links: dict,
     defaults: dict,
     loaded: dict[Path, RegisterMap],
+    labels: dict[str, str],
 ) -> DeviceSpec:
     where = f"{path}: [devices.{name}]"
     for key in table:
@@ -266,7 +329,7 @@ def _device(
         link,
         unit,
         _reader(table, where, Path(path).parent, loaded),
-        _tags(table.get("tags", {}), where),
+        labels | _tags(table.get("tags", {}), where, labels),
         raw="read" in table,
         measurement=measurement,
         **settings,
@@ -337,19 +400,57 @@ def _map_path(table: dict, folder: Path) -> Path:
     return resolve_map(table["map"], [folder], base=folder)
 
 
-def _tags(tags, where: str) -> dict[str, str]:
+def _tags(tags, where: str, labels: dict[str, str]) -> dict[str, str]:
+    """A device's tags; a fleet label [poll] gives (and instance, always given) is no tag's name:
+    a device's records would carry two values of one label."""
     if not isinstance(tags, dict):
         raise UsageError(f'{where} tags: expected a table, such as {{ site = "north" }}')
+    reserved = (*RESERVED_TAGS, *labels)
     out = {}
     for key, value in tags.items():
-        if not TAG_NAME.fullmatch(key) or key in RESERVED_TAGS:
+        if not TAG_NAME.fullmatch(key) or key in reserved:
             raise UsageError(
-                f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(RESERVED_TAGS)})"
+                f"{where} tags: {key!r} is not a tag name (letters, digits and _, not {', '.join(reserved)})"
             )
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise UsageError(f"{where} tags.{key}: expected text or a number")
         text = str(value)
-        if not text or not one_line(text) or text.endswith("\\"):
-            raise UsageError(f"{where} tags.{key}: a tag's value is one line, not empty, no trailing \\")
+        problem = _tag_value_problem(text)
+        if problem:
+            raise UsageError(f"{where} tags.{key}: {problem}")
         out[key] = text
     return out
+
+
+def _tag_value_problem(text: str) -> str:
+    """What keeps ``text`` from being a tag's value (influx and Prometheus alike); "" for nothing."""
+    if not text or not one_line(text) or text.endswith("\\"):
+        return "a tag's value is one line, not empty, no trailing \\"
+    return ""
+
+
+# --- shards: N pollers, each the links whose names hash to its K ------------------------------
+
+
+def shard_of(name: str, count: int) -> int:
+    """The shard of ``count`` a link's name falls in, as Prometheus' ``hashmod`` relabelling
+    computes it (model/relabel: the last 8 bytes of the name's MD5 sum, a big-endian uint64,
+    modulo the count), so a scrape configuration and the pollers split one inventory alike."""
+    import hashlib  # noqa: PLC0415 - OpenSSL's libcrypto, mapped whole: --shard runs only
+
+    return int.from_bytes(hashlib.md5(name.encode()).digest()[8:], "big") % count  # noqa: S324 - a hash to split by, as Prometheus' hashmod
+
+
+def shard(inventory: Inventory, number: int, count: int) -> Inventory:
+    """The part of ``inventory`` shard ``number`` of ``count`` polls: the links whose names hash
+    to it, with every device of theirs (a device is never split from its link).  A shard of no
+    link is a UsageError: that poller would poll nothing."""
+    links = {name: link for name, link in inventory.links.items() if shard_of(name, count) == number}
+    if not links:
+        raise UsageError(
+            f"--shard {number}/{count}: no link of {inventory.path} hashes to {number} "
+            f"({len(inventory.links)} links): give fewer shards"
+        )
+    devices = [device for device in inventory.devices if device.link in links]
+    maps = {name: path for name, path in inventory.maps.items() if any(d.name == name for d in devices)}
+    return replace(inventory, links=links, devices=devices, maps=maps)

@@ -48,8 +48,8 @@ EXAMPLES = {
 # (it forwards its clients' requests), the passive monitor and the map library.
 OFFLINE = {"decode", "crc", "lrc", "serve", "bridge", "monitor", "maps"}
 # poll takes its links and units from its inventory file, not from -p and -u; the exporter
-# too, or from each scrape's target.
-INVENTORY = {"poll", "exporter"}
+# too, or from each scrape's target; inventory reads the file alone and opens nothing.
+INVENTORY = {"poll", "exporter", "inventory"}
 
 
 def run(line: str) -> tuple[int, str, str]:

@@ -215,4 +215,4 @@ def test_a_links_key_is_read_as_a_profiles_key_is(tmp_path, key, value):
     polled = assert_one_error_line(run_cli("poll", str(inventory), "--once"), 2)
     read = assert_one_error_line(run_cli("read-coils", "0", "-P", "s", env={"MBTOOL_CONFIG": str(config)}), 2)
     said = read.split(f"profiles.s.{key}: ", 1)[1]
-    assert polled == f"mbtool: {inventory}: [links.a] {key}: {said}"
+    assert polled == f"mbtool: {inventory}:3: [links.a] {key}: {said}"  # its line too (issue 44)

@@ -294,7 +294,8 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
     lines = run_cli("poll", small_plant, "--once", "-o", "influx").stdout.splitlines()
     points = {p["tags"]["device"]: p for p in map(parse_line, lines)}
     assert set(points) == {"meter1", "meter2", "plc"}  # the dead unit writes no line
-    assert points["meter1"]["tags"] == {"device": "meter1", "site": "north", "unit": "1"}
+    host = os.uname().nodename  # the instance label, as the inventory names none
+    assert points["meter1"]["tags"] == {"device": "meter1", "site": "north", "unit": "1", "instance": host}
     assert points["meter1"]["fields"] == {"voltage": 230.1, "tariff": 1}
 
     text = run_cli("poll", small_plant, "--once", "-o", "prom").stdout
@@ -303,7 +304,8 @@ def test_once_writes_json_lines_csv_influx_and_prom_each_readable_by_its_parser(
         for family in text_string_to_metric_families(text)
         for sample in family.samples
     }
-    assert samples[("modbus_voltage", (("device", "meter1"), ("ref", "30001"), ("site", "north")))] == 230.1
+    labels = (("device", "meter1"), ("instance", host), ("ref", "30001"), ("site", "north"))
+    assert samples[("modbus_voltage", labels)] == 230.1
 
 
 def _one_exposition(text: str) -> dict:
@@ -338,7 +340,8 @@ def test_prom_once_is_one_exposition_and_rounds_a_stream_of_whole_ones(small_pla
     stream = expositions(res.stdout)
     assert len(stream) >= 2 and "".join(stream) == res.stdout
     for text in stream:
-        assert ("modbus_voltage", (("device", "meter2"), ("ref", "30001"))) in _one_exposition(text)
+        labels = (("device", "meter2"), ("instance", os.uname().nodename), ("ref", "30001"))
+        assert ("modbus_voltage", labels) in _one_exposition(text)
 
 
 def test_raw_registers_are_one_family_as_read_writes_them_and_points_keep_their_names(small_plant, tmp_path):
@@ -463,7 +466,7 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     assert len(reads) > 10
     assert ("dead", 0.0) in seen and ("meter1", 1.0) in seen and ("plc", 1.0) in seen
     final = textfile.read_text()
-    assert 'modbus_up{device="dead"} 0' in final and "modbus_voltage{" in final
+    assert f'modbus_up{{device="dead",instance="{os.uname().nodename}"}} 0' in final and "modbus_voltage{" in final
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
 
 

@@ -138,7 +138,7 @@ def test_an_inventory_link_with_a_tls_key_off_tls_is_refused(tmp_path):
     res = run_cli("poll", str(tmp_path / "plant.toml"), "--once")
     line = assert_one_error_line(res, 2)
     assert line == (
-        f"mbtool: {tmp_path / 'plant.toml'}: [links.bus]: --ca is for tls:// targets (Modbus/TCP Security); "
+        f"mbtool: {tmp_path / 'plant.toml'}:1: [links.bus]: --ca is for tls:// targets (Modbus/TCP Security); "
         "tcp://127.0.0.1:1 is not one"
     )
 
@@ -149,6 +149,6 @@ def test_an_inventory_links_certificate_is_read_before_anything_opens(beside, tl
     res = run_cli("poll", str(beside / "plant.toml"), "--once")
     line = assert_one_error_line(res, 2)
     assert line == (
-        f"mbtool: {beside / 'plant.toml'}: [links.secure]: cannot read --cert {beside / 'me.pem'}: "
+        f"mbtool: {beside / 'plant.toml'}:2: [links.secure]: cannot read --cert {beside / 'me.pem'}: "
         "No such file or directory"
     )

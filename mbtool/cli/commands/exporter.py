@@ -40,8 +40,10 @@ from urllib.parse import parse_qs
 
 import click
 
+from mbtool.cli.log import log_format_option, run_log_format
+from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.options import LINK_OPTIONS, with_options
-from mbtool.cli.param_types import FilePath
+from mbtool.cli.param_types import FilePath, shard_option
 from mbtool.cli.plant_text import (
     LAST_SUCCESS,
     UP,
@@ -56,14 +58,14 @@ from mbtool.cli.sinks import PLANT, formats
 from mbtool.cli.sinks.prom import warn_counter_names
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, UsageError, link_failure
 from mbtool.library import find_named
 from mbtool.link.base import host_text
 from mbtool.link.connection import Connection, check, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats, outcome_of
 from mbtool.link.transport import BRIDGE_SCHEMES, NETWORK_SCHEMES, Target, parse_target
-from mbtool.plant.inventory import load_inventory
+from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import Plant
 from mbtool.plant.stats import PollStats
 from mbtool.registermap.load import MapError, load_map
@@ -94,6 +96,7 @@ TEXT = "text/plain; charset=utf-8"
     "from a target on each scrape.",
 )
 @click.argument("inventory", required=False, type=FilePath(dir_okay=False))
+@log_format_option
 @click.option(
     "--listen",
     metavar="HOST:PORT",
@@ -122,8 +125,9 @@ TEXT = "text/plain; charset=utf-8"
     "pyserial's URL handlers are never opened. The inventory's links are allowed; any other "
     "target is refused with nothing opened.",
 )
+@shard_option
 @with_options(LINK_OPTIONS[:2])  # -t/--timeout and --retries, as every command that reads has them
-def exporter(inventory, listen, maps, allowed, timeout, retries):
+def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
     """A Prometheus exporter. With PLANT.toml it polls the plant as poll does (the same
     inventory and scheduler), and /metrics serves every device's latest values from
     memory, so scrapes never touch a bus: a gauge a point (labels device and the device's
@@ -146,6 +150,10 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     plant = None
     if inventory is not None:
         plant = load_inventory(inventory, formats(PLANT))
+        if shard_part is not None:  # the other shards' links are no links of this exporter's
+            plant = shard(plant, *shard_part)
+    elif shard_part is not None:
+        raise UsageError("--shard splits an inventory's links: give the inventory (PLANT.toml)")
     if plant is None and maps is None:
         raise RequestError(
             "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "
@@ -166,14 +174,18 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
         scraper = TargetScraper(modules, allowed, links, timeout, retries, polled)
     runner = metrics = None
     if plant is not None:
-        metrics = PlantMetrics()
+        metrics = PlantMetrics(plant.labels, run_log_format())
         runner = Plant(plant.links, plant.devices, metrics.report)
         metrics.watch(runner)
     server = open_server(host, port, family, Exporter(metrics, scraper))
+    notifier = systemd_notifier()  # systemd's Type=notify: ready once it listens, the watchdog fed
     try:
         # Inside: a SIGTERM as soon as the line is read (a supervisor) is a clean stop too.
-        click.echo(_serving_line(server, plant, maps, allowed))
+        line = _serving_line(server, plant, maps, allowed)
+        click.echo(line)
         sys.stdout.flush()
+        if notifier:
+            notifier.ready(line)
         if runner is None:
             server.serve_forever(poll_interval=0.5)
         else:
@@ -186,6 +198,8 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     except KeyboardInterrupt:
         pass  # Ctrl-C and SIGTERM (cli.main makes it one) stop a service: exit 0
     finally:
+        if notifier:
+            notifier.stopping()
         server.server_close()
 
 

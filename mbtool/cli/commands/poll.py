@@ -15,9 +15,11 @@ import click
 
 from mbtool.cli.broker import hand_writes, make_publisher, stats_line
 from mbtool.cli.frames import HexTrace
+from mbtool.cli.log import INFO, WARNING, log, log_format_option, run_log_format
 from mbtool.cli.metrics import name_problem
-from mbtool.cli.param_types import FilePath, PositiveFloat
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
+from mbtool.cli.notify import systemd_notifier
+from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
+from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
 from mbtool.cli.sinks.json import to_json
@@ -28,7 +30,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
-from mbtool.plant.inventory import load_inventory
+from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
@@ -87,6 +89,8 @@ from mbtool.words import counted
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@shard_option
+@log_format_option
 @click.option(
     "--hex-link",
     "hex_links",
@@ -114,6 +118,7 @@ def poll(
     hex_trace,
     hex_links,
     mqtt_url,
+    shard_part,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -130,6 +135,8 @@ def poll(
     its end.
     """
     plant = load_inventory(inventory, formats(PLANT))
+    if shard_part is not None:
+        plant = shard(plant, *shard_part)
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
@@ -157,7 +164,8 @@ def poll(
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
     mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
-    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
+    log_format = run_log_format()
+    output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     report = view.report if view else output.report
     publisher = None
@@ -180,6 +188,11 @@ def poll(
         publisher.start()
     started = time.monotonic()
     interrupted = False
+    notifier = systemd_notifier()  # systemd's Type=notify: ready now, the watchdog fed while it runs
+    if notifier:
+        notifier.ready(
+            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}"
+        )
     try:
         if view:
             with view.running():
@@ -192,8 +205,10 @@ def poll(
         runner.stop.set()
         if publisher is not None:
             publisher.close()
+        if notifier:
+            notifier.stopping()
     output.close()
-    _statistics(runner, stats_format, time.monotonic() - started, publisher)
+    _statistics(runner, stats_format, time.monotonic() - started, log_format, publisher)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
@@ -214,18 +229,23 @@ class PlantOutput:
     the format's sink (its PlantPolls); the whole plant's Prometheus text a round, for -o prom
     and --textfile."""
 
-    def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
-        self.polls = sink(fmt).PlantPolls(sys.stdout, not no_header, measurement)
+    def __init__(
+        self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str, log_format: str
+    ) -> None:
+        # [poll] site and instance: keys of every JSON record
+        self.polls = sink(fmt).PlantPolls(sys.stdout, not no_header, measurement, plant.labels)
+        self.log_format = log_format  # of the lines on stderr (cli.log)
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.states = views(plant.devices)  # each device as its latest Poll left it
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
         self.unwritten = False  # a device has reported since the last exposition
         self.exposed = False  # the first round is written
+        self.labels = plant.labels  # [poll] site and instance: keys of every JSON record
 
     def report(self, item: Poll | Event) -> None:
         if isinstance(item, Event):
-            print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
+            print(event_log(item, self.log_format), file=sys.stderr, flush=True)
             self.polls.event(item, local_time(item.time))
         else:
             self._poll(item)
@@ -236,11 +256,13 @@ class PlantOutput:
         self.states[device.name] = view_of(poll)
         if poll.readings is None:
             if poll.state != OFFLINE:  # an offline device's probes: its event said why
-                print(f"mbtool: {when} {device.name}: {poll.error}", file=sys.stderr, flush=True)
+                message = f"{when} {device.name}: {poll.error}"
+                log(WARNING, message, self.log_format, device=device.name, error=str(poll.error))
         else:
             for reading in poll.readings:
                 if reading.error is not None:  # its message names the point (plan.PointException)
-                    print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
+                    message = f"{when} {device.name} {reading.error}"
+                    log(WARNING, message, self.log_format, device=device.name, point=reading.point.name)
         self.polls.poll(poll, when)
         if self.polls.exposes or self.textfile:
             # The Prometheus text is the whole plant's, one exposition a round.
@@ -297,8 +319,9 @@ class LiveView(PlantView):
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, stats: str, seconds: float, publisher=None) -> None:
-    """``stats``: --stats, table or json (on stderr)."""
+def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publisher=None) -> None:
+    """The statistics on stderr (``stats``: --stats, a table or one JSON object): in the text
+    log format as they are, in the others each line an information record."""
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -333,7 +356,7 @@ def _statistics(runner: Plant, stats: str, seconds: float, publisher=None) -> No
         }
         if publisher is not None:
             record["mqtt"] = publisher.stats()
-        print(to_json(record), file=sys.stderr, flush=True)
+        _stats_line(to_json(record), log_format)
         return
     rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
     rows += [("link", name, state, total, link_limits[name]) for name, (total, state) in links.items()]
@@ -351,13 +374,20 @@ def _statistics(runner: Plant, stats: str, seconds: float, publisher=None) -> No
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
-        print(
+        _stats_line(
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
-            file=sys.stderr,
+            log_format,
         )
     if publisher is not None:
-        print(stats_line(publisher.stats()), file=sys.stderr)
+        _stats_line(stats_line(publisher.stats()), log_format)
     sys.stderr.flush()
+
+
+def _stats_line(line: str, log_format: str) -> None:
+    if log_format == "text":
+        print(line, file=sys.stderr, flush=True)
+    else:
+        log(INFO, line, log_format)
 
 
 def _limits(pair: tuple[float, int]) -> dict:

@@ -147,7 +147,7 @@ class PlantPolls:
     measured = False  # --measurement names its measurement
     exposes = False
 
-    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+    def __init__(self, out, csv_header: bool, measurement: str, labels: dict | None = None) -> None:
         self.out = out
         self.header = csv_header and wants_csv_header(out)
         self.writer = writer(out)

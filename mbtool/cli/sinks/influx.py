@@ -130,7 +130,7 @@ class PlantPolls:
     measured = True  # --measurement names its measurement
     exposes = False
 
-    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+    def __init__(self, out, csv_header: bool, measurement: str, labels: dict | None = None) -> None:
         self.out = out
         self.measurement = measurement
 

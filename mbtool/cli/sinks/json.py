@@ -174,14 +174,15 @@ class PlantPolls:
     measured = False  # --measurement names its measurement
     exposes = False
 
-    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+    def __init__(self, out, csv_header: bool, measurement: str, labels: dict | None = None) -> None:
         self.out = out
+        self.labels = labels or {}  # [poll] site and instance (a fleet's): keys of every record
 
     def poll(self, poll, when: str) -> None:
-        self.out.write(to_json(poll_record(poll, when)) + "\n")
+        self.out.write(to_json(poll_record(poll, when, self.labels)) + "\n")
 
     def event(self, event, when: str) -> None:
-        record = {"time": when, "event": event.state, event.kind: event.name}
+        record = {"time": when, **self.labels, "event": event.state, event.kind: event.name}
         if event.reason:
             record["reason"] = event.reason
         if event.retry_in is not None:
@@ -189,10 +190,13 @@ class PlantPolls:
         self.out.write(to_json(record) + "\n")
 
 
-def poll_record(poll, when: str) -> dict:
-    """A device poll (plant.schedule.Poll) as poll -o json's object."""
+def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
+    """A device poll (plant.schedule.Poll) as poll -o json's object; ``fleet``'s labels (the
+    device's tags carry them) keys of their own."""
     device = poll.device
-    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
+    tags = dict(device.tags or {})
+    labels = {key: tags.pop(key) for key in fleet or () if key in tags}
+    record = {"time": when, **labels, "device": device.name, "tags": tags, "unit": device.unit}
     if poll.readings is None:
         record["state"] = poll.state
         record["error"] = str(poll.error)

@@ -57,7 +57,7 @@ class PlantPolls:
     measured = False  # --measurement names its measurement
     exposes = False  # the plant's Prometheus text is not this output
 
-    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+    def __init__(self, out, csv_header: bool, measurement: str, labels: dict | None = None) -> None:
         self.out = out
 
     def poll(self, poll, when: str) -> None:

@@ -299,7 +299,7 @@ class PlantPolls:
     measured = False  # --measurement names its measurement
     exposes = True
 
-    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+    def __init__(self, out, csv_header: bool, measurement: str, labels: dict | None = None) -> None:
         self.out = out
 
     def poll(self, poll, when: str) -> None:
