@@ -104,3 +104,22 @@ def test_an_import_inside_a_function_is_refused(copy):
     _add_to_function(copy / "mbtool" / "cli" / "render.py", "import csv")
     res = ruff(copy, "check")
     assert res.returncode == 1 and "PLC0415" in res.stdout, res.stdout + res.stderr
+
+
+def test_mypy_reads_a_records_constructor(copy):
+    # A record built with a field it does not have, or a value of the wrong type, is refused:
+    # without dataclass_transform on @record the checker would see a bare `type` and pass it.
+    (copy / "mbtool" / "codec" / "record_use.py").write_text(
+        "from mbtool.codec.data_access import ReadHoldingRegisters\n\n"
+        "ReadHoldingRegisters(address='0', count=1)\n"
+        "ReadHoldingRegisters(address=0, count=1, colour=1)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "mypy", "--cache-dir", str(copy / "cache"), "mbtool/codec/record_use.py"],
+        cwd=copy,
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+    assert "record_use.py:3: error: Argument \"address\"" in res.stdout, res.stdout + res.stderr
+    assert "record_use.py:4: error: Unexpected keyword argument \"colour\"" in res.stdout, res.stdout

@@ -19,7 +19,9 @@ fields first, defaults, ``field(default=..., kw_only=True, compare=False)``,
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar, dataclass_transform
+
+_R = TypeVar("_R", bound=type)
 
 
 class FrozenInstanceError(AttributeError):
@@ -108,8 +110,16 @@ def _delattr(self, name: str) -> None:
     raise FrozenInstanceError(f"cannot delete field {name!r}")
 
 
-def record(cls: type) -> type:
+# A type checker reads a record as the frozen dataclass it behaves as: its constructor's
+# arguments (inherited fields first, ``field(kw_only=True)`` after), equality, no assignment.
+@dataclass_transform(eq_default=True, frozen_default=True, field_specifiers=(field, Field))
+def record(cls: _R) -> _R:
     """Make ``cls`` a frozen record of its annotated fields (see the module docstring)."""
+    return _make_record(cls)
+
+
+def _make_record(cls: Any) -> Any:
+    # Any: the attributes set here are the record machinery's, which no checker can see on `type`.
     inherited: list[Field] = []
     for base in reversed(cls.__mro__[1:]):
         for spec in base.__dict__.get("__record_own__", ()):
@@ -120,7 +130,7 @@ def record(cls: type) -> type:
     cls.__record_own__ = tuple(own)
     cls.__record_fields__ = tuple(all_fields)
     cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
-    cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
+    setattr(cls, "__match_args__", tuple(f.name for f in cls.__record_positional__))  # noqa: B010 - mypy refuses the assignment
     if "__init__" in cls.__dict__:
         cls.__record_own_init__ = True
     elif own or not getattr(cls, "__record_own_init__", False):
@@ -137,7 +147,8 @@ def record(cls: type) -> type:
 
 
 def fields(obj: Any) -> tuple[Field, ...]:
-    return type(obj).__record_fields__ if not isinstance(obj, type) else obj.__record_fields__
+    cls: Any = obj if isinstance(obj, type) else type(obj)
+    return cls.__record_fields__
 
 
 def replace(obj: Any, **changes: Any) -> Any:
