@@ -12,7 +12,7 @@ A record that is made in every transaction of a polling loop (a reply) writes it
 costs a few microseconds more, which ``bench/polling_cpu.py`` shows.
 
 Supported: fields from annotations (``ClassVar`` ones skipped), inherited
-fields first, defaults, ``field(default=..., kw_only=True, compare=False)``,
+fields first, defaults, ``field(default=..., kw_only=True, compare=False, init=False)``,
 ``__post_init__``, equality, hashing, repr, immutability, ``fields()`` and
 ``replace()``.
 """
@@ -29,17 +29,20 @@ class FrozenInstanceError(AttributeError):
 
 
 class Field:
-    __slots__ = ("name", "default", "kw_only", "compare")
+    __slots__ = ("name", "default", "kw_only", "compare", "init")
 
-    def __init__(self, default: Any = ..., kw_only: bool = False, compare: bool = True) -> None:
+    def __init__(
+        self, default: Any = ..., kw_only: bool = False, compare: bool = True, init: bool = True
+    ) -> None:
         self.name = ""
         self.default = default
         self.kw_only = kw_only
         self.compare = compare
+        self.init = init  # False: no argument of the constructor; __post_init__ sets it
 
 
-def field(default: Any = ..., *, kw_only: bool = False, compare: bool = True) -> Any:
-    return Field(default, kw_only, compare)
+def field(default: Any = ..., *, kw_only: bool = False, compare: bool = True, init: bool = True) -> Any:
+    return Field(default, kw_only, compare, init)
 
 
 def _own_fields(cls: type) -> list[Field]:
@@ -67,7 +70,7 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
         raise TypeError(f"{cls.__name__}() takes {len(positional)} positional arguments, {len(args)} given")
     for spec, value in zip(positional, args, strict=False):
         object.__setattr__(self, spec.name, value)
-    for spec in cls.__record_fields__:
+    for spec in cls.__record_init__:
         if spec.name in kwargs:
             object.__setattr__(self, spec.name, kwargs.pop(spec.name))
         elif spec.name not in self.__dict__:
@@ -98,7 +101,7 @@ def _hash(self) -> int:
 
 
 def _repr(self) -> str:
-    inner = ", ".join(f"{spec.name}={getattr(self, spec.name)!r}" for spec in type(self).__record_fields__)
+    inner = ", ".join(f"{spec.name}={getattr(self, spec.name)!r}" for spec in type(self).__record_init__)
     return f"{type(self).__name__}({inner})"
 
 
@@ -129,7 +132,8 @@ def _make_record(cls: Any) -> Any:
     all_fields = [f for f in inherited if f.name not in names] + own
     cls.__record_own__ = tuple(own)
     cls.__record_fields__ = tuple(all_fields)
-    cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
+    cls.__record_init__ = tuple(f for f in all_fields if f.init)
+    cls.__record_positional__ = tuple(f for f in cls.__record_init__ if not f.kw_only)
     setattr(cls, "__match_args__", tuple(f.name for f in cls.__record_positional__))  # noqa: B010 - mypy refuses the assignment
     if "__init__" in cls.__dict__:
         cls.__record_own_init__ = True
@@ -152,7 +156,7 @@ def fields(obj: Any) -> tuple[Field, ...]:
 
 
 def replace(obj: Any, **changes: Any) -> Any:
-    values = {spec.name: getattr(obj, spec.name) for spec in fields(obj)}
+    values = {spec.name: getattr(obj, spec.name) for spec in type(obj).__record_init__}
     values.update(changes)
     positional = [values.pop(spec.name) for spec in type(obj).__record_positional__]
     return type(obj)(*positional, **values)
