@@ -81,7 +81,9 @@ class Framer(ABC):
 
     # True when only a pause on the line can end the frame in the buffer: RTU's property,
     # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
-    waiting_for_silence = False
+    @property
+    def waiting_for_silence(self) -> bool:
+        return False
 
     def next_event(self) -> Event | None:
         ready = self._ready
