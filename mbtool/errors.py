@@ -7,6 +7,7 @@ output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import IntEnum
 from typing import TypeVar
 
@@ -81,7 +82,7 @@ class PartialRead(MbtoolError):
 
     exit_code = ExitCode.PARTIAL
 
-    def __init__(self, readings: list, failures: list[BaseException]) -> None:
+    def __init__(self, readings: list, failures: Sequence[BaseException]) -> None:
         read = len(readings) - len(failures)
         super().__init__(
             "; ".join(map(str, failures)) + f"; {read} of {counted(len(readings), 'point')} read"

@@ -97,7 +97,7 @@ class Point:
     def is_bit(self) -> bool:
         return self.table.bits or self.bit is not None
 
-    def value_of(self, raw: list[int] | list[bool], scale_factor: int | None = None) -> PointValue:
+    def value_of(self, raw: Sequence[int], scale_factor: int | None = None) -> PointValue:
         """The engineering value of the point's registers (or bit) as read; ``scale_factor``:
         the value of the ``scale_ref`` point, read with it (None: it has none)."""
         if self.table.bits:
