@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from mbtool.cli.json_text import to_json
 from mbtool.cli.render import change_parts, default_format, wants_csv_header
@@ -49,7 +50,7 @@ class Step:
 
     label: str  # what the failure line names: "b (40502)", "holding 10-19"
     items: tuple[dict, ...]
-    work: object = None  # what the command's send needs of it: a request, or more
+    work: Any = None  # what the command's send needs of it: a request, or more (its own shape)
 
 
 @record

@@ -67,10 +67,10 @@ class Reading:
     point: Point
     value: PointValue
     raw: tuple
-    error: ModbusException | None = None
+    error: PointException | None = None
 
     def __init__(
-        self, point: Point, value: PointValue, raw: tuple, error: ModbusException | None = None
+        self, point: Point, value: PointValue, raw: tuple, error: PointException | None = None
     ) -> None:
         # By hand: one a point a poll (codec/record.py).
         fields = self.__dict__

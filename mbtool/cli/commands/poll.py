@@ -38,6 +38,7 @@ from mbtool.link.stats import OUTCOMES
 from mbtool.plant.inventory import FORMATS, load_inventory
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
+from mbtool.registermap.point import PointValue
 from mbtool.words import counted
 
 CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
@@ -208,7 +209,11 @@ class PlantOutput:
     def _event(self, event: Event) -> None:
         print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
         if self.fmt == "json":
-            record = {"time": local_time(event.time), "event": event.state, event.kind: event.name}
+            record: dict[str, object] = {
+                "time": local_time(event.time),
+                "event": event.state,
+                event.kind: event.name,
+            }
             if event.reason:
                 record["reason"] = event.reason
             if event.retry_in is not None:
@@ -235,13 +240,15 @@ class PlantOutput:
         elif self.fmt == "json":
             sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
         elif self.fmt == "csv":
+            writer = self.writer
+            assert writer is not None  # made for csv
             if self.header:
-                self.writer.writerow(CSV_HEADER)
+                writer.writerow(CSV_HEADER)
                 self.header = False
             for reading in poll.readings or ():
                 if reading.error is None:
                     point = reading.point
-                    self.writer.writerow(
+                    writer.writerow(
                         [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
                     )
         elif self.fmt == "influx":
@@ -300,6 +307,7 @@ def _json_record(poll: Poll, when: str) -> dict:
     device = poll.device
     record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
     if poll.readings is None:
+        assert poll.error is not None  # a poll without readings is one that failed
         record["state"] = poll.state
         record["error"] = str(poll.error)
         record["exit_code"] = int(exit_code_for(poll.error))
@@ -364,7 +372,7 @@ class LiveView:
         self.clock = clock  # the time "last good" is counted to (scripts/gen_docs.py: a fixed one)
         self.lock = threading.Lock()
         self.changed: dict[str, set[str]] = {}
-        self.previous: dict[str, dict[str, object]] = {}
+        self.previous: dict[str, dict[str, PointValue]] = {}
         self.events: list[str] = []
         self.states = views(plant.devices)  # each device as its latest Poll left it
 
@@ -456,7 +464,7 @@ class LiveView:
         as many rows as it needs (its reason is at its end), blank rows below them."""
         from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
-        rows = []
+        rows: list = []  # rich Text lines
         for line in reversed(self.events):
             rows.extend(Text(line).wrap(console, width))
         rows = rows[: self.EVENT_ROWS]
@@ -472,8 +480,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
-        for state in worker.devices:
-            total.add(state.stats)
+        for device_state in worker.devices:
+            total.add(device_state.stats)
         links[worker.spec.name] = (total, worker.state)
         link_of[worker.spec.name] = worker.spec
     # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
@@ -560,4 +568,6 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Verdi
         return Verdict(text, ExitCode.PARTIAL)
     if not failed:
         return Verdict(text, ExitCode.INTERRUPTED)
-    return Verdict(text + f": {failed[0].error}", exit_code_for(failed[0].error))
+    error = failed[0].error
+    assert error is not None  # a poll without readings is one that failed
+    return Verdict(text + f": {error}", exit_code_for(error))
