@@ -212,3 +212,16 @@ def test_a_device_that_names_itself_in_fc43_ranks_first_with_that_evidence(tmp_p
     assert found["map"] == "abb-b23" and best["complete"]
     assert best["evidence"][0] == 'FC 43/14 VendorName "ABB", ProductCode "B23 312-100"'
     assert found["seen"]["FC 43/14"].startswith('VendorName "ABB", ProductCode "B23 312-100"')
+
+
+def test_an_inventory_that_cannot_be_written_is_one_line_and_exit_7(tmp_path):
+    # Found by mypy (issue 41 point 7): OutputFailed was raised with one argument of its two,
+    # so a folder that is not there ended in a TypeError's traceback.
+    plant = tmp_path / "no-such-folder" / "plant.toml"
+    with serve("--data", str(twin_path("sdm72"))) as server:
+        res = run_cli(
+            "identify", "-p", server.target, "-t", "0.3", "--all-units", "--units", "1", "--inventory", plant
+        )
+    assert res.returncode == 7, res
+    assert res.stderr.splitlines()[-1] == f"mbtool: cannot write to {plant}: No such file or directory", res
+    assert "Traceback" not in res.stderr

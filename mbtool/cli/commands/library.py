@@ -297,7 +297,7 @@ def _write_inventory(path: str, connection, results: list) -> None:
     try:
         Path(path).write_text(text, encoding="utf-8")
     except OSError as error:
-        raise OutputFailed(f"cannot write {path}: {error.strerror or error}") from None
+        raise OutputFailed(path, error) from None
     print(f"mbtool: wrote {path}: {len(devices)} devices, {len(unknown)} not identified", file=sys.stderr)
 
 
