@@ -224,7 +224,9 @@ def bridge(
         given = [SETTINGS[name].option for name, value in (("cert", cert), ("key", key), ("ca", ca)) if value]
         if given:
             raise not_for_tls(given[0], "tls://", ", and neither side is tls://")
-    listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
+    listening: tuple[str | None, str | None, str | None] = (
+        (cert, key, ca) if where.scheme == "tls" else (None, None, None)
+    )
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
     check_udp_rate(where, udp_rate)
     connection = Connection(
