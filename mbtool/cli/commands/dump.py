@@ -132,7 +132,7 @@ def dump(connection, settings, file, ranges, max_requests):
                     try:
                         for span in spans:
                             done = bar.done if bar else 0
-                            progress = bar and (lambda n, done=done: bar.at(done + n))
+                            progress = partial(bar.past, done) if bar else None
                             dumper.dump(span, dumps[span.table.name], progress)
                             if bar:
                                 bar.at(done + span.size)
@@ -161,6 +161,7 @@ def dump(connection, settings, file, ranges, max_requests):
     finally:
         if output is not None:
             output.discard()
+    assert dumper is not None  # made before the first read; a run that read nothing ended above
     found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
     refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
     summary = (
@@ -219,6 +220,10 @@ class _Bar:
         self.progress = Progress(console=Console(stderr=True), transient=True)
         self.task = self.progress.add_task("dump", total=total)
         self.progress.start()
+
+    def past(self, start: int, count: int) -> None:
+        """``count`` more done since ``start`` (a span's progress as its dump reports it)."""
+        self.at(start + count)
 
     def at(self, done: int) -> None:
         self.done = done

@@ -102,14 +102,13 @@ def _run(
             if metrics is not None:  # -o prom says the device is down
                 metrics.emit_failure(error, sys.stdout)
             raise
-        return
+        return None
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output  # noqa: PLC0415 - polling only
     from mbtool.link.polling import poll  # noqa: PLC0415 - polling only
 
     fmt = settings.output_format or default_format()
-    output = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
-    if settings.changes:
-        output = ChangesOnly(output)
+    whole = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
+    output = ChangesOnly(whole) if settings.changes else whole
     shown = Deferred(output, to_result)
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
