@@ -334,8 +334,9 @@ def _table(tree: dict) -> None:
             continue
         console.print(f"[bold]{escape(_model_title(model))}[/]", highlight=False)
         table = Table()
-        for column, justify in (("Point", "left"), ("Value", "right"), ("Address", "right")):
-            table.add_column(column, justify=justify)
+        table.add_column("Point", justify="left")
+        table.add_column("Value", justify="right")
+        table.add_column("Address", justify="right")
         for name, point in _shown(model.get("points", {})).items():
             table.add_row(escape(name), escape(_value_text(point)), str(point["address"]))
         if "raw" in model:
