@@ -206,6 +206,7 @@ def monitor(
     lost = None
     try:
         if from_file:
+            assert recording is not None  # read from from_file above
             _replay(from_file, recording, sniffer, show)
         else:
             lost = _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show)
@@ -401,6 +402,7 @@ def plain_line(item, timed: bool = True) -> str:
     when = _when(item, timed) or "-"
     if isinstance(item, Unanswered):
         request = item.request
+        assert request.function is not None  # a request's, read from its frame
         name = request.described.name if request.described else ""
         return (
             f"{when} unanswered #{request.number} unit={request.unit} "
@@ -452,11 +454,14 @@ class Output:
     def _coloured(self, item) -> None:
         from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
 
+        console = self.console
+        assert console is not None  # made for -o table, the only output in colour
         if isinstance(item, Unanswered):
             request = item.request
+            assert request.function is not None  # a request's, read from its frame
             name = request.described.name if request.described else ""
             when = _when(item, self.timed) or "-"
-            self.console.print(
+            console.print(
                 f"[dim]{when}[/] [bold red]unanswered[/] #{request.number} unit {request.unit} "
                 f"{function_code_text(request.function)} {escape(name)}: {escape(item.reason)}"
             )
@@ -466,7 +471,7 @@ class Output:
         when = _when(item, self.timed) or "-"
         head = f"[dim]{when} {gap:>10}[/] #{item.number:<4} [{colour}]{item.direction:<8}[/]"
         if item.direction == "garbage":
-            self.console.print(
+            console.print(
                 f"{head} [red]{len(item.wire)} bytes, {escape(item.note)}[/] [dim]{wire_text(item)}[/]"
             )
             return
@@ -483,7 +488,7 @@ class Output:
         flags = [flag for flag in item.flags if flag != "bad-checksum"]
         if flags:
             line += " [bold red]" + escape(" ".join(flags)) + "[/]"
-        self.console.print(f"{line}\n    [dim]{escape(wire_text(item))}[/] {verdict}")
+        console.print(f"{line}\n    [dim]{escape(wire_text(item))}[/] {verdict}")
 
     def stats(self, counts, now: float | None) -> None:
         """The statistics so far (monitor.stats.BusStats): a table, or one JSON object."""
