@@ -181,7 +181,7 @@ class Points:
     source: str  # the map file
     rows: list[PointRow]
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
-    failed: list[PointFailure] = ()
+    failed: Sequence[PointFailure] = ()
 
 
 def points_dict(points: Points) -> dict:

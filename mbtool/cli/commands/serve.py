@@ -364,7 +364,7 @@ def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]
         for unit in shown_units:
             counters.add_column(f"unit {unit}", justify="right")
         names = list(device.counters(shown_units[0])) if shown_units else []
-        values = {unit: device.counters(unit) if unit in device.stations else None for unit in shown_units}
+        values = {unit: device.counters(unit) if unit in device.stations else {} for unit in shown_units}
         for name in names:
             counters.add_row(name, *(str(values[u][name]) if values[u] else "-" for u in shown_units))
         counters.add_row(
