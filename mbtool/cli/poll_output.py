@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from mbtool.cli.json_text import JsonLines, error_json, json_line
 from mbtool.cli.render import (
@@ -29,6 +30,9 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import function_code_text
 from mbtool.errors import OutputFailed, PartialRead, exit_code_for
 
+if TYPE_CHECKING:
+    from rich.live import Live
+
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
 
 
@@ -45,7 +49,7 @@ class Output:
         self.csv_header = csv_header
         self.metrics = metrics
         self.header_done = False
-        self.live = None
+        self.live: Live | None = None  # rich's, made at the first table on a terminal
         self._pending: list[str] = []
         self._flush_at = 0.0
         self._json = JsonLines()
@@ -154,10 +158,11 @@ class Output:
 
             Console(file=self.out).print(Group(heading, table))
             return
-        if self.live is None:
-            self.live = Live(Group(heading, table), auto_refresh=False)
-            self.live.start()
-        self.live.update(Group(heading, table), refresh=True)
+        live = self.live
+        if live is None:
+            live = self.live = Live(Group(heading, table), auto_refresh=False)
+            live.start()
+        live.update(Group(heading, table), refresh=True)
 
     def close(self) -> None:
         self.flush()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import stat
 import sys
+from collections.abc import Callable
 from typing import TextIO
 
 from mbtool.cli.json_text import to_json
@@ -56,6 +57,7 @@ def render(
 ) -> None:
     """``csv_header``: the run's settings (False with --no-header)."""
     out = out or sys.stdout
+    renderers: dict[str, Callable[..., None]]
     if isinstance(result, Points):
         renderers = {"table": _points_table, "plain": _points_plain, "json": _points_json, "csv": _points_csv}
     elif isinstance(result, Report):
@@ -162,6 +164,7 @@ def _table(result: Result, out: TextIO) -> None:
     if typed_registers:
         from mbtool.codec.values import TYPES  # noqa: PLC0415 - typed registers only; crc loads this too
 
+        assert result.type is not None  # not bits
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
     refs = result.refs if result.refs is not None else [None] * len(result.values)
@@ -182,6 +185,7 @@ def _table(result: Result, out: TextIO) -> None:
         if typed_registers:
             # The words behind each value: when a float looks wrong, they show the word order.
             start = address - result.address
+            assert result.registers is not None  # typed_registers
             words = result.registers[start : start + (width or len(result.registers))]
             cells.append(" ".join(f"{w:04X}" for w in words))
         table.add_row(*cells)
@@ -217,8 +221,10 @@ def points_table(points: Points, heading: str = ""):
 
     described = any(row.description for row in points.rows)
     table = Table()
-    for column, justify in (("Name", "left"), ("Value", "right"), ("Unit", "left"), ("Ref", "right")):
-        table.add_column(column, justify=justify)
+    table.add_column("Name", justify="left")
+    table.add_column("Value", justify="right")
+    table.add_column("Unit", justify="left")
+    table.add_column("Ref", justify="right")
     table.add_column("Raw", justify="right")
     if described:
         table.add_column("Description")
