@@ -15,10 +15,16 @@ from __future__ import annotations
 
 import struct
 from importlib import import_module
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar
 
-if TYPE_CHECKING:
-    from typing import Self
+if TYPE_CHECKING:  # for the checker only: a Protocol class costs a one-shot's start-up
+    from typing import Protocol, Self
+
+    class Sizer(Protocol):
+        """What measures a PDU: ``Size``, or a function's own rule (FC 08, FC 43)."""
+
+        def of(self, pdu: bytes) -> int | None: ...
+
 
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name, function_code_text
 from mbtool.codec.record import field, record
@@ -208,12 +214,6 @@ class Size:
         if len(pdu) < self.at + self.width:
             return None
         return self.at + self.width + int.from_bytes(pdu[self.at : self.at + self.width], "big")
-
-
-class Sizer(Protocol):
-    """What measures a PDU: ``Size``, or a function's own rule (FC 08, FC 43)."""
-
-    def of(self, pdu: bytes) -> int | None: ...
 
 
 def fixed(n: int) -> Size:
