@@ -215,9 +215,9 @@ def bench_parallel(args, folder: Path) -> None:
 # --- 50 TCP devices ---------------------------------------------------------------------------
 
 
-def tcp_server(ports: list[int], ready: threading.Event) -> None:
-    """One asyncio server on every port: FC 03 of 10 registers answered at once."""
-    reply = bytes([3, 2 * COUNT]) + struct.pack(f">{COUNT}H", *range(COUNT))
+def tcp_server(ports: list[int], ready: threading.Event, registers: int = COUNT) -> None:
+    """One asyncio server on every port: FC 03 of ``registers`` registers answered at once."""
+    reply = bytes([3, 2 * registers]) + struct.pack(f">{registers}H", *range(registers))
 
     async def client(reader, writer):
         try:

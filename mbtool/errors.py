@@ -7,6 +7,7 @@ output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Sequence
 from enum import IntEnum
 from typing import TypeVar
@@ -27,6 +28,12 @@ class ExitCode(IntEnum):
     PARTIAL = 8  # part of what was asked was done: some of a map's points, a dump cut short
     INTERRUPTED = 130  # Ctrl-C / SIGTERM
     READER_GONE = 141  # stdout's reader went away (| head): what a shell reports for SIGPIPE
+
+
+# What interrupts a run: Ctrl-C, a service stopped, a hang-up (the terminal or the ssh
+# session gone).  Each is one stop, the same for every command; one the shell left ignored
+# (nohup's SIGHUP, a background job's SIGINT) stays ignored.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 class MbtoolError(Exception):

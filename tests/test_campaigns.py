@@ -12,7 +12,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts" / "campaigns"))
 
 import dump_kills  # noqa: E402
+import exporter_fuzz  # noqa: E402
 import hostile_names  # noqa: E402
+import signals_and_streams  # noqa: E402
 import textfile_kills  # noqa: E402
 
 pytestmark = pytest.mark.timeout(20)
@@ -82,3 +84,32 @@ def test_dump_state_tells_a_kept_previous_dump_from_a_new_a_partial_and_an_empty
     assert dump_kills.state_of(path, previous) == "partial"
     path.write_bytes(b"")
     assert dump_kills.state_of(path, previous) == "0 bytes"
+
+
+def test_exporter_fuzz_reads_answers_whole_and_catches_a_cut_or_an_extra_one():
+    ok = b"HTTP/1.1 200 OK\r\nContent-Length: 3\r\n\r\nabc"
+    assert [s for s, _, _ in exporter_fuzz.Exchange.of(ok + ok, [b"GET", b"GET"]).answers] == [200, 200]
+    assert exporter_fuzz.Exchange.of(ok[:-1], [b"GET"]).error  # the body cut short
+    assert exporter_fuzz.Exchange.of(ok[:20], [b"GET"]).error  # the head cut short
+    assert exporter_fuzz.Exchange.of(b"garbage\r\n\r\n", [b"GET"]).error
+    # A HEAD's answer has no body: what follows it is the next answer.
+    head = b"HTTP/1.1 200 OK\r\nContent-Length: 3\r\n\r\n"
+    assert len(exporter_fuzz.Exchange.of(head + ok, [b"HEAD", b"GET"]).answers) == 2
+    # The deadline the exporter reads from the header, clamped as it clamps it.
+    assert exporter_fuzz.effective_timeout("9.3e9") == 300.0
+    assert exporter_fuzz.effective_timeout("nan") == exporter_fuzz.effective_timeout(None) == 10.0
+    assert exporter_fuzz.effective_timeout("0.5") == 0.5
+
+
+def test_signals_judge_calls_a_cut_line_or_a_human_line_on_stdout_a_fault():
+    judge = signals_and_streams.judge_output
+    assert judge("json", '{"a": 1}\n{"b": 2}\n') == ""
+    assert judge("json", '{"a": 1}\n{"b": ') != ""  # cut mid-line
+    assert judge("json", '{"a": 1}\nmbtool: 1 of 2 devices answered\n') != ""  # stderr's line in stdout
+    assert judge("csv", "time,device,name\n1,a,b\n") == ""
+    assert judge("csv", "time,device,name\n1,a\n") != ""  # a row cut short
+    assert judge("influx", "modbus,unit=1 a=1i 1\n") == ""
+    assert judge("influx", "modbus,unit=1 a=\n") != ""
+    whole = '# HELP modbus_up up\n# TYPE modbus_up gauge\nmodbus_up{device="a"} 1\n'
+    assert judge("prom", whole) == ""
+    assert judge("prom", whole + 'modbus_up{device="b\n') != ""

@@ -65,9 +65,10 @@ def max_connections() -> int:
     return max(4, min(MAX_CONNECTIONS, soft // 4))
 
 
-def refusal_text(status: int, line: str, extra: tuple[str, ...] = ()) -> bytes:
+def refusal_text(status: int, line: str, extra: tuple[str, ...] = (), head_only: bool = False) -> bytes:
     """A refusal's whole answer: one text line, and the connection closed after it (written
-    as it is, whatever h11's state after a request it could not parse)."""
+    as it is, whatever h11's state after a request it could not parse); to a HEAD, its head
+    alone, as every answer to a HEAD."""
     body = f"{line}\n".encode()
     head = [
         f"HTTP/1.1 {status} {HTTPStatus(status).phrase}",
@@ -76,7 +77,7 @@ def refusal_text(status: int, line: str, extra: tuple[str, ...] = ()) -> bytes:
         *extra,
         "Connection: close",
     ]
-    return ("\r\n".join(head) + "\r\n\r\n").encode() + body
+    return ("\r\n".join(head) + "\r\n\r\n").encode() + (b"" if head_only else body)
 
 
 class Connection:
@@ -256,17 +257,24 @@ class HttpServer:
             if isinstance(event, h11.Request):
                 refusal = _refusal(event)
                 if refusal is not None:
-                    self._refuse(connection, *refusal)
+                    self._refuse(connection, *refusal, head_only=event.method == b"HEAD")
                     return
                 connection.request = event
             elif isinstance(event, h11.EndOfMessage):
                 self._answer_in_a_thread(connection)
                 return
 
-    def _refuse(self, connection: Connection, status: int, line: str, extra: tuple[str, ...] = ()) -> None:
+    def _refuse(
+        self,
+        connection: Connection,
+        status: int,
+        line: str,
+        extra: tuple[str, ...] = (),
+        head_only: bool = False,
+    ) -> None:
         """One line, and the connection closed: what follows cannot be trusted to be a request."""
         try:
-            connection.sock.send(refusal_text(status, line, extra))
+            connection.sock.send(refusal_text(status, line, extra, head_only))
         except OSError:
             pass  # it is closed below either way
         self._close(connection)

@@ -9,6 +9,7 @@ code of ``errors.ExitCode``.
 from __future__ import annotations
 
 import gc
+import io
 import os
 import signal
 import sys
@@ -22,6 +23,7 @@ from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
 from mbtool.errors import (
     KNOWN_ERRORS,
+    STOP_SIGNALS,
     ExitCode,
     MbtoolError,
     OutputFailed,
@@ -179,11 +181,15 @@ def main(argv: list[str] | None = None) -> None:
         from click.shell_completion import shell_complete  # noqa: PLC0415 - TAB only, 0.5 ms
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
-    signal.signal(signal.SIGTERM, _terminate)
+    for stop in STOP_SIGNALS:  # SIGINT is Python's KeyboardInterrupt already
+        if stop != signal.SIGINT and signal.getsignal(stop) is not signal.SIG_IGN:
+            signal.signal(stop, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
     if sys.stderr is None:
         _closed_stderr_as_nowhere()
+    elif sys.stderr is sys.__stderr__:  # fd 2 itself, not a test's capture of it
+        _stderr_that_cannot_fail()
     error: BaseException | Verdict | None = None
     meta: dict = {}  # the run's click context's: what the options noted as they were parsed
     try:
@@ -269,6 +275,39 @@ def _closed_stderr_as_nowhere() -> None:
         os.dup2(null, 2)
         os.close(null)
     sys.stderr = open(2, "w", encoding="utf-8", closefd=False)
+
+
+class _StderrOrNowhere(io.RawIOBase):
+    """fd 2 until a write to it fails (a full disk, ``2>/dev/full``; a pipe whose reader went
+    away): then /dev/null takes fd 2's place, as for a closed stderr.  A line for the human
+    that cannot be shown must not end the run, nor be taken for stdout failing (141, 7)."""
+
+    def writable(self) -> bool:
+        return True
+
+    def fileno(self) -> int:
+        return 2
+
+    def isatty(self) -> bool:
+        return os.isatty(2)
+
+    def write(self, data) -> int:
+        try:
+            return os.write(2, data)
+        except OSError:
+            _closed_stderr_as_nowhere()
+            return len(data)
+
+
+def _stderr_that_cannot_fail() -> None:
+    """sys.stderr, as Python opened it, but over a fd 2 whose failures are nowhere."""
+    sys.stderr = io.TextIOWrapper(
+        io.BufferedWriter(_StderrOrNowhere()),
+        encoding=sys.stderr.encoding,
+        errors=sys.stderr.errors,
+        line_buffering=True,
+        write_through=True,
+    )
 
 
 def _closed_stdout_as_a_gone_reader() -> None:

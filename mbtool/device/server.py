@@ -23,6 +23,7 @@ from mbtool.device.serial_server import SerialServer
 from mbtool.device.serving import Answerer, IoFaults, Responder, ServerParts, Serving, Stats
 from mbtool.device.tcp_server import FIRST_REQUEST_TIMEOUT, IDLE_TIMEOUT, MAX_CLIENTS, TcpServer
 from mbtool.device.udp_server import UdpServer
+from mbtool.errors import STOP_SIGNALS
 from mbtool.link import IN_PROCESS
 from mbtool.link.transport import SerialSettings, Target
 from mbtool.link.transport import parse_target as parse_link_target
@@ -108,11 +109,12 @@ class Server:
 
     @contextlib.contextmanager
     def stopped_by_signals(self) -> Iterator[None]:
-        """Inside, Ctrl-C and SIGTERM stop the server cleanly (the loop ends, clients are closed)
+        """Inside, Ctrl-C, SIGTERM and SIGHUP stop the server cleanly (the loop ends, clients are closed)
         instead of interrupting it; the handlers before come back afterwards."""
         previous = {
             sig: signal.signal(sig, lambda signum, frame: self.stop())
-            for sig in (signal.SIGINT, signal.SIGTERM)
+            for sig in STOP_SIGNALS
+            if signal.getsignal(sig) is not signal.SIG_IGN
         }
         try:
             yield

@@ -51,6 +51,7 @@ from mbtool.link import IN_PROCESS
 from mbtool.link.connection import Connection, check, tls_settings
 from mbtool.link.settings import SETTINGS, File, Setting
 from mbtool.link.transport import parse_target
+from mbtool.mqtt.settings import check_table
 from mbtool.plant.schedule import DeviceSpec, LinkSpec
 from mbtool.registermap.load import MapError, RegisterMap, load_map, name_problem, one_line
 from mbtool.registermap.plan import MapReader
@@ -95,14 +96,17 @@ class Inventory:
     links: dict[str, LinkSpec]
     devices: list[DeviceSpec]
     maps: dict[str, str]  # device name -> the path of its register map (those with a map)
+    mqtt: dict | None = None  # its [mqtt] table, checked (mbtool/mqtt/settings.py): poll adds --mqtt's url
 
 
 def load_inventory(path: str) -> Inventory:
     """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong."""
     data = read_toml(Path(path), "inventory")
     for key in data:
-        if key not in ("poll", "links", "devices"):
-            raise UsageError(f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME])")
+        if key not in ("poll", "links", "devices", "mqtt"):
+            raise UsageError(
+                f"{path}: unknown table [{key}] (known: [poll], [links.NAME], [devices.NAME], [mqtt])"
+            )
     poll = _table(data, "poll", path, "[poll]")
     defaults = {}  # what [poll] gives; DEFAULTS for the rest
     output = None
@@ -128,7 +132,8 @@ def load_inventory(path: str) -> Inventory:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
-    return Inventory(path, output, links, devices, maps)
+    check_table(data.get("mqtt"), path, devices)
+    return Inventory(path, output, links, devices, maps, data.get("mqtt"))
 
 
 def _table(data: dict, key: str, path: str, shown: str, nested: bool = False) -> dict:

@@ -27,6 +27,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import functools
 import math
 import queue
 import threading
@@ -246,7 +247,44 @@ class LinkWorker:
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.crashed: BaseException | None = None
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
+        # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
+        # accept_jobs, and the link is then never opened a second time for it.
+        self.jobs: queue.SimpleQueue | None = None
+        self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+
+    def accept_jobs(self) -> None:
+        self.jobs = queue.SimpleQueue()
+
+    def submit(self, device: str, job: Callable) -> None:
+        """``job(execute)`` run on this thread before its next poll: ``execute(request)`` is one
+        transaction with ``device`` on the link's ManagedLink, with the device's timeout and
+        retries; None when the link is not open (it is not opened for a job: its devices' polls
+        open it, by the back-off rule)."""
+        assert self.jobs is not None  # accept_jobs() made the queue
+        self.jobs.put((device, job))
+        self.poke.set()
+
+    def _run_jobs(self) -> None:
+        while self.jobs is not None and not self.jobs.empty():
+            device, job = self.jobs.get_nowait()
+            link = self.link
+            if link.client is None:
+                job(None)
+                continue
+            spec = next(d.spec for d in self.devices if d.spec.name == device)
+            self.polling = spec.name  # --hex's label
+            link.client.timeout, link.client.retries = limits(spec, self.spec)
+            link.stats = None  # a job is no poll: the device's and link's counts stay its polls'
+            job(functools.partial(link.execute, spec.unit))
+
+    def _sleep(self, seconds: float) -> None:
+        """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        if self.jobs is None:
+            self.clock.wait(self.stop, seconds)
+        else:  # in short slices, so that the run's stop is seen as soon as without jobs
+            self.clock.wait(self.poke, min(seconds, 0.2))
+            self.poke.clear()
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -295,13 +333,14 @@ class LinkWorker:
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
+            self._run_jobs()
             now = self.clock.monotonic()
             waiting = self._waiting()
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
             due = [d for d in waiting if d.due <= now and ready_at <= now]
             if not due:
                 wake = max(min(d.due for d in waiting), ready_at)
-                self.clock.wait(self.stop, max(0.0, wake - now))
+                self._sleep(max(0.0, wake - now))
                 continue
             device = min(due, key=lambda d: d.due)  # the one that has waited longest
             if self.link.client is None and not self._open(due):

@@ -79,13 +79,13 @@ def argv(*args: object) -> list[str]:
 
 
 def popen(*args: object, extra_env: dict[str, str] | None = None, **kw) -> subprocess.Popen:
-    """mbtool ARGS started as a shell starts a command (SIGINT and SIGTERM at their defaults)."""
+    """mbtool ARGS started as a shell starts a command (SIGINT and SIGTERM at their defaults;
+    a ``preexec_fn`` given does that itself, with whatever else it sets)."""
     kw.setdefault("stdin", subprocess.DEVNULL)
     kw.setdefault("stdout", subprocess.PIPE)
     kw.setdefault("stderr", subprocess.PIPE)
-    return subprocess.Popen(
-        argv(*args), cwd=TREE, env=env(extra_env), preexec_fn=signals_as_from_a_shell, **kw
-    )
+    kw.setdefault("preexec_fn", signals_as_from_a_shell)
+    return subprocess.Popen(argv(*args), cwd=TREE, env=env(extra_env), **kw)
 
 
 class Run:
@@ -104,10 +104,11 @@ class Run:
         return f"$ mbtool {' '.join(self.args)}\n-> exit {self.code}\n{self.out[-1500:]}{self.err[-3000:]}"
 
 
-def run(*args: object, deadline: float = RUN_DEADLINE, extra_env: dict[str, str] | None = None) -> Run:
-    """mbtool ARGS to its end; a run past the deadline is killed and reported with code None."""
+def run(*args: object, deadline: float = RUN_DEADLINE, extra_env: dict[str, str] | None = None, **kw) -> Run:
+    """mbtool ARGS to its end; a run past the deadline is killed and reported with code None.
+    ``kw`` goes to popen (a ``preexec_fn`` that caps the run's address space, say)."""
     began = time.monotonic()
-    proc = popen(*args, extra_env=extra_env)
+    proc = popen(*args, extra_env=extra_env, **kw)
     try:
         out, err = proc.communicate(timeout=deadline)
         code = proc.returncode

@@ -25,8 +25,6 @@ import math
 import os
 import random
 import resource
-import subprocess
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -43,27 +41,7 @@ def _capped() -> None:
 
 def run(*args: object, deadline: float = common.RUN_DEADLINE) -> common.Run:
     """mbtool ARGS to its end, its address space capped; past the deadline it is killed (code None)."""
-    began = time.monotonic()
-    proc = subprocess.Popen(
-        common.argv(*args),
-        cwd=common.TREE,
-        env=common.env(),
-        preexec_fn=_capped,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
-    try:
-        out, err = proc.communicate(timeout=deadline)
-        code = proc.returncode
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, err = proc.communicate()
-        code = None
-    return common.Run(
-        [str(a) for a in args], code, out.decode(errors="replace"), err.decode(errors="replace"),
-        time.monotonic() - began,
-    )  # fmt: skip
+    return common.run(*args, deadline=deadline, preexec_fn=_capped)
 
 
 def device(name: str, link: str, extra: str = "", read: str = '["40001"]') -> str:

@@ -153,6 +153,28 @@ def test_a_closed_stderr_keeps_a_failures_exit_status():
     assert res.returncode == 6 and res.stdout == "", res
 
 
+@pytest.mark.parametrize(
+    "command, code",
+    [
+        ("poll examples/plant.toml --once -o json", 8),  # events, statistics, the verdict's line
+        ("read 40001 -p tcp://127.0.0.1:1 -t 0.2", 6),  # a failure's one line
+        ("decode --framer rtu '01 03 02 00 2a 38 5b'", 5),  # the decoded frame, then its verdict
+    ],
+    ids=["poll", "read", "decode"],
+)
+@pytest.mark.parametrize("stderr", ["/dev/full", "a pipe whose reader went away"])
+def test_a_stderr_that_cannot_be_written_is_as_a_closed_one(command, code, stderr):
+    """A stderr on a full disk (`2>/dev/full`) or a pipe whose reader left: the first line for
+    it failed with OSError, and every run ended as an internal error (1), with its data cut
+    short and, for a gone reader, as the 141 of stdout's. Lines for the human then go
+    nowhere: the data and the exit code are those with stderr open."""
+    where = "2>/dev/full" if stderr == "/dev/full" else "2> >(exec 0<&-)"
+    opened = shell(f"{MBTOOL} {command}")
+    res = shell(f"sleep 0.1; {MBTOOL} {command} {where}")
+    assert res.returncode == opened.returncode == code, res
+    assert res.stdout.count("\n") == opened.stdout.count("\n") and "mbtool:" not in res.stdout, res
+
+
 # --- a full disk (13.3) ---------------------------------------------------------------------------
 
 

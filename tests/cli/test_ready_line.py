@@ -7,7 +7,8 @@ from __future__ import annotations
 import signal
 
 import click
-from helpers import run_cli
+import pytest
+from helpers import first_line, run_cli, start_mbtool
 
 from mbtool.cli import program
 from mbtool.device.server import Server
@@ -59,3 +60,20 @@ def test_exporter_stops_cleanly_on_a_sigterm_right_after_its_first_line(monkeypa
     )
     assert res.returncode == 0, res
     assert res.stdout.startswith("exporting on http://127.0.0.1:"), res
+
+
+@pytest.mark.parametrize("command", ["serve", "bridge"])
+def test_a_hang_up_stops_serve_and_bridge_as_sigterm_does(command):
+    """SIGHUP (the terminal or the ssh session gone; the signals campaign of issue 40): it
+    killed them, or with SIGHUP taken as an interruption, ended them as a run interrupted
+    (130) instead of the clean stop SIGTERM is, clients closed and the bridge's summary."""
+    if command == "serve":
+        proc = start_mbtool("serve", "-p", "tcp://127.0.0.1:0", "-q")
+        first_line(proc, "serving ")
+    else:
+        proc = start_mbtool("bridge", "--listen", "tcp://127.0.0.1:0", "-p", "sim://")
+        first_line(proc, "bridging ", proc.stderr)
+    proc.send_signal(signal.SIGHUP)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "interrupted" not in err, err

@@ -293,6 +293,25 @@ def test_a_second_interrupt_still_saves_what_was_read(tmp_path, first, second):
     assert [p.name for p in tmp_path.iterdir()] == ["part.toml"]  # no temporary file left
 
 
+def test_a_hang_up_saves_what_was_read_and_leaves_no_temporary_file(tmp_path):
+    """SIGHUP (the terminal or ssh session gone, issue 40's signals campaign): the dump died
+    as a program that does not catch it, leaving its `.part` file and no dump. A hang-up
+    interrupts it as Ctrl-C does."""
+    import signal
+    import tomllib
+
+    path = tmp_path / "part.toml"
+    with serve("--delay", "0.01", quiet=False) as server:
+        proc = _dump_process([str(path), "-p", f"tcp://{server.host}:{server.port}"])
+        _requests_served(server, 10)
+        proc.send_signal(signal.SIGHUP)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "interrupted: the file has what was read, marked complete = false" in err
+    assert tomllib.loads(path.read_text())["complete"] is False
+    assert [p.name for p in tmp_path.iterdir()] == ["part.toml"]
+
+
 # --- mbtool diff ----------------------------------------------------------------------------
 
 

@@ -126,6 +126,18 @@ def test_head_is_get_without_its_body_and_other_methods_are_405(tmp_path, maps):
             assert closed, raw
 
 
+def test_a_head_refused_gets_its_answer_without_a_body(tmp_path, maps):
+    """A HEAD is answered without a body, refusals too (the exporter fuzz campaign): a HEAD
+    with a body got the 400's line after the head, which a client takes for the start of the
+    next answer."""
+    with exporting("--maps", maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path) as exporter:
+        raw, closed = exchange(
+            address(exporter), b"HEAD /metrics HTTP/1.1\r\nHost: x\r\nContent-Length: 3\r\n\r\nx=1"
+        )
+    assert raw.startswith(b"HTTP/1.1 400 ") and raw.endswith(b"\r\n\r\n"), raw
+    assert b"Content-Length: " in raw and closed, raw
+
+
 def _threads_and_descriptors(pid: int) -> tuple[int, int]:
     status = open(f"/proc/{pid}/status").read()
     return int(re.search(r"^Threads:\s+(\d+)", status, re.M)[1]), len(os.listdir(f"/proc/{pid}/fd"))

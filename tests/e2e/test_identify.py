@@ -60,19 +60,27 @@ def held_values(name: str) -> dict:
 
 
 @pytest.mark.parametrize("name", library_names())
-def test_every_twin_reads_through_its_map_and_is_identified_by_reads_alone(name):
+def test_every_twin_reads_through_its_map_polls_and_is_identified_by_reads_alone(name, tmp_path):
     with serve("--data", str(twin_path(name)), quiet=False) as server:
         read = run_cli("read", "-m", name, "-o", "json", "-p", server.target)
         numbers = [p.name for p in load_named_map(name).points.values() if p.type not in ("hex", "string")]
         checked = run_cli("check", "-m", name, *numbers, "-p", server.target)  # check judges numbers
+        plant = tmp_path / "plant.toml"  # a plant's map = "NAME", as an inventory names it
+        plant.write_text(
+            f'[links.l]\ntarget = "{server.target}"\n[devices.d]\nlink = "l"\nunit = 1\nmap = "{name}"\n'
+        )
+        polled = run_cli("poll", plant, "--once", "-o", "json")
         found = identify(server.target)
         log = server.log()
     assert read.returncode == 0, read
     points = json.loads(read.stdout)["points"]
-    expected = held_values(name)
-    assert {p["name"]: p["value"] for p in points} == {
-        key: float(value) if hasattr(value, "as_tuple") else value for key, value in expected.items()
+    expected = {
+        key: float(value) if hasattr(value, "as_tuple") else value for key, value in held_values(name).items()
     }
+    assert {p["name"]: p["value"] for p in points} == expected
+    assert polled.returncode == 0, polled
+    (record,) = [json.loads(line) for line in polled.stdout.splitlines()]
+    assert {p["name"]: p["value"] for p in record["points"]} == expected, record
     assert checked.returncode == 0 and checked.stdout.startswith("MODBUS OK"), checked
     assert found["map"] == name, found["candidates"]
     assert found["identified"] and found["candidates"][0]["complete"]
@@ -197,6 +205,16 @@ def test_all_units_on_a_serial_bus_writes_an_inventory_that_poll_reads_whole(tmp
             )
     finally:
         pair.close()
+
+
+def test_the_inventory_line_counts_one_device_in_the_singular(tmp_path):
+    """A new user's walk of docs/maps-library.md: one meter found said `1 devices`."""
+    plant = tmp_path / "plant.toml"
+    with serve("--data", str(twin_path("sdm630"))) as server:
+        args = ("-t", "0.2", "--all-units", "--units", "1-2", "--inventory", plant)
+        res = run_cli("identify", "-p", server.target, *args)
+    assert res.returncode == 0, res
+    assert f"mbtool: wrote {plant}: 1 device, 0 not identified" in res.stderr.splitlines(), res
 
 
 def test_a_device_that_names_itself_in_fc43_ranks_first_with_that_evidence(tmp_path):

@@ -698,8 +698,13 @@ def test_latency_is_the_transaction_not_the_previous_polls_output(tcp_device):
     writer is mbtool's time, not the device's."""
     text, failures = _poll_slowly(tcp_device.target, 5)
     assert failures == [], failures
+    # The device answers within the half second mbtool spends writing: none of that counts.  A
+    # reply is timed from its request to its arrival, or, where a loaded machine kept mbtool
+    # from seeing it arrive, left out of the figures and counted as untimed (issue 39.2).
+    if "rtt - (3 untimed)" in text:
+        assert "latency per request min/avg/max -, per poll -" in text, text
+        return
     request, per_poll = latencies(text)
-    # The device answers within the half second mbtool spends writing: none of that counts.
     assert request[2] < 500 and per_poll[2] < 500, text
 
 

@@ -1,6 +1,6 @@
 """The plant's engine (mbtool.plant.schedule.LinkWorker on a managed link) sans-IO, on a fake
 clock: slots, who goes first, offline and back-off, a link that cannot be opened or is lost,
-rounds and a run's end (issue 41, points 1 and 8).
+rounds and a run's end (issue 41, points 1 and 8); the jobs poll --mqtt hands a link (issue 42).
 
 The worker runs on the test's own thread with a fake clock (its waits move the clock, they do
 not sleep) and a fake link (each device's transactions scripted), so every test takes
@@ -250,3 +250,57 @@ def test_rounds_end_the_run_once_every_device_has_had_them(rounds):
     records, _, worker = run([device("a", 1), device("b", 2, interval=0.5)], rounds=rounds)
     assert len(polls(records, "a")) == len(polls(records, "b")) == rounds
     assert worker.finished()
+
+
+def test_a_job_handed_in_runs_between_polls_on_the_workers_own_link_with_its_devices_limits():
+    """poll --mqtt's writes (LinkWorker.submit): run by the link's thread before its next poll,
+    through its ManagedLink -- the link is opened once, never a second time for a job -- with
+    the job's device's timeout and retries, and not counted as a poll of it."""
+    clock = Clock()
+    states = [DeviceState(device("a", 1), 0.0), DeviceState(device("b", 2, timeout=0.8, retries=2), 0.0)]
+    link = Link(clock, {}, [])
+    ran = []
+
+    def job(execute):
+        ran.append(clock.now)
+        execute("write")
+
+    def report(record):
+        if isinstance(record, Poll) and record.device.name == "a" and record.time == EPOCH:
+            worker.submit("b", job)  # as the publisher's thread does, after a poll
+
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    worker = LinkWorker(spec, states, report, threading.Event(), 2, clock=clock, open_link=link)
+    worker.accept_jobs()
+    worker.run()
+    assert worker.crashed is None
+    assert link.opened == [0.0]
+    # a's poll, the job (with b's limits) before b's poll, then the second round
+    assert [(unit, t, timeout, retries) for unit, t, timeout, retries in link.asked] == [
+        (1, 0.0, 0.1, 0),
+        (2, 0.0, 0.8, 2),
+        (2, 0.0, 0.8, 2),
+        (1, 1.0, 0.1, 0),
+        (2, 1.0, 0.8, 2),
+    ]
+    assert ran == [0.0]
+    assert [s.stats.transactions for s in worker.devices] == [2, 2]  # the polls' alone
+
+
+def test_a_job_while_the_link_is_lost_is_told_so_and_does_not_open_it_before_its_back_off():
+    clock = Clock()
+    states = [DeviceState(device("a", 1), 0.0)]
+    link = Link(clock, {1: ["lost"]}, [])
+    given = []
+
+    def report(record):
+        if isinstance(record, Poll) and record.readings is None:
+            worker.submit("a", given.append)  # a write handed in while the link is down
+
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    worker = LinkWorker(spec, states, report, threading.Event(), 3, clock=clock, open_link=link)
+    worker.accept_jobs()
+    worker.run()
+    assert worker.crashed is None
+    assert given == [None]
+    assert link.opened == [0.0, 2.0]  # the polls' opens, the second after the back-off: none for the job

@@ -21,7 +21,7 @@ from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
 from mbtool.codec.pdu import ExceptionCode
 from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
-from mbtool.errors import KNOWN_ERRORS, ExitCode, NoResponse, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Summary, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
 from mbtool.words import counted
 
@@ -180,13 +180,13 @@ def dump(connection, settings, file, ranges, max_requests):
 
 
 class _Interrupts:
-    """SIGINT and SIGTERM while a dump runs.  The first stops the reading (KeyboardInterrupt,
+    """SIGINT, SIGTERM and SIGHUP while a dump runs.  The first stops the reading (KeyboardInterrupt,
     as everywhere in mbtool); a later one, or any once ``hold`` is called, is ignored, as
     the dump ends once the file is written anyway: a second Ctrl-C, or a SIGTERM on top of
     one, must not lose what was read (issue 29).  A signal the shell left ignored (a
     background job's SIGINT) stays ignored."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = STOP_SIGNALS
 
     def __enter__(self) -> _Interrupts:
         self.raised = self.holding = False

@@ -19,6 +19,7 @@ from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
 from mbtool.errors import NoResponse, OutputFailed
 from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
+from mbtool.words import counted
 
 HELP = {"help_option_names": ["-h", "--help"]}
 
@@ -298,7 +299,10 @@ def _write_inventory(path: str, connection, results: list) -> None:
         Path(path).write_text(text, encoding="utf-8")
     except OSError as error:
         raise OutputFailed(path, error) from None
-    print(f"mbtool: wrote {path}: {len(devices)} devices, {len(unknown)} not identified", file=sys.stderr)
+    print(
+        f"mbtool: wrote {path}: {counted(len(devices), 'device')}, {len(unknown)} not identified",
+        file=sys.stderr,
+    )
 
 
 def _device_identification(execute, seen: dict[str, str]) -> dict[str, str]:

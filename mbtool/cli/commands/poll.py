@@ -15,6 +15,7 @@ import time
 
 import click
 
+from mbtool.cli.broker import hand_writes, make_publisher, stats_line
 from mbtool.cli.frames import HexTrace
 from mbtool.cli.json_text import to_json
 from mbtool.cli.metrics import (
@@ -35,6 +36,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
+from mbtool.mqtt.settings import mqtt_settings
 from mbtool.plant.inventory import FORMATS, load_inventory
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -104,6 +106,13 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     multiple=True,
     help="--hex for this link alone (repeat it for several).",
 )
+@click.option(
+    "--mqtt",
+    "mqtt_url",
+    metavar="URL",
+    help="Publish every poll to the MQTT broker at URL (mqtt://HOST[:PORT], mqtts://HOST[:PORT]) "
+    "as well: the inventory's [mqtt] settings with this url, else the defaults (docs/mqtt.md).",
+)
 def poll(
     inventory,
     output_format,
@@ -116,6 +125,7 @@ def poll(
     no_header,
     hex_trace,
     hex_links,
+    mqtt_url,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -157,16 +167,28 @@ def poll(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
+    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus")
     view = LiveView(plant) if live else None
+    report = view.report if view else output.report
+    publisher = None
+    if mqtt is not None:
+        publisher = make_publisher(mqtt, plant, quiet=live)
+        report = _both(report, publisher.report)
+        if view:
+            view.publisher = publisher
     runner = Plant(
         plant.links,
         plant.devices,
-        view.report if view else output.report,
+        report,
         rounds or 0,
         trace,
         hex_links or None,
     )
+    if publisher is not None:
+        if mqtt is not None and mqtt.writes:  # a publisher is made for [mqtt]
+            hand_writes(publisher, runner)
+        publisher.start()
     started = time.monotonic()
     interrupted = False
     try:
@@ -179,9 +201,23 @@ def poll(
         interrupted = True
     finally:
         runner.stop.set()
+        if publisher is not None:
+            publisher.close()
     output.close()
-    _statistics(runner, stats_format, time.monotonic() - started)
+    _statistics(runner, stats_format, time.monotonic() - started, publisher)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
+
+
+def _both(first, publish):
+    """The plant's one report, on the thread that runs it, handed to the output and the MQTT
+    publisher: the publisher its Polls (it only enqueues them), which carry each device's state."""
+
+    def report(item: Poll | Event) -> None:
+        first(item)
+        if isinstance(item, Poll):
+            publish(item)
+
+    return report
 
 
 class PlantOutput:
@@ -375,6 +411,7 @@ class LiveView:
         self.previous: dict[str, dict[str, PointValue]] = {}
         self.events: list[str] = []
         self.states = views(plant.devices)  # each device as its latest Poll left it
+        self.publisher = None  # poll --mqtt's: the broker's state in the title
 
     def running(self):
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
@@ -409,7 +446,9 @@ class LiveView:
         offline = sum(state.state == OFFLINE for state in states)
         online = sum(state.state == ONLINE for state in states)
         title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
-        title.append(f"{len(states)} devices, {online} online, {offline} offline")
+        title.append(f"{counted(len(states), 'device')}, {online} online, {offline} offline")
+        if self.publisher is not None:
+            title.append("; " + stats_line(self.publisher.stats()))
         # A row a device in the room the title, the table's header and the band leave.
         room = height - 2 - (1 + self.EVENT_ROWS)
         shown = states if len(states) <= room else states[: max(room - 1, 0)]
@@ -476,7 +515,7 @@ class LiveView:
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
+def _statistics(runner: Plant, fmt: str, seconds: float, publisher=None) -> None:
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -509,6 +548,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
                 for worker in runner.workers
             },
         }
+        if publisher is not None:
+            record["mqtt"] = publisher.stats()
         print(to_json(record), file=sys.stderr, flush=True)
         return
     rows = [("device", name, s.state, s.stats, device_limits[name]) for name, s in runner.devices.items()]
@@ -531,6 +572,8 @@ def _statistics(runner: Plant, fmt: str, seconds: float) -> None:
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
             file=sys.stderr,
         )
+    if publisher is not None:
+        print(stats_line(publisher.stats()), file=sys.stderr)
     sys.stderr.flush()
 
 

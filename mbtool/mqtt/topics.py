@@ -1,0 +1,63 @@
+"""The topic tree and the payloads of plain JSON::
+
+    mbtool/{inventory}/status                  online / offline (the birth, and the last will)
+    mbtool/{inventory}/{device}                {"time": ..., "unit": 1, "points": {"flow": 21.5}}
+    mbtool/{inventory}/{device}/status         online / offline, as mbtool judges the device
+    mbtool/{inventory}/{device}/{point}        the bare value (points = "point")
+
+(the device's topic as the ``topic`` template makes it).  A value is JSON: a number, true or
+false, a label as a string, null for a value the device marks invalid and for NaN and the
+infinities, which JSON has no words for.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from datetime import UTC, datetime
+
+from mbtool.mqtt.settings import MqttSettings, fill
+
+ONLINE, OFFLINE = "online", "offline"
+
+
+class Topics:
+    """Every topic of a plant, filled in once."""
+
+    def __init__(self, settings: MqttSettings, devices: list) -> None:
+        self.status = fill(settings.status_topic, settings)
+        self.device = {device.name: fill(settings.topic, settings, device) for device in devices}
+
+    def device_status(self, device: str) -> str:
+        return f"{self.device[device]}/status"
+
+    def point(self, device: str, point: str) -> str:
+        return f"{self.device[device]}/{point}"
+
+
+def json_value(value):
+    """A point's value as JSON holds it."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def device_payload(when: float, unit: int, values: dict[str, object]) -> bytes:
+    """One device poll's message: its time (UTC, ISO 8601), unit id and points."""
+    record = {
+        "time": iso_time(when),
+        "unit": unit,
+        "points": {name: json_value(value) for name, value in values.items()},
+    }
+    return json.dumps(record, ensure_ascii=False, separators=(",", ":")).encode()
+
+
+def point_payload(value) -> bytes:
+    """A point's bare value: a label as its text, anything else as JSON writes it."""
+    if isinstance(value, str):
+        return value.encode()
+    return json.dumps(json_value(value)).encode()
+
+
+def iso_time(when: float) -> str:
+    return datetime.fromtimestamp(when, UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
