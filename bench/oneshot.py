@@ -6,7 +6,7 @@ Target (issues: foundation, fast where it counts, 30): ``mbtool read-holding-reg
 line, each costs at most 1.25 x ``python -c "import click"``.
 
 Starts pymodbus's TCP server (tests/peers/pymodbus_device.py) and ``mbtool serve`` on one end
-of a pseudo-terminal pair (the tests' virtual null-modem cable, tests/helpers.py), then runs
+of a pseudo-terminal pair (the tests' virtual null-modem cable, tests/helpers/ptys.py), then runs
 the commands alternately, N times each, and prints the medians and their ratio.
 With ``--before DIR`` (a checkout of an earlier commit, e.g. from ``git worktree add``)
 the same reads are timed from that tree too, in the same loop, so a change's start-up
@@ -33,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-from helpers import PTY_SERIAL_OPTS, PtyPair  # noqa: E402
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair  # noqa: E402
 from polling_instructions import instructions  # noqa: E402
 
 

@@ -57,19 +57,10 @@ class UsageError(RequestError, MbtoolError):
         super().__init__(message)
 
 
-class Summary(MbtoolError):
-    """The end of a run (monitor, dump, sunspec, snapshot): the counts on one stderr line, the
-    verdict in the exit code, leaving through cli.main like every error.  A run that can
-    return its end says it with a Verdict instead: success is no exception."""
-
-    def __init__(self, message: str, exit_code: ExitCode) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
 class Verdict:
-    """How a run that ran ended (read --interval, poll, ping, scan): the counts on one stderr
-    line and the verdict in the exit code.  A command returns it, and cli.program.main writes
+    """How a run that ran ended (read --interval, poll, ping, scan, monitor, dump, sunspec, diff,
+    restore, a write of several points): the counts on one stderr line and the verdict in the
+    exit code.  A command returns it, and cli.program.main writes
     the line after what the command wrote to stdout, and exits with the code."""
 
     __slots__ = ("exit_code", "message")

@@ -1,4 +1,4 @@
-"""The fixtures of mbtool's tests, built on the helpers in tests/helpers.py.
+"""The fixtures of mbtool's tests, built on the helpers in tests/helpers/ (a module of each kind).
 
 Peers mbtool talks to in these tests:
 
@@ -15,22 +15,18 @@ Every wait has a deadline; nothing here can hang the suite.
 from __future__ import annotations
 
 import compileall
+import os
 import shutil
 import socket
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from helpers import (
-    REPO_ROOT,
-    PtyPair,
-    RawResponder,
-    Result,
-    SilentServer,
-    run_mbtool,
-    serve,
-    start_device,
-)
+from helpers.devices import start_device
+from helpers.ptys import PtyPair
+from helpers.run import REPO_ROOT, Result, run_mbtool
+from helpers.served import serve
+from helpers.sockets import RawResponder, SilentServer
 from peers.certs import make_pki
 
 E2E_DIR = Path(__file__).resolve().parent / "e2e"
@@ -43,6 +39,28 @@ def pytest_configure(config: pytest.Config) -> None:
     run).  It goes where Python itself would put it, mbtool/__pycache__ (ignored by git)."""
     if not hasattr(config, "workerinput"):  # the controller (or a run without workers)
         compileall.compile_dir(REPO_ROOT / "mbtool", quiet=1)
+
+
+# Most tests wait on sockets, pseudo-terminals and deadlines rather than compute, so the suite
+# runs several workers a core: on 2 cores, one worker a core took 238 s, four 89 s, five 76-88 s,
+# six 76 s.  Past some 16, the workers' own start-up (each imports mbtool and starts its
+# session's devices) and memory cost more than the waits they overlap.
+WORKERS_A_CORE = 5
+MOST_WORKERS = 16
+
+
+def workers_for(cores: int) -> int:
+    return max(1, min(WORKERS_A_CORE * cores, MOST_WORKERS))
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """``-n auto`` (pyproject's addopts): the workers for the cores this process may run on
+    (its affinity, as taskset or a container's cpuset leave it), not the machine's count.
+    PYTEST_XDIST_AUTO_NUM_WORKERS, where set, is pytest-xdist's to honour."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
+        return None
+    return workers_for(len(os.sched_getaffinity(0)))
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker

@@ -9,8 +9,7 @@ first request with ``DryRunDone``, which leaves through exit 0.
 from __future__ import annotations
 
 from mbtool.cli.frames import frame_report
-from mbtool.cli.render import default_format, render
-from mbtool.cli.settings import FORMATS
+from mbtool.cli.sinks import RESULTS, default_format, formats, render
 from mbtool.codec.describe import describe
 from mbtool.errors import ExitCode, MbtoolError
 
@@ -39,7 +38,7 @@ class DryRunClient:
         text = adu.decode("ascii", "replace") if name == "ascii" else adu.hex(" ")
         described = describe(text, name, "request")
         fmt = self.settings.output_format
-        fmt = fmt if fmt in FORMATS else default_format()  # not influx, prom
+        fmt = fmt if fmt in formats(RESULTS) else default_format()  # not influx, prom
         render(frame_report(described, header=self.shown == 0), fmt, csv_header=self.settings.csv_header)
         self.shown += 1
 

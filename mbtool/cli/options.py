@@ -13,7 +13,8 @@ from mbtool.cli.completion import complete_port, complete_profile
 from mbtool.cli.param_types import COUNT, Choice, FilePath, Number, Seconds, setting_type
 from mbtool.cli.parsing import DeviceCommand
 from mbtool.cli.session import warn_insecure
-from mbtool.cli.settings import ERRORS_AS_JSON, MONITORING_FORMATS, Settings
+from mbtool.cli.settings import ERRORS_AS_JSON, Settings
+from mbtool.cli.sinks import READINGS, RESULTS, SINKS, formats
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import UsageError
@@ -104,7 +105,7 @@ tcp_client_options = with_options(TCP_CLIENT_OPTIONS)
 def output_chosen(ctx: click.Context, param: click.Parameter, fmt: str | None) -> str | None:
     """-o's callback: noted in the run's context as soon as it is parsed, so that even a
     failure after it gets its JSON object (cli.program.main)."""
-    if fmt == "json":
+    if fmt is not None and SINKS[fmt].errors:
         ctx.meta[ERRORS_AS_JSON] = True
     return fmt
 
@@ -170,7 +171,7 @@ OUTPUT_FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json", "csv", "influx", "prom"]),
+    type=Choice(formats(RESULTS, READINGS)),
     callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe. With json a failure is an "
     'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
@@ -352,7 +353,7 @@ def device_command(
             shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
             output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
-            if output_format in MONITORING_FORMATS and not readings:
+            if output_format in formats(READINGS) and not readings:
                 raise UsageError(
                     f"-o {output_format} carries values read: it is for read and read-coils ... read-input-registers"
                 )
@@ -365,7 +366,7 @@ def device_command(
                 textfile=shown.get("textfile") or "",
                 # The profile names the device in what -o influx and -o prom write; --textfile
                 # alone, which implies -o prom, has never carried it.
-                device=(profile or "") if output_format in MONITORING_FORMATS else "",
+                device=(profile or "") if output_format in formats(READINGS) else "",
                 changes=shown.get("changes", False),
                 stats=shown.get("stats", "line"),
             )

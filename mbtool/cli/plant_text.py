@@ -6,18 +6,19 @@ state prints on stderr.  Commands do not import one another; this is the one pla
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 from functools import lru_cache
 
-from mbtool.cli.metrics import (
+from mbtool.cli.sinks.prom import (
     VALUE_HELP,
-    _exposition,
-    _label_pairs,
-    _label_value,
-    _metric_name,
-    _sample_value,
+    exposition,
+    family,
+    label_pairs,
+    label_value,
+    le,
+    metric_name,
+    sample_value,
     warn_counter_names,
 )
 from mbtool.cli.stamps import local_time
@@ -45,7 +46,7 @@ def point_metric(reading) -> tuple[str, str, int | float] | None:
 @lru_cache(maxsize=4096)
 def _named(name: str, description: str, unit: str) -> tuple[str, str]:
     """A point's metric name and help, worked out once: a plant writes them every poll."""
-    return _metric_name(f"modbus_{name}"), (description or name) + (f" ({unit})" if unit else "")
+    return metric_name(f"modbus_{name}"), (description or name) + (f" ({unit})" if unit else "")
 
 
 def prom_text(states: list) -> str:
@@ -60,7 +61,7 @@ def prom_text(states: list) -> str:
     for state in states:
         device = state.spec
         base = {"device": device.name} | (device.tags or {})
-        pairs = _label_pairs(base)
+        pairs = label_pairs(base)
         poll = state.last_poll
         up = poll is not None and poll.readings is not None
         metrics[UP][1].append(f"{UP}{{{pairs}}} {int(up)}")
@@ -71,27 +72,27 @@ def prom_text(states: list) -> str:
             if metric is None:
                 continue
             name, about, number = metric
-            shown = _sample_value(number)
+            shown = sample_value(number)
             if shown is None:
                 continue
-            # The device's labels, then the point's: _label_pairs(base | {...}), escaped once a device.
+            # The device's labels, then the point's: label_pairs(base | {...}), escaped once a device.
             point = reading.point
             if device.raw:
                 name, about = VALUE, VALUE_HELP
                 where = f'table="{point.table.name}",address="{point.address}",ref="{point.ref}"'
             else:
-                where = f'ref="{_label_value(point.ref)}"'
+                where = f'ref="{label_value(point.ref)}"'
             metrics.setdefault(name, (about, []))[1].append(f"{name}{{{pairs},{where}}} {shown}")
     if not metrics[LAST_SUCCESS][1]:
         del metrics[LAST_SUCCESS]
-    return _exposition(metrics)
+    return exposition(metrics)
 
 
 def point_name_clash(points, own: set[str], whose: str) -> str:
     """The first point whose metric is one of ``own`` (``whose`` metrics: "the exporter"), as
     a sentence; "" for none.  Two families of one name are no exposition."""
     for point in points:
-        name = _metric_name(f"modbus_{point.name}")
+        name = metric_name(f"modbus_{point.name}")
         if name in own:
             return f"point {point.name}: its metric, {name}, is one {whose} has of its own; rename the point"
     return ""
@@ -218,21 +219,12 @@ def split_families(text: str) -> list[tuple[str, str, str]]:
     return out
 
 
-def _family(name: str, kind: str, about: str, samples) -> str:
-    return f"# HELP {name} {about}\n# TYPE {name} {kind}\n" + "".join(f"{sample}\n" for sample in samples)
-
-
-def _le(bound: float) -> str:
-    """A bucket's bound as Prometheus writes it (Go's float formatting): 0.001, 1.0, +Inf."""
-    return "+Inf" if bound == math.inf else repr(float(bound))
-
-
 def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
     """Every transaction's outcome, the exceptions by code, the retries that recovered and
     the round-trip histogram (link.stats), each sample labelled ``pair``."""
     name = f"{prefix}request_duration_seconds"
     return (
-        _family(
+        family(
             f"{prefix}transactions_total",
             "counter",
             f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
@@ -240,7 +232,7 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
             "hung up), connection (the link could not be opened or reached)",
             (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
         )
-        + _family(
+        + family(
             f"{prefix}exceptions_total",
             "counter",
             f"Exception responses {whose}, by exception code (hex, as the spec writes them)",
@@ -249,27 +241,27 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
                 for code, count in sorted(stats.exceptions.items())
             ),
         )
-        + _family(
+        + family(
             f"{prefix}retries_recovered_total",
             "counter",
             f"Transactions {whose} answered on a retry",
             [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
         )
-        + _family(
+        + family(
             f"{prefix}untimed_replies_total",
             "counter",
             f"Replies {whose} whose round trip is not known (they came while mbtool was busy, or "
             "after a retry without transaction ids): left out of the histogram",
             [f"{prefix}untimed_replies_total{{{pair}}} {stats.untimed}"],
         )
-        + _family(
+        + family(
             name,
             "histogram",
             f"Round-trip time of the replies {whose}: from a request's last byte written to its "
             "reply's last byte read, in seconds",
             [
                 *(
-                    f'{name}_bucket{{{pair},le="{_le(bound)}"}} {count}'
+                    f'{name}_bucket{{{pair},le="{le(bound)}"}} {count}'
                     for bound, count in stats.rtt.buckets()
                 ),
                 f"{name}_sum{{{pair}}} {stats.rtt.total!r}",
@@ -281,15 +273,15 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
 
 def device_stats_text(name: str, stats) -> str:
     """A device's statistics in the text format: its polls and its transactions."""
-    pair = _label_pairs({"device": name})
+    pair = label_pairs({"device": name})
     return (
-        _family(
+        family(
             "modbus_polls_total",
             "counter",
             "Polls of the device",
             [f"modbus_polls_total{{{pair}}} {stats.polls}"],
         )
-        + _family(
+        + family(
             "modbus_failed_polls_total",
             "counter",
             "Polls of the device that read nothing",
@@ -301,15 +293,15 @@ def device_stats_text(name: str, stats) -> str:
 
 def link_stats_text(name: str, stats, up: bool, open_failures: int) -> str:
     """A link's state and statistics in the text format: its devices' transactions added up."""
-    pair = _label_pairs({"link": name})
+    pair = label_pairs({"link": name})
     return (
-        _family(
+        family(
             "modbus_link_up",
             "gauge",
             "1 when the link is open, 0 when it cannot be opened or has not been",
             [f"modbus_link_up{{{pair}}} {int(up)}"],
         )
-        + _family(
+        + family(
             "modbus_link_open_failures_total",
             "counter",
             "Times the link could not be opened",

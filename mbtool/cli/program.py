@@ -18,9 +18,9 @@ from importlib import import_module
 import click
 
 from mbtool import __version__
-from mbtool.cli.json_text import error_json
 from mbtool.cli.parsing import QuickHelp, did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON
+from mbtool.cli.sinks.json import error_json
 from mbtool.errors import (
     KNOWN_ERRORS,
     STOP_SIGNALS,
@@ -28,7 +28,6 @@ from mbtool.errors import (
     MbtoolError,
     OutputFailed,
     PartialRead,
-    Summary,
     Verdict,
     exit_code_for,
 )
@@ -237,13 +236,9 @@ def main(argv: list[str] | None = None) -> None:
         code = exit_code_for(failure)
     if error is not None:
         click.echo(f"mbtool: {error}", err=True)
-        if (
-            code
-            and meta.get(ERRORS_AS_JSON)
-            and not isinstance(error, Summary | Verdict | OutputFailed | PartialRead)
-        ):
+        if code and meta.get(ERRORS_AS_JSON) and not isinstance(error, Verdict | OutputFailed | PartialRead):
             # -o json: a script reading stdout alone gets an object for every outcome
-            # (polling writes its own per poll, and its Summary is no error object; a
+            # (polling writes its own per poll, and a Verdict is no error object; a
             # partial read's object names the points it could not read).
             _write_quietly(error_json(str(error), int(code)) + "\n")
     sys.exit(int(code))

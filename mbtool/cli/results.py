@@ -1,13 +1,14 @@
 """What a command learned, as records: values at addresses (``Result``), a register map's
 points (``Points``), named rows (``Report``); and each as the plain data JSON carries.
 
-The renderers (``render``, ``poll_output``, ``metrics``) turn these into text in the
-run's format; a record knows no format.
+The sinks (``cli/sinks/``, a module a format) turn these into text in the run's format;
+a record knows no format.  What every format says alike of a record (what labels a value,
+each value's text, a change of one) is here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from mbtool.codec.record import field, record
 
@@ -78,6 +79,23 @@ def value_text(value: object) -> str:
     if isinstance(value, dict):  # --order all: the value in each word order
         return " ".join(f"{order}={value_text(each)}" for order, each in value.items())
     return str(value)
+
+
+def labels(result: Result) -> list:
+    """What names each item: its reference when the user gave one (read 40108), else its address."""
+    return result.refs if result.refs is not None else result.addresses
+
+
+def value_texts(result: Result) -> list[str]:
+    """Each value as plain, table and CSV say it: the command's own words where it gave them
+    (write-bit's ``bit 2 on``), else the value's text."""
+    return result.texts if result.texts is not None else [value_text(value) for value in result.values]
+
+
+def by_order(result: Result) -> tuple[str, ...]:
+    """The word orders of a --order all result (its values are {order: value}); () otherwise."""
+    first = result.values[0] if result.values else None
+    return tuple(first) if isinstance(first, dict) else ()
 
 
 def as_dict(result: Result) -> dict:
@@ -162,6 +180,12 @@ def point_text(value: object) -> str:
     return value_text(value)
 
 
+def reading_text(reading) -> str:
+    """A plant's reading (plant.schedule) as read -m shows its point: on/off, invalid, a
+    label, or a number (no label)."""
+    return point_text(reading.value) + (" (no label)" if reading.point.no_label(reading.value) else "")
+
+
 @record
 class PointFailure:
     """A point of a map the device refused: its name, ref and the device's answer."""
@@ -183,6 +207,27 @@ class Points:
     rows: list[PointRow]
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     failed: Sequence[PointFailure] = ()
+
+
+def points_heading(points: Points) -> str:
+    return f"{points.source} · unit {points.unit}"
+
+
+def change_parts(what: dict, old, new, unit: str = "") -> tuple[str, str, str]:
+    """A value that differs (diff) or changed (--changes): what it is and both values as text.
+
+    ``what`` names a map's point (name, ref) or an address (table, address); a value of
+    None is an address a side does not have: "missing".  A point's bit is on or off, as
+    read -m shows it."""
+    point = "name" in what
+    where = f"{what['name']} ({what['ref']})" if point else f"{what['table']} {what['address']}"
+
+    def shown(value) -> str:
+        if value is None:
+            return "missing"
+        return (point_text(value) if point else value_text(value)) + (f" {unit}" if unit else "")
+
+    return where, shown(old), shown(new)
 
 
 def points_dict(points: Points) -> dict:
@@ -253,3 +298,16 @@ def report_dict(report: Report) -> dict:
     head: dict = {"unit": report.unit, "function": report.function, "name": report.name}
     body = report.data if report.data is not None else {row.name: row.value for row in report.rows}
     return {**head, **body}
+
+
+@record
+class Listing:
+    """What a command lists in a shape of its own (a write's items, diff's differences,
+    sunspec's models): each format's view of it, worked out when that format is chosen."""
+
+    data: Callable[[], object]  # -o json: the object
+    table: (
+        Callable[[], tuple[list[str] | None, list[list]]] | None
+    )  # -o csv: header (None: none), rows; None: its lines
+    lines: Callable[[], list[str]]  # -o plain, and -o table where ``draw`` is None
+    draw: Callable[[], None] | None = None  # -o table: draws it (a function of cli/sinks/table.py)

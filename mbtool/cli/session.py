@@ -13,8 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from mbtool.cli.render import default_format, render
 from mbtool.cli.settings import Settings
+from mbtool.cli.sinks import default_format, render
 from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import replace
 from mbtool.link.connection import Connection, check, framer_name

@@ -1,6 +1,6 @@
 """How a run shows what it does: one record, made from the options once and passed down.
 
-The renderers, the metrics outputs (``cli/metrics.py``) and the poll loop's output take
+The sinks (``cli/sinks/``, a module a format) and the poll loop's output take
 what they need of it as arguments; no module keeps a setting a run wrote, so a second
 command run in the same process (a test, a program embedding the commands) does what its
 own options say.  The link's settings are ``link.connection.Connection``'s: this record
@@ -15,11 +15,6 @@ from mbtool.codec.record import record
 # is parsed: -o json was given, so a failure, even one in the options after it, is an
 # object on stdout too (``program.main``).
 ERRORS_AS_JSON = "mbtool.errors_as_json"
-
-# What -o may say: the renderers' formats, and those cli/metrics.py writes (the read
-# commands' alone).
-FORMATS = ("table", "plain", "json", "csv")
-MONITORING_FORMATS = ("influx", "prom")
 
 
 @record

@@ -4,7 +4,7 @@ The text goes to a temporary file beside FILE, made when the WholeFile is (a pla
 cannot be written fails at once, before a device is read), and is renamed over FILE once
 written and synced: FILE is the previous one or the new one, never a part of one (a
 SIGKILL, a full disk, a file-size limit).  The new FILE keeps the previous one's
-permissions.  (--textfile's writer, cli/metrics.py, also sweeps the temporaries a killed run
+permissions.  (--textfile's writer, cli/sinks/prom.py, also sweeps the temporaries a killed run
 left behind, as node_exporter reads that folder.)
 """
 

@@ -17,16 +17,15 @@ Ctrl-C.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from mbtool.cli.json_text import to_json
-from mbtool.cli.render import change_parts, default_format, wants_csv_header
-from mbtool.cli.results import value_text
+from mbtool.cli.results import Listing, change_parts, value_text
+from mbtool.cli.sinks import default_format, render
+from mbtool.cli.sinks.table import write_items
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
-from mbtool.errors import KNOWN_ERRORS, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, Verdict, exit_code_for
 
 # An item's fate.  One word each, so a script can split a plain line at its first space.
 CONFIRMED = "confirmed"  # written, and read back as written
@@ -86,14 +85,14 @@ def send_all(steps: Sequence[Step], send: Callable[[Step], object], broadcast: b
     return Outcome(tuple(steps), done, error)
 
 
-def failure(command: str, outcome: Outcome, read_back: bool | None = None) -> Summary:
+def failure(command: str, outcome: Outcome, read_back: bool | None = None) -> Verdict:
     """The stderr line of a plan that failed, with the failure's own exit code: where it
     stopped, why, and how many items were written, refused or failed, and not sent.
     ``read_back``: None for a command that never reads back (write -m), else whether it did."""
     step, error = outcome.failed, outcome.error
     assert step is not None and error is not None
     why = "interrupted" if isinstance(error, KeyboardInterrupt) else str(error)
-    return Summary(
+    return Verdict(
         f"{command} stopped at {step.label}: {why}; {_counts(outcome, read_back)}", exit_code_for(error)
     )
 
@@ -143,49 +142,20 @@ def item_line(item: dict) -> str:
 def report(settings, items: Sequence[dict], head: dict, end: dict | None = None) -> None:
     """Print the items in the run's format (its Settings): ``head`` (unit, map, file) and
     ``end`` (error, exit_code) frame them in JSON."""
-    fmt = settings.output_format or default_format()
-    if fmt == "json":
-        print(to_json({**head, "writes": list(items), **(end or {})}))
-    elif fmt == "csv":
-        _csv(items, settings.csv_header)
-    elif fmt == "table":
-        _table(items, head)
-    else:
-        sys.stdout.write("".join(item_line(item) + "\n" for item in items))
+    listing = Listing(
+        data=lambda: {**head, "writes": list(items), **(end or {})},
+        table=lambda: (CSV_HEADER, [_cells(item) for item in items]),
+        lines=lambda: [item_line(item) for item in items],
+        draw=lambda: write_items(items, head),
+    )
+    render(listing, settings.output_format or default_format(), csv_header=settings.csv_header)
 
 
 CSV_HEADER = ["status", "table", "address", "ref", "name", "old", "new", "unit"]
 
 
-def _csv(items: Sequence[dict], header: bool) -> None:
-    import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
-
-    writer = csv.writer(sys.stdout, lineterminator="\n")
-    if wants_csv_header(sys.stdout, header):
-        writer.writerow(CSV_HEADER)
-    for item in items:
-        writer.writerow(
-            "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
-            for key in CSV_HEADER
-        )
-
-
-def _table(items: Sequence[dict], head: dict) -> None:
-    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: tables only
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: tables only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: tables only
-
-    statuses = any("status" in item for item in items)
-    olds = any("old" in item for item in items)
-    table = Table()
-    for column, shown in (("Status", statuses), ("What", True), ("Old", olds), ("New", True)):
-        if shown:
-            table.add_column(column, justify="right" if column in ("Old", "New") else "left")
-    for item in items:
-        where, old, new = change_parts(item, item.get("old"), item["new"], item.get("unit", ""))
-        cells = ([item.get("status", "")] if statuses else []) + [where] + ([old] if olds else []) + [new]
-        table.add_row(*(escape(cell) for cell in cells))
-    console = Console()
-    source = head.get("file") or head.get("map") or ""
-    console.print(f"[bold]{escape(source)}[/] · unit {head.get('unit')}", highlight=False)
-    console.print(table)
+def _cells(item: dict) -> list:
+    return [
+        "" if item.get(key) is None else value_text(item[key]) if key in ("old", "new") else item[key]
+        for key in CSV_HEADER
+    ]

@@ -1,4 +1,4 @@
-"""Master side I/O: transports, the client (time, retries, id matching), connections, the poll loop.
+"""Master side I/O: transports, the client (time, retries, id matching), connections, the managed link, polling.
 
 The registry of in-process links lives here, not in ``transport``: the CLI registers
 ``sim://`` on every start, and this costs it no socket or serial imports.

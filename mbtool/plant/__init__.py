@@ -1,1 +1,1 @@
-"""The plant poller: every device of several links, polled from one process (mbtool poll)."""
+"""The plant: every device of several links, polled from one process (mbtool poll)."""

@@ -57,10 +57,9 @@ from mbtool.registermap.load import MapError, RegisterMap, load_map, name_proble
 from mbtool.registermap.plan import MapReader
 from mbtool.registermap.point import Point
 
-FORMATS = ("plain", "json", "csv", "influx", "prom")
 POLL_KEYS = {
     "interval": "seconds between polls of a device, such as 10",
-    "output": "one of " + ", ".join(FORMATS),
+    "output": "one of poll's -o formats",
     "offline_after": "failed polls in a row that make a device offline, such as 3",
     "max_backoff": "the longest wait, in seconds, before an offline device is tried again (at least the interval)",
 }
@@ -99,8 +98,10 @@ class Inventory:
     mqtt: dict | None = None  # its [mqtt] table, checked (mbtool/mqtt/settings.py): poll adds --mqtt's url
 
 
-def load_inventory(path: str) -> Inventory:
-    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong."""
+def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
+    """The inventory at ``path``, checked whole; UsageError (exit 2) naming what is wrong.
+    ``outputs``: the formats its [poll] output may name (cli's registry of sinks, which this
+    click-free room does not import); none given, any is taken."""
     data = read_toml(Path(path), "inventory")
     for key in data:
         if key not in ("poll", "links", "devices", "mqtt"):
@@ -115,8 +116,8 @@ def load_inventory(path: str) -> Inventory:
         if key not in POLL_KEYS:
             raise UsageError(f"{where}: unknown key (known: {', '.join(POLL_KEYS)})")
         if key == "output":
-            if value not in FORMATS:
-                raise UsageError(f"{where}: {value!r} is not {POLL_KEYS[key]}")
+            if outputs and value not in outputs:
+                raise UsageError(f"{where}: {value!r} is not one of {', '.join(outputs)}")
             output = value
         else:
             defaults[key] = _setting(key, value, where)

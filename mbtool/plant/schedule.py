@@ -1,4 +1,4 @@
-"""The plant poller: every device of several links, one transaction at a time on each link,
+"""The plant: every device of several links, one transaction at a time on each link,
 every link at once.
 
 A link (a serial bus, or a gateway or TCP device that takes one request at a time) has a

@@ -1,7 +1,7 @@
 """What the campaigns share: running an mbtool checkout, a ``serve`` to talk to, a recording
 proxy that says whether anything was sent, the RSS of a process, and the report.
 
-The peers the tests already have (tests/helpers.py: the pseudo-terminal pair that records
+The peers the tests already have (tests/helpers/: the pseudo-terminal pair that records
 what crosses it, the environment mbtool runs in, the signal set-up of a child a test
 interrupts) are imported from there, not copied.
 """
@@ -25,15 +25,10 @@ from typing import NoReturn
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from helpers import (  # noqa: E402  (the tests' own peers and helpers)
-    PTY_SERIAL_OPTS,
-    PtyPair,
-    first_line,
-    mbtool_env,
-    signals_as_from_a_shell,
-)
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair  # noqa: E402
+from helpers.run import first_line, mbtool_env, signals_as_from_a_shell  # noqa: E402
 
-__all__ = ["PTY_SERIAL_OPTS", "PtyPair"]  # for the campaigns, from tests/helpers.py
+__all__ = ["PTY_SERIAL_OPTS", "PtyPair"]  # for the campaigns, from tests/helpers/ptys.py
 
 TREE = ROOT  # the checkout whose mbtool runs (--mbtool DIR)
 RUN_DEADLINE = 30.0  # seconds any one mbtool run may take before it counts as a hang

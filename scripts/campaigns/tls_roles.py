@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import common
-from helpers import mbap, read_mbap
+from helpers.frames import mbap, read_mbap
 from peers.certs import make_pki
 
 READ_FUNCTIONS = {0x01, 0x02, 0x03, 0x04, 0x07, 0x0B, 0x0C, 0x11, 0x14, 0x18}

@@ -4,7 +4,8 @@ that came before the command are told where they go."""
 from __future__ import annotations
 
 import pytest
-from helpers import assert_one_error_line, run_cli
+from helpers.checks import assert_one_error_line
+from helpers.run import run_cli
 
 
 def test_choices_take_any_case_and_mean_the_same():

@@ -11,7 +11,9 @@ import sys
 import time
 
 import pytest
-from helpers import REPO_ROOT, assert_one_error_line, crc16, mbtool_env, run_cli, run_mbtool
+from helpers.checks import assert_one_error_line
+from helpers.frames import crc16
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, run_mbtool
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 import pytest
-from helpers import REPO_ROOT, run_cli
+from helpers.run import REPO_ROOT, run_cli
 
 from mbtool.cli import cli
 
@@ -512,8 +512,8 @@ def test_the_plant_pages_inventory_loads_where_the_page_says_to_save_it(tmp_path
     """docs/plant.md's end-to-end inventory names its map relative to itself: the page says
     where to save it, and saved there it loads (issue 39.12: saved anywhere else it is exit 2,
     'cannot read map')."""
-    from mbtool.plant.inventory import load_inventory
     from mbtool.codec.errors import RequestError
+    from mbtool.plant.inventory import load_inventory
 
     section = _read("docs/plant.md").split("## A plant end to end", 1)[1].split("\n## ", 1)[0]
     where = "save the inventory below as `plant.toml` in the root of mbtool's source tree"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import shlex
 
 import pytest
-from helpers import run_cli
+from helpers.run import run_cli
 
 import mbtool.link.transport
 from mbtool.cli import COMMANDS

@@ -7,17 +7,9 @@ import struct
 from datetime import datetime
 
 import pytest
-from helpers import (
-    EXCEPTION_RSP,
-    GARBAGE,
-    INPUT_REQ,
-    READ_REQ,
-    READ_RSP,
-    Result,
-    assert_one_error_line,
-    json_lines,
-    run_cli,
-)
+from helpers.checks import assert_one_error_line, json_lines
+from helpers.monitor import EXCEPTION_RSP, GARBAGE, INPUT_REQ, READ_REQ, READ_RSP
+from helpers.run import Result, run_cli
 
 
 def monitor(*args: str) -> Result:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import TESTS_DIR, assert_one_error_line, expect_ok, parse_hex_lines, rtu, run_cli, run_mbtool
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines
+from helpers.frames import rtu
+from helpers.run import TESTS_DIR, run_cli, run_mbtool
 
 VECTORS = json.loads((TESTS_DIR / "data" / "vectors.json").read_text())
 SERIAL = VECTORS["serial"]

@@ -12,7 +12,8 @@ import subprocess
 import sys
 
 import pytest
-from helpers import REPO_ROOT, assert_one_error_line, mbtool_env, run_cli, run_mbtool
+from helpers.checks import assert_one_error_line
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

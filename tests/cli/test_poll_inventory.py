@@ -4,10 +4,8 @@ one is exit 2 with one line naming the file, the table and the key."""
 from __future__ import annotations
 
 import pytest
-from helpers import (
-    assert_one_error_line,
-    run_cli,
-)
+from helpers.checks import assert_one_error_line
+from helpers.run import run_cli
 
 from mbtool.cli.program import register_schemes
 from mbtool.plant.inventory import load_inventory

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from helpers import assert_one_error_line, expect_ok, plain_pairs, run_cli
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs
+from helpers.run import run_cli
 
 
 def config(tmp_path, text: str) -> dict[str, str]:

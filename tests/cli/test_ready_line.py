@@ -8,7 +8,7 @@ import signal
 
 import click
 import pytest
-from helpers import first_line, run_cli, start_mbtool
+from helpers.run import first_line, run_cli, start_mbtool
 
 from mbtool.cli import program
 from mbtool.device.server import Server

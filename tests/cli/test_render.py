@@ -7,8 +7,8 @@ import json
 import subprocess
 import sys
 
-from mbtool.cli.json_text import to_json
-from mbtool.cli.render import render
+from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks import render
 from mbtool.cli.results import Result, as_dict
 
 REGISTERS = Result(

@@ -8,12 +8,8 @@ import subprocess
 import sys
 import tomllib
 
-from helpers import (
-    REPO_ROOT,
-    assert_one_error_line,
-    mbtool_env,
-    run_cli,
-)
+from helpers.checks import assert_one_error_line
+from helpers.run import REPO_ROOT, mbtool_env, run_cli
 
 from mbtool.cli.commands.snapshot import write_requests
 

@@ -13,7 +13,9 @@ import threading
 import tty
 
 import pytest
-from helpers import PTY_SERIAL_OPTS, assert_one_error_line, run_cli
+from helpers.checks import assert_one_error_line
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli
 
 from mbtool.cli.program import register_schemes
 from mbtool.codec.errors import RequestError

@@ -13,7 +13,7 @@ import subprocess
 import sys
 
 import pytest
-from helpers import REPO_ROOT, mbtool_env, signals_as_from_a_shell
+from helpers.run import REPO_ROOT, mbtool_env, signals_as_from_a_shell
 
 from mbtool.files import MAX_FILE_BYTES
 

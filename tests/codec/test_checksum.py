@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import TESTS_DIR
+from helpers.run import TESTS_DIR
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 
 import pytest
-from helpers import drain_events, settle_events
+from helpers.frames import drain_events, settle_events
 
 from mbtool.codec import data_access as da
 from mbtool.codec import device_id as di

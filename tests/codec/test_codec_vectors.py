@@ -9,7 +9,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import TESTS_DIR, drain_events, settle_events
+from helpers.frames import drain_events, settle_events
+from helpers.run import TESTS_DIR
 
 from mbtool.codec import data_access, device_id, file_record, serial_line  # noqa: F401  (register every FC)
 from mbtool.codec.ascii import AsciiFramer

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from mbtool.cli.render import render
+from mbtool.cli.sinks import render
 from mbtool.cli.results import Report, Row
 from mbtool.codec.data_access import mask_formula
 from mbtool.codec.describe import describe, parse_hex, split_frame

@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 
 import pytest
-from helpers import REPO_ROOT
+from helpers.run import REPO_ROOT
 
 
 def load_fuzz():

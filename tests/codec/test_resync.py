@@ -15,7 +15,8 @@ import importlib.util
 import random
 
 import pytest
-from helpers import REPO_ROOT, drain_events, settle_events
+from helpers.frames import drain_events, settle_events
+from helpers.run import REPO_ROOT
 
 from mbtool.codec import data_access as da
 from mbtool.codec import serial_line as sl

@@ -8,7 +8,7 @@ import struct
 import time
 
 import pytest
-from helpers import REPO_ROOT
+from helpers.run import REPO_ROOT
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer

@@ -16,7 +16,8 @@ import threading
 import time
 
 import pytest
-from helpers import ascii_frame, closed_by_peer, crc16, lrc, mbap, rtu, wait_until
+from helpers.checks import closed_by_peer, wait_until
+from helpers.frames import ascii_frame, crc16, lrc, mbap, rtu
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Rejected, device_framer

@@ -5,7 +5,8 @@ from __future__ import annotations
 import re
 
 import pytest
-from helpers import run_cli, serve
+from helpers.run import run_cli
+from helpers.served import serve
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -22,28 +22,12 @@ import time
 from types import SimpleNamespace
 
 import pytest
-from helpers import (
-    PTY_SERIAL_OPTS,
-    REPO_ROOT,
-    Bridge,
-    PtyPair,
-    assert_one_error_line,
-    bridge,
-    crc16,
-    expect_ok,
-    first_line,
-    mbap,
-    mbtool_env,
-    plain_pairs,
-    pymodbus_tcp,
-    read_mbap,
-    rtu,
-    run_cli,
-    run_mbtool,
-    serve,
-    signals_as_from_a_shell,
-    start_device,
-)
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs
+from helpers.devices import start_device
+from helpers.frames import crc16, mbap, read_mbap, rtu
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import REPO_ROOT, first_line, mbtool_env, run_cli, run_mbtool, signals_as_from_a_shell
+from helpers.served import Bridge, bridge, pymodbus_tcp, serve
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -10,15 +10,10 @@ from __future__ import annotations
 import ssl
 
 import pytest
-from helpers import (
-    HOLDING,
-    assert_one_error_line,
-    bridge,
-    expect_ok,
-    plain_pairs,
-    run_cli,
-    start_device,
-)
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs
+from helpers.devices import HOLDING, start_device
+from helpers.run import run_cli
+from helpers.served import bridge
 
 pytestmark = pytest.mark.timeout(120)
 

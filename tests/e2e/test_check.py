@@ -9,7 +9,8 @@ import sys
 import time
 
 import pytest
-from helpers import HOLDING, REPO_ROOT, mbtool_env, run_cli, start_mbtool
+from helpers.devices import HOLDING
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, start_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -8,7 +8,9 @@ import subprocess
 import time
 
 import pytest
-from helpers import free_port, run_cli, run_mbtool, serve
+from helpers.run import run_cli, run_mbtool
+from helpers.served import serve
+from helpers.sockets import free_port
 
 
 def _socat_x(tmp_path, *flags: str) -> str:

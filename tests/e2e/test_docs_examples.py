@@ -11,7 +11,9 @@ import signal
 import subprocess
 
 import pytest
-from helpers import REPO_ROOT, interrupt_after, run_cli, serve, wait_until
+from helpers.checks import wait_until
+from helpers.run import REPO_ROOT, interrupt_after, run_cli
+from helpers.served import serve
 
 
 def _page(name: str) -> str:

@@ -8,17 +8,10 @@ import contextlib
 import json
 
 import pytest
-from helpers import (
-    expect_ok,
-    interrupt_after,
-    mbap,
-    parse_hex_lines,
-    pymodbus_tcp,
-    read_mbap,
-    run_cli,
-    serve,
-    start_mbtool,
-)
+from helpers.checks import expect_ok, parse_hex_lines
+from helpers.frames import mbap, read_mbap
+from helpers.run import interrupt_after, run_cli, start_mbtool
+from helpers.served import pymodbus_tcp, serve
 
 # --- mbtool dump end to end: pymodbus's device with holes, and serve --data of its dump ----------
 

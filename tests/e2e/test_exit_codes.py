@@ -8,16 +8,10 @@ from __future__ import annotations
 import time
 
 import pytest
-from helpers import (
-    PTY_SERIAL_OPTS,
-    assert_one_error_line,
-    expect_ok,
-    parse_hex_lines,
-    plain_pairs,
-    rtu,
-    run_cli,
-    run_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines, plain_pairs
+from helpers.frames import rtu
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli, run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -23,17 +23,11 @@ import tty
 from urllib.parse import urlencode
 
 import pytest
-from helpers import (
-    METER_DATA,
-    METER_MAP,
-    REPO_ROOT,
-    Running,
-    assert_one_error_line,
-    exporting,
-    promtool_check,
-    run_cli,
-    serve,
-)
+from helpers.checks import assert_one_error_line
+from helpers.exporter import METER_DATA, METER_MAP, Running, exporting
+from helpers.prometheus import promtool_check
+from helpers.run import REPO_ROOT, run_cli
+from helpers.served import serve
 
 from mbtool.errors import NoResponse
 
@@ -600,8 +594,8 @@ def test_several_scrapers_at_once_each_get_a_whole_exposition(meter, tmp_path):
 def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each_family_once():
     """In-process, on examples/plant.toml (sim://): what PlantMetrics joins is one exposition."""
     from mbtool.cli.commands.exporter import PlantMetrics
-    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
+    from mbtool.plant.inventory import load_inventory
     from mbtool.plant.schedule import Plant
 
     register_schemes()  # sim://, as main() does
@@ -633,8 +627,8 @@ def _polls_a_second(tmp_path, devices: int, exporting_metrics: bool, seconds: fl
     """Polls a second of ``devices`` on one sim:// link (every one due at once, all along),
     their reports going to the exporter's PlantMetrics or nowhere, as poll -o plain's do."""
     from mbtool.cli.commands.exporter import PlantMetrics
-    from mbtool.plant.inventory import load_inventory
     from mbtool.cli.program import register_schemes
+    from mbtool.plant.inventory import load_inventory
     from mbtool.plant.schedule import Plant
 
     register_schemes()

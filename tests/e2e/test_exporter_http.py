@@ -15,7 +15,8 @@ import threading
 import time
 
 import pytest
-from helpers import METER_MAP, exporting, signals_as_from_a_shell
+from helpers.exporter import METER_MAP, exporting
+from helpers.run import signals_as_from_a_shell
 
 pytestmark = pytest.mark.timeout(120)
 

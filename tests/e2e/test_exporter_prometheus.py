@@ -20,7 +20,10 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 import pytest
-from helpers import METER_DATA, METER_MAP, exporting, free_port, http_get, serve, start_device
+from helpers.devices import start_device
+from helpers.exporter import METER_DATA, METER_MAP, exporting, http_get
+from helpers.served import serve
+from helpers.sockets import free_port
 
 pytestmark = [
     pytest.mark.timeout(180),

@@ -21,7 +21,10 @@ from pathlib import Path
 from urllib.parse import quote
 
 import pytest
-from helpers import METER_MAP, exporting, free_udp_port, run_cli, serve
+from helpers.exporter import METER_MAP, exporting
+from helpers.run import run_cli
+from helpers.served import serve
+from helpers.sockets import free_udp_port
 from prometheus_client.parser import text_string_to_metric_families
 
 pytestmark = pytest.mark.timeout(90)

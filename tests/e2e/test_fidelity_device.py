@@ -17,16 +17,12 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import (
-    PROMPT,
-    REPO_ROOT,
-    PtyPair,
-    assert_one_error_line,
-    build_libmodbus,
-    mbap,
-    run_cli,
-    serve,
-)
+from helpers.checks import assert_one_error_line
+from helpers.devices import build_libmodbus
+from helpers.frames import mbap
+from helpers.ptys import PtyPair
+from helpers.run import REPO_ROOT, run_cli
+from helpers.served import PROMPT, serve
 
 from mbtool.codec.framing import make_framer
 from mbtool.device.datafile import load_data

@@ -15,7 +15,10 @@ import threading
 import time
 
 import pytest
-from helpers import HOLDING, TESTS_DIR, assert_one_error_line, build_libmodbus, free_port, run_cli, run_mbtool
+from helpers.checks import assert_one_error_line
+from helpers.devices import HOLDING, build_libmodbus
+from helpers.run import TESTS_DIR, run_cli, run_mbtool
+from helpers.sockets import free_port
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -9,7 +9,8 @@ import socket
 import time
 
 import pytest
-from helpers import COILS, DISCRETE, HOLDING, INPUT, crc16, rtu
+from helpers.devices import COILS, DISCRETE, HOLDING, INPUT
+from helpers.frames import crc16, rtu
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -17,7 +17,8 @@ import threading
 import time
 
 import pytest
-from helpers import assert_one_error_line, run_mbtool
+from helpers.checks import assert_one_error_line
+from helpers.run import run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -5,15 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import (
-    HOLDING,
-    PTY_SERIAL_OPTS,
-    assert_one_error_line,
-    expect_ok,
-    parse_hex_lines,
-    rtu,
-    run_cli,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines
+from helpers.devices import HOLDING
+from helpers.frames import rtu
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli
 
 
 def pairs(res) -> dict[str, str]:

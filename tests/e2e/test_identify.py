@@ -13,7 +13,9 @@ import threading
 import tomllib
 
 import pytest
-from helpers import PTY_SERIAL_OPTS, REPO_ROOT, PtyPair, run_cli, serve
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import REPO_ROOT, run_cli
+from helpers.served import serve
 
 from mbtool.device.datafile import load_data
 from mbtool.library import library_names, load_named_map, twin_path

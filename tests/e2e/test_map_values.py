@@ -13,7 +13,9 @@ import json
 import math
 
 import pytest
-from helpers import TESTS_DIR, assert_one_error_line, expect_ok, run_cli, serve
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.run import TESTS_DIR, run_cli
+from helpers.served import serve
 from prometheus_client.parser import text_string_to_metric_families
 
 pytestmark = pytest.mark.timeout(90)

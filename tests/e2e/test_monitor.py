@@ -19,7 +19,9 @@ import threading
 import time
 
 import pytest
-from helpers import (
+from helpers.checks import json_lines
+from helpers.frames import ascii_frame, rtu
+from helpers.monitor import (
     COILS_REQ,
     DAMAGED_REQ,
     EXCEPTION_RSP,
@@ -30,10 +32,7 @@ from helpers import (
     READ_RSP,
     WRITE_REQ,
     Line,
-    ascii_frame,
     finish,
-    json_lines,
-    rtu,
     start_monitor,
 )
 

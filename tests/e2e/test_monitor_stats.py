@@ -14,16 +14,10 @@ import json
 import time
 
 import pytest
-from helpers import (
-    Line,
-    assert_one_error_line,
-    bad_crc,
-    finish,
-    json_lines,
-    rtu,
-    run_cli,
-    start_monitor,
-)
+from helpers.checks import assert_one_error_line, json_lines
+from helpers.frames import bad_crc, rtu
+from helpers.monitor import Line, finish, start_monitor
+from helpers.run import run_cli
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -11,19 +11,12 @@ import sys
 import time
 
 import pytest
-from helpers import (
-    COILS,
-    HOLDING,
-    assert_one_error_line,
-    METER_DATA,
-    METER_MAP,
-    expect_ok,
-    promtool_check,
-    run_cli,
-    serve,
-    start_device,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.devices import COILS, HOLDING, start_device
+from helpers.exporter import METER_DATA, METER_MAP
+from helpers.prometheus import promtool_check
+from helpers.run import run_cli, start_mbtool
+from helpers.served import serve
 from line_protocol_parser import parse_line
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -216,7 +209,7 @@ def test_a_text_point_is_a_string_field_and_no_gauge(tcp_device, tmp_path):
 def test_a_symlink_planted_beside_the_textfile_is_never_followed(tmp_path):
     """The old temporary name was .NAME.PID.tmp: a symlink planted there sent the write to
     another file and then became the textfile itself."""
-    from mbtool.cli import metrics as monitoring
+    from mbtool.cli.sinks import prom as monitoring
 
     victim = tmp_path / "victim"
     victim.write_text("precious\n")

@@ -18,18 +18,12 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
+from helpers.devices import start_device, stop_device
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import REPO_ROOT, mbtool_env, run_mbtool
+from helpers.served import serve
+from helpers.sockets import free_port
 from peers.broker import Broker, Subscriber, mosquitto, needs_mosquitto
-from helpers import (
-    PTY_SERIAL_OPTS,
-    REPO_ROOT,
-    PtyPair,
-    free_port,
-    mbtool_env,
-    run_mbtool,
-    serve,
-    start_device,
-    stop_device,
-)
 
 pytestmark = [pytest.mark.timeout(60), needs_mosquitto]
 

@@ -5,7 +5,7 @@ This is the contract docs/exit-codes.md documents.  Each case is
 a scripted peer that reads the real request mbtool sent and builds its reply from it
 (the request's transaction id and unit, or deliberately not), writing it in pieces with
 delays where the case says so.  The peer frames its replies with the CRC/LRC helpers of
-tests/helpers.py, never with mbtool's codec.
+tests/helpers/frames.py, never with mbtool's codec.
 
 Links:
 
@@ -38,7 +38,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import pytest
-from helpers import PTY_SERIAL_OPTS, assert_one_error_line, crc16, lrc, run_mbtool
+from helpers.checks import assert_one_error_line
+from helpers.frames import crc16, lrc
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_mbtool
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -16,16 +16,12 @@ import struct
 import time
 
 import pytest
-from helpers import (
-    CLOSE,
-    PTY_SERIAL_OPTS,
-    assert_one_error_line,
-    bridge,
-    rtu,
-    run_cli,
-    serve,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line
+from helpers.frames import rtu
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli, start_mbtool
+from helpers.served import bridge, serve
+from helpers.sockets import CLOSE
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -15,20 +15,11 @@ import struct
 from pathlib import Path
 
 import pytest
-from helpers import (
-    COILS,
-    HOLDING,
-    INPUT,
-    PTY_SERIAL_OPTS,
-    REPO_ROOT,
-    PtyPair,
-    assert_one_error_line,
-    expect_ok,
-    parse_hex_lines,
-    pymodbus_tcp,
-    run_cli,
-    serve,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines
+from helpers.devices import COILS, HOLDING, INPUT
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import REPO_ROOT, run_cli
+from helpers.served import pymodbus_tcp, serve
 
 pytestmark = pytest.mark.timeout(60)
 

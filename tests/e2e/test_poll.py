@@ -22,24 +22,13 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import (
-    HOLDING,
-    PTY_SERIAL_OPTS,
-    REPO_ROOT,
-    PtyPair,
-    assert_one_error_line,
-    bridge,
-    expositions,
-    free_port,
-    mbtool_env,
-    signals_as_from_a_shell,
-    promtool_check,
-    run_cli,
-    serve,
-    start_device,
-    start_mbtool,
-    stop_device,
-)
+from helpers.checks import assert_one_error_line
+from helpers.devices import HOLDING, start_device, stop_device
+from helpers.prometheus import expositions, promtool_check
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, signals_as_from_a_shell, start_mbtool
+from helpers.served import bridge, serve
+from helpers.sockets import free_port
 
 
 def write(path: Path, text: str) -> Path:
@@ -607,7 +596,7 @@ def test_on_a_terminal_a_live_view_shows_each_device_and_the_statistics_follow(s
 def test_the_statistics_table_has_a_column_for_every_outcome(tmp_path, raw_responder):
     """A device that hangs up on each request: its transactions are link_lost, in a column of
     their own, not transactions whose every outcome reads 0."""
-    from helpers import CLOSE
+    from helpers.sockets import CLOSE
 
     peer = raw_responder(lambda request: CLOSE)
     plant = write(

@@ -18,7 +18,8 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import REPO_ROOT, free_port, mbtool_env
+from helpers.run import REPO_ROOT, mbtool_env
+from helpers.sockets import free_port
 
 pytestmark = pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")
 

@@ -14,19 +14,11 @@ import time
 from datetime import datetime
 from types import SimpleNamespace
 
-from helpers import (
-    HOLDING,
-    REPO_ROOT,
-    assert_one_error_line,
-    expect_ok,
-    free_port,
-    interrupt_after,
-    mbtool_env,
-    run_cli,
-    serve,
-    start_device,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.devices import HOLDING, start_device
+from helpers.run import REPO_ROOT, interrupt_after, mbtool_env, run_cli, start_mbtool
+from helpers.served import serve
+from helpers.sockets import free_port
 
 
 def summary(res) -> dict:
@@ -406,7 +398,7 @@ def test_a_polls_json_line_is_the_whole_dict_encoded_whatever_the_shape_before_i
     every line must still be exactly what encoding the whole dict gives."""
     import io
 
-    from mbtool.cli.json_text import json_line as _json_line
+    from mbtool.cli.sinks.json import json_line as _json_line
     from mbtool.cli.poll_output import Output
     from mbtool.cli.results import Result, as_dict
 

@@ -13,7 +13,9 @@ import threading
 import pytest
 import serial
 import serial.rfc2217
-from helpers import PTY_SERIAL_OPTS, expect_ok, parse_hex_lines, plain_pairs, run_mbtool
+from helpers.checks import expect_ok, parse_hex_lines, plain_pairs
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_mbtool
 
 
 class _Writer:

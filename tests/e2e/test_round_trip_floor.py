@@ -22,7 +22,9 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import exporting, serve, start_mbtool
+from helpers.exporter import exporting
+from helpers.run import start_mbtool
+from helpers.served import serve
 from prometheus_client.parser import text_string_to_metric_families
 
 from mbtool.codec.data_access import ReadHoldingRegisters

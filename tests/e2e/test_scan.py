@@ -2,7 +2,7 @@
 
 Peers: pymodbus's server on a pseudo-terminal and on TCP (several unit ids),
 sim:// (the built-in device, unit 1 only), and small misbehaving TCP peers from
-tests/helpers.py (silent, answering with a bad CRC, answering as another unit, answering
+tests/helpers/sockets.py (silent, answering with a bad CRC, answering as another unit, answering
 late).  Every run ends within the test's timeout, and every wait below has a deadline.
 """
 
@@ -18,19 +18,11 @@ import sys
 import time
 
 import pytest
-from helpers import (
-    HOLDING,
-    PTY_SERIAL_OPTS,
-    REPO_ROOT,
-    assert_one_error_line,
-    crc16,
-    expect_ok,
-    mbtool_env,
-    rtu,
-    run_cli,
-    start_device,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.devices import HOLDING, start_device
+from helpers.frames import crc16, rtu
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, start_mbtool
 
 FAST = ("-t", "0.1")  # a short per-unit timeout keeps the silent units cheap
 # For peers that answer (nearly) every unit id, as pymodbus does (see below): a generous

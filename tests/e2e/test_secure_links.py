@@ -8,7 +8,9 @@ import json
 import shutil
 
 import pytest
-from helpers import HOLDING, assert_one_error_line, expect_ok, plain_pairs, run_cli, start_device
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs
+from helpers.devices import HOLDING, start_device
+from helpers.run import run_cli
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -1,7 +1,7 @@
 """mbtool over a pseudo-terminal serial line (RTU and ASCII) and over socket:// (RTU over TCP),
 with pymodbus's server on the other end.
 
-Every mbtool run on a pty passes --parity N: Linux ptys reject PARENB (see helpers.py).
+Every mbtool run on a pty passes --parity N: Linux ptys reject PARENB (see tests/helpers/ptys.py).
 """
 
 from __future__ import annotations
@@ -9,20 +9,11 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import (
-    COILS,
-    DISCRETE,
-    HOLDING,
-    PTY_SERIAL_OPTS,
-    crc16,
-    expect_ok,
-    lrc,
-    parse_hex_lines,
-    plain_pairs,
-    rtu,
-    run_cli,
-    start_device,
-)
+from helpers.checks import expect_ok, parse_hex_lines, plain_pairs
+from helpers.devices import COILS, DISCRETE, HOLDING, start_device
+from helpers.frames import crc16, lrc, rtu
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli
 
 pytestmark = pytest.mark.timeout(60)
 

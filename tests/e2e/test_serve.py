@@ -17,20 +17,12 @@ import subprocess
 import time
 
 import pytest
-from helpers import (
-    PTY_SERIAL_OPTS,
-    PtyPair,
-    Served,
-    assert_one_error_line,
-    crc16,
-    expect_ok,
-    free_port,
-    plain_pairs,
-    pymodbus_tcp,
-    run_cli,
-    serve,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs
+from helpers.frames import crc16
+from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
+from helpers.run import run_cli, start_mbtool
+from helpers.served import Served, pymodbus_tcp, serve
+from helpers.sockets import free_port
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -20,22 +20,11 @@ import threading
 import time
 
 import pytest
-from helpers import (
-    PROMPT,
-    PtyPair,
-    ascii_frame,
-    assert_one_error_line,
-    closed_by_peer,
-    crc16,
-    mbap,
-    pymodbus_tcp,
-    run_cli,
-    serve,
-    serving_line,
-    start_serve,
-    stop_serve,
-    timed_read,
-)
+from helpers.checks import assert_one_error_line, closed_by_peer
+from helpers.frames import ascii_frame, crc16, mbap
+from helpers.ptys import PtyPair
+from helpers.run import run_cli
+from helpers.served import PROMPT, pymodbus_tcp, serve, serving_line, start_serve, stop_serve, timed_read
 
 from mbtool.device.model import MAX_FILES
 

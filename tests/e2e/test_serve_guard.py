@@ -16,7 +16,9 @@ import threading
 import time
 
 import pytest
-from helpers import PROMPT, closed_by_peer, mbap, pymodbus_tcp, serve, timed_read
+from helpers.checks import closed_by_peer
+from helpers.frames import mbap
+from helpers.served import PROMPT, pymodbus_tcp, serve, timed_read
 
 pytestmark = pytest.mark.timeout(60)
 

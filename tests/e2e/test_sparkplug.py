@@ -15,7 +15,8 @@ import sys
 import time
 
 import pytest
-from helpers import free_port, start_device, stop_device
+from helpers.devices import start_device, stop_device
+from helpers.sockets import free_port
 from peers.broker import Subscriber, mosquitto, needs_mosquitto
 from test_mqtt import _start_poll
 

@@ -12,7 +12,8 @@ from __future__ import annotations
 import re
 
 import pytest
-from helpers import REPO_ROOT, bridge, run_cli, run_mbtool, serve
+from helpers.run import REPO_ROOT, run_cli, run_mbtool
+from helpers.served import bridge, serve
 
 from mbtool.words import counted
 

@@ -14,17 +14,10 @@ import subprocess
 import sys
 
 import pytest
-from helpers import (
-    REPO_ROOT,
-    PtyPair,
-    assert_one_error_line,
-    mbtool_env,
-    run_cli,
-    serve,
-    signals_as_from_a_shell,
-    start_mbtool,
-    wait_until,
-)
+from helpers.checks import assert_one_error_line, wait_until
+from helpers.ptys import PtyPair
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, signals_as_from_a_shell, start_mbtool
+from helpers.served import serve
 
 from mbtool.errors import ExitCode
 from mbtool.registermap.load import load_map

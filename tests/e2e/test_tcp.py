@@ -10,19 +10,10 @@ import json
 import struct
 
 import pytest
-from helpers import (
-    COILS,
-    DISCRETE,
-    HOLDING,
-    INPUT,
-    expect_ok,
-    parse_hex_lines,
-    plain_pairs,
-    run_cli,
-    run_mbtool,
-    serve,
-    start_mbtool,
-)
+from helpers.checks import expect_ok, parse_hex_lines, plain_pairs
+from helpers.devices import COILS, DISCRETE, HOLDING, INPUT
+from helpers.run import run_cli, run_mbtool, start_mbtool
+from helpers.served import serve
 
 pytestmark = pytest.mark.timeout(60)
 

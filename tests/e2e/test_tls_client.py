@@ -17,19 +17,10 @@ import termios
 import time
 
 import pytest
-from helpers import (
-    HOLDING,
-    REPO_ROOT,
-    SilentServer,
-    assert_one_error_line,
-    expect_ok,
-    mbtool_env,
-    parse_hex_lines,
-    plain_pairs,
-    run_cli,
-    run_mbtool,
-    start_device,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines, plain_pairs
+from helpers.devices import HOLDING, start_device
+from helpers.run import REPO_ROOT, mbtool_env, run_cli, run_mbtool
+from helpers.sockets import SilentServer
 from peers.certs import KEY_PASSWORD
 
 pytestmark = pytest.mark.timeout(90)

@@ -17,7 +17,10 @@ import socket
 import ssl
 
 import pytest
-from helpers import PROMPT, assert_one_error_line, bridge, mbap, read_mbap, run_cli, serve
+from helpers.checks import assert_one_error_line
+from helpers.frames import mbap, read_mbap
+from helpers.run import run_cli
+from helpers.served import PROMPT, bridge, serve
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -11,7 +11,9 @@ import ssl
 import time
 
 import pytest
-from helpers import assert_one_error_line, expect_ok, plain_pairs, run_cli, run_mbtool, serve, wait_until
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs, wait_until
+from helpers.run import run_cli, run_mbtool
+from helpers.served import serve
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -18,7 +18,10 @@ import time
 import tty
 
 import pytest
-from helpers import CLOSE, PtyPair, rtu, serve
+from helpers.frames import rtu
+from helpers.ptys import PtyPair
+from helpers.served import serve
+from helpers.sockets import CLOSE
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.errors import KNOWN_ERRORS

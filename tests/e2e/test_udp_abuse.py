@@ -15,7 +15,10 @@ import struct
 import time
 
 import pytest
-from helpers import assert_one_error_line, bridge, crc16, run_cli, serve
+from helpers.checks import assert_one_error_line
+from helpers.frames import crc16
+from helpers.run import run_cli
+from helpers.served import bridge, serve
 
 pytestmark = pytest.mark.timeout(120)
 

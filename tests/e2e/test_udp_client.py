@@ -13,18 +13,11 @@ import threading
 from collections.abc import Callable
 
 import pytest
-from helpers import (
-    HOLDING,
-    assert_one_error_line,
-    crc16,
-    expect_ok,
-    free_udp_port,
-    parse_hex_lines,
-    plain_pairs,
-    run_cli,
-    run_mbtool,
-    start_device,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines, plain_pairs
+from helpers.devices import HOLDING, start_device
+from helpers.frames import crc16
+from helpers.run import run_cli, run_mbtool
+from helpers.sockets import free_udp_port
 from peers.lossy_udp import LossyUdpProxy
 
 pytestmark = pytest.mark.timeout(120)

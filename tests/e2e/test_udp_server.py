@@ -9,15 +9,10 @@ import socket
 import struct
 
 import pytest
-from helpers import (
-    assert_one_error_line,
-    crc16,
-    expect_ok,
-    plain_pairs,
-    run_cli,
-    serve,
-    wait_until,
-)
+from helpers.checks import assert_one_error_line, expect_ok, plain_pairs, wait_until
+from helpers.frames import crc16
+from helpers.run import run_cli
+from helpers.served import serve
 from peers.lossy_udp import LossyUdpProxy
 
 pytestmark = pytest.mark.timeout(120)

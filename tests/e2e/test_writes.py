@@ -14,17 +14,11 @@ import json
 import struct
 
 import pytest
-from helpers import (
-    CLOSE,
-    assert_one_error_line,
-    expect_ok,
-    parse_hex_lines,
-    pymodbus_tcp,
-    run_cli,
-    serve,
-    start_device,
-    start_mbtool,
-)
+from helpers.checks import assert_one_error_line, expect_ok, parse_hex_lines
+from helpers.devices import start_device
+from helpers.run import run_cli, start_mbtool
+from helpers.served import pymodbus_tcp, serve
+from helpers.sockets import CLOSE
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from helpers import device_executor
+from helpers.fakes import device_executor
 
 from mbtool.codec.errors import FrameError
 from mbtool.device.datafile import load_data

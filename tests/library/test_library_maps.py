@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from helpers import device_executor
+from helpers.fakes import device_executor
 
 from mbtool.codec.tables import READS
 from mbtool.device.datafile import load_data

@@ -8,7 +8,8 @@ import fnmatch
 import tomllib
 from pathlib import Path
 
-from helpers import assert_one_error_line, run_cli
+from helpers.checks import assert_one_error_line
+from helpers.run import run_cli
 
 from mbtool.cli.commands.exporter import Modules
 from mbtool.library import MAPS, resolve_map

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 
-from helpers import assert_one_error_line, run_cli
+from helpers.checks import assert_one_error_line
+from helpers.run import run_cli
 
 import mbtool.link.transport
 from mbtool.library import MAPS, library_names

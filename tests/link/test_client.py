@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from helpers import FakeClock, ScriptedLink
+from helpers.fakes import FakeClock, ScriptedLink
 
 from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes

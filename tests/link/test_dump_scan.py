@@ -6,7 +6,7 @@ from __future__ import annotations
 import random
 
 import pytest
-from helpers import device_executor as executor
+from helpers.fakes import device_executor as executor
 
 from mbtool.codec.errors import ModbusException
 from mbtool.codec.tables import COILS, HOLDING_REGISTERS

@@ -10,7 +10,8 @@ from __future__ import annotations
 import contextlib
 
 import pytest
-from helpers import FakeClock, ScriptedLink, mbap, rtu
+from helpers.fakes import FakeClock, ScriptedLink
+from helpers.frames import mbap, rtu
 
 from mbtool.codec.framing import Frame, Rejected, RtuFramer, device_framer
 from mbtool.errors import ConnectionFailed

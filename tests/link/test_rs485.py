@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import pytest
 import serial
-from helpers import PTY_SERIAL_OPTS, assert_one_error_line, expect_ok, run_cli
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.ptys import PTY_SERIAL_OPTS
+from helpers.run import run_cli
 
 from mbtool.errors import ConnectionFailed
 from mbtool.link.transport import SerialSettings, SerialTransport

@@ -7,7 +7,8 @@ import random
 import time
 
 import pytest
-from helpers import (
+from helpers.frames import ascii_frame, crc16, rtu
+from helpers.monitor import (
     COILS_REQ,
     DAMAGED_REQ,
     EXCEPTION_RSP,
@@ -16,9 +17,6 @@ from helpers import (
     READ_REQ,
     READ_RSP,
     WRITE_REQ,
-    ascii_frame,
-    crc16,
-    rtu,
 )
 
 from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered

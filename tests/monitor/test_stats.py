@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from helpers import ascii_frame
+from helpers.frames import ascii_frame
 
 from mbtool.monitor.bus import BusMonitor
 from mbtool.monitor.stats import BusStats

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Independent Modbus device for mbtool's end-to-end tests, built on pymodbus 3.16.
 
-Run as a subprocess by tests/helpers.py (start_device):
+Run as a subprocess by tests/helpers/devices.py (start_device):
 
     python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15020 --framer socket --units 1
     python tests/peers/pymodbus_device.py --tcp 127.0.0.1:15021 --framer rtu

@@ -5,7 +5,7 @@ from __future__ import annotations
 import struct
 
 import pytest
-from helpers import device_executor
+from helpers.fakes import device_executor
 
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.tables import (

@@ -12,7 +12,7 @@ import json
 import struct
 
 import pytest
-from helpers import TESTS_DIR, run_cli
+from helpers.run import TESTS_DIR, run_cli
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError

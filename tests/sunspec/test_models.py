@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from helpers import REPO_ROOT, run_cli
+from helpers.run import REPO_ROOT, run_cli
 
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.layout import lay_out, map_rows

@@ -16,7 +16,6 @@ import click
 
 from mbtool.cli.completion import complete_port
 from mbtool.cli.frames import one_line, shown_frame
-from mbtool.cli.json_text import to_json
 from mbtool.cli.listen import check_udp_rate, datagrams_dropped, tls_server_settings
 from mbtool.cli.options import (
     LINK_OPTIONS,
@@ -30,6 +29,7 @@ from mbtool.cli.options import (
 from mbtool.cli.param_types import Choice, Seconds, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.session import warn_insecure
+from mbtool.cli.sinks import LOG, formats, sink
 from mbtool.cli.stamps import local_time
 from mbtool.codec.describe import describe
 from mbtool.codec.errors import function_code_text
@@ -131,7 +131,7 @@ class BridgeCommand(QuickHelp, click.Command):
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json"]),
+    type=Choice(formats(LOG)),
     callback=output_chosen,
     help="How transactions are shown: table on a terminal, plain in a pipe, json one object a "
     "transaction. A display 1000 lines behind drops lines (and says how many) rather than hold up the bus.",
@@ -308,7 +308,6 @@ class Show:
     """
 
     def __init__(self, fmt: str, hex_trace: bool, quiet: bool) -> None:
-        self.fmt = fmt
         self.hex = hex_trace
         self.quiet = quiet
         self.on_failure = lambda: None  # called (by the printer) when the output cannot be written
@@ -316,11 +315,8 @@ class Show:
         self.timed = 0  # transactions with a bus time, their sum and the longest
         self.bus_total = 0.0
         self.bus_longest = 0.0
-        self.console = None
-        if fmt == "table" and not quiet:
-            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-            self.console = Console(highlight=False, soft_wrap=True)
+        # The format's sink writes each line (its Log); this Show gives each format's view of one.
+        self.log = None if quiet else sink(fmt).Log(sys.stdout, self, highlight=False, soft_wrap=True)
         self.failure: OSError | None = None
         self.not_shown = 0  # lines dropped because the display fell behind
         self._dropped = 0  # of those, the ones the display has not been told of yet
@@ -341,7 +337,10 @@ class Show:
 
     def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
         """The server's own events: clients connecting, closed, refused."""
-        if self.quiet or self.fmt == "json" or direction not in ("open", "close", "refuse"):
+        if self.quiet:
+            return
+        assert self.log is not None  # made unless quiet
+        if not self.log.events or direction not in ("open", "close", "refuse"):
             return
         self._show(f"{local_time()} {peer} {note}")
 
@@ -379,28 +378,34 @@ class Show:
                 self.on_failure()
 
     def _write(self, item) -> None:
-        if isinstance(item, int):  # lines dropped
-            why = "the display fell behind"
-            if self.fmt == "json":
-                item = {"time": local_time(), "not_shown": item, "why": why}
-                sys.stdout.write(to_json(item) + "\n")
-                sys.stdout.flush()
-                return
-            lines = [("bold red", f"{local_time()} {item} not shown: {why}")]
-        elif isinstance(item, str):  # a server event
-            lines = [("dim", item)]
-        elif self.fmt == "json":
-            sys.stdout.write(to_json(passage_record(item)) + "\n")
-            sys.stdout.flush()
-            return
-        else:
-            lines = hex_lines(item) if self.hex else decoded_lines(item)
-        if self.console is not None:
-            for style, line in lines:
-                self.console.print(line, style=style, markup=False, emoji=False)
-        else:
-            sys.stdout.write("".join(line + "\n" for _, line in lines))
-            sys.stdout.flush()
+        assert self.log is not None  # made unless quiet, and nothing is queued when quiet
+        self.log.write(item)
+        sys.stdout.flush()
+
+    # Each format's view of a line to show: lines dropped (a count), a server event (a str), a
+    # transaction (a passage).
+    WHY_DROPPED = "the display fell behind"
+
+    def data(self, item) -> dict | None:
+        if isinstance(item, int):
+            return {"time": local_time(), "not_shown": item, "why": self.WHY_DROPPED}
+        if isinstance(item, str):
+            return None  # a server event: JSON's lines are transactions
+        return passage_record(item)
+
+    def styled(self, item) -> list[tuple[str, str]]:
+        if isinstance(item, int):
+            return [("bold red", f"{local_time()} {item} not shown: {self.WHY_DROPPED}")]
+        if isinstance(item, str):
+            return [("dim", item)]
+        return hex_lines(item) if self.hex else decoded_lines(item)
+
+    def lines(self, item) -> list[str]:
+        return [line for _, line in self.styled(item)]
+
+    def draw(self, item, console) -> None:
+        for style, line in self.styled(item):
+            console.print(line, style=style, markup=False, emoji=False)
 
     def summary(self, connections: int | None, tcp: bool) -> str:
         """The tally; ``connections``: a TCP or TLS server's (None: no connections to count),
@@ -425,6 +430,18 @@ class Show:
         if self.not_shown:
             text += f"; {self.not_shown} not shown (the display fell behind)"
         return text
+
+
+# Line styles on a terminal: the request, and its reply by what became of it.
+ASKED = "cyan"
+STYLES = {
+    REPLY: "green",
+    REFUSED: "yellow",
+    BROADCAST: "green",
+    NO_RESPONSE: "bold red",
+    NO_PATH: "bold red",
+    INVALID: "bold red",
+}
 
 
 # Line styles on a terminal: the request, and its reply by what became of it.

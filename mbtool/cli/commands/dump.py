@@ -15,13 +15,14 @@ from mbtool.cli.data_files import TABLE_SECTIONS, data_file
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks.table import ProgressBar
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.device_id import ReadDeviceIdentification
 from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
 from mbtool.codec.pdu import ExceptionCode
 from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
-from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
 from mbtool.words import counted
 
@@ -128,7 +129,7 @@ def dump(connection, settings, file, ranges, max_requests):
                     execute = partial(client.execute, connection.unit)
 
                     dumper = Dumper(execute, max_requests)
-                    bar = _Bar(total) if sys.stderr.isatty() and not settings.dry_run else None
+                    bar = ProgressBar(total, "dump") if sys.stderr.isatty() and not settings.dry_run else None
                     try:
                         for span in spans:
                             done = bar.done if bar else 0
@@ -176,7 +177,7 @@ def dump(connection, settings, file, ranges, max_requests):
         code = ExitCode.PARTIAL  # part of what was asked: a finished dump must not look like it
     elif failure is not None:
         code = exit_code_for(failure)
-    raise Summary(summary, code)
+    return Verdict(summary, code)
 
 
 class _Interrupts:
@@ -207,27 +208,3 @@ class _Interrupts:
     def __exit__(self, *exc) -> None:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
-
-
-class _Bar:
-    """A progress bar on a terminal's stderr: addresses covered of all asked for."""
-
-    def __init__(self, total: int) -> None:
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-        from rich.progress import Progress  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-
-        self.done = 0
-        self.progress = Progress(console=Console(stderr=True), transient=True)
-        self.task = self.progress.add_task("dump", total=total)
-        self.progress.start()
-
-    def past(self, start: int, count: int) -> None:
-        """``count`` more done since ``start`` (a span's progress as its dump reports it)."""
-        self.at(start + count)
-
-    def at(self, done: int) -> None:
-        self.done = done
-        self.progress.update(self.task, completed=done)
-
-    def close(self) -> None:
-        self.progress.stop()

@@ -40,7 +40,6 @@ from urllib.parse import parse_qs
 
 import click
 
-from mbtool.cli.metrics import warn_counter_names
 from mbtool.cli.options import LINK_OPTIONS, with_options
 from mbtool.cli.param_types import FilePath
 from mbtool.cli.plant_text import (
@@ -53,6 +52,8 @@ from mbtool.cli.plant_text import (
     point_name_clash,
     refuse_point_names,
 )
+from mbtool.cli.sinks import PLANT, formats
+from mbtool.cli.sinks.prom import warn_counter_names
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, link_failure
@@ -144,7 +145,7 @@ def exporter(inventory, listen, maps, allowed, timeout, retries):
     host, port, family = parse_listen(listen)
     plant = None
     if inventory is not None:
-        plant = load_inventory(inventory)
+        plant = load_inventory(inventory, formats(PLANT))
     if plant is None and maps is None:
         raise RequestError(
             "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "

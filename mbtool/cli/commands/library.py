@@ -13,7 +13,9 @@ import click
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Seconds, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
+from mbtool.cli.sinks import render
 from mbtool.codec.errors import FrameError, ModbusException, RequestError, exception_name
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
@@ -66,7 +68,7 @@ def list_maps(text, as_json) -> None:
         if text is None or text.lower() in searched:
             rows.append(row)
     if as_json:
-        from mbtool.cli.json_text import to_json  # noqa: PLC0415 - --json only
+        from mbtool.cli.sinks.json import to_json  # noqa: PLC0415 - --json only
 
         click.echo(to_json(rows))
         return
@@ -385,10 +387,9 @@ SEEN_NAMES = {"fc43": "FC 43/14", "fc17": "FC 17", "sunspec": "SunSpec", "budget
 
 def _show_identity(unit: int, settings, candidates, sunspec: dict | None, seen: dict[str, str]) -> None:
     best = _best(candidates)
-    if settings.output_format == "json":
-        from mbtool.cli.json_text import to_json  # noqa: PLC0415 - -o json only
 
-        data = {
+    def data() -> dict:
+        return {
             "unit": unit,
             "identified": best is not None or sunspec is not None,
             "map": best.name if best else None,
@@ -408,25 +409,31 @@ def _show_identity(unit: int, settings, candidates, sunspec: dict | None, seen: 
             ],
             "seen": {SEEN_NAMES[key]: value or "no objects" for key, value in seen.items()},
         }
-        click.echo(to_json(data))
-        return
-    if best is not None:
-        click.echo(f"unit {unit}: {best.header.manufacturer} {best.header.model}, map {best.name}")
-    elif sunspec is not None:
-        named = " ".join(filter(None, (sunspec.get("manufacturer"), sunspec.get("model"))))
-        click.echo(
-            f"unit {unit}: SunSpec device {named}".rstrip()
-            + ": mbtool sunspec reads it (--map writes its map)"
-        )
-    else:
-        click.echo(f"unit {unit}: unknown device")
-    for candidate in candidates:
-        if candidate is not best:
-            how = "fits" if candidate.complete else f"partly ({candidate.fits} of {candidate.probes} probes)"
-            click.echo(
-                f"  also {how}: {candidate.header.manufacturer} {candidate.header.model}, map {candidate.name}"
-            )
-        for line in candidate.evidence:
-            click.echo(f"    {line}")
-    for key, value in seen.items():
-        click.echo(f"  seen: {SEEN_NAMES[key]}: {value or 'no objects'}")
+
+    def lines() -> list[str]:
+        if best is not None:
+            shown = [f"unit {unit}: {best.header.manufacturer} {best.header.model}, map {best.name}"]
+        elif sunspec is not None:
+            named = " ".join(filter(None, (sunspec.get("manufacturer"), sunspec.get("model"))))
+            shown = [
+                f"unit {unit}: SunSpec device {named}".rstrip()
+                + ": mbtool sunspec reads it (--map writes its map)"
+            ]
+        else:
+            shown = [f"unit {unit}: unknown device"]
+        for candidate in candidates:
+            if candidate is not best:
+                how = (
+                    "fits"
+                    if candidate.complete
+                    else f"partly ({candidate.fits} of {candidate.probes} probes)"
+                )
+                shown.append(
+                    f"  also {how}: {candidate.header.manufacturer} {candidate.header.model}, map {candidate.name}"
+                )
+            shown += [f"    {line}" for line in candidate.evidence]
+        shown += [f"  seen: {SEEN_NAMES[key]}: {value or 'no objects'}" for key, value in seen.items()]
+        return shown
+
+    # No table and no CSV of its own: its lines, as plain says them.
+    render(Listing(data=data, table=None, lines=lines), settings.output_format or "plain")

@@ -16,20 +16,21 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import NamedTuple
 
 import click
 
 from mbtool.cli.frames import frame_report, one_line
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import PROFILE_OPTION, output_chosen, serial_line_options
 from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat
 from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.profiles import defaults
-from mbtool.cli.render import default_format
+from mbtool.cli.sinks import LOG, default_format, formats, sink
+from mbtool.cli.sinks.table import escape
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.timing import char_time, character_bits, silent_interval
-from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Summary
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Verdict
 from mbtool.link.transport import SerialSettings, SerialTransport
 from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
 from mbtool.monitor.pcap import BusCapture, is_pcap, packets
@@ -106,7 +107,7 @@ def default_silence(framer: str, baud: int) -> float:
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json"]),
+    type=Choice(formats(LOG)),
     callback=output_chosen,
     help="Output: coloured lines on a terminal (table), plain lines in a pipe, json one object a line.",
 )
@@ -225,8 +226,8 @@ def monitor(
     if lost is not None:
         raise ConnectionFailed(f"{lost}; {summary}")
     if interrupted:
-        raise Summary("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
-    raise Summary(summary, ExitCode.OK)
+        return Verdict("interrupted; " + summary, ExitCode.INTERRUPTED if tally.frames == 0 else ExitCode.OK)
+    return Verdict(summary, ExitCode.OK)
 
 
 def _bus_stats(framer, baud, parity, bytesize, stopbits, timed: bool, from_file):
@@ -425,37 +426,49 @@ def plain_line(item, timed: bool = True) -> str:
     return line
 
 
+class _Stats(NamedTuple):
+    """The statistics so far, as an item of the output: a table's lines, or a JSON object."""
+
+    counts: BusStats
+    now: float | None
+
+
 class Output:
-    """Each frame the moment it is seen, flushed: a terminal gets coloured lines."""
+    """Each frame the moment it is seen, flushed, by the format's sink (its Log): a terminal
+    gets coloured lines.  This Output gives each format's view of an item."""
 
     COLOURS = {"request": "cyan", "response": "green", "garbage": "red"}
 
     def __init__(self, fmt: str, out=None, timed: bool = True) -> None:
-        self.fmt = fmt
         self.out = out or sys.stdout
         self.timed = timed  # False: a recording with no time stamps
-        self.console = None
-        # Imported now, not while the first frame arrives: a read delayed by an import
-        # stamps its bytes late and shrinks the gap and latency shown.
-        if fmt == "table":
-            from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-            self.console = Console(file=self.out, highlight=False, soft_wrap=True)
+        self.log = sink(fmt).Log(self.out, self, highlight=False, soft_wrap=True)
 
     def write(self, item) -> None:
-        if self.fmt == "json":
-            self.out.write(to_json(as_dict(item, self.timed)) + "\n")
-        elif self.fmt == "plain":
-            self.out.write(plain_line(item, self.timed) + "\n")
-        else:
-            self._coloured(item)
+        self.log.write(item)
         self.out.flush()
 
-    def _coloured(self, item) -> None:
-        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+    def data(self, item) -> dict:
+        if isinstance(item, _Stats):
+            # A recording's are as of its last frame; raw bytes have no time at all.
+            counts, now = item
+            when = now if now is not None else counts.last
+            record = {"event": "stats", "time": local_time(when) if counts.timed and when else None}
+            return {**record, **counts.as_dict(now)}
+        return as_dict(item, self.timed)
 
-        console = self.console
-        assert console is not None  # made for -o table, the only output in colour
+    def lines(self, item) -> list[str]:
+        if isinstance(item, _Stats):
+            return item.counts.table(item.now)
+        return [plain_line(item, self.timed)]
+
+    def draw(self, item, console) -> None:
+        if isinstance(item, _Stats):
+            self.out.write("".join(line + "\n" for line in self.lines(item)))
+        else:
+            self._coloured(item, console)
+
+    def _coloured(self, item, console) -> None:
         if isinstance(item, Unanswered):
             request = item.request
             assert request.function is not None  # a request's, read from its frame
@@ -492,14 +505,7 @@ class Output:
 
     def stats(self, counts, now: float | None) -> None:
         """The statistics so far (monitor.stats.BusStats): a table, or one JSON object."""
-        if self.fmt == "json":
-            # A recording's are as of its last frame; raw bytes have no time at all.
-            when = now if now is not None else counts.last
-            record = {"event": "stats", "time": local_time(when) if counts.timed and when else None}
-            self.out.write(to_json({**record, **counts.as_dict(now)}) + "\n")
-        else:
-            self.out.write("\n".join(counts.table(now)) + "\n")
-        self.out.flush()
+        self.write(_Stats(counts, now))
 
     def close(self) -> None:
         self.out.flush()

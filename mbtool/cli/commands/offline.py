@@ -11,9 +11,9 @@ from mbtool.cli.frames import frame_report
 from mbtool.cli.options import NO_HEADER_OPTION, device_command, output_chosen
 from mbtool.cli.param_types import Choice
 from mbtool.cli.parsing import QuickHelp
-from mbtool.cli.render import default_format, render
 from mbtool.cli.results import Report, Row
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import RESULTS, SINKS, default_format, formats, render
 from mbtool.codec.checksum import crc16
 from mbtool.codec.checksum import lrc as lrc8
 from mbtool.codec.describe import describe, describe_pdu, looks_whole, parse_hex, split_frame
@@ -29,7 +29,7 @@ FORMAT_OPTION = click.option(
     "-o",
     "--format",
     "output_format",
-    type=Choice(["table", "plain", "json", "csv"]),
+    type=Choice(formats(RESULTS)),
     callback=output_chosen,
     help="Output format: table on a terminal, plain in a pipe.",
 )
@@ -86,6 +86,7 @@ def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
     """Each frame in the lines decoded and written as it comes, in constant memory.  Only
     frames decide the exit status: a line that is no frame is named on stderr and passed over."""
     frames = failed = 0  # frames decoded, and of them those with a problem
+    shown = SINKS[fmt]
     first_failure = ""
     previous = None
     for number, text, kind in frames_in(lines):
@@ -95,11 +96,10 @@ def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
             sys.stdout.flush()  # stdout and stderr in the order of the lines
             print(f"mbtool: line {number}: not a frame, passed over: {error}", file=sys.stderr)
             continue
-        if frames and fmt in ("plain", "table"):
+        if frames and shown.blocks:  # a blank line between two frames' blocks
             sys.stdout.write("\n")
         report = frame_report(described, header=frames == 0)
-        if fmt == "json":
-            report = replace(report, data={"line": number, **report.data})
+        report = replace(report, data={"line": number, **report.data})  # JSON's own keys
         _render(report, fmt, no_header)
         frames += 1
         previous = described
@@ -107,7 +107,7 @@ def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
         if problem:
             failed += 1
             first_failure = first_failure or f"line {number}: {problem}"
-            if fmt != "json":  # the JSON record carries its error
+            if not shown.errors:  # the JSON record carries its error
                 sys.stdout.flush()
                 print(f"mbtool: line {number}: {problem}", file=sys.stderr)
         sys.stdout.flush()

@@ -8,42 +8,30 @@ view on a terminal, one line on stderr for each change of state, and statistics 
 
 from __future__ import annotations
 
-import csv
 import sys
-import threading
 import time
 
 import click
 
 from mbtool.cli.broker import hand_writes, make_publisher, stats_line
 from mbtool.cli.frames import HexTrace
-from mbtool.cli.json_text import to_json
-from mbtool.cli.metrics import (
-    KEY_SPECIALS,
-    _escape,
-    _field_value,
-    check_textfile,
-    influx_text,
-    name_problem,
-    write_textfile,
-)
+from mbtool.cli.metrics import name_problem
 from mbtool.cli.param_types import FilePath, PositiveFloat
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, prom_text, refuse_point_names
-from mbtool.cli.render import wants_csv_header
-from mbtool.cli.results import point_text, value_text
 from mbtool.cli.session import warn_insecure
+from mbtool.cli.sinks import PLANT, formats, sink
+from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.prom import check_textfile, write_textfile
+from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
-from mbtool.plant.inventory import FORMATS, load_inventory
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, Plant, Poll, limits, view_of, views
+from mbtool.plant.inventory import load_inventory
+from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
-from mbtool.registermap.point import PointValue
 from mbtool.words import counted
-
-CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
 
 
 @click.command(
@@ -56,7 +44,7 @@ CSV_HEADER = ["time", "device", "name", "value", "unit", "ref"]
     "-o",
     "--format",
     "output_format",
-    type=click.Choice(FORMATS),
+    type=click.Choice(formats(PLANT)),
     help="Output: plain lines, JSON lines (one a device poll), CSV (long form), InfluxDB line "
     "protocol or Prometheus text. Default: the inventory's [poll] output, else a live view on "
     "a terminal and plain lines in a pipe.",
@@ -141,20 +129,21 @@ def poll(
     opened; 130 when --once, --rounds or --duration is stopped (Ctrl-C, SIGTERM) before
     its end.
     """
-    plant = load_inventory(inventory)
+    plant = load_inventory(inventory, formats(PLANT))
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
+    polls = sink(fmt).PlantPolls
     if measurement is not None:
         problem = name_problem(measurement, "a measurement", influx=True)
-        if fmt != "influx":
+        if not polls.measured:
             problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
         if problem:
             raise RequestError(f"--measurement {measurement!r}: {problem}")
-    if fmt == "prom" or textfile:
+    if polls.exposes or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
     if textfile:
@@ -221,40 +210,26 @@ def _both(first, publish):
 
 
 class PlantOutput:
-    """What the workers report, written as it comes, on the one thread that runs the plant."""
+    """What the workers report, written as it comes, on the one thread that runs the plant, by
+    the format's sink (its PlantPolls); the whole plant's Prometheus text a round, for -o prom
+    and --textfile."""
 
     def __init__(self, fmt: str, textfile: str | None, no_header: bool, plant, measurement: str) -> None:
-        self.fmt = fmt
-        self.measurement = measurement  # -o influx's, for the devices that name none
+        self.polls = sink(fmt).PlantPolls(sys.stdout, not no_header, measurement)
         self.textfile = textfile
         self.swept = False  # a killed run's temporaries are looked for at the first write only
         self.states = views(plant.devices)  # each device as its latest Poll left it
-        self.header = fmt == "csv" and not no_header and wants_csv_header(sys.stdout)
-        self.writer = csv.writer(sys.stdout, lineterminator="\n") if fmt == "csv" else None
         self.pending = {device.name for device in plant.devices}  # not yet polled this round
         self.unwritten = False  # a device has reported since the last exposition
         self.exposed = False  # the first round is written
 
     def report(self, item: Poll | Event) -> None:
         if isinstance(item, Event):
-            self._event(item)
+            print(f"mbtool: {event_line(item)}", file=sys.stderr, flush=True)
+            self.polls.event(item, local_time(item.time))
         else:
             self._poll(item)
         sys.stdout.flush()
-
-    def _event(self, event: Event) -> None:
-        print(f"mbtool: {event_line(event)}", file=sys.stderr, flush=True)
-        if self.fmt == "json":
-            record: dict[str, object] = {
-                "time": local_time(event.time),
-                "event": event.state,
-                event.kind: event.name,
-            }
-            if event.reason:
-                record["reason"] = event.reason
-            if event.retry_in is not None:
-                record["retry_in"] = event.retry_in
-            sys.stdout.write(to_json(record) + "\n")
 
     def _poll(self, poll: Poll) -> None:
         device, when = poll.device, local_time(poll.time)
@@ -266,32 +241,8 @@ class PlantOutput:
             for reading in poll.readings:
                 if reading.error is not None:  # its message names the point (plan.PointException)
                     print(f"mbtool: {when} {device.name} {reading.error}", file=sys.stderr)
-        if self.fmt == "plain":
-            for reading in poll.readings or ():
-                if reading.error is None:
-                    unit = (
-                        f" {reading.point.unit}" if reading.point.unit and reading.value is not None else ""
-                    )
-                    sys.stdout.write(f"{when} {device.name} {reading.point.name} {_shown(reading)}{unit}\n")
-        elif self.fmt == "json":
-            sys.stdout.write(to_json(_json_record(poll, when)) + "\n")
-        elif self.fmt == "csv":
-            writer = self.writer
-            assert writer is not None  # made for csv
-            if self.header:
-                writer.writerow(CSV_HEADER)
-                self.header = False
-            for reading in poll.readings or ():
-                if reading.error is None:
-                    point = reading.point
-                    writer.writerow(
-                        [when, device.name, point.name, _csv_value(reading), point.unit, point.ref]
-                    )
-        elif self.fmt == "influx":
-            line = influx_line(poll, device.measurement or self.measurement)
-            if line:
-                sys.stdout.write(line)
-        if self.fmt == "prom" or self.textfile:
+        self.polls.poll(poll, when)
+        if self.polls.exposes or self.textfile:
             # The Prometheus text is the whole plant's, one exposition a round.
             self.pending.discard(device.name)
             self.unwritten = True
@@ -313,7 +264,7 @@ class PlantOutput:
         """The plant's exposition: on stdout (-o prom; a run is a stream of whole ones) and to
         the textfile, rewritten whole."""
         text = prom_text(list(self.states.values()))
-        if self.fmt == "prom":
+        if self.polls.exposes:
             sys.stdout.write(text)
         if self.textfile:
             write_textfile(text, self.textfile, sweep=not self.swept)
@@ -328,194 +279,26 @@ class PlantOutput:
         sys.stdout.flush()
 
 
-def _shown(reading) -> str:
-    """A reading as read -m shows it: on/off, invalid, a label, or a number (no label)."""
-    return point_text(reading.value) + (" (no label)" if reading.point.no_label(reading.value) else "")
-
-
-def _csv_value(reading) -> str:
-    if reading.value is None:
-        return ""  # no data: an empty cell, as a spreadsheet leaves one
-    return _shown(reading) if isinstance(reading.value, bool) else value_text(reading.value)
-
-
-def _json_record(poll: Poll, when: str) -> dict:
-    device = poll.device
-    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
-    if poll.readings is None:
-        assert poll.error is not None  # a poll without readings is one that failed
-        record["state"] = poll.state
-        record["error"] = str(poll.error)
-        record["exit_code"] = int(exit_code_for(poll.error))
-        return record
-    points, failed = [], []
-    for reading in poll.readings:
-        point = reading.point
-        if reading.error is None:
-            # A point's "unit" is its engineering unit, left out when it has none: the
-            # record's own "unit" is the device's unit id.
-            engineering = {"unit": point.unit} if point.unit else {}
-            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
-            if reading.value is None:
-                entry["invalid"] = True  # the device sent a value its map says means no data
-            points.append(entry)
-        else:
-            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
-    record["state"] = poll.state
-    record["points"] = points
-    if failed:
-        record["failed"] = failed
-    return record
-
-
-# --- influx: tagged by device (Prometheus: cli.plant_text) -----------------------------------------------
-
-
-def influx_line(poll: Poll, measurement: str) -> str:
-    """One line a device poll: its measurement, tags device, unit and the device's tags, a
-    field a point read (its type fixed by its map entry; NaN and infinities left out)."""
-    device = poll.device
-    fields = []
-    for reading in poll.readings or ():
-        if reading.error is not None or reading.value is None:
-            continue
-        number = reading.point.number_of(reading.value)
-        shown = _field_value(reading.value if number is None else number)
-        if shown is not None:
-            fields.append(f"{_escape(reading.point.name, KEY_SPECIALS)}={shown}")
-    tags = {"device": device.name, "unit": str(device.unit)} | (device.tags or {})
-    return influx_text(measurement, tags, fields, int(poll.time * 1_000_000_000))
-
-
 # --- on a terminal: a live view ------------------------------------------------------------
 
 
-class LiveView:
-    """The plant on one screen, fit to the terminal whatever its size: a title with the count
-    of devices online and offline, a row a device (its state in colour, the age of its last
-    good poll, its round-trip time and error counts, and its points' latest values, a changed
-    one highlighted, cut at the row's end), and below them a band of the latest changes of
-    state, newest first.  The band is the only place that says why a device or a link is
-    offline, so it keeps its rows: a screen too short for the plant cuts the table, with a
-    line that counts the devices left out."""
-
-    COLOURS = {ONLINE: "green", OFFLINE: "bold red", "unknown": "yellow"}
-    EVENT_ROWS = 5  # the band's rows, below its heading
-    COLUMNS = ("device", "link", "state", "last good", "rtt avg", "timeout", "corrupt", "exc", "values")
+class LiveView(PlantView):
+    """poll's live view of ``plant`` on a terminal (cli.sinks.table.PlantView), its changes of
+    state in the words stderr has."""
 
     def __init__(self, plant, clock=time.time) -> None:
-        self.plant = plant
-        self.clock = clock  # the time "last good" is counted to (scripts/gen_docs.py: a fixed one)
-        self.lock = threading.Lock()
-        self.changed: dict[str, set[str]] = {}
-        self.previous: dict[str, dict[str, PointValue]] = {}
-        self.events: list[str] = []
-        self.states = views(plant.devices)  # each device as its latest Poll left it
+        super().__init__(plant, event_line, clock)
         self.publisher = None  # poll --mqtt's: the broker's state in the title
 
-    def running(self):
-        from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        return Live(self, refresh_per_second=4, transient=False)
-
-    def __rich_console__(self, console, options):
-        """The screen as it is now, built when rich draws it (4 times a second), not on every
-        poll of every device, and for the terminal's size then (it may have been resized)."""
-        with self.lock:
-            yield from self._screen(console, options.max_width, options.size.height)
-
-    def report(self, item: Poll | Event) -> None:
-        with self.lock:
-            if isinstance(item, Event):  # the line stderr gets too, the latest a band holds kept
-                self.events = (self.events + [event_line(item)])[-self.EVENT_ROWS :]
-                return
-            self.states[item.device.name] = view_of(item)
-            if item.readings is not None:
-                values = {r.point.name: r.value for r in item.readings if r.error is None}
-                before = self.previous.get(item.device.name, {})
-                self.changed[item.device.name] = {
-                    name for name, value in values.items() if before.get(name, value) != value
-                }
-                self.previous[item.device.name] = values
-
-    def _screen(self, console, width: int, height: int) -> list:
-        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        states = list(self.states.values())
-        offline = sum(state.state == OFFLINE for state in states)
-        online = sum(state.state == ONLINE for state in states)
-        title = Text(f"mbtool poll {self.plant.path}: ", style="bold", no_wrap=True, overflow="ellipsis")
-        title.append(f"{counted(len(states), 'device')}, {online} online, {offline} offline")
-        if self.publisher is not None:
-            title.append("; " + stats_line(self.publisher.stats()))
-        # A row a device in the room the title, the table's header and the band leave.
-        room = height - 2 - (1 + self.EVENT_ROWS)
-        shown = states if len(states) <= room else states[: max(room - 1, 0)]
-        # Every column but the values keeps its width, and the values' column takes what is
-        # left of the row (rich narrows the columns that may wrap first): the values are cut
-        # at the row's end, with an ellipsis, never folded a point a line.
-        table = Table(box=None, padding=(0, 1, 0, 0), pad_edge=False, header_style="bold", expand=False)
-        for column in self.COLUMNS:
-            table.add_column(column, no_wrap=column != "values")
-        now = self.clock()
-        for state in shown:
-            table.add_row(*self._row(state, now))
-        screen = [title, table]
-        if len(shown) < len(states):
-            hidden = states[len(shown) :]
-            down = sum(state.state == OFFLINE for state in hidden)
-            screen.append(
-                Text(f"+{len(hidden)} more devices" + (f" ({down} offline)" if down else ""), no_wrap=True)
-            )
-        screen.append(Text("changes of state, newest first:", style="dim", no_wrap=True))
-        screen.extend(self._band(console, width))
-        return screen
-
-    def _row(self, state, now: float) -> tuple:
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        stats = state.stats
-        figures = stats.rtt_figures()
-        age = "-" if state.last_success is None else f"{now - state.last_success:.1f} s ago"
-        values = Text(no_wrap=True, overflow="ellipsis")
-        changed = self.changed.get(state.spec.name, ())
-        for reading in (state.last_poll.readings or ()) if state.last_poll else ():
-            if reading.error is None:
-                style = "reverse" if reading.point.name in changed else ""
-                values.append(f"{reading.point.name}={_shown(reading)}", style=style)
-                values.append(" ")
-        values.rstrip()
-        return (
-            Text(state.spec.name),  # Text: a name is never read as rich's markup
-            Text(state.spec.link),
-            Text(state.state, style=self.COLOURS.get(state.state, "")),
-            age,
-            "-" if figures is None else f"{figures['avg'] * 1000:.1f} ms",
-            str(stats.outcomes["timeout"]),
-            str(stats.outcomes["corrupt"]),
-            str(stats.outcomes["exception"]),
-            values,
-        )
-
-    def _band(self, console, width: int) -> list:
-        """The band's rows: the latest changes of state, newest first, each folded whole onto
-        as many rows as it needs (its reason is at its end), blank rows below them."""
-        from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-        rows: list = []  # rich Text lines
-        for line in reversed(self.events):
-            rows.extend(Text(line).wrap(console, width))
-        rows = rows[: self.EVENT_ROWS]
-        if not self.events:
-            rows = [Text("none yet", style="dim")]
-        return rows + [Text("")] * (self.EVENT_ROWS - len(rows))
+    def title_note(self) -> str:
+        return "" if self.publisher is None else "; " + stats_line(self.publisher.stats())
 
 
 # --- on exit: statistics and the verdict ----------------------------------------------------
 
 
-def _statistics(runner: Plant, fmt: str, seconds: float, publisher=None) -> None:
+def _statistics(runner: Plant, stats: str, seconds: float, publisher=None) -> None:
+    """``stats``: --stats, table or json (on stderr)."""
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
@@ -526,7 +309,7 @@ def _statistics(runner: Plant, fmt: str, seconds: float, publisher=None) -> None
     # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
     device_limits = {name: limits(s.spec, link_of[s.spec.link]) for name, s in runner.devices.items()}
     link_limits = {name: (spec.connection.timeout, spec.connection.retries) for name, spec in link_of.items()}
-    if fmt == "json":
+    if stats == "json":
         record = {
             "seconds": round(seconds, 3),
             "devices": {
@@ -560,11 +343,11 @@ def _statistics(runner: Plant, fmt: str, seconds: float, publisher=None) -> None
         ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
          "rtt min/avg/p95/max ms", "timeout s", "retries"]
     ]  # fmt: skip
-    for kind, name, state, stats, (timeout, retries) in rows:
-        counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
+    for kind, name, state, totals, (timeout, retries) in rows:
+        counts = [str(totals.outcomes[outcome]) for outcome in outcomes]
         lines.append(
-            [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
-             str(stats.recovered), stats.rtt.cell(), f"{timeout:g}", str(retries)]
+            [kind, name, state, str(totals.polls), str(totals.transactions), *counts, totals.exceptions_text(),
+             str(totals.recovered), totals.rtt.cell(), f"{timeout:g}", str(retries)]
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:

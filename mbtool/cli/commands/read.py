@@ -8,7 +8,6 @@ from functools import partial
 
 import click
 
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import (
     ORDER_ALL,
     VALUE_TYPES,
@@ -18,10 +17,11 @@ from mbtool.cli.options import (
     type_options_given,
 )
 from mbtool.cli.param_types import ADDRESS, COUNT, FilePath, Number, PositiveFloat
-from mbtool.cli.render import default_format
 from mbtool.cli.results import PointFailure, PointRow, Points, Result
 from mbtool.cli.session import execute, open_client, show, trace_for
-from mbtool.cli.settings import MONITORING_FORMATS, Settings
+from mbtool.cli.settings import Settings
+from mbtool.cli.sinks import READINGS, default_format, formats, sink
+from mbtool.cli.sinks.json import to_json
 from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
@@ -93,7 +93,7 @@ def _run(
     """Once (None), or polled (how the polls ended).  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
     metrics = None
-    if settings.textfile or settings.output_format in MONITORING_FORMATS:
+    if settings.textfile or settings.output_format in formats(READINGS):
         settings, metrics = _metrics(connection, settings, points)
     if (interval is None and polls is None) or settings.dry_run:
         try:
@@ -188,9 +188,7 @@ def _once(connection: Connection, settings: Settings, request, to_result, run=No
 
 def _metrics(connection: Connection, settings: Settings, points=()):
     """-o influx / prom and --textfile: the run's settings for them (--textfile is -o prom)
-    and its Metrics, checked before anything is sent (with a map's ``points``)."""
-    from mbtool.cli.metrics import Metrics  # noqa: PLC0415 - -o influx and prom only
-
+    and its Readings (the format's sink's), checked before anything is sent (with a map's ``points``)."""
     fmt = settings.output_format
     if settings.textfile:
         if fmt not in (None, "prom"):
@@ -198,10 +196,9 @@ def _metrics(connection: Connection, settings: Settings, points=()):
         settings = replace(settings, output_format="prom")
     if settings.changes:
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
-    metrics = Metrics(settings, connection.unit)
-    metrics.check_names()
-    if settings.output_format == "prom":
-        metrics.check_point_names(points)
+    assert settings.output_format is not None  # -o influx or prom (the caller's test), or prom for --textfile
+    metrics = sink(settings.output_format).Readings(settings, connection.unit)
+    metrics.check(points)
     return settings, metrics
 
 

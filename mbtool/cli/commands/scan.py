@@ -17,17 +17,17 @@ recognised by its unit id and reported as "late" (raise -t).
 
 from __future__ import annotations
 
-import csv
 import sys
 import time
 
 import click
 
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, parse_units, units_text
-from mbtool.cli.render import default_format, wants_csv_header
+from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
+from mbtool.cli.sinks import default_format, sink
+from mbtool.cli.sinks.table import ScanProgress, scan_answers
 from mbtool.codec.errors import RequestError, function_code_text
 from mbtool.codec.record import replace
 from mbtool.errors import ExitCode, Verdict
@@ -131,56 +131,6 @@ def _scan_units(ctx: click.Context) -> list[int]:
 # --- output -------------------------------------------------------------------------------
 
 
-class Progress:
-    """A rich progress bar on stderr when it is a terminal; nothing otherwise."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.bar = None
-        if not enabled:
-            return
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-        from rich.progress import (  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-            BarColumn,
-            MofNCompleteColumn,
-            TextColumn,
-            TimeRemainingColumn,
-        )
-        from rich.progress import Progress as Bar  # noqa: PLC0415 - rich, 12-26 ms: a progress bar only
-
-        self.bar = Bar(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("found {task.fields[found]}"),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-            transient=True,
-            # Lines written meanwhile (found units, notes) go above the bar, not through it.
-            redirect_stdout=sys.stdout.isatty(),
-            redirect_stderr=True,
-        )
-        self.task = self.bar.add_task("scan", total=total, found=0)
-        self.bar.start()
-
-    def at(self, setting: Setting | None, unit: int) -> None:
-        if self.bar is not None:
-            where = f"{setting} " if setting else ""
-            self.bar.update(self.task, description=f"{where}unit {unit}")
-
-    def advance(self, steps: int = 1) -> None:
-        if self.bar is not None:
-            self.bar.advance(self.task, steps)
-
-    def found(self, count: int) -> None:
-        if self.bar is not None:
-            self.bar.update(self.task, found=count)
-
-    def stop(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-            self.bar = None
-
-
 def answer_dict(answer: Answer) -> dict:
     data: dict = {"unit": answer.unit, "answer": answer.answer}
     if answer.setting is not None:
@@ -195,31 +145,19 @@ def answer_dict(answer: Answer) -> dict:
 
 class Output:
     """Found units as they come (plain, csv: a long scan shows its progress in a pipe),
-    or all at the end (table, json)."""
+    or all at the end (table, json): the rows of the format's sink."""
 
     def __init__(self, fmt: str, sweeping: bool, csv_header: bool = True) -> None:
-        self.fmt = fmt
         self.sweeping = sweeping
-        self.csv_header = csv_header  # the run's settings (False with --no-header)
-        self.header_done = False
+        where = ["baud", "parity"] if sweeping else []
+        self.rows = sink(fmt).Rows(sys.stdout, ["unit", "answer", *where, "detail", "ms"], csv_header)
 
     def found(self, answer: Answer) -> None:
         where = [str(answer.setting.baud), answer.setting.parity] if answer.setting else []
-        if self.fmt == "plain":
-            print(" ".join([str(answer.unit), answer.answer, *where, answer.text]), flush=True)
-        elif self.fmt == "csv":
-            if not self.header_done:
-                self._csv_header()
-            csv.writer(sys.stdout, lineterminator="\n").writerow(
-                [answer.unit, answer.answer, *where, answer.text, "" if answer.ms is None else answer.ms]
-            )
-            sys.stdout.flush()
-
-    def _csv_header(self) -> None:
-        where = ["baud", "parity"] if self.sweeping else []
-        if wants_csv_header(sys.stdout, self.csv_header):
-            csv.writer(sys.stdout, lineterminator="\n").writerow(["unit", "answer", *where, "detail", "ms"])
-        self.header_done = True
+        self.rows.row(
+            [answer.unit, answer.answer, *where, answer.text, "" if answer.ms is None else answer.ms],
+            " ".join([str(answer.unit), answer.answer, *where, answer.text]),
+        )
 
     def garbled(self, answer: Answer) -> None:
         where = f" at {answer.setting}" if answer.setting else ""
@@ -229,7 +167,7 @@ class Output:
         print(f"mbtool: {text}", file=sys.stderr, flush=True)
 
     def finish(self, tally: Tally, head: dict, title: str) -> None:
-        if self.fmt == "json":
+        def data() -> dict:
             data = {
                 **head,
                 "units": [answer_dict(a) for a in tally.found],
@@ -251,39 +189,13 @@ class Output:
                     }
                     for s in tally.settings
                 ]
-            print(to_json(data), flush=True)
-        elif self.fmt == "csv" and not self.header_done:
-            self._csv_header()  # nothing found: still a CSV a reader can load
-        elif self.fmt == "table" and (tally.found or tally.garbled):
-            self._table(tally, title)
+            return data
 
-    def _table(self, tally: Tally, title: str) -> None:
-        from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-        from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-        from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
+        def draw() -> None:
+            if tally.found or tally.garbled:
+                scan_answers(sorted(tally.found, key=lambda a: a.unit) + tally.garbled, self.sweeping, title)
 
-        table = Table()
-        table.add_column("Unit", justify="right")
-        table.add_column("Answer")
-        if self.sweeping:
-            table.add_column("Baud", justify="right")
-            table.add_column("Parity")
-        table.add_column("Detail")
-        table.add_column("ms", justify="right")
-        for answer in sorted(tally.found, key=lambda a: a.unit) + tally.garbled:
-            where = [str(answer.setting.baud), answer.setting.parity] if answer.setting else []
-            style = "dim" if answer.answer == "garbled" else None
-            table.add_row(
-                str(answer.unit),
-                answer.answer,
-                *where,
-                escape(answer.text),
-                "" if answer.ms is None else f"{answer.ms:g}",
-                style=style,
-            )
-        console = Console()
-        console.print(title, highlight=False)
-        console.print(table)
+        self.rows.end(Listing(data=data, table=None, lines=list, draw=draw))
 
 
 # --- the command --------------------------------------------------------------------------
@@ -355,7 +267,7 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     fmt = settings.output_format or default_format()
     output = Output(fmt, sweeping, settings.csv_header)
     started = time.monotonic()
-    progress = Progress(len(units) * len(lines), sys.stderr.isatty() and not settings.hex)
+    progress = ScanProgress(len(units) * len(lines), sys.stderr.isatty() and not settings.hex)
     try:
         tally = Scan(connection, request, units, lines, sweeping, first, output, trace_for(settings)).run(
             progress

@@ -18,6 +18,7 @@ from mbtool.cli.listen import DATAGRAM_SCHEMES, check_udp_rate, datagrams_droppe
 from mbtool.cli.options import serial_line_options, serve_tls_options, tcp_client_options
 from mbtool.cli.param_types import Choice, FilePath, Number, PositiveFloat, parse_int, parse_units, units_text
 from mbtool.cli.parsing import QuickHelp
+from mbtool.cli.sinks.table import serve_live
 from mbtool.device.datafile import load_data
 from mbtool.device.device import Device, Faults
 from mbtool.device.model import demo_model
@@ -288,7 +289,7 @@ def serve(
         click.echo(f"serving {server.stats.listening} units {unit_text} framer {framer}{refusal}")
         sys.stdout.flush()
         if mode == "live":
-            _run_live(server, device, framer, unit_text, unit_set)
+            serve_live(server, device, framer, unit_text, unit_set, _shown)
         else:
             server.run()
     if mode != "quiet":
@@ -327,79 +328,3 @@ def _log_line(framer: str, direction: str, peer: str, data: bytes, note: str) ->
     text = " ".join(part for part in (stamp, peer, direction, _shown(data, framer), note) if part)
     click.echo(text)
     sys.stdout.flush()
-
-
-def _run_live(server, device, framer: str, unit_text: str, units: frozenset[int]) -> None:
-    from rich.console import Console, Group  # noqa: PLC0415 - rich, 12-20 ms: the live display only
-    from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-    from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
-
-    console = Console()
-    shown_units = sorted(units)[:4]
-
-    def view():
-        stats = server.stats
-        uptime = time.monotonic() - stats.started
-        head = Table.grid(padding=(0, 2))
-        head.add_row(
-            f"[b]mbtool serve[/b] {stats.listening}",
-            f"framer {framer}" + (", read-only" if device.read_only else ""),
-            f"units {unit_text}",
-            f"up {uptime:.0f} s",
-            f"clients {stats.clients}"
-            + (f", {stats.refused} refused" if stats.refused else "")
-            + (f", {stats.evicted} gave their slot" if stats.evicted else "")
-            + (f", {stats.expired + stats.unused} timed out" if stats.expired + stats.unused else ""),
-        )
-        head.add_row(
-            f"requests {stats.requests}",
-            f"replies {stats.replies}",
-            f"dropped {stats.dropped}",
-            f"corrupted {stats.corrupted}",
-            "Ctrl-C stops",
-        )
-        counters = Table(title="FC08 counters", title_justify="left")
-        counters.add_column("counter")
-        for unit in shown_units:
-            counters.add_column(f"unit {unit}", justify="right")
-        names = list(device.counters(shown_units[0])) if shown_units else []
-        values = {unit: device.counters(unit) if unit in device.stations else {} for unit in shown_units}
-        for name in names:
-            counters.add_row(name, *(str(values[u][name]) if values[u] else "-" for u in shown_units))
-        counters.add_row(
-            "listen only",
-            *(
-                "yes" if u in device.stations and device.stations[u].listen_only else "no"
-                for u in shown_units
-            ),
-        )
-        served = Table(title="served", title_justify="left")
-        served.add_column("FC", justify="right")
-        served.add_column("requests", justify="right")
-        for code, count in sorted(device.served.items()):
-            served.add_row(f"{code:02X}", str(count))
-        frames = Table(title="last frames", title_justify="left")
-        frames.add_column("t", justify="right")
-        frames.add_column("dir")
-        frames.add_column("peer")
-        frames.add_column("bytes", overflow="fold")
-        frames.add_column("note", overflow="fold")
-        for at, direction, peer, data, note in stats.frames:
-            # Text, never markup: the frame is whatever a peer sent ("[/x]" in an ASCII frame),
-            # and the peer and the note come from outside too.
-            frames.add_row(f"{at:.3f}", direction, Text(peer), Text(_shown(data, framer)), Text(note))
-        side = Table.grid(padding=(0, 4))
-        side.add_row(counters, served)
-        return Group(head, side, frames)
-
-    last = [0.0]
-    with Live(view(), console=console, auto_refresh=False, transient=False) as live:
-
-        def tick() -> None:
-            now = time.monotonic()
-            if now - last[0] >= 0.25:
-                last[0] = now
-                live.update(view(), refresh=True)
-
-        server.run(tick)

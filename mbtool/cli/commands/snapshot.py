@@ -11,11 +11,12 @@ from typing import Any
 import click
 
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command, map_option
 from mbtool.cli.param_types import FilePath
-from mbtool.cli.render import change_line, change_parts, default_format, wants_csv_header
+from mbtool.cli.results import Listing, change_parts
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import default_format, render
+from mbtool.cli.sinks.plain import change_line
 from mbtool.cli.writes import CONFIRMED, DIFFERS, Step, failure, report, send_all
 from mbtool.codec.data_access import (
     MAX_WRITE_COILS,
@@ -26,7 +27,7 @@ from mbtool.codec.data_access import (
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.tables import reference, table_named
-from mbtool.errors import KNOWN_ERRORS, ExitCode, Summary, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, Span, TableDump, runs_of
 from mbtool.words import counted
 
@@ -146,25 +147,21 @@ def diff(connection, settings, a, b, map):
             files[DEVICE] = read_live(partial(client.execute, connection.unit), dumped)
     left, right = files[a], files[b]
     found = differences(left, right, register_map)
-    fmt = settings.output_format or default_format()
-    if fmt == "json":
-        print(to_json({"a": a, "b": b, "equal": not found, "differences": found}))
-    elif fmt == "csv":
-        import csv  # noqa: PLC0415 - 0.5 ms: -o csv only
-
-        writer = csv.writer(sys.stdout, lineterminator="\n")
-        if wants_csv_header(sys.stdout, settings.csv_header):
-            writer.writerow(["table", "address", "ref", "name", "a", "b", "unit"])
-        for d in found:
-            writer.writerow(
+    listing = Listing(
+        data=lambda: {"a": a, "b": b, "equal": not found, "differences": found},
+        table=lambda: (
+            ["table", "address", "ref", "name", "a", "b", "unit"],
+            [
                 [d["table"], d["address"], d["ref"], d.get("name", ""), d["a"], d["b"], d.get("unit", "")]
-            )
-    else:
-        sys.stdout.write(
-            "".join(change_line(d, *_as_read(d, register_map), d.get("unit", "")) + "\n" for d in found)
-        )
+                for d in found
+            ],
+        ),
+        lines=lambda: [change_line(d, *_as_read(d, register_map), d.get("unit", "")) for d in found],
+    )
+    render(listing, settings.output_format or default_format(), csv_header=settings.csv_header)
     if found:
-        raise Summary(counted(len(found), "difference"), ExitCode(1))
+        return Verdict(counted(len(found), "difference"), ExitCode(1))
+    return None
 
 
 # --- restore: a dump's writable tables back into the device --------------------------------
@@ -334,10 +331,10 @@ def restore(connection, settings, file, everything, map):
             code = ExitCode.INVALID_RESPONSE
         elif items:
             text += "; read back and confirmed"
-        summary = Summary(text, code)
+        summary = Verdict(text, code)
     end = {"error": str(summary)} if code else {}
     report(settings, items, head, end | {"exit_code": int(code)})
-    raise summary
+    return summary
 
 
 def _confirm(step, sent: dict, after: dict, register_map) -> None:

@@ -3,7 +3,6 @@ written by hand; ``--map`` writes the register map of what it found (issue 34)."
 
 from __future__ import annotations
 
-import csv
 import math
 import sys
 from functools import partial
@@ -11,17 +10,17 @@ from functools import partial
 import click
 import tomli_w
 
-from mbtool.cli.json_text import to_json
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import FilePath, Number
 from mbtool.cli.profiles import defaults
-from mbtool.cli.render import default_format, wants_csv_header
-from mbtool.cli.results import value_text
+from mbtool.cli.results import Listing, value_text
 from mbtool.cli.session import open_client
+from mbtool.cli.sinks import default_format, render
+from mbtool.cli.sinks.table import titled_tables
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import ExitCode, NoResponse, Summary
+from mbtool.errors import ExitCode, NoResponse, Verdict
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
@@ -96,10 +95,13 @@ def sunspec(connection, settings, base, model_ids, map_path):
         else:
             unwritten = _write_map(map_path, connection, unit, chain, wanted)
     tree = _tree(chain, unit, wanted)
-    if fmt == "csv":
-        _csv(tree, settings.csv_header)
-    else:
-        {"json": _json, "table": _table}.get(fmt, _plain)(tree)
+    listing = Listing(
+        data=lambda: tree,
+        table=lambda: (CSV_HEADER, _rows(tree)),
+        lines=lambda: _lines(tree),
+        draw=lambda: titled_tables(_blocks(tree)),
+    )
+    render(listing, fmt, csv_header=settings.csv_header)
     refused = [m for m in wanted if m.error is not None]
     if refused or unwritten or chain.stopped:
         named = [f"{m.layout.title} at {m.layout.address}: {m.error}" for m in refused]
@@ -109,8 +111,9 @@ def sunspec(connection, settings, base, model_ids, map_path):
             named.append(f"{chain.stopped}; the models found are shown")
         text = "; ".join(named + ([unwritten] if unwritten else []))
         if chain.interrupted:
-            raise Summary(f"interrupted; {text}", ExitCode.INTERRUPTED)
-        raise Summary(text, ExitCode.PARTIAL)
+            return Verdict(f"interrupted; {text}", ExitCode.INTERRUPTED)
+        return Verdict(text, ExitCode.PARTIAL)
+    return None
 
 
 # --- the walk, on one unit or, when none is given, on SMA's too --------------------------------
@@ -258,7 +261,7 @@ def _repeats(groups: dict, prefix: str = ""):
             yield title, each["points"], each.get("groups", {})
 
 
-def _plain(tree: dict) -> None:
+def _lines(tree: dict) -> list[str]:
     """One model after another: its title, a point a line (NAME VALUE), a repeat of a
     group on one line of NAME VALUE pairs."""
     lines = [f"SunSpec at {tree['base']}, unit {tree['unit']}: {_models(tree)}"]
@@ -272,7 +275,7 @@ def _plain(tree: dict) -> None:
         if "raw" in model:
             registers = " ".join(f"{r:04X}" for r in model["raw"]["registers"])
             lines.append(f"  raw at {model['raw']['address']}: {registers}")
-    sys.stdout.write("\n".join(lines) + "\n")
+    return lines
 
 
 def _plain_groups(groups: dict, indent: str) -> list[str]:
@@ -284,31 +287,24 @@ def _plain_groups(groups: dict, indent: str) -> list[str]:
     return lines
 
 
-def _json(tree: dict) -> None:
-    sys.stdout.write(to_json(tree) + "\n")
-
-
 CSV_HEADER = ["model", "name", "value", "unit", "address", "registers", "implemented"]
 
 
-def _csv(tree: dict, header: bool = True) -> None:
+def _rows(tree: dict) -> list[list]:
     """A row a point (scale factors too), by its name in the map."""
-    writer = csv.writer(sys.stdout, lineterminator="\n")
-    if wants_csv_header(sys.stdout, header):
-        writer.writerow(CSV_HEADER)
-    for model in tree["models"]:
-        for point in _every_point(model):
-            writer.writerow(
-                [
-                    model["id"],
-                    point["name"],
-                    "" if point["value"] is None else value_text(point["value"]),
-                    point.get("unit", ""),
-                    point["address"],
-                    " ".join(map(str, point["registers"])),
-                    int(point["implemented"]),
-                ]
-            )
+    return [
+        [
+            model["id"],
+            point["name"],
+            "" if point["value"] is None else value_text(point["value"]),
+            point.get("unit", ""),
+            point["address"],
+            " ".join(map(str, point["registers"])),
+            int(point["implemented"]),
+        ]
+        for model in tree["models"]
+        for point in _every_point(model)
+    ]
 
 
 def _every_point(group: dict):
@@ -317,39 +313,29 @@ def _every_point(group: dict):
         yield from _every_point({"points": points, "groups": inner})
 
 
-def _table(tree: dict) -> None:
-    """A table a model; a repeating group's repeats as the rows of a table of their own,
-    a column a point."""
-    from rich.console import Console  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
-    console = Console()
-    console.print(
-        f"[bold]SunSpec at {tree['base']} · unit {tree['unit']} · {_models(tree)}[/]", highlight=False
-    )
+def _blocks(tree: dict) -> list[tuple]:
+    """What -o table draws (cli.sinks.table.titled_tables): a table a model; a repeating
+    group's repeats as the rows of a table of their own, a column a point."""
+    blocks: list[tuple] = [("title", f"SunSpec at {tree['base']} · unit {tree['unit']} · {_models(tree)}")]
     for model in tree["models"]:
         if "error" in model:
-            console.print(f"{escape(_model_title(model))}: [red]{escape(model['error'])}[/]", highlight=False)
+            blocks.append(("error", _model_title(model), model["error"]))
             continue
-        console.print(f"[bold]{escape(_model_title(model))}[/]", highlight=False)
-        table = Table()
-        table.add_column("Point", justify="left")
-        table.add_column("Value", justify="right")
-        table.add_column("Address", justify="right")
-        for name, point in _shown(model.get("points", {})).items():
-            table.add_row(escape(name), escape(_value_text(point)), str(point["address"]))
+        blocks.append(("title", _model_title(model)))
+        rows = [
+            [name, _value_text(point), str(point["address"])]
+            for name, point in _shown(model.get("points", {})).items()
+        ]
         if "raw" in model:
             registers = " ".join(f"{r:04X}" for r in model["raw"]["registers"])
-            table.add_row("(raw)", registers, str(model["raw"]["address"]))
-        console.print(table)
-        _table_groups(console, model.get("groups", {}))
+            rows.append(["(raw)", registers, str(model["raw"]["address"])])
+        blocks.append(("table", [("Point", "left"), ("Value", "right"), ("Address", "right")], rows))
+        blocks += _group_blocks(model.get("groups", {}))
+    return blocks
 
 
-def _table_groups(console, groups: dict, prefix: str = "") -> None:
-    from rich.markup import escape  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-    from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: -o table only
-
+def _group_blocks(groups: dict, prefix: str = "") -> list[tuple]:
+    blocks: list[tuple] = []
     by_name: dict[str, list] = {}
     for title, points, inner in _repeats(groups, prefix):
         by_name.setdefault(title.rsplit(" ", 1)[0] if title[-1].isdigit() else title, []).append(
@@ -357,15 +343,13 @@ def _table_groups(console, groups: dict, prefix: str = "") -> None:
         )
     for name, repeats in by_name.items():
         columns = list(_shown(repeats[0][1]))
-        table = Table()
-        table.add_column(escape(name))
-        for column in columns:
-            table.add_column(escape(column), justify="right")
-        for title, points, _ in repeats:
-            table.add_row(escape(title), *(escape(_value_text(points[c])) for c in columns if c in points))
-        console.print(table)
+        rows = [
+            [title, *(_value_text(points[c]) for c in columns if c in points)] for title, points, _ in repeats
+        ]
+        blocks.append(("table", [(name, "left"), *((column, "right") for column in columns)], rows))
         for title, _, inner in repeats:
-            _table_groups(console, inner, f"{title} ")
+            blocks += _group_blocks(inner, f"{title} ")
+    return blocks
 
 
 # --- --map: the register map of what was found -----------------------------------------------------

@@ -31,6 +31,7 @@ from mbtool.codec.data_access import (
 from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.codec.framing import is_broadcast
 from mbtool.codec.values import decode_values, parse_registers, value_addresses
+from mbtool.errors import Verdict
 from mbtool.link.connection import framer_name
 
 if TYPE_CHECKING:
@@ -181,8 +182,7 @@ def write(connection, settings, targets, map, multiple, rmw, allow_nonfinite, va
     """
     type_options_given(map)  # refused with a map
     if map:
-        _write_map(connection, settings, map, targets, multiple, rmw, allow_nonfinite)
-        return
+        return _write_map(connection, settings, map, targets, multiple, rmw, allow_nonfinite)
     if len(targets) < 2:
         raise click.UsageError("give a reference and a value, such as 40001 17, or -m MAP NAME=VALUE")
     _write_reference(
@@ -239,7 +239,9 @@ def _write_reference(
 
 def _write_map(
     connection, settings, path: str, assignments, multiple: bool, rmw: bool, nonfinite: bool
-) -> None:
+) -> Verdict | None:
+    """The points written, or the Verdict of a write that stopped part-way (what each point came
+    to is in the report)."""
     from mbtool.cli.writes import Step, failure, report, send_all  # noqa: PLC0415 - write -m only
     from mbtool.library import load_named_map  # noqa: PLC0415 - the map loader, 4-8 ms: -m only
     from mbtool.registermap.plan import write_request  # noqa: PLC0415 - decimal, 2 ms: -m, write-bit only
@@ -324,8 +326,9 @@ def _write_map(
         items = [item for step in steps for item in step.items]
         end = {"error": str(summary), "exit_code": int(summary.exit_code)}
         report(settings, items, {"unit": connection.unit, "map": register_map.source}, end)
-        raise summary
+        return summary
     show(connection, settings, Points(connection.unit, register_map.source, rows))
+    return None
 
 
 def _scale_factors(connection, settings, client, factors: list, max_gap: int) -> dict:

@@ -1,4 +1,4 @@
-"""JSON text: the one writer of it in the CLI, for every object a command prints.
+"""-o json, and JSON text: the one writer of it in the CLI, for every object a command prints.
 
 One rule for all: json's separators, and NaN and the infinities as null (they are no
 JSON; jq would choke on them).  One object (a one-shot read, an error) is written by
@@ -15,8 +15,27 @@ if TYPE_CHECKING:
     from json import JSONEncoder
 
 import math
+from typing import TextIO
 
-from mbtool.cli.results import as_dict
+from mbtool.cli.results import Listing, Points, Report, Result, as_dict, points_dict, report_dict
+from mbtool.cli.sinks.plain import Polls as PlainPolls
+from mbtool.cli.sinks.plain import Rows as PlainRows
+from mbtool.errors import PartialRead, exit_code_for
+
+
+def render(result: Result | Report | Points, out: TextIO, csv_header: bool = True) -> None:
+    out.write(to_json(data_of(result)) + "\n")
+
+
+def data_of(result: Result | Report | Points | Listing) -> object:
+    """A result as the plain data of its JSON object."""
+    if isinstance(result, Listing):
+        return result.data()
+    if isinstance(result, Points):
+        return points_dict(result)
+    if isinstance(result, Report):
+        return report_dict(result)
+    return as_dict(result)
 
 
 def to_json(value: object) -> str:
@@ -155,3 +174,106 @@ def _int_array(numbers) -> str:
     if form is None:
         form = _INT_ARRAYS[count] = "[" + ", ".join(["%d"] * count) + "]"
     return form % tuple(numbers)
+
+
+class PlantPolls:
+    """poll -o json: an object a line, a device poll or a change of state."""
+
+    measured = False  # --measurement names its measurement
+    exposes = False
+
+    def __init__(self, out, csv_header: bool, measurement: str) -> None:
+        self.out = out
+
+    def poll(self, poll, when: str) -> None:
+        self.out.write(to_json(poll_record(poll, when)) + "\n")
+
+    def event(self, event, when: str) -> None:
+        record = {"time": when, "event": event.state, event.kind: event.name}
+        if event.reason:
+            record["reason"] = event.reason
+        if event.retry_in is not None:
+            record["retry_in"] = event.retry_in
+        self.out.write(to_json(record) + "\n")
+
+
+def poll_record(poll, when: str) -> dict:
+    """A device poll (plant.schedule.Poll) as poll -o json's object."""
+    device = poll.device
+    record = {"time": when, "device": device.name, "tags": device.tags or {}, "unit": device.unit}
+    if poll.readings is None:
+        record["state"] = poll.state
+        record["error"] = str(poll.error)
+        record["exit_code"] = int(exit_code_for(poll.error))
+        return record
+    points, failed = [], []
+    for reading in poll.readings:
+        point = reading.point
+        if reading.error is None:
+            # A point's "unit" is its engineering unit, left out when it has none: the
+            # record's own "unit" is the device's unit id.
+            engineering = {"unit": point.unit} if point.unit else {}
+            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
+            if reading.value is None:
+                entry["invalid"] = True  # the device sent a value its map says means no data
+            points.append(entry)
+        else:
+            failed.append({"name": point.name, "ref": point.ref, "error": reading.error.answer})
+    record["state"] = poll.state
+    record["points"] = points
+    if failed:
+        record["failed"] = failed
+    return record
+
+
+class Log:
+    """A stream of items as they are seen: a JSON object a line, flushed (``views.data(item)``;
+    None: an item JSON does not carry).  Its objects are the items alone: no server event."""
+
+    events = False
+
+    def __init__(self, out: TextIO, views, **console_options) -> None:
+        self.out = out
+        self.views = views
+
+    def write(self, item) -> None:
+        data = self.views.data(item)
+        if data is not None:
+            self.out.write(to_json(data) + "\n")
+            self.out.flush()
+
+
+class Rows(PlainRows):
+    """A stream of rows (scan's units as they are found): one object at the end."""
+
+    def row(self, cells: list, line: str) -> None:
+        pass
+
+    def end(self, listing: Listing) -> None:
+        self.out.write(to_json(listing.data()) + "\n")
+        self.out.flush()
+
+
+class Polls(PlainPolls):
+    """read --interval -o json: a JSON line a poll, a change or a failed poll."""
+
+    def __init__(self, output) -> None:
+        super().__init__(output)
+        self.lines = JsonLines()
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        if result.__class__ is Points:
+            self.output.emit(json_line({"time": when, **points_dict(result)}))
+        else:
+            self.output.emit(self.lines.line(when, result))
+
+    def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
+        engineering = {"unit": unit} if unit else {}
+        self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering}))
+
+    def failure(self, when: str, error: BaseException) -> None:
+        if not isinstance(error, PartialRead):
+            # jq consumers read stdout only: a failed poll must show up there too (a partial
+            # read's line names the points it could not read).
+            code = int(exit_code_for(error))
+            self.output.emit(error_json(str(error), code, time=when) + "\n", now=True)

@@ -1,0 +1,90 @@
+"""The assertions and waits the tests have in common: one error line and its exit code, the
+--hex trace and plain output parsed, a predicate waited for, a socket the peer closed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import select
+import socket
+import time
+from dataclasses import dataclass, field
+
+from helpers.run import Result
+
+
+def assert_one_error_line(res: Result, code: int) -> str:
+    """Exit code as expected, exactly one 'mbtool: ' line on stderr, no traceback. Returns the line."""
+    assert res.returncode == code, str(res)
+    assert "Traceback" not in res.stderr, str(res)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, f"expected exactly one stderr line\n{res}"
+    assert lines[0].startswith("mbtool: "), str(res)
+    return lines[0]
+
+
+@dataclass
+class HexLine:
+    direction: str  # TX or RX
+    data: bytes
+    verdict: str  # the rest of the line after the hex pairs
+    raw: str = field(repr=False, default="")
+
+
+def parse_hex_lines(stderr: str) -> list[HexLine]:
+    """Parse --hex trace lines: 'TX 01 03 ... C5 CD  CRC C5 CD ok'."""
+    out = []
+    for ln in stderr.splitlines():
+        m = re.match(r"^(TX|RX) ((?:[0-9A-F]{2} )*[0-9A-F]{2})(.*)$", ln)
+        if m:
+            out.append(HexLine(m.group(1), bytes.fromhex(m.group(2)), m.group(3).strip(), ln))
+    return out
+
+
+def plain_pairs(res: Result) -> list[tuple[int, str]]:
+    """Plain output 'ADDRESS VALUE' lines as (address, value-text) pairs."""
+    pairs = []
+    for ln in res.lines:
+        parts = ln.split()
+        assert len(parts) == 2, f"plain line is not 'ADDRESS VALUE': {ln!r}\n{res}"
+        pairs.append((int(parts[0]), parts[1]))
+    return pairs
+
+
+def expect_ok(res: Result) -> Result:
+    assert res.returncode == 0, str(res)
+    assert "Traceback" not in res.stderr, str(res)
+    return res
+
+
+def wait_until(predicate, deadline: float, step: float = 0.05) -> bool:
+    """Whether ``predicate()`` came true within ``deadline`` seconds."""
+    end = time.monotonic() + deadline
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+def closed_by_peer(sock: socket.socket, wait: float = 0.0) -> bool:
+    """Has the server closed this socket (EOF or reset)?  Reads and discards what is pending."""
+    end = time.monotonic() + wait
+    while True:
+        ready, _, _ = select.select([sock], [], [], max(0.0, end - time.monotonic()))
+        if not ready:
+            return False
+        try:
+            if not sock.recv(65536):
+                return True
+        except (ConnectionResetError, BrokenPipeError):
+            return True
+        except (BlockingIOError, TimeoutError):
+            pass
+        if time.monotonic() >= end:
+            return False
+
+
+def json_lines(stdout: str) -> list[dict]:
+    return [json.loads(line) for line in stdout.splitlines() if line.strip()]
