@@ -8,7 +8,9 @@ output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 from __future__ import annotations
 
 import signal
+from collections.abc import Sequence
 from enum import IntEnum
+from typing import TypeVar
 
 from mbtool.codec.errors import FrameError, ModbusException, ProtocolError, RequestError
 from mbtool.words import counted
@@ -78,7 +80,7 @@ class PartialRead(MbtoolError):
 
     exit_code = ExitCode.PARTIAL
 
-    def __init__(self, readings: list, failures: list[BaseException]) -> None:
+    def __init__(self, readings: list, failures: Sequence[BaseException]) -> None:
         read = len(readings) - len(failures)
         super().__init__(
             "; ".join(map(str, failures)) + f"; {read} of {counted(len(readings), 'point')} read"
@@ -94,7 +96,10 @@ class ConnectionFailed(MbtoolError):
     exit_code = ExitCode.CONNECTION
 
 
-def link_failure(error: BaseException) -> BaseException:
+_E = TypeVar("_E", bound=BaseException)
+
+
+def link_failure(error: _E) -> _E | ConnectionFailed:
     """An OSError that opening or using a link raised (a refused connection, a port gone) as
     the ConnectionFailed it means, exit 6, with its text; any other error as it is."""
     return ConnectionFailed(str(error)) if isinstance(error, OSError) else error

@@ -108,6 +108,40 @@ def test_an_import_inside_a_function_is_refused(copy):
     assert res.returncode == 1 and "PLC0415" in res.stdout, res.stdout + res.stderr
 
 
+def test_mypy_passes_on_mbtool(tmp_path_factory):
+    # Issue 41 point 7: the annotations hold, and the records' constructors are checked
+    # (record's dataclass_transform).  The cache is this run's own: a stale one shared
+    # between worktrees could hide an error.
+    cache = tmp_path_factory.mktemp("mypy_cache")
+    res = subprocess.run(
+        [sys.executable, "-m", "mypy", "--cache-dir", str(cache), "mbtool"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+    assert res.returncode == 0 and res.stdout.startswith("Success: no issues found"), res.stdout + res.stderr
+
+
+def test_mypy_reads_a_records_constructor(copy):
+    # A record built with a field it does not have, or a value of the wrong type, is refused:
+    # without dataclass_transform on @record the checker would see a bare `type` and pass it.
+    (copy / "mbtool" / "codec" / "record_use.py").write_text(
+        "from mbtool.codec.data_access import ReadHoldingRegisters\n\n"
+        "ReadHoldingRegisters(address='0', count=1)\n"
+        "ReadHoldingRegisters(address=0, count=1, colour=1)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "mypy", "--cache-dir", str(copy / "cache"), "mbtool/codec/record_use.py"],
+        cwd=copy,
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+    assert 'record_use.py:3: error: Argument "address"' in res.stdout, res.stdout + res.stderr
+    assert 'record_use.py:4: error: Unexpected keyword argument "colour"' in res.stdout, res.stdout
+
+
 # ARCHITECTURE.md is the map a newcomer reads first (issue 41): every module of mbtool/ is named
 # there, by its path (`link/managed.py`, `cli/commands/read.py`), its dotted name
 # (`link.managed`), or its file name in the table row of the package it is in (the row of

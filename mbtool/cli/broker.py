@@ -4,8 +4,12 @@ the publisher imported only when a run publishes."""
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 from mbtool.registermap.load import load_map
+
+if TYPE_CHECKING:
+    from mbtool.plant.schedule import LinkWorker
 
 
 def make_publisher(settings, plant, quiet: bool = False):
@@ -33,7 +37,7 @@ def make_publisher(settings, plant, quiet: bool = False):
 def hand_writes(publisher, runner) -> None:
     """``writes = true``: each device's writes go to the worker of its link, which runs them
     between its polls (the link is never opened a second time)."""
-    worker_of = {}
+    worker_of: dict[str, LinkWorker] = {}
     for worker in runner.workers:
         worker.accept_jobs()
         worker_of |= {state.spec.name: worker for state in worker.devices}

@@ -67,8 +67,9 @@ def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
             "as mbtool dump writes them, not serve's sections a unit"
         )
     out: dict[str, dict[int, int]] = {}
+    defined = model.defined or {}
     for name, section in TABLE_SECTIONS.items():
-        mask = model.defined.get(section)
+        mask = defined.get(section)
         if mask:
             values = getattr(model, section)
             out[name] = {address: int(values[address]) for address, there in enumerate(mask) if there}

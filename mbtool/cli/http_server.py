@@ -28,6 +28,7 @@ import threading
 import time
 from collections.abc import Callable
 from http import HTTPStatus
+from typing import cast
 from urllib.parse import urlsplit
 
 import h11
@@ -150,7 +151,9 @@ class HttpServer:
                 elif key.fileobj is self.wake_reader:
                     self._take_back()
                 else:
-                    connection = self.connections.get(key.fileobj)
+                    connection = self.connections.get(
+                        cast(socket.socket, key.fileobj)
+                    )  # registered: a socket
                     if connection is not None:  # else dropped by an accept of this same round
                         self._read(connection)
             self._expire(time.monotonic())
@@ -297,6 +300,7 @@ class HttpServer:
 
     def _answer(self, connection: Connection) -> None:
         request, http = connection.request, connection.http
+        assert request is not None  # answered once its request is whole
         try:
             status, kind, body = self._answered(request)  # which never raises but for a bug
             data = http.send(

@@ -12,6 +12,10 @@ from __future__ import annotations
 
 import os
 import threading
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import socket
 
 
 def systemd_notifier(environ=os.environ) -> Notifier | None:
@@ -33,7 +37,7 @@ class Notifier:
             self.period = int(usec) / 2e6
         self.stopped = threading.Event()
         self.lock = threading.Lock()  # no ping after STOPPING=1, nor on a closed socket
-        self.sock = None
+        self.sock: socket.socket | None = None  # made at the first message
 
     def send(self, message: str) -> None:
         import socket  # noqa: PLC0415 - socket, 2-4 ms: under systemd only
@@ -41,7 +45,7 @@ class Notifier:
         try:
             if self.sock is None:
                 self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-            self.sock.sendto(message.encode(), self.address)
+            self.sock.sendto(message.encode(), self.address)  # the one socket a run sends on
         except OSError:
             pass  # systemd gone or the socket unreachable: nothing a poller can do about it
 

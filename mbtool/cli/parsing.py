@@ -3,6 +3,8 @@ without gettext, negative numbers as arguments, and a close match for a mistyped
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
 
 
@@ -28,7 +30,13 @@ def did_you_mean(close: list[str]) -> str:
     return f"; did you mean {words}?"
 
 
-class QuickHelp:
+if TYPE_CHECKING:
+    _Command = click.Command  # what QuickHelp is mixed into
+else:
+    _Command = object
+
+
+class QuickHelp(_Command):
     """A --help option made without click's gettext look-up, which imports locale on every run."""
 
     def get_help_option(self, ctx: click.Context) -> click.Option | None:

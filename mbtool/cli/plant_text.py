@@ -55,7 +55,7 @@ def prom_text(states: list) -> str:
     and a gauge a point read, a map's point named after it, a raw register or bit in
     modbus_value{table,address,ref}; a device down shows no value (it would be scraped as
     current).  ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
-    metrics = {
+    metrics: dict[str, tuple[str, list[str]]] = {
         UP: ("1 when the device answered its last poll, 0 when it could not be read", []),
         LAST_SUCCESS: ("When the device last answered a poll, in seconds since the epoch", []),
     }

@@ -152,7 +152,7 @@ class Deferred:
     overlaps the device's turnaround instead of adding to every transaction (sustained
     polling keeps pace with a bare client loop)."""
 
-    def __init__(self, output: Output, to_result: Callable[[object], object]) -> None:
+    def __init__(self, output: Output | ChangesOnly, to_result: Callable[[object], object]) -> None:
         self.output = output
         self.to_result = to_result
         self.held = None  # the reply to show, and when its request left (time.time())

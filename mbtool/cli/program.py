@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> None:
         _closed_stderr_as_nowhere()
     elif sys.stderr is sys.__stderr__:  # fd 2 itself, not a test's capture of it
         _stderr_that_cannot_fail()
-    error: BaseException | None = None
+    error: BaseException | Verdict | None = None
     meta: dict = {}  # the run's click context's: what the options noted as they were parsed
     try:
         # Not cli.main: it turns a closed pipe into exit 1 before any handler here sees it.
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
         error, code = _flushed(None, done.exit_code)
     except click.ClickException as failure:  # usage errors: nothing was sent
         hint = ""
-        if failure.ctx is not None and isinstance(failure, click.UsageError):
+        if isinstance(failure, click.UsageError) and failure.ctx is not None:
             hint = f" (see '{failure.ctx.command_path} --help')"
         error = MbtoolError(f"{failure.format_message()}{hint}")
         code = ExitCode.USAGE
@@ -254,7 +254,7 @@ def _level(code: int) -> str:
     return WARNING if code in (ExitCode.PARTIAL, ExitCode.INTERRUPTED) else ERROR
 
 
-def _flushed(error: BaseException | None, code: int) -> tuple[BaseException | None, int]:
+def _flushed(error: BaseException | Verdict | None, code: int) -> tuple[BaseException | Verdict | None, int]:
     """The outcome once what the command wrote to stdout is out: a reader that went away or a
     full disk then ends the run as they do any write (141 quietly, 7), not at exit with a
     traceback from the interpreter's last flush."""

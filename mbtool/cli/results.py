@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from mbtool.codec.record import record
+from mbtool.codec.record import field, record
 
 
 @record
@@ -27,7 +27,8 @@ class Result:
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
     extra: dict | None = None  # more keys for JSON
     refs: list[str] | None = None  # Modicon references of the values (read REF): shown for addresses
-    addresses: list[int] | None = None  # where each value starts; None: one a value from address
+    # Where each value starts; the constructor's None: one a value from address (so never None).
+    addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
 
     def __init__(
@@ -205,7 +206,7 @@ class Points:
     source: str  # the map file
     rows: list[PointRow]
     note: str = ""  # one line for the human, e.g. "broadcast: no device confirms"
-    failed: list[PointFailure] = ()
+    failed: Sequence[PointFailure] = ()
 
 
 def points_heading(points: Points) -> str:

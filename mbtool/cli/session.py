@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from mbtool.cli.settings import Settings
 from mbtool.cli.sinks import default_format, render
@@ -63,8 +64,11 @@ def trace_for(settings: Settings):
     return HexTrace
 
 
-def execute(connection: Connection, settings: Settings, request) -> object:
-    """Open the link, run one transaction, close it; the reply (None for broadcast)."""
+def execute(connection: Connection, settings: Settings, request) -> Any:
+    """Open the link, run one transaction, close it; the reply (None for broadcast).
+
+    Any: the reply's class is the one its request decodes (``request.decode_response``),
+    which the command that built the request knows and the checker cannot follow."""
     with open_client(connection, settings, "" if request.broadcastable else request.name) as client:
         return client.execute(connection.unit, request)
 

@@ -23,6 +23,7 @@ class WholeFile:
         self.path = path
         self.target = os.path.realpath(path)  # through a symbolic link: the link stays
         folder, name = os.path.split(self.target)
+        self.temp: str | None = None  # the file beside it, until it takes FILE's place
         try:
             try:
                 mode = os.stat(self.target).st_mode & 0o7777
@@ -41,6 +42,7 @@ class WholeFile:
     def commit(self, text: str) -> None:
         """Write ``text`` and put it in FILE's place; OutputFailed if it cannot be (FILE stays
         as it was)."""
+        assert self.temp is not None, "committed twice, or after discard"
         try:
             self.file.write(text)
             self.file.flush()

@@ -18,6 +18,7 @@ Ctrl-C.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from mbtool.cli.results import Listing, change_parts, value_text
 from mbtool.cli.sinks import default_format, render
@@ -48,7 +49,7 @@ class Step:
 
     label: str  # what the failure line names: "b (40502)", "holding 10-19"
     items: tuple[dict, ...]
-    work: object = None  # what the command's send needs of it: a request, or more
+    work: Any = None  # what the command's send needs of it: a request, or more (its own shape)
 
 
 @record

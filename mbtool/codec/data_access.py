@@ -8,7 +8,8 @@ Limits are those of the current spec: 2000 bits and 125 registers read,
 from __future__ import annotations
 
 import struct
-from typing import ClassVar
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, ClassVar
 
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
 from mbtool.codec.pdu import (
@@ -370,11 +371,19 @@ class _WriteMultiple(Request):
     response_type: ClassVar = WriteMultipleResponse
     broadcastable: ClassVar = True
 
+    if TYPE_CHECKING:  # the fields each write defines (coils: bits; registers: words)
+
+        @property
+        def address(self) -> int: ...
+
+        @property
+        def values(self) -> Sequence[int]: ...
+
     def check_response(self, response: WriteMultipleResponse) -> None:
-        count = len(self.values)  # type: ignore[attr-defined]
-        if (response.address, response.count) != (self.address, count):  # type: ignore[attr-defined]
+        count = len(self.values)
+        if (response.address, response.count) != (self.address, count):
             raise MismatchError(
-                f"reply confirms {response.count} at {response.address}, expected {count} at {self.address}"  # type: ignore[attr-defined]
+                f"reply confirms {response.count} at {response.address}, expected {count} at {self.address}"
             )
 
     @classmethod

@@ -13,6 +13,7 @@ from __future__ import annotations
 import binascii
 import re
 import struct
+from typing import Any
 
 from mbtool.codec.checksum import crc_ok, lrc
 from mbtool.codec.errors import ProtocolError, RequestError, exception_name, function_code_text
@@ -177,7 +178,7 @@ def describe_pdu(
 ) -> Described:
     warnings: list[str] = []
     # What the envelope says, the same whatever the PDU turns out to be.
-    envelope = {
+    envelope: dict[str, Any] = {
         "framing": framing,
         "adu": adu,
         "unit": unit,
@@ -232,7 +233,8 @@ def describe_pdu(
             error="",
         )
     request, request_error = _try_request(pdu) if direction != "response" else (None, "not tried")
-    reply, reply_error, reply_warnings = (None, "not tried", [])
+    reply, reply_error = None, "not tried"
+    reply_warnings: list[str] = []
     if direction != "request":
         context = asked if asked is not None and asked.function_code == code else None
         reply, reply_error, reply_warnings = _try_response(pdu, context)

@@ -195,6 +195,7 @@ class Exchange:
             self.problem = worse(self.problem, event.error)
             return None
         unit, request = self._unit, self._request
+        assert request is not None  # events are judged only once send() has set the request
         # What this reply gets away with (--lenient), for its trace line: a tuple, as the empty
         # one is made once, not a list a reply.
         accepted: tuple[str, ...] = ()

@@ -15,7 +15,7 @@ them by name.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from mbtool.codec.errors import ChecksumError, FrameError
 from mbtool.codec.pdu import Request, pdu_length
@@ -81,7 +81,13 @@ class Framer(ABC):
 
     # True when only a pause on the line can end the frame in the buffer: RTU's property,
     # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
-    waiting_for_silence = False
+    if TYPE_CHECKING:  # RTU's is a property: to the checker, every framer's is
+
+        @property
+        def waiting_for_silence(self) -> bool: ...
+
+    else:
+        waiting_for_silence = False  # a class attribute, read on every pass of the client's loop
 
     def next_event(self) -> Event | None:
         ready = self._ready

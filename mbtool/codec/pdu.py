@@ -15,7 +15,16 @@ from __future__ import annotations
 
 import struct
 from importlib import import_module
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
+
+if TYPE_CHECKING:  # for the checker only: a Protocol class costs a one-shot's start-up
+    from typing import Protocol, Self
+
+    class Sizer(Protocol):
+        """What measures a PDU: ``Size``, or a function's own rule (FC 08, FC 43)."""
+
+        def of(self, pdu: bytes) -> int | None: ...
+
 
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError, exception_name, function_code_text
 from mbtool.codec.record import field, record
@@ -227,8 +236,17 @@ class Response:
     costs start-up time on every class, and a missing method fails the tests).
     """
 
-    function_code: ClassVar[int]
     warnings: tuple[str, ...] = field(default=(), kw_only=True, compare=False)
+
+    if TYPE_CHECKING:  # what each concrete response defines (a class value or a field)
+
+        @property
+        def function_code(self) -> int: ...
+
+        def encode(self) -> bytes: ...
+
+        @classmethod
+        def decode(cls, pdu: bytes) -> Self: ...
 
     @classmethod
     def dissect(cls, pdu: bytes, request=None) -> list:
@@ -265,11 +283,18 @@ class Request:
 
     function_code: ClassVar[int]
     name: ClassVar[str]
-    request_size: ClassVar[Size]
-    response_size: ClassVar[Size]
-    response_type: ClassVar[type]
+    request_size: ClassVar[Sizer]
+    response_size: ClassVar[Sizer]
+    response_type: ClassVar[type[Response]]
     broadcastable: ClassVar[bool] = False  # writes may go to unit 0 (spec §2)
     serial_only: ClassVar[bool] = False
+
+    if TYPE_CHECKING:  # what each concrete request defines
+
+        def encode_data(self) -> bytes: ...
+
+        @classmethod
+        def decode(cls, pdu: bytes) -> Self: ...
 
     def encode(self) -> bytes:
         return bytes([self.function_code]) + self.encode_data()
@@ -311,7 +336,8 @@ class Request:
         self.check_response(response)
         return response
 
-    def check_response(self, response: Response) -> None:  # noqa: B027 - optional hook, not abstract
+    # Any: each request is answered by its own response_type, which its check names.
+    def check_response(self, response: Any) -> None:  # noqa: B027 - optional hook, not abstract
         """Does the reply fit the request (byte count vs quantity, echo)?  Raise if not."""
 
     def _echo_check(self, response: Response) -> None:
@@ -412,7 +438,7 @@ def decode_response(pdu: bytes) -> Response | ExceptionResponse:
     return _decode_reply(kind.response_type, pdu)
 
 
-def _decode_reply(response_type: type, pdu: bytes) -> Response:
+def _decode_reply(response_type: type[Response], pdu: bytes) -> Response:
     """An echo decodes with its request's checks, but in a reply a bad value is a bad reply, not bad usage."""
     try:
         return response_type.decode(pdu)

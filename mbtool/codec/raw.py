@@ -47,7 +47,7 @@ class RawRequest(Request):
         object.__setattr__(self, "pdu", bytes(self.pdu))
 
     @property
-    def function_code(self) -> int:  # type: ignore[override]
+    def function_code(self) -> int:  # type: ignore[override]  # per request (its first byte), not per class
         return self.pdu[0]
 
     def encode(self) -> bytes:

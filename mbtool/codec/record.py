@@ -12,14 +12,16 @@ A record that is made in every transaction of a polling loop (a reply) writes it
 costs a few microseconds more, which ``bench/polling_cpu.py`` shows.
 
 Supported: fields from annotations (``ClassVar`` ones skipped), inherited
-fields first, defaults, ``field(default=..., kw_only=True, compare=False)``,
+fields first, defaults, ``field(default=..., kw_only=True, compare=False, init=False)``,
 ``__post_init__``, equality, hashing, repr, immutability, ``fields()`` and
 ``replace()``.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar, dataclass_transform
+
+_R = TypeVar("_R", bound=type)
 
 
 class FrozenInstanceError(AttributeError):
@@ -27,17 +29,20 @@ class FrozenInstanceError(AttributeError):
 
 
 class Field:
-    __slots__ = ("name", "default", "kw_only", "compare")
+    __slots__ = ("name", "default", "kw_only", "compare", "init")
 
-    def __init__(self, default: Any = ..., kw_only: bool = False, compare: bool = True) -> None:
+    def __init__(
+        self, default: Any = ..., kw_only: bool = False, compare: bool = True, init: bool = True
+    ) -> None:
         self.name = ""
         self.default = default
         self.kw_only = kw_only
         self.compare = compare
+        self.init = init  # False: no argument of the constructor; __post_init__ sets it
 
 
-def field(default: Any = ..., *, kw_only: bool = False, compare: bool = True) -> Any:
-    return Field(default, kw_only, compare)
+def field(default: Any = ..., *, kw_only: bool = False, compare: bool = True, init: bool = True) -> Any:
+    return Field(default, kw_only, compare, init)
 
 
 def _own_fields(cls: type) -> list[Field]:
@@ -65,7 +70,7 @@ def _init(self, *args: Any, **kwargs: Any) -> None:
         raise TypeError(f"{cls.__name__}() takes {len(positional)} positional arguments, {len(args)} given")
     for spec, value in zip(positional, args, strict=False):
         object.__setattr__(self, spec.name, value)
-    for spec in cls.__record_fields__:
+    for spec in cls.__record_init__:
         if spec.name in kwargs:
             object.__setattr__(self, spec.name, kwargs.pop(spec.name))
         elif spec.name not in self.__dict__:
@@ -96,7 +101,7 @@ def _hash(self) -> int:
 
 
 def _repr(self) -> str:
-    inner = ", ".join(f"{spec.name}={getattr(self, spec.name)!r}" for spec in type(self).__record_fields__)
+    inner = ", ".join(f"{spec.name}={getattr(self, spec.name)!r}" for spec in type(self).__record_init__)
     return f"{type(self).__name__}({inner})"
 
 
@@ -108,8 +113,16 @@ def _delattr(self, name: str) -> None:
     raise FrozenInstanceError(f"cannot delete field {name!r}")
 
 
-def record(cls: type) -> type:
+# A type checker reads a record as the frozen dataclass it behaves as: its constructor's
+# arguments (inherited fields first, ``field(kw_only=True)`` after), equality, no assignment.
+@dataclass_transform(eq_default=True, frozen_default=True, field_specifiers=(field, Field))
+def record(cls: _R) -> _R:
     """Make ``cls`` a frozen record of its annotated fields (see the module docstring)."""
+    return _make_record(cls)
+
+
+def _make_record(cls: Any) -> Any:
+    # Any: the attributes set here are the record machinery's, which no checker can see on `type`.
     inherited: list[Field] = []
     for base in reversed(cls.__mro__[1:]):
         for spec in base.__dict__.get("__record_own__", ()):
@@ -119,8 +132,9 @@ def record(cls: type) -> type:
     all_fields = [f for f in inherited if f.name not in names] + own
     cls.__record_own__ = tuple(own)
     cls.__record_fields__ = tuple(all_fields)
-    cls.__record_positional__ = tuple(f for f in all_fields if not f.kw_only)
-    cls.__match_args__ = tuple(f.name for f in cls.__record_positional__)
+    cls.__record_init__ = tuple(f for f in all_fields if f.init)
+    cls.__record_positional__ = tuple(f for f in cls.__record_init__ if not f.kw_only)
+    setattr(cls, "__match_args__", tuple(f.name for f in cls.__record_positional__))  # noqa: B010 - mypy refuses the assignment
     if "__init__" in cls.__dict__:
         cls.__record_own_init__ = True
     elif own or not getattr(cls, "__record_own_init__", False):
@@ -137,11 +151,12 @@ def record(cls: type) -> type:
 
 
 def fields(obj: Any) -> tuple[Field, ...]:
-    return type(obj).__record_fields__ if not isinstance(obj, type) else obj.__record_fields__
+    cls: Any = obj if isinstance(obj, type) else type(obj)
+    return cls.__record_fields__
 
 
 def replace(obj: Any, **changes: Any) -> Any:
-    values = {spec.name: getattr(obj, spec.name) for spec in fields(obj)}
+    values = {spec.name: getattr(obj, spec.name) for spec in type(obj).__record_init__}
     values.update(changes)
     positional = [values.pop(spec.name) for spec in type(obj).__record_positional__]
     return type(obj)(*positional, **values)

@@ -72,7 +72,7 @@ class FrameSearch:
             if verdict is FRAME:
                 self.pending = still + pending[index + 1 :]
                 return position - base
-            if verdict is not NO_FRAME:
+            if not isinstance(verdict, Verdict):  # not NO_FRAME: where to judge it again
                 still.append((position, verdict))
         self.pending = still
         first = max(self.scanned - base, 1)
@@ -82,7 +82,7 @@ class FrameSearch:
                 if verdict is FRAME:
                     self.scanned = base + start + 1
                     return start
-                if verdict is not NO_FRAME:
+                if not isinstance(verdict, Verdict):  # not NO_FRAME
                     self.pending.append((base + start, verdict))
             self.scanned = base + last
         return None

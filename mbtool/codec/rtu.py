@@ -234,7 +234,7 @@ class RtuFramer(Framer):
             self._sizes_for(self.expect)
             self._search.reset()
 
-    def _garbage_up_to_a_start(self, skip: int, error: FrameError):
+    def _garbage_up_to_a_start(self, skip: int, error: Frame | FrameError | None):
         """(bytes to skip, why) for a rejected front, stretched over the offsets behind it
         that are not worth judging, so garbage goes in one step, not byte by byte."""
         last = self._first_unsettled()

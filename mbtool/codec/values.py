@@ -75,7 +75,7 @@ def _registers_of(data: bytes, order: str) -> list[int]:
     return _swap_words(words, order)
 
 
-def _bytes_of(registers: list[int] | tuple[int, ...], order: str) -> bytes:
+def _bytes_of(registers: Sequence[int], order: str) -> bytes:
     # The swaps are their own inverse, so the same function undoes them.
     return struct.pack(f">{len(registers)}H", *_swap_words(list(registers), order))
 

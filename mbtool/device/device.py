@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, cast
 
 from mbtool.codec.errors import ChecksumError, DecodeError, RequestError
 from mbtool.codec.framing import Frame, Framer, Rejected
@@ -47,6 +48,9 @@ from mbtool.device.model import (
     DataModel,
     Station,
 )
+
+if TYPE_CHECKING:
+    from mbtool.codec.serial_line import Diagnostics
 
 
 @record
@@ -240,9 +244,10 @@ class Device:
             failure = ExceptionResponse(code, error.exception_code)
         if station.listen_only:
             # Listen-only: nothing is done and nothing answered, except a restart (spec §4 sub 04).
-            restarting = request is not None and code == 0x08 and request.sub_function == SUB_RESTART
-            if restarting and request.data in RESTART_DATA:  # other data would get exception 03
-                restart(station, request.data)
+            # FC 08's request is a Diagnostics (its module loads only when FC 08 is used).
+            asked = cast("Diagnostics", request) if code == 0x08 and request is not None else None
+            if asked is not None and asked.sub_function == SUB_RESTART and asked.data in RESTART_DATA:
+                restart(station, asked.data)  # other data would get exception 03
             return None
         if self.read_only and changes_state(pdu):
             return ExceptionResponse(code, ExceptionCode.ILLEGAL_FUNCTION)

@@ -307,7 +307,7 @@ def _read_device_identification(station: Station, request):
     ids = sorted(object_id for object_id in objects if object_id <= last)
     # An object id the category does not hold restarts the stream at 0 (MB spec 6.21).
     start = request.object_id if request.object_id in ids else 0
-    chosen = []
+    chosen: list[tuple[int, bytes]] = []
     size = 7
     more, next_id = False, 0
     for object_id in ids:

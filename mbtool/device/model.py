@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from array import array
 from collections import deque
+from typing import Literal, overload
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.pdu import ExceptionCode
@@ -131,6 +132,13 @@ class DataModel:
         other._shared = set(shared)
         return other
 
+    # The bit tables are bytes (one a bit), the register tables arrays of uint16.
+    @overload
+    def writable(self, name: Literal["coils", "discrete_inputs"]) -> bytearray: ...
+    @overload
+    def writable(self, name: Literal["holding_registers", "input_registers"]) -> array: ...
+    @overload
+    def writable(self, name: str) -> bytearray | array: ...
     def writable(self, name: str) -> bytearray | array:
         """The table ``name`` to write into: first made its own if it shares it."""
         if name in self._shared:

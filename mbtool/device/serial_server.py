@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from functools import partial
 
 from mbtool.codec.framing import Frame, Rejected, device_framer
 from mbtool.codec.timing import silent_interval
@@ -50,10 +51,12 @@ class SerialServer(Serving):
         gap = max(t35, MIN_SERIAL_GAP) if self.framer_name == "rtu" else 1.0  # ASCII: 1 s between chars (§2)
         last_rx = 0.0
         peer = self.target.path
+        transport = self.transport
+        assert transport is not None  # open() opened it
         while not self._stop:
             waiting = self.framer.buffered > 0
             try:
-                data = self.transport.read(self._wait(min(gap, TICK) if waiting else TICK))
+                data = transport.read(self._wait(min(gap, TICK) if waiting else TICK))
             except NoResponse as lost:  # the port went away (USB adapter unplugged)
                 raise ConnectionFailed(f"lost the serial line: {lost}") from None
             now = time.monotonic()
@@ -77,7 +80,7 @@ class SerialServer(Serving):
                     # Keep the line quiet for t3.5 after the request before answering (spec §2).
                     due = max(now, last_rx + t35) + self.faults.delay
                     self._held += len(reply)
-                    self._later(due, lambda reply=reply: self._write(reply))
+                    self._later(due, partial(self._write, reply))
             self._send_due()
             self._tick()
 
@@ -91,6 +94,7 @@ class SerialServer(Serving):
 
     def _write(self, data: bytes) -> None:
         self._held -= len(data)
+        assert self.transport is not None  # open() opened it
         self.transport.write(data)
 
     def close(self) -> None:

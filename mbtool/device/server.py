@@ -15,7 +15,7 @@ import contextlib
 import random
 import signal
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from mbtool.codec.errors import RequestError
 from mbtool.device.device import Device
@@ -71,9 +71,11 @@ class Server:
         faults = faults or IoFaults()
         self.stats = Stats()
         log = log or (lambda direction, peer, data, note: None)
-        answerer = answerer or Responder(device, faults, self.stats, random.Random(seed), log)
+        if answerer is None:
+            assert device is not None, "a server answers with its device, or its answerer"
+            answerer = Responder(device, faults, self.stats, random.Random(seed), log)
         self.port: Serving
-        limits = {
+        limits: dict[str, Any] = {
             "queued": queued,
             "max_clients": max_clients,
             "idle_timeout": idle_timeout,

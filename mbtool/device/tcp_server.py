@@ -116,6 +116,7 @@ class TcpServer(Serving):
             conn.setblocking(False)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             client = _Client(self._wrap(conn), peer, device_framer(self.framer_name))
+            assert self.selector is not None  # open() made it
             self.selector.register(client.sock, client.events, client)
             self._clients.add(client)
             accepted.append(client)
@@ -161,6 +162,7 @@ class TcpServer(Serving):
         if client.closed:
             return
         client.closed = True
+        assert self.selector is not None  # open() made it
         self.selector.unregister(client.sock)
         client.sock.close()
         self._clients.discard(client)
@@ -281,6 +283,7 @@ class TcpServer(Serving):
             events |= selectors.EVENT_WRITE
         if events != client.events:
             client.events = events
+            assert self.selector is not None  # open() made it
             self.selector.modify(client.sock, events, client)
 
     def _expire(self, now: float) -> None:
@@ -318,9 +321,11 @@ class TcpServer(Serving):
             self._close(client, why)
 
     def _serve(self) -> None:
+        selector = self.selector
+        assert selector is not None  # open() made it
         while not self._stop:
             newcomers = False
-            for key, mask in self.selector.select(self._wait(TICK)):
+            for key, mask in selector.select(self._wait(TICK)):
                 client = key.data
                 if client is None:
                     newcomers = True

@@ -24,6 +24,7 @@ import selectors
 import socket
 import ssl
 from collections.abc import Callable
+from typing import cast
 
 from mbtool.codec.device_id import MEI_TYPE
 from mbtool.codec.framing import Frame, Framer, Rejected
@@ -136,7 +137,7 @@ class TlsServer(TcpServer):
         return self.context.wrap_socket(conn, server_side=True, do_handshake_on_connect=False)
 
     def _recv(self, client: _Client) -> bytes:
-        sock = client.sock
+        sock = _tls(client)
         if client.tls == "refused":
             data = sock.recv(RECV_SIZE)  # plain again: what follows the alert is dropped
             if data:
@@ -172,7 +173,7 @@ class TlsServer(TcpServer):
         """One step of the client's handshake; True once it is done."""
         client.tls = "handshake"
         try:
-            client.sock.do_handshake()
+            _tls(client).do_handshake()
         except ssl.SSLWantReadError:
             self._want(client, 0)
             return False
@@ -184,7 +185,7 @@ class TlsServer(TcpServer):
             return False
         client.tls = "ready"
         self._want(client, 0)
-        der = client.sock.getpeercert(binary_form=True)
+        der = _tls(client).getpeercert(binary_form=True)
 
         note = ""
         try:
@@ -193,7 +194,7 @@ class TlsServer(TcpServer):
             role, note = None, f" ({error}: taken as no role)"
         self.roles[client.peer] = role
         shown = f"role {role}" if role is not None else "no role"
-        self._log("open", client.peer, b"", f"TLS {client.sock.version()}, {shown}{note}")
+        self._log("open", client.peer, b"", f"TLS {_tls(client).version()}, {shown}{note}")
         return True
 
     def _want(self, client: _Client, writing: int) -> None:
@@ -201,6 +202,7 @@ class TlsServer(TcpServer):
         events = selectors.EVENT_READ | (selectors.EVENT_WRITE if writing else 0)
         if events != client.events:
             client.events = events
+            assert self.selector is not None  # open() made it
             self.selector.modify(client.sock, events, client)
 
     def _refuse(self, client: _Client, error: BaseException) -> None:
@@ -228,3 +230,8 @@ def _failure(error: BaseException) -> str:
     if code:
         return code.lower().replace("_", " ")
     return getattr(error, "strerror", None) or str(error) or type(error).__name__
+
+
+def _tls(client: _Client) -> ssl.SSLSocket:
+    """A client's socket as what _wrap made it."""
+    return cast(ssl.SSLSocket, client.sock)

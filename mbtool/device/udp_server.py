@@ -81,13 +81,15 @@ class UdpServer(Serving):
         self.sock, self.stats.listening = bind_port(self.target, socket.SOCK_DGRAM)
 
     def _serve(self) -> None:
+        sock = self.sock
+        assert sock is not None  # open() bound it
         while not self._stop:
-            if select.select([self.sock], [], [], self._wait(TICK))[0]:
+            if select.select([sock], [], [], self._wait(TICK))[0]:
                 for _ in range(DATAGRAMS_PER_TURN):
                     if self._stop:  # an answer may take a bus's time: a stop is not kept waiting
                         break
                     try:
-                        data, sender = self.sock.recvfrom(MAX_DATAGRAM)
+                        data, sender = sock.recvfrom(MAX_DATAGRAM)
                     except (BlockingIOError, InterruptedError):
                         break
                     except OSError:  # an ICMP error for an earlier reply: that peer has gone
@@ -102,7 +104,7 @@ class UdpServer(Serving):
         if peer not in self._peers and len(self._peers) < PEERS_COUNTED:
             self._peers.add(peer)
             self.stats.connections = len(self._peers)
-        if self.limit is not None and not self._within_rate(host, peer, data):
+        if self.limit is not None and not self._within_rate(self.limit, host, peer, data):
             return
         # One ADU a datagram: only as many bytes as the longest ADU can be its ADU, so a packed
         # datagram costs the framer no more than a single request does.
@@ -131,15 +133,15 @@ class UdpServer(Serving):
         self.stats.frame("--", peer, b"", why)
         self._log("drop", peer, rest[: self.longest], why)
 
-    def _within_rate(self, host: str, peer: str, data: bytes) -> bool:
-        if self.limit.allows(host, time.monotonic()):
+    def _within_rate(self, limit: RateLimit, host: str, peer: str, data: bytes) -> bool:
+        if limit.allows(host, time.monotonic()):
             self._limited.discard(host)
             return True
         self.stats.limited += 1
         if host not in self._limited and len(self._limited) < SOURCES_LIMITED:
             # Once a run of drops, not once a datagram: a flood would flood the log too.
             self._limited.add(host)
-            why = f"past --udp-rate {self.limit.rate:g} a second from {host}: dropped until it slows"
+            why = f"past --udp-rate {limit.rate:g} a second from {host}: dropped until it slows"
             self.stats.frame("--", peer, b"", why)
             self._log("drop", peer, data[: self.longest], why)
         return False
@@ -163,6 +165,7 @@ class UdpServer(Serving):
         self._later(time.monotonic() + self.faults.delay, send)
 
     def _sendto(self, reply: bytes, sender) -> None:
+        assert self.sock is not None  # open() bound it
         try:
             self.sock.sendto(reply, sender)
         except OSError:  # the kernel's buffer is full or the peer unreachable: a datagram lost

@@ -18,7 +18,7 @@ from mbtool.codec.exchange import UNWATCHED, Exchange, Trace, worse
 from mbtool.codec.framer import Framer
 from mbtool.codec.pdu import ExceptionCode, ExceptionResponse, Request, Response
 from mbtool.codec.timing import CHAR_BITS, char_time, silent_interval
-from mbtool.errors import MbtoolError, NoResponse
+from mbtool.errors import NoResponse
 from mbtool.link.transport import ConnectionClosed, Transport
 
 # After a complete frame with a bad checksum, how long to wait for a good one
@@ -106,7 +106,7 @@ class Client:
         ConnectionFailed otherwise.
         """
         attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
-        error: MbtoolError | None = None
+        error: Exception | None = None  # the most telling failure of the attempts
         # The attempts that ended without their reply, (transaction id, when it left): a reply
         # after a retry may be one of theirs, late.
         unanswered: list[tuple[int, float]] | None = None

@@ -130,8 +130,10 @@ def open_client(
         connection.stopbits,
         rs485_direction(connection),
     )
-    secure = tls_settings(connection) if connection.port.lower().startswith("tls://") else None
-    transport = open_transport(connection.port, settings, connection.timeout, name, secure)
+    port = connection.port
+    assert port is not None  # check() refused a link to open without one
+    secure = tls_settings(connection) if port.lower().startswith("tls://") else None
+    transport = open_transport(port, settings, connection.timeout, name, secure)
     try:
         framer = framer or make_framer(name)
         client = Client(

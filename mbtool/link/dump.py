@@ -24,6 +24,7 @@ CLI passes ``progress(done)`` (addresses covered so far).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any  # a reply: the class its request decodes
 
 from mbtool.codec.data_access import (
     MAX_READ_BITS,
@@ -75,7 +76,7 @@ class TableDump:
 class Dumper:
     """Reads spans through ``execute(request) -> reply``, counting requests against a budget."""
 
-    def __init__(self, execute: Callable[[Request], object], max_requests: int | None = None) -> None:
+    def __init__(self, execute: Callable[[Request], Any], max_requests: int | None = None) -> None:
         self.execute = execute
         self.max_requests = max_requests
         self.requests = 0
@@ -127,7 +128,7 @@ class Dumper:
                 progress(address - span.first)
 
 
-def read_identification(execute: Callable[[Request], object], read_code: int) -> tuple[dict[int, bytes], int]:
+def read_identification(execute: Callable[[Request], Any], read_code: int) -> tuple[dict[int, bytes], int]:
     """Every object of a level of FC 43/14 (spec §3), following more-follows across
     requests; and the device's conformity level (codec.device_id.conformity_name names it).  A more-follows that points back at an
     object already asked for is a bad reply (FrameError), not a loop."""

@@ -218,6 +218,7 @@ class Forwarder:
 
     def _forward(self, unit: int, pdu: bytes, broadcast: bool) -> tuple[bytes | None, str, str]:
         """The reply PDU (None: none is due), the outcome and what was seen."""
+        answer: bytes | None
         try:
             reply = self._execute(unit, RawRequest(pdu))
         except ModbusException as refusal:

@@ -22,10 +22,14 @@ import math
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
+from typing import TYPE_CHECKING
 
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, link_failure
 from mbtool.link.connection import close_quietly
 from mbtool.link.transport import ConnectionClosed
+
+if TYPE_CHECKING:
+    from mbtool.link.client import Client
 
 # What says the link itself is gone (a device restarted, a cable pulled, a peer that closed the
 # connection): an OSError from the system, or the master's own word for it.  A timeout, a bad
@@ -75,8 +79,8 @@ class ManagedLink:
         self.backoff = backoff
         self.stats = stats
         self.clock = clock
-        self.client = None  # the open Client; None while closed
-        self.last = None  # the Client of the last transaction (its attempts and rtt)
+        self.client: Client | None = None  # the open Client; None while closed
+        self.last: Client | None = None  # the Client of the last transaction (its attempts and rtt)
         self._link = ExitStack()
         self.opened_at = -math.inf  # monotonic: when the last open began
         self.ready_at = -math.inf  # monotonic: not opened again before

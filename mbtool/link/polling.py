@@ -94,8 +94,7 @@ def poll(
 
     if interval is None:
         interval = DEFAULT_INTERVAL
-    if not polls:  # 0 or None: until interrupted
-        polls = math.inf
+    limit = polls or math.inf  # 0 or None: until interrupted
     done = replies = partial = timeouts = errors = skipped = 0
     # A request's latency runs from it leaving to its reply (the client's rtt, which
     # link.stats counts with every transaction's outcome); a poll's from its first request
@@ -134,7 +133,7 @@ def poll(
         slot = 0
         show_previous = shown.write  # bound once, not a method object a poll
         execute = link.execute
-        while done < polls:
+        while done < limit:
             if interval > 0:  # back to back (0) keeps no schedule
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
@@ -185,6 +184,7 @@ def poll(
                 last_failure = exit_code_for(error)
                 shown.failure(when, done + 1, error)
             else:
+                assert when is not None  # set by request_sent: the reply answers a request that left
                 shown.hold(when, reply)
             if done == 0:
                 first_when = when
@@ -203,7 +203,7 @@ def poll(
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
                     idle = True
-                elif behind > 0 and done < polls:
+                elif behind > 0 and done < limit:
                     missed = math.ceil(behind / interval)
                     skipped += missed
                     slot += missed

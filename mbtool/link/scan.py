@@ -23,6 +23,7 @@ from mbtool.codec import data_access
 from mbtool.codec.data_access import BitsResponse, RegistersResponse
 from mbtool.codec.device_id import DeviceIdentificationResponse, ReadDeviceIdCode, ReadDeviceIdentification
 from mbtool.codec.errors import FrameError, MismatchError, ModbusException, ProtocolError, exception_name
+from mbtool.codec.exchange import Trace
 from mbtool.codec.framer import Frame
 from mbtool.codec.framing import make_framer
 from mbtool.codec.pdu import ExceptionResponse, printable, text_of
@@ -151,7 +152,7 @@ def _reply_answer(unit: int, reply, ms: float | None) -> Answer:
     return Answer(unit, "reply", text, fields, ms)
 
 
-class Listener:
+class Listener(Trace):
     """Passes the trace on (--hex) and keeps the frames that answered no probe: late replies.
 
     A reply that misses its timeout arrives during a later probe, either as a frame
@@ -342,13 +343,15 @@ class Scan:
                 self.progress.advance()
                 # Only units asked before this one can answer late; a stray frame from this
                 # unit is something else (the adapter's echo of the probe, an old transaction).
-                answers = [_late(frame, self.request, probed, found) for frame in link.client.trace.take()]
+                client = link.client
+                assert client is not None and isinstance(client.trace, Listener)  # opened() made them
+                answers = [_late(frame, self.request, probed, found) for frame in client.trace.take()]
                 probed.add(unit)
                 if outcome == "silent":
                     tally.silent.add((here, unit))
                 elif outcome == "gateway":
                     tally.gateway += 1
-                else:
+                elif isinstance(outcome, Answer):
                     answers.append(outcome)
                 for answer in answers:
                     if answer is not None:

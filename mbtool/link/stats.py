@@ -91,7 +91,7 @@ class Stats:
         arrival is known.  Its outcome, one of OUTCOMES."""
         outcome = outcome_of(error)
         self.outcomes[outcome] += 1
-        if outcome == "exception":
+        if isinstance(error, ModbusException):  # the outcome "exception"
             self.exceptions[error.exception_code] += 1
         elif outcome == "answered" and attempts > 1:
             self.recovered += 1

@@ -349,7 +349,7 @@ def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> li
         return []
 
 
-def _refusal(error: BaseException) -> str:
+def _refusal(error: BaseException | None) -> str:
     """What an alert the server sent means, if it refused the client's certificate."""
     return REFUSALS.get(getattr(error, "reason", None) or "", "")
 

@@ -193,7 +193,7 @@ class SerialTransport(Transport):
                 if data and self._bridge is not None:
                     # The rest of what has come, at once: socket://'s in_waiting says 0 or 1,
                     # so a reply behind garbage would otherwise come two bytes a read.
-                    return data + self._bridge_bytes()
+                    return data + self._bridge_bytes(self._bridge)
             else:
                 # Wait on the descriptor: setting port.timeout would re-run tcsetattr on
                 # every read, which some drivers (and Linux ptys) refuse or glitch on.
@@ -213,16 +213,17 @@ class SerialTransport(Transport):
         except (self._serial_error, OSError):
             return True  # the read that follows says what is wrong
 
-    def _bridge_bytes(self) -> bytes:
+    @staticmethod
+    def _bridge_bytes(bridge) -> bytes:
         """What socket:// holds now, in one recv (pyserial's socket.recv, without its loop)."""
-        if not select.select([self._bridge], [], [], 0)[0]:
+        if not select.select([bridge], [], [], 0)[0]:
             return b""
-        return self._bridge.recv(READ_CHUNK)  # b"" at the end: the next read says it closed
+        return bridge.recv(READ_CHUNK)  # b"" at the end: the next read says it closed
 
     def discard_input(self) -> bytes:
         try:
             if self._bridge is not None:
-                return self._bridge_bytes()
+                return self._bridge_bytes(self._bridge)
             waiting = self.port.in_waiting
             return self.port.read(min(waiting, DISCARD_BUDGET)) if waiting else b""
         except (self._serial_error, OSError):
@@ -462,7 +463,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 # one of a tuple, a number (float, or int for hwgrep's n, the Nth port found from 2 on), any
 # text (str), or None for a flag.  pyserial meets some typos with KeyError or re.error, an
 # internal error to mbtool: checked here, a typo is bad input (exit 2), with nothing opened.
-SERIAL_URL_OPTIONS = {
+SERIAL_URL_OPTIONS: dict[str, dict[str, tuple[str, ...] | type | None]] = {
     "socket": {"logging": LOG_LEVELS},
     "rfc2217": {"logging": LOG_LEVELS, "ign_set_control": None, "poll_modem": None, "timeout": float},
     "loop": {"logging": LOG_LEVELS},
@@ -486,7 +487,7 @@ def _check_serial_options(text: str, scheme: str, options: str) -> None:
             raise RequestError(f"{text}: {name} is one of {', '.join(kind)}")
         if kind is str and not value:
             raise RequestError(f"{text}: {name} needs a value ({name}=...)")
-        if kind in (int, float):
+        if kind is int or kind is float:
             try:
                 number = kind(value)
             except ValueError:

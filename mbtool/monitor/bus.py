@@ -239,6 +239,7 @@ class BusMonitor:
 
     def _cut_ascii(self, quiet: bool) -> list[BusFrame | Unanswered]:
         framer = self._ascii
+        assert framer is not None  # made for ASCII, the only framing cut here
         out: list[BusFrame | Unanswered] = []
         events = []
         while (event := framer.next_event()) is not None:
@@ -351,7 +352,7 @@ class BusMonitor:
         """Could a damaged frame start here: a function code (or its exception) the codec knows."""
         return function_type(self._buffer[start + 1] & 0x7F) is not None
 
-    def _asked(self, unit: int, code: int) -> BusFrame | None:
+    def _asked(self, unit: int | None, code: int) -> BusFrame | None:
         """The request a frame from ``unit`` with ``code`` would answer, if one is waiting."""
         for request in (self._pending, self._late):
             if request is not None and request.unit == unit and request.function == code & 0x7F:

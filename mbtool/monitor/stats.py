@@ -91,6 +91,7 @@ class BusStats:
             unit.requests += 1
         else:
             if "exception" in seen.flags:
+                assert seen.described is not None  # an exception was read from its fields
                 pdu = seen.described.pdu
                 unit.exceptions[pdu[1] if len(pdu) > 1 else 0] += 1
             else:
@@ -98,7 +99,8 @@ class BusStats:
             if seen.latency is not None:
                 unit.response.add(seen.latency)
 
-    def _unit(self, unit: int) -> UnitStats:
+    def _unit(self, unit: int | None) -> UnitStats:
+        assert unit is not None  # every frame but garbage has its unit
         stats = self.units.get(unit)
         if stats is None:
             stats = self.units[unit] = UnitStats()

@@ -19,6 +19,7 @@ import ssl
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
@@ -30,6 +31,9 @@ from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
 from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
 from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
+
+if TYPE_CHECKING:
+    from mbtool.mqtt.sparkplug import EdgeNode  # protobuf: imported when sparkplug_b is asked
 
 QUEUED = 10_000  # records waiting for the publisher's thread at most
 STOP = object()
@@ -74,7 +78,7 @@ class MqttPublisher:
         self.device_states: dict[str, str] = {}  # what the broker has been told of each device
         # payload = "sparkplug_b": the edge node, each device's last values (its DBIRTH's), the
         # devices born on this connection, and the bdSeq of the connection's will.
-        self.node = None
+        self.node: EdgeNode | None = None
         if settings.sparkplug:
             from mbtool.mqtt.sparkplug import EdgeNode  # noqa: PLC0415 - protobuf: sparkplug_b only
 
@@ -202,6 +206,7 @@ class MqttPublisher:
     def _command(self, message) -> None:
         """An NCMD (a rebirth asked: the node born again) or a DCMD (writes, by /set's path)."""
         node = self.node
+        assert node is not None  # payload = "sparkplug_b", the only one with a node
         if message.topic == node.state_topic:
             self.host_online = node.host_online(message.payload)
             if self.host_online and not self.live:
@@ -290,6 +295,7 @@ class MqttPublisher:
         device's DBIRTH with its last values.  Nothing was spooled: Sparkplug's data is QoS 0,
         and the births carry the values as they are now."""
         node, now = self.node, time.time()
+        assert node is not None  # payload = "sparkplug_b", the only one with a node
         self.born = set()
         self._publish(Message(node.topic("NBIRTH"), node.node_birth(self.bdseq, now), 0, False))
         for name, state in self.device_states.items():
@@ -307,7 +313,9 @@ class MqttPublisher:
         broker and connects again, to wait for the host's STATE before it is born again."""
         self.live = False
         self.notify(f"primary host {self.settings.primary_host} offline: NDEATH, connecting again")
-        self._publish(Message(self.node.topic("NDEATH"), self.node.node_death(self.bdseq), 1, False))
+        node = self.node
+        assert node is not None  # payload = "sparkplug_b", the only one with a node
+        self._publish(Message(node.topic("NDEATH"), node.node_death(self.bdseq), 1, False))
         deadline = time.monotonic() + 2.0
         while self._unsent() and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -318,12 +326,14 @@ class MqttPublisher:
 
     def _write(self, request: SetRequest) -> None:
         """A write from the broker: refused here, or handed to its device's link."""
+        writes, submit = self.writes, self.submit
+        assert writes is not None and submit is not None  # made for [mqtt] writes, which is how a /set came
         try:
-            point, write = self.writes.check(request)
+            point, write = writes.check(request)
         except RequestError as error:
             self._result(WriteResult(request.device, request.point, f"refused: {error}"))
             return
-        self.submit(request.device, self.writes.job(request, point, write, self.report))
+        submit(request.device, writes.job(request, point, write, self.report))
 
     def _result(self, result: WriteResult) -> None:
         outcome = result.result.partition(":")[0].partition(";")[0]
@@ -363,6 +373,7 @@ class MqttPublisher:
         """A Poll's Sparkplug messages: DDEATH when its device went offline, DBIRTH when it is
         first read on this connection (again after a death), else DDATA of what changed."""
         node, name = self.node, item.device.name
+        assert node is not None  # payload = "sparkplug_b", the only one with a node
         values = {r.point.name: _value(r) for r in item.readings or () if r.error is None}
         chosen = self.changes.select(name, item.time, values) if values else {}
         self.values.setdefault(name, {}).update(values)

@@ -27,6 +27,7 @@ import os
 import re
 import socket
 from pathlib import Path
+from typing import Any
 
 from mbtool.codec.record import field, record, replace
 from mbtool.errors import UsageError
@@ -186,7 +187,7 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     host, port, tls = parse_url(given["url"], "--mqtt" if url is not None else f"{where} url")
     inventory = Path(path).stem
     settings = MqttSettings(host, port, tls, f"mbtool-{socket.gethostname()}-{inventory}", inventory)
-    changes = {}
+    changes: dict[str, Any] = {}  # each key's value, of the type MqttSettings gives it
     for key, value in given.items():
         if key == "url":
             continue

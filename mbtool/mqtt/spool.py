@@ -71,9 +71,11 @@ class Spool:
             self.dropped += 1
 
     def _rewrite(self) -> None:
-        temporary = self.path.with_name(self.path.name + ".new")
+        path = self.path
+        assert path is not None  # a spool kept in a file
+        temporary = path.with_name(path.name + ".new")
         temporary.write_text("".join(_line(message) for message in self.messages))
-        os.replace(temporary, self.path)
+        os.replace(temporary, path)
         self.lines = len(self.messages)
 
 

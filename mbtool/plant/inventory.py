@@ -242,11 +242,12 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
         raise UsageError(
             f'{path}: [links.{name}] has no target (such as "/dev/ttyUSB0" or "tcp://192.0.2.10")'
         )
+    port = settings["port"]
     try:
-        parse_target(settings["port"])
+        parse_target(port)
         connection = Connection(**settings)
         check(connection)
-        if connection.port.lower().startswith("tls://"):
+        if port.lower().startswith("tls://"):
             from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
             # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
@@ -271,6 +272,7 @@ def _one_link_a_target(links: dict[str, LinkSpec], path: str) -> None:
     TCP device or gateway are two masters polling it at once."""
     seen: dict[tuple, str] = {}
     for name, link in links.items():
+        assert link.connection.port is not None  # a link without one is refused when read
         where = parse_target(link.connection.port)
         if where.scheme in IN_PROCESS:  # each sim:// link is a device of its own
             continue

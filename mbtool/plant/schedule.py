@@ -122,7 +122,8 @@ class DeviceView:
 
 def view_of(poll: Poll) -> DeviceView:
     """The device as its latest poll left it."""
-    return DeviceView(poll.device, poll.state, poll.last_success, poll, poll.stats)
+    stats = poll.stats if poll.stats is not None else PollStats()  # the scheduler's polls carry theirs
+    return DeviceView(poll.device, poll.state, poll.last_success, poll, stats)
 
 
 def views(devices: list[DeviceSpec]) -> dict[str, DeviceView]:
@@ -260,6 +261,7 @@ class LinkWorker:
         transaction with ``device`` on the link's ManagedLink, with the device's timeout and
         retries; None when the link is not open (it is not opened for a job: its devices' polls
         open it, by the back-off rule)."""
+        assert self.jobs is not None  # accept_jobs() made the queue
         self.jobs.put((device, job))
         self.poke.set()
 
@@ -386,6 +388,7 @@ class LinkWorker:
     def _poll(self, device: DeviceState) -> None:
         link, spec = self.link, device.spec
         client = link.client
+        assert client is not None  # a device is polled on an open link
         self.polling = spec.name
         stamp: list[float] = []
         client.while_waiting = lambda: stamp.append(self.clock.time())  # the poll's time: its request out
@@ -395,7 +398,8 @@ class LinkWorker:
         def execute(request):
             return link.execute(spec.unit, request)
 
-        readings, error = None, None
+        readings: list[Reading] | None = None
+        error: BaseException | None = None
         try:
             readings = spec.reader.read(execute)
         except PartialRead as partial:

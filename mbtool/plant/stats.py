@@ -19,10 +19,11 @@ class PollStats(Stats):
         if not ok:
             self.failed_polls += 1
 
-    def add(self, other: PollStats) -> None:
-        super().add(other)
-        self.polls += other.polls
-        self.failed_polls += other.failed_polls
+    def add(self, other: Stats, recent: bool = True) -> None:
+        super().add(other, recent)
+        if isinstance(other, PollStats):
+            self.polls += other.polls
+            self.failed_polls += other.failed_polls
 
     def as_dict(self) -> dict:
         return {"polls": self.polls, "failed_polls": self.failed_polls, **super().as_dict()}

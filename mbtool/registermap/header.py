@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import re
+from typing import Any
 
 from mbtool.codec.record import record
 from mbtool.registermap.point import Point
@@ -67,7 +68,7 @@ class Probe:
 
     point: Point  # where, and how its registers read (never scaled)
     expect: str  # one of EXPECTATIONS
-    wanted: object  # equals: a tuple of values; within: (low, high); matches: a pattern
+    wanted: Any  # equals: a tuple of values; within: (low, high); matches: a pattern
 
     def judge(self, value, refused: bool) -> bool:
         """Whether the reply fits: ``value`` as the point's registers read (None when the

@@ -15,6 +15,7 @@ import tomllib
 import unicodedata
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
+from typing import Any
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
@@ -174,7 +175,7 @@ def _csv_rows(path: Path, text: str) -> dict[str, dict]:
                     f"{path}: line {line}: point {name}: key {key}: a cell of {len(value)} characters, "
                     f"over csv's limit of 128 KiB ({CSV_CELL_LIMIT})"
                 )
-        cells_given = {key: value for key, value in row.items() if key and value}
+        cells_given: dict[str, Any] = {key: value for key, value in row.items() if key and value}
         if "enum" in cells_given:
             cells_given["enum"] = _csv_enum(path, name, cells_given["enum"])
         rows[name] = cells_given
@@ -208,7 +209,7 @@ def _csv_enum(path: Path, name: str, text: str) -> dict:
     return labels
 
 
-def _device(path: Path, device: object) -> dict:
+def _device(path: Path | str, device: object) -> dict:
     if not isinstance(device, dict):
         raise MapError(f"{path}: [device] is a table of defaults ({', '.join(DEVICE_KEYS)})")
     for key in device:
@@ -221,7 +222,7 @@ def _device(path: Path, device: object) -> dict:
     return defaults
 
 
-def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
+def _point(path: Path | str, name: str, row: dict, defaults: dict) -> Point:
     if not name:
         raise MapError(f"{path}: a point with an empty name (read, check and the monitoring formats show it)")
     if not one_line(name):
@@ -256,7 +257,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
     unit = _string(row, "unit", fail)
     if not one_line(unit):
         raise fail("unit", f"{unit!r} {ONE_LINE}")
-    options = {
+    options: dict[str, Any] = {
         "unit": unit,
         "description": _string(row, "description", fail),
         "writable": access == "rw",
@@ -327,7 +328,7 @@ def _point(path: Path, name: str, row: dict, defaults: dict) -> Point:
     return point
 
 
-def _location(path: Path, name: str, row: dict, fail) -> tuple[Table, int]:
+def _location(path: Path | str, name: str, row: dict, fail) -> tuple[Table, int]:
     if "ref" in row:
         if "table" in row or "address" in row:
             raise fail("ref", "give either ref or table and address, not both")
@@ -347,7 +348,7 @@ def _location(path: Path, name: str, row: dict, fail) -> tuple[Table, int]:
     return table, _integer(path, name, "address", row["address"], 0, 65535)
 
 
-def _integer(path: Path, name: str, key: str, value: object, low: int, high: int) -> int:
+def _integer(path: Path | str, name: str, key: str, value: object, low: int, high: int) -> int:
     where = f"{path}: {name}" if name.startswith("[") else f"{path}: point {name}"
     try:
         number = int(value, 0) if isinstance(value, str) else value
@@ -537,7 +538,7 @@ def _enum(row: dict, kind: str, fail) -> dict[int, str]:
     return out
 
 
-def _check_overlaps(path: Path, points) -> None:
+def _check_overlaps(path: Path | str, points) -> None:
     """Two points may share a register only as different bits of it."""
     by_table: dict[str, list[Point]] = {}
     for point in points:

@@ -24,6 +24,7 @@ for ``read -m``, polling, ``check -m`` and the monitoring outputs.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from typing import Any
 
 from mbtool.codec.data_access import (
     MAX_READ_BITS,
@@ -31,7 +32,7 @@ from mbtool.codec.data_access import (
     MaskWriteRegister,
 )
 from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.codec.pdu import ExceptionCode, Request, Response
+from mbtool.codec.pdu import ExceptionCode, Request
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import READS, Table, write_of
 from mbtool.errors import PartialRead
@@ -66,10 +67,10 @@ class Reading:
     point: Point
     value: PointValue
     raw: tuple
-    error: ModbusException | None = None
+    error: PointException | None = None
 
     def __init__(
-        self, point: Point, value: PointValue, raw: tuple, error: ModbusException | None = None
+        self, point: Point, value: PointValue, raw: tuple, error: PointException | None = None
     ) -> None:
         # By hand: one a point a poll (codec/record.py).
         fields = self.__dict__
@@ -89,7 +90,8 @@ def plan_reads(points: Iterable[Point], max_gap: int = 0) -> list[Block]:
         table = table_points[0].table
         limit = MAX_READ_BITS if table.bits else MAX_READ_REGISTERS
         partners = _partners(table_points)
-        members, start, end, reach = [], 0, 0, 0
+        members: list[Point] = []
+        start = end = reach = 0
         for point in table_points:
             # reach: where a member's scale factor (or a point it scales) ends, when one read
             # from this block's start can get there.
@@ -132,7 +134,8 @@ def with_scale_factors(points: Iterable[Point]) -> list[Point]:
     return points
 
 
-Execute = Callable[[Request], Response]
+# Any: the reply is the class its request decodes (a read's BitsResponse or RegistersResponse).
+Execute = Callable[[Request], Any]
 
 
 class MapReader:
@@ -193,7 +196,8 @@ def _scaled(readings: dict[str, Reading], reading: Reading) -> Reading:
     scale = readings[factor.name]
     if scale.error is not None:
         return Reading(reading.point, None, (), PointException(reading.point, scale.error, factor))
-    value = reading.point.value_of(reading.raw, scale.value)
+    sf = scale.value if isinstance(scale.value, int) else None  # a scale factor is an integer, or no value
+    value = reading.point.value_of(reading.raw, sf)
     return Reading(reading.point, value, reading.raw)
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable, Sequence
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, InvalidOperation, localcontext
 
 from mbtool.codec.errors import RequestError
@@ -56,7 +57,7 @@ class Point:
     offset: Decimal | None = None
     unit: str = ""
     description: str = ""
-    enum: dict = field(default=None, compare=False)  # raw value -> label
+    enum: dict | None = field(default=None, compare=False)  # raw value -> label
     bit: int | None = None  # one bit (0 = least significant) of a register
     writable: bool = False
     warn: str | None = None  # mbtool check's thresholds (Monitoring Plugins range syntax)
@@ -64,10 +65,12 @@ class Point:
     invalid: frozenset = field(default=frozenset(), compare=False)  # raw values meaning no data
     # The point whose value is this one's power-of-ten scale factor (SunSpec's sunssf).
     scale_ref: Point | None = field(default=None, compare=False)
+    # What every read of the point asks, worked out once (__post_init__): a map polled reads it
+    # again and again.  ``ref``: its Modicon reference; ``_decode``: how its registers read as values.
+    ref: str = field(init=False, compare=False)
+    _decode: Callable[[Sequence[int]], list[Value]] | None = field(init=False, compare=False)
 
     def __post_init__(self) -> None:
-        # What every read of the point asks, worked out once: a map polled reads it again and
-        # again.  ``ref``: its Modicon reference; ``_decode``: how its registers read as values.
         object.__setattr__(self, "ref", reference(self.table, self.address))
         registers = not (self.table.bits or self.bit is not None) and self.type in TYPES
         object.__setattr__(self, "_decode", value_decoder(self.type, self.order) if registers else None)
@@ -94,13 +97,14 @@ class Point:
     def is_bit(self) -> bool:
         return self.table.bits or self.bit is not None
 
-    def value_of(self, raw: list[int] | list[bool], scale_factor: int | None = None) -> PointValue:
+    def value_of(self, raw: Sequence[int], scale_factor: int | None = None) -> PointValue:
         """The engineering value of the point's registers (or bit) as read; ``scale_factor``:
         the value of the ``scale_ref`` point, read with it (None: it has none)."""
         if self.table.bits:
             return bool(raw[0])
         if self.bit is not None:
             return bool(raw[0] >> self.bit & 1)
+        assert self._decode is not None  # a register point's decoder, set by __post_init__
         value = self._decode(raw)[0]
         if self.invalid and self.is_invalid(value):
             return None  # the device has no value to give: never a label, never scaled

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable
+from typing import Any
 
 from mbtool.codec.data_access import MAX_READ_REGISTERS, ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, exception_name
@@ -32,7 +33,7 @@ from mbtool.sunspec.layout import Layout, lay_out
 from mbtool.sunspec.models import BASES, END_MODEL, MARKER, definition
 from mbtool.words import counted
 
-Execute = Callable[[ReadHoldingRegisters], object]
+Execute = Callable[[ReadHoldingRegisters], Any]  # the reply: a RegistersResponse
 
 # The walk's bounds (issue 40 item 13).  Each model moves the walk forward (its id, its
 # length, its registers: at least 2 registers), so it ends by register 65535 whatever the

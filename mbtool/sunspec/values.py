@@ -53,10 +53,11 @@ def read_values(layout: Layout, registers: tuple[int, ...] | list[int]) -> dict[
         factor = slot.factor if isinstance(slot.factor, int) else None
         if point.scale_ref is not None:
             scale = point.scale_ref
-            factor = scale.value_of(list(raw_of(scale.address, scale.size)))
+            read = scale.value_of(list(raw_of(scale.address, scale.size)))
+            factor = read if isinstance(read, int) else None  # a sunssf is an int16, or no value
         value = point.value_of(list(raw), factor)
-        bits = ()
-        if slot.point["type"].startswith("bitfield") and value is not None:
+        bits: tuple[str, ...] = ()
+        if slot.point["type"].startswith("bitfield") and isinstance(value, int):  # None: no value
             bits = tuple(bits_set(slot, value))
         out[slot.name] = PointValue(slot, raw, value, not point.is_invalid(held), factor, bits)
     return out

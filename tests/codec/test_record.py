@@ -101,3 +101,23 @@ def test_hand_written_inits_make_the_same_records(make, generic):
 def test_requests_still_check_their_fields():
     with pytest.raises(ValueError, match="registers"):
         ReadHoldingRegisters(0, 126)
+
+
+def test_a_field_set_by_post_init_is_no_argument():
+    # field(init=False): a value worked out from the others (registermap's Point.ref), declared
+    # so a type checker knows it; the constructor refuses it, replace() works it out anew.
+    @record
+    class Reg:
+        address: int
+        ref: str = field(init=False, compare=False)
+
+        def __post_init__(self) -> None:
+            object.__setattr__(self, "ref", f"4{self.address + 1:04d}")
+
+    reg = Reg(9)
+    assert reg.ref == "40010" and repr(reg) == "Reg(address=9)"
+    assert replace(reg, address=10).ref == "40011"
+    with pytest.raises(TypeError):
+        Reg(9, "40010")
+    with pytest.raises(TypeError):
+        Reg(9, ref="40010")

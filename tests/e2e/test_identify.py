@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import re
+import socket
+import threading
 import tomllib
 
 import pytest
@@ -232,3 +234,37 @@ def test_a_device_that_names_itself_in_fc43_ranks_first_with_that_evidence(tmp_p
     assert found["map"] == "abb-b23" and best["complete"]
     assert best["evidence"][0] == 'FC 43/14 VendorName "ABB", ProductCode "B23 312-100"'
     assert found["seen"]["FC 43/14"].startswith('VendorName "ABB", ProductCode "B23 312-100"')
+
+
+def test_an_inventory_that_cannot_be_written_is_one_line_and_exit_7(tmp_path):
+    # Found by mypy (issue 41 point 7): OutputFailed was raised with one argument of its two,
+    # so a folder that is not there ended in a TypeError's traceback.
+    plant = tmp_path / "no-such-folder" / "plant.toml"
+    with serve("--data", str(twin_path("sdm72"))) as server:
+        res = run_cli(
+            "identify", "-p", server.target, "-t", "0.3", "--all-units", "--units", "1", "--inventory", plant
+        )
+    assert res.returncode == 7, res
+    assert res.stderr.splitlines()[-1] == f"mbtool: cannot write to {plant}: No such file or directory", res
+    assert "Traceback" not in res.stderr
+
+
+def test_a_walk_whose_link_is_lost_and_refused_ends_in_words_not_an_internal_error():
+    # Found by mypy (issue 41 point 7): the walk's quiet progress took no step count, so a
+    # link lost mid-walk that could not be opened again ended in a TypeError.
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def hang_up_once():
+        with listener:
+            conn, _ = listener.accept()
+        with conn:  # the listener is closed: the walk's reopen is refused
+            conn.settimeout(5)
+            conn.recv(260)  # the first probe, then the hang-up
+
+    peer = threading.Thread(target=hang_up_once, daemon=True)
+    peer.start()
+    res = run_cli("identify", "-p", f"tcp://127.0.0.1:{port}", "-t", "0.3", "--all-units", "--units", "1-3")
+    peer.join(5)
+    assert res.returncode == 3, res
+    assert res.stderr == f"mbtool: no unit of 1-3 answered on tcp://127.0.0.1:{port}\n", res

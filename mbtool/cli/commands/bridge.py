@@ -224,7 +224,9 @@ def bridge(
         given = [SETTINGS[name].option for name, value in (("cert", cert), ("key", key), ("ca", ca)) if value]
         if given:
             raise not_for_tls(given[0], "tls://", ", and neither side is tls://")
-    listening = (cert, key, ca) if where.scheme == "tls" else (None, None, None)
+    listening: tuple[str | None, str | None, str | None] = (
+        (cert, key, ca) if where.scheme == "tls" else (None, None, None)
+    )
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
     check_udp_rate(where, udp_rate)
     connection = Connection(
@@ -335,7 +337,10 @@ class Show:
 
     def event(self, direction: str, peer: str, data: bytes, note: str) -> None:
         """The server's own events: clients connecting, closed, refused."""
-        if self.quiet or not self.log.events or direction not in ("open", "close", "refuse"):
+        if self.quiet:
+            return
+        assert self.log is not None  # made unless quiet
+        if not self.log.events or direction not in ("open", "close", "refuse"):
             return
         self._show(f"{local_time()} {peer} {note}")
 
@@ -373,6 +378,7 @@ class Show:
                 self.on_failure()
 
     def _write(self, item) -> None:
+        assert self.log is not None  # made unless quiet, and nothing is queued when quiet
         self.log.write(item)
         sys.stdout.flush()
 

@@ -150,9 +150,8 @@ def _range_fault(body: str) -> str:
         return "~ is not a number (~ is for the start: ~:10)"
     start = float("-inf") if start_text == "~" else _range_number(start_text, 0)
     end = _range_number(end_text, float("inf"))
-    for number, atom in ((start, start_text), (end, end_text)):
-        if number is None:
-            return f"{atom} is not a number"
+    if start is None or end is None:
+        return f"{start_text if start is None else end_text} is not a number"
     if start > end:
         return f"its start {start_text} is above its end {end_text}"
     return ""

@@ -197,7 +197,8 @@ def _register_rows(value: int, controller: str | None):
 
 
 def _counters(connection, settings):
-    rows, data, answered, refused = [], {}, 0, None
+    rows, answered, refused = [], 0, None
+    data: dict = {}  # counter name -> its count, or the device's refusal
     with open_client(connection, settings, "diag counters") as client:
         if settings.dry_run:
             # Every request is known in advance: show them all, then stop as a dry run does.

@@ -133,7 +133,7 @@ def dump(connection, settings, file, ranges, max_requests):
                     try:
                         for span in spans:
                             done = bar.done if bar else 0
-                            progress = bar and (lambda n, done=done: bar.at(done + n))
+                            progress = partial(bar.past, done) if bar else None
                             dumper.dump(span, dumps[span.table.name], progress)
                             if bar:
                                 bar.at(done + span.size)
@@ -162,6 +162,7 @@ def dump(connection, settings, file, ranges, max_requests):
     finally:
         if output is not None:
             output.discard()
+    assert dumper is not None  # made before the first read; a run that read nothing ended above
     found = ", ".join(f"{name} {d.count}" + (" (absent)" if d.absent else "") for name, d in dumps.items())
     refused = f" ({dumper.refused} refused: missing addresses)" if dumper.refused else ""
     summary = (

@@ -302,9 +302,9 @@ class Modules:
             )
         if paths:
             return paths[0]
-        path = find_named(name)  # the user's maps, then mbtool's library: as -m finds them
-        if path is not None:
-            return path
+        found = find_named(name)  # the user's maps, then mbtool's library: as -m finds them
+        if found is not None:
+            return found
         where = [f"{self.folder} has no {name}.toml nor {name}.csv"] if self.folder is not None else []
         if self.named:
             where.append(f"the inventory's maps are {', '.join(sorted(self.named))}")
@@ -365,14 +365,14 @@ class TargetScraper:
             register_map = self.modules.load(path)
         except KNOWN_ERRORS as error:  # the exporter's configuration, not the device: 500
             return 500, TEXT, f"module {module}: {error}\n".encode()
-        readings, error, kind = self._read(where, connection, register_map, started + budget, budget)
+        readings, problem, kind = self._read(where, connection, register_map, started + budget, budget)
         from prometheus_client import (  # noqa: PLC0415 - 32 ms: not for mbtool --help
             CollectorRegistry,
             generate_latest,
         )
 
         registry = CollectorRegistry()
-        registry.register(_ScrapeCollector(str(unit), readings, error, kind, time.monotonic() - started))
+        registry.register(_ScrapeCollector(str(unit), readings, problem, kind, time.monotonic() - started))
         return 200, CONTENT_TYPE, generate_latest(registry)
 
     def _asked(self, query: str) -> tuple[Target, str, int]:
@@ -465,13 +465,13 @@ class TargetLocks:
 
     def __init__(self) -> None:
         self.guard = threading.Lock()
-        self.locks: OrderedDict[str, list] = OrderedDict()  # key -> [its lock, scrapes using it]
+        self.locks: OrderedDict[tuple, list] = OrderedDict()  # key -> [its lock, scrapes using it]
 
     def __len__(self) -> int:
         return len(self.locks)
 
     @contextmanager
-    def held(self, key: str, deadline: float):
+    def held(self, key: tuple, deadline: float):
         """Yield whether the link's lock was taken before ``deadline`` (monotonic)."""
         with self.guard:
             entry = self.locks.get(key) or [threading.Lock(), 0]
@@ -598,8 +598,8 @@ def _read_map(connection, register_map, deadline: float, budget: float):
     except PartialRead as partial:
         return partial.readings, partial, "partial"
     except (*KNOWN_ERRORS, OSError) as failure:
-        error = link_failure(failure)
-        return None, error, outcome_of(error)
+        lost = link_failure(failure)
+        return None, lost, outcome_of(lost)
     finally:
         link.close()
 

@@ -235,7 +235,7 @@ class _Quiet:
     def at(self, setting, unit: int) -> None:
         pass
 
-    def advance(self) -> None:
+    def advance(self, steps: int = 1) -> None:
         pass
 
 
@@ -300,7 +300,7 @@ def _write_inventory(path: str, connection, results: list) -> None:
     try:
         Path(path).write_text(text, encoding="utf-8")
     except OSError as error:
-        raise OutputFailed(f"cannot write {path}: {error.strerror or error}") from None
+        raise OutputFailed(path, error) from None
     print(
         f"mbtool: wrote {path}: {counted(len(devices), 'device')}, {len(unknown)} not identified",
         file=sys.stderr,
@@ -370,8 +370,8 @@ def _sunspec(execute, seen: dict[str, str]) -> dict | None:
     found = {"base": base, "ref": reference(HOLDING_REGISTERS, base)}
     try:  # the Common model follows the marker: ID, L, Mn (16 registers), Md (16)
         registers = execute(ReadHoldingRegisters(base + 4, 32)).registers
-        found["manufacturer"] = decode_values(list(registers[:16]), "string")[0].rstrip("\x00 ")
-        found["model"] = decode_values(list(registers[16:32]), "string")[0].rstrip("\x00 ")
+        found["manufacturer"] = str(decode_values(list(registers[:16]), "string")[0]).rstrip("\x00 ")
+        found["model"] = str(decode_values(list(registers[16:32]), "string")[0]).rstrip("\x00 ")
     except (ModbusException, NoResponse, FrameError):
         pass
     seen["sunspec"] = f'"SunS" at {found["ref"]}'

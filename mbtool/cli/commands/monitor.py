@@ -207,6 +207,7 @@ def monitor(
     lost = None
     try:
         if from_file:
+            assert recording is not None  # read from from_file above
             _replay(from_file, recording, sniffer, show)
         else:
             lost = _listen(port, framer, baud, parity, bytesize, stopbits, duration, sniffer, show)
@@ -402,6 +403,7 @@ def plain_line(item, timed: bool = True) -> str:
     when = _when(item, timed) or "-"
     if isinstance(item, Unanswered):
         request = item.request
+        assert request.function is not None  # a request's, read from its frame
         name = request.described.name if request.described else ""
         return (
             f"{when} unanswered #{request.number} unit={request.unit} "
@@ -427,7 +429,7 @@ def plain_line(item, timed: bool = True) -> str:
 class _Stats(NamedTuple):
     """The statistics so far, as an item of the output: a table's lines, or a JSON object."""
 
-    counts: object  # monitor.stats.BusStats
+    counts: BusStats
     now: float | None
 
 
@@ -469,6 +471,7 @@ class Output:
     def _coloured(self, item, console) -> None:
         if isinstance(item, Unanswered):
             request = item.request
+            assert request.function is not None  # a request's, read from its frame
             name = request.described.name if request.described else ""
             when = _when(item, self.timed) or "-"
             console.print(

@@ -18,7 +18,7 @@ from mbtool.codec.checksum import crc16
 from mbtool.codec.checksum import lrc as lrc8
 from mbtool.codec.describe import describe, describe_pdu, looks_whole, parse_hex, split_frame
 from mbtool.codec.errors import ChecksumError, FrameError, ModbusException, RequestError
-from mbtool.codec.framing import FRAMERS, Frame
+from mbtool.codec.framing import FRAMERS, Frame, Framer
 from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS
@@ -187,6 +187,7 @@ class _SocatBlocks:
         return self.block is not None and len(self.block[2]) < self.block[3]
 
     def add(self, data: bytes) -> None:
+        assert self.block is not None  # called while reading a block
         self.block[2] += data
 
     def start(self, number: int, side: str, length: int) -> list:
@@ -203,7 +204,8 @@ class _SocatBlocks:
         return done
 
     def _settle(self) -> list:
-        block, self.block, done = self.block, None, []
+        block, self.block = self.block, None
+        done: list = []
         if block is None:
             return done
         if self.held is not None:
@@ -390,18 +392,27 @@ def _exact_framer(name: str, exact: bytes | None):
     base = FRAMERS[name]
     if exact is None:
         return base()
-    tid = int.from_bytes(exact[0:2], "big") if name == "tcp" else None
+    # The framer's own class with _Exact's two methods first (a class made at run time, as
+    # the framing is only known then).
+    framer = type("Exact", (_Exact, base), {})()
+    framer.exact = exact
+    framer.tid = int.from_bytes(exact[0:2], "big") if name == "tcp" else None
+    return framer
 
-    class Exact(base):
-        def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
-            return exact
 
-        def next_event(self):
-            # The client matches replies to transaction ids it chose; these bytes carry the
-            # user's, so a reply to the user's id is handed over unnumbered.
-            event = super().next_event()
-            if tid is not None and isinstance(event, Frame) and event.transaction_id == tid:
-                event = event._replace(transaction_id=None)
-            return event
+class _Exact(Framer):
+    """Sends the user's bytes as they are, instead of building a frame."""
 
-    return Exact()
+    exact: bytes
+    tid: int | None  # the transaction id in those bytes (MBAP)
+
+    def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
+        return self.exact
+
+    def next_event(self):
+        # The client matches replies to transaction ids it chose; these bytes carry the
+        # user's, so a reply to the user's id is handed over unnumbered.
+        event = super().next_event()
+        if self.tid is not None and isinstance(event, Frame) and event.transaction_id == self.tid:
+            event = event._replace(transaction_id=None)
+        return event

@@ -183,7 +183,7 @@ def poll(
         hex_links or None,
     )
     if publisher is not None:
-        if mqtt.writes:
+        if mqtt is not None and mqtt.writes:  # a publisher is made for [mqtt]
             hand_writes(publisher, runner)
         publisher.start()
     started = time.monotonic()
@@ -325,8 +325,8 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
     links, link_of = {}, {}
     for worker in runner.workers:
         total = PollStats()
-        for state in worker.devices:
-            total.add(state.stats)
+        for device_state in worker.devices:
+            total.add(device_state.stats)
         links[worker.spec.name] = (total, worker.state)
         link_of[worker.spec.name] = worker.spec
     # The timeout and retries each device's transactions had (its own, else its link's); a link's own.
@@ -366,11 +366,11 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
         ["", "name", "state", "polls", "trans", *(o.replace("_", " ") for o in outcomes), "exc", "recovered",
          "rtt min/avg/p95/max ms", "timeout s", "retries"]
     ]  # fmt: skip
-    for kind, name, state, stats, (timeout, retries) in rows:
-        counts = [str(stats.outcomes[outcome]) for outcome in outcomes]
+    for kind, name, state, totals, (timeout, retries) in rows:
+        counts = [str(totals.outcomes[outcome]) for outcome in outcomes]
         lines.append(
-            [kind, name, state, str(stats.polls), str(stats.transactions), *counts, stats.exceptions_text(),
-             str(stats.recovered), stats.rtt.cell(), f"{timeout:g}", str(retries)]
+            [kind, name, state, str(totals.polls), str(totals.transactions), *counts, totals.exceptions_text(),
+             str(totals.recovered), totals.rtt.cell(), f"{timeout:g}", str(retries)]
         )  # fmt: skip
     widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
     for line in lines:
@@ -424,4 +424,6 @@ def _verdict(runner: Plant, interrupted: bool, rounds: int, ends: bool) -> Verdi
         return Verdict(text, ExitCode.PARTIAL)
     if not failed:
         return Verdict(text, ExitCode.INTERRUPTED)
-    return Verdict(text + f": {failed[0].error}", exit_code_for(failed[0].error))
+    error = failed[0].error
+    assert error is not None  # a poll without readings is one that failed
+    return Verdict(text + f": {error}", exit_code_for(error))

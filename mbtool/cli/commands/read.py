@@ -102,14 +102,13 @@ def _run(
             if metrics is not None:  # -o prom says the device is down
                 metrics.emit_failure(error, sys.stdout)
             raise
-        return
+        return None
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output  # noqa: PLC0415 - polling only
     from mbtool.link.polling import poll  # noqa: PLC0415 - polling only
 
     fmt = settings.output_format or default_format()
-    output = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
-    if settings.changes:
-        output = ChangesOnly(output)
+    whole = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
+    output = ChangesOnly(whole) if settings.changes else whole
     shown = Deferred(output, to_result)
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
@@ -197,6 +196,7 @@ def _metrics(connection: Connection, settings: Settings, points=()):
         settings = replace(settings, output_format="prom")
     if settings.changes:
         raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
+    assert settings.output_format is not None  # -o influx or prom (the caller's test), or prom for --textfile
     metrics = sink(settings.output_format).Readings(settings, connection.unit)
     metrics.check(points)
     return settings, metrics

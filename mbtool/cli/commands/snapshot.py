@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from functools import partial
+from typing import Any
 
 import click
 
@@ -60,7 +61,8 @@ def _scale_factor(point, registers: dict) -> int | None:
 def differences(a: dict, b: dict, register_map=None) -> list[dict]:
     """Each difference: a map's point (by name, in its units) where one covers the address,
     else the table and address with the raw values; None where a side lacks the address."""
-    out, covered = [], set()
+    out: list[dict] = []
+    covered: set[tuple[str, int]] = set()
     for point in register_map.points.values() if register_map else ():
         name = point.table.name
         addresses = range(point.address, point.end)
@@ -103,16 +105,17 @@ def differences(a: dict, b: dict, register_map=None) -> list[dict]:
 DEVICE = "device"  # a side of diff that is the device itself, read through -p
 
 
-def _as_read(difference: dict, register_map) -> tuple:
+def _as_read(difference: dict, register_map) -> tuple[object, object]:
     """A difference's two values as read -m shows them: a number an enum point's labels
     leave out says so (JSON keeps the number)."""
     sides = difference["a"], difference["b"]
     if "name" not in difference:
         return sides
     point = register_map.points[difference["name"]]
-    return tuple(
+    a, b = (
         f"{value} (no label)" if value is not None and point.no_label(value) else value for value in sides
     )
+    return a, b
 
 
 @device_command("diff")
@@ -170,11 +173,12 @@ def write_requests(changes: dict[str, dict[int, int]], spans=()) -> list:
 
     ``spans``: (table, first, end) ranges no request may cut, a map's points: a meter
     refuses half a float32, so a cut that would fall inside one falls before it."""
-    requests = []
-    for name, kind, limit in (
+    requests: list[WriteMultipleCoils | WriteMultipleRegisters] = []
+    tables: tuple[tuple[str, Any, int], ...] = (  # Any: either write's class, given its values
         ("coils", WriteMultipleCoils, MAX_WRITE_COILS),
         ("holding", WriteMultipleRegisters, MAX_WRITE_REGISTERS),
-    ):
+    )
+    for name, kind, limit in tables:
         values = changes.get(name, {})
         whole = [(first, end) for table, first, end in spans if table == name]
         for first, last in runs_of(sorted(values)):

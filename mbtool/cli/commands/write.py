@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from functools import partial
+from typing import TYPE_CHECKING
 
 import click
 
@@ -32,6 +33,9 @@ from mbtool.codec.framing import is_broadcast
 from mbtool.codec.values import decode_values, parse_registers, value_addresses
 from mbtool.errors import Verdict
 from mbtool.link.connection import framer_name
+
+if TYPE_CHECKING:
+    from mbtool.registermap.point import Point  # imported when -m is used (decimal, 1 ms)
 
 # --- writes: FC 05, 06, 15, 16 ------------------------------------------------------------
 
@@ -244,7 +248,7 @@ def _write_map(
     from mbtool.registermap.point import NoScaleFactor  # noqa: PLC0415 - with decimal, 1 ms: -m only
 
     register_map = load_named_map(path)
-    wanted = []  # every value checked before anything is sent
+    wanted: list[tuple[Point, str]] = []  # every value checked before anything is sent
     for assignment in assignments:
         name, sep, text = assignment.partition("=")
         name = name.strip()
@@ -265,7 +269,7 @@ def _write_map(
             f"{factors[0].name} is read first, to scale what is written: unit 0 (broadcast) cannot be read"
         )
     bits_by_rmw = rmw and any(point.bit is not None for point, _ in wanted)
-    rows = []
+    rows: list[PointRow] = []
 
     def send(step: Step) -> None:
         point, value, request, factor = step.work

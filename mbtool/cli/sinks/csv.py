@@ -60,9 +60,10 @@ def render(result: Result | Report | Points | Listing, out: TextIO, csv_header: 
     rows_writer.writerows(rows)
 
 
-def rows_of(result: Result | Report | Points) -> tuple[list[str] | None, list[list[str]]]:
+def rows_of(result: Result | Report | Points | Listing) -> tuple[list[str] | None, list[list[str]]]:
     """A result's header (None: a report that has none) and rows, as text."""
     if isinstance(result, Listing):
+        assert result.table is not None  # a Listing without one is written as its lines (render)
         return result.table()
     if isinstance(result, Points):
         return POINT_CSV_HEADER, [point_cells(row) for row in result.rows]

@@ -58,7 +58,7 @@ class Readings(MonitoringReadings):
         stamp = time.time_ns() if when is None else int(when * 1_000_000_000)
         return line(self.measurement, tags, fields, stamp)
 
-    def _warn_left_out(self, what: str, value: float) -> None:
+    def _warn_left_out(self, what: str, value: object) -> None:
         if what not in self.warned:
             self.warned.add(what)
             print(

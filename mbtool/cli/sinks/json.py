@@ -9,6 +9,11 @@ encoder, made once, and ``JsonLines`` keeps what a command's polls share.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from json import JSONEncoder
+
 import math
 from typing import TextIO
 
@@ -22,7 +27,7 @@ def render(result: Result | Report | Points, out: TextIO, csv_header: bool = Tru
     out.write(to_json(data_of(result)) + "\n")
 
 
-def data_of(result: Result | Report | Points | Listing) -> dict:
+def data_of(result: Result | Report | Points | Listing) -> object:
     """A result as the plain data of its JSON object."""
     if isinstance(result, Listing):
         return result.data()
@@ -85,7 +90,7 @@ def json_line(data: dict) -> str:
         return to_json(data) + "\n"
 
 
-_ENCODER = None
+_ENCODER: JSONEncoder | None = None  # made by the first json_line
 
 
 class JsonLines:
@@ -133,8 +138,10 @@ class JsonLines:
         # format of their own (_int_array).  Other values (floats that may be NaN, strings,
         # bits) take the encoder.
         values = result.values
+        encoder = _ENCODER
+        assert encoder is not None  # json_line made it, for the line's parts
         try:
-            text = _int_array(values) if self.integers and type(values) is list else _ENCODER.encode(values)
+            text = _int_array(values) if self.integers and type(values) is list else encoder.encode(values)
         except ValueError:
             return None
         parts = self.parts
@@ -149,6 +156,7 @@ class JsonLines:
         if "registers" in data:
             data["registers"] = _MARK
         text = json_line(data)
+        assert _ENCODER is not None  # json_line made it
         return text.split(_ENCODER.encode(_MARK))
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from mbtool.cli.results import (
     Listing,
@@ -26,6 +26,9 @@ from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.cli.sinks.plain import Rows as PlainRows
 from mbtool.codec.errors import function_code_text
 from mbtool.words import counted
+
+if TYPE_CHECKING:
+    from rich.live import Live
 
 
 def render(result: Result | Report | Points | Listing, out: TextIO, csv_header: bool = True) -> None:
@@ -76,6 +79,7 @@ def _result(result: Result, out: TextIO) -> None:
     if typed_registers:
         from mbtool.codec.values import TYPES  # noqa: PLC0415 - typed registers only; crc loads this too
 
+        assert result.type is not None  # not bits
         width = TYPES[result.type].registers
         table.add_column("Registers", justify="right")
     refs = result.refs if result.refs is not None else [None] * len(result.values)
@@ -96,6 +100,7 @@ def _result(result: Result, out: TextIO) -> None:
         if typed_registers:
             # The words behind each value: when a float looks wrong, they show the word order.
             start = address - result.address
+            assert result.registers is not None  # typed_registers
             words = result.registers[start : start + (width or len(result.registers))]
             cells.append(" ".join(f"{w:04X}" for w in words))
         table.add_row(*cells)
@@ -116,8 +121,10 @@ def points_table(points: Points, heading: str = ""):
 
     described = any(row.description for row in points.rows)
     table = Table()
-    for column, justify in (("Name", "left"), ("Value", "right"), ("Unit", "left"), ("Ref", "right")):
-        table.add_column(column, justify=justify)
+    table.add_column("Name", justify="left")
+    table.add_column("Value", justify="right")
+    table.add_column("Unit", justify="left")
+    table.add_column("Ref", justify="right")
     table.add_column("Raw", justify="right")
     if described:
         table.add_column("Description")
@@ -204,7 +211,7 @@ class Polls(PlainPolls):
 
     def __init__(self, output) -> None:
         super().__init__(output)
-        self.live = None
+        self.live: Live | None = None  # rich's, made at the first table on a terminal
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: tables only
@@ -236,10 +243,11 @@ class Polls(PlainPolls):
             # refreshed in place would leave only the last one, without a final newline.
             console(out).print(Group(heading, table))
             return
-        if self.live is None:
-            self.live = Live(Group(heading, table), auto_refresh=False)
-            self.live.start()
-        self.live.update(Group(heading, table), refresh=True)
+        live = self.live
+        if live is None:
+            live = self.live = Live(Group(heading, table), auto_refresh=False)
+            live.start()
+        live.update(Group(heading, table), refresh=True)
 
     def close(self) -> None:
         if self.live is not None:
@@ -314,6 +322,10 @@ class ProgressBar:
         self.task = self.progress.add_task(what, total=total)
         self.progress.start()
 
+    def past(self, start: int, count: int) -> None:
+        """``count`` more done since ``start`` (a span's progress as its dump reports it)."""
+        self.at(start + count)
+
     def at(self, done: int) -> None:
         self.done = done
         self.progress.update(self.task, completed=done)
@@ -360,7 +372,7 @@ def serve_live(server, device, framer: str, unit_text: str, units: frozenset[int
         for unit in shown_units:
             counters.add_column(f"unit {unit}", justify="right")
         names = list(device.counters(shown_units[0])) if shown_units else []
-        values = {unit: device.counters(unit) if unit in device.stations else None for unit in shown_units}
+        values = {unit: device.counters(unit) if unit in device.stations else {} for unit in shown_units}
         for name in names:
             counters.add_row(name, *(str(values[u][name]) if values[u] else "-" for u in shown_units))
         counters.add_row(
@@ -547,7 +559,7 @@ class PlantView:
         as many rows as it needs (its reason is at its end), blank rows below them."""
         from rich.text import Text  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
 
-        rows = []
+        rows: list = []  # rich Text lines
         for line in reversed(self.events):
             rows.extend(Text(line).wrap(console, width))
         rows = rows[: self.EVENT_ROWS]
