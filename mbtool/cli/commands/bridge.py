@@ -444,18 +444,6 @@ STYLES = {
 }
 
 
-# Line styles on a terminal: the request, and its reply by what became of it.
-ASKED = "cyan"
-STYLES = {
-    REPLY: "green",
-    REFUSED: "yellow",
-    BROADCAST: "green",
-    NO_RESPONSE: "bold red",
-    NO_PATH: "bold red",
-    INVALID: "bold red",
-}
-
-
 def _describe(adu: bytes, framing: str, direction: str, previous=None):
     return describe(shown_frame(adu) if framing == "ascii" else adu.hex(), framing, direction, previous)
 
