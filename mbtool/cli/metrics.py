@@ -9,6 +9,8 @@ goes (when the device last answered, the fields it warned about) is the run's ow
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 from mbtool.cli.results import Points
 from mbtool.cli.settings import Settings
 from mbtool.codec.errors import RequestError
@@ -19,7 +21,7 @@ from mbtool.errors import ExitCode, exit_code_for
 DEVICE_FAILURES = (ExitCode.TIMEOUT, ExitCode.EXCEPTION, ExitCode.INVALID_RESPONSE, ExitCode.CONNECTION)
 
 
-class Readings:
+class Readings(ABC):
     """One run's -o influx or -o prom (--textfile): its measurement, its profile's name, its
     textfile, the unit the status metrics name when no result does; and what the run has
     learnt: when the device last answered, the fields left out of a line so far."""
@@ -46,13 +48,13 @@ class Readings:
             if problem:
                 raise RequestError(f"{option} {name!r}: {problem}")
 
+    @abstractmethod
     def emit(self, result, out, when: float | None = None) -> None:
-        """One read, written to ``out`` (or the textfile)."""
-        raise NotImplementedError
+        """One read, written to ``out`` (or the textfile): each format's own."""
 
+    @abstractmethod
     def emit_failure(self, error: BaseException, out) -> None:
-        """A read that failed."""
-        raise NotImplementedError
+        """A read that failed, as each format says it."""
 
     @staticmethod
     def device_failed(error: BaseException) -> bool:
