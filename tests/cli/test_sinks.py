@@ -17,8 +17,7 @@ from pathlib import Path
 
 import click
 import pytest
-
-from helpers import run_cli
+from helpers.run import run_cli
 
 from mbtool.cli import sinks
 from mbtool.cli.program import COMMANDS

@@ -6,7 +6,9 @@ what the run wrote to stdout; an error is still raised."""
 from __future__ import annotations
 
 import pytest
-from helpers import READ_REQ, READ_RSP, REPO_ROOT, serve
+from helpers.monitor import READ_REQ, READ_RSP
+from helpers.run import REPO_ROOT
+from helpers.served import serve
 
 from mbtool.cli.program import cli, main, register_schemes
 from mbtool.errors import ExitCode, Verdict

@@ -6,7 +6,8 @@ from __future__ import annotations
 import tomllib
 
 import pytest
-from helpers import assert_one_error_line, expect_ok, run_cli
+from helpers.checks import assert_one_error_line, expect_ok
+from helpers.run import run_cli
 
 from mbtool.plant.inventory import load_inventory
 

@@ -6,15 +6,10 @@ from __future__ import annotations
 import socket
 
 import pytest
-from helpers import (
-    assert_one_error_line,
-    expect_ok,
-    exporting,
-    json_lines,
-    promtool_check,
-    run_cli,
-    wait_until,
-)
+from helpers.checks import assert_one_error_line, expect_ok, json_lines, wait_until
+from helpers.exporter import exporting
+from helpers.prometheus import promtool_check
+from helpers.run import run_cli
 from prometheus_client.parser import text_string_to_metric_families
 
 PLANT = """\

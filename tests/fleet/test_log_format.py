@@ -8,7 +8,7 @@ import json
 import re
 
 import pytest
-from helpers import run_cli
+from helpers.run import run_cli
 
 from mbtool.cli.plant_text import event_log
 from mbtool.plant.schedule import Event

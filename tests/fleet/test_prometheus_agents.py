@@ -11,7 +11,10 @@ import urllib.parse
 import urllib.request
 
 import pytest
-from helpers import exporting, free_port, mbtool_env, wait_until
+from helpers.checks import wait_until
+from helpers.exporter import exporting
+from helpers.run import mbtool_env
+from helpers.sockets import free_port
 
 from mbtool.plant.inventory import shard_of
 

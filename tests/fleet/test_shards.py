@@ -11,16 +11,10 @@ import subprocess
 import urllib.request
 
 import pytest
-from helpers import (
-    RawResponder,
-    assert_one_error_line,
-    exporting,
-    free_port,
-    mbtool_env,
-    run_cli,
-    start_mbtool,
-    wait_until,
-)
+from helpers.checks import assert_one_error_line, wait_until
+from helpers.exporter import exporting
+from helpers.run import mbtool_env, run_cli, start_mbtool
+from helpers.sockets import RawResponder, free_port
 
 from mbtool.plant.inventory import shard_of
 

@@ -10,7 +10,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from helpers import REPO_ROOT, exporting, run_mbtool, wait_until
+from helpers.checks import wait_until
+from helpers.exporter import exporting
+from helpers.run import REPO_ROOT, run_mbtool
 
 PLANT = '[links.a]\ntarget = "sim://"\n[devices.d]\nlink = "a"\nread = ["40001"]\ninterval = 0.2\n'
 
