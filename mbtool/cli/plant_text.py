@@ -23,7 +23,7 @@ from mbtool.cli.sinks.prom import (
     warn_counter_names,
 )
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link.stats import OUTCOMES
 from mbtool.plant.schedule import OFFLINE, ONLINE, Event, view_of, views
 
@@ -100,7 +100,7 @@ def point_name_clash(points, own: set[str], whose: str) -> str:
 
 
 def refuse_point_names(plant, own: set[str], whose: str) -> None:
-    """RequestError (exit 2, before anything is opened) for an inventory whose map points
+    """UsageError (exit 2, before anything is opened) for an inventory whose map points
     would be named as ``own`` metrics, or as its raw registers' family (modbus_value); a
     warning for a point named as a counter (metrics.warn_counter_names)."""
     if any(spec.raw for spec in plant.devices):
@@ -108,7 +108,7 @@ def refuse_point_names(plant, own: set[str], whose: str) -> None:
     for spec in plant.devices:
         clash = point_name_clash(spec.reader.points, own, whose)
         if clash:
-            raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+            raise UsageError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
     warned: set[str] = set()  # a map's points once, however many devices read them
     for spec in plant.devices:
         if not spec.raw:

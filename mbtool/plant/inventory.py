@@ -253,7 +253,7 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
             # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
             # key's password is asked once, here, not by a link's worker on each reconnect.
             client_context(tls_settings(connection))
-    except RequestError as error:
+    except (RequestError, UsageError) as error:
         raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)
 
@@ -308,7 +308,7 @@ def _device(
         raise UsageError(f"{where} unit: expected a whole number, 0..255")
     try:
         check(replace(links[link].connection, unit=unit), "polling")
-    except RequestError as error:
+    except UsageError as error:
         raise UsageError(f"{where} unit: {error}") from None
     settings = {
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])

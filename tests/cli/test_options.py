@@ -27,7 +27,7 @@ from mbtool.cli.param_types import (
 )
 from mbtool.cli.parsing import did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON, Settings
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link.connection import Connection
 
 
@@ -64,8 +64,8 @@ def given(*args: str) -> tuple[Connection, Settings, dict]:
 
 
 def refused(*args: str, command: click.Command = probe) -> str:
-    """The message of the error the command line ends in (a usage error or a RequestError)."""
-    with pytest.raises((click.ClickException, RequestError)) as error:
+    """The message of the error the command line ends in (click's usage error or mbtool's)."""
+    with pytest.raises((click.ClickException, UsageError)) as error:
         invoke(command, *args)
     failure = error.value
     return failure.format_message() if isinstance(failure, click.ClickException) else str(failure)
@@ -278,7 +278,7 @@ def test_numbers_are_decimal_or_prefixed(text, number):
 
 @pytest.mark.parametrize("text, shown", [("abc", "abc"), ("", "(empty)"), ("0x", "0x"), ("1.5", "1.5")])
 def test_what_is_no_number_is_named(text, shown):
-    with pytest.raises(RequestError) as error:
+    with pytest.raises(UsageError) as error:
         parse_int(text, "unit")
     assert str(error.value) == f"unit {shown} is not a number (decimal or 0x hex)"
 
@@ -302,14 +302,14 @@ def test_unit_lists(text, units):
     ],
 )
 def test_bad_unit_lists(text, words):
-    with pytest.raises(RequestError) as error:
+    with pytest.raises(UsageError) as error:
         parse_units(text)
     assert words in str(error.value)
 
 
 def test_broadcast_may_be_listed_where_a_gateway_forwards_it():
     assert parse_units("0-2", broadcast=True) == {0, 1, 2}
-    with pytest.raises(RequestError, match=r"out of range 0\.\.255$"):
+    with pytest.raises(UsageError, match=r"out of range 0\.\.255$"):
         parse_units("256", broadcast=True)
 
 

@@ -155,12 +155,12 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
     elif shard_part is not None:
         raise UsageError("--shard splits an inventory's links: give the inventory (PLANT.toml)")
     if plant is None and maps is None:
-        raise RequestError(
+        raise UsageError(
             "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "
             "--allow-target PATTERN for /modbus"
         )
     if plant is None and not allowed:
-        raise RequestError(
+        raise UsageError(
             "--maps reads maps from the targets --allow-target allows: give a pattern, such as "
             "--allow-target 'tcp://192.0.2.*:502'"
         )
@@ -224,18 +224,18 @@ def _serving_line(server, plant, maps, allowed) -> str:
 
 
 def parse_listen(text: str) -> tuple[str, int, socket.AddressFamily]:
-    """--listen HOST:PORT: the host (an IPv6 address in brackets) and port; RequestError if not."""
+    """--listen HOST:PORT: the host (an IPv6 address in brackets) and port; UsageError if not."""
     usage = f"--listen {text}: expected HOST:PORT, such as 127.0.0.1:9502 (0.0.0.0:9502 for every interface)"
     host, colon, port_text = text.rpartition(":")
     if not colon or not host:
-        raise RequestError(usage)
+        raise UsageError(usage)
     family = socket.AF_INET
     if host.startswith("[") and host.endswith("]"):
         host, family = host[1:-1], socket.AF_INET6
     elif ":" in host:
-        raise RequestError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
+        raise UsageError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
     if not (port_text.isascii() and port_text.isdigit() and len(port_text) <= 5 and int(port_text) <= 65535):
-        raise RequestError(f"--listen {text}: the port is a number, 0..65535")
+        raise UsageError(f"--listen {text}: the port is a number, 0..65535")
     return host, int(port_text), family
 
 
@@ -439,7 +439,7 @@ class TargetScraper:
         connection = replace(base, unit=unit)
         try:
             check(connection, "a scrape's read")
-        except RequestError as error:
+        except UsageError as error:
             raise Refused(400, f"target {_shown(str(where))}: {_shown(str(error))}") from None
         return connection
 
@@ -501,7 +501,7 @@ WILDCARDS = "*?["
 def allow_patterns(patterns) -> tuple[str, ...]:
     """--allow-target's patterns as they are matched: the scheme in lower case, and a pattern
     without a wildcard read as the target it names, normalised (tcp://192.0.2.10 allows
-    tcp://192.0.2.10:502 and its other spellings); RequestError (exit 2) if it names none."""
+    tcp://192.0.2.10:502 and its other spellings); UsageError (exit 2) if it names none."""
     out = []
     for pattern in patterns:
         scheme, sep, rest = pattern.partition("://")
@@ -511,7 +511,7 @@ def allow_patterns(patterns) -> tuple[str, ...]:
             try:
                 pattern = str(parse_target(pattern).normalised())
             except RequestError as error:
-                raise RequestError(f"--allow-target {pattern}: {error}") from None
+                raise UsageError(f"--allow-target {pattern}: {error}") from None
         out.append(pattern)
     return tuple(out)
 

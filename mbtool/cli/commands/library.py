@@ -16,10 +16,10 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
 from mbtool.cli.sinks import render
-from mbtool.codec.errors import FrameError, ModbusException, RequestError, exception_name
+from mbtool.codec.errors import FrameError, ModbusException, exception_name
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
-from mbtool.errors import NoResponse, OutputFailed
+from mbtool.errors import NoResponse, OutputFailed, UsageError
 from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
 from mbtool.words import counted
 
@@ -171,7 +171,7 @@ def identify(connection, settings, budget, all_units, unit_set, inventory_path):
         if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
     ]
     if given and not all_units:
-        raise RequestError(f"{given[0]} goes with --all-units")
+        raise UsageError(f"{given[0]} goes with --all-units")
     headers = signatures()
     if not all_units:
         found = _identify_unit(connection, settings, headers, budget)
@@ -179,8 +179,8 @@ def identify(connection, settings, budget, all_units, unit_set, inventory_path):
         return
     try:
         wanted = sorted(parse_units(unit_set))
-    except RequestError as error:
-        raise RequestError(f"--units: {error}") from None
+    except UsageError as error:
+        raise UsageError(f"--units: {error}") from None
     if settings.dry_run:  # the walk's reads depend on the replies: its first is all there is to show
         _dry_run_walk(connection, settings, wanted)
         return

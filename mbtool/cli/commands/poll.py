@@ -26,8 +26,7 @@ from mbtool.cli.sinks.json import to_json
 from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
 from mbtool.plant.inventory import load_inventory, shard
@@ -149,7 +148,7 @@ def poll(
         if not polls.measured:
             problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
         if problem:
-            raise RequestError(f"--measurement {measurement!r}: {problem}")
+            raise UsageError(f"--measurement {measurement!r}: {problem}")
     if polls.exposes or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -159,7 +158,7 @@ def poll(
         rounds = 1
     unknown = [name for name in hex_links if name not in plant.links]
     if unknown:
-        raise RequestError(
+        raise UsageError(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled

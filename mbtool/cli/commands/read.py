@@ -23,10 +23,9 @@ from mbtool.cli.settings import Settings
 from mbtool.cli.sinks import READINGS, default_format, formats, sink
 from mbtool.cli.sinks.json import to_json
 from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-from mbtool.errors import PartialRead, Verdict
+from mbtool.errors import PartialRead, UsageError, Verdict
 from mbtool.link.connection import Connection
 
 POLL_HELP = """
@@ -192,10 +191,10 @@ def _metrics(connection: Connection, settings: Settings, points=()):
     fmt = settings.output_format
     if settings.textfile:
         if fmt not in (None, "prom"):
-            raise RequestError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
+            raise UsageError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
         settings = replace(settings, output_format="prom")
     if settings.changes:
-        raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
+        raise UsageError("--changes writes a change log; -o influx and prom carry every value each poll")
     assert settings.output_format is not None  # -o influx or prom (the caller's test), or prom for --textfile
     metrics = sink(settings.output_format).Readings(settings, connection.unit)
     metrics.check(points)
@@ -241,7 +240,7 @@ def _read_registers(
 ) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
-        raise RequestError(
+        raise UsageError(
             f"--order all shows 32- and 64-bit values in each word order; {value_type} is not one: "
             "give --type float32, uint32, int32, float64, uint64 or int64"
         )

@@ -20,8 +20,7 @@ import time
 from mbtool.cli.metrics import ReadingPolls, values_of
 from mbtool.cli.metrics import Readings as MonitoringReadings
 from mbtool.cli.results import Points
-from mbtool.codec.errors import RequestError
-from mbtool.errors import OutputFailed
+from mbtool.errors import OutputFailed, UsageError
 
 # The help of the family of raw registers and bits, modbus_value{table,address}.
 VALUE_HELP = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
@@ -43,7 +42,7 @@ class Readings(MonitoringReadings):
         for point in points:
             metric = metric_name(f"{self.measurement}_{point.name}")
             if metric in self.status_names():
-                raise RequestError(
+                raise UsageError(
                     f"point {point.name}: its metric, {metric}, is the "
                     "one that says whether the device answered; rename the point or give --measurement"
                 )
