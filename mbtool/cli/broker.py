@@ -4,12 +4,9 @@ the publisher imported only when a run publishes."""
 from __future__ import annotations
 
 import sys
-from typing import TYPE_CHECKING
 
+from mbtool.plant.schedule import LinkWorker
 from mbtool.registermap.load import load_map
-
-if TYPE_CHECKING:
-    from mbtool.plant.schedule import LinkWorker
 
 
 def make_publisher(settings, plant, quiet: bool = False):

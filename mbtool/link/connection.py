@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
+from mbtool.codec.framer import Framer
 from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import record
 from mbtool.errors import KNOWN_ERRORS, UsageError
@@ -15,7 +16,6 @@ from mbtool.link.settings import SECURITY, SETTINGS, check_tls_framing, default,
 # link.transport and link.client are imported where a link is opened or checked: every command
 # loads Connection (cli.options), crc too, and they cost it 5-7 M instructions.
 if TYPE_CHECKING:
-    from mbtool.codec.framer import Framer
     from mbtool.link.client import Client, Trace
 
 

@@ -16,9 +16,13 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
 from mbtool.cli.sinks import render
+from mbtool.cli.sinks.json import to_json
+from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import FrameError, ModbusException, exception_name
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
+from mbtool.codec.tables import HOLDING_REGISTERS, reference
+from mbtool.codec.values import decode_values
 from mbtool.errors import NoResponse, OutputFailed, UsageError
 from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
 from mbtool.words import counted
@@ -68,8 +72,6 @@ def list_maps(text, as_json) -> None:
         if text is None or text.lower() in searched:
             rows.append(row)
     if as_json:
-        from mbtool.cli.sinks.json import to_json  # noqa: PLC0415 - --json only
-
         click.echo(to_json(rows))
         return
     if not rows:
@@ -354,9 +356,6 @@ def _server_id(execute, seen: dict[str, str]) -> None:
 
 def _sunspec(execute, seen: dict[str, str]) -> dict | None:
     """The SunSpec marker and the Common model's manufacturer and model (Mn, Md), if any."""
-    from mbtool.codec.data_access import ReadHoldingRegisters  # noqa: PLC0415 - identify only
-    from mbtool.codec.tables import HOLDING_REGISTERS, reference  # noqa: PLC0415 - identify only
-    from mbtool.codec.values import decode_values  # noqa: PLC0415 - identify only
     from mbtool.sunspec.discover import NotSunSpec, find_marker  # noqa: PLC0415 - identify only
 
     try:
