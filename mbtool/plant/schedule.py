@@ -27,6 +27,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import _thread
 import functools
 import math
 import queue
@@ -43,6 +44,8 @@ from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
+# Seconds for every link's worker thread to start: one starts in a millisecond or so.
+START_WITHIN = 5.0
 
 
 @record
@@ -465,6 +468,7 @@ class Plant:
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
+        self.start_within = START_WITHIN
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -487,21 +491,9 @@ class Plant:
 
     def run(self, duration: float | None = None) -> None:
         deadline = None if duration is None else time.monotonic() + duration
-        for started, worker in enumerate(self.workers):
+        for worker in self.workers:
             worker.deadline = deadline
-            try:
-                worker.thread.start()
-            except RuntimeError as error:  # "can't start new thread": the system's limits
-                # Said before any link is opened: those started wait for ``go``, and end.
-                self.stop.set()
-                self.go.set()
-                for each in self.workers[:started]:
-                    each.thread.join()
-                raise ConnectionFailed(
-                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
-                    f"started before the system refused a thread ({error}); poll fewer links a "
-                    "process, or raise its limits (ulimit -v, -u)"
-                ) from None
+        self._start_workers()
         self.go.set()
         try:
             while any(worker.thread.is_alive() for worker in self.workers):
@@ -524,6 +516,45 @@ class Plant:
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed
+
+    def _start_workers(self) -> None:
+        """Every worker's thread started, within ``start_within`` seconds; ConnectionFailed (exit
+        6, one line) if the system refuses one.  Started by a thread of their own: Thread.start
+        waits with no deadline for the new thread to say it began, and a thread that dies in its
+        start-up (MemoryError under a capped address space) never says so.  A starter stuck so
+        is left behind; a thread of ``_thread``'s, the interpreter does not wait for it at exit."""
+        started: list[LinkWorker] = []
+        refused: list[BaseException] = []
+        done = threading.Event()
+
+        def start_each() -> None:
+            try:
+                for worker in self.workers:
+                    worker.thread.start()
+                    started.append(worker)
+            except Exception as error:  # "can't start new thread", MemoryError: the system's limits
+                refused.append(error)
+            finally:
+                done.set()
+
+        try:
+            _thread.start_new_thread(start_each, ())
+        except Exception as error:
+            refused.append(error)
+        else:
+            if not done.wait(self.start_within):
+                refused.append(TimeoutError(f"a thread did not start within {self.start_within:g} s"))
+        if refused:
+            # Said before any link is opened: those started wait for ``go``, see the stop, and end.
+            self.stop.set()
+            self.go.set()
+            for each in list(started):
+                each.thread.join(self.start_within)
+            raise ConnectionFailed(
+                f"cannot start a worker for each link: {len(started)} of {len(self.workers)} links "
+                f"started before the system refused a thread ({str(refused[0]) or type(refused[0]).__name__}); "
+                "poll fewer links a process, or raise its limits (ulimit -v, -u)"
+            )
 
     def _publish(self, wait: float | None = None) -> None:
         """Hand every record the workers have published to ``report``, on this thread; with
