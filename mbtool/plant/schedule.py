@@ -255,6 +255,10 @@ class LinkWorker:
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
+        # waits on schedule for its next poll.
+        self.turns = 0
+        self.asleep = False
 
     def accept_jobs(self) -> None:
         self.jobs = queue.SimpleQueue()
@@ -283,11 +287,13 @@ class LinkWorker:
 
     def _sleep(self, seconds: float) -> None:
         """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        self.asleep = True
         if self.jobs is None:
             self.clock.wait(self.stop, seconds)
         else:  # in short slices, so that the run's stop is seen as soon as without jobs
             self.clock.wait(self.poke, min(seconds, 0.2))
             self.poke.clear()
+        self.asleep = False
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -336,6 +342,7 @@ class LinkWorker:
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
+            self.turns += 1
             self._run_jobs()
             now = self.clock.monotonic()
             waiting = self._waiting()
@@ -469,6 +476,8 @@ class Plant:
         self.go = threading.Event()
         self.ended = False  # its duration ran out
         self.start_within = START_WITHIN
+        self.handed = 0  # records handed to ``report``
+        self.last_seen: tuple | None = None  # what ``moved`` saw last
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -516,6 +525,24 @@ class Plant:
         for worker in self.workers:
             if worker.crashed is not None:
                 raise worker.crashed
+
+    def moved(self) -> bool:
+        """Whether the plant has moved since the last call (systemd's watchdog asks, from its own
+        thread): the thread that runs it handed on records, or had none waiting at either call;
+        and each link's worker turned its loop, waits on schedule for its next poll, or is done.
+        A worker that neither turned nor waited at both calls is stuck in its work, and records
+        waiting at both, none handed, are stuck in the output (a pipe nobody reads)."""
+        waiting = not self.records.empty()
+        seen = (self.handed, waiting, [(w.turns, w.asleep) for w in self.workers])
+        last, self.last_seen = self.last_seen, seen
+        if last is None:
+            return True
+        output = seen[0] != last[0] or not (waiting and last[1])
+        links = all(
+            now != before or now[1] or before[1] or not worker.thread.is_alive()
+            for worker, now, before in zip(self.workers, seen[2], last[2], strict=True)
+        )
+        return output and links
 
     def _start_workers(self) -> None:
         """Every worker's thread started, within ``start_within`` seconds; ConnectionFailed (exit
@@ -565,6 +592,7 @@ class Plant:
             return
         while True:
             self.report(item)
+            self.handed += 1
             try:
                 item = self.records.get_nowait()
             except queue.Empty:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import threading
+from types import SimpleNamespace
 
 import pytest
 
@@ -190,3 +191,32 @@ def test_a_worker_whose_thread_dies_in_its_start_up_ends_the_run_not_hangs_it(mo
     assert isinstance(error, ConnectionFailed), repr(error)
     assert str(error).startswith("cannot start a worker for each link: 1 of 2 links started"), error
     assert "did not start within 0.5 s" in str(error)
+
+
+def test_the_watchdog_sees_a_worker_stuck_in_its_work_or_records_stuck_before_the_output(monkeypatch):
+    """Issue 44: Plant.moved, which systemd's watchdog asks each period, says no when a link's
+    worker neither turned its loop nor waited on schedule at two asks running, or when records
+    waited at both and none was handed on; a worker waiting for its next poll is moving."""
+    plant = _two_links(monkeypatch)
+    a, b = plant.workers
+    for worker in plant.workers:
+        worker.thread = SimpleNamespace(is_alive=lambda: True)
+    assert plant.moved()  # the first ask: nothing to compare with
+    a.turns += 1
+    b.asleep = True
+    assert plant.moved()  # a polled, b waits for its next poll
+    a.turns += 1
+    b.asleep = False  # b woke for its poll: under way, not stuck
+    assert plant.moved()
+    a.turns += 1
+    assert not plant.moved()  # b in the same poll since the last ask: stuck in its work
+    a.turns += 1
+    b.turns += 1
+    plant.records.put("a record")
+    assert plant.moved()  # a record waits, but none waited at the last ask
+    a.turns += 1
+    b.asleep = True
+    assert not plant.moved()  # it waits still, and nothing was handed on: the output is stuck
+    plant._publish()
+    a.turns += 1
+    assert plant.moved()

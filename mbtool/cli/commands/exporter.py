@@ -185,7 +185,7 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
         click.echo(line)
         sys.stdout.flush()
         if notifier:
-            notifier.ready(line)
+            notifier.ready(line, None if runner is None else runner.moved)
         if runner is None:
             server.serve_forever(poll_interval=0.5)
         else:

@@ -190,7 +190,8 @@ def poll(
     notifier = systemd_notifier()  # systemd's Type=notify: ready now, the watchdog fed while it runs
     if notifier:
         notifier.ready(
-            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}"
+            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}",
+            runner.moved,
         )
     try:
         if view:
