@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import socket
 import stat
 import sys
@@ -48,8 +47,8 @@ from mbtool.cli.plant_text import (
     LAST_SUCCESS,
     UP,
     PlantMetrics,
-    device_stats_text,
-    link_stats_text,
+    device_stats,
+    link_stats,
     point_metric,
     point_name_clash,
     refuse_point_names,
@@ -249,8 +248,9 @@ def check_plant_names(plant) -> None:
     """Refuse, before anything is opened, an inventory whose map points would be named as
     the exporter's own metrics: a device's (as poll's) and the statistics'."""
     own = {UP, LAST_SUCCESS}
-    for text in (device_stats_text("", PollStats()), link_stats_text("", Stats(), False, 0)):
-        own |= set(re.findall(r"^(?:# TYPE )?([a-zA-Z_:][a-zA-Z0-9_:]*)", text, re.M))  # families, samples
+    for name, _, samples in device_stats("", PollStats()) + link_stats("", Stats(), False, 0):
+        own.add(name)  # and its samples' names: a histogram's _bucket, _sum and _count
+        own.update(line.partition("{")[0] for line in samples.splitlines())
     refuse_point_names(plant, own, "the exporter")
 
 
