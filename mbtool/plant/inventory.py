@@ -51,7 +51,7 @@ from mbtool.errors import UsageError
 from mbtool.files import beside, read_toml
 from mbtool.library import resolve_map
 from mbtool.link import IN_PROCESS
-from mbtool.link.connection import Connection, check, tls_settings
+from mbtool.link.connection import check, connection_of, read_credentials
 from mbtool.link.settings import SETTINGS, File, Setting
 from mbtool.link.transport import parse_target
 from mbtool.mqtt.settings import check_table
@@ -245,14 +245,9 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
     port = settings["port"]
     try:
         parse_target(port)
-        connection = Connection(**settings)
+        connection = connection_of(**settings)
         check(connection)
-        if port.lower().startswith("tls://"):
-            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
-
-            # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
-            # key's password is asked once, here, not by a link's worker on each reconnect.
-            client_context(tls_settings(connection))
+        read_credentials(connection)  # before anything opens, not by a link's worker on each reconnect
     except (RequestError, UsageError) as error:
         raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)

@@ -26,7 +26,7 @@ from helpers.sockets import CLOSE
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.errors import KNOWN_ERRORS
-from mbtool.link.connection import Connection, open_client
+from mbtool.link.connection import Connection, connection_of, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import OUTCOMES, Stats
 
@@ -192,7 +192,7 @@ def on_a_bus(script: list[tuple[float, bytes | None]], times: int, **options):
     pair = PtyPair()
     device = ScriptedDevice(pair, script)
     try:
-        connection = Connection(port=pair.mbtool_path, parity="N", timeout=0.4, **options)
+        connection = connection_of(port=pair.mbtool_path, parity="N", timeout=0.4, **options)
         return transact(connection, times)
     finally:
         device.close()

@@ -259,12 +259,8 @@ def _answering_units(connection, settings, units: list[int]) -> list[int]:
     mbtool scan finds them, at the connection's settings."""
     from mbtool.link.scan import Scan, Setting, probe_request  # noqa: PLC0415 - --all-units only
 
-    line = Setting(
-        baud=connection.baud,
-        parity=connection.parity,
-        bytesize=connection.bytesize,
-        stopbits=connection.stopbits,
-    )
+    serial = connection.serial
+    line = Setting(baud=serial.baud, parity=serial.parity, bytesize=serial.bytesize, stopbits=serial.stopbits)
     request = probe_request(*WALK_PROBE)
     quiet = _Quiet()
     tally = Scan(connection, request, units, [line], False, False, quiet, trace_for(settings)).run(quiet)
@@ -285,7 +281,8 @@ def _write_inventory(path: str, connection, results: list) -> None:
 
     link = {"target": connection.port}
     if connection.port and "://" not in connection.port:  # a serial line: its settings
-        link |= {"baud": connection.baud, "parity": connection.parity, "stopbits": int(connection.stopbits)}
+        serial = connection.serial
+        link |= {"baud": serial.baud, "parity": serial.parity, "stopbits": int(serial.stopbits)}
     devices, unknown = {}, []
     for unit, candidates, sunspec, _seen in results:
         best = _best(candidates)

@@ -256,9 +256,11 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     if sweeping:
         _check_sweepable(connection.port)
     lines = [
-        Setting(baud=baud, parity=parity, bytesize=connection.bytesize, stopbits=connection.stopbits)
-        for baud in (bauds or (connection.baud,))
-        for parity in (parities or (connection.parity,))
+        Setting(
+            baud=baud, parity=parity, bytesize=connection.serial.bytesize, stopbits=connection.serial.stopbits
+        )
+        for baud in (bauds or (connection.serial.baud,))
+        for parity in (parities or (connection.serial.parity,))
     ]
     if settings.dry_run:
         _dry_run(connection, settings, request, units, lines, sweeping)
