@@ -25,7 +25,7 @@ from mbtool.cli.sinks.prom import (
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, view_of, views
+from mbtool.plant.schedule import OFFLINE, ONLINE, OVERRUN, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
 VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
@@ -130,7 +130,7 @@ def event_line(event) -> str:
 def event_log(event, fmt: str) -> str:
     """A change of state as a line of the run's log format: a device or link offline is a
     warning, its return information (Telegraf's execd: W! and I!, never E!)."""
-    level = WARNING if event.state == OFFLINE else INFO
+    level = WARNING if event.state in (OFFLINE, OVERRUN) else INFO
     return log_line(
         level,
         event_line(event),

@@ -8,6 +8,7 @@ view on a terminal, one line on stderr for each change of state, and statistics 
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -31,7 +32,7 @@ from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
 from mbtool.plant.inventory import load_inventory, shard
-from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
+from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -341,6 +342,11 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
                     "state": s.state,
                     **_limits(device_limits[name]),
                     **s.stats.as_dict(),
+                    **(
+                        {"groups": {g.group.name: _pace_record(g.pace()) for g in s.groups}}
+                        if s.spec.groups
+                        else {}
+                    ),
                 }
                 for name, s in runner.devices.items()
             },
@@ -378,9 +384,42 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
             log_format,
         )
+    _group_table(runner, log_format)
     if publisher is not None:
         _stats_line(stats_line(publisher.stats()), log_format)
     sys.stderr.flush()
+
+
+def _group_table(runner: Plant, log_format: str) -> None:
+    """The poll groups of the devices that have them: the interval each asked, the one achieved
+    (the mean between its polls), its polls and its overruns (polls that started late)."""
+    lines = [["group", "device", "asked s", "achieved s", "polls", "overruns"]]
+    for name, state in runner.devices.items():
+        for pace in (group.pace() for group in state.groups if state.spec.groups):
+            asked = "once" if pace.asked == math.inf else f"{pace.asked:g}"
+            achieved = "-" if pace.achieved is None else f"{pace.achieved:.3f}"
+            lines.append([pace.group, name, asked, achieved, str(pace.polls), str(pace.overruns)])
+    if len(lines) == 1:
+        return
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
+    for line in lines:
+        _stats_line(
+            "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
+            log_format,
+        )
+
+
+def _pace_record(pace: Pace) -> dict:
+    """A group's pace in --stats json: ``once`` for a group read once (it has no interval)."""
+    if pace.asked == math.inf:
+        return {"once": True, "polls": pace.polls}
+    achieved = None if pace.achieved is None else round(pace.achieved, 6)
+    return {
+        "interval_seconds": pace.asked,
+        "achieved_seconds": achieved,
+        "polls": pace.polls,
+        "overruns": pace.overruns,
+    }
 
 
 def _stats_line(line: str, log_format: str) -> None:
