@@ -5,9 +5,10 @@ line and the key, with nothing opened."""
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
-from helpers.checks import assert_one_error_line
+from helpers.checks import assert_one_error_line, expect_ok
 from helpers.run import run_cli
 
 from mbtool.plant.inventory import load_inventory
@@ -119,3 +120,59 @@ def test_a_hostile_group_in_a_map_is_exit_2_naming_the_map(tmp_path, silent_serv
     error = assert_one_error_line(run_cli("inventory", "check", path), 2)
     assert "meter.toml: groups.fast.points: no point named watts" in error, error
     assert silent_server.connections == 0
+
+
+SERIAL = '[links.bus1]\ntarget = "/dev/ttyMBTOOL-NONE"\nbaud = {baud}\nparity = "N"\n'
+BIG_MAP = "".join(f"[points.r{n}]\nref = {40001 + n}\n" for n in range(100))
+
+
+def _serial_plant(tmp_path, baud: int, extra: str = "") -> object:
+    """100 registers every second on one serial link: two frames of 8 and 205 characters and
+    two silences of 3.5, 10 bits a character (8N1)."""
+    (tmp_path / "big.toml").write_text(BIG_MAP)
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        "[poll]\ninterval = 1\n" + SERIAL.format(baud=baud) + extra
+        + '[devices.m]\nlink = "bus1"\nmap = "big.toml"\n'
+    )  # fmt: skip
+    return path
+
+
+def test_check_prints_each_devices_groups_and_each_serial_links_budget(tmp_path, silent_server):
+    path = _serial_plant(
+        tmp_path, 9600, f'[links.gw]\ntarget = "tcp://127.0.0.1:{silent_server.port}"\n'
+        '[devices.t]\nlink = "gw"\nmap = "big.toml"\nonce = ["r0"]\n',
+    )  # fmt: skip
+    path.write_text(path.read_text() + '[devices.m.groups.fast]\ninterval = 0.5\npoints = ["r0", "r1"]\n')
+    out = expect_ok(run_cli("inventory", "check", path)).stdout
+    assert (
+        "    group default: 98 points, 1 read, every 1 s\n    group fast: 2 points, 1 read, every 0.5 s\n"
+        in out
+    )
+    assert "    group once: 1 point, 1 read, at start and after each reconnect\n" in out
+    char = 10 / 9600
+    seconds = (8 + 5 + 196 + 7) * char + 2 * (8 + 5 + 4 + 7) * char  # the default group's read, fast's twice
+    budget = re.search(
+        r"  budget: bus1: the asked polls need ([\d.]+) s of line time a second at 9600 baud \((\d+)%\), 3.0 reads/s\n",
+        out,
+    )
+    assert budget and float(budget[1]) == pytest.approx(seconds, abs=0.01), out
+    assert int(budget[2]) == pytest.approx(100 * seconds, abs=1)
+    assert "link gw:" in out and "  budget: none, not a serial line of mbtool's own\n" in out
+    assert silent_server.connections == 0
+
+
+def test_a_link_asked_more_than_its_line_has_is_warned_of_and_refused_with_strict(tmp_path):
+    path = _serial_plant(tmp_path, 1200)
+    load = (8 + 205 + 7) * 10 / 1200  # 1.83 s of line time a second
+    figures = f"bus1: the asked polls need {load:.2f} s of line time a second at 1200 baud ({load:.0%})"
+    error = assert_one_error_line(run_cli("poll", path, "--once", "--strict"), 2)
+    assert figures in error and "(--strict)" in error, error
+    assert "cannot open" not in error  # refused before the port was opened
+    result = run_cli("poll", path, "--once", "--stats", "json")
+    assert result.returncode == 6  # without --strict it goes on (and finds no port)
+    warning = result.stderr.splitlines()[0]
+    assert warning.startswith(f"mbtool: warning: {figures}"), warning
+    assert (
+        expect_ok(run_cli("inventory", "check", _serial_plant(tmp_path, 9600))).stdout.count("budget:") == 1
+    )

@@ -28,9 +28,10 @@ from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
+from mbtool.plant.budget import budgets
 from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -90,6 +91,12 @@ from mbtool.words import counted
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Refuse (exit 2, nothing opened) an inventory whose poll groups ask a serial link for "
+    "more line time than it has, as the budget check at load figures it; without it, a warning.",
+)
 @shard_option
 @log_format_option
 @click.option(
@@ -120,6 +127,7 @@ def poll(
     hex_links,
     mqtt_url,
     shard_part,
+    strict,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -141,6 +149,8 @@ def poll(
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
+    log_format = run_log_format()
+    _check_budgets(plant, strict, log_format)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
@@ -165,7 +175,6 @@ def poll(
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
     mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
-    log_format = run_log_format()
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     report = view.report if view else output.report
@@ -211,6 +220,18 @@ def poll(
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started, log_format, publisher)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
+
+
+def _check_budgets(plant, strict: bool, log_format: str) -> None:
+    """Each serial link whose groups ask more line time than it has: a warning with the figures,
+    or with --strict the refusal (exit 2), before anything is opened."""
+    for budget in budgets(plant.links, plant.devices):
+        if budget.seconds <= 1:
+            continue
+        line = f"{budget.line()}: more than the line has, the groups cannot keep their intervals"
+        if strict:
+            raise UsageError(f"{plant.path}: {line} (--strict)")
+        log(WARNING, f"warning: {line}", log_format, link=budget.link)
 
 
 def _both(first, publish):
