@@ -39,11 +39,11 @@ class Budget:
     reads: float  # transactions a second
 
     def line(self) -> str:
-        """The budget as one line: ``bus1: the asked polls need 0.41 s of line time a second at
-        9600 baud (41%)``."""
+        """The budget as one line: ``bus1: the asked polls need 0.413 s of line time a second at
+        9600 baud (41.3%), 3.0 reads/s``."""
         return (
-            f"{self.link}: the asked polls need {self.seconds:.2f} s of line time a second "
-            f"at {self.baud} baud ({self.seconds:.0%}), {self.reads:.1f} reads/s"
+            f"{self.link}: the asked polls need {self.seconds:.3f} s of line time a second "
+            f"at {self.baud} baud ({self.seconds:.1%}), {self.reads:.1f} reads/s"
         )
 
 
