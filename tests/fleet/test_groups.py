@@ -176,3 +176,21 @@ def test_a_link_asked_more_than_its_line_has_is_warned_of_and_refused_with_stric
     assert (
         expect_ok(run_cli("inventory", "check", _serial_plant(tmp_path, 9600))).stdout.count("budget:") == 1
     )
+
+
+def test_prometheus_text_is_written_a_round_of_the_fastest_group_with_every_points_last_value(tmp_path):
+    """-o prom writes the plant once a round of the fastest devices: a device's fastest group
+    sets its pace, and each exposition holds the last value of every point of it."""
+    (tmp_path / "meter.toml").write_text(MAP)
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        '[poll]\ninterval = 30\n[links.a]\ntarget = "sim://"\n[links.b]\ntarget = "sim://"\n'
+        '[devices.m]\nlink = "a"\nmap = "meter.toml"\n[devices.m.groups.fast]\ninterval = 0.1\npoints = ["power"]\n'
+        '[devices.n]\nlink = "b"\nmap = "meter.toml"\n'
+    )
+    out = expect_ok(run_cli("poll", path, "-o", "prom", "--duration", "1")).stdout
+    expositions = out.split("# HELP modbus_up ")[1:]
+    assert len(expositions) >= 5, out  # not one a 30 s round
+    last = expositions[-1]
+    for point in ("power", "current", "voltage", "energy", "serial"):
+        assert f'modbus_{point}{{device="m"' in last, last

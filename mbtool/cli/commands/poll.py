@@ -300,8 +300,8 @@ class PlantOutput:
         one polled every second, and each device's samples carry its own last success."""
         live = [state for state in self.states.values() if state.state != OFFLINE]
         if self.exposed and live:
-            shortest = min(state.spec.interval for state in live)
-            live = [state for state in live if state.spec.interval == shortest]
+            shortest = min(state.spec.fastest for state in live)  # a device's fastest group's
+            live = [state for state in live if state.spec.fastest == shortest]
         return not any(state.spec.name in self.pending for state in live)
 
     def _expose(self) -> None:
