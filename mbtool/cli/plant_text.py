@@ -10,7 +10,7 @@ import sys
 import threading
 from functools import lru_cache
 
-from mbtool.cli.log import INFO, WARNING, log_line
+from mbtool.cli.log import INFO, WARNING, log, log_line
 from mbtool.cli.sinks.prom import (
     VALUE_HELP,
     exposition,
@@ -24,7 +24,9 @@ from mbtool.cli.sinks.prom import (
 )
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link.stats import OUTCOMES
+from mbtool.plant.budget import budgets
 from mbtool.plant.schedule import OFFLINE, ONLINE, OVERRUN, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
@@ -113,6 +115,19 @@ def refuse_point_names(plant, own: set[str], whose: str) -> None:
     for spec in plant.devices:
         if not spec.raw:
             warn_counter_names(spec.reader.points, where=f"{plant.maps[spec.name]}: ", warned=warned)
+
+
+def check_budgets(plant, strict: bool, log_format: str) -> None:
+    """Each serial link whose groups ask more line time than it has: a warning with the figures,
+    or with poll --strict the refusal (exit 2), before anything is opened (poll's and the
+    exporter's inventory alike)."""
+    for budget in budgets(plant.links, plant.devices):
+        if budget.seconds <= 1:
+            continue
+        line = f"{budget.line()}: more than the line has, the groups cannot keep their intervals"
+        if strict:
+            raise UsageError(f"{plant.path}: {line} (--strict)")
+        log(WARNING, f"warning: {line}", log_format, link=budget.link)
 
 
 def event_line(event) -> str:

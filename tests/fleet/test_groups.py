@@ -9,6 +9,7 @@ import re
 
 import pytest
 from helpers.checks import assert_one_error_line, expect_ok
+from helpers.exporter import exporting
 from helpers.run import run_cli
 
 from mbtool.plant.inventory import load_inventory
@@ -194,3 +195,13 @@ def test_prometheus_text_is_written_a_round_of_the_fastest_group_with_every_poin
     last = expositions[-1]
     for point in ("power", "current", "voltage", "energy", "serial"):
         assert f'modbus_{point}{{device="m"' in last, last
+
+
+def test_the_exporter_warns_of_a_link_asked_more_than_its_line_has(tmp_path):
+    path = _serial_plant(tmp_path, 1200)
+    with exporting(path, tmp_path=tmp_path) as exporter:
+        pass
+    warning = exporter.stderr.read_text().splitlines()[0]
+    assert warning.startswith(
+        "mbtool: warning: bus1: the asked polls need 1.833 s of line time a second at 1200 baud"
+    ), warning

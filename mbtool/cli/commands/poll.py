@@ -20,7 +20,15 @@ from mbtool.cli.log import INFO, WARNING, log, log_format_option, run_log_format
 from mbtool.cli.metrics import name_problem
 from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
+from mbtool.cli.plant_text import (
+    LAST_SUCCESS,
+    UP,
+    check_budgets,
+    event_line,
+    event_log,
+    prom_text,
+    refuse_point_names,
+)
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
 from mbtool.cli.sinks.json import to_json
@@ -28,10 +36,9 @@ from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
 from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
-from mbtool.plant.budget import budgets
 from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -150,7 +157,7 @@ def poll(
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
     log_format = run_log_format()
-    _check_budgets(plant, strict, log_format)
+    check_budgets(plant, strict, log_format)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
@@ -220,18 +227,6 @@ def poll(
     output.close()
     _statistics(runner, stats_format, time.monotonic() - started, log_format, publisher)
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
-
-
-def _check_budgets(plant, strict: bool, log_format: str) -> None:
-    """Each serial link whose groups ask more line time than it has: a warning with the figures,
-    or with --strict the refusal (exit 2), before anything is opened."""
-    for budget in budgets(plant.links, plant.devices):
-        if budget.seconds <= 1:
-            continue
-        line = f"{budget.line()}: more than the line has, the groups cannot keep their intervals"
-        if strict:
-            raise UsageError(f"{plant.path}: {line} (--strict)")
-        log(WARNING, f"warning: {line}", log_format, link=budget.link)
 
 
 def _both(first, publish):
