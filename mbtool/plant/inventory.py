@@ -155,7 +155,8 @@ def _with_line(message: str, path: str) -> str:
 
 
 def _line_of(lines: list[str], table: str, key: str | None) -> int | None:
-    """The line of ``key`` in ``[table]`` (of the table's header without it or not found)."""
+    """The line of ``key`` in ``[table]``, or of its own table below it (``[table.key...]``); the
+    table's header's when the key is not there; None when the table is not either."""
     found, inside = None, False
     for number, line in enumerate(lines, 1):
         header = _HEADER.match(line)
