@@ -10,7 +10,7 @@ import sys
 import threading
 from functools import lru_cache
 
-from mbtool.cli.log import INFO, WARNING, log_line
+from mbtool.cli.log import INFO, WARNING, log, log_line
 from mbtool.cli.sinks.prom import (
     VALUE_HELP,
     Family,
@@ -27,7 +27,8 @@ from mbtool.cli.sinks.prom import (
 from mbtool.cli.stamps import local_time
 from mbtool.errors import UsageError
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, view_of, views
+from mbtool.plant.budget import budgets
+from mbtool.plant.schedule import OFFLINE, ONLINE, OVERRUN, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
 VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
@@ -122,6 +123,19 @@ def refuse_point_names(plant, own: set[str], whose: str) -> None:
             warn_counter_names(spec.reader.points, where=f"{plant.maps[spec.name]}: ", warned=warned)
 
 
+def check_budgets(plant, strict: bool, log_format: str) -> None:
+    """Each serial link whose groups ask more line time than it has: a warning with the figures,
+    or with poll --strict the refusal (exit 2), before anything is opened (poll's and the
+    exporter's inventory alike)."""
+    for budget in budgets(plant.links, plant.devices):
+        if budget.seconds <= 1:
+            continue
+        line = f"{budget.line()}: more than the line has, the groups cannot keep their intervals"
+        if strict:
+            raise UsageError(f"{plant.path}: {line} (--strict)")
+        log(WARNING, f"warning: {line}", log_format, link=budget.link)
+
+
 def event_line(event) -> str:
     """A change of state (plant.schedule.Event) as one line: a device or a link going offline
     and why, with the wait before the next try, or coming back."""
@@ -137,7 +151,7 @@ def event_line(event) -> str:
 def event_log(event, fmt: str) -> str:
     """A change of state as a line of the run's log format: a device or link offline is a
     warning, its return information (Telegraf's execd: W! and I!, never E!)."""
-    level = WARNING if event.state == OFFLINE else INFO
+    level = WARNING if event.state in (OFFLINE, OVERRUN) else INFO
     return log_line(
         level,
         event_line(event),

@@ -356,7 +356,7 @@ class MqttPublisher:
                 messages.append(Message(self.topics.device_status(name), item.state.encode(), 1, True))
         if item.readings:
             values = {r.point.name: _value(r) for r in item.readings if r.error is None}
-            chosen = self.changes.select(name, item.time, values)
+            chosen = self.changes.select(name, item.time, values, item.group)
             if chosen and settings.per_point:
                 messages += [
                     Message(
@@ -375,7 +375,7 @@ class MqttPublisher:
         node, name = self.node, item.device.name
         assert node is not None  # payload = "sparkplug_b", the only one with a node
         values = {r.point.name: _value(r) for r in item.readings or () if r.error is None}
-        chosen = self.changes.select(name, item.time, values) if values else {}
+        chosen = self.changes.select(name, item.time, values, item.group) if values else {}
         self.values.setdefault(name, {}).update(values)
         if item.state in (ONLINE, OFFLINE):
             self.device_states[name] = item.state

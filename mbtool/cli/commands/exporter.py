@@ -47,6 +47,7 @@ from mbtool.cli.plant_text import (
     LAST_SUCCESS,
     UP,
     PlantMetrics,
+    check_budgets,
     device_stats,
     link_stats,
     point_metric,
@@ -151,6 +152,7 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
         plant = load_inventory(inventory, formats(PLANT))
         if shard_part is not None:  # the other shards' links are no links of this exporter's
             plant = shard(plant, *shard_part)
+        check_budgets(plant, False, run_log_format())
     elif shard_part is not None:
         raise UsageError("--shard splits an inventory's links: give the inventory (PLANT.toml)")
     if plant is None and maps is None:

@@ -8,6 +8,7 @@ view on a terminal, one line on stderr for each change of state, and statistics 
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -19,7 +20,15 @@ from mbtool.cli.log import INFO, WARNING, log, log_format_option, run_log_format
 from mbtool.cli.metrics import name_problem
 from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
+from mbtool.cli.plant_text import (
+    LAST_SUCCESS,
+    UP,
+    check_budgets,
+    event_line,
+    event_log,
+    prom_text,
+    refuse_point_names,
+)
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
 from mbtool.cli.sinks.json import to_json
@@ -30,7 +39,7 @@ from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
 from mbtool.plant.inventory import load_inventory, shard
-from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
+from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -88,6 +97,12 @@ from mbtool.words import counted
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Refuse (exit 2, nothing opened) an inventory whose poll groups ask a serial link for "
+    "more line time than it has, as the budget check at load figures it; without it, a warning.",
+)
 @shard_option
 @log_format_option
 @click.option(
@@ -118,6 +133,7 @@ def poll(
     hex_links,
     mqtt_url,
     shard_part,
+    strict,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -139,6 +155,8 @@ def poll(
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
+    log_format = run_log_format()
+    check_budgets(plant, strict, log_format)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
@@ -163,7 +181,6 @@ def poll(
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
     mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
-    log_format = run_log_format()
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     report = view.report if view else output.report
@@ -278,8 +295,8 @@ class PlantOutput:
         one polled every second, and each device's samples carry its own last success."""
         live = [state for state in self.states.values() if state.state != OFFLINE]
         if self.exposed and live:
-            shortest = min(state.spec.interval for state in live)
-            live = [state for state in live if state.spec.interval == shortest]
+            shortest = min(state.spec.fastest for state in live)  # a device's fastest group's
+            live = [state for state in live if state.spec.fastest == shortest]
         return not any(state.spec.name in self.pending for state in live)
 
     def _expose(self) -> None:
@@ -341,6 +358,11 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
                     "state": s.state,
                     **_limits(device_limits[name]),
                     **s.stats.as_dict(),
+                    **(
+                        {"groups": {g.group.name: _pace_record(g.pace()) for g in s.groups}}
+                        if s.spec.groups
+                        else {}
+                    ),
                 }
                 for name, s in runner.devices.items()
             },
@@ -378,9 +400,42 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
             log_format,
         )
+    _group_table(runner, log_format)
     if publisher is not None:
         _stats_line(stats_line(publisher.stats()), log_format)
     sys.stderr.flush()
+
+
+def _group_table(runner: Plant, log_format: str) -> None:
+    """The poll groups of the devices that have them: the interval each asked, the one achieved
+    (the mean between its polls), its polls and its overruns (polls that started late)."""
+    lines = [["group", "device", "asked s", "achieved s", "polls", "overruns"]]
+    for name, state in runner.devices.items():
+        for pace in (group.pace() for group in state.groups if state.spec.groups):
+            asked = "once" if pace.asked == math.inf else f"{pace.asked:g}"
+            achieved = "-" if pace.achieved is None else f"{pace.achieved:.3f}"
+            lines.append([pace.group, name, asked, achieved, str(pace.polls), str(pace.overruns)])
+    if len(lines) == 1:
+        return
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
+    for line in lines:
+        _stats_line(
+            "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
+            log_format,
+        )
+
+
+def _pace_record(pace: Pace) -> dict:
+    """A group's pace in --stats json: ``once`` for a group read once (it has no interval)."""
+    if pace.asked == math.inf:
+        return {"once": True, "polls": pace.polls}
+    achieved = None if pace.achieved is None else round(pace.achieved, 6)
+    return {
+        "interval_seconds": pace.asked,
+        "achieved_seconds": achieved,
+        "polls": pace.polls,
+        "overruns": pace.overruns,
+    }
 
 
 def _stats_line(line: str, log_format: str) -> None:

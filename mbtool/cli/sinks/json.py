@@ -205,6 +205,8 @@ def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
     tags = dict(device.tags or {})
     labels = {key: tags.pop(key) for key in fleet or () if key in tags}
     record = {"time": when, **labels, "device": device.name, "tags": tags, "unit": device.unit}
+    if device.groups:  # a poll of one of its groups (issue 44): that group's points alone
+        record["group"] = poll.group
     if poll.readings is None:
         record["state"] = poll.state
         record["error"] = str(poll.error)
