@@ -67,6 +67,21 @@ KEYS = {
 }
 PATH_KEYS = ("password_file", "spool", "ca", "cert", "key")
 DEFAULT_PORTS = {"mqtt": 1883, "mqtts": 8883}
+# Plain JSON's keys that Sparkplug B cannot honour, and why (Sparkplug 3.0: an edge node's
+# topics are the spBv1.0 namespace's; NBIRTH, DBIRTH, DDATA and DDEATH are QoS 0 and NDEATH,
+# the will, QoS 1, none of them retained).  on_change, deadband, heartbeat, writes and allow
+# it honours: DDATA carries what changed, DCMD writes.
+NOT_SPARKPLUG = {
+    "qos": "Sparkplug B fixes each message's QoS (births, data and DDEATH 0, NDEATH 1)",
+    "retain": "Sparkplug B retains none of an edge node's messages",
+    "spool": "Sparkplug B's data is QoS 0, never replayed: the births on reconnection carry the values then",
+    "spool_size": "Sparkplug B's data is QoS 0, never replayed: the births on reconnection carry the values then",
+    "topic": "Sparkplug B's topics are spBv1.0/<group>/<type>/<edge node>/<device>: set group and edge_node",
+    "status_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
+    "points": "Sparkplug B carries a device's points as the metrics of one message",
+    "discovery": "Home Assistant's discovery reads JSON topics: it goes with payload = \"json\"",
+    "discovery_prefix": "Home Assistant's discovery reads JSON topics: it goes with payload = \"json\"",
+}
 # What a topic template may name besides a device's tags.
 FIELDS = ("device", "inventory", "link", "unit", "host")
 PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
@@ -248,6 +263,10 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             changes[key] = value
         elif key in PATH_KEYS:
             changes[key] = _text(value, at)
+    if changes.get("sparkplug"):
+        for key in given:
+            if key in NOT_SPARKPLUG:
+                raise UsageError(f'{where} {key}: not with payload = "sparkplug_b": {NOT_SPARKPLUG[key]}')
     sites = {(device.tags or {}).get("site") for device in devices}
     changes.setdefault("group", str(sites.pop()) if len(sites) == 1 and None not in sites else inventory)
     changes.setdefault("edge_node", inventory)
@@ -289,8 +308,6 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         for device in devices:
             if re.search(r"[/+#]", device.name):
                 raise UsageError(f"{where}: device {device.name!r}: a Sparkplug device id has no / + or #")
-        if settings.discovery or settings.per_point:
-            raise UsageError(f'{where}: discovery and points = "point" go with payload = "json"')
     elif settings.primary_host is not None:
         raise UsageError(f'{where} primary_host: goes with payload = "sparkplug_b"')
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:

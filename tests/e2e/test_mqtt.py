@@ -189,6 +189,8 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
         ('url = "mqtt://h"\ndeadband = "x%"', "not a percentage"),
         ('url = "mqtt://h"\nbogus = 1', "bogus: unknown key"),
         ('url = "mqtt://h"\nca = "ca.pem"', "mqtts:// settings"),
+        # Sparkplug B fixes QoS and retain: the line of the key, and why
+        ('url = "mqtt://h"\npayload = "sparkplug_b"\nretain = true', ":9: [mqtt] retain: not with payload"),
         ("qos = 1", "has no url"),
     ):
         plant = tmp_path / "plant.toml"

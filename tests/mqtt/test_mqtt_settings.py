@@ -48,7 +48,7 @@ def test_sparkplug_b_names_the_group_after_the_devices_site_and_the_edge_node_af
     [
         ('payload = "protobuf"\n', '[mqtt] payload: expected "json"'),
         ('payload = "sparkplug_b"\ngroup = "a/b"\n', "[mqtt] group: 'a/b': a Sparkplug id has no / + or #"),
-        ('payload = "sparkplug_b"\ndiscovery = "homeassistant"\n', 'discovery and points = "point" go with'),
+        ('payload = "sparkplug_b"\ndiscovery = "homeassistant"\n', "[mqtt] discovery: not with payload = \"sparkplug_b\""),
         ('primary_host = "scada"\n', 'primary_host: goes with payload = "sparkplug_b"'),
     ],
 )
@@ -58,3 +58,45 @@ def test_a_sparkplug_setting_that_cannot_be_is_a_usage_error(tmp_path, table, me
     with pytest.raises(UsageError) as error:
         load_inventory(str(path))
     assert message in str(error.value)
+
+
+# What plain JSON takes and Sparkplug B cannot honour: its topics are spBv1.0's, each
+# message's QoS and retain flag are the spec's, and its data is never replayed from a spool.
+@pytest.mark.parametrize(
+    ("line", "why"),
+    [
+        ("qos = 1", "Sparkplug B fixes each message's QoS"),
+        ("retain = true", "Sparkplug B retains none of an edge node's messages"),
+        ('spool = "mqtt.spool"', "Sparkplug B's data is QoS 0"),
+        ("spool_size = 10", "Sparkplug B's data is QoS 0"),
+        ('topic = "plant/{device}"', "Sparkplug B's topics are spBv1.0/"),
+        ('status_topic = "plant/poller"', "the edge node's NBIRTH and NDEATH are its status"),
+        ('points = "point"', "Sparkplug B carries a device's points as the metrics of one message"),
+        ('discovery = "homeassistant"', "Home Assistant's discovery reads JSON topics"),
+        ('discovery_prefix = "ha"', "Home Assistant's discovery reads JSON topics"),
+    ],
+)
+def test_sparkplug_b_refuses_a_key_it_cannot_honour_naming_the_file_line_key_and_why(tmp_path, line, why):
+    path = tmp_path / "plant.toml"
+    text = PLANT + '[mqtt]\nurl = "mqtt://b"\npayload = "sparkplug_b"\non_change = true\n' + line + "\n"
+    path.write_text(text)
+    key = line.split(" ")[0]
+    number = text.splitlines().index(line) + 1
+    with pytest.raises(UsageError) as error:
+        load_inventory(str(path))
+    assert str(error.value).startswith(f"{path}:{number}: [mqtt] {key}: "), error.value
+    assert why in str(error.value)
+    # The same keys with plain JSON are taken.
+    path.write_text(text.replace('payload = "sparkplug_b"\n', ""))
+    load_inventory(str(path))
+
+
+def test_sparkplug_b_honours_on_change_deadband_heartbeat_writes_and_the_ids(tmp_path):
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        PLANT + '[mqtt]\nurl = "mqtt://b"\npayload = "sparkplug_b"\non_change = true\ndeadband = 0.5\n'
+        'heartbeat = 60\nwrites = true\ngroup = "g"\nedge_node = "n"\nkeepalive = 30\n'
+    )
+    plant = load_inventory(str(path))
+    settings = mqtt_settings(plant.mqtt, str(path), plant.devices)
+    assert (settings.on_change, settings.heartbeat, settings.group, settings.edge_node) == (True, 60, "g", "n")
