@@ -79,8 +79,8 @@ NOT_SPARKPLUG = {
     "topic": "Sparkplug B's topics are spBv1.0/<group>/<type>/<edge node>/<device>: set group and edge_node",
     "status_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
     "points": "Sparkplug B carries a device's points as the metrics of one message",
-    "discovery": "Home Assistant's discovery reads JSON topics: it goes with payload = \"json\"",
-    "discovery_prefix": "Home Assistant's discovery reads JSON topics: it goes with payload = \"json\"",
+    "discovery": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
+    "discovery_prefix": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
 }
 # What a topic template may name besides a device's tags.
 FIELDS = ("device", "inventory", "link", "unit", "host")

@@ -48,7 +48,10 @@ def test_sparkplug_b_names_the_group_after_the_devices_site_and_the_edge_node_af
     [
         ('payload = "protobuf"\n', '[mqtt] payload: expected "json"'),
         ('payload = "sparkplug_b"\ngroup = "a/b"\n', "[mqtt] group: 'a/b': a Sparkplug id has no / + or #"),
-        ('payload = "sparkplug_b"\ndiscovery = "homeassistant"\n', "[mqtt] discovery: not with payload = \"sparkplug_b\""),
+        (
+            'payload = "sparkplug_b"\ndiscovery = "homeassistant"\n',
+            '[mqtt] discovery: not with payload = "sparkplug_b"',
+        ),
         ('primary_host = "scada"\n', 'primary_host: goes with payload = "sparkplug_b"'),
     ],
 )
@@ -99,4 +102,9 @@ def test_sparkplug_b_honours_on_change_deadband_heartbeat_writes_and_the_ids(tmp
     )
     plant = load_inventory(str(path))
     settings = mqtt_settings(plant.mqtt, str(path), plant.devices)
-    assert (settings.on_change, settings.heartbeat, settings.group, settings.edge_node) == (True, 60, "g", "n")
+    assert (settings.on_change, settings.heartbeat, settings.group, settings.edge_node) == (
+        True,
+        60,
+        "g",
+        "n",
+    )
