@@ -365,7 +365,7 @@ class MqttPublisher:
                     for point, value in chosen.items()
                 ]
             elif chosen:
-                payload = device_payload(item.time, item.device.unit, chosen)
+                payload = device_payload(item.time, settings.labels, item.device.unit, chosen)
                 messages.append(Message(self.topics.device[name], payload, settings.qos, settings.retain))
         return messages
 

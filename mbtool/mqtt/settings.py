@@ -8,7 +8,7 @@ anything is opened, every problem one UsageError (exit 2) naming the file and th
     ca = "broker-ca.pem"                  # mqtts: as tls:// takes them (cert, key, insecure)
     username = "plant"
     password_file = "mqtt.secret"         # or password, or MBTOOL_MQTT_PASSWORD
-    topic = "mbtool/{site}/{device}"      # {device}, {inventory}, {link}, {unit}, a tag
+    topic = "mbtool/{site}/{device}"      # {device}, {inventory}, {link}, {unit}, {site}, {instance}, a tag
     points = "device"                     # one message a device poll; "point": a topic a point
     qos = 1
     retain = false
@@ -35,7 +35,7 @@ from mbtool.files import read_whole
 
 KEYS = {
     "url": "mqtt://HOST[:PORT] or mqtts://HOST[:PORT]",
-    "client_id": "the client id the broker knows this poller by (default mbtool-HOST-INVENTORY)",
+    "client_id": "the client id the broker knows this poller by (default mbtool-INSTANCE-INVENTORY)",
     "username": "a user name",
     "password": "a password",
     "password_file": "a file whose first line is the password",
@@ -51,7 +51,7 @@ KEYS = {
     "deadbands": "a table of point names and their own deadband",
     "heartbeat": "seconds: every point published at least this often (0: only as on_change says)",
     "payload": '"json" (the default) or "sparkplug_b" (docs/mqtt.md, Sparkplug B)',
-    "group": "sparkplug_b: the Sparkplug group id (default: the site tag every device has, else the inventory's name)",
+    "group": "sparkplug_b: the Sparkplug group id (default: [poll] site, or the site tag every device has, else the inventory's name)",
     "edge_node": "sparkplug_b: the Sparkplug edge node id (default: the inventory's name)",
     "primary_host": "sparkplug_b: the primary host application's id, whose STATE the node waits for before its births",
     "discovery": '"homeassistant"',
@@ -82,7 +82,7 @@ NOT_SPARKPLUG = {
     "discovery": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
     "discovery_prefix": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
 }
-# What a topic template may name besides a device's tags.
+# What a topic template may name besides a device's tags (which carry [poll] site and instance).
 FIELDS = ("device", "inventory", "link", "unit", "host")
 PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 
@@ -106,6 +106,7 @@ class MqttSettings:
     tls: bool
     client_id: str
     inventory: str  # the inventory's name: its file's, without .toml
+    labels: dict = field(default=None, compare=False)  # [poll] site and instance: in every JSON message
     username: str | None = None
     password: str | None = None
     keepalive: int = 60
@@ -166,18 +167,31 @@ def _port(text: str, url: str, where: str) -> int:
     return int(text)
 
 
-def check_table(table, path: str, devices: list) -> None:
+def check_table(table, path: str, devices: list, labels: dict) -> None:
     """The ``[mqtt]`` table checked as the inventory is loaded, its url too where it has one
     (poll's --mqtt may give it)."""
     if table is not None:
         stand_in = None if isinstance(table, dict) and "url" in table else "mqtt://localhost"
-        mqtt_settings(table, path, devices, stand_in)
+        mqtt_settings(table, path, devices, stand_in, labels)
 
 
-def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> MqttSettings | None:
+def mqtt_settings(
+    table,
+    path: str,
+    devices: list,
+    url: str | None = None,
+    labels: dict | None = None,
+    part: tuple[int, int] | None = None,
+) -> MqttSettings | None:
     """The ``[mqtt]`` table of the inventory at ``path`` (None: it has none), ``url`` (poll's
     --mqtt) in place of its url; None when neither is given.  ``devices``: the inventory's
-    ``DeviceSpec``s, whose names and tags the topic template must be able to fill."""
+    ``DeviceSpec``s, whose names and tags the topic template must be able to fill; ``labels``:
+    its [poll] site and instance; ``part``: poll --shard's (K, N).
+
+    Shards of one inventory on one broker must not collide: each is a client of its own (a
+    second session of one client id throws the first off), with a status and a Sparkplug edge
+    node of its own, so the shard (``0of2``) is added to the client id, the status topic (a
+    level under it) and the edge node."""
     if table is None and url is None:
         return None
     if table is None:
@@ -201,7 +215,8 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     where = f"{path}: [mqtt]"
     host, port, tls = parse_url(given["url"], "--mqtt" if url is not None else f"{where} url")
     inventory = Path(path).stem
-    settings = MqttSettings(host, port, tls, f"mbtool-{socket.gethostname()}-{inventory}", inventory)
+    labels = labels or {"instance": socket.gethostname()}
+    settings = MqttSettings(host, port, tls, f"mbtool-{labels['instance']}-{inventory}", inventory, labels)
     changes: dict[str, Any] = {}  # each key's value, of the type MqttSettings gives it
     for key, value in given.items():
         if key == "url":
@@ -270,6 +285,11 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     sites = {(device.tags or {}).get("site") for device in devices}
     changes.setdefault("group", str(sites.pop()) if len(sites) == 1 and None not in sites else inventory)
     changes.setdefault("edge_node", inventory)
+    if part is not None:
+        ours = f"{part[0]}of{part[1]}"
+        changes["client_id"] = f"{changes.get('client_id', settings.client_id)}-{ours}"
+        changes["status_topic"] = f"{changes.get('status_topic', settings.status_topic)}/{ours}"
+        changes["edge_node"] = f"{changes['edge_node']}-{ours}"
     if "password" not in changes and os.environ.get("MBTOOL_MQTT_PASSWORD"):
         changes["password"] = os.environ["MBTOOL_MQTT_PASSWORD"]
     settings = replace(settings, **changes)
@@ -320,20 +340,20 @@ def _points(device) -> list[str]:
 
 def fill(template: str, settings: MqttSettings, device=None) -> str:
     """A topic template filled in for ``device`` (None: the poller's own topics, which may
-    name only {inventory} and {host})."""
-    values = {"inventory": settings.inventory, "host": socket.gethostname()}
+    name {inventory}, {host} and the fleet's labels, {site} and {instance})."""
+    values = {"inventory": settings.inventory, "host": socket.gethostname(), **(settings.labels or {})}
     if device is not None:
         values |= {"device": device.name, "link": device.link, "unit": str(device.unit)}
-        values |= device.tags or {}
+        values |= device.tags or {}  # the fleet's labels among them
 
     def one(match: re.Match) -> str:
         name = match.group(1)
         if name not in values:
-            known = ", ".join(values) if device is not None else "inventory, host"
             raise UsageError(
                 f"{template!r}: {{{name}}} is not known"
                 + (f" for device {device.name}" if device else "")
-                + f" (known: {known})"
+                + f" (known: {', '.join(values)}"
+                + ('; [poll] site = "..." gives {site})' if name == "site" else ")")
             )
         return values[name]
 

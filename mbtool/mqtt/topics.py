@@ -1,7 +1,7 @@
 """The topic tree and the payloads of plain JSON::
 
     mbtool/{inventory}/status                  online / offline (the birth, and the last will)
-    mbtool/{inventory}/{device}                {"time": ..., "unit": 1, "points": {"flow": 21.5}}
+    mbtool/{inventory}/{device}                {"time": ..., "instance": "edge7", "unit": 1, "points": {"flow": 21.5}}
     mbtool/{inventory}/{device}/status         online / offline, as mbtool judges the device
     mbtool/{inventory}/{device}/{point}        the bare value (points = "point")
 
@@ -42,10 +42,12 @@ def json_value(value):
     return value
 
 
-def device_payload(when: float, unit: int, values: dict[str, object]) -> bytes:
-    """One device poll's message: its time (UTC, ISO 8601), unit id and points."""
+def device_payload(when: float, labels: dict, unit: int, values: dict[str, object]) -> bytes:
+    """One device poll's message: its time (UTC, ISO 8601), the fleet's labels ([poll] site
+    and instance, keys of their own as in poll -o json's records), unit id and points."""
     record = {
         "time": iso_time(when),
+        **labels,
         "unit": unit,
         "points": {name: json_value(value) for name, value in values.items()},
     }

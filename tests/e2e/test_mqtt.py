@@ -587,3 +587,38 @@ def test_a_set_publish_is_written_between_polls_read_back_and_a_bad_one_never_re
             assert before[0] == "request", "two replies in a row"
         else:
             assert before[0] == "reply", "a request sent before the last one was answered"
+
+
+# --- issue 44: a fleet's labels, and two shards on one broker ----------------------------------
+
+
+def test_two_shards_publish_their_halves_to_one_broker_labelled_and_never_collide(tmp_path):
+    """Two ``poll --shard K/2`` of one inventory on one host: each its own client id (one
+    broker session would throw the other off) and its own status topic, every device's
+    messages once a poll, each carrying the fleet's site and instance."""
+    plant = tmp_path / "plant.toml"
+    links = [f"l{number}" for number in range(6)]  # l1, l4, l5: shard 0; l0, l2, l3: shard 1
+    plant.write_text(
+        '[poll]\ninterval = 0.1\nsite = "north"\ninstance = "edge7"\n'
+        + "".join(f'[links.{link}]\ntarget = "sim://"\n' for link in links)
+        + "".join(f'[devices.d{link[1]}]\nlink = "{link}"\nread = ["40001 2"]\n' for link in links)
+        + '[mqtt]\ntopic = "plants/{site}/{instance}/{device}"\n'
+    )
+    with mosquitto() as broker:
+        subscriber = Subscriber(broker.port, ["plants/#", "mbtool/#"])
+        shards = [_start_poll(plant, "--shard", f"{k}/2", "--mqtt", broker.url, "--rounds", "8") for k in (0, 1)]
+        ends = [shard.communicate(timeout=20) for shard in shards]
+        for shard, (_, err) in zip(shards, ends, strict=True):
+            assert shard.returncode == 0 and "Traceback" not in err, err
+            states = [line for line in err.splitlines() if line.startswith("mbtool: mqtt: broker")]
+            assert not [line for line in states if " lost" in line], err  # no session thrown off by the other
+        statuses = ("mbtool/plant/status/0of2", "mbtool/plant/status/1of2")
+        assert subscriber.wait_for(lambda m: all(subscriber.on(s)[-1:] == [b"offline"] for s in statuses), 5)
+        subscriber.close()
+    for status in statuses:
+        assert subscriber.on(status) == [b"online", b"offline"]
+    for device in range(6):
+        records = _json(subscriber.on(f"plants/north/edge7/d{device}"))
+        assert len(records) == 8, device  # every poll once, by one shard
+        assert all((r["site"], r["instance"]) == ("north", "edge7") for r in records)
+        assert subscriber.on(f"plants/north/edge7/d{device}/status") == [b"online"]

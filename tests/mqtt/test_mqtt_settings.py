@@ -6,7 +6,8 @@ import pytest
 
 from mbtool.errors import ExitCode, UsageError, exit_code_for
 from mbtool.mqtt.settings import mqtt_settings
-from mbtool.plant.inventory import load_inventory
+from mbtool.mqtt.topics import Topics
+from mbtool.plant.inventory import load_inventory, shard
 
 PLANT = '[links.l]\ntarget = "tcp://127.0.0.1:1"\n[devices.pump]\nlink = "l"\nread = ["40001"]\n'
 
@@ -108,3 +109,61 @@ def test_sparkplug_b_honours_on_change_deadband_heartbeat_writes_and_the_ids(tmp
         "g",
         "n",
     )
+
+
+# --- issue 44: the fleet's labels and shards on the broker ------------------------------------
+
+FLEET = (
+    '[poll]\nsite = "north"\ninstance = "edge7"\n'
+    '[links.l0]\ntarget = "tcp://127.0.0.1:1"\n[links.l1]\ntarget = "tcp://127.0.0.1:2"\n'
+    '[devices.pump]\nlink = "l0"\nread = ["40001"]\n[devices.fan]\nlink = "l1"\nread = ["40001"]\n'
+)
+
+
+def _settings(tmp_path, table: str, part: tuple[int, int] | None = None):
+    path = tmp_path / "plant.toml"
+    path.write_text(FLEET + '[mqtt]\nurl = "mqtt://b"\n' + table)
+    plant = load_inventory(str(path))
+    if part is not None:
+        plant = shard(plant, *part)
+    return mqtt_settings(plant.mqtt, str(path), plant.devices, labels=plant.labels, part=part)
+
+
+def test_site_and_instance_fill_the_device_topics_and_the_poller_s_own(tmp_path):
+    settings = _settings(
+        tmp_path, 'topic = "plants/{site}/{instance}/{device}"\nstatus_topic = "plants/{site}/{instance}"\n'
+    )
+    topics = Topics(settings, settings_devices(tmp_path))
+    assert topics.device == {"pump": "plants/north/edge7/pump", "fan": "plants/north/edge7/fan"}
+    assert topics.status == "plants/north/edge7"
+    assert settings.labels == {"site": "north", "instance": "edge7"}
+    assert settings.client_id == "mbtool-edge7-plant"  # instance: the host name unless given
+
+
+def settings_devices(tmp_path):
+    return load_inventory(str(tmp_path / "plant.toml")).devices
+
+
+def test_sparkplug_b_s_group_is_the_site_and_its_edge_node_the_inventory(tmp_path):
+    settings = _settings(tmp_path, 'payload = "sparkplug_b"\n')
+    assert (settings.group, settings.edge_node) == ("north", "plant")
+
+
+def test_two_shards_of_one_inventory_are_two_clients_two_statuses_and_two_edge_nodes(tmp_path):
+    ids = set()
+    for part in ((0, 2), (1, 2)):
+        json_ = _settings(tmp_path, "", part)
+        sparkplug = _settings(tmp_path, 'payload = "sparkplug_b"\n', part)
+        ids.add((json_.client_id, Topics(json_, []).status, sparkplug.client_id, sparkplug.edge_node))
+    assert ids == {
+        ("mbtool-edge7-plant-0of2", "mbtool/plant/status/0of2", "mbtool-edge7-plant-0of2", "plant-0of2"),
+        ("mbtool-edge7-plant-1of2", "mbtool/plant/status/1of2", "mbtool-edge7-plant-1of2", "plant-1of2"),
+    }
+
+
+def test_a_template_naming_the_site_where_poll_gives_none_says_where_it_comes_from(tmp_path):
+    path = tmp_path / "plant.toml"
+    path.write_text(PLANT + '[mqtt]\nurl = "mqtt://b"\ntopic = "m/{site}/{device}"\n')
+    with pytest.raises(UsageError) as error:
+        load_inventory(str(path))
+    assert '[poll] site = "..." gives {site}' in str(error.value)

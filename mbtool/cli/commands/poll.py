@@ -163,7 +163,7 @@ def poll(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
-    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
+    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url, plant.labels, shard_part)
     log_format = run_log_format()
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
