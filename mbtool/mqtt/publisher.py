@@ -29,7 +29,7 @@ from mbtool.mqtt.change import ChangeFilter
 from mbtool.mqtt.discovery import configs
 from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
-from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
+from mbtool.mqtt.topics import OFFLINE, ONLINE, DevicePoll, Topics, device_payload, point_payload
 from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
 
 if TYPE_CHECKING:
@@ -57,6 +57,7 @@ class MqttPublisher:
         self.headers = headers or {}
         self.notify = notify
         self.topics = Topics(settings, devices)
+        self.units = {device.name: device.unit for device in devices}
         self.changes = ChangeFilter(settings)
         self.spool = Spool(settings.spool_size, settings.spool)
         self.queue: queue.Queue = queue.Queue(maxsize=QUEUED)
@@ -95,8 +96,8 @@ class MqttPublisher:
 
     def report(self, item) -> None:
         """A plant's ``Poll`` (as the thread that runs the plant hands it on; its ``Event``s are
-        not wanted: each Poll carries its device's state), or a write's request or result,
-        queued for the publisher's thread; never waits."""
+        not wanted: each Poll carries its device's state), read --interval's ``DevicePoll``, or
+        a write's request or result, queued for the publisher's thread; never waits."""
         try:
             self.queue.put_nowait(item)
         except queue.Full:
@@ -345,17 +346,23 @@ class MqttPublisher:
         self._send(Message(topic, result.result.encode(), 1, False))
 
     def _messages(self, item) -> list[Message]:
-        """A Poll's messages: its device's status when it changed, and its points."""
+        """A Poll's (or a DevicePoll's) messages: its device's status when it changed, and its points."""
         if self.node is not None:
             return self._sparkplug(item)
-        settings, name = self.settings, item.device.name
+        settings = self.settings
+        if isinstance(item, DevicePoll):
+            name, values = item.device, item.values
+        else:
+            name = item.device.name
+            values = (
+                {r.point.name: _value(r) for r in item.readings if r.error is None} if item.readings else None
+            )
         messages = []
         if item.state in (ONLINE, OFFLINE) and self.device_states.get(name) != item.state:
             self.device_states[name] = item.state
             if self.live:  # else the next connection's announcement says it
                 messages.append(Message(self.topics.device_status(name), item.state.encode(), 1, True))
-        if item.readings:
-            values = {r.point.name: _value(r) for r in item.readings if r.error is None}
+        if values:
             chosen = self.changes.select(name, item.time, values)
             if chosen and settings.per_point:
                 messages += [
@@ -365,7 +372,7 @@ class MqttPublisher:
                     for point, value in chosen.items()
                 ]
             elif chosen:
-                payload = device_payload(item.time, settings.labels, item.device.unit, chosen)
+                payload = device_payload(item.time, settings.labels, self.units[name], chosen)
                 messages.append(Message(self.topics.device[name], payload, settings.qos, settings.retain))
         return messages
 

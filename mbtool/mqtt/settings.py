@@ -167,6 +167,42 @@ def _port(text: str, url: str, where: str) -> int:
     return int(text)
 
 
+# read --interval --mqtt: the one device's topic; its availability is that topic's /status.
+READ_TOPIC = "mbtool/{instance}/{device}"
+
+
+@record
+class Device:
+    """A device of no inventory (read --interval's), as a topic template names it."""
+
+    name: str
+    link: str
+    unit: int
+    tags: dict = field(default=None, compare=False)
+
+
+def read_settings(url: str, name: str, unit: int) -> tuple[MqttSettings, Device]:
+    """read --interval --mqtt URL: one JSON message a poll on ``mbtool/<instance>/<name>``
+    (the instance is the host name: a one-liner has no [poll]), and one availability topic,
+    ``.../<name>/status``: online at each connection and while polls are answered, offline
+    after a failed poll, at a clean end and as the will.  ``name``: --name, one topic level."""
+    if not name or re.search(r"[/+#{}\0]", name) or name.startswith("$"):
+        raise UsageError(
+            f"--name {name!r}: the device's name on the broker is one topic level (no / + # {{ }})"
+        )
+    labels = {"instance": socket.gethostname()}
+    device = Device(name, "read", unit)
+    instance = labels["instance"]
+    table = {
+        "topic": READ_TOPIC,
+        "status_topic": READ_TOPIC.format(instance=instance, device=name) + "/status",
+        "client_id": f"mbtool-{instance}-read-{name}",
+    }
+    settings = mqtt_settings(table, "read", [device], url, labels)
+    assert settings is not None  # a url is given
+    return settings, device
+
+
 def check_table(table, path: str, devices: list, labels: dict) -> None:
     """The ``[mqtt]`` table checked as the inventory is loaded, its url too where it has one
     (poll's --mqtt may give it)."""

@@ -16,9 +16,21 @@ import json
 import math
 from datetime import UTC, datetime
 
+from mbtool.codec.record import record
 from mbtool.mqtt.settings import MqttSettings, fill
 
 ONLINE, OFFLINE = "online", "offline"
+
+
+@record
+class DevicePoll:
+    """A poll of a device that is no plant's (read --interval --mqtt), as the publisher takes
+    it: its values by name (None: the poll failed) and the device's state after it."""
+
+    device: str
+    time: float  # time.time(): when its request went out
+    values: dict | None
+    state: str
 
 
 class Topics:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -622,3 +623,61 @@ def test_two_shards_publish_their_halves_to_one_broker_labelled_and_never_collid
         assert len(records) == 8, device  # every poll once, by one shard
         assert all((r["site"], r["instance"]) == ("north", "edge7") for r in records)
         assert subscriber.on(f"plants/north/edge7/d{device}/status") == [b"online"]
+
+
+# --- read --interval --mqtt: a one-liner on the broker ------------------------------------------
+
+
+def _read(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "mbtool", *args],
+        cwd=REPO_ROOT,
+        env=mbtool_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_read_interval_publishes_each_poll_as_one_message_with_its_availability(tmp_path):
+    host = socket.gethostname()
+    (tmp_path / "meter.toml").write_text(METER)
+    with mosquitto() as broker, serve("-u", "1") as device:
+        subscriber = Subscriber(broker.port, "mbtool/#")
+        # A map's points by name, with the name given; stdout is as without --mqtt.
+        proc = _read("read", "-m", str(tmp_path / "meter.toml"), "-p", device.target, "--interval", "0.1",
+                     "--polls", "4", "-o", "json", "--mqtt", broker.url, "--name", "pump")  # fmt: skip
+        out, err = proc.communicate(timeout=20)
+        assert proc.returncode == 0 and "Traceback" not in err, err
+        assert len(out.splitlines()) == 4
+        # References, the device named by its unit; killed, the broker says the will.
+        proc = _read("read", "40011", "2", "-u", "1", "-p", device.target, "--interval", "0.1",
+                     "--mqtt", broker.url)  # fmt: skip
+        try:
+            assert subscriber.wait_for(lambda m: len(subscriber.on(f"mbtool/{host}/unit1")) >= 3, 10)
+        finally:
+            proc.kill()
+            proc.communicate(timeout=5)
+        assert subscriber.wait_for(lambda m: subscriber.on(f"mbtool/{host}/unit1/status")[-1:] == [b"offline"], 5)
+        subscriber.close()
+    records = _json(subscriber.on(f"mbtool/{host}/pump"))
+    expected = {"level": 1.0, "flow": 21.5, "running": True, "mode": "auto"}
+    assert [record["points"] for record in records] == [expected] * 4
+    assert all(record["unit"] == 1 and record["instance"] == host for record in records)
+    assert [r["time"] for r in records] == sorted(r["time"] for r in records)
+    assert subscriber.on(f"mbtool/{host}/pump/status")[0] == b"online"
+    assert subscriber.on(f"mbtool/{host}/pump/status")[-1] == b"offline"  # a clean end says so itself
+    assert "mqtt 127.0.0.1" in err  # the broker's counts on stderr, as poll's statistics end
+    assert {r["points"]["40011"] for r in _json(subscriber.on(f"mbtool/{host}/unit1"))} == {10}
+
+
+def test_read_mqtt_without_polling_or_with_a_bad_name_is_one_line_and_exit_2():
+    for args, says in (
+        (["--mqtt", "mqtt://127.0.0.1:1"], "--mqtt publishes polls"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--interval", "1", "--name", "a/b"], "--name 'a/b'"),
+        (["--mqtt", "http://x", "--interval", "1"], "is not mqtt://"),
+        (["--name", "pump", "--interval", "1"], "--name names the device on the broker: it goes with --mqtt"),
+    ):
+        res = run_mbtool("read", "40001", "-p", "tcp://127.0.0.1:1", *args)
+        assert res.returncode == 2, (args, res.stderr)
+        assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)

@@ -170,7 +170,7 @@ def poll(
     report = view.report if view else output.report
     publisher = None
     if mqtt is not None:
-        publisher = make_publisher(mqtt, plant, quiet=live)
+        publisher = make_publisher(mqtt, plant.devices, plant.maps, quiet=live)
         report = _both(report, publisher.report)
         if view:
             view.publisher = publisher
