@@ -681,3 +681,20 @@ def test_read_mqtt_without_polling_or_with_a_bad_name_is_one_line_and_exit_2():
         res = run_mbtool("read", "40001", "-p", "tcp://127.0.0.1:1", *args)
         assert res.returncode == 2, (args, res.stderr)
         assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
+
+
+def test_read_interval_says_its_device_offline_on_the_broker_while_its_polls_fail(tmp_path):
+    host = socket.gethostname()
+    with mosquitto() as broker:
+        subscriber = Subscriber(broker.port, "mbtool/#")
+        proc = _read("read", "40001", "-p", f"tcp://127.0.0.1:{free_port()}", "--timeout", "0.2",
+                     "--interval", "0.2", "--mqtt", broker.url, "--name", "gone")  # fmt: skip
+        try:
+            status = f"mbtool/{host}/gone/status"
+            assert subscriber.wait_for(lambda m: subscriber.on(status) == [b"online", b"offline"], 10)
+            assert proc.poll() is None  # still polling: the device is offline, not the poller
+        finally:
+            proc.kill()
+            proc.communicate(timeout=5)
+        subscriber.close()
+    assert subscriber.on(f"mbtool/{host}/gone") == []
