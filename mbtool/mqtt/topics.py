@@ -57,13 +57,16 @@ def json_value(value):
 def device_payload(when: float, labels: dict, unit: int, values: dict[str, object]) -> bytes:
     """One device poll's message: its time (UTC, ISO 8601), the fleet's labels ([poll] site
     and instance, keys of their own as in poll -o json's records), unit id and points."""
-    record = {
-        "time": iso_time(when),
-        **labels,
-        "unit": unit,
-        "points": {name: json_value(value) for name, value in values.items()},
-    }
-    return json.dumps(record, ensure_ascii=False, separators=(",", ":")).encode()
+    record = {"time": iso_time(when), **labels, "unit": unit, "points": values}
+    try:
+        return _dumps(record)
+    except ValueError:  # NaN or an infinity, which JSON has no words for: null, in a copy
+        record["points"] = {name: json_value(value) for name, value in values.items()}
+        return _dumps(record)
+
+
+def _dumps(record: dict) -> bytes:
+    return json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
 
 
 def point_payload(value) -> bytes:
