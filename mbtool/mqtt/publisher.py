@@ -30,7 +30,16 @@ from mbtool.mqtt.change import ChangeFilter
 from mbtool.mqtt.discovery import configs
 from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
-from mbtool.mqtt.topics import OFFLINE, ONLINE, DevicePoll, Topics, device_payload, point_payload
+from mbtool.mqtt.topics import (
+    OFFLINE,
+    ONLINE,
+    DevicePoll,
+    PlantEvent,
+    Topics,
+    device_payload,
+    event_payload,
+    point_payload,
+)
 from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
 
 if TYPE_CHECKING:
@@ -102,9 +111,9 @@ class MqttPublisher:
     # --- the plant's side ---------------------------------------------------------------
 
     def report(self, item) -> None:
-        """A plant's ``Poll`` (as the thread that runs the plant hands it on; its ``Event``s are
-        not wanted: each Poll carries its device's state), read --interval's ``DevicePoll``, or
-        a write's request or result, queued for the publisher's thread; never waits."""
+        """A plant's ``Poll`` or ``PlantEvent`` (as the thread that runs the plant hands them
+        on), read --interval's ``DevicePoll``, or a write's request or result, queued for the
+        publisher's thread; never waits."""
         if self.queue.qsize() < QUEUED:
             self.queue.put(item)
         else:
@@ -285,6 +294,10 @@ class MqttPublisher:
             self._write(item)
         elif isinstance(item, WriteResult):
             self._result(item)
+        elif isinstance(item, PlantEvent):
+            # A log, for a flow that alerts: not retained (each device's status is), QoS 1.
+            if self.node is None:  # Sparkplug says it with DDEATH and DBIRTH
+                self._send(Message(self.topics.events, event_payload(item.record), 1, False))
         else:
             for message in self._messages(item):
                 self._send(message)

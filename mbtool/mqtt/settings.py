@@ -43,6 +43,7 @@ KEYS = {
     "version": '"3.1.1" or "5"',
     "topic": 'a topic template, such as "mbtool/{site}/{device}"',
     "status_topic": 'the poller\'s own availability topic (default "mbtool/{inventory}/status")',
+    "events_topic": 'each change of state of a device or link, as JSON (default "mbtool/{inventory}/events")',
     "points": '"device" (one JSON message a poll) or "point" (a topic a point, its bare value)',
     "qos": "0 or 1",
     "retain": "true or false",
@@ -78,6 +79,7 @@ NOT_SPARKPLUG = {
     "spool_size": "Sparkplug B's data is QoS 0, never replayed: the births on reconnection carry the values then",
     "topic": "Sparkplug B's topics are spBv1.0/<group>/<type>/<edge node>/<device>: set group and edge_node",
     "status_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
+    "events_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
     "points": "Sparkplug B carries a device's points as the metrics of one message",
     "discovery": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
     "discovery_prefix": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
@@ -113,6 +115,7 @@ class MqttSettings:
     version: str = "3.1.1"
     topic: str = "mbtool/{inventory}/{device}"
     status_topic: str = "mbtool/{inventory}/status"
+    events_topic: str = "mbtool/{inventory}/events"
     per_point: bool = False
     qos: int = 1
     retain: bool = False
@@ -264,6 +267,7 @@ def mqtt_settings(
             "password",
             "topic",
             "status_topic",
+            "events_topic",
             "discovery_prefix",
             "group",
             "edge_node",
@@ -325,6 +329,7 @@ def mqtt_settings(
         ours = f"{part[0]}of{part[1]}"
         changes["client_id"] = f"{changes.get('client_id', settings.client_id)}-{ours}"
         changes["status_topic"] = f"{changes.get('status_topic', settings.status_topic)}/{ours}"
+        changes["events_topic"] = f"{changes.get('events_topic', settings.events_topic)}/{ours}"
         changes["edge_node"] = f"{changes['edge_node']}-{ours}"
     if "password" not in changes and os.environ.get("MBTOOL_MQTT_PASSWORD"):
         changes["password"] = os.environ["MBTOOL_MQTT_PASSWORD"]
@@ -352,7 +357,11 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         if not any(name in _points(device) for device in devices):
             raise UsageError(f"{where} allow: no device reads a point named {name}")
     for device in devices:
-        for text, key in ((settings.topic, "topic"), (settings.status_topic, "status_topic")):
+        for text, key in (
+            (settings.topic, "topic"),
+            (settings.status_topic, "status_topic"),
+            (settings.events_topic, "events_topic"),
+        ):
             _topic_problem(fill(text, settings, device if key == "topic" else None), f"{where} {key}", text)
         if settings.per_point:
             for point in _points(device):

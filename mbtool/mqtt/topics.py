@@ -1,6 +1,7 @@
 """The topic tree and the payloads of plain JSON::
 
     mbtool/{inventory}/status                  online / offline (the birth, and the last will)
+    mbtool/{inventory}/events                  {"time": ..., "event": "offline", "device": "m1", "reason": ...}
     mbtool/{inventory}/{device}                {"time": ..., "instance": "edge7", "unit": 1, "points": {"flow": 21.5}}
     mbtool/{inventory}/{device}/status         online / offline, as mbtool judges the device
     mbtool/{inventory}/{device}/{point}        the bare value (points = "point")
@@ -23,6 +24,14 @@ ONLINE, OFFLINE = "online", "offline"
 
 
 @record
+class PlantEvent:
+    """A change of state of a plant's device or link, as poll -o json's record says it
+    (``cli.sinks.json.event_record``), for the poller's events topic."""
+
+    record: dict
+
+
+@record
 class DevicePoll:
     """A poll of a device that is no plant's (read --interval --mqtt), as the publisher takes
     it: its values by name (None: the poll failed) and the device's state after it."""
@@ -38,6 +47,7 @@ class Topics:
 
     def __init__(self, settings: MqttSettings, devices: list) -> None:
         self.status = fill(settings.status_topic, settings)
+        self.events = fill(settings.events_topic, settings)
         self.device = {device.name: fill(settings.topic, settings, device) for device in devices}
 
     def device_status(self, device: str) -> str:
@@ -63,6 +73,11 @@ def device_payload(when: float, labels: dict, unit: int, values: dict[str, objec
     except ValueError:  # NaN or an infinity, which JSON has no words for: null, in a copy
         record["points"] = {name: json_value(value) for name, value in values.items()}
         return _dumps(record)
+
+
+def event_payload(record: dict) -> bytes:
+    """A change of state's message: the record as it is."""
+    return _dumps(record)
 
 
 def _dumps(record: dict) -> bytes:

@@ -9,6 +9,7 @@ pymodbus's device holds 100..119 from 40001.  Without mosquitto these tests skip
 from __future__ import annotations
 
 import json
+import os
 import signal
 import statistics
 import socket
@@ -172,7 +173,7 @@ def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sig
             assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/status")[-1:] == [b"offline"], 10)
         finally:
             proc.kill()
-            proc.communicate(timeout=5)
+            out, _ = proc.communicate(timeout=5)
             device.__exit__(None, None, None)
             subscriber.close()
         # The will is retained: a subscriber that comes later learns the poller is gone.
@@ -180,6 +181,14 @@ def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sig
         assert late.wait_for(lambda m: m == [("mbtool/plant/status", b"offline", True)], 5)
         late.close()
     assert subscriber.on(status) == [b"online", b"offline", b"online"]
+    # Why, for a Node-RED flow that alerts: each change of state, as poll -o json's events say it.
+    events = _json(subscriber.on("mbtool/plant/events"))
+    printed = [record for record in map(json.loads, out.splitlines()) if "event" in record]
+    assert [(e["event"], e.get("device")) for e in events] == [(e["event"], e.get("device")) for e in printed]
+    assert [e["event"] for e in events if e.get("device") == "pm"] == ["offline", "online"]
+    for sent, said in zip(events, printed, strict=True):
+        assert sent.keys() == said.keys() and sent["reason" if "reason" in sent else "event"]
+        assert sent["time"].endswith("Z") and sent["instance"] == os.uname().nodename
 
 
 def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):

@@ -22,7 +22,7 @@ from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
 from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.json import event_record, to_json
 from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
@@ -30,6 +30,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
+from mbtool.mqtt.topics import PlantEvent, iso_time
 from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -171,7 +172,7 @@ def poll(
     publisher = None
     if mqtt is not None:
         publisher = make_publisher(mqtt, plant.devices, plant.maps, quiet=live)
-        report = _both(report, publisher.report)
+        report = _both(report, publisher.report, plant.labels)
         if view:
             view.publisher = publisher
     runner = Plant(
@@ -212,14 +213,16 @@ def poll(
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
-def _both(first, publish):
+def _both(first, publish, labels: dict):
     """The plant's one report, on the thread that runs it, handed to the output and the MQTT
-    publisher: the publisher its Polls (it only enqueues them), which carry each device's state."""
+    publisher (which only enqueues): its Polls, and each Event as -o json's record."""
 
     def report(item: Poll | Event) -> None:
         first(item)
         if isinstance(item, Poll):
             publish(item)
+        else:
+            publish(PlantEvent(event_record(item, iso_time(item.time), labels)))
 
     return report
 
