@@ -11,19 +11,19 @@ from __future__ import annotations
 import json
 import os
 import signal
-import statistics
 import socket
+import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from datetime import datetime
 from pathlib import Path
 
 import pytest
-from helpers.devices import start_device, stop_device
+from helpers.devices import start_device
+from helpers.mqtt import plant_on_broker, run_poll
 from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
-from helpers.run import REPO_ROOT, mbtool_env, run_mbtool
+from helpers.run import run_mbtool, start_mbtool
 from helpers.served import serve
 from helpers.sockets import free_port
 from peers.broker import Broker, Subscriber, mosquitto, needs_mosquitto
@@ -48,27 +48,6 @@ ref = "00001"
 ref = 40003
 enum = { 2 = "auto", 3 = "manual" }
 """
-
-
-def _start_poll(plant: Path, *args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "mbtool", "poll", str(plant), *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def _poll(plant: Path, *args: str, wait: float = 20):
-    proc = _start_poll(plant, *args)
-    try:
-        out, err = proc.communicate(timeout=wait)
-    finally:
-        proc.kill()
-    assert "Traceback" not in err, err
-    return proc.returncode, out, err
 
 
 def _json(payloads: list[bytes]) -> list[dict]:
@@ -98,7 +77,7 @@ def test_a_plant_of_two_buses_and_a_tcp_device_publishes_every_point_of_every_po
                 '[mqtt]\ntopic = "plant/{site}/{device}"\nstatus_topic = "plant/poller"\n'
             )
             subscriber = Subscriber(broker.port, "plant/#")
-            code, out, err = _poll(plant, "--mqtt", broker.url, "--rounds", "3", "-o", "json")
+            code, out, err = run_poll(plant, "--mqtt", broker.url, "--rounds", "3", "-o", "json")
             assert code == 0, err
             assert subscriber.wait_for(lambda messages: messages[-1][0] == "plant/poller", 5)
             subscriber.close()
@@ -134,7 +113,7 @@ def test_on_change_publishes_a_steady_device_once_and_per_point_topics_carry_bar
             '[mqtt]\non_change = true\npoints = "point"\ndeadband = "1%"\n'
         )
         subscriber = Subscriber(broker.port, "mbtool/#")
-        code, _, err = _poll(plant, "--mqtt", broker.url, "--rounds", "5")
+        code, _, err = run_poll(plant, "--mqtt", broker.url, "--rounds", "5")
         assert code == 0, err
         assert subscriber.wait_for(lambda messages: messages[-1][1] == b"offline", 5)
         subscriber.close()
@@ -146,40 +125,29 @@ def test_on_change_publishes_a_steady_device_once_and_per_point_topics_carry_bar
 
 
 def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sigkill_leaves_the_will(tmp_path):
-    port = free_port()
-    device = start_device(tcp=True, framer="socket", units="1", port=port)
-    pm = device.__enter__()
-    with mosquitto() as broker:
-        plant = tmp_path / "plant.toml"
-        plant.write_text(
-            f'[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{pm.target}"\n'
-            'timeout = 0.3\n[devices.pm]\nlink = "l"\nread = ["40001 1"]\n'
-        )
-        subscriber = Subscriber(broker.port, "mbtool/#")
-        proc = _start_poll(plant, "--mqtt", broker.url, "-o", "json")
-        try:
-            status = "mbtool/plant/pm/status"
-            assert subscriber.wait_for(lambda m: (status, b"online", False) in m, 10)
-            killed = time.monotonic()
-            stop_device(pm.proc)
-            assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"offline"], 5)
-            took = time.monotonic() - killed
-            assert took < 3, f"offline {took:.1f} s after the device died"
-            device = start_device(tcp=True, framer="socket", units="1", port=port)
-            device.__enter__()
-            assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"online"], 15)
-            proc.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will
-            proc.wait(5)
-            assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/status")[-1:] == [b"offline"], 10)
-        finally:
-            proc.kill()
-            out, _ = proc.communicate(timeout=5)
-            device.__exit__(None, None, None)
-            subscriber.close()
+    inventory = (
+        '[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{target}"\n'
+        'timeout = 0.3\n[devices.pm]\nlink = "l"\nread = ["40001 1"]\n[mqtt]\nurl = "{url}"\n'
+    )
+    status = "mbtool/plant/pm/status"
+    with plant_on_broker(tmp_path, inventory, "-o", "json", topics="mbtool/#") as plant:
+        subscriber = plant.subscriber
+        assert subscriber.wait_for(lambda m: (status, b"online", False) in m, 10)
+        killed = time.monotonic()
+        plant.kill_device()
+        assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"offline"], 5)
+        took = time.monotonic() - killed
+        assert took < 3, f"offline {took:.1f} s after the device died"
+        plant.device_back()
+        assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"online"], 15)
+        plant.poll.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will
+        plant.poll.wait(5)
+        assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/status")[-1:] == [b"offline"], 10)
         # The will is retained: a subscriber that comes later learns the poller is gone.
-        late = Subscriber(broker.port, "mbtool/plant/status")
+        late = Subscriber(plant.broker.port, "mbtool/plant/status")
         assert late.wait_for(lambda m: m == [("mbtool/plant/status", b"offline", True)], 5)
         late.close()
+    out = plant.out
     assert subscriber.on(status) == [b"online", b"offline", b"online"]
     # Why, for a Node-RED flow that alerts: each change of state, as poll -o json's events say it.
     events = _json(subscriber.on("mbtool/plant/events"))
@@ -319,7 +287,7 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
             '[mqtt]\ndiscovery = "homeassistant"\n'
         )
         subscriber = Subscriber(broker.port, ["homeassistant/#", "mbtool/#"])
-        code, _, err = _poll(plant, "--mqtt", broker.url, "--once")
+        code, _, err = run_poll(plant, "--mqtt", broker.url, "--once")
         assert code == 0, err
         assert subscriber.wait_for(lambda m: m and m[-1][1] == b"offline", 5)
         subscriber.close()
@@ -370,7 +338,7 @@ def test_with_writes_a_writable_point_is_a_switch_a_select_or_a_number_whose_com
             f'[links.l]\ntarget = "{device.target}"\n[devices.pump]\nlink = "l"\nmap = "pump.toml"\n'
             '[mqtt]\ndiscovery = "homeassistant"\nwrites = true\nallow = ["setpoint", "pump_on", "mode"]\n'
         )
-        code, _, err = _poll(plant, "--mqtt", broker.url, "--once")
+        code, _, err = run_poll(plant, "--mqtt", broker.url, "--once")
         assert code == 0, err
         late = Subscriber(broker.port, "homeassistant/#")
         assert late.wait_for(lambda m: len(m) == 4, 5)
@@ -415,7 +383,7 @@ def _outage(tmp_path: Path, spool_sizes: dict[str, int]):
                     f'[mqtt]\nspool = "{name}.spool"\nspool_size = {size}\n'
                 )
                 # paho tries again 1, 3, 7, 15 and 31 s after the loss: back within 2 s of the broker.
-                procs[name] = _start_poll(plant, "--mqtt", broker.url, "-o", "json", "--duration",
+                procs[name] = start_mbtool("poll", plant, "--mqtt", broker.url, "-o", "json", "--duration",
                                           str(2 + OUTAGE + 4), "--stats", "json")  # fmt: skip
             try:
                 assert subscriber.wait_for(lambda m: len(m) >= 5 * len(procs), 10)
@@ -535,7 +503,7 @@ def test_a_password_and_mqtts_are_what_the_broker_asks_for_and_a_wrong_one_is_sa
                     f'[poll]\ninterval = 0.2\n[links.l]\ntarget = "{device.target}"\n'
                     f'[devices.d]\nlink = "l"\nread = ["40001 1"]\n[mqtt]\n{table}\n'
                 )
-                code, _, err = _poll(plant, "--rounds", "3")
+                code, _, err = run_poll(plant, "--rounds", "3")
                 assert code == 0, err  # polling goes on whatever the broker says
                 assert "mbtool: mqtt: broker 127.0.0.1:" in err and says in err, (table, err)
             # Only the run that was let in published its 3 polls.
@@ -583,7 +551,7 @@ def test_a_set_publish_is_written_between_polls_read_back_and_a_bad_one_never_re
                 f'[mqtt]\nurl = "{broker.url}"\nwrites = true\nallow = ["setpoint", "level"]\n'
             )
             subscriber = Subscriber(broker.port, "mbtool/#")
-            proc = _start_poll(plant, "-o", "json", "--stats", "json")
+            proc = start_mbtool("poll", plant, "-o", "json", "--stats", "json")
             try:
                 assert subscriber.wait_for(lambda m: subscriber.on("mbtool/plant/pump"), 10)
                 base = "mbtool/plant/pump"
@@ -640,7 +608,7 @@ def test_two_shards_publish_their_halves_to_one_broker_labelled_and_never_collid
     )
     with mosquitto() as broker:
         subscriber = Subscriber(broker.port, ["plants/#", "mbtool/#"])
-        shards = [_start_poll(plant, "--shard", f"{k}/2", "--mqtt", broker.url, "--rounds", "8") for k in (0, 1)]
+        shards = [start_mbtool("poll", plant, "--shard", f"{k}/2", "--mqtt", broker.url, "--rounds", "8") for k in (0, 1)]
         ends = [shard.communicate(timeout=20) for shard in shards]
         for shard, (_, err) in zip(shards, ends, strict=True):
             assert shard.returncode == 0 and "Traceback" not in err, err
@@ -661,30 +629,19 @@ def test_two_shards_publish_their_halves_to_one_broker_labelled_and_never_collid
 # --- read --interval --mqtt: a one-liner on the broker ------------------------------------------
 
 
-def _read(*args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "mbtool", *args],
-        cwd=REPO_ROOT,
-        env=mbtool_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
 def test_read_interval_publishes_each_poll_as_one_message_with_its_availability(tmp_path):
     host = socket.gethostname()
     (tmp_path / "meter.toml").write_text(METER)
     with mosquitto() as broker, serve("-u", "1") as device:
         subscriber = Subscriber(broker.port, "mbtool/#")
         # A map's points by name, with the name given; stdout is as without --mqtt.
-        proc = _read("read", "-m", str(tmp_path / "meter.toml"), "-p", device.target, "--interval", "0.1",
+        proc = start_mbtool("read", "-m", str(tmp_path / "meter.toml"), "-p", device.target, "--interval", "0.1",
                      "--polls", "4", "-o", "json", "--mqtt", broker.url, "--name", "pump")  # fmt: skip
         out, err = proc.communicate(timeout=20)
         assert proc.returncode == 0 and "Traceback" not in err, err
         assert len(out.splitlines()) == 4
         # References, the device named by its unit; killed, the broker says the will.
-        proc = _read("read", "40011", "2", "-u", "1", "-p", device.target, "--interval", "0.1",
+        proc = start_mbtool("read", "40011", "2", "-u", "1", "-p", device.target, "--interval", "0.1",
                      "--mqtt", broker.url)  # fmt: skip
         try:
             assert subscriber.wait_for(lambda m: len(subscriber.on(f"mbtool/{host}/unit1")) >= 3, 10)
@@ -720,7 +677,7 @@ def test_read_interval_says_its_device_offline_on_the_broker_while_its_polls_fai
     host = socket.gethostname()
     with mosquitto() as broker:
         subscriber = Subscriber(broker.port, "mbtool/#")
-        proc = _read("read", "40001", "-p", f"tcp://127.0.0.1:{free_port()}", "--timeout", "0.2",
+        proc = start_mbtool("read", "40001", "-p", f"tcp://127.0.0.1:{free_port()}", "--timeout", "0.2",
                      "--interval", "0.2", "--mqtt", broker.url, "--name", "gone")  # fmt: skip
         try:
             status = f"mbtool/{host}/gone/status"
