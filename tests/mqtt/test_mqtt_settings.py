@@ -75,6 +75,7 @@ def test_a_sparkplug_setting_that_cannot_be_is_a_usage_error(tmp_path, table, me
         ("spool_size = 10", "Sparkplug B's data is QoS 0"),
         ('topic = "plant/{device}"', "Sparkplug B's topics are spBv1.0/"),
         ('status_topic = "plant/poller"', "the edge node's NBIRTH and NDEATH are its status"),
+        ('events_topic = "plant/events"', "the edge node's NBIRTH and NDEATH are its status"),
         ('points = "point"', "Sparkplug B carries a device's points as the metrics of one message"),
         ('discovery = "homeassistant"', "Home Assistant's discovery reads JSON topics"),
         ('discovery_prefix = "ha"', "Home Assistant's discovery reads JSON topics"),
