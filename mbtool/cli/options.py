@@ -195,6 +195,8 @@ SETTINGS_KEYS = (
     "textfile",
     "changes",
     "stats",
+    "mqtt",
+    "name",
 )
 
 
@@ -368,6 +370,8 @@ def device_command(
                 device=(profile or "") if output_format in formats(READINGS) else "",
                 changes=shown.get("changes", False),
                 stats=shown.get("stats", "line"),
+                mqtt=shown.get("mqtt") or "",
+                name=shown.get("name") or "",
             )
             if profile:
                 from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; all commands load this

@@ -208,7 +208,7 @@ def _load(path: str, outputs: tuple[str, ...]) -> Inventory:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
-    check_table(data.get("mqtt"), path, devices)
+    check_table(data.get("mqtt"), path, devices, labels)
     return Inventory(path, output, links, devices, maps, labels, data.get("mqtt"))
 
 

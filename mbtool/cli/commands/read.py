@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from functools import partial
+from typing import TYPE_CHECKING
 
 import click
 
@@ -27,6 +28,10 @@ from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
 from mbtool.errors import PartialRead, UsageError, Verdict
 from mbtool.link.connection import Connection
+
+if TYPE_CHECKING:
+    from mbtool.cli.broker import PublishedPolls
+    from mbtool.cli.poll_output import ChangesOnly, Output
 
 POLL_HELP = """
 
@@ -74,6 +79,18 @@ def polling_options(function):
         "(polls, latency, every transaction's outcome, the round-trip histogram) before it.",
     )(function)
     function = click.option(
+        "--name",
+        metavar="NAME",
+        help="--mqtt: the device's name on the broker (its topic mbtool/HOST/NAME). Default: unit<N>.",
+    )(function)
+    function = click.option(
+        "--mqtt",
+        metavar="URL",
+        help="Polling: publish each poll to the MQTT broker at URL (mqtt://HOST[:PORT], "
+        "mqtts://HOST[:PORT]) too, one JSON message a poll on mbtool/HOST/NAME, its availability "
+        "on .../status (docs/mqtt.md).",
+    )(function)
+    function = click.option(
         "--polls",
         type=Number(0, 10**9, "polls"),
         help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
@@ -91,6 +108,10 @@ def _run(
 ) -> Verdict | None:
     """Once (None), or polled (how the polls ended).  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
+    if settings.name and not settings.mqtt:
+        raise UsageError("--name names the device on the broker: it goes with --mqtt")
+    if settings.mqtt and (settings.dry_run or (interval is None and polls is None)):
+        raise UsageError("--mqtt publishes polls: give --interval or --polls (and no --dry-run)")
     metrics = None
     if settings.textfile or settings.output_format in formats(READINGS):
         settings, metrics = _metrics(connection, settings, points)
@@ -107,7 +128,11 @@ def _run(
 
     fmt = settings.output_format or default_format()
     whole = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
-    output = ChangesOnly(whole) if settings.changes else whole
+    output: Output | ChangesOnly | PublishedPolls = ChangesOnly(whole) if settings.changes else whole
+    if settings.mqtt:
+        from mbtool.cli.broker import PublishedPolls  # noqa: PLC0415 - --mqtt only
+
+        output = PublishedPolls(output, settings.mqtt, settings.name, connection.unit)
     shown = Deferred(output, to_result)
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
