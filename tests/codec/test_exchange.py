@@ -137,6 +137,27 @@ def test_tcp_a_reply_with_another_transaction_id_is_discarded_and_ours_taken():
     assert exchange.answered_id == 1
 
 
+def test_tcp_the_reply_predicted_is_taken_as_the_parse_would_take_it_and_anything_else_is_parsed():
+    """The first read after the request is nearly always exactly the reply asked for: taken
+    without the framer; a reply in two reads, or behind other bytes, goes to the parse."""
+    reply = TcpFramer().build(0x11, REPLY_PDU, 1)
+    notes = Notes()
+    exchange = tcp(trace=notes)
+    started(exchange)
+    assert exchange.receive(reply).registers == (555, 0, 100)
+    assert notes.lines == [("received", reply, "")] and exchange.answered_id == 1
+    assert exchange.framer.buffered == 0
+    split = tcp()
+    started(split)
+    assert split.receive(reply[:5]) is None
+    assert split.receive(reply[5:]).registers == (555, 0, 100)
+    late = tcp()
+    started(late)
+    late.attempt(0x11, REQUEST, fresh=False)  # transaction 2: the reply to 1 comes first, then 2's
+    second = TcpFramer().build(0x11, REPLY_PDU[:-1] + b"\x65", 2)
+    assert late.receive(reply + second).registers == (555, 0, 101)
+
+
 def test_tcp_after_a_retry_the_late_reply_to_the_first_attempt_answers():
     exchange = tcp()
     started(exchange)
