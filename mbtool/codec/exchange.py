@@ -163,7 +163,7 @@ class Exchange:
             head, size, pdu_at = expected
             if len(data) == size and data.startswith(head):
                 assert self._request is not None  # predicted by attempt()
-                predicted = self._request.decode_response(data[pdu_at:])
+                predicted = self._request.decode_predicted(data, pdu_at)
                 if self.trace is not UNWATCHED:
                     self.trace.received(data)
                 self.answered_id = self.transaction_id

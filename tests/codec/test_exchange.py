@@ -11,7 +11,7 @@ import pytest
 
 from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes
-from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
+from mbtool.codec.data_access import ReadCoils, ReadHoldingRegisters, ReadInputRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.exchange import Exchange, Trace, worse
 from mbtool.codec.mbap import TcpFramer
@@ -319,3 +319,18 @@ def test_the_most_telling_problem():
     assert worse(refusal, garbage) is garbage, "what came tells more than a busy device"
     silence = TimeoutError("silence")
     assert worse(silence, garbage) is garbage and worse(garbage, silence) is garbage
+
+
+@pytest.mark.parametrize(
+    "request_, pdu",
+    [
+        (ReadHoldingRegisters(0x6B, 3), REPLY_PDU),
+        (ReadInputRegisters(0, 2), bytes.fromhex("04 04 FF FF 00 01")),
+        (ReadCoils(0, 10), bytes.fromhex("01 02 CD 03")),  # bits past the tenth: trimmed, noted
+    ],
+)
+def test_a_reply_as_predicted_decodes_as_the_parse_decodes_it(request_, pdu):
+    """The predicted path decodes from where the PDU starts in the frame, without the checks
+    the prediction made: the same response as decode_response's."""
+    adu = TcpFramer().build(0x11, pdu, 1)
+    assert request_.decode_predicted(adu, 7) == request_.decode_response(pdu)
