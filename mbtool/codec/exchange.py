@@ -162,8 +162,15 @@ class Exchange:
             self._expected = None
             head, size, pdu_at = expected
             if len(data) == size and data.startswith(head):
-                assert self._request is not None  # predicted by attempt()
-                predicted = self._request.decode_predicted(data, pdu_at)
+                request = self._request
+                assert request is not None  # predicted by attempt()
+                pdu = data[pdu_at:]
+                last_request, last_pdu, predicted = self._decoded
+                if request is not last_request or pdu != last_pdu:
+                    # The same response as last time for the same request and bytes (immutable).
+                    predicted = request.decode_predicted(data, pdu_at)
+                    self._decoded = (request, pdu, predicted)
+                assert predicted is not None
                 if self.trace is not UNWATCHED:
                     self.trace.received(data)
                 self.answered_id = self.transaction_id

@@ -53,3 +53,14 @@ def test_again_is_the_result_with_the_polls_values_and_shares_the_rest():
         7, 3, "Read Holding Registers", 10, [5], "uint16", (5,), refs=["40011"], addresses=[10]
     )
     assert again.addresses is shared.addresses and shared.values == []
+
+
+def test_the_same_result_again_is_written_with_only_its_time_new():
+    lines = JsonLines()
+    result = _result("int16", (65535, 2))
+    first, again = lines.line(WHEN, result), lines.line(WHEN.replace("57.580", "58.000"), result)
+    assert (
+        again
+        == first.replace("57.580", "58.000")
+        == json_line({"time": WHEN.replace("57.580", "58.000"), **as_dict(result)})
+    )

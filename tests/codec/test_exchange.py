@@ -334,3 +334,17 @@ def test_a_reply_as_predicted_decodes_as_the_parse_decodes_it(request_, pdu):
     the prediction made: the same response as decode_response's."""
     adu = TcpFramer().build(0x11, pdu, 1)
     assert request_.decode_predicted(adu, 7) == request_.decode_response(pdu)
+
+
+def test_tcp_a_reply_as_predicted_with_the_same_bytes_gives_the_same_response():
+    """--same: a device read faster than its readings change answers with the same data under
+    a new transaction id; the predicted path hands back the response decoded before."""
+    exchange = tcp()
+    framer = TcpFramer()
+    started(exchange)
+    first = exchange.receive(framer.build(0x11, REPLY_PDU, 1))
+    started(exchange)
+    assert exchange.receive(framer.build(0x11, REPLY_PDU, 2)) is first
+    started(exchange)
+    changed = exchange.receive(framer.build(0x11, REPLY_PDU[:-1] + b"\x65", 3))
+    assert changed is not first and changed.registers == (555, 0, 101)

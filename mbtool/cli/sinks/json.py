@@ -97,20 +97,32 @@ class JsonLines:
     """A poll's JSON line, as ``json_line({"time": ..., **as_dict(result)})`` writes it, with
     less work a poll: the polls of one command differ only in their time, values and raw
     registers, so the rest of the line (unit, function, name, address, type, addresses,
-    refs) is encoded once and kept while the result's shape stays the same.  Where the values
-    are ints (an integer type, one order), the whole line is one %-format made once, filled
-    with the time, the values and the registers in one call."""
+    refs) is encoded once and kept while the result's shape stays the same; where the values
+    are ints (an integer type, one order), what follows the time is one %-format made once,
+    filled with the values and the registers in one call; and a poll whose result is the one
+    before (its values unchanged: ``Deferred``) writes only its time anew."""
 
     def __init__(self) -> None:
         self.shape: tuple | None = None
         self.parts: list[str] = []  # the text around the time, the values and the registers
-        # The whole line as a %-format when the values are ints (None: they take the encoder),
-        # for how many values and registers; and whether the registers are in the line.
+        # The line after the time as a %-format when the values are ints (None: they take the
+        # encoder), for how many values and registers; and whether the registers are in it.
         self.ints: str | None = None
         self.counts = (0, 0)
         self.registers = False
+        self.result = None  # the last result written,
+        self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
 
     def line(self, when: str, result) -> str:
+        if result is not self.result:  # else the poll before's values (Deferred): only the time is new
+            self.result, self.rest = result, self._rest(result)
+        if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
+            return json_line({"time": when, **as_dict(result)})
+        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
+        return f'{self.parts[0]}"{when}"{self.rest}'
+
+    def _rest(self, result) -> str | None:
+        """The line after the time: the values and registers within the text kept for the shape."""
         shape = (
             result.unit,
             result.function,
@@ -126,23 +138,22 @@ class JsonLines:
             self._learn(shape, result)
         values = result.values
         ints = self.ints
-        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
         if ints is not None and type(values) is list and len(values) == self.counts[0]:
             if not self.registers:
-                return ints % (when, *values)
+                return ints % tuple(values)
             registers = result.registers
             if len(registers) == self.counts[1]:
-                return ints % (when, *values, *registers)
+                return ints % (*values, *registers)
         encoder = _ENCODER
         assert encoder is not None  # json_line made it, for the line's parts
         try:
             text = encoder.encode(values)
-        except ValueError:  # NaN or an infinity: to_json's null, through the whole dict
-            return json_line({"time": when, **as_dict(result)})
+        except ValueError:
+            return None
         parts = self.parts
         if self.registers:
-            return f'{parts[0]}"{when}"{parts[1]}{text}{parts[2]}{_int_array(result.registers)}{parts[3]}'
-        return f'{parts[0]}"{when}"{parts[1]}{text}{parts[2]}'
+            return f"{parts[1]}{text}{parts[2]}{_int_array(result.registers)}{parts[3]}"
+        return f"{parts[1]}{text}{parts[2]}"
 
     def _learn(self, shape: tuple, result) -> None:
         """The line's text for results of this shape, cut where the time, the values and the
@@ -162,9 +173,9 @@ class JsonLines:
             return
         # Registers are always ints, and so are the values of an integer type: the line's
         # text with a %d for each, as json and repr write an int.
-        part = [text.replace("%", "%%") for text in self.parts]
+        part = [piece.replace("%", "%%") for piece in self.parts]
         values, registers = len(result.values), len(result.registers) if self.registers else 0
-        self.ints = f'{part[0]}"%s"{part[1]}{_int_form(values)}{part[2]}'
+        self.ints = f"{part[1]}{_int_form(values)}{part[2]}"
         if self.registers:
             self.ints += f"{_int_form(registers)}{part[3]}"
         self.counts = (values, registers)
