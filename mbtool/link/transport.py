@@ -256,6 +256,12 @@ class TcpTransport(Transport):
         self._timeval = "@qq" if wide else "@ll"
         self._set_timeout(_socket.SO_SNDTIMEO, WRITE_TIMEOUT)
         self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
+        # Whether bytes came while mbtool was busy (a poll's output written while its reply was
+        # on its way): a poll object made once, where select builds descriptor sets from lists
+        # and back on every call, twice the instructions (none on Windows: select there).
+        self._waiting = select.poll() if hasattr(select, "poll") else None
+        if self._waiting is not None:
+            self._waiting.register(self.sock, select.POLLIN)
 
     def write(self, data: bytes) -> None:
         try:
@@ -286,6 +292,8 @@ class TcpTransport(Transport):
 
     def input_waiting(self) -> bool:
         try:
+            if self._waiting is not None:
+                return bool(self._waiting.poll(0))  # readable, or the link hung up or broke
             return bool(select.select([self.sock], [], [], 0)[0])
         except (OSError, ValueError):
             return True  # the read that follows says what is wrong

@@ -242,11 +242,12 @@ def _read_bits(
     addresses = list(range(address, address + count))
     refs = None if table is None else _refs(table, addresses)
 
+    shared = Result(
+        connection.unit, kind.function_code, kind.name, address, [], refs=refs, addresses=addresses
+    )
+
     def to_result(reply):
-        values = list(reply.bits)
-        return Result(
-            connection.unit, kind.function_code, kind.name, address, values, refs=refs, addresses=addresses
-        )
+        return shared.again(list(reply.bits))
 
     return _run(connection, settings, request, to_result, interval, polls)
 
@@ -286,21 +287,22 @@ def _read_registers(
     else:
         decode = value_decoder(value_type, order)
 
+    # What every poll's result shares, made once: a poll's is this with its values.
+    shared = Result(
+        connection.unit,
+        kind.function_code,
+        kind.name,
+        address,
+        [],
+        value_type,
+        extra=extra,
+        refs=refs,
+        addresses=addresses,
+    )
+
     def to_result(reply):
         registers = reply.registers
-        return Result(
-            connection.unit,
-            kind.function_code,
-            kind.name,
-            address,
-            decode(registers),
-            value_type,
-            registers,
-            "",
-            extra,
-            refs,
-            addresses,
-        )
+        return shared.again(decode(registers), registers)
 
     return _run(connection, settings, request, to_result, interval, polls)
 
