@@ -72,11 +72,12 @@ def test_a_command_line_mistake_is_a_usage_error_not_the_codecs(mistake):
 
 
 def test_no_command_raises_the_codecs_error_for_a_users_mistake():
-    """cli/ raised RequestError 62 times for mistakes in options and files, and the link's
-    targets and certificates 25; the codec raises its own error for what the spec forbids
+    """cli/ raised RequestError 62 times for mistakes in options and files, the link's targets
+    and certificates 25 times, serve's data files 25; the codec raises its own error for what the spec forbids
     (a quantity, an address, a value)."""
     mbtool = Path(__file__).resolve().parents[2] / "mbtool"
-    paths = [*sorted((mbtool / "cli").rglob("*.py")), mbtool / "link" / "transport.py", mbtool / "link" / "tls.py"]
+    config = ("link/transport.py", "link/tls.py", "device/datafile.py", "device/server.py")
+    paths = [*sorted((mbtool / "cli").rglob("*.py")), *(mbtool / path for path in config)]
     raised = [
         f"{path.relative_to(mbtool)}:{number}"
         for path in paths
