@@ -42,7 +42,7 @@ from mbtool.link.base import (  # noqa: F401  (the transports' shared part, name
     host_text,
     reason,
 )
-from mbtool.link.settings import TlsSettings
+from mbtool.link.settings import TlsSettings, default
 
 MODBUS_TCP_PORT = 502
 # The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
@@ -58,10 +58,14 @@ KERNEL_TIMED_READS = sys.platform != "win32"
 
 @record
 class SerialSettings:
-    baud: int = 19200
-    parity: str = "E"
-    bytesize: int = 8
-    stopbits: int = 1
+    """What a serial port is opened with: the line's character and speed (SERIAL's rows of
+    ``link.settings.SETTINGS``, with their defaults), and RTS's lead and trail when RTS sets
+    the direction (``link.connection.rs485_direction``: the rows rs485 and rs485_delays)."""
+
+    baud: int = default("baud")
+    parity: str = default("parity")
+    bytesize: int = default("bytesize")
+    stopbits: int = default("stopbits")
     rs485: tuple[float, float] | None = None  # RTS lead and trail (s) when RTS sets the direction
 
     def __str__(self) -> str:
