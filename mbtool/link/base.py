@@ -7,15 +7,12 @@ Apart from ``transport`` so that the transports in modules of their own (``mbtoo
 
 from __future__ import annotations
 
+import _socket
 import os
 import re
 import time
-from typing import TYPE_CHECKING
 
 from mbtool.errors import ConnectionFailed, NoResponse
-
-if TYPE_CHECKING:
-    import socket
 
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
@@ -60,22 +57,31 @@ def host_text(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def connect(host: str, port: int, timeout: float) -> socket.socket:
+def connect(host: str, port: int, timeout: float) -> _socket.socket:
     """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
-    off: a request is one small write that must leave at once."""
-    # socket.py costs 14 M instructions (7% of a one-shot read: its enums), which sim:// and
-    # serial lines never need; the transports take its numbers from _socket.
-    import socket  # noqa: PLC0415 - 14 M instructions: tcp:// and tls:// only
+    off: a request is one small write that must leave at once.
 
+    socket.create_connection's walk of the host's addresses, made on ``_socket``, the module
+    socket.py wraps: socket.py costs 12 M instructions (its enums), 5 % of a one-shot read."""
+    # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
+    address = host.encode("ascii") if host.isascii() else host
     try:
-        # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
-        address = host.encode("ascii") if host.isascii() else host
-        # typeshed wants the host as str; the socket module takes bytes as well.
-        sock = socket.create_connection((address, port), timeout=timeout)  # type: ignore[arg-type]
+        addresses = _socket.getaddrinfo(address, port, 0, _socket.SOCK_STREAM)
     except OSError as error:
         raise ConnectionFailed(f"cannot connect to {host}:{port}: {reason(error)}") from None
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    return sock
+    why = "no address"
+    for family, kind, protocol, _, where in addresses:
+        sock = _socket.socket(family, kind, protocol)
+        try:
+            sock.settimeout(timeout)
+            sock.connect(where)
+        except OSError as error:  # the next address, if any; else the last one's reason
+            sock.close()
+            why = reason(error)
+            continue
+        sock.setsockopt(_socket.IPPROTO_TCP, _socket.TCP_NODELAY, 1)
+        return sock
+    raise ConnectionFailed(f"cannot connect to {host}:{port}: {why}")
 
 
 def _errno(error: BaseException) -> int | None:

@@ -15,6 +15,7 @@ exit 6).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import select
@@ -176,7 +177,9 @@ class TlsTransport(Transport):
         context = client_context(settings)  # the files first: a bad one sends nothing
         raw = connect(host, port, timeout)
         try:
-            self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)
+            # ssl wraps connect's _socket.socket as it does socket.py's subclass of it (it takes
+            # its fileno, then detaches it); typeshed names only the subclass.
+            self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)  # type: ignore[arg-type]
         except (OSError, ValueError) as error:
             raw.close()
             raise ConnectionFailed(handshake_failure(error, host, port, timeout, settings)) from None
@@ -330,7 +333,7 @@ def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> li
     and sends nothing but the handshake; [] if that fails too."""
     context = client_context(TlsSettings(insecure=True))  # no certificate of ours: nothing sent
     try:
-        with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
+        with contextlib.closing(connect(host, port, timeout)) as raw, context.wrap_socket(raw) as sock:  # type: ignore[arg-type]  # as above
             der = sock.getpeercert(binary_form=True)
         return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):

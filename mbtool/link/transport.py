@@ -14,8 +14,8 @@ timed by the kernel, may end a few milliseconds late); the client owns the clock
 
 from __future__ import annotations
 
-# The socket options' numbers, from the module socket.py wraps: socket itself (link.base.connect
-# imports it) costs 14 M instructions that a sim:// or serial read need not pay.
+# The socket options' numbers, from the module socket.py wraps: socket itself costs 12 M
+# instructions that no one-shot read need pay (link.base.connect makes its connection on _socket).
 import _socket
 import contextlib
 import errno

@@ -1,0 +1,40 @@
+"""What a one-shot read loads at start-up: only what that read uses (issue 41, point 9).
+
+A cron job's read pays for every module it imports and every object it builds before it
+sends its request; bench/oneshot.py --instructions measures the whole.  These tests hold the
+cuts measured there: each names what a read no longer loads or builds, in a fresh process.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+# Run in a fresh interpreter: the read, then at exit what it loaded, as JSON on stderr's last line.
+READ_AND_REPORT = """
+import atexit, json, sys
+def report():
+    print(json.dumps(sorted(sys.modules)), file=sys.__stderr__)
+atexit.register(report)
+from mbtool.cli import main
+sys.argv = ["mbtool", *sys.argv[1:]]
+main()
+"""
+
+
+def loaded_by(*args: str) -> set[str]:
+    """The modules a one-shot ``mbtool ARGS`` has loaded when it ends (it must succeed)."""
+    result = subprocess.run(
+        [sys.executable, "-c", READ_AND_REPORT, *args], capture_output=True, text=True, timeout=30
+    )
+    assert result.returncode == 0, result.stderr
+    return set(json.loads(result.stderr.splitlines()[-1]))
+
+
+def test_a_tcp_read_connects_without_the_socket_module(tcp_device):
+    """socket.py costs 12 M instructions (its enums), 5 % of a one-shot read: a TCP connection
+    is made from _socket alone, as the transports' numbers are."""
+    loaded = loaded_by("read-holding-registers", "0", "10", "-p", tcp_device.target, "-o", "json")
+    assert "mbtool.link.transport" in loaded  # the read did go over TCP
+    assert "socket" not in loaded
