@@ -38,3 +38,9 @@ def test_a_tcp_read_connects_without_the_socket_module(tcp_device):
     loaded = loaded_by("read-holding-registers", "0", "10", "-p", tcp_device.target, "-o", "json")
     assert "mbtool.link.transport" in loaded  # the read did go over TCP
     assert "socket" not in loaded
+
+
+def test_a_read_sets_its_stop_signals_without_the_signal_module():
+    """signal.py turns every signal, handler and mask into an enum on import: 3 M instructions.
+    main's stop signals (the errors' STOP_SIGNALS) are _signal's numbers and handlers."""
+    assert "signal" not in loaded_by("read-holding-registers", "0", "10", "-p", "sim://", "-o", "json")
