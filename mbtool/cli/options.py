@@ -385,8 +385,6 @@ def device_command(
             return function(connection, settings, **kwargs)
 
         run = PROFILE_OPTION(run)
-        typed = type_options(types, order_all) if types else []
-        run = with_options(connection_options(unit, output, polls) + typed)(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
         context = {
             "ignore_unknown_options": True,
@@ -394,6 +392,8 @@ def device_command(
             **attrs.pop("context_settings", {}),
         }
         command_class = attrs.pop("cls", DeviceCommand)  # check's: every outcome a plugin state
-        return click.command(name, cls=command_class, context_settings=context, **attrs)(run)
+        # The shared options, made by the command when it is used (parsing.DeviceCommand).
+        shared = connection_options(unit, output, polls) + (type_options(types, order_all) if types else [])
+        return click.command(name, cls=command_class, context_settings=context, shared=shared, **attrs)(run)
 
     return decorate

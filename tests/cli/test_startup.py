@@ -44,3 +44,34 @@ def test_a_read_sets_its_stop_signals_without_the_signal_module():
     """signal.py turns every signal, handler and mask into an enum on import: 3 M instructions.
     main's stop signals (the errors' STOP_SIGNALS) are _signal's numbers and handlers."""
     assert "signal" not in loaded_by("read-holding-registers", "0", "10", "-p", "sim://", "-o", "json")
+
+
+# A read as above, counting the --port options click made on the way.
+COUNT_PORT_OPTIONS = """
+import atexit, sys, click
+made = []
+init = click.Parameter.__init__
+def counted(self, *args, **kwargs):
+    init(self, *args, **kwargs)
+    made.append(self.name)
+click.Parameter.__init__ = counted
+atexit.register(lambda: print(made.count("port"), file=sys.__stderr__))
+from mbtool.cli import main
+sys.argv = ["mbtool", *sys.argv[1:]]
+main()
+"""
+
+
+def test_a_read_makes_the_link_options_of_its_own_command_only():
+    """read.py holds five commands, each with some forty options: click makes an option object
+    in 50 k instructions, and a read parses one command's.  The link's options (--port, the
+    serial line's, TLS's...) of a device command are made when it is run or shown, not when its
+    module is imported."""
+    result = subprocess.run(
+        [sys.executable, "-c", COUNT_PORT_OPTIONS, "read-holding-registers", "0", "2", "-p", "sim://"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines()[-1] == "1"
