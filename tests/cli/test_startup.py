@@ -1,11 +1,31 @@
 """A one-shot read's start-up (issue 41.9: at most 1.25 x ``python -c "import click"``,
-bench/oneshot.py --instructions): it makes each shared option once."""
+bench/oneshot.py --instructions): it makes each shared option once, and it imports no
+signal module, whose enums cost more than the read itself."""
 
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import click
 
 from mbtool.cli.program import cli
+
+
+def _imported_by_a_read(target: str) -> set[str]:
+    code = (
+        "import sys; from mbtool.cli import main; sys.argv = ['mbtool', 'read-holding-registers', '0', '3',"
+        f" '-p', {target!r}, '-o', 'json', '-t', '0.3'];\n"
+        "import atexit; atexit.register(lambda: print(' '.join(sorted(sys.modules)), file=sys.stderr))\n"
+        "main()"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    return set(result.stderr.split())
+
+
+def test_a_one_shot_read_imports_no_signal_module():
+    imported = _imported_by_a_read("sim://")
+    assert "mbtool.cli.commands.read" in imported and "signal" not in imported
 
 
 def _command(name: str) -> click.Command:
