@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import os
 import select
+import socket
 import ssl
 import sys
 
@@ -186,7 +187,7 @@ class TlsTransport(Transport):
         self.description = f"tls://{self.address}"
         self.settings = settings
         context = client_context(settings)  # the files first: a bad one sends nothing
-        raw = connect(host, port, timeout)
+        raw = _connected(host, port, timeout)
         try:
             self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)
         except (OSError, ValueError) as error:
@@ -337,12 +338,20 @@ def _unverified(
     return f"the server's certificate does not verify: {error.verify_message}"
 
 
+def _connected(host: str, port: int, timeout: float) -> socket.socket:
+    """link.base.connect's connection as the socket module's socket, which ssl wraps, with the
+    connect's timeout for the handshake."""
+    raw = socket.socket(fileno=connect(host, port, timeout).detach())
+    raw.settimeout(timeout)
+    return raw
+
+
 def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> list[str]:
     """The names the server's certificate is for, from a second handshake that checks nothing
     and sends nothing but the handshake; [] if that fails too."""
     context = client_context(TlsSettings(insecure=True))  # no certificate of ours: nothing sent
     try:
-        with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
+        with _connected(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)
         return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):
