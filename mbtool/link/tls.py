@@ -23,7 +23,6 @@ import ssl
 import sys
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import record
 from mbtool.errors import ConnectionFailed
 from mbtool.link import x509
 from mbtool.link.base import (
@@ -35,6 +34,7 @@ from mbtool.link.base import (
     host_text,
     reason,
 )
+from mbtool.link.settings import TlsSettings
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
 
@@ -68,17 +68,6 @@ REFUSALS = {
 }
 # What OpenSSL says when the bytes that come back are no TLS record at all.
 NOT_TLS_REASONS = ("WRONG_VERSION_NUMBER", "RECORD_LAYER_FAILURE", "PACKET_LENGTH_TOO_LONG", "HTTP_REQUEST")
-
-
-@record
-class TlsSettings:
-    """What --cert, --key, --ca, --insecure and --server-name say."""
-
-    cert: str | None = None  # the client's certificate (PEM), its chain after it
-    key: str | None = None  # its private key (PEM); None: in the cert file
-    ca: str | None = None  # the CAs (or the device's own certificate) to trust; None: the system's
-    insecure: bool = False  # no check of the server's certificate
-    server_name: str | None = None  # the name the certificate must have; None: the host
 
 
 @functools.lru_cache(maxsize=8)

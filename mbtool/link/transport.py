@@ -26,7 +26,6 @@ import select
 import struct
 import sys
 import time
-from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from mbtool.codec.errors import RequestError
@@ -44,9 +43,7 @@ from mbtool.link.base import (  # noqa: F401  (the transports' shared part, name
     host_text,
     reason,
 )
-
-if TYPE_CHECKING:
-    from mbtool.link.tls import TlsSettings
+from mbtool.link.settings import TlsSettings
 
 MODBUS_TCP_PORT = 502
 # The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
@@ -536,7 +533,7 @@ def open_transport(
     ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
     if where.scheme == "tls":
-        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
+        from mbtool.link.tls import TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
         return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
     if where.scheme in ("udp", "rtu+udp"):

@@ -27,6 +27,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import _thread
 import functools
 import math
 import queue
@@ -40,9 +41,24 @@ from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
 from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
+from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
+# Seconds for every link's worker thread to start: one starts in a millisecond or so.
+START_WITHIN = 5.0
+OVERRUN = "overrun"  # a link's event: its groups ask more reads a second than it carries
+LATE = 0.1  # of its interval: a group's poll that starts later than that after its slot overran
+
+
+@record
+class Group:
+    """Some of a device's points, read at their own pace (registermap/groups.py): the group's
+    name, its interval (math.inf: once, at start and after each reconnect) and its reads."""
+
+    name: str
+    interval: float
+    reader: MapReader = field(compare=False)
 
 
 @record
@@ -61,6 +77,20 @@ class DeviceSpec:
     measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
     timeout: float | None = None  # its own, where it is slower than its link's other devices
     retries: int | None = None  # None: the link's
+    # Its poll groups, the default one (its points in no group) among them; none: one group,
+    # every point at ``interval``.  ``reader`` reads every point of it all the same.
+    groups: tuple[Group, ...] = field(default=(), compare=False)
+
+    def paced(self) -> tuple[Group, ...]:
+        """The groups its points are polled in."""
+        return self.groups or (Group(DEFAULT, self.interval, self.reader),)
+
+    @property
+    def fastest(self) -> float:
+        """Its shortest interval (of its groups read more than once): its back-off starts at twice it."""
+        return min(
+            (group.interval for group in self.groups if group.interval < math.inf), default=self.interval
+        )
 
 
 @record
@@ -95,6 +125,24 @@ class Poll:
     last_success: float | None = field(default=None, compare=False)  # time.time()
     stats: PollStats | None = field(default=None, compare=False)
     link: LinkView | None = field(default=None, compare=False)
+    group: str = DEFAULT  # the group it read: its readings are that group's points
+    pace: Pace | None = field(default=None, compare=False)  # how that group keeps its interval
+    # A device of several groups: the latest reading of every point it has read, this poll's
+    # and the other groups' (the Prometheus text and the live view show each point's last value).
+    latest: tuple[Reading, ...] | None = field(default=None, compare=False)
+
+
+@record
+class Pace:
+    """How a group keeps its interval: the interval asked, the mean achieved between its polls
+    (None before two), its polls and its overruns (polls that started later than ``LATE`` of
+    its interval after their slot)."""
+
+    group: str
+    asked: float
+    achieved: float | None
+    polls: int
+    overruns: int
 
 
 @record
@@ -121,8 +169,10 @@ class DeviceView:
 
 
 def view_of(poll: Poll) -> DeviceView:
-    """The device as its latest poll left it."""
+    """The device as its latest poll left it: with groups, the latest value of every point."""
     stats = poll.stats if poll.stats is not None else PollStats()  # the scheduler's polls carry theirs
+    if poll.latest is not None and poll.readings is not None:
+        poll = replace(poll, readings=list(poll.latest))
     return DeviceView(poll.device, poll.state, poll.last_success, poll, stats)
 
 
@@ -144,47 +194,118 @@ class Event:
     link: LinkView | None = field(default=None, compare=False)  # a link's event: the link then
 
 
+class GroupState:
+    """A group's clock: when it is next due, its polls, and how it has kept its interval."""
+
+    def __init__(self, group: Group, now: float) -> None:
+        self.group = group
+        self.due = now
+        self.polls = 0
+        self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
+        self.overruns = 0
+
+    @property
+    def deadline(self) -> float:
+        """When its poll should be done: its next slot (a read once: at once)."""
+        return self.due + self.group.interval if self.group.interval < math.inf else self.due
+
+    def started(self, now: float) -> bool:
+        """Its poll starts at ``now``: whether it overran."""
+        late = now - self.due > LATE * self.group.interval
+        self.overruns += late
+        self.first = now if self.polls == 0 else self.first
+        self.last = now
+        return late
+
+    def next(self, now: float) -> None:
+        """The next slot of its interval; one that has passed already is skipped, not made up."""
+        self.due += self.group.interval
+        if self.due < now:
+            self.due = now
+
+    def pace(self) -> Pace:
+        achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
+        return Pace(self.group.name, self.group.interval, achieved, self.polls, self.overruns)
+
+
 class DeviceState:
-    """What the scheduler knows of a device: when it is due, and how it has fared."""
+    """What the scheduler knows of a device: when each of its groups is due, and how it has
+    fared.  Its state is the device's, whichever group's poll settled it."""
 
     def __init__(self, spec: DeviceSpec, now: float) -> None:
         self.spec = spec
-        self.due = now
+        self.groups = [GroupState(group, now) for group in spec.paced()]
+        self.not_before = -math.inf  # offline: no group of it is polled before its back-off ends
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
         # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
-        self.backoff = Backoff(min(2 * spec.interval, spec.max_backoff), spec.max_backoff)
-        self.polls = 0
+        self.backoff = Backoff(min(2 * spec.fastest, spec.max_backoff), spec.max_backoff)
         self.last_success: float | None = None  # time.time()
         self.last_poll: Poll | None = None
+        self.latest: dict[str, Reading] | None = {} if spec.groups else None  # each point's last reading
         self.stats = PollStats()
 
-    def succeeded(self, now: float, when: float) -> Event | None:
+    @property
+    def due(self) -> float:
+        """When a group of it is next due (not before its back-off ends)."""
+        return max(self.not_before, min(group.due for group in self.groups))
+
+    @due.setter
+    def due(self, when: float) -> None:
+        """Every group of it next due at ``when`` (math.inf: the run polls it no more)."""
+        for group in self.groups:
+            group.due = when
+
+    @property
+    def polls(self) -> int:
+        """Its rounds: the polls of its group polled least (once every group has had its
+        first, a group read once counts no more)."""
+        repeated = [group.polls for group in self.groups if group.group.interval < math.inf]
+        return min(repeated or [group.polls for group in self.groups])
+
+    @polls.setter
+    def polls(self, count: int) -> None:
+        for group in self.groups:
+            group.polls = count
+
+    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
         was = self.state
         self.state, self.failures = ONLINE, 0
         self.backoff.reset()
+        self.not_before = -math.inf
         self.last_success = when
-        self._next(now)
+        (group or self.groups[0]).next(now)
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
 
-    def failed(self, now: float, when: float, reason: str, at_once: bool = False) -> Event | None:
-        """A failed poll; ``at_once``: offline now (its link cannot be opened)."""
+    def failed(
+        self, now: float, when: float, reason: str, at_once: bool = False, group: GroupState | None = None
+    ) -> Event | None:
+        """A failed poll (of ``group``: None, its first); ``at_once``: offline now (its link
+        cannot be opened).  Offline, the group that failed is tried again at the back-off's end
+        and the others wait for it."""
+        group = group or self.groups[0]
         self.failures += 1
         if self.state == OFFLINE:
-            self.due = now + self.backoff.failed()
+            group.due = self.not_before = now + self.backoff.failed()
             return None
         if self.failures < self.spec.offline_after and not at_once:
-            self._next(now)
+            group.next(now)
             return None
         self.state = OFFLINE
-        self.due = now + self.backoff.failed()
+        group.due = self.not_before = now + self.backoff.failed()
         return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff.wait)
 
-    def _next(self, now: float) -> None:
-        """The next slot of its interval; one that has passed already is skipped, not made up."""
-        self.due += self.spec.interval
-        if self.due < now:
-            self.due = now
+    def last_slot(self, rounds: int) -> float:
+        """When its last poll of ``rounds`` falls, its slots kept (offline: its next try, the
+        later ones as uncertain as another offline device's)."""
+        if self.state == OFFLINE:
+            return self.due
+        return max(
+            group.due + max(0, rounds - group.polls - 1) * group.group.interval
+            if group.group.interval < math.inf else group.due
+            for group in self.groups
+            if group.due < math.inf
+        ) if self.due < math.inf else -math.inf  # fmt: skip
 
 
 class Clock:
@@ -235,7 +356,7 @@ class LinkWorker:
         self.link = ManagedLink(
             open_link or (lambda: open_client(spec.connection, trace=traced)),
             Backoff(
-                min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
+                min(2 * min(d.spec.fastest for d in devices), max(d.spec.max_backoff for d in devices))
                 if devices
                 else 0.0,
                 max((d.spec.max_backoff for d in devices), default=0.0),
@@ -246,12 +367,18 @@ class LinkWorker:
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.crashed: BaseException | None = None
+        self.busy = 0.0  # seconds its polls took: what the line carries is its transactions in them
+        self.overran = False  # said once that it cannot keep up
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
         # accept_jobs, and the link is then never opened a second time for it.
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
+        # waits on schedule for its next poll.
+        self.turns = 0
+        self.asleep = False
 
     def accept_jobs(self) -> None:
         self.jobs = queue.SimpleQueue()
@@ -280,11 +407,13 @@ class LinkWorker:
 
     def _sleep(self, seconds: float) -> None:
         """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        self.asleep = True
         if self.jobs is None:
             self.clock.wait(self.stop, seconds)
         else:  # in short slices, so that the run's stop is seen as soon as without jobs
             self.clock.wait(self.poke, min(seconds, 0.2))
             self.poke.clear()
+        self.asleep = False
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -310,11 +439,7 @@ class LinkWorker:
             if device.state == OFFLINE:
                 # The last slot of each other device, or the next try of an offline one (its
                 # later tries are as uncertain as this one's).
-                last = max(
-                    (d.due if d.state == OFFLINE else d.due + (self.rounds - d.polls - 1) * d.spec.interval
-                     for d in others),
-                    default=-math.inf,
-                )  # fmt: skip
+                last = max((d.last_slot(self.rounds) for d in others), default=-math.inf)
                 if device.due > last:
                     device.due = math.inf
                     return False
@@ -331,23 +456,38 @@ class LinkWorker:
         finally:
             self.link.close()
 
+    def _due(self, now: float, before: float = math.inf) -> list[tuple[DeviceState, GroupState]]:
+        """The groups due now (whose deadline is before ``before``), the earliest deadline first:
+        a group's deadline is its next slot, so of two groups due the faster goes first, and of
+        two of one pace the one that has waited longest."""
+        due = [
+            (device, group)
+            for device in self._waiting()
+            if device.not_before <= now
+            for group in device.groups
+            if group.due <= now
+            and group.deadline < before
+            and not (self.rounds and group.polls >= self.rounds)
+        ]
+        return sorted(due, key=lambda pair: pair[1].deadline)
+
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
+            self.turns += 1
             self._run_jobs()
             now = self.clock.monotonic()
-            waiting = self._waiting()
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
-            due = [d for d in waiting if d.due <= now and ready_at <= now]
+            due = self._due(now) if ready_at <= now else []
             if not due:
-                wake = max(min(d.due for d in waiting), ready_at)
-                self._sleep(max(0.0, wake - now))
+                wake = max(min(d.due for d in self._waiting()), ready_at)
+                # a minute at most: a device whose every point is read once waits for a reconnect
+                self._sleep(min(max(0.0, wake - now), 60.0))
                 continue
-            device = min(due, key=lambda d: d.due)  # the one that has waited longest
             if self.link.client is None and not self._open(due):
                 continue
-            self._poll(device)
+            self._poll(*due[0])
 
-    def _open(self, due: list[DeviceState]) -> bool:
+    def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
             self.link.open()
         except (*KNOWN_ERRORS, OSError) as error:
@@ -358,11 +498,12 @@ class LinkWorker:
             self.state = OFFLINE
             self.open_failures += 1
             settled = []
-            for device in due:  # its devices cannot be reached: offline meanwhile
+            for device, group in due:  # its devices cannot be reached: offline meanwhile
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                settled.append(self._settle(device, None, error, when, not_before=self.link.ready_at))
+                group.started(self.clock.monotonic())
+                settled.append(self._settle(device, None, error, when, group, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
@@ -376,6 +517,12 @@ class LinkWorker:
             self.state = ONLINE
             self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
+        if self.link.opens > 1:  # a reconnect: what is read once is read again
+            now = self.clock.monotonic()
+            for device in self.devices:
+                for group in device.groups:
+                    if group.group.interval == math.inf:
+                        group.due = now
         return True
 
     def view(self) -> LinkView:
@@ -385,50 +532,109 @@ class LinkWorker:
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
 
-    def _poll(self, device: DeviceState) -> None:
+    def _poll(self, device: DeviceState, group: GroupState | None = None, nested: bool = False) -> None:
+        """One poll of ``group`` (None: the device's first).  Between its transactions, a group
+        due with an earlier deadline is polled first (not ``nested`` in another's): a fast
+        group is never held up by more than one transaction of a slow group's long read."""
         link, spec = self.link, device.spec
+        group = group or device.groups[0]
         client = link.client
         assert client is not None  # a device is polled on an open link
-        self.polling = spec.name
-        stamp: list[float] = []
-        client.while_waiting = lambda: stamp.append(self.clock.time())  # the poll's time: its request out
-        client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
-        link.stats = DeviceAndLink(device.stats, self.stats)
+        stamp: list[float] = []  # when its first request went out
+        began = self.clock.monotonic()
+        if group.started(began) and not self.overran:
+            self._overrun()
+
+        def sent() -> None:
+            if not stamp:
+                stamp.append(self.clock.time())
+
+        def aim() -> None:  # the link set for this device's transactions
+            self.polling = spec.name
+            client.while_waiting = sent  # its first request out: the poll's time
+            client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
+            link.stats = DeviceAndLink(device.stats, self.stats)
 
         def execute(request):
+            if stamp and not nested:
+                others = self._due(self.clock.monotonic(), before=group.deadline)
+                for other in others:
+                    self._poll(*other, nested=True)
+                if others:
+                    if link.client is not client:  # lost by the other's poll: this one ends too
+                        raise ConnectionFailed(f"link {self.spec.name} was lost")
+                    aim()
             return link.execute(spec.unit, request)
 
+        aim()
         readings: list[Reading] | None = None
         error: BaseException | None = None
         try:
-            readings = spec.reader.read(execute)
+            readings = group.group.reader.read(execute)
         except PartialRead as partial:
             readings, error = partial.readings, partial
         except (*KNOWN_ERRORS, OSError) as failure:
             error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
-        self._end(device, readings, error, stamp[0] if stamp else self.clock.time())
+        if not nested:
+            self.busy += self.clock.monotonic() - began
+        self._end(device, readings, error, stamp[0] if stamp else self.clock.time(), group)
 
-    def _end(self, device, readings, error, when: float) -> None:
-        for item in self._settle(device, readings, error, when):
+    def asked(self) -> float:
+        """The reads a second its devices' groups ask (an offline device's none)."""
+        return sum(
+            len(group.group.reader.blocks) / group.group.interval
+            for device in self.devices
+            if device.state != OFFLINE
+            for group in device.groups
+        )
+
+    def _overrun(self) -> None:
+        """A group's poll started late: when what its groups ask is more than the link has
+        carried while busy, that is why, and it is said once, with the figures."""
+        if not self.busy:
+            return
+        asked, carried = self.asked(), self.stats.transactions / self.busy
+        if asked > carried:
+            self.overran = True
+            reason = f"asked {asked:.1f} reads/s, the line carries {carried:.1f}"
+            self.report(Event(self.clock.time(), "link", self.spec.name, OVERRUN, reason, link=self.view()))
+
+    def _end(self, device, readings, error, when: float, group: GroupState | None = None) -> None:
+        for item in self._settle(device, readings, error, when, group):
             self.report(item)
 
     def _settle(
-        self, device, readings, error, when: float, not_before: float | None = None
+        self,
+        device,
+        readings,
+        error,
+        when: float,
+        group: GroupState | None = None,
+        not_before: float | None = None,
     ) -> list[Poll | Event]:
         """A poll's outcome in the device's state: the Poll, and the Event of its change of
         state if it had one, to report.  ``not_before``: its link cannot be opened, so the
         device is offline now and not tried before the link is."""
         now = self.clock.monotonic()
-        device.polls += 1
+        group = group or device.groups[0]
+        group.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
         device.stats.poll(ok)
         if ok:
-            event = device.succeeded(now, when)
+            event = device.succeeded(now, when, group)
         else:
-            event = device.failed(now, when, str(error), at_once=not_before is not None)
-            device.due = max(device.due, not_before or 0.0)
+            event = device.failed(now, when, str(error), not_before is not None, group)
+            if not_before is not None:
+                device.not_before = max(device.not_before, not_before)
+                group.due = max(group.due, not_before)
+        if self.rounds and group.polls >= self.rounds:
+            group.due = math.inf  # its rounds are done
+        latest = None
+        if device.latest is not None and readings is not None:
+            device.latest.update((reading.point.name, reading) for reading in readings)
+            latest = tuple(device.latest.values())
         again = self._tried_again(device)
         if not again and event is not None and event.retry_in is not None:
             event = replace(event, retry_in=None)  # the run ends first: no next try to announce
@@ -441,6 +647,9 @@ class LinkWorker:
             device.last_success,
             device.stats.copy(),
             self.view(),
+            group.group.name,
+            group.pace(),
+            latest,
         )
         device.last_poll = poll
         return [poll] if event is None else [poll, event]
@@ -465,6 +674,9 @@ class Plant:
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
+        self.start_within = START_WITHIN
+        self.handed = 0  # records handed to ``report``
+        self.last_seen: tuple | None = None  # what ``moved`` saw last
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -487,21 +699,9 @@ class Plant:
 
     def run(self, duration: float | None = None) -> None:
         deadline = None if duration is None else time.monotonic() + duration
-        for started, worker in enumerate(self.workers):
+        for worker in self.workers:
             worker.deadline = deadline
-            try:
-                worker.thread.start()
-            except RuntimeError as error:  # "can't start new thread": the system's limits
-                # Said before any link is opened: those started wait for ``go``, and end.
-                self.stop.set()
-                self.go.set()
-                for each in self.workers[:started]:
-                    each.thread.join()
-                raise ConnectionFailed(
-                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
-                    f"started before the system refused a thread ({error}); poll fewer links a "
-                    "process, or raise its limits (ulimit -v, -u)"
-                ) from None
+        self._start_workers()
         self.go.set()
         try:
             while any(worker.thread.is_alive() for worker in self.workers):
@@ -525,6 +725,63 @@ class Plant:
             if worker.crashed is not None:
                 raise worker.crashed
 
+    def moved(self) -> bool:
+        """Whether the plant has moved since the last call (systemd's watchdog asks, from its own
+        thread): the thread that runs it handed on records, or had none waiting at either call;
+        and each link's worker turned its loop, waits on schedule for its next poll, or is done.
+        A worker that neither turned nor waited at both calls is stuck in its work, and records
+        waiting at both, none handed, are stuck in the output (a pipe nobody reads)."""
+        waiting = not self.records.empty()
+        seen = (self.handed, waiting, [(w.turns, w.asleep) for w in self.workers])
+        last, self.last_seen = self.last_seen, seen
+        if last is None:
+            return True
+        output = seen[0] != last[0] or not (waiting and last[1])
+        links = all(
+            now != before or now[1] or before[1] or not worker.thread.is_alive()
+            for worker, now, before in zip(self.workers, seen[2], last[2], strict=True)
+        )
+        return output and links
+
+    def _start_workers(self) -> None:
+        """Every worker's thread started, within ``start_within`` seconds; ConnectionFailed (exit
+        6, one line) if the system refuses one.  Started by a thread of their own: Thread.start
+        waits with no deadline for the new thread to say it began, and a thread that dies in its
+        start-up (MemoryError under a capped address space) never says so.  A starter stuck so
+        is left behind; a thread of ``_thread``'s, the interpreter does not wait for it at exit."""
+        started: list[LinkWorker] = []
+        refused: list[BaseException] = []
+        done = threading.Event()
+
+        def start_each() -> None:
+            try:
+                for worker in self.workers:
+                    worker.thread.start()
+                    started.append(worker)
+            except Exception as error:  # "can't start new thread", MemoryError: the system's limits
+                refused.append(error)
+            finally:
+                done.set()
+
+        try:
+            _thread.start_new_thread(start_each, ())
+        except Exception as error:
+            refused.append(error)
+        else:
+            if not done.wait(self.start_within):
+                refused.append(TimeoutError(f"a thread did not start within {self.start_within:g} s"))
+        if refused:
+            # Said before any link is opened: those started wait for ``go``, see the stop, and end.
+            self.stop.set()
+            self.go.set()
+            for each in list(started):
+                each.thread.join(self.start_within)
+            raise ConnectionFailed(
+                f"cannot start a worker for each link: {len(started)} of {len(self.workers)} links "
+                f"started before the system refused a thread ({str(refused[0]) or type(refused[0]).__name__}); "
+                "poll fewer links a process, or raise its limits (ulimit -v, -u)"
+            )
+
     def _publish(self, wait: float | None = None) -> None:
         """Hand every record the workers have published to ``report``, on this thread; with
         ``wait``, wait that long for the first one (None: take only those already there)."""
@@ -534,6 +791,7 @@ class Plant:
             return
         while True:
             self.report(item)
+            self.handed += 1
             try:
                 item = self.records.get_nowait()
             except queue.Empty:

@@ -15,6 +15,7 @@ from mbtool.codec.framing import make_framer
 from mbtool.device.datafile import load_data
 from mbtool.device.device import Device, Faults
 from mbtool.device.model import MAX_FILES, demo_model
+from mbtool.errors import UsageError
 
 H = bytes.fromhex
 
@@ -472,7 +473,7 @@ def test_a_data_file_for_every_unit_costs_what_each_unit_changes(tmp_path):
 
 
 def test_missing_data_file(tmp_path):
-    with pytest.raises(RequestError, match="cannot read"):
+    with pytest.raises(UsageError, match="cannot read"):
         load_data(str(tmp_path / "nope.toml"), frozenset({1}))
 
 
