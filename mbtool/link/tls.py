@@ -9,7 +9,7 @@ Here: the contexts both sides use (``client_context``, ``server_context``, built
 the user names, an encrypted key's password read from ``MBTOOL_KEY_PASSWORD`` or asked on the
 terminal), the master's transport (``TlsTransport``), and the one line that says why a
 handshake failed (``handshake_failure``).  A file that cannot be used is the user's to fix
-(RequestError, exit 2, nothing sent); a handshake that fails is the link's (ConnectionFailed,
+(UsageError, exit 2, nothing sent); a handshake that fails is the link's (ConnectionFailed,
 exit 6).
 """
 
@@ -22,8 +22,7 @@ import socket
 import ssl
 import sys
 
-from mbtool.codec.errors import RequestError
-from mbtool.errors import ConnectionFailed
+from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import x509
 from mbtool.link.base import (
     READ_CHUNK,
@@ -87,7 +86,7 @@ def client_context(settings: TlsSettings) -> ssl.SSLContext:
     else:
         context.load_default_certs(ssl.Purpose.SERVER_AUTH)
     if settings.key and not settings.cert:
-        raise RequestError(f"--key {settings.key} goes with --cert FILE, the certificate it is the key of")
+        raise UsageError(f"--key {settings.key} goes with --cert FILE, the certificate it is the key of")
     if settings.cert:
         _identity(context, settings.cert, settings.key)
     return context
@@ -98,9 +97,9 @@ def server_context(cert: str | None, key: str | None, ca: str | None) -> ssl.SSL
     and clients' certificates required, signed by ``ca`` (the specification's mutual
     authentication)."""
     if not cert:
-        raise RequestError("serving on tls:// needs --cert FILE and --key FILE: the server's certificate")
+        raise UsageError("serving on tls:// needs --cert FILE and --key FILE: the server's certificate")
     if not ca:
-        raise RequestError(
+        raise UsageError(
             "serving on tls:// needs --ca FILE: the CA that signs the clients' certificates "
             "(Modbus/TCP Security is mutual)"
         )
@@ -116,16 +115,16 @@ def _trust(context: ssl.SSLContext, ca: str) -> None:
     try:
         context.load_verify_locations(cafile=ca)
     except ssl.SSLError:
-        raise RequestError(f"--ca {ca} holds no certificate in PEM") from None
+        raise UsageError(f"--ca {ca} holds no certificate in PEM") from None
     except OSError as error:
-        raise RequestError(f"cannot read --ca {ca}: {reason(error)}") from None
+        raise UsageError(f"cannot read --ca {ca}: {reason(error)}") from None
 
 
 def _identity(context: ssl.SSLContext, cert: str, key: str | None) -> None:
     for option, path in (("--cert", cert), ("--key", key)):
         if path is not None and not os.path.isfile(path):
             why = "not a file" if os.path.exists(path) else "No such file or directory"
-            raise RequestError(f"cannot read {option} {path}: {why}")
+            raise UsageError(f"cannot read {option} {path}: {why}")
     asked: list[str] = []
 
     def password() -> str:
@@ -136,15 +135,15 @@ def _identity(context: ssl.SSLContext, cert: str, key: str | None) -> None:
         context.load_cert_chain(cert, key, password=password)
     except OSError as error:
         if isinstance(error, ssl.SSLError) and error.reason == "KEY_VALUES_MISMATCH":
-            raise RequestError(f"--key {key} is not the key of --cert {cert}") from None
+            raise UsageError(f"--key {key} is not the key of --cert {cert}") from None
         if isinstance(error, ssl.SSLError) and asked:
-            raise RequestError(
+            raise UsageError(
                 f"cannot decrypt {asked[0]}: wrong password (${KEY_PASSWORD_VARIABLE})"
             ) from None
         if isinstance(error, ssl.SSLError):
             where = f"--cert {cert}" + (f" and --key {key}" if key else "")
-            raise RequestError(f"{where}: not a certificate and its private key in PEM") from None
-        raise RequestError(f"cannot read --cert {cert}: {reason(error)}") from None
+            raise UsageError(f"{where}: not a certificate and its private key in PEM") from None
+        raise UsageError(f"cannot read --cert {cert}: {reason(error)}") from None
 
 
 def key_password(key: str) -> str:
@@ -153,7 +152,7 @@ def key_password(key: str) -> str:
     if given is not None:
         return given
     if not sys.stdin.isatty():
-        raise RequestError(
+        raise UsageError(
             f"the key {key} is encrypted and there is no terminal to ask its password on: "
             f"set {KEY_PASSWORD_VARIABLE}"
         )
@@ -162,7 +161,7 @@ def key_password(key: str) -> str:
     try:
         return getpass.getpass(f"password for {key}: ")
     except EOFError:
-        raise RequestError(f"no password given for {key}") from None
+        raise UsageError(f"no password given for {key}") from None
 
 
 class TlsTransport(Transport):

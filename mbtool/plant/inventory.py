@@ -268,7 +268,7 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
         connection = connection_of(**settings)
         check(connection)
         read_credentials(connection)  # before anything opens, not by a link's worker on each reconnect
-    except (RequestError, UsageError) as error:
+    except UsageError as error:
         raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)
 

@@ -21,6 +21,9 @@ from mbtool.cli.commands.functions import _groups
 from mbtool.cli.commands.write import parse_bit
 from mbtool.codec.errors import RequestError
 from mbtool.errors import ExitCode, UsageError, exit_code_for
+from mbtool.link.settings import TlsSettings
+from mbtool.link.tls import client_context
+from mbtool.link.transport import parse_target
 
 
 def test_an_except_request_error_does_not_swallow_a_usage_error():
@@ -44,6 +47,10 @@ def test_an_except_request_error_does_not_swallow_a_usage_error():
         lambda: parse_listen("[::1:9502"),
         lambda: parse_bit("maybe"),
         lambda: _groups(("1", "2", ",")),
+        lambda: parse_target("tcp://[::1"),
+        lambda: parse_target("foo://x"),
+        lambda: client_context(TlsSettings(key="k.pem")),
+        lambda: client_context(TlsSettings(ca="/nonexistent/ca.pem")),
     ],
     ids=[
         "dump --range",
@@ -52,6 +59,10 @@ def test_an_except_request_error_does_not_swallow_a_usage_error():
         "exporter --listen",
         "write-coil",
         "read-file",
+        "-p tcp://[::1",
+        "-p foo://",
+        "--key alone",
+        "--ca unreadable",
     ],
 )
 def test_a_command_line_mistake_is_a_usage_error_not_the_codecs(mistake):
@@ -61,12 +72,15 @@ def test_a_command_line_mistake_is_a_usage_error_not_the_codecs(mistake):
 
 
 def test_no_command_raises_the_codecs_error_for_a_users_mistake():
-    """cli/ raised RequestError 62 times for mistakes in options and files; the codec raises
-    its own error for what the spec forbids (a quantity, an address, a value)."""
-    cli = Path(__file__).resolve().parents[2] / "mbtool" / "cli"
+    """cli/ raised RequestError 62 times for mistakes in options and files, the link's targets
+    and certificates 25 times, serve's data files 25; the codec raises its own error for what the spec forbids
+    (a quantity, an address, a value)."""
+    mbtool = Path(__file__).resolve().parents[2] / "mbtool"
+    config = ("link/transport.py", "link/tls.py", "device/datafile.py", "device/server.py")
+    paths = [*sorted((mbtool / "cli").rglob("*.py")), *(mbtool / path for path in config)]
     raised = [
-        f"{path.relative_to(cli)}:{number}"
-        for path in sorted(cli.rglob("*.py"))
+        f"{path.relative_to(mbtool)}:{number}"
+        for path in paths
         for number, line in enumerate(path.read_text().splitlines(), start=1)
         if "raise RequestError" in line
     ]

@@ -17,6 +17,7 @@ from mbtool.codec.record import fields, replace
 from mbtool.errors import ExitCode, UsageError, exit_code_for
 from mbtool.link.connection import Connection, changed, check, connection_of
 from mbtool.link.settings import SERIAL, SETTINGS, TLS, Flag, OneOf, SerialLine, TlsSettings
+from mbtool.link.transport import SerialSettings
 from mbtool.plant.inventory import LINK_KEYS, load_inventory
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,11 +40,22 @@ def test_every_connection_field_is_a_row_of_the_table_with_its_default():
     assert len(fields(Connection())) <= 11  # of 21: a serial link's and a tls:// one's all in one
 
 
+def test_a_serial_ports_settings_are_the_tables_rows_with_their_defaults():
+    """The serial transport's record names the table's rows and takes their defaults (it
+    wrote 19200 and "E" again)."""
+    line = {field.name for field in fields(SerialSettings())} - {"rs485"}  # rs485: the direction, resolved
+    assert line <= {name for name, setting in SETTINGS.items() if setting.transport == SERIAL}
+    for name in line:
+        assert getattr(SerialSettings(), name) == SETTINGS[name].default, name
+
+
 def test_a_connection_is_made_from_settings_by_their_names_each_to_its_record():
     made = connection_of(port="tls://plc7", timeout=0.5, cert="c.pem", baud=9600, echo=True)
     assert (made.port, made.timeout) == ("tls://plc7", 0.5)
     assert made.tls == TlsSettings(cert="c.pem") and made.serial == SerialLine(baud=9600, echo=True)
-    assert changed(made, insecure=True, unit=3) == replace(made, unit=3, tls=TlsSettings("c.pem", insecure=True))
+    assert changed(made, insecure=True, unit=3) == replace(
+        made, unit=3, tls=TlsSettings("c.pem", insecure=True)
+    )
 
 
 def test_a_device_commands_link_options_are_the_tables_rows():

@@ -56,7 +56,6 @@ from mbtool.cli.plant_text import (
 )
 from mbtool.cli.sinks import PLANT, formats
 from mbtool.cli.sinks.prom import warn_counter_names
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, UsageError, link_failure
 from mbtool.library import find_named
@@ -401,7 +400,7 @@ class TargetScraper:
         not (400: it names no target; 403: it is not allowed), with nothing opened."""
         try:
             where = parse_target(text).normalised()
-        except RequestError as error:
+        except UsageError as error:
             raise Refused(400, f"target {_shown(text)}: {_shown(str(error))}") from None
         key = link_key(where)
         if key in self.polled:
@@ -512,7 +511,7 @@ def allow_patterns(patterns) -> tuple[str, ...]:
         if not any(c in pattern for c in WILDCARDS):
             try:
                 pattern = str(parse_target(pattern).normalised())
-            except RequestError as error:
+            except UsageError as error:
                 raise UsageError(f"--allow-target {pattern}: {error}") from None
         out.append(pattern)
     return tuple(out)
