@@ -54,7 +54,7 @@ def inventory(folder: Path, master: str, grouped: bool, devices: int) -> Path:
     (folder / "meter.toml").write_text(MAP)
     path = folder / ("groups.toml" if grouped else "single.toml")
     text = f'[poll]\ninterval = {FAST}\n[links.bus1]\ntarget = "{master}"\nbaud = {BAUD}\nparity = "N"\n'
-    text += "timeout = 0.5\n"
+    text += "timeout = 1\n"  # a 100-register reply takes 0.23 s; the machine may be busy
     for unit in range(1, devices + 1):
         text += f'[devices.meter{unit}]\nlink = "bus1"\nunit = {unit}\nmap = "meter.toml"\n'
         if grouped:
