@@ -42,19 +42,16 @@ class MbtoolError(Exception):
     exit_code = ExitCode.INTERNAL
 
 
-class UsageError(RequestError, MbtoolError):
-    """A mistake in what the user gave: an option, a profile, an inventory, a setting that does
-    not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
+class UsageError(MbtoolError):
+    """A mistake in what the user gave: an option, an argument, a profile, an inventory, a
+    setting that does not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
 
-    Apart from the codec's RequestError, which is the spec refusing a request; it is one for
-    now only so that the code that catches a RequestError to say where it came from (a
-    file's table and key) says so of either.
+    Apart from the codec's RequestError, the spec refusing a request (a quantity, an address, a
+    value): the codec's handlers catch theirs (a server answers it with an exception reply),
+    and must never take a user's mistake for it.  Code that stops on either names both.
     """
 
     exit_code = ExitCode.USAGE
-
-    def __init__(self, message: str) -> None:
-        super().__init__(message)
 
 
 class Verdict:

@@ -16,9 +16,8 @@ from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, Settings
 from mbtool.cli.sinks import READINGS, RESULTS, SINKS, formats
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import replace
 from mbtool.errors import UsageError
-from mbtool.link.connection import Connection, check
+from mbtool.link.connection import changed, connection_of
 from mbtool.link.settings import SECURITY, SERIAL_LINE, SETTINGS, USE, Flag, OneOf
 
 # --- shared options ------------------------------------------------------------------
@@ -196,6 +195,8 @@ SETTINGS_KEYS = (
     "textfile",
     "changes",
     "stats",
+    "mqtt",
+    "name",
 )
 
 
@@ -349,7 +350,7 @@ def device_command(
             # The command's own arguments stay in kwargs; the shared options make the
             # Connection and the Settings.
             shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
-            connection = Connection(**shared)
+            connection = connection_of(**shared)
             shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
             output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
@@ -369,6 +370,8 @@ def device_command(
                 device=(profile or "") if output_format in formats(READINGS) else "",
                 changes=shown.get("changes", False),
                 stats=shown.get("stats", "line"),
+                mqtt=shown.get("mqtt") or "",
+                name=shown.get("name") or "",
             )
             if profile:
                 from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; all commands load this
@@ -376,9 +379,8 @@ def device_command(
                 changes = defaults(profile)
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
-                connection = replace(connection, **changes) if changes else connection
-            if connection.insecure and not settings.dry_run:
-                check(connection)  # a mistake in the options is said alone, not after the warning
+                connection = changed(connection, **changes)
+            if not settings.dry_run:
                 warn_insecure(connection)
             return function(connection, settings, **kwargs)
 

@@ -62,6 +62,16 @@ class Result:
         fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
         fields["texts"] = texts
 
+    def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
+        """This read's result with a later poll's values and registers: the polls of one read
+        share everything else, the very same objects (copied, not worked out again a poll)."""
+        again = Result.__new__(Result)
+        fields = again.__dict__
+        fields.update(self.__dict__)
+        fields["values"] = values
+        fields["registers"] = registers
+        return again
+
     @property
     def table(self) -> str:
         """The table a read of FC 01-04 read (coils, discrete, input, holding); else the

@@ -30,6 +30,7 @@ from mbtool.codec.pdu import (
     pack_registers,
     register,
     register_fields,
+    registers_unpacker,
     u8,
     u16,
     unpack_bits,
@@ -233,6 +234,10 @@ class _ReadRegisters(Request):
     @classmethod
     def decode(cls, pdu: bytes) -> _ReadRegisters:
         return cls(*_address_and_count(pdu, cls.name))
+
+    def decode_predicted(self, adu: bytes, at: int) -> Response | ExceptionResponse:
+        # Its function code and byte count are as asked: the registers follow them.
+        return RegistersResponse(self.function_code, registers_unpacker(self.count)(adu, at + 2))
 
     def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
         # The reply as asked for, which a poll nearly always gets, is taken at once: the

@@ -80,6 +80,9 @@ class Exchange:
         self._request: Request | None = None
         self._sent = b""  # the attempt's frame, to tell a copy of it from a reply
         self._watch: EchoWatch | None = None
+        # The reply if it answers as asked (MBAP): its first bytes, its size and where its PDU
+        # starts, for the first read after the request only (framer.predict).
+        self._expected: tuple[bytes, int, int] | None = None
         # The last request, its PDU, whether its echo is watched for, whether it has a reply
         # and what is known of the reply beforehand: the same for every poll of it, so worked
         # out once.
@@ -127,7 +130,8 @@ class Exchange:
             framer.reset()
         framer.expect = request
         framer.expect_unit = unit
-        framer.predict(unit, tid, reply_prefix)
+        # An echo, watched for, would come before the reply.
+        self._expected = None if watched else framer.predict(unit, adu, reply_prefix)
         self._unit, self._request, self._sent = unit, request, adu
         self.expects_response = expects_response
         self.problem = None
@@ -150,6 +154,27 @@ class Exchange:
         length).  The framer's events are judged until the reply, with no look for more.
 
         Raises FrameError for a reply that is ours (our transaction id) and bad."""
+        expected = self._expected
+        if expected is not None:
+            # The first read after the request, which nearly always brings exactly the reply
+            # predicted: from the unit asked, with our transaction id, the function asked and
+            # the byte count for what was asked.  It is taken as it is, unparsed and unjudged.
+            self._expected = None
+            head, size, pdu_at = expected
+            if len(data) == size and data.startswith(head):
+                request = self._request
+                assert request is not None  # predicted by attempt()
+                pdu = data[pdu_at:]
+                last_request, last_pdu, predicted = self._decoded
+                if request is not last_request or pdu != last_pdu:
+                    # The same response as last time for the same request and bytes (immutable).
+                    predicted = request.decode_predicted(data, pdu_at)
+                    self._decoded = (request, pdu, predicted)
+                assert predicted is not None
+                if self.trace is not UNWATCHED:
+                    self.trace.received(data)
+                self.answered_id = self.transaction_id
+                return predicted
         framer, watch = self.framer, self._watch
         if watch is not None:
             if data:
@@ -199,9 +224,7 @@ class Exchange:
         # What this reply gets away with (--lenient), for its trace line: a tuple, as the empty
         # one is made once, not a list a reply.
         accepted: tuple[str, ...] = ()
-        # The frame the MBAP framer built from its prediction has the unit, function,
-        # transaction id and byte count asked for: nothing to look at again.
-        mismatch = "" if event is self.framer.predicted_frame else self._mismatch(event, unit)
+        mismatch = self._mismatch(event, unit)
         if mismatch:
             if event.unit != unit and self._ours(event) and not self._mismatch(event, event.unit):
                 # Our transaction id, the function asked for, only the unit is wrong: a gateway

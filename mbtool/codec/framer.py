@@ -48,8 +48,6 @@ class Framer(ABC):
     checksum_name = ""
     # The unit id every device on a serial line hears and none answers (spec §2).
     broadcast_unit: int | None = 0
-    # The last frame made from the reply predicted (MBAP): it is what was asked for.
-    predicted_frame: Frame | None = None
 
     def __init__(self, responses: bool = True) -> None:
         self.responses = responses  # reading replies (a master) or requests (a device)
@@ -64,20 +62,14 @@ class Framer(ABC):
     def feed(self, data: bytes) -> None:
         self._buffer += data
 
-    # A frame found without the parse (MBAP: the reply predicted, read whole): the next
-    # event, as its bytes came before any in the buffer.
-    _ready: Frame | None = None
-
     def reset(self) -> None:
         self._buffer.clear()
         self._garbage.clear()
         self._garbage_error = None
-        self._ready = None
 
     @property
     def buffered(self) -> int:
-        ready = 0 if self._ready is None else len(self._ready.adu)
-        return ready + len(self._buffer) + len(self._garbage)
+        return len(self._buffer) + len(self._garbage)
 
     # True when only a pause on the line can end the frame in the buffer: RTU's property,
     # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
@@ -90,10 +82,6 @@ class Framer(ABC):
         waiting_for_silence = False  # a class attribute, read on every pass of the client's loop
 
     def next_event(self) -> Event | None:
-        ready = self._ready
-        if ready is not None:
-            self._ready = None
-            return ready
         while True:
             result = self._parse()
             if result is None:
@@ -150,13 +138,15 @@ class Framer(ABC):
 
     # -- the reply predicted ------------------------------------------------------------
 
-    def predict(  # noqa: B027 - optional hook, not abstract
-        self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None
-    ) -> None:
-        """What the reply will be if it answers as asked: ``prefix`` is the request's
-        reply_prefix (the first bytes of its PDU and its length), None when unknown.  A
-        framer may hand over a reply that is exactly that without parsing it (MBAP: one a
-        poll); RTU and ASCII predict nothing, as their checksum is to be checked."""
+    def predict(
+        self, unit: int, adu: bytes, prefix: tuple[bytes, int] | None
+    ) -> tuple[bytes, int, int] | None:
+        """The reply to ``adu`` (sent to ``unit``) if it answers as asked, as far as it is known
+        before it comes: its first bytes, its size and where its PDU starts; None when nothing is.  ``prefix`` is the
+        request's reply_prefix (the first bytes of its PDU and its length; None: unknown).  A
+        read that is exactly such a reply needs no parse (MBAP: one a poll); RTU and ASCII
+        predict nothing, as their checksum is to be checked."""
+        return None
 
     # -- helpers ---------------------------------------------------------------------
 

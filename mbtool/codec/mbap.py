@@ -13,6 +13,7 @@ MBAP_HEADER = 7
 # The MBAP header: transaction id, protocol id, length, unit (compiled once: one a frame).
 _MBAP_HEADER = struct.Struct(">HHHB")
 _MBAP_FIELDS = struct.Struct(">HHH")  # without the unit, which the frame takes with the PDU
+_REPLY_FIELDS = struct.Struct(">HHB")  # after the transaction id: protocol id, length, unit
 
 
 class TcpFramer(Framer):
@@ -27,32 +28,14 @@ class TcpFramer(Framer):
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
-    # The reply predicted: its bytes up to its data (the MBAP header, the function code and
-    # the byte count), its size, its unit and its transaction id; None when nothing is.  It
-    # is for the first read after the request, and only that one.
-    _predicted: tuple[bytes, int, int, int] | None = None
-
-    def predict(self, unit: int, transaction_id: int, prefix: tuple[bytes, int] | None) -> None:
+    def predict(
+        self, unit: int, adu: bytes, prefix: tuple[bytes, int] | None
+    ) -> tuple[bytes, int, int] | None:
         if prefix is None or self._buffer or self._garbage:  # bytes already here come first
-            self._predicted = None
-            return
+            return None
         head, length = prefix
-        header = _MBAP_HEADER.pack(transaction_id, 0, length + 1, unit)
-        self._predicted = (header + head, MBAP_HEADER + length, unit, transaction_id)
-
-    def feed(self, data: bytes) -> None:
-        # The reply a poll nearly always gets: ``data``, the first read after the request, is
-        # exactly the reply predicted, so its frame is known without the parse.  Anything else
-        # goes the usual way (the parse), which tells what it is.
-        predicted = self._predicted
-        if predicted is not None:
-            self._predicted = None
-            if len(data) == predicted[1] and data.startswith(predicted[0]):
-                self._ready = self.predicted_frame = Frame(
-                    predicted[2], data[MBAP_HEADER:], data, predicted[3]
-                )
-                return
-        self._buffer += data
+        # The request's transaction id (its first two bytes), protocol 0, the length, the unit.
+        return adu[:2] + _REPLY_FIELDS.pack(0, length + 1, unit) + head, MBAP_HEADER + length, MBAP_HEADER
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

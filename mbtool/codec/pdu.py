@@ -18,6 +18,7 @@ from importlib import import_module
 from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:  # for the checker only: a Protocol class costs a one-shot's start-up
+    from collections.abc import Callable
     from typing import Protocol, Self
 
     class Sizer(Protocol):
@@ -96,11 +97,15 @@ def unpack_registers(data: bytes, start: int = 0) -> tuple[int, ...]:
     length = len(data) - start
     if length % 2:
         raise DecodeError(f"odd number of register bytes ({length})", data[start:])
-    size = length // 2
-    unpack = _UNPACK_REGISTERS.get(size)
-    if unpack is None:  # one Struct a size, not a format string built and looked up a reply
-        unpack = _UNPACK_REGISTERS[size] = struct.Struct(f">{size}H").unpack_from
-    return unpack(data, start)
+    return registers_unpacker(length // 2)(data, start)
+
+
+def registers_unpacker(count: int) -> Callable[[bytes, int], tuple[int, ...]]:
+    """``unpack(data, start)``: ``count`` registers from ``start``, high byte first."""
+    unpack = _UNPACK_REGISTERS.get(count)
+    if unpack is None:  # one Struct a count, not a format string built and looked up a reply
+        unpack = _UNPACK_REGISTERS[count] = struct.Struct(f">{count}H").unpack_from
+    return unpack
 
 
 _UNPACK_REGISTERS: dict = {}
@@ -320,6 +325,11 @@ class Request:
         and byte count; other requests None."""
         count = getattr(self, "reply_byte_count", None)
         return None if count is None else (bytes([self.function_code, count]), 2 + count)
+
+    def decode_predicted(self, adu: bytes, at: int) -> Response | ExceptionResponse:
+        """The reply whose PDU starts at ``at`` in ``adu``, known to begin as reply_prefix
+        predicted (the function and byte count asked for) and to be as long as it said."""
+        return self.decode_response(adu[at:])
 
     def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
         """Client side: decode a reply PDU and check that it answers this request."""

@@ -32,6 +32,7 @@ from mbtool.errors import (
     NoResponse,
     OutputFailed,
     PartialRead,
+    UsageError,
     exit_code_for,
     link_failure,
 )
@@ -110,7 +111,7 @@ def poll(
     # up yet is a failed poll, and polling goes on.  A link that failed is opened again at most
     # once a timeout, as if a refusal had waited the timeout out, so a device that is restarting
     # or unplugged is not hammered (with --interval 0) and the log gets a line a timeout, not
-    # thousands.  A port or unit that makes no sense is a RequestError, one error before
+    # thousands.  A port or unit that makes no sense is a UsageError, one error before
     # anything is sent.
     link = ManagedLink(
         lambda: open_client(connection, request.name, trace=trace), Backoff(connection.timeout), stats, time
@@ -166,7 +167,7 @@ def poll(
                 raise  # stdout's reader went away: nothing left to poll for
             except (*KNOWN_ERRORS, OSError) as error:
                 shown.write()  # the poll before it, if the request never left
-                if isinstance(error, RequestError | OutputFailed):
+                if isinstance(error, RequestError | UsageError | OutputFailed):
                     raise  # the request is wrong, or the output full: no later poll can do better
                 if when is None:  # the request never left: the poll failed now
                     when = time.time()

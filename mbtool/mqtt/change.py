@@ -27,13 +27,11 @@ class ChangeFilter:
     ) -> dict[str, object]:
         """The points of ``values`` (a poll's, of ``group``, read at ``when``) to publish now."""
         settings = self.settings
+        if not settings.on_change:  # every point, every poll: nothing to remember
+            return values
         last = self.published.setdefault(device, {})
         beat = self.whole_at.get((device, group))
-        if (
-            not settings.on_change
-            or beat is None
-            or (settings.heartbeat and when - beat >= settings.heartbeat)
-        ):
+        if beat is None or (settings.heartbeat and when - beat >= settings.heartbeat):
             self.whole_at[device, group] = when
             last.update(values)
             return dict(values)

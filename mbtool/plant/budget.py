@@ -55,9 +55,10 @@ def transaction_seconds(link: LinkSpec, unit: int, request: Request) -> float:
     prefix = request.reply_prefix  # a read's reply length is known before it comes
     assert prefix is not None, "a poll reads: its replies' lengths are known"
     characters = len(framer.build(unit, request.encode())) + len(framer.build(unit, bytes(prefix[1])))
-    bits = character_bits(connection.parity, connection.bytesize, connection.stopbits)
-    t35 = silent_interval(connection.baud, bits)
-    return characters * char_time(connection.baud, bits) + t35 + max(t35, connection.pause)
+    line = connection.serial
+    bits = character_bits(line.parity, line.bytesize, line.stopbits)
+    t35 = silent_interval(line.baud, bits)
+    return characters * char_time(line.baud, bits) + t35 + max(t35, connection.pause)
 
 
 def link_budget(link: LinkSpec, devices: list[DeviceSpec]) -> Budget | None:
@@ -73,7 +74,7 @@ def link_budget(link: LinkSpec, devices: list[DeviceSpec]) -> Budget | None:
             for block in group.reader.blocks:
                 seconds += transaction_seconds(link, device.unit, block.request) / group.interval
                 reads += 1 / group.interval
-    return Budget(link.name, link.connection.baud, seconds, reads)
+    return Budget(link.name, link.connection.serial.baud, seconds, reads)
 
 
 def budgets(links: dict[str, LinkSpec], devices: list[DeviceSpec]) -> list[Budget]:

@@ -55,7 +55,7 @@ from mbtool.errors import UsageError
 from mbtool.files import beside, read_toml
 from mbtool.library import resolve_map
 from mbtool.link import IN_PROCESS
-from mbtool.link.connection import Connection, check, tls_settings
+from mbtool.link.connection import check, connection_of, read_credentials
 from mbtool.link.settings import SETTINGS, File, Setting
 from mbtool.link.transport import parse_target
 from mbtool.mqtt.settings import check_table
@@ -208,7 +208,7 @@ def _load(path: str, outputs: tuple[str, ...]) -> Inventory:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
-    check_table(data.get("mqtt"), path, devices)
+    check_table(data.get("mqtt"), path, devices, labels)
     return Inventory(path, output, links, devices, maps, labels, data.get("mqtt"))
 
 
@@ -265,15 +265,10 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
     port = settings["port"]
     try:
         parse_target(port)
-        connection = Connection(**settings)
+        connection = connection_of(**settings)
         check(connection)
-        if port.lower().startswith("tls://"):
-            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
-
-            # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
-            # key's password is asked once, here, not by a link's worker on each reconnect.
-            client_context(tls_settings(connection))
-    except RequestError as error:
+        read_credentials(connection)  # before anything opens, not by a link's worker on each reconnect
+    except UsageError as error:
         raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)
 
@@ -328,7 +323,7 @@ def _device(
         raise UsageError(f"{where} unit: expected a whole number, 0..255")
     try:
         check(replace(links[link].connection, unit=unit), "polling")
-    except RequestError as error:
+    except UsageError as error:
         raise UsageError(f"{where} unit: {error}") from None
     settings = {
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])

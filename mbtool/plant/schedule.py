@@ -27,6 +27,7 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import _thread
 import functools
 import math
 import queue
@@ -44,6 +45,8 @@ from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import MapReader, Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
+# Seconds for every link's worker thread to start: one starts in a millisecond or so.
+START_WITHIN = 5.0
 OVERRUN = "overrun"  # a link's event: its groups ask more reads a second than it carries
 LATE = 0.1  # of its interval: a group's poll that starts later than that after its slot overran
 
@@ -372,6 +375,10 @@ class LinkWorker:
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
+        # waits on schedule for its next poll.
+        self.turns = 0
+        self.asleep = False
 
     def accept_jobs(self) -> None:
         self.jobs = queue.SimpleQueue()
@@ -400,11 +407,13 @@ class LinkWorker:
 
     def _sleep(self, seconds: float) -> None:
         """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        self.asleep = True
         if self.jobs is None:
             self.clock.wait(self.stop, seconds)
         else:  # in short slices, so that the run's stop is seen as soon as without jobs
             self.clock.wait(self.poke, min(seconds, 0.2))
             self.poke.clear()
+        self.asleep = False
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -464,6 +473,7 @@ class LinkWorker:
 
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
+            self.turns += 1
             self._run_jobs()
             now = self.clock.monotonic()
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
@@ -667,6 +677,9 @@ class Plant:
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
+        self.start_within = START_WITHIN
+        self.handed = 0  # records handed to ``report``
+        self.last_seen: tuple | None = None  # what ``moved`` saw last
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -689,21 +702,9 @@ class Plant:
 
     def run(self, duration: float | None = None) -> None:
         deadline = None if duration is None else time.monotonic() + duration
-        for started, worker in enumerate(self.workers):
+        for worker in self.workers:
             worker.deadline = deadline
-            try:
-                worker.thread.start()
-            except RuntimeError as error:  # "can't start new thread": the system's limits
-                # Said before any link is opened: those started wait for ``go``, and end.
-                self.stop.set()
-                self.go.set()
-                for each in self.workers[:started]:
-                    each.thread.join()
-                raise ConnectionFailed(
-                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
-                    f"started before the system refused a thread ({error}); poll fewer links a "
-                    "process, or raise its limits (ulimit -v, -u)"
-                ) from None
+        self._start_workers()
         self.go.set()
         try:
             while any(worker.thread.is_alive() for worker in self.workers):
@@ -727,6 +728,69 @@ class Plant:
             if worker.crashed is not None:
                 raise worker.crashed
 
+    def moved(self) -> bool:
+        """Whether the plant has moved since the last call (systemd's watchdog asks, from its own
+        thread): the thread that runs it handed on records, or had none waiting at either call;
+        and each link's worker turned its loop, waits on schedule for its next poll, or is done.
+        A worker that neither turned nor waited at both calls is stuck in its work, and records
+        waiting at both, none handed, are stuck in the output (a pipe nobody reads)."""
+        waiting = not self.records.empty()
+        seen = (self.handed, waiting, [(w.turns, w.asleep) for w in self.workers])
+        last, self.last_seen = self.last_seen, seen
+        if last is None:
+            return True
+        output = seen[0] != last[0] or not (waiting and last[1])
+        links = all(
+            now != before or now[1] or before[1] or not worker.thread.is_alive()
+            for worker, now, before in zip(self.workers, seen[2], last[2], strict=True)
+        )
+        return output and links
+
+    def _start_workers(self) -> None:
+        """Every worker's thread started, each within ``start_within`` seconds; ConnectionFailed (exit
+        6, one line) if the system refuses one.  Started by a thread of their own: Thread.start
+        waits with no deadline for the new thread to say it began, and a thread that dies in its
+        start-up (MemoryError under a capped address space) never says so.  A starter stuck so
+        is left behind; a thread of ``_thread``'s, the interpreter does not wait for it at exit."""
+        started: list[LinkWorker] = []
+        refused: list[BaseException] = []
+        done = threading.Event()
+
+        def start_each() -> None:
+            try:
+                for worker in self.workers:
+                    worker.thread.start()
+                    started.append(worker)
+            except Exception as error:  # "can't start new thread", MemoryError: the system's limits
+                refused.append(error)
+            finally:
+                done.set()
+
+        try:
+            _thread.start_new_thread(start_each, ())
+        except Exception as error:
+            refused.append(error)
+        else:
+            # A deadline a thread, not for them all: a plant of thousands of links on a loaded
+            # machine starts them for longer, but never waits on one for ``start_within``.
+            count = 0
+            while not done.wait(self.start_within):
+                if len(started) == count:
+                    refused.append(TimeoutError(f"a thread did not start within {self.start_within:g} s"))
+                    break
+                count = len(started)
+        if refused:
+            # Said before any link is opened: those started wait for ``go``, see the stop, and end.
+            self.stop.set()
+            self.go.set()
+            for each in list(started):
+                each.thread.join(self.start_within)
+            raise ConnectionFailed(
+                f"cannot start a worker for each link: {len(started)} of {len(self.workers)} links "
+                f"started before the system refused a thread ({str(refused[0]) or type(refused[0]).__name__}); "
+                "poll fewer links a process, or raise its limits (ulimit -v, -u)"
+            )
+
     def _publish(self, wait: float | None = None) -> None:
         """Hand every record the workers have published to ``report``, on this thread; with
         ``wait``, wait that long for the first one (None: take only those already there)."""
@@ -736,6 +800,7 @@ class Plant:
             return
         while True:
             self.report(item)
+            self.handed += 1
             try:
                 item = self.records.get_nowait()
             except queue.Empty:

@@ -21,7 +21,7 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
-from mbtool.errors import ExitCode, MbtoolError
+from mbtool.errors import ExitCode, MbtoolError, UsageError
 from mbtool.files import read_whole
 from mbtool.registermap.groups import GroupPlan, read_groups
 from mbtool.registermap.header import HEADER_KEYS, DeviceHeader, device_header
@@ -87,7 +87,7 @@ def load_map(path: str | Path) -> RegisterMap:
     path = Path(path)
     try:
         text = read_whole(path, "map").decode("utf-8")
-    except RequestError as error:
+    except UsageError as error:
         raise MapError(str(error)) from None
     except UnicodeDecodeError as error:
         raise MapError(f"{path}: not UTF-8 text (byte {error.start})") from None

@@ -52,4 +52,5 @@ def test_a_device_of_poll_groups_shows_every_points_last_value_and_each_groups_p
     assert "groups: achieved/asked s" in text
     row = next(line for line in text.splitlines() if line.startswith("m "))
     assert "power=" in row and "energy=" in row, row  # the fast group's poll came last
-    assert re.search(r"fast 0\.\d\d/0\.05, default 0\.\d\d/0\.1\b", row), row
+    # a poll late on a busy machine adds "(N late)" after its group's pace
+    assert re.search(r"fast 0\.\d\d/0\.05( \(\d+ late\))?, default 0\.\d\d/0\.1\b", row), row

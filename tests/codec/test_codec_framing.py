@@ -245,25 +245,27 @@ def test_tcp_length_field_out_of_range_is_rejected():
 
 
 def _taken_as_predicted(data: bytes, prediction=REQUEST.reply_prefix, before: bytes = b"") -> bool:
-    """Whether a framer that predicted the reply to REQUEST (transaction 7) took ``data``, the
-    read after ``before``, as that reply, without the parse."""
+    """Whether a framer that predicted the reply to REQUEST (transaction 7), after ``before``,
+    tells that ``data``, the read after the request, is exactly that reply."""
     framer = TcpFramer()
     if before:
         framer.feed(before)
-    framer.predict(UNIT, 7, prediction)
-    framer.feed(data)
-    event = framer.next_event()
-    return event is not None and event is framer.predicted_frame
+    expected = framer.predict(UNIT, framer.build(UNIT, REQUEST.encode(), 7), prediction)
+    if expected is None:
+        return False
+    head, size, pdu_at = expected
+    return len(data) == size and data.startswith(head)
 
 
-def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_else_to_the_parse():
+def test_tcp_predicts_exactly_the_reply_asked_for_and_nothing_else():
     tcp = TcpFramer()
     pdu = REPLY.encode()
     reply = tcp.build(UNIT, pdu, 7)
-    framer = TcpFramer()
-    framer.predict(UNIT, 7, REQUEST.reply_prefix)
-    framer.feed(reply)
-    assert framer.next_event() is framer.predicted_frame == Frame(UNIT, pdu, reply, 7)  # what the parse finds
+    expected = tcp.predict(UNIT, tcp.build(UNIT, REQUEST.encode(), 7), REQUEST.reply_prefix)
+    assert expected is not None
+    assert reply[expected[2] :] == pdu  # where its PDU starts
+    tcp.feed(reply)
+    assert tcp.next_event() == Frame(UNIT, pdu, reply, 7)  # what the parse finds in it
     unlike = {
         "another unit": tcp.build(UNIT + 1, pdu, 7),
         "another transaction": tcp.build(UNIT, pdu, 8),
@@ -278,26 +280,13 @@ def test_tcp_takes_a_read_that_is_exactly_the_reply_predicted_and_leaves_all_els
     assert _taken_as_predicted(reply)
     assert not _taken_as_predicted(reply, before=b"\x00"), "bytes already buffered come first"
     assert not _taken_as_predicted(reply, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
-    split = TcpFramer()
-    split.predict(UNIT, 7, REQUEST.reply_prefix)
-    split.feed(reply[:5])
-    split.feed(reply[5:])  # the rest of the reply in a second read: the parse finds it whole
-    assert split.next_event() == Frame(UNIT, pdu, reply, 7) and split.predicted_frame is None
-    rtu = RtuFramer()
-    rtu.predict(UNIT, 0, REQUEST.reply_prefix)
-    broken = rtu.build(UNIT, pdu)[:-1] + b"\x00"
-    rtu.feed(broken)
-    assert not frames(settle_events(rtu))  # RTU predicts nothing: its CRC is to check
 
 
-def test_tcp_hands_over_the_reply_predicted_first_and_what_came_after_it_next():
+def test_tcp_parses_replies_that_came_in_one_read_in_turn():
     framer = TcpFramer()
     pdu = REPLY.encode()
     reply, later = framer.build(UNIT, pdu, 7), framer.build(UNIT, pdu, 9)
-    framer.predict(UNIT, 7, REQUEST.reply_prefix)
-    framer.feed(reply)
-    framer.feed(reply)  # the same bytes again: behind the first, so parsed
-    framer.feed(later)
+    framer.feed(reply + reply + later)
     assert framer.buffered == 3 * len(reply)
     assert drain_events(framer) == [
         Frame(UNIT, pdu, reply, 7),
@@ -306,7 +295,7 @@ def test_tcp_hands_over_the_reply_predicted_first_and_what_came_after_it_next():
     ]
     assert framer.buffered == 0
     framer.feed(reply)
-    framer.reset()  # another request: the reply predicted for the last one is dropped too
+    framer.reset()  # another request
     assert framer.buffered == 0 and framer.next_event() is None
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes
-from mbtool.codec.data_access import ReadHoldingRegisters, WriteSingleRegister
+from mbtool.codec.data_access import ReadCoils, ReadHoldingRegisters, ReadInputRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
 from mbtool.codec.exchange import Exchange, Trace, worse
 from mbtool.codec.mbap import TcpFramer
@@ -135,6 +135,27 @@ def test_tcp_a_reply_with_another_transaction_id_is_discarded_and_ours_taken():
     assert exchange.receive(old + framer.build(0x11, REPLY_PDU, 1)).registers == (555, 0, 100)
     assert notes.lines[0] == ("received", old, "reply has transaction id 7, expected 1")
     assert exchange.answered_id == 1
+
+
+def test_tcp_the_reply_predicted_is_taken_as_the_parse_would_take_it_and_anything_else_is_parsed():
+    """The first read after the request is nearly always exactly the reply asked for: taken
+    without the framer; a reply in two reads, or behind other bytes, goes to the parse."""
+    reply = TcpFramer().build(0x11, REPLY_PDU, 1)
+    notes = Notes()
+    exchange = tcp(trace=notes)
+    started(exchange)
+    assert exchange.receive(reply).registers == (555, 0, 100)
+    assert notes.lines == [("received", reply, "")] and exchange.answered_id == 1
+    assert exchange.framer.buffered == 0
+    split = tcp()
+    started(split)
+    assert split.receive(reply[:5]) is None
+    assert split.receive(reply[5:]).registers == (555, 0, 100)
+    late = tcp()
+    started(late)
+    late.attempt(0x11, REQUEST, fresh=False)  # transaction 2: the reply to 1 comes first, then 2's
+    second = TcpFramer().build(0x11, REPLY_PDU[:-1] + b"\x65", 2)
+    assert late.receive(reply + second).registers == (555, 0, 101)
 
 
 def test_tcp_after_a_retry_the_late_reply_to_the_first_attempt_answers():
@@ -298,3 +319,32 @@ def test_the_most_telling_problem():
     assert worse(refusal, garbage) is garbage, "what came tells more than a busy device"
     silence = TimeoutError("silence")
     assert worse(silence, garbage) is garbage and worse(garbage, silence) is garbage
+
+
+@pytest.mark.parametrize(
+    "request_, pdu",
+    [
+        (ReadHoldingRegisters(0x6B, 3), REPLY_PDU),
+        (ReadInputRegisters(0, 2), bytes.fromhex("04 04 FF FF 00 01")),
+        (ReadCoils(0, 10), bytes.fromhex("01 02 CD 03")),  # bits past the tenth: trimmed, noted
+    ],
+)
+def test_a_reply_as_predicted_decodes_as_the_parse_decodes_it(request_, pdu):
+    """The predicted path decodes from where the PDU starts in the frame, without the checks
+    the prediction made: the same response as decode_response's."""
+    adu = TcpFramer().build(0x11, pdu, 1)
+    assert request_.decode_predicted(adu, 7) == request_.decode_response(pdu)
+
+
+def test_tcp_a_reply_as_predicted_with_the_same_bytes_gives_the_same_response():
+    """--same: a device read faster than its readings change answers with the same data under
+    a new transaction id; the predicted path hands back the response decoded before."""
+    exchange = tcp()
+    framer = TcpFramer()
+    started(exchange)
+    first = exchange.receive(framer.build(0x11, REPLY_PDU, 1))
+    started(exchange)
+    assert exchange.receive(framer.build(0x11, REPLY_PDU, 2)) is first
+    started(exchange)
+    changed = exchange.receive(framer.build(0x11, REPLY_PDU[:-1] + b"\x65", 3))
+    assert changed is not first and changed.registers == (555, 0, 101)

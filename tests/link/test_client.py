@@ -411,9 +411,9 @@ class RecordingTrace(Trace):
 
 
 def test_a_tcp_reply_read_whole_is_taken_as_predicted_with_the_response_and_trace_of_a_parse():
-    """A read that is exactly the reply the request predicts is framed without the parse (the
-    MBAP framer's prediction); the reply read in two pieces is parsed.  The client has one
-    receive path for both (issue 30): every read goes to the framer, and both end alike."""
+    """A read that is exactly the reply the request predicts is taken without the framer (the
+    MBAP framer's prediction, issue 41.9); the reply read in two pieces goes to the framer and
+    is parsed.  Both end alike: the same response, the same trace."""
     reply = TcpFramer().build(0x11, bytes.fromhex("03 06 02 2B 00 00 00 64"), 1)
 
     class CountingFramer(TcpFramer):
@@ -424,12 +424,12 @@ def test_a_tcp_reply_read_whole_is_taken_as_predicted_with_the_response_and_trac
             super().feed(data)
 
     ends = []
-    for chunks in ([reply], [reply[:8], reply[8:]]):
+    for chunks, fed in (([reply], 0), ([reply[:8], reply[8:]], 2)):
         clock, trace, framer = FakeClock(), RecordingTrace(), CountingFramer()
         link = ScriptedLink(clock, [chunks], serial_line=False)
         response = client(link, clock, framer=framer, trace=trace).execute(0x11, REQUEST)
         ends.append((response, trace.lines))
-        assert framer.fed == len(chunks)
+        assert framer.fed == fed
     assert ends[0] == ends[1]
     assert ends[0][0].registers == (555, 0, 100)
     assert ends[0][1][-1] == ("received", reply, "")

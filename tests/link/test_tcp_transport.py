@@ -160,3 +160,25 @@ def test_tcp_url_to_a_silent_peer_names_the_other_framing(framer, hint):
         finally:
             link.close()
             peer.close()
+
+
+def test_input_waiting_says_whether_bytes_came_or_the_peer_hung_up_and_reads_nothing(link):
+    """What the client asks after its own work while a reply was on its way: bytes that came
+    meanwhile (their arrival unknown), or a hang-up, which the read that follows reports."""
+    tcp, peer = link
+    assert not tcp.input_waiting()
+    peer.sendall(b"\x00\x01")
+    deadline = time.monotonic() + 2
+    while not tcp.input_waiting():
+        assert time.monotonic() < deadline
+    assert tcp.input_waiting(), "asking reads nothing"
+    assert tcp.read(1.0) == b"\x00\x01"
+    assert not tcp.input_waiting()
+    peer.close()
+    deadline = time.monotonic() + 2
+    while not tcp.input_waiting():
+        assert time.monotonic() < deadline
+    with pytest.raises(ConnectionClosed):
+        tcp.read(1.0)
+    tcp.close()
+    assert tcp.input_waiting(), "a closed link: the read that follows says what is wrong"

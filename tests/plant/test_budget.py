@@ -8,7 +8,7 @@ import math
 import pytest
 
 from mbtool.codec.tables import table_named
-from mbtool.link.connection import Connection
+from mbtool.link.connection import Connection, connection_of
 from mbtool.plant.budget import link_budget, transaction_seconds
 from mbtool.plant.schedule import DeviceSpec, Group, LinkSpec
 from mbtool.registermap.plan import MapReader
@@ -24,7 +24,7 @@ def registers(first: int, count: int, name: str = "r") -> MapReader:
 
 def link(**settings) -> LinkSpec:
     """A serial link, 8N1 unless told (mbtool's default is the spec's 8E1)."""
-    return LinkSpec("bus1", Connection(port="/dev/ttyUSB0", **({"parity": "N"} | settings)))
+    return LinkSpec("bus1", connection_of(port="/dev/ttyUSB0", **({"parity": "N"} | settings)))
 
 
 def device(*groups: Group, unit: int = 1) -> DeviceSpec:

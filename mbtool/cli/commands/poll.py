@@ -31,14 +31,14 @@ from mbtool.cli.plant_text import (
 )
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.json import event_record, to_json
 from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
+from mbtool.mqtt.topics import PlantEvent, iso_time
 from mbtool.plant.inventory import load_inventory, shard
 from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
@@ -167,7 +167,7 @@ def poll(
         if not polls.measured:
             problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
         if problem:
-            raise RequestError(f"--measurement {measurement!r}: {problem}")
+            raise UsageError(f"--measurement {measurement!r}: {problem}")
     if polls.exposes or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -177,18 +177,18 @@ def poll(
         rounds = 1
     unknown = [name for name in hex_links if name not in plant.links]
     if unknown:
-        raise RequestError(
+        raise UsageError(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
-    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
+    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url, plant.labels, shard_part)
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     report = view.report if view else output.report
     publisher = None
     if mqtt is not None:
-        publisher = make_publisher(mqtt, plant, quiet=live)
-        report = _both(report, publisher.report)
+        publisher = make_publisher(mqtt, plant.devices, plant.maps, quiet=live)
+        report = _both(report, publisher.report, plant.labels)
         if view:
             view.publisher = publisher
     runner = Plant(
@@ -208,7 +208,8 @@ def poll(
     notifier = systemd_notifier()  # systemd's Type=notify: ready now, the watchdog fed while it runs
     if notifier:
         notifier.ready(
-            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}"
+            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}",
+            runner.moved,
         )
     try:
         if view:
@@ -229,14 +230,16 @@ def poll(
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
-def _both(first, publish):
+def _both(first, publish, labels: dict):
     """The plant's one report, on the thread that runs it, handed to the output and the MQTT
-    publisher: the publisher its Polls (it only enqueues them), which carry each device's state."""
+    publisher (which only enqueues): its Polls, and each Event as -o json's record."""
 
     def report(item: Poll | Event) -> None:
         first(item)
         if isinstance(item, Poll):
             publish(item)
+        else:
+            publish(PlantEvent(event_record(item, iso_time(item.time), labels)))
 
     return report
 

@@ -97,19 +97,24 @@ class JsonLines:
     """A poll's JSON line, as ``json_line({"time": ..., **as_dict(result)})`` writes it, with
     less work a poll: the polls of one command differ only in their time, values and raw
     registers, so the rest of the line (unit, function, name, address, type, addresses,
-    refs) is encoded once and kept while the result's shape stays the same; and a poll
-    whose result is the one before (its values unchanged: ``Deferred``) writes only its
-    time anew."""
+    refs) is encoded once and kept while the result's shape stays the same; where the values
+    are ints (an integer type, one order), what follows the time is one %-format made once,
+    filled with the values and the registers in one call; and a poll whose result is the one
+    before (its values unchanged: ``Deferred``) writes only its time anew."""
 
     def __init__(self) -> None:
         self.shape: tuple | None = None
         self.parts: list[str] = []  # the text around the time, the values and the registers
-        self.integers = False  # the values are ints (an integer type, one order)
+        # The line after the time as a %-format when the values are ints (None: they take the
+        # encoder), for how many values and registers; and whether the registers are in it.
+        self.ints: str | None = None
+        self.counts = (0, 0)
+        self.registers = False
         self.result = None  # the last result written,
         self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
 
     def line(self, when: str, result) -> str:
-        if result is not self.result:
+        if result is not self.result:  # else the poll before's values (Deferred): only the time is new
             self.result, self.rest = result, self._rest(result)
         if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
             return json_line({"time": when, **as_dict(result)})
@@ -130,34 +135,50 @@ class JsonLines:
             result.registers is None,
         )
         if shape != self.shape:
-            self.shape, self.parts = shape, self._parts(result)
-            from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
-
-            self.integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        # Registers are always ints, and so are the values of an integer type: written by a
-        # format of their own (_int_array).  Other values (floats that may be NaN, strings,
-        # bits) take the encoder.
+            self._learn(shape, result)
         values = result.values
+        ints = self.ints
+        if ints is not None and type(values) is list and len(values) == self.counts[0]:
+            if not self.registers:
+                return ints % tuple(values)
+            registers = result.registers
+            if len(registers) == self.counts[1]:
+                return ints % (*values, *registers)
         encoder = _ENCODER
         assert encoder is not None  # json_line made it, for the line's parts
         try:
-            text = _int_array(values) if self.integers and type(values) is list else encoder.encode(values)
+            text = encoder.encode(values)
         except ValueError:
             return None
         parts = self.parts
-        if len(parts) == 3:
-            return parts[1] + text + parts[2]
-        return parts[1] + text + parts[2] + _int_array(result.registers) + parts[3]
+        if self.registers:
+            return f"{parts[1]}{text}{parts[2]}{_int_array(result.registers)}{parts[3]}"
+        return f"{parts[1]}{text}{parts[2]}"
 
-    @staticmethod
-    def _parts(result) -> list[str]:
-        """The line's text, cut where the time, the values and the registers go."""
+    def _learn(self, shape: tuple, result) -> None:
+        """The line's text for results of this shape, cut where the time, the values and the
+        registers go."""
+        from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
+
         data = {"time": _MARK, **as_dict(result), "values": _MARK}
-        if "registers" in data:
+        self.registers = "registers" in data
+        if self.registers:
             data["registers"] = _MARK
         text = json_line(data)
         assert _ENCODER is not None  # json_line made it
-        return text.split(_ENCODER.encode(_MARK))
+        self.shape, self.parts = shape, text.split(_ENCODER.encode(_MARK))
+        integers = result.extra is None and result.type is not None and TYPES[result.type].integer
+        if not integers:
+            self.ints = None
+            return
+        # Registers are always ints, and so are the values of an integer type: the line's
+        # text with a %d for each, as json and repr write an int.
+        part = [piece.replace("%", "%%") for piece in self.parts]
+        values, registers = len(result.values), len(result.registers) if self.registers else 0
+        self.ints = f"{part[1]}{_int_form(values)}{part[2]}"
+        if self.registers:
+            self.ints += f"{_int_form(registers)}{part[3]}"
+        self.counts = (values, registers)
 
 
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
@@ -165,15 +186,18 @@ _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encod
 _INT_ARRAYS: dict[int, str] = {}  # the number of ints -> the format that writes them
 
 
-def _int_array(numbers) -> str:
-    """Ints as a JSON array writes them ("[1, -2, 3]", as json and repr do): one %-format for
-    the whole array, made once a length, where repr formats each int through a call of its
-    own (half the instructions a poll for ten registers)."""
-    count = len(numbers)
+def _int_form(count: int) -> str:
+    """The %-format of ``count`` ints as a JSON array writes them ("[1, -2, 3]", as json and
+    repr do): made once a length, where repr formats each int through a call of its own."""
     form = _INT_ARRAYS.get(count)
     if form is None:
         form = _INT_ARRAYS[count] = "[" + ", ".join(["%d"] * count) + "]"
-    return form % tuple(numbers)
+    return form
+
+
+def _int_array(numbers) -> str:
+    """Ints as a JSON array writes them, in one %-format."""
+    return _int_form(len(numbers)) % tuple(numbers)
 
 
 class PlantPolls:
@@ -190,12 +214,19 @@ class PlantPolls:
         self.out.write(to_json(poll_record(poll, when, self.labels)) + "\n")
 
     def event(self, event, when: str) -> None:
-        record = {"time": when, **self.labels, "event": event.state, event.kind: event.name}
-        if event.reason:
-            record["reason"] = event.reason
-        if event.retry_in is not None:
-            record["retry_in"] = event.retry_in
-        self.out.write(to_json(record) + "\n")
+        self.out.write(to_json(event_record(event, when, self.labels)) + "\n")
+
+
+def event_record(event, when: str, labels: dict) -> dict:
+    """A change of state (plant.schedule.Event) as poll -o json's object, and MQTT's event
+    message: its time, the fleet's labels, the new state, the device or link, why, and when it
+    is tried again."""
+    record = {"time": when, **labels, "event": event.state, event.kind: event.name}
+    if event.reason:
+        record["reason"] = event.reason
+    if event.retry_in is not None:
+        record["retry_in"] = event.retry_in
+    return record
 
 
 def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
