@@ -7,7 +7,9 @@ output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 
 from __future__ import annotations
 
-import _signal
+# The signals' numbers from the C module: the signal module makes its IntEnums when imported,
+# 4M instructions a one-shot read does not need (bench/oneshot.py --instructions); they equal them.
+from _signal import SIGHUP, SIGINT, SIGTERM
 from collections.abc import Sequence
 from enum import IntEnum
 from typing import TypeVar
@@ -32,10 +34,8 @@ class ExitCode(IntEnum):
 
 # What interrupts a run: Ctrl-C, a service stopped, a hang-up (the terminal or the ssh
 # session gone).  Each is one stop, the same for every command; one the shell left ignored
-# (nohup's SIGHUP, a background job's SIGINT) stays ignored.  Their numbers from _signal, the
-# module signal.py wraps: signal.py makes an enum of every signal on import (3 M instructions of
-# every start-up); signal's functions take the numbers as they are.
-STOP_SIGNALS = (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP)
+# (nohup's SIGHUP, a background job's SIGINT) stays ignored.
+STOP_SIGNALS = (SIGINT, SIGTERM, SIGHUP)
 
 
 class MbtoolError(Exception):

@@ -3,7 +3,6 @@ without gettext, negative numbers as arguments, and a close match for a mistyped
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import click
@@ -55,30 +54,7 @@ class QuickHelp(_Command):
 
 
 class DeviceCommand(QuickHelp, click.Command):
-    """Takes negative numbers as arguments (write-register 100 -5) yet still refuses unknown options.
-
-    Its ``shared`` options (click.option decorators: the link's, the output's) go before its own
-    and are made when the command is first parsed, shown or completed, not when its module is
-    imported: read.py holds five commands of some forty options each, click makes an option in
-    50 k instructions, and a run parses one command."""
-
-    def __init__(self, *args, shared: Sequence[Callable] = (), **kwargs) -> None:
-        self._unmade = list(shared)
-        super().__init__(*args, **kwargs)
-
-    @property  # click.Command's attribute: the shared options made on first use
-    def params(self) -> list[click.Parameter]:
-        if self._unmade:
-            bearer = click.Command(None)  # an option decorator on a command appends to its params
-            for option in self._unmade:
-                option(bearer)
-            self._unmade = []
-            self._params[:0] = bearer.params
-        return self._params
-
-    @params.setter
-    def params(self, params: list[click.Parameter]) -> None:
-        self._params = params
+    """Takes negative numbers as arguments (write-register 100 -5) yet still refuses unknown options."""
 
     def parse_args(self, ctx, args):
         params = self.get_params(ctx)

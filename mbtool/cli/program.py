@@ -8,7 +8,7 @@ code of ``errors.ExitCode``.
 
 from __future__ import annotations
 
-import _signal
+import _signal  # the signal module's functions, without the IntEnums it makes (mbtool.errors)
 import gc
 import io
 import os
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> None:
         from click.shell_completion import shell_complete  # noqa: PLC0415 - TAB only, 0.5 ms
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
-    for stop in STOP_SIGNALS:  # SIGINT is Python's KeyboardInterrupt already; _signal: as STOP_SIGNALS
+    for stop in STOP_SIGNALS:  # SIGINT is Python's KeyboardInterrupt already
         if stop != _signal.SIGINT and _signal.getsignal(stop) != _signal.SIG_IGN:
             _signal.signal(stop, _terminate)
     if sys.stdout is None:

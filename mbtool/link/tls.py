@@ -15,10 +15,10 @@ exit 6).
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import os
 import select
+import socket
 import ssl
 import sys
 
@@ -175,11 +175,9 @@ class TlsTransport(Transport):
         self.description = f"tls://{self.address}"
         self.settings = settings
         context = client_context(settings)  # the files first: a bad one sends nothing
-        raw = connect(host, port, timeout)
+        raw = _connected(host, port, timeout)
         try:
-            # ssl wraps connect's _socket.socket as it does socket.py's subclass of it (it takes
-            # its fileno, then detaches it); typeshed names only the subclass.
-            self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)  # type: ignore[arg-type]
+            self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)
         except (OSError, ValueError) as error:
             raw.close()
             raise ConnectionFailed(handshake_failure(error, host, port, timeout, settings)) from None
@@ -328,12 +326,20 @@ def _unverified(
     return f"the server's certificate does not verify: {error.verify_message}"
 
 
+def _connected(host: str, port: int, timeout: float) -> socket.socket:
+    """link.base.connect's connection as the socket module's socket, which ssl wraps, with the
+    connect's timeout for the handshake."""
+    raw = socket.socket(fileno=connect(host, port, timeout).detach())
+    raw.settimeout(timeout)
+    return raw
+
+
 def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> list[str]:
     """The names the server's certificate is for, from a second handshake that checks nothing
     and sends nothing but the handshake; [] if that fails too."""
     context = client_context(TlsSettings(insecure=True))  # no certificate of ours: nothing sent
     try:
-        with contextlib.closing(connect(host, port, timeout)) as raw, context.wrap_socket(raw) as sock:  # type: ignore[arg-type]  # as above
+        with _connected(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)
         return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):

@@ -136,7 +136,7 @@ class Poll:
 class Pace:
     """How a group keeps its interval: the interval asked, the mean achieved between its polls
     (None before two), its polls and its overruns (polls that started later than ``LATE`` of
-    its interval after their slot)."""
+    its interval after their slot, and slots skipped while a poll took longer than it)."""
 
     group: str
     asked: float
@@ -209,18 +209,18 @@ class GroupState:
         """When its poll should be done: its next slot (a read once: at once)."""
         return self.due + self.group.interval if self.group.interval < math.inf else self.due
 
-    def started(self, now: float) -> bool:
-        """Its poll starts at ``now``: whether it overran."""
-        late = now - self.due > LATE * self.group.interval
-        self.overruns += late
+    def started(self, now: float) -> None:
+        """Its poll starts at ``now``: an overrun if later than ``LATE`` of its interval."""
+        self.overruns += now - self.due > LATE * self.group.interval
         self.first = now if self.polls == 0 else self.first
         self.last = now
-        return late
 
     def next(self, now: float) -> None:
-        """The next slot of its interval; one that has passed already is skipped, not made up."""
+        """The next slot of its interval; one that has passed already is skipped, not made up
+        (an overrun: the poll took longer than its interval)."""
         self.due += self.group.interval
         if self.due < now:
+            self.overruns += 1
             self.due = now
 
     def pace(self) -> Pace:
@@ -542,8 +542,8 @@ class LinkWorker:
         assert client is not None  # a device is polled on an open link
         stamp: list[float] = []  # when its first request went out
         began = self.clock.monotonic()
-        if group.started(began) and not self.overran:
-            self._overrun()
+        overruns = group.overruns
+        group.started(began)
 
         def sent() -> None:
             if not stamp:
@@ -580,6 +580,8 @@ class LinkWorker:
         if not nested:
             self.busy += self.clock.monotonic() - began
         self._end(device, readings, error, stamp[0] if stamp else self.clock.time(), group)
+        if group.overruns > overruns and not self.overran:
+            self._overrun()
 
     def asked(self) -> float:
         """The reads a second its devices' groups ask (an offline device's none)."""
@@ -591,8 +593,9 @@ class LinkWorker:
         )
 
     def _overrun(self) -> None:
-        """A group's poll started late: when what its groups ask is more than the link has
-        carried while busy, that is why, and it is said once, with the figures."""
+        """A group's poll overran (it started late, or took longer than its interval): when what
+        its groups ask is more than the link has carried while busy, that is why, and it is said
+        once, with the figures."""
         if not self.busy:
             return
         asked, carried = self.asked(), self.stats.transactions / self.busy

@@ -1,85 +1,66 @@
-"""What a one-shot read loads at start-up: only what that read uses (issue 41, point 9).
-
-A cron job's read pays for every module it imports and every object it builds before it
-sends its request; bench/oneshot.py --instructions measures the whole.  These tests hold the
-cuts measured there: each names what a read no longer loads or builds, in a fresh process.
-"""
+"""A one-shot read's start-up (issue 41.9: at most 1.25 x ``python -c "import click"``,
+bench/oneshot.py --instructions): it makes each shared option once, and it imports neither
+the socket module nor the signal module, whose enums cost more than the read itself; a clean
+read compiles no regular expression, and the script imports the command line with the cyclic
+collector off."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
-# Run in a fresh interpreter: the read, then at exit what it loaded, as JSON on stderr's last line.
-READ_AND_REPORT = """
-import atexit, json, sys
-def report():
-    print(json.dumps(sorted(sys.modules)), file=sys.__stderr__)
-atexit.register(report)
-from mbtool.cli import main
-sys.argv = ["mbtool", *sys.argv[1:]]
-main()
-"""
+import click
+import pytest
+
+from mbtool.cli.program import cli
 
 
-def loaded_by(*args: str) -> set[str]:
-    """The modules a one-shot ``mbtool ARGS`` has loaded when it ends (it must succeed)."""
-    result = subprocess.run(
-        [sys.executable, "-c", READ_AND_REPORT, *args], capture_output=True, text=True, timeout=30
+def _imported_by_a_read(target: str) -> set[str]:
+    code = (
+        "import sys; from mbtool.cli import main; sys.argv = ['mbtool', 'read-holding-registers', '0', '3',"
+        f" '-p', {target!r}, '-o', 'json', '-t', '0.3'];\n"
+        "import atexit; atexit.register(lambda: print(' '.join(sorted(sys.modules)), file=sys.stderr))\n"
+        "main()"
     )
-    assert result.returncode == 0, result.stderr
-    return set(json.loads(result.stderr.splitlines()[-1]))
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    return set(result.stderr.split())
 
 
-def test_a_tcp_read_connects_without_the_socket_module(tcp_device):
-    """socket.py costs 12 M instructions (its enums), 5 % of a one-shot read: a TCP connection
-    is made from _socket alone, as the transports' numbers are."""
-    loaded = loaded_by("read-holding-registers", "0", "10", "-p", tcp_device.target, "-o", "json")
-    assert "mbtool.link.transport" in loaded  # the read did go over TCP
-    assert "socket" not in loaded
+@pytest.mark.parametrize("target", ["sim://", "tcp://127.0.0.1:1"])  # port 1: refused, after the connect
+def test_a_one_shot_read_imports_neither_socket_nor_signal(target):
+    imported = _imported_by_a_read(target)
+    assert "mbtool.cli.commands.read" in imported
+    assert "socket" not in imported and "signal" not in imported
 
 
-def test_a_read_sets_its_stop_signals_without_the_signal_module():
-    """signal.py turns every signal, handler and mask into an enum on import: 3 M instructions.
-    main's stop signals (the errors' STOP_SIGNALS) are _signal's numbers and handlers."""
-    assert "signal" not in loaded_by("read-holding-registers", "0", "10", "-p", "sim://", "-o", "json")
+def _command(name: str) -> click.Command:
+    with click.Context(cli) as ctx:
+        command = cli.get_command(ctx, name)
+    assert command is not None
+    return command
 
 
-# A read as above, counting the --port options click made on the way.
-COUNT_PORT_OPTIONS = """
-import atexit, sys, click
-made = []
-init = click.Parameter.__init__
-def counted(self, *args, **kwargs):
-    init(self, *args, **kwargs)
-    made.append(self.name)
-click.Parameter.__init__ = counted
-atexit.register(lambda: print(made.count("port"), file=sys.__stderr__))
-from mbtool.cli import main
-sys.argv = ["mbtool", *sys.argv[1:]]
-main()
-"""
+def _param(command: click.Command, name: str) -> click.Parameter:
+    return next(param for param in command.params if param.name == name)
 
 
-def test_a_read_makes_the_link_options_of_its_own_command_only():
-    """read.py holds five commands, each with some forty options: click makes an option object
-    in 50 k instructions, and a read parses one command's.  The link's options (--port, the
-    serial line's, TLS's...) of a device command are made when it is run or shown, not when its
-    module is imported."""
-    result = subprocess.run(
-        [sys.executable, "-c", COUNT_PORT_OPTIONS, "read-holding-registers", "0", "2", "-p", "sim://"],
-        capture_output=True,
-        text=True,
-        timeout=30,
+def test_the_commands_of_a_module_share_their_link_options_and_scan_keeps_its_own_timeout():
+    read, coils, scan, ping = (
+        _command(name) for name in ("read-holding-registers", "read-coils", "scan", "ping")
     )
-    assert result.returncode == 0, result.stderr
-    assert result.stderr.splitlines()[-1] == "1"
+    assert _param(read, "port") is _param(coils, "port")  # made once
+    assert _param(read, "value_type") is _param(_command("read-input-registers"), "value_type")
+    assert _param(scan, "timeout").default == 0.2 and "each unit's reply" in (
+        _param(scan, "timeout").help or ""
+    )
+    for other in (read, coils, ping):  # scan's change is scan's alone
+        assert _param(other, "timeout").default == 1.0
+        assert "each unit's reply" not in (_param(other, "timeout").help or "")
 
 
-# A read as above, naming at exit each regular expression mbtool's own code compiled.
+# A one-shot mbtool ARGS, naming at exit each regular expression mbtool's own code compiled.
 MBTOOL_PATTERNS = """
 import atexit, re, sys, traceback
 compiled = []
@@ -140,7 +121,16 @@ def test_the_script_imports_the_command_line_with_the_collector_off():
     mbtool, and the mbtool entry point, the same function) imports the command line with the
     collector off; main freezes what start-up built and turns it on for the run."""
     result = subprocess.run(
-        [sys.executable, "-c", COUNT_START_UP_COLLECTIONS, "read-holding-registers", "0", "2", "-p", "sim://"],
+        [
+            sys.executable,
+            "-c",
+            COUNT_START_UP_COLLECTIONS,
+            "read-holding-registers",
+            "0",
+            "2",
+            "-p",
+            "sim://",
+        ],
         capture_output=True,
         text=True,
         timeout=30,

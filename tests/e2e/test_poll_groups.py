@@ -6,6 +6,7 @@ one transaction at most, never by the slow group's whole poll."""
 from __future__ import annotations
 
 import json
+import re
 import statistics
 from datetime import datetime
 
@@ -52,3 +53,24 @@ def test_a_fast_group_keeps_its_pace_while_a_slow_groups_long_poll_is_read(tmp_p
 
 def _seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp).timestamp()
+
+
+def test_a_link_that_cannot_keep_up_says_so_once_in_the_runs_log_format(tmp_path):
+    """Two reads every 0.1 s of a device that takes 0.1 s a reply: 20 reads a second asked, some
+    10 carried.  One warning, with the figures, through poll's log lines (--log-format)."""
+    (tmp_path / "m.toml").write_text("[points.a]\nref = 40001\n[points.b]\nref = 40011\n")
+    with serve("--delay", "0.1") as device:
+        plant = tmp_path / "plant.toml"
+        plant.write_text(
+            f'[poll]\ninterval = 5\n[links.gw]\ntarget = "{device.target}"\ntimeout = 1\n'
+            '[devices.m]\nlink = "gw"\nmap = "m.toml"\n'
+            '[devices.m.groups.fast]\ninterval = 0.1\npoints = ["a", "b"]\n'
+        )
+        result = expect_ok(
+            run_mbtool("poll", plant, "-o", "json", "--duration", "3", "--log-format", "logfmt")
+        )
+    said = [line for line in result.stderr.splitlines() if "reads/s" in line]
+    assert len(said) == 1, result.stderr
+    assert "level=warning" in said[0] and "link=gw" in said[0], said
+    figures = re.search(r"asked ([\d.]+) reads/s, the line carries ([\d.]+)", said[0])
+    assert figures and float(figures[1]) == 20.0 and 7 < float(figures[2]) < 10.5, said

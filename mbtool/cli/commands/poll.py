@@ -411,7 +411,7 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
 
 def _group_table(runner: Plant, log_format: str) -> None:
     """The poll groups of the devices that have them: the interval each asked, the one achieved
-    (the mean between its polls), its polls and its overruns (polls that started late)."""
+    (the mean between its polls), its polls and its overruns (polls that started late, slots skipped)."""
     lines = [["group", "device", "asked s", "achieved s", "polls", "overruns"]]
     for name, state in runner.devices.items():
         for pace in (group.pace() for group in state.groups if state.spec.groups):

@@ -15,7 +15,9 @@ from mbtool.cli.options import (
     device_command,
     map_option,
     reference_target,
+    shared_option,
     type_options_given,
+    with_options,
 )
 from mbtool.cli.param_types import ADDRESS, COUNT, FilePath, Number, PositiveFloat
 from mbtool.cli.results import PointFailure, PointRow, Points, Result
@@ -47,60 +49,67 @@ POLL_HELP = """
     """
 
 
-def polling_options(function):
-    """--interval and --polls, for the read commands, and what they do in --help; and the
-    output options of reads (--changes, --measurement, --textfile), which go to the run's
-    Settings (device_command)."""
-    function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
-    function = click.option(
-        "--changes",
-        is_flag=True,
-        help="Polling: print the first poll whole, then only the values that changed.",
-    )(function)
-    function = click.option(
-        "--measurement",
-        default="modbus",
-        show_default=True,
-        help="-o influx: the measurement; -o prom: the metric names' prefix.",
-    )(function)
-    function = click.option(
-        "--textfile",
-        metavar="PATH",
-        type=FilePath(dir_okay=False),
-        help="Write the Prometheus text there, atomically, for node_exporter's textfile "
-        "collector (implies -o prom; each poll rewrites it).",
-    )(function)
-    function = click.option(
+# Made once and shared by the read commands (options.shared_option): a one-shot read imports
+# them all.
+POLLING_OPTIONS = [
+    shared_option(
+        "--interval",
+        type=PositiveFloat(zero_ok=True),
+        help="Poll every SECONDS over one open link (until interrupted unless --polls); "
+        "0 polls back to back.",
+    ),
+    shared_option(
+        "--polls",
+        type=Number(0, 10**9, "polls"),
+        help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
+    ),
+    shared_option(
+        "--mqtt",
+        metavar="URL",
+        help="Polling: publish each poll to the MQTT broker at URL (mqtt://HOST[:PORT], "
+        "mqtts://HOST[:PORT]) too, one JSON message a poll on mbtool/HOST/NAME, its availability "
+        "on .../status (docs/mqtt.md).",
+    ),
+    shared_option(
+        "--name",
+        metavar="NAME",
+        help="--mqtt: the device's name on the broker (its topic mbtool/HOST/NAME). Default: unit<N>.",
+    ),
+    shared_option(
         "--stats",
         type=click.Choice(["line", "json"]),
         default="line",
         show_default=True,
         help="Polling: the summary on exit as its line on stderr, or also as one JSON object "
         "(polls, latency, every transaction's outcome, the round-trip histogram) before it.",
-    )(function)
-    function = click.option(
-        "--name",
-        metavar="NAME",
-        help="--mqtt: the device's name on the broker (its topic mbtool/HOST/NAME). Default: unit<N>.",
-    )(function)
-    function = click.option(
-        "--mqtt",
-        metavar="URL",
-        help="Polling: publish each poll to the MQTT broker at URL (mqtt://HOST[:PORT], "
-        "mqtts://HOST[:PORT]) too, one JSON message a poll on mbtool/HOST/NAME, its availability "
-        "on .../status (docs/mqtt.md).",
-    )(function)
-    function = click.option(
-        "--polls",
-        type=Number(0, 10**9, "polls"),
-        help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
-    )(function)
-    return click.option(
-        "--interval",
-        type=PositiveFloat(zero_ok=True),
-        help="Poll every SECONDS over one open link (until interrupted unless --polls); "
-        "0 polls back to back.",
-    )(function)
+    ),
+    shared_option(
+        "--textfile",
+        metavar="PATH",
+        type=FilePath(dir_okay=False),
+        help="Write the Prometheus text there, atomically, for node_exporter's textfile "
+        "collector (implies -o prom; each poll rewrites it).",
+    ),
+    shared_option(
+        "--measurement",
+        default="modbus",
+        show_default=True,
+        help="-o influx: the measurement; -o prom: the metric names' prefix.",
+    ),
+    shared_option(
+        "--changes",
+        is_flag=True,
+        help="Polling: print the first poll whole, then only the values that changed.",
+    ),
+]
+
+
+def polling_options(function):
+    """--interval and --polls, for the read commands, and what they do in --help; and the
+    output options of reads (--changes, --measurement, --textfile), which go to the run's
+    Settings (device_command)."""
+    function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
+    return with_options(POLLING_OPTIONS)(function)
 
 
 def _run(

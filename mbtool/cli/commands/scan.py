@@ -17,6 +17,7 @@ recognised by its unit id and reported as "late" (raise -t).
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 
@@ -118,8 +119,11 @@ def _scan_options(command: click.Command) -> click.Command:
                 help="Unit ids to probe: 1-247, 1,5,10-20. Unit 0 (broadcast) is never answered.",
             )
         elif param.name == "timeout":
-            param.default = SCAN_TIMEOUT
-            param.help = "Seconds to wait for each unit's reply (raise it for slow devices or gateways)."
+            # A copy: the shared option is every other command's too (options.shared_option).
+            timeout = copy.copy(param)
+            timeout.default = SCAN_TIMEOUT
+            timeout.help = "Seconds to wait for each unit's reply (raise it for slow devices or gateways)."
+            command.params[index] = timeout
     return command
 
 
