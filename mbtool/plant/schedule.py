@@ -40,6 +40,7 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_fail
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
+from mbtool.plant.budget import serial_line, transaction_seconds
 from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import MapReader, Reading
@@ -231,6 +232,9 @@ class GroupState:
         self.polls = 0
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
+        # The line's time of its longest read, on a serial line (plant/budget.py); 0: not known.
+        # A read of it waits where it would make a faster group late (LinkWorker._held_for).
+        self.line_time = 0.0
 
     @property
     def deadline(self) -> float:
@@ -403,6 +407,14 @@ class LinkWorker:
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        if serial_line(spec.connection):
+            for device in devices:
+                for group in device.groups:
+                    group.line_time = max(
+                        (transaction_seconds(spec.connection, device.spec.unit, block.request)
+                         for block in group.group.reader.blocks),
+                        default=0.0,
+                    )  # fmt: skip
         # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
         # waits on schedule for its next poll.
         self.turns = 0
@@ -499,6 +511,25 @@ class LinkWorker:
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
+    def _held_for(self, now: float, group: GroupState) -> float | None:
+        """When a group with an earlier deadline than ``group``'s falls due before ``group``'s
+        next read would end on the line: then (the read waits for it, which goes first), else
+        None.  A read is held back only while less than ``LATE`` of its own interval late: fast
+        groups that leave the line no gap long enough do not starve it."""
+        if not group.line_time or now - group.due >= LATE * group.group.interval:
+            return None
+        ends = now + group.line_time
+        soon = [
+            other.due
+            for device in self._waiting()
+            if device.not_before < ends
+            for other in device.groups
+            if now < other.due < ends
+            and other.deadline < group.deadline
+            and not (self.rounds and other.polls >= self.rounds)
+        ]
+        return min(soon, default=None)
+
     def _work(self) -> None:
         while not self.stop.is_set() and not self.finished():
             self.turns += 1
@@ -506,6 +537,10 @@ class LinkWorker:
             now = self.clock.monotonic()
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
             due = self._due(now) if ready_at <= now else []
+            held = self._held_for(now, due[0][1]) if due else None
+            if held is not None:  # a faster group falls due before this read would end
+                self._sleep(held - now)
+                continue
             if not due:
                 wake = max(min(d.due for d in self._waiting()), ready_at)
                 # a minute at most: a device whose every point is read once waits for a reconnect
@@ -563,7 +598,8 @@ class LinkWorker:
     def _poll(self, device: DeviceState, group: GroupState | None = None, nested: bool = False) -> None:
         """One poll of ``group`` (None: the device's first).  Between its transactions, a group
         due with an earlier deadline is polled first (not ``nested`` in another's): a fast
-        group is never held up by more than one transaction of a slow group's long read."""
+        group is never held up by more than one transaction of a slow group's long read, and on
+        a serial line not even by that (``_held_for``)."""
         link, spec = self.link, device.spec
         group = group or device.groups[0]
         client = link.client
@@ -585,6 +621,9 @@ class LinkWorker:
 
         def execute(request):
             if stamp and not nested:
+                held = self._held_for(self.clock.monotonic(), group)
+                if held is not None:  # the next read would make a faster group late: it goes first
+                    self.clock.wait(self.stop, held - self.clock.monotonic())
                 others = self._due(self.clock.monotonic(), before=group.deadline)
                 for other in others:
                     self._poll(*other, nested=True)
