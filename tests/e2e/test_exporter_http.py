@@ -139,6 +139,27 @@ def test_a_head_refused_gets_its_answer_without_a_body(tmp_path, maps):
     assert b"Content-Length: " in raw and closed, raw
 
 
+def test_a_head_h11_rejects_gets_its_answer_without_a_body(tmp_path, maps):
+    """RFC 9110 9.3.2: a HEAD's answer has no body.  A HEAD whose head h11 could not parse (no
+    Host, a malformed header line; after a kept-alive GET, too) got its 400's line after the
+    head, which a client takes for the start of the next answer."""
+    get = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"
+    with exporting("--maps", maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path) as exporter:
+        for before, bad in (
+            (b"", b"HEAD /metrics HTTP/1.1\r\n\r\n"),  # HTTP/1.1 without Host
+            (b"", b"HEAD /metrics HTTP/1.1\r\nHost: x\r\nno colon\r\n\r\n"),
+            (get, b"HEAD /metrics HTTP/1.1\r\nHost: x\r\nHost: y\r\n\r\n"),  # two Hosts
+        ):
+            raw, closed = exchange(address(exporter), before + bad)
+            # The 400's head is the last thing sent (the GET's answer, whole, before it).
+            assert [status for status, _, _ in responses(raw)] == [200] * bool(before) + [400], raw
+            assert raw.endswith(b"\r\n\r\n") and closed, raw
+        # A GET h11 rejects still gets its line.
+        raw, closed = exchange(address(exporter), b"GET /metrics HTTP/1.1\r\n\r\n")
+        ((status, _, text),) = responses(raw)
+        assert status == 400 and text.startswith(b"bad request: ") and closed, raw
+
+
 def _threads_and_descriptors(pid: int) -> tuple[int, int]:
     status = open(f"/proc/{pid}/status").read()
     return int(re.search(r"^Threads:\s+(\d+)", status, re.M)[1]), len(os.listdir(f"/proc/{pid}/fd"))
