@@ -301,7 +301,8 @@ class HttpServer:
         except RuntimeError:  # no thread to be had (memory, a limit): the scraper tries again
             connection.answering = False
             self.connections.pop(connection.sock, None)
-            self._refuse(connection, 503, "no thread to answer with: try again")
+            head_only = connection.request is not None and connection.request.method == b"HEAD"
+            self._refuse(connection, 503, "no thread to answer with: try again", head_only=head_only)
 
     def _answer(self, connection: Connection) -> None:
         request, http = connection.request, connection.http

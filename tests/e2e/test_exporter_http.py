@@ -160,6 +160,35 @@ def test_a_head_h11_rejects_gets_its_answer_without_a_body(tmp_path, maps):
         assert status == 400 and text.startswith(b"bad request: ") and closed, raw
 
 
+def test_a_head_refused_for_want_of_a_thread_gets_its_answer_without_a_body(monkeypatch):
+    """The 503 of a request no thread could be had for: to a HEAD, its head alone."""
+    from mbtool.cli.http_server import HttpServer
+
+    server = HttpServer(
+        "127.0.0.1", 0, socket.AF_INET, lambda path, query, headers: (200, "text/plain", b"x\n")
+    )
+    loop = threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True)
+    loop.start()
+    try:
+        server.running.wait(5)
+
+        def no_thread(self):
+            raise RuntimeError("can't start new thread")
+
+        monkeypatch.setattr(threading.Thread, "start", no_thread)
+        where = server.server_address[:2]
+        raw, closed = exchange(where, b"HEAD /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert raw.startswith(b"HTTP/1.1 503 ") and raw.endswith(b"\r\n\r\n") and closed, raw
+        raw, closed = exchange(where, b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        ((status, _, text),) = responses(raw)
+        assert status == 503 and text == b"no thread to answer with: try again\n" and closed, raw
+    finally:
+        monkeypatch.undo()
+        server.shutdown()
+        server.server_close()
+        loop.join(5)
+
+
 def _threads_and_descriptors(pid: int) -> tuple[int, int]:
     status = open(f"/proc/{pid}/status").read()
     return int(re.search(r"^Threads:\s+(\d+)", status, re.M)[1]), len(os.listdir(f"/proc/{pid}/fd"))
