@@ -360,12 +360,12 @@ class Target:
         """What the target opens, however it is spelled, so that two spellings of one link are
         told from two links: a host and port by the transport's protocol (tcp:// and tls:// to
         one port are one TCP endpoint, and so are socket:// and rfc2217://; no name is looked
-        up), a serial device by the path its symbolic links resolve to (/dev/serial/by-id/...
+        up, the loopback's being known: endpoint_host), a serial device by the path its symbolic links resolve to (/dev/serial/by-id/...
         is /dev/ttyUSB0), an in-process device by its text."""
         if self.scheme in NETWORK_SCHEMES:
-            return (NETWORK_SCHEMES[self.scheme][1], canonical_host(self.host), self.port)
+            return (NETWORK_SCHEMES[self.scheme][1], endpoint_host(self.host), self.port)
         if self.handler in BRIDGE_SCHEMES:
-            return ("TCP", canonical_host(self.host), self.port)
+            return ("TCP", endpoint_host(self.host), self.port)
         if self.scheme == "serial":
             return ("serial", self.path.lower() if self.handler else os.path.realpath(self.path))
         return (self.scheme, str(self))
@@ -389,6 +389,23 @@ def canonical_host(host: str) -> str:
                 return _socket.inet_ntoa(packed[12:])
             return _socket.inet_ntop(_socket.AF_INET6, packed) + percent + zone
     return host.lower().rstrip(".")
+
+
+# The loopback as a name and as the addresses it stands for (RFC 6761 6.3: localhost, and
+# any name under it, is the loopback; ::1 or 127.0.0.1, whichever the device listens on).
+LOOPBACK = "localhost"
+LOOPBACK_ADDRESSES = frozenset({"127.0.0.1", "::1"})
+
+
+def endpoint_host(host: str) -> str:
+    """A host as an endpoint's: canonical_host, the loopback's names and addresses one, so
+    that tcp://localhost and tcp://127.0.0.1 are one device's link, known without a lookup.
+    Two devices on ::1 and 127.0.0.1 taken for one only take turns; one device taken for two
+    would have two masters at once."""
+    host = canonical_host(host)
+    if host in LOOPBACK_ADDRESSES or host == LOOPBACK or host.endswith("." + LOOPBACK):
+        return LOOPBACK
+    return host
 
 
 MODBUS_TLS_PORT = 802  # Modbus/TCP Security's registered port (MB-TCP-Security-v21)

@@ -166,7 +166,9 @@ def test_a_scrape_timeout_past_the_exporters_maximum_is_clamped_to_it(meter, tmp
     """Issue 40.15: a header of 9.3e9 s was HTTP 500 'internal error: OverflowError'."""
     from mbtool.cli.commands.exporter import MAX_SCRAPE_TIMEOUT, scrape_budget
 
-    with exporting("--maps", meter.maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path) as exporter:
+    with exporting(
+        "--maps", meter.maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path
+    ) as exporter:
         for seconds in ("9.3e9", "1e300", str(MAX_SCRAPE_TIMEOUT * 2)):
             status, _, text = exporter.get(
                 f"/modbus?target={meter.target}&module=energy-meter",
@@ -221,7 +223,9 @@ def test_a_scrape_never_opens_a_pyserial_url_handler_nor_a_file_outside_dev(mete
             f"{ports}/../victim",
             "/dev/serial/by-id/../../../etc/hostname",
         ):
-            status, _, text = exporter.get(f"/modbus?{urlencode({'target': target, 'module': 'energy-meter'})}")
+            status, _, text = exporter.get(
+                f"/modbus?{urlencode({'target': target, 'module': 'energy-meter'})}"
+            )
             assert status == 403, (target, text)
             assert text.startswith(f"target {target} ") and text.count("\n") == 1, text
         # A pattern matches the target as the resolver reads it: 127.0.0.01 is 127.0.0.1.
@@ -357,6 +361,44 @@ def test_other_spellings_of_one_target_take_turns_too(monkeypatch):
     for thread in threads:
         thread.join(30)
     assert most == {"tcp://127.0.0.1:1502": 1}
+
+
+def test_localhost_and_the_loopback_addresses_are_one_target_and_take_turns(monkeypatch):
+    """localhost is the loopback (RFC 6761 6.3), 127.0.0.1 or ::1, whichever the device
+    listens on: three spellings were three links, and so two masters at once on one device
+    (a gateway's bus).  Known without a lookup: no DNS a scrape."""
+    from mbtool.cli.commands import exporter
+
+    running, most = [0], [0]
+    lock = threading.Lock()
+
+    def read(connection, register_map, deadline, budget):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.2)
+        with lock:
+            running[0] -= 1
+        return None, NoResponse("silence"), "timeout"
+
+    monkeypatch.setattr(exporter, "_read_map", read)
+    patterns = ["tcp://127.*", "tcp://localhost:*", "tcp://[[]::1]:*"]
+    scraper = exporter.TargetScraper(exporter.Modules(METER_MAP.parent, {}), patterns, {}, 1.0, 0)
+    spellings = ["localhost", "127.0.0.1", "[::1]", "LOCALHOST."]
+    statuses = []
+    threads = [
+        threading.Thread(
+            target=lambda host=host: statuses.append(
+                scraper.scrape(f"target=tcp://{host}:1502&module=energy-meter", "5")[0]
+            )
+        )
+        for host in spellings
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert statuses == [200] * len(spellings) and most == [1]
 
 
 def test_the_table_of_locks_is_bounded_and_keeps_a_lock_in_use(monkeypatch):
@@ -562,7 +604,11 @@ read = ["40001 1"]
                 began = time.monotonic()
                 status, _, text = exporter.get("/metrics")
                 took.append(time.monotonic() - began)
-                assert status == 200 and value(text, "modbus_value", device="meter", table="holding", address="0", ref="40001") == 1
+                assert (
+                    status == 200
+                    and value(text, "modbus_value", device="meter", table="holding", address="0", ref="40001")
+                    == 1
+                )
                 time.sleep(0.1)
             assert max(took) < 1.5, took  # never the 3 s a reply takes
 
@@ -627,7 +673,9 @@ def test_the_plants_exposition_shows_every_device_before_its_first_poll_and_each
     assert value(after, "modbus_link_up", link="bus1") == 1
 
 
-def _polls_a_second(tmp_path, devices: int, exporting_metrics: bool, seconds: float = 1.0) -> tuple[float, object]:
+def _polls_a_second(
+    tmp_path, devices: int, exporting_metrics: bool, seconds: float = 1.0
+) -> tuple[float, object]:
     """Polls a second of ``devices`` on one sim:// link (every one due at once, all along),
     their reports going to the exporter's PlantMetrics or nowhere, as poll -o plain's do."""
     from mbtool.cli.commands.exporter import PlantMetrics
