@@ -255,6 +255,10 @@ class GroupState:
             self.overruns += 1
             self.due = now
 
+    def had(self, rounds: int) -> bool:
+        """Whether it has had the run's rounds (``--rounds``; 0: until stopped)."""
+        return bool(rounds) and self.polls >= rounds
+
     def pace(self) -> Pace:
         achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
         return Pace(self.group.name, self.group.interval, achieved, self.polls, self.overruns)
@@ -507,7 +511,7 @@ class LinkWorker:
             for group in device.groups
             if group.due <= now
             and group.deadline < before
-            and not (self.rounds and group.polls >= self.rounds)
+            and not group.had(self.rounds)
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
@@ -526,7 +530,7 @@ class LinkWorker:
             for other in device.groups
             if now < other.due < ends
             and other.deadline < group.deadline
-            and not (self.rounds and other.polls >= self.rounds)
+            and not other.had(self.rounds)
         ]
         return min(soon, default=None)
 
@@ -699,7 +703,7 @@ class LinkWorker:
             if not_before is not None:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        if self.rounds and group.polls >= self.rounds:
+        if group.had(self.rounds):
             group.due = math.inf  # its rounds are done
         latest = None
         if device.latest is not None and readings is not None:
