@@ -509,9 +509,7 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before <= now
             for group in device.groups
-            if group.due <= now
-            and group.deadline < before
-            and not group.had(self.rounds)
+            if group.due <= now and group.deadline < before and not group.had(self.rounds)
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
@@ -528,9 +526,7 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before < ends
             for other in device.groups
-            if now < other.due < ends
-            and other.deadline < group.deadline
-            and not other.had(self.rounds)
+            if now < other.due < ends and other.deadline < group.deadline and not other.had(self.rounds)
         ]
         return min(soon, default=None)
 
