@@ -16,10 +16,11 @@ and the news that the line paused or went quiet, like the framer under it:
 
 from __future__ import annotations
 
-from typing import TypeVar
+from collections.abc import Callable
+from typing import NamedTuple, TypeVar
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
-from mbtool.codec.framer import Frame, Framer, Rejected
+from mbtool.codec.framer import Frame, Framer, Prediction, Rejected
 from mbtool.codec.pdu import ExceptionResponse, Request, Response, pdu_length
 
 Problem = TypeVar("Problem", bound=Exception)
@@ -42,6 +43,21 @@ class Trace:
 
 # The trace nobody watches: a transaction's own frames skip the calls to it.
 UNWATCHED = Trace()
+
+
+class Prepared(NamedTuple):
+    """What is the same for every attempt of one request to one unit, worked out once: a
+    polling loop sends the same request again and again."""
+
+    request: Request
+    unit: int
+    frame: Callable[[int], bytes]  # its frame for an attempt's transaction id (Framer.frames)
+    watched: bool  # an echo of it is watched for
+    prediction: Prediction | None  # its reply as asked, known beforehand (never when watched)
+
+
+# Before the first attempt: no request is this one (no unit is -1).
+NOTHING_PREPARED = Prepared(None, -1, lambda transaction_id: b"", False, None)  # type: ignore[arg-type]
 
 
 class Exchange:
@@ -76,26 +92,16 @@ class Exchange:
         # The most telling problem of this attempt so far: what is raised if no reply comes.
         self.problem: FrameError | None = None
         self.expects_response = True  # the request asked has a reply (not FC08 sub 04)
-        self._unit = 0
-        self._request: Request | None = None
-        self._sent = b""  # the attempt's frame, to tell a copy of it from a reply
+        self._prepared = NOTHING_PREPARED  # the last request's, to the last unit
+        # Bytes that differ from the request are the reply, shown as such (a watched request's).
         self._watch: EchoWatch | None = None
-        # The reply if it answers as asked (MBAP): its first bytes, its size and where its PDU
-        # starts, for the first read after the request only (framer.predict).
-        self._expected: tuple[bytes, int, int] | None = None
-        # The last request, its PDU, whether its echo is watched for, whether it has a reply
-        # and what is known of the reply beforehand: the same for every poll of it, so worked
-        # out once.
-        self._prepared: tuple[Request | None, bytes, bool, bool, tuple[bytes, int] | None] = (
-            None,
-            b"",
-            False,
-            True,
-            None,
-        )
-        # The last reply decoded: the request, the reply's PDU and what it decoded to.  A poll
+        # The reply if it answers as asked (MBAP): its first bytes, for the first read after
+        # the request only; its size and where its PDU starts are the prediction's.
+        self._expected: bytes | None = None
+        # The last reply to the prepared request decoded: its PDU and what it decoded to.  A poll
         # whose reply is the same bytes gets the same (immutable) response, decoded once.
-        self._decoded: tuple[Request | None, bytes, Response | ExceptionResponse | None] = (None, b"", None)
+        self._reply_pdu: bytes | None = None
+        self._reply: Response | ExceptionResponse | None = None
 
     # -- sending -----------------------------------------------------------------------
 
@@ -104,40 +110,49 @@ class Exchange:
         stale input was discarded, so the framer forgets what it holds too.  ``retry``: the
         request again, whose earlier attempts' ids still answer it; else a new request, and the
         last one's ids answer nothing."""
-        framer = self.framer
         tid = self.transaction_id = (self.transaction_id + 1) & 0xFFFF
         if retry:
             self.attempt_ids.append(tid)
         else:
             self.attempt_ids = [tid]
-        if request is not self._prepared[0]:
-            expects_response = request.expects_response
-            self._prepared = (
-                request,
-                request.encode(),
-                # The request's own bytes coming back first are an adapter's echo: with --echo
-                # always (even where the reply is a copy of the request, FC05/06), else where an
-                # echo cannot pass for the reply.  Only a serial line has an echo to watch for
-                # (a map's requests over TCP would pay for the look on every one), and a request
-                # with no reply waits only for a refusal, which no echo is mistaken for.
-                expects_response and self.watch_echo and (self.echo or EchoWatch.needed(request)),
-                expects_response,
-                request.reply_prefix,
-            )
-        _, pdu, watched, expects_response, reply_prefix = self._prepared
-        adu = framer.build(unit, pdu, tid)
+        prepared = self._prepared
+        if request is not prepared.request or unit != prepared.unit:
+            prepared = self._prepare(unit, request)
+        framer = self.framer
+        adu = prepared.frame(tid)
         if fresh:
             framer.reset()
+        prediction = prepared.prediction
+        # Bytes the framer still holds come before the reply: then it is not predicted.
+        if prediction is None or framer.buffered:
+            self._expected = None
+        else:
+            self._expected = adu[: prediction.repeated] + prediction.head
+        self.problem = None
+        if prepared.watched:  # (else the watch is None from _prepare on)
+            self._watch = EchoWatch(adu)
+        return adu
+
+    def _prepare(self, unit: int, request: Request) -> Prepared:
+        """A new request, or a new unit: what every attempt of it shares."""
+        framer = self.framer
+        expects_response = self.expects_response = request.expects_response
+        # The request's own bytes coming back first are an adapter's echo: with --echo always
+        # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
+        # pass for the reply.  Only a serial line has an echo to watch for (a map's requests
+        # over TCP would pay for the look on every one), and a request with no reply waits only
+        # for a refusal, which no echo is mistaken for.
+        watched = expects_response and self.watch_echo and (self.echo or EchoWatch.needed(request))
+        # An echo, watched for, would come before the reply: then none is predicted.
+        prediction = None if watched else framer.predict(unit, request.reply_prefix)
+        prepared = self._prepared = Prepared(
+            request, unit, framer.frames(unit, request.encode()), watched, prediction
+        )
         framer.expect = request
         framer.expect_unit = unit
-        # An echo, watched for, would come before the reply.
-        self._expected = None if watched else framer.predict(unit, adu, reply_prefix)
-        self._unit, self._request, self._sent = unit, request, adu
-        self.expects_response = expects_response
-        self.problem = None
-        # Bytes that differ from the request are the reply, shown as such.
-        self._watch = EchoWatch(adu) if watched else None
-        return adu
+        self._reply_pdu = self._reply = None
+        self._watch = None
+        return prepared
 
     # -- receiving ---------------------------------------------------------------------
 
@@ -154,27 +169,27 @@ class Exchange:
         length).  The framer's events are judged until the reply, with no look for more.
 
         Raises FrameError for a reply that is ours (our transaction id) and bad."""
-        expected = self._expected
-        if expected is not None:
+        head = self._expected
+        if head is not None:
             # The first read after the request, which nearly always brings exactly the reply
             # predicted: from the unit asked, with our transaction id, the function asked and
             # the byte count for what was asked.  It is taken as it is, unparsed and unjudged.
             self._expected = None
-            head, size, pdu_at = expected
-            if len(data) == size and data.startswith(head):
-                request = self._request
-                assert request is not None  # predicted by attempt()
+            prepared = self._prepared
+            prediction = prepared.prediction
+            if prediction is not None and len(data) == prediction.size and data.startswith(head):
+                pdu_at = prediction.pdu_at
                 pdu = data[pdu_at:]
-                last_request, last_pdu, predicted = self._decoded
-                if request is not last_request or pdu != last_pdu:
-                    # The same response as last time for the same request and bytes (immutable).
-                    predicted = request.decode_predicted(data, pdu_at)
-                    self._decoded = (request, pdu, predicted)
-                assert predicted is not None
+                if pdu == self._reply_pdu:
+                    reply = self._reply  # the same bytes as last time: the same (immutable) response
+                else:
+                    reply = self._reply = prepared.request.decode_predicted(data, pdu_at)
+                    self._reply_pdu = pdu
+                assert reply is not None
                 if self.trace is not UNWATCHED:
                     self.trace.received(data)
                 self.answered_id = self.transaction_id
-                return predicted
+                return reply
         framer, watch = self.framer, self._watch
         if watch is not None:
             if data:
@@ -219,8 +234,7 @@ class Exchange:
             self.trace.rejected(event.data, event.error)
             self.problem = worse(self.problem, event.error)
             return None
-        unit, request = self._unit, self._request
-        assert request is not None  # events are judged only once send() has set the request
+        unit, request = self._prepared.unit, self._prepared.request  # judged only after attempt()
         # What this reply gets away with (--lenient), for its trace line: a tuple, as the empty
         # one is made once, not a list a reply.
         accepted: tuple[str, ...] = ()
@@ -240,12 +254,11 @@ class Exchange:
                 return None
         # From the unit asked, to the function asked: the reply, unless it does not decode.
         pdu = event.pdu
-        last_request, last_pdu, reply = self._decoded
+        reply = self._reply
         try:
-            if request is not last_request or pdu != last_pdu:
-                # The same response as last time for the same request and bytes (immutable).
-                reply = request.decode_response(pdu)
-                self._decoded = (request, pdu, reply)
+            if pdu != self._reply_pdu:  # else the same response as last time (immutable)
+                reply = self._reply = request.decode_response(pdu)
+                self._reply_pdu = pdu
         except FrameError as misfit:
             repaired = repair(pdu, request) if self._ours(event) else None
             if repaired is not None and self.lenient:
@@ -285,7 +298,7 @@ class Exchange:
     def _copy_check(self, frame: Frame) -> None:
         """A reply that does not decode and is the request itself: over TCP nothing echoes but a
         misconfigured server or gateway, and that is the line to read, not the decoder's."""
-        if frame.transaction_id is not None and frame.adu == self._sent:
+        if frame.transaction_id is not None and frame.adu == self._prepared.frame(self.transaction_id):
             raise FrameError(
                 "the only reply was a copy of the request (the server, or a gateway on the way, echoes requests)",
                 frame.adu,
@@ -300,8 +313,7 @@ class Exchange:
             return f"reply from unit {frame.unit}, expected unit {unit}"
         pdu = frame.pdu
         code = pdu[0] if pdu else None
-        assert self._request is not None
-        asked = self._request.function_code
+        asked = self._prepared.request.function_code
         if code != asked and code != asked | 0x80:
             shown = "no function code" if code is None else function_code_text(code)
             return f"reply has {shown}, expected {function_code_text(asked)}"

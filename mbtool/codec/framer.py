@@ -15,6 +15,7 @@ them by name.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
 from mbtool.codec.errors import ChecksumError, FrameError
@@ -30,6 +31,16 @@ class Frame(NamedTuple):
     pdu: bytes
     adu: bytes  # the exact bytes on the wire
     transaction_id: int | None = None
+
+
+class Prediction(NamedTuple):
+    """The reply to a request if it answers as asked, as far as it is known before it comes
+    (``Framer.predict``): the same for every attempt of the request."""
+
+    repeated: int  # its first bytes are the request's own: MBAP's transaction id (2)
+    head: bytes  # then these: the rest of its envelope and its PDU's first bytes
+    size: int  # the whole reply's
+    pdu_at: int  # where its PDU starts
 
 
 @record
@@ -136,16 +147,21 @@ class Framer(ABC):
     def check(self, adu: bytes) -> str:
         """A short verdict on the frame's checksum, for the hex trace."""
 
-    # -- the reply predicted ------------------------------------------------------------
+    # -- what is the same for every attempt of a request -------------------------------
 
-    def predict(
-        self, unit: int, adu: bytes, prefix: tuple[bytes, int] | None
-    ) -> tuple[bytes, int, int] | None:
-        """The reply to ``adu`` (sent to ``unit``) if it answers as asked, as far as it is known
-        before it comes: its first bytes, its size and where its PDU starts; None when nothing is.  ``prefix`` is the
-        request's reply_prefix (the first bytes of its PDU and its length; None: unknown).  A
-        read that is exactly such a reply needs no parse (MBAP: one a poll); RTU and ASCII
-        predict nothing, as their checksum is to be checked."""
+    def frames(self, unit: int, pdu: bytes) -> Callable[[int], bytes]:
+        """The request's frame for each attempt's transaction id, built once a request: a
+        polling loop sends the same one again and again.  Here the frame carries no transaction
+        id (RTU, ASCII), so every attempt's is the same bytes."""
+        adu = self.build(unit, pdu)
+        return lambda transaction_id: adu
+
+    def predict(self, unit: int, prefix: tuple[bytes, int] | None) -> Prediction | None:
+        """The reply to a request to ``unit`` if it answers as asked, as far as it is known
+        before it comes; None when nothing is.  ``prefix`` is the request's reply_prefix (the
+        first bytes of its PDU and its length; None: unknown).  A read that is exactly such a
+        reply needs no parse (MBAP: one a poll); RTU and ASCII predict nothing, as their
+        checksum is to be checked."""
         return None
 
     # -- helpers ---------------------------------------------------------------------

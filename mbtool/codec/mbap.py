@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 
 from mbtool.codec.checksum import crc_ok
 from mbtool.codec.errors import FrameError
-from mbtool.codec.framer import Frame, Framer
+from mbtool.codec.framer import Frame, Framer, Prediction
 from mbtool.codec.pdu import MAX_PDU, UNKNOWN
 
 MBAP_HEADER = 7
@@ -28,14 +29,18 @@ class TcpFramer(Framer):
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         return _MBAP_HEADER.pack(transaction_id, 0, len(pdu) + 1, unit) + pdu
 
-    def predict(
-        self, unit: int, adu: bytes, prefix: tuple[bytes, int] | None
-    ) -> tuple[bytes, int, int] | None:
-        if prefix is None or self._buffer or self._garbage:  # bytes already here come first
+    def frames(self, unit: int, pdu: bytes) -> Callable[[int], bytes]:
+        rest = self.build(unit, pdu)[2:]  # all but the transaction id, the same every attempt
+        return lambda transaction_id: transaction_id.to_bytes(2, "big") + rest
+
+    def predict(self, unit: int, prefix: tuple[bytes, int] | None) -> Prediction | None:
+        if prefix is None:
             return None
         head, length = prefix
-        # The request's transaction id (its first two bytes), protocol 0, the length, the unit.
-        return adu[:2] + _REPLY_FIELDS.pack(0, length + 1, unit) + head, MBAP_HEADER + length, MBAP_HEADER
+        # The request's transaction id, then protocol 0, the length, the unit and the PDU's head.
+        return Prediction(
+            2, _REPLY_FIELDS.pack(0, length + 1, unit) + head, MBAP_HEADER + length, MBAP_HEADER
+        )
 
     def check(self, adu: bytes) -> str:
         if len(adu) < MBAP_HEADER:

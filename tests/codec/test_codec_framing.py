@@ -12,6 +12,7 @@ from mbtool.codec import device_id as di
 from mbtool.codec import serial_line as sl
 from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.errors import ChecksumError, FrameError
+from mbtool.codec.exchange import Exchange
 from mbtool.codec.framer import Frame, Rejected
 from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import UNKNOWN
@@ -244,26 +245,41 @@ def test_tcp_length_field_out_of_range_is_rejected():
     assert events and all(isinstance(event, Rejected) for event in events)
 
 
-def _taken_as_predicted(data: bytes, prediction=REQUEST.reply_prefix, before: bytes = b"") -> bool:
-    """Whether a framer that predicted the reply to REQUEST (transaction 7), after ``before``,
-    tells that ``data``, the read after the request, is exactly that reply."""
-    framer = TcpFramer()
-    if before:
-        framer.feed(before)
-    expected = framer.predict(UNIT, framer.build(UNIT, REQUEST.encode(), 7), prediction)
-    if expected is None:
+class _Parsing(TcpFramer):
+    """An MBAP framer that tells whether it was handed bytes to parse."""
+
+    parsed = False
+
+    def feed(self, data: bytes) -> None:
+        self.parsed = True
+        super().feed(data)
+
+
+def _taken_as_predicted(data: bytes, request=REQUEST, before: bytes = b"") -> bool:
+    """Whether an exchange that sent ``request`` (transaction 7), its framer holding ``before``,
+    takes ``data``, the read after the request, as the reply predicted: whole, unparsed."""
+    framer = _Parsing()
+    exchange = Exchange(framer)
+    exchange.transaction_id = 6
+    framer.feed(before)
+    exchange.attempt(UNIT, request, fresh=not before)
+    framer.parsed = False
+    try:
+        reply = exchange.receive(data)
+    except FrameError:
         return False
-    head, size, pdu_at = expected
-    return len(data) == size and data.startswith(head)
+    return reply is not None and not framer.parsed
 
 
 def test_tcp_predicts_exactly_the_reply_asked_for_and_nothing_else():
     tcp = TcpFramer()
     pdu = REPLY.encode()
     reply = tcp.build(UNIT, pdu, 7)
-    expected = tcp.predict(UNIT, tcp.build(UNIT, REQUEST.encode(), 7), REQUEST.reply_prefix)
+    expected = tcp.predict(UNIT, REQUEST.reply_prefix)
     assert expected is not None
-    assert reply[expected[2] :] == pdu  # where its PDU starts
+    request = tcp.frames(UNIT, REQUEST.encode())(7)
+    assert reply.startswith(request[: expected.repeated] + expected.head)  # its transaction id, then
+    assert len(reply) == expected.size and reply[expected.pdu_at :] == pdu  # its size, where its PDU starts
     tcp.feed(reply)
     assert tcp.next_event() == Frame(UNIT, pdu, reply, 7)  # what the parse finds in it
     unlike = {
@@ -279,7 +295,8 @@ def test_tcp_predicts_exactly_the_reply_asked_for_and_nothing_else():
         assert not _taken_as_predicted(data), why
     assert _taken_as_predicted(reply)
     assert not _taken_as_predicted(reply, before=b"\x00"), "bytes already buffered come first"
-    assert not _taken_as_predicted(reply, da.WriteSingleRegister(1, 2).reply_prefix)  # None: not a read
+    assert not _taken_as_predicted(reply, da.WriteSingleRegister(1, 2))  # not a read: nothing predicted
+    assert tcp.predict(UNIT, da.WriteSingleRegister(1, 2).reply_prefix) is None
 
 
 def test_tcp_parses_replies_that_came_in_one_read_in_turn():
