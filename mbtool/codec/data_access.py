@@ -8,7 +8,7 @@ Limits are those of the current spec: 2000 bits and 125 registers read,
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, ClassVar
 
 from mbtool.codec.errors import DecodeError, MismatchError, RequestError
@@ -235,9 +235,10 @@ class _ReadRegisters(Request):
     def decode(cls, pdu: bytes) -> _ReadRegisters:
         return cls(*_address_and_count(pdu, cls.name))
 
-    def decode_predicted(self, adu: bytes, at: int) -> Response | ExceptionResponse:
+    def predicted_decoder(self, at: int) -> Callable[[bytes], Response | ExceptionResponse]:
         # Its function code and byte count are as asked: the registers follow them.
-        return RegistersResponse(self.function_code, registers_unpacker(self.count)(adu, at + 2))
+        code, unpack, start = self.function_code, registers_unpacker(self.count), at + 2
+        return lambda adu: RegistersResponse(code, unpack(adu, start))
 
     def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
         # The reply as asked for, which a poll nearly always gets, is taken at once: the

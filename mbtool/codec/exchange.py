@@ -54,10 +54,17 @@ class Prepared(NamedTuple):
     frame: Callable[[int], bytes]  # its frame for an attempt's transaction id (Framer.frames)
     watched: bool  # an echo of it is watched for
     prediction: Prediction | None  # its reply as asked, known beforehand (never when watched)
+    reply_size: int  # the prediction's size (-1: none), and where its PDU starts
+    pdu_at: int
+    decode_predicted: Callable[[bytes], Response | ExceptionResponse]  # such a reply decoded
+
+
+def _nothing_predicted(adu: bytes) -> Response | ExceptionResponse:
+    raise AssertionError("no reply is predicted")
 
 
 # Before the first attempt: no request is this one (no unit is -1).
-NOTHING_PREPARED = Prepared(None, -1, lambda transaction_id: b"", False, None)  # type: ignore[arg-type]
+NOTHING_PREPARED = Prepared(None, -1, lambda transaction_id: b"", False, None, -1, 0, _nothing_predicted)  # type: ignore[arg-type]
 
 
 class Exchange:
@@ -91,7 +98,8 @@ class Exchange:
         self.deviations: dict[str, None] = {}  # each kind once: a poll left running keeps no list
         # The most telling problem of this attempt so far: what is raised if no reply comes.
         self.problem: FrameError | None = None
-        self.expects_response = True  # the request asked has a reply (not FC08 sub 04)
+        # A reply is awaited: the request is not a broadcast, and has one (not FC08 sub 04).
+        self.expects_response = True
         self._prepared = NOTHING_PREPARED  # the last request's, to the last unit
         # Bytes that differ from the request are the reply, shown as such (a watched request's).
         self._watch: EchoWatch | None = None
@@ -136,7 +144,8 @@ class Exchange:
     def _prepare(self, unit: int, request: Request) -> Prepared:
         """A new request, or a new unit: what every attempt of it shares."""
         framer = self.framer
-        expects_response = self.expects_response = request.expects_response
+        expects_response = request.expects_response
+        self.expects_response = expects_response and unit != framer.broadcast_unit
         # The request's own bytes coming back first are an adapter's echo: with --echo always
         # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
         # pass for the reply.  Only a serial line has an echo to watch for (a map's requests
@@ -145,9 +154,15 @@ class Exchange:
         watched = expects_response and self.watch_echo and (self.echo or EchoWatch.needed(request))
         # An echo, watched for, would come before the reply: then none is predicted.
         prediction = None if watched else framer.predict(unit, request.reply_prefix)
-        prepared = self._prepared = Prepared(
-            request, unit, framer.frames(unit, request.encode()), watched, prediction
-        )
+        frame = framer.frames(unit, request.encode())
+        if prediction is None:
+            prepared = Prepared(request, unit, frame, watched, None, -1, 0, _nothing_predicted)
+        else:
+            size, pdu_at = prediction.size, prediction.pdu_at
+            prepared = Prepared(
+                request, unit, frame, False, prediction, size, pdu_at, request.predicted_decoder(pdu_at)
+            )
+        self._prepared = prepared
         framer.expect = request
         framer.expect_unit = unit
         self._reply_pdu = self._reply = None
@@ -176,14 +191,12 @@ class Exchange:
             # the byte count for what was asked.  It is taken as it is, unparsed and unjudged.
             self._expected = None
             prepared = self._prepared
-            prediction = prepared.prediction
-            if prediction is not None and len(data) == prediction.size and data.startswith(head):
-                pdu_at = prediction.pdu_at
-                pdu = data[pdu_at:]
+            if len(data) == prepared.reply_size and data.startswith(head):
+                pdu = data[prepared.pdu_at :]
                 if pdu == self._reply_pdu:
                     reply = self._reply  # the same bytes as last time: the same (immutable) response
                 else:
-                    reply = self._reply = prepared.request.decode_predicted(data, pdu_at)
+                    reply = self._reply = prepared.decode_predicted(data)
                     self._reply_pdu = pdu
                 assert reply is not None
                 if self.trace is not UNWATCHED:

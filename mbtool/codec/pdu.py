@@ -326,10 +326,11 @@ class Request:
         count = getattr(self, "reply_byte_count", None)
         return None if count is None else (bytes([self.function_code, count]), 2 + count)
 
-    def decode_predicted(self, adu: bytes, at: int) -> Response | ExceptionResponse:
-        """The reply whose PDU starts at ``at`` in ``adu``, known to begin as reply_prefix
-        predicted (the function and byte count asked for) and to be as long as it said."""
-        return self.decode_response(adu[at:])
+    def predicted_decoder(self, at: int) -> Callable[[bytes], Response | ExceptionResponse]:
+        """How a reply predicted is decoded, made once a request: ``decode(adu)``, the reply
+        whose PDU starts at ``at`` in ``adu``, known to begin as reply_prefix predicted (the
+        function and byte count asked for) and to be as long as it said."""
+        return lambda adu: self.decode_response(adu[at:])
 
     def decode_response(self, pdu: bytes) -> Response | ExceptionResponse:
         """Client side: decode a reply PDU and check that it answers this request."""

@@ -51,6 +51,12 @@ class Client:
     ) -> None:
         self.transport = transport
         self.framer = framer
+        # What the link and the framing are never changes: settled once, not asked a transaction.
+        self._serial_line = transport.serial_line  # a serial line keeps t3.5 silences
+        self._datagrams = transport.datagrams  # each read a whole datagram (UDP)
+        self._broadcast_unit = framer.broadcast_unit
+        # What may explain silence on this link, until a reply shows its framing right.
+        self._silence_hint = transport.silence_hint
         self.timeout = timeout
         self.retries = retries
         # What came back judged, sans-IO: ids, the echo (only a serial line has one to watch
@@ -105,7 +111,7 @@ class Client:
         Raises ModbusException for an exception reply, NoResponse, FrameError or
         ConnectionFailed otherwise.
         """
-        attempts = 1 if unit == self.framer.broadcast_unit else self.retries + 1
+        attempts = 1 if unit == self._broadcast_unit else self.retries + 1
         error: Exception | None = None  # the most telling failure of the attempts
         # The attempts that ended without their reply, (transaction id, when it left): a reply
         # after a retry may be one of theirs, late.
@@ -124,12 +130,10 @@ class Client:
                 finally:
                     if self.pause:
                         self.ended_at = self.clock()
-                self._settled = reply is not None
-                if unanswered is not None and reply is not None:
-                    self._time_from_attempt_answered(unanswered)
             except ConnectionClosed:
                 raise  # the link is gone: a retry would only fail to write (exit 6), hiding why
             except (NoResponse, FrameError) as failure:
+                self._settled = False  # a late reply may be on its way
                 # Its reply may still come, late, after the next attempt has left.
                 if unanswered is None:
                     unanswered = []
@@ -138,10 +142,16 @@ class Client:
                 error = worse(error, failure)
                 busy = False
                 continue
-            if reply is not None and self.transport.silence_hint:
+            if reply is None:  # broadcast, or a request with no reply: nothing came to settle
+                self._settled = False
+                return None
+            self._settled = True  # the transaction ended with its reply: nothing stale left
+            if unanswered is not None:
+                self._time_from_attempt_answered(unanswered)
+            if self._silence_hint:
                 # A reply came over this link, so its framing is right: silence from here on
                 # is the device's (it stopped answering), not the mix-up the hint suggests.
-                self.transport.silence_hint = ""
+                self._silence_hint = self.transport.silence_hint = ""
             if isinstance(reply, ExceptionResponse):
                 refusal = ModbusException(reply.function_code, reply.exception_code)
                 busy = reply.exception_code == ExceptionCode.SERVER_DEVICE_BUSY
@@ -156,12 +166,12 @@ class Client:
     # -- one attempt ------------------------------------------------------------
 
     def _transact(self, unit: int, request: Request, retry: bool) -> Response | ExceptionResponse | None:
-        exchange, transport = self.exchange, self.transport
-        serial_line = transport.serial_line
+        exchange, transport, clock = self.exchange, self.transport, self.clock
+        serial_line = self._serial_line
         if serial_line:
             self._wait_for_silence()
         if self.pause:
-            wait = self.ended_at + self.pause - self.clock()
+            wait = self.ended_at + self.pause - clock()
             if wait > 0:
                 self.sleep(wait)
         # Over MBAP a stale reply is told by its transaction id, so after a clean transaction
@@ -175,7 +185,6 @@ class Client:
                 exchange.trace.rejected(
                     stale, FrameError(f"{len(stale)} stale bytes discarded before sending", stale)
                 )
-        self._settled = False  # until this attempt ends with its reply
         adu = exchange.attempt(unit, request, fresh, retry)
         if exchange.trace is not UNWATCHED:
             # Traced before it goes: a trace that blocks (--hex on a slow terminal) delays the
@@ -186,22 +195,20 @@ class Client:
         # machine), and the round trip short.  A socket takes the whole frame within the call,
         # so the call's start is as near as the clock can tell and never later (the round trip
         # is long by the call's microseconds at most).
-        sent_at = self.clock()
+        sent_at = clock()
         transport.write(adu)
-        now = written = self.clock()
-        deadline = written + self.timeout
         if serial_line:  # the line is busy while the request is on it
+            written = clock()
             on_wire = len(adu) * self._char_time
             self._line_free_at = written + on_wire
-            deadline += on_wire
             # A UART's flush returns when the last byte has left: then, or if it returned late,
             # no sooner than the frame takes on the line from the write's start.
             if written < sent_at + on_wire:
                 sent_at = written
             else:
                 sent_at += on_wire
-        self._sent_at = sent_at
         timed_from: float | None = sent_at
+        self._sent_at = sent_at
         work = self.while_waiting
         if work is not None:
             # mbtool's own work while the reply is on its way (the poll before shown), which
@@ -209,33 +216,37 @@ class Client:
             self.while_waiting = None
             self.work_sent_at = sent_at
             work()
-            # The timeout runs from here at the earliest: the work was mbtool's time, not the
-            # device's.
-            now = done = self.clock()
-            if done + self.timeout > deadline:
-                deadline = done + self.timeout
-            # A reply that came meanwhile waited for mbtool, not mbtool for it: when its last
-            # byte came is not known, so neither is its round trip.  Asked only when the work
-            # took long enough to matter (a reply in a shorter one is timed from its request,
-            # at most that much long).
-            if done - sent_at > UNSEEN_WORK and transport.input_waiting():
-                timed_from = None
-        if unit == self.framer.broadcast_unit:
-            return None
+        now = clock()
+        # The timeout runs from the request's end on the line, and from the end of that work if
+        # later: the work was mbtool's time, not the device's.
+        deadline = (now if now > self._line_free_at else self._line_free_at) + self.timeout
+        # A reply that came during the work waited for mbtool, not mbtool for it: when its last
+        # byte came is not known, so neither is its round trip.  Asked only when the work took
+        # long enough to matter (a reply in a shorter one is timed from its request, at most
+        # that much long).
+        if work is not None and now - sent_at > UNSEEN_WORK and transport.input_waiting():
+            timed_from = None
         if not exchange.expects_response:
-            # No reply is the outcome asked for (FC08 sub 04), but a device that does not
-            # support the request still refuses it with an exception: wait for that.
-            try:
-                return self._await_reply(unit, now, deadline)
-            except ConnectionClosed:
-                raise
-            except NoResponse:
-                return None
+            return self._without_reply(unit, now, deadline)
         reply = self._await_reply(unit, now, deadline)
         # (A reply found without a read of its own is not timed either: replied_at is older.)
         replied_at = self.replied_at
         if timed_from is not None and replied_at > timed_from:
             self.rtt = replied_at - timed_from
+        return reply
+
+    def _without_reply(self, unit: int, now: float, deadline: float) -> Response | ExceptionResponse | None:
+        """A request that has no reply: to broadcast, nothing; a request whose outcome is no
+        reply (FC08 sub 04) is still refused with an exception by a device that does not
+        support it: that is waited for."""
+        if unit == self._broadcast_unit:
+            return None
+        try:
+            reply = self._await_reply(unit, now, deadline)
+        except ConnectionClosed:
+            raise
+        except NoResponse:
+            return None
         return reply
 
     def _time_from_attempt_answered(self, unanswered: list[tuple[int, float]]) -> None:
@@ -262,7 +273,7 @@ class Client:
         """Read from ``now`` (the clock's last reading) until the exchange finds the reply, or
         the deadline passes: then its most telling problem is raised, or silence."""
         exchange, framer, transport = self.exchange, self.framer, self.transport
-        serial_line, datagrams = transport.serial_line, transport.datagrams
+        serial_line, datagrams = self._serial_line, self._datagrams
         while now < deadline:
             waiting = framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
             try:
@@ -292,5 +303,5 @@ class Client:
         if reply is not None:
             return reply
         raise exchange.problem or NoResponse(
-            f"no response from unit {unit} within {self.timeout:g} s{transport.silence_hint}"
+            f"no response from unit {unit} within {self.timeout:g} s{self._silence_hint}"
         )

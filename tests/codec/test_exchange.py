@@ -333,7 +333,7 @@ def test_a_reply_as_predicted_decodes_as_the_parse_decodes_it(request_, pdu):
     """The predicted path decodes from where the PDU starts in the frame, without the checks
     the prediction made: the same response as decode_response's."""
     adu = TcpFramer().build(0x11, pdu, 1)
-    assert request_.decode_predicted(adu, 7) == request_.decode_response(pdu)
+    assert request_.predicted_decoder(7)(adu) == request_.decode_response(pdu)
 
 
 def test_tcp_a_reply_as_predicted_with_the_same_bytes_gives_the_same_response():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import sys
+from collections.abc import Callable
 
 import click
 
@@ -392,7 +393,7 @@ def _exact_framer(name: str, exact: bytes | None):
     base = FRAMERS[name]
     if exact is None:
         return base()
-    # The framer's own class with _Exact's two methods first (a class made at run time, as
+    # The framer's own class with _Exact's methods first (a class made at run time, as
     # the framing is only known then).
     framer = type("Exact", (_Exact, base), {})()
     framer.exact = exact
@@ -408,6 +409,9 @@ class _Exact(Framer):
 
     def build(self, unit: int, pdu: bytes, transaction_id: int = 0) -> bytes:
         return self.exact
+
+    def frames(self, unit: int, pdu: bytes) -> Callable[[int], bytes]:
+        return lambda transaction_id: self.exact
 
     def next_event(self):
         # The client matches replies to transaction ids it chose; these bytes carry the
