@@ -106,6 +106,9 @@ class Exchange:
         # The reply if it answers as asked (MBAP): its first bytes, for the first read after
         # the request only; its size and where its PDU starts are the prediction's.
         self._expected: bytes | None = None
+        # The framer may hold bytes: it was handed some since it was last found empty (a reply
+        # taken as predicted never reaches it).
+        self._held = False
         # The last reply to the prepared request decoded: its PDU and what it decoded to.  A poll
         # whose reply is the same bytes gets the same (immutable) response, decoded once.
         self._reply_pdu: bytes | None = None
@@ -130,9 +133,12 @@ class Exchange:
         adu = prepared.frame(tid)
         if fresh:
             framer.reset()
+            self._held = False
+        elif self._held:
+            self._held = framer.buffered > 0
         prediction = prepared.prediction
         # Bytes the framer still holds come before the reply: then it is not predicted.
-        if prediction is None or framer.buffered:
+        if prediction is None or self._held:
             self._expected = None
         else:
             self._expected = adu[: prediction.repeated] + prediction.head
@@ -203,6 +209,7 @@ class Exchange:
                     self.trace.received(data)
                 self.answered_id = self.transaction_id
                 return reply
+        self._held = True  # the framer is handed bytes, and may keep some after the reply
         framer, watch = self.framer, self._watch
         if watch is not None:
             if data:

@@ -10,6 +10,7 @@ clocks, the link and the retries.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -111,22 +112,24 @@ class Client:
         Raises ModbusException for an exception reply, NoResponse, FrameError or
         ConnectionFailed otherwise.
         """
-        attempts = 1 if unit == self._broadcast_unit else self.retries + 1
         error: Exception | None = None  # the most telling failure of the attempts
         # The attempts that ended without their reply, (transaction id, when it left): a reply
         # after a retry may be one of theirs, late.
         unanswered: list[tuple[int, float]] | None = None
         self.rtt = None
         busy = False
-        for attempt in range(attempts):
-            self.attempts = attempt + 1
+        # This attempt: the first, then each retry.  (A broadcast ends with its first: nothing
+        # can fail after the write, as nothing is waited for.)
+        attempt = 1
+        while True:
+            self.attempts = attempt
             if busy:
                 # Spec §3, exception 06: the device is busy, retry later: the next attempt goes
                 # when this one's timeout would have ended, as after silence.
                 self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
             try:
                 try:
-                    reply = self._transact(unit, request, attempt > 0)
+                    reply = self._transact(unit, request, attempt > 1)
                 finally:
                     if self.pause:
                         self.ended_at = self.clock()
@@ -140,6 +143,9 @@ class Client:
                 unanswered.append((self.exchange.transaction_id, self._sent_at))
                 # Bytes that came (a CRC error, a wrong reply) tell more than a later silence.
                 error = worse(error, failure)
+                if attempt > self.retries:
+                    break
+                attempt += 1
                 busy = False
                 continue
             if reply is None:  # broadcast, or a request with no reply: nothing came to settle
@@ -155,12 +161,12 @@ class Client:
             if isinstance(reply, ExceptionResponse):
                 refusal = ModbusException(reply.function_code, reply.exception_code)
                 busy = reply.exception_code == ExceptionCode.SERVER_DEVICE_BUSY
-                if not busy or attempt + 1 == attempts:
+                if not busy or attempt > self.retries:
                     raise refusal
                 error = worse(error, refusal)
+                attempt += 1
                 continue
             return reply
-        assert error is not None
         raise error
 
     # -- one attempt ------------------------------------------------------------
@@ -207,31 +213,36 @@ class Client:
                 sent_at = written
             else:
                 sent_at += on_wire
-        timed_from: float | None = sent_at
+        # When the reply's round trip runs from: its request, unless it is not known (inf).
+        timed_from = sent_at
         self._sent_at = sent_at
         work = self.while_waiting
-        if work is not None:
+        if work is None:
+            now = clock()
+        else:
             # mbtool's own work while the reply is on its way (the poll before shown), which
             # may block on a slow pipe.
             self.while_waiting = None
             self.work_sent_at = sent_at
             work()
-        now = clock()
-        # The timeout runs from the request's end on the line, and from the end of that work if
-        # later: the work was mbtool's time, not the device's.
-        deadline = (now if now > self._line_free_at else self._line_free_at) + self.timeout
-        # A reply that came during the work waited for mbtool, not mbtool for it: when its last
-        # byte came is not known, so neither is its round trip.  Asked only when the work took
-        # long enough to matter (a reply in a shorter one is timed from its request, at most
-        # that much long).
-        if work is not None and now - sent_at > UNSEEN_WORK and transport.input_waiting():
-            timed_from = None
+            now = clock()
+            # A reply that came meanwhile waited for mbtool, not mbtool for it: when its last
+            # byte came is not known, so neither is its round trip.  Asked only when the work
+            # took long enough to matter (a reply in a shorter one is timed from its request,
+            # at most that much long).
+            if now - sent_at > UNSEEN_WORK and transport.input_waiting():
+                timed_from = math.inf
+        # The timeout runs from now (the write, or the end of that work: mbtool's time, not the
+        # device's), or from the request's end on a serial line if that is later.
+        deadline = now + self.timeout
+        if serial_line and self._line_free_at > now:
+            deadline = self._line_free_at + self.timeout
         if not exchange.expects_response:
             return self._without_reply(unit, now, deadline)
         reply = self._await_reply(unit, now, deadline)
         # (A reply found without a read of its own is not timed either: replied_at is older.)
         replied_at = self.replied_at
-        if timed_from is not None and replied_at > timed_from:
+        if replied_at > timed_from:
             self.rtt = replied_at - timed_from
         return reply
 
