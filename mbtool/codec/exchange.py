@@ -129,13 +129,12 @@ class Exchange:
         prepared = self._prepared
         if request is not prepared.request or unit != prepared.unit:
             prepared = self._prepare(unit, request)
-        framer = self.framer
         adu = prepared.frame(tid)
         if fresh:
-            framer.reset()
+            self.framer.reset()
             self._held = False
         elif self._held:
-            self._held = framer.buffered > 0
+            self._held = self.framer.buffered > 0
         prediction = prepared.prediction
         # Bytes the framer still holds come before the reply: then it is not predicted.
         if prediction is None or self._held:

@@ -283,12 +283,15 @@ class Client:
     def _await_reply(self, unit: int, now: float, deadline: float) -> Response | ExceptionResponse:
         """Read from ``now`` (the clock's last reading) until the exchange finds the reply, or
         the deadline passes: then its most telling problem is raised, or silence."""
-        exchange, framer, transport = self.exchange, self.framer, self.transport
-        serial_line, datagrams = self._serial_line, self._datagrams
+        exchange = self.exchange
+        # (The rest is read from self where it is used: a poll's reply nearly always comes in
+        # the loop's first pass, which would not repay setting out locals.)
         while now < deadline:
-            waiting = framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
+            waiting = self.framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
             try:
-                data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
+                data = self.transport.read(
+                    min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
+                )
             except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
                 reply = exchange.close(hung_up=True)
                 if reply is not None:
@@ -298,11 +301,11 @@ class Client:
                 raise
             if data:
                 # The reply's last byte, if these bytes end it, was read now.
-                read_at = self.replied_at = self.clock()
-                if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
-                    self._line_free_at = read_at
+                self.replied_at = self.clock()
+                if self._serial_line:  # the line is busy until now: the next frame waits t3.5 from here
+                    self._line_free_at = self.replied_at
                 # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
-                reply = exchange.receive(data, datagrams)
+                reply = exchange.receive(data, self._datagrams)
             else:
                 reply = exchange.receive(data, waiting)  # a pause: it ends a frame waiting for one
             if reply is not None:
