@@ -172,6 +172,8 @@ class Client:
     # -- one attempt ------------------------------------------------------------
 
     def _transact(self, unit: int, request: Request, retry: bool) -> Response | ExceptionResponse | None:
+        """One attempt: the line's silence and --pause kept, the request sent, and its reply read
+        until the deadline; None when no reply is to come (broadcast, FC08 sub 04)."""
         exchange, transport, clock = self.exchange, self.transport, self.clock
         serial_line = self._serial_line
         if serial_line:
@@ -237,27 +239,52 @@ class Client:
         deadline = now + self.timeout
         if serial_line and self._line_free_at > now:
             deadline = self._line_free_at + self.timeout
-        if not exchange.expects_response:
-            return self._without_reply(unit, now, deadline)
-        reply = self._await_reply(unit, now, deadline)
+        if not exchange.expects_response and unit == self._broadcast_unit:
+            return None  # no device answers a broadcast
+
+        # The reply: read until the exchange finds it, or the deadline passes.  (The framer is
+        # asked from self: a poll's reply nearly always comes in the loop's first pass.)
+        reply = None
+        while now < deadline:
+            waiting = self.framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
+            try:
+                data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
+            except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
+                reply = exchange.close(hung_up=True)
+                if reply is not None:
+                    break
+                if exchange.problem is not None:
+                    raise ConnectionClosed(f"{closed}; what it sent before: {exchange.problem}") from None
+                raise
+            if data:
+                # The reply's last byte, if these bytes end it, was read now.
+                self.replied_at = clock()
+                if serial_line:  # the line is busy until now: the next frame waits t3.5 from here
+                    self._line_free_at = self.replied_at
+                # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
+                reply = exchange.receive(data, self._datagrams)
+            else:
+                reply = exchange.receive(data, waiting)  # a pause: it ends a frame waiting for one
+            if reply is not None:
+                break
+            now = clock()  # after the judging, which a flood of garbage makes long
+            if exchange.settling:
+                deadline = min(deadline, now + SETTLE_AFTER_BAD_FRAME)
+        if reply is None:
+            reply = exchange.close()
+        if reply is None:
+            # Nothing answered: the most telling problem that came, else silence -- which is
+            # what a request without a reply asked for (FC08 sub 04: a device that does not
+            # support it refuses it with an exception, which is why it was waited for).
+            if exchange.problem is not None:
+                raise exchange.problem
+            if not exchange.expects_response:
+                return None
+            raise NoResponse(f"no response from unit {unit} within {self.timeout:g} s{self._silence_hint}")
         # (A reply found without a read of its own is not timed either: replied_at is older.)
         replied_at = self.replied_at
         if replied_at > timed_from:
             self.rtt = replied_at - timed_from
-        return reply
-
-    def _without_reply(self, unit: int, now: float, deadline: float) -> Response | ExceptionResponse | None:
-        """A request that has no reply: to broadcast, nothing; a request whose outcome is no
-        reply (FC08 sub 04) is still refused with an exception by a device that does not
-        support it: that is waited for."""
-        if unit == self._broadcast_unit:
-            return None
-        try:
-            reply = self._await_reply(unit, now, deadline)
-        except ConnectionClosed:
-            raise
-        except NoResponse:
-            return None
         return reply
 
     def _time_from_attempt_answered(self, unanswered: list[tuple[int, float]]) -> None:
@@ -279,43 +306,3 @@ class Client:
         wait = self._line_free_at + self._t35 - self.clock()
         if wait > 0:
             self.sleep(wait)
-
-    def _await_reply(self, unit: int, now: float, deadline: float) -> Response | ExceptionResponse:
-        """Read from ``now`` (the clock's last reading) until the exchange finds the reply, or
-        the deadline passes: then its most telling problem is raised, or silence."""
-        exchange = self.exchange
-        # (The rest is read from self where it is used: a poll's reply nearly always comes in
-        # the loop's first pass, which would not repay setting out locals.)
-        while now < deadline:
-            waiting = self.framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
-            try:
-                data = self.transport.read(
-                    min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now
-                )
-            except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that
-                reply = exchange.close(hung_up=True)
-                if reply is not None:
-                    return reply
-                if exchange.problem is not None:
-                    raise ConnectionClosed(f"{closed}; what it sent before: {exchange.problem}") from None
-                raise
-            if data:
-                # The reply's last byte, if these bytes end it, was read now.
-                self.replied_at = self.clock()
-                if self._serial_line:  # the line is busy until now: the next frame waits t3.5 from here
-                    self._line_free_at = self.replied_at
-                # A datagram (UDP) is whole: its end ends the frame, as silence does on a line.
-                reply = exchange.receive(data, self._datagrams)
-            else:
-                reply = exchange.receive(data, waiting)  # a pause: it ends a frame waiting for one
-            if reply is not None:
-                return reply
-            now = self.clock()  # after the judging, which a flood of garbage makes long
-            if exchange.settling:
-                deadline = min(deadline, now + SETTLE_AFTER_BAD_FRAME)
-        reply = exchange.close()
-        if reply is not None:
-            return reply
-        raise exchange.problem or NoResponse(
-            f"no response from unit {unit} within {self.timeout:g} s{self._silence_hint}"
-        )
