@@ -1,0 +1,121 @@
+"""What a polling transaction costs mbtool's master side, counted in bytecodes (issue 41, point
+9): the managed link, the client, the exchange, the framer and the reply's decoding, a
+transaction as ``read --interval`` and the plant make them, with every reply's values new.
+
+Counted, not timed: a loaded machine moves a rate, not a count.  The link answers in process
+(no system call to wait on) and the clock steps a microsecond a reading, so the same
+transaction runs the same bytecodes every time; ``bench/polling_instructions.py`` counts the
+same path's instructions over TCP with callgrind."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import mbtool
+from mbtool.codec.data_access import ReadHoldingRegisters, RegistersResponse
+from mbtool.codec.mbap import TcpFramer
+from mbtool.link.client import Client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
+from mbtool.link.transport import Transport
+
+COUNT = 10
+MBTOOL = str(Path(mbtool.__file__).parent)
+
+
+class SteppingClock:
+    """A monotonic clock that moves a microsecond each time it is read."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+class Answering(Transport):
+    """A Modbus TCP device in process: each request answered at once with its transaction id and
+    registers whose values are new every reply."""
+
+    serial_line = False
+
+    def __init__(self) -> None:
+        self.step = 0
+        self.reply = b""
+
+    def write(self, adu: bytes) -> None:
+        self.step += 1
+        data = b"".join((self.step + i).to_bytes(2, "big") for i in range(COUNT))
+        self.reply = adu[:4] + (3 + 2 * COUNT).to_bytes(2, "big") + bytes([adu[6], 3, 2 * COUNT]) + data
+
+    def read(self, timeout: float) -> bytes:
+        reply, self.reply = self.reply, b""
+        return reply
+
+    def input_waiting(self) -> bool:
+        return bool(self.reply)
+
+
+def _bytecodes(run) -> int:
+    """The bytecodes of mbtool's own code that ``run()`` executes."""
+    ran = 0
+
+    def trace(frame, event, arg):
+        nonlocal ran
+        if not frame.f_code.co_filename.startswith(MBTOOL):
+            return None
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            ran += 1
+        return trace
+
+    sys.settrace(trace)
+    try:
+        run()
+    finally:
+        sys.settrace(None)
+    return ran
+
+
+def test_a_polled_transaction_with_new_values_costs_the_master_at_most_450_bytecodes():
+    """A poll's transaction, as polling makes it (its work while the reply is on its way, the
+    managed link counting it), cost 606 bytecodes of the managed link, the client, the exchange,
+    the framer and the decoding: what is the same for every poll of a request (its frame but
+    the transaction id, its reply's prediction and decoder) is now worked out once a request,
+    and what never changes for a link once a link."""
+    clock = SteppingClock()
+    link = Answering()
+    client = Client(link, TcpFramer(), clock=clock, sleep=clock.sleep)
+    stats = Stats()
+    managed = ManagedLink(lambda: _opened(client), Backoff(1.0), stats)
+    request = ReadHoldingRegisters(0, COUNT)
+    replies: list = []
+
+    def poll() -> None:
+        client.while_waiting = lambda: None  # polling's: the poll before shown
+        replies.append(managed.execute(1, request))
+
+    for _ in range(3):  # the link opened, the request's frame and prediction made
+        poll()
+    counts = sorted(_bytecodes(poll) for _ in range(20))
+    assert replies[-1] == RegistersResponse(3, tuple(range(23, 23 + COUNT)))  # new values, each read
+    assert stats.outcomes["answered"] == 23 and stats.untimed == 0  # every one counted and timed
+    assert counts[10] <= 450, f"a transaction ran {counts[10]} bytecodes of mbtool's"
+
+
+class _opened:
+    """open_link's context manager, giving the client already made."""
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+
+    def __enter__(self) -> Client:
+        return self.client
+
+    def __exit__(self, *exc) -> None:
+        return None
