@@ -51,6 +51,7 @@ class Prepared(NamedTuple):
 
     request: Request
     unit: int
+    expects_response: bool  # a reply is awaited: not a broadcast, and not FC08 sub 04
     frame: Callable[[int], bytes]  # its frame for an attempt's transaction id (Framer.frames)
     watched: bool  # an echo of it is watched for
     prediction: Prediction | None  # its reply as asked, known beforehand (never when watched)
@@ -64,7 +65,21 @@ def _nothing_predicted(adu: bytes) -> Response | ExceptionResponse:
 
 
 # Before the first attempt: no request is this one (no unit is -1).
-NOTHING_PREPARED = Prepared(None, -1, lambda transaction_id: b"", False, None, -1, 0, _nothing_predicted)  # type: ignore[arg-type]
+NOTHING_PREPARED = Prepared(
+    None,  # type: ignore[arg-type]  # no request, where one is typed: no attempt reads it
+    -1,
+    True,
+    lambda transaction_id: b"",
+    False,
+    None,
+    -1,
+    0,
+    _nothing_predicted,
+)
+
+# The requests an exchange keeps worked out (Prepared), at most: a map's requests take turns on a
+# link, a plant's devices' too; past this many it starts again.
+KNOWN_REQUESTS = 256
 
 
 class Exchange:
@@ -101,6 +116,7 @@ class Exchange:
         # A reply is awaited: the request is not a broadcast, and has one (not FC08 sub 04).
         self.expects_response = True
         self._prepared = NOTHING_PREPARED  # the last request's, to the last unit
+        self._known: dict[tuple[int, int], Prepared] = {}  # by the request's id and the unit
         # Bytes that differ from the request are the reply, shown as such (a watched request's).
         self._watch: EchoWatch | None = None
         # The reply if it answers as asked (MBAP): its first bytes, for the first read after
@@ -147,10 +163,27 @@ class Exchange:
         return adu
 
     def _prepare(self, unit: int, request: Request) -> Prepared:
-        """A new request, or a new unit: what every attempt of it shares."""
+        """Another request, or another unit, than the last attempt's: what every attempt of it
+        shares, worked out the first time it is sent."""
+        key = (id(request), unit)
+        prepared = self._known.get(key)
+        if prepared is None or prepared.request is not request:  # (an id outlives its object)
+            if len(self._known) >= KNOWN_REQUESTS:
+                self._known.clear()
+            prepared = self._known[key] = self._worked_out(unit, request)
+        self._prepared = prepared
+        framer = self.framer
+        framer.expect = request
+        framer.expect_unit = unit
+        self.expects_response = prepared.expects_response
+        self._reply_pdu = self._reply = None
+        self._watch = None
+        return prepared
+
+    def _worked_out(self, unit: int, request: Request) -> Prepared:
         framer = self.framer
         expects_response = request.expects_response
-        self.expects_response = expects_response and unit != framer.broadcast_unit
+        awaited = expects_response and unit != framer.broadcast_unit
         # The request's own bytes coming back first are an adapter's echo: with --echo always
         # (even where the reply is a copy of the request, FC05/06), else where an echo cannot
         # pass for the reply.  Only a serial line has an echo to watch for (a map's requests
@@ -161,18 +194,10 @@ class Exchange:
         prediction = None if watched else framer.predict(unit, request.reply_prefix)
         frame = framer.frames(unit, request.encode())
         if prediction is None:
-            prepared = Prepared(request, unit, frame, watched, None, -1, 0, _nothing_predicted)
-        else:
-            size, pdu_at = prediction.size, prediction.pdu_at
-            prepared = Prepared(
-                request, unit, frame, False, prediction, size, pdu_at, request.predicted_decoder(pdu_at)
-            )
-        self._prepared = prepared
-        framer.expect = request
-        framer.expect_unit = unit
-        self._reply_pdu = self._reply = None
-        self._watch = None
-        return prepared
+            return Prepared(request, unit, awaited, frame, watched, None, -1, 0, _nothing_predicted)
+        size, pdu_at = prediction.size, prediction.pdu_at
+        decode = request.predicted_decoder(pdu_at)
+        return Prepared(request, unit, awaited, frame, False, prediction, size, pdu_at, decode)
 
     # -- receiving ---------------------------------------------------------------------
 

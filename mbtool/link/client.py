@@ -167,6 +167,7 @@ class Client:
                 attempt += 1
                 continue
             return reply
+        assert error is not None  # the loop ends only after a failure, which it keeps
         raise error
 
     # -- one attempt ------------------------------------------------------------

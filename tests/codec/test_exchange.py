@@ -13,7 +13,7 @@ from mbtool.codec.ascii import AsciiFramer
 from mbtool.codec.checksum import crc_bytes
 from mbtool.codec.data_access import ReadCoils, ReadHoldingRegisters, ReadInputRegisters, WriteSingleRegister
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException
-from mbtool.codec.exchange import Exchange, Trace, worse
+from mbtool.codec.exchange import KNOWN_REQUESTS, Exchange, Trace, worse
 from mbtool.codec.mbap import TcpFramer
 from mbtool.codec.pdu import ExceptionResponse
 from mbtool.codec.raw import RawRequest
@@ -348,3 +348,18 @@ def test_tcp_a_reply_as_predicted_with_the_same_bytes_gives_the_same_response():
     started(exchange)
     changed = exchange.receive(framer.build(0x11, REPLY_PDU[:-1] + b"\x65", 3))
     assert changed is not first and changed.registers == (555, 0, 101)
+
+
+def test_requests_are_worked_out_once_each_and_a_stream_of_new_ones_is_not_kept_for_ever():
+    """A map's requests take turns: each is framed and predicted once, then numbered only.
+    Commands that send ever new requests (scan, dump) keep at most KNOWN_REQUESTS of them."""
+    exchange = tcp()
+    first, second = ReadHoldingRegisters(0, 2), ReadHoldingRegisters(10, 2)
+    frames = [exchange.attempt(0x11, request, fresh=True) for request in (first, second, first, second)]
+    assert [frame[2:] for frame in frames[:2]] == [frame[2:] for frame in frames[2:]]  # all but the ids
+    assert [int.from_bytes(frame[:2], "big") for frame in frames] == [1, 2, 3, 4]
+    reply = TcpFramer().build(0x11, bytes.fromhex("03 04 00 01 00 02"), 4)
+    assert exchange.receive(reply).registers == (1, 2)  # the prediction is second's, at unit 0x11
+    for address in range(KNOWN_REQUESTS + 10):
+        exchange.attempt(0x11, ReadHoldingRegisters(address, 1), fresh=True)
+    assert len(exchange._known) <= KNOWN_REQUESTS
