@@ -181,6 +181,8 @@ class Exchange:
         return prepared
 
     def _worked_out(self, unit: int, request: Request) -> Prepared:
+        """What every attempt of ``request`` to ``unit`` shares: its frame but the transaction
+        id, whether an echo of it is watched for, and its reply as far as it is known before."""
         framer = self.framer
         expects_response = request.expects_response
         awaited = expects_response and unit != framer.broadcast_unit
