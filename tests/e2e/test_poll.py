@@ -604,7 +604,9 @@ def test_the_statistics_table_has_a_column_for_every_outcome(tmp_path, raw_respo
     peer = raw_responder(lambda request: CLOSE)
     plant = write(
         tmp_path / "plant.toml",
-        f'[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+        # the second round 0.5 s after the first (the 10 s interval left out only waited)
+        f'[poll]\ninterval = 0.5\n[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n'
+        '[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
     )
     res = run_cli("poll", plant, "--rounds", "2")
     assert res.returncode == 3, res  # no response: the peer closed the connection
