@@ -731,7 +731,9 @@ def test_a_device_may_have_its_own_timeout_and_retries(tmp_path):
     """A slow meter on a fast bus (issue 39.24): its own timeout, 1 s, reads it where the link's
     0.15 s times out on its twin; its own retries try a dead unit three times a poll where the
     link's none try once; --stats shows what each device used."""
-    with serve("-u", "1-2", "--delay", "0.3") as device:
+    # 0.5 s a reply: 0.35 s past the link's timeout, so that a client a loaded machine wakes
+    # late from it does not find the twin's reply come meanwhile; 0.5 s inside the slow one's
+    with serve("-u", "1-2", "--delay", "0.5") as device:
         plant = write(
             tmp_path / "plant.toml",
             f'[links.gw]\ntarget = "{device.target}"\ntimeout = 0.15\n'
