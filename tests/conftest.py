@@ -127,6 +127,13 @@ def mbtool() -> Callable[..., Result]:
     return run_mbtool
 
 
+@pytest.fixture(scope="session")
+def start_up() -> float:
+    """Seconds an mbtool process takes to start and end on this machine as loaded now (the longer
+    of two ``crc`` runs): what a test bounding a run's time allows above the run's deadlines."""
+    return max(run_mbtool("crc", "01", "03").elapsed for _ in range(2))
+
+
 @pytest.fixture
 def pty_pair():
     """A bare pty pair with nothing on the device side (a silent serial line)."""

@@ -81,11 +81,6 @@ def flooder():
     peer.close()
 
 
-@pytest.fixture(scope="module")
-def start_up() -> float:
-    return max(run_mbtool("crc", "01", "03").elapsed for _ in range(2))
-
-
 @pytest.mark.parametrize(
     "scheme, options",
     [("tcp", ()), ("tcp", ("--framer", "rtu")), ("socket", ())],
