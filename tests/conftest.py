@@ -112,14 +112,22 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest.
-    The ``long`` ones go first: xdist hands tests out in this order, and one that waits half a
-    minute started last would hold the whole run up by as much."""
+    The ``long`` ones go first, one a worker: xdist hands tests out in this order, and one that
+    takes half a minute started last would hold the whole run up by as much."""
     for item in items:
         if item.path.is_relative_to(E2E_DIR):
             item.add_marker(pytest.mark.e2e)
-    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+    long = [item for item in items if item.get_closest_marker("long")]
+    items[:] = [item for item in items if not item.get_closest_marker("long")]
+    # xdist's load scheduling first gives each worker a run of consecutive tests, a quarter of
+    # its share (at least 2): a long test at the head of each run, so that no worker gets two
+    # of them one after the other (three at the head of one run held it 115 s).
+    workers = config.workerinput["workercount"] if hasattr(config, "workerinput") else 1
+    run = max(2, len(items) // workers // 4)
+    for k, item in enumerate(long):
+        items.insert(min(k * run, len(items)), item)
 
 
 @pytest.fixture
