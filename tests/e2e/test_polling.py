@@ -541,9 +541,10 @@ def test_a_polls_time_is_when_its_request_went_out_not_before_its_pause(mbtool, 
     )
     stamps = [stamp(line["time"]).timestamp() for line in _json_polls(res)]
     assert len(stamps) == len(arrived) == 3, res
-    # The responder's thread sees a request a few tens of ms late on a loaded machine; a stamp
-    # taken before the pause would be half a second early.
-    assert all(-0.002 <= seen - sent <= 0.25 for sent, seen in zip(stamps, arrived, strict=True)), (
+    # The responder's thread sees a request a few tens of ms late on a loaded machine, and mbtool,
+    # which reads the clock as its write returns, may lose the processor in between (seen 2.4 ms
+    # after the request came); a stamp taken before the pause would be half a second early.
+    assert all(-0.25 <= seen - sent <= 0.25 for sent, seen in zip(stamps, arrived, strict=True)), (
         stamps,
         arrived,
     )
