@@ -505,7 +505,10 @@ def test_pause_spaces_every_poll_the_first_two_as_well_as_their_stamps_show(mbto
     assert summary(res)["replies"] == 4, res
     stamps = [stamp(line["time"]) for line in _json_polls(res)]
     gaps = [(b - a).total_seconds() for a, b in itertools.pairwise(stamps)]
-    assert all(gap >= 0.35 - 0.001 for gap in gaps), gaps  # stamps are cut to the millisecond
+    # A stamp taken before the pause would make the first gap a round trip (a millisecond).  A
+    # stamp is read as its write returns, which a loaded machine may delay one more than the next
+    # (2.4 ms seen): 0.1 s of room, and stamps are cut to the millisecond.
+    assert all(gap >= 0.35 - 0.1 for gap in gaps), gaps
 
 
 def arrivals_noted(raw_responder, clock) -> tuple:
