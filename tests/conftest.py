@@ -70,7 +70,7 @@ def rewrite_test_modules_once(config: pytest.Config) -> None:
         module
         for path in paths
         for module in (path.rglob("*.py") if path.is_dir() else [path])
-        if module.name.startswith("test_") or module.name == "conftest.py"
+        if (module.name.startswith("test_") or module.name == "conftest.py") and module.is_file()
     }
     for module in sorted(modules):
         cached = get_cache_dir(module) / (module.name[:-3] + PYC_TAIL)
