@@ -50,9 +50,10 @@ def rewrite_test_modules_once(config: pytest.Config) -> None:
     """pytest rewrites the asserts of each test module it imports and keeps the result in the
     module's __pycache__, unless bytecode is not to be written (PYTHONDONTWRITEBYTECODE, as this
     machine and CI set): then every worker rewrote every module again, a worker's collection
-    5.8 s of CPU where it is 1.7 s with them written: 40 s of a run of ten workers.  Written here once, the workers read it: pytest reads a rewritten module
-    it finds whatever that setting.  This uses pytest's own functions for it (private, so a
-    pytest without them is left to rewrite in each worker as before)."""
+    5.8 s of CPU where it is 1.7 s with them written: 40 s of a run of ten workers.  Written
+    here once, the workers read them: pytest reads a rewritten module it finds whatever that
+    setting.  This uses pytest's own functions for it (private, so a pytest without them is
+    left to rewrite in each worker as before)."""
     try:
         from _pytest.assertion.rewrite import (
             PYC_TAIL,
@@ -123,7 +124,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items[:] = [item for item in items if not item.get_closest_marker("long")]
     # xdist's load scheduling first gives each worker a run of consecutive tests, a quarter of
     # its share (at least 2): a long test at the head of each run, so that no worker gets two
-    # of them one after the other (three at the head of one run held it 115 s).
+    # of them one after the other (the three of them at the head of one run: some 115 s).
     workers = config.workerinput["workercount"] if hasattr(config, "workerinput") else 1
     run = max(2, len(items) // workers // 4)
     for k, item in enumerate(long):
