@@ -15,16 +15,18 @@ Every wait has a deadline; nothing here can hang the suite.
 from __future__ import annotations
 
 import compileall
+import contextlib
 import os
 import shutil
 import socket
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from helpers.devices import start_device
 from helpers.ptys import PtyPair
-from helpers.run import REPO_ROOT, Result, run_mbtool
+from helpers.run import REPO_ROOT, TESTS_DIR, Result, run_mbtool
 from helpers.served import serve
 from helpers.sockets import RawResponder, SilentServer
 from peers.certs import make_pki
@@ -36,9 +38,56 @@ def pytest_configure(config: pytest.Config) -> None:
     """Once a run, before the workers start: mbtool's bytecode, so that the ~430 mbtool
     processes the tests start read it rather than each compiling mbtool from source (0.35 s
     a process, where PYTHONDONTWRITEBYTECODE is set or the checkout is fresh: 20 s of a
-    run).  It goes where Python itself would put it, mbtool/__pycache__ (ignored by git)."""
+    run).  It goes where Python itself would put it, mbtool/__pycache__ (ignored by git).
+    And the test modules as pytest rewrites their asserts, when workers are to import them."""
     if not hasattr(config, "workerinput"):  # the controller (or a run without workers)
         compileall.compile_dir(REPO_ROOT / "mbtool", quiet=1)
+        if getattr(config.option, "numprocesses", None):
+            rewrite_test_modules_once(config)
+
+
+def rewrite_test_modules_once(config: pytest.Config) -> None:
+    """pytest rewrites the asserts of each test module it imports and keeps the result in the
+    module's __pycache__, unless bytecode is not to be written (PYTHONDONTWRITEBYTECODE, as this
+    machine and CI set): then every worker rewrote every module again, a worker's collection
+    5.8 s of CPU where it is 1.7 s with them written: 40 s of a run of ten workers.  Written
+    here once, the workers read them: pytest reads a rewritten module it finds whatever that
+    setting.  This uses pytest's own functions for it (private, so a pytest without them is
+    left to rewrite in each worker as before)."""
+    try:
+        from _pytest.assertion.rewrite import (
+            PYC_TAIL,
+            _read_pyc,
+            _rewrite_test,
+            _write_pyc,
+            assertstate_key,
+            get_cache_dir,
+        )
+    except ImportError:
+        return
+    state = config.stash[assertstate_key]
+    paths = [Path(arg.split("::")[0]).resolve() for arg in config.args] or [TESTS_DIR]
+    modules = {
+        module
+        for path in paths
+        for module in (path.rglob("*.py") if path.is_dir() else [path])
+        if (module.name.startswith("test_") or module.name == "conftest.py") and module.is_file()
+    }
+    for module in sorted(modules):
+        cached = get_cache_dir(module) / (module.name[:-3] + PYC_TAIL)
+        if _read_pyc(module, cached) is None:  # none yet, or of an older source
+            source, code = _rewrite_test(module, config)
+            with contextlib.suppress(OSError):  # a read-only checkout: the workers rewrite
+                cached.parent.mkdir(exist_ok=True)
+                _write_pyc(state, code, source, cached)
+    # pytest rewrites a plugin's whole distribution too: hypothesis (its pytest11 entry point),
+    # 83 modules, 1 s of each worker.  Imported here with bytecode to be written, pytest's
+    # import hook writes them as it would without PYTHONDONTWRITEBYTECODE.
+    writes, sys.dont_write_bytecode = sys.dont_write_bytecode, False
+    try:
+        import hypothesis  # noqa: F401, PLC0415 - for the rewritten modules it leaves behind
+    finally:
+        sys.dont_write_bytecode = writes
 
 
 # Most tests wait on sockets, pseudo-terminals and deadlines rather than compute, so the suite
@@ -64,19 +113,34 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest.
-    The ``long`` ones go first: xdist hands tests out in this order, and one that waits half a
-    minute started last would hold the whole run up by as much."""
+    The ``long`` ones go first, one a worker: xdist hands tests out in this order, and one that
+    takes half a minute started last would hold the whole run up by as much."""
     for item in items:
         if item.path.is_relative_to(E2E_DIR):
             item.add_marker(pytest.mark.e2e)
-    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+    long = [item for item in items if item.get_closest_marker("long")]
+    items[:] = [item for item in items if not item.get_closest_marker("long")]
+    # xdist's load scheduling first gives each worker a run of consecutive tests, a quarter of
+    # its share (at least 2): a long test at the head of each run, so that no worker gets two
+    # of them one after the other (the three of them at the head of one run: some 115 s).
+    workers = config.workerinput["workercount"] if hasattr(config, "workerinput") else 1
+    run = max(2, len(items) // workers // 4)
+    for k, item in enumerate(long):
+        items.insert(min(k * run, len(items)), item)
 
 
 @pytest.fixture
 def mbtool() -> Callable[..., Result]:
     return run_mbtool
+
+
+@pytest.fixture(scope="session")
+def start_up() -> float:
+    """Seconds an mbtool process takes to start and end on this machine as loaded now (the longer
+    of two ``crc`` runs): what a test bounding a run's time allows above the run's deadlines."""
+    return max(run_mbtool("crc", "01", "03").elapsed for _ in range(2))
 
 
 @pytest.fixture

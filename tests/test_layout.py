@@ -108,6 +108,7 @@ def test_an_import_inside_a_function_is_refused(copy):
     assert res.returncode == 1 and "PLC0415" in res.stdout, res.stdout + res.stderr
 
 
+@pytest.mark.long  # 4 s of CPU, 10 s on a busy machine, and collected last: started first instead
 def test_mypy_passes_on_mbtool(tmp_path_factory):
     # Issue 41 point 7: the annotations hold, and the records' constructors are checked
     # (record's dataclass_transform).  The cache is this run's own: a stale one shared

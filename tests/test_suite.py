@@ -7,8 +7,11 @@ core; ten whatever the cores crowded a 1-core container and left a 16-core machi
 from __future__ import annotations
 
 import os
+import sys
 import tomllib
+from types import SimpleNamespace
 
+import conftest
 import pytest
 from helpers.run import REPO_ROOT
 
@@ -31,3 +34,41 @@ def test_the_workers_are_five_a_core_at_most_sixteen(pytestconfig, monkeypatch, 
 def test_xdist_own_variable_still_says_how_many(pytestconfig, monkeypatch):
     monkeypatch.setenv("PYTEST_XDIST_AUTO_NUM_WORKERS", "3")
     assert pytestconfig.hook.pytest_xdist_auto_num_workers(config=pytestconfig) == 3
+
+
+def test_the_test_modules_are_rewritten_once_before_the_workers_start(pytestconfig, tmp_path, monkeypatch):
+    """With bytecode not to be written (PYTHONDONTWRITEBYTECODE, as CI sets), pytest leaves each
+    worker to rewrite every test module's asserts itself; the run writes them once instead, where
+    pytest reads them whatever that setting."""
+    from _pytest.assertion.rewrite import PYC_TAIL, _read_pyc, get_cache_dir
+
+    module = tmp_path / "test_sample.py"
+    module.write_text("def test_sum():\n    assert 1 + 1 == 3\n")
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    monkeypatch.setattr(pytestconfig, "args", [str(tmp_path)])
+    conftest.rewrite_test_modules_once(pytestconfig)
+    code = _read_pyc(module, get_cache_dir(module) / (module.name[:-3] + PYC_TAIL))
+    assert code is not None, "no rewritten module written"
+    assert "@pytest_ar" in code.co_names  # pytest's rewritten asserts, not a plain compile
+    assert sys.dont_write_bytecode
+
+
+class _Test:
+    """What the ordering hook asks of a collected test: its path and its markers."""
+
+    def __init__(self, name: str, long: bool = False) -> None:
+        self.name, self.path, self.long = name, REPO_ROOT / "tests" / "test_x.py", long
+
+    def get_closest_marker(self, name: str):
+        return name == "long" and self.long or None
+
+
+def test_each_long_test_heads_another_workers_first_run_of_tests():
+    """xdist's load scheduling first hands each worker a run of consecutive tests (a quarter of
+    its share); long tests all at the front went to one worker, one after the other."""
+    items = [_Test(f"t{n}") for n in range(400)] + [_Test(f"long{n}", long=True) for n in range(3)]
+    worker = SimpleNamespace(workerinput={"workerid": "gw0", "workercount": 10})
+    conftest.pytest_collection_modifyitems(worker, items)
+    run = 10  # the run xdist gives each of 10 workers first: 403 tests // 10 // 4
+    assert [n for n, item in enumerate(items) if item.long] == [0, run, 2 * run]
+    assert [item.name for item in items if not item.long] == [f"t{n}" for n in range(400)]

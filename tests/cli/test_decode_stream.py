@@ -68,6 +68,7 @@ def test_bad_frames_in_json_are_records_with_an_error():
     assert res.stderr.splitlines()[0] == "mbtool: line 2: not a frame, passed over: zz is not hex"
 
 
+@pytest.mark.long  # 8 s of mbtool's CPU, 45 s on a busy machine: started first (tests/conftest.py)
 def test_100000_lines_with_garbage_every_valid_frame_decoded():
     rnd = random.Random(5)
     lines, valid, bad = [], 0, 0

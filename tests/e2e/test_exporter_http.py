@@ -294,7 +294,9 @@ def test_a_request_head_must_come_whole_within_its_deadline(monkeypatch):
                 with contextlib.suppress(ConnectionResetError):
                     closed = sock.recv(100) == b""
             took = time.monotonic() - began
-        assert closed and took < 2.0, f"a trickled head was held {took:.2f} s past a 0.5 s deadline"
+        # A head held past its deadline is still open when the trickle gives up at 3 s: any
+        # close before that is the deadline's, however late a loaded machine runs it.
+        assert closed and took < 3.0, f"a trickled head was held {took:.2f} s past a 0.5 s deadline"
         raw, _ = exchange(where, b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
         assert raw.startswith(b"HTTP/1.1 200 "), raw
 

@@ -2,7 +2,8 @@
 
 The flooder answers the first bytes of each connection with noise, as fast as the socket
 takes it, until the test stops it.  Every command must end within its deadlines:
-timeout × (retries + 1) a transaction, plus 0.5 s and Python's start-up.  A peer that
+timeout × (retries + 1) a transaction, plus Python's start-up and LATE (a loaded machine's
+margin; a command that let the flood hold it would run until the test's timeout).  A peer that
 babbles endlessly after any request is the resync's (codec/rtu.py) worst case: it too ends at
 the deadline with one error.
 """
@@ -25,7 +26,10 @@ pytestmark = pytest.mark.timeout(60)
 NOISE = random.Random(131).randbytes(1 << 20)
 TIMEOUT = 0.5
 RETRIES = 2
-RATE_FLOOR = 16  # KiB/ms the flood must reach, unless it fills mbtool's socket (faster than read)
+# Bytes the flood must have sent, unless it filled mbtool's socket (came faster than read): far
+# more than the framer holds (64 KiB), however slowly a loaded machine runs the flooder.
+FLOOD_FLOOR = 4 << 20
+LATE = 2.0  # seconds past the deadlines a loaded machine may take to end a process
 
 
 class Flooder:
@@ -36,7 +40,6 @@ class Flooder:
         self.port = self.server.getsockname()[1]
         self.stop = threading.Event()
         self.sent = 0
-        self.busy = 0.0  # seconds spent flooding, over all connections
         self.saturated = False  # the flood filled mbtool's socket: it came faster than read
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -53,7 +56,6 @@ class Flooder:
                 return
             conn.recv(512)  # the first request: from now on, noise
             conn.setblocking(False)
-            start = time.monotonic()
             try:
                 while not self.stop.is_set():
                     try:
@@ -65,12 +67,6 @@ class Flooder:
                         select.select([], [conn], [], 0.2)
             except OSError:  # mbtool closed the link
                 pass
-            self.busy += time.monotonic() - start
-
-    @property
-    def rate(self) -> float:
-        """KiB per millisecond while flooding."""
-        return self.sent / 1024 / max(self.busy * 1000, 1e-9)
 
     def close(self) -> None:
         self.stop.set()
@@ -83,11 +79,6 @@ def flooder():
     peer = Flooder()
     yield peer
     peer.close()
-
-
-@pytest.fixture(scope="module")
-def start_up() -> float:
-    return max(run_mbtool("crc", "01", "03").elapsed for _ in range(2))
 
 
 @pytest.mark.parametrize(
@@ -103,9 +94,9 @@ def test_a_read_under_a_garbage_flood_ends_on_time(flooder, start_up, scheme, op
     )  # fmt: skip
     assert res.returncode == 5, str(res)
     assert "garbage" in res.stderr or "error" in res.stderr, str(res)
-    assert res.elapsed <= TIMEOUT * (RETRIES + 1) + 0.5 + start_up, res.elapsed
-    # Either way the flood was as fast as mbtool could take it, or faster than the floor.
-    assert flooder.saturated or flooder.rate >= RATE_FLOOR, f"the flood ran at only {flooder.rate:.1f} KiB/ms"
+    assert res.elapsed <= TIMEOUT * (RETRIES + 1) + LATE + start_up, res.elapsed
+    # Either way the flood was as fast as mbtool could take it, or more than the floor.
+    assert flooder.saturated or flooder.sent >= FLOOD_FLOOR, f"the flood sent only {flooder.sent} bytes"
 
 
 def test_polling_under_a_garbage_flood_ends_on_time(flooder, start_up):
@@ -116,13 +107,13 @@ def test_polling_under_a_garbage_flood_ends_on_time(flooder, start_up):
     )  # fmt: skip
     assert res.returncode == 5, str(res)
     assert "polls 2, replies 0" in res.stderr, str(res)
-    assert res.elapsed <= polls * TIMEOUT * (RETRIES + 1) + 0.5 + start_up, res.elapsed
+    assert res.elapsed <= polls * TIMEOUT * (RETRIES + 1) + LATE + start_up, res.elapsed
 
 
 def test_scan_under_a_garbage_flood_ends_on_time(flooder, start_up):
     res = run_mbtool("scan", "-p", f"tcp://127.0.0.1:{flooder.port}", "--units", "1-3", "-t", str(TIMEOUT))
     assert res.returncode == 5, str(res)  # only garbled answers came
-    assert res.elapsed <= 3 * TIMEOUT + 0.5 + start_up, res.elapsed
+    assert res.elapsed <= 3 * TIMEOUT + LATE + start_up, res.elapsed
 
 
 class Babbler:
@@ -173,5 +164,5 @@ def test_endless_garbage_ends_at_the_deadline_with_one_error(babbler):
     elapsed = time.monotonic() - start
     assert res.returncode in (3, 5), str(res)
     assert_one_error_line(res, res.returncode)
-    assert elapsed < 0.5 + 1.5, f"took {elapsed:.2f} s with -t 0.5\n{res}"
+    assert elapsed < 0.5 + LATE + 1.5, f"took {elapsed:.2f} s with -t 0.5\n{res}"
     assert babbler.sent > 64 * 1024, "the peer should have sent more than the framer holds"

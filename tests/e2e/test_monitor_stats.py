@@ -23,12 +23,13 @@ pytestmark = pytest.mark.timeout(60)
 
 BAUD = 19200  # 8N1: a character is 10 bits, t3.5 is 1.82 ms
 CHAR = 10 / BAUD
-PAUSE = 0.3  # between exchanges: far above --silence and t3.5 even on a loaded machine
+PAUSE = 0.5  # between exchanges: far above --silence and t3.5 even on a loaded machine
 SILENCE = "0.1"  # ends the damaged reply (its length cannot be trusted)
 # A request is unanswered after this: longer than a turnaround and the silence that ends a
-# damaged reply, so only the request nobody answers counts.
-RESPONSE_TIMEOUT = 0.4
-TURNAROUND = 0.15  # a unit's time to answer: two reads apart even on a loaded machine
+# damaged reply, so only the request nobody answers counts; 0.4 s past a turnaround, for a
+# monitor (or this test's writer) a loaded machine runs late.
+RESPONSE_TIMEOUT = 0.6
+TURNAROUND = 0.2  # a unit's time to answer: two reads apart even on a loaded machine
 
 READ_1 = rtu(bytes.fromhex("01 03 00 00 00 01"))
 REPLY_1 = rtu(bytes.fromhex("01 03 02 00 2A"))

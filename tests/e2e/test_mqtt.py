@@ -23,7 +23,7 @@ import pytest
 from helpers.devices import start_device
 from helpers.mqtt import plant_on_broker, run_poll
 from helpers.ptys import PTY_SERIAL_OPTS, PtyPair
-from helpers.run import run_mbtool, start_mbtool
+from helpers.run import run_cli, run_mbtool, start_mbtool
 from helpers.served import serve
 from helpers.sockets import free_port
 from peers.broker import Broker, Subscriber, mosquitto, needs_mosquitto
@@ -137,7 +137,7 @@ def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sig
         plant.kill_device()
         assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"offline"], 5)
         took = time.monotonic() - killed
-        assert took < 3, f"offline {took:.1f} s after the device died"
+        assert took < 4, f"offline {took:.1f} s after the device died"  # offline_after 1, a busy machine
         plant.device_back()
         assert subscriber.wait_for(lambda m: subscriber.on(status)[-1:] == [b"online"], 15)
         plant.poll.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will
@@ -174,7 +174,7 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
     ):
         plant = tmp_path / "plant.toml"
         plant.write_text(f'[links.l]\ntarget = "sim://"\n[devices.d]\nlink = "l"\nread = ["40001"]\n[mqtt]\n{table}\n')
-        res = run_mbtool("poll", str(plant), "--once")
+        res = run_cli("poll", str(plant), "--once")  # a usage error: no process of its own needed
         assert res.returncode == 2, (table, res.stderr)
         assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (table, res.stderr)
     # --mqtt gives the url the table lacks; a broker that is not there holds nothing up.
@@ -445,7 +445,9 @@ def test_the_broker_away_30_s_holds_no_poll_up_its_spool_delivers_in_order_and_c
         # machine would move a mean), and on average the interval asked: no poll was held up.
         assert statistics.median(away) == pytest.approx(statistics.median(before), abs=0.01), (before, away)
         assert statistics.mean(away) == pytest.approx(INTERVAL, abs=0.01), away
-        assert max(away) < 3.5 * INTERVAL, "polling slowed while the broker was away"
+        # and none held up by the broker's absence (a reconnect in the way, a publish waiting):
+        # ten intervals, more than a loaded machine delays one poll
+        assert max(away) < 10 * INTERVAL, ("polling slowed while the broker was away", max(away))
 
     polls, stats, received, spool = runs["whole"]
     assert stats["dropped"] == 0 and stats["spool_dropped"] == 0, stats
@@ -671,7 +673,7 @@ def test_read_mqtt_without_polling_or_with_a_bad_name_is_one_line_and_exit_2():
         (["--mqtt", "http://x", "--interval", "1"], "is not mqtt://"),
         (["--name", "pump", "--interval", "1"], "--name names the device on the broker: it goes with --mqtt"),
     ):
-        res = run_mbtool("read", "40001", "-p", "tcp://127.0.0.1:1", *args)
+        res = run_cli("read", "40001", "-p", "tcp://127.0.0.1:1", *args)  # usage errors: in this process
         assert res.returncode == 2, (args, res.stderr)
         assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
 

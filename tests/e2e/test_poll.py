@@ -438,7 +438,7 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
         "-o",
         "json",
         "--duration",
-        "4",
+        "2",  # four rounds, each file read tens of thousands of times as it is replaced
         stdout=subprocess.DEVNULL,
     )
     reads, seen, stop = [], set(), threading.Event()
@@ -604,7 +604,9 @@ def test_the_statistics_table_has_a_column_for_every_outcome(tmp_path, raw_respo
     peer = raw_responder(lambda request: CLOSE)
     plant = write(
         tmp_path / "plant.toml",
-        f'[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
+        # the second round 0.5 s after the first (the 10 s interval left out only waited)
+        f'[poll]\ninterval = 0.5\n[links.a]\ntarget = "{peer.tcp_target}"\ntimeout = 0.5\n'
+        '[devices.d]\nlink = "a"\nread = ["40001 1"]\n',
     )
     res = run_cli("poll", plant, "--rounds", "2")
     assert res.returncode == 3, res  # no response: the peer closed the connection
@@ -729,7 +731,9 @@ def test_a_device_may_have_its_own_timeout_and_retries(tmp_path):
     """A slow meter on a fast bus (issue 39.24): its own timeout, 1 s, reads it where the link's
     0.15 s times out on its twin; its own retries try a dead unit three times a poll where the
     link's none try once; --stats shows what each device used."""
-    with serve("-u", "1-2", "--delay", "0.3") as device:
+    # 0.5 s a reply: 0.35 s past the link's timeout, so that a client a loaded machine wakes
+    # late from it does not find the twin's reply come meanwhile; 0.5 s inside the slow one's
+    with serve("-u", "1-2", "--delay", "0.5") as device:
         plant = write(
             tmp_path / "plant.toml",
             f'[links.gw]\ntarget = "{device.target}"\ntimeout = 0.15\n'

@@ -19,6 +19,7 @@ pytestmark = [pytest.mark.e2e, pytest.mark.timeout(60)]
 
 REPLY = 0.2  # serve --delay: each transaction's time
 FAST = 0.6
+LATE = 0.5  # how late a loaded machine (other runs on the cores) may make a poll
 
 
 def test_a_fast_group_keeps_its_pace_while_a_slow_groups_long_poll_is_read(tmp_path):
@@ -44,11 +45,14 @@ def test_a_fast_group_keeps_its_pace_while_a_slow_groups_long_poll_is_read(tmp_p
     stamps = [_seconds(r["time"]) for r in fast]
     gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
     # a whole slow poll (1.6 s) in the way would make a gap of 2 s; one transaction, 0.8 s at most
-    assert max(gaps) < FAST + REPLY + 0.15, gaps
-    assert abs(statistics.mean(gaps) - FAST) < 0.05, gaps
+    assert max(gaps) < FAST + REPLY + LATE, gaps
+    # The pace, and no drift over the run: on average the interval, but for the last poll as late
+    # as a busy machine may make one.
+    assert statistics.median(gaps) == pytest.approx(FAST, abs=0.05), gaps
+    assert abs(statistics.mean(gaps) - FAST) < 0.05 + LATE / len(gaps), gaps
     stats = json.loads(result.stderr.splitlines()[0])["devices"]["m"]["groups"]
     assert stats["fast"]["interval_seconds"] == FAST and stats["fast"]["polls"] == len(fast)
-    assert abs(stats["fast"]["achieved_seconds"] - FAST) < 0.05
+    assert abs(stats["fast"]["achieved_seconds"] - FAST) < 0.05 + LATE / len(gaps), (stats, gaps)
 
 
 def _seconds(stamp: str) -> float:

@@ -370,7 +370,9 @@ def test_a_late_reply_is_credited_to_its_unit(raw_responder):
     def reply(request: bytes) -> bytes | None:
         if request[6] != 2:
             return None  # only unit 2 is there
-        time.sleep(0.25)  # longer than the scan's timeout: the reply comes during a later probe
+        # Longer than the scan's timeout: the reply comes during a later probe, 0.35 s past unit
+        # 2's (a loaded machine may wake the scan late) and as long before unit 10's ends.
+        time.sleep(0.45)
         return _mbap_reply(request)
 
     srv = raw_responder(reply)

@@ -79,7 +79,7 @@ def test_retries_recover_what_a_lossy_path_drops_and_nothing_is_mismatched(udp_d
             "poll",
             str(tmp_path / "plant.toml"),
             "--rounds",
-            "40",
+            "20",  # 40 polls, and every fifth datagram each way dropped, every seventh swapped or late
             "-o",
             "json",
             "--stats",
@@ -92,11 +92,11 @@ def test_retries_recover_what_a_lossy_path_drops_and_nothing_is_mismatched(udp_d
     # the polls; a link that cannot keep up at 0.01 s says so once, an "overrun" event (issue 44)
     records = [r for r in map(json.loads, res.stdout.splitlines()) if r.get("event") != "overrun"]
     expected = {"a": HOLDING[0:5], "b": HOLDING[10:13]}
-    assert len(records) == 80
+    assert len(records) == 40
     for record in records:
         assert [point["value"] for point in record["points"]] == expected[record["device"]], record
     stats = json.loads(res.stderr.splitlines()[-2])["links"]["lossy"]
-    assert stats["transactions"] == stats["answered"] == 80
+    assert stats["transactions"] == stats["answered"] == 40
     assert stats["retries_recovered"] > 0
     assert sum(proxy.dropped.values()) > 0 and sum(proxy.swapped.values()) + sum(proxy.late.values()) > 0
 

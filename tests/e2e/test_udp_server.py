@@ -54,7 +54,7 @@ def test_pymodbus_through_a_lossy_path_recovers_with_retries_and_nothing_is_mism
         proxy = LossyUdpProxy(server.port)
         client = pymodbus_client(proxy.port, scheme, retries=10, timeout=0.3)
         try:
-            for turn in range(40):
+            for turn in range(20):  # every fifth datagram each way dropped, every seventh swapped or late
                 unit, address, count = (1, 0, 5) if turn % 2 == 0 else (2, 10, 3)
                 reply = client.read_holding_registers(address, count=count, device_id=unit)
                 assert not reply.isError(), (turn, reply)

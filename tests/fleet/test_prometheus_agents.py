@@ -66,7 +66,9 @@ def test_two_agents_remote_write_both_shards_to_a_central_server(tmp_path):
                     tmp_path, f"agent{k}",
                     "global: {scrape_interval: 1s}\nscrape_configs:\n  - job_name: mbtool\n    honor_labels: true\n"
                     f"    static_configs: [{{targets: ['{target}']}}]\n"
-                    f"remote_write:\n  - url: http://127.0.0.1:{central_port}/api/v1/write\n",
+                    f"remote_write:\n  - url: http://127.0.0.1:{central_port}/api/v1/write\n"
+                    # sent within 0.2 s of the scrape, not the 5 s a batch may wait by default
+                    "    queue_config: {batch_send_deadline: 200ms}\n",
                     "--enable-feature=agent", f"--storage.agent.path={tmp_path / f'a{k}'}",
                 )  # fmt: skip
                 procs.append(agent)
