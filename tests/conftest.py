@@ -73,13 +73,16 @@ def rewrite_test_modules_once(config: pytest.Config) -> None:
         for module in (path.rglob("*.py") if path.is_dir() else [path])
         if (module.name.startswith("test_") or module.name == "conftest.py") and module.is_file()
     }
-    for module in sorted(modules):
-        cached = get_cache_dir(module) / (module.name[:-3] + PYC_TAIL)
-        if _read_pyc(module, cached) is None:  # none yet, or of an older source
-            source, code = _rewrite_test(module, config)
-            with contextlib.suppress(OSError):  # a read-only checkout: the workers rewrite
-                cached.parent.mkdir(exist_ok=True)
-                _write_pyc(state, code, source, cached)
+    try:
+        for module in sorted(modules):
+            cached = get_cache_dir(module) / (module.name[:-3] + PYC_TAIL)
+            if _read_pyc(module, cached) is None:  # none yet, or of an older source
+                source, code = _rewrite_test(module, config)
+                with contextlib.suppress(OSError):  # a read-only checkout: the workers rewrite
+                    cached.parent.mkdir(exist_ok=True)
+                    _write_pyc(state, code, source, cached)
+    except Exception:  # noqa: BLE001 - private functions a newer pytest may have changed (or a
+        return  # module that does not compile, which its worker reports): the workers rewrite
     # pytest rewrites a plugin's whole distribution too: hypothesis (its pytest11 entry point),
     # 83 modules, 1 s of each worker.  Imported here with bytecode to be written, pytest's
     # import hook writes them as it would without PYTHONDONTWRITEBYTECODE.
