@@ -30,6 +30,10 @@ class Result:
     # Where each value starts; the constructor's None: one a value from address (so never None).
     addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
+    # The result this one is a poll of (``again``): the polls of one read share all but their
+    # values and registers, so a sink keeps what it made of that for the next poll of the same
+    # (cli/sinks/json.py).  None: a result of its own.
+    shared: Result | None = field(default=None, compare=False, init=False)
 
     def __init__(
         self,
@@ -61,15 +65,13 @@ class Result:
         # One value a register or a bit, from ``address`` on, unless the command says otherwise.
         fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
         fields["texts"] = texts
+        fields["shared"] = None
 
     def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
         """This read's result with a later poll's values and registers: the polls of one read
         share everything else, the very same objects (copied, not worked out again a poll)."""
-        again = Result.__new__(Result)
-        fields = again.__dict__
-        fields.update(self.__dict__)
-        fields["values"] = values
-        fields["registers"] = registers
+        again = _new(Result)
+        again.__dict__.update(self.__dict__, values=values, registers=registers, shared=self)
         return again
 
     @property
@@ -79,6 +81,9 @@ class Result:
         from mbtool.codec.tables import TABLE_OF_READ  # noqa: PLC0415 - -o influx and prom only
 
         return TABLE_OF_READ.get(self.function, self.name)
+
+
+_new = object.__new__  # a record made without its __init__: again's fields are copied
 
 
 def value_text(value: object) -> str:

@@ -10,6 +10,7 @@ from functools import partial
 import pytest
 from helpers.checks import bytecodes
 
+from mbtool.cli import stamps
 from mbtool.cli.stamps import local_time
 
 # Central European time, written as a POSIX TZ string so that no tz database is needed:
@@ -19,6 +20,9 @@ CET = "CET-1CEST,M3.5.0,M10.5.0/3"
 
 @pytest.fixture
 def central_europe(monkeypatch):
+    # A stamp's second is kept with its text, which a change of TZ in the process (a test's
+    # only) leaves stale: each side of the change starts afresh.
+    monkeypatch.setattr(stamps, "_second", None)
     monkeypatch.setenv("TZ", CET)
     time.tzset()
     yield
