@@ -6,15 +6,19 @@ pipe is given; each poll's text is checked against the format's own writer of th
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import statistics
 
+import pytest
 from helpers.checks import bytecodes
 
 from mbtool.cli.poll_output import Deferred, Output
-from mbtool.cli.results import Result, as_dict
+from mbtool.cli.results import PointRow, Points, Result, as_dict
+from mbtool.cli.sinks.csv import rows_of
 from mbtool.cli.sinks.json import json_line
+from mbtool.cli.sinks.plain import text as plain_text
 from mbtool.cli.stamps import local_time
 from mbtool.codec.data_access import RegistersResponse
 from mbtool.codec.values import value_addresses, value_decoder
@@ -59,3 +63,65 @@ def test_a_json_poll_is_written_in_few_bytecodes_and_is_the_line_json_writes():
         assert text == json_line({"time": local_time(SECOND + poll / 1000), **as_dict(result)})
         assert json.loads(text)["values"] == result.values
     assert ran <= 210, f"a -o json poll's output ran {ran} bytecodes"
+
+
+@pytest.mark.parametrize("fmt", ["plain", "csv"])
+def test_a_plain_or_csv_poll_is_written_in_few_bytecodes(fmt):
+    ran, texts, results = _polls(fmt)
+    for poll, (text, result) in enumerate(zip(texts, results, strict=True)):
+        when = local_time(SECOND + poll / 1000)
+        sep = " " if fmt == "plain" else ","
+        rows = "".join(
+            f"{when}{sep}{a}{sep}{v}\n" for a, v in zip(result.addresses, result.values, strict=True)
+        )
+        assert text == ("time,address,value\n" if fmt == "csv" and poll == 0 else "") + rows
+    assert ran <= {"plain": 190, "csv": 205}[fmt], f"a -o {fmt} poll's output ran {ran} bytecodes"
+
+
+def _shapes() -> list[Result | Points]:
+    """Polls of every shape a read gives: each type, bits, --order all, references, a map."""
+
+    def read(value_type: str, registers: tuple[int, ...], **fields) -> Result:
+        shared = Result(
+            1,
+            3,
+            "Read Holding Registers",
+            7,
+            [],
+            value_type,
+            addresses=value_addresses(value_type, 7, len(registers)),
+            **fields,
+        )
+        return shared.again(value_decoder(value_type)(registers), registers)
+
+    bits = Result(1, 1, "Read Coils", 0, [], addresses=[0, 1, 2])
+    all_orders = Result(1, 3, "Read Holding Registers", 0, [], "int32", extra={"order": "all"}, addresses=[0])
+    return [
+        read("uint16", (1, 2, 65535)),
+        read("int16", (65535, 1), refs=["40008", "40009"]),
+        read("float32", (0x3F80, 0, 0x7FC0, 0, 0x7F80, 0, 0x3DCC, 0xCCCD)),  # 1.0, NaN, inf, 0.1
+        read("string", (0x612C, 0x227B, 0x7D00)),  # a,"{}: quoted in CSV, braces as they are
+        read("hex", (0x00FF, 0x1234)),
+        bits.again([True, False, True]),
+        all_orders.again([{"ABCD": 1, "CDAB": 65536}], (0, 1)),
+        Points(1, "pump.toml", [PointRow("level", 2.5, "m", "40001", (25,), False)]),
+    ]
+
+
+@pytest.mark.parametrize("fmt", ["plain", "csv"])
+def test_a_poll_of_every_shape_is_the_text_the_formats_own_writer_writes(fmt):
+    when = local_time(SECOND)
+    for result in _shapes():
+        out = io.StringIO()
+        output = Output(fmt, out, csv_header=False)
+        for _ in range(2):  # the first poll of a read, and one after
+            output.result(when, result)
+        output.flush()
+        if fmt == "plain":
+            expected = plain_text(result, when)
+        else:
+            written = io.StringIO()
+            header, rows = rows_of(result)
+            csv.writer(written, lineterminator="\n").writerows([when, *row] for row in rows)
+            expected = written.getvalue()
+        assert out.getvalue() == 2 * expected, result

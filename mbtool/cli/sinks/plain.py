@@ -14,6 +14,7 @@ from mbtool.cli.results import (
     Points,
     Report,
     Result,
+    by_order,
     change_parts,
     labels,
     reading_text,
@@ -109,17 +110,50 @@ class Polls:
     close together, and which has the stream, the run's settings and its Readings."""
 
     changes_as_rows = False  # --changes writes the rows of the values that changed (CSV)
+    separator = " "  # between a line's time, label and value
 
     def __init__(self, output) -> None:
         self.output = output
+        # The polls of one read (Result.again of its shared result) differ only in their time
+        # and values: their lines are one str.format of those, made at the first of them.
+        self.shared = None  # the result whose polls ``form`` writes,
+        self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result.__class__ is Points:
-            self.output.emit(text(result, when))
-            return
+        if result.__class__ is not Points:
+            shared = result.shared
+            if shared is None or shared is not self.shared:
+                self.shared, self.form = shared, self.poll_form(result)
+            if self.form is not None:
+                self.output.emit(self.form.format(when, *result.values))
+                return
+        self.output.emit(self.poll_text(when, result))
+
+    def poll_form(self, result: Result) -> str | None:
+        """A poll's lines as a str.format of its time ({0}) and its values ({1}...), each value
+        as value_text writes it: format writes an int, a float (repr's digits) and a str so, and
+        a bit as 1 or 0 with "d"; None for --order all's values, a word order each."""
+        if result.extra is not None or by_order(result):
+            return None
+        value = "{%d:d}" if result.type is None else "{%d}"
+        sep = self.separator
+        return "".join(
+            f"{{0}}{sep}{_braces(self.label(label))}{sep}{value % number}\n"
+            for number, label in enumerate(labels(result), 1)
+        )
+
+    @staticmethod
+    def label(label: int | str) -> str:
+        """An address or a reference as a poll's line names it."""
+        return str(label)
+
+    def poll_text(self, when: str, result: Result | Points) -> str:
+        """A poll's lines, worked out: a map's points, and values poll_form has no format for."""
+        if isinstance(result, Points):
+            return text(result, when)
         # A read's values straight to their lines: a poll's are never a command's own words.
         lines = zip(labels(result), result.values, strict=True)
-        self.output.emit("".join(f"{when} {label} {value_text(value)}\n" for label, value in lines))
+        return "".join(f"{when} {label} {value_text(value)}\n" for label, value in lines)
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
         """One value that changed since the poll before; ``where`` names it ("": as ``what`` does)."""
@@ -131,3 +165,8 @@ class Polls:
 
     def close(self) -> None:
         pass
+
+
+def _braces(text: str) -> str:
+    """``text`` as it stands in a str.format: its braces doubled."""
+    return text.replace("{", "{{").replace("}", "}}")
