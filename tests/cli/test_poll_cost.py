@@ -62,7 +62,7 @@ def test_a_json_poll_is_written_in_few_bytecodes_and_is_the_line_json_writes():
     for poll, (text, result) in enumerate(zip(texts, results, strict=True)):
         assert text == json_line({"time": local_time(SECOND + poll / 1000), **as_dict(result)})
         assert json.loads(text)["values"] == result.values
-    assert ran <= 210, f"a -o json poll's output ran {ran} bytecodes"
+    assert ran <= 204, f"a -o json poll's output ran {ran} bytecodes"
 
 
 @pytest.mark.parametrize("fmt", ["plain", "csv"])
@@ -75,7 +75,7 @@ def test_a_plain_or_csv_poll_is_written_in_few_bytecodes(fmt):
             f"{when}{sep}{a}{sep}{v}\n" for a, v in zip(result.addresses, result.values, strict=True)
         )
         assert text == ("time,address,value\n" if fmt == "csv" and poll == 0 else "") + rows
-    assert ran <= {"plain": 190, "csv": 205}[fmt], f"a -o {fmt} poll's output ran {ran} bytecodes"
+    assert ran <= {"plain": 177, "csv": 192}[fmt], f"a -o {fmt} poll's output ran {ran} bytecodes"
 
 
 def _shapes() -> list[Result | Points]:

@@ -313,4 +313,5 @@ class Polls(PlainPolls):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).
             code = int(exit_code_for(error))
-            self.output.emit(error_json(str(error), code, time=when) + "\n", now=True)
+            self.output.emit(error_json(str(error), code, time=when) + "\n")
+            self.output.flush()  # at once, as its line on stderr
