@@ -70,8 +70,15 @@ class Result:
     def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
         """This read's result with a later poll's values and registers: the polls of one read
         share everything else, the very same objects (copied, not worked out again a poll)."""
+        # A copy of this one's fields (their table copied whole, not a dict filled anew key by
+        # key: a third of the instructions), set as the new record's, which its frozen
+        # __setattr__ would refuse.
+        fields = self.__dict__.copy()
+        fields["values"] = values
+        fields["registers"] = registers
+        fields["shared"] = self
         again = _new(Result)
-        again.__dict__.update(self.__dict__, values=values, registers=registers, shared=self)
+        _set(again, "__dict__", fields)
         return again
 
     @property
@@ -84,6 +91,7 @@ class Result:
 
 
 _new = object.__new__  # a record made without its __init__: again's fields are copied
+_set = object.__setattr__
 
 
 def value_text(value: object) -> str:
