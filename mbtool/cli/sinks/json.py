@@ -106,17 +106,17 @@ class JsonLines:
     """What follows a poll's time in its JSON line, as ``json_line({"time": ..., **as_dict(result)})``
     writes it, with less work a poll: the polls of one read (``Result.again`` of its ``shared``
     result) differ only in their time, values and raw registers, so the rest of the line (unit,
-    function, name, address, type, addresses, refs) is encoded once for them; and where the
-    values are ints (an integer type, one order), it is one %-format made once, filled with the
-    values and the registers in one call."""
+    function, name, address, type, addresses, refs) is encoded once for them, and a poll's line
+    is that text with its values and registers set in; where the values are ints (an integer
+    type, one order), their array is one %-format made once, as the registers' always is."""
 
     def __init__(self) -> None:
         self.shared: Result | None = None  # the result whose polls the text below is for
         self.parts: list[str] = []  # the text after the time, around the values and the registers
-        self.registers = False  # whether the registers are in the line
-        # The line after the time as a %-format when the values are ints (None: they take the
-        # encoder), filled with the values, then the registers when they are in the line.
+        # The values' array as a %-format of them when they are ints (None: the encoder writes
+        # them), and the registers' (None: the line has none).
         self.ints: str | None = None
+        self.registers: str | None = None
 
     def rest(self, result: Result | Points) -> str:
         """The line after the time's text: its closing quote, then the result's keys."""
@@ -125,27 +125,16 @@ class JsonLines:
         shared = result.shared
         if shared is None or shared is not self.shared:
             self._learn(result)
-        ints = self.ints
-        if ints is not None:
-            try:
-                if not self.registers:
-                    return ints % tuple(result.values)
-                registers = result.registers
-                assert registers is not None  # the polls of one read carry theirs alike
-                return ints % (*result.values, *registers)
-            except TypeError:  # not as many values as the first poll's: the encoder writes them
-                pass
-        assert _ENCODER is not None  # json_line made it, for the line's parts
+        parts, ints = self.parts, self.ints
         try:
-            values = _ENCODER.encode(result.values)
-        except ValueError:  # NaN or an infinity: to_json's null
-            values = to_json(result.values)
-        parts = self.parts
-        if not self.registers:
+            values = ints % tuple(result.values) if ints is not None else _encoded(result.values)
+        except TypeError:  # not as many values as the first poll's
+            values = _encoded(result.values)
+        if self.registers is None:
             return f"{parts[0]}{values}{parts[1]}"
         registers = result.registers
         assert registers is not None  # the polls of one read carry theirs alike
-        return f"{parts[0]}{values}{parts[1]}{_int_array(registers)}{parts[2]}"
+        return f"{parts[0]}{values}{parts[1]}{self.registers % tuple(registers)}{parts[2]}"
 
     def _learn(self, result: Result) -> None:
         """The line's text for the polls of the result's shared one, cut where the values and the
@@ -154,20 +143,24 @@ class JsonLines:
 
         data = {**as_dict(result), "values": _MARK}
         registers = data.get("registers")  # the raw registers, when the line has them
-        self.registers = registers is not None
-        if self.registers:
+        if registers is not None:
             data["registers"] = _MARK
         self.shared, self.parts = result.shared, _after_time(data).split(_MARKED)
+        # Registers are always ints, and so are the values of an integer type: their arrays
+        # with a %d for each, as json and repr write an int.
         integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        if not integers:
-            self.ints = None
-            return
-        # Registers are always ints, and so are the values of an integer type: the line's
-        # text with a %d for each, as json and repr write an int.
-        part = [piece.replace("%", "%%") for piece in self.parts]
-        self.ints = f"{part[0]}{_int_form(len(result.values))}{part[1]}"
-        if registers is not None:
-            self.ints += f"{_int_form(len(registers))}{part[2]}"
+        self.ints = _int_form(len(result.values)) if integers else None
+        self.registers = None if registers is None else _int_form(len(registers))
+
+
+def _encoded(values: list) -> str:
+    """Values as JSON text, by json's C encoder (json_line made it); NaN and the infinities
+    as to_json's null."""
+    assert _ENCODER is not None
+    try:
+        return _ENCODER.encode(values)
+    except ValueError:
+        return to_json(values)
 
 
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
@@ -190,11 +183,6 @@ def _int_form(count: int) -> str:
     if form is None:
         form = _INT_ARRAYS[count] = "[" + ", ".join(["%d"] * count) + "]"
     return form
-
-
-def _int_array(numbers) -> str:
-    """Ints as a JSON array writes them, in one %-format."""
-    return _int_form(len(numbers)) % tuple(numbers)
 
 
 class PlantPolls:
