@@ -193,12 +193,6 @@ class Polls(PlainPolls):
             self.header_done = True
         super().result(when, result, stamp)
 
-    def poll_form(self, result: Result) -> str | None:
-        # Text values (--type string, hex) are quoted the CSV way when they need it: a poll's own.
-        if any(isinstance(value, str) for value in result.values):
-            return None
-        return super().poll_form(result)
-
     @staticmethod
     def label(label: int | str) -> str:
         return cell(str(label))

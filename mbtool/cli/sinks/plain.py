@@ -14,7 +14,6 @@ from mbtool.cli.results import (
     Points,
     Report,
     Result,
-    by_order,
     change_parts,
     labels,
     reading_text,
@@ -115,7 +114,7 @@ class Polls:
     def __init__(self, output) -> None:
         self.output = output
         # The polls of one read (Result.again of its shared result) differ only in their time
-        # and values: their lines are one str.format of those, made at the first of them.
+        # and values: their lines are one %-format of the values, made at the first of them.
         self.shared = None  # the result whose polls ``form`` writes,
         self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
 
@@ -125,21 +124,25 @@ class Polls:
             if shared is None or shared is not self.shared:
                 self.shared, self.form = shared, self.poll_form(result)
             if self.form is not None:
-                self.output.emit(self.form.format(when, *result.values))
+                self.output.emit((self.form % tuple(result.values)).replace(_TIME, when))
                 return
         self.output.emit(self.poll_text(when, result))
 
     def poll_form(self, result: Result) -> str | None:
-        """A poll's lines as a str.format of its time ({0}) and its values ({1}...), each value
-        as value_text writes it: format writes an int, a float (repr's digits) and a str so, and
-        a bit as 1 or 0 with "d"; None for --order all's values, a word order each."""
-        if result.extra is not None or by_order(result):
+        """A poll's lines as one %-format of its values, each as value_text writes it: ints and
+        bits with %d (a bit as 1 or 0), floats with %r (repr's digits); the time stands as
+        _TIME in each line, where one replace puts it.  None for text (CSV quotes it when it
+        must; a string read is rarely polled) and --order all's values (a word order each)."""
+        kinds = {type(value) for value in result.values}
+        if kinds <= {int, bool}:
+            value = "%d"
+        elif kinds == {float}:
+            value = "%r"
+        else:
             return None
-        value = "{%d:d}" if result.type is None else "{%d}"
         sep = self.separator
         return "".join(
-            f"{{0}}{sep}{_braces(self.label(label))}{sep}{value % number}\n"
-            for number, label in enumerate(labels(result), 1)
+            f"{_TIME}{sep}{self.label(label).replace('%', '%%')}{sep}{value}\n" for label in labels(result)
         )
 
     @staticmethod
@@ -167,6 +170,4 @@ class Polls:
         pass
 
 
-def _braces(text: str) -> str:
-    """``text`` as it stands in a str.format: its braces doubled."""
-    return text.replace("{", "{{").replace("}", "}}")
+_TIME = "\x00"  # stands for a poll's time in its lines' format: no label or number has one
