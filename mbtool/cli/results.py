@@ -31,8 +31,8 @@ class Result:
     addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
     # The result this one is a poll of (``again``): the polls of one read share all but their
-    # values and registers, so a sink keeps what it made of that for the next poll of the same
-    # (cli/sinks/json.py).  None: a result of its own.
+    # values and registers, so a sink's Polls keeps what it made of that for the next poll of
+    # the same read (cli/sinks/).  None: a result of its own.
     shared: Result | None = field(default=None, compare=False, init=False)
 
     def __init__(

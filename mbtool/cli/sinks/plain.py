@@ -115,7 +115,7 @@ class Polls:
         self.output = output
         # The polls of one read (Result.again of its shared result) differ only in their time
         # and values: their lines are one %-format of the values, made at the first of them.
-        self.shared = None  # the result whose polls ``form`` writes,
+        self.shared: Result | None = None  # the result whose polls ``form`` writes,
         self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
