@@ -22,7 +22,7 @@ CET = "CET-1CEST,M3.5.0,M10.5.0/3"
 def central_europe(monkeypatch):
     # A stamp's second is kept with its text, which a change of TZ in the process (a test's
     # only) leaves stale: each side of the change starts afresh.
-    monkeypatch.setattr(stamps, "_second", None)
+    monkeypatch.setattr(stamps, "_second", -float("inf"))
     monkeypatch.setenv("TZ", CET)
     time.tzset()
     yield
