@@ -71,14 +71,13 @@ class Result:
         """This read's result with a later poll's values and registers: the polls of one read
         share everything else, the very same objects (copied, not worked out again a poll)."""
         # A copy of this one's fields (their table copied whole, not a dict filled anew key by
-        # key: a third of the instructions), set as the new record's, which its frozen
-        # __setattr__ would refuse.
+        # key: a third of the instructions), set as the new record's.
         fields = self.__dict__.copy()
         fields["values"] = values
         fields["registers"] = registers
         fields["shared"] = self
         again = _new(Result)
-        _set(again, "__dict__", fields)
+        _set_fields(again, fields)
         return again
 
     @property
@@ -91,7 +90,9 @@ class Result:
 
 
 _new = object.__new__  # a record made without its __init__: again's fields are copied
-_set = object.__setattr__
+# A record's fields table set whole: the __dict__ descriptor's own setter, past the record's
+# frozen __setattr__ (and object.__setattr__'s look-up of the descriptor every call).
+_set_fields = Result.__dict__["__dict__"].__set__
 
 
 def value_text(value: object) -> str:
