@@ -7,8 +7,8 @@ replies and failures to a ``Deferred`` made here.
 from __future__ import annotations
 
 import sys
-import time
 from collections.abc import Callable
+from time import monotonic
 from typing import TYPE_CHECKING
 
 from mbtool.cli.results import (
@@ -48,9 +48,9 @@ class Output:
         print(f"mbtool: {when} poll {number}: {error}", file=sys.stderr, flush=True)
         self.polls.failure(when, error)
 
-    def emit(self, text: str, now: bool = False) -> None:
+    def emit(self, text: str) -> None:
         self._pending.append(text)
-        if now or time.monotonic() >= self._flush_at:
+        if monotonic() >= self._flush_at:
             self.flush()
 
     def flush(self) -> None:
@@ -64,7 +64,7 @@ class Output:
             raise  # the reader went away: cli.main ends quietly
         except OSError as error:  # a full disk: the poll cannot go on
             raise OutputFailed("standard output", error) from None
-        self._flush_at = time.monotonic() + FLUSH_GAP
+        self._flush_at = monotonic() + FLUSH_GAP
 
     def close(self) -> None:
         self.flush()
@@ -160,6 +160,7 @@ class Deferred:
         self, output: Output | ChangesOnly | PublishedPolls, to_result: Callable[[object], object]
     ) -> None:
         self.output = output
+        self.show = output.result  # show(when, result, stamp): a poll's reply, in the run's format
         self.to_result = to_result
         self.held = None  # the reply to show, and when its request left (time.time())
         self.held_when = 0.0
@@ -179,8 +180,7 @@ class Deferred:
         self.held = None
         if reply is not self.shown_reply:
             self.shown_reply, self.shown_result = reply, self.to_result(reply)
-        when = self.held_when
-        self.output.result(local_time(when), self.shown_result, when)
+        self.show(local_time(self.held_when), self.shown_result, self.held_when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
         if isinstance(error, PartialRead):  # what was read is shown, then what was not

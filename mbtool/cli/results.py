@@ -30,6 +30,10 @@ class Result:
     # Where each value starts; the constructor's None: one a value from address (so never None).
     addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
+    # The result this one is a poll of (``again``): the polls of one read share all but their
+    # values and registers, so a sink's Polls keeps what it made of that for the next poll of
+    # the same read (cli/sinks/).  None: a result of its own.
+    shared: Result | None = field(default=None, compare=False, init=False)
 
     def __init__(
         self,
@@ -61,15 +65,19 @@ class Result:
         # One value a register or a bit, from ``address`` on, unless the command says otherwise.
         fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
         fields["texts"] = texts
+        fields["shared"] = None
 
     def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
         """This read's result with a later poll's values and registers: the polls of one read
         share everything else, the very same objects (copied, not worked out again a poll)."""
-        again = Result.__new__(Result)
-        fields = again.__dict__
-        fields.update(self.__dict__)
+        # A copy of this one's fields (their table copied whole, not a dict filled anew key by
+        # key: a third of the instructions), set as the new record's.
+        fields = self.__dict__.copy()
         fields["values"] = values
         fields["registers"] = registers
+        fields["shared"] = self
+        again = _new(Result)
+        _set_fields(again, fields)
         return again
 
     @property
@@ -79,6 +87,12 @@ class Result:
         from mbtool.codec.tables import TABLE_OF_READ  # noqa: PLC0415 - -o influx and prom only
 
         return TABLE_OF_READ.get(self.function, self.name)
+
+
+_new = object.__new__  # a record made without its __init__: again's fields are copied
+# A record's fields table set whole: the __dict__ descriptor's own setter, past the record's
+# frozen __setattr__ (and object.__setattr__'s look-up of the descriptor every call).
+_set_fields = Result.__dict__["__dict__"].__set__
 
 
 def value_text(value: object) -> str:

@@ -1,16 +1,27 @@
-"""-o json's poll lines (sinks.json.JsonLines), made with less work a poll, are the very text
-json_line writes of the whole result: whatever the type, the values and the shape of the poll."""
+"""-o json's poll lines (sinks.json.Polls, and the JsonLines it keeps), made with less work a
+poll, are the very text json_line writes of the whole result: whatever the type, the values and
+the shape of the poll."""
 
 from __future__ import annotations
 
+import io
 import json
 import math
 
-from mbtool.cli.results import Result, as_dict
-from mbtool.cli.sinks.json import JsonLines, json_line
+from mbtool.cli.poll_output import Output
+from mbtool.cli.results import PointRow, Points, Result, as_dict, points_dict
+from mbtool.cli.sinks.json import json_line
 from mbtool.codec.values import value_decoder
 
 WHEN = "2026-11-28T23:51:57.580+01:00"
+
+
+def _written(output: Output, when: str, result) -> str:
+    """What a poll's result adds to -o json's output."""
+    before = output.out.tell()
+    output.result(when, result)
+    output.flush()
+    return output.out.getvalue()[before:]
 
 
 def _result(value_type: str, registers: tuple[int, ...], **fields) -> Result:
@@ -35,15 +46,37 @@ def test_each_poll_line_is_the_line_json_writes_of_its_result():
         Result(1, 1, "Read Coils", 0, [True, False, True]),  # bits: true and false, not 1 and 0
         Result(1, 3, "100% Read", 0, [5], "uint16", (5,)),  # a % in the text around the values
         _result("uint16", (9, 9, 9), extra={"order": "all"}),
+        Result(1, 3, "Read Holding Registers", 0, [1.5, math.inf], "float32", (1, 2, 3, 4)),
     ]
-    lines = JsonLines()
+    output = Output("json", io.StringIO())
     for result in results:
-        line = lines.line(WHEN, result)
+        line = _written(output, WHEN, result)
         assert line == json_line({"time": WHEN, **as_dict(result)}), result
         data = json.loads(line)
         assert data["time"] == WHEN and data["values"] == [
-            None if isinstance(v, float) and math.isnan(v) else v for v in result.values
+            None if isinstance(v, float) and not math.isfinite(v) else v for v in result.values
         ]
+
+
+def test_the_polls_of_one_read_and_a_maps_points_are_the_lines_json_writes():
+    """Polls share their read's result (Result.again): the text around their values is kept for
+    them, and a result of another read, or a map's points, have their own."""
+    shared = Result(
+        7, 3, "Read Holding Registers", 10, [], "int16", refs=["40011", "40012"], addresses=[10, 11]
+    )
+    other = Result(7, 3, "Read Holding Registers", 10, [], "int16", addresses=[10, 11])
+    points = Points(7, "pump.toml", [PointRow("level", 2.5, "m", "40001", (25,), False)])
+    output = Output("json", io.StringIO())
+    for result in (
+        shared.again([1, -1], (1, 65535)),
+        shared.again([2, 3], (2, 3)),
+        other.again([4, 5], (4, 5)),
+    ):
+        assert _written(output, WHEN, result) == json_line({"time": WHEN, **as_dict(result)})
+    assert _written(output, WHEN, points) == json_line({"time": WHEN, **points_dict(points)})
+    assert _written(output, WHEN, shared.again([6, 7], (6, 7))).startswith(
+        '{"time": "' + WHEN + '", "unit": 7'
+    )
 
 
 def test_again_is_the_result_with_the_polls_values_and_shares_the_rest():
@@ -56,9 +89,9 @@ def test_again_is_the_result_with_the_polls_values_and_shares_the_rest():
 
 
 def test_the_same_result_again_is_written_with_only_its_time_new():
-    lines = JsonLines()
+    output = Output("json", io.StringIO())
     result = _result("int16", (65535, 2))
-    first, again = lines.line(WHEN, result), lines.line(WHEN.replace("57.580", "58.000"), result)
+    first, again = _written(output, WHEN, result), _written(output, WHEN.replace("57.580", "58.000"), result)
     assert (
         again
         == first.replace("57.580", "58.000")

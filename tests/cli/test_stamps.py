@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import time
 from datetime import datetime
+from functools import partial
 
 import pytest
+from helpers.checks import bytecodes
 
+from mbtool.cli import stamps
 from mbtool.cli.stamps import local_time
 
 # Central European time, written as a POSIX TZ string so that no tz database is needed:
@@ -17,6 +20,9 @@ CET = "CET-1CEST,M3.5.0,M10.5.0/3"
 
 @pytest.fixture
 def central_europe(monkeypatch):
+    # A stamp's second is kept with its text, which a change of TZ in the process (a test's
+    # only) leaves stale: each side of the change starts afresh.
+    monkeypatch.setattr(stamps, "_second", -float("inf"))
     monkeypatch.setenv("TZ", CET)
     time.tzset()
     yield
@@ -51,3 +57,23 @@ def test_every_millisecond_of_a_second_is_stamped_as_datetime_stamps_it(central_
         )
     when = 1764140800.9999996  # rounds to the next second's first microsecond
     assert local_time(when) == datetime.fromtimestamp(when).astimezone().isoformat(timespec="milliseconds")
+
+
+def test_a_stamp_in_the_second_before_is_looked_up_not_worked_out(central_europe):
+    """Issue 41.9: a sustained poll stamps every line; a stamp in the second of the one before
+    is that second's text and its millisecond's ending, in few bytecodes (37 worked out anew)."""
+    local_time(1764140800.5)
+    ran = bytecodes(partial(local_time, 1764140800.625))
+    assert local_time(1764140800.625) == "2025-11-26T08:06:40.625+01:00"
+    assert ran <= 30, f"a stamp ran {ran} bytecodes"
+
+
+def test_the_offset_is_the_one_in_force_when_the_clocks_change_within_a_run(central_europe):
+    """The endings carry the offset: a run across the change of the clocks stamps each side
+    with its own, and goes back."""
+    before, after = 1743296399.5, 1743296400.25
+    assert [local_time(when) for when in (before, after, before)] == [
+        "2025-03-30T01:59:59.500+01:00",
+        "2025-03-30T03:00:00.250+02:00",
+        "2025-03-30T01:59:59.500+01:00",
+    ]

@@ -1,5 +1,6 @@
 """The assertions and waits the tests have in common: one error line and its exit code, the
---hex trace and plain output parsed, a predicate waited for, a socket the peer closed.
+--hex trace and plain output parsed, a predicate waited for, a socket the peer closed, the
+bytecodes a call runs.
 """
 
 from __future__ import annotations
@@ -8,6 +9,7 @@ import json
 import re
 import select
 import socket
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -88,3 +90,23 @@ def closed_by_peer(sock: socket.socket, wait: float = 0.0) -> bool:
 
 def json_lines(stdout: str) -> list[dict]:
     return [json.loads(line) for line in stdout.splitlines() if line.strip()]
+
+
+def bytecodes(call) -> int:
+    """The bytecodes ``call()`` runs, in every Python function it calls (on this thread): a
+    cost a loaded machine does not move, as it moves a time."""
+    ran = 0
+
+    def trace(frame, event, arg):
+        nonlocal ran
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            ran += 1
+        return trace
+
+    sys.settrace(trace)
+    try:
+        call()
+    finally:
+        sys.settrace(None)
+    return ran

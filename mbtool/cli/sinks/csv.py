@@ -179,18 +179,27 @@ class Polls(PlainPolls):
     --changes the rows of the values that changed."""
 
     changes_as_rows = True
+    separator = ","
 
     def __init__(self, output) -> None:
         super().__init__(output)
         self.header_done = False
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result.__class__ is Points:
-            header, rows = POINT_CSV_HEADER, [point_cells(row) for row in result.rows]
-        else:
-            header, rows = result_cells(result)
         if not self.header_done:
+            header = POINT_CSV_HEADER if result.__class__ is Points else result_cells(result)[0]
             if wants_csv_header(self.output.out, self.output.csv_header):
                 self.output.emit(",".join(["time", *header]) + "\n")
             self.header_done = True
-        self.output.emit("".join(",".join([when, *map(cell, row)]) + "\n" for row in rows))
+        super().result(when, result, stamp)
+
+    @staticmethod
+    def label(label: int | str) -> str:
+        return cell(str(label))
+
+    def poll_text(self, when: str, result: Result | Points) -> str:
+        if isinstance(result, Points):
+            rows = [point_cells(row) for row in result.rows]
+        else:
+            rows = result_cells(result)[1]
+        return "".join(",".join([when, *map(cell, row)]) + "\n" for row in rows)

@@ -103,94 +103,75 @@ _ENCODER: JSONEncoder | None = None  # made by the first json_line
 
 
 class JsonLines:
-    """A poll's JSON line, as ``json_line({"time": ..., **as_dict(result)})`` writes it, with
-    less work a poll: the polls of one command differ only in their time, values and raw
-    registers, so the rest of the line (unit, function, name, address, type, addresses,
-    refs) is encoded once and kept while the result's shape stays the same; where the values
-    are ints (an integer type, one order), what follows the time is one %-format made once,
-    filled with the values and the registers in one call; and a poll whose result is the one
-    before (its values unchanged: ``Deferred``) writes only its time anew."""
+    """What follows a poll's time in its JSON line, as ``json_line({"time": ..., **as_dict(result)})``
+    writes it, with less work a poll: the polls of one read (``Result.again`` of its ``shared``
+    result) differ only in their time, values and raw registers, so the rest of the line (unit,
+    function, name, address, type, addresses, refs) is encoded once for them, and a poll's line
+    is that text with its values and registers set in; where the values are ints (an integer
+    type, one order), their array is one %-format made once, as the registers' always is."""
 
     def __init__(self) -> None:
-        self.shape: tuple | None = None
-        self.parts: list[str] = []  # the text around the time, the values and the registers
-        # The line after the time as a %-format when the values are ints (None: they take the
-        # encoder), for how many values and registers; and whether the registers are in it.
+        self.shared: Result | None = None  # the result whose polls the text below is for
+        self.parts: list[str] = []  # the text after the time, around the values and the registers
+        # The values' array as a %-format of them when they are ints (None: the encoder writes
+        # them), and the registers' (None: the line has none).
         self.ints: str | None = None
-        self.counts = (0, 0)
-        self.registers = False
-        self.result = None  # the last result written,
-        self.rest: str | None = None  # and its line after the time (None: it holds a NaN)
+        self.registers: str | None = None
 
-    def line(self, when: str, result) -> str:
-        if result is not self.result:  # else the poll before's values (Deferred): only the time is new
-            self.result, self.rest = result, self._rest(result)
-        if self.rest is None:  # NaN or an infinity: to_json's null, through the whole dict
-            return json_line({"time": when, **as_dict(result)})
-        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
-        return f'{self.parts[0]}"{when}"{self.rest}'
-
-    def _rest(self, result) -> str | None:
-        """The line after the time: the values and registers within the text kept for the shape."""
-        shape = (
-            result.unit,
-            result.function,
-            result.name,
-            result.address,
-            result.addresses,
-            result.type,
-            result.refs,
-            result.extra,
-            result.registers is None,
-        )
-        if shape != self.shape:
-            self._learn(shape, result)
-        values = result.values
-        ints = self.ints
-        if ints is not None and type(values) is list and len(values) == self.counts[0]:
-            if not self.registers:
-                return ints % tuple(values)
-            registers = result.registers
-            if len(registers) == self.counts[1]:
-                return ints % (*values, *registers)
-        encoder = _ENCODER
-        assert encoder is not None  # json_line made it, for the line's parts
+    def rest(self, result: Result | Points) -> str:
+        """The line after the time's text: its closing quote, then the result's keys."""
+        if isinstance(result, Points):  # a map's points
+            return _after_time(points_dict(result))
+        shared = result.shared
+        if shared is None or shared is not self.shared:
+            self._learn(result)
+        parts, ints = self.parts, self.ints
         try:
-            text = encoder.encode(values)
-        except ValueError:
-            return None
-        parts = self.parts
-        if self.registers:
-            return f"{parts[1]}{text}{parts[2]}{_int_array(result.registers)}{parts[3]}"
-        return f"{parts[1]}{text}{parts[2]}"
+            values = ints % tuple(result.values) if ints is not None else _encoded(result.values)
+        except TypeError:  # not as many values as the first poll's
+            values = _encoded(result.values)
+        if self.registers is None:
+            return f"{parts[0]}{values}{parts[1]}"
+        registers = result.registers
+        assert registers is not None  # the polls of one read carry theirs alike
+        return f"{parts[0]}{values}{parts[1]}{self.registers % tuple(registers)}{parts[2]}"
 
-    def _learn(self, shape: tuple, result) -> None:
-        """The line's text for results of this shape, cut where the time, the values and the
+    def _learn(self, result: Result) -> None:
+        """The line's text for the polls of the result's shared one, cut where the values and the
         registers go."""
         from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
 
-        data = {"time": _MARK, **as_dict(result), "values": _MARK}
-        self.registers = "registers" in data
-        if self.registers:
+        data = {**as_dict(result), "values": _MARK}
+        registers = data.get("registers")  # the raw registers, when the line has them
+        if registers is not None:
             data["registers"] = _MARK
-        text = json_line(data)
-        assert _ENCODER is not None  # json_line made it
-        self.shape, self.parts = shape, text.split(_ENCODER.encode(_MARK))
+        self.shared, self.parts = result.shared, _after_time(data).split(_MARKED)
+        # Registers are always ints, and so are the values of an integer type: their arrays
+        # with a %d for each, as json and repr write an int.
         integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        if not integers:
-            self.ints = None
-            return
-        # Registers are always ints, and so are the values of an integer type: the line's
-        # text with a %d for each, as json and repr write an int.
-        part = [piece.replace("%", "%%") for piece in self.parts]
-        values, registers = len(result.values), len(result.registers) if self.registers else 0
-        self.ints = f"{part[1]}{_int_form(values)}{part[2]}"
-        if self.registers:
-            self.ints += f"{_int_form(registers)}{part[3]}"
-        self.counts = (values, registers)
+        self.ints = _int_form(len(result.values)) if integers else None
+        self.registers = None if registers is None else _int_form(len(registers))
+
+
+def _encoded(values: list) -> str:
+    """Values as JSON text, by json's C encoder (json_line made it); NaN and the infinities
+    as to_json's null."""
+    assert _ENCODER is not None
+    try:
+        return _ENCODER.encode(values)
+    except ValueError:
+        return to_json(values)
 
 
 _MARK = "\x00mbtool\x00"  # stands for a field while the line around it is encoded
+_MARKED = '"\\u0000mbtool\\u0000"'  # the mark as JSON text (json's C encoder and to_json alike)
+
+
+def _after_time(data: dict) -> str:
+    """A poll's JSON line from just after its time's text on: the time's closing quote, then
+    ``data``'s keys."""
+    return '"' + json_line({"time": _MARK, **data}).split(_MARKED, 1)[1]
+
 
 _INT_ARRAYS: dict[int, str] = {}  # the number of ints -> the format that writes them
 
@@ -202,11 +183,6 @@ def _int_form(count: int) -> str:
     if form is None:
         form = _INT_ARRAYS[count] = "[" + ", ".join(["%d"] * count) + "]"
     return form
-
-
-def _int_array(numbers) -> str:
-    """Ints as a JSON array writes them, in one %-format."""
-    return _int_form(len(numbers)) % tuple(numbers)
 
 
 class PlantPolls:
@@ -308,12 +284,14 @@ class Polls(PlainPolls):
     def __init__(self, output) -> None:
         super().__init__(output)
         self.lines = JsonLines()
+        self.written: Result | Points | None = None  # the last result written,
+        self.rest = ""  # and its line after the time
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result.__class__ is Points:
-            self.output.emit(json_line({"time": when, **points_dict(result)}))
-        else:
-            self.output.emit(self.lines.line(when, result))
+        if result is not self.written:  # else the poll before's values (Deferred): only the time is new
+            self.written, self.rest = result, self.lines.rest(result)
+        # The time is local_time's digits and punctuation: quoted, it is its JSON string.
+        self.output.emit('{"time": "' + when + self.rest)
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
         self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering_unit(unit)}))
@@ -323,4 +301,5 @@ class Polls(PlainPolls):
             # jq consumers read stdout only: a failed poll must show up there too (a partial
             # read's line names the points it could not read).
             code = int(exit_code_for(error))
-            self.output.emit(error_json(str(error), code, time=when) + "\n", now=True)
+            self.output.emit(error_json(str(error), code, time=when) + "\n")
+            self.output.flush()  # at once, as its line on stderr

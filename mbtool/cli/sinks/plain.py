@@ -109,17 +109,54 @@ class Polls:
     close together, and which has the stream, the run's settings and its Readings."""
 
     changes_as_rows = False  # --changes writes the rows of the values that changed (CSV)
+    separator = " "  # between a line's time, label and value
 
     def __init__(self, output) -> None:
         self.output = output
+        # The polls of one read (Result.again of its shared result) differ only in their time
+        # and values: their lines are one %-format of the values, made at the first of them.
+        self.shared: Result | None = None  # the result whose polls ``form`` writes,
+        self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result.__class__ is Points:
-            self.output.emit(text(result, when))
-            return
+        if result.__class__ is not Points:
+            shared = result.shared
+            if shared is None or shared is not self.shared:
+                self.shared, self.form = shared, self.poll_form(result)
+            if self.form is not None:
+                self.output.emit((self.form % tuple(result.values)).replace(_TIME, when))
+                return
+        self.output.emit(self.poll_text(when, result))
+
+    def poll_form(self, result: Result) -> str | None:
+        """A poll's lines as one %-format of its values, each as value_text writes it: ints and
+        bits with %d (a bit as 1 or 0), floats with %r (repr's digits); the time stands as
+        _TIME in each line, where one replace puts it.  None for text (CSV quotes it when it
+        must; a string read is rarely polled) and --order all's values (a word order each)."""
+        kinds = {type(value) for value in result.values}
+        if kinds <= {int, bool}:
+            value = "%d"
+        elif kinds == {float}:
+            value = "%r"
+        else:
+            return None
+        sep = self.separator
+        return "".join(
+            f"{_TIME}{sep}{self.label(label).replace('%', '%%')}{sep}{value}\n" for label in labels(result)
+        )
+
+    @staticmethod
+    def label(label: int | str) -> str:
+        """An address or a reference as a poll's line names it."""
+        return str(label)
+
+    def poll_text(self, when: str, result: Result | Points) -> str:
+        """A poll's lines, worked out: a map's points, and values poll_form has no format for."""
+        if isinstance(result, Points):
+            return text(result, when)
         # A read's values straight to their lines: a poll's are never a command's own words.
         lines = zip(labels(result), result.values, strict=True)
-        self.output.emit("".join(f"{when} {label} {value_text(value)}\n" for label, value in lines))
+        return "".join(f"{when} {label} {value_text(value)}\n" for label, value in lines)
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
         """One value that changed since the poll before; ``where`` names it ("": as ``what`` does)."""
@@ -131,3 +168,6 @@ class Polls:
 
     def close(self) -> None:
         pass
+
+
+_TIME = "\x00"  # stands for a poll's time in its lines' format: no label or number has one

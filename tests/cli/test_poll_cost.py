@@ -1,0 +1,137 @@
+"""Issue 41.9: the output's share of a sustained poll, from the decoded reply to the line
+written (cli.poll_output's Deferred and Output, the format's Polls, the time stamp), counted in
+the bytecodes it runs: a count, which a loaded machine does not move as it moves a time.  The
+headline poll: 10 holding registers whose values change every read, shown in each format a
+pipe is given; each poll's text is checked against the format's own writer of the result.
+
+The measure is callgrind's instructions (bench/polling_instructions.py), which a test cannot
+take on every machine; bytecodes are their proxy here, and some cuts trade a few bytecodes for
+fewer instructions in C (Result.again copies a table whole, -o json formats only the arrays,
+plain and CSV are a %-format and a replace, not a str.format):
+main before issue 41.9's cuts ran 276, 638 and 1903."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import statistics
+
+import pytest
+from helpers.checks import bytecodes
+
+from mbtool.cli import poll_output
+from mbtool.cli.poll_output import Deferred, Output
+from mbtool.cli.results import PointRow, Points, Result, as_dict
+from mbtool.cli.sinks.csv import rows_of
+from mbtool.cli.sinks.json import json_line
+from mbtool.cli.sinks.plain import text as plain_text
+from mbtool.cli.stamps import local_time
+from mbtool.codec.data_access import RegistersResponse
+from mbtool.codec.values import value_addresses, value_decoder
+
+SECOND = 1764140800.0  # a poll's time.time(); its polls a millisecond apart, in one second
+
+
+def _polls(fmt: str, monkeypatch, polls: int = 40) -> tuple[int, list[str], list[Result]]:
+    """``polls`` polls of read-holding-registers 0 10 shown in ``fmt`` as read --interval shows
+    them (the reply held while the next request is on its way, then written): the median of the
+    bytecodes a poll's output ran, each poll's text, and each poll's result.  The test writes
+    the polls' joined text itself, uncounted: a loaded machine's slow poll is not one that
+    flushes."""
+    monkeypatch.setattr(poll_output, "FLUSH_GAP", 3600.0)
+    decode = value_decoder("uint16")
+    shared = Result(
+        1, 3, "Read Holding Registers", 0, [], "uint16", addresses=value_addresses("uint16", 0, 10)
+    )
+
+    def to_result(reply):  # read.py's: the shared result with the poll's values
+        registers = reply.registers
+        return shared.again(decode(registers), registers)
+
+    out = io.StringIO()
+    shown = Deferred(Output(fmt, out), to_result)
+    counts, texts, results = [], [], []
+    for poll in range(polls):
+        reply = RegistersResponse(3, tuple((poll * 7 + i * 1009) % 65536 for i in range(10)))
+        before = out.tell()
+
+        def show(when=SECOND + poll / 1000, reply=reply) -> None:
+            shown.hold(when, reply)
+            shown.write()
+
+        counts.append(bytecodes(show))
+        shown.output.flush()
+        texts.append(out.getvalue()[before:])
+        results.append(to_result(reply))
+    return int(statistics.median(counts[1:])), texts, results
+
+
+def test_a_json_poll_is_written_in_few_bytecodes_and_is_the_line_json_writes(monkeypatch):
+    ran, texts, results = _polls("json", monkeypatch)
+    for poll, (text, result) in enumerate(zip(texts, results, strict=True)):
+        assert text == json_line({"time": local_time(SECOND + poll / 1000), **as_dict(result)})
+        assert json.loads(text)["values"] == result.values
+    assert ran <= 236, f"a -o json poll's output ran {ran} bytecodes"
+
+
+@pytest.mark.parametrize("fmt", ["plain", "csv"])
+def test_a_plain_or_csv_poll_is_written_in_few_bytecodes(fmt, monkeypatch):
+    ran, texts, results = _polls(fmt, monkeypatch)
+    for poll, (text, result) in enumerate(zip(texts, results, strict=True)):
+        when = local_time(SECOND + poll / 1000)
+        sep = " " if fmt == "plain" else ","
+        rows = "".join(
+            f"{when}{sep}{a}{sep}{v}\n" for a, v in zip(result.addresses, result.values, strict=True)
+        )
+        assert text == ("time,address,value\n" if fmt == "csv" and poll == 0 else "") + rows
+    assert ran <= {"plain": 194, "csv": 209}[fmt], f"a -o {fmt} poll's output ran {ran} bytecodes"
+
+
+def _shapes() -> list[Result | Points]:
+    """Polls of every shape a read gives: each type, bits, --order all, references, a map."""
+
+    def read(value_type: str, registers: tuple[int, ...], **fields) -> Result:
+        shared = Result(
+            1,
+            3,
+            "Read Holding Registers",
+            7,
+            [],
+            value_type,
+            addresses=value_addresses(value_type, 7, len(registers)),
+            **fields,
+        )
+        return shared.again(value_decoder(value_type)(registers), registers)
+
+    bits = Result(1, 1, "Read Coils", 0, [], addresses=[0, 1, 2])
+    all_orders = Result(1, 3, "Read Holding Registers", 0, [], "int32", extra={"order": "all"}, addresses=[0])
+    return [
+        read("uint16", (1, 2, 65535)),
+        read("int16", (65535, 1), refs=["40008", "40009"]),
+        read("float32", (0x3F80, 0, 0x7FC0, 0, 0x7F80, 0, 0x3DCC, 0xCCCD)),  # 1.0, NaN, inf, 0.1
+        read("string", (0x612C, 0x227B, 0x7D00)),  # a,"{}: quoted in CSV, braces as they are
+        read("hex", (0x00FF, 0x1234)),
+        bits.again([True, False, True]),
+        all_orders.again([{"ABCD": 1, "CDAB": 65536}], (0, 1)),
+        Points(1, "pump.toml", [PointRow("level", 2.5, "m", "40001", (25,), False)]),
+    ]
+
+
+@pytest.mark.parametrize("fmt", ["plain", "csv"])
+def test_a_poll_of_every_shape_is_the_text_the_formats_own_writer_writes(fmt):
+    when = local_time(SECOND)
+    for result in _shapes():
+        out = io.StringIO()
+        output = Output(fmt, out, csv_header=False)
+        for _ in range(2):  # the first poll of a read, and one after
+            output.result(when, result)
+        output.flush()
+        if fmt == "plain":
+            expected = plain_text(result, when)
+        else:
+            written = io.StringIO()
+            header, rows = rows_of(result)
+            csv.writer(written, lineterminator="\n").writerows([when, *row] for row in rows)
+            expected = written.getvalue()
+        assert out.getvalue() == 2 * expected, result
