@@ -26,7 +26,7 @@ from types import MappingProxyType
 from urllib.parse import urlencode
 
 import pytest
-from helpers.checks import assert_one_error_line
+from helpers.checks import assert_one_error_line, bytecodes
 from helpers.exporter import METER_DATA, METER_MAP, Running, exporting
 from helpers.prometheus import promtool_check
 from helpers.run import REPO_ROOT, run_cli
@@ -701,21 +701,9 @@ def _reports_of(tmp_path, devices: int) -> tuple[list[int], object]:
     counts: list[int] = []
 
     def counted(item) -> None:
-        ran = [0]
-
-        def trace(frame, event, arg):
-            frame.f_trace_opcodes = True
-            if event == "opcode":
-                ran[0] += 1
-            return trace
-
-        sys.settrace(trace)
-        try:
-            metrics.report(item)
-        finally:
-            sys.settrace(None)
+        ran = bytecodes(lambda: metrics.report(item))
         if not isinstance(item, Event):
-            counts.append(ran[0])
+            counts.append(ran)
 
     runner = Plant(plant.links, plant.devices, counted, rounds=1)
     metrics.watch(runner)
