@@ -18,6 +18,15 @@ alone hands them to ``report`` (the output, the live view, the exporter's text).
 one way: a link thread is the only one that changes its devices' state, and what the rest of
 mbtool shows comes from the records.
 
+``read --interval`` is a plant of one device (``plant.polling``): its worker runs on the
+command's own thread, its slots on a fixed grid (``DeviceSpec.grid``: one that has passed is
+skipped and counted), the device never offline (``offline_after`` 0: a run of --polls ends on
+its polls, not on a link that would not open), its records unpublished copies of nothing (no
+reader on another thread: ``published``), and hooks for the output (``sent``: the poll's
+request has left, so the poll before is shown while the reply is on its way; ``idle``: the
+worker is about to wait).  A request the link cannot carry (``RequestError``), an output that
+failed and a reader of stdout gone end the run: no later poll can do better.
+
 A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
 would end after the run is announced without its next try.  With ``rounds`` a device is done
 once polled that many times, and an offline one is tried again only where its back-off ends
@@ -28,21 +37,32 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 from __future__ import annotations
 
 import functools
+import gc
 import math
+import operator
 import queue
 import threading
 import time
 from collections.abc import Callable, Collection
+from typing import Any, Protocol
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialRead, link_failure
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
 from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
-from mbtool.registermap.plan import MapReader, Reading
+from mbtool.registermap.plan import Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
+
+
+class Reader(Protocol):
+    """What a device's poll reads, given ``execute(request)`` on its link: a register map's
+    points (``MapReader``), or read --interval's request or requests."""
+
+    def read(self, execute: Callable) -> Any: ...
 
 
 @record
@@ -52,7 +72,7 @@ class DeviceSpec:
     name: str
     link: str
     unit: int
-    reader: MapReader = field(compare=False)
+    reader: Reader = field(compare=False)
     tags: dict = field(default=None, compare=False)
     interval: float = 10.0
     offline_after: int = 3
@@ -61,6 +81,15 @@ class DeviceSpec:
     measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
     timeout: float | None = None  # its own, where it is slower than its link's other devices
     retries: int | None = None  # None: the link's
+    # Its slots on a fixed grid from its first poll (read --interval): one that has passed is
+    # skipped and counted, and the next slot of the grid waited for; else (a plant) a device
+    # late for its slot is polled at once, and its interval runs from there.
+    grid: bool = False
+
+
+# What ends a run rather than fails a poll: a request the link cannot carry (no later poll can
+# do better), the output that failed, and stdout's reader gone.
+FATAL = (RequestError, OutputFailed, BrokenPipeError)
 
 
 @record
@@ -95,6 +124,24 @@ class Poll:
     last_success: float | None = field(default=None, compare=False)  # time.time()
     stats: PollStats | None = field(default=None, compare=False)
     link: LinkView | None = field(default=None, compare=False)
+    # From its first request leaving to its last reply; None: a reply of it came untimed (while
+    # mbtool was busy) or it failed.
+    latency: float | None = field(default=None, compare=False)
+
+    def __init__(
+        self, device, time, readings, error, state, last_success=None, stats=None, link=None, latency=None
+    ) -> None:
+        # By hand: one a poll (codec/record.py says why).
+        fields = self.__dict__
+        fields["device"] = device
+        fields["time"] = time
+        fields["readings"] = readings
+        fields["error"] = error
+        fields["state"] = state
+        fields["last_success"] = last_success
+        fields["stats"] = stats
+        fields["link"] = link
+        fields["latency"] = latency
 
 
 @record
@@ -155,21 +202,35 @@ class DeviceState:
         # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
         self.backoff = Backoff(min(2 * spec.interval, spec.max_backoff), spec.max_backoff)
         self.polls = 0
+        self.skipped = 0  # slots of its grid passed while a poll ran over (DeviceSpec.grid)
+        self.rounds = 0  # its polls in the run (0: until stopped); the worker's
+        # Its transactions' timeout and retries, where its polls are counted and how they read
+        # (execute(request) on the link): made once by its worker, not a poll.
+        self.limits: tuple[float, int]
+        self.counted: Stats | DeviceAndLink
+        self.execute: Callable
         self.last_success: float | None = None  # time.time()
         self.last_poll: Poll | None = None
         self.stats = PollStats()
 
     def succeeded(self, now: float, when: float) -> Event | None:
-        was = self.state
-        self.state, self.failures = ONLINE, 0
-        self.backoff.reset()
+        self.failures = 0
         self.last_success = when
         self._next(now)
+        was = self.state
+        if was == ONLINE:
+            return None
+        self.state = ONLINE
+        self.backoff.reset()  # only a device offline backed off
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
 
     def failed(self, now: float, when: float, reason: str, at_once: bool = False) -> Event | None:
-        """A failed poll; ``at_once``: offline now (its link cannot be opened)."""
+        """A failed poll; ``at_once``: offline now (its link cannot be opened).  A device whose
+        ``offline_after`` is 0 is never offline: it keeps its slots."""
         self.failures += 1
+        if not self.spec.offline_after:
+            self._next(now)
+            return None
         if self.state == OFFLINE:
             self.due = now + self.backoff.failed()
             return None
@@ -181,10 +242,19 @@ class DeviceState:
         return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff.wait)
 
     def _next(self, now: float) -> None:
-        """The next slot of its interval; one that has passed already is skipped, not made up."""
-        self.due += self.spec.interval
+        """The next slot of its interval; one that has passed already is skipped, not made up:
+        on a grid, the slots passed are counted (but after its last poll) and the next one
+        waited for; else it is polled at once."""
+        interval = self.spec.interval
+        self.due += interval
         if self.due < now:
-            self.due = now
+            if self.spec.grid and interval > 0:
+                missed = math.ceil((now - self.due) / interval)
+                self.due += missed * interval
+                if not (self.rounds and self.polls >= self.rounds):
+                    self.skipped += missed
+            else:
+                self.due = now
 
 
 class Clock:
@@ -201,6 +271,9 @@ class Clock:
         stop.wait(seconds)
 
 
+_DUE = operator.attrgetter("due")  # when a device is due: the scheduler's order
+
+
 class LinkWorker:
     """One link's thread: its devices polled one transaction at a time."""
 
@@ -215,9 +288,19 @@ class LinkWorker:
         go: threading.Event | None = None,
         clock=Clock,
         open_link: Callable | None = None,
+        backoff: Backoff | None = None,
+        sent: Callable[[], None] | None = None,
+        idle: Callable[[], None] | None = None,
+        published: bool = True,
     ) -> None:
         """``open_link``: opens the link (a context manager giving a Client); None: the
-        link's Connection, through link.connection.open_client."""
+        link's Connection, through link.connection.open_client.  ``backoff``: a failed link's
+        (None: from its devices' intervals).  ``sent``: run when a poll's first request has
+        left; ``idle``: when the worker is about to wait for a slot or a back-off, or its link
+        is closed or keeps a --pause (what is held to show while the next request is on its
+        way is shown now).  ``published``: its records go to readers on other threads, each
+        with its own copy of the counts; not (one device, on the thread that reads them):
+        none, and the link's counts are the device's."""
         self.spec = spec
         self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
@@ -232,19 +315,28 @@ class LinkWorker:
         # The link, opened when a device is due; one that cannot be opened is backed off by the
         # one rule, from twice its devices' shortest interval up to their longest max_backoff.
         traced = (lambda framer: trace(framer, label=self._label)) if trace else None
-        self.link = ManagedLink(
-            open_link or (lambda: open_client(spec.connection, trace=traced)),
-            Backoff(
+        if backoff is None:
+            backoff = Backoff(
                 min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
                 if devices
                 else 0.0,
                 max((d.spec.max_backoff for d in devices), default=0.0),
-            ),
-            clock=clock,
+            )
+        self.link = ManagedLink(
+            open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
+        self.sent, self.idle, self.published = sent, idle, published
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
+        self.accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
+        self.stamp: float | None = None  # time.time() the poll under way's request left
+        self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
+        # What each device's polls count in and read with, made once, not a poll.
+        for device in devices:
+            device.rounds = rounds
+            device.counted = DeviceAndLink(device.stats, self.stats) if published else self.stats
+            device.execute = functools.partial(self.link.execute, device.spec.unit)  # execute(request)
         self.crashed: BaseException | None = None
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
@@ -331,25 +423,49 @@ class LinkWorker:
         finally:
             self.link.close()
 
+    def work(self) -> None:
+        """Poll on this thread until the run is over or stopped; what ends it (Ctrl-C, a
+        request the link cannot carry, the output failing) is raised, with the link closed."""
+        try:
+            self._work()
+        finally:
+            self.link.close()
+
     def _work(self) -> None:
-        while not self.stop.is_set() and not self.finished():
+        # What every poll asks of the settings, read once: each device's timeout and retries,
+        # and --reconnect-each and --pause, which decide what follows a poll.
+        for device in self.devices:
+            device.limits = limits(device.spec, self.spec)
+        self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
+        while not self.stop.is_set():
             self._run_jobs()
-            now = self.clock.monotonic()
             waiting = self._waiting()
+            if self.rounds and not waiting:  # finished
+                return
+            now = self.clock.monotonic()
+            device = min(waiting, key=_DUE)  # the one that has waited longest
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
-            due = [d for d in waiting if d.due <= now and ready_at <= now]
-            if not due:
-                wake = max(min(d.due for d in waiting), ready_at)
-                self._sleep(max(0.0, wake - now))
+            if device.due > now or ready_at > now:
+                if self.idle is not None:
+                    self.idle()
+                self._sleep(max(0.0, max(device.due, ready_at) - now))
                 continue
-            device = min(due, key=lambda d: d.due)  # the one that has waited longest
-            if self.link.client is None and not self._open(due):
-                continue
+            if self.link.client is None:
+                if not self._open([d for d in waiting if d.due <= now]):
+                    continue
+                if device.spec.grid and not device.polls:
+                    # The grid starts with the first link open: opening sim:// (its imports) or
+                    # a slow handshake is not a poll overrunning its slot.  What the first link
+                    # made stays as long as the run: the collector need not walk it again.
+                    gc.freeze()
+                    device.due = self.clock.monotonic()
             self._poll(device)
 
     def _open(self, due: list[DeviceState]) -> bool:
         try:
             self.link.open()
+        except FATAL:
+            raise
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             reason = str(error)
@@ -357,20 +473,19 @@ class LinkWorker:
             first = self.state != OFFLINE
             self.state = OFFLINE
             self.open_failures += 1
-            settled = []
+            settled: list[Poll | Event] = []
             for device in due:  # its devices cannot be reached: offline meanwhile
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                settled.append(self._settle(device, None, error, when, not_before=self.link.ready_at))
+                settled.extend(self._settle(device, None, error, when, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
                 retry_in = self.link.backoff.wait if again else None
                 self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in, self.view()))
-            for items in settled:
-                for item in items:
-                    self.report(item)
+            for item in settled:
+                self.report(item)
             return False
         if self.state == OFFLINE:
             self.state = ONLINE
@@ -385,37 +500,55 @@ class LinkWorker:
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
 
+    def _request_sent(self) -> None:
+        """Run by the client right after a poll's first request has left: that is the poll's
+        time."""
+        self.stamp = self.clock.time()
+        if self.sent is not None:
+            self.sent()
+
     def _poll(self, device: DeviceState) -> None:
-        link, spec = self.link, device.spec
+        link = self.link
         client = link.client
         assert client is not None  # a device is polled on an open link
-        self.polling = spec.name
-        stamp: list[float] = []
-        client.while_waiting = lambda: stamp.append(self.clock.time())  # the poll's time: its request out
-        client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
-        link.stats = DeviceAndLink(device.stats, self.stats)
-
-        def execute(request):
-            return link.execute(spec.unit, request)
-
+        self.polling = device.spec.name
+        self.stamp = None
+        client.while_waiting = self._request_sent
+        client.timeout, client.retries = device.limits  # one transaction at a time on a link
+        link.stats = device.counted
+        stats = self.stats
+        untimed = stats.untimed
         readings: list[Reading] | None = None
         error: BaseException | None = None
+        latency: float | None = None
         try:
-            readings = spec.reader.read(execute)
+            readings = device.spec.reader.read(device.execute)
+            if stats.untimed == untimed:  # every reply of the poll timed
+                latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
+        except FATAL:
+            raise
         except (*KNOWN_ERRORS, OSError) as failure:
             error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
-        self._end(device, readings, error, stamp[0] if stamp else self.clock.time())
-
-    def _end(self, device, readings, error, when: float) -> None:
-        for item in self._settle(device, readings, error, when):
+        if client.deviations:  # --lenient took a reply as it was: the summary says so
+            self.accepted.update(client.deviations)
+        when = self.stamp
+        if when is None:  # the request never left
+            when = self.clock.time()
+        for item in self._settle(device, readings, error, when, latency=latency):
             self.report(item)
+        if self.reconnect_each and link.client is not None:
+            # --reconnect-each: a new link every poll, for devices and gateways that serve one
+            # client or leak connections; no wait, as nothing failed.
+            link.drop(on_purpose=True)
+        if self.idle is not None and (link.client is None or self.pause):
+            self.idle()  # a new link or a pause comes before the next request
 
     def _settle(
-        self, device, readings, error, when: float, not_before: float | None = None
+        self, device, readings, error, when: float, not_before: float | None = None, latency=None
     ) -> list[Poll | Event]:
         """A poll's outcome in the device's state: the Poll, and the Event of its change of
         state if it had one, to report.  ``not_before``: its link cannot be opened, so the
@@ -423,25 +556,35 @@ class LinkWorker:
         now = self.clock.monotonic()
         device.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
-        device.stats.poll(ok)
+        if self.published:  # the outputs of a plant show them; a lone device's run counts its own
+            device.stats.poll(ok)
         if ok:
             event = device.succeeded(now, when)
         else:
             event = device.failed(now, when, str(error), at_once=not_before is not None)
-            device.due = max(device.due, not_before or 0.0)
-        again = self._tried_again(device)
+            if device.state == OFFLINE:
+                device.due = max(device.due, not_before or 0.0)
+        # Whether it will be tried again matters to an event's announcement, and decides an
+        # offline device's next try; a device that answered is polled again while the run lasts.
+        again = self._tried_again(device) if event is not None or device.state == OFFLINE else True
         if not again and event is not None and event.retry_in is not None:
             event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        poll = Poll(
-            device.spec,
-            when,
-            readings,
-            error,
-            device.state,
-            device.last_success,
-            device.stats.copy(),
-            self.view(),
-        )
+        if self.published:
+            poll = Poll(
+                device.spec,
+                when,
+                readings,
+                error,
+                device.state,
+                device.last_success,
+                device.stats.copy(),
+                self.view(),
+                latency,
+            )
+        else:  # read on this thread, before the next poll: nothing to copy
+            poll = Poll(
+                device.spec, when, readings, error, device.state, device.last_success, None, None, latency
+            )
         device.last_poll = poll
         return [poll] if event is None else [poll, event]
 

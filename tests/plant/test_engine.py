@@ -13,9 +13,10 @@ from contextlib import contextmanager
 
 import pytest
 
-from mbtool.codec.errors import ModbusException
+from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.errors import ConnectionFailed, NoResponse, PartialRead
 from mbtool.link.connection import Connection
+from mbtool.link.managed import Backoff
 from mbtool.link.transport import ConnectionClosed
 from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState, Event, LinkSpec, LinkWorker, Poll
 
@@ -58,13 +59,16 @@ class Reader:
 
 class Client:
     """The fake link's client: each unit's transactions as the test scripts them ("reply",
-    "silent", "lost", "exception", "partial"), then replies."""
+    "silent", "lost", "exception", "partial", "slow N": a reply N seconds after its request,
+    "unfit": a request the link cannot carry), then replies."""
 
     def __init__(self, link: Link) -> None:
         self.link = link
         self.while_waiting = None
         self.timeout, self.retries = 1.0, 0
         self.attempts, self.rtt, self.ended_at = 0, None, float("-inf")
+        self.deviations: dict[str, None] = {}  # --lenient's, each kind once
+        self.work_sent_at = self.replied_at = 0.0
 
     def execute(self, unit: int, request):
         link = self.link
@@ -80,6 +84,10 @@ class Client:
             raise ConnectionClosed("the device closed the connection")
         if step == "exception":
             raise ModbusException(3, 2)
+        if step == "unfit":
+            raise RequestError("a read to the broadcast unit gets no reply")
+        if step.startswith("slow "):
+            link.clock.now += float(step.split()[1])
         self.rtt = 0.01
         if step == "partial":
             raise PartialRead(["a value", "a refusal"], [ModbusException(3, 2)])
@@ -108,16 +116,19 @@ def device(name: str, unit: int, interval=1.0, offline_after=3, max_backoff=10.0
     return DeviceSpec(name, "bus", unit, Reader(), {}, interval, offline_after, max_backoff, **options)
 
 
-def run(devices, script=None, opens=(), rounds=0, until=None, due=None):
-    """One link's worker to its end: the records it published, its link, the worker."""
+def run(devices, script=None, opens=(), rounds=0, until=None, due=None, link_options=None, **options):
+    """One link's worker to its end: the records it published, its link, the worker.
+    ``link_options``: the link's Connection's; ``options``: the worker's."""
     clock = Clock(until)
     states = [DeviceState(spec, clock.now) for spec in devices]
     for state in states:
         state.due = (due or {}).get(state.spec.name, state.due)
     records: list[Poll | Event] = []
     link = Link(clock, script or {}, list(opens))
-    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    worker = LinkWorker(spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link)
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1, **(link_options or {})))
+    worker = LinkWorker(
+        spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link, **options
+    )
     worker.deadline = None if until is None else until
     worker.run()
     if worker.crashed is not None:
@@ -304,3 +315,61 @@ def test_a_job_while_the_link_is_lost_is_told_so_and_does_not_open_it_before_its
     assert worker.crashed is None
     assert given == [None]
     assert link.opened == [0.0, 2.0]  # the polls' opens, the second after the back-off: none for the job
+
+
+# --- read --interval's one device on the engine (plant.polling) ---------------------------------
+
+
+def test_on_a_grid_a_poll_that_overruns_its_slot_skips_the_slots_it_missed_and_counts_them():
+    records, _, worker = run([device("m", 1, grid=True)], script={1: ["reply", "slow 2.5"]}, rounds=3)
+    # The second poll ends 3.5 s in: slots 2 and 3 have passed, the third poll takes slot 4.
+    assert [t for _, t in polls(records)] == [0, 1, 4]
+    assert worker.devices[0].skipped == 2
+    records, _, worker = run([device("m", 1)], script={1: ["reply", "slow 2.5"]}, rounds=3)
+    assert [t for _, t in polls(records)] == [0, 1, 3.5]  # a plant's device: at once, no grid
+
+
+def test_on_a_grid_the_last_poll_counts_no_slots_skipped_after_it():
+    _, _, worker = run([device("m", 1, grid=True)], script={1: ["reply", "slow 5"]}, rounds=2)
+    assert worker.devices[0].skipped == 0
+
+
+def test_a_device_never_offline_keeps_its_polls_through_a_link_that_would_not_open():
+    """read --interval --polls 2 whose first open is refused: two polls, not one and an end."""
+    records, link, _ = run(
+        [device("m", 1, offline_after=0, grid=True)], opens=["refused"], rounds=2, backoff=Backoff(0.1)
+    )
+    polled = [r for r in records if isinstance(r, Poll)]
+    assert [(r.time - EPOCH, r.error is None) for r in polled] == [(0, False), (1, True)]
+    assert link.opened == [0, 1]
+    assert [r.state for r in polled] == ["unknown", ONLINE]  # never offline
+    assert [e for e in events(records) if e[0] == "device"] == []
+
+
+def test_reconnect_each_opens_a_new_link_for_every_poll_at_once():
+    _, link, _ = run([device("m", 1)], rounds=3, link_options={"reconnect_each": True})
+    assert link.opened == [0, 1, 2]
+
+
+def test_a_request_the_link_cannot_carry_ends_the_run_rather_than_failing_a_poll():
+    with pytest.raises(RequestError):
+        run([device("m", 1)], script={1: ["unfit"]}, rounds=3)
+
+
+def test_the_hooks_run_when_a_request_has_left_and_before_the_worker_waits():
+    said = []
+    records, _, _ = run(
+        [device("m", 1)],
+        rounds=2,
+        sent=lambda: said.append("sent"),
+        idle=lambda: said.append("idle"),
+        published=False,
+    )
+    assert [type(r).__name__ for r in records] == ["Poll", "Poll"]
+    assert said == ["sent", "idle", "sent"]
+
+
+def test_unpublished_records_carry_no_copies_and_the_links_counts_are_the_devices():
+    records, _, worker = run([device("m", 1)], script={1: ["silent"]}, rounds=2, published=False)
+    assert all(r.stats is None and r.link is None for r in records)
+    assert worker.stats.transactions == 2 and worker.stats.outcomes["timeout"] == 1

@@ -16,6 +16,7 @@ from mbtool.errors import OutputFailed, UsageError
 from mbtool.files import read_toml
 from mbtool.link.settings import File
 from mbtool.plant.inventory import LINK_KEYS, load_inventory
+from mbtool.registermap.plan import MapReader
 from mbtool.words import counted
 
 HELP = {"help_option_names": ["-h", "--help"]}
@@ -45,6 +46,7 @@ def check(path):
         devices = [device for device in plant.devices if device.link == name]
         print(f"link {name}: {link.connection.port}, {counted(len(devices), 'device')}")
         for device in devices:
+            assert isinstance(device.reader, MapReader)  # an inventory's devices read their points
             reads = counted(len(device.reader.points), "point")
             source = f"map {plant.maps[device.name]}" if device.name in plant.maps else "references"
             print(f"  {device.name}: unit {device.unit}, {reads} ({source}), every {device.interval:g} s")
