@@ -7,7 +7,9 @@ output, the end of a run) carry theirs.  ``exit_code_for`` maps both.
 
 from __future__ import annotations
 
-import signal
+# The signals' numbers from the C module: the signal module makes its IntEnums when imported,
+# 4M instructions a one-shot read does not need (bench/oneshot.py --instructions); they equal them.
+from _signal import SIGHUP, SIGINT, SIGTERM
 from collections.abc import Sequence
 from enum import IntEnum
 from typing import TypeVar
@@ -33,7 +35,7 @@ class ExitCode(IntEnum):
 # What interrupts a run: Ctrl-C, a service stopped, a hang-up (the terminal or the ssh
 # session gone).  Each is one stop, the same for every command; one the shell left ignored
 # (nohup's SIGHUP, a background job's SIGINT) stays ignored.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+STOP_SIGNALS = (SIGINT, SIGTERM, SIGHUP)
 
 
 class MbtoolError(Exception):
@@ -42,19 +44,16 @@ class MbtoolError(Exception):
     exit_code = ExitCode.INTERNAL
 
 
-class UsageError(RequestError, MbtoolError):
-    """A mistake in what the user gave: an option, a profile, an inventory, a setting that does
-    not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
+class UsageError(MbtoolError):
+    """A mistake in what the user gave: an option, an argument, a profile, an inventory, a
+    setting that does not fit the link.  Exit 2 with nothing sent, one line naming what is wrong.
 
-    Apart from the codec's RequestError, which is the spec refusing a request; it is one for
-    now only so that the code that catches a RequestError to say where it came from (a
-    file's table and key) says so of either.
+    Apart from the codec's RequestError, the spec refusing a request (a quantity, an address, a
+    value): the codec's handlers catch theirs (a server answers it with an exception reply),
+    and must never take a user's mistake for it.  Code that stops on either names both.
     """
 
     exit_code = ExitCode.USAGE
-
-    def __init__(self, message: str) -> None:
-        super().__init__(message)
 
 
 class Verdict:

@@ -65,10 +65,13 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest."""
+    """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest.
+    The ``long`` ones go first: xdist hands tests out in this order, and one that waits half a
+    minute started last would hold the whole run up by as much."""
     for item in items:
         if item.path.is_relative_to(E2E_DIR):
             item.add_marker(pytest.mark.e2e)
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
 
 
 @pytest.fixture

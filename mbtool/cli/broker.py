@@ -1,28 +1,31 @@
-"""poll's MQTT publisher (mbtool/mqtt/), started beside the plant's outputs: paho-mqtt and
-the publisher imported only when a run publishes."""
+"""The MQTT publisher (mbtool/mqtt/), started beside a run's outputs: poll's plant, and
+read --interval's polls, each handed on where the command hands it to its output (never
+inside the polling itself); paho-mqtt and the publisher imported only when a run publishes."""
 
 from __future__ import annotations
 
 import sys
-from typing import TYPE_CHECKING
+import time
 
+from mbtool.cli.results import Points
+from mbtool.errors import PartialRead
+from mbtool.mqtt.settings import read_settings
+from mbtool.mqtt.topics import OFFLINE, ONLINE, DevicePoll
+from mbtool.plant.schedule import LinkWorker
 from mbtool.registermap.load import load_map
 
-if TYPE_CHECKING:
-    from mbtool.plant.schedule import LinkWorker
 
-
-def make_publisher(settings, plant, quiet: bool = False):
-    """The publisher of ``settings`` for the inventory ``plant``, to be started
-    (``start``: it connects in the background, the broker may come later).  Each change of
-    the broker's state, and each write, is a line on stderr unless ``quiet`` (the live view
-    shows the broker's state in its title)."""
+def make_publisher(settings, devices: list, maps: dict | None = None, quiet: bool = False):
+    """The publisher of ``settings`` for ``devices`` (an inventory's, whose ``maps`` give
+    discovery its devices' makers and models; or read's one device), to be started (``start``: it connects in the background, the broker may come later).  Each
+    change of the broker's state, and each write, is a line on stderr unless ``quiet`` (the
+    live view shows the broker's state in its title)."""
     from mbtool.mqtt.publisher import MqttPublisher  # noqa: PLC0415 - paho-mqtt, 49 ms: --mqtt and [mqtt] only
 
     headers = {}
     if settings.discovery:  # the model and maker Home Assistant shows, from each map's [device]
         loaded = {}
-        for name, path in plant.maps.items():
+        for name, path in (maps or {}).items():
             if path not in loaded:
                 loaded[path] = load_map(path).header
             headers[name] = loaded[path]
@@ -31,7 +34,40 @@ def make_publisher(settings, plant, quiet: bool = False):
         if not quiet:
             print(f"mbtool: mqtt: {line}", file=sys.stderr, flush=True)
 
-    return MqttPublisher(settings, plant.devices, headers, notify)
+    return MqttPublisher(settings, devices, headers, notify)
+
+
+class PublishedPolls:
+    """read --interval --mqtt URL: each poll shown by the run's output (``output``: its
+    Output, or ChangesOnly) and published, its values one message a poll (every poll: --changes
+    is stdout's), the device online while its polls are answered and offline after one fails."""
+
+    def __init__(self, output, url: str, name: str, unit: int) -> None:
+        """``name``: --name, else ``unit<N>``; the settings are checked before anything opens."""
+        settings, device = read_settings(url, name or f"unit{unit}", unit)
+        self.output = output
+        self.name = device.name
+        self.publisher = make_publisher(settings, [device])
+        self.publisher.start()
+
+    def result(self, when: str, result, stamp: float | None = None) -> None:
+        self.output.result(when, result, stamp)
+        if result.__class__ is Points:  # a map's points by name
+            values = {row.name: row.value for row in result.rows}
+        else:  # by the references given (read 40001 2), else by address
+            names = result.refs or [str(address) for address in result.addresses]
+            values = dict(zip(names, result.values, strict=True))
+        self.publisher.report(DevicePoll(self.name, stamp or time.time(), values, ONLINE))
+
+    def failure(self, when: str, number: int, error: BaseException) -> None:
+        self.output.failure(when, number, error)
+        if not isinstance(error, PartialRead):  # a part read is a device that answers
+            self.publisher.report(DevicePoll(self.name, time.time(), None, OFFLINE))
+
+    def close(self) -> None:
+        self.output.close()
+        self.publisher.close()
+        print(stats_line(self.publisher.stats()), file=sys.stderr, flush=True)
 
 
 def hand_writes(publisher, runner) -> None:

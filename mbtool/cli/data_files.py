@@ -3,8 +3,8 @@ sections, writing one (``dump``), and reading one back (``diff``, ``restore``)."
 
 from __future__ import annotations
 
-from mbtool.codec.errors import RequestError
 from mbtool.device.datafile import load_data
+from mbtool.errors import UsageError
 
 TABLE_SECTIONS = {  # a table's name in mbtool's messages -> its section in a data file
     "coils": "coils",
@@ -62,7 +62,7 @@ def snapshot(path: str) -> tuple[dict[str, dict[int, int]], bool]:
     refused rather than read as something it is not."""
     model, units = load_data(path, frozenset(range(1, 256)), listed_only=True)
     if units:
-        raise RequestError(
+        raise UsageError(
             f"{path} has [units.{min(units)}]: diff and restore take one device's tables, "
             "as mbtool dump writes them, not serve's sections a unit"
         )

@@ -4,16 +4,12 @@ TLS context and the roles that may write (Modbus/TCP Security's authorization), 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from mbtool.device.datafile import load_write_roles
+from mbtool.device.serving import Stats
 from mbtool.errors import UsageError
 from mbtool.link.settings import SETTINGS, check_tls_framing, not_for_tls
+from mbtool.link.transport import Target
 from mbtool.words import counted
-
-if TYPE_CHECKING:
-    from mbtool.device.serving import Stats
-    from mbtool.link.transport import Target
 
 DATAGRAM_SCHEMES = ("udp", "rtu+udp")
 

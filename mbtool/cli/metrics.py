@@ -13,8 +13,7 @@ from abc import ABC, abstractmethod
 
 from mbtool.cli.results import Points
 from mbtool.cli.settings import Settings
-from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, exit_code_for
+from mbtool.errors import ExitCode, UsageError, exit_code_for
 
 # The failures that mean the device could not be read: no reply, an exception (to every
 # point of a map), a reply that is not one, a link that cannot be opened.
@@ -46,7 +45,7 @@ class Readings(ABC):
         for option, name, what in names:
             problem = name_problem(name, what, influx=self.influx)
             if problem:
-                raise RequestError(f"{option} {name!r}: {problem}")
+                raise UsageError(f"{option} {name!r}: {problem}")
 
     @abstractmethod
     def emit(self, result, out, when: float | None = None) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -49,14 +50,19 @@ class Notifier:
         except OSError:
             pass  # systemd gone or the socket unreachable: nothing a poller can do about it
 
-    def ready(self, status: str = "") -> None:
-        """READY=1 (and a STATUS line), then the watchdog's pings from a thread of their own."""
+    def ready(self, status: str = "", moved: Callable[[], bool] | None = None) -> None:
+        """READY=1 (and a STATUS line), then the watchdog's pings from a thread of their own:
+        each only when ``moved()`` says the work moved since the last (a plant's
+        ``Plant.moved``), so that systemd restarts a run that is alive but stuck; with no
+        ``moved``, while the process lives."""
         self.send("READY=1" + (f"\nSTATUS={status}" if status else ""))
         if self.period is not None:
-            threading.Thread(target=self._feed, name="watchdog", daemon=True).start()
+            threading.Thread(target=self._feed, args=(moved,), name="watchdog", daemon=True).start()
 
-    def _feed(self) -> None:
+    def _feed(self, moved: Callable[[], bool] | None) -> None:
         while not self.stopped.wait(self.period):
+            if moved is not None and not moved():
+                continue  # stuck: no ping, and systemd's WatchdogSec runs out
             with self.lock:
                 if not self.stopped.is_set():
                     self.send("WATCHDOG=1")

@@ -16,12 +16,30 @@ from mbtool.cli.session import warn_insecure
 from mbtool.cli.settings import ERRORS_AS_JSON, Settings
 from mbtool.cli.sinks import READINGS, RESULTS, SINKS, formats
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import replace
 from mbtool.errors import UsageError
-from mbtool.link.connection import Connection, check
+from mbtool.link.connection import changed, connection_of
 from mbtool.link.settings import SECURITY, SERIAL_LINE, SETTINGS, USE, Flag, OneOf
 
 # --- shared options ------------------------------------------------------------------
+
+
+def shared_option(*param_decls: str, **attrs) -> Callable:
+    """``click.option``, but its Option is made once, when the first command takes it, and the
+    same one put on every command after: what a parse finds is kept in its context, not in the
+    Option.  A module's commands then make the link's options once, not once a command: a
+    one-shot read imports a module of five commands and runs one."""
+    made: list[click.Option] = []
+
+    def decorate(function: Callable) -> Callable:
+        if not made:
+            made.append(click.Option(param_decls, **attrs))
+        if isinstance(function, click.Command):
+            function.params.append(made[0])
+        else:  # as click.option does: the command made later takes them in this order
+            function.__dict__.setdefault("__click_params__", []).append(made[0])
+        return function
+
+    return decorate
 
 
 def link_option(name: str, **extra) -> Callable:
@@ -40,7 +58,7 @@ def link_option(name: str, **extra) -> Callable:
             attrs["show_default"] = True
     if setting.envvar:
         attrs |= {"envvar": setting.envvar, "show_envvar": True}
-    return click.option(*setting.flags, **attrs | extra)
+    return shared_option(*setting.flags, **attrs | extra)
 
 
 # The serial line's settings, shared by the master commands, serve and monitor.
@@ -110,7 +128,7 @@ def output_chosen(ctx: click.Context, param: click.Parameter, fmt: str | None) -
     return fmt
 
 
-NO_HEADER_OPTION = click.option(
+NO_HEADER_OPTION = shared_option(
     "--no-header",
     is_flag=True,
     help="CSV without its header row (it is left out anyway when appending to a file that has content).",
@@ -161,13 +179,13 @@ PORT_OPTION = link_option("port", shell_complete=complete_port)
 UNIT_OPTION = link_option("unit")
 FRAMER_OPTION = link_option("framer")
 RECONNECT_EACH_OPTION = link_option("reconnect_each")
-HEX_OPTION = click.option(
+HEX_OPTION = shared_option(
     "--hex",
     "hex_trace",
     is_flag=True,
     help="Print every frame sent and received (stderr), checksum checked.",
 )
-OUTPUT_FORMAT_OPTION = click.option(
+OUTPUT_FORMAT_OPTION = shared_option(
     "-o",
     "--format",
     "output_format",
@@ -177,7 +195,7 @@ OUTPUT_FORMAT_OPTION = click.option(
     'object too: {"error": ..., "exit_code": N}. influx (InfluxDB line protocol) and prom '
     "(Prometheus text) for the read commands.",
 )
-DRY_RUN_OPTION = click.option(
+DRY_RUN_OPTION = shared_option(
     "--dry-run",
     is_flag=True,
     help="Print the frame that would be sent, decoded, and send nothing (the port is not opened).",
@@ -196,6 +214,8 @@ SETTINGS_KEYS = (
     "textfile",
     "changes",
     "stats",
+    "mqtt",
+    "name",
 )
 
 
@@ -224,7 +244,8 @@ ONE_REGISTER_TYPES = ("uint16", "int16", "hex")
 ORDER_ALL = "all"  # --order all: a read shows its values in each of the four orders
 
 
-def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Callable]:
+@functools.cache  # the same --type and --order for every command that offers these choices
+def type_options(choices: tuple[str, ...], order_all: bool = False) -> tuple[Callable, ...]:
     orders = ["ABCD", "CDAB", "BADC", "DCBA"] + ([ORDER_ALL] if order_all else [])
     order_help = (
         "Byte order of multi-register values: ABCD big-endian, CDAB word-swapped, "
@@ -232,8 +253,8 @@ def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Call
     )
     if order_all:
         order_help += " all: each 32- or 64-bit value in all four, side by side, to find the device's."
-    return [
-        click.option(
+    return (
+        shared_option(
             "--type",
             "value_type",
             type=Choice(choices),
@@ -241,8 +262,8 @@ def type_options(choices: tuple[str, ...], order_all: bool = False) -> list[Call
             show_default=True,
             help="How values map to registers.",
         ),
-        click.option("--order", type=Choice(orders), default="ABCD", show_default=True, help=order_help),
-    ]
+        shared_option("--order", type=Choice(orders), default="ABCD", show_default=True, help=order_help),
+    )
 
 
 # nan and inf are refused unless asked for: a typo (or 1e400, out of range) must not send one.
@@ -311,7 +332,7 @@ def _remember_profile(ctx: click.Context, param: click.Parameter, value: str | N
     ctx.meta["mbtool.profile"] = value
 
 
-PROFILE_OPTION = click.option(  # the profile is read by device_command, or by a command itself
+PROFILE_OPTION = shared_option(  # the profile is read by device_command, or by a command itself
     "-P",
     "--profile",
     metavar="NAME",
@@ -349,7 +370,7 @@ def device_command(
             # The command's own arguments stay in kwargs; the shared options make the
             # Connection and the Settings.
             shared = {key: kwargs.pop(key) for key in CONNECTION_KEYS if key in kwargs}
-            connection = Connection(**shared)
+            connection = connection_of(**shared)
             shown = {key: kwargs.pop(key) for key in SETTINGS_KEYS if key in kwargs}
             output_format = shown.get("output_format")
             profile = click.get_current_context().meta.get("mbtool.profile")
@@ -369,6 +390,8 @@ def device_command(
                 device=(profile or "") if output_format in formats(READINGS) else "",
                 changes=shown.get("changes", False),
                 stats=shown.get("stats", "line"),
+                mqtt=shown.get("mqtt") or "",
+                name=shown.get("name") or "",
             )
             if profile:
                 from mbtool.cli.profiles import defaults  # noqa: PLC0415 - -P only; all commands load this
@@ -376,14 +399,13 @@ def device_command(
                 changes = defaults(profile)
                 # A profile's key for the command's own option (map) goes to the command.
                 kwargs |= {key: changes.pop(key) for key in list(changes) if key in kwargs}
-                connection = replace(connection, **changes) if changes else connection
-            if connection.insecure and not settings.dry_run:
-                check(connection)  # a mistake in the options is said alone, not after the warning
+                connection = changed(connection, **changes)
+            if not settings.dry_run:
                 warn_insecure(connection)
             return function(connection, settings, **kwargs)
 
         run = PROFILE_OPTION(run)
-        typed = type_options(types, order_all) if types else []
+        typed = list(type_options(types, order_all)) if types else []
         run = with_options(connection_options(unit, output, polls) + typed)(run)
         # Negative register values (write-register 100 -5) must not be taken for options.
         context = {

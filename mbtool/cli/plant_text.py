@@ -10,22 +10,25 @@ import sys
 import threading
 from functools import lru_cache
 
-from mbtool.cli.log import INFO, WARNING, log_line
+from mbtool.cli.log import INFO, WARNING, log, log_line
 from mbtool.cli.sinks.prom import (
     VALUE_HELP,
-    exposition,
-    family,
+    Family,
+    family_of,
+    gauges,
     label_pairs,
     label_value,
     le,
     metric_name,
     sample_value,
     warn_counter_names,
+    written,
 )
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link.stats import OUTCOMES
-from mbtool.plant.schedule import OFFLINE, ONLINE, Event, view_of, views
+from mbtool.plant.budget import budgets
+from mbtool.plant.schedule import OFFLINE, ONLINE, OVERRUN, Event, view_of, views
 
 UP, LAST_SUCCESS = "modbus_up", "modbus_last_success_timestamp_seconds"
 VALUE = "modbus_value"  # a device's raw registers and bits (read = [...]), one family as read -o prom has it
@@ -51,7 +54,12 @@ def _named(name: str, description: str, unit: str) -> tuple[str, str]:
 
 
 def prom_text(states: list) -> str:
-    """The exposition of the devices' latest polls: modbus_up and the last success a device,
+    """The exposition of the devices' latest polls (``prom_families``), written."""
+    return written(prom_families(states))
+
+
+def prom_families(states: list) -> list[Family]:
+    """The families of the devices' latest polls: modbus_up and the last success a device,
     and a gauge a point read, a map's point named after it, a raw register or bit in
     modbus_value{table,address,ref}; a device down shows no value (it would be scraped as
     current).  ``states``: what the scheduler knows of each device (plant.schedule.DeviceState)."""
@@ -86,7 +94,7 @@ def prom_text(states: list) -> str:
             metrics.setdefault(name, (about, []))[1].append(f"{name}{{{pairs},{where}}} {shown}")
     if not metrics[LAST_SUCCESS][1]:
         del metrics[LAST_SUCCESS]
-    return exposition(metrics)
+    return gauges(metrics)
 
 
 def point_name_clash(points, own: set[str], whose: str) -> str:
@@ -100,7 +108,7 @@ def point_name_clash(points, own: set[str], whose: str) -> str:
 
 
 def refuse_point_names(plant, own: set[str], whose: str) -> None:
-    """RequestError (exit 2, before anything is opened) for an inventory whose map points
+    """UsageError (exit 2, before anything is opened) for an inventory whose map points
     would be named as ``own`` metrics, or as its raw registers' family (modbus_value); a
     warning for a point named as a counter (metrics.warn_counter_names)."""
     if any(spec.raw for spec in plant.devices):
@@ -108,11 +116,24 @@ def refuse_point_names(plant, own: set[str], whose: str) -> None:
     for spec in plant.devices:
         clash = point_name_clash(spec.reader.points, own, whose)
         if clash:
-            raise RequestError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
+            raise UsageError(f"{plant.path}: [devices.{spec.name}] map: {clash}")
     warned: set[str] = set()  # a map's points once, however many devices read them
     for spec in plant.devices:
         if not spec.raw:
             warn_counter_names(spec.reader.points, where=f"{plant.maps[spec.name]}: ", warned=warned)
+
+
+def check_budgets(plant, strict: bool, log_format: str) -> None:
+    """Each serial link whose groups ask more line time than it has: a warning with the figures,
+    or with poll --strict the refusal (exit 2), before anything is opened (poll's and the
+    exporter's inventory alike)."""
+    for budget in budgets(plant.links, plant.devices):
+        if budget.seconds <= 1:
+            continue
+        line = f"{budget.line()}: more than the line has, the groups cannot keep their intervals"
+        if strict:
+            raise UsageError(f"{plant.path}: {line} (--strict)")
+        log(WARNING, f"warning: {line}", log_format, link=budget.link)
 
 
 def event_line(event) -> str:
@@ -130,7 +151,7 @@ def event_line(event) -> str:
 def event_log(event, fmt: str) -> str:
     """A change of state as a line of the run's log format: a device or link offline is a
     warning, its return information (Telegraf's execd: W! and I!, never E!)."""
-    level = WARNING if event.state == OFFLINE else INFO
+    level = WARNING if event.state in (OFFLINE, OVERRUN) else INFO
     return log_line(
         level,
         event_line(event),
@@ -162,7 +183,7 @@ class PlantMetrics:
         self.log_format = log_format  # of its lines on stderr (cli.log)
         self.labels = labels or {}  # the inventory's [poll] site and instance, on the statistics too
         self.lock = threading.Lock()
-        self.blocks: dict[tuple[str, str], list[tuple[str, str, str]]] = {}  # key -> its families
+        self.blocks: dict[tuple[str, str], list[Family]] = {}  # key -> its families
         self.changes = 0  # blocks written so far
         self.joined: tuple[int, bytes] = (-1, b"")  # the text as of that many changes
 
@@ -187,18 +208,17 @@ class PlantMetrics:
     def _device(self, state) -> None:
         self._keep(
             ("device", state.spec.name),
-            prom_text([state]) + device_stats_text(state.spec.name, state.stats, self.labels),
+            prom_families([state]) + device_stats(state.spec.name, state.stats, self.labels),
         )
 
     def _link(self, link) -> None:
         # The link's totals as the worker keeps them (plant.schedule.LinkView): adding up its
         # every device again after each poll cost as much as the poll itself from a few hundred
         # devices on.
-        text = link_stats_text(link.name, link.stats, link.state == ONLINE, link.open_failures, self.labels)
-        self._keep(("link", link.name), text)
+        families = link_stats(link.name, link.stats, link.state == ONLINE, link.open_failures, self.labels)
+        self._keep(("link", link.name), families)
 
-    def _keep(self, key: tuple[str, str], text: str) -> None:
-        families = split_families(text)
+    def _keep(self, key: tuple[str, str], families: list[Family]) -> None:
         with self.lock:
             self.blocks[key] = families
             self.changes += 1
@@ -224,34 +244,20 @@ class PlantMetrics:
         return text
 
 
-def split_families(text: str) -> list[tuple[str, str, str]]:
-    """An exposition in the text format cut into its families: (name, its HELP and TYPE
-    lines, its samples).  A family starts at its HELP line; a newline in a HELP text or a
-    label value is escaped (\\n), so a line starting "# HELP " starts a family."""
-    out = []
-    for block in ("\n" + text).split("\n# HELP ")[1:]:
-        help_rest, _, rest = block.partition("\n")
-        type_line, _, body = rest.partition("\n")
-        if body and not body.endswith("\n"):
-            body += "\n"
-        out.append((help_rest.split(" ", 1)[0], f"# HELP {help_rest}\n{type_line}\n", body))
-    return out
-
-
-def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
+def _transactions(prefix: str, pair: str, whose: str, stats) -> list[Family]:
     """Every transaction's outcome, the exceptions by code, the retries that recovered and
     the round-trip histogram (link.stats), each sample labelled ``pair``."""
     name = f"{prefix}request_duration_seconds"
-    return (
-        family(
+    return [
+        family_of(
             f"{prefix}transactions_total",
             "counter",
             f"Transactions {whose}, by outcome: answered, exception, timeout, corrupt (a CRC/LRC or "
             "framing error), not_ours (a frame for another unit or transaction), link_lost (the peer "
             "hung up), connection (the link could not be opened or reached)",
             (f'{prefix}transactions_total{{{pair},outcome="{o}"}} {stats.outcomes[o]}' for o in OUTCOMES),
-        )
-        + family(
+        ),
+        family_of(
             f"{prefix}exceptions_total",
             "counter",
             f"Exception responses {whose}, by exception code (hex, as the spec writes them)",
@@ -259,21 +265,21 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
                 f'{prefix}exceptions_total{{{pair},code="{code:02X}"}} {count}'
                 for code, count in sorted(stats.exceptions.items())
             ),
-        )
-        + family(
+        ),
+        family_of(
             f"{prefix}retries_recovered_total",
             "counter",
             f"Transactions {whose} answered on a retry",
             [f"{prefix}retries_recovered_total{{{pair}}} {stats.recovered}"],
-        )
-        + family(
+        ),
+        family_of(
             f"{prefix}untimed_replies_total",
             "counter",
             f"Replies {whose} whose round trip is not known (they came while mbtool was busy, or "
             "after a retry without transaction ids): left out of the histogram",
             [f"{prefix}untimed_replies_total{{{pair}}} {stats.untimed}"],
-        )
-        + family(
+        ),
+        family_of(
             name,
             "histogram",
             f"Round-trip time of the replies {whose}: from a request's last byte written to its "
@@ -286,47 +292,47 @@ def _transactions_text(prefix: str, pair: str, whose: str, stats) -> str:
                 f"{name}_sum{{{pair}}} {stats.rtt.total!r}",
                 f"{name}_count{{{pair}}} {stats.rtt.count}",
             ],
-        )
-    )
+        ),
+    ]
 
 
-def device_stats_text(name: str, stats, labels: dict | None = None) -> str:
+def device_stats(name: str, stats, labels: dict | None = None) -> list[Family]:
     """A device's statistics in the text format: its polls and its transactions (``labels``:
     the fleet's site and instance)."""
     pair = label_pairs({"device": name} | (labels or {}))
-    return (
-        family(
+    return [
+        family_of(
             "modbus_polls_total",
             "counter",
             "Polls of the device",
             [f"modbus_polls_total{{{pair}}} {stats.polls}"],
-        )
-        + family(
+        ),
+        family_of(
             "modbus_failed_polls_total",
             "counter",
             "Polls of the device that read nothing",
             [f"modbus_failed_polls_total{{{pair}}} {stats.failed_polls}"],
-        )
-        + _transactions_text("modbus_", pair, "with the device", stats)
-    )
+        ),
+        *_transactions("modbus_", pair, "with the device", stats),
+    ]
 
 
-def link_stats_text(name: str, stats, up: bool, open_failures: int, labels: dict | None = None) -> str:
+def link_stats(name: str, stats, up: bool, open_failures: int, labels: dict | None = None) -> list[Family]:
     """A link's state and statistics in the text format: its devices' transactions added up
     (``labels``: the fleet's site and instance)."""
     pair = label_pairs({"link": name} | (labels or {}))
-    return (
-        family(
+    return [
+        family_of(
             "modbus_link_up",
             "gauge",
             "1 when the link is open, 0 when it cannot be opened or has not been",
             [f"modbus_link_up{{{pair}}} {int(up)}"],
-        )
-        + family(
+        ),
+        family_of(
             "modbus_link_open_failures_total",
             "counter",
             "Times the link could not be opened",
             [f"modbus_link_open_failures_total{{{pair}}} {open_failures}"],
-        )
-        + _transactions_text("modbus_link_", pair, "over the link", stats)
-    )
+        ),
+        *_transactions("modbus_link_", pair, "over the link", stats),
+    ]

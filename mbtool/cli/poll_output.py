@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from mbtool.cli.results import (
     Points,
@@ -17,6 +18,9 @@ from mbtool.cli.results import (
 from mbtool.cli.sinks import sink
 from mbtool.cli.stamps import local_time
 from mbtool.errors import OutputFailed, PartialRead
+
+if TYPE_CHECKING:
+    from mbtool.cli.broker import PublishedPolls  # --mqtt's: each poll shown, then published
 
 FLUSH_GAP = 0.05  # seconds: polls closer together than this share a flush
 
@@ -152,7 +156,9 @@ class Deferred:
     overlaps the device's turnaround instead of adding to every transaction (sustained
     polling keeps pace with a bare client loop)."""
 
-    def __init__(self, output: Output | ChangesOnly, to_result: Callable[[object], object]) -> None:
+    def __init__(
+        self, output: Output | ChangesOnly | PublishedPolls, to_result: Callable[[object], object]
+    ) -> None:
         self.output = output
         self.to_result = to_result
         self.held = None  # the reply to show, and when its request left (time.time())

@@ -8,10 +8,10 @@ code of ``errors.ExitCode``.
 
 from __future__ import annotations
 
+import _signal  # the signal module's functions, without the IntEnums it makes (mbtool.errors)
 import gc
 import io
 import os
-import signal
 import sys
 from importlib import import_module
 
@@ -183,8 +183,8 @@ def main(argv: list[str] | None = None) -> None:
 
         sys.exit(shell_complete(cli, {}, "mbtool", COMPLETE_VAR, os.environ[COMPLETE_VAR]))
     for stop in STOP_SIGNALS:  # SIGINT is Python's KeyboardInterrupt already
-        if stop != signal.SIGINT and signal.getsignal(stop) is not signal.SIG_IGN:
-            signal.signal(stop, _terminate)
+        if stop != _signal.SIGINT and _signal.getsignal(stop) != _signal.SIG_IGN:
+            _signal.signal(stop, _terminate)
     if sys.stdout is None:
         _closed_stdout_as_a_gone_reader()
     if sys.stderr is None:

@@ -17,7 +17,7 @@ from mbtool.cli.settings import Settings
 from mbtool.cli.sinks import default_format, render
 from mbtool.codec.framing import is_broadcast, make_framer
 from mbtool.codec.record import replace
-from mbtool.link.connection import Connection, check, framer_name
+from mbtool.link.connection import Connection, check, framer_name, is_tls
 from mbtool.link.connection import open_client as open_link
 
 
@@ -44,9 +44,11 @@ def open_client(
 
 def warn_insecure(connection: Connection, link: str = "") -> None:
     """--insecure, on every run that uses it: the server's certificate goes unchecked.
-    ``link``: the inventory's name of the link (poll)."""
+    ``link``: the inventory's name of the link (poll).  The connection is checked first: a
+    mistake in the options (--insecure with --ca) is said alone, not after the warning."""
     port = connection.port or ""
-    if connection.insecure and port.lower().startswith("tls://"):
+    if connection.tls.insecure and is_tls(connection):
+        check(connection)
         named = f" (link {link})" if link else ""
         print(
             f"mbtool: warning: --insecure: the certificate of {port}{named} is not checked, so anyone "

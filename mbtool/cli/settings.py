@@ -30,3 +30,5 @@ class Settings:
     device: str = ""  # the profile's name (-P): a tag and a label of the metrics
     changes: bool = False  # --changes: polling prints the values that changed
     stats: str = "line"  # --stats: polling's summary as its line, or also as JSON
+    mqtt: str = ""  # --mqtt URL: polling publishes each poll to that broker too
+    name: str = ""  # --name: the device's name on the broker

@@ -17,13 +17,12 @@ import signal
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
-from mbtool.codec.errors import RequestError
 from mbtool.device.device import Device
 from mbtool.device.serial_server import SerialServer
 from mbtool.device.serving import Answerer, IoFaults, Responder, ServerParts, Serving, Stats
 from mbtool.device.tcp_server import FIRST_REQUEST_TIMEOUT, IDLE_TIMEOUT, MAX_CLIENTS, TcpServer
 from mbtool.device.udp_server import UdpServer
-from mbtool.errors import STOP_SIGNALS
+from mbtool.errors import STOP_SIGNALS, UsageError
 from mbtool.link import IN_PROCESS
 from mbtool.link.transport import SerialSettings, Target
 from mbtool.link.transport import parse_target as parse_link_target
@@ -37,7 +36,7 @@ def parse_target(text: str) -> Target:
     device path / pyserial URL."""
     target = parse_link_target(text, listening=True)
     if target.scheme in IN_PROCESS:
-        raise RequestError(f"{target} is the in-process device; serve on tcp://HOST:PORT or a serial port")
+        raise UsageError(f"{target} is the in-process device; serve on tcp://HOST:PORT or a serial port")
     return target
 
 

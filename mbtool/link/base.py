@@ -7,15 +7,12 @@ Apart from ``transport`` so that the transports in modules of their own (``mbtoo
 
 from __future__ import annotations
 
+import _socket
 import os
 import re
 import time
-from typing import TYPE_CHECKING
 
 from mbtool.errors import ConnectionFailed, NoResponse
-
-if TYPE_CHECKING:
-    import socket
 
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
@@ -60,21 +57,31 @@ def host_text(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def connect(host: str, port: int, timeout: float) -> socket.socket:
+def connect(host: str, port: int, timeout: float) -> _socket.socket:
     """A TCP connection to ``host:port`` (ConnectionFailed, exit 6, if there is none), Nagle
-    off: a request is one small write that must leave at once."""
-    # socket.py costs 14 M instructions (7% of a one-shot read: its enums), which sim:// and
-    # serial lines never need; the transports take its numbers from _socket.
-    import socket  # noqa: PLC0415 - 14 M instructions: tcp:// and tls:// only
-
+    off: a request is one small write that must leave at once.  Each address the name has is
+    tried in turn, as socket.create_connection does, with the C module's socket: socket.py
+    costs 14 M instructions (7% of a one-shot read: its enums) that a read over tcp:// need
+    not pay (tls:// makes it the socket module's, which ssl wraps)."""
     try:
         # An ASCII host as bytes spares getaddrinfo the idna codec (~1.5 ms of imports).
         address = host.encode("ascii") if host.isascii() else host
-        # typeshed wants the host as str; the socket module takes bytes as well.
-        sock = socket.create_connection((address, port), timeout=timeout)  # type: ignore[arg-type]
+        failed: OSError | None = None
+        for family, kind, proto, _, where in _socket.getaddrinfo(address, port, 0, _socket.SOCK_STREAM):
+            sock = _socket.socket(family, kind, proto)
+            try:
+                sock.settimeout(timeout)
+                sock.connect(where)
+            except OSError as error:
+                sock.close()
+                failed = error  # the last address's reason, as create_connection says it
+                continue
+            break
+        else:
+            raise failed or OSError(f"no address for {host}")
     except OSError as error:
         raise ConnectionFailed(f"cannot connect to {host}:{port}: {reason(error)}") from None
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.setsockopt(_socket.IPPROTO_TCP, _socket.TCP_NODELAY, 1)
     return sock
 
 

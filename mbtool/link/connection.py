@@ -7,48 +7,68 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
+from mbtool.codec.framer import Framer
 from mbtool.codec.framing import is_broadcast, make_framer
-from mbtool.codec.record import record
+from mbtool.codec.record import record, replace
 from mbtool.errors import KNOWN_ERRORS, UsageError
-from mbtool.link.settings import SECURITY, SETTINGS, check_tls_framing, default, misplaced
+from mbtool.link.settings import (
+    RECORDS,
+    SECURITY,
+    SETTINGS,
+    SerialLine,
+    TlsSettings,
+    check_tls_framing,
+    default,
+    misplaced,
+)
 
 # link.transport and link.client are imported where a link is opened or checked: every command
 # loads Connection (cli.options), crc too, and they cost it 5-7 M instructions.
 if TYPE_CHECKING:
-    from mbtool.codec.framer import Framer
     from mbtool.link.client import Client, Trace
 
 
 @record
 class Connection:
-    """Built from keywords: what -p, -u and the line options say about the link.  Each field is
-    a setting of ``link.settings.SETTINGS``, which gives its default, its help and its checks;
-    the fields are written out so that a reader (and a type checker) sees them."""
+    """What -p, -u and the line options say about the link.  Each field is a setting of
+    ``link.settings.SETTINGS`` for every link, which gives its default, its help and its
+    checks; a transport's own settings are its record (``serial``: a serial line's, ``tls``:
+    a tls:// link's), which its code reads alone.  Made from the settings by their names with
+    ``connection_of``; the fields are written out so that a reader (and a type checker) sees them."""
 
     port: str | None = default("port")
     unit: int = default("unit")
     framer: str | None = default("framer")  # None: tcp for tcp://, rtu for everything else
-    baud: int = default("baud")
-    parity: str = default("parity")
-    bytesize: int = default("bytesize")
-    stopbits: int = default("stopbits")
     timeout: float = default("timeout")
     retries: int = default("retries")
-    echo: bool = default("echo")  # a half-duplex adapter echoes every byte sent
-    rs485: bool = default("rs485")  # drive RTS for the direction of a two-wire RS-485 line
-    rs485_delays: tuple[float, float] | None = default("rs485_delays")  # seconds RTS leads and trails a frame
     pause: float = default("pause")  # seconds at least between a reply and the next request (slow devices)
     connect_delay: float = default("connect_delay")  # seconds to wait after opening the link
     reconnect_each: bool = default("reconnect_each")  # polling: a new link for every poll
     lenient: bool = default("lenient")  # accept replies that break the spec harmlessly, with a warning
-    # tls:// (Modbus/TCP Security): the client's certificate and key (PEM), the CAs (or the
-    # device's own certificate) to trust, no check of the server's certificate, and the name
-    # it must have where it is not the host's.
-    cert: str | None = default("cert")
-    key: str | None = default("key")
-    ca: str | None = default("ca")
-    insecure: bool = default("insecure")
-    server_name: str | None = default("server_name")
+    serial: SerialLine = SerialLine()
+    tls: TlsSettings = TlsSettings()
+
+
+def connection_of(**settings) -> Connection:
+    """A Connection from settings by their names in ``SETTINGS`` (the options', a profile's
+    keys, an inventory link's): each to its transport's record, by its row."""
+    return changed(Connection(), **settings)
+
+
+def changed(connection: Connection, **settings) -> Connection:
+    """``connection`` with ``settings`` (by their names in ``SETTINGS``) changed, each in its
+    transport's record."""
+    records: dict[str, dict] = {}
+    common = {}
+    for name, value in settings.items():
+        transport = SETTINGS[name].transport
+        if transport:
+            records.setdefault(RECORDS[transport][0], {})[name] = value
+        else:
+            common[name] = value
+    for field, values in records.items():
+        common[field] = replace(getattr(connection, field), **values)
+    return replace(connection, **common) if common else connection
 
 
 def framer_name(connection: Connection) -> str:
@@ -72,7 +92,7 @@ def check(connection: Connection, needs: str = "", opening: bool = True) -> str:
 
     name = framer_name(connection)
     port = connection.port or ""
-    if connection.echo and is_network(port):
+    if connection.serial.echo and is_network(port):
         raise misplaced(SETTINGS["echo"], port)
     _check_tls(connection, port, name)
     if needs and is_broadcast(connection.unit, name):
@@ -86,21 +106,28 @@ def _check_tls(connection: Connection, port: str, framing: str) -> None:
     """The TLS settings go with a tls:// target, which carries MBAP (Modbus/TCP Security)."""
     if port.partition("://")[0].lower() != "tls":
         for name in SECURITY:
-            if getattr(connection, name) and port:
+            if getattr(connection.tls, name) and port:
                 raise misplaced(SETTINGS[name], port)
         return
     check_tls_framing(framing)
-    if connection.insecure and connection.ca:  # (--server-name still names the server it asks for: SNI)
+    if (
+        connection.tls.insecure and connection.tls.ca
+    ):  # (--server-name still names the server it asks for: SNI)
         raise UsageError("--insecure checks no certificate: --ca would have nothing to check")
 
 
-def tls_settings(connection: Connection):
-    """The TlsSettings of a tls:// connection (mbtool.link.tls)."""
-    from mbtool.link.tls import TlsSettings  # noqa: PLC0415 - ssl, 6 ms: tls:// only
+def is_tls(connection: Connection) -> bool:
+    """Whether the link is tls:// (Modbus/TCP Security), whose ``tls`` settings it uses."""
+    return (connection.port or "").lower().startswith("tls://")
 
-    return TlsSettings(
-        connection.cert, connection.key, connection.ca, connection.insecure, connection.server_name
-    )
+
+def read_credentials(connection: Connection) -> None:
+    """A tls:// link's files read now, before anything opens: a bad one is exit 2, and an
+    encrypted key's password is asked once, here, not on each reconnect (its context is kept)."""
+    if is_tls(connection):
+        from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
+
+        client_context(connection.tls)
 
 
 @contextmanager
@@ -123,17 +150,15 @@ def open_client(
     )
 
     name = check(connection, needs)
+    line = connection.serial
     settings = SerialSettings(
-        connection.baud,
-        connection.parity,
-        connection.bytesize,
-        connection.stopbits,
-        rs485_direction(connection),
+        line.baud, line.parity, line.bytesize, line.stopbits, rs485_direction(connection)
     )
     port = connection.port
     assert port is not None  # check() refused a link to open without one
-    secure = tls_settings(connection) if port.lower().startswith("tls://") else None
-    transport = open_transport(port, settings, connection.timeout, name, secure)
+    transport = open_transport(
+        port, settings, connection.timeout, name, connection.tls if is_tls(connection) else None
+    )
     try:
         framer = framer or make_framer(name)
         client = Client(
@@ -141,8 +166,8 @@ def open_client(
             framer,
             timeout=connection.timeout,
             retries=connection.retries,
-            echo=connection.echo,
-            baud=connection.baud,
+            echo=line.echo,
+            baud=line.baud,
             char_bits=settings.char_bits,
             pause=connection.pause,
             lenient=connection.lenient,
@@ -169,7 +194,7 @@ def rs485_direction(connection: Connection) -> tuple[float, float] | None:
     """RTS lead and trail in seconds when RTS switches the line's direction, else None."""
     from mbtool.link.transport import is_network  # noqa: PLC0415 - 5-7 M instructions: crc too
 
-    delays = rs485_delays(connection.rs485, connection.rs485_delays)
+    delays = rs485_delays(connection.serial.rs485, connection.serial.rs485_delays)
     if delays and is_network(connection.port or ""):
         raise misplaced(SETTINGS["rs485"], connection.port or "")
     return delays

@@ -37,7 +37,7 @@ from mbtool.codec.serial_line import (
     ReportSlaveIdResponse,
 )
 from mbtool.errors import ConnectionFailed, NoResponse
-from mbtool.link.connection import framer_name, open_client
+from mbtool.link.connection import changed, framer_name, open_client
 from mbtool.link.managed import LOST, Backoff, ManagedLink
 from mbtool.link.stats import Stats
 from mbtool.link.transport import ConnectionClosed, SerialSettings
@@ -298,7 +298,7 @@ class Scan:
         """The link at one setting: opened again at once when it is lost (a gateway hanging up
         on an unknown unit), each transaction counted in the tally."""
         # unit: a real one, for open_client's broadcast check (the option holds the whole set).
-        connection = replace(self.connection, baud=setting.baud, parity=setting.parity, unit=self.units[0])
+        connection = changed(self.connection, baud=setting.baud, parity=setting.parity, unit=self.units[0])
 
         @contextmanager
         def opened():

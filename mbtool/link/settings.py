@@ -12,6 +12,7 @@ Click-free: the command line wraps each kind in a click type (``cli/param_types.
 
 from __future__ import annotations
 
+from mbtool.codec.record import record
 from mbtool.errors import UsageError
 
 SERIAL = "serial"  # a serial port (or a pyserial URL): baud, parity, RTS
@@ -439,6 +440,41 @@ SECURITY = ("cert", "key", "ca", "insecure", "server_name")
 
 def default(name: str):
     return SETTINGS[name].default
+
+
+# --- a transport's settings: a record of the rows of the table for it ------------------------
+# Written out so that a reader (and a type checker) sees them; tests/link/test_settings.py holds
+# their fields to the rows of the table for their transport, and their defaults to the rows'.
+
+
+@record
+class SerialLine:
+    """A serial link's settings (SERIAL's rows): the line's character and speed, the adapter's
+    echo, and RTS driven for the direction of a two-wire RS-485 line."""
+
+    baud: int = default("baud")
+    parity: str = default("parity")
+    bytesize: int = default("bytesize")
+    stopbits: int = default("stopbits")
+    echo: bool = default("echo")  # a half-duplex adapter echoes every byte sent
+    rs485: bool = default("rs485")  # drive RTS for the direction of a two-wire RS-485 line
+    rs485_delays: tuple[float, float] | None = default("rs485_delays")  # seconds RTS leads and trails a frame
+
+
+@record
+class TlsSettings:
+    """A tls:// link's settings (TLS's rows, Modbus/TCP Security): what --cert, --key, --ca,
+    --insecure and --server-name say."""
+
+    cert: str | None = default("cert")  # the client's certificate (PEM), its chain after it
+    key: str | None = default("key")  # its private key (PEM); None: in the cert file
+    ca: str | None = default("ca")  # the CAs (or the device's own certificate) to trust; None: the system's
+    insecure: bool = default("insecure")  # no check of the server's certificate
+    server_name: str | None = default("server_name")  # the name the certificate must have; None: the host
+
+
+# The record of each transport's settings, by the transport's name in the table.
+RECORDS = {SERIAL: ("serial", SerialLine), TLS: ("tls", TlsSettings)}
 
 
 # --- the checks that the master, serve and bridge share --------------------------------------

@@ -11,8 +11,8 @@ the summaries, ping's lines, the exporter's ``modbus_error_info{kind}``.  An ans
 recovered.  A reply's round trip is in the figures when its arrival is known, else the reply
 is counted as untimed (the client's ``rtt``).  Every command counts the same way: the managed link
 (``link.managed``, which polling, the plant, ping, scan, the bridge and the exporter's scrape
-take their links from) counts each transaction it carries in the ``Stats`` it is given, and
-``Counted`` wraps a bare client's ``execute`` alike; none judges outcomes of its own.
+take their links from) counts each transaction it carries in the ``Stats`` it is given, the
+one place a transaction is counted; none judges outcomes of its own.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from mbtool.codec.errors import (
     exceptions_by_code,
     exceptions_text,
 )
-from mbtool.codec.pdu import Request, Response
 from mbtool.durations import Durations
 from mbtool.errors import NoResponse
 from mbtool.link.transport import ConnectionClosed
@@ -154,32 +153,3 @@ class Stats:
 def untimed_text(untimed: int) -> str:
     """Beside round-trip figures: " (3 untimed)", the replies they leave out; "" when none."""
     return f" ({untimed} untimed)" if untimed else ""
-
-
-class Counted:
-    """``client.execute``, each transaction counted in ``stats``: its outcome, the attempts it
-    took and its round-trip time (the client's ``rtt``; ``rtt`` here is the last one's, None
-    when no reply came or its arrival is not known: counted as untimed).
-
-    A transaction with nothing to judge (a broadcast, a request no reply is due for, which
-    execute returns None for) is not counted unless it failed.  An interrupt (Ctrl-C) in the
-    middle of one is not counted either: it never ended."""
-
-    def __init__(self, client, stats: Stats) -> None:
-        self.client = client
-        self.stats = stats
-
-    @property
-    def rtt(self) -> float | None:
-        return self.client.rtt
-
-    def __call__(self, unit: int, request: Request) -> Response | None:
-        client = self.client
-        try:
-            reply = client.execute(unit, request)
-        except Exception as error:
-            self.stats.transaction(error, client.attempts, client.rtt)
-            raise
-        if reply is not None:
-            self.stats.answered(client.attempts, client.rtt)
-        return reply

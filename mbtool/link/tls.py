@@ -9,7 +9,7 @@ Here: the contexts both sides use (``client_context``, ``server_context``, built
 the user names, an encrypted key's password read from ``MBTOOL_KEY_PASSWORD`` or asked on the
 terminal), the master's transport (``TlsTransport``), and the one line that says why a
 handshake failed (``handshake_failure``).  A file that cannot be used is the user's to fix
-(RequestError, exit 2, nothing sent); a handshake that fails is the link's (ConnectionFailed,
+(UsageError, exit 2, nothing sent); a handshake that fails is the link's (ConnectionFailed,
 exit 6).
 """
 
@@ -18,12 +18,11 @@ from __future__ import annotations
 import functools
 import os
 import select
+import socket
 import ssl
 import sys
 
-from mbtool.codec.errors import RequestError
-from mbtool.codec.record import record
-from mbtool.errors import ConnectionFailed
+from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import x509
 from mbtool.link.base import (
     READ_CHUNK,
@@ -34,6 +33,7 @@ from mbtool.link.base import (
     host_text,
     reason,
 )
+from mbtool.link.settings import TlsSettings
 
 KEY_PASSWORD_VARIABLE = "MBTOOL_KEY_PASSWORD"
 
@@ -69,17 +69,6 @@ REFUSALS = {
 NOT_TLS_REASONS = ("WRONG_VERSION_NUMBER", "RECORD_LAYER_FAILURE", "PACKET_LENGTH_TOO_LONG", "HTTP_REQUEST")
 
 
-@record
-class TlsSettings:
-    """What --cert, --key, --ca, --insecure and --server-name say."""
-
-    cert: str | None = None  # the client's certificate (PEM), its chain after it
-    key: str | None = None  # its private key (PEM); None: in the cert file
-    ca: str | None = None  # the CAs (or the device's own certificate) to trust; None: the system's
-    insecure: bool = False  # no check of the server's certificate
-    server_name: str | None = None  # the name the certificate must have; None: the host
-
-
 @functools.lru_cache(maxsize=8)
 def client_context(settings: TlsSettings) -> ssl.SSLContext:
     """The context of a master's connections, made once a run (a poll's reconnects ask for
@@ -97,7 +86,7 @@ def client_context(settings: TlsSettings) -> ssl.SSLContext:
     else:
         context.load_default_certs(ssl.Purpose.SERVER_AUTH)
     if settings.key and not settings.cert:
-        raise RequestError(f"--key {settings.key} goes with --cert FILE, the certificate it is the key of")
+        raise UsageError(f"--key {settings.key} goes with --cert FILE, the certificate it is the key of")
     if settings.cert:
         _identity(context, settings.cert, settings.key)
     return context
@@ -108,9 +97,9 @@ def server_context(cert: str | None, key: str | None, ca: str | None) -> ssl.SSL
     and clients' certificates required, signed by ``ca`` (the specification's mutual
     authentication)."""
     if not cert:
-        raise RequestError("serving on tls:// needs --cert FILE and --key FILE: the server's certificate")
+        raise UsageError("serving on tls:// needs --cert FILE and --key FILE: the server's certificate")
     if not ca:
-        raise RequestError(
+        raise UsageError(
             "serving on tls:// needs --ca FILE: the CA that signs the clients' certificates "
             "(Modbus/TCP Security is mutual)"
         )
@@ -126,16 +115,16 @@ def _trust(context: ssl.SSLContext, ca: str) -> None:
     try:
         context.load_verify_locations(cafile=ca)
     except ssl.SSLError:
-        raise RequestError(f"--ca {ca} holds no certificate in PEM") from None
+        raise UsageError(f"--ca {ca} holds no certificate in PEM") from None
     except OSError as error:
-        raise RequestError(f"cannot read --ca {ca}: {reason(error)}") from None
+        raise UsageError(f"cannot read --ca {ca}: {reason(error)}") from None
 
 
 def _identity(context: ssl.SSLContext, cert: str, key: str | None) -> None:
     for option, path in (("--cert", cert), ("--key", key)):
         if path is not None and not os.path.isfile(path):
             why = "not a file" if os.path.exists(path) else "No such file or directory"
-            raise RequestError(f"cannot read {option} {path}: {why}")
+            raise UsageError(f"cannot read {option} {path}: {why}")
     asked: list[str] = []
 
     def password() -> str:
@@ -146,15 +135,15 @@ def _identity(context: ssl.SSLContext, cert: str, key: str | None) -> None:
         context.load_cert_chain(cert, key, password=password)
     except OSError as error:
         if isinstance(error, ssl.SSLError) and error.reason == "KEY_VALUES_MISMATCH":
-            raise RequestError(f"--key {key} is not the key of --cert {cert}") from None
+            raise UsageError(f"--key {key} is not the key of --cert {cert}") from None
         if isinstance(error, ssl.SSLError) and asked:
-            raise RequestError(
+            raise UsageError(
                 f"cannot decrypt {asked[0]}: wrong password (${KEY_PASSWORD_VARIABLE})"
             ) from None
         if isinstance(error, ssl.SSLError):
             where = f"--cert {cert}" + (f" and --key {key}" if key else "")
-            raise RequestError(f"{where}: not a certificate and its private key in PEM") from None
-        raise RequestError(f"cannot read --cert {cert}: {reason(error)}") from None
+            raise UsageError(f"{where}: not a certificate and its private key in PEM") from None
+        raise UsageError(f"cannot read --cert {cert}: {reason(error)}") from None
 
 
 def key_password(key: str) -> str:
@@ -163,7 +152,7 @@ def key_password(key: str) -> str:
     if given is not None:
         return given
     if not sys.stdin.isatty():
-        raise RequestError(
+        raise UsageError(
             f"the key {key} is encrypted and there is no terminal to ask its password on: "
             f"set {KEY_PASSWORD_VARIABLE}"
         )
@@ -172,7 +161,7 @@ def key_password(key: str) -> str:
     try:
         return getpass.getpass(f"password for {key}: ")
     except EOFError:
-        raise RequestError(f"no password given for {key}") from None
+        raise UsageError(f"no password given for {key}") from None
 
 
 class TlsTransport(Transport):
@@ -186,7 +175,7 @@ class TlsTransport(Transport):
         self.description = f"tls://{self.address}"
         self.settings = settings
         context = client_context(settings)  # the files first: a bad one sends nothing
-        raw = connect(host, port, timeout)
+        raw = _connected(host, port, timeout)
         try:
             self.sock = context.wrap_socket(raw, server_hostname=settings.server_name or host)
         except (OSError, ValueError) as error:
@@ -337,12 +326,20 @@ def _unverified(
     return f"the server's certificate does not verify: {error.verify_message}"
 
 
+def _connected(host: str, port: int, timeout: float) -> socket.socket:
+    """link.base.connect's connection as the socket module's socket, which ssl wraps, with the
+    connect's timeout for the handshake."""
+    raw = socket.socket(fileno=connect(host, port, timeout).detach())
+    raw.settimeout(timeout)
+    return raw
+
+
 def _names_of(host: str, port: int, timeout: float, settings: TlsSettings) -> list[str]:
     """The names the server's certificate is for, from a second handshake that checks nothing
     and sends nothing but the handshake; [] if that fails too."""
     context = client_context(TlsSettings(insecure=True))  # no certificate of ours: nothing sent
     try:
-        with connect(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
+        with _connected(host, port, timeout) as raw, context.wrap_socket(raw) as sock:
             der = sock.getpeercert(binary_form=True)
         return x509.names(der) if der else []
     except (OSError, ValueError, ConnectionFailed):

@@ -26,13 +26,11 @@ import select
 import struct
 import sys
 import time
-from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import record, replace
 from mbtool.codec.timing import character_bits
-from mbtool.errors import ConnectionFailed
+from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import IN_PROCESS
 from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
     READ_CHUNK,
@@ -44,9 +42,7 @@ from mbtool.link.base import (  # noqa: F401  (the transports' shared part, name
     host_text,
     reason,
 )
-
-if TYPE_CHECKING:
-    from mbtool.link.tls import TlsSettings
+from mbtool.link.settings import TlsSettings, default
 
 MODBUS_TCP_PORT = 502
 # The kernel times socket waits in scheduler ticks (4 ms at HZ=250), so a wait shorter than
@@ -62,10 +58,14 @@ KERNEL_TIMED_READS = sys.platform != "win32"
 
 @record
 class SerialSettings:
-    baud: int = 19200
-    parity: str = "E"
-    bytesize: int = 8
-    stopbits: int = 1
+    """What a serial port is opened with: the line's character and speed (SERIAL's rows of
+    ``link.settings.SETTINGS``, with their defaults), and RTS's lead and trail when RTS sets
+    the direction (``link.connection.rs485_direction``: the rows rs485 and rs485_delays)."""
+
+    baud: int = default("baud")
+    parity: str = default("parity")
+    bytesize: int = default("bytesize")
+    stopbits: int = default("stopbits")
     rs485: tuple[float, float] | None = None  # RTS lead and trail (s) when RTS sets the direction
 
     def __str__(self) -> str:
@@ -430,16 +430,16 @@ _HOST_LIKE = re.compile(
 
 
 def parse_target(text: str, listening: bool = False) -> Target:
-    """The target a ``--port`` names; RequestError (exit 2, nothing opened) if it names none.
+    """The target a ``--port`` names; UsageError (exit 2, nothing opened) if it names none.
 
     ``listening``: a server's own address, where tcp:// port 0 means any free port."""
     scheme, sep, rest = text.partition("://")
     scheme = scheme.lower()
     if not sep:
         if not text:
-            raise RequestError(f"an empty target: use {target_forms()}")
+            raise UsageError(f"an empty target: use {target_forms()}")
         if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
-            raise RequestError(f"{text} is not a serial device; did you mean tcp://{text}?")
+            raise UsageError(f"{text} is not a serial device; did you mean tcp://{text}?")
         return Target("serial", path=text)
     if scheme in NETWORK_SCHEMES:
         host, port = _host_and_port(text, rest, NETWORK_SCHEMES[scheme][0], 0 if listening else 1)
@@ -458,12 +458,12 @@ def parse_target(text: str, listening: bool = False) -> Target:
             try:
                 re.compile(pattern)
             except re.error as error:
-                raise RequestError(f"{text}: {pattern!r} is no regular expression ({error})") from None
+                raise UsageError(f"{text}: {pattern!r} is no regular expression ({error})") from None
         else:
             options = urlsplit(text).query
         _check_serial_options(text, scheme, options)
         return Target("serial", path=text, handler=scheme)
-    raise RequestError(f"unknown scheme {scheme}:// in {text}: use {target_forms()}")
+    raise UsageError(f"unknown scheme {scheme}:// in {text}: use {target_forms()}")
 
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -483,18 +483,18 @@ SERIAL_URL_OPTIONS: dict[str, dict[str, tuple[str, ...] | type | None]] = {
 
 
 def _check_serial_options(text: str, scheme: str, options: str) -> None:
-    """RequestError unless ``options`` (a=1&b) are options pyserial's ``scheme``:// takes."""
+    """UsageError unless ``options`` (a=1&b) are options pyserial's ``scheme``:// takes."""
     takes = SERIAL_URL_OPTIONS[scheme]
     known = ", ".join(takes) or "none"
     for option in filter(None, options.split("&")):
         name, equals, value = option.partition("=")
         if name not in takes:
-            raise RequestError(f"{text}: {scheme}:// takes no option {name!r} (its options: {known})")
+            raise UsageError(f"{text}: {scheme}:// takes no option {name!r} (its options: {known})")
         kind = takes[name]
         if isinstance(kind, tuple) and value not in kind:
-            raise RequestError(f"{text}: {name} is one of {', '.join(kind)}")
+            raise UsageError(f"{text}: {name} is one of {', '.join(kind)}")
         if kind is str and not value:
-            raise RequestError(f"{text}: {name} needs a value ({name}=...)")
+            raise UsageError(f"{text}: {name} needs a value ({name}=...)")
         if kind is int or kind is float:
             try:
                 number = kind(value)
@@ -502,7 +502,7 @@ def _check_serial_options(text: str, scheme: str, options: str) -> None:
                 number = math.nan
             if not (math.isfinite(number) and number >= (2 if kind is int else 0)):
                 lowest = "a whole number, 2 or more" if kind is int else "a number of seconds"
-                raise RequestError(f"{text}: {name}={value}: expected {lowest}")
+                raise UsageError(f"{text}: {name}={value}: expected {lowest}")
 
 
 def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tuple[str, int]:
@@ -510,22 +510,22 @@ def _host_and_port(text: str, rest: str, default: int | None, lowest: int) -> tu
     if rest.startswith("["):  # [::1]:502
         host, bracket, port_text = rest[1:].partition("]")
         if not bracket or port_text[:1] not in ("", ":"):
-            raise RequestError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
+            raise UsageError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
         port_text = port_text[1:]
     else:
         host, _, port_text = rest.rpartition(":") if ":" in rest else (rest, "", "")
         if ":" in host:
-            raise RequestError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
+            raise UsageError(f"{text}: an IPv6 address goes in brackets, as in tcp://[::1]:502")
     scheme = text.split("://", 1)[0].lower()
     if not host:
-        raise RequestError(f"no host in {text} (expected {scheme}://HOST{'[:PORT]' if default else ':PORT'})")
+        raise UsageError(f"no host in {text} (expected {scheme}://HOST{'[:PORT]' if default else ':PORT'})")
     if not port_text:
         if default is None:
-            raise RequestError(f"no port in {text} (expected {scheme}://HOST:PORT)")
+            raise UsageError(f"no port in {text} (expected {scheme}://HOST:PORT)")
         return host, default
     if not port_text.isascii() or not port_text.isdigit() or not lowest <= int(port_text) <= 65535:
         protocol = NETWORK_SCHEMES.get(scheme, (None, "TCP"))[1]
-        raise RequestError(f"bad port {port_text} in {text}: a {protocol} port is {lowest}..65535")
+        raise UsageError(f"bad port {port_text} in {text}: a {protocol} port is {lowest}..65535")
     return host, int(port_text)
 
 
@@ -536,7 +536,7 @@ def open_transport(
     ``tls``: the certificates of a tls:// link (None: the defaults, the system's CAs)."""
     where = parse_target(target)
     if where.scheme == "tls":
-        from mbtool.link.tls import TlsSettings, TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
+        from mbtool.link.tls import TlsTransport  # noqa: PLC0415 - ssl, 6 ms: tls:// only
 
         return TlsTransport(where.host, where.port, timeout, tls or TlsSettings())
     if where.scheme in ("udp", "rtu+udp"):

@@ -18,19 +18,21 @@ class ChangeFilter:
     def __init__(self, settings: MqttSettings) -> None:
         self.settings = settings
         self.published: dict[str, dict[str, object]] = {}  # device -> point -> value
-        self.whole_at: dict[str, float] = {}  # device -> when every point was last published
+        # (device, poll group) -> when its every point was last published: a poll of a device
+        # of groups (poll's, issue 44) carries one group's points, whose heartbeat is their own
+        self.whole_at: dict[tuple[str, str], float] = {}
 
-    def select(self, device: str, when: float, values: dict[str, object]) -> dict[str, object]:
-        """The points of ``values`` (a poll's, read at ``when``) to publish now."""
+    def select(
+        self, device: str, when: float, values: dict[str, object], group: str = ""
+    ) -> dict[str, object]:
+        """The points of ``values`` (a poll's, of ``group``, read at ``when``) to publish now."""
         settings = self.settings
+        if not settings.on_change:  # every point, every poll: nothing to remember
+            return values
         last = self.published.setdefault(device, {})
-        beat = self.whole_at.get(device)
-        if (
-            not settings.on_change
-            or beat is None
-            or (settings.heartbeat and when - beat >= settings.heartbeat)
-        ):
-            self.whole_at[device] = when
+        beat = self.whole_at.get((device, group))
+        if beat is None or (settings.heartbeat and when - beat >= settings.heartbeat):
+            self.whole_at[device, group] = when
             last.update(values)
             return dict(values)
         chosen = {

@@ -18,6 +18,7 @@ import queue
 import ssl
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -29,7 +30,16 @@ from mbtool.mqtt.change import ChangeFilter
 from mbtool.mqtt.discovery import configs
 from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.spool import Message, Spool
-from mbtool.mqtt.topics import OFFLINE, ONLINE, Topics, device_payload, point_payload
+from mbtool.mqtt.topics import (
+    OFFLINE,
+    ONLINE,
+    DevicePoll,
+    PlantEvent,
+    Topics,
+    device_payload,
+    event_payload,
+    point_payload,
+)
 from mbtool.mqtt.writes import SetRequest, WriteResult, Writes
 
 if TYPE_CHECKING:
@@ -38,6 +48,7 @@ if TYPE_CHECKING:
 QUEUED = 10_000  # records waiting for the publisher's thread at most
 STOP = object()
 RECONNECT = (1, 30)  # paho's back-off: from 1 s, doubling, to 30 s
+GATHER = 0.05  # seconds the publisher's thread waits for more once a record comes
 
 
 class MqttPublisher:
@@ -57,12 +68,18 @@ class MqttPublisher:
         self.headers = headers or {}
         self.notify = notify
         self.topics = Topics(settings, devices)
+        self.units = {device.name: device.unit for device in devices}
+        self.floating: dict[str, list[str]] = {}  # a device's float points, by name
         self.changes = ChangeFilter(settings)
         self.spool = Spool(settings.spool_size, settings.spool)
-        self.queue: queue.Queue = queue.Queue(maxsize=QUEUED)
+        # C's queue: put and get take no Condition a record, as queue.Queue's do; its bound is
+        # report's own.
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()
-        # handed to paho; published: sent (QoS 0) or acknowledged (QoS 1); dropped: lost
-        self.counts = {"handed": 0, "published": 0, "dropped": 0}
+        # Once a message each, so written without the lock, each by one thread alone: handed to
+        # paho by the publisher's; published, sent (QoS 0) or acknowledged (QoS 1), by paho's.
+        self.handed = self.published = 0
+        self.counts = {"dropped": 0}  # lost; and the writes' counts (under the lock)
         self.writes = Writes(settings, self.topics, devices) if settings.writes else None
         self.submit = submit
         if self.writes is not None:
@@ -94,12 +111,12 @@ class MqttPublisher:
     # --- the plant's side ---------------------------------------------------------------
 
     def report(self, item) -> None:
-        """A plant's ``Poll`` (as the thread that runs the plant hands it on; its ``Event``s are
-        not wanted: each Poll carries its device's state), or a write's request or result,
-        queued for the publisher's thread; never waits."""
-        try:
-            self.queue.put_nowait(item)
-        except queue.Full:
+        """A plant's ``Poll`` or ``PlantEvent`` (as the thread that runs the plant hands them
+        on), read --interval's ``DevicePoll``, or a write's request or result, queued for the
+        publisher's thread; never waits."""
+        if self.queue.qsize() < QUEUED:
+            self.queue.put(item)
+        else:
             self._count("dropped")
 
     def start(self) -> None:
@@ -124,15 +141,15 @@ class MqttPublisher:
         self.client.loop_stop()
 
     def _unsent(self) -> int:
-        with self.lock:
-            return self.counts["handed"] - self.counts["published"]
+        return self.handed - self.published
 
     def stats(self) -> dict:
         with self.lock:
             return {
                 "broker": f"{self.settings.host}:{self.settings.port}",
                 "state": self.state,
-                **{key: count for key, count in self.counts.items() if key != "handed"},
+                "published": self.published,
+                **self.counts,
                 "spooled": self.spool.kept,  # while the broker was away
                 "spool_sent": self.spool.sent,  # sent once the broker was back
                 "in_spool": len(self.spool),  # still to send
@@ -232,7 +249,7 @@ class MqttPublisher:
             self.report(SetRequest(device, point, text))
 
     def _published(self, client, userdata, mid, reason, properties) -> None:
-        self._count("published")
+        self.published += 1  # by paho's thread alone
 
     def _state(self, state: str) -> None:
         with self.lock:
@@ -247,25 +264,41 @@ class MqttPublisher:
     # --- the publisher's thread ---------------------------------------------------------
 
     def _run(self) -> None:
+        gathered: deque = deque()  # records taken from the queue, to handle in order
         while True:
+            # Between any two records: a connection's announcement comes before anything newer.
             if self.rehome.is_set():
                 self.rehome.clear()
                 self._rehome()
             if self.announce.is_set():
                 self.announce.clear()
                 self._announce()
-            try:
-                item = self.queue.get(timeout=0.1)
-            except queue.Empty:
-                continue
+            if not gathered:
+                try:
+                    gathered.append(self.queue.get(timeout=0.1))
+                except queue.Empty:
+                    continue
+                # The polls of a round come together: gathered for a moment, they are published
+                # in one wake of this thread and of paho's, not a wake of each a poll.
+                time.sleep(GATHER)
+                while not self.queue.empty():
+                    gathered.append(self.queue.get_nowait())
+            item = gathered.popleft()
             if item is STOP:
                 return
-            if isinstance(item, SetRequest):
-                self._write(item)
-                continue
-            if isinstance(item, WriteResult):
-                self._result(item)
-                continue
+            self._handle(item)
+
+    def _handle(self, item) -> None:
+        """A Poll (or DevicePoll) published, or a write's request or result handled."""
+        if isinstance(item, SetRequest):
+            self._write(item)
+        elif isinstance(item, WriteResult):
+            self._result(item)
+        elif isinstance(item, PlantEvent):
+            # A log, for a flow that alerts: not retained (each device's status is), QoS 1.
+            if self.node is None:  # Sparkplug says it with DDEATH and DBIRTH
+                self._send(Message(self.topics.events, event_payload(item.record), 1, False))
+        else:
             for message in self._messages(item):
                 self._send(message)
 
@@ -345,18 +378,22 @@ class MqttPublisher:
         self._send(Message(topic, result.result.encode(), 1, False))
 
     def _messages(self, item) -> list[Message]:
-        """A Poll's messages: its device's status when it changed, and its points."""
+        """A Poll's (or a DevicePoll's) messages: its device's status when it changed, and its points."""
         if self.node is not None:
             return self._sparkplug(item)
-        settings, name = self.settings, item.device.name
+        settings = self.settings
+        if isinstance(item, DevicePoll):
+            name, values = item.device, item.values
+        else:
+            name = item.device.name
+            values = self._values(item) if item.readings else None
         messages = []
         if item.state in (ONLINE, OFFLINE) and self.device_states.get(name) != item.state:
             self.device_states[name] = item.state
             if self.live:  # else the next connection's announcement says it
                 messages.append(Message(self.topics.device_status(name), item.state.encode(), 1, True))
-        if item.readings:
-            values = {r.point.name: _value(r) for r in item.readings if r.error is None}
-            chosen = self.changes.select(name, item.time, values)
+        if values:
+            chosen = self.changes.select(name, item.time, values, item.group)
             if chosen and settings.per_point:
                 messages += [
                     Message(
@@ -365,7 +402,7 @@ class MqttPublisher:
                     for point, value in chosen.items()
                 ]
             elif chosen:
-                payload = device_payload(item.time, item.device.unit, chosen)
+                payload = device_payload(item.time, settings.labels, self.units[name], chosen)
                 messages.append(Message(self.topics.device[name], payload, settings.qos, settings.retain))
         return messages
 
@@ -374,8 +411,8 @@ class MqttPublisher:
         first read on this connection (again after a death), else DDATA of what changed."""
         node, name = self.node, item.device.name
         assert node is not None  # payload = "sparkplug_b", the only one with a node
-        values = {r.point.name: _value(r) for r in item.readings or () if r.error is None}
-        chosen = self.changes.select(name, item.time, values) if values else {}
+        values = self._values(item) if item.readings else {}
+        chosen = self.changes.select(name, item.time, values, item.group) if values else {}
         self.values.setdefault(name, {}).update(values)
         if item.state in (ONLINE, OFFLINE):
             self.device_states[name] = item.state
@@ -402,6 +439,22 @@ class MqttPublisher:
             return []
         return [Message(node.topic("DDATA", name), node.device_data(name, chosen, item.time), 0, False)]
 
+    def _values(self, poll) -> dict:
+        """A Poll's values by point name, those it read, a float point's whole number as a float
+        (22.0, not 22): a consumer that fixes a field's type at its first value (InfluxDB,
+        Telegraf) takes every later one."""
+        values = {r.point.name: r.value for r in poll.readings if r.error is None}
+        floating = self.floating.get(poll.device.name)
+        if floating is None:  # the device's float points, found at its first poll
+            floating = self.floating[poll.device.name] = [
+                p.name for p in poll.device.reader.points if p.floating
+            ]
+        for point in floating:
+            value = values.get(point)
+            if isinstance(value, int) and not isinstance(value, bool):
+                values[point] = float(value)
+        return values
+
     def _send(self, message: Message) -> None:
         if self.live:
             self._publish(message)
@@ -414,16 +467,9 @@ class MqttPublisher:
         # Not under self.lock: paho calls on_publish holding its own lock, which publish takes.
         info = self.client.publish(message.topic, message.payload, message.qos, message.retain)
         # NO_CONN for QoS 1: paho keeps the message and sends it on reconnection.
-        handed = info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS or (
+        if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS or (
             info.rc == MQTTErrorCode.MQTT_ERR_NO_CONN and message.qos
-        )
-        self._count("handed" if handed else "dropped")
-
-
-def _value(reading):
-    """A reading's value, a float point's whole number as a float (22.0, not 22): a consumer
-    that fixes a field's type at its first value (InfluxDB, Telegraf) takes every later one."""
-    value = reading.value
-    if reading.point.floating and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
+        ):
+            self.handed += 1  # by the publisher's thread alone (close's comes after it ended)
+        else:
+            self._count("dropped")

@@ -8,7 +8,7 @@ anything is opened, every problem one UsageError (exit 2) naming the file and th
     ca = "broker-ca.pem"                  # mqtts: as tls:// takes them (cert, key, insecure)
     username = "plant"
     password_file = "mqtt.secret"         # or password, or MBTOOL_MQTT_PASSWORD
-    topic = "mbtool/{site}/{device}"      # {device}, {inventory}, {link}, {unit}, a tag
+    topic = "mbtool/{site}/{device}"      # {device}, {inventory}, {link}, {unit}, {site}, {instance}, a tag
     points = "device"                     # one message a device poll; "point": a topic a point
     qos = 1
     retain = false
@@ -35,7 +35,7 @@ from mbtool.files import read_whole
 
 KEYS = {
     "url": "mqtt://HOST[:PORT] or mqtts://HOST[:PORT]",
-    "client_id": "the client id the broker knows this poller by (default mbtool-HOST-INVENTORY)",
+    "client_id": "the client id the broker knows this poller by (default mbtool-INSTANCE-INVENTORY)",
     "username": "a user name",
     "password": "a password",
     "password_file": "a file whose first line is the password",
@@ -43,6 +43,7 @@ KEYS = {
     "version": '"3.1.1" or "5"',
     "topic": 'a topic template, such as "mbtool/{site}/{device}"',
     "status_topic": 'the poller\'s own availability topic (default "mbtool/{inventory}/status")',
+    "events_topic": 'each change of state of a device or link, as JSON (default "mbtool/{inventory}/events")',
     "points": '"device" (one JSON message a poll) or "point" (a topic a point, its bare value)',
     "qos": "0 or 1",
     "retain": "true or false",
@@ -51,7 +52,7 @@ KEYS = {
     "deadbands": "a table of point names and their own deadband",
     "heartbeat": "seconds: every point published at least this often (0: only as on_change says)",
     "payload": '"json" (the default) or "sparkplug_b" (docs/mqtt.md, Sparkplug B)',
-    "group": "sparkplug_b: the Sparkplug group id (default: the site tag every device has, else the inventory's name)",
+    "group": "sparkplug_b: the Sparkplug group id (default: [poll] site, or the site tag every device has, else the inventory's name)",
     "edge_node": "sparkplug_b: the Sparkplug edge node id (default: the inventory's name)",
     "primary_host": "sparkplug_b: the primary host application's id, whose STATE the node waits for before its births",
     "discovery": '"homeassistant"',
@@ -67,7 +68,23 @@ KEYS = {
 }
 PATH_KEYS = ("password_file", "spool", "ca", "cert", "key")
 DEFAULT_PORTS = {"mqtt": 1883, "mqtts": 8883}
-# What a topic template may name besides a device's tags.
+# Plain JSON's keys that Sparkplug B cannot honour, and why (Sparkplug 3.0: an edge node's
+# topics are the spBv1.0 namespace's; NBIRTH, DBIRTH, DDATA and DDEATH are QoS 0 and NDEATH,
+# the will, QoS 1, none of them retained).  on_change, deadband, heartbeat, writes and allow
+# it honours: DDATA carries what changed, DCMD writes.
+NOT_SPARKPLUG = {
+    "qos": "Sparkplug B fixes each message's QoS (births, data and DDEATH 0, NDEATH 1)",
+    "retain": "Sparkplug B retains none of an edge node's messages",
+    "spool": "Sparkplug B's data is QoS 0, never replayed: the births on reconnection carry the values then",
+    "spool_size": "Sparkplug B's data is QoS 0, never replayed: the births on reconnection carry the values then",
+    "topic": "Sparkplug B's topics are spBv1.0/<group>/<type>/<edge node>/<device>: set group and edge_node",
+    "status_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
+    "events_topic": "the edge node's NBIRTH and NDEATH are its status, and DBIRTH and DDEATH its devices'",
+    "points": "Sparkplug B carries a device's points as the metrics of one message",
+    "discovery": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
+    "discovery_prefix": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
+}
+# What a topic template may name besides a device's tags (which carry [poll] site and instance).
 FIELDS = ("device", "inventory", "link", "unit", "host")
 PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 
@@ -91,12 +108,14 @@ class MqttSettings:
     tls: bool
     client_id: str
     inventory: str  # the inventory's name: its file's, without .toml
+    labels: dict = field(default=None, compare=False)  # [poll] site and instance: in every JSON message
     username: str | None = None
     password: str | None = None
     keepalive: int = 60
     version: str = "3.1.1"
     topic: str = "mbtool/{inventory}/{device}"
     status_topic: str = "mbtool/{inventory}/status"
+    events_topic: str = "mbtool/{inventory}/events"
     per_point: bool = False
     qos: int = 1
     retain: bool = False
@@ -151,18 +170,67 @@ def _port(text: str, url: str, where: str) -> int:
     return int(text)
 
 
-def check_table(table, path: str, devices: list) -> None:
+# read --interval --mqtt: the one device's topic; its availability is that topic's /status.
+READ_TOPIC = "mbtool/{instance}/{device}"
+
+
+@record
+class Device:
+    """A device of no inventory (read --interval's), as a topic template names it."""
+
+    name: str
+    link: str
+    unit: int
+    tags: dict = field(default=None, compare=False)
+
+
+def read_settings(url: str, name: str, unit: int) -> tuple[MqttSettings, Device]:
+    """read --interval --mqtt URL: one JSON message a poll on ``mbtool/<instance>/<name>``
+    (the instance is the host name: a one-liner has no [poll]), and one availability topic,
+    ``.../<name>/status``: online at each connection and while polls are answered, offline
+    after a failed poll, at a clean end and as the will.  ``name``: --name, one topic level."""
+    if not name or re.search(r"[/+#{}\0]", name) or name.startswith("$"):
+        raise UsageError(
+            f"--name {name!r}: the device's name on the broker is one topic level (no / + # {{ }})"
+        )
+    labels = {"instance": socket.gethostname()}
+    device = Device(name, "read", unit)
+    instance = labels["instance"]
+    table = {
+        "topic": READ_TOPIC,
+        "status_topic": READ_TOPIC.format(instance=instance, device=name) + "/status",
+        "client_id": f"mbtool-{instance}-read-{name}",
+    }
+    settings = mqtt_settings(table, "read", [device], url, labels)
+    assert settings is not None  # a url is given
+    return settings, device
+
+
+def check_table(table, path: str, devices: list, labels: dict) -> None:
     """The ``[mqtt]`` table checked as the inventory is loaded, its url too where it has one
     (poll's --mqtt may give it)."""
     if table is not None:
         stand_in = None if isinstance(table, dict) and "url" in table else "mqtt://localhost"
-        mqtt_settings(table, path, devices, stand_in)
+        mqtt_settings(table, path, devices, stand_in, labels)
 
 
-def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> MqttSettings | None:
+def mqtt_settings(
+    table,
+    path: str,
+    devices: list,
+    url: str | None = None,
+    labels: dict | None = None,
+    part: tuple[int, int] | None = None,
+) -> MqttSettings | None:
     """The ``[mqtt]`` table of the inventory at ``path`` (None: it has none), ``url`` (poll's
     --mqtt) in place of its url; None when neither is given.  ``devices``: the inventory's
-    ``DeviceSpec``s, whose names and tags the topic template must be able to fill."""
+    ``DeviceSpec``s, whose names and tags the topic template must be able to fill; ``labels``:
+    its [poll] site and instance; ``part``: poll --shard's (K, N).
+
+    Shards of one inventory on one broker must not collide: each is a client of its own (a
+    second session of one client id throws the first off), with a status and a Sparkplug edge
+    node of its own, so the shard (``0of2``) is added to the client id, the status topic (a
+    level under it) and the edge node."""
     if table is None and url is None:
         return None
     if table is None:
@@ -186,7 +254,8 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
     where = f"{path}: [mqtt]"
     host, port, tls = parse_url(given["url"], "--mqtt" if url is not None else f"{where} url")
     inventory = Path(path).stem
-    settings = MqttSettings(host, port, tls, f"mbtool-{socket.gethostname()}-{inventory}", inventory)
+    labels = labels or {"instance": socket.gethostname()}
+    settings = MqttSettings(host, port, tls, f"mbtool-{labels['instance']}-{inventory}", inventory, labels)
     changes: dict[str, Any] = {}  # each key's value, of the type MqttSettings gives it
     for key, value in given.items():
         if key == "url":
@@ -198,6 +267,7 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             "password",
             "topic",
             "status_topic",
+            "events_topic",
             "discovery_prefix",
             "group",
             "edge_node",
@@ -248,9 +318,19 @@ def mqtt_settings(table, path: str, devices: list, url: str | None = None) -> Mq
             changes[key] = value
         elif key in PATH_KEYS:
             changes[key] = _text(value, at)
+    if changes.get("sparkplug"):
+        for key in given:
+            if key in NOT_SPARKPLUG:
+                raise UsageError(f'{where} {key}: not with payload = "sparkplug_b": {NOT_SPARKPLUG[key]}')
     sites = {(device.tags or {}).get("site") for device in devices}
     changes.setdefault("group", str(sites.pop()) if len(sites) == 1 and None not in sites else inventory)
     changes.setdefault("edge_node", inventory)
+    if part is not None:
+        ours = f"{part[0]}of{part[1]}"
+        changes["client_id"] = f"{changes.get('client_id', settings.client_id)}-{ours}"
+        changes["status_topic"] = f"{changes.get('status_topic', settings.status_topic)}/{ours}"
+        changes["events_topic"] = f"{changes.get('events_topic', settings.events_topic)}/{ours}"
+        changes["edge_node"] = f"{changes['edge_node']}-{ours}"
     if "password" not in changes and os.environ.get("MBTOOL_MQTT_PASSWORD"):
         changes["password"] = os.environ["MBTOOL_MQTT_PASSWORD"]
     settings = replace(settings, **changes)
@@ -277,7 +357,11 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         if not any(name in _points(device) for device in devices):
             raise UsageError(f"{where} allow: no device reads a point named {name}")
     for device in devices:
-        for text, key in ((settings.topic, "topic"), (settings.status_topic, "status_topic")):
+        for text, key in (
+            (settings.topic, "topic"),
+            (settings.status_topic, "status_topic"),
+            (settings.events_topic, "events_topic"),
+        ):
             _topic_problem(fill(text, settings, device if key == "topic" else None), f"{where} {key}", text)
         if settings.per_point:
             for point in _points(device):
@@ -289,8 +373,6 @@ def _check(settings: MqttSettings, where: str, devices: list) -> None:
         for device in devices:
             if re.search(r"[/+#]", device.name):
                 raise UsageError(f"{where}: device {device.name!r}: a Sparkplug device id has no / + or #")
-        if settings.discovery or settings.per_point:
-            raise UsageError(f'{where}: discovery and points = "point" go with payload = "json"')
     elif settings.primary_host is not None:
         raise UsageError(f'{where} primary_host: goes with payload = "sparkplug_b"')
     if settings.topic == settings.status_topic or "{device}" not in settings.topic:
@@ -303,20 +385,20 @@ def _points(device) -> list[str]:
 
 def fill(template: str, settings: MqttSettings, device=None) -> str:
     """A topic template filled in for ``device`` (None: the poller's own topics, which may
-    name only {inventory} and {host})."""
-    values = {"inventory": settings.inventory, "host": socket.gethostname()}
+    name {inventory}, {host} and the fleet's labels, {site} and {instance})."""
+    values = {"inventory": settings.inventory, "host": socket.gethostname(), **(settings.labels or {})}
     if device is not None:
         values |= {"device": device.name, "link": device.link, "unit": str(device.unit)}
-        values |= device.tags or {}
+        values |= device.tags or {}  # the fleet's labels among them
 
     def one(match: re.Match) -> str:
         name = match.group(1)
         if name not in values:
-            known = ", ".join(values) if device is not None else "inventory, host"
             raise UsageError(
                 f"{template!r}: {{{name}}} is not known"
                 + (f" for device {device.name}" if device else "")
-                + f" (known: {known})"
+                + f" (known: {', '.join(values)}"
+                + ('; [poll] site = "..." gives {site})' if name == "site" else ")")
             )
         return values[name]
 

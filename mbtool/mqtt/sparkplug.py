@@ -1,6 +1,6 @@
 """Sparkplug B (``payload = "sparkplug_b"``): the plant as one Sparkplug edge node.
 
-The group is the ``group`` setting (default: the ``site`` tag every device shares, else the
+The group is the ``group`` setting (default: ``[poll] site``, or a ``site`` tag every device shares, else the
 inventory's name), the edge node the inventory's name (``edge_node``), and each inventory
 device a Sparkplug device.  Topics are ``spBv1.0/<group>/<type>/<edge node>[/<device>]``:
 

@@ -13,12 +13,13 @@ import json
 import os
 from collections import deque
 from pathlib import Path
+from typing import NamedTuple
 
-from mbtool.codec.record import record
 
+class Message(NamedTuple):
+    """A message to publish.  A tuple, not a record: one is made a poll, and a frozen
+    record's fields, set one by one, cost several times a tuple's."""
 
-@record
-class Message:
     topic: str
     payload: bytes
     qos: int

@@ -1,7 +1,8 @@
 """The topic tree and the payloads of plain JSON::
 
     mbtool/{inventory}/status                  online / offline (the birth, and the last will)
-    mbtool/{inventory}/{device}                {"time": ..., "unit": 1, "points": {"flow": 21.5}}
+    mbtool/{inventory}/events                  {"time": ..., "event": "offline", "device": "m1", "reason": ...}
+    mbtool/{inventory}/{device}                {"time": ..., "instance": "edge7", "unit": 1, "points": {"flow": 21.5}}
     mbtool/{inventory}/{device}/status         online / offline, as mbtool judges the device
     mbtool/{inventory}/{device}/{point}        the bare value (points = "point")
 
@@ -16,9 +17,30 @@ import json
 import math
 from datetime import UTC, datetime
 
+from mbtool.codec.record import record
 from mbtool.mqtt.settings import MqttSettings, fill
 
 ONLINE, OFFLINE = "online", "offline"
+
+
+@record
+class PlantEvent:
+    """A change of state of a plant's device or link, as poll -o json's record says it
+    (``cli.sinks.json.event_record``), for the poller's events topic."""
+
+    record: dict
+
+
+@record
+class DevicePoll:
+    """A poll of a device that is no plant's (read --interval --mqtt), as the publisher takes
+    it: its values by name (None: the poll failed) and the device's state after it."""
+
+    device: str
+    time: float  # time.time(): when its request went out
+    values: dict | None
+    state: str
+    group: str = ""  # read --interval's points are one group, as a plant device's default is
 
 
 class Topics:
@@ -26,6 +48,7 @@ class Topics:
 
     def __init__(self, settings: MqttSettings, devices: list) -> None:
         self.status = fill(settings.status_topic, settings)
+        self.events = fill(settings.events_topic, settings)
         self.device = {device.name: fill(settings.topic, settings, device) for device in devices}
 
     def device_status(self, device: str) -> str:
@@ -42,14 +65,24 @@ def json_value(value):
     return value
 
 
-def device_payload(when: float, unit: int, values: dict[str, object]) -> bytes:
-    """One device poll's message: its time (UTC, ISO 8601), unit id and points."""
-    record = {
-        "time": iso_time(when),
-        "unit": unit,
-        "points": {name: json_value(value) for name, value in values.items()},
-    }
-    return json.dumps(record, ensure_ascii=False, separators=(",", ":")).encode()
+def device_payload(when: float, labels: dict, unit: int, values: dict[str, object]) -> bytes:
+    """One device poll's message: its time (UTC, ISO 8601), the fleet's labels ([poll] site
+    and instance, keys of their own as in poll -o json's records), unit id and points."""
+    record = {"time": iso_time(when), **labels, "unit": unit, "points": values}
+    try:
+        return _dumps(record)
+    except ValueError:  # NaN or an infinity, which JSON has no words for: null, in a copy
+        record["points"] = {name: json_value(value) for name, value in values.items()}
+        return _dumps(record)
+
+
+def event_payload(record: dict) -> bytes:
+    """A change of state's message: the record as it is."""
+    return _dumps(record)
+
+
+def _dumps(record: dict) -> bytes:
+    return json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
 
 
 def point_payload(value) -> bytes:

@@ -26,6 +26,10 @@
     tags = { site = "north" }
     measurement = "meters"       # -o influx's measurement for it (else --measurement, modbus)
 
+    [devices.meter1.groups.fast] # poll groups (registermap/groups.py): these points every second,
+    interval = 1                 # the rest at the device's interval; once = [...] read at start
+    points = ["power"]           # and after each reconnect; a map may give them too
+
     [devices.plc]
     link = "bus1"
     unit = 3
@@ -51,11 +55,12 @@ from mbtool.errors import UsageError
 from mbtool.files import beside, read_toml
 from mbtool.library import resolve_map
 from mbtool.link import IN_PROCESS
-from mbtool.link.connection import Connection, check, tls_settings
+from mbtool.link.connection import check, connection_of, read_credentials
 from mbtool.link.settings import SETTINGS, File, Setting
 from mbtool.link.transport import parse_target
 from mbtool.mqtt.settings import check_table
-from mbtool.plant.schedule import DeviceSpec, LinkSpec
+from mbtool.plant.schedule import DeviceSpec, Group, LinkSpec
+from mbtool.registermap.groups import DEFAULT, GroupPlan, read_groups
 from mbtool.registermap.load import MapError, RegisterMap, load_map, name_problem, one_line
 from mbtool.registermap.plan import MapReader
 from mbtool.registermap.point import Point
@@ -79,6 +84,8 @@ DEVICE_KEYS = (
     "unit",
     "map",
     "points",
+    "groups",
+    "once",
     "read",
     "tags",
     "measurement",
@@ -118,16 +125,17 @@ def load_inventory(path: str, outputs: tuple[str, ...] = ()) -> Inventory:
         raise UsageError(_with_line(str(error), path)) from None
 
 
-# What a problem with a table or key names after the file: "[devices.d] speed: ..."
+# What a problem with a table or key names after the file: "[devices.d] speed: ...", or a
+# table inside a device's: "[devices.d.groups.fast] interval: ..."
 _NAMED = re.compile(r"\[([A-Za-z0-9_]+)(?:\.([^\]]+))?\](?: ([A-Za-z0-9_]+))?")
-_HEADER = re.compile(
-    r"\s*\[\s*([A-Za-z0-9_]+)\s*(?:\.\s*(\"[^\"]*\"|'[^']*'|[A-Za-z0-9_-]+)\s*)?\]\s*(?:#.*)?$"
-)
+_HEADER = re.compile(r"\s*\[\s*([^\[\]]+?)\s*\]\s*(?:#.*)?$")
+_PART = re.compile(r"\s*(\"[^\"]*\"|'[^']*'|[A-Za-z0-9_-]+)\s*(?:\.|$)")
 
 
 def _with_line(message: str, path: str) -> str:
     """``message`` with the line of the file its table (and key) stand on; as it was when it
-    names none, or names what the file does not hold (a table that is missing)."""
+    names none, or names what the file does not hold (a table that is missing).  A table the
+    file writes inside its parent's (``groups.fast = {...}``) is found at its first key's line."""
     prefix = f"{path}: "
     named = _NAMED.match(message[len(prefix) :]) if message.startswith(prefix) else None
     if named is None:
@@ -137,20 +145,32 @@ def _with_line(message: str, path: str) -> str:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError):
         return message
+    parts = [table, *(name.split(".") if name else ())]
+    # the table itself, else the parent that holds it, found by the key the rest begins with
+    for end in range(len(parts), 1 if name else 0, -1):
+        found = _line_of(lines, ".".join(parts[:end]), key if end == len(parts) else parts[end])
+        if found is not None:
+            return f"{path}:{found}: {message[len(prefix) :]}"
+    return message
+
+
+def _line_of(lines: list[str], table: str, key: str | None) -> int | None:
+    """The line of ``key`` in ``[table]``, or of its own table below it (``[table.key...]``); the
+    table's header's when the key is not there; None when the table is not either."""
     found, inside = None, False
     for number, line in enumerate(lines, 1):
         header = _HEADER.match(line)
         if header:
-            inside = header[1] == table and (name is None or header[2] in (name, f'"{name}"', f"'{name}'"))
+            name = ".".join(part.strip("\"'") for part in _PART.findall(header[1]))
+            if key and (name + ".").startswith(f"{table}.{key}."):  # the key's own table
+                return number
+            inside = name == table
             if inside and found is None:
                 found = number
             continue
-        if inside and key and re.match(rf"\s*{key}\s*=", line):
-            found = number
-            break
-    if found is None:
-        return message
-    return f"{path}:{found}: {message[len(prefix) :]}"
+        if inside and key and re.match(rf"\s*{re.escape(key)}\s*[=.]", line):
+            return number
+    return found
 
 
 def _load(path: str, outputs: tuple[str, ...]) -> Inventory:
@@ -188,7 +208,7 @@ def _load(path: str, outputs: tuple[str, ...]) -> Inventory:
         raise UsageError(f"{path}: no [devices.NAME]: nothing to poll")
     folder = Path(path).parent
     maps = {name: str(_map_path(table, folder)) for name, table in tables.items() if "map" in table}
-    check_table(data.get("mqtt"), path, devices)
+    check_table(data.get("mqtt"), path, devices, labels)
     return Inventory(path, output, links, devices, maps, labels, data.get("mqtt"))
 
 
@@ -245,15 +265,10 @@ def _link(name: str, table: dict, path: str, folder: Path) -> LinkSpec:
     port = settings["port"]
     try:
         parse_target(port)
-        connection = Connection(**settings)
+        connection = connection_of(**settings)
         check(connection)
-        if port.lower().startswith("tls://"):
-            from mbtool.link.tls import client_context  # noqa: PLC0415 - ssl, 6 ms: tls:// only
-
-            # Its files read now, before anything opens: a bad one is exit 2, and an encrypted
-            # key's password is asked once, here, not by a link's worker on each reconnect.
-            client_context(tls_settings(connection))
-    except RequestError as error:
+        read_credentials(connection)  # before anything opens, not by a link's worker on each reconnect
+    except UsageError as error:
         raise UsageError(f"{path}: [links.{name}]: {error}") from None
     return LinkSpec(name, connection)
 
@@ -308,7 +323,7 @@ def _device(
         raise UsageError(f"{where} unit: expected a whole number, 0..255")
     try:
         check(replace(links[link].connection, unit=unit), "polling")
-    except RequestError as error:
+    except UsageError as error:
         raise UsageError(f"{where} unit: {error}") from None
     settings = {
         key: _setting(key, table[key], f"{where} {key}") if key in table else defaults.get(key, DEFAULTS[key])
@@ -326,15 +341,61 @@ def _device(
     for key in OWN_LINK_KEYS:  # checked as a link's are: one place for what --timeout accepts
         if key in table:
             settings[key] = _read(SETTINGS[key], table[key], f"{where} {key}", key)
+    folder = Path(path).parent
+    reader = _reader(table, where, folder, loaded)
+    register_map = loaded[_map_path(table, folder)] if "map" in table else None
     return DeviceSpec(
         name,
         link,
         unit,
-        _reader(table, where, Path(path).parent, loaded),
+        reader,
         labels | _tags(table.get("tags", {}), where, labels),
         raw="read" in table,
         measurement=measurement,
+        groups=_groups(table, where, reader, register_map, settings["interval"]),
         **settings,
+    )
+
+
+def _groups(
+    table: dict, where: str, reader: MapReader, register_map: RegisterMap | None, interval: float
+) -> tuple[Group, ...]:
+    """A device's poll groups: its own (``groups``, ``once``), else its map's; each planned
+    apart, and the points in none its default group at its interval.  None at all: ()."""
+    own = [key for key in ("groups", "once") if key in table]
+    if own and register_map is None:
+        raise UsageError(
+            f"{where} {own[0]}: groups are of a map's points; a device with read = [...] has none"
+        )
+    points = {point.name: point for point in reader.points}
+
+    def fail(key: str, why: str) -> UsageError:
+        """``groups.fast.points`` named as its table's key: ``[devices.d.groups.fast] points``."""
+        parts = key.split(".", 2)
+        if len(parts) == 1:
+            return UsageError(f"{where} {key}: {why}")
+        inside = f"{where[:-1]}.{parts[0]}.{parts[1]}]"
+        return UsageError(f"{inside} {parts[2]}: {why}" if len(parts) == 3 else f"{inside}: {why}")
+
+    if own:
+        plans = read_groups(table.get("groups"), table.get("once"), points, fail)
+    else:  # the map's, of the points the device reads (``points = [...]`` may pick some)
+        given = register_map.groups if register_map else []
+        plans = [
+            GroupPlan(plan.name, plan.interval, kept)
+            for plan in given
+            if (kept := tuple(name for name in plan.points if name in points))
+        ]
+    if not plans:
+        return ()
+    grouped = {name for plan in plans for name in plan.points}
+    rest = tuple(name for name in points if name not in grouped)
+    if rest:
+        plans.insert(0, GroupPlan(DEFAULT, interval, rest))
+    max_gap = register_map.max_gap if register_map else 0
+    return tuple(
+        Group(plan.name, plan.interval, MapReader([points[name] for name in plan.points], max_gap))
+        for plan in plans
     )
 
 

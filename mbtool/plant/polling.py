@@ -72,10 +72,11 @@ class Polled:
 class _OneRequest:
     """The reader of a device read with one request: a poll is its reply."""
 
-    __slots__ = ("request",)
+    __slots__ = ("request", "blocks")
 
     def __init__(self, request) -> None:
         self.request = request
+        self.blocks = (request,)
 
     def read(self, execute):
         return execute(self.request)
@@ -86,6 +87,9 @@ class _MapRun:
     ``execute(unit, request)`` as the plant's readers are given ``execute(request)``."""
 
     __slots__ = ("run", "unit")
+    # Its reads are the map's, inside ``run``; only a plant's overrun asks them, and a grid's
+    # group never overruns (its late slots are counted as skipped).
+    blocks = ()
 
     def __init__(self, run: Callable, unit: int) -> None:
         self.run, self.unit = run, unit

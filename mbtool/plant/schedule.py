@@ -24,8 +24,8 @@ skipped and counted), the device never offline (``offline_after`` 0: a run of --
 its polls, not on a link that would not open), its records unpublished copies of nothing (no
 reader on another thread: ``published``), and hooks for the output (``sent``: the poll's
 request has left, so the poll before is shown while the reply is on its way; ``idle``: the
-worker is about to wait).  A request the link cannot carry (``RequestError``), an output that
-failed and a reader of stdout gone end the run: no later poll can do better.
+worker is about to wait).  A request the link cannot carry (``RequestError``, ``UsageError``),
+an output that failed and a reader of stdout gone end the run: no later poll can do better.
 
 A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
 would end after the run is announced without its next try.  With ``rounds`` a device is done
@@ -36,33 +36,56 @@ answers gets its rounds, an offline one fewer, and the run does not wait out a b
 
 from __future__ import annotations
 
+import _thread
 import functools
 import gc
 import math
-import operator
 import queue
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from typing import Any, Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialRead, link_failure
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialRead, UsageError, link_failure
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
 from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
+from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import Reading
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
+# Seconds for every link's worker thread to start: one starts in a millisecond or so.
+START_WITHIN = 5.0
+OVERRUN = "overrun"  # a link's event: its groups ask more reads a second than it carries
+LATE = 0.1  # of its interval: a group's poll that starts later than that after its slot overran
+# What ends a run rather than fails a poll: a request the link cannot carry (no later poll can
+# do better), the output that failed, and stdout's reader gone.
+FATAL = (RequestError, UsageError, OutputFailed, BrokenPipeError)
 
 
 class Reader(Protocol):
-    """What a device's poll reads, given ``execute(request)`` on its link: a register map's
+    """What a group's poll reads, given ``execute(request)`` on its link: a register map's
     points (``MapReader``), or read --interval's request or requests."""
 
+    @property
+    def blocks(self) -> Sequence[Any]:
+        """Its reads a poll: what its pace asks of the line."""
+        ...
+
     def read(self, execute: Callable) -> Any: ...
+
+
+@record
+class Group:
+    """Some of a device's points, read at their own pace (registermap/groups.py): the group's
+    name, its interval (math.inf: once, at start and after each reconnect) and its reads."""
+
+    name: str
+    interval: float
+    reader: Reader = field(compare=False)
 
 
 @record
@@ -81,15 +104,24 @@ class DeviceSpec:
     measurement: str | None = None  # its InfluxDB measurement; None: the run's (poll --measurement)
     timeout: float | None = None  # its own, where it is slower than its link's other devices
     retries: int | None = None  # None: the link's
+    # Its poll groups, the default one (its points in no group) among them; none: one group,
+    # every point at ``interval``.  ``reader`` reads every point of it all the same.
+    groups: tuple[Group, ...] = field(default=(), compare=False)
     # Its slots on a fixed grid from its first poll (read --interval): one that has passed is
-    # skipped and counted, and the next slot of the grid waited for; else (a plant) a device
+    # skipped and counted, and the next slot of the grid waited for; else (a plant) a group
     # late for its slot is polled at once, and its interval runs from there.
     grid: bool = False
 
+    def paced(self) -> tuple[Group, ...]:
+        """The groups its points are polled in."""
+        return self.groups or (Group(DEFAULT, self.interval, self.reader),)
 
-# What ends a run rather than fails a poll: a request the link cannot carry (no later poll can
-# do better), the output that failed, and stdout's reader gone.
-FATAL = (RequestError, OutputFailed, BrokenPipeError)
+    @property
+    def fastest(self) -> float:
+        """Its shortest interval (of its groups read more than once): its back-off starts at twice it."""
+        return min(
+            (group.interval for group in self.groups if group.interval < math.inf), default=self.interval
+        )
 
 
 @record
@@ -124,12 +156,29 @@ class Poll:
     last_success: float | None = field(default=None, compare=False)  # time.time()
     stats: PollStats | None = field(default=None, compare=False)
     link: LinkView | None = field(default=None, compare=False)
+    group: str = DEFAULT  # the group it read: its readings are that group's points
+    pace: Pace | None = field(default=None, compare=False)  # how that group keeps its interval
+    # A device of several groups: the latest reading of every point it has read, this poll's
+    # and the other groups' (the Prometheus text and the live view show each point's last value).
+    latest: tuple[Reading, ...] | None = field(default=None, compare=False)
     # From its first request leaving to its last reply; None: a reply of it came untimed (while
-    # mbtool was busy) or it failed.
+    # mbtool was busy), or it failed.
     latency: float | None = field(default=None, compare=False)
 
     def __init__(
-        self, device, time, readings, error, state, last_success=None, stats=None, link=None, latency=None
+        self,
+        device,
+        time,
+        readings,
+        error,
+        state,
+        last_success=None,
+        stats=None,
+        link=None,
+        group=DEFAULT,
+        pace=None,
+        latest=None,
+        latency=None,
     ) -> None:
         # By hand: one a poll (codec/record.py says why).
         fields = self.__dict__
@@ -141,7 +190,23 @@ class Poll:
         fields["last_success"] = last_success
         fields["stats"] = stats
         fields["link"] = link
+        fields["group"] = group
+        fields["pace"] = pace
+        fields["latest"] = latest
         fields["latency"] = latency
+
+
+@record
+class Pace:
+    """How a group keeps its interval: the interval asked, the mean achieved between its polls
+    (None before two), its polls and its overruns (polls that started later than ``LATE`` of
+    its interval after their slot, and slots skipped while a poll took longer than it)."""
+
+    group: str
+    asked: float
+    achieved: float | None
+    polls: int
+    overruns: int
 
 
 @record
@@ -168,8 +233,10 @@ class DeviceView:
 
 
 def view_of(poll: Poll) -> DeviceView:
-    """The device as its latest poll left it."""
+    """The device as its latest poll left it: with groups, the latest value of every point."""
     stats = poll.stats if poll.stats is not None else PollStats()  # the scheduler's polls carry theirs
+    if poll.latest is not None and poll.readings is not None:
+        poll = replace(poll, readings=list(poll.latest))
     return DeviceView(poll.device, poll.state, poll.last_success, poll, stats)
 
 
@@ -191,70 +258,151 @@ class Event:
     link: LinkView | None = field(default=None, compare=False)  # a link's event: the link then
 
 
+class GroupState:
+    """A group's clock: when it is next due, its polls, and how it has kept its interval."""
+
+    def __init__(self, group: Group, now: float, grid: bool = False) -> None:
+        self.group = group
+        self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
+        self.due = now
+        self.polls = 0
+        self.rounds = 0  # its polls in the run (0: until stopped); the worker's
+        self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
+        self.overruns = 0
+        self.skipped = 0  # slots of its grid passed while a poll ran over
+
+    @property
+    def deadline(self) -> float:
+        """When its poll should be done: its next slot (a read once: at once)."""
+        return self.due + self.group.interval if self.group.interval < math.inf else self.due
+
+    def started(self, now: float) -> None:
+        """Its poll starts at ``now``: an overrun if later than ``LATE`` of its interval (on a
+        grid, a poll late is one whose slots passed: they are counted as skipped)."""
+        if not self.grid:
+            self.overruns += now - self.due > LATE * self.group.interval
+        self.first = now if self.polls == 0 else self.first
+        self.last = now
+
+    def next(self, now: float) -> None:
+        """The next slot of its interval; one that has passed already is skipped, not made up
+        (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
+        counted as skipped (but after its last poll) and the next one waited for; else it is
+        polled at once."""
+        interval = self.group.interval
+        self.due += interval
+        if self.due < now:
+            if not self.grid:
+                self.overruns += 1
+                self.due = now
+            elif interval > 0:
+                missed = math.ceil((now - self.due) / interval)
+                self.due += missed * interval
+                if not (self.rounds and self.polls >= self.rounds):
+                    self.skipped += missed
+            else:  # --interval 0: back to back, no slot to miss
+                self.due = now
+
+    def pace(self) -> Pace:
+        achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
+        return Pace(self.group.name, self.group.interval, achieved, self.polls, self.overruns)
+
+
 class DeviceState:
-    """What the scheduler knows of a device: when it is due, and how it has fared."""
+    """What the scheduler knows of a device: when each of its groups is due, and how it has
+    fared.  Its state is the device's, whichever group's poll settled it."""
 
     def __init__(self, spec: DeviceSpec, now: float) -> None:
         self.spec = spec
-        self.due = now
+        self.groups = [GroupState(group, now, spec.grid) for group in spec.paced()]
+        self.not_before = -math.inf  # offline: no group of it is polled before its back-off ends
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
         # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
-        self.backoff = Backoff(min(2 * spec.interval, spec.max_backoff), spec.max_backoff)
-        self.polls = 0
-        self.skipped = 0  # slots of its grid passed while a poll ran over (DeviceSpec.grid)
-        self.rounds = 0  # its polls in the run (0: until stopped); the worker's
+        self.backoff = Backoff(min(2 * spec.fastest, spec.max_backoff), spec.max_backoff)
+        self.last_success: float | None = None  # time.time()
+        self.last_poll: Poll | None = None
+        self.latest: dict[str, Reading] | None = {} if spec.groups else None  # each point's last reading
+        self.stats = PollStats()
         # Its transactions' timeout and retries, where its polls are counted and how they read
         # (execute(request) on the link): made once by its worker, not a poll.
         self.limits: tuple[float, int]
         self.counted: Stats | DeviceAndLink
         self.execute: Callable
-        self.last_success: float | None = None  # time.time()
-        self.last_poll: Poll | None = None
-        self.stats = PollStats()
 
-    def succeeded(self, now: float, when: float) -> Event | None:
+    @property
+    def skipped(self) -> int:
+        """Slots of its grid passed while a poll ran over (DeviceSpec.grid)."""
+        return sum(group.skipped for group in self.groups)
+
+    @property
+    def due(self) -> float:
+        """When a group of it is next due (not before its back-off ends)."""
+        return max(self.not_before, min(group.due for group in self.groups))
+
+    @due.setter
+    def due(self, when: float) -> None:
+        """Every group of it next due at ``when`` (math.inf: the run polls it no more)."""
+        for group in self.groups:
+            group.due = when
+
+    @property
+    def polls(self) -> int:
+        """Its rounds: the polls of its group polled least (once every group has had its
+        first, a group read once counts no more)."""
+        repeated = [group.polls for group in self.groups if group.group.interval < math.inf]
+        return min(repeated or [group.polls for group in self.groups])
+
+    @polls.setter
+    def polls(self, count: int) -> None:
+        for group in self.groups:
+            group.polls = count
+
+    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
         self.failures = 0
         self.last_success = when
-        self._next(now)
+        (group or self.groups[0]).next(now)
         was = self.state
         if was == ONLINE:
             return None
         self.state = ONLINE
         self.backoff.reset()  # only a device offline backed off
+        self.not_before = -math.inf
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
 
-    def failed(self, now: float, when: float, reason: str, at_once: bool = False) -> Event | None:
-        """A failed poll; ``at_once``: offline now (its link cannot be opened).  A device whose
-        ``offline_after`` is 0 is never offline: it keeps its slots."""
+    def failed(
+        self, now: float, when: float, reason: str, at_once: bool = False, group: GroupState | None = None
+    ) -> Event | None:
+        """A failed poll (of ``group``: None, its first); ``at_once``: offline now (its link
+        cannot be opened).  Offline, the group that failed is tried again at the back-off's end
+        and the others wait for it.  A device whose ``offline_after`` is 0 is never offline: it
+        keeps its slots."""
+        group = group or self.groups[0]
         self.failures += 1
         if not self.spec.offline_after:
-            self._next(now)
+            group.next(now)
             return None
         if self.state == OFFLINE:
-            self.due = now + self.backoff.failed()
+            group.due = self.not_before = now + self.backoff.failed()
             return None
         if self.failures < self.spec.offline_after and not at_once:
-            self._next(now)
+            group.next(now)
             return None
         self.state = OFFLINE
-        self.due = now + self.backoff.failed()
+        group.due = self.not_before = now + self.backoff.failed()
         return Event(when, "device", self.spec.name, OFFLINE, reason, self.backoff.wait)
 
-    def _next(self, now: float) -> None:
-        """The next slot of its interval; one that has passed already is skipped, not made up:
-        on a grid, the slots passed are counted (but after its last poll) and the next one
-        waited for; else it is polled at once."""
-        interval = self.spec.interval
-        self.due += interval
-        if self.due < now:
-            if self.spec.grid and interval > 0:
-                missed = math.ceil((now - self.due) / interval)
-                self.due += missed * interval
-                if not (self.rounds and self.polls >= self.rounds):
-                    self.skipped += missed
-            else:
-                self.due = now
+    def last_slot(self, rounds: int) -> float:
+        """When its last poll of ``rounds`` falls, its slots kept (offline: its next try, the
+        later ones as uncertain as another offline device's)."""
+        if self.state == OFFLINE:
+            return self.due
+        return max(
+            group.due + max(0, rounds - group.polls - 1) * group.group.interval
+            if group.group.interval < math.inf else group.due
+            for group in self.groups
+            if group.due < math.inf
+        ) if self.due < math.inf else -math.inf  # fmt: skip
 
 
 class Clock:
@@ -269,9 +417,6 @@ class Clock:
     @staticmethod
     def wait(stop: threading.Event, seconds: float) -> None:
         stop.wait(seconds)
-
-
-_DUE = operator.attrgetter("due")  # when a device is due: the scheduler's order
 
 
 class LinkWorker:
@@ -317,7 +462,7 @@ class LinkWorker:
         traced = (lambda framer: trace(framer, label=self._label)) if trace else None
         if backoff is None:
             backoff = Backoff(
-                min(2 * min(d.spec.interval for d in devices), max(d.spec.max_backoff for d in devices))
+                min(2 * min(d.spec.fastest for d in devices), max(d.spec.max_backoff for d in devices))
                 if devices
                 else 0.0,
                 max((d.spec.max_backoff for d in devices), default=0.0),
@@ -330,20 +475,29 @@ class LinkWorker:
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
-        self.stamp: float | None = None  # time.time() the poll under way's request left
+        self.stamp: float | None = None  # time.time() the poll under way's first request left
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         # What each device's polls count in and read with, made once, not a poll.
         for device in devices:
-            device.rounds = rounds
+            for group in device.groups:
+                group.rounds = rounds
             device.counted = DeviceAndLink(device.stats, self.stats) if published else self.stats
             device.execute = functools.partial(self.link.execute, device.spec.unit)  # execute(request)
+        # One group on the link: no other's poll can come between its transactions.
+        self.alone = sum(len(device.groups) for device in devices) == 1
         self.crashed: BaseException | None = None
+        self.busy = 0.0  # seconds its polls took: what the line carries is its transactions in them
+        self.overran = False  # said once that it cannot keep up
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
         # accept_jobs, and the link is then never opened a second time for it.
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
+        # waits on schedule for its next poll.
+        self.turns = 0
+        self.asleep = False
 
     def accept_jobs(self) -> None:
         self.jobs = queue.SimpleQueue()
@@ -372,11 +526,13 @@ class LinkWorker:
 
     def _sleep(self, seconds: float) -> None:
         """Until the next poll, the run's stop, or (with jobs) a job handed in."""
+        self.asleep = True
         if self.jobs is None:
             self.clock.wait(self.stop, seconds)
         else:  # in short slices, so that the run's stop is seen as soon as without jobs
             self.clock.wait(self.poke, min(seconds, 0.2))
             self.poke.clear()
+        self.asleep = False
 
     def limits(self) -> list[tuple[float, int]]:
         """The timeout and retries of each of its devices' transactions."""
@@ -402,11 +558,7 @@ class LinkWorker:
             if device.state == OFFLINE:
                 # The last slot of each other device, or the next try of an offline one (its
                 # later tries are as uncertain as this one's).
-                last = max(
-                    (d.due if d.state == OFFLINE else d.due + (self.rounds - d.polls - 1) * d.spec.interval
-                     for d in others),
-                    default=-math.inf,
-                )  # fmt: skip
+                last = max((d.last_slot(self.rounds) for d in others), default=-math.inf)
                 if device.due > last:
                     device.due = math.inf
                     return False
@@ -431,37 +583,53 @@ class LinkWorker:
         finally:
             self.link.close()
 
+    def _due(self, now: float, before: float = math.inf) -> list[tuple[DeviceState, GroupState]]:
+        """The groups due now (whose deadline is before ``before``), the earliest deadline first:
+        a group's deadline is its next slot, so of two groups due the faster goes first, and of
+        two of one pace the one that has waited longest."""
+        due = [
+            (device, group)
+            for device in self._waiting()
+            if device.not_before <= now
+            for group in device.groups
+            if group.due <= now
+            and group.deadline < before
+            and not (self.rounds and group.polls >= self.rounds)
+        ]
+        return sorted(due, key=lambda pair: pair[1].deadline)
+
     def _work(self) -> None:
         # What every poll asks of the settings, read once: each device's timeout and retries,
         # and --reconnect-each and --pause, which decide what follows a poll.
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
-        while not self.stop.is_set():
+        while not self.stop.is_set() and not self.finished():
+            self.turns += 1
             self._run_jobs()
-            waiting = self._waiting()
-            if self.rounds and not waiting:  # finished
-                return
             now = self.clock.monotonic()
-            device = min(waiting, key=_DUE)  # the one that has waited longest
             ready_at = self.link.ready_at if self.link.client is None else -math.inf
-            if device.due > now or ready_at > now:
+            due = self._due(now) if ready_at <= now else []
+            if not due:
+                wake = max(min(d.due for d in self._waiting()), ready_at)
                 if self.idle is not None:
                     self.idle()
-                self._sleep(max(0.0, max(device.due, ready_at) - now))
+                # a minute at most: a device whose every point is read once waits for a reconnect
+                self._sleep(min(max(0.0, wake - now), 60.0))
                 continue
             if self.link.client is None:
-                if not self._open([d for d in waiting if d.due <= now]):
+                if not self._open(due):
                     continue
+                device = due[0][0]
                 if device.spec.grid and not device.polls:
                     # The grid starts with the first link open: opening sim:// (its imports) or
                     # a slow handshake is not a poll overrunning its slot.  What the first link
                     # made stays as long as the run: the collector need not walk it again.
                     gc.freeze()
                     device.due = self.clock.monotonic()
-            self._poll(device)
+            self._poll(*due[0])
 
-    def _open(self, due: list[DeviceState]) -> bool:
+    def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
             self.link.open()
         except FATAL:
@@ -474,11 +642,12 @@ class LinkWorker:
             self.state = OFFLINE
             self.open_failures += 1
             settled: list[Poll | Event] = []
-            for device in due:  # its devices cannot be reached: offline meanwhile
+            for device, group in due:  # its devices cannot be reached: offline meanwhile
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                settled.extend(self._settle(device, None, error, when, not_before=self.link.ready_at))
+                group.started(self.clock.monotonic())
+                settled.extend(self._settle(device, None, error, when, group, not_before=self.link.ready_at))
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
@@ -491,6 +660,12 @@ class LinkWorker:
             self.state = ONLINE
             self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
+        if self.link.opens > 1:  # a reconnect: what is read once is read again
+            now = self.clock.monotonic()
+            for device in self.devices:
+                for group in device.groups:
+                    if group.group.interval == math.inf:
+                        group.due = now
         return True
 
     def view(self) -> LinkView:
@@ -507,23 +682,54 @@ class LinkWorker:
         if self.sent is not None:
             self.sent()
 
-    def _poll(self, device: DeviceState) -> None:
+    def _aim(self, device: DeviceState, client) -> None:
+        """The link (its ``client``) set for ``device``'s transactions: one transaction at a time
+        on a link."""
+        self.polling = device.spec.name
+        client.timeout, client.retries = device.limits
+        self.link.stats = device.counted
+
+    def _poll(self, device: DeviceState, group: GroupState | None = None, nested: bool = False) -> None:
+        """One poll of ``group`` (None: the device's first).  Between its transactions, a group
+        due with an earlier deadline is polled first (not ``nested`` in another's): a fast
+        group is never held up by more than one transaction of a slow group's long read."""
         link = self.link
+        group = group or device.groups[0]
         client = link.client
         assert client is not None  # a device is polled on an open link
-        self.polling = device.spec.name
+        began = self.clock.monotonic()
+        overruns = group.overruns
+        group.started(began)
         self.stamp = None
-        client.while_waiting = self._request_sent
-        client.timeout, client.retries = device.limits  # one transaction at a time on a link
-        link.stats = device.counted
+        client.while_waiting = self._request_sent  # its first request out: the poll's time
+        self._aim(device, client)
+        execute = device.execute
+        cut_in = False  # another group's poll came between its transactions: its latency is not its own
+        if not (self.alone or nested):
+
+            def execute(request):
+                nonlocal cut_in
+                if self.stamp is not None:
+                    stamp = self.stamp
+                    others = self._due(self.clock.monotonic(), before=group.deadline)
+                    for other in others:
+                        self._poll(*other, nested=True)
+                    if others:
+                        cut_in = True
+                        if link.client is not client:  # lost by the other's poll: this one ends too
+                            raise ConnectionFailed(f"link {self.spec.name} was lost")
+                        self.stamp = stamp
+                        self._aim(device, client)
+                return device.execute(request)
+
         stats = self.stats
         untimed = stats.untimed
         readings: list[Reading] | None = None
         error: BaseException | None = None
         latency: float | None = None
         try:
-            readings = device.spec.reader.read(device.execute)
-            if stats.untimed == untimed:  # every reply of the poll timed
+            readings = group.group.reader.read(execute)
+            if stats.untimed == untimed and not cut_in:  # every reply of the poll timed
                 latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
@@ -533,13 +739,19 @@ class LinkWorker:
             error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
+        if not nested:
+            self.busy += self.clock.monotonic() - began
         if client.deviations:  # --lenient took a reply as it was: the summary says so
             self.accepted.update(client.deviations)
         when = self.stamp
         if when is None:  # the request never left
             when = self.clock.time()
-        for item in self._settle(device, readings, error, when, latency=latency):
+        for item in self._settle(device, readings, error, when, group, latency=latency):
             self.report(item)
+        if group.overruns > overruns and not self.overran:
+            self._overrun()
+        if nested:
+            return
         if self.reconnect_each and link.client is not None:
             # --reconnect-each: a new link every poll, for devices and gateways that serve one
             # client or leak connections; no wait, as nothing failed.
@@ -547,23 +759,59 @@ class LinkWorker:
         if self.idle is not None and (link.client is None or self.pause):
             self.idle()  # a new link or a pause comes before the next request
 
+    def asked(self) -> float:
+        """The reads a second its devices' groups ask (an offline device's none)."""
+        return sum(
+            len(group.group.reader.blocks) / group.group.interval
+            for device in self.devices
+            if device.state != OFFLINE
+            for group in device.groups
+        )
+
+    def _overrun(self) -> None:
+        """A group's poll overran (it started late, or took longer than its interval): when what
+        its groups ask is more than the link has carried while busy, that is why, and it is said
+        once, with the figures."""
+        if not self.busy:
+            return
+        asked, carried = self.asked(), self.stats.transactions / self.busy
+        if asked > carried:
+            self.overran = True
+            reason = f"asked {asked:.1f} reads/s, the line carries {carried:.1f}"
+            self.report(Event(self.clock.time(), "link", self.spec.name, OVERRUN, reason, link=self.view()))
+
     def _settle(
-        self, device, readings, error, when: float, not_before: float | None = None, latency=None
+        self,
+        device,
+        readings,
+        error,
+        when: float,
+        group: GroupState | None = None,
+        not_before: float | None = None,
+        latency: float | None = None,
     ) -> list[Poll | Event]:
         """A poll's outcome in the device's state: the Poll, and the Event of its change of
         state if it had one, to report.  ``not_before``: its link cannot be opened, so the
         device is offline now and not tried before the link is."""
         now = self.clock.monotonic()
-        device.polls += 1
+        group = group or device.groups[0]
+        group.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
         if self.published:  # the outputs of a plant show them; a lone device's run counts its own
             device.stats.poll(ok)
         if ok:
-            event = device.succeeded(now, when)
+            event = device.succeeded(now, when, group)
         else:
-            event = device.failed(now, when, str(error), at_once=not_before is not None)
-            if device.state == OFFLINE:
-                device.due = max(device.due, not_before or 0.0)
+            event = device.failed(now, when, str(error), not_before is not None, group)
+            if not_before is not None and device.state == OFFLINE:
+                device.not_before = max(device.not_before, not_before)
+                group.due = max(group.due, not_before)
+        if self.rounds and group.polls >= self.rounds:
+            group.due = math.inf  # its rounds are done
+        latest = None
+        if device.latest is not None and readings is not None:
+            device.latest.update((reading.point.name, reading) for reading in readings)
+            latest = tuple(device.latest.values())
         # Whether it will be tried again matters to an event's announcement, and decides an
         # offline device's next try; a device that answered is polled again while the run lasts.
         again = self._tried_again(device) if event is not None or device.state == OFFLINE else True
@@ -579,11 +827,21 @@ class LinkWorker:
                 device.last_success,
                 device.stats.copy(),
                 self.view(),
+                group.group.name,
+                group.pace(),
+                latest,
                 latency,
             )
         else:  # read on this thread, before the next poll: nothing to copy
             poll = Poll(
-                device.spec, when, readings, error, device.state, device.last_success, None, None, latency
+                device.spec,
+                when,
+                readings,
+                error,
+                device.state,
+                device.last_success,
+                latest=latest,
+                latency=latency,
             )
         device.last_poll = poll
         return [poll] if event is None else [poll, event]
@@ -608,6 +866,9 @@ class Plant:
         self.stop = threading.Event()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
+        self.start_within = START_WITHIN
+        self.handed = 0  # records handed to ``report``
+        self.last_seen: tuple | None = None  # what ``moved`` saw last
         now = time.monotonic()
         self.devices = {spec.name: DeviceState(spec, now) for spec in devices}
         self.workers = [
@@ -630,21 +891,9 @@ class Plant:
 
     def run(self, duration: float | None = None) -> None:
         deadline = None if duration is None else time.monotonic() + duration
-        for started, worker in enumerate(self.workers):
+        for worker in self.workers:
             worker.deadline = deadline
-            try:
-                worker.thread.start()
-            except RuntimeError as error:  # "can't start new thread": the system's limits
-                # Said before any link is opened: those started wait for ``go``, and end.
-                self.stop.set()
-                self.go.set()
-                for each in self.workers[:started]:
-                    each.thread.join()
-                raise ConnectionFailed(
-                    f"cannot start a worker for each link: {started} of {len(self.workers)} links "
-                    f"started before the system refused a thread ({error}); poll fewer links a "
-                    "process, or raise its limits (ulimit -v, -u)"
-                ) from None
+        self._start_workers()
         self.go.set()
         try:
             while any(worker.thread.is_alive() for worker in self.workers):
@@ -668,6 +917,69 @@ class Plant:
             if worker.crashed is not None:
                 raise worker.crashed
 
+    def moved(self) -> bool:
+        """Whether the plant has moved since the last call (systemd's watchdog asks, from its own
+        thread): the thread that runs it handed on records, or had none waiting at either call;
+        and each link's worker turned its loop, waits on schedule for its next poll, or is done.
+        A worker that neither turned nor waited at both calls is stuck in its work, and records
+        waiting at both, none handed, are stuck in the output (a pipe nobody reads)."""
+        waiting = not self.records.empty()
+        seen = (self.handed, waiting, [(w.turns, w.asleep) for w in self.workers])
+        last, self.last_seen = self.last_seen, seen
+        if last is None:
+            return True
+        output = seen[0] != last[0] or not (waiting and last[1])
+        links = all(
+            now != before or now[1] or before[1] or not worker.thread.is_alive()
+            for worker, now, before in zip(self.workers, seen[2], last[2], strict=True)
+        )
+        return output and links
+
+    def _start_workers(self) -> None:
+        """Every worker's thread started, each within ``start_within`` seconds; ConnectionFailed (exit
+        6, one line) if the system refuses one.  Started by a thread of their own: Thread.start
+        waits with no deadline for the new thread to say it began, and a thread that dies in its
+        start-up (MemoryError under a capped address space) never says so.  A starter stuck so
+        is left behind; a thread of ``_thread``'s, the interpreter does not wait for it at exit."""
+        started: list[LinkWorker] = []
+        refused: list[BaseException] = []
+        done = threading.Event()
+
+        def start_each() -> None:
+            try:
+                for worker in self.workers:
+                    worker.thread.start()
+                    started.append(worker)
+            except Exception as error:  # "can't start new thread", MemoryError: the system's limits
+                refused.append(error)
+            finally:
+                done.set()
+
+        try:
+            _thread.start_new_thread(start_each, ())
+        except Exception as error:
+            refused.append(error)
+        else:
+            # A deadline a thread, not for them all: a plant of thousands of links on a loaded
+            # machine starts them for longer, but never waits on one for ``start_within``.
+            count = 0
+            while not done.wait(self.start_within):
+                if len(started) == count:
+                    refused.append(TimeoutError(f"a thread did not start within {self.start_within:g} s"))
+                    break
+                count = len(started)
+        if refused:
+            # Said before any link is opened: those started wait for ``go``, see the stop, and end.
+            self.stop.set()
+            self.go.set()
+            for each in list(started):
+                each.thread.join(self.start_within)
+            raise ConnectionFailed(
+                f"cannot start a worker for each link: {len(started)} of {len(self.workers)} links "
+                f"started before the system refused a thread ({str(refused[0]) or type(refused[0]).__name__}); "
+                "poll fewer links a process, or raise its limits (ulimit -v, -u)"
+            )
+
     def _publish(self, wait: float | None = None) -> None:
         """Hand every record the workers have published to ``report``, on this thread; with
         ``wait``, wait that long for the first one (None: take only those already there)."""
@@ -677,6 +989,7 @@ class Plant:
             return
         while True:
             self.report(item)
+            self.handed += 1
             try:
                 item = self.records.get_nowait()
             except queue.Empty:

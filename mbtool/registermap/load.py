@@ -21,8 +21,9 @@ from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.tables import Table, parse_reference, table_named
 from mbtool.codec.values import ORDERS, TYPES, decode_values, encode_values, parse_value
-from mbtool.errors import ExitCode, MbtoolError
+from mbtool.errors import ExitCode, MbtoolError, UsageError
 from mbtool.files import read_whole
+from mbtool.registermap.groups import GroupPlan, read_groups
 from mbtool.registermap.header import HEADER_KEYS, DeviceHeader, device_header
 from mbtool.registermap.point import Point
 
@@ -58,12 +59,18 @@ class MapError(MbtoolError, ValueError):
 
 class RegisterMap:
     def __init__(
-        self, points: dict[str, Point], max_gap: int = 0, source: str = "", header: DeviceHeader | None = None
+        self,
+        points: dict[str, Point],
+        max_gap: int = 0,
+        source: str = "",
+        header: DeviceHeader | None = None,
+        groups: list[GroupPlan] | None = None,
     ) -> None:
         self.points = points
         self.max_gap = max_gap
         self.source = source
         self.header = header  # what [device] says of the device (registermap/header.py), if anything
+        self.groups = groups or []  # its poll groups (registermap/groups.py), for mbtool poll
 
     def select(self, names: tuple[str, ...] | list[str]) -> list[Point]:
         """The named points, in the order given; every point when none is named."""
@@ -80,11 +87,12 @@ def load_map(path: str | Path) -> RegisterMap:
     path = Path(path)
     try:
         text = read_whole(path, "map").decode("utf-8")
-    except RequestError as error:
+    except UsageError as error:
         raise MapError(str(error)) from None
     except UnicodeDecodeError as error:
         raise MapError(f"{path}: not UTF-8 text (byte {error.start})") from None
     text = text.removeprefix("\ufeff")  # a byte order mark (Excel's "CSV UTF-8") is no text
+    groups: dict = {}  # a map's poll groups: its groups table and its once list, as given
     if path.suffix.lower() == ".csv":
         device: dict = {}
         rows = _csv_rows(path, text)
@@ -97,18 +105,22 @@ def load_map(path: str | Path) -> RegisterMap:
             raise MapError(
                 f"{path}: nested too deeply to be a map (arrays or tables inside one another)"
             ) from None
-        unknown = set(document) - {"device", "points"}
+        unknown = set(document) - {"device", "points", "groups", "once"}
         if unknown:
             raise MapError(
-                f"{path}: unknown section {sorted(unknown)[0]} (a map has [device] and [points.NAME])"
+                f"{path}: unknown section {sorted(unknown)[0]} (a map has [device], [points.NAME], "
+                "and poll groups: [groups.NAME], once)"
             )
         device, rows = document.get("device", {}), document.get("points", {})
         if not isinstance(rows, dict) or not all(isinstance(row, dict) for row in rows.values()):
             raise MapError(f"{path}: points are tables: [points.NAME] with keys such as ref and type")
-    return build_map(path, device, rows)
+        groups = {key: document[key] for key in ("groups", "once") if key in document}
+    return build_map(path, device, rows, groups)
 
 
-def build_map(path: Path | str, device: dict, rows: dict[str, dict]) -> RegisterMap:
+def build_map(
+    path: Path | str, device: dict, rows: dict[str, dict], groups: dict | None = None
+) -> RegisterMap:
     """A map from its [device] table and its points' rows, as a file gives them (``path``
     names it in every error): what ``load_map`` makes of a file, and ``mbtool sunspec`` of
     what it found."""
@@ -129,7 +141,12 @@ def build_map(path: Path | str, device: dict, rows: dict[str, dict]) -> Register
             raise fail(name, "a probe reads its registers as they are: no scale_ref")
         return _point(path, f"[device] {name}", row, defaults)
 
-    return RegisterMap(points, max_gap, str(path), device_header(header, probe, fail))
+    def group_fail(key: str, why: str) -> MapError:
+        return MapError(f"{path}: {key}: {why}")
+
+    groups = groups or {}
+    plans = read_groups(groups.get("groups"), groups.get("once"), points, group_fail)
+    return RegisterMap(points, max_gap, str(path), device_header(header, probe, fail), plans)
 
 
 def _csv_rows(path: Path, text: str) -> dict[str, dict]:

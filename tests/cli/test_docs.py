@@ -512,7 +512,7 @@ def test_the_plant_pages_inventory_loads_where_the_page_says_to_save_it(tmp_path
     """docs/plant.md's end-to-end inventory names its map relative to itself: the page says
     where to save it, and saved there it loads (issue 39.12: saved anywhere else it is exit 2,
     'cannot read map')."""
-    from mbtool.codec.errors import RequestError
+    from mbtool.errors import UsageError
     from mbtool.plant.inventory import load_inventory
 
     section = _read("docs/plant.md").split("## A plant end to end", 1)[1].split("\n## ", 1)[0]
@@ -528,5 +528,5 @@ def test_the_plant_pages_inventory_loads_where_the_page_says_to_save_it(tmp_path
     assert [device.name for device in plant.devices] == ["meter1", "meter2", "meter9", "pump", "boiler"]
     elsewhere = tmp_path / "plant.toml"
     elsewhere.write_text(inventory)
-    with pytest.raises(RequestError, match="cannot read map"):
+    with pytest.raises(UsageError, match="cannot read map"):
         load_inventory(str(elsewhere))

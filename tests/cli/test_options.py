@@ -27,8 +27,8 @@ from mbtool.cli.param_types import (
 )
 from mbtool.cli.parsing import did_you_mean
 from mbtool.cli.settings import ERRORS_AS_JSON, Settings
-from mbtool.codec.errors import RequestError
-from mbtool.link.connection import Connection
+from mbtool.errors import UsageError
+from mbtool.link.connection import Connection, connection_of
 
 
 @device_command("probe", types=("uint16", "float32"), readings=True, polls=True)
@@ -64,8 +64,8 @@ def given(*args: str) -> tuple[Connection, Settings, dict]:
 
 
 def refused(*args: str, command: click.Command = probe) -> str:
-    """The message of the error the command line ends in (a usage error or a RequestError)."""
-    with pytest.raises((click.ClickException, RequestError)) as error:
+    """The message of the error the command line ends in (click's usage error or mbtool's)."""
+    with pytest.raises((click.ClickException, UsageError)) as error:
         invoke(command, *args)
     failure = error.value
     return failure.format_message() if isinstance(failure, click.ClickException) else str(failure)
@@ -87,7 +87,7 @@ def test_every_link_option_reaches_the_connection_converted():
         "--bytesize", "7", "--stopbits", "2", "-t", "0.5", "--retries", "2", "--echo", "--pause", "0",
         "--connect-delay", "0.25", "--lenient", "--rs485-delays", "1,2.5", "--reconnect-each",
     )  # fmt: skip
-    assert connection == Connection(
+    assert connection == connection_of(
         port="/dev/ttyUSB0",
         unit=17,
         framer="ascii",
@@ -111,11 +111,11 @@ def test_the_tls_options_reach_the_connection_and_insecure_is_warned_of(capsys):
         "-p", "tls://plc7:802", "--cert", "c.pem", "--key", "k.pem", "--ca", "ca.pem",
         "--server-name", "plc7.plant.example",
     )  # fmt: skip
-    assert connection == Connection(
+    assert connection == connection_of(
         port="tls://plc7:802", cert="c.pem", key="k.pem", ca="ca.pem", server_name="plc7.plant.example"
     )
     connection, _, _ = given("-p", "tls://plc7:802", "--cert", "c.pem", "--insecure")
-    assert connection.insecure is True
+    assert connection.tls.insecure is True
     assert capsys.readouterr().err.startswith(
         "mbtool: warning: --insecure: the certificate of tls://plc7:802 "
     )
@@ -188,7 +188,7 @@ def config(tmp_path, monkeypatch):
 
 def test_a_profile_fills_in_what_the_options_left_at_their_default(config):
     connection, settings, own = given("-P", "boiler")
-    assert connection == Connection(
+    assert connection == connection_of(
         port="/dev/ttyUSB0",
         unit=17,
         baud=9600,
@@ -206,7 +206,7 @@ def test_a_profile_fills_in_what_the_options_left_at_their_default(config):
 def test_options_and_the_environment_win_over_the_profile(config, monkeypatch):
     monkeypatch.setenv("MBTOOL_UNIT", "3")
     connection, _, own = given("-P", "boiler", "-b", "19200", "-m", "other.toml")
-    assert (connection.unit, connection.baud, connection.port) == (3, 19200, "/dev/ttyUSB0")
+    assert (connection.unit, connection.serial.baud, connection.port) == (3, 19200, "/dev/ttyUSB0")
     assert own["map"] == "other.toml"
     connection, _, _ = given("-P", "boiler", "-u", "4")  # the option over the environment
     assert connection.unit == 4
@@ -214,7 +214,7 @@ def test_options_and_the_environment_win_over_the_profile(config, monkeypatch):
 
 def test_an_option_given_at_its_default_value_still_wins_over_the_profile(config):
     connection, _, _ = given("-P", "boiler", "--parity", "E", "-t", "1")
-    assert (connection.parity, connection.timeout) == ("E", 1.0)
+    assert (connection.serial.parity, connection.timeout) == ("E", 1.0)
 
 
 def test_a_profile_names_the_device_in_what_the_metrics_formats_write(config):
@@ -278,7 +278,7 @@ def test_numbers_are_decimal_or_prefixed(text, number):
 
 @pytest.mark.parametrize("text, shown", [("abc", "abc"), ("", "(empty)"), ("0x", "0x"), ("1.5", "1.5")])
 def test_what_is_no_number_is_named(text, shown):
-    with pytest.raises(RequestError) as error:
+    with pytest.raises(UsageError) as error:
         parse_int(text, "unit")
     assert str(error.value) == f"unit {shown} is not a number (decimal or 0x hex)"
 
@@ -302,14 +302,14 @@ def test_unit_lists(text, units):
     ],
 )
 def test_bad_unit_lists(text, words):
-    with pytest.raises(RequestError) as error:
+    with pytest.raises(UsageError) as error:
         parse_units(text)
     assert words in str(error.value)
 
 
 def test_broadcast_may_be_listed_where_a_gateway_forwards_it():
     assert parse_units("0-2", broadcast=True) == {0, 1, 2}
-    with pytest.raises(RequestError, match=r"out of range 0\.\.255$"):
+    with pytest.raises(UsageError, match=r"out of range 0\.\.255$"):
         parse_units("256", broadcast=True)
 
 
@@ -402,7 +402,7 @@ def test_negative_numbers_are_arguments_not_options():
 
 def test_short_options_and_values_joined_to_them():
     connection, _, _ = given("-u17", "-t0.5", "--baud=9600")
-    assert (connection.unit, connection.timeout, connection.baud) == (17, 0.5, 9600)
+    assert (connection.unit, connection.timeout, connection.serial.baud) == (17, 0.5, 9600)
 
 
 def test_a_mistyped_option_is_refused_with_the_close_ones():

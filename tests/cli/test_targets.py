@@ -18,7 +18,7 @@ from helpers.ptys import PTY_SERIAL_OPTS
 from helpers.run import run_cli
 
 from mbtool.cli.program import register_schemes
-from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.link.transport import parse_target
 
 register_schemes()  # sim://, as the command line's main() registers it
@@ -138,7 +138,7 @@ def test_a_targets_normalised_form_is_one_spelling_of_its_link(target, one):
 def test_a_server_may_listen_on_port_0():
     for scheme in ("tcp", "tls", "udp", "rtu+udp"):
         assert parse_target(f"{scheme}://127.0.0.1:0", listening=True).port == 0
-        with pytest.raises(RequestError):
+        with pytest.raises(UsageError):
             parse_target(f"{scheme}://127.0.0.1:0")
 
 

@@ -10,11 +10,11 @@ import time
 import pytest
 from helpers.run import REPO_ROOT
 
-from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import make_framer
 from mbtool.device.datafile import load_data
 from mbtool.device.device import Device, Faults
 from mbtool.device.model import MAX_FILES, demo_model
+from mbtool.errors import UsageError
 
 H = bytes.fromhex
 
@@ -425,21 +425,21 @@ def test_load_json(tmp_path):
 def test_bad_data_files(tmp_path, text, message):
     path = tmp_path / "bad.json"
     path.write_text(text)
-    with pytest.raises(RequestError, match=message):
+    with pytest.raises(UsageError, match=message):
         load_data(str(path), frozenset({1}))
 
 
 def test_a_data_file_holds_at_most_max_files_a_unit(tmp_path):
     path = tmp_path / "files.json"
     path.write_text(json.dumps({"files": {str(n): {"0": 1} for n in range(1, MAX_FILES + 2)}}))
-    with pytest.raises(RequestError, match=f"files: {MAX_FILES + 1} files: a unit holds at most {MAX_FILES}"):
+    with pytest.raises(UsageError, match=f"files: {MAX_FILES + 1} files: a unit holds at most {MAX_FILES}"):
         load_data(str(path), frozenset({1}))
     # The file's common files count for each unit too.
     common = {str(n): {"0": 1} for n in range(1, MAX_FILES)}
     path.write_text(
         json.dumps({"files": common, "units": {"2": {"files": {"60000": {"0": 1}, "60001": {}}}}})
     )
-    with pytest.raises(RequestError, match=r"units\.2: files: .* at most"):
+    with pytest.raises(UsageError, match=r"units\.2: files: .* at most"):
         load_data(str(path), frozenset({1, 2}))
 
 
@@ -472,7 +472,7 @@ def test_a_data_file_for_every_unit_costs_what_each_unit_changes(tmp_path):
 
 
 def test_missing_data_file(tmp_path):
-    with pytest.raises(RequestError, match="cannot read"):
+    with pytest.raises(UsageError, match="cannot read"):
         load_data(str(tmp_path / "nope.toml"), frozenset({1}))
 
 

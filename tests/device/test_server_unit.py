@@ -19,14 +19,13 @@ import pytest
 from helpers.checks import closed_by_peer, wait_until
 from helpers.frames import ascii_frame, crc16, lrc, mbap, rtu
 
-from mbtool.codec.errors import RequestError
 from mbtool.codec.framing import Frame, Rejected, device_framer
 from mbtool.device.device import Device
 from mbtool.device.model import demo_model
 from mbtool.device.server import Server, parse_target
 from mbtool.device.serving import IoFaults, Responder, Stats, corrupt_checksum, deviate
 from mbtool.device.tcp_server import BUS_HALF_LIFE, _Client, _Turns
-from mbtool.errors import ConnectionFailed
+from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import IN_PROCESS
 
 pytestmark = pytest.mark.timeout(60)
@@ -168,7 +167,7 @@ def test_tcp_deviations_leave_serial_replies_alone():
 
 def test_the_in_process_device_is_no_place_to_serve(monkeypatch):
     monkeypatch.setitem(IN_PROCESS, "sim", object)
-    with pytest.raises(RequestError, match="in-process device"):
+    with pytest.raises(UsageError, match="in-process device"):
         parse_target("sim://")
     assert parse_target("tcp://127.0.0.1:0").port == 0  # port 0: any free port
 

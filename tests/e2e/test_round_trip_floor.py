@@ -19,6 +19,7 @@ import re
 import subprocess
 import threading
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import pytest
@@ -30,7 +31,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.errors import NoResponse
 from mbtool.link.connection import Connection, open_client
-from mbtool.link.stats import Counted, Stats
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import Stats
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -219,7 +221,7 @@ READ = ReadHoldingRegisters(0, 1)
 def test_a_reply_that_came_while_mbtool_worked_is_untimed_not_timed_from_the_work(slow_device):
     stats = Stats()
     with open_client(Connection(port=slow_device.target)) as client:
-        counted = Counted(client, stats)
+        counted = ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats).execute
         for work in (0.0, 3 * DELAY, 0.0):
             client.while_waiting = (lambda w=work: time.sleep(w)) if work else None
             counted(1, READ)
@@ -239,7 +241,7 @@ def test_a_late_reply_to_an_earlier_attempt_is_timed_from_that_attempt():
     with serve("--delay", "0.3") as server:
         stats = Stats()
         with open_client(Connection(port=server.target, timeout=0.2, retries=1)) as client:
-            Counted(client, stats)(1, READ)
+            ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats).execute(1, READ)
             assert client.attempts == 2
             assert client.rtt >= 0.3
     assert stats.rtt_figures()["min"] >= 0.3
@@ -251,7 +253,7 @@ def test_without_transaction_ids_a_reply_after_a_retry_is_untimed():
     with serve("--delay", "0.3", "--framer", "rtu") as server:
         stats = Stats()
         with open_client(Connection(port=server.socket_target, timeout=0.2, retries=1)) as client:
-            Counted(client, stats)(1, READ)
+            ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats).execute(1, READ)
             assert client.attempts == 2
             assert client.rtt is None
     assert stats.outcomes["answered"] == 1 and stats.untimed == 1 and stats.rtt.count == 0
@@ -261,5 +263,5 @@ def test_silence_is_neither_timed_nor_untimed(slow_device):
     stats = Stats()
     with open_client(Connection(port=slow_device.target, timeout=DELAY / 4)) as client:
         with pytest.raises(NoResponse):
-            Counted(client, stats)(1, READ)
+            ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats).execute(1, READ)
     assert stats.outcomes["timeout"] == 1 and stats.untimed == 0 and stats.rtt.count == 0

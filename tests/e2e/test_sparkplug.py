@@ -15,10 +15,8 @@ import sys
 import time
 
 import pytest
-from helpers.devices import start_device, stop_device
-from helpers.sockets import free_port
-from peers.broker import Subscriber, mosquitto, needs_mosquitto
-from test_mqtt import _start_poll
+from helpers.mqtt import plant_on_broker
+from peers.broker import needs_mosquitto
 
 pytestmark = [pytest.mark.timeout(60), needs_mosquitto]
 
@@ -110,93 +108,82 @@ def _value(metric):
 def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Payload):
     base = "spBv1.0/east"
     (tmp_path / "pump.toml").write_text(MAP)
-    port = free_port()
-    device = start_device(tcp=True, framer="socket", units="1", port=port)
-    pm = device.__enter__()
-    with mosquitto() as broker:
-        plant = tmp_path / "plant.toml"
-        plant.write_text(
-            f'[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{pm.target}"\n'
-            'timeout = 0.3\n[devices.pump]\nlink = "l"\nmap = "pump.toml"\ntags = { site = "east" }\n'
-            f'[mqtt]\nurl = "{broker.url}"\npayload = "sparkplug_b"\nwrites = true\non_change = true\n'
-        )
-        subscriber = Subscriber(broker.port, "spBv1.0/#")
+    inventory = (
+        '[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{target}"\n'
+        'timeout = 0.3\n[devices.pump]\nlink = "l"\nmap = "pump.toml"\ntags = { site = "east" }\n'
+        '[mqtt]\nurl = "{url}"\npayload = "sparkplug_b"\nwrites = true\non_change = true\n'
+    )
+    with plant_on_broker(tmp_path, inventory, "-o", "json", topics="spBv1.0/#") as plant:
+        subscriber = plant.subscriber
 
         def decoded(kind, device=""):
             topic = f"{base}/{kind}/plant" + (f"/{device}" if device else "")
             return [Payload.FromString(payload) for payload in subscriber.on(topic)]
 
-        proc = _start_poll(plant, "-o", "json")
-        try:
-            assert subscriber.wait_for(lambda m: decoded("DBIRTH", "pump"), 10)
-            (nbirth,) = decoded("NBIRTH")
-            assert nbirth.seq == 0
-            node = {m.name: (m.datatype, _value(m)) for m in nbirth.metrics}
-            bdseq = node["bdSeq"][1]
-            assert node == {"bdSeq": (UINT64, bdseq), "Node Control/Rebirth": (BOOLEAN, False)}
-            (dbirth,) = decoded("DBIRTH", "pump")
-            assert dbirth.seq == 1
-            metrics = {m.name: (m.datatype, _value(m)) for m in dbirth.metrics}
-            assert metrics == {
-                "count": (UINT16, 100),
-                "level": (DOUBLE, 10.1),
-                "delta": (INT16, 102),
-                "mode": (STRING, "auto"),
-                "alarm": (BOOLEAN, False),
-                "setpoint": (DOUBLE, 10.9),
-            }
-            alias = {m.name: m.alias for m in dbirth.metrics}
-            assert len(set(alias.values())) == len(alias) and all(alias.values())
+        assert subscriber.wait_for(lambda m: decoded("DBIRTH", "pump"), 10)
+        (nbirth,) = decoded("NBIRTH")
+        assert nbirth.seq == 0
+        node = {m.name: (m.datatype, _value(m)) for m in nbirth.metrics}
+        bdseq = node["bdSeq"][1]
+        assert node == {"bdSeq": (UINT64, bdseq), "Node Control/Rebirth": (BOOLEAN, False)}
+        (dbirth,) = decoded("DBIRTH", "pump")
+        assert dbirth.seq == 1
+        metrics = {m.name: (m.datatype, _value(m)) for m in dbirth.metrics}
+        assert metrics == {
+            "count": (UINT16, 100),
+            "level": (DOUBLE, 10.1),
+            "delta": (INT16, 102),
+            "mode": (STRING, "auto"),
+            "alarm": (BOOLEAN, False),
+            "setpoint": (DOUBLE, 10.9),
+        }
+        alias = {m.name: m.alias for m in dbirth.metrics}
+        assert len(set(alias.values())) == len(alias) and all(alias.values())
 
-            # A DCMD to no point, or no payload, is refused and never sent (no DDATA follows).
-            wrong = Payload(timestamp=int(time.time() * 1000))
-            wrong.metrics.add(name="nope", datatype=DOUBLE, double_value=1.0)
-            subscriber.client.publish(f"{base}/DCMD/plant/pump", wrong.SerializeToString(), qos=0)
-            subscriber.client.publish(f"{base}/DCMD/plant/pump", b"\xff\xff\xff", qos=0)
-            # DCMD: a write by the /set path; the value read back comes as DDATA, by alias alone.
-            command = Payload(timestamp=int(time.time() * 1000))
-            command.metrics.add(name="setpoint", datatype=DOUBLE, double_value=12.5)
-            subscriber.client.publish(f"{base}/DCMD/plant/pump", command.SerializeToString(), qos=0)
-            assert subscriber.wait_for(lambda m: decoded("DDATA", "pump"), 10)
-            (ddata,) = decoded("DDATA", "pump")
-            assert [(m.alias, m.name, _value(m)) for m in ddata.metrics] == [(alias["setpoint"], "", 12.5)]
+        # A DCMD to no point, or no payload, is refused and never sent (no DDATA follows).
+        wrong = Payload(timestamp=int(time.time() * 1000))
+        wrong.metrics.add(name="nope", datatype=DOUBLE, double_value=1.0)
+        subscriber.client.publish(f"{base}/DCMD/plant/pump", wrong.SerializeToString(), qos=0)
+        subscriber.client.publish(f"{base}/DCMD/plant/pump", b"\xff\xff\xff", qos=0)
+        # DCMD: a write by the /set path; the value read back comes as DDATA, by alias alone.
+        command = Payload(timestamp=int(time.time() * 1000))
+        command.metrics.add(name="setpoint", datatype=DOUBLE, double_value=12.5)
+        subscriber.client.publish(f"{base}/DCMD/plant/pump", command.SerializeToString(), qos=0)
+        assert subscriber.wait_for(lambda m: decoded("DDATA", "pump"), 10)
+        (ddata,) = decoded("DDATA", "pump")
+        assert [(m.alias, m.name, _value(m)) for m in ddata.metrics] == [(alias["setpoint"], "", 12.5)]
 
-            # NCMD Rebirth: NBIRTH (seq 0 again, the same bdSeq) and DBIRTH anew.
-            rebirth = Payload(timestamp=int(time.time() * 1000))
-            rebirth.metrics.add(name="Node Control/Rebirth", datatype=BOOLEAN, boolean_value=True)
-            subscriber.client.publish(f"{base}/NCMD/plant", rebirth.SerializeToString(), qos=0)
-            assert subscriber.wait_for(lambda m: len(decoded("DBIRTH", "pump")) == 2, 10)
-            again = decoded("NBIRTH")[-1]
-            assert again.seq == 0 and {m.name: _value(m) for m in again.metrics}["bdSeq"] == bdseq
-            assert decoded("DBIRTH", "pump")[-1].seq == 1
+        # NCMD Rebirth: NBIRTH (seq 0 again, the same bdSeq) and DBIRTH anew.
+        rebirth = Payload(timestamp=int(time.time() * 1000))
+        rebirth.metrics.add(name="Node Control/Rebirth", datatype=BOOLEAN, boolean_value=True)
+        subscriber.client.publish(f"{base}/NCMD/plant", rebirth.SerializeToString(), qos=0)
+        assert subscriber.wait_for(lambda m: len(decoded("DBIRTH", "pump")) == 2, 10)
+        again = decoded("NBIRTH")[-1]
+        assert again.seq == 0 and {m.name: _value(m) for m in again.metrics}["bdSeq"] == bdseq
+        assert decoded("DBIRTH", "pump")[-1].seq == 1
 
-            # The device dies: DDEATH; it comes back: DBIRTH.
-            stop_device(pm.proc)
-            assert subscriber.wait_for(lambda m: decoded("DDEATH", "pump"), 5)
-            device = start_device(tcp=True, framer="socket", units="1", port=port)
-            device.__enter__()
-            assert subscriber.wait_for(lambda m: len(decoded("DBIRTH", "pump")) == 3, 15)
+        # The device dies: DDEATH; it comes back: DBIRTH.
+        plant.kill_device()
+        assert subscriber.wait_for(lambda m: decoded("DDEATH", "pump"), 5)
+        plant.device_back()
+        assert subscriber.wait_for(lambda m: len(decoded("DBIRTH", "pump")) == 3, 15)
 
-            # seq: every message but NDEATH, one more each (mod 256), from each NBIRTH's 0.
-            seqs = [
-                Payload.FromString(payload).seq
-                for topic, payload, _ in subscriber.messages
-                if "/NDEATH/" not in topic and "CMD/" not in topic
-            ]
-            assert seqs[0] == 0 and all(
-                b in (0, (a + 1) % 256) for a, b in zip(seqs, seqs[1:], strict=False)
-            ), seqs
+        # seq: every message but NDEATH, one more each (mod 256), from each NBIRTH's 0.
+        seqs = [
+            Payload.FromString(payload).seq
+            for topic, payload, _ in subscriber.messages
+            if "/NDEATH/" not in topic and "CMD/" not in topic
+        ]
+        assert seqs[0] == 0 and all(
+            b in (0, (a + 1) % 256) for a, b in zip(seqs, seqs[1:], strict=False)
+        ), seqs
 
-            proc.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will, NDEATH
-            proc.wait(5)
-            assert subscriber.wait_for(lambda m: decoded("NDEATH"), 10)
-            (ndeath,) = decoded("NDEATH")
-            assert [(m.name, m.datatype, _value(m)) for m in ndeath.metrics] == [("bdSeq", UINT64, bdseq)]
-        finally:
-            proc.kill()
-            _, err = proc.communicate(timeout=5)
-            device.__exit__(None, None, None)
-            subscriber.close()
+        plant.poll.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will, NDEATH
+        plant.poll.wait(5)
+        assert subscriber.wait_for(lambda m: decoded("NDEATH"), 10)
+        (ndeath,) = decoded("NDEATH")
+        assert [(m.name, m.datatype, _value(m)) for m in ndeath.metrics] == [("bdSeq", UINT64, bdseq)]
+    err = plant.err
     assert "mbtool: mqtt: write pump nope: refused: pump reads no point nope" in err
     assert "mbtool: mqtt: write pump DCMD: refused: not a Sparkplug B payload" in err
     assert "mbtool: mqtt: write pump setpoint: written" in err
@@ -204,48 +191,37 @@ def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Paylo
 
 def test_with_a_primary_host_the_node_is_born_only_while_its_state_says_online(tmp_path, Payload):
     base = "spBv1.0/plant"
-    device = start_device(tcp=True, framer="socket", units="1")
-    pm = device.__enter__()
-    try:
-        with mosquitto() as broker:
-            plant = tmp_path / "plant.toml"
-            plant.write_text(
-                f'[poll]\ninterval = 0.2\n[links.l]\ntarget = "{pm.target}"\ntimeout = 0.3\n'
-                '[devices.pm]\nlink = "l"\nread = ["40001 2"]\n'
-                f'[mqtt]\nurl = "{broker.url}"\npayload = "sparkplug_b"\nprimary_host = "scada"\n'
-            )
-            subscriber = Subscriber(broker.port, "spBv1.0/#")
-            state = "spBv1.0/STATE/scada"
+    inventory = (
+        '[poll]\ninterval = 0.2\n[links.l]\ntarget = "{target}"\ntimeout = 0.3\n'
+        '[devices.pm]\nlink = "l"\nread = ["40001 2"]\n'
+        '[mqtt]\nurl = "{url}"\npayload = "sparkplug_b"\nprimary_host = "scada"\n'
+    )
+    state = "spBv1.0/STATE/scada"
+    with plant_on_broker(tmp_path, inventory, "-o", "json", topics="spBv1.0/#") as plant:
+        subscriber = plant.subscriber
 
-            def births():
-                return [Payload.FromString(p) for p in subscriber.on(f"{base}/NBIRTH/plant")]
+        def births():
+            return [Payload.FromString(p) for p in subscriber.on(f"{base}/NBIRTH/plant")]
 
-            proc = _start_poll(plant, "-o", "json")
-            try:
-                # No STATE yet: polled, but not born.
-                assert not subscriber.wait_for(lambda m: births(), 1.5)
-                subscriber.client.publish(state, b'{"online": true, "timestamp": 1}', qos=1, retain=True)
-                assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/DBIRTH/plant/pm"), 10)
-                (first,) = births()
-                bdseq = {m.name: _value(m) for m in first.metrics}["bdSeq"]
-                # The host goes away: NDEATH, and no birth until it is back.
-                subscriber.client.publish(state, b'{"online": false, "timestamp": 2}', qos=1, retain=True)
-                assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/NDEATH/plant"), 10)
-                (ndeath,) = [Payload.FromString(p) for p in subscriber.on(f"{base}/NDEATH/plant")]
-                assert {m.name: _value(m) for m in ndeath.metrics} == {"bdSeq": bdseq}
-                assert not subscriber.wait_for(lambda m: len(births()) > 1, 1.5)
-                subscriber.client.publish(state, b'{"online": true, "timestamp": 3}', qos=1, retain=True)
-                assert subscriber.wait_for(lambda m: len(births()) == 2, 10)
-                again = births()[-1]
-                assert (
-                    again.seq == 0
-                    and {m.name: _value(m) for m in again.metrics}["bdSeq"] == (bdseq + 1) % 256
-                )
-            finally:
-                proc.send_signal(signal.SIGTERM)
-                _, err = proc.communicate(timeout=10)
-                subscriber.close()
-    finally:
-        device.__exit__(None, None, None)
+        # No STATE yet: polled, but not born.
+        assert not subscriber.wait_for(lambda m: births(), 1.5)
+        subscriber.client.publish(state, b'{"online": true, "timestamp": 1}', qos=1, retain=True)
+        assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/DBIRTH/plant/pm"), 10)
+        (first,) = births()
+        bdseq = {m.name: _value(m) for m in first.metrics}["bdSeq"]
+        # The host goes away: NDEATH, and no birth until it is back.
+        subscriber.client.publish(state, b'{"online": false, "timestamp": 2}', qos=1, retain=True)
+        assert subscriber.wait_for(lambda m: subscriber.on(f"{base}/NDEATH/plant"), 10)
+        (ndeath,) = [Payload.FromString(p) for p in subscriber.on(f"{base}/NDEATH/plant")]
+        assert {m.name: _value(m) for m in ndeath.metrics} == {"bdSeq": bdseq}
+        assert not subscriber.wait_for(lambda m: len(births()) > 1, 1.5)
+        subscriber.client.publish(state, b'{"online": true, "timestamp": 3}', qos=1, retain=True)
+        assert subscriber.wait_for(lambda m: len(births()) == 2, 10)
+        again = births()[-1]
+        assert (
+            again.seq == 0
+            and {m.name: _value(m) for m in again.metrics}["bdSeq"] == (bdseq + 1) % 256
+        )
+    err = plant.err
     assert "Traceback" not in err
     assert "primary host scada offline" in err

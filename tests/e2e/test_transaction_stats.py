@@ -1,5 +1,5 @@
-"""One classification of every transaction (issue 32): link.stats.Counted around mbtool's own
-Client, against peers that produce each outcome -- pymodbus's device, ``mbtool serve`` with its
+"""One classification of every transaction (issue 32): link.managed.ManagedLink, which counts
+each transaction, around mbtool's own Client, against peers that produce each outcome -- pymodbus's device, ``mbtool serve`` with its
 faults, raw responders on loopback, and a pseudo-terminal bus whose device end the test plays,
 injecting corrupt bytes, replies for another unit and delays.
 
@@ -16,6 +16,7 @@ import struct
 import threading
 import time
 import tty
+from contextlib import nullcontext
 
 import pytest
 from helpers.frames import rtu
@@ -25,8 +26,9 @@ from helpers.sockets import CLOSE
 
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.errors import KNOWN_ERRORS
-from mbtool.link.connection import Connection, open_client
-from mbtool.link.stats import OUTCOMES, Counted, Stats
+from mbtool.link.connection import Connection, connection_of, open_client
+from mbtool.link.managed import Backoff, ManagedLink
+from mbtool.link.stats import OUTCOMES, Stats
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -54,14 +56,14 @@ class SentFrames:
 
 
 def transact(connection: Connection, times: int, unit: int = 1) -> tuple[Stats, list[tuple[str, int]]]:
-    """``times`` reads of one register through Counted: the stats, and what each transaction
+    """``times`` reads of one register through the managed link, which counts them: the stats, and what each transaction
     was by the test's own look (the error's class name or "reply", and the requests it sent)."""
     stats = Stats()
     seen = []
     with open_client(connection) as client:
         sent = SentFrames()
         client.trace = sent
-        counted = Counted(client, stats)
+        counted = ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats).execute
         for _ in range(times):
             before = sent.count
             try:
@@ -190,7 +192,7 @@ def on_a_bus(script: list[tuple[float, bytes | None]], times: int, **options):
     pair = PtyPair()
     device = ScriptedDevice(pair, script)
     try:
-        connection = Connection(port=pair.mbtool_path, parity="N", timeout=0.4, **options)
+        connection = connection_of(port=pair.mbtool_path, parity="N", timeout=0.4, **options)
         return transact(connection, times)
     finally:
         device.close()
@@ -255,9 +257,9 @@ def test_every_round_trip_the_client_times_is_counted(tcp_device):
     stats = Stats()
     with open_client(Connection(port=tcp_device.target)) as client:
         timed: list[float] = []
-        counted = Counted(client, stats)
+        link = ManagedLink(lambda: nullcontext(client), Backoff(0.0), stats)
         for _ in range(3):
-            counted(1, READ)
+            link.execute(1, READ)
             timed.append(client.rtt)
-            assert counted.rtt == client.rtt > 0
+            assert link.rtt == client.rtt > 0
     assert list(stats.rtt.recent) == timed

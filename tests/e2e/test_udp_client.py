@@ -89,7 +89,8 @@ def test_retries_recover_what_a_lossy_path_drops_and_nothing_is_mismatched(udp_d
     finally:
         proxy.close()
     assert res.returncode == 0, str(res)
-    records = [json.loads(line) for line in res.stdout.splitlines()]
+    # the polls; a link that cannot keep up at 0.01 s says so once, an "overrun" event (issue 44)
+    records = [r for r in map(json.loads, res.stdout.splitlines()) if r.get("event") != "overrun"]
     expected = {"a": HOLDING[0:5], "b": HOLDING[10:13]}
     assert len(records) == 80
     for record in records:

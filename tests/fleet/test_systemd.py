@@ -7,12 +7,13 @@ from __future__ import annotations
 import shutil
 import socket
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 from helpers.checks import wait_until
 from helpers.exporter import exporting
-from helpers.run import REPO_ROOT, run_mbtool
+from helpers.run import REPO_ROOT, run_mbtool, start_mbtool
 
 PLANT = '[links.a]\ntarget = "sim://"\n[devices.d]\nlink = "a"\nread = ["40001"]\ninterval = 0.2\n'
 
@@ -48,6 +49,39 @@ def test_poll_says_ready_feeds_the_watchdog_and_says_it_stops(tmp_path, notify_s
     # Half the watchdog's 0.4 s: some 7 pings in 1.5 s; at least 4 under a loaded machine.
     assert messages.count("WATCHDOG=1") >= 4, messages
     assert messages[-1].startswith("STOPPING=1"), messages
+
+
+def test_a_plant_waiting_for_its_next_poll_feeds_the_watchdog(tmp_path, notify_socket):
+    """A device polled once a minute: between its polls the scheduler waits on schedule, which
+    is moving, not stuck."""
+    sock, path = notify_socket
+    (tmp_path / "plant.toml").write_text(PLANT.replace("interval = 0.2", "interval = 60"))
+    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000"}
+    assert run_mbtool("poll", tmp_path / "plant.toml", "--duration", "1.5", env=env).returncode == 0
+    assert received(sock).count("WATCHDOG=1") >= 4
+
+
+def test_a_plant_whose_output_is_stuck_does_not_feed_the_watchdog(tmp_path, notify_socket):
+    """Issue 44: the watchdog says the plant moves, not only that the process lives.  With its
+    output stuck (stdout a pipe nobody reads, full), its records wait, no WATCHDOG=1 follows,
+    and systemd would restart it."""
+    sock, path = notify_socket
+    wide = PLANT.replace('["40001"]', '["40001 100"]').replace("interval = 0.2", "interval = 0.01")
+    (tmp_path / "plant.toml").write_text(wide)
+    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"}
+    proc = start_mbtool("poll", tmp_path / "plant.toml", "-o", "json", env=env, stderr=subprocess.DEVNULL)
+    try:
+        messages: list[str] = []
+        assert wait_until(lambda: bool(messages.extend(received(sock)) or messages), 10), messages
+        assert messages[0].startswith("READY=1"), messages
+        time.sleep(2.0)  # a poll's line is some 2 KB: the pipe's 64 KiB fill in a fraction of this
+        received(sock)  # what came while it filled
+        time.sleep(1.0)  # five of the watchdog's periods with the output stuck
+        late = received(sock)
+        assert proc.poll() is None and "WATCHDOG=1" not in late, late
+    finally:
+        proc.kill()
+        proc.wait(5)
 
 
 def test_a_watchdog_for_another_process_is_not_fed(tmp_path, notify_socket):

@@ -10,6 +10,7 @@
 * ``helpers.exporter``: ``mbtool exporter`` and a GET of it;
 * ``helpers.monitor``: ``mbtool monitor`` on a pty, and the frames put on its bus;
 * ``helpers.prometheus``: promtool's check, expositions cut apart;
+* ``helpers.mqtt``: a plant publishing to mosquitto (the broker, pymodbus's device, poll and a subscriber together);
 * ``helpers.fakes``: a fake clock, a scripted link, a device's ``execute`` for the unit tests.
 
 A test imports what it uses from the module of its kind (``from helpers.served import serve``;

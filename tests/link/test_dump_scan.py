@@ -148,10 +148,10 @@ def test_a_data_file_takes_runs_and_a_completeness_mark(tmp_path):
     "run, words", [("{ value = 1 }", "a run is"), ("{ value = 1, count = 0 }", "out of range")]
 )
 def test_a_bad_run_is_refused_naming_it(tmp_path, run, words):
-    from mbtool.codec.errors import RequestError
     from mbtool.device.datafile import load_data
+    from mbtool.errors import UsageError
 
     path = tmp_path / "bad.toml"
     path.write_text(f"[holding_registers]\n5 = {run}\n")
-    with pytest.raises(RequestError, match=words):
+    with pytest.raises(UsageError, match=words):
         load_data(str(path), frozenset({1}))

@@ -5,11 +5,13 @@ lost or not (issue 41, point 1).  No socket, no thread: each test takes millisec
 from __future__ import annotations
 
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
 from mbtool.codec.errors import FrameError, ModbusException
 from mbtool.errors import ConnectionFailed, NoResponse
+from mbtool.link import stats as link_stats
 from mbtool.link.managed import Backoff, ManagedLink, link_lost
 from mbtool.link.stats import Stats
 from mbtool.link.transport import ConnectionClosed
@@ -181,3 +183,12 @@ def test_close_closes_for_good_and_twice_is_harmless():
     link.close()
     link.close()
     assert opener.closed == 1 and link.client is None
+
+
+def test_a_transaction_is_counted_in_one_place():
+    """Issue 41: ManagedLink.execute counts each transaction it carries; link.stats.Counted,
+    which counted a bare client's the same way by a copy of the rule, is gone (every command
+    takes its link from a ManagedLink, and the tests count through it too)."""
+    assert not hasattr(link_stats, "Counted")
+    sources = [path.read_text() for path in (Path(__file__).resolve().parents[2] / "mbtool").rglob("*.py")]
+    assert sum(text.count(".answered(client.attempts") for text in sources) == 1

@@ -17,9 +17,8 @@ import pytest
 import mbtool.link
 from mbtool.cli.commands.read import polling_figures, polling_summary
 from mbtool.codec.data_access import ReadHoldingRegisters
-from mbtool.codec.errors import RequestError
 from mbtool.device.sim import SimTransport
-from mbtool.errors import ConnectionFailed, ExitCode, Verdict
+from mbtool.errors import ConnectionFailed, ExitCode, UsageError, Verdict
 from mbtool.link.connection import Connection
 from mbtool.link.transport import ConnectionClosed
 from mbtool.plant import polling
@@ -286,6 +285,6 @@ def test_no_figures_before_the_first_reply(bus):
 def test_a_request_the_link_cannot_carry_is_an_error_before_anything_is_sent(bus):
     fake = bus()
     shown = Shown()
-    with pytest.raises(RequestError):
+    with pytest.raises(UsageError):
         polling.poll(link(unit=0), REQUEST, shown, 1.0, 3)  # a read to the broadcast unit
     assert fake.requests == [] and shown.closed

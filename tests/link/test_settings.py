@@ -13,19 +13,49 @@ from mbtool.cli import profiles
 from mbtool.cli.options import device_command
 from mbtool.cli.param_types import parse_units
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import fields
+from mbtool.codec.record import fields, replace
 from mbtool.errors import ExitCode, UsageError, exit_code_for
-from mbtool.link.connection import Connection, check
-from mbtool.link.settings import SETTINGS, Flag, OneOf
+from mbtool.link.connection import Connection, changed, check, connection_of
+from mbtool.link.settings import SERIAL, SETTINGS, TLS, Flag, OneOf, SerialLine, TlsSettings
+from mbtool.link.transport import SerialSettings
 from mbtool.plant.inventory import LINK_KEYS, load_inventory
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_every_connection_field_is_a_row_of_the_table_with_its_default():
-    assert {field.name for field in fields(Connection())} == set(SETTINGS)
+    """Issue 41.3: a transport's settings are a record of their own, its fields the rows of the
+    table for that transport; Connection holds the rows for every link, and the records."""
+    records = {SERIAL: (SerialLine, "serial"), TLS: (TlsSettings, "tls")}
+    common = {field.name for field in fields(Connection())} - {"serial", "tls"}
+    assert common == {name for name, setting in SETTINGS.items() if not setting.transport}
+    for transport, (kind, name) in records.items():
+        rows = {row for row, setting in SETTINGS.items() if setting.transport == transport}
+        assert {field.name for field in fields(kind())} == rows, transport
+        assert getattr(Connection(), name) == kind()
     for name, setting in SETTINGS.items():
-        assert getattr(Connection(), name) == setting.default, name
+        where = records[setting.transport][1] if setting.transport else None
+        held = getattr(getattr(Connection(), where), name) if where else getattr(Connection(), name)
+        assert held == setting.default, name
+    assert len(fields(Connection())) <= 11  # of 21: a serial link's and a tls:// one's all in one
+
+
+def test_a_serial_ports_settings_are_the_tables_rows_with_their_defaults():
+    """The serial transport's record names the table's rows and takes their defaults (it
+    wrote 19200 and "E" again)."""
+    line = {field.name for field in fields(SerialSettings())} - {"rs485"}  # rs485: the direction, resolved
+    assert line <= {name for name, setting in SETTINGS.items() if setting.transport == SERIAL}
+    for name in line:
+        assert getattr(SerialSettings(), name) == SETTINGS[name].default, name
+
+
+def test_a_connection_is_made_from_settings_by_their_names_each_to_its_record():
+    made = connection_of(port="tls://plc7", timeout=0.5, cert="c.pem", baud=9600, echo=True)
+    assert (made.port, made.timeout) == ("tls://plc7", 0.5)
+    assert made.tls == TlsSettings(cert="c.pem") and made.serial == SerialLine(baud=9600, echo=True)
+    assert changed(made, insecure=True, unit=3) == replace(
+        made, unit=3, tls=TlsSettings("c.pem", insecure=True)
+    )
 
 
 def test_a_device_commands_link_options_are_the_tables_rows():
@@ -97,8 +127,8 @@ def test_a_link_that_makes_no_sense_is_a_usage_error_not_the_codecs():
     """Issue 41.6: a mistake in the settings is UsageError (exit 2); RequestError is the spec's."""
     for connection in (
         Connection(),
-        Connection("udp://127.0.0.1:1", echo=True),
-        Connection("sim://", cert="c.pem"),
+        connection_of(port="udp://127.0.0.1:1", echo=True),
+        connection_of(port="sim://", cert="c.pem"),
         Connection("tls://plc7", framer="rtu"),
     ):
         with pytest.raises(UsageError):

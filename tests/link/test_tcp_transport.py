@@ -182,3 +182,27 @@ def test_input_waiting_says_whether_bytes_came_or_the_peer_hung_up_and_reads_not
         tcp.read(1.0)
     tcp.close()
     assert tcp.input_waiting(), "a closed link: the read that follows says what is wrong"
+
+
+def test_a_name_with_several_addresses_is_connected_at_the_one_that_answers():
+    """As socket.create_connection does: localhost is ::1 and 127.0.0.1 on most systems; a
+    server on 127.0.0.1 alone is reached whichever comes first."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        tcp = TcpTransport("localhost", listener.getsockname()[1], timeout=2)
+        peer, _ = listener.accept()
+    try:
+        tcp.write(b"\x00\x01")
+        assert peer.recv(2) == b"\x00\x01"
+    finally:
+        tcp.close()
+        peer.close()
+
+
+def test_no_connection_is_a_connection_failure_with_the_reason():
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        port = listener.getsockname()[1]  # bound, not listening: refused
+        with pytest.raises(ConnectionFailed, match=f"cannot connect to 127.0.0.1:{port}: Connection refused"):
+            TcpTransport("127.0.0.1", port, timeout=2)

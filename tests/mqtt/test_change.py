@@ -72,3 +72,14 @@ def test_nan_and_invalid_values_are_changes_only_when_they_come_or_go():
     published = _run(settings, polls)
     assert [list(p) for p in published] == [["t"], [], ["t"], ["t"], []]
     assert math.isnan(published[0]["t"]) and published[2] == {"t": 20.0} and published[3] == {"t": None}
+
+
+def test_the_heartbeat_is_each_poll_groups_own():
+    """A device of poll groups (issue 44): a poll carries its group's points only, so the
+    heartbeat of one group does not stand for the others' points."""
+    settings = replace(BASE, on_change=True, heartbeat=10)
+    changes = ChangeFilter(settings)
+    polls = [(0, {"flow": 1.0}, "fast"), (0.5, {"energy": 5}, "slow"), (10, {"flow": 1.0}, "fast"),
+             (10.5, {"energy": 5}, "slow"), (11, {"flow": 1.0}, "fast")]  # fmt: skip
+    published = [changes.select("meter", when, values, group) for when, values, group in polls]
+    assert published == [{"flow": 1.0}, {"energy": 5}, {"flow": 1.0}, {"energy": 5}, {}]

@@ -8,8 +8,10 @@ milliseconds and says exactly when each poll was made."""
 
 from __future__ import annotations
 
+import math
 import threading
 from contextlib import contextmanager
+from types import SimpleNamespace
 
 import pytest
 
@@ -18,7 +20,20 @@ from mbtool.errors import ConnectionFailed, NoResponse, PartialRead
 from mbtool.link.connection import Connection
 from mbtool.link.managed import Backoff
 from mbtool.link.transport import ConnectionClosed
-from mbtool.plant.schedule import OFFLINE, ONLINE, DeviceSpec, DeviceState, Event, LinkSpec, LinkWorker, Poll
+from mbtool.plant.schedule import (
+    OFFLINE,
+    ONLINE,
+    OVERRUN,
+    DeviceSpec,
+    DeviceState,
+    Event,
+    Group,
+    LinkSpec,
+    LinkWorker,
+    Poll,
+    view_of,
+)
+from mbtool.registermap.groups import ONCE
 
 EPOCH = 1_700_000_000.0
 
@@ -52,6 +67,7 @@ class Reader:
     """A device's map, as the worker uses it: one request a poll."""
 
     points = ()
+    blocks = ("read",)
 
     def read(self, execute):
         return [execute("read")]
@@ -73,8 +89,10 @@ class Client:
     def execute(self, unit: int, request):
         link = self.link
         link.asked.append((unit, link.clock.now, self.timeout, self.retries))
-        if self.while_waiting is not None:
-            self.while_waiting()
+        work = self.while_waiting
+        if work is not None:  # as the real client: run once, after the poll's first request
+            self.while_waiting = None
+            work()
         self.attempts, self.rtt = 1, None
         steps = link.script.get(unit, [])
         step = steps.pop(0) if steps else "reply"
@@ -373,3 +391,156 @@ def test_unpublished_records_carry_no_copies_and_the_links_counts_are_the_device
     records, _, worker = run([device("m", 1)], script={1: ["silent"]}, rounds=2, published=False)
     assert all(r.stats is None and r.link is None for r in records)
     assert worker.stats.transactions == 2 and worker.stats.outcomes["timeout"] == 1
+
+
+# --- poll groups: each its own clock on the one link (issue 44) -----------------------------
+
+
+class Timed:
+    """A group's reads on the fake clock: ``reads`` transactions of ``seconds`` each on the line,
+    a reading a point named."""
+
+    def __init__(self, clock: Clock, names: tuple[str, ...], reads: int = 1, seconds: float = 0.0) -> None:
+        self.clock, self.names, self.seconds = clock, names, seconds
+        self.blocks = [f"read {n}" for n in range(reads)]
+        self.points = [SimpleNamespace(name=name) for name in names]
+
+    def read(self, execute):
+        for request in self.blocks:
+            execute(request)
+            self.clock.now += self.seconds
+        return [SimpleNamespace(point=point, value=self.clock.now, error=None) for point in self.points]
+
+
+def grouped(clock: Clock, *groups: tuple, offline_after: int = 3) -> DeviceSpec:
+    """A device of ``groups``: (name, interval, reads, seconds a read)."""
+    made = tuple(
+        Group(group, interval, Timed(clock, (f"{group}_point",), reads, seconds))
+        for group, interval, reads, seconds in groups
+    )
+    return DeviceSpec("m", "bus", 1, None, {}, 10.0, offline_after, 60.0, groups=made)
+
+
+def run_groups(clock: Clock, devices, script=None, rounds=0):
+    """As ``run``; a link kept busy (it never waits) is stopped by its records' time."""
+    records: list[Poll | Event] = []
+    stop = threading.Event()
+
+    def report(record):
+        records.append(record)
+        if clock.stop_at is not None and clock.now >= clock.stop_at:
+            stop.set()
+
+    link = Link(clock, script or {}, [])
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    states = [DeviceState(spec_, clock.now) for spec_ in devices]
+    worker = LinkWorker(spec, states, report, stop, rounds, clock=clock, open_link=link)
+    worker.run()
+    if worker.crashed is not None:
+        raise worker.crashed
+    return records, link, worker
+
+
+def group_polls(records, group: str) -> list[float]:
+    return [round(r.time - EPOCH, 3) for r in records if isinstance(r, Poll) and r.group == group]
+
+
+def test_of_the_groups_due_the_earliest_deadline_goes_first_and_each_keeps_its_own_clock():
+    clock = Clock(stop_at=4.5)
+    device_ = grouped(clock, ("slow", 3.0, 1, 0.1), ("fast", 1.0, 1, 0.1))  # slow first: no tie
+    records, link, _ = run_groups(clock, [device_])
+    # Both due at 0: the fast group's deadline (1 s) is before the slow one's (3 s).
+    assert [r.group for r in records if isinstance(r, Poll)][:2] == ["fast", "slow"]
+    assert group_polls(records, "fast") == [0, 1, 2, 3, 4]
+    assert group_polls(records, "slow") == [0.1, 3.1]  # its slot, 3.0, came while fast read
+    assert link.opened == [0.0]
+
+
+def test_a_fast_group_is_never_held_up_by_more_than_one_transaction_of_a_slow_groups_long_read():
+    """The slow group reads 8 requests of 0.3 s (2.4 s): its poll lets the fast group, whose
+    deadline is earlier, go between two of its transactions."""
+    clock = Clock(stop_at=12)
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.02), ("slow", 10.0, 8, 0.3))
+    records, _, worker = run_groups(clock, [device_])
+    fast = group_polls(records, "fast")
+    assert len(fast) == 13  # the last during the slow group's second poll, at 10
+    assert all(abs(t - n) <= 0.3 for n, t in enumerate(fast))  # at most one slow read late
+    assert any(t - n > 0.1 for n, t in enumerate(fast))  # and held up by one
+    assert group_polls(records, "slow") == [0.02, 10.02]  # after fast's, due with it at 10
+    slow = [r for r in records if isinstance(r, Poll) and r.group == "slow"]
+    assert [reading.point.name for reading in slow[0].readings] == ["slow_point"]
+    assert worker.devices[0].stats.polls == 15  # 13 + 2: each group's poll is a poll of the device
+
+
+def test_a_groups_poll_carries_its_own_points_and_the_latest_of_every_point():
+    clock = Clock(stop_at=1.5)
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.0), ("slow", 10.0, 1, 0.0))
+    records, _, _ = run_groups(clock, [device_])
+    first, second, third = [r for r in records if isinstance(r, Poll)]
+    assert [r.point.name for r in first.readings] == ["fast_point"]
+    assert [r.point.name for r in second.readings] == ["slow_point"]
+    assert sorted(r.point.name for r in third.latest) == ["fast_point", "slow_point"]
+    view = view_of(third)  # what the Prometheus text and the live view show: every point's last
+    assert sorted(r.point.name for r in view.last_poll.readings) == ["fast_point", "slow_point"]
+    assert (third.pace.group, third.pace.asked, third.pace.achieved, third.pace.polls) == (
+        "fast",
+        1.0,
+        1.0,
+        2,
+    )
+
+
+def test_what_is_read_once_is_read_at_start_and_again_after_each_reconnect():
+    clock = Clock(stop_at=7)
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.0), (ONCE, math.inf, 1, 0.0))
+    records, link, _ = run_groups(clock, [device_], script={1: ["reply", "reply", "reply", "lost"]})
+    assert link.opened == [0, 3]
+    assert group_polls(records, ONCE) == [
+        0,
+        3,
+    ]  # first at start (its deadline is now), then after the reconnect
+    assert group_polls(records, "fast") == [0, 1, 2, 3, 4, 5, 6]
+
+
+def test_rounds_poll_every_group_that_many_times_and_a_group_read_once_once():
+    clock = Clock()
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.0), ("slow", 2.0, 1, 0.0), (ONCE, math.inf, 1, 0.0))
+    records, _, worker = run_groups(clock, [device_], rounds=2)
+    assert (
+        len(group_polls(records, "fast")),
+        len(group_polls(records, "slow")),
+        len(group_polls(records, ONCE)),
+    ) == (2, 2, 1)
+    assert worker.finished() and clock.now == 2
+
+
+def test_an_offline_devices_groups_all_wait_for_its_back_off():
+    clock = Clock(stop_at=6)
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.0), ("slow", 2.0, 1, 0.0), offline_after=1)
+    records, _, _ = run_groups(clock, [device_], script={1: ["silent"] * 3})
+    # offline at its first poll: its back-off (twice its fastest group's interval) holds every group
+    # (the slow group, due since 0, goes first at the back-off's end; failing, the back-off doubles)
+    assert [(r.group, round(r.time - EPOCH, 3)) for r in records if isinstance(r, Poll)] == [
+        ("fast", 0), ("slow", 2)
+    ]  # fmt: skip
+    assert events(records) == [("device", "m", OFFLINE, 0, 2.0)]
+
+
+def test_a_link_that_cannot_keep_up_says_so_once_with_the_figures():
+    """Two groups asking 4 + 2 reads a second of 0.25 s each: the line carries 4."""
+    clock = Clock(stop_at=20)
+    device_ = grouped(clock, ("fast", 0.5, 2, 0.25), ("slow", 1.0, 2, 0.25))
+    records, _, worker = run_groups(clock, [device_])
+    said = [r for r in records if isinstance(r, Event) and r.state == OVERRUN]
+    assert [(e.kind, e.name, e.reason) for e in said] == [
+        ("link", "bus", "asked 6.0 reads/s, the line carries 4.0")
+    ]
+    paces = {r.group: r.pace for r in records if isinstance(r, Poll)}
+    assert paces["slow"].overruns > 0 and paces["slow"].achieved > 1.0
+
+
+def test_a_link_that_keeps_up_says_nothing_of_its_pace():
+    clock = Clock(stop_at=20)
+    records, _, _ = run_groups(clock, [grouped(clock, ("fast", 1.0, 2, 0.25), ("slow", 5.0, 4, 0.25))])
+    assert not [r for r in records if isinstance(r, Event)]
+    assert all(r.pace.overruns == 0 for r in records if isinstance(r, Poll) and r.group == "fast")

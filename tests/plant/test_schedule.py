@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import math
 import threading
+from types import SimpleNamespace
+
+import pytest
 
 import mbtool.link
 from mbtool.errors import ConnectionFailed, NoResponse
@@ -119,3 +122,101 @@ def test_a_poll_carries_copies_of_its_device_and_link_that_later_polls_do_not_ch
     view = view_of(poll)
     assert (view.spec, view.state, view.last_success, view.last_poll) == (state.spec, ONLINE, 5.0, poll)
     assert [v.state for v in views([state.spec]).values()] == ["unknown"]  # before any poll
+
+
+def _two_links(monkeypatch) -> Plant:
+    """A plant of two links, a and b, each with one device that cannot be reached."""
+
+    def refused(framer_name):
+        raise ConnectionFailed("cannot open fake://: not there")
+
+    monkeypatch.setitem(mbtool.link.IN_PROCESS, "fake", refused)
+    links = {name: LinkSpec(name, Connection(port="fake://", timeout=0.05)) for name in ("a", "b")}
+    devices = [DeviceSpec(f"m{name}", name, 1, None, {}, 0.01, 3, 0.02) for name in links]
+    return Plant(links, devices, lambda item: None, rounds=1)
+
+
+def _run_within(plant: Plant, seconds: float) -> BaseException | None:
+    """What ``plant.run()`` raised (None if nothing), failing the test if it has not returned
+    within ``seconds``: a hang is the defect these tests look for."""
+    outcome: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            plant.run()
+            outcome.append(None)
+        except BaseException as error:
+            outcome.append(error)
+
+    runner = threading.Thread(target=run, name="runs the plant", daemon=True)
+    runner.start()
+    runner.join(seconds)
+    assert outcome, f"Plant.run did not return within {seconds} s"
+    return outcome[0]
+
+
+def test_a_worker_whose_thread_cannot_be_started_ends_the_run_with_one_line(monkeypatch):
+    """Issue 44: a capped address space fails a thread's start with MemoryError, not only the
+    RuntimeError of "can't start new thread"; the run says so in one line (exit 6), not exit 1."""
+    plant = _two_links(monkeypatch)
+    start = threading.Thread.start
+
+    def refuses_b(thread):
+        if thread.name == "link b":
+            raise MemoryError
+        start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", refuses_b)
+    error = _run_within(plant, 10)
+    assert isinstance(error, ConnectionFailed), repr(error)
+    assert str(error).startswith("cannot start a worker for each link: 1 of 2 links started"), error
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the thread's death
+def test_a_worker_whose_thread_dies_in_its_start_up_ends_the_run_not_hangs_it(monkeypatch):
+    """Issue 44: a thread that dies in its own start-up (MemoryError under a capped address
+    space, before it says it began) leaves Thread.start waiting for ever; the run gives the
+    workers a deadline to start, and ends with one line (exit 6)."""
+    plant = _two_links(monkeypatch)
+    plant.start_within = 0.5
+    bootstrap = threading.Thread._bootstrap_inner
+
+    def dies_in_start_up(thread):
+        if thread.name == "link b":
+            raise MemoryError  # before the thread says it began, as CPython's own start-up can
+        bootstrap(thread)
+
+    monkeypatch.setattr(threading.Thread, "_bootstrap_inner", dies_in_start_up)
+    error = _run_within(plant, 10)
+    assert isinstance(error, ConnectionFailed), repr(error)
+    assert str(error).startswith("cannot start a worker for each link: 1 of 2 links started"), error
+    assert "did not start within 0.5 s" in str(error)
+
+
+def test_the_watchdog_sees_a_worker_stuck_in_its_work_or_records_stuck_before_the_output(monkeypatch):
+    """Issue 44: Plant.moved, which systemd's watchdog asks each period, says no when a link's
+    worker neither turned its loop nor waited on schedule at two asks running, or when records
+    waited at both and none was handed on; a worker waiting for its next poll is moving."""
+    plant = _two_links(monkeypatch)
+    a, b = plant.workers
+    for worker in plant.workers:
+        worker.thread = SimpleNamespace(is_alive=lambda: True)
+    assert plant.moved()  # the first ask: nothing to compare with
+    a.turns += 1
+    b.asleep = True
+    assert plant.moved()  # a polled, b waits for its next poll
+    a.turns += 1
+    b.asleep = False  # b woke for its poll: under way, not stuck
+    assert plant.moved()
+    a.turns += 1
+    assert not plant.moved()  # b in the same poll since the last ask: stuck in its work
+    a.turns += 1
+    b.turns += 1
+    plant.records.put("a record")
+    assert plant.moved()  # a record waits, but none waited at the last ask
+    a.turns += 1
+    b.asleep = True
+    assert not plant.moved()  # it waits still, and nothing was handed on: the output is stuck
+    plant._publish()
+    a.turns += 1
+    assert plant.moved()

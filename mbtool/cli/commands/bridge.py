@@ -37,7 +37,7 @@ from mbtool.codec.framing import make_framer
 from mbtool.device.server import Server, parse_target
 from mbtool.errors import UsageError
 from mbtool.link import IN_PROCESS
-from mbtool.link.connection import Connection, check, open_client
+from mbtool.link.connection import check, connection_of, open_client
 from mbtool.link.connection import rs485_delays as rs485_delays_of
 from mbtool.link.forward import BROADCAST, INVALID, NO_PATH, NO_RESPONSE, OUTCOMES, REFUSED, REPLY, Forwarder
 from mbtool.link.settings import RS485_DRIVES, SETTINGS, check_data_bits, not_for_tls
@@ -229,7 +229,7 @@ def bridge(
     )
     context, roles = tls_server_settings(where, listening_framer, *listening, write_roles)
     check_udp_rate(where, udp_rate)
-    connection = Connection(
+    connection = connection_of(
         port=target,
         unit=1,
         framer=link_framer,

@@ -32,10 +32,9 @@ from mbtool.cli.param_types import Choice
 from mbtool.cli.parsing import DeviceCommand
 from mbtool.cli.program import discard_stdout
 from mbtool.cli.session import execute, open_client
-from mbtool.codec.errors import RequestError
 from mbtool.codec.tables import READS, reference
 from mbtool.codec.values import decode_values, registers_needed, value_addresses
-from mbtool.errors import KNOWN_ERRORS, ExitCode, PartialRead, exit_code_for, link_failure
+from mbtool.errors import KNOWN_ERRORS, ExitCode, PartialRead, UsageError, exit_code_for, link_failure
 
 STATES = ("OK", "WARNING", "CRITICAL", "UNKNOWN")  # by exit code
 UNKNOWN = 3
@@ -120,7 +119,7 @@ RANGE_FORMS = "ranges are 10, 10:, ~:10, 10:20 or @10:20"
 
 def _range(text: str | None, what: str, typed: bool = False):
     """A threshold range, [@][START:][END] as nagiosplugin reads it; a bad one is a
-    RequestError in the check's own words.  ``typed``: from the command line, where an
+    UsageError in the check's own words.  ``typed``: from the command line, where an
     unquoted ~:10 arrives as the home directory (the shell expands the ~)."""
     import nagiosplugin  # noqa: PLC0415 - nagiosplugin, 12 ms: not for mbtool --help
 
@@ -131,13 +130,13 @@ def _range(text: str | None, what: str, typed: bool = False):
     home = os.path.expanduser("~")
     if typed and home != "~" and body.startswith(home + ":"):
         meant = f"{at}~:{body[len(home) + 1 :]}"
-        raise RequestError(
+        raise UsageError(
             f"{what} {text} is not a range: the shell made {meant} into your home directory; "
             f"quote it: {what} '{meant}'"
         )
     why = _range_fault(body)
     if why:
-        raise RequestError(f"{what} {text} is not a range: {why}; {RANGE_FORMS}")
+        raise UsageError(f"{what} {text} is not a range: {why}; {RANGE_FORMS}")
     return nagiosplugin.Range(text)
 
 
@@ -247,7 +246,7 @@ def _number(value, what: str) -> float:
         return int(value)
     if isinstance(value, int | float):
         return value
-    raise RequestError(f"{what} reads {value}, not a number to check")
+    raise UsageError(f"{what} reads {value}, not a number to check")
 
 
 def _reference_values(
@@ -306,7 +305,7 @@ def _map_values(connection, settings, path, names, warn, crit, unjudged) -> list
             continue
         number = point.number_of(value)  # an enum by the raw number behind its label
         if number is None:
-            raise RequestError(f"{point.name} reads {value}, not a number to check")
+            raise UsageError(f"{point.name} reads {value}, not a number to check")
         text = ("on" if value else "off") if isinstance(value, bool) else str(value)
         out.append(Checked(point.name, number, text, point.unit, *limits[point.name], unjudged))
     return out
@@ -341,7 +340,7 @@ def check(connection, settings, targets, map, warning, critical, state_on_error,
     given = type_options_given(map)
     warn, crit = _range(warning, "-w", typed=True), _range(critical, "-c", typed=True)
     if not map and not targets:
-        raise RequestError("give a reference such as 40011, or -m MAP and point names")
+        raise UsageError("give a reference such as 40011, or -m MAP and point names")
     if map:
         values = _map_values(connection, settings, map, targets, warn, crit, unjudged)
     else:

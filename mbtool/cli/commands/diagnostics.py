@@ -11,7 +11,7 @@ from mbtool.cli.param_types import Choice, parse_int
 from mbtool.cli.results import Report, Row
 from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.describe import parse_hex
-from mbtool.codec.errors import MismatchError, ModbusException, RequestError
+from mbtool.codec.errors import MismatchError, ModbusException
 from mbtool.codec.framing import is_broadcast
 from mbtool.codec.modicon import MODBUS_PLUS_WORDS, diagnostic_register_bits
 from mbtool.codec.raw import RawRequest
@@ -22,7 +22,7 @@ from mbtool.codec.serial_line import (
     Diagnostics,
     sub_function_number,
 )
-from mbtool.errors import NoResponse
+from mbtool.errors import NoResponse, UsageError
 from mbtool.link.connection import framer_name
 
 # command-line name -> sub-function (spec §4)
@@ -36,29 +36,29 @@ def _sub_function(text: str) -> int:
         return SUB_FUNCTIONS[text.lower()]
     try:
         number = parse_int(text, "sub-function")
-    except RequestError:
-        raise RequestError(
+    except UsageError:
+        raise UsageError(
             f"unknown sub-function {text}: use counters, a number, or one of {', '.join(SUB_FUNCTIONS)}"
         ) from None
     if not 0 <= number <= 0xFFFF:
-        raise RequestError(f"sub-function {number} is out of range 0..65535")
+        raise UsageError(f"sub-function {number} is out of range 0..65535")
     return number
 
 
 def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
     if sub == 0x01:
         if text is not None:
-            raise RequestError("restart-comms takes no DATA: use --clear-log to also clear the event log")
+            raise UsageError("restart-comms takes no DATA: use --clear-log to also clear the event log")
         return b"\xff\x00" if clear_log else b"\x00\x00"
     if clear_log:
-        raise RequestError("--clear-log belongs to restart-comms")
+        raise UsageError("--clear-log belongs to restart-comms")
     if sub == 0x03:
         # CHAR 00: the new end-of-frame character replacing LF (spec §4).
         if text is None:
-            raise RequestError("change-ascii-delimiter needs the new delimiter: a character or 0xNN")
+            raise UsageError("change-ascii-delimiter needs the new delimiter: a character or 0xNN")
         char = ord(text) if len(text) == 1 else parse_int(text, "delimiter")
         if not 0 <= char <= 0xFF:
-            raise RequestError(f"delimiter {char} is not a byte")
+            raise UsageError(f"delimiter {char} is not a byte")
         return bytes([char, 0])
     if sub == 0x15 and text is not None and text.lower() in ("get", "clear"):
         return b"\x00\x03" if text.lower() == "get" else b"\x00\x04"
@@ -68,7 +68,7 @@ def _data(sub: int, text: str | None, clear_log: bool) -> bytes:
         return b"\x00\x03" if sub == 0x15 else b"\x00\x00"
     data = parse_hex(text[2:] if text.lower().startswith("0x") else text)
     if sub != 0x00 and len(data) != 2:
-        raise RequestError(f"DATA for sub-function {sub:02X} is 2 bytes (4 hex digits), not {len(data)}")
+        raise UsageError(f"DATA for sub-function {sub:02X} is 2 bytes (4 hex digits), not {len(data)}")
     return data
 
 
@@ -98,10 +98,10 @@ def diag(connection, settings, sub_function, data, clear_log, controller):
     modbus-plus-stats [get|clear]; "counters" reads every counter in one table.
     """
     if is_broadcast(connection.unit, framer_name(connection)):
-        raise RequestError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
+        raise UsageError("unit 0 is broadcast, which only writes may use; diag needs a unit 1..255")
     if sub_function.lower() == "counters":
         if data is not None or clear_log:
-            raise RequestError("diag counters takes no DATA")
+            raise UsageError("diag counters takes no DATA")
         report = _counters(connection, settings)
     else:
         sub = _sub_function(sub_function)

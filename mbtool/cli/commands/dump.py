@@ -18,11 +18,11 @@ from mbtool.cli.session import open_client
 from mbtool.cli.sinks.table import ProgressBar
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.device_id import ReadDeviceIdentification
-from mbtool.codec.errors import ModbusException, ProtocolError, RequestError
+from mbtool.codec.errors import ModbusException, ProtocolError
 from mbtool.codec.pdu import ExceptionCode
 from mbtool.codec.serial_line import ReportSlaveId
 from mbtool.codec.tables import table_named
-from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, Verdict, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, STOP_SIGNALS, ExitCode, NoResponse, UsageError, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, OutOfRequests, Span, TableDump, read_identification
 from mbtool.words import counted
 
@@ -38,9 +38,9 @@ def parse_span(text: str):
         low = int(first, 0)
         high = int(last, 0) if dash else low
     except ValueError:
-        raise RequestError(f"--range {text}: write it as TABLE:FIRST-LAST, such as holding:0-999") from None
+        raise UsageError(f"--range {text}: write it as TABLE:FIRST-LAST, such as holding:0-999") from None
     if not 0 <= low <= high <= 0xFFFF:
-        raise RequestError(f"--range {text}: addresses run 0..65535, FIRST no more than LAST")
+        raise UsageError(f"--range {text}: addresses run 0..65535, FIRST no more than LAST")
     return Span(table, low, high)
 
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import socket
 import stat
 import sys
@@ -48,15 +47,15 @@ from mbtool.cli.plant_text import (
     LAST_SUCCESS,
     UP,
     PlantMetrics,
-    device_stats_text,
-    link_stats_text,
+    check_budgets,
+    device_stats,
+    link_stats,
     point_metric,
     point_name_clash,
     refuse_point_names,
 )
 from mbtool.cli.sinks import PLANT, formats
 from mbtool.cli.sinks.prom import warn_counter_names
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, NoResponse, PartialRead, UsageError, link_failure
 from mbtool.library import find_named
@@ -152,15 +151,16 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
         plant = load_inventory(inventory, formats(PLANT))
         if shard_part is not None:  # the other shards' links are no links of this exporter's
             plant = shard(plant, *shard_part)
+        check_budgets(plant, False, run_log_format())
     elif shard_part is not None:
         raise UsageError("--shard splits an inventory's links: give the inventory (PLANT.toml)")
     if plant is None and maps is None:
-        raise RequestError(
+        raise UsageError(
             "nothing to export: give an inventory (PLANT.toml) for /metrics, or --maps DIR and "
             "--allow-target PATTERN for /modbus"
         )
     if plant is None and not allowed:
-        raise RequestError(
+        raise UsageError(
             "--maps reads maps from the targets --allow-target allows: give a pattern, such as "
             "--allow-target 'tcp://192.0.2.*:502'"
         )
@@ -185,7 +185,7 @@ def exporter(inventory, listen, maps, allowed, shard_part, timeout, retries):
         click.echo(line)
         sys.stdout.flush()
         if notifier:
-            notifier.ready(line)
+            notifier.ready(line, None if runner is None else runner.moved)
         if runner is None:
             server.serve_forever(poll_interval=0.5)
         else:
@@ -224,18 +224,18 @@ def _serving_line(server, plant, maps, allowed) -> str:
 
 
 def parse_listen(text: str) -> tuple[str, int, socket.AddressFamily]:
-    """--listen HOST:PORT: the host (an IPv6 address in brackets) and port; RequestError if not."""
+    """--listen HOST:PORT: the host (an IPv6 address in brackets) and port; UsageError if not."""
     usage = f"--listen {text}: expected HOST:PORT, such as 127.0.0.1:9502 (0.0.0.0:9502 for every interface)"
     host, colon, port_text = text.rpartition(":")
     if not colon or not host:
-        raise RequestError(usage)
+        raise UsageError(usage)
     family = socket.AF_INET
     if host.startswith("[") and host.endswith("]"):
         host, family = host[1:-1], socket.AF_INET6
     elif ":" in host:
-        raise RequestError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
+        raise UsageError(f"--listen {text}: an IPv6 address goes in brackets, such as [::1]:9502")
     if not (port_text.isascii() and port_text.isdigit() and len(port_text) <= 5 and int(port_text) <= 65535):
-        raise RequestError(f"--listen {text}: the port is a number, 0..65535")
+        raise UsageError(f"--listen {text}: the port is a number, 0..65535")
     return host, int(port_text), family
 
 
@@ -249,8 +249,9 @@ def check_plant_names(plant) -> None:
     """Refuse, before anything is opened, an inventory whose map points would be named as
     the exporter's own metrics: a device's (as poll's) and the statistics'."""
     own = {UP, LAST_SUCCESS}
-    for text in (device_stats_text("", PollStats()), link_stats_text("", Stats(), False, 0)):
-        own |= set(re.findall(r"^(?:# TYPE )?([a-zA-Z_:][a-zA-Z0-9_:]*)", text, re.M))  # families, samples
+    for name, _, samples in device_stats("", PollStats()) + link_stats("", Stats(), False, 0):
+        own.add(name)  # and its samples' names: a histogram's _bucket, _sum and _count
+        own.update(line.partition("{")[0] for line in samples.splitlines())
     refuse_point_names(plant, own, "the exporter")
 
 
@@ -399,7 +400,7 @@ class TargetScraper:
         not (400: it names no target; 403: it is not allowed), with nothing opened."""
         try:
             where = parse_target(text).normalised()
-        except RequestError as error:
+        except UsageError as error:
             raise Refused(400, f"target {_shown(text)}: {_shown(str(error))}") from None
         key = link_key(where)
         if key in self.polled:
@@ -439,7 +440,7 @@ class TargetScraper:
         connection = replace(base, unit=unit)
         try:
             check(connection, "a scrape's read")
-        except RequestError as error:
+        except UsageError as error:
             raise Refused(400, f"target {_shown(str(where))}: {_shown(str(error))}") from None
         return connection
 
@@ -501,7 +502,7 @@ WILDCARDS = "*?["
 def allow_patterns(patterns) -> tuple[str, ...]:
     """--allow-target's patterns as they are matched: the scheme in lower case, and a pattern
     without a wildcard read as the target it names, normalised (tcp://192.0.2.10 allows
-    tcp://192.0.2.10:502 and its other spellings); RequestError (exit 2) if it names none."""
+    tcp://192.0.2.10:502 and its other spellings); UsageError (exit 2) if it names none."""
     out = []
     for pattern in patterns:
         scheme, sep, rest = pattern.partition("://")
@@ -510,8 +511,8 @@ def allow_patterns(patterns) -> tuple[str, ...]:
         if not any(c in pattern for c in WILDCARDS):
             try:
                 pattern = str(parse_target(pattern).normalised())
-            except RequestError as error:
-                raise RequestError(f"--allow-target {pattern}: {error}") from None
+            except UsageError as error:
+                raise UsageError(f"--allow-target {pattern}: {error}") from None
         out.append(pattern)
     return tuple(out)
 

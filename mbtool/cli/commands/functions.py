@@ -13,7 +13,6 @@ from mbtool.cli.options import NONFINITE_OPTION, VALUE_TYPES, device_command
 from mbtool.cli.param_types import ADDRESS, COUNT, Choice, Number, parse_int
 from mbtool.cli.results import Report, Result, Row
 from mbtool.cli.session import execute, open_client, show
-from mbtool.codec.errors import RequestError
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
 from mbtool.codec.values import (
@@ -23,6 +22,7 @@ from mbtool.codec.values import (
     registers_needed,
     value_addresses,
 )
+from mbtool.errors import UsageError
 from mbtool.words import counted
 
 # --- FC 07 ---------------------------------------------------------------------------------
@@ -181,7 +181,7 @@ def _groups(tokens: tuple[str, ...]) -> list[list[str]]:
         else:
             groups[-1].append(token)
     if any(not group for group in groups):
-        raise RequestError("an empty group: put one ',' between groups, not at either end")
+        raise UsageError("an empty group: put one ',' between groups, not at either end")
     return groups
 
 
@@ -200,7 +200,7 @@ def read_file_record(connection, settings, groups):
 
     numbers = [parse_int(token, "file, record or length") for token in groups if token != ","]
     if len(numbers) % 3:
-        raise RequestError(f"give FILE RECORD LENGTH in threes, not {len(numbers)} numbers")
+        raise UsageError(f"give FILE RECORD LENGTH in threes, not {len(numbers)} numbers")
     parts = tuple(FileRecordRequest(*numbers[i : i + 3]) for i in range(0, len(numbers), 3))
     request = ReadFileRecord(parts)
     reply = execute(connection, settings, request)
@@ -228,7 +228,7 @@ def write_file_record(connection, settings, groups):
     parts = []
     for group in _groups(groups):
         if len(group) < 3:
-            raise RequestError(f"group {' '.join(group)} needs FILE RECORD and at least one VALUE")
+            raise UsageError(f"group {' '.join(group)} needs FILE RECORD and at least one VALUE")
         file, record = parse_int(group[0], "file number"), parse_int(group[1], "record number")
         parts.append(FileRecord(file, record, tuple(parse_register(text) for text in group[2:])))
     request = WriteFileRecord(tuple(parts))

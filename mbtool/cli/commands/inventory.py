@@ -4,6 +4,7 @@ for a fleet of pollers (one a site)."""
 
 from __future__ import annotations
 
+import math
 import re
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from mbtool.cli.sinks.json import to_json
 from mbtool.errors import OutputFailed, UsageError
 from mbtool.files import read_toml
 from mbtool.link.settings import File
+from mbtool.plant.budget import link_budget
 from mbtool.plant.inventory import LINK_KEYS, load_inventory
 from mbtool.registermap.plan import MapReader
 from mbtool.words import counted
@@ -37,9 +39,10 @@ def inventory() -> None:
 @inventory.command("check", context_settings=HELP)
 @click.argument("path", metavar="PLANT.toml", type=click.Path(dir_okay=False))
 def check(path):
-    """Check an inventory whole, opening nothing (no port, no connection), and print its links
-    and their devices. Exit status 0 when it loads; 2, with the file, line, table and key of
-    the first problem, when it does not."""
+    """Check an inventory whole, opening nothing (no port, no connection), and print its links,
+    their devices and their poll groups, and each serial link's budget: the line time a second
+    its polls need at its baud rate. Exit status 0 when it loads; 2, with the file, line, table
+    and key of the first problem, when it does not."""
     plant = load_inventory(path)
     print(f"{path}: {counted(len(plant.links), 'link')}, {counted(len(plant.devices), 'device')}")
     for name, link in plant.links.items():
@@ -50,6 +53,17 @@ def check(path):
             reads = counted(len(device.reader.points), "point")
             source = f"map {plant.maps[device.name]}" if device.name in plant.maps else "references"
             print(f"  {device.name}: unit {device.unit}, {reads} ({source}), every {device.interval:g} s")
+            for group in device.groups:
+                assert isinstance(group.reader, MapReader)  # an inventory's groups read their points
+                pace = (
+                    "at start and after each reconnect"
+                    if group.interval == math.inf
+                    else f"every {group.interval:g} s"
+                )
+                what = f"{counted(len(group.reader.points), 'point')}, {counted(len(group.reader.blocks), 'read')}"
+                print(f"    group {group.name}: {what}, {pace}")
+        budget = link_budget(link, devices)
+        print(f"  budget: {budget.line()}" if budget else "  budget: none, not a serial line of mbtool's own")
 
 
 @inventory.command("split", context_settings=HELP)

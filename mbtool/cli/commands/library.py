@@ -16,10 +16,14 @@ from mbtool.cli.parsing import QuickHelp
 from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
 from mbtool.cli.sinks import render
-from mbtool.codec.errors import FrameError, ModbusException, RequestError, exception_name
+from mbtool.cli.sinks.json import to_json
+from mbtool.codec.data_access import ReadHoldingRegisters
+from mbtool.codec.errors import FrameError, ModbusException, exception_name
 from mbtool.codec.pdu import printable, text_of
 from mbtool.codec.record import replace
-from mbtool.errors import NoResponse, OutputFailed
+from mbtool.codec.tables import HOLDING_REGISTERS, reference
+from mbtool.codec.values import decode_values
+from mbtool.errors import NoResponse, OutputFailed, UsageError
 from mbtool.library import MAPS, library_names, load_named_map, resolve_map, signatures
 from mbtool.words import counted
 
@@ -68,8 +72,6 @@ def list_maps(text, as_json) -> None:
         if text is None or text.lower() in searched:
             rows.append(row)
     if as_json:
-        from mbtool.cli.sinks.json import to_json  # noqa: PLC0415 - --json only
-
         click.echo(to_json(rows))
         return
     if not rows:
@@ -171,7 +173,7 @@ def identify(connection, settings, budget, all_units, unit_set, inventory_path):
         if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
     ]
     if given and not all_units:
-        raise RequestError(f"{given[0]} goes with --all-units")
+        raise UsageError(f"{given[0]} goes with --all-units")
     headers = signatures()
     if not all_units:
         found = _identify_unit(connection, settings, headers, budget)
@@ -179,8 +181,8 @@ def identify(connection, settings, budget, all_units, unit_set, inventory_path):
         return
     try:
         wanted = sorted(parse_units(unit_set))
-    except RequestError as error:
-        raise RequestError(f"--units: {error}") from None
+    except UsageError as error:
+        raise UsageError(f"--units: {error}") from None
     if settings.dry_run:  # the walk's reads depend on the replies: its first is all there is to show
         _dry_run_walk(connection, settings, wanted)
         return
@@ -257,12 +259,8 @@ def _answering_units(connection, settings, units: list[int]) -> list[int]:
     mbtool scan finds them, at the connection's settings."""
     from mbtool.link.scan import Scan, Setting, probe_request  # noqa: PLC0415 - --all-units only
 
-    line = Setting(
-        baud=connection.baud,
-        parity=connection.parity,
-        bytesize=connection.bytesize,
-        stopbits=connection.stopbits,
-    )
+    serial = connection.serial
+    line = Setting(baud=serial.baud, parity=serial.parity, bytesize=serial.bytesize, stopbits=serial.stopbits)
     request = probe_request(*WALK_PROBE)
     quiet = _Quiet()
     tally = Scan(connection, request, units, [line], False, False, quiet, trace_for(settings)).run(quiet)
@@ -283,7 +281,8 @@ def _write_inventory(path: str, connection, results: list) -> None:
 
     link = {"target": connection.port}
     if connection.port and "://" not in connection.port:  # a serial line: its settings
-        link |= {"baud": connection.baud, "parity": connection.parity, "stopbits": int(connection.stopbits)}
+        serial = connection.serial
+        link |= {"baud": serial.baud, "parity": serial.parity, "stopbits": int(serial.stopbits)}
     devices, unknown = {}, []
     for unit, candidates, sunspec, _seen in results:
         best = _best(candidates)
@@ -354,9 +353,6 @@ def _server_id(execute, seen: dict[str, str]) -> None:
 
 def _sunspec(execute, seen: dict[str, str]) -> dict | None:
     """The SunSpec marker and the Common model's manufacturer and model (Mn, Md), if any."""
-    from mbtool.codec.data_access import ReadHoldingRegisters  # noqa: PLC0415 - identify only
-    from mbtool.codec.tables import HOLDING_REGISTERS, reference  # noqa: PLC0415 - identify only
-    from mbtool.codec.values import decode_values  # noqa: PLC0415 - identify only
     from mbtool.sunspec.discover import NotSunSpec, find_marker  # noqa: PLC0415 - identify only
 
     try:

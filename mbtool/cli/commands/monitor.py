@@ -28,9 +28,9 @@ from mbtool.cli.profiles import defaults
 from mbtool.cli.sinks import LOG, default_format, formats, sink
 from mbtool.cli.sinks.table import escape
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError, function_code_text
+from mbtool.codec.errors import function_code_text
 from mbtool.codec.timing import char_time, character_bits, silent_interval
-from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, Verdict
+from mbtool.errors import ConnectionFailed, ExitCode, NoResponse, UsageError, Verdict
 from mbtool.link.transport import SerialSettings, SerialTransport
 from mbtool.monitor.bus import BusFrame, BusMonitor, Tally, Unanswered
 from mbtool.monitor.pcap import BusCapture, is_pcap, packets
@@ -164,10 +164,10 @@ def monitor(
         bytesize, stopbits = line.get("bytesize", bytesize), line.get("stopbits", stopbits)
     port_given = port and ctx.get_parameter_source("port") is not click.core.ParameterSource.ENVIRONMENT
     if from_file and port_given:
-        raise RequestError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
+        raise UsageError("give -p TARGET to listen or --from-file FILE to analyse a recording, not both")
     recording, timed = None, True
     if stats_interval is not None and not stats:
-        raise RequestError("--stats-interval goes with --stats")
+        raise UsageError("--stats-interval goes with --stats")
     if from_file:
         recording, timed = _recording(from_file)
         _check_replay_options(ctx, from_file, timed)
@@ -183,7 +183,7 @@ def monitor(
         try:
             recorder = BusCapture.create(capture)
         except OSError as error:
-            raise RequestError(f"cannot write capture file {capture}: {error.strerror or error}") from None
+            raise UsageError(f"cannot write capture file {capture}: {error.strerror or error}") from None
 
     def show(seen) -> bool:
         """Show what the sniffer found; False once --frames is reached."""
@@ -246,23 +246,23 @@ def _check_replay_options(ctx: click.Context, path: str, timed: bool) -> None:
         return ctx.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE
 
     if given("duration"):
-        raise RequestError(
+        raise UsageError(
             "--duration is for listening; a recording is read to its end (--frames stops sooner)"
         )
     if given("stats_interval"):
-        raise RequestError("--stats-interval is for listening; a recording's statistics are shown at its end")
+        raise UsageError("--stats-interval is for listening; a recording's statistics are shown at its end")
     for name in ("silence", "response_timeout"):
         if not timed and given(name):
             option = "--" + name.replace("_", "-")
-            raise RequestError(f"{option} measures time, and {path} is raw bytes with no time stamps")
+            raise UsageError(f"{option} measures time, and {path} is raw bytes with no time stamps")
 
 
 def _check_port(port: str | None) -> None:
     if not port:
-        raise RequestError("no port given: use -p TARGET or set MBTOOL_PORT, or --from-file FILE")
+        raise UsageError("no port given: use -p TARGET or set MBTOOL_PORT, or --from-file FILE")
     scheme = port.split("://", 1)[0].lower() if "://" in port else ""
     if scheme in ("tcp", "sim"):
-        raise RequestError(
+        raise UsageError(
             f"monitor listens on a serial line, not {scheme}:// (a serial device, socket:// or rfc2217://)"
         )
 
@@ -274,7 +274,7 @@ def _recording(path: str) -> tuple[bytes, bool]:
         with open(path, "rb") as file:
             data = file.read()
     except OSError as error:
-        raise RequestError(f"cannot read {path}: {error.strerror or error}") from None
+        raise UsageError(f"cannot read {path}: {error.strerror or error}") from None
     return data, is_pcap(data)
 
 
@@ -286,7 +286,7 @@ def _replay(path: str, data: bytes, sniffer, show) -> None:
             show(sniffer.finish(now))
         return
     if sniffer.framing != "rtu":
-        raise RequestError(
+        raise UsageError(
             f"{path} is a pcap file, which holds RTU frames (--capture writes ASCII ones as RTU)"
         )
     last = None
@@ -296,7 +296,7 @@ def _replay(path: str, data: bytes, sniffer, show) -> None:
                 return
             last = when
     except ValueError as error:
-        raise RequestError(f"{path}: {error}") from None
+        raise UsageError(f"{path}: {error}") from None
     if last is not None:
         show(sniffer.finish(last))
 

@@ -21,7 +21,7 @@ from mbtool.codec.errors import ChecksumError, FrameError, ModbusException, Requ
 from mbtool.codec.framing import FRAMERS, Frame, Framer
 from mbtool.codec.raw import RawRequest
 from mbtool.codec.record import replace
-from mbtool.errors import KNOWN_ERRORS
+from mbtool.errors import KNOWN_ERRORS, UsageError
 from mbtool.link.connection import framer_name
 from mbtool.words import counted
 
@@ -112,7 +112,7 @@ def _decode_stream(lines, framer, direction, fmt: str, no_header: bool) -> None:
                 print(f"mbtool: line {number}: {problem}", file=sys.stderr)
         sys.stdout.flush()
     if not frames:
-        raise RequestError("no frame on stdin")
+        raise UsageError("no frame on stdin")
     if failed:
         raise FrameError(f"{failed} of {counted(frames, 'frame')} failed; the first: {first_failure}")
 
@@ -318,7 +318,7 @@ def raw(connection, settings, data, adu):
     else:
         body = parse_hex(text)
         if len(body) < 2:
-            raise RequestError("give the unit and at least a function code, e.g. raw 01 03 00 00 00 01")
+            raise UsageError("give the unit and at least a function code, e.g. raw 01 03 00 00 00 01")
         unit, pdu = body[0], body[1:]
     request = RawRequest(pdu)
 

@@ -20,7 +20,7 @@ from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.codec.errors import ModbusException, RequestError, function_code_text
 from mbtool.codec.serial_line import Diagnostics, DiagnosticSubFunction
 from mbtool.durations import Durations
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, Verdict
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, ExitCode, UsageError, Verdict
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.scan import GATEWAY_EXCEPTIONS
 from mbtool.link.stats import Stats, outcome_of, untimed_text
@@ -68,7 +68,7 @@ def ping(connection, settings, count, interval, function, address, quiet):
     """
     ctx = click.get_current_context()
     if function == "08" and ctx.get_parameter_source("address") is not click.core.ParameterSource.DEFAULT:
-        raise RequestError("--address is the register FC 03 reads; --function 08 reads none")
+        raise UsageError("--address is the register FC 03 reads; --function 08 reads none")
     request_for = _requests(function, address)
     unit = connection.unit
     if settings.dry_run:
@@ -136,7 +136,7 @@ class Pinger:
                 last_sent = time.monotonic()
                 try:
                     link.execute(unit, self.request_for(seq))
-                except RequestError:
+                except (RequestError, UsageError):
                     raise  # the request itself is wrong: no later one can do better
                 except (*KNOWN_ERRORS, OSError) as error:
                     self._failed(seq, error, link.rtt, link.attempts)

@@ -8,6 +8,7 @@ view on a terminal, one line on stderr for each change of state, and statistics 
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -19,19 +20,27 @@ from mbtool.cli.log import INFO, WARNING, log, log_format_option, run_log_format
 from mbtool.cli.metrics import name_problem
 from mbtool.cli.notify import systemd_notifier
 from mbtool.cli.param_types import FilePath, PositiveFloat, shard_option
-from mbtool.cli.plant_text import LAST_SUCCESS, UP, event_line, event_log, prom_text, refuse_point_names
+from mbtool.cli.plant_text import (
+    LAST_SUCCESS,
+    UP,
+    check_budgets,
+    event_line,
+    event_log,
+    prom_text,
+    refuse_point_names,
+)
 from mbtool.cli.session import warn_insecure
 from mbtool.cli.sinks import PLANT, formats, sink
-from mbtool.cli.sinks.json import to_json
+from mbtool.cli.sinks.json import event_record, to_json
 from mbtool.cli.sinks.prom import check_textfile, write_textfile
 from mbtool.cli.sinks.table import PlantView
 from mbtool.cli.stamps import local_time
-from mbtool.codec.errors import RequestError
-from mbtool.errors import ExitCode, PartialRead, Verdict, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, UsageError, Verdict, exit_code_for
 from mbtool.link.stats import OUTCOMES
 from mbtool.mqtt.settings import mqtt_settings
+from mbtool.mqtt.topics import PlantEvent, iso_time
 from mbtool.plant.inventory import load_inventory, shard
-from mbtool.plant.schedule import OFFLINE, Event, Plant, Poll, limits, view_of, views
+from mbtool.plant.schedule import OFFLINE, Event, Pace, Plant, Poll, limits, view_of, views
 from mbtool.plant.stats import PollStats
 from mbtool.words import counted
 
@@ -89,6 +98,12 @@ from mbtool.words import counted
     help="Print every frame sent and received (stderr), each line labelled with its link and device: "
     "[bus1 meter1] TX ...",
 )
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Refuse (exit 2, nothing opened) an inventory whose poll groups ask a serial link for "
+    "more line time than it has, as the budget check at load figures it; without it, a warning.",
+)
 @shard_option
 @log_format_option
 @click.option(
@@ -119,6 +134,7 @@ def poll(
     hex_links,
     mqtt_url,
     shard_part,
+    strict,
 ):
     """Poll every device of a plant from one process: PLANT.toml names its links (serial
     buses, gateways, TCP devices) and devices (unit, register map or references, tags).
@@ -140,6 +156,8 @@ def poll(
 
     for name, link in plant.links.items():
         warn_insecure(link.connection, name)
+    log_format = run_log_format()
+    check_budgets(plant, strict, log_format)
     fmt = output_format or plant.output
     live = fmt is None and textfile is None and sys.stdout.isatty()
     fmt = fmt or "plain"
@@ -149,7 +167,7 @@ def poll(
         if not polls.measured:
             problem = "--measurement names InfluxDB's measurement: it goes with -o influx"
         if problem:
-            raise RequestError(f"--measurement {measurement!r}: {problem}")
+            raise UsageError(f"--measurement {measurement!r}: {problem}")
     if polls.exposes or textfile:
         # A point named as a device's own metrics (up) would make two families of one name.
         refuse_point_names(plant, {UP, LAST_SUCCESS}, "mbtool's Prometheus text")
@@ -159,19 +177,18 @@ def poll(
         rounds = 1
     unknown = [name for name in hex_links if name not in plant.links]
     if unknown:
-        raise RequestError(
+        raise UsageError(
             f"--hex-link {unknown[0]}: no [links.{unknown[0]}] in {inventory} (links: {', '.join(plant.links)})"
         )
     trace = HexTrace if hex_trace or hex_links else None  # made by each traced link, labelled
-    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url)
-    log_format = run_log_format()
+    mqtt = mqtt_settings(plant.mqtt, inventory, plant.devices, mqtt_url, plant.labels, shard_part)
     output = PlantOutput(fmt, textfile, no_header, plant, measurement or "modbus", log_format)
     view = LiveView(plant) if live else None
     report = view.report if view else output.report
     publisher = None
     if mqtt is not None:
-        publisher = make_publisher(mqtt, plant, quiet=live)
-        report = _both(report, publisher.report)
+        publisher = make_publisher(mqtt, plant.devices, plant.maps, quiet=live)
+        report = _both(report, publisher.report, plant.labels)
         if view:
             view.publisher = publisher
     runner = Plant(
@@ -191,7 +208,8 @@ def poll(
     notifier = systemd_notifier()  # systemd's Type=notify: ready now, the watchdog fed while it runs
     if notifier:
         notifier.ready(
-            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}"
+            f"polling {counted(len(plant.devices), 'device')} on {counted(len(plant.links), 'link')}",
+            runner.moved,
         )
     try:
         if view:
@@ -212,14 +230,16 @@ def poll(
     return _verdict(runner, interrupted, rounds or 0, bool(rounds or duration))
 
 
-def _both(first, publish):
+def _both(first, publish, labels: dict):
     """The plant's one report, on the thread that runs it, handed to the output and the MQTT
-    publisher: the publisher its Polls (it only enqueues them), which carry each device's state."""
+    publisher (which only enqueues): its Polls, and each Event as -o json's record."""
 
     def report(item: Poll | Event) -> None:
         first(item)
         if isinstance(item, Poll):
             publish(item)
+        else:
+            publish(PlantEvent(event_record(item, iso_time(item.time), labels)))
 
     return report
 
@@ -278,8 +298,8 @@ class PlantOutput:
         one polled every second, and each device's samples carry its own last success."""
         live = [state for state in self.states.values() if state.state != OFFLINE]
         if self.exposed and live:
-            shortest = min(state.spec.interval for state in live)
-            live = [state for state in live if state.spec.interval == shortest]
+            shortest = min(state.spec.fastest for state in live)  # a device's fastest group's
+            live = [state for state in live if state.spec.fastest == shortest]
         return not any(state.spec.name in self.pending for state in live)
 
     def _expose(self) -> None:
@@ -341,6 +361,11 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
                     "state": s.state,
                     **_limits(device_limits[name]),
                     **s.stats.as_dict(),
+                    **(
+                        {"groups": {g.group.name: _pace_record(g.pace()) for g in s.groups}}
+                        if s.spec.groups
+                        else {}
+                    ),
                 }
                 for name, s in runner.devices.items()
             },
@@ -378,9 +403,42 @@ def _statistics(runner: Plant, stats: str, seconds: float, log_format: str, publ
             "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
             log_format,
         )
+    _group_table(runner, log_format)
     if publisher is not None:
         _stats_line(stats_line(publisher.stats()), log_format)
     sys.stderr.flush()
+
+
+def _group_table(runner: Plant, log_format: str) -> None:
+    """The poll groups of the devices that have them: the interval each asked, the one achieved
+    (the mean between its polls), its polls and its overruns (polls that started late, slots skipped)."""
+    lines = [["group", "device", "asked s", "achieved s", "polls", "overruns"]]
+    for name, state in runner.devices.items():
+        for pace in (group.pace() for group in state.groups if state.spec.groups):
+            asked = "once" if pace.asked == math.inf else f"{pace.asked:g}"
+            achieved = "-" if pace.achieved is None else f"{pace.achieved:.3f}"
+            lines.append([pace.group, name, asked, achieved, str(pace.polls), str(pace.overruns)])
+    if len(lines) == 1:
+        return
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
+    for line in lines:
+        _stats_line(
+            "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip(),
+            log_format,
+        )
+
+
+def _pace_record(pace: Pace) -> dict:
+    """A group's pace in --stats json: ``once`` for a group read once (it has no interval)."""
+    if pace.asked == math.inf:
+        return {"once": True, "polls": pace.polls}
+    achieved = None if pace.achieved is None else round(pace.achieved, 6)
+    return {
+        "interval_seconds": pace.asked,
+        "achieved_seconds": achieved,
+        "polls": pace.polls,
+        "overruns": pace.overruns,
+    }
 
 
 def _stats_line(line: str, log_format: str) -> None:

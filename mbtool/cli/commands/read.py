@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from functools import partial
+from typing import TYPE_CHECKING
 
 import click
 
@@ -14,7 +15,9 @@ from mbtool.cli.options import (
     device_command,
     map_option,
     reference_target,
+    shared_option,
     type_options_given,
+    with_options,
 )
 from mbtool.cli.param_types import ADDRESS, COUNT, FilePath, Number, PositiveFloat
 from mbtool.cli.results import PointFailure, PointRow, Points, Result
@@ -23,11 +26,14 @@ from mbtool.cli.settings import Settings
 from mbtool.cli.sinks import READINGS, default_format, formats, sink
 from mbtool.cli.sinks.json import to_json
 from mbtool.codec.data_access import ReadCoils, ReadDiscreteInputs, ReadHoldingRegisters, ReadInputRegisters
-from mbtool.codec.errors import RequestError
 from mbtool.codec.record import replace
 from mbtool.codec.values import ORDERS, TYPES, registers_needed, value_addresses, value_decoder
-from mbtool.errors import PartialRead, Verdict
+from mbtool.errors import PartialRead, UsageError, Verdict
 from mbtool.link.connection import Connection
+
+if TYPE_CHECKING:
+    from mbtool.cli.broker import PublishedPolls
+    from mbtool.cli.poll_output import ChangesOnly, Output
 
 POLL_HELP = """
 
@@ -43,48 +49,67 @@ POLL_HELP = """
     """
 
 
-def polling_options(function):
-    """--interval and --polls, for the read commands, and what they do in --help; and the
-    output options of reads (--changes, --measurement, --textfile), which go to the run's
-    Settings (device_command)."""
-    function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
-    function = click.option(
-        "--changes",
-        is_flag=True,
-        help="Polling: print the first poll whole, then only the values that changed.",
-    )(function)
-    function = click.option(
-        "--measurement",
-        default="modbus",
-        show_default=True,
-        help="-o influx: the measurement; -o prom: the metric names' prefix.",
-    )(function)
-    function = click.option(
-        "--textfile",
-        metavar="PATH",
-        type=FilePath(dir_okay=False),
-        help="Write the Prometheus text there, atomically, for node_exporter's textfile "
-        "collector (implies -o prom; each poll rewrites it).",
-    )(function)
-    function = click.option(
+# Made once and shared by the read commands (options.shared_option): a one-shot read imports
+# them all.
+POLLING_OPTIONS = [
+    shared_option(
+        "--interval",
+        type=PositiveFloat(zero_ok=True),
+        help="Poll every SECONDS over one open link (until interrupted unless --polls); "
+        "0 polls back to back.",
+    ),
+    shared_option(
+        "--polls",
+        type=Number(0, 10**9, "polls"),
+        help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
+    ),
+    shared_option(
+        "--mqtt",
+        metavar="URL",
+        help="Polling: publish each poll to the MQTT broker at URL (mqtt://HOST[:PORT], "
+        "mqtts://HOST[:PORT]) too, one JSON message a poll on mbtool/HOST/NAME, its availability "
+        "on .../status (docs/mqtt.md).",
+    ),
+    shared_option(
+        "--name",
+        metavar="NAME",
+        help="--mqtt: the device's name on the broker (its topic mbtool/HOST/NAME). Default: unit<N>.",
+    ),
+    shared_option(
         "--stats",
         type=click.Choice(["line", "json"]),
         default="line",
         show_default=True,
         help="Polling: the summary on exit as its line on stderr, or also as one JSON object "
         "(polls, latency, every transaction's outcome, the round-trip histogram) before it.",
-    )(function)
-    function = click.option(
-        "--polls",
-        type=Number(0, 10**9, "polls"),
-        help="Poll N times (0: until interrupted); interval 1 s unless --interval.",
-    )(function)
-    return click.option(
-        "--interval",
-        type=PositiveFloat(zero_ok=True),
-        help="Poll every SECONDS over one open link (until interrupted unless --polls); "
-        "0 polls back to back.",
-    )(function)
+    ),
+    shared_option(
+        "--textfile",
+        metavar="PATH",
+        type=FilePath(dir_okay=False),
+        help="Write the Prometheus text there, atomically, for node_exporter's textfile "
+        "collector (implies -o prom; each poll rewrites it).",
+    ),
+    shared_option(
+        "--measurement",
+        default="modbus",
+        show_default=True,
+        help="-o influx: the measurement; -o prom: the metric names' prefix.",
+    ),
+    shared_option(
+        "--changes",
+        is_flag=True,
+        help="Polling: print the first poll whole, then only the values that changed.",
+    ),
+]
+
+
+def polling_options(function):
+    """--interval and --polls, for the read commands, and what they do in --help; and the
+    output options of reads (--changes, --measurement, --textfile), which go to the run's
+    Settings (device_command)."""
+    function.__doc__ = (function.__doc__ or "").rstrip() + POLL_HELP
+    return with_options(POLLING_OPTIONS)(function)
 
 
 def _run(
@@ -92,6 +117,10 @@ def _run(
 ) -> Verdict | None:
     """Once (None), or polled (how the polls ended).  ``run(execute)``: a read of several requests (a map's ``points``),
     which ``request``, the first of them, stands for."""
+    if settings.name and not settings.mqtt:
+        raise UsageError("--name names the device on the broker: it goes with --mqtt")
+    if settings.mqtt and (settings.dry_run or (interval is None and polls is None)):
+        raise UsageError("--mqtt publishes polls: give --interval or --polls (and no --dry-run)")
     metrics = None
     if settings.textfile or settings.output_format in formats(READINGS):
         settings, metrics = _metrics(connection, settings, points)
@@ -108,7 +137,11 @@ def _run(
 
     fmt = settings.output_format or default_format()
     whole = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
-    output = ChangesOnly(whole) if settings.changes else whole
+    output: Output | ChangesOnly | PublishedPolls = ChangesOnly(whole) if settings.changes else whole
+    if settings.mqtt:
+        from mbtool.cli.broker import PublishedPolls  # noqa: PLC0415 - --mqtt only
+
+        output = PublishedPolls(output, settings.mqtt, settings.name, connection.unit)
     shown = Deferred(output, to_result)
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
@@ -192,10 +225,10 @@ def _metrics(connection: Connection, settings: Settings, points=()):
     fmt = settings.output_format
     if settings.textfile:
         if fmt not in (None, "prom"):
-            raise RequestError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
+            raise UsageError(f"--textfile writes the Prometheus text; -o {fmt} does not go with it")
         settings = replace(settings, output_format="prom")
     if settings.changes:
-        raise RequestError("--changes writes a change log; -o influx and prom carry every value each poll")
+        raise UsageError("--changes writes a change log; -o influx and prom carry every value each poll")
     assert settings.output_format is not None  # -o influx or prom (the caller's test), or prom for --textfile
     metrics = sink(settings.output_format).Readings(settings, connection.unit)
     metrics.check(points)
@@ -242,7 +275,7 @@ def _read_registers(
 ) -> Verdict | None:
     """``table``: the Modicon table of a ``read REF``, whose references name the items."""
     if order == ORDER_ALL and TYPES[value_type].registers < 2:
-        raise RequestError(
+        raise UsageError(
             f"--order all shows 32- and 64-bit values in each word order; {value_type} is not one: "
             "give --type float32, uint32, int32, float64, uint64 or int64"
         )

@@ -17,6 +17,7 @@ recognised by its unit id and reported as "late" (raise -t).
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 
@@ -28,9 +29,9 @@ from mbtool.cli.results import Listing
 from mbtool.cli.session import open_client, trace_for
 from mbtool.cli.sinks import default_format, sink
 from mbtool.cli.sinks.table import ScanProgress, scan_answers
-from mbtool.codec.errors import RequestError, function_code_text
+from mbtool.codec.errors import function_code_text
 from mbtool.codec.record import replace
-from mbtool.errors import ExitCode, Verdict
+from mbtool.errors import ExitCode, UsageError, Verdict
 from mbtool.link.scan import PROBES, READS, Answer, Scan, Setting, Tally, probe_request
 from mbtool.words import counted
 
@@ -55,7 +56,7 @@ class UnitList(click.ParamType):
             return value
         try:
             return parse_units(value)
-        except RequestError as error:
+        except UsageError as error:
             self.fail(str(error), param, ctx)
 
 
@@ -118,8 +119,11 @@ def _scan_options(command: click.Command) -> click.Command:
                 help="Unit ids to probe: 1-247, 1,5,10-20. Unit 0 (broadcast) is never answered.",
             )
         elif param.name == "timeout":
-            param.default = SCAN_TIMEOUT
-            param.help = "Seconds to wait for each unit's reply (raise it for slow devices or gateways)."
+            # A copy: the shared option is every other command's too (options.shared_option).
+            timeout = copy.copy(param)
+            timeout.default = SCAN_TIMEOUT
+            timeout.help = "Seconds to wait for each unit's reply (raise it for slow devices or gateways)."
+            command.params[index] = timeout
     return command
 
 
@@ -250,15 +254,17 @@ def scan(connection, settings, probe, address, count, bauds, parities, first):
     if probe not in READS:
         for option in ("address", "count"):
             if ctx.get_parameter_source(option) is not click.core.ParameterSource.DEFAULT:
-                raise RequestError(f"--{option} goes with the read probes, not --function {probe}")
+                raise UsageError(f"--{option} goes with the read probes, not --function {probe}")
     request = probe_request(probe, address, count)
     sweeping = bauds is not None or parities is not None
     if sweeping:
         _check_sweepable(connection.port)
     lines = [
-        Setting(baud=baud, parity=parity, bytesize=connection.bytesize, stopbits=connection.stopbits)
-        for baud in (bauds or (connection.baud,))
-        for parity in (parities or (connection.parity,))
+        Setting(
+            baud=baud, parity=parity, bytesize=connection.serial.bytesize, stopbits=connection.serial.stopbits
+        )
+        for baud in (bauds or (connection.serial.baud,))
+        for parity in (parities or (connection.serial.parity,))
     ]
     if settings.dry_run:
         _dry_run(connection, settings, request, units, lines, sweeping)
@@ -288,7 +294,7 @@ def _check_sweepable(port: str | None) -> None:
             "sim": "the built-in device has no serial line",
             "socket": "a raw TCP bridge sets them on the bridge (rfc2217:// sets them remotely)",
         }[scheme]
-        raise RequestError(f"--bauds/--parities sweep serial settings, and {why}")
+        raise UsageError(f"--bauds/--parities sweep serial settings, and {why}")
 
 
 def _dry_run(connection, settings, request, units: list[int], lines: list[Setting], sweeping: bool) -> None:

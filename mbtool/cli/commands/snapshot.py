@@ -24,10 +24,10 @@ from mbtool.codec.data_access import (
     WriteMultipleCoils,
     WriteMultipleRegisters,
 )
-from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import replace
 from mbtool.codec.tables import reference, table_named
-from mbtool.errors import KNOWN_ERRORS, ExitCode, Verdict, exit_code_for
+from mbtool.errors import KNOWN_ERRORS, ExitCode, UsageError, Verdict, exit_code_for
 from mbtool.link.dump import Dumper, Span, TableDump, runs_of
 from mbtool.words import counted
 
@@ -137,9 +137,7 @@ def diff(connection, settings, a, b, map):
         register_map = load_named_map(map)
     b = b or DEVICE
     if a == DEVICE == b:
-        raise RequestError(
-            f"diff compares a dump with the device, or two dumps: at most one side is {DEVICE}"
-        )
+        raise UsageError(f"diff compares a dump with the device, or two dumps: at most one side is {DEVICE}")
     files = {side: snapshot(side)[0] for side in (a, b) if side != DEVICE}
     if DEVICE in (a, b):
         (dumped,) = files.values()

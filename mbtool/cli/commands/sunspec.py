@@ -19,8 +19,8 @@ from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.table import titled_tables
 from mbtool.cli.whole_file import WholeFile
 from mbtool.codec.data_access import ReadHoldingRegisters
-from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import ExitCode, NoResponse, Verdict
+from mbtool.codec.errors import ModbusException
+from mbtool.errors import ExitCode, NoResponse, UsageError, Verdict
 from mbtool.registermap.load import build_map
 from mbtool.sunspec.discover import NotSunSpec, discover
 from mbtool.sunspec.layout import map_rows
@@ -76,14 +76,14 @@ def sunspec(connection, settings, base, model_ids, map_path):
     found so far (and writes no map): exit 130.
     """
     if map_path is not None and not map_path.lower().endswith(".toml"):
-        raise RequestError(f"--map writes a TOML map: {map_path} is not a .toml file name")
+        raise UsageError(f"--map writes a TOML map: {map_path} is not a .toml file name")
     fmt = settings.output_format or default_format()
     bases = (base,) if base is not None else None
     chain, unit = _walk(connection, settings, bases, set(model_ids))
     wanted = [m for m in chain.models if not model_ids or m.layout.model_id in model_ids]
     if model_ids and not wanted:
         found = ", ".join(str(m.layout.model_id) for m in chain.models) or "none"
-        raise RequestError(f"no model {', '.join(map(str, model_ids))} in the chain (its models: {found})")
+        raise UsageError(f"no model {', '.join(map(str, model_ids))} in the chain (its models: {found})")
     # A model the device refused is laid out by its length alone: its layout says nothing.
     for warning in [*chain.warnings, *(w for m in wanted if m.error is None for w in m.layout.warnings)]:
         print(f"mbtool: warning: {warning}", file=sys.stderr)

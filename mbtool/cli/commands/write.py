@@ -28,10 +28,10 @@ from mbtool.codec.data_access import (
     WriteSingleCoil,
     WriteSingleRegister,
 )
-from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.errors import ModbusException
 from mbtool.codec.framing import is_broadcast
 from mbtool.codec.values import decode_values, parse_registers, value_addresses
-from mbtool.errors import Verdict
+from mbtool.errors import UsageError, Verdict
 from mbtool.link.connection import framer_name
 
 if TYPE_CHECKING:
@@ -46,7 +46,7 @@ def parse_bit(text: str) -> bool:
     try:
         return BIT_WORDS[text.lower()]
     except KeyError:
-        raise RequestError(f"{text} is not a bit: use on|off|1|0") from None
+        raise UsageError(f"{text} is not a bit: use on|off|1|0") from None
 
 
 def echoed_values(texts, registers: list[int], value_type: str, order: str) -> list:
@@ -200,10 +200,10 @@ def _write_reference(
     )
 
     if "=" in text:
-        raise RequestError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
+        raise UsageError(f"{text}: NAME=VALUE writes a point of a register map: give -m MAP")
     table, address = parse_reference(text)
     if not table.writable:
-        raise RequestError(
+        raise UsageError(
             f"{text} is {table.item} {address + 1}: {table.items} are read-only "
             "(coils 0xxxx and holding registers 4xxxx are the writable ones)"
         )
@@ -253,19 +253,19 @@ def _write_map(
         name, sep, text = assignment.partition("=")
         name = name.strip()
         if not sep or not name:
-            raise RequestError(f"{assignment}: write a point as NAME=VALUE (such as setpoint=22.5)")
+            raise UsageError(f"{assignment}: write a point as NAME=VALUE (such as setpoint=22.5)")
         (point,) = register_map.select([name])
         try:
             write_request(point, text, multiple, nonfinite)
         except NoScaleFactor:
             pass  # checked once the device has said its scale factor
         if any(known is point for known, _ in wanted):
-            raise RequestError(f"{name} is given twice: write each point once")
+            raise UsageError(f"{name} is given twice: write each point once")
         wanted.append((point, text))
     factors = [point.scale_ref for point, _ in wanted if point.scale_ref is not None]
     broadcast = is_broadcast(connection.unit, framer_name(connection))
     if factors and broadcast:
-        raise RequestError(
+        raise UsageError(
             f"{factors[0].name} is read first, to scale what is written: unit 0 (broadcast) cannot be read"
         )
     bits_by_rmw = rmw and any(point.bit is not None for point, _ in wanted)
@@ -410,7 +410,7 @@ def write_bit(connection, settings, ref, bit, state, rmw):
 
     table, address = parse_reference(ref)
     if table is not HOLDING_REGISTERS:
-        raise RequestError(
+        raise UsageError(
             f"{ref} is {table.item} {address + 1}: write-bit changes a bit of a holding register (4xxxx)"
         )
     on = parse_bit(state)

@@ -214,12 +214,19 @@ class PlantPolls:
         self.out.write(to_json(poll_record(poll, when, self.labels)) + "\n")
 
     def event(self, event, when: str) -> None:
-        record = {"time": when, **self.labels, "event": event.state, event.kind: event.name}
-        if event.reason:
-            record["reason"] = event.reason
-        if event.retry_in is not None:
-            record["retry_in"] = event.retry_in
-        self.out.write(to_json(record) + "\n")
+        self.out.write(to_json(event_record(event, when, self.labels)) + "\n")
+
+
+def event_record(event, when: str, labels: dict) -> dict:
+    """A change of state (plant.schedule.Event) as poll -o json's object, and MQTT's event
+    message: its time, the fleet's labels, the new state, the device or link, why, and when it
+    is tried again."""
+    record = {"time": when, **labels, "event": event.state, event.kind: event.name}
+    if event.reason:
+        record["reason"] = event.reason
+    if event.retry_in is not None:
+        record["retry_in"] = event.retry_in
+    return record
 
 
 def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
@@ -229,6 +236,8 @@ def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
     tags = dict(device.tags or {})
     labels = {key: tags.pop(key) for key in fleet or () if key in tags}
     record = {"time": when, **labels, "device": device.name, "tags": tags, "unit": device.unit}
+    if device.groups:  # a poll of one of its groups (issue 44): that group's points alone
+        record["group"] = poll.group
     if poll.readings is None:
         record["state"] = poll.state
         record["error"] = str(poll.error)

@@ -20,8 +20,7 @@ import time
 from mbtool.cli.metrics import ReadingPolls, values_of
 from mbtool.cli.metrics import Readings as MonitoringReadings
 from mbtool.cli.results import Points
-from mbtool.codec.errors import RequestError
-from mbtool.errors import OutputFailed
+from mbtool.errors import OutputFailed, UsageError
 
 # The help of the family of raw registers and bits, modbus_value{table,address}.
 VALUE_HELP = "Modbus coils, discrete inputs and registers read by mbtool (bits as 0 and 1)"
@@ -43,7 +42,7 @@ class Readings(MonitoringReadings):
         for point in points:
             metric = metric_name(f"{self.measurement}_{point.name}")
             if metric in self.status_names():
-                raise RequestError(
+                raise UsageError(
                     f"point {point.name}: its metric, {metric}, is the "
                     "one that says whether the device answered; rename the point or give --measurement"
                 )
@@ -181,16 +180,40 @@ def label_pairs(labels: dict[str, str]) -> str:
     return ",".join(f'{k}="{label_value(v)}"' for k, v in labels.items())
 
 
-def exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
+# One family of the text format as data, until it is written: its name, its HELP and TYPE lines,
+# and its samples, a line each.  A plant's text is kept so (the exporter joins each family's
+# samples from every device), never written and cut apart again.
+Family = tuple[str, str, str]
+
+
+def gauges(metrics: dict[str, tuple[str, list[str]]]) -> list[Family]:
     """Gauges: {name: (help, samples)}, a family each."""
-    return "".join(family(name, "gauge", about, samples) for name, (about, samples) in metrics.items())
+    return [family_of(name, "gauge", about, samples) for name, (about, samples) in metrics.items()]
 
 
-def family(name: str, kind: str, about: str, samples) -> str:
+def exposition(metrics: dict[str, tuple[str, list[str]]]) -> str:
+    return written(gauges(metrics))
+
+
+def family_of(name: str, kind: str, about: str, samples) -> Family:
     """One family of the text format: its HELP (backslashes and newlines escaped), its TYPE
     and its samples, a line each.  Every exposition mbtool writes is made of these."""
     about = about.replace("\\", "\\\\").replace("\n", "\\n")
-    return f"# HELP {name} {about}\n# TYPE {name} {kind}\n" + "".join(f"{sample}\n" for sample in samples)
+    return (
+        name,
+        f"# HELP {name} {about}\n# TYPE {name} {kind}\n",
+        "".join(f"{sample}\n" for sample in samples),
+    )
+
+
+def family(name: str, kind: str, about: str, samples) -> str:
+    """One family, written."""
+    return written([family_of(name, kind, about, samples)])
+
+
+def written(families) -> str:
+    """Families in the text format, one after another."""
+    return "".join(head + samples for _, head, samples in families)
 
 
 def le(bound: float) -> str:

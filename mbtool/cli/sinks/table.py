@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from mbtool.cli.results import (
     Listing,
@@ -445,7 +445,17 @@ class PlantView:
     line that counts the devices left out."""
 
     EVENT_ROWS = 5  # the band's rows, below its heading
-    COLUMNS = ("device", "link", "state", "last good", "rtt avg", "timeout", "corrupt", "exc", "values")
+    COLUMNS: tuple[str, ...] = (
+        "device",
+        "link",
+        "state",
+        "last good",
+        "rtt avg",
+        "timeout",
+        "corrupt",
+        "exc",
+        "values",
+    )
 
     def __init__(self, plant, describe, clock=time.time) -> None:
         """``describe(event)``: a change of state as its line (cli.plant_text.event_line)."""
@@ -462,6 +472,12 @@ class PlantView:
         self.previous: dict[str, dict[str, object]] = {}
         self.events: list[str] = []
         self.states = schedule.views(plant.devices)  # each device as its latest Poll left it
+        # Poll groups (issue 44): each group's pace as its latest poll left it, in a column of
+        # their own when a device has groups
+        self.paces: dict[str, dict[str, Any]] = {}  # device -> group -> plant.schedule.Pace
+        self.grouped = any(device.groups for device in plant.devices)
+        if self.grouped:
+            self.COLUMNS = (*self.COLUMNS[:-1], "groups: achieved/asked s", self.COLUMNS[-1])
 
     def running(self):
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
@@ -486,13 +502,15 @@ class PlantView:
                 self.events = (self.events + [self.describe(item)])[-self.EVENT_ROWS :]
                 return
             self.states[item.device.name] = self.schedule.view_of(item)
+            if item.pace is not None and item.device.groups:
+                self.paces.setdefault(item.device.name, {})[item.group] = item.pace
             if item.readings is not None:
                 values = {r.point.name: r.value for r in item.readings if r.error is None}
                 before = self.previous.get(item.device.name, {})
                 self.changed[item.device.name] = {
                     name for name, value in values.items() if before.get(name, value) != value
                 }
-                self.previous[item.device.name] = values
+                self.previous[item.device.name] = before | values  # a group's poll: its points
 
     def _screen(self, console, width: int, height: int) -> list:
         from rich.table import Table  # noqa: PLC0415 - rich, 12-20 ms: the live display on a terminal only
@@ -551,8 +569,22 @@ class PlantView:
             str(stats.outcomes["timeout"]),
             str(stats.outcomes["corrupt"]),
             str(stats.outcomes["exception"]),
+            *((self._paces(state.spec.name),) if self.grouped else ()),
             values,
         )
+
+    def _paces(self, device: str) -> str:
+        """Each group's achieved and asked interval, and its overruns: ``fast 1.02/1 (3 late)``."""
+        cells = []
+        for pace in self.paces.get(device, {}).values():
+            if pace.asked == float("inf"):
+                continue  # read once: no pace to keep
+            achieved = "-" if pace.achieved is None else f"{pace.achieved:.2f}"
+            cells.append(
+                f"{pace.group} {achieved}/{pace.asked:g}"
+                + (f" ({pace.overruns} late)" if pace.overruns else "")
+            )
+        return ", ".join(cells)
 
     def _band(self, console, width: int) -> list:
         """The band's rows: the latest changes of state, newest first, each folded whole onto
