@@ -350,6 +350,9 @@ class DeviceState:
     def polls(self) -> int:
         """Its rounds: the polls of its group polled least (once every group has had its
         first, a group read once counts no more)."""
+        groups = self.groups
+        if len(groups) == 1:  # most devices: one group, whose polls they are
+            return groups[0].polls
         repeated = [group.polls for group in self.groups if group.group.interval < math.inf]
         return min(repeated or [group.polls for group in self.groups])
 
@@ -512,7 +515,8 @@ class LinkWorker:
         self.poke.set()
 
     def _run_jobs(self) -> None:
-        while self.jobs is not None and not self.jobs.empty():
+        assert self.jobs is not None  # accept_jobs() made the queue
+        while not self.jobs.empty():
             device, job = self.jobs.get_nowait()
             link = self.link
             if link.client is None:
@@ -598,36 +602,55 @@ class LinkWorker:
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
+    def _earliest(self, now: float) -> tuple[DeviceState, GroupState] | None:
+        """The first of ``_due(now)``, found without building the list: the group a turn of the
+        loop polls."""
+        earliest = None
+        rounds, before = self.rounds, math.inf
+        for device in self.devices:
+            if device.not_before > now or (rounds and device.polls >= rounds):
+                continue
+            for group in device.groups:
+                if group.due <= now and not (rounds and group.polls >= rounds):
+                    deadline = group.deadline
+                    if deadline < before:
+                        earliest, before = (device, group), deadline
+        return earliest
+
     def _work(self) -> None:
         # What every poll asks of the settings, read once: each device's timeout and retries,
         # and --reconnect-each and --pause, which decide what follows a poll.
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
-        while not self.stop.is_set() and not self.finished():
+        link = self.link
+        while not self.stop.is_set():
             self.turns += 1
-            self._run_jobs()
+            if self.jobs is not None:
+                self._run_jobs()
             now = self.clock.monotonic()
-            ready_at = self.link.ready_at if self.link.client is None else -math.inf
-            due = self._due(now) if ready_at <= now else []
-            if not due:
+            ready_at = link.ready_at if link.client is None else -math.inf
+            due = self._earliest(now) if ready_at <= now else None
+            if due is None:
+                if self.finished():
+                    return
                 wake = max(min(d.due for d in self._waiting()), ready_at)
                 if self.idle is not None:
                     self.idle()
                 # a minute at most: a device whose every point is read once waits for a reconnect
                 self._sleep(min(max(0.0, wake - now), 60.0))
                 continue
-            if self.link.client is None:
-                if not self._open(due):
+            if link.client is None:
+                if not self._open(self._due(now)):
                     continue
-                device = due[0][0]
+                device = due[0]
                 if device.spec.grid and not device.polls:
                     # The grid starts with the first link open: opening sim:// (its imports) or
                     # a slow handshake is not a poll overrunning its slot.  What the first link
                     # made stays as long as the run: the collector need not walk it again.
                     gc.freeze()
                     device.due = self.clock.monotonic()
-            self._poll(*due[0])
+            self._poll(*due)
 
     def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
