@@ -180,20 +180,25 @@ class Poll:
         latest=None,
         latency=None,
     ) -> None:
-        # By hand: one a poll (codec/record.py says why).
-        fields = self.__dict__
-        fields["device"] = device
-        fields["time"] = time
-        fields["readings"] = readings
-        fields["error"] = error
-        fields["state"] = state
-        fields["last_success"] = last_success
-        fields["stats"] = stats
-        fields["link"] = link
-        fields["group"] = group
-        fields["pace"] = pace
-        fields["latest"] = latest
-        fields["latency"] = latency
+        # By hand, its fields one dict: one a poll (codec/record.py says why).
+        object.__setattr__(
+            self,
+            "__dict__",
+            {
+                "device": device,
+                "time": time,
+                "readings": readings,
+                "error": error,
+                "state": state,
+                "last_success": last_success,
+                "stats": stats,
+                "link": link,
+                "group": group,
+                "pace": pace,
+                "latest": latest,
+                "latency": latency,
+            },
+        )
 
 
 @record
@@ -606,15 +611,15 @@ class LinkWorker:
         """The first of ``_due(now)``, found without building the list: the group a turn of the
         loop polls."""
         earliest = None
-        rounds, before = self.rounds, math.inf
+        rounds = self.rounds
         for device in self.devices:
             if device.not_before > now or (rounds and device.polls >= rounds):
                 continue
             for group in device.groups:
                 if group.due <= now and not (rounds and group.polls >= rounds):
-                    deadline = group.deadline
-                    if deadline < before:
-                        earliest, before = (device, group), deadline
+                    # deadlines compared only when two are due: one alone is polled
+                    if earliest is None or group.deadline < earliest[1].deadline:
+                        earliest = (device, group)
         return earliest
 
     def _work(self) -> None:
@@ -669,8 +674,14 @@ class LinkWorker:
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                group.started(self.clock.monotonic())
-                settled.extend(self._settle(device, None, error, when, group, not_before=self.link.ready_at))
+                now = self.clock.monotonic()
+                group.started(now)
+                poll, event = self._settle(
+                    device, group, None, error, when, now, not_before=self.link.ready_at
+                )
+                settled.append(poll)
+                if event is not None:
+                    settled.append(event)
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
@@ -712,15 +723,14 @@ class LinkWorker:
         client.timeout, client.retries = device.limits
         self.link.stats = device.counted
 
-    def _poll(self, device: DeviceState, group: GroupState | None = None, nested: bool = False) -> None:
-        """One poll of ``group`` (None: the device's first).  Between its transactions, a group
+    def _poll(self, device: DeviceState, group: GroupState, nested: bool = False) -> None:
+        """One poll of ``group``, a group of ``device``.  Between its transactions, a group
         due with an earlier deadline is polled first (not ``nested`` in another's): a fast
         group is never held up by more than one transaction of a slow group's long read."""
-        link = self.link
-        group = group or device.groups[0]
+        link, clock = self.link, self.clock
         client = link.client
         assert client is not None  # a device is polled on an open link
-        began = self.clock.monotonic()
+        began = clock.monotonic()
         overruns = group.overruns
         group.started(began)
         self.stamp = None
@@ -734,7 +744,7 @@ class LinkWorker:
                 nonlocal cut_in
                 if self.stamp is not None:
                     stamp = self.stamp
-                    others = self._due(self.clock.monotonic(), before=group.deadline)
+                    others = self._due(clock.monotonic(), before=group.deadline)
                     for other in others:
                         self._poll(*other, nested=True)
                     if others:
@@ -762,15 +772,18 @@ class LinkWorker:
             error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
         finally:
             client.while_waiting = None
+        ended = clock.monotonic()
         if not nested:
-            self.busy += self.clock.monotonic() - began
+            self.busy += ended - began
         if client.deviations:  # --lenient took a reply as it was: the summary says so
             self.accepted.update(client.deviations)
         when = self.stamp
         if when is None:  # the request never left
-            when = self.clock.time()
-        for item in self._settle(device, readings, error, when, group, latency=latency):
-            self.report(item)
+            when = clock.time()
+        poll, event = self._settle(device, group, readings, error, when, ended, latency=latency)
+        self.report(poll)
+        if event is not None:
+            self.report(event)
         if group.overruns > overruns and not self.overran:
             self._overrun()
         if nested:
@@ -805,22 +818,22 @@ class LinkWorker:
 
     def _settle(
         self,
-        device,
+        device: DeviceState,
+        group: GroupState,
         readings,
         error,
         when: float,
-        group: GroupState | None = None,
+        now: float,
         not_before: float | None = None,
         latency: float | None = None,
-    ) -> list[Poll | Event]:
-        """A poll's outcome in the device's state: the Poll, and the Event of its change of
-        state if it had one, to report.  ``not_before``: its link cannot be opened, so the
-        device is offline now and not tried before the link is."""
-        now = self.clock.monotonic()
-        group = group or device.groups[0]
+    ) -> tuple[Poll, Event | None]:
+        """A poll of ``group`` that ended at ``now`` (monotonic) in the device's state: the Poll,
+        and the Event of its change of state if it had one, to report.  ``not_before``: its
+        link cannot be opened, so the device is offline now and not tried before the link is."""
         group.polls += 1
         ok = readings is not None  # a partial read answered: the device is there
-        if self.published:  # the outputs of a plant show them; a lone device's run counts its own
+        published = self.published  # the outputs of a plant show them; a lone device's run counts its own
+        if published:
             device.stats.poll(ok)
         if ok:
             event = device.succeeded(now, when, group)
@@ -829,18 +842,19 @@ class LinkWorker:
             if not_before is not None and device.state == OFFLINE:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        if self.rounds and group.polls >= self.rounds:
+        rounds = self.rounds
+        if rounds and group.polls >= rounds:
             group.due = math.inf  # its rounds are done
         latest = None
-        if device.latest is not None and readings is not None:
+        if device.latest is not None and ok:
             device.latest.update((reading.point.name, reading) for reading in readings)
             latest = tuple(device.latest.values())
         # Whether it will be tried again matters to an event's announcement, and decides an
         # offline device's next try; a device that answered is polled again while the run lasts.
-        again = self._tried_again(device) if event is not None or device.state == OFFLINE else True
-        if not again and event is not None and event.retry_in is not None:
-            event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        if self.published:
+        if (event is not None or device.state == OFFLINE) and not self._tried_again(device):
+            if event is not None and event.retry_in is not None:
+                event = replace(event, retry_in=None)  # the run ends first: no next try to announce
+        if published:
             poll = Poll(
                 device.spec,
                 when,
@@ -863,11 +877,15 @@ class LinkWorker:
                 error,
                 device.state,
                 device.last_success,
-                latest=latest,
-                latency=latency,
+                None,
+                None,
+                DEFAULT,
+                None,
+                latest,
+                latency,
             )
         device.last_poll = poll
-        return [poll] if event is None else [poll, event]
+        return poll, event
 
 
 class Plant:
