@@ -117,6 +117,18 @@ class Durations:
         with self._folded():
             return list(self._recent)
 
+    def copy(self) -> Durations:
+        """These durations as they are now, in a Durations of its own (a record's, for readers
+        on other threads): taken whole, not merged into an empty one, and the batch with them,
+        folded when the copy is read (a plant copies its counts every poll, reads them seldom)."""
+        copy = Durations()
+        with self._folding:
+            copy._count, copy._total, copy._squares = self._count, self._total, self._squares
+            copy._low, copy._high, copy._counts = self._low, self._high, list(self._counts)
+            copy._recent.extend(self._recent)
+            copy._batch = self._batch[:]
+        return copy
+
     def merge(self, other: Durations, recent: bool = True) -> None:
         """Fold another's durations into these (a link's are its devices'); ``recent=False``
         leaves the window out (the exporter's link totals show no percentile)."""

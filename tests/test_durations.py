@@ -110,3 +110,22 @@ def test_a_thread_that_reads_while_another_adds_loses_none_and_counts_none_twice
     assert seen == sorted(seen), "a count never goes back"
     assert durations.count == added and durations.buckets()[-1][1] == added
     assert dict(durations.buckets())[0.001] == sum(1 for step in range(added) if step % 7 == 0)  # the 0.5 ms
+
+
+def test_a_copy_has_every_figure_as_it_was_and_later_durations_are_not_in_it():
+    durations = Durations()
+    for seconds in (0.002, 0.004, 0.3):
+        durations.add(seconds)
+    copy = durations.copy()
+    durations.add(7.0)
+    assert (copy.count, copy.total) == (3, pytest.approx(0.306))
+    assert copy.figures() == pytest.approx({**durations_of(0.002, 0.004, 0.3).figures()})
+    assert copy.buckets() == durations_of(0.002, 0.004, 0.3).buckets()
+    assert durations.count == 4
+
+
+def durations_of(*seconds: float) -> Durations:
+    made = Durations()
+    for each in seconds:
+        made.add(each)
+    return made

@@ -18,6 +18,7 @@ one place a transaction is counted; none judges outcomes of its own.
 from __future__ import annotations
 
 from collections import Counter
+from typing import Self
 
 from mbtool.codec.errors import (
     ChecksumError,
@@ -110,6 +111,17 @@ class Stats:
         self.recovered += other.recovered
         self.untimed += other.untimed
         self.rtt.merge(other.rtt, recent)
+
+    def copy(self) -> Self:
+        """These counts as they are now, of the same kind (a plant's PollStats with its polls),
+        for a record a link's thread publishes: the reader gets its own, which no later
+        transaction changes.  Made whole, not added to empty counts."""
+        copy = object.__new__(self.__class__)
+        copy.__dict__.update(self.__dict__)  # the numbers; what changes in place is copied next
+        copy.outcomes = dict(self.outcomes)
+        copy.exceptions = self.exceptions.copy()
+        copy.rtt = self.rtt.copy()
+        return copy
 
     def rtt_figures(self) -> dict[str, float] | None:
         """min, avg, p95 and max round-trip time in seconds; None before the first answer."""

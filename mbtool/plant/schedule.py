@@ -52,7 +52,7 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialR
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
-from mbtool.plant.stats import DeviceAndLink, PollStats, copy_stats
+from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import Reading
 
@@ -704,7 +704,7 @@ class LinkWorker:
 
     def view(self) -> LinkView:
         """The link as it is now, for a record: its own copy of the counts."""
-        return LinkView(self.spec.name, self.state, self.open_failures, copy_stats(self.stats))
+        return LinkView(self.spec.name, self.state, self.open_failures, self.stats.copy())
 
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()

@@ -28,20 +28,6 @@ class PollStats(Stats):
     def as_dict(self) -> dict:
         return {"polls": self.polls, "failed_polls": self.failed_polls, **super().as_dict()}
 
-    def copy(self) -> PollStats:
-        """These counts as they are now, for a record its link's thread publishes: the reader
-        gets its own, which no later poll changes."""
-        copy = PollStats()
-        copy.add(self)
-        return copy
-
-
-def copy_stats(stats: Stats) -> Stats:
-    """A link's transactions as they are now (``PollStats.copy``'s reason)."""
-    copy = Stats()
-    copy.add(stats)
-    return copy
-
 
 class DeviceAndLink:
     """Where the managed link counts a plant's transaction: in its device's statistics and in its

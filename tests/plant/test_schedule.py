@@ -13,6 +13,7 @@ import pytest
 import mbtool.link
 from mbtool.errors import ConnectionFailed, NoResponse
 from mbtool.link.connection import Connection
+from mbtool.plant.stats import PollStats
 from mbtool.plant.schedule import (
     OFFLINE,
     ONLINE,
@@ -122,6 +123,20 @@ def test_a_poll_carries_copies_of_its_device_and_link_that_later_polls_do_not_ch
     view = view_of(poll)
     assert (view.spec, view.state, view.last_success, view.last_poll) == (state.spec, ONLINE, 5.0, poll)
     assert [v.state for v in views([state.spec]).values()] == ["unknown"]  # before any poll
+
+
+def test_a_copy_of_a_devices_counts_is_its_own_whole_and_later_transactions_are_not_in_it():
+    stats = PollStats()
+    stats.poll(True)
+    stats.answered(2, 0.004)  # on its retry
+    stats.transaction(NoResponse("silence"), 1)
+    copy = stats.copy()
+    stats.poll(False)
+    stats.answered(1, 0.3)
+    assert type(copy) is PollStats
+    assert (copy.polls, copy.failed_polls, copy.transactions, copy.recovered) == (1, 0, 2, 1)
+    assert (copy.outcomes["answered"], copy.outcomes["timeout"], copy.rtt.count) == (1, 1, 1)
+    assert (stats.polls, stats.transactions, stats.rtt.count) == (2, 3, 2)
 
 
 def _two_links(monkeypatch) -> Plant:
