@@ -213,6 +213,14 @@ class Pace:
     polls: int
     overruns: int
 
+    def __init__(self, group, asked, achieved, polls, overruns) -> None:
+        # By hand, its fields one dict: one a poll (codec/record.py says why).
+        object.__setattr__(
+            self,
+            "__dict__",
+            {"group": group, "asked": asked, "achieved": achieved, "polls": polls, "overruns": overruns},
+        )
+
 
 @record
 class LinkView:
@@ -223,6 +231,12 @@ class LinkView:
     state: str
     open_failures: int
     stats: Stats = field(compare=False)
+
+    def __init__(self, name, state, open_failures, stats) -> None:
+        # By hand, its fields one dict: one a poll (codec/record.py says why).
+        object.__setattr__(
+            self, "__dict__", {"name": name, "state": state, "open_failures": open_failures, "stats": stats}
+        )
 
 
 @record
@@ -235,6 +249,20 @@ class DeviceView:
     last_success: float | None = None
     last_poll: Poll | None = field(default=None)
     stats: PollStats = field(default=None, compare=False)
+
+    def __init__(self, spec, state=UNKNOWN, last_success=None, last_poll=None, stats=None) -> None:
+        # By hand, its fields one dict: one a poll, made by each reader (codec/record.py says why).
+        object.__setattr__(
+            self,
+            "__dict__",
+            {
+                "spec": spec,
+                "state": state,
+                "last_success": last_success,
+                "last_poll": last_poll,
+                "stats": stats,
+            },
+        )
 
 
 def view_of(poll: Poll) -> DeviceView:
