@@ -641,8 +641,9 @@ class LinkWorker:
         earliest = None
         rounds = self.rounds
         for device in self.devices:
-            if device.not_before > now or (rounds and device.polls >= rounds):
+            if device.not_before > now:
                 continue
+            # A device that has had its rounds has every group due never (_settle, _open).
             for group in device.groups:
                 if group.due <= now and not (rounds and group.polls >= rounds):
                     # deadlines compared only when two are due: one alone is polled
@@ -724,7 +725,7 @@ class LinkWorker:
         self.state = ONLINE
         if self.link.opens > 1:  # a reconnect: what is read once is read again
             now = self.clock.monotonic()
-            for device in self.devices:
+            for device in self._waiting():  # not of a device that has had its rounds
                 for group in device.groups:
                     if group.group.interval == math.inf:
                         group.due = now

@@ -544,3 +544,20 @@ def test_a_link_that_keeps_up_says_nothing_of_its_pace():
     records, _, _ = run_groups(clock, [grouped(clock, ("fast", 1.0, 2, 0.25), ("slow", 5.0, 4, 0.25))])
     assert not [r for r in records if isinstance(r, Event)]
     assert all(r.pace.overruns == 0 for r in records if isinstance(r, Poll) and r.group == "fast")
+
+
+def test_a_reconnect_after_a_device_has_had_its_rounds_reads_nothing_of_it_again():
+    """Device m is done at 2 (three rounds of its fast group, its ONCE group read at start);
+    device b loses the link at 3 and opens it again at 6: what m reads once stays read."""
+    clock = Clock()
+    m = grouped(clock, ("fast", 1.0, 1, 0.0), (ONCE, math.inf, 1, 0.0))
+    b = DeviceSpec("b", "bus", 2, Reader(), {}, 3.0, 3, 60.0)
+    records, link, _ = run_groups(clock, [m, b], script={2: ["reply", "lost"]}, rounds=3)
+    assert link.opened == [0, 6]
+    assert group_polls(records, ONCE) == [0]
+    assert group_polls(records, "fast") == [0, 1, 2]
+    assert [round(r.time - EPOCH, 3) for r in records if isinstance(r, Poll) and r.device.name == "b"] == [
+        0,
+        3,
+        6,
+    ]
