@@ -519,8 +519,12 @@ class LinkWorker:
                 group.rounds = rounds
             device.counted = DeviceAndLink(device.stats, self.stats) if published else self.stats
             device.execute = functools.partial(self.link.execute, device.spec.unit)  # execute(request)
-        # One group on the link: no other's poll can come between its transactions.
-        self.alone = sum(len(device.groups) for device in devices) == 1
+        # The one group on the link, if it has one (a device of one group on a link of its own:
+        # a TCP device, read --interval): no other's poll comes between its transactions, and
+        # a turn of the loop has no other to choose.
+        self.alone: tuple[DeviceState, GroupState] | None = None
+        if sum(len(device.groups) for device in devices) == 1:
+            self.alone = (devices[0], devices[0].groups[0])
         self.crashed: BaseException | None = None
         self.busy = 0.0  # seconds its polls took: what the line carries is its transactions in them
         self.overran = False  # said once that it cannot keep up
@@ -638,12 +642,17 @@ class LinkWorker:
     def _earliest(self, now: float) -> tuple[DeviceState, GroupState] | None:
         """The first of ``_due(now)``, found without building the list: the group a turn of the
         loop polls."""
-        earliest = None
         rounds = self.rounds
+        # A device that has had its rounds has every group due never (_settle, _open).
+        alone = self.alone
+        if alone is not None:  # no other to choose
+            device, group = alone
+            due = device.not_before <= now and group.due <= now and not (rounds and group.polls >= rounds)
+            return alone if due else None
+        earliest = None
         for device in self.devices:
             if device.not_before > now:
                 continue
-            # A device that has had its rounds has every group due never (_settle, _open).
             for group in device.groups:
                 if group.due <= now and not (rounds and group.polls >= rounds):
                     # deadlines compared only when two are due: one alone is polled
@@ -767,7 +776,7 @@ class LinkWorker:
         self._aim(device, client)
         execute = device.execute
         cut_in = False  # another group's poll came between its transactions: its latency is not its own
-        if not (self.alone or nested):
+        if self.alone is None and not nested:
 
             def execute(request):
                 nonlocal cut_in
