@@ -117,10 +117,11 @@ def main() -> None:
     for name, arguments in reads.items():
         commands[f"mbtool read-holding-registers ({name})"] = [str(mbtool), *arguments]
     if args.before:
-        # Both trees started the same way: what the console script does, with the tree
-        # first on the path.
+        # Both trees started the same way, as python -m mbtool (what the console script runs,
+        # whichever function a tree's entry point names), with the tree first on the path.
         launcher = (
-            "import sys; sys.path.insert(0, sys.argv.pop(1)); from mbtool.cli import main; sys.exit(main())"
+            "import runpy, sys; sys.path.insert(0, sys.argv.pop(1)); "
+            "runpy.run_module('mbtool', run_name='__main__', alter_sys=True)"
         )
         for tree in trees:
             for name, arguments in reads.items():

@@ -244,10 +244,15 @@ class HttpServer:
         """Read the events h11 has: a whole request goes to a thread to be answered."""
         http = connection.http
         while True:
+            # A head h11 rejects is gone from its buffer with its method: whether it was a
+            # HEAD's, whose refusal has no body either, is known only before.
+            head_only = http.their_state is h11.IDLE and http.trailing_data[0].startswith(b"HEAD ")
             try:
                 event = http.next_event()
             except h11.RemoteProtocolError as error:
-                self._refuse(connection, error.error_status_hint, f"bad request: {error}")
+                self._refuse(
+                    connection, error.error_status_hint, f"bad request: {error}", head_only=head_only
+                )
                 return
             if event is h11.NEED_DATA:
                 return
@@ -296,7 +301,8 @@ class HttpServer:
         except RuntimeError:  # no thread to be had (memory, a limit): the scraper tries again
             connection.answering = False
             self.connections.pop(connection.sock, None)
-            self._refuse(connection, 503, "no thread to answer with: try again")
+            head_only = connection.request is not None and connection.request.method == b"HEAD"
+            self._refuse(connection, 503, "no thread to answer with: try again", head_only=head_only)
 
     def _answer(self, connection: Connection) -> None:
         request, http = connection.request, connection.http

@@ -175,8 +175,10 @@ def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every outcome leaves through one exit code and at most one stderr line."""
     # What start-up built (click, the codec's classes) lives until exit.  Frozen (Python's
     # gc.freeze), the cyclic collector never walks it again, during the run or at exit:
-    # a one-shot read ends about 6 ms sooner (bench/oneshot.py).
+    # a one-shot read ends about 6 ms sooner (bench/oneshot.py).  The script imported all
+    # this with the collector off (mbtool.__main__.run): on again for the run.
     gc.freeze()
+    gc.enable()
     register_schemes()  # before completion, which offers sim:// too
     if COMPLETE_VAR in os.environ:  # the shell asks for completions (completions/, Click's scripts)
         from click.shell_completion import shell_complete  # noqa: PLC0415 - TAB only, 0.5 ms

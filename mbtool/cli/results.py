@@ -240,6 +240,12 @@ def change_parts(what: dict, old, new, unit: str = "") -> tuple[str, str, str]:
     return where, shown(old), shown(new)
 
 
+def engineering_unit(unit: str) -> dict:
+    """A point's engineering unit as its JSON key, none when it has none: in a record whose
+    own "unit" is the unit id, a point's ``"unit": ""`` reads as that id gone missing."""
+    return {"unit": unit} if unit else {}
+
+
 def points_dict(points: Points) -> dict:
     return {
         "unit": points.unit,
@@ -248,7 +254,7 @@ def points_dict(points: Points) -> dict:
             {
                 "name": row.name,
                 "value": row.value,
-                "unit": row.unit,
+                **engineering_unit(row.unit),
                 "ref": row.ref,
                 "bits" if row.bits else "registers": list(row.raw),
                 **({"invalid": True} if row.value is None else {}),

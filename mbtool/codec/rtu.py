@@ -32,7 +32,7 @@ def crc_verdict(adu: bytes) -> str:
 
 
 # Which offsets an RTU framer judges as frame starts, per (framer class, responses,
-# function code asked, unit asked): see RtuFramer._judge_starts_for.
+# function code asked, unit asked): see RtuFramer._start_rule.
 _START_RULES: dict[tuple, re.Pattern[bytes]] = {}
 
 # The size of a frame whose function code alone tells it, by code (0: the bytes after it or
@@ -54,6 +54,7 @@ class RtuFramer(Framer):
     _held = False  # a corrupted frame is held: the awaited reply may begin in its last bytes
     _quiet = False  # inside silence(): no more bytes are coming
     _starved: tuple | None = None  # the state in which _parse last needed more bytes
+    _marks: re.Pattern[bytes] | None = None  # the offsets worth judging amid garbage (_starts)
 
     def __init__(self, responses: bool = True) -> None:
         super().__init__(responses)
@@ -161,7 +162,7 @@ class RtuFramer(Framer):
 
     # -- resync (spec §2: an RTU frame has no start mark; only its length rule and CRC tell) --
 
-    def _judge_starts_for(self, expect: Request | None, unit: int | None) -> None:
+    def _start_rule(self, expect: Request | None, unit: int | None) -> re.Pattern[bytes]:
         """Decide which offsets are worth judging as the start of a frame.
 
         While a request is outstanding: an offset holding its unit, or one byte before its
@@ -190,7 +191,7 @@ class RtuFramer(Framer):
             if units:
                 marks.insert(0, _byte_class(units) + b".")  # a unit byte with a function code after it
             _START_RULES[key] = re.compile(b"(?s)(?=" + b"|".join(marks) + b")")
-        self._marks = _START_RULES[key]
+        return _START_RULES[key]
 
     def _sizes_for(self, expect: Request | None) -> None:
         """Learn which function codes tell their frame's size alone: most do, and looking it up
@@ -223,6 +224,8 @@ class RtuFramer(Framer):
 
     def _starts(self, lo: int, hi: int):
         """The offsets in lo..hi-1 worth judging as the start of a frame, in order."""
+        if self._marks is None:  # compiled (up to 2.5 M instructions) once garbage needs it
+            self._marks = self._start_rule(self._scan_expect, self._scan_unit)
         # Up to hi inclusive: the function code of an offset at hi - 1 lies at hi.
         return map(re.Match.start, self._marks.finditer(self._buffer, lo, hi + 1))
 
@@ -230,7 +233,7 @@ class RtuFramer(Framer):
         if self._scan_expect is not self.expect or self._scan_unit != self.expect_unit:
             # Lengths and the offsets worth judging depend on the request: judge afresh.
             self._scan_expect, self._scan_unit = self.expect, self.expect_unit
-            self._judge_starts_for(self.expect, self.expect_unit)
+            self._marks = None  # _start_rule's, for this request: a clean reply never needs it
             self._sizes_for(self.expect)
             self._search.reset()
 

@@ -14,8 +14,8 @@ timed by the kernel, may end a few milliseconds late); the client owns the clock
 
 from __future__ import annotations
 
-# The socket options' numbers, from the module socket.py wraps: socket itself (link.base.connect
-# imports it) costs 14 M instructions that a sim:// or serial read need not pay.
+# The socket options' numbers, from the module socket.py wraps: socket itself costs 12 M
+# instructions that no one-shot read need pay (link.base.connect makes its connection on _socket).
 import _socket
 import contextlib
 import errno
@@ -360,12 +360,12 @@ class Target:
         """What the target opens, however it is spelled, so that two spellings of one link are
         told from two links: a host and port by the transport's protocol (tcp:// and tls:// to
         one port are one TCP endpoint, and so are socket:// and rfc2217://; no name is looked
-        up), a serial device by the path its symbolic links resolve to (/dev/serial/by-id/...
+        up, the loopback's being known: endpoint_host), a serial device by the path its symbolic links resolve to (/dev/serial/by-id/...
         is /dev/ttyUSB0), an in-process device by its text."""
         if self.scheme in NETWORK_SCHEMES:
-            return (NETWORK_SCHEMES[self.scheme][1], canonical_host(self.host), self.port)
+            return (NETWORK_SCHEMES[self.scheme][1], endpoint_host(self.host), self.port)
         if self.handler in BRIDGE_SCHEMES:
-            return ("TCP", canonical_host(self.host), self.port)
+            return ("TCP", endpoint_host(self.host), self.port)
         if self.scheme == "serial":
             return ("serial", self.path.lower() if self.handler else os.path.realpath(self.path))
         return (self.scheme, str(self))
@@ -389,6 +389,23 @@ def canonical_host(host: str) -> str:
                 return _socket.inet_ntoa(packed[12:])
             return _socket.inet_ntop(_socket.AF_INET6, packed) + percent + zone
     return host.lower().rstrip(".")
+
+
+# The loopback as a name and as the addresses it stands for (RFC 6761 6.3: localhost, and
+# any name under it, is the loopback; ::1 or 127.0.0.1, whichever the device listens on).
+LOOPBACK = "localhost"
+LOOPBACK_ADDRESSES = frozenset({"127.0.0.1", "::1"})
+
+
+def endpoint_host(host: str) -> str:
+    """A host as an endpoint's: canonical_host, the loopback's names and addresses one, so
+    that tcp://localhost and tcp://127.0.0.1 are one device's link, known without a lookup.
+    Two devices on ::1 and 127.0.0.1 taken for one only take turns; one device taken for two
+    would have two masters at once."""
+    host = canonical_host(host)
+    if host in LOOPBACK_ADDRESSES or host == LOOPBACK or host.endswith("." + LOOPBACK):
+        return LOOPBACK
+    return host
 
 
 MODBUS_TLS_PORT = 802  # Modbus/TCP Security's registered port (MB-TCP-Security-v21)
@@ -424,9 +441,9 @@ def target_forms() -> str:
     )
 
 
-_HOST_LIKE = re.compile(
-    r"(\[[0-9A-Fa-f:.]+\]|localhost|[A-Za-z0-9-]+(\.[A-Za-z0-9-]+)+)(:[0-9]+)?|[A-Za-z0-9.-]+:[0-9]+"
-)
+# A host (and port) given where a serial device goes.  Compiled (1.6 M instructions) only for a
+# device that is not there: re's cache keeps it from then on.
+_HOST_LIKE = r"(\[[0-9A-Fa-f:.]+\]|localhost|[A-Za-z0-9-]+(\.[A-Za-z0-9-]+)+)(:[0-9]+)?|[A-Za-z0-9.-]+:[0-9]+"
 
 
 def parse_target(text: str, listening: bool = False) -> Target:
@@ -438,7 +455,7 @@ def parse_target(text: str, listening: bool = False) -> Target:
     if not sep:
         if not text:
             raise UsageError(f"an empty target: use {target_forms()}")
-        if _HOST_LIKE.fullmatch(text) and not os.path.exists(text):
+        if not os.path.exists(text) and re.fullmatch(_HOST_LIKE, text):
             raise UsageError(f"{text} is not a serial device; did you mean tcp://{text}?")
         return Target("serial", path=text)
     if scheme in NETWORK_SCHEMES:

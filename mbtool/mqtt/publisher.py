@@ -26,6 +26,7 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 
 from mbtool.codec.errors import RequestError
+from mbtool.errors import UsageError
 from mbtool.mqtt.change import ChangeFilter
 from mbtool.mqtt.discovery import configs
 from mbtool.mqtt.settings import MqttSettings
@@ -363,7 +364,7 @@ class MqttPublisher:
         assert writes is not None and submit is not None  # made for [mqtt] writes, which is how a /set came
         try:
             point, write = writes.check(request)
-        except RequestError as error:
+        except (UsageError, RequestError) as error:  # the user's mistake, or the spec's refusal
             self._result(WriteResult(request.device, request.point, f"refused: {error}"))
             return
         submit(request.device, writes.job(request, point, write, self.report))

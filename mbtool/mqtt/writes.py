@@ -17,9 +17,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.errors import ModbusException
 from mbtool.codec.record import record
-from mbtool.errors import KNOWN_ERRORS
+from mbtool.errors import KNOWN_ERRORS, UsageError
 from mbtool.mqtt.settings import MqttSettings
 from mbtool.mqtt.topics import Topics, point_payload
 from mbtool.registermap.plan import MapReader, write_request
@@ -61,17 +61,18 @@ class Writes:
         return SetRequest(device, point, payload.decode("utf-8", "replace").strip())
 
     def check(self, request: SetRequest):
-        """The point and the Modbus request that write it; RequestError saying why not."""
+        """The point and the Modbus request that write it; UsageError saying why not (the user's
+        mistake), or the codec's RequestError (a request the spec forbids)."""
         device = self.devices[request.device]
         points = {point.name: point for point in device.reader.points}
         point = points.get(request.point)
         if point is None:
-            raise RequestError(f"{device.name} reads no point {request.point}")
+            raise UsageError(f"{device.name} reads no point {request.point}")
         allowed = self.settings.allow
         if allowed is not None and point.name not in allowed:
-            raise RequestError(f"{point.name} is not on the allow-list ({', '.join(allowed) or 'empty'})")
+            raise UsageError(f"{point.name} is not on the allow-list ({', '.join(allowed) or 'empty'})")
         if not request.text:
-            raise RequestError(f"{point.name}: no value")
+            raise UsageError(f"{point.name}: no value")
         return point, write_request(point, request.text)
 
     def job(self, request: SetRequest, point: Point, write, done: Callable[[WriteResult], None]):

@@ -52,6 +52,7 @@ from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialR
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
+from mbtool.plant.budget import serial_line, transaction_seconds
 from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import Reading
@@ -303,6 +304,9 @@ class GroupState:
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
         self.skipped = 0  # slots of its grid passed while a poll ran over
+        # The line's time of its longest read, on a serial line (plant/budget.py); 0: not known.
+        # A read of it waits where it would make a faster group late (LinkWorker._held_for).
+        self.line_time = 0.0
 
     @property
     def deadline(self) -> float:
@@ -335,6 +339,10 @@ class GroupState:
                     self.skipped += missed
             else:  # --interval 0: back to back, no slot to miss
                 self.due = now
+
+    def had(self, rounds: int) -> bool:
+        """Whether it has had the run's rounds (``--rounds``; 0: until stopped)."""
+        return bool(rounds) and self.polls >= rounds
 
     def pace(self) -> Pace:
         achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
@@ -534,6 +542,14 @@ class LinkWorker:
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
+        if serial_line(spec.connection) and self.alone is None:  # alone, a read waits for no other
+            for device in devices:
+                for group in device.groups:
+                    group.line_time = max(
+                        (transaction_seconds(spec.connection, device.spec.unit, block.request)
+                         for block in group.group.reader.blocks),
+                        default=0.0,
+                    )  # fmt: skip
         # That it moves, for systemd's watchdog (Plant.moved): its loop's turns, and whether it
         # waits on schedule for its next poll.
         self.turns = 0
@@ -633,9 +649,7 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before <= now
             for group in device.groups
-            if group.due <= now
-            and group.deadline < before
-            and not (self.rounds and group.polls >= self.rounds)
+            if group.due <= now and group.deadline < before and not group.had(self.rounds)
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
@@ -660,6 +674,23 @@ class LinkWorker:
                         earliest = (device, group)
         return earliest
 
+    def _held_for(self, now: float, group: GroupState) -> float | None:
+        """When a group with an earlier deadline than ``group``'s falls due before ``group``'s
+        next read would end on the line: then (the read waits for it, which goes first), else
+        None.  A read is held back only while less than ``LATE`` of its own interval late: fast
+        groups that leave the line no gap long enough do not starve it."""
+        if not group.line_time or now - group.due >= LATE * group.group.interval:
+            return None
+        ends = now + group.line_time
+        soon = [
+            other.due
+            for device in self._waiting()
+            if device.not_before < ends
+            for other in device.groups
+            if now < other.due < ends and other.deadline < group.deadline and not other.had(self.rounds)
+        ]
+        return min(soon, default=None)
+
     def _work(self) -> None:
         # What every poll asks of the settings, read once: each device's timeout and retries,
         # and --reconnect-each and --pause, which decide what follows a poll.
@@ -682,6 +713,10 @@ class LinkWorker:
                     self.idle()
                 # a minute at most: a device whose every point is read once waits for a reconnect
                 self._sleep(min(max(0.0, wake - now), 60.0))
+                continue
+            held = self._held_for(now, due[1]) if due[1].line_time else None
+            if held is not None:  # a faster group falls due before this read would end
+                self._sleep(held - now)
                 continue
             if link.client is None:
                 if not self._open(self._due(now)):
@@ -764,7 +799,8 @@ class LinkWorker:
     def _poll(self, device: DeviceState, group: GroupState, nested: bool = False) -> None:
         """One poll of ``group``, a group of ``device``.  Between its transactions, a group
         due with an earlier deadline is polled first (not ``nested`` in another's): a fast
-        group is never held up by more than one transaction of a slow group's long read."""
+        group is never held up by more than one transaction of a slow group's long read, and on
+        a serial line not even by that (``_held_for``)."""
         link, clock = self.link, self.clock
         client = link.client
         assert client is not None  # a device is polled on an open link
@@ -782,6 +818,9 @@ class LinkWorker:
                 nonlocal cut_in
                 if self.stamp is not None:
                     stamp = self.stamp
+                    held = self._held_for(clock.monotonic(), group)
+                    if held is not None:  # the next read would make a faster group late: it goes first
+                        clock.wait(self.stop, held - clock.monotonic())
                     others = self._due(clock.monotonic(), before=group.deadline)
                     for other in others:
                         self._poll(*other, nested=True)
@@ -880,8 +919,7 @@ class LinkWorker:
             if not_before is not None and device.state == OFFLINE:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        rounds = self.rounds
-        if rounds and group.polls >= rounds:
+        if group.had(self.rounds):
             group.due = math.inf  # its rounds are done
         latest = None
         if device.latest is not None and ok:

@@ -31,11 +31,11 @@ from mbtool.codec.data_access import (
     MAX_READ_REGISTERS,
     MaskWriteRegister,
 )
-from mbtool.codec.errors import ModbusException, RequestError
+from mbtool.codec.errors import ModbusException
 from mbtool.codec.pdu import ExceptionCode, Request
 from mbtool.codec.record import field, record
 from mbtool.codec.tables import READS, Table, write_of
-from mbtool.errors import PartialRead
+from mbtool.errors import PartialRead, UsageError
 from mbtool.registermap.point import Point, PointValue
 
 
@@ -243,7 +243,7 @@ def write_request(
             if not point.table.writable
             else "the map does not mark it rw"
         )
-        raise RequestError(f"{point.name} ({point.ref}) is not writable: {why}")
+        raise UsageError(f"{point.name} ({point.ref}) is not writable: {why}")
     raw = point.raw_for(text, nonfinite, scale_factor)
     if point.bit is not None:
         return bit_request(point.address, point.bit, bool(raw))

@@ -32,6 +32,7 @@ from mbtool.codec.values import (
     integer_value,
     value_decoder,
 )
+from mbtool.errors import UsageError
 
 ON_WORDS = {"on": True, "1": True, "true": True, "off": False, "0": False, "false": False}
 
@@ -173,7 +174,7 @@ class Point:
             try:
                 return ON_WORDS[text.strip().lower()]
             except KeyError:
-                raise RequestError(f"{self.name}: {text} is not on or off") from None
+                raise UsageError(f"{self.name}: {text} is not on or off") from None
         wanted = _decimal(text)
         if self.enum is not None:
             for raw, label in self.enum.items():
@@ -181,14 +182,14 @@ class Point:
                     return raw
             if wanted is None:
                 labels = ", ".join(self.enum.values())
-                raise RequestError(f"{self.name}: {text} is none of {labels}")
+                raise UsageError(f"{self.name}: {text} is none of {labels}")
         if self.type == "string":
             return text
         if wanted is None:
-            raise RequestError(f"{self.name}: {text} is not a number")
+            raise UsageError(f"{self.name}: {text} is not a number")
         floating = TYPES[self.type].fmt in ("f", "d")
         if not wanted.is_finite() and not floating:
-            raise RequestError(f"{self.name}: {text} is not a number a {self.type} can hold")
+            raise UsageError(f"{self.name}: {text} is not a number a {self.type} can hold")
         if self.scale_ref is not None and scale_factor is None:
             raise NoScaleFactor(
                 f"{self.name}: its scale factor, {self.scale_ref.name}, has no value: {text} cannot be scaled"
@@ -208,13 +209,13 @@ class Point:
                 if raw != raw.to_integral_value():
                     low = raw.to_integral_value(rounding="ROUND_FLOOR")
                     nearest = " and ".join(_text(r * scale + offset) for r in (low, low + 1))
-                    raise RequestError(
+                    raise UsageError(
                         f"{text} is not a whole number of steps of {_text(scale)}"
                         f"{' from ' + _text(offset) if offset else ''}; the nearest writable values are {nearest}"
                     )
                 return integer_value(raw, self.type, shown)
-            except RequestError as error:
-                raise RequestError(f"{self.name}: {error}") from None
+            except (RequestError, UsageError) as error:  # the codec's range of the type, or the steps
+                raise UsageError(f"{self.name}: {error}") from None
 
     def held(self, text: str, raw: int | float | str | bool, scale_factor: int | None = None) -> PointValue:
         """What the point holds once ``raw`` (``raw_for(text)``'s) is written, when that is not
@@ -237,7 +238,7 @@ class Point:
         registers = encode_values([raw], self.type, self.order)
         if self.type == "string":
             if len(registers) > self.count:
-                raise RequestError(
+                raise UsageError(
                     f"{self.name}: {raw} needs {len(registers)} registers, the point has {self.count}"
                 )
             registers += [0] * (self.count - len(registers))

@@ -39,3 +39,15 @@ def test_a_stamp_is_local_time_to_the_millisecond_with_the_offset_then_in_force(
 ):
     assert local_time(when) == expected
     assert local_time(when) == datetime.fromtimestamp(when).astimezone().isoformat(timespec="milliseconds")
+
+
+def test_every_millisecond_of_a_second_is_stamped_as_datetime_stamps_it(central_europe):
+    """A float holds most exact milliseconds a hair under (.001 as .000999...): the stamp is
+    that millisecond, as datetime (and so the MQTT payload of the same poll) writes it."""
+    for k in range(1000):
+        when = 1764140800 + k / 1000
+        assert local_time(when) == datetime.fromtimestamp(when).astimezone().isoformat(
+            timespec="milliseconds"
+        )
+    when = 1764140800.9999996  # rounds to the next second's first microsecond
+    assert local_time(when) == datetime.fromtimestamp(when).astimezone().isoformat(timespec="milliseconds")

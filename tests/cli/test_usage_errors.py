@@ -73,10 +73,19 @@ def test_a_command_line_mistake_is_a_usage_error_not_the_codecs(mistake):
 
 def test_no_command_raises_the_codecs_error_for_a_users_mistake():
     """cli/ raised RequestError 62 times for mistakes in options and files, the link's targets
-    and certificates 25 times, serve's data files 25; the codec raises its own error for what the spec forbids
-    (a quantity, an address, a value)."""
+    and certificates 25 times, serve's data files 25, a value written to a point of a map 8 and
+    a write from the broker 3; the codec raises its own error for what the spec forbids (a
+    quantity, an address, a value)."""
     mbtool = Path(__file__).resolve().parents[2] / "mbtool"
-    config = ("link/transport.py", "link/tls.py", "device/datafile.py", "device/server.py")
+    config = (
+        "link/transport.py",
+        "link/tls.py",
+        "device/datafile.py",
+        "device/server.py",
+        "registermap/point.py",  # a value written to a point, by write -m or from the broker
+        "registermap/plan.py",
+        "mqtt/writes.py",
+    )
     paths = [*sorted((mbtool / "cli").rglob("*.py")), *(mbtool / path for path in config)]
     raised = [
         f"{path.relative_to(mbtool)}:{number}"
@@ -97,3 +106,41 @@ def test_a_config_mistake_is_still_exit_2_with_its_one_line(tmp_path):
     res = run_cli("dump", "-p", "sim://", "--range", "holding:9-1", str(tmp_path / "d.toml"))
     line = assert_one_error_line(res, 2)
     assert line == "mbtool: --range holding:9-1: addresses run 0..65535, FIRST no more than LAST"
+
+
+def test_a_write_from_the_broker_refused_for_the_users_mistake_is_a_usage_error():
+    """A /set publish for no point, a point off the allow-list, no value, a value the point
+    cannot hold or a point not writable: each the user's, refused with its line, never sent."""
+    from decimal import Decimal
+    from types import SimpleNamespace
+
+    from mbtool.codec.tables import HOLDING_REGISTERS
+    from mbtool.mqtt.settings import MqttSettings
+    from mbtool.mqtt.topics import Topics
+    from mbtool.mqtt.writes import SetRequest, Writes
+    from mbtool.registermap.point import Point
+
+    points = [
+        Point("setpoint", HOLDING_REGISTERS, 10, scale=Decimal("0.1"), writable=True),
+        Point("level", HOLDING_REGISTERS, 11),
+        Point("limit", HOLDING_REGISTERS, 12, writable=True),
+    ]
+    pump = SimpleNamespace(name="pump", link="bus", unit=1, tags=None, reader=SimpleNamespace(points=points))
+    settings = MqttSettings(
+        "localhost", 1883, False, "mbtool", "plant", writes=True, allow=("setpoint", "level")
+    )
+    writes = Writes(settings, Topics(settings, [pump]), [pump])
+    for point, text, line in [
+        ("nope", "1", "pump reads no point nope"),
+        ("limit", "3", "limit is not on the allow-list (setpoint, level)"),
+        ("setpoint", "", "setpoint: no value"),
+        ("setpoint", "abc", "setpoint: abc is not a number"),
+        ("setpoint", "22.53", "setpoint: 22.53 is not a whole number of steps of 0.1"),
+        ("setpoint", "99999", "setpoint: 99999 (raw 999990) is out of range 0..65535 for uint16"),
+        ("level", "3", "level (40012) is not writable: the map does not mark it rw"),
+    ]:
+        with pytest.raises(UsageError) as refused:
+            writes.check(SetRequest("pump", point, text))
+        assert not isinstance(refused.value, RequestError)
+        assert str(refused.value).startswith(line)
+    assert writes.check(SetRequest("pump", "setpoint", "22.5"))[0] is points[0]

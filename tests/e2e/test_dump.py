@@ -341,6 +341,10 @@ def test_diff_of_a_device_against_its_own_dump_then_after_one_write(tcp_device, 
                 "b": 49.5,
             }
         ]
+        # A point without an engineering unit has no "unit" (read -m's rule).
+        mapped.write_text("[points.setpoint]\nref = 40706\n")
+        res = run_cli("diff", path, "-m", mapped, "-p", tcp_device.target, "-o", "json")
+        assert res.returncode == 1 and "unit" not in json.loads(res.stdout)["differences"][0]
     finally:
         client.write_register(705, 0, device_id=1)
         client.close()

@@ -139,6 +139,56 @@ def test_a_head_refused_gets_its_answer_without_a_body(tmp_path, maps):
     assert b"Content-Length: " in raw and closed, raw
 
 
+def test_a_head_h11_rejects_gets_its_answer_without_a_body(tmp_path, maps):
+    """RFC 9110 9.3.2: a HEAD's answer has no body.  A HEAD whose head h11 could not parse (no
+    Host, a malformed header line; after a kept-alive GET, too) got its 400's line after the
+    head, which a client takes for the start of the next answer."""
+    get = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"
+    with exporting("--maps", maps, "--allow-target", "tcp://127.0.0.1:*", tmp_path=tmp_path) as exporter:
+        for before, bad in (
+            (b"", b"HEAD /metrics HTTP/1.1\r\n\r\n"),  # HTTP/1.1 without Host
+            (b"", b"HEAD /metrics HTTP/1.1\r\nHost: x\r\nno colon\r\n\r\n"),
+            (get, b"HEAD /metrics HTTP/1.1\r\nHost: x\r\nHost: y\r\n\r\n"),  # two Hosts
+        ):
+            raw, closed = exchange(address(exporter), before + bad)
+            # The 400's head is the last thing sent (the GET's answer, whole, before it).
+            assert [status for status, _, _ in responses(raw)] == [200] * bool(before) + [400], raw
+            assert raw.endswith(b"\r\n\r\n") and closed, raw
+        # A GET h11 rejects still gets its line.
+        raw, closed = exchange(address(exporter), b"GET /metrics HTTP/1.1\r\n\r\n")
+        ((status, _, text),) = responses(raw)
+        assert status == 400 and text.startswith(b"bad request: ") and closed, raw
+
+
+def test_a_head_refused_for_want_of_a_thread_gets_its_answer_without_a_body(monkeypatch):
+    """The 503 of a request no thread could be had for: to a HEAD, its head alone."""
+    from mbtool.cli.http_server import HttpServer
+
+    server = HttpServer(
+        "127.0.0.1", 0, socket.AF_INET, lambda path, query, headers: (200, "text/plain", b"x\n")
+    )
+    loop = threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True)
+    loop.start()
+    try:
+        server.running.wait(5)
+
+        def no_thread(self):
+            raise RuntimeError("can't start new thread")
+
+        monkeypatch.setattr(threading.Thread, "start", no_thread)
+        where = server.server_address[:2]
+        raw, closed = exchange(where, b"HEAD /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert raw.startswith(b"HTTP/1.1 503 ") and raw.endswith(b"\r\n\r\n") and closed, raw
+        raw, closed = exchange(where, b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        ((status, _, text),) = responses(raw)
+        assert status == 503 and text == b"no thread to answer with: try again\n" and closed, raw
+    finally:
+        monkeypatch.undo()
+        server.shutdown()
+        server.server_close()
+        loop.join(5)
+
+
 def _threads_and_descriptors(pid: int) -> tuple[int, int]:
     status = open(f"/proc/{pid}/status").read()
     return int(re.search(r"^Threads:\s+(\d+)", status, re.M)[1]), len(os.listdir(f"/proc/{pid}/fd"))

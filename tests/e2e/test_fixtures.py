@@ -45,6 +45,7 @@ def test_serial_device_over_pty(framer, serial_rtu_device, serial_ascii_device):
     from pymodbus.client import ModbusSerialClient
 
     dev = serial_rtu_device if framer == "rtu" else serial_ascii_device
+    dev.pty.clear()  # the device is the session's: what earlier tests on this worker sent is not this test's
     c = ModbusSerialClient(
         dev.target, framer=FramerType(framer), baudrate=19200, parity="N", timeout=1, retries=1
     )

@@ -437,11 +437,14 @@ def test_the_broker_away_30_s_holds_no_poll_up_its_spool_delivers_in_order_and_c
         # Polling's cadence while the broker was away is its cadence before: measured on the
         # time stamps of the polls stdout got.
         times = _stamps(polls)
-        before = [b - a for a, b in zip(times, times[1:], strict=False) if b < stopped]
+        # The first gap is left out: the first poll goes when the link opens, off the grid.
+        before = [b - a for a, b in zip(times[1:], times[2:], strict=False) if b < stopped]
         away = [b - a for a, b in zip(times, times[1:], strict=False) if stopped < a and b < restarted]
         assert len(away) >= OUTAGE / INTERVAL * 0.9, len(away)
-        assert statistics.median(away) == pytest.approx(INTERVAL, abs=0.01)
-        assert abs(statistics.mean(away) - statistics.mean(before)) < 0.01, (statistics.mean(before), statistics.mean(away))
+        # The gaps away are those before (medians: a few polls before the stop, one late on a busy
+        # machine would move a mean), and on average the interval asked: no poll was held up.
+        assert statistics.median(away) == pytest.approx(statistics.median(before), abs=0.01), (before, away)
+        assert statistics.mean(away) == pytest.approx(INTERVAL, abs=0.01), away
         assert max(away) < 3.5 * INTERVAL, "polling slowed while the broker was away"
 
     polls, stats, received, spool = runs["whole"]

@@ -243,7 +243,20 @@ def test_a_map_read_as_json_carries_ref_unit_and_raw_registers(tcp_device, pump)
     speed, pressure, running = data["points"]
     assert speed == {"name": "speed", "value": 10, "unit": "rpm", "ref": "40001", "registers": [HOLDING[0]]}
     assert pressure["value"] == INPUT[4] * 0.5 - 2 and pressure["ref"] == "30005"
-    assert running == {"name": "running", "value": True, "unit": "", "ref": "00001", "bits": [True]}
+    assert running == {"name": "running", "value": True, "ref": "00001", "bits": [True]}
+
+
+def test_a_map_read_as_json_leaves_out_the_unit_of_a_point_without_one(tcp_device, pump):
+    # A point's "unit" is its engineering unit; an empty one read as the record's unit id
+    # gone missing.  Left out, as poll -o json leaves it out; the record's own "unit" is
+    # the unit id, a number, alone or polled.
+    for extra in ((), ("--interval", "0", "--polls", "2")):
+        res = expect_ok(tcp(tcp_device, "read", "-m", pump, "running", "speed", "-o", "json", *extra))
+        for line in res.stdout.splitlines():
+            record = json.loads(line)
+            assert record["unit"] == 1
+            running, speed = record["points"]
+            assert "unit" not in running and speed["unit"] == "rpm"
 
 
 def test_a_map_read_as_csv_and_polled(tcp_device, pump):

@@ -134,14 +134,13 @@ def test_a_map_write_to_a_read_only_device_as_json(three):
         one_summary(res, 4)
         data = json.loads(res.stdout)  # one object: the report carries the error itself
         assert data["exit_code"] == 4 and "exception 01 Illegal Function" in data["error"]
-        assert data["map"] == str(three) and data["unit"] == 1
-        assert data["writes"] == [
+        assert data["map"] == str(three) and data["unit"] == 1  # the unit id; a point without
+        assert data["writes"] == [  # an engineering unit has no "unit" (read -m's rule)
             {
                 "table": "holding",
                 "address": 500,
                 "ref": "40501",
                 "name": "a",
-                "unit": "",
                 "new": 1,
                 "status": "refused",
             },
@@ -150,7 +149,6 @@ def test_a_map_write_to_a_read_only_device_as_json(three):
                 "address": 501,
                 "ref": "40502",
                 "name": "b",
-                "unit": "",
                 "new": 2,
                 "status": "not-sent",
             },

@@ -3,11 +3,12 @@ and split into one inventory a site, each a TOML file that loads (tomllib, then 
 
 from __future__ import annotations
 
+import os
 import tomllib
 
 import pytest
 from helpers.checks import assert_one_error_line, expect_ok
-from helpers.run import run_cli
+from helpers.run import REPO_ROOT, run_cli
 
 from mbtool.plant.inventory import load_inventory
 
@@ -107,3 +108,14 @@ def test_split_by_something_else_than_a_tag_is_exit_2(plant, tmp_path):
         run_cli("inventory", "split", plant, "--by", "site", "-o", tmp_path / "o"), 2
     )
     assert "expected tag:NAME" in line
+
+
+def test_a_split_of_an_inventory_named_relatively_names_its_maps_absolutely(plant, tmp_path):
+    """The maps of an inventory given by a relative path (the usual `inventory split plant.toml`)
+    resolve from the current folder; each part names them absolutely, so a part loads from its
+    own folder."""
+    relative = os.path.relpath(plant, REPO_ROOT)  # run_cli runs in the repository
+    expect_ok(run_cli("inventory", "split", relative, "--by", "tag:site", "-o", tmp_path / "sites"))
+    north = tmp_path / "sites" / "north.toml"
+    assert tomllib.loads(north.read_text())["devices"]["m1"]["map"] == str(tmp_path / "maps" / "meter.toml")
+    expect_ok(run_cli("inventory", "check", north))

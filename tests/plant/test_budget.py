@@ -36,24 +36,26 @@ def test_an_rtu_read_is_its_two_frames_and_two_silences_at_8n1():
     # count, 8 data bytes, CRC = 13.  8N1: 10 bits a character; t3.5 = 3.5 characters.
     char = 10 / 9600
     expected = (8 + 13) * char + 2 * 3.5 * char
-    assert transaction_seconds(link(baud=9600), 1, registers(0, 4).blocks[0].request) == pytest.approx(
-        expected
-    )
+    assert transaction_seconds(
+        link(baud=9600).connection, 1, registers(0, 4).blocks[0].request
+    ) == pytest.approx(expected)
 
 
 def test_parity_adds_a_bit_a_character_and_a_longer_pause_replaces_the_second_silence():
     char = 11 / 19200  # 8E1
     expected = (8 + 5 + 2 * 100) * char + 3.5 * char + 0.05
     reader = registers(0, 100)
-    seconds = transaction_seconds(link(baud=19200, parity="E", pause=0.05), 1, reader.blocks[0].request)
+    seconds = transaction_seconds(
+        link(baud=19200, parity="E", pause=0.05).connection, 1, reader.blocks[0].request
+    )
     assert seconds == pytest.approx(expected)
 
 
 def test_above_19200_baud_the_silence_is_a_fixed_1_75_ms():
     char = 10 / 115200
-    assert transaction_seconds(link(baud=115200), 1, registers(0, 4).blocks[0].request) == pytest.approx(
-        (8 + 13) * char + 2 * 0.00175
-    )
+    assert transaction_seconds(
+        link(baud=115200).connection, 1, registers(0, 4).blocks[0].request
+    ) == pytest.approx((8 + 13) * char + 2 * 0.00175)
 
 
 def test_ascii_frames_are_two_hex_characters_a_byte_between_a_colon_and_crlf():
@@ -61,7 +63,9 @@ def test_ascii_frames_are_two_hex_characters_a_byte_between_a_colon_and_crlf():
     # 1 + 2 * (1 + 1 + 1 + 8 + 1) + 2 = 27.  7E1: 10 bits.
     char = 10 / 9600
     seconds = transaction_seconds(
-        link(baud=9600, framer="ascii", bytesize=7, parity="E"), 1, registers(0, 4).blocks[0].request
+        link(baud=9600, framer="ascii", bytesize=7, parity="E").connection,
+        1,
+        registers(0, 4).blocks[0].request,
     )
     assert seconds == pytest.approx((17 + 27) * char + 2 * 3.5 * char)
 

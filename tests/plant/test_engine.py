@@ -561,3 +561,34 @@ def test_a_reconnect_after_a_device_has_had_its_rounds_reads_nothing_of_it_again
         3,
         6,
     ]
+
+
+def test_a_read_that_would_make_a_faster_group_late_waits_for_it_on_a_serial_line():
+    """The slow group falls due at 0.9 s and its read holds the line 0.3 s: read then, it would
+    make the fast group, due at 1.0 s, late by 0.2 s.  It waits for the fast group instead."""
+    clock = Clock(stop_at=3.5)
+    device_ = grouped(clock, ("fast", 1.0, 1, 0.02), ("slow", 10.0, 1, 0.3))
+    records, link = [], Link(clock, {}, [])
+    state = DeviceState(device_, 0.0)
+    fast, slow = state.groups
+    slow.due, fast.line_time, slow.line_time = 0.9, 0.02, 0.3  # the line's time of each read
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    worker = LinkWorker(spec, [state], records.append, threading.Event(), 0, clock=clock, open_link=link)
+    worker.run()
+    assert group_polls(records, "fast") == [0, 1, 2, 3]
+    assert group_polls(records, "slow") == [1.02]  # after the fast group's read, not at 0.9
+
+
+def test_a_read_is_held_back_no_later_than_a_tenth_of_its_own_interval():
+    """Fast groups that leave the line no gap long enough: the slow read goes once it is a tenth
+    of its interval late, not never."""
+    clock = Clock(stop_at=2.5)
+    device_ = grouped(clock, ("fast", 0.1, 1, 0.05), ("slow", 2.0, 1, 0.3))
+    state = DeviceState(device_, 0.0)
+    fast, slow = state.groups
+    fast.line_time, slow.line_time = 0.05, 0.3
+    records, link = [], Link(clock, {}, [])
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
+    LinkWorker(spec, [state], records.append, threading.Event(), 0, clock=clock, open_link=link).run()
+    (first, *_) = group_polls(records, "slow")
+    assert 0.2 <= first <= 0.3  # held while less than 0.2 s late, then read

@@ -19,7 +19,7 @@ from mbtool.codec.tables import (
 from mbtool.codec.values import encode_values
 from mbtool.device.device import Device
 from mbtool.device.model import DataModel
-from mbtool.errors import ExitCode, PartialRead, exit_code_for
+from mbtool.errors import ExitCode, PartialRead, UsageError, exit_code_for
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import (
     MapReader,
@@ -116,7 +116,7 @@ def test_enum_labels_both_ways():
     assert state.value_of([7]) == 7  # a value the manual does not name stays a number
     assert state.registers_for("Running") == [1]
     assert state.registers_for("2") == [2]
-    with pytest.raises(RequestError, match="none of stopped, running, fault"):
+    with pytest.raises(UsageError, match="none of stopped, running, fault"):
         state.registers_for("paused")
 
 
@@ -125,7 +125,7 @@ def test_bits_of_a_register():
     assert alarm.value_of([0b1000]) is True
     assert alarm.value_of([0b0111]) is False
     assert alarm.raw_for("on") is True and alarm.raw_for("OFF") is False
-    with pytest.raises(RequestError, match="not on or off"):
+    with pytest.raises(UsageError, match="not on or off"):
         alarm.raw_for("maybe")
 
 
@@ -134,7 +134,7 @@ def test_written_value_must_be_a_whole_number_of_steps():
 
     setpoint = _point(scale=Decimal("0.1"), writable=True)
     assert setpoint.registers_for("22.5") == [225]
-    with pytest.raises(RequestError, match="nearest writable values are 22.5 and 22.6"):
+    with pytest.raises(UsageError, match="nearest writable values are 22.5 and 22.6"):
         setpoint.registers_for("22.53")
 
 
@@ -143,9 +143,9 @@ def test_written_value_must_fit_the_type():
 
     setpoint = _point(type="int16", scale=Decimal("0.1"), unit="°C", writable=True)
     assert setpoint.registers_for("-5") == [0xFFCE]
-    with pytest.raises(RequestError, match="raw 40000.*out of range -32768..32767"):
+    with pytest.raises(UsageError, match="raw 40000.*out of range -32768..32767"):
         setpoint.registers_for("4000")
-    with pytest.raises(RequestError, match="not a number"):
+    with pytest.raises(UsageError, match="not a number"):
         setpoint.registers_for("warm")
 
 
@@ -153,7 +153,7 @@ def test_every_refused_value_names_its_point():
     from decimal import Decimal
 
     period = _point(name="demand_period", type="float32", writable=True)
-    with pytest.raises(RequestError, match="^demand_period: 1e39 is out of float32's range$"):
+    with pytest.raises(UsageError, match="^demand_period: 1e39 is out of float32's range$"):
         period.raw_for("1e39")
     counter = _point(name="count", type="uint16", writable=True)
     for text, words in (
@@ -161,13 +161,13 @@ def test_every_refused_value_names_its_point():
         ("inf", "count: inf is not a number a uint16 can hold"),
         ("1e39", "count: 1e39 is out of range 0..65535 for uint16"),
     ):
-        with pytest.raises(RequestError, match=f"^{words}$"):
+        with pytest.raises(UsageError, match=f"^{words}$"):
             counter.raw_for(text)
     wide = _point(name="total", type="float64", writable=True)
-    with pytest.raises(RequestError, match="^total: 1e400 is out of float64's range$"):
+    with pytest.raises(UsageError, match="^total: 1e400 is out of float64's range$"):
         wide.raw_for("1e400")  # float() would make it +inf: 7F F0 00 ... on the wire
     tiny = _point(name="d", type="float32", scale=Decimal("1e-300"), writable=True)
-    with pytest.raises(RequestError, match="^d: 1e10 \\(raw 1E\\+310\\) is out of float32's range$"):
+    with pytest.raises(UsageError, match="^d: 1e10 \\(raw 1E\\+310\\) is out of float32's range$"):
         tiny.raw_for("1e10")  # was 7F 80 00 00 (+inf) sent, then an internal error
 
 
@@ -176,10 +176,10 @@ def test_a_value_past_decimals_own_range_is_out_of_the_points():
 
     setpoint = _point(name="setpoint", scale=Decimal("0.1"), writable=True)
     for text in ("1e999999", "-1e99999999999"):  # was decimal.Overflow: an internal error
-        with pytest.raises(RequestError, match=f"^setpoint: {text} \\(raw .*\\) is out of range 0..65535"):
+        with pytest.raises(UsageError, match=f"^setpoint: {text} \\(raw .*\\) is out of range 0..65535"):
             setpoint.raw_for(text)
     level = _point(name="level", type="float32", scale=Decimal("0.1"), writable=True)
-    with pytest.raises(RequestError, match="^level: 1e999999 \\(raw .*\\) is out of float32's range$"):
+    with pytest.raises(UsageError, match="^level: 1e999999 \\(raw .*\\) is out of float32's range$"):
         level.raw_for("1e999999")
 
 
@@ -188,7 +188,7 @@ def test_nan_and_inf_are_written_only_when_the_user_insists():
 
     level = _point(name="level", type="float32", writable=True)
     for text in ("nan", "inf", "-Infinity"):
-        with pytest.raises(RequestError, match=f"^level: {text} is not a finite number"):
+        with pytest.raises(UsageError, match=f"^level: {text} is not a finite number"):
             level.raw_for(text)
     assert math.isnan(level.raw_for("nan", nonfinite=True))
     assert level.registers_of(level.raw_for("-inf", nonfinite=True)) == [0xFF80, 0x0000]
@@ -216,7 +216,7 @@ def test_hex_is_a_number_as_everywhere_else():
     assert scaled.raw_for("0x10") == 32  # 16 in the point's units
     state = _point(enum={0: "stopped", 1: "running"}, writable=True)
     assert state.raw_for("0x1") == 1
-    with pytest.raises(RequestError, match="^p: 0xZZ is none of stopped, running$"):
+    with pytest.raises(UsageError, match="^p: 0xZZ is none of stopped, running$"):
         state.raw_for("0xZZ")
 
 
@@ -251,9 +251,9 @@ def test_write_requests_pick_the_function_code():
 
 
 def test_read_only_points_are_not_written():
-    with pytest.raises(RequestError, match="not writable: the map does not mark it rw"):
+    with pytest.raises(UsageError, match="not writable: the map does not mark it rw"):
         write_request(_point(), "1")
-    with pytest.raises(RequestError, match="input registers are read-only"):
+    with pytest.raises(UsageError, match="input registers are read-only"):
         write_request(_point(table=INPUT_REGISTERS), "1")
 
 
@@ -600,7 +600,7 @@ def test_a_written_value_too_large_for_any_step_is_out_of_range():
 
     setpoint = _point(scale=Decimal("0.1"), writable=True)
     for text in ("1e999999", "-1e99999999999"):
-        with pytest.raises(RequestError, match="out of range"):
+        with pytest.raises(UsageError, match="out of range"):
             setpoint.registers_for(text)
 
 

@@ -15,8 +15,8 @@ import pytest
 from helpers.run import TESTS_DIR, run_cli
 
 from mbtool.codec.data_access import ReadHoldingRegisters
-from mbtool.codec.errors import ModbusException, RequestError
-from mbtool.errors import PartialRead
+from mbtool.codec.errors import ModbusException
+from mbtool.errors import PartialRead, UsageError
 from mbtool.registermap.load import MapError, load_map
 from mbtool.registermap.plan import MapReader, plan_reads, write_request
 from mbtool.registermap.point import NoScaleFactor
@@ -197,9 +197,9 @@ def test_a_written_value_undoes_the_scale_factor_given(tmp_path):
     w = _map(tmp_path).points["W"]
     assert w.raw_for("50.5", scale_factor=-1) == 505
     assert w.registers_of(w.raw_for("-2000", scale_factor=2)) == [0xFFEC]
-    with pytest.raises(RequestError, match="W: 50.55 is not a whole number of steps of 0.1; the nearest"):
+    with pytest.raises(UsageError, match="W: 50.55 is not a whole number of steps of 0.1; the nearest"):
         w.raw_for("50.55", scale_factor=-1)
-    with pytest.raises(RequestError, match=r"W: 5000 W \(raw 50000\) is out of range"):
+    with pytest.raises(UsageError, match=r"W: 5000 W \(raw 50000\) is out of range"):
         w.raw_for("5000", scale_factor=-1)
 
 
@@ -207,7 +207,7 @@ def test_a_scaled_point_is_not_written_without_its_scale_factor(tmp_path):
     w = _map(tmp_path).points["W"]
     with pytest.raises(NoScaleFactor, match="W: its scale factor, W_SF, has no value: 50 cannot be scaled"):
         write_request(w, "50")
-    with pytest.raises(RequestError, match="W: fifty is not a number") as caught:
+    with pytest.raises(UsageError, match="W: fifty is not a number") as caught:
         write_request(w, "fifty")  # what the value alone says is said before the device is asked
     assert not isinstance(caught.value, NoScaleFactor)
 

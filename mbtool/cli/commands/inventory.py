@@ -5,6 +5,7 @@ for a fleet of pollers (one a site)."""
 from __future__ import annotations
 
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -134,7 +135,8 @@ def _part(data: dict, plant, names: list[str], links: set[str]) -> dict:
         if name in names:
             table = dict(table)
             if name in plant.maps:
-                table["map"] = plant.maps[name]  # resolved: a file, wherever the part goes
+                # resolved, and absolute: the inventory's folder may be relative to here
+                table["map"] = os.path.abspath(plant.maps[name])
             part["devices"][name] = table
     return part
 
@@ -143,7 +145,7 @@ def _absolute_file(key: str, value, folder: Path):
     """A link's file (cert, key, ca) named from the original inventory's folder."""
     setting = LINK_KEYS.get(key)
     if setting is not None and isinstance(setting.kind, File) and isinstance(value, str):
-        return str((folder / Path(value).expanduser()).absolute())
+        return os.path.abspath(folder / Path(value).expanduser())
     return value
 
 

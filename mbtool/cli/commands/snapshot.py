@@ -13,7 +13,7 @@ import click
 from mbtool.cli.data_files import TABLE_SECTIONS, snapshot
 from mbtool.cli.options import device_command, map_option
 from mbtool.cli.param_types import FilePath
-from mbtool.cli.results import Listing, change_parts
+from mbtool.cli.results import Listing, change_parts, engineering_unit
 from mbtool.cli.session import open_client
 from mbtool.cli.sinks import default_format, render
 from mbtool.cli.sinks.plain import change_line
@@ -80,7 +80,7 @@ def differences(a: dict, b: dict, register_map=None) -> list[dict]:
                 "address": point.address,
                 "ref": point.ref,
                 "name": point.name,
-                "unit": point.unit,
+                **engineering_unit(point.unit),
                 "a": values[0],
                 "b": values[1],
             }

@@ -19,7 +19,7 @@ from mbtool.cli.options import (
     type_options_given,
 )
 from mbtool.cli.param_types import ADDRESS, Number
-from mbtool.cli.results import PointRow, Points, Result, value_text
+from mbtool.cli.results import PointRow, Points, Result, engineering_unit, value_text
 from mbtool.cli.session import execute, open_client, show
 from mbtool.codec.data_access import (
     ReadHoldingRegisters,
@@ -309,7 +309,7 @@ def _write_map(
                 )
             shown = value if point.is_bit else point.value_of(point.registers_of(value), factor)
             item = {"table": point.table.name, "address": point.address, "ref": point.ref, "name": point.name}
-            item |= {"unit": point.unit, "new": shown}
+            item |= {**engineering_unit(point.unit), "new": shown}
             steps.append(Step(f"{point.name} ({point.ref})", (item,), (point, value, request, factor)))
         for warning in warnings:
             print(f"mbtool: warning: {warning}", file=sys.stderr)

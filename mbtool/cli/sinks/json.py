@@ -17,7 +17,16 @@ if TYPE_CHECKING:
 import math
 from typing import TextIO
 
-from mbtool.cli.results import Listing, Points, Report, Result, as_dict, points_dict, report_dict
+from mbtool.cli.results import (
+    Listing,
+    Points,
+    Report,
+    Result,
+    as_dict,
+    engineering_unit,
+    points_dict,
+    report_dict,
+)
 from mbtool.cli.sinks.plain import Polls as PlainPolls
 from mbtool.cli.sinks.plain import Rows as PlainRows
 from mbtool.errors import PartialRead, exit_code_for
@@ -247,10 +256,12 @@ def poll_record(poll, when: str, fleet: dict | None = None) -> dict:
     for reading in poll.readings:
         point = reading.point
         if reading.error is None:
-            # A point's "unit" is its engineering unit, left out when it has none: the
-            # record's own "unit" is the device's unit id.
-            engineering = {"unit": point.unit} if point.unit else {}
-            entry = {"name": point.name, "value": reading.value, **engineering, "ref": point.ref}
+            entry = {
+                "name": point.name,
+                "value": reading.value,
+                **engineering_unit(point.unit),
+                "ref": point.ref,
+            }
             if reading.value is None:
                 entry["invalid"] = True  # the device sent a value its map says means no data
             points.append(entry)
@@ -305,8 +316,7 @@ class Polls(PlainPolls):
             self.output.emit(self.lines.line(when, result))
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
-        engineering = {"unit": unit} if unit else {}
-        self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering}))
+        self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering_unit(unit)}))
 
     def failure(self, when: str, error: BaseException) -> None:
         if not isinstance(error, PartialRead):
