@@ -297,10 +297,11 @@ class GroupState:
 
     def __init__(self, group: Group, now: float, grid: bool = False) -> None:
         self.group = group
+        self.interval = group.interval
         self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
         self.due = now
         self.polls = 0
-        self.rounds = 0  # its polls in the run (0: until stopped); the worker's
+        self.last_round = math.inf  # its polls in the run (math.inf: until stopped); the worker's
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
         self.skipped = 0  # slots of its grid passed while a poll ran over
@@ -316,9 +317,10 @@ class GroupState:
     def started(self, now: float) -> None:
         """Its poll starts at ``now``: an overrun if later than ``LATE`` of its interval (on a
         grid, a poll late is one whose slots passed: they are counted as skipped)."""
-        if not self.grid:
-            self.overruns += now - self.due > LATE * self.group.interval
-        self.first = now if self.polls == 0 else self.first
+        if not self.grid and now - self.due > LATE * self.interval:
+            self.overruns += 1
+        if not self.polls:
+            self.first = now
         self.last = now
 
     def next(self, now: float) -> None:
@@ -326,23 +328,23 @@ class GroupState:
         (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
         counted as skipped (but after its last poll) and the next one waited for; else it is
         polled at once."""
-        interval = self.group.interval
-        self.due += interval
-        if self.due < now:
+        interval = self.interval
+        due = self.due = self.due + interval
+        if due < now:
             if not self.grid:
                 self.overruns += 1
                 self.due = now
             elif interval > 0:
-                missed = math.ceil((now - self.due) / interval)
-                self.due += missed * interval
-                if not (self.rounds and self.polls >= self.rounds):
+                missed = math.ceil((now - due) / interval)
+                self.due = due + missed * interval
+                if not self.had():
                     self.skipped += missed
             else:  # --interval 0: back to back, no slot to miss
                 self.due = now
 
-    def had(self, rounds: int) -> bool:
-        """Whether it has had the run's rounds (``--rounds``; 0: until stopped)."""
-        return bool(rounds) and self.polls >= rounds
+    def had(self) -> bool:
+        """Whether it has had the run's rounds (``--rounds``)."""
+        return self.polls >= self.last_round
 
     def pace(self) -> Pace:
         achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
@@ -520,11 +522,14 @@ class LinkWorker:
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
         self.stamp: float | None = None  # time.time() the poll under way's first request left
+        self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
+        self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
+        self.follow_up = False
         # What each device's polls count in and read with, made once, not a poll.
         for device in devices:
             for group in device.groups:
-                group.rounds = rounds
+                group.last_round = rounds or math.inf
             device.counted = DeviceAndLink(device.stats, self.stats) if published else self.stats
             device.execute = functools.partial(self.link.execute, device.spec.unit)  # execute(request)
         # The one group on the link, if it has one (a device of one group on a link of its own:
@@ -579,6 +584,7 @@ class LinkWorker:
             self.polling = spec.name  # --hex's label
             link.client.timeout, link.client.retries = limits(spec, self.spec)
             link.stats = None  # a job is no poll: the device's and link's counts stay its polls'
+            self.aimed = None
             job(functools.partial(link.execute, spec.unit))
 
     def _sleep(self, seconds: float) -> None:
@@ -649,26 +655,25 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before <= now
             for group in device.groups
-            if group.due <= now and group.deadline < before and not group.had(self.rounds)
+            if group.due <= now and group.deadline < before and not group.had()
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
 
     def _earliest(self, now: float) -> tuple[DeviceState, GroupState] | None:
         """The first of ``_due(now)``, found without building the list: the group a turn of the
         loop polls."""
-        rounds = self.rounds
         # A device that has had its rounds has every group due never (_settle, _open).
         alone = self.alone
-        if alone is not None:  # no other to choose
-            device, group = alone
-            due = device.not_before <= now and group.due <= now and not (rounds and group.polls >= rounds)
-            return alone if due else None
+        if alone is not None:
+            # No other to choose, and its due is never before its device's back-off ends
+            # (DeviceState.failed, _open) nor after its rounds (_settle): it is all there is to ask.
+            return alone if alone[1].due <= now else None
         earliest = None
         for device in self.devices:
             if device.not_before > now:
                 continue
             for group in device.groups:
-                if group.due <= now and not (rounds and group.polls >= rounds):
+                if group.due <= now and not group.had():
                     # deadlines compared only when two are due: one alone is polled
                     if earliest is None or group.deadline < earliest[1].deadline:
                         earliest = (device, group)
@@ -687,7 +692,7 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before < ends
             for other in device.groups
-            if now < other.due < ends and other.deadline < group.deadline and not other.had(self.rounds)
+            if now < other.due < ends and other.deadline < group.deadline and not other.had()
         ]
         return min(soon, default=None)
 
@@ -697,14 +702,19 @@ class LinkWorker:
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
-        link = self.link
-        while not self.stop.is_set():
+        self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
+        link, clock, stop = self.link, self.clock, self.stop
+        while not stop.is_set():
             self.turns += 1
             if self.jobs is not None:
                 self._run_jobs()
-            now = self.clock.monotonic()
-            ready_at = link.ready_at if link.client is None else -math.inf
-            due = self._earliest(now) if ready_at <= now else None
+            now = clock.monotonic()
+            if link.client is not None:
+                ready_at = -math.inf
+                due = self._earliest(now)
+            else:
+                ready_at = link.ready_at
+                due = self._earliest(now) if ready_at <= now else None
             if due is None:
                 if self.finished():
                     return
@@ -714,21 +724,23 @@ class LinkWorker:
                 # a minute at most: a device whose every point is read once waits for a reconnect
                 self._sleep(min(max(0.0, wake - now), 60.0))
                 continue
-            held = self._held_for(now, due[1]) if due[1].line_time else None
-            if held is not None:  # a faster group falls due before this read would end
-                self._sleep(held - now)
-                continue
+            device, group = due
+            if group.line_time:
+                held = self._held_for(now, group)
+                if held is not None:  # a faster group falls due before this read would end
+                    self._sleep(held - now)
+                    continue
             if link.client is None:
                 if not self._open(self._due(now)):
                     continue
-                device = due[0]
+                now = clock.monotonic()
                 if device.spec.grid and not device.polls:
                     # The grid starts with the first link open: opening sim:// (its imports) or
                     # a slow handshake is not a poll overrunning its slot.  What the first link
                     # made stays as long as the run: the collector need not walk it again.
                     gc.freeze()
-                    device.due = self.clock.monotonic()
-            self._poll(*due)
+                    device.due = now
+            self._poll(device, group, now)
 
     def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
@@ -767,6 +779,7 @@ class LinkWorker:
             self.state = ONLINE
             self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
+        self.aimed = None  # a new link: set for each device's transactions anew
         if self.link.opens > 1:  # a reconnect: what is read once is read again
             now = self.clock.monotonic()
             for device in self._waiting():  # not of a device that has had its rounds
@@ -791,25 +804,27 @@ class LinkWorker:
 
     def _aim(self, device: DeviceState, client) -> None:
         """The link (its ``client``) set for ``device``'s transactions: one transaction at a time
-        on a link."""
+        on a link.  It stays so for the device's next poll, unless the link or a job changed it
+        (``aimed``)."""
         self.polling = device.spec.name
         client.timeout, client.retries = device.limits
         self.link.stats = device.counted
+        self.aimed = device
 
-    def _poll(self, device: DeviceState, group: GroupState, nested: bool = False) -> None:
-        """One poll of ``group``, a group of ``device``.  Between its transactions, a group
-        due with an earlier deadline is polled first (not ``nested`` in another's): a fast
-        group is never held up by more than one transaction of a slow group's long read, and on
-        a serial line not even by that (``_held_for``)."""
+    def _poll(self, device: DeviceState, group: GroupState, began: float, nested: bool = False) -> None:
+        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic).  Between
+        its transactions, a group due with an earlier deadline is polled first (not ``nested``
+        in another's): a fast group is never held up by more than one transaction of a slow
+        group's long read, and on a serial line not even by that (``_held_for``)."""
         link, clock = self.link, self.clock
         client = link.client
         assert client is not None  # a device is polled on an open link
-        began = clock.monotonic()
         overruns = group.overruns
         group.started(began)
         self.stamp = None
-        client.while_waiting = self._request_sent  # its first request out: the poll's time
-        self._aim(device, client)
+        client.while_waiting = self.sent_hook  # its first request out: the poll's time
+        if self.aimed is not device:
+            self._aim(device, client)
         execute = device.execute
         cut_in = False  # another group's poll came between its transactions: its latency is not its own
         if self.alone is None and not nested:
@@ -822,8 +837,8 @@ class LinkWorker:
                     if held is not None:  # the next read would make a faster group late: it goes first
                         clock.wait(self.stop, held - clock.monotonic())
                     others = self._due(clock.monotonic(), before=group.deadline)
-                    for other in others:
-                        self._poll(*other, nested=True)
+                    for other, other_group in others:
+                        self._poll(other, other_group, clock.monotonic(), nested=True)
                     if others:
                         cut_in = True
                         if link.client is not client:  # lost by the other's poll: this one ends too
@@ -834,7 +849,6 @@ class LinkWorker:
 
         stats = self.stats
         untimed = stats.untimed
-        readings: list[Reading] | None = None
         error: BaseException | None = None
         latency: float | None = None
         try:
@@ -843,12 +857,13 @@ class LinkWorker:
                 latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
+            self.aimed = None  # a link lost midway was opened again, as it is, by the next read
         except FATAL:
             raise
         except (*KNOWN_ERRORS, OSError) as failure:
-            error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
-        finally:
-            client.while_waiting = None
+            readings, error = None, link_failure(failure)  # a lost link the managed link closed
+            client.while_waiting = None  # the request never left, perhaps: no later one runs it
+            self.aimed = None  # a new link next poll, set for its device then
         ended = clock.monotonic()
         if not nested:
             self.busy += ended - began
@@ -857,13 +872,13 @@ class LinkWorker:
         when = self.stamp
         if when is None:  # the request never left
             when = clock.time()
-        poll, event = self._settle(device, group, readings, error, when, ended, latency=latency)
+        poll, event = self._settle(device, group, readings, error, when, ended, latency)
         self.report(poll)
         if event is not None:
             self.report(event)
         if group.overruns > overruns and not self.overran:
             self._overrun()
-        if nested:
+        if nested or not (self.follow_up or link.client is None):
             return
         if self.reconnect_each and link.client is not None:
             # --reconnect-each: a new link every poll, for devices and gateways that serve one
@@ -901,13 +916,13 @@ class LinkWorker:
         error,
         when: float,
         now: float,
-        not_before: float | None = None,
         latency: float | None = None,
+        not_before: float | None = None,
     ) -> tuple[Poll, Event | None]:
         """A poll of ``group`` that ended at ``now`` (monotonic) in the device's state: the Poll,
         and the Event of its change of state if it had one, to report.  ``not_before``: its
         link cannot be opened, so the device is offline now and not tried before the link is."""
-        group.polls += 1
+        polls = group.polls = group.polls + 1
         ok = readings is not None  # a partial read answered: the device is there
         published = self.published  # the outputs of a plant show them; a lone device's run counts its own
         if published:
@@ -919,8 +934,8 @@ class LinkWorker:
             if not_before is not None and device.state == OFFLINE:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        if group.had(self.rounds):
-            group.due = math.inf  # its rounds are done
+        if polls >= group.last_round:  # it has had its rounds (GroupState.had)
+            group.due = math.inf
         latest = None
         if device.latest is not None and ok:
             device.latest.update((reading.point.name, reading) for reading in readings)
