@@ -20,6 +20,7 @@ the record into the summary line and the --stats json figures.
 from __future__ import annotations
 
 import gc
+import operator
 import threading
 from collections.abc import Callable
 from typing import Protocol
@@ -30,7 +31,7 @@ from mbtool.errors import ExitCode, NoResponse, PartialRead, exit_code_for
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff
 from mbtool.link.stats import Stats
-from mbtool.plant.schedule import Clock, DeviceSpec, DeviceState, LinkSpec, LinkWorker, Poll
+from mbtool.plant.schedule import Clock, DeviceSpec, DeviceState, GroupState, LinkSpec, LinkWorker, Poll
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -72,14 +73,12 @@ class Polled:
 class _OneRequest:
     """The reader of a device read with one request: a poll is its reply."""
 
-    __slots__ = ("request", "blocks")
+    __slots__ = ("blocks", "read")
 
     def __init__(self, request) -> None:
-        self.request = request
         self.blocks = (request,)
-
-    def read(self, execute):
-        return execute(self.request)
+        # read(execute) is execute(request): called in C, not a frame of Python's a poll
+        self.read = operator.methodcaller("__call__", request)
 
 
 class _MapRun:
@@ -99,32 +98,32 @@ class _MapRun:
 
 
 class _Tally:
-    """The polls as the worker reports them: each shown, and counted."""
+    """The polls as the worker reports them: each shown, and its failures counted (its polls
+    are the engine's, and its replies the polls that did not fail)."""
 
-    def __init__(self, shown: Shown, timed_polls: bool) -> None:
+    def __init__(self, shown: Shown, timed_polls: bool, group: GroupState) -> None:
         self.shown = shown
+        self.group = group  # the device's one group: its polls are the run's
         self.hold = shown.hold  # bound once: one a poll
         self.timed_polls = timed_polls  # a poll's latency is its own (a map's), not its request's
-        self.polls = self.replies = self.partial = self.timeouts = self.errors = 0
+        self.partial = self.timeouts = self.errors = 0
         self.last_failure = ExitCode.OK
         self.first_when: float | None = None
-        self.last_when: float | None = None
+        self.last: Poll | None = None
         self.per_poll = Durations()
 
     def report(self, item) -> None:
         if item.__class__ is not Poll:  # a link's or the device's change of state: its polls say it
             return
-        polls = self.polls = self.polls + 1
-        when, error = item.time, item.error
-        if polls == 1:
-            self.first_when = when
-        self.last_when = when
-        if error is None:
-            self.replies += 1
+        self.last = item
+        if self.first_when is None:
+            self.first_when = item.time
+        if item.error is None:
             if self.timed_polls and item.latency is not None:
                 self.per_poll.add(item.latency)
-            self.hold(when, item.readings)
+            self.hold(item.time, item.readings)
             return
+        error = item.error
         self.shown.write()  # the poll before it, if the request never left
         if isinstance(error, PartialRead):  # some of a map's points: the others are shown
             self.partial += 1
@@ -133,7 +132,7 @@ class _Tally:
         else:
             self.errors += 1
         self.last_failure = exit_code_for(error)
-        self.shown.failure(when, polls, error)
+        self.shown.failure(item.time, self.group.polls, error)
 
 
 def poll(
@@ -159,7 +158,7 @@ def poll(
     reader = _OneRequest(request) if run is None else _MapRun(run, unit)
     device = DeviceSpec("", "", unit, reader, {}, interval, offline_after=0, grid=True)
     state = DeviceState(device, clock.monotonic())
-    tally = _Tally(shown, run is not None)
+    tally = _Tally(shown, run is not None, state.groups[0])
     worker = LinkWorker(
         LinkSpec("", connection),
         [state],
@@ -185,13 +184,14 @@ def poll(
         interrupted = True
     finally:
         shown.close()
+    polled = tally.group.polls
     code = tally.last_failure
-    if interrupted and tally.polls == 0:
+    if interrupted and polled == 0:
         code = ExitCode.INTERRUPTED
     stats = worker.stats
     return Polled(
-        tally.polls,
-        tally.replies,
+        polled,
+        polled - tally.partial - tally.timeouts - tally.errors,
         tally.partial,
         tally.timeouts,
         tally.errors,
@@ -200,7 +200,7 @@ def poll(
         stats,
         stats.rtt if run is None else tally.per_poll,
         tally.first_when,
-        tally.last_when,
+        None if tally.last is None else tally.last.time,
         tuple(worker.accepted),
         code,
     )
