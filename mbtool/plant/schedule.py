@@ -605,6 +605,14 @@ class LinkWorker:
         """--once, --rounds: every device has had its polls, or will be tried no more."""
         return bool(self.rounds) and not self._waiting()
 
+    def _next_due(self) -> float:
+        """When a group of its devices is next due (math.inf: none will be; a device that has
+        had its rounds is due never)."""
+        alone = self.alone
+        if alone is not None:
+            return alone[1].due  # never before its device's back-off ends (_earliest)
+        return min(device.due for device in self.devices)
+
     def _waiting(self) -> list[DeviceState]:
         """The devices this run will poll again."""
         return [d for d in self.devices if d.due < math.inf and not (self.rounds and d.polls >= self.rounds)]
@@ -716,9 +724,10 @@ class LinkWorker:
                 ready_at = link.ready_at
                 due = self._earliest(now) if ready_at <= now else None
             if due is None:
-                if self.finished():
+                wake = self._next_due()
+                if wake == math.inf and self.finished():
                     return
-                wake = max(min(d.due for d in self._waiting()), ready_at)
+                wake = max(wake, ready_at)
                 if self.idle is not None:
                     self.idle()
                 # a minute at most: a device whose every point is read once waits for a reconnect
@@ -784,7 +793,7 @@ class LinkWorker:
             now = self.clock.monotonic()
             for device in self._waiting():  # not of a device that has had its rounds
                 for group in device.groups:
-                    if group.group.interval == math.inf:
+                    if group.group.interval == math.inf and not group.had():
                         group.due = now
         return True
 

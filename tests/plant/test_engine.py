@@ -563,6 +563,17 @@ def test_a_reconnect_after_a_device_has_had_its_rounds_reads_nothing_of_it_again
     ]
 
 
+def test_a_device_whose_every_point_is_read_once_waits_for_a_reconnect_rather_than_crashing():
+    """Every group of it read once (a nameplate): no slot is left to wait for, and the worker
+    waits for a reconnect (a minute at a time) until the run is stopped.  It asked the earliest
+    of no devices due and crashed the plant (ValueError: min() arg is an empty sequence)."""
+    clock = Clock(stop_at=150)
+    records, link, worker = run_groups(clock, [grouped(clock, (ONCE, math.inf, 1, 0.0))])
+    assert group_polls(records, ONCE) == [0]
+    assert link.opened == [0] and clock.now >= 150
+    assert worker.crashed is None
+
+
 def test_a_read_that_would_make_a_faster_group_late_waits_for_it_on_a_serial_line():
     """The slow group falls due at 0.9 s and its read holds the line 0.3 s: read then, it would
     make the fast group, due at 1.0 s, late by 0.2 s.  It waits for the fast group instead."""
