@@ -158,7 +158,9 @@ class Poll:
     stats: PollStats | None = field(default=None, compare=False)
     link: LinkView | None = field(default=None, compare=False)
     group: str = DEFAULT  # the group it read: its readings are that group's points
-    pace: Pace | None = field(default=None, compare=False)  # how that group keeps its interval
+    # How that group keeps its interval: a device of groups' (None: one of no groups, whose
+    # pace is its interval's, in its summary).
+    pace: Pace | None = field(default=None, compare=False)
     # A device of several groups: the latest reading of every point it has read, this poll's
     # and the other groups' (the Prometheus text and the live view show each point's last value).
     latest: tuple[Reading, ...] | None = field(default=None, compare=False)
@@ -965,7 +967,7 @@ class LinkWorker:
                 device.stats.copy(),
                 self.view(),
                 group.group.name,
-                group.pace(),
+                None if device.latest is None else group.pace(),  # a device of groups' (latest)
                 latest,
                 latency,
             )
