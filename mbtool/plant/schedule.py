@@ -297,7 +297,7 @@ class Event:
 class GroupState:
     """A group's clock: when it is next due, its polls, and how it has kept its interval."""
 
-    def __init__(self, group: Group, now: float, grid: bool = False) -> None:
+    def __init__(self, group: Group, now: float, grid: bool = False, paced: bool = False) -> None:
         self.group = group
         self.interval = group.interval
         self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
@@ -307,6 +307,12 @@ class GroupState:
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
         self.skipped = 0  # slots of its grid passed while a poll ran over
+        # How late after its slot a poll's start is noted (``started``): an overrun past LATE of
+        # its interval; a grid's never (its passed slots are counted as skipped); every start
+        # of a group of a device of groups, whose pace its records show (``pace``).
+        self.noted_after = -math.inf if paced else math.inf if grid else LATE * self.interval
+        # On a grid of no slots (--interval 0) it is always due: its polls go back to back.
+        self.back_to_back = grid and not self.interval
         # The line's time of its longest read, on a serial line (plant/budget.py); 0: not known.
         # A read of it waits where it would make a faster group late (LinkWorker._held_for).
         self.line_time = 0.0
@@ -317,8 +323,9 @@ class GroupState:
         return self.due + self.group.interval if self.group.interval < math.inf else self.due
 
     def started(self, now: float) -> None:
-        """Its poll starts at ``now``: an overrun if later than ``LATE`` of its interval (on a
-        grid, a poll late is one whose slots passed: they are counted as skipped)."""
+        """Its poll starts at ``now``, later than ``noted_after`` past its slot: an overrun if
+        later than ``LATE`` of its interval (on a grid, a poll late is one whose slots passed:
+        they are counted as skipped), and the start its pace runs from."""
         if not self.grid and now - self.due > LATE * self.interval:
             self.overruns += 1
         if not self.polls:
@@ -330,19 +337,18 @@ class GroupState:
         (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
         counted as skipped (but after its last poll) and the next one waited for; else it is
         polled at once."""
-        interval = self.interval
-        due = self.due = self.due + interval
-        if due < now:
+        due = self.due + self.interval
+        if due < now and not self.back_to_back:
+            interval = self.interval
             if not self.grid:
                 self.overruns += 1
-                self.due = now
-            elif interval > 0:
+                due = now
+            else:
                 missed = math.ceil((now - due) / interval)
-                self.due = due + missed * interval
+                due += missed * interval
                 if not self.had():
                     self.skipped += missed
-            else:  # --interval 0: back to back, no slot to miss
-                self.due = now
+        self.due = due
 
     def had(self) -> bool:
         """Whether it has had the run's rounds (``--rounds``)."""
@@ -359,14 +365,14 @@ class DeviceState:
 
     def __init__(self, spec: DeviceSpec, now: float) -> None:
         self.spec = spec
-        self.groups = [GroupState(group, now, spec.grid) for group in spec.paced()]
+        self.groups = [GroupState(group, now, spec.grid, bool(spec.groups)) for group in spec.paced()]
         self.not_before = -math.inf  # offline: no group of it is polled before its back-off ends
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
         # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
         self.backoff = Backoff(min(2 * spec.fastest, spec.max_backoff), spec.max_backoff)
         self.last_success: float | None = None  # time.time()
-        self.last_poll: Poll | None = None
+        self.last_poll: Poll | None = None  # its latest published one (read --interval keeps its own)
         self.latest: dict[str, Reading] | None = {} if spec.groups else None  # each point's last reading
         self.stats = PollStats()
         # Its transactions' timeout and retries, where its polls are counted and how they read
@@ -713,6 +719,9 @@ class LinkWorker:
             device.limits = limits(device.spec, self.spec)
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
         self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
+        if self.alone is not None and self.jobs is None:
+            self._work_alone(*self.alone)
+            return
         link, clock, stop = self.link, self.clock, self.stop
         while not stop.is_set():
             self.turns += 1
@@ -726,14 +735,8 @@ class LinkWorker:
                 ready_at = link.ready_at
                 due = self._earliest(now) if ready_at <= now else None
             if due is None:
-                wake = self._next_due()
-                if wake == math.inf and self.finished():
+                if not self._rest(now, ready_at):
                     return
-                wake = max(wake, ready_at)
-                if self.idle is not None:
-                    self.idle()
-                # a minute at most: a device whose every point is read once waits for a reconnect
-                self._sleep(min(max(0.0, wake - now), 60.0))
                 continue
             device, group = due
             if group.line_time:
@@ -742,16 +745,61 @@ class LinkWorker:
                     self._sleep(held - now)
                     continue
             if link.client is None:
-                if not self._open(self._due(now)):
+                opened = self._reopen(device, now)
+                if opened is None:
                     continue
-                now = clock.monotonic()
-                if device.spec.grid and not device.polls:
-                    # The grid starts with the first link open: opening sim:// (its imports) or
-                    # a slow handshake is not a poll overrunning its slot.  What the first link
-                    # made stays as long as the run: the collector need not walk it again.
-                    gc.freeze()
-                    device.due = now
+                now = opened
             self._poll(device, group, now)
+
+    def _work_alone(self, device: DeviceState, group: GroupState) -> None:
+        """``_work`` for a link of one group and no jobs (a TCP device of its own, read
+        --interval): a turn asks only whether its one group is due (never before its device's
+        back-off ends, nor after its rounds) and its link open."""
+        link, clock, stop = self.link, self.clock, self.stop
+        while not stop.is_set():
+            self.turns += 1
+            now = clock.monotonic()
+            if group.due > now:
+                if not self._rest(now, -math.inf if link.client is not None else link.ready_at):
+                    return
+                continue
+            if link.client is None:
+                ready_at = link.ready_at
+                if ready_at > now:
+                    if not self._rest(now, ready_at):
+                        return
+                    continue
+                opened = self._reopen(device, now)
+                if opened is None:
+                    continue
+                now = opened
+            self._poll(device, group, now)
+
+    def _rest(self, now: float, ready_at: float) -> bool:
+        """No group due at ``now``: wait for the next, or for the link to be ready to open again
+        (``ready_at``); False: the run is over."""
+        wake = self._next_due()
+        if wake == math.inf and self.finished():
+            return False
+        wake = max(wake, ready_at)
+        if self.idle is not None:
+            self.idle()
+        # a minute at most: a device whose every point is read once waits for a reconnect
+        self._sleep(min(max(0.0, wake - now), 60.0))
+        return True
+
+    def _reopen(self, device: DeviceState, now: float) -> float | None:
+        """The link opened for ``device``'s poll due at ``now``: the time then (None: it could not be)."""
+        if not self._open(self._due(now)):
+            return None
+        now = self.clock.monotonic()
+        if device.spec.grid and not device.polls:
+            # The grid starts with the first link open: opening sim:// (its imports) or a slow
+            # handshake is not a poll overrunning its slot.  What the first link made stays as
+            # long as the run: the collector need not walk it again.
+            gc.freeze()
+            device.due = now
+        return now
 
     def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
@@ -823,49 +871,34 @@ class LinkWorker:
         self.aimed = device
 
     def _poll(self, device: DeviceState, group: GroupState, began: float, nested: bool = False) -> None:
-        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic).  Between
-        its transactions, a group due with an earlier deadline is polled first (not ``nested``
-        in another's): a fast group is never held up by more than one transaction of a slow
-        group's long read, and on a serial line not even by that (``_held_for``)."""
+        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic).  On a
+        link of several groups, a group due with an earlier deadline is polled between its
+        transactions (``_CutIn``)."""
         link, clock = self.link, self.clock
         client = link.client
         assert client is not None  # a device is polled on an open link
         overruns = group.overruns
-        group.started(began)
+        if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
+            group.started(began)
         self.stamp = None
         client.while_waiting = self.sent_hook  # its first request out: the poll's time
         if self.aimed is not device:
             self._aim(device, client)
-        execute = device.execute
-        cut_in = False  # another group's poll came between its transactions: its latency is not its own
-        if self.alone is None and not nested:
-
-            def execute(request):
-                nonlocal cut_in
-                if self.stamp is not None:
-                    stamp = self.stamp
-                    held = self._held_for(clock.monotonic(), group)
-                    if held is not None:  # the next read would make a faster group late: it goes first
-                        clock.wait(self.stop, held - clock.monotonic())
-                    others = self._due(clock.monotonic(), before=group.deadline)
-                    for other, other_group in others:
-                        self._poll(other, other_group, clock.monotonic(), nested=True)
-                    if others:
-                        cut_in = True
-                        if link.client is not client:  # lost by the other's poll: this one ends too
-                            raise ConnectionFailed(f"link {self.spec.name} was lost")
-                        self.stamp = stamp
-                        self._aim(device, client)
-                return device.execute(request)
-
+        # A link of one group has no other to cut in; a poll cut into is not cut into again.
+        cut_in = None if self.alone is not None or nested else _CutIn(self, device, group, client)
         stats = self.stats
         untimed = stats.untimed
         error: BaseException | None = None
         latency: float | None = None
         try:
-            readings = group.group.reader.read(execute)
-            if stats.untimed == untimed and not cut_in:  # every reply of the poll timed
-                latency = client.replied_at - client.work_sent_at
+            if cut_in is None:
+                readings = group.group.reader.read(device.execute)
+                if stats.untimed == untimed:  # every reply of the poll timed
+                    latency = client.replied_at - client.work_sent_at
+            else:
+                readings = group.group.reader.read(cut_in.execute)
+                if stats.untimed == untimed and not cut_in.happened:  # its latency its own
+                    latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
             self.aimed = None  # a link lost midway was opened again, as it is, by the next read
@@ -935,9 +968,51 @@ class LinkWorker:
         link cannot be opened, so the device is offline now and not tried before the link is."""
         polls = group.polls = group.polls + 1
         ok = readings is not None  # a partial read answered: the device is there
-        published = self.published  # the outputs of a plant show them; a lone device's run counts its own
-        if published:
-            device.stats.poll(ok)
+        if ok and device.state == ONLINE:  # the common poll: it answered, and stays online
+            device.succeeded(now, when, group)
+            if polls >= group.last_round:  # it has had its rounds (GroupState.had)
+                group.due = math.inf
+            event = None
+        else:
+            event = self._changed(device, group, ok, error, when, now, not_before)
+        if not self.published:  # read on this thread, before the next poll: nothing to copy
+            return Poll(
+                device.spec, when, readings, error, device.state, device.last_success, latency=latency
+            ), event
+        device.stats.poll(ok)
+        latest = None
+        if device.latest is not None and ok:
+            device.latest.update((reading.point.name, reading) for reading in readings)
+            latest = tuple(device.latest.values())
+        poll = Poll(
+            device.spec,
+            when,
+            readings,
+            error,
+            device.state,
+            device.last_success,
+            device.stats.copy(),
+            self.view(),
+            group.group.name,
+            None if device.latest is None else group.pace(),  # a device of groups' (latest)
+            latest,
+            latency,
+        )
+        device.last_poll = poll
+        return poll, event
+
+    def _changed(
+        self,
+        device: DeviceState,
+        group: GroupState,
+        ok: bool,
+        error,
+        when: float,
+        now: float,
+        not_before: float | None,
+    ) -> Event | None:
+        """``_settle`` of a poll that failed, or that answered a device not online: the device's
+        next try, and the Event of its change of state if it had one."""
         if ok:
             event = device.succeeded(now, when, group)
         else:
@@ -945,49 +1020,47 @@ class LinkWorker:
             if not_before is not None and device.state == OFFLINE:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        if polls >= group.last_round:  # it has had its rounds (GroupState.had)
+        if group.polls >= group.last_round:  # it has had its rounds (GroupState.had)
             group.due = math.inf
-        latest = None
-        if device.latest is not None and ok:
-            device.latest.update((reading.point.name, reading) for reading in readings)
-            latest = tuple(device.latest.values())
         # Whether it will be tried again matters to an event's announcement, and decides an
         # offline device's next try; a device that answered is polled again while the run lasts.
         if (event is not None or device.state == OFFLINE) and not self._tried_again(device):
             if event is not None and event.retry_in is not None:
                 event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        if published:
-            poll = Poll(
-                device.spec,
-                when,
-                readings,
-                error,
-                device.state,
-                device.last_success,
-                device.stats.copy(),
-                self.view(),
-                group.group.name,
-                None if device.latest is None else group.pace(),  # a device of groups' (latest)
-                latest,
-                latency,
-            )
-        else:  # read on this thread, before the next poll: nothing to copy
-            poll = Poll(
-                device.spec,
-                when,
-                readings,
-                error,
-                device.state,
-                device.last_success,
-                None,
-                None,
-                DEFAULT,
-                None,
-                latest,
-                latency,
-            )
-        device.last_poll = poll
-        return poll, event
+        return event
+
+
+class _CutIn:
+    """A poll's ``execute`` on a link of several groups: before each transaction but its
+    first, a group due with an earlier deadline is polled first (not cut into itself), so a
+    fast group is never held up by more than one transaction of a slow group's long read, and
+    on a serial line not even by that (``LinkWorker._held_for``)."""
+
+    __slots__ = ("worker", "device", "group", "client", "happened")
+
+    def __init__(self, worker: LinkWorker, device: DeviceState, group: GroupState, client) -> None:
+        self.worker, self.device, self.group, self.client = worker, device, group, client
+        # Another group's poll came between its transactions: its latency is not its own.
+        self.happened = False
+
+    def execute(self, request):
+        worker, device, group = self.worker, self.device, self.group
+        stamp = worker.stamp
+        if stamp is not None:  # its first request has left
+            clock = worker.clock
+            held = worker._held_for(clock.monotonic(), group)
+            if held is not None:  # the next read would make a faster group late: it goes first
+                clock.wait(worker.stop, held - clock.monotonic())
+            others = worker._due(clock.monotonic(), before=group.deadline)
+            for other, other_group in others:
+                worker._poll(other, other_group, clock.monotonic(), nested=True)
+            if others:
+                self.happened = True
+                if worker.link.client is not self.client:  # lost by the other's poll: this one ends too
+                    raise ConnectionFailed(f"link {worker.spec.name} was lost")
+                worker.stamp = stamp
+                worker._aim(device, self.client)
+        return device.execute(request)
 
 
 class Plant:

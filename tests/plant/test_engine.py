@@ -631,7 +631,7 @@ def _engine_bytecodes(rounds: int, **options) -> int:
 
 
 @pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="the budgets are CPython 3.11's bytecodes")
-@pytest.mark.parametrize(("published", "budget"), [(False, 510), (True, 570)])
+@pytest.mark.parametrize(("published", "budget"), [(False, 410), (True, 475)])
 def test_a_poll_that_changes_nothing_costs_the_engine_little(published, budget):
     """Issue 41.9: read --interval (unpublished) and poll (published) run on the engine, whose
     work for a poll that answered and changes no state is its turns (one waits for the slot),
@@ -639,6 +639,8 @@ def test_a_poll_that_changes_nothing_costs_the_engine_little(published, budget):
     (offline, back-off, rounds, overrun, other groups' deadlines) cost little.  The engine ran
     789 and 888 bytecodes a poll; 489 and 541 once a poll's set-up was made once, a waiting turn
     asked the devices' clocks rather than a list of the devices made twice, and a device of no
-    groups carried no Pace.  Counted, not timed: a loaded machine moves a rate, not a count."""
+    groups carried no Pace; 400 and 465 once a link of one group turned a loop of its own, a
+    poll that changed no state settled without the rules of a change, and a start on time
+    noted nothing.  Counted, not timed: a loaded machine moves a rate, not a count."""
     each = (_engine_bytecodes(120, published=published) - _engine_bytecodes(20, published=published)) / 100
     assert each <= budget, f"the engine ran {each:.0f} bytecodes a poll"
