@@ -316,6 +316,8 @@ class GroupState:
         # The line's time of its longest read, on a serial line (plant/budget.py); 0: not known.
         # A read of it waits where it would make a faster group late (LinkWorker._held_for).
         self.line_time = 0.0
+        # Its poll's ``execute`` on a link of several groups (LinkWorker: None on a link of one).
+        self.cut_in: _CutIn | None = None
 
     @property
     def deadline(self) -> float:
@@ -546,9 +548,15 @@ class LinkWorker:
         self.alone: tuple[DeviceState, GroupState] | None = None
         if sum(len(device.groups) for device in devices) == 1:
             self.alone = (devices[0], devices[0].groups[0])
+        else:  # between the transactions of a group's poll, another due may cut in
+            for device in devices:
+                for group in device.groups:
+                    group.cut_in = _CutIn(self, device, group)
         self.crashed: BaseException | None = None
         self.busy = 0.0  # seconds its polls took: what the line carries is its transactions in them
-        self.overran = False  # said once that it cannot keep up
+        # Whether it may yet say that it cannot keep up (``_overrun``): not once it has, nor where
+        # every group is on a grid (its slots passed are skipped, not overruns).
+        self.may_overrun = not all(group.grid for device in devices for group in device.groups)
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
         # accept_jobs, and the link is then never opened a second time for it.
@@ -884,14 +892,13 @@ class LinkWorker:
         client.while_waiting = self.sent_hook  # its first request out: the poll's time
         if self.aimed is not device:
             self._aim(device, client)
-        # A link of one group has no other to cut in; a poll cut into is not cut into again.
-        cut_in = None if self.alone is not None or nested else _CutIn(self, device, group, client)
+        cut_in = group.cut_in
         stats = self.stats
         untimed = stats.untimed
         error: BaseException | None = None
         latency: float | None = None
         try:
-            if cut_in is None:
+            if cut_in is None or nested:  # no other's poll comes between its transactions
                 readings = group.group.reader.read(device.execute)
                 if stats.untimed == untimed:  # every reply of the poll timed
                     latency = client.replied_at - client.work_sent_at
@@ -909,8 +916,6 @@ class LinkWorker:
             client.while_waiting = None  # the request never left, perhaps: no later one runs it
             self.aimed = None  # a new link next poll, set for its device then
         ended = clock.monotonic()
-        if not nested:
-            self.busy += ended - began
         if client.deviations:  # --lenient took a reply as it was: the summary says so
             self.accepted.update(client.deviations)
         when = self.stamp
@@ -920,10 +925,19 @@ class LinkWorker:
         self.report(poll)
         if event is not None:
             self.report(event)
-        if group.overruns > overruns and not self.overran:
-            self._overrun()
-        if nested or not (self.follow_up or link.client is None):
-            return
+        if self.may_overrun:
+            if not nested:  # a poll cut in is in the time of the one it cut into
+                self.busy += ended - began
+            if group.overruns > overruns:
+                self._overrun()
+        # A poll that failed may have lost the link (only a failed one can).
+        if (error is not None or self.follow_up) and not nested:
+            self._follow_up()
+
+    def _follow_up(self) -> None:
+        """What follows a poll that failed, or every poll of a link with --reconnect-each or
+        --pause: the link dropped, and what is held to show shown before the next request."""
+        link = self.link
         if self.reconnect_each and link.client is not None:
             # --reconnect-each: a new link every poll, for devices and gateways that serve one
             # client or leak connections; no wait, as nothing failed.
@@ -948,7 +962,7 @@ class LinkWorker:
             return
         asked, carried = self.asked(), self.stats.transactions / self.busy
         if asked > carried:
-            self.overran = True
+            self.may_overrun = False
             reason = f"asked {asked:.1f} reads/s, the line carries {carried:.1f}"
             self.report(Event(self.clock.time(), "link", self.spec.name, OVERRUN, reason, link=self.view()))
 
@@ -1031,22 +1045,25 @@ class LinkWorker:
 
 
 class _CutIn:
-    """A poll's ``execute`` on a link of several groups: before each transaction but its
-    first, a group due with an earlier deadline is polled first (not cut into itself), so a
-    fast group is never held up by more than one transaction of a slow group's long read, and
-    on a serial line not even by that (``LinkWorker._held_for``)."""
+    """A group's ``execute`` on a link of several groups: before each transaction of its poll
+    but the first, a group due with an earlier deadline is polled first (not cut into itself),
+    so a fast group is never held up by more than one transaction of a slow group's long read,
+    and on a serial line not even by that (``LinkWorker._held_for``)."""
 
     __slots__ = ("worker", "device", "group", "client", "happened")
 
-    def __init__(self, worker: LinkWorker, device: DeviceState, group: GroupState, client) -> None:
-        self.worker, self.device, self.group, self.client = worker, device, group, client
-        # Another group's poll came between its transactions: its latency is not its own.
+    def __init__(self, worker: LinkWorker, device: DeviceState, group: GroupState) -> None:
+        self.worker, self.device, self.group = worker, device, group
+        self.client: Any = None  # the link's client when its poll's first transaction began
+        # Another group's poll came between its poll's transactions: its latency is not its own.
         self.happened = False
 
     def execute(self, request):
         worker, device, group = self.worker, self.device, self.group
         stamp = worker.stamp
-        if stamp is not None:  # its first request has left
+        if stamp is None:  # its poll's first request has yet to leave
+            self.client, self.happened = worker.link.client, False
+        else:
             clock = worker.clock
             held = worker._held_for(clock.monotonic(), group)
             if held is not None:  # the next read would make a faster group late: it goes first
