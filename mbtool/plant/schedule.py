@@ -414,9 +414,14 @@ class DeviceState:
         for group in self.groups:
             group.polls = count
 
-    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
+    def answered(self, when: float) -> None:
+        """A poll of it answered (its request left at ``when``): no failure in a row since."""
         self.failures = 0
         self.last_success = when
+
+    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
+        """A poll (of ``group``: None, its first) answered: it keeps its slots, and is online."""
+        self.answered(when)
         (group or self.groups[0]).next(now)
         was = self.state
         if was == ONLINE:
@@ -459,6 +464,10 @@ class DeviceState:
             for group in self.groups
             if group.due < math.inf
         ) if self.due < math.inf else -math.inf  # fmt: skip
+
+
+def _nothing() -> None:
+    """A hook with nothing to do."""
 
 
 class Clock:
@@ -526,13 +535,14 @@ class LinkWorker:
         self.link = ManagedLink(
             open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
-        self.sent, self.idle, self.published = sent, idle, published
+        self.sent, self.idle, self.published = sent or _nothing, idle, published
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
         self.accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
         self.stamp: float | None = None  # time.time() the poll under way's first request left
         self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
+        self.wall_time = clock.time  # a record's time
         self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         self.follow_up = False
@@ -865,9 +875,8 @@ class LinkWorker:
     def _request_sent(self) -> None:
         """Run by the client right after a poll's first request has left: that is the poll's
         time."""
-        self.stamp = self.clock.time()
-        if self.sent is not None:
-            self.sent()
+        self.stamp = self.wall_time()
+        self.sent()
 
     def _aim(self, device: DeviceState, client) -> None:
         """The link (its ``client``) set for ``device``'s transactions: one transaction at a time
@@ -981,18 +990,20 @@ class LinkWorker:
         and the Event of its change of state if it had one, to report.  ``not_before``: its
         link cannot be opened, so the device is offline now and not tried before the link is."""
         polls = group.polls = group.polls + 1
-        ok = readings is not None  # a partial read answered: the device is there
-        if ok and device.state == ONLINE:  # the common poll: it answered, and stays online
-            device.succeeded(now, when, group)
+        # (a partial read answered: the device is there)
+        if readings is not None and device.state == ONLINE:  # it answered, and stays online
+            device.answered(when)  # DeviceState.succeeded with no change of state
+            group.next(now)
             if polls >= group.last_round:  # it has had its rounds (GroupState.had)
                 group.due = math.inf
             event = None
         else:
-            event = self._changed(device, group, ok, error, when, now, not_before)
+            event = self._changed(device, group, readings is not None, error, when, now, not_before)
         if not self.published:  # read on this thread, before the next poll: nothing to copy
             return Poll(
                 device.spec, when, readings, error, device.state, device.last_success, latency=latency
             ), event
+        ok = readings is not None
         device.stats.poll(ok)
         latest = None
         if device.latest is not None and ok:
