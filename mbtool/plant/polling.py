@@ -173,6 +173,7 @@ def poll(
         sent=shown.write,  # the poll before is shown while this one's reply is on its way
         idle=shown.write,
         published=False,
+        timed=run is not None,  # a map's poll is timed; one request's, by its round trip
     )
     interrupted = False
     try:

@@ -44,7 +44,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Collection, Sequence
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
@@ -56,6 +56,9 @@ from mbtool.plant.budget import serial_line, transaction_seconds
 from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.groups import DEFAULT
 from mbtool.registermap.plan import Reading
+
+if TYPE_CHECKING:
+    from mbtool.link.client import Client
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
 # Seconds for every link's worker thread to start: one starts in a millisecond or so.
@@ -165,7 +168,7 @@ class Poll:
     # and the other groups' (the Prometheus text and the live view show each point's last value).
     latest: tuple[Reading, ...] | None = field(default=None, compare=False)
     # From its first request leaving to its last reply; None: a reply of it came untimed (while
-    # mbtool was busy), or it failed.
+    # mbtool was busy), it failed, or its worker does not time polls (LinkWorker's ``timed``).
     latency: float | None = field(default=None, compare=False)
 
     def __init__(
@@ -502,6 +505,7 @@ class LinkWorker:
         sent: Callable[[], None] | None = None,
         idle: Callable[[], None] | None = None,
         published: bool = True,
+        timed: bool = True,
     ) -> None:
         """``open_link``: opens the link (a context manager giving a Client); None: the
         link's Connection, through link.connection.open_client.  ``backoff``: a failed link's
@@ -510,7 +514,8 @@ class LinkWorker:
         is closed or keeps a --pause (what is held to show while the next request is on its
         way is shown now).  ``published``: its records go to readers on other threads, each
         with its own copy of the counts; not (one device, on the thread that reads them):
-        none, and the link's counts are the device's."""
+        none, and the link's counts are the device's.  ``timed``: its Polls carry their
+        latency (not: read --interval of one request, whose round trip is its request's)."""
         self.spec = spec
         self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
@@ -535,7 +540,7 @@ class LinkWorker:
         self.link = ManagedLink(
             open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
-        self.sent, self.idle, self.published = sent or _nothing, idle, published
+        self.sent, self.idle, self.published, self.timed = sent or _nothing, idle, published, timed
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
@@ -762,12 +767,13 @@ class LinkWorker:
                 if held is not None:  # a faster group falls due before this read would end
                     self._sleep(held - now)
                     continue
-            if link.client is None:
+            client = link.client
+            if client is None:
                 opened = self._reopen(device, now)
                 if opened is None:
                     continue
-                now = opened
-            self._poll(device, group, now)
+                now, client = opened
+            self._poll(device, group, now, client)
 
     def _work_alone(self, device: DeviceState, group: GroupState) -> None:
         """``_work`` for a link of one group and no jobs (a TCP device of its own, read
@@ -777,11 +783,12 @@ class LinkWorker:
         while not stop.is_set():
             self.turns += 1
             now = clock.monotonic()
+            client = link.client
             if group.due > now:
-                if not self._rest(now, -math.inf if link.client is not None else link.ready_at):
+                if not self._rest(now, -math.inf if client is not None else link.ready_at):
                     return
                 continue
-            if link.client is None:
+            if client is None:
                 ready_at = link.ready_at
                 if ready_at > now:
                     if not self._rest(now, ready_at):
@@ -790,8 +797,8 @@ class LinkWorker:
                 opened = self._reopen(device, now)
                 if opened is None:
                     continue
-                now = opened
-            self._poll(device, group, now)
+                now, client = opened
+            self._poll(device, group, now, client)
 
     def _rest(self, now: float, ready_at: float) -> bool:
         """No group due at ``now``: wait for the next, or for the link to be ready to open again
@@ -806,10 +813,13 @@ class LinkWorker:
         self._sleep(min(max(0.0, wake - now), 60.0))
         return True
 
-    def _reopen(self, device: DeviceState, now: float) -> float | None:
-        """The link opened for ``device``'s poll due at ``now``: the time then (None: it could not be)."""
+    def _reopen(self, device: DeviceState, now: float) -> tuple[float, Client] | None:
+        """The link opened for ``device``'s poll due at ``now``: the time then and its client
+        (None: it could not be)."""
         if not self._open(self._due(now)):
             return None
+        client = self.link.client
+        assert client is not None  # opened
         now = self.clock.monotonic()
         if device.spec.grid and not device.polls:
             # The grid starts with the first link open: opening sim:// (its imports) or a slow
@@ -817,7 +827,7 @@ class LinkWorker:
             # long as the run: the collector need not walk it again.
             gc.freeze()
             device.due = now
-        return now
+        return now, client
 
     def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
@@ -887,13 +897,13 @@ class LinkWorker:
         self.link.stats = device.counted
         self.aimed = device
 
-    def _poll(self, device: DeviceState, group: GroupState, began: float, nested: bool = False) -> None:
-        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic).  On a
-        link of several groups, a group due with an earlier deadline is polled between its
-        transactions (``_CutIn``)."""
-        link, clock = self.link, self.clock
-        client = link.client
-        assert client is not None  # a device is polled on an open link
+    def _poll(
+        self, device: DeviceState, group: GroupState, began: float, client: Client, nested: bool = False
+    ) -> None:
+        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic), on the
+        link's open ``client``.  On a link of several groups, a group due with an earlier
+        deadline is polled between its transactions (``_CutIn``)."""
+        clock = self.clock
         overruns = group.overruns
         if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
             group.started(began)
@@ -903,17 +913,17 @@ class LinkWorker:
             self._aim(device, client)
         cut_in = group.cut_in
         stats = self.stats
-        untimed = stats.untimed
+        untimed = stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
         latency: float | None = None
         try:
             if cut_in is None or nested:  # no other's poll comes between its transactions
                 readings = group.group.reader.read(device.execute)
-                if stats.untimed == untimed:  # every reply of the poll timed
+                if self.timed and stats.untimed == untimed:
                     latency = client.replied_at - client.work_sent_at
             else:
                 readings = group.group.reader.read(cut_in.execute)
-                if stats.untimed == untimed and not cut_in.happened:  # its latency its own
+                if self.timed and stats.untimed == untimed and not cut_in.happened:  # its own
                     latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
@@ -1081,7 +1091,9 @@ class _CutIn:
                 clock.wait(worker.stop, held - clock.monotonic())
             others = worker._due(clock.monotonic(), before=group.deadline)
             for other, other_group in others:
-                worker._poll(other, other_group, clock.monotonic(), nested=True)
+                client = worker.link.client
+                assert client is not None  # a group is polled on an open link
+                worker._poll(other, other_group, clock.monotonic(), client, nested=True)
             if others:
                 self.happened = True
                 if worker.link.client is not self.client:  # lost by the other's poll: this one ends too
