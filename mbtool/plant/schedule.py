@@ -309,6 +309,7 @@ class GroupState:
         self.last_round = math.inf  # its polls in the run (math.inf: until stopped); the worker's
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
+        self.overran = False  # an overrun counted since its worker last asked (LinkWorker._poll)
         self.skipped = 0  # slots of its grid passed while a poll ran over
         # How late after its slot a poll's start is noted (``started``): an overrun past LATE of
         # its interval; a grid's never (its passed slots are counted as skipped); every start
@@ -333,6 +334,7 @@ class GroupState:
         they are counted as skipped), and the start its pace runs from."""
         if not self.grid and now - self.due > LATE * self.interval:
             self.overruns += 1
+            self.overran = True
         if not self.polls:
             self.first = now
         self.last = now
@@ -347,6 +349,7 @@ class GroupState:
             interval = self.interval
             if not self.grid:
                 self.overruns += 1
+                self.overran = True
                 due = now
             else:
                 missed = math.ceil((now - due) / interval)
@@ -904,7 +907,6 @@ class LinkWorker:
         link's open ``client``.  On a link of several groups, a group due with an earlier
         deadline is polled between its transactions (``_CutIn``)."""
         clock = self.clock
-        overruns = group.overruns
         if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
             group.started(began)
         self.stamp = None
@@ -947,7 +949,8 @@ class LinkWorker:
         if self.may_overrun:
             if not nested:  # a poll cut in is in the time of the one it cut into
                 self.busy += ended - began
-            if group.overruns > overruns:
+            if group.overran:
+                group.overran = False
                 self._overrun()
         # A poll that failed may have lost the link (only a failed one can).
         if (error is not None or self.follow_up) and not nested:
