@@ -101,11 +101,10 @@ class _Tally:
     """The polls as the worker reports them: each shown, and its failures counted (its polls
     are the engine's, and its replies the polls that did not fail)."""
 
-    def __init__(self, shown: Shown, timed_polls: bool, group: GroupState) -> None:
+    def __init__(self, shown: Shown, group: GroupState) -> None:
         self.shown = shown
         self.group = group  # the device's one group: its polls are the run's
         self.hold = shown.hold  # bound once: one a poll
-        self.timed_polls = timed_polls  # a poll's latency is its own (a map's), not its request's
         self.partial = self.timeouts = self.errors = 0
         self.last_failure = ExitCode.OK
         self.first_when: float | None = None
@@ -119,7 +118,7 @@ class _Tally:
         if self.first_when is None:
             self.first_when = item.time
         if item.error is None:
-            if self.timed_polls and item.latency is not None:
+            if item.latency is not None:  # a map's poll, timed (LinkWorker's timed)
                 self.per_poll.add(item.latency)
             self.hold(item.time, item.readings)
             return
@@ -158,7 +157,7 @@ def poll(
     reader = _OneRequest(request) if run is None else _MapRun(run, unit)
     device = DeviceSpec("", "", unit, reader, {}, interval, offline_after=0, grid=True)
     state = DeviceState(device, clock.monotonic())
-    tally = _Tally(shown, run is not None, state.groups[0])
+    tally = _Tally(shown, state.groups[0])
     worker = LinkWorker(
         LinkSpec("", connection),
         [state],

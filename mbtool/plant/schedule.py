@@ -554,6 +554,9 @@ class LinkWorker:
         self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         self.follow_up = False
+        self.after_each = (
+            True  # every poll asks ``_after``, not only one that failed (read when the work starts)
+        )
         # What each device's polls count in and read with, made once, not a poll.
         for device in devices:
             for group in device.groups:
@@ -745,6 +748,7 @@ class LinkWorker:
             device.limits = limits(device.spec, self.spec)
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
         self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
+        self.after_each = self.spec.connection.lenient or self.follow_up
         if self.alone is not None and self.jobs is None:
             self._work_alone(*self.alone)
             return
@@ -937,8 +941,6 @@ class LinkWorker:
             client.while_waiting = None  # the request never left, perhaps: no later one runs it
             self.aimed = None  # a new link next poll, set for its device then
         ended = clock.monotonic()
-        if client.deviations:  # --lenient took a reply as it was: the summary says so
-            self.accepted.update(client.deviations)
         when = self.stamp
         if when is None:  # the request never left
             when = clock.time()
@@ -952,8 +954,16 @@ class LinkWorker:
             if group.overran:
                 group.overran = False
                 self._overrun()
+        if self.after_each or error is not None:
+            self._after(client, error is not None, nested)
+
+    def _after(self, client: Client, failed: bool, nested: bool) -> None:
+        """What follows a poll (on ``client``) that failed, or every poll of a link with
+        --lenient (the deviations it let through, collected), --reconnect-each or --pause."""
+        if client.deviations:  # --lenient took a reply as it was: the summary says so
+            self.accepted.update(client.deviations)
         # A poll that failed may have lost the link (only a failed one can).
-        if (error is not None or self.follow_up) and not nested:
+        if (failed or self.follow_up) and not nested:
             self._follow_up()
 
     def _follow_up(self) -> None:
