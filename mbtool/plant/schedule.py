@@ -855,12 +855,9 @@ class LinkWorker:
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
                 now = self.clock.monotonic()
                 group.started(now)
-                poll, event = self._settle(
-                    device, group, None, error, when, now, not_before=self.link.ready_at
+                self._settle(
+                    settled.append, device, group, None, error, when, now, not_before=self.link.ready_at
                 )
-                settled.append(poll)
-                if event is not None:
-                    settled.append(event)
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
@@ -910,7 +907,6 @@ class LinkWorker:
         """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic), on the
         link's open ``client``.  On a link of several groups, a group due with an earlier
         deadline is polled between its transactions (``_CutIn``)."""
-        clock = self.clock
         if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
             group.started(began)
         self.stamp = None
@@ -940,14 +936,11 @@ class LinkWorker:
             readings, error = None, link_failure(failure)  # a lost link the managed link closed
             client.while_waiting = None  # the request never left, perhaps: no later one runs it
             self.aimed = None  # a new link next poll, set for its device then
-        ended = clock.monotonic()
+        ended = self.clock.monotonic()
         when = self.stamp
         if when is None:  # the request never left
-            when = clock.time()
-        poll, event = self._settle(device, group, readings, error, when, ended, latency)
-        self.report(poll)
-        if event is not None:
-            self.report(event)
+            when = self.wall_time()
+        self._settle(self.report, device, group, readings, error, when, ended, latency)
         if self.may_overrun:
             if not nested:  # a poll cut in is in the time of the one it cut into
                 self.busy += ended - began
@@ -1000,6 +993,7 @@ class LinkWorker:
 
     def _settle(
         self,
+        report: Callable[[Poll | Event], None],
         device: DeviceState,
         group: GroupState,
         readings,
@@ -1008,10 +1002,10 @@ class LinkWorker:
         now: float,
         latency: float | None = None,
         not_before: float | None = None,
-    ) -> tuple[Poll, Event | None]:
-        """A poll of ``group`` that ended at ``now`` (monotonic) in the device's state: the Poll,
-        and the Event of its change of state if it had one, to report.  ``not_before``: its
-        link cannot be opened, so the device is offline now and not tried before the link is."""
+    ) -> None:
+        """A poll of ``group`` that ended at ``now`` (monotonic) in the device's state: its Poll,
+        and the Event of its change of state if it had one, handed to ``report``.  ``not_before``:
+        its link cannot be opened, so the device is offline now and not tried before the link is."""
         polls = group.polls = group.polls + 1
         # (a partial read answered: the device is there)
         if readings is not None and device.state == ONLINE:  # it answered, and stays online
@@ -1023,9 +1017,12 @@ class LinkWorker:
         else:
             event = self._changed(device, group, readings is not None, error, when, now, not_before)
         if not self.published:  # read on this thread, before the next poll: nothing to copy
-            return Poll(
-                device.spec, when, readings, error, device.state, device.last_success, latency=latency
-            ), event
+            report(
+                Poll(device.spec, when, readings, error, device.state, device.last_success, latency=latency)
+            )
+            if event is not None:
+                report(event)
+            return
         ok = readings is not None
         device.stats.poll(ok)
         latest = None
@@ -1047,7 +1044,9 @@ class LinkWorker:
             latency,
         )
         device.last_poll = poll
-        return poll, event
+        report(poll)
+        if event is not None:
+            report(event)
 
     def _changed(
         self,
