@@ -44,7 +44,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Collection, Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
@@ -145,10 +145,10 @@ def limits(device: DeviceSpec, link: LinkSpec) -> tuple[float, int]:
     )
 
 
-@record
-class Poll:
+class Poll(NamedTuple):
     """One device poll: its readings (all, or some with PartialRead as ``error``), or the
-    error that kept it from reading any."""
+    error that kept it from reading any.  Made in every poll, it is a tuple: immutable, and
+    made in C (``_poll_of``)."""
 
     device: DeviceSpec
     time: float  # time.time(): when its first request went out, or when it failed
@@ -157,54 +157,24 @@ class Poll:
     state: str  # the device's state after the poll
     # The device and its link as the poll left them, copies no later poll changes: what a
     # reader shows of them comes from here, never from the link thread's own state.
-    last_success: float | None = field(default=None, compare=False)  # time.time()
-    stats: PollStats | None = field(default=None, compare=False)
-    link: LinkView | None = field(default=None, compare=False)
+    last_success: float | None = None  # time.time()
+    stats: PollStats | None = None
+    link: LinkView | None = None
     group: str = DEFAULT  # the group it read: its readings are that group's points
     # How that group keeps its interval: a device of groups' (None: one of no groups, whose
     # pace is its interval's, in its summary).
-    pace: Pace | None = field(default=None, compare=False)
+    pace: Pace | None = None
     # A device of several groups: the latest reading of every point it has read, this poll's
     # and the other groups' (the Prometheus text and the live view show each point's last value).
-    latest: tuple[Reading, ...] | None = field(default=None, compare=False)
+    latest: tuple[Reading, ...] | None = None
     # From its first request leaving to its last reply; None: a reply of it came untimed (while
     # mbtool was busy), it failed, or its worker does not time polls (LinkWorker's ``timed``).
-    latency: float | None = field(default=None, compare=False)
+    latency: float | None = None
 
-    def __init__(
-        self,
-        device,
-        time,
-        readings,
-        error,
-        state,
-        last_success=None,
-        stats=None,
-        link=None,
-        group=DEFAULT,
-        pace=None,
-        latest=None,
-        latency=None,
-    ) -> None:
-        # By hand, its fields one dict: one a poll (codec/record.py says why).
-        object.__setattr__(
-            self,
-            "__dict__",
-            {
-                "device": device,
-                "time": time,
-                "readings": readings,
-                "error": error,
-                "state": state,
-                "last_success": last_success,
-                "stats": stats,
-                "link": link,
-                "group": group,
-                "pace": pace,
-                "latest": latest,
-                "latency": latency,
-            },
-        )
+
+# A Poll of the values of its twelve fields, in their order: Poll._make without its check of
+# their count, and with no frame of Python.
+_poll_of = functools.partial(tuple.__new__, Poll)
 
 
 @record
@@ -275,7 +245,7 @@ def view_of(poll: Poll) -> DeviceView:
     """The device as its latest poll left it: with groups, the latest value of every point."""
     stats = poll.stats if poll.stats is not None else PollStats()  # the scheduler's polls carry theirs
     if poll.latest is not None and poll.readings is not None:
-        poll = replace(poll, readings=list(poll.latest))
+        poll = poll._replace(readings=list(poll.latest))
     return DeviceView(poll.device, poll.state, poll.last_success, poll, stats)
 
 
@@ -1017,9 +987,12 @@ class LinkWorker:
         else:
             event = self._changed(device, group, readings is not None, error, when, now, not_before)
         if not self.published:  # read on this thread, before the next poll: nothing to copy
-            report(
-                Poll(device.spec, when, readings, error, device.state, device.last_success, latency=latency)
-            )
+            # fmt: off
+            report(_poll_of((
+                device.spec, when, readings, error, device.state, device.last_success,
+                None, None, DEFAULT, None, None, latency,
+            )))
+            # fmt: on
             if event is not None:
                 report(event)
             return
@@ -1029,19 +1002,21 @@ class LinkWorker:
         if device.latest is not None and ok:
             device.latest.update((reading.point.name, reading) for reading in readings)
             latest = tuple(device.latest.values())
-        poll = Poll(
-            device.spec,
-            when,
-            readings,
-            error,
-            device.state,
-            device.last_success,
-            device.stats.copy(),
-            self.view(),
-            group.group.name,
-            None if device.latest is None else group.pace(),  # a device of groups' (latest)
-            latest,
-            latency,
+        poll = _poll_of(
+            (
+                device.spec,
+                when,
+                readings,
+                error,
+                device.state,
+                device.last_success,
+                device.stats.copy(),
+                self.view(),
+                group.group.name,
+                None if device.latest is None else group.pace(),  # a device of groups' (latest)
+                latest,
+                latency,
+            )
         )
         device.last_poll = poll
         report(poll)
