@@ -884,18 +884,17 @@ class LinkWorker:
         if self.aimed is not device:
             self._aim(device, client)
         cut_in = group.cut_in
-        stats = self.stats
-        untimed = stats.untimed  # every reply of the poll timed: as many untimed after it
+        untimed = self.stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
         latency: float | None = None
         try:
             if cut_in is None or nested:  # no other's poll comes between its transactions
                 readings = group.group.reader.read(device.execute)
-                if self.timed and stats.untimed == untimed:
+                if self.timed and self.stats.untimed == untimed:
                     latency = client.replied_at - client.work_sent_at
             else:
                 readings = group.group.reader.read(cut_in.execute)
-                if self.timed and stats.untimed == untimed and not cut_in.happened:  # its own
+                if self.timed and self.stats.untimed == untimed and not cut_in.happened:  # its own
                     latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
