@@ -65,7 +65,7 @@ def _add_to_function(path: Path, line: str) -> None:
         ("codec/resync.py", "from mbtool.codec.rtu import RtuFramer", "the framings"),
         ("codec/pdu.py", "from mbtool.errors import ExitCode", "codec is sans-IO"),
         ("link/transport.py", "from mbtool.device.device import Device", "link (the master's I/O)"),
-        ("link/polling.py", "from mbtool.cli.sinks import render", "link (the master's I/O)"),
+        ("link/scan.py", "from mbtool.cli.sinks import render", "link (the master's I/O)"),
         ("device/server.py", "from mbtool.link.client import Client", "device (the simulated device)"),
         ("monitor/bus.py", "import rich", "monitor (the passive bus monitor)"),
         ("durations.py", "from mbtool.codec.pdu import Request", "durations (the histogram"),

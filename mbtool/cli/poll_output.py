@@ -1,6 +1,6 @@
 """What polling shows: each poll's reply in the chosen format, stamped, and failed polls.
 
-The loop itself (schedule, reconnects, the summary) is ``link.polling``; it hands
+The polls themselves (schedule, reconnects, the summary's figures) are ``plant.polling``'s; it hands
 replies and failures to a ``Deferred`` made here.
 """
 
@@ -151,7 +151,7 @@ def _only(result, keys: set):
 
 
 class Deferred:
-    """What the poll loop shows (link.polling.Shown): a poll's reply is shown while the next
+    """What the polls show (plant.polling.Shown): a poll's reply is shown while the next
     request is on its way when polls run back to back, so decoding and writing it
     overlaps the device's turnaround instead of adding to every transaction (sustained
     polling keeps pace with a bare client loop)."""

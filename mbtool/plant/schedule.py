@@ -18,6 +18,15 @@ alone hands them to ``report`` (the output, the live view, the exporter's text).
 one way: a link thread is the only one that changes its devices' state, and what the rest of
 mbtool shows comes from the records.
 
+``read --interval`` is a plant of one device (``plant.polling``): its worker runs on the
+command's own thread, its slots on a fixed grid (``DeviceSpec.grid``: one that has passed is
+skipped and counted), the device never offline (``offline_after`` 0: a run of --polls ends on
+its polls, not on a link that would not open), its records unpublished copies of nothing (no
+reader on another thread: ``published``), and hooks for the output (``sent``: the poll's
+request has left, so the poll before is shown while the reply is on its way; ``idle``: the
+worker is about to wait).  A request the link cannot carry (``RequestError``, ``UsageError``),
+an output that failed and a reader of stdout gone end the run: no later poll can do better.
+
 A run that ends (``rounds``, a duration) makes no promise it cannot keep: a back-off that
 would end after the run is announced without its next try.  With ``rounds`` a device is done
 once polled that many times, and an offline one is tried again only where its back-off ends
@@ -29,27 +38,48 @@ from __future__ import annotations
 
 import _thread
 import functools
+import gc
 import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
+from mbtool.codec.errors import RequestError
 from mbtool.codec.record import field, record, replace
-from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, PartialRead, link_failure
+from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialRead, UsageError, link_failure
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
 from mbtool.link.stats import Stats
 from mbtool.plant.budget import serial_line, transaction_seconds
 from mbtool.plant.stats import DeviceAndLink, PollStats
 from mbtool.registermap.groups import DEFAULT
-from mbtool.registermap.plan import MapReader, Reading
+from mbtool.registermap.plan import Reading
+
+if TYPE_CHECKING:
+    from mbtool.link.client import Client
 
 ONLINE, OFFLINE, UNKNOWN = "online", "offline", "unknown"
 # Seconds for every link's worker thread to start: one starts in a millisecond or so.
 START_WITHIN = 5.0
 OVERRUN = "overrun"  # a link's event: its groups ask more reads a second than it carries
 LATE = 0.1  # of its interval: a group's poll that starts later than that after its slot overran
+# What ends a run rather than fails a poll: a request the link cannot carry (no later poll can
+# do better), the output that failed, and stdout's reader gone.
+FATAL = (RequestError, UsageError, OutputFailed, BrokenPipeError)
+
+
+class Reader(Protocol):
+    """What a group's poll reads, given ``execute(request)`` on its link: a register map's
+    points (``MapReader``), or read --interval's request or requests."""
+
+    @property
+    def blocks(self) -> Sequence[Any]:
+        """Its reads a poll: what its pace asks of the line."""
+        ...
+
+    def read(self, execute: Callable) -> Any: ...
 
 
 @record
@@ -59,7 +89,7 @@ class Group:
 
     name: str
     interval: float
-    reader: MapReader = field(compare=False)
+    reader: Reader = field(compare=False)
 
 
 @record
@@ -69,7 +99,7 @@ class DeviceSpec:
     name: str
     link: str
     unit: int
-    reader: MapReader = field(compare=False)
+    reader: Reader = field(compare=False)
     tags: dict = field(default=None, compare=False)
     interval: float = 10.0
     offline_after: int = 3
@@ -81,6 +111,10 @@ class DeviceSpec:
     # Its poll groups, the default one (its points in no group) among them; none: one group,
     # every point at ``interval``.  ``reader`` reads every point of it all the same.
     groups: tuple[Group, ...] = field(default=(), compare=False)
+    # Its slots on a fixed grid from its first poll (read --interval): one that has passed is
+    # skipped and counted, and the next slot of the grid waited for; else (a plant) a group
+    # late for its slot is polled at once, and its interval runs from there.
+    grid: bool = False
 
     def paced(self) -> tuple[Group, ...]:
         """The groups its points are polled in."""
@@ -111,10 +145,10 @@ def limits(device: DeviceSpec, link: LinkSpec) -> tuple[float, int]:
     )
 
 
-@record
-class Poll:
+class Poll(NamedTuple):
     """One device poll: its readings (all, or some with PartialRead as ``error``), or the
-    error that kept it from reading any."""
+    error that kept it from reading any.  Made in every poll, it is a tuple: immutable, and
+    made in C (``_poll_of``)."""
 
     device: DeviceSpec
     time: float  # time.time(): when its first request went out, or when it failed
@@ -123,14 +157,24 @@ class Poll:
     state: str  # the device's state after the poll
     # The device and its link as the poll left them, copies no later poll changes: what a
     # reader shows of them comes from here, never from the link thread's own state.
-    last_success: float | None = field(default=None, compare=False)  # time.time()
-    stats: PollStats | None = field(default=None, compare=False)
-    link: LinkView | None = field(default=None, compare=False)
+    last_success: float | None = None  # time.time()
+    stats: PollStats | None = None
+    link: LinkView | None = None
     group: str = DEFAULT  # the group it read: its readings are that group's points
-    pace: Pace | None = field(default=None, compare=False)  # how that group keeps its interval
+    # How that group keeps its interval: a device of groups' (None: one of no groups, whose
+    # pace is its interval's, in its summary).
+    pace: Pace | None = None
     # A device of several groups: the latest reading of every point it has read, this poll's
     # and the other groups' (the Prometheus text and the live view show each point's last value).
-    latest: tuple[Reading, ...] | None = field(default=None, compare=False)
+    latest: tuple[Reading, ...] | None = None
+    # From its first request leaving to its last reply; None: a reply of it came untimed (while
+    # mbtool was busy), it failed, or its worker does not time polls (LinkWorker's ``timed``).
+    latency: float | None = None
+
+
+# A Poll of the values of its twelve fields, in their order: Poll._make without its check of
+# their count, and with no frame of Python.
+_poll_of = functools.partial(tuple.__new__, Poll)
 
 
 @record
@@ -201,7 +245,7 @@ def view_of(poll: Poll) -> DeviceView:
     """The device as its latest poll left it: with groups, the latest value of every point."""
     stats = poll.stats if poll.stats is not None else PollStats()  # the scheduler's polls carry theirs
     if poll.latest is not None and poll.readings is not None:
-        poll = replace(poll, readings=list(poll.latest))
+        poll = poll._replace(readings=list(poll.latest))
     return DeviceView(poll.device, poll.state, poll.last_success, poll, stats)
 
 
@@ -226,15 +270,28 @@ class Event:
 class GroupState:
     """A group's clock: when it is next due, its polls, and how it has kept its interval."""
 
-    def __init__(self, group: Group, now: float) -> None:
+    def __init__(self, group: Group, now: float, grid: bool = False, paced: bool = False) -> None:
         self.group = group
+        self.interval = group.interval
+        self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
         self.due = now
         self.polls = 0
+        self.last_round = math.inf  # its polls in the run (math.inf: until stopped); the worker's
         self.first = self.last = 0.0  # monotonic: when its first and its latest poll started
         self.overruns = 0
+        self.overran = False  # an overrun counted since its worker last asked (LinkWorker._poll)
+        self.skipped = 0  # slots of its grid passed while a poll ran over
+        # How late after its slot a poll's start is noted (``started``): an overrun past LATE of
+        # its interval; a grid's never (its passed slots are counted as skipped); every start
+        # of a group of a device of groups, whose pace its records show (``pace``).
+        self.noted_after = -math.inf if paced else math.inf if grid else LATE * self.interval
+        # On a grid of no slots (--interval 0) it is always due: its polls go back to back.
+        self.back_to_back = grid and not self.interval
         # The line's time of its longest read, on a serial line (plant/budget.py); 0: not known.
         # A read of it waits where it would make a faster group late (LinkWorker._held_for).
         self.line_time = 0.0
+        # Its poll's ``execute`` on a link of several groups (LinkWorker: None on a link of one).
+        self.cut_in: _CutIn | None = None
 
     @property
     def deadline(self) -> float:
@@ -242,22 +299,38 @@ class GroupState:
         return self.due + self.group.interval if self.group.interval < math.inf else self.due
 
     def started(self, now: float) -> None:
-        """Its poll starts at ``now``: an overrun if later than ``LATE`` of its interval."""
-        self.overruns += now - self.due > LATE * self.group.interval
-        self.first = now if self.polls == 0 else self.first
+        """Its poll starts at ``now``, later than ``noted_after`` past its slot: an overrun if
+        later than ``LATE`` of its interval (on a grid, a poll late is one whose slots passed:
+        they are counted as skipped), and the start its pace runs from."""
+        if not self.grid and now - self.due > LATE * self.interval:
+            self.overruns += 1
+            self.overran = True
+        if not self.polls:
+            self.first = now
         self.last = now
 
     def next(self, now: float) -> None:
         """The next slot of its interval; one that has passed already is skipped, not made up
-        (an overrun: the poll took longer than its interval)."""
-        self.due += self.group.interval
-        if self.due < now:
-            self.overruns += 1
-            self.due = now
+        (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
+        counted as skipped (but after its last poll) and the next one waited for; else it is
+        polled at once."""
+        due = self.due + self.interval
+        if due < now and not self.back_to_back:
+            interval = self.interval
+            if not self.grid:
+                self.overruns += 1
+                self.overran = True
+                due = now
+            else:
+                missed = math.ceil((now - due) / interval)
+                due += missed * interval
+                if not self.had():
+                    self.skipped += missed
+        self.due = due
 
-    def had(self, rounds: int) -> bool:
-        """Whether it has had the run's rounds (``--rounds``; 0: until stopped)."""
-        return bool(rounds) and self.polls >= rounds
+    def had(self) -> bool:
+        """Whether it has had the run's rounds (``--rounds``)."""
+        return self.polls >= self.last_round
 
     def pace(self) -> Pace:
         achieved = (self.last - self.first) / (self.polls - 1) if self.polls > 1 else None
@@ -270,16 +343,26 @@ class DeviceState:
 
     def __init__(self, spec: DeviceSpec, now: float) -> None:
         self.spec = spec
-        self.groups = [GroupState(group, now) for group in spec.paced()]
+        self.groups = [GroupState(group, now, spec.grid, bool(spec.groups)) for group in spec.paced()]
         self.not_before = -math.inf  # offline: no group of it is polled before its back-off ends
         self.state = UNKNOWN
         self.failures = 0  # failed polls in a row
         # Offline, it is tried again by the one back-off rule: twice its interval, doubling.
         self.backoff = Backoff(min(2 * spec.fastest, spec.max_backoff), spec.max_backoff)
         self.last_success: float | None = None  # time.time()
-        self.last_poll: Poll | None = None
+        self.last_poll: Poll | None = None  # its latest published one (read --interval keeps its own)
         self.latest: dict[str, Reading] | None = {} if spec.groups else None  # each point's last reading
         self.stats = PollStats()
+        # Its transactions' timeout and retries, where its polls are counted and how they read
+        # (execute(request) on the link): made once by its worker, not a poll.
+        self.limits: tuple[float, int]
+        self.counted: Stats | DeviceAndLink
+        self.execute: Callable
+
+    @property
+    def skipped(self) -> int:
+        """Slots of its grid passed while a poll ran over (DeviceSpec.grid)."""
+        return sum(group.skipped for group in self.groups)
 
     @property
     def due(self) -> float:
@@ -296,6 +379,9 @@ class DeviceState:
     def polls(self) -> int:
         """Its rounds: the polls of its group polled least (once every group has had its
         first, a group read once counts no more)."""
+        groups = self.groups
+        if len(groups) == 1:  # most devices: one group, whose polls they are
+            return groups[0].polls
         repeated = [group.polls for group in self.groups if group.group.interval < math.inf]
         return min(repeated or [group.polls for group in self.groups])
 
@@ -304,13 +390,21 @@ class DeviceState:
         for group in self.groups:
             group.polls = count
 
-    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
-        was = self.state
-        self.state, self.failures = ONLINE, 0
-        self.backoff.reset()
-        self.not_before = -math.inf
+    def answered(self, when: float) -> None:
+        """A poll of it answered (its request left at ``when``): no failure in a row since."""
+        self.failures = 0
         self.last_success = when
+
+    def succeeded(self, now: float, when: float, group: GroupState | None = None) -> Event | None:
+        """A poll (of ``group``: None, its first) answered: it keeps its slots, and is online."""
+        self.answered(when)
         (group or self.groups[0]).next(now)
+        was = self.state
+        if was == ONLINE:
+            return None
+        self.state = ONLINE
+        self.backoff.reset()  # only a device offline backed off
+        self.not_before = -math.inf
         return Event(when, "device", self.spec.name, ONLINE) if was == OFFLINE else None
 
     def failed(
@@ -318,9 +412,13 @@ class DeviceState:
     ) -> Event | None:
         """A failed poll (of ``group``: None, its first); ``at_once``: offline now (its link
         cannot be opened).  Offline, the group that failed is tried again at the back-off's end
-        and the others wait for it."""
+        and the others wait for it.  A device whose ``offline_after`` is 0 is never offline: it
+        keeps its slots."""
         group = group or self.groups[0]
         self.failures += 1
+        if not self.spec.offline_after:
+            group.next(now)
+            return None
         if self.state == OFFLINE:
             group.due = self.not_before = now + self.backoff.failed()
             return None
@@ -342,6 +440,10 @@ class DeviceState:
             for group in self.groups
             if group.due < math.inf
         ) if self.due < math.inf else -math.inf  # fmt: skip
+
+
+def _nothing() -> None:
+    """A hook with nothing to do."""
 
 
 class Clock:
@@ -372,9 +474,21 @@ class LinkWorker:
         go: threading.Event | None = None,
         clock=Clock,
         open_link: Callable | None = None,
+        backoff: Backoff | None = None,
+        sent: Callable[[], None] | None = None,
+        idle: Callable[[], None] | None = None,
+        published: bool = True,
+        timed: bool = True,
     ) -> None:
         """``open_link``: opens the link (a context manager giving a Client); None: the
-        link's Connection, through link.connection.open_client."""
+        link's Connection, through link.connection.open_client.  ``backoff``: a failed link's
+        (None: from its devices' intervals).  ``sent``: run when a poll's first request has
+        left; ``idle``: when the worker is about to wait for a slot or a back-off, or its link
+        is closed or keeps a --pause (what is held to show while the next request is on its
+        way is shown now).  ``published``: its records go to readers on other threads, each
+        with its own copy of the counts; not (one device, on the thread that reads them):
+        none, and the link's counts are the device's.  ``timed``: its Polls carry their
+        latency (not: read --interval of one request, whose round trip is its request's)."""
         self.spec = spec
         self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
@@ -389,29 +503,58 @@ class LinkWorker:
         # The link, opened when a device is due; one that cannot be opened is backed off by the
         # one rule, from twice its devices' shortest interval up to their longest max_backoff.
         traced = (lambda framer: trace(framer, label=self._label)) if trace else None
-        self.link = ManagedLink(
-            open_link or (lambda: open_client(spec.connection, trace=traced)),
-            Backoff(
+        if backoff is None:
+            backoff = Backoff(
                 min(2 * min(d.spec.fastest for d in devices), max(d.spec.max_backoff for d in devices))
                 if devices
                 else 0.0,
                 max((d.spec.max_backoff for d in devices), default=0.0),
-            ),
-            clock=clock,
+            )
+        self.link = ManagedLink(
+            open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
+        self.sent, self.idle, self.published, self.timed = sent or _nothing, idle, published, timed
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
+        self.accepted: dict[str, None] = {}  # deviations --lenient let through, each kind once
+        self.stamp: float | None = None  # time.time() the poll under way's first request left
+        self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
+        self.wall_time = clock.time  # a record's time
+        self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
+        self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
+        self.follow_up = False
+        self.after_each = (
+            True  # every poll asks ``_after``, not only one that failed (read when the work starts)
+        )
+        # What each device's polls count in and read with, made once, not a poll.
+        for device in devices:
+            for group in device.groups:
+                group.last_round = rounds or math.inf
+            device.counted = DeviceAndLink(device.stats, self.stats) if published else self.stats
+            device.execute = functools.partial(self.link.execute, device.spec.unit)  # execute(request)
+        # The one group on the link, if it has one (a device of one group on a link of its own:
+        # a TCP device, read --interval): no other's poll comes between its transactions, and
+        # a turn of the loop has no other to choose.
+        self.alone: tuple[DeviceState, GroupState] | None = None
+        if sum(len(device.groups) for device in devices) == 1:
+            self.alone = (devices[0], devices[0].groups[0])
+        else:  # between the transactions of a group's poll, another due may cut in
+            for device in devices:
+                for group in device.groups:
+                    group.cut_in = _CutIn(self, device, group)
         self.crashed: BaseException | None = None
         self.busy = 0.0  # seconds its polls took: what the line carries is its transactions in them
-        self.overran = False  # said once that it cannot keep up
+        # Whether it may yet say that it cannot keep up (``_overrun``): not once it has, nor where
+        # every group is on a grid (its slots passed are skipped, not overruns).
+        self.may_overrun = not all(group.grid for device in devices for group in device.groups)
         self.deadline: float | None = None  # monotonic: when the run ends (--duration)
         # Work handed in (poll --mqtt's writes), done by this thread between polls: None until
         # accept_jobs, and the link is then never opened a second time for it.
         self.jobs: queue.SimpleQueue | None = None
         self.poke = threading.Event()
         self.thread = threading.Thread(target=self.run, name=f"link {spec.name}", daemon=True)
-        if serial_line(spec.connection):
+        if serial_line(spec.connection) and self.alone is None:  # alone, a read waits for no other
             for device in devices:
                 for group in device.groups:
                     group.line_time = max(
@@ -437,7 +580,8 @@ class LinkWorker:
         self.poke.set()
 
     def _run_jobs(self) -> None:
-        while self.jobs is not None and not self.jobs.empty():
+        assert self.jobs is not None  # accept_jobs() made the queue
+        while not self.jobs.empty():
             device, job = self.jobs.get_nowait()
             link = self.link
             if link.client is None:
@@ -447,6 +591,7 @@ class LinkWorker:
             self.polling = spec.name  # --hex's label
             link.client.timeout, link.client.retries = limits(spec, self.spec)
             link.stats = None  # a job is no poll: the device's and link's counts stay its polls'
+            self.aimed = None
             job(functools.partial(link.execute, spec.unit))
 
     def _sleep(self, seconds: float) -> None:
@@ -466,6 +611,14 @@ class LinkWorker:
     def finished(self) -> bool:
         """--once, --rounds: every device has had its polls, or will be tried no more."""
         return bool(self.rounds) and not self._waiting()
+
+    def _next_due(self) -> float:
+        """When a group of its devices is next due (math.inf: none will be; a device that has
+        had its rounds is due never)."""
+        alone = self.alone
+        if alone is not None:
+            return alone[1].due  # never before its device's back-off ends (_earliest)
+        return min(device.due for device in self.devices)
 
     def _waiting(self) -> list[DeviceState]:
         """The devices this run will poll again."""
@@ -500,6 +653,14 @@ class LinkWorker:
         finally:
             self.link.close()
 
+    def work(self) -> None:
+        """Poll on this thread until the run is over or stopped; what ends it (Ctrl-C, a
+        request the link cannot carry, the output failing) is raised, with the link closed."""
+        try:
+            self._work()
+        finally:
+            self.link.close()
+
     def _due(self, now: float, before: float = math.inf) -> list[tuple[DeviceState, GroupState]]:
         """The groups due now (whose deadline is before ``before``), the earliest deadline first:
         a group's deadline is its next slot, so of two groups due the faster goes first, and of
@@ -509,9 +670,29 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before <= now
             for group in device.groups
-            if group.due <= now and group.deadline < before and not group.had(self.rounds)
+            if group.due <= now and group.deadline < before and not group.had()
         ]
         return sorted(due, key=lambda pair: pair[1].deadline)
+
+    def _earliest(self, now: float) -> tuple[DeviceState, GroupState] | None:
+        """The first of ``_due(now)``, found without building the list: the group a turn of the
+        loop polls."""
+        # A device that has had its rounds has every group due never (_settle, _open).
+        alone = self.alone
+        if alone is not None:
+            # No other to choose, and its due is never before its device's back-off ends
+            # (DeviceState.failed, _open) nor after its rounds (_settle): it is all there is to ask.
+            return alone if alone[1].due <= now else None
+        earliest = None
+        for device in self.devices:
+            if device.not_before > now:
+                continue
+            for group in device.groups:
+                if group.due <= now and not group.had():
+                    # deadlines compared only when two are due: one alone is polled
+                    if earliest is None or group.deadline < earliest[1].deadline:
+                        earliest = (device, group)
+        return earliest
 
     def _held_for(self, now: float, group: GroupState) -> float | None:
         """When a group with an earlier deadline than ``group``'s falls due before ``group``'s
@@ -526,33 +707,110 @@ class LinkWorker:
             for device in self._waiting()
             if device.not_before < ends
             for other in device.groups
-            if now < other.due < ends and other.deadline < group.deadline and not other.had(self.rounds)
+            if now < other.due < ends and other.deadline < group.deadline and not other.had()
         ]
         return min(soon, default=None)
 
     def _work(self) -> None:
-        while not self.stop.is_set() and not self.finished():
+        # What every poll asks of the settings, read once: each device's timeout and retries,
+        # and --reconnect-each and --pause, which decide what follows a poll.
+        for device in self.devices:
+            device.limits = limits(device.spec, self.spec)
+        self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
+        self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
+        self.after_each = self.spec.connection.lenient or self.follow_up
+        if self.alone is not None and self.jobs is None:
+            self._work_alone(*self.alone)
+            return
+        link, clock, stop = self.link, self.clock, self.stop
+        while not stop.is_set():
             self.turns += 1
-            self._run_jobs()
-            now = self.clock.monotonic()
-            ready_at = self.link.ready_at if self.link.client is None else -math.inf
-            due = self._due(now) if ready_at <= now else []
-            held = self._held_for(now, due[0][1]) if due else None
-            if held is not None:  # a faster group falls due before this read would end
-                self._sleep(held - now)
+            if self.jobs is not None:
+                self._run_jobs()
+            now = clock.monotonic()
+            if link.client is not None:
+                ready_at = -math.inf
+                due = self._earliest(now)
+            else:
+                ready_at = link.ready_at
+                due = self._earliest(now) if ready_at <= now else None
+            if due is None:
+                if not self._rest(now, ready_at):
+                    return
                 continue
-            if not due:
-                wake = max(min(d.due for d in self._waiting()), ready_at)
-                # a minute at most: a device whose every point is read once waits for a reconnect
-                self._sleep(min(max(0.0, wake - now), 60.0))
+            device, group = due
+            if group.line_time:
+                held = self._held_for(now, group)
+                if held is not None:  # a faster group falls due before this read would end
+                    self._sleep(held - now)
+                    continue
+            client = link.client
+            if client is None:
+                opened = self._reopen(device, now)
+                if opened is None:
+                    continue
+                now, client = opened
+            self._poll(device, group, now, client)
+
+    def _work_alone(self, device: DeviceState, group: GroupState) -> None:
+        """``_work`` for a link of one group and no jobs (a TCP device of its own, read
+        --interval): a turn asks only whether its one group is due (never before its device's
+        back-off ends, nor after its rounds) and its link open."""
+        link, clock, stop = self.link, self.clock, self.stop
+        while not stop.is_set():
+            self.turns += 1
+            now = clock.monotonic()
+            client = link.client
+            if group.due > now:
+                if not self._rest(now, -math.inf if client is not None else link.ready_at):
+                    return
                 continue
-            if self.link.client is None and not self._open(due):
-                continue
-            self._poll(*due[0])
+            if client is None:
+                ready_at = link.ready_at
+                if ready_at > now:
+                    if not self._rest(now, ready_at):
+                        return
+                    continue
+                opened = self._reopen(device, now)
+                if opened is None:
+                    continue
+                now, client = opened
+            self._poll(device, group, now, client)
+
+    def _rest(self, now: float, ready_at: float) -> bool:
+        """No group due at ``now``: wait for the next, or for the link to be ready to open again
+        (``ready_at``); False: the run is over."""
+        wake = self._next_due()
+        if wake == math.inf and self.finished():
+            return False
+        wake = max(wake, ready_at)
+        if self.idle is not None:
+            self.idle()
+        # a minute at most: a device whose every point is read once waits for a reconnect
+        self._sleep(min(max(0.0, wake - now), 60.0))
+        return True
+
+    def _reopen(self, device: DeviceState, now: float) -> tuple[float, Client] | None:
+        """The link opened for ``device``'s poll due at ``now``: the time then and its client
+        (None: it could not be)."""
+        if not self._open(self._due(now)):
+            return None
+        client = self.link.client
+        assert client is not None  # opened
+        now = self.clock.monotonic()
+        if device.spec.grid and not device.polls:
+            # The grid starts with the first link open: opening sim:// (its imports) or a slow
+            # handshake is not a poll overrunning its slot.  What the first link made stays as
+            # long as the run: the collector need not walk it again.
+            gc.freeze()
+            device.due = now
+        return now, client
 
     def _open(self, due: list[tuple[DeviceState, GroupState]]) -> bool:
         try:
             self.link.open()
+        except FATAL:
+            raise
         except (*KNOWN_ERRORS, OSError) as error:
             error = link_failure(error)  # its devices' polls fail with it: exit 6, not 1
             reason = str(error)
@@ -560,31 +818,34 @@ class LinkWorker:
             first = self.state != OFFLINE
             self.state = OFFLINE
             self.open_failures += 1
-            settled = []
+            settled: list[Poll | Event] = []
             for device, group in due:  # its devices cannot be reached: offline meanwhile
                 # Each poll's request could not go: a transaction with no connection, counted
                 # as ping and read --interval count it.
                 DeviceAndLink(device.stats, self.stats).transaction(error, 0)
-                group.started(self.clock.monotonic())
-                settled.append(self._settle(device, None, error, when, group, not_before=self.link.ready_at))
+                now = self.clock.monotonic()
+                group.started(now)
+                self._settle(
+                    settled.append, device, group, None, error, when, now, not_before=self.link.ready_at
+                )
             # Opened again only for a device the run will still poll, and before its end.
             again = any(self.deadline is None or d.due < self.deadline for d in self._waiting())
             if first:
                 retry_in = self.link.backoff.wait if again else None
                 self.report(Event(when, "link", self.spec.name, OFFLINE, reason, retry_in, self.view()))
-            for items in settled:
-                for item in items:
-                    self.report(item)
+            for item in settled:
+                self.report(item)
             return False
         if self.state == OFFLINE:
             self.state = ONLINE
             self.report(Event(self.clock.time(), "link", self.spec.name, ONLINE, link=self.view()))
         self.state = ONLINE
+        self.aimed = None  # a new link: set for each device's transactions anew
         if self.link.opens > 1:  # a reconnect: what is read once is read again
             now = self.clock.monotonic()
-            for device in self.devices:
+            for device in self._waiting():  # not of a device that has had its rounds
                 for group in device.groups:
-                    if group.group.interval == math.inf:
+                    if group.group.interval == math.inf and not group.had():
                         group.due = now
         return True
 
@@ -595,60 +856,88 @@ class LinkWorker:
     def _label(self) -> str:
         return f"{self.spec.name} {self.polling}".rstrip()
 
-    def _poll(self, device: DeviceState, group: GroupState | None = None, nested: bool = False) -> None:
-        """One poll of ``group`` (None: the device's first).  Between its transactions, a group
-        due with an earlier deadline is polled first (not ``nested`` in another's): a fast
-        group is never held up by more than one transaction of a slow group's long read, and on
-        a serial line not even by that (``_held_for``)."""
-        link, spec = self.link, device.spec
-        group = group or device.groups[0]
-        client = link.client
-        assert client is not None  # a device is polled on an open link
-        stamp: list[float] = []  # when its first request went out
-        began = self.clock.monotonic()
-        overruns = group.overruns
-        group.started(began)
+    def _request_sent(self) -> None:
+        """Run by the client right after a poll's first request has left: that is the poll's
+        time."""
+        self.stamp = self.wall_time()
+        self.sent()
 
-        def sent() -> None:
-            if not stamp:
-                stamp.append(self.clock.time())
+    def _aim(self, device: DeviceState, client) -> None:
+        """The link (its ``client``) set for ``device``'s transactions: one transaction at a time
+        on a link.  It stays so for the device's next poll, unless the link or a job changed it
+        (``aimed``)."""
+        self.polling = device.spec.name
+        client.timeout, client.retries = device.limits
+        self.link.stats = device.counted
+        self.aimed = device
 
-        def aim() -> None:  # the link set for this device's transactions
-            self.polling = spec.name
-            client.while_waiting = sent  # its first request out: the poll's time
-            client.timeout, client.retries = limits(spec, self.spec)  # one transaction at a time on a link
-            link.stats = DeviceAndLink(device.stats, self.stats)
-
-        def execute(request):
-            if stamp and not nested:
-                held = self._held_for(self.clock.monotonic(), group)
-                if held is not None:  # the next read would make a faster group late: it goes first
-                    self.clock.wait(self.stop, held - self.clock.monotonic())
-                others = self._due(self.clock.monotonic(), before=group.deadline)
-                for other in others:
-                    self._poll(*other, nested=True)
-                if others:
-                    if link.client is not client:  # lost by the other's poll: this one ends too
-                        raise ConnectionFailed(f"link {self.spec.name} was lost")
-                    aim()
-            return link.execute(spec.unit, request)
-
-        aim()
-        readings: list[Reading] | None = None
+    def _poll(
+        self, device: DeviceState, group: GroupState, began: float, client: Client, nested: bool = False
+    ) -> None:
+        """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic), on the
+        link's open ``client``.  On a link of several groups, a group due with an earlier
+        deadline is polled between its transactions (``_CutIn``)."""
+        if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
+            group.started(began)
+        self.stamp = None
+        client.while_waiting = self.sent_hook  # its first request out: the poll's time
+        if self.aimed is not device:
+            self._aim(device, client)
+        cut_in = group.cut_in
+        untimed = self.stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
+        latency: float | None = None
         try:
-            readings = group.group.reader.read(execute)
+            if cut_in is None or nested:  # no other's poll comes between its transactions
+                readings = group.group.reader.read(device.execute)
+                if self.timed and self.stats.untimed == untimed:
+                    latency = client.replied_at - client.work_sent_at
+            else:
+                readings = group.group.reader.read(cut_in.execute)
+                if self.timed and self.stats.untimed == untimed and not cut_in.happened:  # its own
+                    latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
             readings, error = partial.readings, partial
+            self.aimed = None  # a link lost midway was opened again, as it is, by the next read
+        except FATAL:
+            raise
         except (*KNOWN_ERRORS, OSError) as failure:
-            error = link_failure(failure)  # a lost link the managed link closed: a new one next poll
-        finally:
-            client.while_waiting = None
-        if not nested:
-            self.busy += self.clock.monotonic() - began
-        self._end(device, readings, error, stamp[0] if stamp else self.clock.time(), group)
-        if group.overruns > overruns and not self.overran:
-            self._overrun()
+            readings, error = None, link_failure(failure)  # a lost link the managed link closed
+            client.while_waiting = None  # the request never left, perhaps: no later one runs it
+            self.aimed = None  # a new link next poll, set for its device then
+        ended = self.clock.monotonic()
+        when = self.stamp
+        if when is None:  # the request never left
+            when = self.wall_time()
+        self._settle(self.report, device, group, readings, error, when, ended, latency)
+        if self.may_overrun:
+            if not nested:  # a poll cut in is in the time of the one it cut into
+                self.busy += ended - began
+            if group.overran:
+                group.overran = False
+                self._overrun()
+        if self.after_each or error is not None:
+            self._after(client, error is not None, nested)
+
+    def _after(self, client: Client, failed: bool, nested: bool) -> None:
+        """What follows a poll (on ``client``) that failed, or every poll of a link with
+        --lenient (the deviations it let through, collected), --reconnect-each or --pause."""
+        if client.deviations:  # --lenient took a reply as it was: the summary says so
+            self.accepted.update(client.deviations)
+        # A poll that failed may have lost the link (only a failed one can).
+        if (failed or self.follow_up) and not nested:
+            self._follow_up()
+
+    def _follow_up(self) -> None:
+        """What follows a poll that failed, or every poll of a link with --reconnect-each or
+        --pause: the link dropped, and what is held to show shown before the next request."""
+        link = self.link
+        if self.reconnect_each and link.client is not None:
+            # --reconnect-each: a new link every poll, for devices and gateways that serve one
+            # client or leak connections; no wait, as nothing failed.
+            link.drop(on_purpose=True)
+        if self.idle is not None and (link.client is None or self.pause):
+            self.idle()  # a new link or a pause comes before the next request
 
     def asked(self) -> float:
         """The reads a second its devices' groups ask (an offline device's none)."""
@@ -667,62 +956,137 @@ class LinkWorker:
             return
         asked, carried = self.asked(), self.stats.transactions / self.busy
         if asked > carried:
-            self.overran = True
+            self.may_overrun = False
             reason = f"asked {asked:.1f} reads/s, the line carries {carried:.1f}"
             self.report(Event(self.clock.time(), "link", self.spec.name, OVERRUN, reason, link=self.view()))
 
-    def _end(self, device, readings, error, when: float, group: GroupState | None = None) -> None:
-        for item in self._settle(device, readings, error, when, group):
-            self.report(item)
-
     def _settle(
         self,
-        device,
+        report: Callable[[Poll | Event], None],
+        device: DeviceState,
+        group: GroupState,
         readings,
         error,
         when: float,
-        group: GroupState | None = None,
+        now: float,
+        latency: float | None = None,
         not_before: float | None = None,
-    ) -> list[Poll | Event]:
-        """A poll's outcome in the device's state: the Poll, and the Event of its change of
-        state if it had one, to report.  ``not_before``: its link cannot be opened, so the
-        device is offline now and not tried before the link is."""
-        now = self.clock.monotonic()
-        group = group or device.groups[0]
-        group.polls += 1
-        ok = readings is not None  # a partial read answered: the device is there
+    ) -> None:
+        """A poll of ``group`` that ended at ``now`` (monotonic) in the device's state: its Poll,
+        and the Event of its change of state if it had one, handed to ``report``.  ``not_before``:
+        its link cannot be opened, so the device is offline now and not tried before the link is."""
+        polls = group.polls = group.polls + 1
+        # (a partial read answered: the device is there)
+        if readings is not None and device.state == ONLINE:  # it answered, and stays online
+            device.answered(when)  # DeviceState.succeeded with no change of state
+            group.next(now)
+            if polls >= group.last_round:  # it has had its rounds (GroupState.had)
+                group.due = math.inf
+            event = None
+        else:
+            event = self._changed(device, group, readings is not None, error, when, now, not_before)
+        if not self.published:  # read on this thread, before the next poll: nothing to copy
+            # fmt: off
+            report(_poll_of((
+                device.spec, when, readings, error, device.state, device.last_success,
+                None, None, DEFAULT, None, None, latency,
+            )))
+            # fmt: on
+            if event is not None:
+                report(event)
+            return
+        ok = readings is not None
         device.stats.poll(ok)
+        latest = None
+        if device.latest is not None and ok:
+            device.latest.update((reading.point.name, reading) for reading in readings)
+            latest = tuple(device.latest.values())
+        poll = _poll_of(
+            (
+                device.spec,
+                when,
+                readings,
+                error,
+                device.state,
+                device.last_success,
+                device.stats.copy(),
+                self.view(),
+                group.group.name,
+                None if device.latest is None else group.pace(),  # a device of groups' (latest)
+                latest,
+                latency,
+            )
+        )
+        device.last_poll = poll
+        report(poll)
+        if event is not None:
+            report(event)
+
+    def _changed(
+        self,
+        device: DeviceState,
+        group: GroupState,
+        ok: bool,
+        error,
+        when: float,
+        now: float,
+        not_before: float | None,
+    ) -> Event | None:
+        """``_settle`` of a poll that failed, or that answered a device not online: the device's
+        next try, and the Event of its change of state if it had one."""
         if ok:
             event = device.succeeded(now, when, group)
         else:
             event = device.failed(now, when, str(error), not_before is not None, group)
-            if not_before is not None:
+            if not_before is not None and device.state == OFFLINE:
                 device.not_before = max(device.not_before, not_before)
                 group.due = max(group.due, not_before)
-        if group.had(self.rounds):
-            group.due = math.inf  # its rounds are done
-        latest = None
-        if device.latest is not None and readings is not None:
-            device.latest.update((reading.point.name, reading) for reading in readings)
-            latest = tuple(device.latest.values())
-        again = self._tried_again(device)
-        if not again and event is not None and event.retry_in is not None:
-            event = replace(event, retry_in=None)  # the run ends first: no next try to announce
-        poll = Poll(
-            device.spec,
-            when,
-            readings,
-            error,
-            device.state,
-            device.last_success,
-            device.stats.copy(),
-            self.view(),
-            group.group.name,
-            group.pace(),
-            latest,
-        )
-        device.last_poll = poll
-        return [poll] if event is None else [poll, event]
+        if group.polls >= group.last_round:  # it has had its rounds (GroupState.had)
+            group.due = math.inf
+        # Whether it will be tried again matters to an event's announcement, and decides an
+        # offline device's next try; a device that answered is polled again while the run lasts.
+        if (event is not None or device.state == OFFLINE) and not self._tried_again(device):
+            if event is not None and event.retry_in is not None:
+                event = replace(event, retry_in=None)  # the run ends first: no next try to announce
+        return event
+
+
+class _CutIn:
+    """A group's ``execute`` on a link of several groups: before each transaction of its poll
+    but the first, a group due with an earlier deadline is polled first (not cut into itself),
+    so a fast group is never held up by more than one transaction of a slow group's long read,
+    and on a serial line not even by that (``LinkWorker._held_for``)."""
+
+    __slots__ = ("worker", "device", "group", "client", "happened")
+
+    def __init__(self, worker: LinkWorker, device: DeviceState, group: GroupState) -> None:
+        self.worker, self.device, self.group = worker, device, group
+        self.client: Any = None  # the link's client when its poll's first transaction began
+        # Another group's poll came between its poll's transactions: its latency is not its own.
+        self.happened = False
+
+    def execute(self, request):
+        worker, device, group = self.worker, self.device, self.group
+        stamp = worker.stamp
+        if stamp is None:  # its poll's first request has yet to leave
+            self.client, self.happened = worker.link.client, False
+        else:
+            clock = worker.clock
+            held = worker._held_for(clock.monotonic(), group)
+            if held is not None:  # the next read would make a faster group late: it goes first
+                clock.wait(worker.stop, held - clock.monotonic())
+            others = worker._due(clock.monotonic(), before=group.deadline)
+            for other, other_group in others:
+                client = worker.link.client
+                assert client is not None  # a group is polled on an open link
+                worker._poll(other, other_group, clock.monotonic(), client, nested=True)
+            if others:
+                self.happened = True
+                if worker.link.client is not self.client:  # lost by the other's poll: this one ends too
+                    raise ConnectionFailed(f"link {worker.spec.name} was lost")
+                worker.stamp = stamp
+                worker._aim(device, self.client)
+        return device.execute(request)
 
 
 class Plant:

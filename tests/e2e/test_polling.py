@@ -683,7 +683,7 @@ def _poll_slowly(target: str, timeout: float) -> tuple[str, list[str]]:
     from mbtool.cli.commands.read import polling_summary
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.link.connection import Connection
-    from mbtool.link.polling import poll
+    from mbtool.plant.polling import poll
 
     shown = SlowWriter()
     polled = poll(
@@ -724,7 +724,7 @@ def test_a_poll_of_several_requests_is_timed_by_the_rule_of_each_request():
     from mbtool.cli.commands.read import polling_summary
     from mbtool.codec.data_access import ReadHoldingRegisters
     from mbtool.link.connection import Connection
-    from mbtool.link.polling import poll
+    from mbtool.plant.polling import poll
 
     requests = [ReadHoldingRegisters(0, 1), ReadHoldingRegisters(10, 1), ReadHoldingRegisters(20, 1)]
 

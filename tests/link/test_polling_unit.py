@@ -1,8 +1,8 @@
-"""The poll loop (mbtool.link.polling.poll) in-process: its schedule, the slots it skips, the
+"""read --interval's polls (mbtool.plant.polling.poll: a plant of one device) in-process: its schedule, the slots it skips, the
 failures it counts, a lost link opened again, --pause across a new link and the summary's
 figures.
 
-The loop's own clock is a fake one (``polling.time``: its slots and waits take no time); the
+The engine's own clock is a fake one (``polling.Clock``: its slots and waits take no time); the
 link is ``fake://``, the simulated device in-process with failures the test scripts into it
 poll by poll.  The client keeps the real clock: only a silent poll waits its (short) timeout,
 and the --pause test measures real gaps.
@@ -19,9 +19,9 @@ from mbtool.cli.commands.read import polling_figures, polling_summary
 from mbtool.codec.data_access import ReadHoldingRegisters
 from mbtool.device.sim import SimTransport
 from mbtool.errors import ConnectionFailed, ExitCode, UsageError, Verdict
-from mbtool.link import polling
 from mbtool.link.connection import Connection
 from mbtool.link.transport import ConnectionClosed
+from mbtool.plant import polling
 
 REQUEST = ReadHoldingRegisters(0, 2)  # the demo device: holding register N holds N
 TIMEOUT = 0.05  # real seconds a silent poll waits; the fake clock's reopen wait is this too
@@ -44,6 +44,9 @@ class Clock:
     def sleep(self, seconds: float) -> None:
         self.sleeps.append(seconds)
         self.now += seconds
+
+    def wait(self, stop, seconds: float) -> None:  # the engine's wait for a slot or a back-off
+        self.sleep(seconds)
 
 
 class Bus:
@@ -115,7 +118,7 @@ class Shown:
 @pytest.fixture
 def clock(monkeypatch) -> Clock:
     fake = Clock()
-    monkeypatch.setattr(polling, "time", fake)
+    monkeypatch.setattr(polling, "Clock", fake)
     return fake
 
 

@@ -9,15 +9,18 @@ milliseconds and says exactly when each poll was made."""
 from __future__ import annotations
 
 import math
+import os
+import sys
 import threading
 from contextlib import contextmanager
 from types import SimpleNamespace
 
 import pytest
 
-from mbtool.codec.errors import ModbusException
+from mbtool.codec.errors import ModbusException, RequestError
 from mbtool.errors import ConnectionFailed, NoResponse, PartialRead
 from mbtool.link.connection import Connection
+from mbtool.link.managed import Backoff
 from mbtool.link.transport import ConnectionClosed
 from mbtool.plant.schedule import (
     OFFLINE,
@@ -66,6 +69,7 @@ class Reader:
     """A device's map, as the worker uses it: one request a poll."""
 
     points = ()
+    blocks = ("read",)
 
     def read(self, execute):
         return [execute("read")]
@@ -73,19 +77,24 @@ class Reader:
 
 class Client:
     """The fake link's client: each unit's transactions as the test scripts them ("reply",
-    "silent", "lost", "exception", "partial"), then replies."""
+    "silent", "lost", "exception", "partial", "slow N": a reply N seconds after its request,
+    "unfit": a request the link cannot carry), then replies."""
 
     def __init__(self, link: Link) -> None:
         self.link = link
         self.while_waiting = None
         self.timeout, self.retries = 1.0, 0
         self.attempts, self.rtt, self.ended_at = 0, None, float("-inf")
+        self.deviations: dict[str, None] = {}  # --lenient's, each kind once
+        self.work_sent_at = self.replied_at = 0.0
 
     def execute(self, unit: int, request):
         link = self.link
         link.asked.append((unit, link.clock.now, self.timeout, self.retries))
-        if self.while_waiting is not None:
-            self.while_waiting()
+        work = self.while_waiting
+        if work is not None:  # as the real client: run once, after the poll's first request
+            self.while_waiting = None
+            work()
         self.attempts, self.rtt = 1, None
         steps = link.script.get(unit, [])
         step = steps.pop(0) if steps else "reply"
@@ -95,6 +104,10 @@ class Client:
             raise ConnectionClosed("the device closed the connection")
         if step == "exception":
             raise ModbusException(3, 2)
+        if step == "unfit":
+            raise RequestError("a read to the broadcast unit gets no reply")
+        if step.startswith("slow "):
+            link.clock.now += float(step.split()[1])
         self.rtt = 0.01
         if step == "partial":
             raise PartialRead(["a value", "a refusal"], [ModbusException(3, 2)])
@@ -123,16 +136,19 @@ def device(name: str, unit: int, interval=1.0, offline_after=3, max_backoff=10.0
     return DeviceSpec(name, "bus", unit, Reader(), {}, interval, offline_after, max_backoff, **options)
 
 
-def run(devices, script=None, opens=(), rounds=0, until=None, due=None):
-    """One link's worker to its end: the records it published, its link, the worker."""
+def run(devices, script=None, opens=(), rounds=0, until=None, due=None, link_options=None, **options):
+    """One link's worker to its end: the records it published, its link, the worker.
+    ``link_options``: the link's Connection's; ``options``: the worker's."""
     clock = Clock(until)
     states = [DeviceState(spec, clock.now) for spec in devices]
     for state in states:
         state.due = (due or {}).get(state.spec.name, state.due)
     records: list[Poll | Event] = []
     link = Link(clock, script or {}, list(opens))
-    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    worker = LinkWorker(spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link)
+    spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1, **(link_options or {})))
+    worker = LinkWorker(
+        spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link, **options
+    )
     worker.deadline = None if until is None else until
     worker.run()
     if worker.crashed is not None:
@@ -321,6 +337,64 @@ def test_a_job_while_the_link_is_lost_is_told_so_and_does_not_open_it_before_its
     assert link.opened == [0.0, 2.0]  # the polls' opens, the second after the back-off: none for the job
 
 
+# --- read --interval's one device on the engine (plant.polling) ---------------------------------
+
+
+def test_on_a_grid_a_poll_that_overruns_its_slot_skips_the_slots_it_missed_and_counts_them():
+    records, _, worker = run([device("m", 1, grid=True)], script={1: ["reply", "slow 2.5"]}, rounds=3)
+    # The second poll ends 3.5 s in: slots 2 and 3 have passed, the third poll takes slot 4.
+    assert [t for _, t in polls(records)] == [0, 1, 4]
+    assert worker.devices[0].skipped == 2
+    records, _, worker = run([device("m", 1)], script={1: ["reply", "slow 2.5"]}, rounds=3)
+    assert [t for _, t in polls(records)] == [0, 1, 3.5]  # a plant's device: at once, no grid
+
+
+def test_on_a_grid_the_last_poll_counts_no_slots_skipped_after_it():
+    _, _, worker = run([device("m", 1, grid=True)], script={1: ["reply", "slow 5"]}, rounds=2)
+    assert worker.devices[0].skipped == 0
+
+
+def test_a_device_never_offline_keeps_its_polls_through_a_link_that_would_not_open():
+    """read --interval --polls 2 whose first open is refused: two polls, not one and an end."""
+    records, link, _ = run(
+        [device("m", 1, offline_after=0, grid=True)], opens=["refused"], rounds=2, backoff=Backoff(0.1)
+    )
+    polled = [r for r in records if isinstance(r, Poll)]
+    assert [(r.time - EPOCH, r.error is None) for r in polled] == [(0, False), (1, True)]
+    assert link.opened == [0, 1]
+    assert [r.state for r in polled] == ["unknown", ONLINE]  # never offline
+    assert [e for e in events(records) if e[0] == "device"] == []
+
+
+def test_reconnect_each_opens_a_new_link_for_every_poll_at_once():
+    _, link, _ = run([device("m", 1)], rounds=3, link_options={"reconnect_each": True})
+    assert link.opened == [0, 1, 2]
+
+
+def test_a_request_the_link_cannot_carry_ends_the_run_rather_than_failing_a_poll():
+    with pytest.raises(RequestError):
+        run([device("m", 1)], script={1: ["unfit"]}, rounds=3)
+
+
+def test_the_hooks_run_when_a_request_has_left_and_before_the_worker_waits():
+    said = []
+    records, _, _ = run(
+        [device("m", 1)],
+        rounds=2,
+        sent=lambda: said.append("sent"),
+        idle=lambda: said.append("idle"),
+        published=False,
+    )
+    assert [type(r).__name__ for r in records] == ["Poll", "Poll"]
+    assert said == ["sent", "idle", "sent"]
+
+
+def test_unpublished_records_carry_no_copies_and_the_links_counts_are_the_devices():
+    records, _, worker = run([device("m", 1)], script={1: ["silent"]}, rounds=2, published=False)
+    assert all(r.stats is None and r.link is None for r in records)
+    assert worker.stats.transactions == 2 and worker.stats.outcomes["timeout"] == 1
+
+
 # --- poll groups: each its own clock on the one link (issue 44) -----------------------------
 
 
@@ -474,6 +548,34 @@ def test_a_link_that_keeps_up_says_nothing_of_its_pace():
     assert all(r.pace.overruns == 0 for r in records if isinstance(r, Poll) and r.group == "fast")
 
 
+def test_a_reconnect_after_a_device_has_had_its_rounds_reads_nothing_of_it_again():
+    """Device m is done at 2 (three rounds of its fast group, its ONCE group read at start);
+    device b loses the link at 3 and opens it again at 6: what m reads once stays read."""
+    clock = Clock()
+    m = grouped(clock, ("fast", 1.0, 1, 0.0), (ONCE, math.inf, 1, 0.0))
+    b = DeviceSpec("b", "bus", 2, Reader(), {}, 3.0, 3, 60.0)
+    records, link, _ = run_groups(clock, [m, b], script={2: ["reply", "lost"]}, rounds=3)
+    assert link.opened == [0, 6]
+    assert group_polls(records, ONCE) == [0]
+    assert group_polls(records, "fast") == [0, 1, 2]
+    assert [round(r.time - EPOCH, 3) for r in records if isinstance(r, Poll) and r.device.name == "b"] == [
+        0,
+        3,
+        6,
+    ]
+
+
+def test_a_device_whose_every_point_is_read_once_waits_for_a_reconnect_rather_than_crashing():
+    """Every group of it read once (a nameplate): no slot is left to wait for, and the worker
+    waits for a reconnect (a minute at a time) until the run is stopped.  It asked the earliest
+    of no devices due and crashed the plant (ValueError: min() arg is an empty sequence)."""
+    clock = Clock(stop_at=150)
+    records, link, worker = run_groups(clock, [grouped(clock, (ONCE, math.inf, 1, 0.0))])
+    assert group_polls(records, ONCE) == [0]
+    assert link.opened == [0] and clock.now >= 150
+    assert worker.crashed is None
+
+
 def test_a_read_that_would_make_a_faster_group_late_waits_for_it_on_a_serial_line():
     """The slow group falls due at 0.9 s and its read holds the line 0.3 s: read then, it would
     make the fast group, due at 1.0 s, late by 0.2 s.  It waits for the fast group instead."""
@@ -503,3 +605,55 @@ def test_a_read_is_held_back_no_later_than_a_tenth_of_its_own_interval():
     LinkWorker(spec, [state], records.append, threading.Event(), 0, clock=clock, open_link=link).run()
     (first, *_) = group_polls(records, "slow")
     assert 0.2 <= first <= 0.3  # held while less than 0.2 s late, then read
+
+
+def _engine_bytecodes(rounds: int, grid: bool = False, **options) -> int:
+    """The bytecodes the engine itself (plant/schedule.py) runs in ``rounds`` polls of a device
+    on a link of its own that answers every poll (its other code, the link's and the client's,
+    not counted)."""
+    ran = [0]
+    engine = os.path.join("plant", "schedule.py")
+
+    def trace(frame, event, arg):
+        if not frame.f_code.co_filename.endswith(engine):
+            return None
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            ran[0] += 1
+        return trace
+
+    sys.settrace(trace)
+    try:
+        # read --interval's device: on a grid, never offline
+        run(
+            [device("m", 1, offline_after=0, grid=True) if grid else device("m", 1)], rounds=rounds, **options
+        )
+    finally:
+        sys.settrace(None)
+    return ran[0]
+
+
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="the budgets are CPython 3.11's bytecodes")
+@pytest.mark.parametrize(("published", "budget"), [(False, 340), (True, 430)])
+def test_a_poll_that_changes_nothing_costs_the_engine_little(published, budget):
+    """Issue 41.9: read --interval (unpublished) and poll (published) run on the engine, whose
+    work for a poll that answered and changes no state is its turns (one waits for the slot),
+    its slot, the read, its counts and its Poll record; the rules of what did not happen
+    (offline, back-off, rounds, overrun, other groups' deadlines) cost little.  The engine ran
+    789 and 888 bytecodes a poll; 489 and 541 once a poll's set-up was made once, a waiting turn
+    asked the devices' clocks rather than a list of the devices made twice, and a device of no
+    groups carried no Pace; 400 and 465 once a link of one group turned a loop of its own, a
+    poll that changed no state settled without the rules of a change, and a start on time
+    noted nothing; 381 and 462 once a link whose groups are on a grid (read --interval's, whose
+    device is counted here) timed no overruns, and a group's cut-in was made once; 370 and 455 once a device that answered and stays
+    online was only stamped, and the hook run as a poll's request leaves asked nothing; 359 and 455 once the client came
+    to a poll from its turn, and read --interval's poll of one request was not timed twice; 353 and 447 once an overrun was
+    flagged as it was counted and what follows a poll (--lenient's deviations, --reconnect-each,
+    --pause) asked only by a poll that failed or a link that has it; 349 and 443 once a poll
+    was settled straight to its report; 331 and 421 once a Poll was a tuple made in C.  Counted, not timed: a loaded machine moves a rate, not a count."""
+    # read --interval's device is on a grid, its poll of one request timed by its round trip
+    options = {"published": published, "timed": published}
+    each = (
+        _engine_bytecodes(120, not published, **options) - _engine_bytecodes(20, not published, **options)
+    ) / 100
+    assert each <= budget, f"the engine ran {each:.0f} bytecodes a poll"

@@ -115,9 +115,11 @@ def test_a_poll_carries_copies_of_its_device_and_link_that_later_polls_do_not_ch
     read what a link's thread is changing."""
     state = _state()
     worker = _worker(0, state)
-    (poll,) = worker._settle(state, [], None, 5.0)
+    records: list = []
+    worker._settle(records.append, state, state.groups[0], [], None, 5.0, 5.0)
+    (poll,) = records
     assert (poll.state, poll.last_success, poll.stats.polls, poll.link.name) == (ONLINE, 5.0, 1, "bus")
-    worker._settle(state, None, NoResponse("silence"), 6.0)
+    worker._settle(records.append, state, state.groups[0], None, NoResponse("silence"), 6.0, 6.0)
     assert state.stats.polls == 2 and state.stats.failed_polls == 1
     assert poll.stats.polls == 1 and poll.stats.failed_polls == 0  # its own copy
     view = view_of(poll)

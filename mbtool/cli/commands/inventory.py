@@ -19,6 +19,7 @@ from mbtool.files import read_toml
 from mbtool.link.settings import File
 from mbtool.plant.budget import link_budget
 from mbtool.plant.inventory import LINK_KEYS, load_inventory
+from mbtool.registermap.plan import MapReader
 from mbtool.words import counted
 
 HELP = {"help_option_names": ["-h", "--help"]}
@@ -49,10 +50,12 @@ def check(path):
         devices = [device for device in plant.devices if device.link == name]
         print(f"link {name}: {link.connection.port}, {counted(len(devices), 'device')}")
         for device in devices:
+            assert isinstance(device.reader, MapReader)  # an inventory's devices read their points
             reads = counted(len(device.reader.points), "point")
             source = f"map {plant.maps[device.name]}" if device.name in plant.maps else "references"
             print(f"  {device.name}: unit {device.unit}, {reads} ({source}), every {device.interval:g} s")
             for group in device.groups:
+                assert isinstance(group.reader, MapReader)  # an inventory's groups read their points
                 pace = (
                     "at start and after each reconnect"
                     if group.interval == math.inf

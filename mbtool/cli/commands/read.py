@@ -133,7 +133,7 @@ def _run(
             raise
         return None
     from mbtool.cli.poll_output import ChangesOnly, Deferred, Output  # noqa: PLC0415 - polling only
-    from mbtool.link.polling import poll  # noqa: PLC0415 - polling only
+    from mbtool.plant.polling import poll  # noqa: PLC0415 - polling only
 
     fmt = settings.output_format or default_format()
     whole = Output(fmt, csv_header=settings.csv_header, metrics=metrics)
@@ -150,7 +150,7 @@ def _run(
 
 
 def polling_summary(polled) -> Verdict:
-    """A run of polls (link.polling.Polled) in words: the one line that ends it, with its code."""
+    """A run of polls (plant.polling.Polled) in words: the one line that ends it, with its code."""
     summary = (
         f"polls {polled.polls}, replies {polled.replies}, partial {polled.partial}, "
         f"timeouts {polled.timeouts}, errors {polled.errors}, skipped {polled.skipped}, "

@@ -1,0 +1,206 @@
+"""``read --interval``: the same read again and again over one link, a plant of one device.
+
+Imported only when --interval or --polls is given, so a one-shot read pays nothing for it.  The
+polls are the plant's engine's (``plant.schedule.LinkWorker`` on a managed link), run on the
+command's own thread: slots on a fixed grid of the monotonic clock (poll k starts at start + k *
+interval, so a slow poll or a changed wall clock never makes the schedule drift; a poll that
+overruns its slot skips the slots it missed, and says how many), the device never offline, a
+link that failed opened again by the one back-off rule (at most once a timeout, so a device
+that is restarting or unplugged is not hammered with --interval 0, and the log gets a line a
+timeout, not thousands).  A port or unit that makes no sense is a RequestError, one error before
+anything is sent.
+
+What a poll shows is not decided here: each reply and failure goes to a ``Shown`` (the CLI's
+writes them in the chosen format).  ``poll`` returns a ``Polled`` record: what the polls came to
+and the verdict's exit code (0 when every poll got its reply, otherwise the code of the last
+failure; 130 only when interrupted before any poll finished).  It writes no words: cli/ turns
+the record into the summary line and the --stats json figures.
+"""
+
+from __future__ import annotations
+
+import gc
+import operator
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+from mbtool.codec.record import field, record
+from mbtool.durations import Durations
+from mbtool.errors import ExitCode, NoResponse, PartialRead, exit_code_for
+from mbtool.link.connection import Connection, open_client
+from mbtool.link.managed import Backoff
+from mbtool.link.stats import Stats
+from mbtool.plant.schedule import Clock, DeviceSpec, DeviceState, GroupState, LinkSpec, LinkWorker, Poll
+
+DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
+
+
+class Shown(Protocol):
+    """Where the polls go: a reply held to show later, or a failed poll."""
+
+    def hold(self, when: float, reply) -> None: ...  # when: time.time() the poll's request left
+
+    def write(self) -> None: ...  # show the reply held, if any
+
+    def failure(self, when: float, number: int, error: BaseException) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@record
+class Polled:
+    """What a run of polls came to: the counts, the transactions' outcomes (``stats``), each
+    poll's latency (``per_poll``: a map read's, from its first request to its last reply; a
+    single request's is its round trip), when the first and last poll were made (time.time()),
+    the deviations --lenient let through, and the verdict's exit code."""
+
+    polls: int
+    replies: int
+    partial: int
+    timeouts: int
+    errors: int
+    skipped: int
+    interrupted: bool
+    stats: Stats = field(compare=False)
+    per_poll: Durations = field(compare=False)
+    first_when: float | None
+    last_when: float | None
+    accepted: tuple[str, ...]
+    exit_code: ExitCode
+
+
+class _OneRequest:
+    """The reader of a device read with one request: a poll is its reply."""
+
+    __slots__ = ("blocks", "read")
+
+    def __init__(self, request) -> None:
+        self.blocks = (request,)
+        # read(execute) is execute(request): called in C, not a frame of Python's a poll
+        self.read = operator.methodcaller("__call__", request)
+
+
+class _MapRun:
+    """The reader of a poll of several requests: ``run(execute)``, given the link's
+    ``execute(unit, request)`` as the plant's readers are given ``execute(request)``."""
+
+    __slots__ = ("run", "unit")
+    # Its reads are the map's, inside ``run``; only a plant's overrun asks them, and a grid's
+    # group never overruns (its late slots are counted as skipped).
+    blocks = ()
+
+    def __init__(self, run: Callable, unit: int) -> None:
+        self.run, self.unit = run, unit
+
+    def read(self, execute):
+        return self.run(lambda unit, request: execute(request))
+
+
+class _Tally:
+    """The polls as the worker reports them: each shown, and its failures counted (its polls
+    are the engine's, and its replies the polls that did not fail)."""
+
+    def __init__(self, shown: Shown, group: GroupState) -> None:
+        self.shown = shown
+        self.group = group  # the device's one group: its polls are the run's
+        self.hold = shown.hold  # bound once: one a poll
+        self.partial = self.timeouts = self.errors = 0
+        self.last_failure = ExitCode.OK
+        self.first_when: float | None = None
+        self.last: Poll | None = None
+        self.per_poll = Durations()
+
+    def report(self, item) -> None:
+        if item.__class__ is not Poll:  # a link's or the device's change of state: its polls say it
+            return
+        self.last = item
+        if self.first_when is None:
+            self.first_when = item.time
+        if item.error is None:
+            if item.latency is not None:  # a map's poll, timed (LinkWorker's timed)
+                self.per_poll.add(item.latency)
+            self.hold(item.time, item.readings)
+            return
+        error = item.error
+        self.shown.write()  # the poll before it, if the request never left
+        if isinstance(error, PartialRead):  # some of a map's points: the others are shown
+            self.partial += 1
+        elif isinstance(error, NoResponse):
+            self.timeouts += 1
+        else:
+            self.errors += 1
+        self.last_failure = exit_code_for(error)
+        self.shown.failure(item.time, self.group.polls, error)
+
+
+def poll(
+    connection: Connection,
+    request,
+    shown: Shown,
+    interval: float | None,
+    polls: int | None,
+    trace: Callable | None = None,
+    run: Callable | None = None,
+    clock=None,
+) -> Polled:
+    """Run ``request`` every ``interval`` seconds, ``polls`` times (0: until interrupted).
+
+    ``trace``: makes each link's Client trace from its framer (--hex).  ``run(execute)``:
+    what one poll does when it is more than one request (a register map's reads), given the
+    link's ``execute(unit, request)``; ``request`` then stands for them in the link's checks
+    (broadcast).  ``clock``: the engine's (None: plant.schedule.Clock, the system's)."""
+    clock = clock or Clock
+    if interval is None:
+        interval = DEFAULT_INTERVAL
+    unit = connection.unit
+    reader = _OneRequest(request) if run is None else _MapRun(run, unit)
+    device = DeviceSpec("", "", unit, reader, {}, interval, offline_after=0, grid=True)
+    state = DeviceState(device, clock.monotonic())
+    tally = _Tally(shown, state.groups[0])
+    worker = LinkWorker(
+        LinkSpec("", connection),
+        [state],
+        tally.report,
+        threading.Event(),
+        polls or 0,
+        clock=clock,
+        open_link=lambda: open_client(connection, request.name, trace=trace),
+        # A link that failed is opened again at most once a timeout, as if a refusal had waited
+        # the timeout out.
+        backoff=Backoff(connection.timeout),
+        sent=shown.write,  # the poll before is shown while this one's reply is on its way
+        idle=shown.write,
+        published=False,
+        timed=run is not None,  # a map's poll is timed; one request's, by its round trip
+    )
+    interrupted = False
+    try:
+        # What start-up made (click, the codec's types) lives as long as the run: keep the
+        # garbage collector from walking it again every few hundred polls.
+        gc.freeze()
+        worker.work()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        shown.close()
+    polled = tally.group.polls
+    code = tally.last_failure
+    if interrupted and polled == 0:
+        code = ExitCode.INTERRUPTED
+    stats = worker.stats
+    return Polled(
+        polled,
+        polled - tally.partial - tally.timeouts - tally.errors,
+        tally.partial,
+        tally.timeouts,
+        tally.errors,
+        state.skipped,
+        interrupted,
+        stats,
+        stats.rtt if run is None else tally.per_poll,
+        tally.first_when,
+        None if tally.last is None else tally.last.time,
+        tuple(worker.accepted),
+        code,
+    )
