@@ -72,7 +72,7 @@ def test_a_json_poll_is_written_in_few_bytecodes_and_is_the_line_json_writes(mon
     for poll, (text, result) in enumerate(zip(texts, results, strict=True)):
         assert text == json_line({"time": local_time(SECOND + poll / 1000), **as_dict(result)})
         assert json.loads(text)["values"] == result.values
-    assert ran <= 236, f"a -o json poll's output ran {ran} bytecodes"
+    assert ran <= 228, f"a -o json poll's output ran {ran} bytecodes"
 
 
 @pytest.mark.parametrize("fmt", ["plain", "csv"])
