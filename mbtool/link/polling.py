@@ -95,6 +95,7 @@ def poll(
 
     if interval is None:
         interval = DEFAULT_INTERVAL
+    scheduled = interval > 0  # back to back (0) keeps no schedule; asked once, not twice a poll
     limit = polls or math.inf  # 0 or None: until interrupted
     # A poll that ends is a reply or one failure counted: the replies are the polls less those.
     done = partial = timeouts = errors = skipped = 0
@@ -136,16 +137,15 @@ def poll(
         show_previous = shown.write  # bound once, not a method object a poll
         execute = link.execute
         while done < limit:
-            if interval > 0:  # back to back (0) keeps no schedule
+            if scheduled:
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
             client = link.client
-            if client is None:  # a link that failed waits out its back-off
-                link.wait()
             when = None  # until the request goes out
             try:
                 if client is None:
+                    link.wait()  # a link that failed waits out its back-off
                     client = link.open()
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
@@ -198,7 +198,7 @@ def poll(
             # Show the poll now unless the next request leaves at once (then it is shown while
             # that request's reply is on its way): a pause, a new link or a slot not yet due
             # come first.
-            if interval > 0:
+            if scheduled:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
