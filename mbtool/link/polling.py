@@ -95,8 +95,10 @@ def poll(
 
     if interval is None:
         interval = DEFAULT_INTERVAL
+    scheduled = interval > 0  # back to back (0) keeps no schedule; asked once, not twice a poll
     limit = polls or math.inf  # 0 or None: until interrupted
-    done = replies = partial = timeouts = errors = skipped = 0
+    # A poll that ends is a reply or one failure counted: the replies are the polls less those.
+    done = partial = timeouts = errors = skipped = 0
     # A request's latency runs from it leaving to its reply (the client's rtt, which
     # link.stats counts with every transaction's outcome); a poll's from its first request
     # leaving to its last reply (a map read is several requests, each perhaps --pause apart).
@@ -135,16 +137,15 @@ def poll(
         show_previous = shown.write  # bound once, not a method object a poll
         execute = link.execute
         while done < limit:
-            if interval > 0:  # back to back (0) keeps no schedule
+            if scheduled:
                 delay = start + slot * interval - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            if link.client is None:  # a link that failed waits out its back-off
-                link.wait()
+            client = link.client
             when = None  # until the request goes out
             try:
-                client = link.client
                 if client is None:
+                    link.wait()  # a link that failed waits out its back-off
                     client = link.open()
                     if done == 0:
                         # The first link's modules stay as long as the loop too; and the schedule
@@ -160,7 +161,6 @@ def poll(
                     reply = run(execute)
                     if stats.untimed == untimed:  # every reply of the poll timed
                         per_poll.add(client.replied_at - client.work_sent_at)
-                replies += 1
                 if client.deviations:  # --lenient took a reply as it was: the summary says so
                     accepted.update(client.deviations)
             except BrokenPipeError:
@@ -198,17 +198,17 @@ def poll(
             # Show the poll now unless the next request leaves at once (then it is shown while
             # that request's reply is on its way): a pause, a new link or a slot not yet due
             # come first.
-            idle = pause or link.client is None
-            if interval > 0:
+            if scheduled:
                 slot += 1
                 behind = time.monotonic() - (start + slot * interval)
                 if behind < 0:
-                    idle = True
-                elif behind > 0 and done < limit:
+                    shown.write()
+                    continue
+                if behind > 0 and done < limit:
                     missed = math.ceil(behind / interval)
                     skipped += missed
                     slot += missed
-            if idle:
+            if pause or link.client is None:
                 shown.write()
     except KeyboardInterrupt:
         interrupted = True
@@ -220,7 +220,7 @@ def poll(
         code = ExitCode.INTERRUPTED
     return Polled(
         done,
-        replies,
+        done - partial - timeouts - errors,
         partial,
         timeouts,
         errors,
