@@ -8,6 +8,7 @@ after WRITE_TIMEOUT.
 from __future__ import annotations
 
 import socket
+import sys
 import threading
 import time
 
@@ -222,3 +223,30 @@ def test_no_connection_is_a_connection_failure_with_the_reason():
         port = listener.getsockname()[1]  # bound, not listening: refused
         with pytest.raises(ConnectionFailed, match=f"cannot connect to 127.0.0.1:{port}: Connection refused"):
             TcpTransport("127.0.0.1", port, timeout=2)
+
+
+def test_a_transaction_s_write_and_read_are_no_socket_method_calls(link):
+    """A poll's request and reply go through os.write and os.read on the socket's descriptor
+    (POSIX): socket's send, sendall and recv parse their arguments by PyArg_ParseTuple, some
+    300 instructions a call (callgrind), two calls a poll (issue 41.9)."""
+    tcp, peer = link
+    called: list = []
+
+    def profile(frame, event, arg):
+        if event == "c_call":
+            called.append(arg)
+
+    sys.setprofile(profile)
+    try:
+        tcp.write(b"\x00\x01request")
+        asked = peer.recv(100)
+        peer.sendall(b"\x00\x01reply")
+        replied = tcp.read(1.0)
+    finally:
+        sys.setprofile(None)
+    assert (asked, replied) == (b"\x00\x01request", b"\x00\x01reply")
+    socket_methods = [f.__name__ for f in called if getattr(f, "__self__", None) is tcp.sock]
+    assert not {"send", "sendall", "recv"} & set(socket_methods), socket_methods
+    tcp.close()
+    with pytest.raises(ConnectionClosed):  # a closed link reads no descriptor another file took
+        tcp.read(1.0)
