@@ -34,6 +34,7 @@ from mbtool.codec.timing import character_bits
 from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import IN_PROCESS
 from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
+    FRAME_CHUNK,
     READ_CHUNK,
     WRITE_TIMEOUT,
     ConnectionClosed,
@@ -260,6 +261,7 @@ class TcpTransport(Transport):
         self._timeval = "@qq" if wide else "@ll"
         self._set_timeout(_socket.SO_SNDTIMEO, WRITE_TIMEOUT)
         self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
+        self._chunk = FRAME_CHUNK  # what the next read takes at most
         # Whether bytes came while mbtool was busy (a poll's output written while its reply was
         # on its way): a poll object made once, where select builds descriptor sets from lists
         # and back on every call, twice the instructions (none on Windows: select there).
@@ -297,13 +299,19 @@ class TcpTransport(Transport):
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
-            data = self._recv(READ_CHUNK)
+            chunk = self._chunk
+            data = self._recv(chunk)
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
             raise ConnectionClosed(f"{self.description}: {reason(error)}") from None
         if not data:
             raise ConnectionClosed(f"{self.description} closed the connection")
+        # A read that filled its chunk left more behind, faster than replies come (a flood of
+        # garbage): the next takes READ_CHUNK at once.  Else a frame's worth, which the
+        # allocator has at hand, where a buffer of READ_CHUNK is made and cut down to the
+        # reply every read (some 600 instructions).
+        self._chunk = READ_CHUNK if len(data) == chunk else FRAME_CHUNK
         return data
 
     def input_waiting(self) -> bool:

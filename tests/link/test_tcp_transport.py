@@ -15,7 +15,7 @@ import time
 import pytest
 
 from mbtool.errors import ConnectionFailed
-from mbtool.link import transport
+from mbtool.link import base, transport
 from mbtool.link.transport import ConnectionClosed, TcpTransport
 
 pytestmark = pytest.mark.timeout(30)
@@ -250,3 +250,26 @@ def test_a_transaction_s_write_and_read_are_no_socket_method_calls(link):
     tcp.close()
     with pytest.raises(ConnectionClosed):  # a closed link reads no descriptor another file took
         tcp.read(1.0)
+
+
+def test_a_read_takes_a_frame_s_worth_until_one_fills_it_then_big_chunks(link):
+    """A reply is at most a frame (260 bytes over MBAP), which a read of that size takes at the
+    allocator's small cost, where a 64 KiB buffer made and cut down cost some 600 instructions
+    a poll; bytes coming faster than replies (a flood) fill it, and the reads that follow take
+    READ_CHUNK at once, until one comes up short again."""
+    tcp, peer = link
+    flood = bytes(range(256)) * 800  # 200 KiB of garbage, at once
+    peer.sendall(flood)
+    time.sleep(0.05)
+    sizes = []
+    got = b""
+    while len(got) < len(flood):
+        data = tcp.read(1.0)
+        sizes.append(len(data))
+        got += data
+    assert got == flood
+    assert sizes[0] == base.FRAME_CHUNK
+    assert len(sizes) <= 1 + len(flood) // transport.READ_CHUNK + 2, sizes  # big chunks after the first
+    peer.sendall(b"\x00\x01" * 200)  # 400 bytes: after the flood's short last read, a frame's worth
+    time.sleep(0.05)
+    assert len(tcp.read(1.0)) == base.FRAME_CHUNK
