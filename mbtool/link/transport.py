@@ -27,6 +27,7 @@ import select
 import struct
 import sys
 import time
+from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from mbtool.codec.record import record, replace
@@ -272,6 +273,8 @@ class TcpTransport(Transport):
         # and os.read take their arguments the fast way, where the socket's send and recv parse
         # them by format string, some 300 instructions a call and two calls a poll.  (Windows'
         # sockets are no files: their own methods there.)
+        self._send: Callable[[bytes], int]
+        self._recv: Callable[[int], bytes]
         if os.name == "posix":
             self._send = functools.partial(os.write, self.sock.fileno())
             self._recv = functools.partial(os.read, self.sock.fileno())

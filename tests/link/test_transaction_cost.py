@@ -9,8 +9,13 @@ same path's instructions over TCP with callgrind."""
 
 from __future__ import annotations
 
+import dis
+import os
+import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 import mbtool
 from mbtool.codec.data_access import ReadHoldingRegisters, RegistersResponse
@@ -82,9 +87,9 @@ def _bytecodes(run) -> int:
     return ran
 
 
-def _polled(requests: list) -> tuple[int, list, Stats]:
-    """Polls of ``requests`` (a map's reads, in turn) as polling makes them: the median bytecodes
-    of mbtool's a transaction, the replies and the link's statistics."""
+def _polling(requests: list) -> tuple:
+    """One poll of ``requests`` (a map's reads, in turn) as polling makes it, the replies it
+    keeps and the link's statistics."""
     clock = SteppingClock()
     client = Client(Answering(), TcpFramer(), clock=clock, sleep=clock.sleep)
     stats = Stats()
@@ -96,6 +101,13 @@ def _polled(requests: list) -> tuple[int, list, Stats]:
         for request in requests:
             replies.append(managed.execute(1, request))
 
+    return poll, replies, stats
+
+
+def _polled(requests: list) -> tuple[int, list, Stats]:
+    """Polls of ``requests`` as polling makes them: the median bytecodes of mbtool's a
+    transaction, the replies and the link's statistics."""
+    poll, replies, stats = _polling(requests)
     for _ in range(3):  # the link opened, the requests' frames and predictions made
         poll()
     counts = sorted(_bytecodes(poll) for _ in range(21))
@@ -123,6 +135,65 @@ def test_the_requests_of_a_map_taking_turns_are_each_worked_out_once():
     assert [reply.registers[0] for reply in replies[-3:]] == [70, 71, 72]  # each its own, new
     assert stats.outcomes["answered"] == 72 and stats.untimed == 0
     assert ran <= 500, f"a transaction ran {ran} bytecodes of mbtool's"
+
+
+def _unspecialized() -> list[str]:
+    """The attribute reads and writes of mbtool's that a polled transaction runs and that the
+    interpreter left generic (a class's attribute read on an instance, a named tuple's field, a
+    property): each such read looks the name up in the type and calls its descriptor, some
+    hundred instructions where a specialized one (an instance's own attribute, a slot) takes a
+    few.  Run in a fresh interpreter: the polls made first let it specialize them."""
+    poll, _, _ = _polling([ReadHoldingRegisters(0, COUNT)])
+    for _ in range(300):
+        poll()
+    ran: dict = {}  # code -> the offsets of its instructions that ran
+
+    def trace(frame, event, arg):
+        if not frame.f_code.co_filename.startswith(MBTOOL):
+            return None
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            ran.setdefault(frame.f_code, set()).add(frame.f_lasti)
+        return trace
+
+    sys.settrace(trace)
+    try:
+        poll()
+    finally:
+        sys.settrace(None)
+    generic = ("LOAD_ATTR", "LOAD_METHOD", "STORE_ATTR")  # as the compiler made them: not specialized
+    return [
+        f"{code.co_qualname} ({os.path.basename(code.co_filename)}:{op.positions.lineno}): {op.argval}"
+        for code, offsets in ran.items()
+        for op in dis.get_instructions(code, adaptive=True)
+        if op.offset in offsets
+        and op.opname.startswith(generic)
+        and (op.opname in generic or op.opname.endswith("_ADAPTIVE"))
+        # A reply's fields written by hand into its record's table (RegistersResponse): cheaper,
+        # measured, than the table set whole or each field by object.__setattr__.
+        and op.argval != "__dict__"
+    ]
+
+
+# What 3.11 specializes (the bench's interpreter): 3.12 specializes more (class attributes,
+# properties), so a read left generic here may not be there.
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="what is specialized is 3.11's")
+def test_every_attribute_a_polled_transaction_reads_is_one_the_interpreter_specializes():
+    """A poll's transaction read eleven attributes the generic way, some 1.2k instructions a poll
+    (callgrind, the client in process): the exchange's worked-out request and its reply's
+    prediction were named tuples, two of their fields called as methods, and the framer's
+    waiting_for_silence a class attribute."""
+    here = str(Path(__file__).parent)
+    found = subprocess.run(
+        [sys.executable, "-c", "import test_transaction_cost as t; print('\\n'.join(t._unspecialized()))"],
+        cwd=here,
+        env={**os.environ, "PYTHONPATH": here},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert found.returncode == 0, found.stderr
+    assert found.stdout.strip().splitlines() == []
 
 
 class _opened:
