@@ -282,11 +282,12 @@ class TcpTransport(Transport):
             self._send, self._recv = self.sock.send, self.sock.recv
 
     def write(self, data: bytes) -> None:
+        send = self._send  # (called from a local: an instance's callable is no method to look up)
         try:
-            sent = self._send(data)  # a Modbus frame fits an idle socket's buffer at once
+            sent = send(data)  # a Modbus frame fits an idle socket's buffer at once
             while sent < len(data):  # a peer slow to read: the rest as its buffer empties
                 data = data[sent:]
-                sent = self._send(data)
+                sent = send(data)
         except BlockingIOError:  # SO_SNDTIMEO passed: a peer that stopped reading
             raise ConnectionFailed(
                 f"cannot send to {self.description}: the peer has not read for {WRITE_TIMEOUT:g} s"
@@ -302,8 +303,8 @@ class TcpTransport(Transport):
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
-            chunk = self._chunk
-            data = self._recv(chunk)
+            chunk, receive = self._chunk, self._recv  # (the callable from a local, as send's)
+            data = receive(chunk)
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:

@@ -11,8 +11,10 @@ import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
+from helpers.checks import in_fresh_interpreter, unspecialized
 
 from mbtool.errors import ConnectionFailed
 from mbtool.link import base, transport
@@ -273,3 +275,36 @@ def test_a_read_takes_a_frame_s_worth_until_one_fills_it_then_big_chunks(link):
     peer.sendall(b"\x00\x01" * 200)  # 400 bytes: after the flood's short last read, a frame's worth
     time.sleep(0.05)
     assert len(tcp.read(1.0)) == base.FRAME_CHUNK
+
+
+def _tcp_unspecialized() -> list[str]:
+    """The attribute reads of the TCP transport's a poll's write and read left generic (run in
+    a fresh interpreter), against a peer that answers each request at once."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        tcp = TcpTransport(*listener.getsockname(), timeout=2)
+        peer, _ = listener.accept()
+
+    def answer() -> None:
+        while request := peer.recv(100):
+            peer.sendall(request)
+
+    threading.Thread(target=answer, daemon=True).start()
+
+    def transaction() -> None:
+        tcp.write(b"\x00\x01request")
+        assert tcp.read(1.0) == b"\x00\x01request"
+
+    try:
+        return unspecialized(transaction, str(Path(transport.__file__).parent))
+    finally:
+        tcp.close()
+        peer.close()
+
+
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="what is specialized is 3.11's")
+def test_every_attribute_a_transaction_s_write_and_read_read_is_one_the_interpreter_specializes():
+    """os.write and os.read, bound to the descriptor, were called as methods of the transport
+    (an instance's attribute, looked up the generic way): two generic reads a poll."""
+    assert in_fresh_interpreter("link.test_tcp_transport", "_tcp_unspecialized") == []

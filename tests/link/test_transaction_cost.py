@@ -9,13 +9,11 @@ same path's instructions over TCP with callgrind."""
 
 from __future__ import annotations
 
-import dis
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers.checks import in_fresh_interpreter, unspecialized
 
 import mbtool
 from mbtool.codec.data_access import ReadHoldingRegisters, RegistersResponse
@@ -138,41 +136,10 @@ def test_the_requests_of_a_map_taking_turns_are_each_worked_out_once():
 
 
 def _unspecialized() -> list[str]:
-    """The attribute reads and writes of mbtool's that a polled transaction runs and that the
-    interpreter left generic (a class's attribute read on an instance, a named tuple's field, a
-    property): each such read looks the name up in the type and calls its descriptor, some
-    hundred instructions where a specialized one (an instance's own attribute, a slot) takes a
-    few.  Run in a fresh interpreter: the polls made first let it specialize them."""
+    """The attribute reads of mbtool's a polled transaction left generic (run in a fresh
+    interpreter)."""
     poll, _, _ = _polling([ReadHoldingRegisters(0, COUNT)])
-    for _ in range(300):
-        poll()
-    ran: dict = {}  # code -> the offsets of its instructions that ran
-
-    def trace(frame, event, arg):
-        if not frame.f_code.co_filename.startswith(MBTOOL):
-            return None
-        frame.f_trace_opcodes = True
-        if event == "opcode":
-            ran.setdefault(frame.f_code, set()).add(frame.f_lasti)
-        return trace
-
-    sys.settrace(trace)
-    try:
-        poll()
-    finally:
-        sys.settrace(None)
-    generic = ("LOAD_ATTR", "LOAD_METHOD", "STORE_ATTR")  # as the compiler made them: not specialized
-    return [
-        f"{code.co_qualname} ({os.path.basename(code.co_filename)}:{op.positions.lineno}): {op.argval}"
-        for code, offsets in ran.items()
-        for op in dis.get_instructions(code, adaptive=True)
-        if op.offset in offsets
-        and op.opname.startswith(generic)
-        and (op.opname in generic or op.opname.endswith("_ADAPTIVE"))
-        # A reply's fields written by hand into its record's table (RegistersResponse): cheaper,
-        # measured, than the table set whole or each field by object.__setattr__.
-        and op.argval != "__dict__"
-    ]
+    return unspecialized(poll, MBTOOL)
 
 
 # What 3.11 specializes (the bench's interpreter): 3.12 specializes more (class attributes,
@@ -183,17 +150,7 @@ def test_every_attribute_a_polled_transaction_reads_is_one_the_interpreter_speci
     (callgrind, the client in process): the exchange's worked-out request and its reply's
     prediction were named tuples, two of their fields called as methods, and the framer's
     waiting_for_silence a class attribute."""
-    here = str(Path(__file__).parent)
-    found = subprocess.run(
-        [sys.executable, "-c", "import test_transaction_cost as t; print('\\n'.join(t._unspecialized()))"],
-        cwd=here,
-        env={**os.environ, "PYTHONPATH": here},
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert found.returncode == 0, found.stderr
-    assert found.stdout.strip().splitlines() == []
+    assert in_fresh_interpreter("link.test_transaction_cost", "_unspecialized") == []
 
 
 class _opened:
