@@ -95,13 +95,16 @@ def json_lines(stdout: str) -> list[dict]:
     return [json.loads(line) for line in stdout.splitlines() if line.strip()]
 
 
-def bytecodes(call) -> int:
-    """The bytecodes ``call()`` runs, in every Python function it calls (on this thread): a
-    cost a loaded machine does not move, as it moves a time."""
+def bytecodes(call, under: str = "") -> int:
+    """The bytecodes ``call()`` runs, in every Python function it calls (on this thread) whose
+    file's path starts with ``under`` (a directory, or one file; "": every function): a cost a
+    loaded machine does not move, as it moves a time."""
     ran = 0
 
     def trace(frame, event, arg):
         nonlocal ran
+        if not frame.f_code.co_filename.startswith(under):
+            return None
         frame.f_trace_opcodes = True
         if event == "opcode":
             ran += 1

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers.checks import in_fresh_interpreter, unspecialized
+from helpers.checks import bytecodes, in_fresh_interpreter, unspecialized
 
 import mbtool
 from mbtool.codec.data_access import ReadHoldingRegisters, RegistersResponse
@@ -66,27 +66,6 @@ class Answering(Transport):
         return bool(self.reply)
 
 
-def _bytecodes(run) -> int:
-    """The bytecodes of mbtool's own code that ``run()`` executes."""
-    ran = 0
-
-    def trace(frame, event, arg):
-        nonlocal ran
-        if not frame.f_code.co_filename.startswith(MBTOOL):
-            return None
-        frame.f_trace_opcodes = True
-        if event == "opcode":
-            ran += 1
-        return trace
-
-    sys.settrace(trace)
-    try:
-        run()
-    finally:
-        sys.settrace(None)
-    return ran
-
-
 def _polling(requests: list) -> tuple:
     """One poll of ``requests`` (a map's reads, in turn) as polling makes it, the replies it
     keeps and the link's statistics."""
@@ -110,7 +89,7 @@ def _polled(requests: list) -> tuple[int, list, Stats]:
     poll, replies, stats = _polling(requests)
     for _ in range(3):  # the link opened, the requests' frames and predictions made
         poll()
-    counts = sorted(_bytecodes(poll) for _ in range(21))
+    counts = sorted(bytecodes(poll, MBTOOL) for _ in range(21))
     return counts[10] // len(requests), replies, stats
 
 
@@ -201,26 +180,17 @@ def test_the_polling_loop_costs_a_poll_of_one_request_at_most_72_bytecodes(monke
     polling_file = polling.__file__
 
     def own(polls: int) -> tuple[int, polling.Polled, _Shown]:
-        ran = 0
-
-        def trace(frame, event, arg):
-            nonlocal ran
-            if frame.f_code.co_filename != polling_file:
-                return None
-            frame.f_trace_opcodes = True
-            if event == "opcode":
-                ran += 1
-            return trace
-
         shown = _Shown()
-        sys.settrace(trace)
-        try:
-            polled = polling.poll(
-                Connection(port="tcp://192.0.2.1"), ReadHoldingRegisters(0, COUNT), shown, 0, polls
-            )
-        finally:
-            sys.settrace(None)
-        return ran, polled, shown
+        run: list[polling.Polled] = []
+        ran = bytecodes(
+            lambda: run.append(
+                polling.poll(
+                    Connection(port="tcp://192.0.2.1"), ReadHoldingRegisters(0, COUNT), shown, 0, polls
+                )
+            ),
+            polling_file,
+        )
+        return ran, run[0], shown
 
     few, _, _ = own(10)
     many, polled, shown = own(30)
