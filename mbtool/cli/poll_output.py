@@ -178,9 +178,14 @@ class Deferred:
         if reply is None:
             return
         self.held = None
+        # to_result and show are attributes, not methods of the class: read as attributes and
+        # then called, they are looked up as the interpreter has learnt to, where a method call
+        # of them looks them up anew every poll.
         if reply is not self.shown_reply:
-            self.shown_reply, self.shown_result = reply, self.to_result(reply)
-        self.show(local_time(self.held_when), self.shown_result, self.held_when)
+            to_result = self.to_result
+            self.shown_reply, self.shown_result = reply, to_result(reply)
+        show, when = self.show, self.held_when
+        show(local_time(when), self.shown_result, when)
 
     def failure(self, when: float, number: int, error: BaseException) -> None:
         if isinstance(error, PartialRead):  # what was read is shown, then what was not

@@ -28,11 +28,12 @@ def local_time(when: float | None = None) -> str:
     # fraction when % 1.0 gives.  To the microsecond first, as datetime takes a time stamp,
     # then cut to the millisecond: a time a float holds just under its millisecond (.001 as
     # .000999...) is that millisecond, and the stamp is the one the MQTT payload and datetime
-    # write for the same poll.
+    # write for the same poll.  Times 1e6, not 1_000_000: the same product, and a float's by a
+    # float is specialized by the interpreter, by an int is not.
     fraction = when - _second
     if 0.0 <= fraction < 1.0:
         try:
-            return _second_text + _endings[_round(fraction * 1_000_000) // 1000]
+            return _second_text + _endings[_round(fraction * 1e6) // 1000]
         except IndexError:  # 1000: .9999996 is the next second's .000
             pass
     return _new_second(when)
@@ -43,7 +44,7 @@ def _new_second(when: float) -> str:
     when the offset is not the one before."""
     global _second, _second_text, _zone
     fraction = when % 1.0
-    second, milli = when - fraction, _round(fraction * 1_000_000) // 1000
+    second, milli = when - fraction, _round(fraction * 1e6) // 1000
     if milli == 1000:
         second, milli = second + 1.0, 0
     local = time.localtime(second)

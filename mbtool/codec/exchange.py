@@ -17,7 +17,7 @@ and the news that the line paused or went quiet, like the framer under it:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple, TypeVar
+from typing import TypeVar
 
 from mbtool.codec.errors import ChecksumError, FrameError, MismatchError, ModbusException, function_code_text
 from mbtool.codec.framer import Frame, Framer, Prediction, Rejected
@@ -45,19 +45,45 @@ class Trace:
 UNWATCHED = Trace()
 
 
-class Prepared(NamedTuple):
-    """What is the same for every attempt of one request to one unit, worked out once: a
-    polling loop sends the same request again and again."""
+class Prepared:
+    """What is the same for every attempt of one request to one unit, worked out once (and
+    never changed): a polling loop sends the same request again and again.  Slots, not a named
+    tuple: a tuple's fields are descriptors, which the interpreter reads the generic way, some
+    hundred instructions each, and an attempt and its reply read seven of them."""
 
-    request: Request
-    unit: int
-    expects_response: bool  # a reply is awaited: not a broadcast, and not FC08 sub 04
-    frame: Callable[[int], bytes]  # its frame for an attempt's transaction id (Framer.frames)
-    watched: bool  # an echo of it is watched for
-    prediction: Prediction | None  # its reply as asked, known beforehand (never when watched)
-    reply_size: int  # the prediction's size (-1: none), and where its PDU starts
-    pdu_at: int
-    decode_predicted: Callable[[bytes], Response | ExceptionResponse]  # such a reply decoded
+    __slots__ = (
+        "request",
+        "unit",
+        "expects_response",
+        "frame",
+        "watched",
+        "prediction",
+        "reply_size",
+        "pdu_at",
+        "decode_predicted",
+    )
+
+    def __init__(
+        self,
+        request: Request,
+        unit: int,
+        expects_response: bool,
+        frame: Callable[[int], bytes],
+        watched: bool,
+        prediction: Prediction | None,
+        reply_size: int,
+        pdu_at: int,
+        decode_predicted: Callable[[bytes], Response | ExceptionResponse],
+    ) -> None:
+        self.request = request
+        self.unit = unit
+        self.expects_response = expects_response  # a reply is awaited: not a broadcast, and not FC08 sub 04
+        self.frame = frame  # its frame for an attempt's transaction id (Framer.frames)
+        self.watched = watched  # an echo of it is watched for
+        self.prediction = prediction  # its reply as asked, known beforehand (never when watched)
+        self.reply_size = reply_size  # the prediction's size (-1: none), and where its PDU starts
+        self.pdu_at = pdu_at
+        self.decode_predicted = decode_predicted  # such a reply decoded
 
 
 def _nothing_predicted(adu: bytes) -> Response | ExceptionResponse:
@@ -145,7 +171,8 @@ class Exchange:
         prepared = self._prepared
         if request is not prepared.request or unit != prepared.unit:
             prepared = self._prepare(unit, request)
-        adu = prepared.frame(tid)
+        frame = prepared.frame  # (a callable kept, read as an attribute: a method's lookup is not)
+        adu = frame(tid)
         if fresh:
             self.framer.reset()
             self._held = False
@@ -228,7 +255,8 @@ class Exchange:
                 if pdu == self._reply_pdu:
                     reply = self._reply  # the same bytes as last time: the same (immutable) response
                 else:
-                    reply = self._reply = prepared.decode_predicted(data)
+                    decode = prepared.decode_predicted  # (an attribute, as frame in attempt)
+                    reply = self._reply = decode(data)
                     self._reply_pdu = pdu
                 assert reply is not None
                 if self.trace is not UNWATCHED:

@@ -33,14 +33,18 @@ class Frame(NamedTuple):
     transaction_id: int | None = None
 
 
-class Prediction(NamedTuple):
+class Prediction:
     """The reply to a request if it answers as asked, as far as it is known before it comes
-    (``Framer.predict``): the same for every attempt of the request."""
+    (``Framer.predict``): the same for every attempt of the request, never changed.  Slots, as
+    exchange.Prepared's: a named tuple's fields are read the generic way, and a poll reads two."""
 
-    repeated: int  # its first bytes are the request's own: MBAP's transaction id (2)
-    head: bytes  # then these: the rest of its envelope and its PDU's first bytes
-    size: int  # the whole reply's
-    pdu_at: int  # where its PDU starts
+    __slots__ = ("repeated", "head", "size", "pdu_at")
+
+    def __init__(self, repeated: int, head: bytes, size: int, pdu_at: int) -> None:
+        self.repeated = repeated  # its first bytes are the request's own: MBAP's transaction id (2)
+        self.head = head  # then these: the rest of its envelope and its PDU's first bytes
+        self.size = size  # the whole reply's
+        self.pdu_at = pdu_at  # where its PDU starts
 
 
 @record
@@ -83,14 +87,17 @@ class Framer(ABC):
         return len(self._buffer) + len(self._garbage)
 
     # True when only a pause on the line can end the frame in the buffer: RTU's property,
-    # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits.
+    # for a PDU of unknown length; a frame with a start and an end (ASCII, MBAP) never waits,
+    # and ``pauses_end_frames`` says so once (the client asks the property only where it may be
+    # True: a class attribute read on an instance is read the generic way, every pass).
+    pauses_end_frames = False
     if TYPE_CHECKING:  # RTU's is a property: to the checker, every framer's is
 
         @property
         def waiting_for_silence(self) -> bool: ...
 
     else:
-        waiting_for_silence = False  # a class attribute, read on every pass of the client's loop
+        waiting_for_silence = False
 
     def next_event(self) -> Event | None:
         while True:

@@ -69,6 +69,8 @@ class RtuFramer(Framer):
         super().feed(data)
         self._fed += len(data)
 
+    pauses_end_frames = True  # a frame of unknown length (an unknown function code) ends so
+
     @property
     def waiting_for_silence(self) -> bool:
         if self._held and self._buffer:

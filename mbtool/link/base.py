@@ -16,6 +16,9 @@ from mbtool.errors import ConnectionFailed, NoResponse
 
 WRITE_TIMEOUT = 5.0  # seconds a write may block before the port or peer counts as broken
 READ_CHUNK = 65536  # bytes a read takes at most: what a burst of garbage and a reply may span
+# The largest Modbus frame, an MBAP ADU (7 + 253; an RTU frame is 256): what a read that expects
+# a reply takes at most.
+FRAME_CHUNK = 260
 
 
 class ConnectionClosed(NoResponse):

@@ -56,6 +56,7 @@ class Client:
         self._serial_line = transport.serial_line  # a serial line keeps t3.5 silences
         self._datagrams = transport.datagrams  # each read a whole datagram (UDP)
         self._broadcast_unit = framer.broadcast_unit
+        self._pauses_end_frames = framer.pauses_end_frames  # RTU: a pause may end a frame
         # What may explain silence on this link, until a reply shows its framing right.
         self._silence_hint = transport.silence_hint
         self.timeout = timeout
@@ -117,16 +118,11 @@ class Client:
         # after a retry may be one of theirs, late.
         unanswered: list[tuple[int, float]] | None = None
         self.rtt = None
-        busy = False
         # This attempt: the first, then each retry.  (A broadcast ends with its first: nothing
         # can fail after the write, as nothing is waited for.)
         attempt = 1
         while True:
             self.attempts = attempt
-            if busy:
-                # Spec §3, exception 06: the device is busy, retry later: the next attempt goes
-                # when this one's timeout would have ended, as after silence.
-                self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
             try:
                 try:
                     reply = self._transact(unit, request, attempt > 1)
@@ -146,7 +142,6 @@ class Client:
                 if attempt > self.retries:
                     break
                 attempt += 1
-                busy = False
                 continue
             if reply is None:  # broadcast, or a request with no reply: nothing came to settle
                 self._settled = False
@@ -165,6 +160,9 @@ class Client:
                     raise refusal
                 error = worse(error, refusal)
                 attempt += 1
+                # Spec §3, exception 06: the device is busy, retry later: the next attempt goes
+                # when this one's timeout would have ended, as after silence.
+                self.sleep(max(0.0, self._sent_at + self.timeout - self.clock()))
                 continue
             return reply
         assert error is not None  # the loop ends only after a failure, which it keeps
@@ -247,7 +245,8 @@ class Client:
         # asked from self: a poll's reply nearly always comes in the loop's first pass.)
         reply = None
         while now < deadline:
-            waiting = self.framer.waiting_for_silence  # RTU, a frame of unknown length: a pause ends it
+            # RTU, a frame of unknown length: a pause ends it
+            waiting = self._pauses_end_frames and self.framer.waiting_for_silence
             try:
                 data = transport.read(min(deadline - now, UNKNOWN_LENGTH_GAP) if waiting else deadline - now)
             except ConnectionClosed as closed:  # the peer hung up: judge what it sent before that

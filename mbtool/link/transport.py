@@ -19,6 +19,7 @@ from __future__ import annotations
 import _socket
 import contextlib
 import errno
+import functools
 import math
 import os
 import re
@@ -26,6 +27,7 @@ import select
 import struct
 import sys
 import time
+from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from mbtool.codec.record import record, replace
@@ -33,6 +35,7 @@ from mbtool.codec.timing import character_bits
 from mbtool.errors import ConnectionFailed, UsageError
 from mbtool.link import IN_PROCESS
 from mbtool.link.base import (  # noqa: F401  (the transports' shared part, named here as ever)
+    FRAME_CHUNK,
     READ_CHUNK,
     WRITE_TIMEOUT,
     ConnectionClosed,
@@ -259,16 +262,32 @@ class TcpTransport(Transport):
         self._timeval = "@qq" if wide else "@ll"
         self._set_timeout(_socket.SO_SNDTIMEO, WRITE_TIMEOUT)
         self._read_timeout = -1.0  # what SO_RCVTIMEO is set to
+        self._chunk = FRAME_CHUNK  # what the next read takes at most
         # Whether bytes came while mbtool was busy (a poll's output written while its reply was
         # on its way): a poll object made once, where select builds descriptor sets from lists
         # and back on every call, twice the instructions (none on Windows: select there).
         self._waiting = select.poll() if hasattr(select, "poll") else None
         if self._waiting is not None:
             self._waiting.register(self.sock, select.POLLIN)
+        # The request written and the reply read as a file's, on the socket's descriptor: os.write
+        # and os.read take their arguments the fast way, where the socket's send and recv parse
+        # them by format string, some 300 instructions a call and two calls a poll.  (Windows'
+        # sockets are no files: their own methods there.)
+        self._send: Callable[[bytes], int]
+        self._recv: Callable[[int], bytes]
+        if os.name == "posix":
+            self._send = functools.partial(os.write, self.sock.fileno())
+            self._recv = functools.partial(os.read, self.sock.fileno())
+        else:
+            self._send, self._recv = self.sock.send, self.sock.recv
 
     def write(self, data: bytes) -> None:
+        send = self._send  # (called from a local: an instance's callable is no method to look up)
         try:
-            self.sock.sendall(data)  # a Modbus frame fits an idle socket's buffer at once
+            sent = send(data)  # a Modbus frame fits an idle socket's buffer at once
+            while sent < len(data):  # a peer slow to read: the rest as its buffer empties
+                data = data[sent:]
+                sent = send(data)
         except BlockingIOError:  # SO_SNDTIMEO passed: a peer that stopped reading
             raise ConnectionFailed(
                 f"cannot send to {self.description}: the peer has not read for {WRITE_TIMEOUT:g} s"
@@ -284,13 +303,19 @@ class TcpTransport(Transport):
                     self._read_timeout = timeout
             elif not select.select([self.sock], [], [], max(timeout, 0))[0]:
                 return b""  # else readable: data or the end, so the recv does not wait
-            data = self.sock.recv(READ_CHUNK)
+            chunk, receive = self._chunk, self._recv  # (the callable from a local, as send's)
+            data = receive(chunk)
         except BlockingIOError:  # SO_RCVTIMEO passed
             return b""
         except OSError as error:
             raise ConnectionClosed(f"{self.description}: {reason(error)}") from None
         if not data:
             raise ConnectionClosed(f"{self.description} closed the connection")
+        # A read that filled its chunk left more behind, faster than replies come (a flood of
+        # garbage): the next takes READ_CHUNK at once.  Else a frame's worth, which the
+        # allocator has at hand, where a buffer of READ_CHUNK is made and cut down to the
+        # reply every read (some 600 instructions).
+        self._chunk = READ_CHUNK if len(data) == chunk else FRAME_CHUNK
         return data
 
     def input_waiting(self) -> bool:
@@ -307,7 +332,7 @@ class TcpTransport(Transport):
             # What is already here, up to a budget: a peer that floods would never let a
             # drain that waits for quiet end (the client's deadline bounds what follows).
             while len(stale) < DISCARD_BUDGET and select.select([self.sock], [], [], 0)[0]:
-                chunk = self.sock.recv(READ_CHUNK)
+                chunk = self._recv(READ_CHUNK)
                 if not chunk:
                     break
                 stale += chunk
@@ -326,6 +351,9 @@ class TcpTransport(Transport):
 
     def close(self) -> None:
         self.sock.close()
+        # The descriptor's number may be another file's from now on: the closed socket's own
+        # methods, which fail as a closed socket does.
+        self._send, self._recv = self.sock.send, self.sock.recv
 
 
 @record

@@ -1,4 +1,4 @@
-"""-o json's poll lines (sinks.json.Polls, and the JsonLines it keeps), made with less work a
+"""-o json's poll lines (sinks.json.Polls), made with less work a
 poll, are the very text json_line writes of the whole result: whatever the type, the values and
 the shape of the poll."""
 

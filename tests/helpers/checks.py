@@ -1,14 +1,17 @@
 """The assertions and waits the tests have in common: one error line and its exit code, the
 --hex trace and plain output parsed, a predicate waited for, a socket the peer closed, the
-bytecodes a call runs.
+bytecodes a call runs and the attribute reads in it the interpreter left generic.
 """
 
 from __future__ import annotations
 
+import dis
 import json
+import os
 import re
 import select
 import socket
+import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -92,13 +95,16 @@ def json_lines(stdout: str) -> list[dict]:
     return [json.loads(line) for line in stdout.splitlines() if line.strip()]
 
 
-def bytecodes(call) -> int:
-    """The bytecodes ``call()`` runs, in every Python function it calls (on this thread): a
-    cost a loaded machine does not move, as it moves a time."""
+def bytecodes(call, under: str = "") -> int:
+    """The bytecodes ``call()`` runs, in every Python function it calls (on this thread) whose
+    file's path starts with ``under`` (a directory, or one file; "": every function): a cost a
+    loaded machine does not move, as it moves a time."""
     ran = 0
 
     def trace(frame, event, arg):
         nonlocal ran
+        if not frame.f_code.co_filename.startswith(under):
+            return None
         frame.f_trace_opcodes = True
         if event == "opcode":
             ran += 1
@@ -110,3 +116,59 @@ def bytecodes(call) -> int:
     finally:
         sys.settrace(None)
     return ran
+
+
+def unspecialized(run, under: str, warm: int = 300) -> list[str]:
+    """The attribute reads and writes in the code under ``under`` (a directory) that ``run()``
+    runs and the interpreter left generic, after ``warm`` runs to specialize them: a class's
+    attribute read on an instance, a named tuple's field, a callable attribute called as a
+    method.  Each such read looks the name up in the type and calls its descriptor, some
+    hundred instructions where a specialized one (an instance's own attribute, a slot) takes
+    a few.  Call it in a fresh interpreter (``in_fresh_interpreter``): code the test process
+    ran before with other types may be left generic for a while."""
+    for _ in range(warm):
+        run()
+    ran: dict = {}  # code -> the offsets of its instructions that ran
+
+    def trace(frame, event, arg):
+        if not frame.f_code.co_filename.startswith(under):
+            return None
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            ran.setdefault(frame.f_code, set()).add(frame.f_lasti)
+        return trace
+
+    sys.settrace(trace)
+    try:
+        run()
+    finally:
+        sys.settrace(None)
+    generic = ("LOAD_ATTR", "LOAD_METHOD", "STORE_ATTR")  # as the compiler made them: not specialized
+    return [
+        f"{code.co_qualname} ({os.path.basename(code.co_filename)}:{op.positions.lineno}): {op.argval}"
+        for code, offsets in ran.items()
+        for op in dis.get_instructions(code, adaptive=True)
+        if op.offset in offsets
+        and op.opname.startswith(generic)
+        and (op.opname in generic or op.opname.endswith("_ADAPTIVE"))
+        # A reply's fields written by hand into its record's table (RegistersResponse): cheaper,
+        # measured, than the table set whole or each field by object.__setattr__.
+        and op.argval != "__dict__"
+    ]
+
+
+def in_fresh_interpreter(module: str, function: str) -> list[str]:
+    """The lines ``module.function()`` (a test module's, returning a list of lines) returns,
+    run in an interpreter of its own."""
+    tests = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    here = os.path.join(tests, *module.split(".")[:-1]) if "." in module else tests
+    found = subprocess.run(
+        [sys.executable, "-c", f"import {module.rsplit('.', 1)[-1]} as m; print(*m.{function}(), sep='\\n')"],
+        cwd=here,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join((here, tests))},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert found.returncode == 0, found.stderr
+    return found.stdout.strip().splitlines()

@@ -8,13 +8,16 @@ after WRITE_TIMEOUT.
 from __future__ import annotations
 
 import socket
+import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
+from helpers.checks import in_fresh_interpreter, unspecialized
 
 from mbtool.errors import ConnectionFailed
-from mbtool.link import transport
+from mbtool.link import base, transport
 from mbtool.link.transport import ConnectionClosed, TcpTransport
 
 pytestmark = pytest.mark.timeout(30)
@@ -222,3 +225,86 @@ def test_no_connection_is_a_connection_failure_with_the_reason():
         port = listener.getsockname()[1]  # bound, not listening: refused
         with pytest.raises(ConnectionFailed, match=f"cannot connect to 127.0.0.1:{port}: Connection refused"):
             TcpTransport("127.0.0.1", port, timeout=2)
+
+
+def test_a_transaction_s_write_and_read_are_no_socket_method_calls(link):
+    """A poll's request and reply go through os.write and os.read on the socket's descriptor
+    (POSIX): socket's send, sendall and recv parse their arguments by PyArg_ParseTuple, some
+    300 instructions a call (callgrind), two calls a poll (issue 41.9)."""
+    tcp, peer = link
+    called: list = []
+
+    def profile(frame, event, arg):
+        if event == "c_call":
+            called.append(arg)
+
+    sys.setprofile(profile)
+    try:
+        tcp.write(b"\x00\x01request")
+        asked = peer.recv(100)
+        peer.sendall(b"\x00\x01reply")
+        replied = tcp.read(1.0)
+    finally:
+        sys.setprofile(None)
+    assert (asked, replied) == (b"\x00\x01request", b"\x00\x01reply")
+    socket_methods = [f.__name__ for f in called if getattr(f, "__self__", None) is tcp.sock]
+    assert not {"send", "sendall", "recv"} & set(socket_methods), socket_methods
+    tcp.close()
+    with pytest.raises(ConnectionClosed):  # a closed link reads no descriptor another file took
+        tcp.read(1.0)
+
+
+def test_a_read_takes_a_frame_s_worth_until_one_fills_it_then_big_chunks(link):
+    """A reply is at most a frame (260 bytes over MBAP), which a read of that size takes at the
+    allocator's small cost, where a 64 KiB buffer made and cut down cost some 600 instructions
+    a poll; bytes coming faster than replies (a flood) fill it, and the reads that follow take
+    READ_CHUNK at once, until one comes up short again."""
+    tcp, peer = link
+    flood = bytes(range(256)) * 800  # 200 KiB of garbage, at once
+    peer.sendall(flood)
+    time.sleep(0.05)
+    sizes = []
+    got = b""
+    while len(got) < len(flood):
+        data = tcp.read(1.0)
+        sizes.append(len(data))
+        got += data
+    assert got == flood
+    assert sizes[0] == base.FRAME_CHUNK
+    assert len(sizes) <= 1 + len(flood) // transport.READ_CHUNK + 2, sizes  # big chunks after the first
+    peer.sendall(b"\x00\x01" * 200)  # 400 bytes: after the flood's short last read, a frame's worth
+    time.sleep(0.05)
+    assert len(tcp.read(1.0)) == base.FRAME_CHUNK
+
+
+def _tcp_unspecialized() -> list[str]:
+    """The attribute reads of the TCP transport's a poll's write and read left generic (run in
+    a fresh interpreter), against a peer that answers each request at once."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        tcp = TcpTransport(*listener.getsockname(), timeout=2)
+        peer, _ = listener.accept()
+
+    def answer() -> None:
+        while request := peer.recv(100):
+            peer.sendall(request)
+
+    threading.Thread(target=answer, daemon=True).start()
+
+    def transaction() -> None:
+        tcp.write(b"\x00\x01request")
+        assert tcp.read(1.0) == b"\x00\x01request"
+
+    try:
+        return unspecialized(transaction, str(Path(transport.__file__).parent))
+    finally:
+        tcp.close()
+        peer.close()
+
+
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="what is specialized is 3.11's")
+def test_every_attribute_a_transaction_s_write_and_read_read_is_one_the_interpreter_specializes():
+    """os.write and os.read, bound to the descriptor, were called as methods of the transport
+    (an instance's attribute, looked up the generic way): two generic reads a poll."""
+    assert in_fresh_interpreter("link.test_tcp_transport", "_tcp_unspecialized") == []

@@ -4,7 +4,7 @@ One rule for all: json's separators, and NaN and the infinities as null (they ar
 JSON; jq would choke on them).  One object (a one-shot read, an error) is written by
 ``to_json``, without the json module: importing it costs ~2 ms that every one-shot
 ``-o json`` from cron would pay.  A poll writes many: ``json_line`` uses json's C
-encoder, made once, and ``JsonLines`` keeps what a command's polls share.
+encoder, made once, and ``Polls`` keeps what the polls of one read share.
 """
 
 from __future__ import annotations
@@ -100,57 +100,6 @@ def json_line(data: dict) -> str:
 
 
 _ENCODER: JSONEncoder | None = None  # made by the first json_line
-
-
-class JsonLines:
-    """What follows a poll's time in its JSON line, as ``json_line({"time": ..., **as_dict(result)})``
-    writes it, with less work a poll: the polls of one read (``Result.again`` of its ``shared``
-    result) differ only in their time, values and raw registers, so the rest of the line (unit,
-    function, name, address, type, addresses, refs) is encoded once for them, and a poll's line
-    is that text with its values and registers set in; where the values are ints (an integer
-    type, one order), their array is one %-format made once, as the registers' always is."""
-
-    def __init__(self) -> None:
-        self.shared: Result | None = None  # the result whose polls the text below is for
-        self.parts: list[str] = []  # the text after the time, around the values and the registers
-        # The values' array as a %-format of them when they are ints (None: the encoder writes
-        # them), and the registers' (None: the line has none).
-        self.ints: str | None = None
-        self.registers: str | None = None
-
-    def rest(self, result: Result | Points) -> str:
-        """The line after the time's text: its closing quote, then the result's keys."""
-        if isinstance(result, Points):  # a map's points
-            return _after_time(points_dict(result))
-        shared = result.shared
-        if shared is None or shared is not self.shared:
-            self._learn(result)
-        parts, ints = self.parts, self.ints
-        try:
-            values = ints % tuple(result.values) if ints is not None else _encoded(result.values)
-        except TypeError:  # not as many values as the first poll's
-            values = _encoded(result.values)
-        if self.registers is None:
-            return f"{parts[0]}{values}{parts[1]}"
-        registers = result.registers
-        assert registers is not None  # the polls of one read carry theirs alike
-        return f"{parts[0]}{values}{parts[1]}{self.registers % tuple(registers)}{parts[2]}"
-
-    def _learn(self, result: Result) -> None:
-        """The line's text for the polls of the result's shared one, cut where the values and the
-        registers go."""
-        from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
-
-        data = {**as_dict(result), "values": _MARK}
-        registers = data.get("registers")  # the raw registers, when the line has them
-        if registers is not None:
-            data["registers"] = _MARK
-        self.shared, self.parts = result.shared, _after_time(data).split(_MARKED)
-        # Registers are always ints, and so are the values of an integer type: their arrays
-        # with a %d for each, as json and repr write an int.
-        integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        self.ints = _int_form(len(result.values)) if integers else None
-        self.registers = None if registers is None else _int_form(len(registers))
 
 
 def _encoded(values: list) -> str:
@@ -279,19 +228,66 @@ class Rows(PlainRows):
 
 
 class Polls(PlainPolls):
-    """read --interval -o json: a JSON line a poll, a change or a failed poll."""
+    """read --interval -o json: a JSON line a poll, a change or a failed poll.
+
+    A poll's line is the text ``json_line({"time": ..., **as_dict(result)})`` writes, made with
+    less work a poll: the polls of one read (``Result.again`` of its ``shared`` result) differ
+    only in their time, values and raw registers, so the rest of the line (unit, function, name,
+    address, type, addresses, refs) is encoded once for them, and a poll's line is one f-string
+    of that text with its time, values and registers set in; where the values are ints (an
+    integer type, one order), their array is one %-format made once, as the registers' always is."""
 
     def __init__(self, output) -> None:
-        super().__init__(output)
-        self.lines = JsonLines()
-        self.written: Result | Points | None = None  # the last result written,
-        self.rest = ""  # and its line after the time
+        super().__init__(output)  # self.shared: the result whose polls the text below is for
+        # The line's text around the time, the values and the registers (the last "" when the
+        # line has none), and the arrays' %-formats: the values' when they are ints (None: the
+        # encoder writes them), the registers' (None: the line has none).
+        self.parts: tuple[str, str, str] = ("", "", "")
+        self.ints: str | None = None
+        self.registers: str | None = None
+        # The last result written and its arrays' text: the same result again (Deferred's, a
+        # poll whose values have not changed) is written with only its time new.
+        self.written: Result | Points | None = None
+        self.values = self.raw = ""
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result is not self.written:  # else the poll before's values (Deferred): only the time is new
-            self.written, self.rest = result, self.lines.rest(result)
+        if result is not self.written:
+            self.written = result
+            if result.__class__ is Points:  # a map's points: their line, after its time, as it is
+                self.shared, self.parts = None, (_after_time(points_dict(result)), "", "")
+                self.values = self.raw = ""
+            else:
+                shared = result.shared
+                if shared is None or shared is not self.shared:
+                    self._learn(result)
+                ints = self.ints
+                try:
+                    self.values = ints % tuple(result.values) if ints is not None else _encoded(result.values)
+                except TypeError:  # not as many values as the first poll's
+                    self.values = _encoded(result.values)
+                if self.registers is not None:
+                    self.raw = self.registers % tuple(result.registers)
         # The time is local_time's digits and punctuation: quoted, it is its JSON string.
-        self.output.emit('{"time": "' + when + self.rest)
+        head, middle, tail = self.parts
+        self.output.emit(f'{{"time": "{when}{head}{self.values}{middle}{self.raw}{tail}')
+
+    def _learn(self, result: Result) -> None:
+        """The line's text for the polls of the result's shared one, cut where the values and the
+        registers go."""
+        from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
+
+        data = {**as_dict(result), "values": _MARK}
+        registers = data.get("registers")  # the raw registers, when the line has them
+        if registers is not None:
+            data["registers"] = _MARK
+        head, middle, *tail = _after_time(data).split(_MARKED)
+        self.shared, self.parts = result.shared, (head, middle, tail[0] if tail else "")
+        # Registers are always ints, and so are the values of an integer type: their arrays
+        # with a %d for each, as json and repr write an int.
+        integers = result.extra is None and result.type is not None and TYPES[result.type].integer
+        self.ints = _int_form(len(result.values)) if integers else None
+        self.registers = None if registers is None else _int_form(len(registers))
+        self.raw = ""
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:
         self.output.emit(json_line({"time": when, **what, "old": old, "new": new, **engineering_unit(unit)}))
