@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from mbtool.codec.record import field, record
+from mbtool.codec.record import field, fields_setter, record
 
 
 @record
@@ -50,22 +50,27 @@ class Result:
         addresses: list[int] | None = None,
         texts: list[str] | None = None,
     ) -> None:
-        # By hand: one a poll (codec/record.py).
-        fields = self.__dict__
-        fields["unit"] = unit
-        fields["function"] = function
-        fields["name"] = name
-        fields["address"] = address
-        fields["values"] = values
-        fields["type"] = type
-        fields["registers"] = registers
-        fields["note"] = note
-        fields["extra"] = extra
-        fields["refs"] = refs
-        # One value a register or a bit, from ``address`` on, unless the command says otherwise.
-        fields["addresses"] = list(range(address, address + len(values))) if addresses is None else addresses
-        fields["texts"] = texts
-        fields["shared"] = None
+        # By hand, its fields one table (codec/record.py): again copies it for every poll, whose
+        # fields the sinks read.
+        _set_fields(
+            self,
+            {
+                "unit": unit,
+                "function": function,
+                "name": name,
+                "address": address,
+                "values": values,
+                "type": type,
+                "registers": registers,
+                "note": note,
+                "extra": extra,
+                "refs": refs,
+                # One value a register or a bit, from ``address`` on, unless the command says otherwise.
+                "addresses": list(range(address, address + len(values))) if addresses is None else addresses,
+                "texts": texts,
+                "shared": None,
+            },
+        )
 
     def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
         """This read's result with a later poll's values and registers: the polls of one read
@@ -90,9 +95,7 @@ class Result:
 
 
 _new = object.__new__  # a record made without its __init__: again's fields are copied
-# A record's fields table set whole: the __dict__ descriptor's own setter, past the record's
-# frozen __setattr__ (and object.__setattr__'s look-up of the descriptor every call).
-_set_fields = Result.__dict__["__dict__"].__set__
+_set_fields = fields_setter(Result)  # a result's fields, set whole (codec/record.py)
 
 
 def value_text(value: object) -> str:

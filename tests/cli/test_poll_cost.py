@@ -17,10 +17,13 @@ import csv
 import io
 import json
 import statistics
+import sys
+from pathlib import Path
 
 import pytest
-from helpers.checks import bytecodes
+from helpers.checks import bytecodes, in_fresh_interpreter, unspecialized
 
+import mbtool
 from mbtool.cli import poll_output
 from mbtool.cli.poll_output import Deferred, Output
 from mbtool.cli.results import PointRow, Points, Result, as_dict
@@ -31,6 +34,7 @@ from mbtool.cli.stamps import local_time
 from mbtool.codec.data_access import RegistersResponse
 from mbtool.codec.values import value_addresses, value_decoder
 
+MBTOOL = str(Path(mbtool.__file__).parent)
 SECOND = 1764140800.0  # a poll's time.time(); its polls a millisecond apart, in one second
 
 
@@ -41,20 +45,12 @@ def _polls(fmt: str, monkeypatch, polls: int = 40) -> tuple[int, list[str], list
     the polls' joined text itself, uncounted: a loaded machine's slow poll is not one that
     flushes."""
     monkeypatch.setattr(poll_output, "FLUSH_GAP", 3600.0)
-    decode = value_decoder("uint16")
-    shared = Result(
-        1, 3, "Read Holding Registers", 0, [], "uint16", addresses=value_addresses("uint16", 0, 10)
-    )
-
-    def to_result(reply):  # read.py's: the shared result with the poll's values
-        registers = reply.registers
-        return shared.again(decode(registers), registers)
-
+    to_result = _to_result()
     out = io.StringIO()
     shown = Deferred(Output(fmt, out), to_result)
     counts, texts, results = [], [], []
     for poll in range(polls):
-        reply = RegistersResponse(3, tuple((poll * 7 + i * 1009) % 65536 for i in range(10)))
+        reply = _reply(poll)
         before = out.tell()
 
         def show(when=SECOND + poll / 1000, reply=reply) -> None:
@@ -66,6 +62,50 @@ def _polls(fmt: str, monkeypatch, polls: int = 40) -> tuple[int, list[str], list
         texts.append(out.getvalue()[before:])
         results.append(to_result(reply))
     return int(statistics.median(counts[1:])), texts, results
+
+
+def _to_result():
+    """read.py's to_result of read-holding-registers 0 10: the shared result with a poll's values."""
+    decode = value_decoder("uint16")
+    shared = Result(
+        1, 3, "Read Holding Registers", 0, [], "uint16", addresses=value_addresses("uint16", 0, 10)
+    )
+
+    def to_result(reply):
+        registers = reply.registers
+        return shared.again(decode(registers), registers)
+
+    return to_result
+
+
+def _reply(poll: int) -> RegistersResponse:
+    """The reply to poll number ``poll``: every value new."""
+    return RegistersResponse(3, tuple((poll * 7 + i * 1009) % 65536 for i in range(10)))
+
+
+def _unspecialized() -> list[str]:
+    """The attribute reads of mbtool's a -o json poll's output left generic (run in a fresh
+    interpreter)."""
+    poll_output.FLUSH_GAP = 3600.0  # this interpreter's own: no flush among the polls
+    shown = Deferred(Output("json", io.StringIO()), _to_result())
+    polls = iter(range(10**6))
+
+    def show() -> None:
+        poll = next(polls)
+        shown.hold(SECOND + poll / 1000, _reply(poll))
+        shown.write()
+
+    return unspecialized(show, MBTOOL)
+
+
+# What 3.11 specializes (the bench's interpreter): 3.12 specializes more.
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="what is specialized is 3.11's")
+def test_every_attribute_a_poll_s_output_reads_is_one_the_interpreter_specializes():
+    """A poll's result (Result.again) copied the table its read's result's __dict__ made, which
+    shares its keys with the class (split): 3.11 reads an attribute of a split table the generic
+    way, and the sink's reads of its values and shared result were generic every poll (some 400
+    instructions a poll of read --interval -o json, callgrind)."""
+    assert in_fresh_interpreter("cli.test_poll_cost", "_unspecialized") == []
 
 
 def test_a_json_poll_is_written_in_few_bytecodes_and_is_the_line_json_writes(monkeypatch):
