@@ -313,9 +313,11 @@ class GroupState:
         """The next slot of its interval; one that has passed already is skipped, not made up
         (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
         counted as skipped (but after its last poll) and the next one waited for; else it is
-        polled at once."""
+        polled at once.  A grid of no slots (``back_to_back``) has no next slot: it stays due."""
+        if self.back_to_back:
+            return
         due = self.due + self.interval
-        if due < now and not self.back_to_back:
+        if due < now:
             interval = self.interval
             if not self.grid:
                 self.overruns += 1
