@@ -129,7 +129,8 @@ class _Tally:
         if item.__class__ is not Poll:  # a link's or the device's change of state: its polls say it
             return
         if item.error is None:
-            self.hold(item.time, item.readings)
+            hold = self.hold  # read as an attribute, then called (a method call looks it up generically)
+            hold(item.time, item.readings)
         else:
             self._failed(item)
 
