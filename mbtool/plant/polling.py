@@ -98,31 +98,52 @@ class _MapRun:
 
 
 class _Tally:
-    """The polls as the worker reports them: each shown, and its failures counted (its polls
-    are the engine's, and its replies the polls that did not fail)."""
+    """The polls as the worker reports them: each reply held to show, each failure shown and
+    counted.  What the worker counts already is asked of it at the end, not counted a poll: the
+    polls are the group's, the replies the polls that did not fail, the last poll's time the
+    device's last answer's or the last failure's."""
 
-    def __init__(self, shown: Shown, group: GroupState) -> None:
+    def __init__(self, shown: Shown, group: GroupState, timed: bool) -> None:
         self.shown = shown
         self.group = group  # the device's one group: its polls are the run's
         self.hold = shown.hold  # bound once: one a poll
         self.partial = self.timeouts = self.errors = 0
         self.last_failure = ExitCode.OK
         self.first_when: float | None = None
-        self.last: Poll | None = None
+        self.failed_when: float | None = None  # the last failed poll's time
         self.per_poll = Durations()
+        # How a poll is reported once the first's time is noted (``first``): a map's poll is
+        # timed (LinkWorker's timed), one request's by its round trip (the link's stats).
+        self.each = self.timed if timed else self.report
+        self.worker: LinkWorker  # set once it is made: ``first`` hands it ``each``
+
+    def first(self, item) -> None:
+        """What the worker reports until the first poll: that poll's time noted, then each poll
+        reported by ``each`` straight, with no check of whether it is the first."""
+        if item.__class__ is Poll:
+            self.first_when = item.time
+            self.worker.report = self.each
+        self.each(item)
 
     def report(self, item) -> None:
         if item.__class__ is not Poll:  # a link's or the device's change of state: its polls say it
             return
-        self.last = item
-        if self.first_when is None:
-            self.first_when = item.time
         if item.error is None:
-            if item.latency is not None:  # a map's poll, timed (LinkWorker's timed)
-                self.per_poll.add(item.latency)
-            self.hold(item.time, item.readings)
-            return
+            hold = self.hold  # read as an attribute, then called (a method call looks it up generically)
+            hold(item.time, item.readings)
+        else:
+            self._failed(item)
+
+    def timed(self, item) -> None:
+        """``report`` of a map's poll, whose latency is counted (None: a reply of it came untimed)."""
+        if item.__class__ is Poll and item.latency is not None:
+            self.per_poll.add(item.latency)
+        self.report(item)
+
+    def _failed(self, item: Poll) -> None:
         error = item.error
+        assert error is not None  # a failed poll
+        self.failed_when = item.time
         self.shown.write()  # the poll before it, if the request never left
         if isinstance(error, PartialRead):  # some of a map's points: the others are shown
             self.partial += 1
@@ -132,6 +153,11 @@ class _Tally:
             self.errors += 1
         self.last_failure = exit_code_for(error)
         self.shown.failure(item.time, self.group.polls, error)
+
+    def last_when(self, device: DeviceState) -> float | None:
+        """The last poll's time: the later of ``device``'s last answer and the last failure."""
+        times = [when for when in (device.last_success, self.failed_when) if when is not None]
+        return max(times, default=None)
 
 
 def poll(
@@ -157,11 +183,11 @@ def poll(
     reader = _OneRequest(request) if run is None else _MapRun(run, unit)
     device = DeviceSpec("", "", unit, reader, {}, interval, offline_after=0, grid=True)
     state = DeviceState(device, clock.monotonic())
-    tally = _Tally(shown, state.groups[0])
+    tally = _Tally(shown, state.groups[0], timed=run is not None)
     worker = LinkWorker(
         LinkSpec("", connection),
         [state],
-        tally.report,
+        tally.first,
         threading.Event(),
         polls or 0,
         clock=clock,
@@ -174,6 +200,7 @@ def poll(
         published=False,
         timed=run is not None,  # a map's poll is timed; one request's, by its round trip
     )
+    tally.worker = worker
     interrupted = False
     try:
         # What start-up made (click, the codec's types) lives as long as the run: keep the
@@ -200,7 +227,7 @@ def poll(
         stats,
         stats.rtt if run is None else tally.per_poll,
         tally.first_when,
-        None if tally.last is None else tally.last.time,
+        tally.last_when(state),
         tuple(worker.accepted),
         code,
     )

@@ -273,6 +273,10 @@ class GroupState:
     def __init__(self, group: Group, now: float, grid: bool = False, paced: bool = False) -> None:
         self.group = group
         self.interval = group.interval
+        # Its reader's read(execute), bound once by its worker: a poll reads it as an attribute
+        # and calls it, where group.reader.read(...) looked a record's field and a slot's
+        # callable up the generic way every poll.
+        self.read: Callable
         self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
         self.due = now
         self.polls = 0
@@ -313,9 +317,11 @@ class GroupState:
         """The next slot of its interval; one that has passed already is skipped, not made up
         (an overrun: the poll took longer than its interval).  On a grid, the slots passed are
         counted as skipped (but after its last poll) and the next one waited for; else it is
-        polled at once."""
+        polled at once.  A grid of no slots (``back_to_back``) has no next slot: it stays due."""
+        if self.back_to_back:
+            return
         due = self.due + self.interval
-        if due < now and not self.back_to_back:
+        if due < now:
             interval = self.interval
             if not self.grid:
                 self.overruns += 1
@@ -521,6 +527,10 @@ class LinkWorker:
         self.stamp: float | None = None  # time.time() the poll under way's first request left
         self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
         self.wall_time = clock.time  # a record's time
+        self.monotonic = clock.monotonic  # a poll's end
+        # Bound once, read as an attribute a poll: a worker has more attributes than an
+        # instance's shared keys hold, and the interpreter leaves its method calls generic.
+        self.settle = self._settle
         self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         self.follow_up = False
@@ -716,6 +726,8 @@ class LinkWorker:
         # and --reconnect-each and --pause, which decide what follows a poll.
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
+            for group in device.groups:
+                group.read = group.group.reader.read
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
         self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
         self.after_each = self.spec.connection.lenient or self.follow_up
@@ -756,10 +768,10 @@ class LinkWorker:
         """``_work`` for a link of one group and no jobs (a TCP device of its own, read
         --interval): a turn asks only whether its one group is due (never before its device's
         back-off ends, nor after its rounds) and its link open."""
-        link, clock, stop = self.link, self.clock, self.stop
+        link, monotonic, stop = self.link, self.monotonic, self.stop
         while not stop.is_set():
             self.turns += 1
-            now = clock.monotonic()
+            now = monotonic()
             client = link.client
             if group.due > now:
                 if not self._rest(now, -math.inf if client is not None else link.ready_at):
@@ -859,8 +871,11 @@ class LinkWorker:
     def _request_sent(self) -> None:
         """Run by the client right after a poll's first request has left: that is the poll's
         time."""
-        self.stamp = self.wall_time()
-        self.sent()
+        # Read as attributes, then called: a method call of an instance's attribute is looked
+        # up the generic way every poll.
+        wall_time, sent = self.wall_time, self.sent
+        self.stamp = wall_time()
+        sent()
 
     def _aim(self, device: DeviceState, client) -> None:
         """The link (its ``client``) set for ``device``'s transactions: one transaction at a time
@@ -883,17 +898,17 @@ class LinkWorker:
         client.while_waiting = self.sent_hook  # its first request out: the poll's time
         if self.aimed is not device:
             self._aim(device, client)
-        cut_in = group.cut_in
+        cut_in, read = group.cut_in, group.read
         untimed = self.stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
         latency: float | None = None
         try:
             if cut_in is None or nested:  # no other's poll comes between its transactions
-                readings = group.group.reader.read(device.execute)
+                readings = read(device.execute)
                 if self.timed and self.stats.untimed == untimed:
                     latency = client.replied_at - client.work_sent_at
             else:
-                readings = group.group.reader.read(cut_in.execute)
+                readings = read(cut_in.execute)
                 if self.timed and self.stats.untimed == untimed and not cut_in.happened:  # its own
                     latency = client.replied_at - client.work_sent_at
         except PartialRead as partial:
@@ -905,11 +920,13 @@ class LinkWorker:
             readings, error = None, link_failure(failure)  # a lost link the managed link closed
             client.while_waiting = None  # the request never left, perhaps: no later one runs it
             self.aimed = None  # a new link next poll, set for its device then
-        ended = self.clock.monotonic()
+        monotonic = self.monotonic
+        ended = monotonic()
         when = self.stamp
         if when is None:  # the request never left
             when = self.wall_time()
-        self._settle(self.report, device, group, readings, error, when, ended, latency)
+        settle = self.settle
+        settle(self.report, device, group, readings, error, when, ended, latency)
         if self.may_overrun:
             if not nested:  # a poll cut in is in the time of the one it cut into
                 self.busy += ended - began

@@ -28,6 +28,9 @@ from mbtool.plant.schedule import (
     views,
 )
 
+# The reader of a device whose link is never opened: its polls fail before they read.
+NEVER_READ = SimpleNamespace(blocks=(), read=None)
+
 
 def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:
     spec = DeviceSpec("m", "bus", 1, None, {}, interval, offline_after, max_backoff)
@@ -97,7 +100,7 @@ def test_records_reach_report_on_the_thread_that_runs_the_plant(monkeypatch):
 
     monkeypatch.setitem(mbtool.link.IN_PROCESS, "fake", refused)
     seen = []
-    device = DeviceSpec("m", "bus", 1, None, {}, 0.01, 3, 0.02)
+    device = DeviceSpec("m", "bus", 1, NEVER_READ, {}, 0.01, 3, 0.02)
     plant = Plant(
         {"bus": LinkSpec("bus", Connection(port="fake://", timeout=0.05))},
         [device],
@@ -149,7 +152,7 @@ def _two_links(monkeypatch) -> Plant:
 
     monkeypatch.setitem(mbtool.link.IN_PROCESS, "fake", refused)
     links = {name: LinkSpec(name, Connection(port="fake://", timeout=0.05)) for name in ("a", "b")}
-    devices = [DeviceSpec(f"m{name}", name, 1, None, {}, 0.01, 3, 0.02) for name in links]
+    devices = [DeviceSpec(f"m{name}", name, 1, NEVER_READ, {}, 0.01, 3, 0.02) for name in links]
     return Plant(links, devices, lambda item: None, rounds=1)
 
 
