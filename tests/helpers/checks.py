@@ -118,7 +118,7 @@ def bytecodes(call, under: str = "") -> int:
     return ran
 
 
-def unspecialized(run, under: str, warm: int = 300) -> list[str]:
+def unspecialized(run, under: str, warm: int = 300, recheck: bool = True) -> list[str]:
     """The attribute reads and writes in the code under ``under`` (a directory) that ``run()``
     runs and the interpreter left generic, after ``warm`` runs to specialize them: a class's
     attribute read on an instance, a named tuple's field, a callable attribute called as a
@@ -148,9 +148,11 @@ def unspecialized(run, under: str, warm: int = 300) -> list[str]:
     # A specialized read whose guess misses every run (an attribute of a split table read by
     # hint) shows as specialized until 3.11 gives it up, 53 misses on, and generic for a while
     # after: looked at after each of as many more runs (untraced: a traced run takes no
-    # specialized path), it is seen generic.
-    for _ in range(MISSES_BEFORE_GIVING_UP + 1):
-        run()
+    # specialized path), it is seen generic.  ``recheck=False``: looked at once, after the
+    # traced run.
+    for _ in range(MISSES_BEFORE_GIVING_UP + 1 if recheck else 1):
+        if recheck:
+            run()
         for code, offsets in ran.items():
             for op in dis.get_instructions(code, adaptive=True):
                 if (
