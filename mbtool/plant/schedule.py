@@ -47,7 +47,7 @@ from collections.abc import Callable, Collection, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from mbtool.codec.errors import RequestError
-from mbtool.codec.record import field, record, replace
+from mbtool.codec.record import field, fields_setter, record, replace
 from mbtool.errors import KNOWN_ERRORS, ConnectionFailed, OutputFailed, PartialRead, UsageError, link_failure
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff, ManagedLink
@@ -190,12 +190,13 @@ class Pace:
     overruns: int
 
     def __init__(self, group, asked, achieved, polls, overruns) -> None:
-        # By hand, its fields one dict: one a poll (codec/record.py says why).
-        object.__setattr__(
-            self,
-            "__dict__",
-            {"group": group, "asked": asked, "achieved": achieved, "polls": polls, "overruns": overruns},
+        # By hand, its fields one table: one a poll (codec/record.py says why).
+        _pace_fields(
+            self, {"group": group, "asked": asked, "achieved": achieved, "polls": polls, "overruns": overruns}
         )
+
+
+_pace_fields = fields_setter(Pace)
 
 
 @record
@@ -209,10 +210,13 @@ class LinkView:
     stats: Stats = field(compare=False)
 
     def __init__(self, name, state, open_failures, stats) -> None:
-        # By hand, its fields one dict: one a poll (codec/record.py says why).
-        object.__setattr__(
-            self, "__dict__", {"name": name, "state": state, "open_failures": open_failures, "stats": stats}
+        # By hand, its fields one table: one a poll (codec/record.py says why).
+        _link_view_fields(
+            self, {"name": name, "state": state, "open_failures": open_failures, "stats": stats}
         )
+
+
+_link_view_fields = fields_setter(LinkView)
 
 
 @record
@@ -227,10 +231,9 @@ class DeviceView:
     stats: PollStats = field(default=None, compare=False)
 
     def __init__(self, spec, state=UNKNOWN, last_success=None, last_poll=None, stats=None) -> None:
-        # By hand, its fields one dict: one a poll, made by each reader (codec/record.py says why).
-        object.__setattr__(
+        # By hand, its fields one table: one a poll, made by each reader (codec/record.py says why).
+        _device_view_fields(
             self,
-            "__dict__",
             {
                 "spec": spec,
                 "state": state,
@@ -239,6 +242,9 @@ class DeviceView:
                 "stats": stats,
             },
         )
+
+
+_device_view_fields = fields_setter(DeviceView)
 
 
 def view_of(poll: Poll) -> DeviceView:
