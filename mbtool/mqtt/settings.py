@@ -84,8 +84,6 @@ NOT_SPARKPLUG = {
     "discovery": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
     "discovery_prefix": 'Home Assistant\'s discovery reads JSON topics: it goes with payload = "json"',
 }
-# What a topic template may name besides a device's tags (which carry [poll] site and instance).
-FIELDS = ("device", "inventory", "link", "unit", "host")
 PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 
 
