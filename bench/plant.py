@@ -216,15 +216,22 @@ def bench_parallel(args, folder: Path) -> None:
 
 
 def tcp_server(ports: list[int], ready: threading.Event, registers: int = COUNT) -> None:
-    """One asyncio server on every port: FC 03 of ``registers`` registers answered at once."""
-    reply = bytes([3, 2 * registers]) + struct.pack(f">{registers}H", *range(registers))
+    """One asyncio server on every port: FC 03 of ``registers`` registers answered at once,
+    their values counted up with every reply (a meter's readings move: no reply is the one
+    before, so no reply decoded or published before can stand for it)."""
+    values = struct.Struct(f">{registers}H")
+    head = bytes([3, 2 * registers])
+    offsets = range(registers)
 
     async def client(reader, writer):
+        count = 0
         try:
             while True:
-                head = await reader.readexactly(7)
-                tid, _, length, unit = struct.unpack(">HHHB", head)
+                request = await reader.readexactly(7)
+                tid, _, length, unit = struct.unpack(">HHHB", request)
                 await reader.readexactly(length - 1)
+                count = (count + 1) & 0x7FFF
+                reply = head + values.pack(*(count + i for i in offsets))
                 writer.write(struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply)
         except (asyncio.IncompleteReadError, ConnectionError):
             writer.close()
