@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 
 QUEUED = 10_000  # records waiting for the publisher's thread at most
 STOP = object()
+INFLIGHT_MQTT5 = 100  # QoS 1 messages unacknowledged at once, on an MQTT 5 connection
 RECONNECT = (1, 30)  # paho's back-off: from 1 s, doubling, to 30 s
 GATHER = 0.05  # seconds the publisher's thread waits for more once a record comes
 
@@ -178,7 +179,11 @@ class MqttPublisher:
         else:
             client.will_set(self.topics.status, OFFLINE, qos=1, retain=True)
         client.reconnect_delay_set(*RECONNECT)
-        client.max_inflight_messages_set(100)
+        # QoS 1 messages waiting for their PUBACK at once: MQTT 3.1.1 sets no bound, nor does
+        # mbtool (and unbounded, paho looks for held-back messages at no PUBACK); an MQTT 5
+        # broker says its own in its CONNACK (Receive Maximum, 3.2.2.3.3), too late for paho,
+        # whose bound is fixed before it connects.
+        client.max_inflight_messages_set(INFLIGHT_MQTT5 if version == paho.MQTTv5 else 0)
         client.on_connect = self._connected
         client.on_connect_fail = lambda client, userdata: self._state("unreachable (trying again)")
         client.on_disconnect = self._disconnected

@@ -81,8 +81,12 @@ def event_payload(record: dict) -> bytes:
     return _dumps(record)
 
 
+# One encoder for every message: json.dumps makes a new one at each call that sets any of these.
+_ENCODER = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"), allow_nan=False)
+
+
 def _dumps(record: dict) -> bytes:
-    return json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
+    return _ENCODER.encode(record).encode()
 
 
 def point_payload(value) -> bytes:
