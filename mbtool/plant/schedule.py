@@ -753,7 +753,7 @@ class LinkWorker:
                 ready_at = link.ready_at
                 due = self._earliest(now) if ready_at <= now else None
             if due is None:
-                if not self._rest(now, ready_at):
+                if not self._rest(now, max(self._next_due(), ready_at)):
                     return
                 continue
             device, group = due
@@ -779,8 +779,9 @@ class LinkWorker:
             self.turns += 1
             now = monotonic()
             client = link.client
-            if group.due > now:
-                if not self._rest(now, -math.inf if client is not None else link.ready_at):
+            due = group.due
+            if due > now:  # its next slot; a link that is not open, ready to open again no sooner
+                if not self._rest(now, due if client is not None else max(due, link.ready_at)):
                     return
                 continue
             if client is None:
@@ -795,13 +796,11 @@ class LinkWorker:
                 now, client = opened
             self._poll(device, group, now, client)
 
-    def _rest(self, now: float, ready_at: float) -> bool:
-        """No group due at ``now``: wait for the next, or for the link to be ready to open again
-        (``ready_at``); False: the run is over."""
-        wake = self._next_due()
+    def _rest(self, now: float, wake: float) -> bool:
+        """No group due at ``now``: wait until ``wake``, when the next is due or the link is ready
+        to open again, whichever is later (math.inf: none will be); False: the run is over."""
         if wake == math.inf and self.finished():
             return False
-        wake = max(wake, ready_at)
         if self.idle is not None:
             self.idle()
         # a minute at most: a device whose every point is read once waits for a reconnect
