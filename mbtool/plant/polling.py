@@ -99,7 +99,8 @@ class _MapRun:
 
 class _Tally:
     """The polls as the worker reports them: each reply held to show, each failure shown and
-    counted.  What the worker counts already is asked of it at the end, not counted a poll: the
+    counted (a poll of one request that changed nothing the worker hands to ``Shown.hold``
+    itself).  What the worker counts already is asked of it at the end, not counted a poll: the
     polls are the group's, the replies the polls that did not fail, the last poll's time the
     device's last answer's or the last failure's."""
 
@@ -199,6 +200,8 @@ def poll(
         idle=shown.write,
         published=False,
         timed=run is not None,  # a map's poll is timed; one request's, by its round trip
+        # A poll of one request that answered and changed nothing is its reply to show, no more.
+        answered=shown.hold if run is None else None,
     )
     tally.worker = worker
     interrupted = False

@@ -491,6 +491,7 @@ class LinkWorker:
         idle: Callable[[], None] | None = None,
         published: bool = True,
         timed: bool = True,
+        answered: Callable[[float, Any], None] | None = None,
     ) -> None:
         """``open_link``: opens the link (a context manager giving a Client); None: the
         link's Connection, through link.connection.open_client.  ``backoff``: a failed link's
@@ -500,7 +501,10 @@ class LinkWorker:
         way is shown now).  ``published``: its records go to readers on other threads, each
         with its own copy of the counts; not (one device, on the thread that reads them):
         none, and the link's counts are the device's.  ``timed``: its Polls carry their
-        latency (not: read --interval of one request, whose round trip is its request's)."""
+        latency (not: read --interval of one request, whose round trip is its request's).
+        ``answered``: an unpublished, untimed worker's: a poll that answered and changed nothing
+        (its device online before and after, every point read) is handed to ``answered(when,
+        readings)`` with no Poll made, as its Poll would say nothing more."""
         self.spec = spec
         self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
@@ -526,6 +530,8 @@ class LinkWorker:
             open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
         self.sent, self.idle, self.published, self.timed = sent or _nothing, idle, published, timed
+        assert answered is None or not (published or timed)  # else a Poll says more
+        self.answered = answered
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
@@ -1004,6 +1010,10 @@ class LinkWorker:
             group.next(now)
             if polls >= group.last_round:  # it has had its rounds (GroupState.had)
                 group.due = math.inf
+            answered = self.answered
+            if answered is not None and error is None:  # its time and readings are all it says
+                answered(when, readings)
+                return
             event = None
         else:
             event = self._changed(device, group, readings is not None, error, when, now, not_before)
