@@ -20,7 +20,6 @@ the record into the summary line and the --stats json figures.
 from __future__ import annotations
 
 import gc
-import operator
 import threading
 from collections.abc import Callable
 from typing import Protocol
@@ -71,14 +70,17 @@ class Polled:
 
 
 class _OneRequest:
-    """The reader of a device read with one request: a poll is its reply."""
+    """The reader of a device read with one request: a poll is its reply (the worker makes the
+    poll that request's transaction, with no read of this one's)."""
 
-    __slots__ = ("blocks", "read")
+    __slots__ = ("blocks", "request")
 
     def __init__(self, request) -> None:
         self.blocks = (request,)
-        # read(execute) is execute(request): called in C, not a frame of Python's a poll
-        self.read = operator.methodcaller("__call__", request)
+        self.request = request
+
+    def read(self, execute):
+        return execute(self.request)
 
 
 class _MapRun:
@@ -86,6 +88,7 @@ class _MapRun:
     ``execute(unit, request)`` as the plant's readers are given ``execute(request)``."""
 
     __slots__ = ("run", "unit")
+    request = None  # a poll is its reads (plant.schedule.Reader)
     # Its reads are the map's, inside ``run``; only a plant's overrun asks them, and a grid's
     # group never overruns (its late slots are counted as skipped).
     blocks = ()

@@ -74,6 +74,10 @@ class Reader(Protocol):
     """What a group's poll reads, given ``execute(request)`` on its link: a register map's
     points (``MapReader``), or read --interval's request or requests."""
 
+    # The one request a poll of it is, when that is all it reads (read --interval's): the poll
+    # is that request's transaction, with no read of the reader's; None: a poll is ``read``.
+    request: Any
+
     @property
     def blocks(self) -> Sequence[Any]:
         """Its reads a poll: what its pace asks of the line."""
@@ -279,10 +283,12 @@ class GroupState:
     def __init__(self, group: Group, now: float, grid: bool = False, paced: bool = False) -> None:
         self.group = group
         self.interval = group.interval
-        # Its reader's read(execute), bound once by its worker: a poll reads it as an attribute
-        # and calls it, where group.reader.read(...) looked a record's field and a slot's
-        # callable up the generic way every poll.
+        # Its reader's read(execute), and its poll on its device's execute (``poll()``), bound
+        # once by its worker: a poll reads them as attributes and calls them, where
+        # group.reader.read(...) looked a record's field and a slot's callable up the generic way
+        # every poll.
         self.read: Callable
+        self.poll: Callable[[], Any]
         self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
         self.due = now
         self.polls = 0
@@ -739,7 +745,15 @@ class LinkWorker:
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
             for group in device.groups:
-                group.read = group.group.reader.read
+                reader = group.group.reader
+                group.read = reader.read
+                # One request's poll is its transaction, a partial of the device's (itself one
+                # of the link's execute): made in C, with no frame of Python's a poll.
+                group.poll = (
+                    functools.partial(reader.read, device.execute)
+                    if reader.request is None
+                    else functools.partial(device.execute, reader.request)
+                )
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
         self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
         self.after_each = self.spec.connection.lenient or self.follow_up
@@ -909,16 +923,18 @@ class LinkWorker:
         client.while_waiting = self.sent_hook  # its first request out: the poll's time
         if self.aimed is not device:
             self._aim(device, client)
-        cut_in, read = group.cut_in, group.read
+        cut_in = group.cut_in
         untimed = self.stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
         latency: float | None = None
         try:
             if cut_in is None or nested:  # no other's poll comes between its transactions
-                readings = read(device.execute)
+                poll = group.poll
+                readings = poll()
                 if self.timed and self.stats.untimed == untimed:
                     latency = client.replied_at - client.work_sent_at
             else:
+                read = group.read
                 readings = read(cut_in.execute)
                 if self.timed and self.stats.untimed == untimed and not cut_in.happened:  # its own
                     latency = client.replied_at - client.work_sent_at
