@@ -546,9 +546,9 @@ class LinkWorker:
         self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
         self.wall_time = clock.time  # a record's time
         self.monotonic = clock.monotonic  # a poll's end
-        # Bound once, read as an attribute a poll: a worker has more attributes than an
-        # instance's shared keys hold, and the interpreter leaves its method calls generic.
-        self.settle = self._settle
+        # Bound once, read as attributes: a worker has more attributes than an instance's
+        # shared keys hold, and the interpreter leaves its method calls generic.
+        self.settle, self.poll = self._settle, self._poll
         self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         self.follow_up = False
@@ -760,8 +760,14 @@ class LinkWorker:
         if self.alone is not None and self.jobs is None:
             self._work_alone(*self.alone)
             return
-        link, clock, stop = self.link, self.clock, self.stop
-        while not stop.is_set():
+        link, clock, stop, poll = self.link, self.clock, self.stop, self.poll
+        # A turn goes back by an unconditional jump, the stop asked at its start: Python 3.11
+        # specializes a function's reads once it has been called or jumped back that way a few
+        # times, and a while's test jumping back does not count: this function, called once a
+        # run, would have read every attribute of every turn the generic way.
+        while True:
+            if stop.is_set():
+                return
             self.turns += 1
             if self.jobs is not None:
                 self._run_jobs()
@@ -788,14 +794,16 @@ class LinkWorker:
                 if opened is None:
                     continue
                 now, client = opened
-            self._poll(device, group, now, client)
+            poll(device, group, now, client)
 
     def _work_alone(self, device: DeviceState, group: GroupState) -> None:
         """``_work`` for a link of one group and no jobs (a TCP device of its own, read
         --interval): a turn asks only whether its one group is due (never before its device's
         back-off ends, nor after its rounds) and its link open."""
-        link, monotonic, stop = self.link, self.monotonic, self.stop
-        while not stop.is_set():
+        link, monotonic, stop, poll = self.link, self.monotonic, self.stop, self.poll
+        while True:  # not ``while not stop.is_set()``, as _work's
+            if stop.is_set():
+                return
             self.turns += 1
             now = monotonic()
             client = link.client
@@ -814,7 +822,7 @@ class LinkWorker:
                 if opened is None:
                     continue
                 now, client = opened
-            self._poll(device, group, now, client)
+            poll(device, group, now, client)
 
     def _rest(self, now: float, wake: float) -> bool:
         """No group due at ``now``: wait until ``wake``, when the next is due or the link is ready
