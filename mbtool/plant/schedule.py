@@ -1031,7 +1031,8 @@ class LinkWorker:
         # (a partial read answered: the device is there)
         if readings is not None and device.state == ONLINE:  # it answered, and stays online
             device.answered(when)  # DeviceState.succeeded with no change of state
-            group.next(now)
+            if not group.back_to_back:  # (which has no next slot: GroupState.next)
+                group.next(now)
             if polls >= group.last_round:  # it has had its rounds (GroupState.had)
                 group.due = math.inf
             answered = self.answered
