@@ -9,6 +9,7 @@ each value's text, a change of one) is here.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from mbtool.codec.record import field, fields_setter, record
 
@@ -30,7 +31,7 @@ class Result:
     # Where each value starts; the constructor's None: one a value from address (so never None).
     addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
-    # The result this one is a poll of (``again``): the polls of one read share all but their
+    # The result this one is a poll of (``poll_results``): the polls of one read share all but their
     # values and registers, so a sink's Polls keeps what it made of that for the next poll of
     # the same read (cli/sinks/).  None: a result of its own.
     shared: Result | None = field(default=None, compare=False, init=False)
@@ -50,7 +51,7 @@ class Result:
         addresses: list[int] | None = None,
         texts: list[str] | None = None,
     ) -> None:
-        # By hand, its fields one table (codec/record.py): again copies it for every poll, whose
+        # By hand, its fields one table (codec/record.py): a poll's result copies it, whose
         # fields the sinks read.
         _set_fields(
             self,
@@ -72,18 +73,28 @@ class Result:
             },
         )
 
-    def again(self, values: list, registers: Sequence[int] | None = None) -> Result:
-        """This read's result with a later poll's values and registers: the polls of one read
-        share everything else, the very same objects (copied, not worked out again a poll)."""
-        # A copy of this one's fields (their table copied whole, not a dict filled anew key by
-        # key: a third of the instructions), set as the new record's.
-        fields = self.__dict__.copy()
-        fields["values"] = values
-        fields["registers"] = registers
-        fields["shared"] = self
-        again = _new(Result)
-        _set_fields(again, fields)
-        return again
+    def poll_results(
+        self, data_of: Callable[[Any], Sequence], decode: Callable[[Sequence], list], raw: bool
+    ) -> Callable[[Any], Result]:
+        """How a poll's reply becomes its result, made once for the polls of this read: this
+        result with the reply's values, ``decode(data_of(reply))``, and with ``raw`` that data
+        as its registers.  The polls of one read share everything else, the very same objects
+        (copied, not worked out again a poll)."""
+        table = self.__dict__  # read once: a record's __dict__ is read the generic way
+
+        def poll_result(reply) -> Result:
+            data = data_of(reply)
+            # A copy of this one's fields (their table copied whole, not a dict filled anew key
+            # by key: a third of the instructions), set as the new record's.
+            fields = table.copy()
+            fields["values"] = decode(data)
+            fields["registers"] = data if raw else None
+            fields["shared"] = self
+            result = _new(Result)
+            _set_fields(result, fields)
+            return result
+
+        return poll_result
 
     @property
     def table(self) -> str:
@@ -94,7 +105,7 @@ class Result:
         return TABLE_OF_READ.get(self.function, self.name)
 
 
-_new = object.__new__  # a record made without its __init__: again's fields are copied
+_new = object.__new__  # a record made without its __init__: a poll's result's fields are copied
 _set_fields = fields_setter(Result)  # a result's fields, set whole (codec/record.py)
 
 

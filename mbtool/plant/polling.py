@@ -20,7 +20,6 @@ the record into the summary line and the --stats json figures.
 from __future__ import annotations
 
 import gc
-import operator
 import threading
 from collections.abc import Callable
 from typing import Protocol
@@ -71,14 +70,17 @@ class Polled:
 
 
 class _OneRequest:
-    """The reader of a device read with one request: a poll is its reply."""
+    """The reader of a device read with one request: a poll is its reply (the worker makes the
+    poll that request's transaction, with no read of this one's)."""
 
-    __slots__ = ("blocks", "read")
+    __slots__ = ("blocks", "request")
 
     def __init__(self, request) -> None:
         self.blocks = (request,)
-        # read(execute) is execute(request): called in C, not a frame of Python's a poll
-        self.read = operator.methodcaller("__call__", request)
+        self.request = request
+
+    def read(self, execute):
+        return execute(self.request)
 
 
 class _MapRun:
@@ -86,6 +88,7 @@ class _MapRun:
     ``execute(unit, request)`` as the plant's readers are given ``execute(request)``."""
 
     __slots__ = ("run", "unit")
+    request = None  # a poll is its reads (plant.schedule.Reader)
     # Its reads are the map's, inside ``run``; only a plant's overrun asks them, and a grid's
     # group never overruns (its late slots are counted as skipped).
     blocks = ()
@@ -99,7 +102,8 @@ class _MapRun:
 
 class _Tally:
     """The polls as the worker reports them: each reply held to show, each failure shown and
-    counted.  What the worker counts already is asked of it at the end, not counted a poll: the
+    counted (a poll of one request that changed nothing the worker hands to ``Shown.hold``
+    itself).  What the worker counts already is asked of it at the end, not counted a poll: the
     polls are the group's, the replies the polls that did not fail, the last poll's time the
     device's last answer's or the last failure's."""
 
@@ -199,6 +203,8 @@ def poll(
         idle=shown.write,
         published=False,
         timed=run is not None,  # a map's poll is timed; one request's, by its round trip
+        # A poll of one request that answered and changed nothing is its reply to show, no more.
+        answered=shown.hold if run is None else None,
     )
     tally.worker = worker
     interrupted = False

@@ -74,6 +74,10 @@ class Reader(Protocol):
     """What a group's poll reads, given ``execute(request)`` on its link: a register map's
     points (``MapReader``), or read --interval's request or requests."""
 
+    # The one request a poll of it is, when that is all it reads (read --interval's): the poll
+    # is that request's transaction, with no read of the reader's; None: a poll is ``read``.
+    request: Any
+
     @property
     def blocks(self) -> Sequence[Any]:
         """Its reads a poll: what its pace asks of the line."""
@@ -279,10 +283,12 @@ class GroupState:
     def __init__(self, group: Group, now: float, grid: bool = False, paced: bool = False) -> None:
         self.group = group
         self.interval = group.interval
-        # Its reader's read(execute), bound once by its worker: a poll reads it as an attribute
-        # and calls it, where group.reader.read(...) looked a record's field and a slot's
-        # callable up the generic way every poll.
+        # Its reader's read(execute), and its poll on its device's execute (``poll()``), bound
+        # once by its worker: a poll reads them as attributes and calls them, where
+        # group.reader.read(...) looked a record's field and a slot's callable up the generic way
+        # every poll.
         self.read: Callable
+        self.poll: Callable[[], Any]
         self.grid = grid  # its slots on a fixed grid (DeviceSpec.grid)
         self.due = now
         self.polls = 0
@@ -491,6 +497,7 @@ class LinkWorker:
         idle: Callable[[], None] | None = None,
         published: bool = True,
         timed: bool = True,
+        answered: Callable[[float, Any], None] | None = None,
     ) -> None:
         """``open_link``: opens the link (a context manager giving a Client); None: the
         link's Connection, through link.connection.open_client.  ``backoff``: a failed link's
@@ -500,7 +507,10 @@ class LinkWorker:
         way is shown now).  ``published``: its records go to readers on other threads, each
         with its own copy of the counts; not (one device, on the thread that reads them):
         none, and the link's counts are the device's.  ``timed``: its Polls carry their
-        latency (not: read --interval of one request, whose round trip is its request's)."""
+        latency (not: read --interval of one request, whose round trip is its request's).
+        ``answered``: an unpublished, untimed worker's: a poll that answered and changed nothing
+        (its device online before and after, every point read) is handed to ``answered(when,
+        readings)`` with no Poll made, as its Poll would say nothing more."""
         self.spec = spec
         self.clock = clock
         self.go = go  # set once every link's worker has started: none opens a link before
@@ -526,6 +536,8 @@ class LinkWorker:
             open_link or (lambda: open_client(spec.connection, trace=traced)), backoff, clock=clock
         )
         self.sent, self.idle, self.published, self.timed = sent or _nothing, idle, published, timed
+        assert answered is None or not (published or timed)  # else a Poll says more
+        self.answered = answered
         self.state = UNKNOWN
         self.open_failures = 0  # times the link could not be opened
         self.stats = Stats()  # its devices' transactions, counted as they end
@@ -534,9 +546,9 @@ class LinkWorker:
         self.sent_hook = self._request_sent  # bound once: the client's while_waiting, one a poll
         self.wall_time = clock.time  # a record's time
         self.monotonic = clock.monotonic  # a poll's end
-        # Bound once, read as an attribute a poll: a worker has more attributes than an
-        # instance's shared keys hold, and the interpreter leaves its method calls generic.
-        self.settle = self._settle
+        # Bound once, read as attributes: a worker has more attributes than an instance's
+        # shared keys hold, and the interpreter leaves its method calls generic.
+        self.settle, self.poll = self._settle, self._poll
         self.aimed: DeviceState | None = None  # the device the link is set for (_aim)
         self.reconnect_each, self.pause = False, 0.0  # the link's, read when the work starts
         self.follow_up = False
@@ -733,15 +745,29 @@ class LinkWorker:
         for device in self.devices:
             device.limits = limits(device.spec, self.spec)
             for group in device.groups:
-                group.read = group.group.reader.read
+                reader = group.group.reader
+                group.read = reader.read
+                # One request's poll is its transaction, a partial of the device's (itself one
+                # of the link's execute): made in C, with no frame of Python's a poll.
+                group.poll = (
+                    functools.partial(reader.read, device.execute)
+                    if reader.request is None
+                    else functools.partial(device.execute, reader.request)
+                )
         self.reconnect_each, self.pause = self.spec.connection.reconnect_each, self.spec.connection.pause
         self.follow_up = self.reconnect_each or bool(self.pause)  # something follows every poll
         self.after_each = self.spec.connection.lenient or self.follow_up
         if self.alone is not None and self.jobs is None:
             self._work_alone(*self.alone)
             return
-        link, clock, stop = self.link, self.clock, self.stop
-        while not stop.is_set():
+        link, clock, stop, poll = self.link, self.clock, self.stop, self.poll
+        # A turn goes back by an unconditional jump, the stop asked at its start: Python 3.11
+        # specializes a function's reads once it has been called or jumped back that way a few
+        # times, and a while's test jumping back does not count: this function, called once a
+        # run, would have read every attribute of every turn the generic way.
+        while True:
+            if stop.is_set():
+                return
             self.turns += 1
             if self.jobs is not None:
                 self._run_jobs()
@@ -753,7 +779,7 @@ class LinkWorker:
                 ready_at = link.ready_at
                 due = self._earliest(now) if ready_at <= now else None
             if due is None:
-                if not self._rest(now, ready_at):
+                if not self._rest(now, max(self._next_due(), ready_at)):
                     return
                 continue
             device, group = due
@@ -768,19 +794,22 @@ class LinkWorker:
                 if opened is None:
                     continue
                 now, client = opened
-            self._poll(device, group, now, client)
+            poll(device, group, now, client)
 
     def _work_alone(self, device: DeviceState, group: GroupState) -> None:
         """``_work`` for a link of one group and no jobs (a TCP device of its own, read
         --interval): a turn asks only whether its one group is due (never before its device's
         back-off ends, nor after its rounds) and its link open."""
-        link, monotonic, stop = self.link, self.monotonic, self.stop
-        while not stop.is_set():
+        link, monotonic, stop, poll = self.link, self.monotonic, self.stop, self.poll
+        while True:  # not ``while not stop.is_set()``, as _work's
+            if stop.is_set():
+                return
             self.turns += 1
             now = monotonic()
             client = link.client
-            if group.due > now:
-                if not self._rest(now, -math.inf if client is not None else link.ready_at):
+            due = group.due
+            if due > now:  # its next slot; a link that is not open, ready to open again no sooner
+                if not self._rest(now, due if client is not None else max(due, link.ready_at)):
                     return
                 continue
             if client is None:
@@ -793,15 +822,13 @@ class LinkWorker:
                 if opened is None:
                     continue
                 now, client = opened
-            self._poll(device, group, now, client)
+            poll(device, group, now, client)
 
-    def _rest(self, now: float, ready_at: float) -> bool:
-        """No group due at ``now``: wait for the next, or for the link to be ready to open again
-        (``ready_at``); False: the run is over."""
-        wake = self._next_due()
+    def _rest(self, now: float, wake: float) -> bool:
+        """No group due at ``now``: wait until ``wake``, when the next is due or the link is ready
+        to open again, whichever is later (math.inf: none will be); False: the run is over."""
         if wake == math.inf and self.finished():
             return False
-        wake = max(wake, ready_at)
         if self.idle is not None:
             self.idle()
         # a minute at most: a device whose every point is read once waits for a reconnect
@@ -904,16 +931,18 @@ class LinkWorker:
         client.while_waiting = self.sent_hook  # its first request out: the poll's time
         if self.aimed is not device:
             self._aim(device, client)
-        cut_in, read = group.cut_in, group.read
+        cut_in = group.cut_in
         untimed = self.stats.untimed  # every reply of the poll timed: as many untimed after it
         error: BaseException | None = None
         latency: float | None = None
         try:
             if cut_in is None or nested:  # no other's poll comes between its transactions
-                readings = read(device.execute)
+                poll = group.poll
+                readings = poll()
                 if self.timed and self.stats.untimed == untimed:
                     latency = client.replied_at - client.work_sent_at
             else:
+                read = group.read
                 readings = read(cut_in.execute)
                 if self.timed and self.stats.untimed == untimed and not cut_in.happened:  # its own
                     latency = client.replied_at - client.work_sent_at
@@ -1002,9 +1031,14 @@ class LinkWorker:
         # (a partial read answered: the device is there)
         if readings is not None and device.state == ONLINE:  # it answered, and stays online
             device.answered(when)  # DeviceState.succeeded with no change of state
-            group.next(now)
+            if not group.back_to_back:  # (which has no next slot: GroupState.next)
+                group.next(now)
             if polls >= group.last_round:  # it has had its rounds (GroupState.had)
                 group.due = math.inf
+            answered = self.answered
+            if answered is not None and error is None:  # its time and readings are all it says
+                answered(when, readings)
+                return
             event = None
         else:
             event = self._changed(device, group, readings is not None, error, when, now, not_before)

@@ -141,6 +141,8 @@ Execute = Callable[[Request], Any]
 class MapReader:
     """The reads that serve a map's points, kept from one read (one poll) to the next."""
 
+    request = None  # a poll is its reads, not one request (plant.schedule.Reader)
+
     def __init__(self, points: Iterable[Point], max_gap: int = 0) -> None:
         self.points = list(points)
         self.blocks = plan_reads(with_scale_factors(self.points), max_gap)

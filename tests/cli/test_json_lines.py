@@ -16,6 +16,11 @@ from mbtool.codec.values import value_decoder
 WHEN = "2026-11-28T23:51:57.580+01:00"
 
 
+def _poll_of(shared: Result, values: list, registers: tuple[int, ...] | None = None) -> Result:
+    """A poll's result of ``shared``'s read: ``values``, and ``registers`` as read."""
+    return shared.poll_results(lambda reply: reply, lambda data: values, registers is not None)(registers)
+
+
 def _written(output: Output, when: str, result) -> str:
     """What a poll's result adds to -o json's output."""
     before = output.out.tell()
@@ -38,8 +43,8 @@ def test_each_poll_line_is_the_line_json_writes_of_its_result():
         _result("uint16", (4, 5, 6)),  # the same shape, other values
         _result("uint16", (1, 2)),  # fewer values: another shape
         _result("int16", (65535, 1)),  # registers shown beside the values
-        shared.again([-1, 65537], (65535, 65535, 1, 1)),
-        shared.again([7, 8], (0, 7, 0, 8)),
+        _poll_of(shared, [-1, 65537], (65535, 65535, 1, 1)),
+        _poll_of(shared, [7, 8], (0, 7, 0, 8)),
         _result("float32", (0x3F80, 0, 0x7FC0, 0)),  # 1.0 and NaN: null, as to_json writes it
         _result("float32", (0x3F80, 0, 0x4000, 0)),
         _result("string", (0x4142, 0x4300)),
@@ -59,8 +64,8 @@ def test_each_poll_line_is_the_line_json_writes_of_its_result():
 
 
 def test_the_polls_of_one_read_and_a_maps_points_are_the_lines_json_writes():
-    """Polls share their read's result (Result.again): the text around their values is kept for
-    them, and a result of another read, or a map's points, have their own."""
+    """Polls share their read's result (Result.poll_results): the text around their values is
+    kept for them, and a result of another read, or a map's points, have their own."""
     shared = Result(
         7, 3, "Read Holding Registers", 10, [], "int16", refs=["40011", "40012"], addresses=[10, 11]
     )
@@ -68,20 +73,20 @@ def test_the_polls_of_one_read_and_a_maps_points_are_the_lines_json_writes():
     points = Points(7, "pump.toml", [PointRow("level", 2.5, "m", "40001", (25,), False)])
     output = Output("json", io.StringIO())
     for result in (
-        shared.again([1, -1], (1, 65535)),
-        shared.again([2, 3], (2, 3)),
-        other.again([4, 5], (4, 5)),
+        _poll_of(shared, [1, -1], (1, 65535)),
+        _poll_of(shared, [2, 3], (2, 3)),
+        _poll_of(other, [4, 5], (4, 5)),
     ):
         assert _written(output, WHEN, result) == json_line({"time": WHEN, **as_dict(result)})
     assert _written(output, WHEN, points) == json_line({"time": WHEN, **points_dict(points)})
-    assert _written(output, WHEN, shared.again([6, 7], (6, 7))).startswith(
+    assert _written(output, WHEN, _poll_of(shared, [6, 7], (6, 7))).startswith(
         '{"time": "' + WHEN + '", "unit": 7'
     )
 
 
-def test_again_is_the_result_with_the_polls_values_and_shares_the_rest():
+def test_a_poll_s_result_is_its_read_s_with_the_poll_s_values_and_shares_the_rest():
     shared = Result(7, 3, "Read Holding Registers", 10, [], "uint16", refs=["40011"], addresses=[10])
-    again = shared.again([5], (5,))
+    again = _poll_of(shared, [5], (5,))
     assert again == Result(
         7, 3, "Read Holding Registers", 10, [5], "uint16", (5,), refs=["40011"], addresses=[10]
     )

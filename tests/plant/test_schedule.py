@@ -28,8 +28,13 @@ from mbtool.plant.schedule import (
     views,
 )
 
+
+def _never_read(execute):
+    raise AssertionError("the link was never opened: nothing is read")
+
+
 # The reader of a device whose link is never opened: its polls fail before they read.
-NEVER_READ = SimpleNamespace(blocks=(), read=None)
+NEVER_READ = SimpleNamespace(blocks=(), read=_never_read, request=None)
 
 
 def _state(interval=1.0, offline_after=3, max_backoff=10.0) -> DeviceState:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from functools import partial
+from operator import attrgetter
 from typing import TYPE_CHECKING
 
 import click
@@ -255,10 +256,9 @@ def _read_bits(
         connection.unit, kind.function_code, kind.name, address, [], refs=refs, addresses=addresses
     )
 
-    def to_result(reply):
-        return shared.again(list(reply.bits))
-
-    return _run(connection, settings, request, to_result, interval, polls)
+    return _run(
+        connection, settings, request, shared.poll_results(attrgetter("bits"), list, False), interval, polls
+    )
 
 
 def _read_registers(
@@ -309,10 +309,7 @@ def _read_registers(
         addresses=addresses,
     )
 
-    def to_result(reply):
-        registers = reply.registers
-        return shared.again(decode(registers), registers)
-
+    to_result = shared.poll_results(attrgetter("registers"), decode, True)
     return _run(connection, settings, request, to_result, interval, polls)
 
 

@@ -231,7 +231,7 @@ class Polls(PlainPolls):
     """read --interval -o json: a JSON line a poll, a change or a failed poll.
 
     A poll's line is the text ``json_line({"time": ..., **as_dict(result)})`` writes, made with
-    less work a poll: the polls of one read (``Result.again`` of its ``shared`` result) differ
+    less work a poll: the polls of one read (``Result.poll_results`` of its ``shared`` result) differ
     only in their time, values and raw registers, so the rest of the line (unit, function, name,
     address, type, addresses, refs) is encoded once for them, and a poll's line is one f-string
     of that text with its time, values and registers set in; where the values are ints (an

@@ -113,7 +113,7 @@ class Polls:
 
     def __init__(self, output) -> None:
         self.output = output
-        # The polls of one read (Result.again of its shared result) differ only in their time
+        # The polls of one read (Result.poll_results of its shared result) differ only in their time
         # and values: their lines are one %-format of the values, made at the first of them.
         self.shared: Result | None = None  # the result whose polls ``form`` writes,
         self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
