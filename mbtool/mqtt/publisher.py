@@ -48,6 +48,8 @@ if TYPE_CHECKING:
 
 QUEUED = 10_000  # records waiting for the publisher's thread at most
 STOP = object()
+WAKE = object()  # queued when a connection is owed its announcement (or its end): see _owe
+IDLE = 1.0  # seconds the publisher's thread waits for a record at most (it is woken for any)
 INFLIGHT_MQTT5 = 100  # QoS 1 messages unacknowledged at once, on an MQTT 5 connection
 RECONNECT = (1, 30)  # paho's back-off: from 1 s, doubling, to 30 s
 GATHER = 0.05  # seconds the publisher's thread waits for more once a record comes
@@ -206,7 +208,7 @@ class MqttPublisher:
             client.subscribe(topic, qos=1)
         self.host_online = False
         if self.node is None or self.node.state_topic is None:
-            self.announce.set()  # else once the primary host's STATE says it is online
+            self._owe(self.announce)  # else once the primary host's STATE says it is online
 
     def _disconnected(self, client, userdata, flags, reason, properties) -> None:
         self.live = False
@@ -233,14 +235,14 @@ class MqttPublisher:
         if message.topic == node.state_topic:
             self.host_online = node.host_online(message.payload)
             if self.host_online and not self.live:
-                self.announce.set()
+                self._owe(self.announce)
             elif self.live:  # born while the host was online: it is gone, so is this node
-                self.rehome.set()
+                self._owe(self.rehome)
             return
         if message.topic == node.topic("NCMD"):
             if node.rebirth_asked(message.payload) and (node.state_topic is None or self.host_online):
                 self.notify("rebirth asked (NCMD)")
-                self.announce.set()
+                self._owe(self.announce)
             return
         device = message.topic.rpartition("/")[2]
         if message.topic != node.topic("DCMD", device) or device not in node.devices or self.writes is None:
@@ -253,6 +255,13 @@ class MqttPublisher:
         for point, text in writes:
             self._count("writes_received")
             self.report(SetRequest(device, point, text))
+
+    def _owe(self, duty: threading.Event) -> None:
+        """A duty for the publisher's thread (paho's callbacks run on paho's thread), which is
+        woken for it: it waits on its queue, so that it wakes only when there is work, not
+        to look for some (each wake of a thread costs, in a process of many)."""
+        duty.set()
+        self.queue.put(WAKE)
 
     def _published(self, client, userdata, mid, reason, properties) -> None:
         self.published += 1  # by paho's thread alone
@@ -281,7 +290,7 @@ class MqttPublisher:
                 self._announce()
             if not gathered:
                 try:
-                    gathered.append(self.queue.get(timeout=0.1))
+                    gathered.append(self.queue.get(timeout=IDLE))
                 except queue.Empty:
                     continue
                 # The polls of a round come together: gathered for a moment, they are published
@@ -292,7 +301,8 @@ class MqttPublisher:
             item = gathered.popleft()
             if item is STOP:
                 return
-            self._handle(item)
+            if item is not WAKE:  # a wake's duty is done at the loop's top
+                self._handle(item)
 
     def _handle(self, item) -> None:
         """A Poll (or DevicePoll) published, or a write's request or result handled."""
