@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import conftest
 import pytest
 from helpers.run import REPO_ROOT
+from xdist.scheduler import WorkStealingScheduling
 
 
 def test_the_suite_asks_the_machine_how_many_workers():
@@ -63,12 +64,36 @@ class _Test:
         return name == "long" and self.long or None
 
 
-def test_each_long_test_heads_another_workers_first_run_of_tests():
-    """xdist's load scheduling first hands each worker a run of consecutive tests (a quarter of
-    its share); long tests all at the front went to one worker, one after the other."""
-    items = [_Test(f"t{n}") for n in range(400)] + [_Test(f"long{n}", long=True) for n in range(3)]
-    worker = SimpleNamespace(workerinput={"workerid": "gw0", "workercount": 10})
-    conftest.pytest_collection_modifyitems(worker, items)
-    run = 10  # the run xdist gives each of 10 workers first: 403 tests // 10 // 4
-    assert [n for n, item in enumerate(items) if item.long] == [0, run, 2 * run]
+class _Worker:
+    """What xdist's scheduler asks of a worker: the tests it is sent."""
+
+    def __init__(self, name: str) -> None:
+        self.gateway, self.shutting_down, self.sent = SimpleNamespace(id=name), False, []
+
+    def send_runtest_some(self, indices: list[int]) -> None:
+        self.sent.extend(indices)
+
+
+@pytest.mark.parametrize("longs, workers", [(3, 10), (12, 5)])
+def test_each_long_test_starts_first_on_a_worker_of_its_own(longs, workers):
+    """xdist's work stealing (pyproject's --dist) first hands each worker an equal run of
+    consecutive tests, then moves tests from the tail of the longest queue to a worker that is
+    done: a long test at the head of each run starts at once, and no worker gets two of them
+    while another has none (all at the front went to one worker, one after the other)."""
+    options = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    addopts = options["addopts"].split()
+    assert addopts[addopts.index("--dist") + 1] == "worksteal", addopts
+    items = [_Test(f"t{n}") for n in range(400)] + [_Test(f"long{n}", long=True) for n in range(longs)]
+    conftest.pytest_collection_modifyitems(SimpleNamespace(workerinput={"workercount": workers}), items)
     assert [item.name for item in items if not item.long] == [f"t{n}" for n in range(400)]
+    scheduler = WorkStealingScheduling(SimpleNamespace(getvalue={"tx": ["popen"] * workers}.get))
+    nodes = [_Worker(f"gw{n}") for n in range(workers)]
+    for node in nodes:
+        scheduler.add_node(node)
+        scheduler.add_node_collection(node, [item.name for item in items])
+    scheduler.schedule()
+    for node in nodes:
+        run = [items[index].long for index in node.sent]
+        heading = run.index(False)
+        assert not any(run[heading:]), f"{node.gateway.id} runs a long test after a short one"
+        assert heading == len(range(nodes.index(node), longs, workers))  # its share of them, first
