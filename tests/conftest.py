@@ -119,25 +119,28 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest.
-    The ``long`` ones go first, one a worker: a test that takes half a minute started last would
-    hold the whole run up by as much."""
+    The order is the one xdist's work stealing (pyproject's --dist) is best at: it first hands
+    each worker an equal run of consecutive tests, in this order, and later moves tests from the
+    tail of the longest queue to a worker that ran out.  So each worker's run starts with a
+    ``long`` test (one that takes half a minute, started last, would hold the whole run up by as
+    much), then its share of the end-to-end tests, which mostly wait on peers and deadlines,
+    and ends with its share of the others, short and busy: what is left to share out at the
+    end is quick, and keeps the cores busy where the waits alone left them half idle."""
     for item in items:
         if item.path.is_relative_to(E2E_DIR):
             item.add_marker(pytest.mark.e2e)
     long = [item for item in items if item.get_closest_marker("long")]
-    if not long:
-        return
-    short = iter([item for item in items if not item.get_closest_marker("long")])
-    # xdist's work stealing (pyproject's --dist) first hands each worker an equal run of
-    # consecutive tests, in this order, and later moves tests from the tail of the longest queue
-    # to a worker that ran out: a long test at the head of each run starts at once, and the
-    # tests queued behind it go to the others.
+    rest = [item for item in items if not item.get_closest_marker("long")]
+    e2e = [item for item in rest if item.get_closest_marker("e2e")]
+    ending = iter([item for item in rest if not item.get_closest_marker("e2e")])
+    waiting = iter(e2e)
     workers = config.workerinput["workercount"] if hasattr(config, "workerinput") else 1
     ordered: list[pytest.Item] = []
-    for worker, run in enumerate(first_runs(len(items), workers)):
-        heads = long[worker::workers]
-        ordered += heads + list(itertools.islice(short, max(0, run - len(heads))))
-    items[:] = ordered + list(short)
+    runs = zip(first_runs(len(items), workers), first_runs(len(e2e), workers), strict=True)
+    for worker, (run, e2e_share) in enumerate(runs):
+        first = long[worker::workers] + list(itertools.islice(waiting, e2e_share))
+        ordered += first + list(itertools.islice(ending, max(0, run - len(first))))
+    items[:] = ordered + list(waiting) + list(ending)
 
 
 def first_runs(tests: int, workers: int) -> list[int]:
