@@ -529,7 +529,7 @@ def _rss_kb(pid: int) -> int:
         return next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
 
 
-@pytest.mark.long  # 3,000 transactions of 1 KB, 30 s on a busy machine: started first (tests/conftest.py)
+@pytest.mark.long  # 3,000 transactions of 1 KB: 8 s alone, 15-30 s on a busy machine (tests/conftest.py)
 def test_a_display_nobody_reads_never_holds_the_bus_nor_grows():
     """Issue 29 item 4: with its stdout not read, the bridge kept every transaction it could not
     print (18.9 MB -> 52 MB and rising).  The bus never waits for the display: past a backlog
