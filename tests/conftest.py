@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import compileall
 import contextlib
+import itertools
 import os
 import shutil
 import socket
@@ -118,20 +119,37 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test under tests/e2e/ is end to end (``e2e``): ``pytest -m "not e2e"`` runs the rest.
-    The ``long`` ones go first, one a worker: xdist hands tests out in this order, and one that
-    takes half a minute started last would hold the whole run up by as much."""
+    The order is the one xdist's work stealing (pyproject's --dist) is best at: it first hands
+    each worker an equal run of consecutive tests, in this order, and later moves tests from the
+    tail of the longest queue to a worker that ran out.  So each worker's run starts with a
+    ``long`` test (one that takes half a minute, started last, would hold the whole run up by as
+    much), then its share of the end-to-end tests, which mostly wait on peers and deadlines,
+    and ends with its share of the others, short and busy: what is left to share out at the
+    end is quick, and keeps the cores busy where the waits alone left them half idle."""
     for item in items:
         if item.path.is_relative_to(E2E_DIR):
             item.add_marker(pytest.mark.e2e)
     long = [item for item in items if item.get_closest_marker("long")]
-    items[:] = [item for item in items if not item.get_closest_marker("long")]
-    # xdist's load scheduling first gives each worker a run of consecutive tests, a quarter of
-    # its share (at least 2): a long test at the head of each run, so that no worker gets two
-    # of them one after the other (the three of them at the head of one run: some 115 s).
+    rest = [item for item in items if not item.get_closest_marker("long")]
+    e2e = [item for item in rest if item.get_closest_marker("e2e")]
+    ending = iter([item for item in rest if not item.get_closest_marker("e2e")])
+    waiting = iter(e2e)
     workers = config.workerinput["workercount"] if hasattr(config, "workerinput") else 1
-    run = max(2, len(items) // workers // 4)
-    for k, item in enumerate(long):
-        items.insert(min(k * run, len(items)), item)
+    ordered: list[pytest.Item] = []
+    runs = zip(first_runs(len(items), workers), first_runs(len(e2e), workers), strict=True)
+    for worker, (run, e2e_share) in enumerate(runs):
+        first = long[worker::workers] + list(itertools.islice(waiting, e2e_share))
+        ordered += first + list(itertools.islice(ending, max(0, run - len(first))))
+    items[:] = ordered + list(waiting) + list(ending)
+
+
+def first_runs(tests: int, workers: int) -> list[int]:
+    """How many tests xdist's work stealing first sends each worker: the tests left shared
+    evenly among the workers yet to get theirs (xdist.scheduler.worksteal's check_schedule)."""
+    runs: list[int] = []
+    for worker in range(workers):
+        runs.append((tests - sum(runs)) // (workers - worker))
+    return runs
 
 
 @pytest.fixture

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import conftest
 import pytest
 from helpers.run import REPO_ROOT
+from xdist.scheduler import WorkStealingScheduling
 
 
 def test_the_suite_asks_the_machine_how_many_workers():
@@ -56,19 +57,76 @@ def test_the_test_modules_are_rewritten_once_before_the_workers_start(pytestconf
 class _Test:
     """What the ordering hook asks of a collected test: its path and its markers."""
 
-    def __init__(self, name: str, long: bool = False) -> None:
-        self.name, self.path, self.long = name, REPO_ROOT / "tests" / "test_x.py", long
+    def __init__(self, name: str, long: bool = False, e2e: bool = False) -> None:
+        self.name, self.long = name, long
+        self.path = REPO_ROOT / "tests" / ("e2e" if e2e else "codec") / "test_x.py"
+        self.markers = {"long"} if long else set()
+
+    def add_marker(self, marker) -> None:
+        self.markers.add(marker.name)
 
     def get_closest_marker(self, name: str):
-        return name == "long" and self.long or None
+        return name in self.markers or None
 
 
-def test_each_long_test_heads_another_workers_first_run_of_tests():
-    """xdist's load scheduling first hands each worker a run of consecutive tests (a quarter of
-    its share); long tests all at the front went to one worker, one after the other."""
-    items = [_Test(f"t{n}") for n in range(400)] + [_Test(f"long{n}", long=True) for n in range(3)]
-    worker = SimpleNamespace(workerinput={"workerid": "gw0", "workercount": 10})
-    conftest.pytest_collection_modifyitems(worker, items)
-    run = 10  # the run xdist gives each of 10 workers first: 403 tests // 10 // 4
-    assert [n for n, item in enumerate(items) if item.long] == [0, run, 2 * run]
+class _Worker:
+    """What xdist's scheduler asks of a worker: the tests it is sent."""
+
+    def __init__(self, name: str) -> None:
+        self.gateway, self.shutting_down, self.sent = SimpleNamespace(id=name), False, []
+
+    def send_runtest_some(self, indices: list[int]) -> None:
+        self.sent.extend(indices)
+
+
+def handed_out(items: list[_Test], workers: int) -> list[list[_Test]]:
+    """The tests xdist's work stealing first sends each worker, ``items`` in the order the
+    suite's hook left them."""
+    scheduler = WorkStealingScheduling(SimpleNamespace(getvalue={"tx": ["popen"] * workers}.get))
+    nodes = [_Worker(f"gw{n}") for n in range(workers)]
+    for node in nodes:
+        scheduler.add_node(node)
+        scheduler.add_node_collection(node, [item.name for item in items])
+    scheduler.schedule()
+    return [[items[index] for index in node.sent] for node in nodes]
+
+
+@pytest.mark.parametrize("longs, workers", [(3, 10), (12, 5)])
+def test_each_long_test_starts_first_on_a_worker_of_its_own(longs, workers):
+    """xdist's work stealing (pyproject's --dist) first hands each worker an equal run of
+    consecutive tests, then moves tests from the tail of the longest queue to a worker that is
+    done: a long test at the head of each run starts at once, and no worker gets two of them
+    while another has none (all at the front went to one worker, one after the other)."""
+    options = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    addopts = options["addopts"].split()
+    assert addopts[addopts.index("--dist") + 1] == "worksteal", addopts
+    items = [_Test(f"t{n}") for n in range(400)] + [_Test(f"long{n}", long=True) for n in range(longs)]
+    conftest.pytest_collection_modifyitems(SimpleNamespace(workerinput={"workercount": workers}), items)
     assert [item.name for item in items if not item.long] == [f"t{n}" for n in range(400)]
+    for worker, run in enumerate(handed_out(items, workers)):
+        kinds = [item.long for item in run]
+        heading = kinds.index(False)
+        assert not any(kinds[heading:]), f"gw{worker} runs a long test after a short one"
+        assert heading == len(range(worker, longs, workers))  # its share of them, first
+
+
+def test_each_worker_waits_on_peers_first_and_ends_with_the_short_busy_tests():
+    """Behind its long test each worker's run has its share of the end-to-end tests, which
+    mostly wait on peers and deadlines, and then its share of the others: what the workers
+    steal at the end is short, and busy where the waits alone left the cores half idle (the
+    end-to-end tests, collected together, had made four workers' runs of nothing else)."""
+    items = (
+        [_Test(f"c{n}") for n in range(300)]
+        + [_Test(f"e{n}", e2e=True) for n in range(100)]
+        + [_Test(f"u{n}") for n in range(60)]
+        + [_Test(f"long{n}", long=True) for n in range(3)]
+    )
+    conftest.pytest_collection_modifyitems(SimpleNamespace(workerinput={"workercount": 10}), items)
+    kinds = {"c": "other", "u": "other", "e": "e2e", "l": "long"}
+    for kind in ("e2e", "other"):  # each kind in the order it was collected
+        names = [item.name for item in items if kinds[item.name[0]] == kind]
+        assert names == sorted(names, key=lambda name: ("cue".index(name[0]), int(name[1:])))
+    for worker, run in enumerate(handed_out(items, 10)):
+        order = [kinds[item.name[0]] for item in run]
+        assert order == sorted(order, key=["long", "e2e", "other"].index), f"gw{worker}: {order}"
+        assert order.count("e2e") == 10, f"gw{worker}: {order}"  # its share of the 100

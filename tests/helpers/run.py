@@ -55,29 +55,48 @@ def mbtool_env(extra: dict[str, str] | None = None) -> dict[str, str]:
     return env
 
 
+STREAMS = ("stdin", "stdout", "stderr")  # their files, where a run is given a folder for them
+
+
 def run_mbtool(
-    *args: str, timeout: float = MBTOOL_TIMEOUT, env: dict[str, str] | None = None, input: str | None = None
+    *args: str,
+    timeout: float = MBTOOL_TIMEOUT,
+    env: dict[str, str] | None = None,
+    input: str | None = None,
+    files: Path | None = None,
 ) -> Result:
-    """Run the real CLI as a subprocess: python -m mbtool ARGS (stdout/stderr are pipes)."""
+    """Run the real CLI as a subprocess: python -m mbtool ARGS (stdout/stderr are pipes).  With
+    ``files``, a folder, stdin (``input``), stdout and stderr are files in it instead: for
+    megabytes in or out, which through pipes wake this process for every line mbtool flushes."""
     argv = [str(a) for a in args]
     t0 = time.monotonic()
-    try:
-        cp = subprocess.run(
-            [sys.executable, "-m", "mbtool", *argv],
-            cwd=REPO_ROOT,
-            env=mbtool_env(env),
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-            input=input,
-            stdin=None if input is not None else subprocess.DEVNULL,
-        )
-    except subprocess.TimeoutExpired as exc:
-        out = exc.stdout.decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
-        err = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
-        pytest.fail(
-            f"mbtool {' '.join(argv)} did not finish within {timeout}s\nstdout:\n{out}\nstderr:\n{err}"
-        )
+    with contextlib.ExitStack() as opened:
+        if files is None:
+            streams = {"capture_output": True, "input": input}
+            streams["stdin"] = None if input is not None else subprocess.DEVNULL
+        else:
+            (files / "stdin").write_text(input or "")
+            streams = {
+                name: opened.enter_context(open(files / name, "r" if name == "stdin" else "w"))
+                for name in STREAMS
+            }
+        try:
+            cp = subprocess.run(
+                [sys.executable, "-m", "mbtool", *argv],
+                cwd=REPO_ROOT,
+                env=mbtool_env(env),
+                text=True,
+                timeout=timeout,
+                **streams,
+            )
+        except subprocess.TimeoutExpired as exc:
+            out = exc.stdout.decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+            err = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+            pytest.fail(
+                f"mbtool {' '.join(argv)} did not finish within {timeout}s\nstdout:\n{out}\nstderr:\n{err}"
+            )
+    if files is not None:
+        cp.stdout, cp.stderr = ((files / name).read_text() for name in STREAMS[1:])
     return Result(argv, cp.returncode, cp.stdout, cp.stderr, time.monotonic() - t0)
 
 

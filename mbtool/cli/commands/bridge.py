@@ -367,8 +367,17 @@ class Show:
         self._lines.put(None)
         self._printer.join(PRINTER_STOP)
 
+    def _next(self):
+        """The next line to print; once every line queued is out, the count of those dropped
+        since: the display says it where it catches up, not with the next transaction, which
+        may be minutes away, nor only at the end."""
+        if self._dropped and self._lines.empty():
+            with self._queueing:
+                self._tell_dropped()
+        return self._lines.get()
+
     def _print(self) -> None:
-        while (item := self._lines.get()) is not None:
+        while (item := self._next()) is not None:
             if self.failure is not None:
                 continue  # the reader has gone: the bridge is stopping
             try:
