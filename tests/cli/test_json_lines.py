@@ -7,10 +7,12 @@ from __future__ import annotations
 import io
 import json
 import math
+from operator import attrgetter
 
-from mbtool.cli.poll_output import Output
-from mbtool.cli.results import PointRow, Points, Result, as_dict, points_dict
+from mbtool.cli.poll_output import DeferredRead, Output
+from mbtool.cli.results import PointRow, Points, PollsOfRead, Result, as_dict, points_dict
 from mbtool.cli.sinks.json import json_line
+from mbtool.codec.data_access import RegistersResponse
 from mbtool.codec.values import value_decoder
 
 WHEN = "2026-11-28T23:51:57.580+01:00"
@@ -116,3 +118,27 @@ def test_the_same_result_again_is_written_with_only_its_time_new():
         == first.replace("57.580", "58.000")
         == json_line({"time": WHEN.replace("57.580", "58.000"), **as_dict(result)})
     )
+
+
+def test_a_reply_shown_again_by_a_read_is_decoded_once_and_written_with_its_own_time():
+    """The client hands back the same response for the same reply bytes: DeferredRead decodes
+    it once, and each poll's line still carries that poll's time."""
+    decoded = []
+
+    def decode(registers):
+        decoded.append(registers)
+        return list(registers)
+
+    read = Result(1, 3, "Read Holding Registers", 10, [], "uint16", addresses=[10, 11])
+    output = Output("json", io.StringIO())
+    shown = DeferredRead(output, PollsOfRead(read, attrgetter("registers"), decode, True))
+    same, changed = RegistersResponse(3, (5, 6)), RegistersResponse(3, (7, 6))
+    for when, reply in [(1.0, same), (2.0, same), (3.0, changed), (4.0, same)]:
+        shown.hold(1_700_000_000 + when, reply)
+        shown.write()
+    shown.close()
+    assert decoded == [(5, 6), (7, 6), (5, 6)]
+    lines = [json.loads(line) for line in output.out.getvalue().splitlines()]
+    assert [line["values"] for line in lines] == [[5, 6], [5, 6], [7, 6], [5, 6]]
+    assert [line["time"][17:23] for line in lines] == ["21.000", "22.000", "23.000", "24.000"]
+    assert all(line["addresses"] == [10, 11] for line in lines)
