@@ -7,7 +7,6 @@ from __future__ import annotations
 import sys
 import time
 
-from mbtool.cli.results import Points
 from mbtool.errors import PartialRead
 from mbtool.mqtt.settings import read_settings
 from mbtool.mqtt.topics import OFFLINE, ONLINE, DevicePoll
@@ -51,13 +50,18 @@ class PublishedPolls:
         self.publisher.start()
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
+        """A map's points, by name."""
         self.output.result(when, result, stamp)
-        if result.__class__ is Points:  # a map's points by name
-            values = {row.name: row.value for row in result.rows}
-        else:  # by the references given (read 40001 2), else by address
-            names = result.refs or [str(address) for address in result.addresses]
-            values = dict(zip(names, result.values, strict=True))
+        self._publish({row.name: row.value for row in result.rows}, stamp)
+
+    def _publish(self, values: dict, stamp: float | None) -> None:
         self.publisher.report(DevicePoll(self.name, stamp or time.time(), values, ONLINE))
+
+    def values(self, when: str, read, values: list, registers, stamp: float | None = None) -> None:
+        """A poll of a read of one request: by the references given (read 40001 2), else by address."""
+        self.output.values(when, read, values, registers, stamp)
+        names = read.refs or [str(address) for address in read.addresses]
+        self._publish(dict(zip(names, values, strict=True)), stamp)
 
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.output.failure(when, number, error)

@@ -112,6 +112,9 @@ class ReadingPolls:
         metrics = self.output.metrics
         metrics.emit(result, None if metrics.textfile else self.output.pending, stamp)
 
+    def values(self, when: str, read, values: list, registers, stamp: float | None = None) -> None:
+        self.result(when, read.polled(values, registers), stamp)
+
     def failure(self, when: str, error: BaseException) -> None:
         metrics = self.output.metrics
         metrics.emit_failure(error, None if metrics.textfile else self.output.pending)

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 from mbtool.cli.results import (
     Points,
+    PollsOfRead,
     Result,
 )
 from mbtool.cli.sinks import sink
@@ -40,7 +41,9 @@ class Output:
         self._flush_at = 0.0
         self.pending = _Pending(self)  # a stream for the Readings, that joins these writes
         self.polls = sink(fmt).Polls(self)
-        self.result = self.polls.result  # result(when, result, stamp=None): a poll's reply
+        self.result = self.polls.result  # result(when, result, stamp=None): a poll's whole result
+        # values(when, read, values, registers, stamp=None): a poll of a read of one request
+        self.values = self.polls.values
         self.change = self.polls.change  # change(when, what, where, old, new, unit): --changes
 
     def failure(self, when: str, number: int, error: BaseException) -> None:
@@ -115,6 +118,9 @@ class ChangesOnly:
                 where = "" if refs is None else refs[index]
                 self.output.change(when, what, where, previous.get(address), value, "")
 
+    def values(self, when: str, read: Result, values: list, registers, stamp: float | None = None) -> None:
+        self.result(when, read.polled(values, registers), stamp)
+
     def failure(self, when: str, number: int, error: BaseException) -> None:
         self.output.failure(when, number, error)
 
@@ -154,7 +160,8 @@ class Deferred:
     """What the polls show (plant.polling.Shown): a poll's reply is shown while the next
     request is on its way when polls run back to back, so decoding and writing it
     overlaps the device's turnaround instead of adding to every transaction (sustained
-    polling keeps pace with a bare client loop)."""
+    polling keeps pace with a bare client loop).  This one shows a reply as its whole result
+    (``to_result``: a map's points); ``DeferredRead`` a read's as its values."""
 
     def __init__(
         self, output: Output | ChangesOnly | PublishedPolls, to_result: Callable[[object], object]
@@ -195,6 +202,31 @@ class Deferred:
     def close(self) -> None:
         self.write()
         self.output.close()
+
+
+class DeferredRead(Deferred):
+    """``Deferred`` of a read of one request (``polls``): a reply is shown as the read and the
+    values decoded from it, handed to the output's ``values``, with no Result made a poll."""
+
+    def __init__(self, output: Output | ChangesOnly | PublishedPolls, polls: PollsOfRead) -> None:
+        super().__init__(output, polls)
+        self.show_values = output.values
+        self.read, self.data_of, self.decode, self.raw = polls.read, polls.data_of, polls.decode, polls.raw
+        self.shown_values: list = []  # the last reply's values, and its registers (raw)
+        self.shown_registers = None
+
+    def write(self) -> None:
+        reply = self.held
+        if reply is None:
+            return
+        self.held = None
+        if reply is not self.shown_reply:
+            data_of, decode = self.data_of, self.decode  # attributes, then called (as Deferred's)
+            data = data_of(reply)
+            self.shown_reply, self.shown_values = reply, decode(data)
+            self.shown_registers = data if self.raw else None
+        show, when = self.show_values, self.held_when
+        show(local_time(when), self.read, self.shown_values, self.shown_registers, when)
 
 
 class _Pending:

@@ -31,10 +31,6 @@ class Result:
     # Where each value starts; the constructor's None: one a value from address (so never None).
     addresses: list[int] = field(default=None)
     texts: list[str] | None = None  # each value as plain, table and CSV say it; None: value_text's
-    # The result this one is a poll of (``poll_results``): the polls of one read share all but their
-    # values and registers, so a sink's Polls keeps what it made of that for the next poll of
-    # the same read (cli/sinks/).  None: a result of its own.
-    shared: Result | None = field(default=None, compare=False, init=False)
 
     def __init__(
         self,
@@ -51,8 +47,7 @@ class Result:
         addresses: list[int] | None = None,
         texts: list[str] | None = None,
     ) -> None:
-        # By hand, its fields one table (codec/record.py): a poll's result copies it, whose
-        # fields the sinks read.
+        # By hand, its fields one table (codec/record.py): a poll's result copies it.
         _set_fields(
             self,
             {
@@ -69,32 +64,18 @@ class Result:
                 # One value a register or a bit, from ``address`` on, unless the command says otherwise.
                 "addresses": list(range(address, address + len(values))) if addresses is None else addresses,
                 "texts": texts,
-                "shared": None,
             },
         )
 
-    def poll_results(
-        self, data_of: Callable[[Any], Sequence], decode: Callable[[Sequence], list], raw: bool
-    ) -> Callable[[Any], Result]:
-        """How a poll's reply becomes its result, made once for the polls of this read: this
-        result with the reply's values, ``decode(data_of(reply))``, and with ``raw`` that data
-        as its registers.  The polls of one read share everything else, the very same objects
-        (copied, not worked out again a poll)."""
-        table = self.__dict__  # read once: a record's __dict__ is read the generic way
-
-        def poll_result(reply) -> Result:
-            data = data_of(reply)
-            # A copy of this one's fields (their table copied whole, not a dict filled anew key
-            # by key: a third of the instructions), set as the new record's.
-            fields = table.copy()
-            fields["values"] = decode(data)
-            fields["registers"] = data if raw else None
-            fields["shared"] = self
-            result = _new(Result)
-            _set_fields(result, fields)
-            return result
-
-        return poll_result
+    def polled(self, values: list, registers: Sequence[int] | None) -> Result:
+        """This read's result with a poll's values and registers: the polls of one read share
+        everything else, the very same objects (copied, not worked out again)."""
+        fields = self.__dict__.copy()  # the table copied whole: a third of a dict filled anew
+        fields["values"] = values
+        fields["registers"] = registers
+        result = _new(Result)
+        _set_fields(result, fields)
+        return result
 
     @property
     def table(self) -> str:
@@ -156,6 +137,24 @@ def as_dict(result: Result) -> dict:
         data["registers"] = result.registers
     data.update(result.extra or {})
     return data
+
+
+@record
+class PollsOfRead:
+    """How the replies of one read (of one request, polled or once) become what it shows:
+    ``read``, the result its polls share (all but their values and registers), ``data_of(reply)``,
+    what a reply carries, ``decode(data)``, its values, and ``raw``: that data shown as the
+    registers.  Polled, a reply is shown as ``read`` and its values, no Result made
+    (cli.poll_output's DeferredRead); called, the reply's whole result."""
+
+    read: Result
+    data_of: Callable[[Any], Sequence]
+    decode: Callable[[Sequence], list]
+    raw: bool
+
+    def __call__(self, reply) -> Result:
+        data = self.data_of(reply)
+        return self.read.polled(self.decode(data), data if self.raw else None)
 
 
 # --- a register map's points: name, value, unit ------------------------------------------

@@ -7,10 +7,12 @@ from __future__ import annotations
 import io
 import json
 import math
+from operator import attrgetter
 
-from mbtool.cli.poll_output import Output
-from mbtool.cli.results import PointRow, Points, Result, as_dict, points_dict
+from mbtool.cli.poll_output import DeferredRead, Output
+from mbtool.cli.results import PointRow, Points, PollsOfRead, Result, as_dict, points_dict
 from mbtool.cli.sinks.json import json_line
+from mbtool.codec.data_access import RegistersResponse
 from mbtool.codec.values import value_decoder
 
 WHEN = "2026-11-28T23:51:57.580+01:00"
@@ -18,7 +20,7 @@ WHEN = "2026-11-28T23:51:57.580+01:00"
 
 def _poll_of(shared: Result, values: list, registers: tuple[int, ...] | None = None) -> Result:
     """A poll's result of ``shared``'s read: ``values``, and ``registers`` as read."""
-    return shared.poll_results(lambda reply: reply, lambda data: values, registers is not None)(registers)
+    return shared.polled(values, registers)
 
 
 def _written(output: Output, when: str, result) -> str:
@@ -63,23 +65,37 @@ def test_each_poll_line_is_the_line_json_writes_of_its_result():
         ]
 
 
+def _values_written(output: Output, when: str, read: Result, values: list, registers) -> str:
+    """What a poll of ``read`` (its values, as DeferredRead hands them) adds to -o json's output."""
+    before = output.out.tell()
+    output.values(when, read, values, registers)
+    output.flush()
+    return output.out.getvalue()[before:]
+
+
 def test_the_polls_of_one_read_and_a_maps_points_are_the_lines_json_writes():
-    """Polls share their read's result (Result.poll_results): the text around their values is
-    kept for them, and a result of another read, or a map's points, have their own."""
+    """Polls of one read are handed to the output as their read and values: the text around
+    their values is kept for them, and another read, or a map's points, have their own; each
+    line is the one json_line writes of the poll's whole result (Result.polled)."""
     shared = Result(
         7, 3, "Read Holding Registers", 10, [], "int16", refs=["40011", "40012"], addresses=[10, 11]
     )
     other = Result(7, 3, "Read Holding Registers", 10, [], "int16", addresses=[10, 11])
     points = Points(7, "pump.toml", [PointRow("level", 2.5, "m", "40001", (25,), False)])
+    bits = Result(7, 1, "Read Coils", 0, [], addresses=[0, 1])
     output = Output("json", io.StringIO())
-    for result in (
-        _poll_of(shared, [1, -1], (1, 65535)),
-        _poll_of(shared, [2, 3], (2, 3)),
-        _poll_of(other, [4, 5], (4, 5)),
+    same = [2, 3]
+    for read, values, registers in (
+        (shared, [1, -1], (1, 65535)),
+        (shared, same, (2, 3)),
+        (shared, same, (2, 3)),  # the same values again (a reply seen before): only the time new
+        (other, [4, 5], (4, 5)),
+        (bits, [True, False], None),
     ):
-        assert _written(output, WHEN, result) == json_line({"time": WHEN, **as_dict(result)})
+        expected = json_line({"time": WHEN, **as_dict(read.polled(values, registers))})
+        assert _values_written(output, WHEN, read, values, registers) == expected
     assert _written(output, WHEN, points) == json_line({"time": WHEN, **points_dict(points)})
-    assert _written(output, WHEN, _poll_of(shared, [6, 7], (6, 7))).startswith(
+    assert _values_written(output, WHEN, shared, [6, 7], (6, 7)).startswith(
         '{"time": "' + WHEN + '", "unit": 7'
     )
 
@@ -102,3 +118,27 @@ def test_the_same_result_again_is_written_with_only_its_time_new():
         == first.replace("57.580", "58.000")
         == json_line({"time": WHEN.replace("57.580", "58.000"), **as_dict(result)})
     )
+
+
+def test_a_reply_shown_again_by_a_read_is_decoded_once_and_written_with_its_own_time():
+    """The client hands back the same response for the same reply bytes: DeferredRead decodes
+    it once, and each poll's line still carries that poll's time."""
+    decoded = []
+
+    def decode(registers):
+        decoded.append(registers)
+        return list(registers)
+
+    read = Result(1, 3, "Read Holding Registers", 10, [], "uint16", addresses=[10, 11])
+    output = Output("json", io.StringIO())
+    shown = DeferredRead(output, PollsOfRead(read, attrgetter("registers"), decode, True))
+    same, changed = RegistersResponse(3, (5, 6)), RegistersResponse(3, (7, 6))
+    for when, reply in [(1.0, same), (2.0, same), (3.0, changed), (4.0, same)]:
+        shown.hold(1_700_000_000 + when, reply)
+        shown.write()
+    shown.close()
+    assert decoded == [(5, 6), (7, 6), (5, 6)]
+    lines = [json.loads(line) for line in output.out.getvalue().splitlines()]
+    assert [line["values"] for line in lines] == [[5, 6], [5, 6], [7, 6], [5, 6]]
+    assert [line["time"][17:23] for line in lines] == ["21.000", "22.000", "23.000", "24.000"]
+    assert all(line["addresses"] == [10, 11] for line in lines)

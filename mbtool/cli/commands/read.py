@@ -21,7 +21,7 @@ from mbtool.cli.options import (
     with_options,
 )
 from mbtool.cli.param_types import ADDRESS, COUNT, FilePath, Number, PositiveFloat
-from mbtool.cli.results import PointFailure, PointRow, Points, Result
+from mbtool.cli.results import PointFailure, PointRow, Points, PollsOfRead, Result
 from mbtool.cli.session import execute, open_client, show, trace_for
 from mbtool.cli.settings import Settings
 from mbtool.cli.sinks import READINGS, default_format, formats, sink
@@ -133,7 +133,7 @@ def _run(
                 metrics.emit_failure(error, sys.stdout)
             raise
         return None
-    from mbtool.cli.poll_output import ChangesOnly, Deferred, Output  # noqa: PLC0415 - polling only
+    from mbtool.cli.poll_output import ChangesOnly, Deferred, DeferredRead, Output  # noqa: PLC0415 - polling only
     from mbtool.plant.polling import poll  # noqa: PLC0415 - polling only
 
     fmt = settings.output_format or default_format()
@@ -143,7 +143,10 @@ def _run(
         from mbtool.cli.broker import PublishedPolls  # noqa: PLC0415 - --mqtt only
 
         output = PublishedPolls(output, settings.mqtt, settings.name, connection.unit)
-    shown = Deferred(output, to_result)
+    # A read of one request is shown as its values; a map's, as its points.
+    shown = (
+        DeferredRead(output, to_result) if isinstance(to_result, PollsOfRead) else Deferred(output, to_result)
+    )
     polled = poll(connection, request, shown, interval, polls, trace_for(settings), run)
     if settings.stats == "json":  # the summary as one JSON object, before its line
         print(to_json(polling_figures(polled)), file=sys.stderr, flush=True)
@@ -257,7 +260,7 @@ def _read_bits(
     )
 
     return _run(
-        connection, settings, request, shared.poll_results(attrgetter("bits"), list, False), interval, polls
+        connection, settings, request, PollsOfRead(shared, attrgetter("bits"), list, False), interval, polls
     )
 
 
@@ -309,8 +312,8 @@ def _read_registers(
         addresses=addresses,
     )
 
-    to_result = shared.poll_results(attrgetter("registers"), decode, True)
-    return _run(connection, settings, request, to_result, interval, polls)
+    polls_of = PollsOfRead(shared, attrgetter("registers"), decode, True)
+    return _run(connection, settings, request, polls_of, interval, polls)
 
 
 @device_command("read-coils", readings=True, polls=True)

@@ -187,11 +187,19 @@ class Polls(PlainPolls):
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
         if not self.header_done:
-            header = POINT_CSV_HEADER if result.__class__ is Points else result_cells(result)[0]
-            if wants_csv_header(self.output.out, self.output.csv_header):
-                self.output.emit(",".join(["time", *header]) + "\n")
-            self.header_done = True
+            self._header(POINT_CSV_HEADER if result.__class__ is Points else result_cells(result)[0])
         super().result(when, result, stamp)
+
+    def values(self, when: str, read: Result, values: list, registers, stamp: float | None = None) -> None:
+        if not self.header_done:
+            self._header(result_cells(read.polled(values, registers))[0])
+        super().values(when, read, values, registers, stamp)
+
+    def _header(self, header: list[str]) -> None:
+        """The one header of the run's rows (none with --no-header, nor appended to a file that has rows)."""
+        if wants_csv_header(self.output.out, self.output.csv_header):
+            self.output.emit(",".join(["time", *header]) + "\n")
+        self.header_done = True
 
     @staticmethod
     def label(label: int | str) -> str:

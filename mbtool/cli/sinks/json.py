@@ -230,63 +230,68 @@ class Rows(PlainRows):
 class Polls(PlainPolls):
     """read --interval -o json: a JSON line a poll, a change or a failed poll.
 
-    A poll's line is the text ``json_line({"time": ..., **as_dict(result)})`` writes, made with
-    less work a poll: the polls of one read (``Result.poll_results`` of its ``shared`` result) differ
-    only in their time, values and raw registers, so the rest of the line (unit, function, name,
-    address, type, addresses, refs) is encoded once for them, and a poll's line is one f-string
-    of that text with its time, values and registers set in; where the values are ints (an
-    integer type, one order), their array is one %-format made once, as the registers' always is."""
+    A poll's line is the text ``json_line({"time": ..., **as_dict(result)})`` writes of its whole
+    result, made with less work a poll: the polls of one read differ only in their time, values
+    and raw registers, so the rest of the line (unit, function, name, address, type, addresses,
+    refs) is encoded once for them, and a poll's line is one f-string of that text with its time,
+    values and registers set in; where the values are ints (an integer type, one order), their
+    array is one %-format made once, as the registers' always is."""
 
     def __init__(self, output) -> None:
-        super().__init__(output)  # self.shared: the result whose polls the text below is for
+        super().__init__(output)  # self.read: the read whose polls the text below is for
         # The line's text around the time, the values and the registers (the last "" when the
         # line has none), and the arrays' %-formats: the values' when they are ints (None: the
         # encoder writes them), the registers' (None: the line has none).
         self.parts: tuple[str, str, str] = ("", "", "")
         self.ints: str | None = None
         self.registers: str | None = None
-        # The last result written and its arrays' text: the same result again (Deferred's, a
-        # poll whose values have not changed) is written with only its time new.
-        self.written: Result | Points | None = None
-        self.values = self.raw = ""
+        # The last values written (or map's points) and their arrays' text: the same again
+        # (Deferred's, a reply whose values have not changed) is written with only its time new.
+        self.written: list | Points | None = None
+        self.values_text = self.raw = ""
+        self.points = ""  # a map's points' line, after its time
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result is not self.written:
-            self.written = result
-            if result.__class__ is Points:  # a map's points: their line, after its time, as it is
-                self.shared, self.parts = None, (_after_time(points_dict(result)), "", "")
-                self.values = self.raw = ""
-            else:
-                shared = result.shared
-                if shared is None or shared is not self.shared:
-                    self._learn(result)
-                ints = self.ints
-                try:
-                    self.values = ints % tuple(result.values) if ints is not None else _encoded(result.values)
-                except TypeError:  # not as many values as the first poll's
-                    self.values = _encoded(result.values)
-                if self.registers is not None:
-                    self.raw = self.registers % tuple(result.registers)
+        """A map's points, or a whole result (--changes' first poll)."""
+        if result.__class__ is not Points:
+            self.read = self.written = None  # a result of its own: its line is its own
+            self.values(when, result, result.values, result.registers, stamp)
+            return
+        if result is not self.written:  # a map's points: their line, after its time, as it is
+            self.written, self.read, self.points = result, None, _after_time(points_dict(result))
+        self.output.emit(f'{{"time": "{when}{self.points}')
+
+    def values(self, when: str, read: Result, values: list, registers, stamp: float | None = None) -> None:
+        if values is not self.written:
+            self.written = values
+            if read is not self.read:
+                self._learn(read, values, registers)
+            ints = self.ints
+            try:
+                self.values_text = ints % tuple(values) if ints is not None else _encoded(values)
+            except TypeError:  # not as many values as the first poll's
+                self.values_text = _encoded(values)
+            if self.registers is not None:
+                self.raw = self.registers % tuple(registers)
         # The time is local_time's digits and punctuation: quoted, it is its JSON string.
         head, middle, tail = self.parts
-        self.output.emit(f'{{"time": "{when}{head}{self.values}{middle}{self.raw}{tail}')
+        self.output.emit(f'{{"time": "{when}{head}{self.values_text}{middle}{self.raw}{tail}')
 
-    def _learn(self, result: Result) -> None:
-        """The line's text for the polls of the result's shared one, cut where the values and the
-        registers go."""
+    def _learn(self, read: Result, values: list, registers) -> None:
+        """The line's text for the polls of ``read``, cut where the values and the registers go."""
         from mbtool.codec.values import TYPES  # noqa: PLC0415 - polling only; all commands load this
 
-        data = {**as_dict(result), "values": _MARK}
-        registers = data.get("registers")  # the raw registers, when the line has them
-        if registers is not None:
+        data = {**as_dict(read.polled(values, registers)), "values": _MARK}
+        shown = data.get("registers")  # the raw registers, when the line has them
+        if shown is not None:
             data["registers"] = _MARK
         head, middle, *tail = _after_time(data).split(_MARKED)
-        self.shared, self.parts = result.shared, (head, middle, tail[0] if tail else "")
+        self.read, self.parts = read, (head, middle, tail[0] if tail else "")
         # Registers are always ints, and so are the values of an integer type: their arrays
         # with a %d for each, as json and repr write an int.
-        integers = result.extra is None and result.type is not None and TYPES[result.type].integer
-        self.ints = _int_form(len(result.values)) if integers else None
-        self.registers = None if registers is None else _int_form(len(registers))
+        integers = read.extra is None and read.type is not None and TYPES[read.type].integer
+        self.ints = _int_form(len(values)) if integers else None
+        self.registers = None if shown is None else _int_form(len(shown))
         self.raw = ""
 
     def change(self, when: str, what: dict, where: str, old, new, unit: str) -> None:

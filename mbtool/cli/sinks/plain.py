@@ -113,27 +113,35 @@ class Polls:
 
     def __init__(self, output) -> None:
         self.output = output
-        # The polls of one read (Result.poll_results of its shared result) differ only in their time
-        # and values: their lines are one %-format of the values, made at the first of them.
-        self.shared: Result | None = None  # the result whose polls ``form`` writes,
+        # The polls of one read differ only in their time and values: their lines are one
+        # %-format of the values, made at the first of them.
+        self.read: Result | None = None  # the read (its polls' shared result) ``form`` writes,
         self.form: str | None = None  # and its format (None: the values' text is worked out a poll)
 
     def result(self, when: str, result, stamp: float | None = None) -> None:
-        if result.__class__ is not Points:
-            shared = result.shared
-            if shared is None or shared is not self.shared:
-                self.shared, self.form = shared, self.poll_form(result)
-            if self.form is not None:
-                self.output.emit((self.form % tuple(result.values)).replace(_TIME, when))
-                return
-        self.output.emit(self.poll_text(when, result))
+        """A map's points, or a whole result (--changes' first poll and its rows of changes)."""
+        if result.__class__ is Points:
+            self.output.emit(self.poll_text(when, result))
+        else:
+            self.read = None  # a result of its own: its format is its own
+            self.values(when, result, result.values, result.registers, stamp)
 
-    def poll_form(self, result: Result) -> str | None:
+    def values(self, when: str, read: Result, values: list, registers, stamp: float | None = None) -> None:
+        """A poll of ``read`` (the result its polls share): its values, and its registers as read."""
+        if read is not self.read:
+            self.read, self.form = read, self.poll_form(read, values)
+        form = self.form
+        if form is not None:
+            self.output.emit((form % tuple(values)).replace(_TIME, when))
+        else:
+            self.output.emit(self.poll_text(when, read.polled(values, registers)))
+
+    def poll_form(self, read: Result, values: list) -> str | None:
         """A poll's lines as one %-format of its values, each as value_text writes it: ints and
         bits with %d (a bit as 1 or 0), floats with %r (repr's digits); the time stands as
         _TIME in each line, where one replace puts it.  None for text (CSV quotes it when it
         must; a string read is rarely polled) and --order all's values (a word order each)."""
-        kinds = {type(value) for value in result.values}
+        kinds = {type(value) for value in values}
         if kinds <= {int, bool}:
             value = "%d"
         elif kinds == {float}:
@@ -142,7 +150,7 @@ class Polls:
             return None
         sep = self.separator
         return "".join(
-            f"{_TIME}{sep}{self.label(label).replace('%', '%%')}{sep}{value}\n" for label in labels(result)
+            f"{_TIME}{sep}{self.label(label).replace('%', '%%')}{sep}{value}\n" for label in labels(read)
         )
 
     @staticmethod

@@ -233,6 +233,9 @@ class Polls(PlainPolls):
             table.add_row(str(label), *values)
         self._show(heading, table)
 
+    def values(self, when: str, read: Result, values: list, registers, stamp: float | None = None) -> None:
+        self.result(when, read.polled(values, registers), stamp)
+
     def _show(self, heading, table) -> None:
         from rich.console import Group  # noqa: PLC0415 - rich, 12-20 ms: tables only
         from rich.live import Live  # noqa: PLC0415 - rich, 12-20 ms: tables only
