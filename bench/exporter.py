@@ -275,8 +275,10 @@ def bench_polling(args, folder: Path) -> None:
         alone = rate(devices, False)
         exporting = rate(devices, True)
         verdict = "met" if exporting >= 0.9 * alone else "NOT MET"
-        print(f"  {devices:5} devices  exporter {exporting:6.0f}  alone {alone:6.0f}  ratio "
-              f"{exporting / alone:.2f} (target >= 0.9): {verdict}")
+        print(
+            f"  {devices:5} devices  exporter {exporting:6.0f}  alone {alone:6.0f}  ratio "
+            f"{exporting / alone:.2f} (target >= 0.9): {verdict}"
+        )
 
 
 def bench_slow_connections(args, folder: Path) -> None:
@@ -300,8 +302,10 @@ def bench_slow_connections(args, folder: Path) -> None:
                 sock.close()
     verdict = "met" if max(took) < 0.05 else "NOT MET"
     print("slow connections: /metrics beside 500 connections that never finish their request's head")
-    print(f"  20 scrapes  median {ms(statistics.median(took))}  max {ms(max(took))}  "
-          f"target under 50 ms: {verdict}")
+    print(
+        f"  20 scrapes  median {ms(statistics.median(took))}  max {ms(max(took))}  "
+        f"target under 50 ms: {verdict}"
+    )
 
 
 def main() -> None:

@@ -89,9 +89,9 @@ def test_a_forbidden_import_inside_a_function_breaks_its_contract(copy, module, 
 RUFF = [sys.executable, "-m", "ruff"]
 
 
-def ruff(where: Path, *args: str) -> subprocess.CompletedProcess:
+def ruff(where: Path, *args: str, paths: tuple[str, ...] = ("mbtool",)) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [*RUFF, *args, "--no-cache", "mbtool"], cwd=where, capture_output=True, text=True, timeout=100
+        [*RUFF, *args, "--no-cache", *paths], cwd=where, capture_output=True, text=True, timeout=100
     )
 
 
@@ -99,6 +99,11 @@ def test_ruff_passes_and_formats_nothing():
     for args in (("check",), ("format", "--check")):
         res = ruff(ROOT, *args)
         assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_the_tests_benches_and_scripts_are_as_ruff_formats_them():
+    res = ruff(ROOT, "format", "--check", paths=("tests", "bench", "scripts"))
+    assert res.returncode == 0, res.stdout + res.stderr
 
 
 def test_an_import_inside_a_function_is_refused(copy):

@@ -171,7 +171,12 @@ scrape_configs:
                     == 230.1
                 )
                 assert stored(prom, 'modbus_up{job="plant",device="meter1"}', tmp_path) == 1
-                assert stored(prom, 'modbus_value{job="plant",device="plc",table="holding",address="0"}', tmp_path) == 100
+                assert (
+                    stored(
+                        prom, 'modbus_value{job="plant",device="plc",table="holding",address="0"}', tmp_path
+                    )
+                    == 100
+                )
                 assert stored(prom, 'modbus_up{job="plant",device="dead"}', tmp_path) == 0
                 assert (
                     stored(

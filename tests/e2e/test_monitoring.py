@@ -149,7 +149,9 @@ def test_the_example_map_as_prom_passes_promtool_and_a_counter_like_name_is_warn
         promtool_check(res.stdout)
         assert "warning" not in res.stderr
         odd = tmp_path / "odd.toml"
-        odd.write_text('[points.energy_total]\nref = 30073\ntype = "float32"\n[points.runs_count]\nref = 40001\n')
+        odd.write_text(
+            '[points.energy_total]\nref = 30073\ntype = "float32"\n[points.runs_count]\nref = 40001\n'
+        )
         res = expect_ok(run_cli("read", "-m", odd, "-o", "prom", "-p", meter.target))
     warnings = [line for line in res.stderr.splitlines() if "warning" in line]
     assert len(warnings) == 2 and "modbus_energy_total, is a gauge" in warnings[0], res.stderr

@@ -124,7 +124,9 @@ def test_on_change_publishes_a_steady_device_once_and_per_point_topics_carry_bar
     assert "5 of" not in err and "published" in err
 
 
-def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sigkill_leaves_the_will(tmp_path):
+def test_a_device_killed_is_offline_on_its_status_topic_and_online_again_and_sigkill_leaves_the_will(
+    tmp_path,
+):
     inventory = (
         '[poll]\ninterval = 0.2\noffline_after = 1\nmax_backoff = 0.4\n[links.l]\ntarget = "{target}"\n'
         'timeout = 0.3\n[devices.pm]\nlink = "l"\nread = ["40001 1"]\n[mqtt]\nurl = "{url}"\n'
@@ -173,7 +175,9 @@ def test_a_bad_mqtt_table_is_one_line_and_exit_2_with_nothing_opened(tmp_path):
         ("qos = 1", "has no url"),
     ):
         plant = tmp_path / "plant.toml"
-        plant.write_text(f'[links.l]\ntarget = "sim://"\n[devices.d]\nlink = "l"\nread = ["40001"]\n[mqtt]\n{table}\n')
+        plant.write_text(
+            f'[links.l]\ntarget = "sim://"\n[devices.d]\nlink = "l"\nread = ["40001"]\n[mqtt]\n{table}\n'
+        )
         res = run_cli("poll", str(plant), "--once")  # a usage error: no process of its own needed
         assert res.returncode == 2, (table, res.stderr)
         assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, (table, res.stderr)
@@ -203,8 +207,12 @@ COMMON = {
         "items": {
             "type": "object",
             "required": ["topic"],
-            "properties": {"topic": {"type": "string"}, "payload_available": {"type": "string"},
-                           "payload_not_available": {"type": "string"}, "value_template": {"type": "string"}},
+            "properties": {
+                "topic": {"type": "string"},
+                "payload_available": {"type": "string"},
+                "payload_not_available": {"type": "string"},
+                "value_template": {"type": "string"},
+            },
             "additionalProperties": False,
         },
     },  # fmt: skip
@@ -214,8 +222,11 @@ COMMON = {
         "required": ["identifiers"],
         "properties": {
             "identifiers": {"type": "array", "items": {"type": "string"}, "minItems": 1},
-            "name": {"type": "string"}, "manufacturer": {"type": "string"}, "model": {"type": "string"},
-            "sw_version": {"type": "string"}, "via_device": {"type": "string"},
+            "name": {"type": "string"},
+            "manufacturer": {"type": "string"},
+            "model": {"type": "string"},
+            "sw_version": {"type": "string"},
+            "via_device": {"type": "string"},
         },  # fmt: skip
         "additionalProperties": False,
     },
@@ -296,7 +307,9 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
         assert late.wait_for(lambda m: len(m) == 6 and all(retained for _, _, retained in m), 5)
         late.close()
     configs = {
-        topic: json.loads(payload) for topic, payload, _ in subscriber.messages if topic.startswith("homeassistant/")
+        topic: json.loads(payload)
+        for topic, payload, _ in subscriber.messages
+        if topic.startswith("homeassistant/")
     }
     components = {}
     for topic, config in configs.items():
@@ -305,7 +318,10 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
         jsonschema.validate(config, SCHEMAS[component])
         components[object_id] = component
         assert config["state_topic"] == "mbtool/plant/pump"
-        assert [a["topic"] for a in config["availability"]] == ["mbtool/plant/status", "mbtool/plant/pump/status"]
+        assert [a["topic"] for a in config["availability"]] == [
+            "mbtool/plant/status",
+            "mbtool/plant/pump/status",
+        ]
         assert config["device"] == {
             "identifiers": ["mbtool_plant_pump"], "name": "pump", "manufacturer": "Acme", "model": "M-1",
         }  # fmt: skip
@@ -315,7 +331,10 @@ def test_home_assistant_discovery_configs_validate_and_name_the_right_component_
     }  # fmt: skip
     by_name = {config["name"]: config for config in configs.values()}
     assert by_name["mode"]["options"] == ["auto", "manual"] and by_name["mode"]["device_class"] == "enum"
-    assert (by_name["energy"]["device_class"], by_name["energy"]["state_class"]) == ("energy", "total_increasing")
+    assert (by_name["energy"]["device_class"], by_name["energy"]["state_class"]) == (
+        "energy",
+        "total_increasing",
+    )
     assert by_name["flow"]["unit_of_measurement"] == "m³/h"
     assert by_name["flow"]["device_class"] == "volume_flow_rate"
     assert "unit_of_measurement" not in by_name["tag"] and "state_class" not in by_name["tag"]
@@ -343,7 +362,9 @@ def test_with_writes_a_writable_point_is_a_switch_a_select_or_a_number_whose_com
         late = Subscriber(broker.port, "homeassistant/#")
         assert late.wait_for(lambda m: len(m) == 4, 5)
         late.close()
-    configs = {topic.split("/")[3]: (topic.split("/")[1], json.loads(payload)) for topic, payload, _ in late.messages}
+    configs = {
+        topic.split("/")[3]: (topic.split("/")[1], json.loads(payload)) for topic, payload, _ in late.messages
+    }
     for component, config in configs.values():
         jsonschema.validate(config, SCHEMAS[component])
     assert {name: component for name, (component, _) in configs.items()} == {
@@ -461,7 +482,9 @@ def test_the_broker_away_30_s_holds_no_poll_up_its_spool_delivers_in_order_and_c
     # Each message that came to the spool was sent from it or dropped, the newest 50 sent: the
     # drop count is exactly what the subscriber missed.
     assert stats["spool_dropped"] == stats["spooled"] - stats["spool_sent"] and stats["in_spool"] == 0
-    assert 50 <= stats["spool_sent"] <= 52 and stats["dropped"] == 0, stats  # and any before the first connection
+    assert 50 <= stats["spool_sent"] <= 52 and stats["dropped"] == 0, (
+        stats
+    )  # and any before the first connection
     sent, got = _stamps(polls), _received(received)
     assert len(got) == len(sent) - stats["spool_dropped"]
     # The ones missing are the oldest of the outage, in one run: the spool kept the newest 50.
@@ -542,13 +565,16 @@ def _requests(bus: PtyPair) -> list[tuple[str, bytes]]:
 
 def test_a_set_publish_is_written_between_polls_read_back_and_a_bad_one_never_reaches_the_bus(tmp_path):
     (tmp_path / "pump.toml").write_text(
-        '[points.level]\nref = 40011\nscale = 0.1\n'
+        "[points.level]\nref = 40011\nscale = 0.1\n"
         '[points.setpoint]\nref = 40501\nscale = 0.1\nunit = "m3/h"\naccess = "rw"\n'
         '[points.limit]\nref = 40502\naccess = "rw"\n'
     )
     bus = PtyPair()
     try:
-        with mosquitto() as broker, serve("-u", "1", "--framer", "rtu", *PTY_SERIAL_OPTS, target=bus.device_path):
+        with (
+            mosquitto() as broker,
+            serve("-u", "1", "--framer", "rtu", *PTY_SERIAL_OPTS, target=bus.device_path),
+        ):
             plant = tmp_path / "plant.toml"
             plant.write_text(
                 f'[poll]\ninterval = 0.2\n[links.bus]\ntarget = "{bus.mbtool_path}"\nparity = "N"\n'
@@ -571,11 +597,15 @@ def test_a_set_publish_is_written_between_polls_read_back_and_a_bad_one_never_re
                     subscriber.client.publish(f"{base}/{point}/set", value, qos=1)
                     topic = f"{base}/{point}/result"
                     count = len(subscriber.on(topic))
-                    assert subscriber.wait_for(lambda m, t=topic, c=count: len(subscriber.on(t)) > c, 5), point
+                    assert subscriber.wait_for(lambda m, t=topic, c=count: len(subscriber.on(t)) > c, 5), (
+                        point
+                    )
                     got = subscriber.on(topic)[-1]
                     assert got.startswith(result), (point, value, got)
                 # The next poll reads what was written.
-                assert subscriber.wait_for(lambda m: json.loads(subscriber.on(base)[-1])["points"]["setpoint"] == 12.5, 5)
+                assert subscriber.wait_for(
+                    lambda m: json.loads(subscriber.on(base)[-1])["points"]["setpoint"] == 12.5, 5
+                )
             finally:
                 proc.send_signal(signal.SIGTERM)
                 out, err = proc.communicate(timeout=10)
@@ -613,7 +643,10 @@ def test_two_shards_publish_their_halves_to_one_broker_labelled_and_never_collid
     )
     with mosquitto() as broker:
         subscriber = Subscriber(broker.port, ["plants/#", "mbtool/#"])
-        shards = [start_mbtool("poll", plant, "--shard", f"{k}/2", "--mqtt", broker.url, "--rounds", "8") for k in (0, 1)]
+        shards = [
+            start_mbtool("poll", plant, "--shard", f"{k}/2", "--mqtt", broker.url, "--rounds", "8")
+            for k in (0, 1)
+        ]
         ends = [shard.communicate(timeout=20) for shard in shards]
         for shard, (_, err) in zip(shards, ends, strict=True):
             assert shard.returncode == 0 and "Traceback" not in err, err
@@ -653,7 +686,9 @@ def test_read_interval_publishes_each_poll_as_one_message_with_its_availability(
         finally:
             proc.kill()
             proc.communicate(timeout=5)
-        assert subscriber.wait_for(lambda m: subscriber.on(f"mbtool/{host}/unit1/status")[-1:] == [b"offline"], 5)
+        assert subscriber.wait_for(
+            lambda m: subscriber.on(f"mbtool/{host}/unit1/status")[-1:] == [b"offline"], 5
+        )
         subscriber.close()
     records = _json(subscriber.on(f"mbtool/{host}/pump"))
     expected = {"level": 1.0, "flow": 21.5, "running": True, "mode": "auto"}

@@ -466,7 +466,10 @@ def test_a_textfile_is_the_whole_plant_never_seen_half_written(small_plant, tmp_
     assert len(reads) > 10
     assert ("dead", 0.0) in seen and ("meter1", 1.0) in seen and ("plc", 1.0) in seen
     final = textfile.read_text()
-    assert f'modbus_up{{device="dead",instance="{os.uname().nodename}"}} 0' in final and "modbus_voltage{" in final
+    assert (
+        f'modbus_up{{device="dead",instance="{os.uname().nodename}"}} 0' in final
+        and "modbus_voltage{" in final
+    )
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".plant.prom")]
 
 

@@ -174,9 +174,9 @@ def test_sparkplug_b_births_data_deaths_rebirth_and_a_dcmd_write(tmp_path, Paylo
             for topic, payload, _ in subscriber.messages
             if "/NDEATH/" not in topic and "CMD/" not in topic
         ]
-        assert seqs[0] == 0 and all(
-            b in (0, (a + 1) % 256) for a, b in zip(seqs, seqs[1:], strict=False)
-        ), seqs
+        assert seqs[0] == 0 and all(b in (0, (a + 1) % 256) for a, b in zip(seqs, seqs[1:], strict=False)), (
+            seqs
+        )
 
         plant.poll.send_signal(signal.SIGKILL)  # no goodbye: the broker says the will, NDEATH
         plant.poll.wait(5)
@@ -218,10 +218,7 @@ def test_with_a_primary_host_the_node_is_born_only_while_its_state_says_online(t
         subscriber.client.publish(state, b'{"online": true, "timestamp": 3}', qos=1, retain=True)
         assert subscriber.wait_for(lambda m: len(births()) == 2, 10)
         again = births()[-1]
-        assert (
-            again.seq == 0
-            and {m.name: _value(m) for m in again.metrics}["bdSeq"] == (bdseq + 1) % 256
-        )
+        assert again.seq == 0 and {m.name: _value(m) for m in again.metrics}["bdSeq"] == (bdseq + 1) % 256
     err = plant.err
     assert "Traceback" not in err
     assert "primary host scada offline" in err

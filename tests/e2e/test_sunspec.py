@@ -553,7 +553,9 @@ def test_an_interrupted_walk_shows_the_models_it_found(sig):
     assert proc.returncode == ExitCode.INTERRUPTED, err
     assert "Traceback" not in err
     lines = out.splitlines()
-    assert lines[0].startswith("SunSpec at 40000, unit 1: ") and "model 1 common (Common) at 40002" in out, out
+    assert lines[0].startswith("SunSpec at 40000, unit 1: ") and "model 1 common (Common) at 40002" in out, (
+        out
+    )
     found = [line for line in lines if line.startswith("model ")]
     assert 2 <= len(found) < MAX_MODELS, out
     last = err.splitlines()[-1]
