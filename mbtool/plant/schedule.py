@@ -464,6 +464,23 @@ def _nothing() -> None:
     """A hook with nothing to do."""
 
 
+class Stop(threading.Event):
+    """The run's stop: an Event that says it was set by a plain attribute as well (``asked``),
+    which a worker's loop reads every turn, where ``is_set()`` would be a call of Python's."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked = False
+
+    def set(self) -> None:
+        self.asked = True  # first: whoever the Event wakes sees it asked
+        super().set()
+
+    def clear(self) -> None:
+        self.asked = False
+        super().clear()
+
+
 class Clock:
     """The scheduler's clocks: ``monotonic`` for its slots and back-offs, ``time`` for the
     records' stamps, and ``wait``, cut short when the run is stopped.  The tests give a fake
@@ -474,7 +491,7 @@ class Clock:
     time = staticmethod(time.time)  # last: the module's name is the clock's from here on
 
     @staticmethod
-    def wait(stop: threading.Event, seconds: float) -> None:
+    def wait(stop: Stop, seconds: float) -> None:
         stop.wait(seconds)
 
 
@@ -486,7 +503,7 @@ class LinkWorker:
         spec: LinkSpec,
         devices: list[DeviceState],
         report: Callable[[Poll | Event], None],
-        stop: threading.Event,
+        stop: Stop,
         rounds: int = 0,
         trace=None,
         go: threading.Event | None = None,
@@ -766,7 +783,7 @@ class LinkWorker:
         # times, and a while's test jumping back does not count: this function, called once a
         # run, would have read every attribute of every turn the generic way.
         while True:
-            if stop.is_set():
+            if stop.asked:
                 return
             self.turns += 1
             if self.jobs is not None:
@@ -801,8 +818,8 @@ class LinkWorker:
         --interval): a turn asks only whether its one group is due (never before its device's
         back-off ends, nor after its rounds) and its link open."""
         link, monotonic, stop, poll = self.link, self.monotonic, self.stop, self.poll
-        while True:  # not ``while not stop.is_set()``, as _work's
-            if stop.is_set():
+        while True:  # not ``while not stop.asked``, as _work's
+            if stop.asked:
                 return
             self.turns += 1
             now = monotonic()
@@ -1162,7 +1179,7 @@ class Plant:
         is called on the thread that calls ``run``, with each record as the workers publish it."""
         self.report = report
         self.records: queue.SimpleQueue[Poll | Event] = queue.SimpleQueue()
-        self.stop = threading.Event()
+        self.stop = Stop()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
         self.start_within = START_WITHIN
