@@ -20,7 +20,6 @@ the record into the summary line and the --stats json figures.
 from __future__ import annotations
 
 import gc
-import threading
 from collections.abc import Callable
 from typing import Protocol
 
@@ -30,7 +29,7 @@ from mbtool.errors import ExitCode, NoResponse, PartialRead, exit_code_for
 from mbtool.link.connection import Connection, open_client
 from mbtool.link.managed import Backoff
 from mbtool.link.stats import Stats
-from mbtool.plant.schedule import Clock, DeviceSpec, DeviceState, GroupState, LinkSpec, LinkWorker, Poll
+from mbtool.plant.schedule import Clock, DeviceSpec, DeviceState, GroupState, LinkSpec, LinkWorker, Poll, Stop
 
 DEFAULT_INTERVAL = 1.0  # seconds, when only --polls is given
 
@@ -192,7 +191,7 @@ def poll(
         LinkSpec("", connection),
         [state],
         tally.first,
-        threading.Event(),
+        Stop(),  # set by no one: Ctrl-C ends this thread's polls
         polls or 0,
         clock=clock,
         open_link=lambda: open_client(connection, request.name, trace=trace),

@@ -464,6 +464,23 @@ def _nothing() -> None:
     """A hook with nothing to do."""
 
 
+class Stop(threading.Event):
+    """The run's stop: an Event that says it was set by a plain attribute as well (``asked``),
+    which a worker's loop reads every turn, where ``is_set()`` would be a call of Python's."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked = False
+
+    def set(self) -> None:
+        self.asked = True  # first: whoever the Event wakes sees it asked
+        super().set()
+
+    def clear(self) -> None:
+        self.asked = False
+        super().clear()
+
+
 class Clock:
     """The scheduler's clocks: ``monotonic`` for its slots and back-offs, ``time`` for the
     records' stamps, and ``wait``, cut short when the run is stopped.  The tests give a fake
@@ -474,7 +491,7 @@ class Clock:
     time = staticmethod(time.time)  # last: the module's name is the clock's from here on
 
     @staticmethod
-    def wait(stop: threading.Event, seconds: float) -> None:
+    def wait(stop: Stop, seconds: float) -> None:
         stop.wait(seconds)
 
 
@@ -486,7 +503,7 @@ class LinkWorker:
         spec: LinkSpec,
         devices: list[DeviceState],
         report: Callable[[Poll | Event], None],
-        stop: threading.Event,
+        stop: Stop,
         rounds: int = 0,
         trace=None,
         go: threading.Event | None = None,
@@ -766,7 +783,7 @@ class LinkWorker:
         # times, and a while's test jumping back does not count: this function, called once a
         # run, would have read every attribute of every turn the generic way.
         while True:
-            if stop.is_set():
+            if stop.asked:
                 return
             self.turns += 1
             if self.jobs is not None:
@@ -779,7 +796,7 @@ class LinkWorker:
                 ready_at = link.ready_at
                 due = self._earliest(now) if ready_at <= now else None
             if due is None:
-                if not self._rest(now, max(self._next_due(), ready_at)):
+                if self._rest(now, max(self._next_due(), ready_at)) is None:
                     return
                 continue
             device, group = due
@@ -790,10 +807,9 @@ class LinkWorker:
                     continue
             client = link.client
             if client is None:
-                opened = self._reopen(device, now)
-                if opened is None:
+                now, client = self._reopen(device, now)
+                if client is None:
                     continue
-                now, client = opened
             poll(device, group, now, client)
 
     def _work_alone(self, device: DeviceState, group: GroupState) -> None:
@@ -801,48 +817,54 @@ class LinkWorker:
         --interval): a turn asks only whether its one group is due (never before its device's
         back-off ends, nor after its rounds) and its link open."""
         link, monotonic, stop, poll = self.link, self.monotonic, self.stop, self.poll
-        while True:  # not ``while not stop.is_set()``, as _work's
-            if stop.is_set():
+        # A turn's time is when the one before ended: a poll's end, a rest's waking, an open's end.
+        now = monotonic()
+        while True:  # not ``while not stop.asked``, as _work's
+            if stop.asked:
                 return
             self.turns += 1
-            now = monotonic()
             client = link.client
             due = group.due
             if due > now:  # its next slot; a link that is not open, ready to open again no sooner
-                if not self._rest(now, due if client is not None else max(due, link.ready_at)):
+                woke = self._rest(now, due if client is not None else max(due, link.ready_at))
+                if woke is None:
                     return
+                now = woke
                 continue
             if client is None:
                 ready_at = link.ready_at
                 if ready_at > now:
-                    if not self._rest(now, ready_at):
+                    woke = self._rest(now, ready_at)
+                    if woke is None:
                         return
+                    now = woke
                     continue
-                opened = self._reopen(device, now)
-                if opened is None:
+                now, client = self._reopen(device, now)
+                if client is None:
                     continue
-                now, client = opened
-            poll(device, group, now, client)
+            now = poll(device, group, now, client)
 
-    def _rest(self, now: float, wake: float) -> bool:
+    def _rest(self, now: float, wake: float) -> float | None:
         """No group due at ``now``: wait until ``wake``, when the next is due or the link is ready
-        to open again, whichever is later (math.inf: none will be); False: the run is over."""
+        to open again, whichever is later (math.inf: none will be).  The time it woke (monotonic);
+        None: the run is over."""
         if wake == math.inf and self.finished():
-            return False
+            return None
         if self.idle is not None:
             self.idle()
         # a minute at most: a device whose every point is read once waits for a reconnect
         self._sleep(min(max(0.0, wake - now), 60.0))
-        return True
+        return self.clock.monotonic()
 
-    def _reopen(self, device: DeviceState, now: float) -> tuple[float, Client] | None:
+    def _reopen(self, device: DeviceState, now: float) -> tuple[float, Client | None]:
         """The link opened for ``device``'s poll due at ``now``: the time then and its client
         (None: it could not be)."""
-        if not self._open(self._due(now)):
-            return None
+        opened = self._open(self._due(now))
+        now = self.clock.monotonic()
+        if not opened:
+            return now, None
         client = self.link.client
         assert client is not None  # opened
-        now = self.clock.monotonic()
         if device.spec.grid and not device.polls:
             # The grid starts with the first link open: opening sim:// (its imports) or a slow
             # handshake is not a poll overrunning its slot.  What the first link made stays as
@@ -921,10 +943,10 @@ class LinkWorker:
 
     def _poll(
         self, device: DeviceState, group: GroupState, began: float, client: Client, nested: bool = False
-    ) -> None:
+    ) -> float:
         """One poll of ``group``, a group of ``device``, begun at ``began`` (monotonic), on the
-        link's open ``client``.  On a link of several groups, a group due with an earlier
-        deadline is polled between its transactions (``_CutIn``)."""
+        link's open ``client``; the time it ended (monotonic).  On a link of several groups, a
+        group due with an earlier deadline is polled between its transactions (``_CutIn``)."""
         if began - group.due > group.noted_after:  # late for its slot, or a start its pace counts
             group.started(began)
         self.stamp = None
@@ -970,6 +992,8 @@ class LinkWorker:
                 self._overrun()
         if self.after_each or error is not None:
             self._after(client, error is not None, nested)
+            ended = monotonic()  # what follows a poll may wait (the output, shown while idle)
+        return ended
 
     def _after(self, client: Client, failed: bool, nested: bool) -> None:
         """What follows a poll (on ``client``) that failed, or every poll of a link with
@@ -1162,7 +1186,7 @@ class Plant:
         is called on the thread that calls ``run``, with each record as the workers publish it."""
         self.report = report
         self.records: queue.SimpleQueue[Poll | Event] = queue.SimpleQueue()
-        self.stop = threading.Event()
+        self.stop = Stop()
         self.go = threading.Event()
         self.ended = False  # its duration ran out
         self.start_within = START_WITHIN

@@ -255,7 +255,7 @@ def _engine_loop_generic() -> list[str]:
     clock = SteppingClock()
     polling.open_client = lambda *args, **kwargs: _opened(Client(Answering(), TcpFramer(), clock=clock))
     polling.poll(Connection(port="tcp://192.0.2.1"), ReadHoldingRegisters(0, COUNT), _Shown(), 0, 100)
-    turn = ("turns", "client", "due", "is_set")  # what a turn that polls reads and writes
+    turn = ("turns", "client", "due", "asked")  # what a turn that polls reads and writes
     return [
         f"{op.opname} {op.argval}"
         for op in dis.get_instructions(LinkWorker._work_alone, adaptive=True)

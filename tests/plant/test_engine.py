@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import threading
 from contextlib import contextmanager
 from types import SimpleNamespace
 
@@ -33,6 +32,7 @@ from mbtool.plant.schedule import (
     LinkSpec,
     LinkWorker,
     Poll,
+    Stop,
     view_of,
 )
 from mbtool.registermap.groups import ONCE
@@ -57,7 +57,7 @@ class Clock:
     def sleep(self, seconds: float) -> None:
         self.now += seconds
 
-    def wait(self, stop: threading.Event, seconds: float) -> None:
+    def wait(self, stop: Stop, seconds: float) -> None:
         self.waits += 1
         assert self.waits < 10_000, "the worker never ends"
         self.now += seconds
@@ -147,9 +147,7 @@ def run(devices, script=None, opens=(), rounds=0, until=None, due=None, link_opt
     records: list[Poll | Event] = []
     link = Link(clock, script or {}, list(opens))
     spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1, **(link_options or {})))
-    worker = LinkWorker(
-        spec, states, records.append, threading.Event(), rounds, clock=clock, open_link=link, **options
-    )
+    worker = LinkWorker(spec, states, records.append, Stop(), rounds, clock=clock, open_link=link, **options)
     worker.deadline = None if until is None else until
     worker.run()
     if worker.crashed is not None:
@@ -302,7 +300,7 @@ def test_a_job_handed_in_runs_between_polls_on_the_workers_own_link_with_its_dev
             worker.submit("b", job)  # as the publisher's thread does, after a poll
 
     spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    worker = LinkWorker(spec, states, report, threading.Event(), 2, clock=clock, open_link=link)
+    worker = LinkWorker(spec, states, report, Stop(), 2, clock=clock, open_link=link)
     worker.accept_jobs()
     worker.run()
     assert worker.crashed is None
@@ -330,7 +328,7 @@ def test_a_job_while_the_link_is_lost_is_told_so_and_does_not_open_it_before_its
             worker.submit("a", given.append)  # a write handed in while the link is down
 
     spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    worker = LinkWorker(spec, states, report, threading.Event(), 3, clock=clock, open_link=link)
+    worker = LinkWorker(spec, states, report, Stop(), 3, clock=clock, open_link=link)
     worker.accept_jobs()
     worker.run()
     assert worker.crashed is None
@@ -450,7 +448,7 @@ def grouped(clock: Clock, *groups: tuple, offline_after: int = 3) -> DeviceSpec:
 def run_groups(clock: Clock, devices, script=None, rounds=0):
     """As ``run``; a link kept busy (it never waits) is stopped by its records' time."""
     records: list[Poll | Event] = []
-    stop = threading.Event()
+    stop = Stop()
 
     def report(record):
         records.append(record)
@@ -610,7 +608,7 @@ def test_a_read_that_would_make_a_faster_group_late_waits_for_it_on_a_serial_lin
     fast, slow = state.groups
     slow.due, fast.line_time, slow.line_time = 0.9, 0.02, 0.3  # the line's time of each read
     spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    worker = LinkWorker(spec, [state], records.append, threading.Event(), 0, clock=clock, open_link=link)
+    worker = LinkWorker(spec, [state], records.append, Stop(), 0, clock=clock, open_link=link)
     worker.run()
     assert group_polls(records, "fast") == [0, 1, 2, 3]
     assert group_polls(records, "slow") == [1.02]  # after the fast group's read, not at 0.9
@@ -626,7 +624,7 @@ def test_a_read_is_held_back_no_later_than_a_tenth_of_its_own_interval():
     fast.line_time, slow.line_time = 0.05, 0.3
     records, link = [], Link(clock, {}, [])
     spec = LinkSpec("bus", Connection(port="fake://", timeout=0.1))
-    LinkWorker(spec, [state], records.append, threading.Event(), 0, clock=clock, open_link=link).run()
+    LinkWorker(spec, [state], records.append, Stop(), 0, clock=clock, open_link=link).run()
     (first, *_) = group_polls(records, "slow")
     assert 0.2 <= first <= 0.3  # held while less than 0.2 s late, then read
 
@@ -658,7 +656,7 @@ def _engine_bytecodes(rounds: int, grid: bool = False, **options) -> int:
 
 
 @pytest.mark.skipif(sys.version_info[:2] != (3, 11), reason="the budgets are CPython 3.11's bytecodes")
-@pytest.mark.parametrize(("published", "budget"), [(False, 311), (True, 423)])
+@pytest.mark.parametrize(("published", "budget"), [(False, 305), (True, 417)])
 def test_a_poll_that_changes_nothing_costs_the_engine_little(published, budget):
     """Issue 41.9: read --interval (unpublished) and poll (published) run on the engine, whose
     work for a poll that answered and changes no state is its turns (one waits for the slot),
@@ -683,7 +681,9 @@ def test_a_poll_that_changes_nothing_costs_the_engine_little(published, budget):
     run; 307 and 419, fewer instructions, once a turn jumped back unconditionally (the loop is
     specialized in its one call: tests/link/test_transaction_cost.py); 310 and 422 once a group
     of no slots (--interval 0: not counted here) was not asked its next slot, which it has not,
-    every poll.  Counted, not timed: a loaded machine moves a rate, not a count."""
+    every poll; 306 and 418 once a turn asked the run's stop by an attribute, not a call
+    (``Stop.asked``); 304 and 416 once a turn began at the time the poll before it ended, not
+    reading the clock again.  Counted, not timed: a loaded machine moves a rate, not a count."""
     # read --interval's device is on a grid, its poll of one request timed by its round trip, and
     # a poll that changes nothing handed over as its time and readings
     options = {"published": published, "timed": published}

@@ -24,6 +24,7 @@ from mbtool.plant.schedule import (
     LinkWorker,
     Plant,
     Poll,
+    Stop,
     view_of,
     views,
 )
@@ -69,7 +70,7 @@ def test_a_device_keeps_its_schedule_and_skips_slots_it_missed():
 
 
 def _worker(rounds: int, *states: DeviceState, deadline: float | None = None) -> LinkWorker:
-    worker = LinkWorker(LinkSpec("bus", None), list(states), lambda item: None, threading.Event(), rounds)
+    worker = LinkWorker(LinkSpec("bus", None), list(states), lambda item: None, Stop(), rounds)
     worker.deadline = deadline
     return worker
 
