@@ -31,7 +31,7 @@ from pathlib import Path
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
-from plant import ROOT, cpu_seconds, free_ports, mbtool, rss_kb, tcp_server
+from plant import ROOT, cpu_seconds, free_ports, mbtool, rss_kb, tcp_inventory, tcp_server
 
 DEVICES, POINTS, INTERVAL = 50, 20, 1.0
 
@@ -79,14 +79,6 @@ def side_by_side(runs: dict[str, tuple], seconds: float) -> dict[str, dict]:
     time.sleep(max(1, seconds - settle - 2))
     last = {name: sample(proc) for name, proc in procs.items()}
     return {name: result(proc, seconds, first[name], last[name]) for name, proc in procs.items()}
-
-
-def inventory(ports: list[int], mqtt: str = "") -> str:
-    text = f"[poll]\ninterval = {INTERVAL}\n"
-    for index, port in enumerate(ports):
-        text += f'[links.l{index}]\ntarget = "tcp://127.0.0.1:{port}"\n'
-        text += f'[devices.d{index}]\nlink = "l{index}"\nread = ["40001 {POINTS}"]\n'
-    return text + mqtt
 
 
 def main() -> None:
@@ -141,7 +133,9 @@ def main() -> None:
             for index, name in enumerate(("json", "beside", "alone")):
                 mqtt = f'[mqtt]\ntopic = "bench/{name}/{{device}}"\nqos = {args.qos}\n' if index else ""
                 plants[name] = folder / f"{name}.toml"
-                plants[name].write_text(inventory(ports[index * DEVICES : (index + 1) * DEVICES], mqtt))
+                plants[name].write_text(
+                    tcp_inventory(ports[index * DEVICES : (index + 1) * DEVICES], INTERVAL, POINTS) + mqtt
+                )
             runs = side_by_side(
                 {
                     "json": (plants["json"], ("-o", "json")),

@@ -244,6 +244,16 @@ def tcp_server(ports: list[int], ready: threading.Event, registers: int = COUNT)
     asyncio.run(main())
 
 
+def tcp_inventory(ports: list[int], interval: float, registers: int) -> str:
+    """A plant of a TCP device on each of ``ports`` (tcp_server's), each on a link of its own,
+    polled every ``interval`` s for ``registers`` holding registers from 40001."""
+    text = f"[poll]\ninterval = {interval}\n"
+    for index, port in enumerate(ports):
+        text += f'[links.l{index}]\ntarget = "tcp://127.0.0.1:{port}"\n'
+        text += f'[devices.d{index}]\nlink = "l{index}"\nread = ["40001 {registers}"]\n'
+    return text
+
+
 def free_ports(count: int) -> list[int]:
     import socket
 
@@ -283,12 +293,8 @@ def bench_tcp(args, folder: Path) -> None:
             sys.exit("bench: the TCP server did not start")
         cpu_per_transaction = {}
         for devices in (1, count):
-            text = f"[poll]\ninterval = {interval}\n"
-            for index in range(devices):
-                text += f'[links.l{index}]\ntarget = "tcp://127.0.0.1:{ports[index]}"\n'
-                text += f'[devices.d{index}]\nlink = "l{index}"\nread = ["40001 {COUNT}"]\n'
             plant = folder / f"tcp{devices}.toml"
-            plant.write_text(text)
+            plant.write_text(tcp_inventory(ports[:devices], interval, COUNT))
             out = folder / f"tcp{devices}.jsonl"
             seconds = args.tcp_seconds
             with open(out, "w") as sink:
